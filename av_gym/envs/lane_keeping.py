@@ -1,0 +1,182 @@
+"""``av_gym/LaneKeepingLap-v0``: one lap of a closed circuit, steering only, speed held by a controller.
+
+The metric is the cross-track error (CTE): signed lateral offset of the vehicle's reference point from the lane
+centreline, + = right of centre (paper 001's convention). Because the circuit is made of straight and circular
+lanes, CTE is exact (perpendicular distance), unlike highway-env's sine lane whose "lateral" is along the chord
+normal (digest 001 §8.1).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from highway_env import utils
+from highway_env.envs.common.abstract import AbstractEnv
+from highway_env.road.road import Road
+
+from av_gym.envs.observations import LaneKeepingState, StateDict
+from av_gym.envs.track import Track, build_track
+from av_gym.envs.vehicles import SpeedHeldVehicle, SteeringAction
+from av_gym.geometry import NO_OTHERS
+
+
+class LaneKeepingLapEnv(AbstractEnv):
+    """Drive one lap of track ``config["track"]`` as close to the lane centre as possible.
+
+    Action: ``Box(-1, 1, (1,))`` steering, mapped linearly to ±``max_steering`` rad (+ = right).
+    Observation: ``Dict(state=Box(10,))``, see :class:`LaneKeepingState` (privileged; sensor wrappers add more).
+    Episode: ``terminated`` on lap completion (``info["truth"]["lap_completed"]``) or when |CTE| exceeds
+    half the lane width plus ``offroad_margin`` (left the road); ``truncated`` at ``time_limit`` s.
+    Reward: ``1 - (cte / (lane_width/2))**2`` each step (clipped at -1), ``offroad_reward`` when leaving the road.
+    """
+
+    scenario = "lane_keeping"
+
+    @classmethod
+    def default_config(cls) -> dict:
+        config = super().default_config()
+        config.update({
+            "track": "A",  # layout name, see av_gym.envs.track.LAYOUTS ("A" training, "B" held out)
+            "lane_width": 4.0,  # m, highway-env's default lane width
+            "target_speed": 10.0,  # m/s, held by SpeedHeldVehicle's controller
+            "max_steering": float(np.radians(25.0)),  # rad, action ±1 maps to this (Udacity's ±25°, digest 001)
+            "simulation_frequency": 20,  # Hz
+            "policy_frequency": 10,  # Hz
+            "offroad_margin": 1.0,  # m beyond the lane edge at which the car has left the road (half a car width)
+            "offroad_reward": -10.0,
+            "time_limit": None,  # s; None = twice the nominal lap time
+            "start_s": 0.0,  # m along the lap where the car starts (on the lane centre, aligned)
+            "screen_width": 600,
+            "screen_height": 600,
+            "centering_position": [0.5, 0.5],
+            "scaling": 4.0,
+        })
+        return config
+
+    # ----------------------------------------------------------------------------------------------- spaces
+    def define_spaces(self) -> None:
+        self.observation_type = StateDict(self, LaneKeepingState(self))
+        m = float(self.config["max_steering"])
+        self.action_type = SteeringAction(self, steering_range=(-m, m), target_speed=float(self.config["target_speed"]))
+        self.observation_space = self.observation_type.space()
+        self.action_space = self.action_type.space()
+
+    # ----------------------------------------------------------------------------------------------- scene
+    def _reset(self) -> None:
+        self._check_config()
+        self.track: Track = build_track(self.config["track"], lane_width=float(self.config["lane_width"]))
+        self.road = Road(network=self.track.network, np_random=self.np_random,
+                         record_history=self.config["show_trajectories"])
+        start_s = float(self.config["start_s"]) % self.track.length
+        k = int(np.searchsorted(self.track.starts, start_s, side="right") - 1)
+        lane = self.track.lanes[k]
+        s_local = start_s - self.track.starts[k]
+        ego = self.action_type.vehicle_class(self.road, lane.position(s_local, 0.0), lane.heading_at(s_local),
+                                             float(self.config["target_speed"]))
+        self.road.vehicles.append(ego)
+        self.controlled_vehicles = [ego]
+        self._lane_k = k
+        self._lap_s = start_s
+        self._progress = 0.0
+        self._time_limit = (float(self.config["time_limit"]) if self.config["time_limit"]
+                            else 2.0 * self.track.length / float(self.config["target_speed"]))
+
+    def _check_config(self) -> None:
+        c = self.config
+        for key in ("lane_width", "target_speed", "max_steering", "offroad_margin"):
+            if not (np.isfinite(c[key]) and c[key] > 0):
+                raise ValueError(f"env.{key} must be a positive number, got {c[key]!r}")
+        if c["simulation_frequency"] % c["policy_frequency"]:
+            raise ValueError(f"env.simulation_frequency ({c['simulation_frequency']}) must be a multiple of "
+                             f"env.policy_frequency ({c['policy_frequency']})")
+        if c["policy_frequency"] < 10:
+            raise ValueError(f"env.policy_frequency must be >= 10 Hz, got {c['policy_frequency']}")
+
+    # ----------------------------------------------------------------------------------------------- dynamics
+    def _simulate(self, action=None) -> None:
+        # Lap progress is accumulated every simulation tick, so a fast car cannot skip a lane between policy steps.
+        frames = int(self.config["simulation_frequency"] // self.config["policy_frequency"])
+        for frame in range(frames):
+            if action is not None and frame == 0:
+                self.action_type.act(action)
+            self.road.act()
+            self.road.step(1 / self.config["simulation_frequency"])
+            self.steps += 1
+            self._update_progress()
+            if frame < frames - 1:
+                self._automatic_rendering()
+        self.enable_auto_render = False
+
+    def _update_progress(self) -> None:
+        k, s, _ = self.track.locate(self.vehicle.position, self._lane_k)
+        lap_s = self.track.starts[k] + s
+        ds = lap_s - self._lap_s
+        ds -= self.track.length * np.round(ds / self.track.length)  # across the start line
+        self._progress += ds
+        self._lane_k, self._lap_s = k, lap_s
+
+    def lane_state(self) -> dict:
+        """Lane-relative ego state (SI units), shared by the observation and ``info["truth"]``."""
+        ego = self.vehicle
+        lane = self.track.lanes[self._lane_k]
+        s, cte = lane.local_coordinates(ego.position)
+        heading_error = utils.wrap_to_pi(ego.heading - lane.heading_at(s))
+        steering = float(ego.action.get("steering", 0.0)) if ego.action else 0.0
+        beta = np.arctan(0.5 * np.tan(steering))
+        return {
+            "cte": float(cte),
+            "heading_error": float(heading_error),
+            "speed": float(ego.speed),
+            "yaw_rate": float(ego.speed * np.sin(beta) / (ego.LENGTH / 2)),
+            "steering": steering,
+            "lap_s": float(self._lap_s),
+        }
+
+    # ----------------------------------------------------------------------------------------------- episode
+    def _offroad(self) -> bool:
+        cte = self.lane_state()["cte"]
+        return abs(cte) > self.config["lane_width"] / 2 + self.config["offroad_margin"]
+
+    def _lap_completed(self) -> bool:
+        return self._progress >= self.track.length
+
+    def _reward(self, action) -> float:
+        if self._offroad():
+            return float(self.config["offroad_reward"])
+        cte = self.lane_state()["cte"]
+        return float(max(-1.0, 1.0 - (cte / (self.config["lane_width"] / 2)) ** 2))
+
+    def _is_terminated(self) -> bool:
+        return self._lap_completed() or self._offroad() or self.vehicle.crashed
+
+    def _is_truncated(self) -> bool:
+        return self.time >= self._time_limit
+
+    def _info(self, obs, action=None) -> dict:
+        info = super()._info(obs, action)
+        info["truth"] = self.truth()
+        return info
+
+    def truth(self) -> dict:
+        """Ground truth for metrics and tests (never part of the observation). SI units throughout."""
+        ego = self.vehicle
+        t = self.lane_state()
+        t.update({
+            "time": float(self.time),
+            "x": float(ego.position[0]),
+            "y": float(ego.position[1]),
+            "heading": float(ego.heading),
+            "acceleration": float(ego.action.get("acceleration", 0.0)) if ego.action else 0.0,
+            "progress": float(self._progress),
+            "lap_length": float(self.track.length),
+            "lap_completed": bool(self._lap_completed()),
+            "on_road": not self._offroad(),
+            "lane_width": float(self.config["lane_width"]),
+            "vehicle_width": float(ego.WIDTH),
+            "collision": bool(ego.crashed),
+            "others": NO_OTHERS.copy(),
+            "ttc": float("inf"),
+        })
+        return t
+
+
+__all__ = ["LaneKeepingLapEnv", "SpeedHeldVehicle"]

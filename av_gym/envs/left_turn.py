@@ -1,0 +1,219 @@
+"""``av_gym/UnprotectedLeftTurn-v0``: highway-env's four-way intersection, ego from the south turning left
+across the oncoming lane (digest 003 §9.1 for the geometry).
+
+Modes:
+- ``traffic``: highway-env's random IDM traffic and "challenger" (for RL training), spawn rate kept per second.
+- ``ccftap``: Euro NCAP car-to-car front turn-across-path (digest 003 §3.2–3.3): the ego approaches at
+  ``ccftap_ego_speed`` and a single non-reactive target drives straight at ``ccftap_target_speed`` in the oncoming
+  lane, timed to reach the conflict point ``ccftap_dt`` seconds after the ego would (0 = they meet there). The
+  episode runs on after the ego stops until the target has passed, so an ego parked in its path is hit.
+
+Geometry (highway-env 1.12.1, verified in digest 003): south approach ``o0→ir0`` along x = +2 m driving −y, stop
+line at y = 11 m, left-turn arc ``ir0→il1`` (centre (−11, 11), R = 13 m), exit ``il1→o1``. Oncoming lane
+x ∈ [−4, 0]; the ego's arc crosses its centreline at the conflict point (−2, 1.62), 10.48 m of arc past the line.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from highway_env import utils
+from highway_env.envs.common.action import DiscreteMetaAction
+from highway_env.envs.intersection_env import IntersectionEnv
+from highway_env.vehicle.kinematics import Vehicle
+
+from av_gym.envs.lane_path import LanePath
+from av_gym.envs.observations import FastKinematics, StateDict
+from av_gym.envs.vehicles import LongitudinalAction
+from av_gym.geometry import NO_OTHERS, box_corners, constant_velocity_ttc
+
+MODES = ("traffic", "ccftap")
+ACTIONS = ("discrete", "continuous")
+ROUTE = [("o0", "ir0", 0), ("ir0", "il1", 0), ("il1", "o1", 0)]
+ONCOMING_NEAR_EDGE_X = 0.0  # m, the oncoming lane spans x in [-4, 0]
+CONFLICT_POINT = np.array([-2.0, 11.0 - np.sqrt(13.0**2 - 9.0**2)])  # (-2, 1.62) m, see module docstring
+
+
+class UnprotectedLeftTurnEnv(IntersectionEnv):
+    """Unprotected left turn across oncoming traffic; the agent controls only the ego's speed.
+
+    Action (``action``): ``discrete`` = highway-env's longitudinal meta-actions {0: SLOWER, 1: IDLE, 2: FASTER}
+    over ``target_speeds`` (m/s); ``continuous`` = ``Box(-1, 1, (1,))`` mapped to ``acceleration_range`` (m/s²).
+    The ego follows its route laterally in both. Observation: ``Dict(state=Box(15, 7))``, highway-env's Kinematics
+    (presence, x, y, vx, vy, cos_h, sin_h; absolute, normalised). Rewards are rates per second so they do not
+    depend on the policy frequency: ``high_speed_reward`` per second in ``reward_speed_range``, plus one-off
+    ``collision_reward`` and ``arrived_reward``. ``info["truth"]`` carries ground truth for metrics.
+    """
+
+    scenario = "left_turn"
+
+    @classmethod
+    def default_config(cls) -> dict:
+        config = super().default_config()
+        config.update({
+            "mode": "traffic",
+            "action": {"type": "discrete", "target_speeds": [0.0, 4.5, 9.0], "acceleration_range": [-8.0, 3.0]},
+            "simulation_frequency": 20,  # Hz
+            "policy_frequency": 10,  # Hz: a safety shield must be able to decide every 0.1 s (digest 003 §9.2)
+            "duration": 13.0,  # s (traffic); ccftap computes its own limit
+            "spawn_probability": 0.6,  # per second, as in stock highway-env at its 1 Hz policy rate
+            "ttc_horizon": 5.0,  # s, horizon of the constant-velocity TTC reported in truth
+            "ccftap_ego_speed": 15 / 3.6,  # m/s
+            "ccftap_target_speed": 45 / 3.6,  # m/s
+            "ccftap_dt": 0.0,  # s, target reaches the conflict point this long after the ego (0 = they meet)
+            "ccftap_lead_time": 5.0,  # s, the ego starts this long (at its speed) before the stop line, >= 25 m
+        })
+        return config
+
+    # ----------------------------------------------------------------------------------------------- spaces
+    def define_spaces(self) -> None:
+        self._check_config()
+        obs_config = {k: v for k, v in self.config["observation"].items() if k != "type"}
+        self.observation_type = StateDict(self, FastKinematics(self, **obs_config))
+        a = self.config["action"]
+        if a["type"] == "discrete":
+            speeds = [0.0, float(self.config["ccftap_ego_speed"])] if self.config["mode"] == "ccftap" \
+                else a["target_speeds"]
+            self.action_type = DiscreteMetaAction(self, longitudinal=True, lateral=False, target_speeds=speeds)
+        else:
+            self.action_type = LongitudinalAction(self, acceleration_range=tuple(a["acceleration_range"]))
+        self.observation_space = self.observation_type.space()
+        self.action_space = self.action_type.space()
+
+    def _check_config(self) -> None:
+        c = self.config
+        if c["mode"] not in MODES:
+            raise ValueError(f"env.mode must be one of {list(MODES)}, got {c['mode']!r}")
+        if c["action"].get("type") not in ACTIONS:
+            raise ValueError(f"env.action.type must be one of {list(ACTIONS)}, got {c['action'].get('type')!r}")
+        if c["simulation_frequency"] % c["policy_frequency"]:
+            raise ValueError(f"env.simulation_frequency ({c['simulation_frequency']}) must be a multiple of "
+                             f"env.policy_frequency ({c['policy_frequency']})")
+        if not 0.0 <= c["spawn_probability"] <= 1.0:
+            raise ValueError(f"env.spawn_probability must be in [0, 1], got {c['spawn_probability']}")
+        for key in ("ccftap_ego_speed", "ccftap_target_speed", "ccftap_lead_time"):
+            if not c[key] > 0:
+                raise ValueError(f"env.{key} must be positive, got {c[key]!r}")
+
+    def cruise_action(self):
+        """The action that keeps the current speed: IDLE, or zero acceleration (used by always-proceed)."""
+        if isinstance(self.action_type, DiscreteMetaAction):
+            return 1
+        lo, hi = self.action_type.acceleration_range
+        return np.array([utils.lmap(0.0, [lo, hi], [-1.0, 1.0])], dtype=np.float32)
+
+    # ----------------------------------------------------------------------------------------------- scene
+    def _reset(self) -> None:
+        self._make_road()
+        self.route = LanePath([self.road.network.get_lane(i) for i in ROUTE])
+        if self.config["mode"] == "traffic":
+            self._make_vehicles(self.config["initial_vehicle_count"])
+        else:
+            self._make_ccftap()
+        self._route_k = 0
+        self._arrived_time = None
+
+    def _make_ccftap(self) -> None:
+        """Ego and one constant-speed target timed by ``ccftap_dt`` (digest 003 §3.3, §9.8)."""
+        v_e, v_t = float(self.config["ccftap_ego_speed"]), float(self.config["ccftap_target_speed"])
+        approach = self.road.network.get_lane(ROUTE[0])
+        d_start = max(25.0, v_e * float(self.config["ccftap_lead_time"]))  # m before the stop line
+        s0 = approach.length - d_start
+        ego = self.action_type.vehicle_class(self.road, approach.position(s0, 0.0), approach.heading_at(s0), v_e)
+        ego.plan_route_to("o1")
+        if hasattr(ego, "speed_index"):
+            ego.speed_index = ego.speed_to_index(v_e)
+            ego.target_speed = ego.index_to_speed(ego.speed_index)
+        turn = self.road.network.get_lane(ROUTE[1])
+        s_conflict, _ = turn.local_coordinates(CONFLICT_POINT)
+        self.ccftap_ego_arrival = (d_start + s_conflict) / v_e  # s, ego centre at the conflict point
+        t_target = self.ccftap_ego_arrival + float(self.config["ccftap_dt"])
+        target = Vehicle(self.road, CONFLICT_POINT - np.array([0.0, v_t * t_target]), heading=np.pi / 2, speed=v_t)
+        self.road.vehicles += [ego, target]
+        self.controlled_vehicles = [ego]
+        self.ccftap_target = target
+        # Long enough for the ego to exit and the target to clear the intersection, with slack for a stop.
+        t_clear = max(self.ccftap_ego_arrival + 25.0 / v_e, t_target + 30.0 / v_t)
+        self._ccftap_time_limit = t_clear + 8.0
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = super(IntersectionEnv, self).step(action)
+        if self.config["mode"] == "traffic":
+            self._clear_vehicles()
+            # Stock highway-env tries one spawn per policy step at 1 Hz; keep that per-second rate at our rate.
+            p_step = 1.0 - (1.0 - self.config["spawn_probability"]) ** (1.0 / self.config["policy_frequency"])
+            self._spawn_vehicle(spawn_probability=p_step)
+        return obs, reward, terminated, truncated, info
+
+    def _simulate(self, action=None) -> None:
+        super()._simulate(action)
+        if self._arrived_time is None and self.has_arrived(self.vehicle):
+            self._arrived_time = float(self.time)
+
+    # ----------------------------------------------------------------------------------------------- episode
+    def _target_passed(self) -> bool:
+        # The ego can only be in the oncoming lane on its turn arc, which ends below y = 11 m; a target whose rear
+        # is beyond that can no longer reach it.
+        t = self.ccftap_target
+        return t.position[1] - t.LENGTH / 2 > 12.0
+
+    def _reward(self, action) -> float:
+        ego = self.vehicle
+        speed_term = np.clip(utils.lmap(ego.speed, self.config["reward_speed_range"], [0, 1]), 0, 1)
+        reward = self.config["high_speed_reward"] * speed_term / self.config["policy_frequency"]
+        if ego.crashed:
+            reward += self.config["collision_reward"]
+        elif self.has_arrived(ego):
+            reward += self.config["arrived_reward"]
+        return float(reward)
+
+    def _is_terminated(self) -> bool:
+        ego = self.vehicle
+        if ego.crashed:
+            return True
+        if self.config["mode"] == "ccftap":
+            return self.has_arrived(ego) and self._target_passed()
+        return self.has_arrived(ego)
+
+    def _is_truncated(self) -> bool:
+        limit = self._ccftap_time_limit if self.config["mode"] == "ccftap" else self.config["duration"]
+        return self.time >= limit
+
+    def _info(self, obs, action=None) -> dict:
+        info = super()._info(obs, action)
+        info["truth"] = self.truth()
+        return info
+
+    def truth(self) -> dict:
+        """Ground truth for metrics and tests (never part of the observation). SI units throughout."""
+        ego = self.vehicle
+        self._route_k, s, lat = self.route.locate(ego.position, self._route_k)
+        route_s = self.route.path_s(self._route_k, s)
+        stop_line_s = self.route.starts[1]
+        steering = float(ego.action.get("steering", 0.0)) if ego.action else 0.0
+        beta = np.arctan(0.5 * np.tan(steering))
+        others = [v for v in self.road.vehicles if v is not ego]
+        others_arr = np.array([[v.position[0], v.position[1], v.velocity[0], v.velocity[1], v.heading,
+                                v.LENGTH, v.WIDTH] for v in others]) if others else NO_OTHERS.copy()
+        ego_arr = np.array([*ego.position, *ego.velocity, ego.heading, ego.LENGTH, ego.WIDTH])
+        corners = box_corners(ego.position, ego.heading, ego.LENGTH, ego.WIDTH)
+        conflict_s = stop_line_s + self.route.lanes[1].local_coordinates(CONFLICT_POINT)[0]
+        return {
+            "time": float(self.time),
+            "x": float(ego.position[0]),
+            "y": float(ego.position[1]),
+            "heading": float(ego.heading),
+            "speed": float(ego.speed),
+            "yaw_rate": float(ego.speed * np.sin(beta) / (ego.LENGTH / 2)),
+            "acceleration": float(ego.action.get("acceleration", 0.0)) if ego.action else 0.0,
+            "steering": steering,
+            "route_s": route_s,
+            "cte": lat,
+            "stop_line_offset": route_s + ego.LENGTH / 2 - stop_line_s,
+            "distance_to_conflict": conflict_s - route_s,
+            "oncoming_gap": float(corners[:, 0].min() - ONCOMING_NEAR_EDGE_X),
+            "collision": bool(ego.crashed),
+            "arrived": bool(self.has_arrived(ego)),
+            "arrived_time": self._arrived_time,
+            "others": others_arr,
+            "ttc": constant_velocity_ttc(ego_arr, others_arr, horizon=float(self.config["ttc_horizon"])),
+        }

@@ -1,0 +1,83 @@
+"""Ego vehicles and action types for our scenarios, as small subclasses of highway-env's.
+
+highway-env offers steering-only control only with zero acceleration, and longitudinal-only continuous control only
+with zero steering. Our scenarios need the complementary halves: the lap holds speed with a controller while the
+agent steers, and the left turn follows its route laterally while the agent commands acceleration.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+from gymnasium import spaces
+from highway_env import utils
+from highway_env.envs.common.action import ContinuousAction
+from highway_env.vehicle.controller import ControlledVehicle
+from highway_env.vehicle.kinematics import Vehicle
+
+
+class SpeedHeldVehicle(Vehicle):
+    """Kinematic bicycle whose speed is held at ``target_speed`` (m/s) by a proportional controller
+    (time constant ``TAU_ACC`` = 0.6 s, highway-env's own cruise-control constant); steering comes from the action."""
+
+    TAU_ACC = ControlledVehicle.TAU_ACC
+
+    def __init__(self, road, position, heading: float = 0.0, speed: float = 0.0, target_speed: float = 10.0):
+        super().__init__(road, position, heading, speed)
+        self.target_speed = target_speed
+
+    def act(self, action: dict | None = None) -> None:
+        if action:
+            self.action = dict(action)
+        self.action["acceleration"] = (self.target_speed - self.speed) / self.TAU_ACC
+
+
+class SteeringAction(ContinuousAction):
+    """Continuous steering in [-1, 1] mapped to ``steering_range`` (rad); + steers right. Speed is held."""
+
+    def __init__(self, env, steering_range=(-np.radians(25), np.radians(25)), target_speed: float = 10.0, **kwargs):
+        super().__init__(env, steering_range=steering_range, longitudinal=False, lateral=True, dynamical=False)
+        self.target_speed = target_speed
+
+    @property
+    def vehicle_class(self) -> Callable:
+        return lambda road, position, heading=0.0, speed=0.0: SpeedHeldVehicle(
+            road, position, heading, speed, target_speed=self.target_speed)
+
+
+class RouteFollowingVehicle(ControlledVehicle):
+    """Follows its planned route with highway-env's lateral controller; acceleration (m/s²) is commanded directly."""
+
+    def __init__(self, road, position, heading: float = 0.0, speed: float = 0.0, **kwargs):
+        super().__init__(road, position, heading, speed, **kwargs)
+        self.commanded_acceleration = 0.0
+
+    def act(self, action: dict | str | None = None) -> None:
+        if isinstance(action, dict) and "acceleration" in action:
+            self.commanded_acceleration = float(action["acceleration"])
+        self.follow_road()
+        steering = np.clip(self.steering_control(self.target_lane_index),
+                           -self.MAX_STEERING_ANGLE, self.MAX_STEERING_ANGLE)
+        # No reversing: a standstill is held rather than integrated into negative speed.
+        acceleration = max(self.commanded_acceleration, -self.speed / 0.05)
+        Vehicle.act(self, {"steering": steering, "acceleration": acceleration})
+
+
+class LongitudinalAction(ContinuousAction):
+    """Continuous longitudinal command in [-1, 1] mapped to ``acceleration_range`` (m/s²); steering follows route."""
+
+    def __init__(self, env, acceleration_range=(-8.0, 3.0), **kwargs):
+        super().__init__(env, acceleration_range=acceleration_range, longitudinal=True, lateral=False)
+
+    @property
+    def vehicle_class(self) -> Callable:
+        return RouteFollowingVehicle
+
+    def space(self) -> spaces.Box:
+        return spaces.Box(-1.0, 1.0, shape=(1,), dtype=np.float32)
+
+    def act(self, action: np.ndarray) -> None:
+        a = float(np.clip(np.asarray(action, dtype=float).reshape(-1)[0], -1.0, 1.0))
+        self.controlled_vehicle.act({"acceleration": utils.lmap(a, [-1, 1], self.acceleration_range)})
+        self.last_action = np.array([a])
