@@ -44,7 +44,10 @@ class LaneKeepingLapEnv(AbstractEnv):
             "offroad_margin": 1.0,  # m beyond the lane edge at which the car has left the road (half a car width)
             "offroad_reward": -10.0,
             "time_limit": None,  # s; None = twice the nominal lap time
-            "start_s": 0.0,  # m along the lap where the car starts (on the lane centre, aligned)
+            "start_s": 0.0,  # m along the lap where the car starts
+            # Seeded start perturbation, so seeds give different laps even without sensor noise (our choice):
+            "initial_lateral_std": 0.2,  # m, normal, clipped at ±3 std
+            "initial_heading_std": 0.02,  # rad, normal, clipped at ±3 std
             "screen_width": 600,
             "screen_height": 600,
             "centering_position": [0.5, 0.5],
@@ -70,7 +73,9 @@ class LaneKeepingLapEnv(AbstractEnv):
         k = int(np.searchsorted(self.track.starts, start_s, side="right") - 1)
         lane = self.track.lanes[k]
         s_local = start_s - self.track.starts[k]
-        ego = self.action_type.vehicle_class(self.road, lane.position(s_local, 0.0), lane.heading_at(s_local),
+        lat0, psi0 = np.clip(self.np_random.normal(size=2), -3, 3) * [self.config["initial_lateral_std"],
+                                                                        self.config["initial_heading_std"]]
+        ego = self.action_type.vehicle_class(self.road, lane.position(s_local, lat0), lane.heading_at(s_local) + psi0,
                                              float(self.config["target_speed"]))
         self.road.vehicles.append(ego)
         self.controlled_vehicles = [ego]
@@ -85,6 +90,9 @@ class LaneKeepingLapEnv(AbstractEnv):
         for key in ("lane_width", "target_speed", "max_steering", "offroad_margin"):
             if not (np.isfinite(c[key]) and c[key] > 0):
                 raise ValueError(f"env.{key} must be a positive number, got {c[key]!r}")
+        for key in ("initial_lateral_std", "initial_heading_std"):
+            if not (np.isfinite(c[key]) and c[key] >= 0):
+                raise ValueError(f"env.{key} must be a number >= 0, got {c[key]!r}")
         if c["simulation_frequency"] % c["policy_frequency"]:
             raise ValueError(f"env.simulation_frequency ({c['simulation_frequency']}) must be a multiple of "
                              f"env.policy_frequency ({c['policy_frequency']})")

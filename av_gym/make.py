@@ -1,0 +1,99 @@
+"""Build a scenario env, with its sensor preset, shield and metrics recorder, from a config section.
+
+This is the one place that reads the ``env``/``sensors``/``shield`` config groups (``conf/``), converting their
+edge units (km/h, degrees) to the SI units the envs use."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+import av_gym  # noqa: F401  (registers the envs)
+from av_gym import ENV_IDS
+from av_gym.errors import ConfigError
+from av_gym.metrics.recorder import EpisodeMetrics
+
+KMH = 1 / 3.6
+SENSOR_PRESETS = ("truth",)
+SHIELDS = ("none",)
+
+
+def _plain(cfg: Any) -> dict:
+    if cfg is None:
+        return {}
+    if hasattr(cfg, "_metadata"):  # an OmegaConf node; keep av_gym importable without Hydra
+        from omegaconf import OmegaConf
+
+        return OmegaConf.to_container(cfg, resolve=True)
+    if isinstance(cfg, Mapping):
+        return dict(cfg)
+    raise ConfigError(f"expected a mapping for a config section, got {type(cfg).__name__}")
+
+
+def _require(section: dict, key: str, where: str):
+    if key not in section:
+        raise ConfigError(f"{where}.{key} is missing")
+    return section[key]
+
+
+def highway_config(env_cfg: Mapping) -> tuple[str, dict]:
+    """Gymnasium id and highway-env ``config`` dict (SI units) for an ``env`` config section."""
+    c = _plain(env_cfg)
+    name = _require(c, "name", "env")
+    if name not in ENV_IDS:
+        raise ConfigError(f"env.name must be one of {sorted(ENV_IDS)}, got {name!r}")
+    def get(key: str, where: dict = c, prefix: str = "env"):
+        return _require(where, key, prefix)
+
+    common = {"simulation_frequency": int(get("simulation_frequency")),
+              "policy_frequency": int(get("policy_frequency"))}
+    if name == "lane_keeping":
+        config = {
+            "track": get("track"),
+            "lane_width": float(get("lane_width")),
+            "target_speed": float(get("target_speed_kmh")) * KMH,
+            "max_steering": float(np.radians(get("max_steering_deg"))),
+            "offroad_margin": float(get("offroad_margin")),
+            "time_limit": get("time_limit"),
+            "initial_lateral_std": float(get("initial_lateral_std")),
+            "initial_heading_std": float(np.radians(get("initial_heading_std_deg"))),
+            **common,
+        }
+    else:
+        cc, rewards = get("ccftap"), get("rewards")
+        config = {
+            "mode": get("mode"),
+            "action": {"type": get("action"),
+                       "target_speeds": [float(v) * KMH for v in get("target_speeds_kmh")],
+                       "acceleration_range": [float(v) for v in get("acceleration_range")]},
+            "duration": float(get("duration")),
+            "spawn_probability": float(get("spawn_probability")),
+            "ccftap_ego_speed": float(get("ego_speed_kmh", cc, "env.ccftap")) * KMH,
+            "ccftap_target_speed": float(get("target_speed_kmh", cc, "env.ccftap")) * KMH,
+            "ccftap_dt": float(get("dt", cc, "env.ccftap")),
+            "collision_reward": float(get("collision", rewards, "env.rewards")),
+            "arrived_reward": float(get("arrived", rewards, "env.rewards")),
+            "high_speed_reward": float(get("high_speed", rewards, "env.rewards")),
+            **common,
+        }
+    return ENV_IDS[name], config
+
+
+def make_env(env_cfg: Mapping, sensors_cfg: Mapping | None = None, shield_cfg: Mapping | None = None, *,
+             render_mode: str | None = None, record_metrics: bool = True) -> gym.Env:
+    """The full stack for one episode stream: scenario → sensors → shield → :class:`EpisodeMetrics`."""
+    env_id, config = highway_config(env_cfg)
+    sensors = _plain(sensors_cfg).get("name", "truth")
+    if sensors not in SENSOR_PRESETS:
+        raise ConfigError(f"sensors must be one of {list(SENSOR_PRESETS)}, got {sensors!r}")
+    shield = _plain(shield_cfg).get("name", "none")
+    if shield not in SHIELDS:
+        raise ConfigError(f"shield must be one of {list(SHIELDS)}, got {shield!r}")
+    try:
+        env = gym.make(env_id, config=config, render_mode=render_mode)
+    except ValueError as exc:  # the envs validate their own config and name the field
+        raise ConfigError(str(exc)) from None
+    return EpisodeMetrics(env) if record_metrics else env

@@ -1,0 +1,46 @@
+"""``python -m eval env=left_turn agents='[always_proceed,ppo]' episodes=100 seed=1000``"""
+
+from __future__ import annotations
+
+import sys
+
+import hydra
+from omegaconf import DictConfig
+
+from av_gym.errors import ConfigError
+
+
+def evaluate(cfg: DictConfig) -> list[dict]:
+    from av_gym.make import make_env
+    from eval.agents import resolve_agent
+    from eval.report import write_results
+    from eval.runner import run_episodes
+
+    if int(cfg.episodes) < 1:
+        raise ConfigError(f"episodes must be >= 1, got {cfg.episodes}")
+    env_name = cfg.env.name
+    rows = []
+    seeds = range(int(cfg.seed), int(cfg.seed) + int(cfg.episodes))
+    for spec in cfg.agents:
+        env = make_env(cfg.env, cfg.sensors, cfg.shield)
+        label, policy = resolve_agent(spec, env, env_name, cfg.paths.checkpoints)
+        rows += run_episodes(env, policy, seeds, label, progress=cfg.progress_bar)
+        env.close()
+    title = f"{env_name} ({cfg.env.get('mode', '')}), {cfg.episodes} episodes from seed {cfg.seed}".replace(" ()", "")
+    table = write_results(rows, cfg.out_dir, env_name, title)
+    print(f"\n{title}\n\n{table}\n")
+    print(f"[eval] per-episode rows: {cfg.out_dir}/results.csv   summary: {cfg.out_dir}/results.md")
+    return rows
+
+
+@hydra.main(config_path="pkg://conf", config_name="eval", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    try:
+        evaluate(cfg)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,93 @@
+"""Turn an agent spec from the command line into a :class:`agents.Policy` for a given env.
+
+A spec is one of: a rule-based agent named in ``conf/agent/`` (``pid_paper``, ``always_proceed``); a trained kind
+(``ppo``) meaning the newest checkpoint for this env under ``checkpoints/``; or a path to a checkpoint folder or
+``.zip``. Checkpoints are pickles (SB3 zips): load only those you trust."""
+
+from __future__ import annotations
+
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import yaml
+
+from agents import AlwaysProceed, PIDSteering, Policy
+from av_gym.errors import ConfigError
+
+TRAINED_KINDS = ("ppo",)
+
+
+def available_agents() -> list[str]:
+    return sorted(p.name[:-5] for p in (resources.files("conf") / "agent").iterdir() if p.name.endswith(".yaml"))
+
+
+def load_agent_config(name: str) -> dict[str, Any]:
+    path = resources.files("conf") / "agent" / f"{name}.yaml"
+    if not path.is_file():
+        raise ConfigError(f"agent {name!r} is not in conf/agent/; available: {available_agents()} or a checkpoint path")
+    return yaml.safe_load(path.read_text())
+
+
+def find_checkpoint(kind: str, env_name: str, root: str | Path) -> Path:
+    """Newest ``checkpoints/<run>/model.zip`` whose saved config trained ``kind`` on ``env_name``."""
+    found = []
+    for cfg_path in Path(root).glob("*/config.yaml"):
+        cfg = yaml.safe_load(cfg_path.read_text()) or {}
+        model = cfg_path.parent / "model.zip"
+        if model.is_file() and cfg.get("env", {}).get("name") == env_name and cfg.get("agent", {}).get("kind") == kind:
+            found.append(model)
+    if not found:
+        raise ConfigError(f"no {kind} checkpoint for env {env_name!r} under {root}/; train one with "
+                          f"`python -m train env={env_name} agent={kind}` or pass a checkpoint path")
+    return max(found, key=lambda p: p.stat().st_mtime)
+
+
+def _check_scenario(label: str, cfg: dict, env_name: str) -> None:
+    if env_name not in cfg.get("scenarios", [env_name]):
+        raise ConfigError(f"agent {label!r} drives scenarios {cfg['scenarios']}, not {env_name!r}")
+
+
+def _load_trained(path: Path, env: gym.Env, env_name: str) -> Policy:
+    from agents.ppo import SB3Policy
+
+    model_path = path / "model.zip" if path.is_dir() else path
+    if not model_path.is_file():
+        raise ConfigError(f"checkpoint {str(model_path)!r} does not exist")
+    cfg_path = model_path.parent / "config.yaml"
+    if cfg_path.is_file():
+        saved_env = (yaml.safe_load(cfg_path.read_text()) or {}).get("env", {}).get("name")
+        if saved_env != env_name:
+            raise ConfigError(f"checkpoint {str(model_path)!r} was trained on env {saved_env!r}, not {env_name!r}")
+    policy = SB3Policy.load(model_path)
+    if policy.model.observation_space != env.observation_space:
+        raise ConfigError(f"checkpoint {str(model_path)!r} expects observations {policy.model.observation_space}, "
+                          f"this env gives {env.observation_space}")
+    return policy
+
+
+def resolve_agent(spec: str, env: gym.Env, env_name: str, checkpoints: str | Path) -> tuple[str, Policy]:
+    """``(label, policy)`` for one agent spec on ``env`` (the env instance the policy will drive)."""
+    spec = str(spec)
+    if spec in TRAINED_KINDS:
+        path = find_checkpoint(spec, env_name, checkpoints)
+        print(f"[eval] {spec}: using {path}")
+        return spec, _load_trained(path, env, env_name)
+    if spec.endswith(".zip") or "/" in spec or Path(spec).is_dir():
+        path = Path(spec)
+        label = path.parent.name if path.suffix == ".zip" else path.name
+        return label, _load_trained(path, env, env_name)
+    cfg = load_agent_config(spec)
+    _check_scenario(spec, cfg, env_name)
+    kind = cfg.get("kind")
+    if kind == "pid":
+        return spec, PIDSteering(kp=cfg["kp"], ki=cfg["ki"], kd=cfg["kd"], obs_key=cfg["obs_key"],
+                                 cte_index=cfg["cte_index"])
+    if kind == "always_proceed":
+        return spec, AlwaysProceed(env.unwrapped.cruise_action())
+    if kind in TRAINED_KINDS:  # e.g. a named variant of a trainable agent: newest checkpoint of that kind
+        path = find_checkpoint(kind, env_name, checkpoints)
+        print(f"[eval] {spec}: using {path}")
+        return spec, _load_trained(path, env, env_name)
+    raise ConfigError(f"agent {spec!r} has unknown kind {kind!r}; known: pid, always_proceed, {', '.join(TRAINED_KINDS)}")

@@ -1,0 +1,44 @@
+"""Tables of evaluation results: per-episode CSV, aggregated Markdown with 95% confidence intervals."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+from av_gym.metrics import aggregate, format_ci, is_binary, markdown_table
+
+HEADLINE = {
+    "left_turn": ["collision", "success", "time_to_exit_s", "min_ttc_s", "stopped", "mean_speed_mps",
+                  "return"],
+    "lane_keeping": ["lap_completed", "cte_mean_abs_m", "cte_max_abs_m", "cte_mean_abs_units", "cte_std_units",
+                     "cte_max_abs_units", "lane_departures", "steering_sign_changes_per_100m", "return"],
+}
+
+
+def summary_table(rows: list[dict], scenario: str) -> str:
+    """Markdown table: one line per agent, each headline metric as ``mean [95% CI]`` (Wilson for rates)."""
+    agg = aggregate(rows, group_key="agent")
+    metrics = [m for m in HEADLINE[scenario] if m in rows[0]]
+    table = []
+    for g in agg:
+        line = {"agent": g["agent"], "n": g["n"]}
+        for m in metrics:
+            binary = is_binary([r[m] for r in rows])
+            line[m] = format_ci(g[m], g[m + "_lo"], g[m + "_hi"], binary)
+        table.append(line)
+    return markdown_table(table, ["agent", "n", *metrics])
+
+
+def write_results(rows: list[dict], out_dir: str | Path, scenario: str, title: str) -> str:
+    """Write ``results.csv`` (every episode, every metric) and ``results.md``; returns the Markdown table."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    columns = list(dict.fromkeys(k for r in rows for k in r))
+    with open(out / "results.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=columns)
+        writer.writeheader()
+        writer.writerows(rows)
+    table = summary_table(rows, scenario)
+    (out / "results.md").write_text(f"# {title}\n\nMean with 95% confidence interval (Wilson for rates, Student-t "
+                                    f"otherwise) over episodes.\n\n{table}\n")
+    return table

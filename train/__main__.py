@@ -1,0 +1,128 @@
+"""``python -m train [env=left_turn] [agent=ppo] [seed=0] [agent.total_timesteps=...]``
+
+Builds the env stack and the agent from ``conf/``, trains (PPO with stable-baselines3; rule-based agents have
+nothing to train), logs to TensorBoard, writes checkpoints atomically under ``checkpoints/<run_name>/`` with the
+resolved config beside them, then evaluates the result briefly against the scenario's baseline."""
+
+from __future__ import annotations
+
+import functools
+import sys
+import time
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
+
+from av_gym.errors import ConfigError
+
+BASELINES = {"left_turn": "always_proceed", "lane_keeping": "pid_paper"}
+RULE_BASED = ("pid", "always_proceed")
+
+
+def _env_factory(env_cfg: dict, sensors_cfg: dict, shield_cfg: dict):
+    from av_gym.make import make_env
+
+    return make_env(env_cfg, sensors_cfg, shield_cfg)
+
+
+def _validate(cfg: DictConfig) -> None:
+    from eval.agents import available_agents
+
+    agent = cfg.agent
+    kinds = ("ppo", *RULE_BASED)
+    if agent.get("kind") not in kinds:
+        raise ConfigError(f"agent.kind must be one of {list(kinds)}, got {agent.get('kind')!r} "
+                          f"(agents: {available_agents()})")
+    if cfg.env.name not in agent.scenarios:
+        raise ConfigError(f"agent {agent.name!r} drives scenarios {list(agent.scenarios)}, not env={cfg.env.name}")
+    if agent.kind == "ppo":
+        for key in ("total_timesteps", "n_envs", "n_steps", "batch_size"):
+            if int(agent[key]) < 1:
+                raise ConfigError(f"agent.{key} must be a positive integer, got {agent[key]}")
+        if agent.vec_env not in ("subproc", "dummy"):
+            raise ConfigError(f"agent.vec_env must be one of ['subproc', 'dummy'], got {agent.vec_env!r}")
+
+
+def train(cfg: DictConfig) -> dict:
+    """Train and briefly evaluate; returns where things went (``run_dir``, ``tensorboard``, ``checkpoint``)."""
+    import torch
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+    from agents.ppo import make_ppo
+    from av_gym.make import make_env
+    from eval.agents import resolve_agent
+    from eval.report import write_results
+    from eval.runner import run_episodes
+    from train.callbacks import AtomicCheckpointCallback, EpisodeMetricsCallback
+    from train.checkpoint import save_model_atomic, write_text_atomic
+
+    _validate(cfg)
+    make_env(cfg.env, cfg.sensors, cfg.shield).close()  # fail fast on a bad env/sensors/shield config
+    torch.set_num_threads(int(cfg.train.torch_threads))
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    ckpt_dir = Path(cfg.paths.checkpoints) / cfg.run_name
+    tb_dir = run_dir / "tb"
+    ckpt_dir.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(ckpt_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
+
+    agent, env_name = cfg.agent, cfg.env.name
+    model_path = None
+    t0 = time.time()
+    if agent.kind == "ppo":
+        plain = [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
+        vec_cls = SubprocVecEnv if (agent.vec_env == "subproc" and agent.n_envs > 1) else DummyVecEnv
+        venv = make_vec_env(functools.partial(_env_factory, *plain), n_envs=int(agent.n_envs), seed=int(cfg.seed),
+                            vec_env_cls=vec_cls)
+        model = make_ppo(venv, OmegaConf.to_container(agent, resolve=True), seed=int(cfg.seed),
+                         tensorboard_log=str(tb_dir), device=agent.device)
+        callbacks = [EpisodeMetricsCallback(env_name),
+                     AtomicCheckpointCallback(ckpt_dir, int(cfg.train.checkpoint_every))]
+        try:
+            model.learn(total_timesteps=int(agent.total_timesteps), callback=callbacks,
+                        progress_bar=bool(cfg.train.progress_bar), tb_log_name=agent.name)
+        except KeyboardInterrupt:
+            print(f"[train] interrupted at {model.num_timesteps} steps; saving what was learned")
+        model_path = save_model_atomic(model, ckpt_dir / "model.zip")
+        venv.close()
+        print(f"[train] {model.num_timesteps} env steps in {time.time() - t0:.0f} s")
+    else:
+        print(f"[train] agent {agent.name!r} is rule-based: nothing to train")
+
+    rows = []
+    n = int(cfg.train.eval_episodes)
+    if n > 0:
+        seeds = range(int(cfg.train.eval_seed), int(cfg.train.eval_seed) + n)
+        baseline = BASELINES[env_name] if cfg.train.baseline == "auto" else cfg.train.baseline
+        specs = ([str(ckpt_dir)] if model_path else []) + [baseline if model_path else agent.name]
+        for spec in specs:
+            env = make_env(cfg.env, cfg.sensors, cfg.shield)
+            label, policy = resolve_agent(spec, env, env_name, cfg.paths.checkpoints)
+            label = agent.name if spec == str(ckpt_dir) else label
+            rows += run_episodes(env, policy, seeds, label, progress=bool(cfg.train.progress_bar))
+            env.close()
+        table = write_results(rows, run_dir, env_name, f"{cfg.run_name}: brief evaluation, {n} episodes")
+        print(f"\n[train] brief evaluation on {n} held-out seeds ({seeds.start}..{seeds.stop - 1}):\n\n{table}\n")
+
+    where = {"run_dir": str(run_dir), "tensorboard": str(tb_dir),
+             "checkpoint": str(model_path) if model_path else None, "config": str(ckpt_dir / "config.yaml")}
+    print(f"[train] logs:        {run_dir}")
+    if model_path:
+        print(f"[train] tensorboard: tensorboard --logdir {tb_dir}")
+        print(f"[train] checkpoint:  {model_path.resolve()}  (config beside it: config.yaml)")
+    return where
+
+
+@hydra.main(config_path="pkg://conf", config_name="train", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    try:
+        train(cfg)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()
