@@ -154,10 +154,10 @@ class LaneKeepingLapEnv(AbstractEnv):
         return float(max(-1.0, 1.0 - (cte / (self.config["lane_width"] / 2)) ** 2))
 
     def _is_terminated(self) -> bool:
-        return self._lap_completed() or self._offroad() or self.vehicle.crashed
+        return bool(self._lap_completed() or self._offroad() or self.vehicle.crashed)
 
     def _is_truncated(self) -> bool:
-        return self.time >= self._time_limit
+        return bool(self.time >= self._time_limit)
 
     def _info(self, obs, action=None) -> dict:
         info = super()._info(obs, action)

@@ -171,12 +171,12 @@ class UnprotectedLeftTurnEnv(IntersectionEnv):
         if ego.crashed:
             return True
         if self.config["mode"] == "ccftap":
-            return self.has_arrived(ego) and self._target_passed()
-        return self.has_arrived(ego)
+            return bool(self.has_arrived(ego) and self._target_passed())
+        return bool(self.has_arrived(ego))
 
     def _is_truncated(self) -> bool:
         limit = self._ccftap_time_limit if self.config["mode"] == "ccftap" else self.config["duration"]
-        return self.time >= limit
+        return bool(self.time >= limit)
 
     def _info(self, obs, action=None) -> dict:
         info = super()._info(obs, action)

@@ -1,0 +1,85 @@
+"""``python -m train`` and ``python -m eval`` end to end, as a user runs them (small budgets)."""
+
+from __future__ import annotations
+
+import csv
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+FAST_PPO = ["agent.total_timesteps=256", "agent.n_steps=64", "agent.batch_size=64", "agent.n_epochs=1",
+            "agent.n_envs=1", "train.eval_episodes=2", "train.progress_bar=false"]
+
+
+def run(module: str, *overrides: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", module, *overrides], cwd=cwd, capture_output=True, text=True,
+                          timeout=300)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """One tiny PPO run on the left turn, reused by the eval tests."""
+    cwd = tmp_path_factory.mktemp("run")
+    res = run("train", *FAST_PPO, "run_name=tiny", cwd=cwd)
+    assert res.returncode == 0, res.stderr[-3000:]
+    return cwd, res
+
+
+def test_train_writes_checkpoint_config_tensorboard_and_prints_where(trained):
+    cwd, res = trained
+    ckpt = cwd / "checkpoints" / "tiny"
+    assert (ckpt / "model.zip").is_file() and (ckpt / "config.yaml").is_file()
+    assert "name: left_turn" in (ckpt / "config.yaml").read_text()
+    assert list((cwd / "runs" / "tiny" / "tb").rglob("events.out.tfevents.*"))
+    assert (cwd / "runs" / "tiny" / "results.md").is_file()
+    for word in ("tensorboard --logdir", "checkpoint:", "logs:"):
+        assert word in res.stdout
+    assert not list(ckpt.glob("*.tmp")), "no temporary files left behind"
+
+
+def test_eval_compares_checkpoint_with_baseline_on_the_same_seeds(trained):
+    cwd, _ = trained
+    res = run("eval", "agents=[always_proceed,ppo]", "episodes=3", "seed=7", "out_dir=out", "progress_bar=false",
+              cwd=cwd)
+    assert res.returncode == 0, res.stderr[-3000:]
+    rows = list(csv.DictReader(open(cwd / "out" / "results.csv")))
+    assert [r["agent"] for r in rows] == ["always_proceed"] * 3 + ["ppo"] * 3
+    assert [r["seed"] for r in rows] == ["7", "8", "9"] * 2
+    assert {"collision", "success", "min_ttc_s", "time_to_exit_s"} <= set(rows[0])
+    md = (cwd / "out" / "results.md").read_text()
+    assert "| always_proceed | 3 |" in md and "| ppo | 3 |" in md
+
+
+def test_eval_lane_keeping_pid(tmp_path):
+    res = run("eval", "env=lane_keeping", "agents=[pid_paper]", "episodes=2", "out_dir=out",
+              "progress_bar=false", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    rows = list(csv.DictReader(open(tmp_path / "out" / "results.csv")))
+    assert [float(r["lap_completed"]) for r in rows] == [1.0, 1.0]
+    assert all(0 < float(r["cte_mean_abs_m"]) < 1.0 for r in rows)
+
+
+def test_train_ppo_on_lane_keeping_override(tmp_path):
+    res = run("train", "env=lane_keeping", "agent=ppo", *FAST_PPO, "seed=4", "run_name=lk", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert (tmp_path / "checkpoints" / "lk" / "model.zip").is_file()
+    assert "pid_paper" in res.stdout  # compared with the lane-keeping baseline
+
+
+@pytest.mark.parametrize("module, overrides, needle", [
+    ("train", ["env.mode=rush_hour"], "env.mode must be one of ['traffic', 'ccftap']"),
+    ("train", ["env=lane_keeping", "agent=always_proceed"], "drives scenarios ['left_turn']"),
+    ("train", ["agent.n_envs=0"], "agent.n_envs must be a positive integer"),
+    ("eval", ["agents=[no_such_agent]"], "agent 'no_such_agent' is not in conf/agent/"),
+    ("eval", ["agents=[missing/model.zip]"], "does not exist"),
+    ("eval", ["env=lane_keeping", "agents=[ppo]", "paths.checkpoints=nowhere"], "no ppo checkpoint"),
+])
+def test_bad_input_gives_one_line_and_exit_code_2(tmp_path, module, overrides, needle):
+    res = run(module, *overrides, "progress_bar=false" if module == "eval" else "train.progress_bar=false",
+              cwd=tmp_path)
+    assert res.returncode == 2, res.stderr[-2000:]
+    lines = [line for line in res.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and needle in lines[0] and "Traceback" not in res.stderr
+    assert not (tmp_path / "checkpoints").exists() or not any((tmp_path / "checkpoints").iterdir())
