@@ -17,8 +17,65 @@ from av_gym.errors import ConfigError
 from av_gym.metrics.recorder import EpisodeMetrics
 
 KMH = 1 / 3.6
-SENSOR_PRESETS = ("truth",)
+SENSOR_PRESETS = ("truth", "gnss_imu", "lidar", "cameras", "detector", "full")
 SHIELDS = ("none",)
+
+
+def _sensor_classes() -> dict:
+    """Sensor config key → wrapper class, in the order they are stacked (imported lazily: cameras pull OpenCV)."""
+    from av_gym.sensors.detector import Detector
+    from av_gym.sensors.gnss import GNSS
+    from av_gym.sensors.imu import IMU
+
+    classes = {"gnss": GNSS, "imu": IMU}
+    try:
+        from av_gym.sensors.lidar import Lidar
+        classes["lidar"] = Lidar
+    except ImportError:  # pragma: no cover - during development only
+        pass
+    try:
+        from av_gym.sensors.camera import Cameras
+        classes["cameras"] = Cameras
+    except ImportError:  # pragma: no cover
+        pass
+    classes["detector"] = Detector
+    return classes
+
+
+def add_sensors(env: gym.Env, sensors_cfg: Mapping | None) -> gym.Env:
+    """Stack the sensor wrappers a ``sensors`` preset asks for; drop the privileged ``state`` unless
+    ``keep_state``. Parameter errors name the field (``sensors.gnss.sigma must be >= 0, got -1``)."""
+    import inspect
+
+    from gymnasium.wrappers import FilterObservation
+
+    c = _plain(sensors_cfg)
+    name = c.get("name", "truth")
+    if name not in SENSOR_PRESETS:
+        raise ConfigError(f"sensors must be one of {list(SENSOR_PRESETS)}, got {name!r}")
+    classes = _sensor_classes()
+    known = {"name", "keep_state", *classes}
+    unknown = sorted(set(c) - known)
+    if unknown:
+        raise ConfigError(f"sensors.{unknown[0]} is not a sensor; allowed: {sorted(classes)}")
+    for key, cls in classes.items():
+        params = c.get(key)
+        if params is None:
+            continue
+        allowed = [p for p in inspect.signature(cls.__init__).parameters if p not in ("self", "env")]
+        bad = sorted(set(params) - set(allowed))
+        if bad:
+            raise ConfigError(f"sensors.{key}.{bad[0]} is not a parameter of {cls.__name__}; allowed: {allowed}")
+        try:
+            env = cls(env, **params)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+    if not c.get("keep_state", name == "truth"):
+        keys = [k for k in env.observation_space.spaces if k != "state"]
+        if not keys:
+            raise ConfigError(f"sensors={name} removes the privileged state and adds no sensor")
+        env = FilterObservation(env, filter_keys=keys)
+    return env
 
 
 def _plain(cfg: Any) -> dict:
@@ -86,9 +143,6 @@ def make_env(env_cfg: Mapping, sensors_cfg: Mapping | None = None, shield_cfg: M
              render_mode: str | None = None, record_metrics: bool = True) -> gym.Env:
     """The full stack for one episode stream: scenario → sensors → shield → :class:`EpisodeMetrics`."""
     env_id, config = highway_config(env_cfg)
-    sensors = _plain(sensors_cfg).get("name", "truth")
-    if sensors not in SENSOR_PRESETS:
-        raise ConfigError(f"sensors must be one of {list(SENSOR_PRESETS)}, got {sensors!r}")
     shield = _plain(shield_cfg).get("name", "none")
     if shield not in SHIELDS:
         raise ConfigError(f"shield must be one of {list(SHIELDS)}, got {shield!r}")
@@ -96,4 +150,5 @@ def make_env(env_cfg: Mapping, sensors_cfg: Mapping | None = None, shield_cfg: M
         env = gym.make(env_id, config=config, render_mode=render_mode)
     except ValueError as exc:  # the envs validate their own config and name the field
         raise ConfigError(str(exc)) from None
+    env = add_sensors(env, sensors_cfg)
     return EpisodeMetrics(env) if record_metrics else env

@@ -13,13 +13,14 @@ from highway_env import utils
 from highway_env.envs.common.abstract import AbstractEnv
 from highway_env.road.road import Road
 
+from av_gym.envs.base import ScenarioMixin
 from av_gym.envs.observations import LaneKeepingState, StateDict
 from av_gym.envs.track import Track, build_track
 from av_gym.envs.vehicles import SpeedHeldVehicle, SteeringAction
 from av_gym.geometry import NO_OTHERS
 
 
-class LaneKeepingLapEnv(AbstractEnv):
+class LaneKeepingLapEnv(ScenarioMixin, AbstractEnv):
     """Drive one lap of track ``config["track"]`` as close to the lane centre as possible.
 
     Action: ``Box(-1, 1, (1,))`` steering, mapped linearly to ±``max_steering`` rad (+ = right).
@@ -84,6 +85,7 @@ class LaneKeepingLapEnv(AbstractEnv):
         self._progress = 0.0
         self._time_limit = (float(self.config["time_limit"]) if self.config["time_limit"]
                             else 2.0 * self.track.length / float(self.config["target_speed"]))
+        self._finish_reset()
 
     def _check_config(self) -> None:
         c = self.config
@@ -100,21 +102,8 @@ class LaneKeepingLapEnv(AbstractEnv):
             raise ValueError(f"env.policy_frequency must be >= 10 Hz, got {c['policy_frequency']}")
 
     # ----------------------------------------------------------------------------------------------- dynamics
-    def _simulate(self, action=None) -> None:
-        # Lap progress is accumulated every simulation tick, so a fast car cannot skip a lane between policy steps.
-        frames = int(self.config["simulation_frequency"] // self.config["policy_frequency"])
-        for frame in range(frames):
-            if action is not None and frame == 0:
-                self.action_type.act(action)
-            self.road.act()
-            self.road.step(1 / self.config["simulation_frequency"])
-            self.steps += 1
-            self._update_progress()
-            if frame < frames - 1:
-                self._automatic_rendering()
-        self.enable_auto_render = False
-
-    def _update_progress(self) -> None:
+    def _on_tick(self) -> None:
+        # Lap progress is accumulated every tick, so a fast car cannot skip a lane between policy steps.
         k, s, _ = self.track.locate(self.vehicle.position, self._lane_k)
         lap_s = self.track.starts[k] + s
         ds = lap_s - self._lap_s

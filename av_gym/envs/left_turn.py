@@ -22,6 +22,7 @@ from highway_env.envs.intersection_env import IntersectionEnv
 from highway_env.vehicle.kinematics import Vehicle
 
 from av_gym.envs.lane_path import LanePath
+from av_gym.envs.base import ScenarioMixin
 from av_gym.envs.observations import FastKinematics, StateDict
 from av_gym.envs.vehicles import LongitudinalAction
 from av_gym.geometry import NO_OTHERS, box_corners, constant_velocity_ttc
@@ -33,7 +34,7 @@ ONCOMING_NEAR_EDGE_X = 0.0  # m, the oncoming lane spans x in [-4, 0]
 CONFLICT_POINT = np.array([-2.0, 11.0 - np.sqrt(13.0**2 - 9.0**2)])  # (-2, 1.62) m, see module docstring
 
 
-class UnprotectedLeftTurnEnv(IntersectionEnv):
+class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
     """Unprotected left turn across oncoming traffic; the agent controls only the ego's speed.
 
     Action (``action``): ``discrete`` = highway-env's longitudinal meta-actions {0: SLOWER, 1: IDLE, 2: FASTER}
@@ -111,6 +112,7 @@ class UnprotectedLeftTurnEnv(IntersectionEnv):
             self._make_ccftap()
         self._route_k = 0
         self._arrived_time = None
+        self._finish_reset()
 
     def _make_ccftap(self) -> None:
         """Ego and one constant-speed target timed by ``ccftap_dt`` (digest 003 §3.3, §9.8)."""
@@ -136,16 +138,17 @@ class UnprotectedLeftTurnEnv(IntersectionEnv):
         self._ccftap_time_limit = t_clear + 8.0
 
     def step(self, action):
-        obs, reward, terminated, truncated, info = super(IntersectionEnv, self).step(action)
-        if self.config["mode"] == "traffic":
+        if self.config["mode"] == "traffic" and self.steps > 0:
+            # Stock highway-env clears and spawns traffic right *after* computing the observation, so wrappers
+            # reading the road later would see another scene than the observation and info["truth"]. Doing it
+            # at the start of the next step keeps the same sequence of scenes and random draws.
             self._clear_vehicles()
-            # Stock highway-env tries one spawn per policy step at 1 Hz; keep that per-second rate at our rate.
+            # Stock tries one spawn per policy step at 1 Hz; keep that per-second rate at our policy rate.
             p_step = 1.0 - (1.0 - self.config["spawn_probability"]) ** (1.0 / self.config["policy_frequency"])
             self._spawn_vehicle(spawn_probability=p_step)
-        return obs, reward, terminated, truncated, info
+        return super(IntersectionEnv, self).step(action)  # AbstractEnv.step: IntersectionEnv.step would spawn
 
-    def _simulate(self, action=None) -> None:
-        super()._simulate(action)
+    def _on_tick(self) -> None:
         if self._arrived_time is None and self.has_arrived(self.vehicle):
             self._arrived_time = float(self.time)
 

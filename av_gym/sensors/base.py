@@ -1,0 +1,98 @@
+"""What every sensor wrapper shares: its key in the ``Dict`` observation, a per-episode seeded generator, and
+read access to the true simulator state.
+
+A sensor is a ``gymnasium.ObservationWrapper`` that *adds* one key (``self.key``) to the observation dict and
+leaves every other key, and ``info["truth"]``, untouched. Sensors therefore compose in any order. Each draws its
+randomness from its own generator, seeded from the env's ``episode_seed`` (itself drawn from ``reset(seed=...)``)
+and the sensor's key, so adding or reordering sensors never changes another sensor's readings.
+"""
+
+from __future__ import annotations
+
+import functools
+import inspect
+import zlib
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from av_gym.geometry import NO_OTHERS
+
+
+def sensor_rng(env: gym.Env, key: str) -> np.random.Generator:
+    """The generator for sensor ``key`` in the current episode of ``env``."""
+    unwrapped = env.unwrapped
+    return np.random.default_rng(np.random.SeedSequence([unwrapped.episode_seed, zlib.crc32(key.encode())]))
+
+
+def ego_pose(env: gym.Env) -> np.ndarray:
+    """True ego ``[x, y, heading, speed]`` (m, m, rad, m/s)."""
+    ego = env.unwrapped.vehicle
+    return np.array([ego.position[0], ego.position[1], ego.heading, ego.speed], dtype=float)
+
+
+def others_state(env: gym.Env) -> np.ndarray:
+    """True state of every other vehicle, ``(N, 7)`` ``[x, y, vx, vy, heading, length, width]``."""
+    unwrapped = env.unwrapped
+    ego = unwrapped.vehicle
+    rows = [[v.position[0], v.position[1], v.velocity[0], v.velocity[1], v.heading, v.LENGTH, v.WIDTH]
+            for v in unwrapped.road.vehicles if v is not ego]
+    return np.array(rows, dtype=float) if rows else NO_OTHERS.copy()
+
+
+def sim_time(env: gym.Env) -> float:
+    """Simulation time (s) since the start of the episode, at tick resolution."""
+    unwrapped = env.unwrapped
+    return unwrapped.steps / unwrapped.config["simulation_frequency"]
+
+
+class SensorWrapper(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
+    """Base class: subclasses set ``key``, implement :meth:`sensor_space` and :meth:`measure`, and may override
+    :meth:`on_reset` (per-episode state such as biases), all using ``self.rng``."""
+
+    key: str = ""
+
+    def __init_subclass__(cls, **kwargs) -> None:
+        # Record every subclass's constructor arguments, as Gymnasium's own wrappers do by hand, so that
+        # ``env.spec`` can rebuild the whole stack (``check_env`` and vector envs rely on it).
+        super().__init_subclass__(**kwargs)
+        init = cls.__init__
+        signature = inspect.signature(init)
+
+        @functools.wraps(init)
+        def recorded_init(self, *args, **kw):
+            bound = signature.bind(self, *args, **kw)
+            bound.apply_defaults()
+            gym.utils.RecordConstructorArgs.__init__(
+                self, **{k: v for k, v in bound.arguments.items() if k not in ("self", "env")})
+            init(self, *args, **kw)
+
+        cls.__init__ = recorded_init
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        if not isinstance(env.observation_space, spaces.Dict):
+            raise TypeError(f"{type(self).__name__} needs a Dict observation space, got {env.observation_space}")
+        if self.key in env.observation_space.spaces:
+            raise ValueError(f"observation key {self.key!r} is already provided by an inner wrapper")
+        self.observation_space = spaces.Dict({**env.observation_space.spaces, self.key: self.sensor_space()})
+        self.rng = np.random.default_rng(0)
+
+    def sensor_space(self) -> spaces.Space:
+        raise NotImplementedError
+
+    def on_reset(self) -> None:
+        """Draw per-episode quantities (biases, outage windows) from ``self.rng``."""
+
+    def measure(self):
+        raise NotImplementedError
+
+    def reset(self, *, seed=None, options=None):
+        obs, info = self.env.reset(seed=seed, options=options)
+        self.rng = sensor_rng(self.env, self.key)
+        self.on_reset()
+        return self.observation(obs), info
+
+    def observation(self, observation: dict) -> dict:
+        return {**observation, self.key: self.measure()}

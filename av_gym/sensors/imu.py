@@ -1,0 +1,98 @@
+"""IMU: body-frame longitudinal and lateral acceleration and yaw rate at the simulation rate.
+
+Truth comes from the simulated kinematics, sampled every tick: a_long = dv/dt, yaw rate r = dψ/dt (finite
+differences over one tick) and a_lat = v·r (the centripetal term; the kinematic bicycle has no side slip rate
+worth modelling). Noise model per channel c ∈ {a_long, a_lat, r} and sample k (dt = one tick)::
+
+    z_k = sat( (1 + s_c)·truth_k + b_k + n_k ),   n_k ~ N(0, σ_c²)
+    b_k = b_{k−1} + σ_rw,c·sqrt(dt)·w_k,          b_0 ~ N(0, σ_b0,c²)        (bias instability as a random walk)
+
+Observation ``Box(K, 3)`` with K = simulation_frequency / policy_frequency samples per policy step, oldest first,
+columns ``[a_long (m/s²), a_lat (m/s², + = towards the right), yaw_rate (rad/s, + = turning right)]`` in
+highway-env's convention (y down on screen, so a right turn increases the heading).
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from highway_env import utils
+
+from av_gym.sensors.base import SensorWrapper
+
+G = 9.80665  # m/s²
+
+
+class IMU(SensorWrapper):
+    """Adds ``obs["imu"]``. Parameters (defaults and sources, all digest 000 §5.2 / 002 §4.2 suggestions: neither
+    paper gives IMU numbers):
+
+    - ``accel_sigma`` 0.05 m/s², ``gyro_sigma`` 0.01 rad/s: white noise per sample.
+    - ``accel_bias_sigma`` 0.05 m/s², ``gyro_bias_sigma`` 0.005 rad/s: per-episode initial bias std.
+    - ``accel_bias_walk`` 0.002 m/s²/√s, ``gyro_bias_walk`` 1e-4 rad/s/√s: bias random walk.
+    - ``scale_error`` 0.01: per-episode scale-factor error std (1 %).
+    - ``accel_range`` 16 g, ``gyro_range`` 250 °/s (4.36 rad/s): saturation limits; ``saturate`` True.
+    """
+
+    key = "imu"
+
+    def __init__(self, env: gym.Env, accel_sigma: float = 0.05, gyro_sigma: float = 0.01,
+                 accel_bias_sigma: float = 0.05, gyro_bias_sigma: float = 0.005, accel_bias_walk: float = 0.002,
+                 gyro_bias_walk: float = 1e-4, scale_error: float = 0.01, accel_range: float = 16 * G,
+                 gyro_range: float = np.radians(250.0), saturate: bool = True) -> None:
+        params = dict(accel_sigma=accel_sigma, gyro_sigma=gyro_sigma, accel_bias_sigma=accel_bias_sigma,
+                      gyro_bias_sigma=gyro_bias_sigma, accel_bias_walk=accel_bias_walk,
+                      gyro_bias_walk=gyro_bias_walk, scale_error=scale_error)
+        for name, value in params.items():
+            if not value >= 0:
+                raise ValueError(f"sensors.imu.{name} must be >= 0, got {value}")
+        for name, value in (("accel_range", accel_range), ("gyro_range", gyro_range)):
+            if not value > 0:
+                raise ValueError(f"sensors.imu.{name} must be > 0, got {value}")
+        u = env.unwrapped
+        self.samples = int(u.config["simulation_frequency"] // u.config["policy_frequency"])
+        self.dt = 1.0 / u.config["simulation_frequency"]
+        self.sigma = np.array([accel_sigma, accel_sigma, gyro_sigma])
+        self.bias_sigma = np.array([accel_bias_sigma, accel_bias_sigma, gyro_bias_sigma])
+        self.bias_walk = np.array([accel_bias_walk, accel_bias_walk, gyro_bias_walk])
+        self.scale_error = scale_error
+        self.limits = np.array([accel_range, accel_range, gyro_range]) if saturate else np.full(3, np.inf)
+        self._space_limit = np.array([accel_range, accel_range, gyro_range])
+        super().__init__(env)
+
+    def sensor_space(self) -> spaces.Box:
+        high = np.tile(self._space_limit, (self.samples, 1)).astype(np.float32)
+        return spaces.Box(-high, high, dtype=np.float32)
+
+    def on_reset(self) -> None:
+        unwrapped = self.env.unwrapped
+        if self._tick not in unwrapped.tick_listeners:
+            unwrapped.tick_listeners.append(self._tick)
+        self.bias = self.rng.normal(0.0, self.bias_sigma)
+        self.scale = 1.0 + self.rng.normal(0.0, self.scale_error, 3)
+        ego = unwrapped.vehicle
+        self._prev = (ego.speed, ego.heading)
+        # Before the first tick the car is in steady motion: report its commanded acceleration and model yaw rate.
+        steering = float(ego.action.get("steering", 0.0)) if ego.action else 0.0
+        r0 = ego.speed * np.sin(np.arctan(0.5 * np.tan(steering))) / (ego.LENGTH / 2)
+        a0 = float(ego.action.get("acceleration", 0.0)) if ego.action else 0.0
+        self._buffer = [self._sample(np.array([a0, ego.speed * r0, r0])) for _ in range(self.samples)]
+
+    def _tick(self, unwrapped) -> None:
+        ego = unwrapped.vehicle
+        v0, psi0 = self._prev
+        r = utils.wrap_to_pi(ego.heading - psi0) / self.dt
+        truth = np.array([(ego.speed - v0) / self.dt, ego.speed * r, r])
+        self._prev = (ego.speed, ego.heading)
+        self._buffer.append(self._sample(truth))
+
+    def _sample(self, truth: np.ndarray) -> np.ndarray:
+        self.bias = self.bias + self.bias_walk * np.sqrt(self.dt) * self.rng.normal(size=3)
+        z = self.scale * truth + self.bias + self.rng.normal(0.0, self.sigma)
+        return np.clip(z, -self.limits, self.limits)
+
+    def measure(self) -> np.ndarray:
+        out = np.array(self._buffer[-self.samples:])
+        self._buffer = self._buffer[-self.samples:]
+        return np.clip(out, -self._space_limit, self._space_limit).astype(np.float32)
