@@ -2,7 +2,8 @@
 across the oncoming lane (digest 003 §9.1 for the geometry).
 
 Modes:
-- ``traffic``: highway-env's random IDM traffic and "challenger" (for RL training), spawn rate kept per second.
+- ``traffic``: highway-env's random IDM traffic and "challenger" (for RL training), spawn rate kept per second
+  (stock tries one spawn per second with probability 0.6; we try every policy step with 0.6 / policy_frequency).
 - ``ccftap``: Euro NCAP car-to-car front turn-across-path (digest 003 §3.2–3.3): the ego approaches at
   ``ccftap_ego_speed`` and a single non-reactive target drives straight at ``ccftap_target_speed`` in the oncoming
   lane, timed to reach the conflict point ``ccftap_dt`` seconds after the ego would (0 = they meet there). The
@@ -56,7 +57,7 @@ class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
             "simulation_frequency": 20,  # Hz
             "policy_frequency": 10,  # Hz: a safety shield must be able to decide every 0.1 s (digest 003 §9.2)
             "duration": 13.0,  # s (traffic); ccftap computes its own limit
-            "spawn_probability": 0.6,  # per second, as in stock highway-env at its 1 Hz policy rate
+            "spawn_probability": 0.6,  # expected new vehicles per second, as stock highway-env at its 1 Hz policy rate
             "ttc_horizon": 5.0,  # s, horizon of the constant-velocity TTC reported in truth
             "ccftap_ego_speed": 15 / 3.6,  # m/s
             "ccftap_target_speed": 45 / 3.6,  # m/s
@@ -143,9 +144,8 @@ class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
             # reading the road later would see another scene than the observation and info["truth"]. Doing it
             # at the start of the next step keeps the same sequence of scenes and random draws.
             self._clear_vehicles()
-            # Stock tries one spawn per policy step at 1 Hz; keep that per-second rate at our policy rate.
-            p_step = 1.0 - (1.0 - self.config["spawn_probability"]) ** (1.0 / self.config["policy_frequency"])
-            self._spawn_vehicle(spawn_probability=p_step)
+            # Stock tries one spawn per policy step at 1 Hz: 0.6 vehicles/s expected. Keep that expected rate.
+            self._spawn_vehicle(spawn_probability=self.config["spawn_probability"] / self.config["policy_frequency"])
         return super(IntersectionEnv, self).step(action)  # AbstractEnv.step: IntersectionEnv.step would spawn
 
     def _on_tick(self) -> None:

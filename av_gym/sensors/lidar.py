@@ -196,23 +196,22 @@ def _cast(origin_xy: np.ndarray, angles: np.ndarray, elevations: np.ndarray, mou
         obj, beam = _candidate_pairs(ref, slack, centers, radii, angles, max_range)
         u = np.stack([np.cos(angles[beam]), np.sin(angles[beam])], axis=1)
         o = origin_xy[beam] if per_beam else np.broadcast_to(origin_xy, u.shape)
-        cut = np.searchsorted(obj, [n_seg, n_seg + n_circ])  # obj is sorted: segments, circles, boxes
+        starts = np.array([0, n_seg, n_seg + n_circ, len(centers)])  # obj is sorted: segments, circles, boxes
+        cut = np.searchsorted(obj, starts)
         tan_e = np.tan(elevations)
-        flat_beam = (np.arange(n_ch)[:, None] * n_beams + beam[None, :])  # (E, P)
-        parts = [(slice(0, cut[0]), lambda s: _ray_segments(o[s], u[s], segments[obj[s]]),
-                  lambda s: seg_height[obj[s]]),
-                 (slice(cut[0], cut[1]), lambda s: _ray_circles(o[s], u[s], circles[obj[s] - n_seg]),
-                  lambda s: circ_height[obj[s] - n_seg]),
-                 (slice(cut[1], len(obj)), lambda s: _ray_boxes(o[s], u[s], boxes_corners[obj[s] - n_seg - n_circ]),
-                  lambda s: box_height[obj[s] - n_seg - n_circ])]
-        for kind, (sl, intersect, heights) in enumerate(parts):
+        flat = np.arange(n_ch)[:, None] * n_beams + beam[None, :]  # (E, P) index into the (E·B) result
+        kinds = ((_ray_segments, segments, seg_height), (_ray_circles, circles, circ_height),
+                 (_ray_boxes, boxes_corners, box_height))
+        for kind, (intersect, shapes, heights) in enumerate(kinds):
+            sl = slice(cut[kind], cut[kind + 1])
             if sl.stop <= sl.start:
                 continue
-            t_in, t_out = intersect(sl)
-            r = _hit_ranges(t_in, t_out, heights(sl), tan_e, mount_height)  # (E, P') horizontal
-            np.minimum.at(best, flat_beam[:, sl].ravel(), r.ravel())
-            if kind < 2:
-                np.minimum.at(best_static, flat_beam[:, sl].ravel(), r.ravel())
+            idx = obj[sl] - starts[kind]
+            t_in, t_out = intersect(o[sl], u[sl], shapes[idx])
+            r = _hit_ranges(t_in, t_out, heights[idx], tan_e, mount_height).ravel()  # (E·P',) horizontal m
+            np.minimum.at(best, flat[:, sl].ravel(), r)
+            if kind < 2:  # segments and circles are the static world
+                np.minimum.at(best_static, flat[:, sl].ravel(), r)
     best = best.reshape(n_ch, n_beams)
     is_vehicle = best < best_static.reshape(n_ch, n_beams)
     slant = best / np.cos(elevations)[:, None]  # the range a LiDAR measures is along the beam
@@ -307,22 +306,25 @@ class Lidar(SensorWrapper):
 
     def _check(self) -> None:
         if self.beams < 1:
-            raise ValueError(f"lidar.beams must be >= 1, got {self.beams}")
+            raise ValueError(f"sensors.lidar.beams must be >= 1, got {self.beams}")
         if not 0 < self.fov <= TWO_PI + 1e-12:
-            raise ValueError(f"lidar.fov_deg must be in (0, 360], got {np.degrees(self.fov)}")
+            raise ValueError(f"sensors.lidar.fov_deg must be in (0, 360], got {np.degrees(self.fov)}")
         if not 0 <= self.min_range < self.max_range < np.inf:
-            raise ValueError(f"lidar needs 0 <= min_range < max_range < inf, got {self.min_range}, {self.max_range}")
+            raise ValueError(f"sensors.lidar needs 0 <= min_range < max_range < inf, got {self.min_range}, {self.max_range}")
         if not (np.isfinite(self.range_sigma) and self.range_sigma >= 0):
-            raise ValueError(f"lidar.range_sigma must be >= 0, got {self.range_sigma}")
+            raise ValueError(f"sensors.lidar.range_sigma must be >= 0, got {self.range_sigma}")
         if not 0 <= self.dropout <= 1:
-            raise ValueError(f"lidar.dropout must be in [0, 1], got {self.dropout}")
+            raise ValueError(f"sensors.lidar.dropout must be in [0, 1], got {self.dropout}")
         if len(self.elevations) == 0 or np.any(np.abs(self.elevations) >= np.radians(89.0)):
-            raise ValueError(f"lidar.elevations_deg must be a non-empty list within ±89°, got "
+            raise ValueError(f"sensors.lidar.elevations_deg must be a non-empty list within ±89°, got "
+                             f"{np.degrees(self.elevations)}")
+        if self.planar and np.any(self.elevations != 0.0):
+            raise ValueError("sensors.lidar.planar needs every elevation to be 0°, got "
                              f"{np.degrees(self.elevations)}")
         if self.mount_height < 0 or self.vehicle_height <= 0:
-            raise ValueError("lidar.mount_height must be >= 0 and vehicle_height > 0")
+            raise ValueError("sensors.lidar.mount_height must be >= 0 and vehicle_height > 0")
         if not (self.rate_hz > 0 and self.sweep_time > 0):
-            raise ValueError("lidar.rate_hz and lidar.sweep_time must be positive")
+            raise ValueError("sensors.lidar.rate_hz and sensors.lidar.sweep_time must be positive")
 
     # ----------------------------------------------------------------------------------------------- gym API
     def sensor_space(self) -> spaces.Box:
@@ -421,11 +423,12 @@ class Lidar(SensorWrapper):
         world = roadside_world(self.env)
         others = others_state(self.env)
         boxes = box_corners(others[:, 0:2], others[:, 4], others[:, 5], others[:, 6])
-        inf = np.inf if self.planar else None
-        ranges, is_vehicle = _cast(origin, world_angles, self.elevations, self.mount_height,
-                                   world.segments, world.segment_height if inf is None else inf,
-                                   world.circles, world.circle_height if inf is None else inf,
-                                   boxes, self.vehicle_height if inf is None else inf, self.max_range)
+        if self.planar:  # a 2-D scan plane cuts every object, whatever its height
+            seg_h, circ_h, box_h = np.inf, np.inf, np.inf
+        else:
+            seg_h, circ_h, box_h = world.segment_height, world.circle_height, self.vehicle_height
+        ranges, is_vehicle = _cast(origin, world_angles, self.elevations, self.mount_height, world.segments, seg_h,
+                                   world.circles, circ_h, boxes, box_h, self.max_range)
 
         hit = ranges < self.max_range
         measured = ranges + self.range_sigma * noise

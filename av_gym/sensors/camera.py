@@ -1,0 +1,674 @@
+"""Three windshield cameras (left, centre, right): pinhole perspective renders of the road, its markings, the
+roadside world and the other vehicles, for PilotNet behaviour cloning (digest 001 §2, §8.5a).
+
+Geometry
+--------
+Each camera sits on the windshield at ``forward_offset`` ahead of the vehicle's reference point (its centre in
+highway-env), ``lateral_offset`` across it (+ = driver's right, highway-env's lateral sign) and ``mount_height``
+above the ground, looks along the vehicle heading (plus an optional ``yaw_deg``) and is pitched down by
+``pitch_deg``. The rig puts the side cameras at ``lateral_offset = ∓d`` with ``d =`` :data:`WINDSHIELD_HALF_WIDTH`
+= 0.6 m (our choice: the half-width of a car's windshield; digest 001 §8.5 suggests 0.8–1.0 m, which would sit
+outside the glass of highway-env's 2 m-wide car).
+
+World point ``(x, y, z)`` (highway-env frame: x right, y down on screen, z up, metres) → vehicle-aligned
+``a`` (forward), ``b`` (right), ``u = z − mount_height`` (up) → camera frame (OpenCV convention: X right, Y down,
+Z along the optical axis) ``X = b``, ``Y = −(a·sinθ + u·cosθ)``, ``Z = a·cosθ − u·sinθ`` (θ = pitch) → pixels
+``col = cx + f·X/Z``, ``row = cy + f·Y/Z`` with ``f = (W/2)/tan(hfov/2)`` (square pixels). Polygons are clipped
+against the near plane ``Z = NEAR_PLANE`` (Sutherland–Hodgman) before the division, so geometry beside or behind
+the camera never folds over the image.
+
+Drawing (painter's algorithm): sky gradient and grass (precomputed per camera) → asphalt of every lane →
+lane markings (edge lines for ``CONTINUOUS`` sides, 3 m dashes every 9 m for ``STRIPED`` sides, nothing for
+``NONE``) → vertical things far to near: roadside walls (guard rails, building fronts) as ground-to-height quads,
+cylinders (poles, sign posts, trees) as camera-facing rectangles ``2r`` wide, other vehicles as
+:data:`VEHICLE_HEIGHT`-tall boxes with back faces culled. Scenery shapes are exactly :mod:`av_gym.sensors.world`'s,
+so the camera and the LiDAR see the same world. Rendering is done at ``supersample``× the output size and
+averaged down with ``cv2.resize(INTER_AREA)`` (anti-aliasing).
+
+Conditions and noise
+--------------------
+Deterministic conditions (:class:`Weather`, applied by :func:`render_view`): fog as an airlight blend
+``I' = I·t + A·(1 − t)`` (digest 000 §5.7) with per-pixel transmission ``t = exp(−3.912·d/V)`` (Koschmieder's law,
+visibility ``V``, distance ``d`` from a depth buffer; our choice), and night (darken by an ambient factor plus
+headlight pools, then a gamma; digest 000 §5.7 ranges). Random sensor noise (:class:`CameraNoise`, drawn from the
+wrapper's ``self.rng``): per-episode brightness/contrast and per-camera gain, optional Gaussian blur, per-frame
+Gaussian pixel noise.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, fields, replace
+from functools import lru_cache
+
+import cv2
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from highway_env.road.lane import AbstractLane, LineType
+
+from av_gym.geometry import box_corners
+from av_gym.sensors.base import SensorWrapper, ego_pose, others_state, sim_time
+from av_gym.sensors.world import CIRCLE_KINDS, SEGMENT_KINDS, roadside_world
+
+CAMERA_NAMES = ("left", "centre", "right")
+WINDSHIELD_HALF_WIDTH = 0.6  # m, side-camera offset d (our choice, see module docstring)
+VEHICLE_HEIGHT = 1.5  # m, box height of other vehicles (a typical saloon car; highway-env is 2-D)
+NEAR_PLANE = 0.3  # m, polygons are clipped at this camera depth
+ROAD_STEP = 2.0  # m, asphalt and edge-line sampling along each lane (chord error 2 cm on a 25 m radius)
+MARKING_WIDTH = 0.20  # m, painted line width (our choice; 0.15-0.30 m is usual)
+DASH_LENGTH, DASH_PERIOD = 3.0, 9.0  # m, striped lines: 3 m dash, 6 m gap (our choice, a common urban pattern)
+WALL_PIECE = 3.0  # m, long walls are split into pieces this long so far-to-near sorting stays right
+_SHIFT = 3  # fractional bits of the int32 pixel coordinates handed to OpenCV (sub-pixel polygon edges)
+
+# Palette (RGB, our choice). Kept within ~[20, 230] so moderate pixel noise is rarely clipped.
+SKY_TOP = np.array([95, 145, 215], float)
+SKY_HORIZON = np.array([190, 210, 228], float)
+GRASS = np.array([78, 118, 58], float)
+GROUND_HAZE = np.array([150, 165, 160], float)
+ASPHALT = (88, 88, 92)
+MARKING = (228, 228, 220)
+VEHICLE_COLOUR = np.array([200, 30, 30], float)  # red: no scenery colour is red-dominant
+WINDOW_COLOUR = np.array([45, 52, 64], float)
+WINDOW_BAND = (0.85, 1.35)  # m, window glass heights on vehicle boxes (looks; the box stays the shape)
+WINDOW_INSET = 0.12  # fraction of each side left as body at either end of the window band
+SEGMENT_COLOURS = {"guard_rail": [[170, 172, 178]],
+                   "building": [[176, 162, 138], [150, 150, 156], [168, 140, 116], [196, 186, 160], [128, 132, 140]]}
+CIRCLE_COLOURS = {"pole": [[70, 70, 74]], "sign_post": [[120, 122, 130]], "tree": [[96, 72, 48], [46, 96, 42]]}
+TREE_TRUNK_FRACTION = 0.35  # trees: lower part drawn as trunk (brown), the rest as crown (green); same silhouette
+SUN = np.array([0.45, -0.89])  # unit horizontal direction towards the sun (world x, y), for face shading
+
+
+# ================================================================================================ specifications
+@dataclass(frozen=True)
+class CameraSpec:
+    """One pinhole camera: image size (px), horizontal field of view, mount pose on the ego and render range.
+
+    ``height``/``width`` px (default 66×200, PilotNet's input); ``hfov_deg`` horizontal FOV (deg; 70° makes a 4 m
+    lane fill about a third of the bottom row); ``mount_height`` m above ground; ``pitch_deg`` down (deg; digest
+    001 §8.5 says 5–10°); ``lateral_offset`` m (+ = right); ``forward_offset`` m ahead of the vehicle centre
+    (windshield of a 5 m car); ``yaw_deg`` extra yaw (+ = right, deg); ``max_range`` m, ground and objects further
+    than this are not drawn; ``supersample`` internal resolution factor (anti-aliasing)."""
+
+    height: int = 66
+    width: int = 200
+    hfov_deg: float = 70.0
+    mount_height: float = 1.4
+    pitch_deg: float = 8.0
+    lateral_offset: float = 0.0
+    forward_offset: float = 0.5
+    yaw_deg: float = 0.0
+    max_range: float = 80.0
+    supersample: int = 2
+
+    def __post_init__(self) -> None:
+        if self.height < 2 or self.width < 2:
+            raise ValueError(f"camera image must be at least 2x2 px, got {self.height}x{self.width}")
+        if not 1.0 <= self.hfov_deg <= 170.0:
+            raise ValueError(f"hfov_deg must be in [1, 170], got {self.hfov_deg}")
+        if not (self.mount_height > 0 and self.max_range > NEAR_PLANE):
+            raise ValueError("mount_height must be > 0 and max_range > the near plane")
+        if not (isinstance(self.supersample, int) and 1 <= self.supersample <= 8):
+            raise ValueError(f"supersample must be an int in [1, 8], got {self.supersample!r}")
+
+    @property
+    def hfov(self) -> float:
+        """Horizontal field of view (rad)."""
+        return math.radians(self.hfov_deg)
+
+    @property
+    def pitch(self) -> float:
+        """Downward pitch (rad)."""
+        return math.radians(self.pitch_deg)
+
+    @property
+    def yaw(self) -> float:
+        """Yaw relative to the vehicle heading (rad, + = right)."""
+        return math.radians(self.yaw_deg)
+
+    @property
+    def focal(self) -> float:
+        """Focal length in output pixels."""
+        return (self.width / 2) / math.tan(self.hfov / 2)
+
+    @property
+    def horizon_row(self) -> float:
+        """Image row (output px, 0 = top, pixel centres at integers) of the horizon."""
+        return (self.height - 1) / 2 - self.focal * math.tan(self.pitch)
+
+
+def camera_rig(base: CameraSpec | None = None, d: float = WINDSHIELD_HALF_WIDTH) -> dict[str, CameraSpec]:
+    """Left, centre and right cameras: ``base`` moved to lateral offsets −d, 0, +d (m)."""
+    base = base or CameraSpec()
+    return {name: replace(base, lateral_offset=base.lateral_offset + k * d)
+            for name, k in zip(CAMERA_NAMES, (-1.0, 0.0, 1.0))}
+
+
+@dataclass(frozen=True)
+class Weather:
+    """Deterministic viewing conditions applied by :func:`render_view`.
+
+    ``fog_visibility``: meteorological visibility V (m), ``None`` = clear; transmission ``t = exp(−3.912 d / V)``
+    (Koschmieder; our choice of a distance-dependent t — at the default 120 m, t = 0.72 / 0.52 / 0.27 at 10 / 20 /
+    40 m, around digest 000's suggested global t = 0.4–0.8). ``fog_airlight``: airlight grey level A (8-bit; our
+    choice). ``night``: darken and gamma; ``night_ambient`` brightness factor (digest 000 suggestion ×0.3–0.5),
+    ``night_gamma`` (digest 000 suggestion 1.5–2.2), ``headlights``: add low-beam pools ahead of the ego (our
+    choice: ±~25° wide, falling off as 1/(1 + (d/20 m)²))."""
+
+    fog_visibility: float | None = None
+    fog_airlight: float = 200.0
+    night: bool = False
+    night_ambient: float = 0.4
+    night_gamma: float = 1.8
+    headlights: bool = True
+
+    def __post_init__(self) -> None:
+        if self.fog_visibility is not None and not self.fog_visibility > 0:
+            raise ValueError(f"fog_visibility must be > 0 m or None, got {self.fog_visibility}")
+        if not 0.0 <= self.night_ambient <= 1.0 or not self.night_gamma > 0:
+            raise ValueError("night_ambient must be in [0, 1] and night_gamma > 0")
+
+    @property
+    def needs_depth(self) -> bool:
+        return self.fog_visibility is not None or self.night
+
+
+@dataclass(frozen=True)
+class CameraNoise:
+    """Random sensor noise, all drawn from the wrapper's generator.
+
+    ``pixel_std``: per-frame Gaussian pixel noise σ (8-bit units, independent per pixel and channel; default 3,
+    digest 000 suggestion 2–8 by day). ``night_pixel_std``: σ used when ``Weather.night`` (default 12, digest 000
+    suggestion 8–20). ``brightness``: per-episode offset, uniform in ±this (8-bit units; default 15, our choice).
+    ``contrast``: per-episode gain about mid-grey 128, uniform in 1 ± this (default 0.15, our choice).
+    ``camera_gain``: per-episode, per-camera gain, uniform in 1 ± this (default 0.10, digest 000 suggestion:
+    inter-camera exposure mismatch ±10 %). ``blur_sigma``: Gaussian blur σ (output px; default 0 = off, our
+    choice). Applied in that order: exposure, blur, pixel noise, clip to [0, 255], round."""
+
+    pixel_std: float = 3.0
+    night_pixel_std: float = 12.0
+    brightness: float = 15.0
+    contrast: float = 0.15
+    camera_gain: float = 0.10
+    blur_sigma: float = 0.0
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"CameraNoise.{f.name} must be a number >= 0, got {v!r}")
+        if self.contrast >= 1 or self.camera_gain >= 1:
+            raise ValueError("contrast and camera_gain are fractions and must be < 1")
+
+
+# ================================================================================================ static scene
+@dataclass
+class StaticScene:
+    """The episode's static geometry in world coordinates (m), flattened into arrays for vectorised culling.
+
+    ``road`` (Q, 4, 2) asphalt quads and ``road_group`` (Q,) lane index; ``marks`` (M, 4, 2) painted quads and
+    ``mark_group`` (M,) lane-side index; ``walls`` (P, 4, 3) vertical quads ``[x, y, z]`` with ``wall_colour``
+    (P, 3) RGB; ``posts`` (K, 3) ``[x, y, radius]``, ``post_height`` (K,), ``post_kind`` (K,) index into
+    :data:`CIRCLE_KINDS`. ``*_centre`` (·, 2) are centroids for range culling and depth sorting."""
+
+    road: np.ndarray
+    road_group: np.ndarray
+    marks: np.ndarray
+    mark_group: np.ndarray
+    walls: np.ndarray
+    wall_colour: np.ndarray
+    posts: np.ndarray
+    post_height: np.ndarray
+    post_kind: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.road_centre = self.road.mean(1) if len(self.road) else np.zeros((0, 2))
+        self.mark_centre = self.marks.mean(1) if len(self.marks) else np.zeros((0, 2))
+        self.wall_centre = self.walls[:, :2, :2].mean(1) if len(self.walls) else np.zeros((0, 2))
+
+    def near(self, xy: np.ndarray, radius: float) -> StaticScene:
+        """The part of the scene whose pieces are within ``radius`` m of ``xy`` (shared by a rig's cameras)."""
+        def keep(centre: np.ndarray) -> np.ndarray:
+            return np.einsum("ij,ij->i", centre - xy, centre - xy) <= radius * radius
+
+        r, m, w = keep(self.road_centre), keep(self.mark_centre), keep(self.wall_centre)
+        p = keep(self.posts[:, :2]) if len(self.posts) else np.zeros(0, bool)
+        return StaticScene(self.road[r], self.road_group[r], self.marks[m], self.mark_group[m], self.walls[w],
+                           self.wall_colour[w], self.posts[p], self.post_height[p], self.post_kind[p])
+
+
+def _lane_points(lane: AbstractLane, s: np.ndarray, lat: float) -> np.ndarray:
+    return np.array([lane.position(float(si), lat) for si in s], dtype=float)
+
+
+def _strip(lane: AbstractLane, s: np.ndarray, lat0: float, lat1: float) -> np.ndarray:
+    """Quads (len(s)−1, 4, 2) covering lateral band [lat0, lat1] between consecutive stations ``s``."""
+    p0, p1 = _lane_points(lane, s, lat0), _lane_points(lane, s, lat1)
+    return np.stack([p0[:-1], p0[1:], p1[1:], p1[:-1]], 1)
+
+
+def build_scene(env: gym.Env) -> StaticScene:
+    """Asphalt, markings and roadside scenery of ``env``'s current episode (see :class:`StaticScene`)."""
+    unwrapped = env.unwrapped
+    road, road_g, marks, mark_g = [], [], [], []
+    for g, lane in enumerate(unwrapped.road.network.lanes_list()):
+        w = float(lane.width_at(0.0))
+        s = np.linspace(0.0, lane.length, max(1, int(np.ceil(lane.length / ROAD_STEP))) + 1)
+        q = _strip(lane, s, -w / 2, w / 2)
+        road.append(q)
+        road_g.append(np.full(len(q), g))
+        for side, line_type in enumerate(lane.line_types):  # side 0 = left (lat −w/2), 1 = right (lat +w/2)
+            lat = (side - 0.5) * w
+            if line_type in (LineType.CONTINUOUS, LineType.CONTINUOUS_LINE):
+                q = _strip(lane, s, lat - MARKING_WIDTH / 2, lat + MARKING_WIDTH / 2)
+            elif line_type == LineType.STRIPED:
+                pieces = []
+                for a in np.arange(0.0, lane.length, DASH_PERIOD):
+                    b = min(a + DASH_LENGTH, lane.length)
+                    ds = np.linspace(a, b, max(1, int(np.ceil((b - a) / 1.5))) + 1)  # ≤1.5 m chords on tight arcs
+                    pieces.append(_strip(lane, ds, lat - MARKING_WIDTH / 2, lat + MARKING_WIDTH / 2))
+                q = np.concatenate(pieces) if pieces else np.zeros((0, 4, 2))
+            else:
+                continue
+            marks.append(q)
+            mark_g.append(np.full(len(q), 2 * g + side))
+
+    world = roadside_world(env)
+    walls, colours = [], []
+    for i, ((x0, y0, x1, y1), h, k) in enumerate(zip(world.segments, world.segment_height, world.segment_kind)):
+        p0, p1 = np.array([x0, y0]), np.array([x1, y1])
+        length = float(np.linalg.norm(p1 - p0))
+        if length < 1e-6:
+            continue
+        n = max(1, int(np.ceil(length / WALL_PIECE)))
+        pts = p0 + np.linspace(0.0, 1.0, n + 1)[:, None] * (p1 - p0)
+        normal = np.array([-(y1 - y0), x1 - x0]) / length
+        palette = SEGMENT_COLOURS[SEGMENT_KINDS[k]]
+        colour = np.array(palette[i % len(palette)], float) * (0.65 + 0.35 * abs(normal @ SUN))
+        for a, b in zip(pts[:-1], pts[1:]):
+            walls.append([[*a, 0.0], [*b, 0.0], [*b, h], [*a, h]])
+            colours.append(colour)
+
+    def cat(parts: list, shape: tuple) -> np.ndarray:
+        return np.concatenate(parts).astype(float) if parts else np.zeros(shape)
+
+    return StaticScene(cat(road, (0, 4, 2)), cat(road_g, (0,)).astype(int), cat(marks, (0, 4, 2)),
+                       cat(mark_g, (0,)).astype(int), np.array(walls, float).reshape(-1, 4, 3),
+                       np.array(colours, float).reshape(-1, 3), world.circles.reshape(-1, 3).astype(float),
+                       world.circle_height.astype(float), world.circle_kind.astype(int))
+
+
+def scene_of(env: gym.Env) -> StaticScene:
+    """This episode's :class:`StaticScene`, built once per episode and cached on the unwrapped env."""
+    unwrapped = env.unwrapped
+    key = (id(unwrapped.road), getattr(unwrapped, "episode_seed", None))
+    cached = getattr(unwrapped, "_camera_scene", None)
+    if cached is None or cached[0] != key:
+        unwrapped._camera_scene = (key, build_scene(unwrapped))
+    return unwrapped._camera_scene[1]
+
+
+# ================================================================================================ per-camera caches
+@lru_cache(maxsize=32)
+def _background(spec: CameraSpec) -> np.ndarray:
+    """Sky gradient above the horizon and hazy grass below, at the internal resolution (Hs, Ws, 3) uint8."""
+    ss = spec.supersample
+    hs, ws = spec.height * ss, spec.width * ss
+    rows = (np.arange(hs) - (hs - 1) / 2) / (spec.focal * ss)  # tan of the angle below the optical axis
+    below = spec.pitch + np.arctan(rows)  # angle below the horizontal (rad)
+    sky_t = np.clip(-below / 0.35, 0.0, 1.0)[:, None] ** 0.7
+    sky = SKY_HORIZON + (SKY_TOP - SKY_HORIZON) * sky_t
+    dist = spec.mount_height / np.tan(np.maximum(below, 1e-4))
+    haze = 0.6 * (1.0 - np.exp(-dist / 250.0))[:, None]  # aerial perspective towards the horizon
+    ground = GRASS + (GROUND_HAZE - GRASS) * haze
+    col = np.where((below > 0)[:, None], ground, sky)
+    return np.repeat(np.round(col).astype(np.uint8)[:, None, :], ws, axis=1)
+
+
+@lru_cache(maxsize=32)
+def _ground_rays(spec: CameraSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Per internal pixel: distance (m) to the ground along its ray (inf at and above the horizon), and the
+    headlight beam factor in [0, 1] from the ray's direction. Both (Hs, Ws) float32."""
+    ss = spec.supersample
+    hs, ws = spec.height * ss, spec.width * ss
+    f = spec.focal * ss
+    xn = ((np.arange(ws) - (ws - 1) / 2) / f)[None, :]
+    yn = ((np.arange(hs) - (hs - 1) / 2) / f)[:, None]
+    ct, st = math.cos(spec.pitch), math.sin(spec.pitch)
+    down = st + yn * ct  # −(up component) of the ray (xn, yn, 1) in world terms
+    norm = np.sqrt(xn**2 + yn**2 + 1.0)
+    with np.errstate(divide="ignore"):
+        dist = np.where(down > 1e-6, spec.mount_height / np.maximum(down, 1e-6) * norm, np.inf)
+    elevation = -down / norm  # sine of the ray's elevation above the horizontal
+    beam = np.exp(-(xn / 0.45) ** 2) * np.exp(-(np.maximum(elevation, 0.0) / 0.12) ** 2)
+    return dist.astype(np.float32), np.broadcast_to(beam, (hs, ws)).astype(np.float32)
+
+
+# ================================================================================================ projection
+@dataclass
+class _Pose:
+    """Camera position (m) and yaw (rad) in the world, plus the spec."""
+
+    xy: np.ndarray
+    cos: float
+    sin: float
+    spec: CameraSpec
+
+
+def _camera_pose(pose: np.ndarray, spec: CameraSpec) -> _Pose:
+    x, y, psi = float(pose[0]), float(pose[1]), float(pose[2])
+    f, r = np.array([math.cos(psi), math.sin(psi)]), np.array([-math.sin(psi), math.cos(psi)])
+    xy = np.array([x, y]) + spec.forward_offset * f + spec.lateral_offset * r
+    yaw = psi + spec.yaw
+    return _Pose(xy, math.cos(yaw), math.sin(yaw), spec)
+
+
+def _to_camera(cam: _Pose, xy: np.ndarray, z: np.ndarray | float) -> np.ndarray:
+    """World points ``xy`` (..., 2) m at heights ``z`` (...) m → camera frame (..., 3) ``[X, Y, Z]`` m."""
+    d0, d1 = xy[..., 0] - cam.xy[0], xy[..., 1] - cam.xy[1]
+    a = d0 * cam.cos + d1 * cam.sin  # forward
+    b = -d0 * cam.sin + d1 * cam.cos  # right
+    u = np.asarray(z, dtype=float) - cam.spec.mount_height  # up, relative to the lens
+    ct, st = math.cos(cam.spec.pitch), math.sin(cam.spec.pitch)
+    return np.stack(np.broadcast_arrays(b, -(a * st + u * ct), a * ct - u * st), -1)
+
+
+def _in_frustum(pc: np.ndarray, spec: CameraSpec) -> np.ndarray:
+    """Polygons (N, n, 3) not entirely outside one frustum plane (near plane and the four sides) → (N,) bool."""
+    X, Y, Z = pc[..., 0], pc[..., 1], pc[..., 2]
+    tx = (spec.width / 2 + 1) / spec.focal  # one pixel of margin
+    ty = (spec.height / 2 + 1) / spec.focal
+    out = ((Z < NEAR_PLANE).all(1) | (X > tx * Z).all(1) | (-X > tx * Z).all(1)
+           | (Y > ty * Z).all(1) | (-Y > ty * Z).all(1))
+    return ~out
+
+
+def _clip_near(poly: np.ndarray) -> np.ndarray:
+    """Sutherland–Hodgman clip of one polygon (n, 3) against ``Z >= NEAR_PLANE`` → (m, 3), m may be 0."""
+    out = []
+    n = len(poly)
+    for i in range(n):
+        p, q = poly[i], poly[(i + 1) % n]
+        p_in, q_in = p[2] >= NEAR_PLANE, q[2] >= NEAR_PLANE
+        if p_in:
+            out.append(p)
+        if p_in != q_in:
+            out.append(p + (NEAR_PLANE - p[2]) / (q[2] - p[2]) * (q - p))
+    return np.array(out).reshape(-1, 3)
+
+
+def _to_pixels(pc: np.ndarray, spec: CameraSpec) -> np.ndarray:
+    """Camera-frame points (..., 3) with Z >= near → int32 internal-resolution pixels (..., 2), ``_SHIFT`` bits."""
+    ss = spec.supersample
+    f = spec.focal * ss
+    cx, cy = (spec.width * ss - 1) / 2, (spec.height * ss - 1) / 2
+    uv = np.stack([cx + f * pc[..., 0] / pc[..., 2], cy + f * pc[..., 1] / pc[..., 2]], -1)
+    return np.round(uv * (1 << _SHIFT)).astype(np.int32)
+
+
+def _project(pc: np.ndarray, spec: CameraSpec) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], np.ndarray]:
+    """Split culled polygons (N, n, 3) into those wholly in front of the near plane, projected together
+    ((A, n, 2) int32, their indices), and straddlers, clipped then projected (list of (m, 1, 2), their indices)."""
+    front = (pc[..., 2] >= NEAR_PLANE).all(1)
+    whole = np.flatnonzero(front)
+    cut_idx, cut = [], []
+    for i in np.flatnonzero(~front):
+        c = _clip_near(pc[i])
+        if len(c) >= 3:
+            cut.append(_to_pixels(c, spec).reshape(-1, 1, 2))
+            cut_idx.append(i)
+    return _to_pixels(pc[whole], spec), whole, cut, np.array(cut_idx, dtype=int)
+
+
+def _draw_ground(img: np.ndarray, cam: _Pose, quads: np.ndarray, groups: np.ndarray, colour: tuple) -> None:
+    """Fill ground quads (N, 4, 2) with one colour. Quads of one group never overlap, so each group goes to a
+    single ``fillPoly`` call (whose even-odd rule would punch holes where polygons overlap)."""
+    if not len(quads):
+        return
+    pc = _to_camera(cam, quads, 0.0)
+    keep = _in_frustum(pc, cam.spec)
+    pc, groups = pc[keep], groups[keep]
+    whole, whole_i, cut, _ = _project(pc, cam.spec)
+    g = groups[whole_i]
+    bounds = np.concatenate([[0], np.flatnonzero(np.diff(g)) + 1, [len(g)]])
+    for lo, hi in zip(bounds[:-1], bounds[1:]):
+        if hi > lo:
+            cv2.fillPoly(img, whole[lo:hi], colour, cv2.LINE_8, _SHIFT)
+    for poly in cut:
+        cv2.fillPoly(img, [poly], colour, cv2.LINE_8, _SHIFT)
+
+
+def _vertical_items(scene: StaticScene, others: np.ndarray, cam: _Pose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every vertical quad the camera may see: ((N, 4, 3) world ``[x, y, z]``, (N, 3) RGB, (N,) sort distance m)."""
+    quads, colours, keys = [scene.walls], [scene.wall_colour], [np.linalg.norm(scene.wall_centre - cam.xy, axis=1)]
+    if len(scene.posts):
+        c, r, h = scene.posts[:, :2], scene.posts[:, 2], scene.post_height
+        ray = c - cam.xy
+        dist = np.maximum(np.linalg.norm(ray, axis=1), 1e-6)
+        perp = np.stack([-ray[:, 1], ray[:, 0]], 1) / dist[:, None] * r[:, None]  # faces the camera
+        a, b = c - perp, c + perp
+        tree = scene.post_kind == CIRCLE_KINDS.index("tree")
+        z_top = np.where(tree, h * TREE_TRUNK_FRACTION, h)
+        kind_colour = np.array([CIRCLE_COLOURS[k][0] for k in CIRCLE_KINDS], float)
+        quads.append(_vertical_quads(a, b, np.zeros_like(h), z_top))
+        colours.append(kind_colour[scene.post_kind])
+        keys.append(dist)
+        if tree.any():  # crowns, drawn after their trunks (same key, later in the stable sort)
+            quads.append(_vertical_quads(a[tree], b[tree], z_top[tree], h[tree]))
+            colours.append(np.tile(np.array(CIRCLE_COLOURS["tree"][1], float), (int(tree.sum()), 1)))
+            keys.append(dist[tree])
+    if len(others):
+        q, col, k = _vehicle_faces(others, cam)
+        quads.append(q)
+        colours.append(col)
+        keys.append(k)
+    return np.concatenate(quads), np.concatenate(colours), np.concatenate(keys)
+
+
+def _vertical_quads(a: np.ndarray, b: np.ndarray, z0: np.ndarray, z1: np.ndarray) -> np.ndarray:
+    """Quads (N, 4, 3) standing on ground segments a→b (N, 2) from height z0 to z1 (N,)."""
+    return np.stack([np.column_stack([a, z0]), np.column_stack([b, z0]),
+                     np.column_stack([b, z1]), np.column_stack([a, z1])], 1)
+
+
+def _vehicle_faces(others: np.ndarray, cam: _Pose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Camera-facing faces of the other vehicles' boxes: ((F, 4, 3), (F, 3) RGB, (F,) distance m). Back faces are
+    dropped, so the faces of one box never overlap on screen and need no ordering among themselves."""
+    corners = box_corners(others[:, 0:2], others[:, 4], others[:, 5], others[:, 6])  # (N, 4, 2)
+    centre = others[:, None, 0:2]
+    a, b = corners, np.roll(corners, -1, axis=1)  # side i runs corner i → i+1
+    mid = (a + b) / 2
+    edge = b - a
+    normal = np.stack([-edge[..., 1], edge[..., 0]], -1)
+    normal *= np.sign(np.einsum("nik,nik->ni", normal, mid - centre))[..., None]  # outward
+    normal /= np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-9)
+    visible = np.einsum("nik,nik->ni", normal, cam.xy - mid) > 0
+    shade = 0.62 + 0.38 * np.clip(normal @ SUN, 0.0, 1.0)
+    n = len(others)
+    zeros, tops = np.zeros(n * 4), np.full(n * 4, VEHICLE_HEIGHT)
+    sides = _vertical_quads(a.reshape(-1, 2), b.reshape(-1, 2), zeros, tops).reshape(n, 4, 4, 3)
+    dist = np.linalg.norm(others[:, 0:2] - cam.xy, axis=1)
+    # Windows: a dark band inset in every visible side, listed after the sides so the stable far-to-near sort
+    # draws each over its own side (equal keys keep their order).
+    wa, wb = a + WINDOW_INSET * edge, b - WINDOW_INSET * edge
+    windows = _vertical_quads(wa.reshape(-1, 2), wb.reshape(-1, 2), np.full(n * 4, WINDOW_BAND[0]),
+                              np.full(n * 4, WINDOW_BAND[1])).reshape(n, 4, 4, 3)
+    side_keys = np.repeat(dist, 4)[visible.ravel()]
+    quads = [sides[visible], windows[visible]]
+    colours = [VEHICLE_COLOUR * shade[visible][:, None], WINDOW_COLOUR * shade[visible][:, None]]
+    keys = [side_keys, side_keys]
+    if cam.spec.mount_height > VEHICLE_HEIGHT:  # roofs are seen only from above
+        quads.append(np.concatenate([corners, np.full((n, 4, 1), VEHICLE_HEIGHT)], -1))
+        colours.append(np.tile(np.minimum(VEHICLE_COLOUR * 1.1, 255), (n, 1)))
+        keys.append(dist)
+    return np.concatenate(quads), np.concatenate(colours), np.concatenate(keys)
+
+
+def _render_one(scene: StaticScene, others: np.ndarray, pose: np.ndarray, spec: CameraSpec,
+                weather: Weather) -> np.ndarray:
+    """Clean image (H, W, 3) uint8 RGB of ``scene`` and ``others`` from ego ``pose`` [x, y, heading]."""
+    cam = _camera_pose(pose, spec)
+    img = _background(spec).copy()
+    _draw_ground(img, cam, scene.road, scene.road_group, ASPHALT)
+    _draw_ground(img, cam, scene.marks, scene.mark_group, MARKING)
+
+    depth = _ground_rays(spec)[0].copy() if weather.needs_depth else None
+    quads, colours, keys = _vertical_items(scene, others, cam)
+    if len(quads):
+        idx = np.flatnonzero(keys <= spec.max_range)
+        pc = _to_camera(cam, quads[idx][..., :2], quads[idx][..., 2])
+        visible = _in_frustum(pc, spec)
+        idx, pc = idx[visible], pc[visible]
+        order = np.argsort(-keys[idx], kind="stable")  # far to near
+        idx, pc = idx[order], pc[order]
+        whole, whole_i, cut, cut_i = _project(pc, spec)
+        polys: list[tuple[int, np.ndarray]] = [(int(i), p) for i, p in zip(whole_i, whole)]
+        polys += [(int(i), p) for i, p in zip(cut_i, cut)]
+        polys.sort(key=lambda t: t[0])  # back into far-to-near order
+        col = np.round(np.clip(colours[idx], 0, 255)).astype(int).tolist()
+        dist = keys[idx]
+        for i, p in polys:
+            cv2.fillConvexPoly(img, p, col[i], cv2.LINE_8, _SHIFT)
+            if depth is not None:
+                cv2.fillConvexPoly(depth, p, float(dist[i]), cv2.LINE_8, _SHIFT)
+
+    out_size = (spec.width, spec.height)
+    if depth is None:
+        return cv2.resize(img, out_size, interpolation=cv2.INTER_AREA) if spec.supersample > 1 else img
+    return _apply_weather(img, depth, spec, weather)
+
+
+def _apply_weather(img: np.ndarray, depth: np.ndarray, spec: CameraSpec, weather: Weather) -> np.ndarray:
+    """Fog and night on an internal-resolution image, using its depth buffer (m); returns output-size uint8.
+    Fog comes first (scattering happens in the scene), night second (it dims the airlight too)."""
+    out_size = (spec.width, spec.height)
+    resize = (lambda a: cv2.resize(a, out_size, interpolation=cv2.INTER_AREA)) if spec.supersample > 1 \
+        else (lambda a: a)
+    im = resize(img).astype(np.float32)
+    if weather.fog_visibility is not None:
+        t = resize(np.exp(-3.912 / weather.fog_visibility * depth).astype(np.float32))[..., None]
+        im = im * t + np.float32(weather.fog_airlight) * (1.0 - t)
+    if weather.night:
+        light = np.full(depth.shape, weather.night_ambient, np.float32)
+        if weather.headlights:
+            beam = _ground_rays(spec)[1]
+            light += (1.0 - weather.night_ambient) * beam / (1.0 + (depth / 20.0) ** 2)
+        light = resize(light)[..., None]
+        im = 255.0 * np.clip(im * light / 255.0, 0.0, 1.0) ** weather.night_gamma
+    return np.clip(np.round(im), 0, 255).astype(np.uint8)
+
+
+# ================================================================================================ public rendering
+def render_views(env: gym.Env, cameras: Mapping[str, CameraSpec], pose: np.ndarray | None = None,
+                 weather: Weather | None = None) -> dict[str, np.ndarray]:
+    """Clean renders of several cameras from one ego pose, sharing the scene culling.
+
+    ``pose``: ego ``[x, y, heading]`` (m, m, rad); default the true ego pose (pass a displaced pose to render
+    what the car would see there, e.g. for behaviour-cloning recovery data). Returns name → (H, W, 3) uint8 RGB."""
+    pose = ego_pose(env)[:3] if pose is None else np.asarray(pose, dtype=float)
+    scene = scene_of(env)
+    reach = max(s.max_range + abs(s.forward_offset) + abs(s.lateral_offset) for s in cameras.values())
+    local = scene.near(pose[:2], reach + WALL_PIECE + ROAD_STEP)
+    others = others_state(env)
+    weather = weather or Weather()
+    return {name: _render_one(local, others, pose, spec, weather) for name, spec in cameras.items()}
+
+
+def render_view(env: gym.Env, camera: CameraSpec | None = None, pose: np.ndarray | None = None,
+                weather: Weather | None = None) -> np.ndarray:
+    """Clean (noise-free) render (H, W, 3) uint8 RGB of one camera; see :func:`render_views`."""
+    return render_views(env, {"view": camera or CameraSpec()}, pose, weather)["view"]
+
+
+# ================================================================================================ the wrapper
+class Cameras(SensorWrapper):
+    """Adds ``obs["cameras"] = {"left", "centre", "right"}``: three (H, W, 3) uint8 RGB windshield images.
+
+    Args (SI units; see :class:`CameraSpec`, :class:`Weather`, :class:`CameraNoise` for meanings and sources):
+        height, width: image size (px), default 66×200 (PilotNet input).
+        hfov_deg, pitch_deg: horizontal field of view and downward pitch (deg).
+        mount_height, forward_offset: lens height above ground and position ahead of the vehicle centre (m).
+        lateral_offset: side-camera offset d (m); left/centre/right sit at −d, 0, +d.
+        max_range: draw distance (m). supersample: internal resolution factor.
+        rate_hz: capture rate (Hz); ``None`` = every policy step. Between captures the last frames are held.
+        noise: ``True`` = :class:`CameraNoise` defaults, ``False`` = clean renders (bit-identical to
+            :func:`render_views`), or a :class:`CameraNoise` / mapping of its fields.
+        fog_visibility: fog visibility V (m), ``None`` = clear. night: night-time rendering.
+        weather: a full :class:`Weather`; overrides ``fog_visibility`` and ``night``.
+    """
+
+    key = "cameras"
+
+    def __init__(self, env: gym.Env, *, height: int = 66, width: int = 200, hfov_deg: float = 70.0,
+                 mount_height: float = 1.4, pitch_deg: float = 8.0, lateral_offset: float = WINDSHIELD_HALF_WIDTH,
+                 forward_offset: float = 0.5, max_range: float = 80.0, supersample: int = 2,
+                 rate_hz: float | None = None, noise: bool | CameraNoise | Mapping = True,
+                 fog_visibility: float | None = None, night: bool = False, weather: Weather | None = None) -> None:
+        base = CameraSpec(height=int(height), width=int(width), hfov_deg=float(hfov_deg),
+                          mount_height=float(mount_height), pitch_deg=float(pitch_deg),
+                          forward_offset=float(forward_offset), max_range=float(max_range),
+                          supersample=int(supersample))
+        self.specs = camera_rig(base, float(lateral_offset))
+        self.weather = weather or Weather(fog_visibility=fog_visibility, night=bool(night))
+        if noise is True:
+            self.noise: CameraNoise | None = CameraNoise()
+        elif noise is False or noise is None:
+            self.noise = None
+        elif isinstance(noise, CameraNoise):
+            self.noise = noise
+        else:
+            self.noise = CameraNoise(**dict(noise))
+        if rate_hz is not None and not rate_hz > 0:
+            raise ValueError(f"rate_hz must be > 0 or None, got {rate_hz}")
+        self.rate_hz = rate_hz
+        super().__init__(env)
+        self._exposure = {name: (1.0, 0.0) for name in CAMERA_NAMES}  # name → (gain, offset)
+        self._held: dict[str, np.ndarray] | None = None
+        self._next_capture = 0.0
+
+    def sensor_space(self) -> spaces.Dict:
+        spec = self.specs["centre"]
+        return spaces.Dict({name: spaces.Box(0, 255, (spec.height, spec.width, 3), np.uint8)
+                            for name in CAMERA_NAMES})
+
+    def on_reset(self) -> None:
+        self._held, self._next_capture = None, 0.0
+        n = self.noise
+        if n is None:
+            return
+        # Per-episode exposure: I' = ((I − 128)·contrast + 128 + brightness)·gain_k = I·g + o per camera.
+        brightness = self.rng.uniform(-n.brightness, n.brightness)
+        contrast = self.rng.uniform(1 - n.contrast, 1 + n.contrast)
+        gains = self.rng.uniform(1 - n.camera_gain, 1 + n.camera_gain, size=len(CAMERA_NAMES))
+        self._exposure = {name: (float(contrast * g), float((128.0 * (1 - contrast) + brightness) * g))
+                          for name, g in zip(CAMERA_NAMES, gains)}
+
+    def _noisy(self, name: str, clean: np.ndarray) -> np.ndarray:
+        n = self.noise
+        gain, offset = self._exposure[name]
+        im = clean.astype(np.float32) * np.float32(gain) + np.float32(offset)
+        if n.blur_sigma > 0:
+            im = cv2.GaussianBlur(im, (0, 0), n.blur_sigma)
+        sigma = n.night_pixel_std if self.weather.night else n.pixel_std
+        if sigma > 0:
+            im += self.rng.standard_normal(im.shape, dtype=np.float32) * np.float32(sigma)
+        return np.clip(np.round(im), 0, 255).astype(np.uint8)
+
+    def measure(self) -> dict[str, np.ndarray]:
+        t = sim_time(self.env)
+        if self.rate_hz is not None and self._held is not None and t < self._next_capture - 1e-9:
+            return {name: img.copy() for name, img in self._held.items()}  # frame hold between captures
+        if self.rate_hz is not None:
+            period = 1.0 / self.rate_hz
+            while self._next_capture <= t + 1e-9:
+                self._next_capture += period
+        frames = render_views(self.env, self.specs, weather=self.weather)
+        if self.noise is not None:
+            frames = {name: self._noisy(name, frames[name]) for name in CAMERA_NAMES}
+        self._held = frames
+        return {name: img.copy() for name, img in frames.items()} if self.rate_hz is not None else frames
+
+
+__all__ = ["CAMERA_NAMES", "WINDSHIELD_HALF_WIDTH", "VEHICLE_HEIGHT", "CameraSpec", "Weather", "CameraNoise",
+           "Cameras", "StaticScene", "build_scene", "scene_of", "camera_rig", "render_view", "render_views"]

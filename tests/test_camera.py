@@ -1,0 +1,246 @@
+"""Windshield cameras: the pinhole render follows the geometry (curves, distance, camera offsets, occlusion),
+noise is seeded and has the configured size, and the wrapper passes Gymnasium's checker."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+from highway_env.vehicle.kinematics import Vehicle
+
+import av_gym  # noqa: F401  (registers the envs)
+from av_gym.sensors.camera import (ASPHALT, CAMERA_NAMES, MARKING, CameraNoise, Cameras, CameraSpec, Weather,
+                                   camera_rig, render_view, render_views, scene_of)
+
+LANE_ID, TURN_ID = "av_gym/LaneKeepingLap-v0", "av_gym/UnprotectedLeftTurn-v0"
+PIXEL_ONLY = CameraNoise(pixel_std=6.0, brightness=0.0, contrast=0.0, camera_gain=0.0)
+
+
+def lap_env(track: str = "A", start_s: float = 0.0) -> gym.Env:
+    """A lap env reset with the car exactly on the centreline at ``start_s`` (m), heading along the lane."""
+    env = gym.make(LANE_ID, config={"track": track, "start_s": start_s, "initial_lateral_std": 0.0,
+                                    "initial_heading_std": 0.0})
+    env.reset(seed=0)
+    return env
+
+
+def road_mask(img: np.ndarray) -> np.ndarray:
+    """(H, W) bool: asphalt or lane-marking pixels of a clean render."""
+    px = img.astype(int)
+    return (np.abs(px - ASPHALT).max(-1) <= 12) | (np.abs(px - MARKING).max(-1) <= 30)
+
+
+def road_centre_column(img: np.ndarray, rows: slice) -> float:
+    """Mean column (px) of road pixels in ``rows``, averaged over the rows that show road."""
+    mask = road_mask(img)[rows]
+    cols = [np.flatnonzero(r).mean() for r in mask if r.any()]
+    assert cols, "no road pixels in these rows"
+    return float(np.mean(cols))
+
+
+def add_car(env: gym.Env, ahead: float, lateral: float = 0.0) -> Vehicle:
+    """Park a car ``ahead`` m in front of the ego (and ``lateral`` m to its right), facing the same way."""
+    u = env.unwrapped
+    psi = u.vehicle.heading
+    f, r = np.array([np.cos(psi), np.sin(psi)]), np.array([-np.sin(psi), np.cos(psi)])
+    car = Vehicle(u.road, u.vehicle.position + ahead * f + lateral * r, heading=psi, speed=0.0)
+    u.road.vehicles.append(car)
+    return car
+
+
+# ------------------------------------------------------------------------------------------------ geometry
+@pytest.mark.parametrize("track, start_s, direction", [("A", 110.0, -1), ("B", 90.0, +1), ("A", 0.0, 0)])
+def test_road_bends_towards_the_curve(track, start_s, direction):
+    # Layout A: 120 m straight, then a 25 m LEFT hairpin; layout B: 100 m straight, then a 22 m RIGHT hairpin.
+    # 10 m before the curve, the road near the horizon must lie left (A) / right (B) of the road at the bottom.
+    spec = CameraSpec()
+    img = render_view(lap_env(track, start_s), spec)
+    h = int(np.ceil(spec.horizon_row))
+    far = road_centre_column(img, slice(h + 4, h + 16))
+    near = road_centre_column(img, slice(spec.height - 16, spec.height))
+    assert near == pytest.approx((spec.width - 1) / 2, abs=1.0)  # on the centreline, looking along the lane
+    if direction == 0:
+        assert far == pytest.approx(near, abs=1.0)
+    else:
+        assert direction * (far - near) > 5.0, (far, near)
+
+
+def test_near_car_is_larger_than_far_car_and_red():
+    env = lap_env("A", 0.0)  # 120 m straight ahead
+    spec = CameraSpec()
+    empty = render_view(env, spec)
+    sizes = {}
+    for ahead in (10.0, 40.0):
+        car = add_car(env, ahead)
+        img = render_view(env, spec)
+        env.unwrapped.road.vehicles.remove(car)
+        changed = np.any(img != empty, axis=-1)
+        rows, cols = np.flatnonzero(changed.any(1)), np.flatnonzero(changed.any(0))
+        sizes[ahead] = (changed.sum(), len(rows), len(cols))
+        red = (img[..., 0].astype(int) > img[..., 1].astype(int) + 60) & changed
+        assert red.sum() > 0.3 * changed.sum(), "the car is drawn in the vehicle colour"
+    near, far = sizes[10.0], sizes[40.0]
+    assert far[0] > 0
+    assert near[0] > 4 * far[0] and near[1] > far[1] and near[2] > far[2], sizes
+
+
+def test_near_car_hides_a_car_behind_it():
+    # Painter's order: the far box is drawn first and must be fully covered by the near one (camera 1.4 m high,
+    # boxes 1.5 m tall and 2 m wide, in line).
+    env = lap_env("A", 0.0)
+    add_car(env, 10.0)
+    before = render_view(env)
+    add_car(env, 30.0)
+    np.testing.assert_array_equal(render_view(env), before)
+
+
+def test_side_cameras_see_the_road_shifted_the_right_way():
+    env = lap_env("A", 0.0)
+    views = render_views(env, camera_rig())
+    for a, b in (("left", "centre"), ("centre", "right"), ("left", "right")):
+        assert np.any(views[a] != views[b])
+    bottom = slice(40, 66)
+    cols = {name: road_centre_column(views[name], bottom) for name in CAMERA_NAMES}
+    # The left camera sits 0.6 m left of the centreline, so the road lies to its right (larger columns).
+    assert cols["left"] > cols["centre"] + 3 > cols["right"] + 6, cols
+
+
+def test_displaced_pose_equals_side_camera():
+    # render_view(pose=...) renders what a camera would see from another ego pose: the centre camera moved
+    # 0.6 m left is exactly the left camera.
+    env = lap_env("A", 0.0)
+    x, y, psi = *env.unwrapped.vehicle.position, env.unwrapped.vehicle.heading
+    left = render_views(env, camera_rig())["left"]
+    moved = render_view(env, CameraSpec(), pose=np.array([x + 0.6 * np.sin(psi), y - 0.6 * np.cos(psi), psi]))
+    np.testing.assert_array_equal(moved, left)
+
+
+def test_renders_from_awkward_poses_without_folding():
+    # Poses off the road, facing scenery or straddling other cars exercise near-plane clipping; every frame must
+    # be a valid image, and a building straight ahead at 1.5 m must fill most of the view.
+    env = gym.make(TURN_ID)
+    env.reset(seed=1)
+    for _ in range(10):
+        env.step(1)
+    u = env.unwrapped
+    rng = np.random.default_rng(0)
+    for _ in range(40):
+        pose = np.array([rng.uniform(-40, 40), rng.uniform(-40, 40), rng.uniform(-np.pi, np.pi)])
+        img = render_view(env, pose=pose)
+        assert img.shape == (66, 200, 3) and img.dtype == np.uint8
+    others = [v for v in u.road.vehicles if v is not u.vehicle]
+    for v in others[:3]:  # camera inside another car
+        render_view(env, pose=np.array([*v.position, v.heading]))
+    scene = scene_of(env)
+    big = np.flatnonzero(scene.walls[:, 2, 2] > 5.0)[0]  # a piece of building front
+    a, b = scene.walls[big, 0, :2], scene.walls[big, 1, :2]
+    mid, along = (a + b) / 2, (b - a) / np.linalg.norm(b - a)
+    normal = np.array([-along[1], along[0]])
+    for sign in (1.0, -1.0):
+        eye = mid + sign * 2.0 * normal  # camera 0.5 m ahead of the pose → 1.5 m from the wall
+        img = render_view(env, pose=np.array([*eye, np.arctan2(-sign * normal[1], -sign * normal[0])]))
+        assert np.all(img == img[0, 0], axis=-1).mean() > 0.5, "the wall fills the view"
+
+
+# ------------------------------------------------------------------------------------------------ wrapper and noise
+def test_observation_space_and_other_keys_untouched():
+    env = Cameras(gym.make(LANE_ID), height=40, width=120, hfov_deg=80.0)
+    obs, info = env.reset(seed=3)
+    assert set(obs) == {"state", "cameras"} and env.observation_space.contains(obs)
+    assert set(obs["cameras"]) == set(CAMERA_NAMES)
+    assert obs["cameras"]["centre"].shape == (40, 120, 3)
+    obs, *_ = env.step(np.zeros(1, np.float32))
+    assert env.observation_space.contains(obs)
+
+
+def test_same_seed_same_images_different_seed_different_noise():
+    env = Cameras(gym.make(LANE_ID))
+    a, _ = env.reset(seed=7)
+    b, _ = env.reset(seed=7)
+    c, _ = env.reset(seed=8)
+    for name in CAMERA_NAMES:
+        np.testing.assert_array_equal(a["cameras"][name], b["cameras"][name])
+        assert np.any(a["cameras"][name] != c["cameras"][name])
+    # Noise comes only from the sensor's generator: same scene, other generator → other noise.
+    env.reset(seed=7)
+    env.rng = np.random.default_rng(123)
+    env.on_reset()
+    d = env.measure()
+    assert all(np.any(d[n] != a["cameras"][n]) for n in CAMERA_NAMES)
+
+
+def test_noise_off_is_the_clean_render_for_any_generator():
+    env = Cameras(gym.make(LANE_ID), noise=False)
+    env.reset(seed=7)
+    clean = render_views(env, env.specs)
+    for seed in (1, 2):
+        env.rng = np.random.default_rng(seed)
+        env.on_reset()
+        got = env.measure()
+        for name in CAMERA_NAMES:
+            np.testing.assert_array_equal(got[name], clean[name])
+
+
+@pytest.mark.parametrize("env_id", [LANE_ID, TURN_ID])
+def test_pixel_noise_has_the_configured_std(env_id):
+    env = Cameras(gym.make(env_id), noise=PIXEL_ONLY)
+    obs, _ = env.reset(seed=4)
+    clean = render_views(env, env.specs)
+    for name in CAMERA_NAMES:
+        diff = obs["cameras"][name].astype(float) - clean[name]
+        assert diff.std() == pytest.approx(PIXEL_ONLY.pixel_std, rel=0.15)
+        assert abs(diff.mean()) < 0.3
+
+
+def test_exposure_is_per_episode_and_per_camera():
+    noise = CameraNoise(pixel_std=0.0, brightness=20.0, contrast=0.0, camera_gain=0.1)
+    env = Cameras(gym.make(LANE_ID), noise=noise)
+    offsets = []
+    for _ in range(2):
+        obs, *_ = env.step(np.zeros(1, np.float32)) if offsets else env.reset(seed=5)
+        clean = render_views(env, env.specs)
+        offsets.append({n: obs["cameras"][n].astype(float).mean() - clean[n].mean() for n in CAMERA_NAMES})
+    for n in CAMERA_NAMES:
+        assert offsets[0][n] == pytest.approx(offsets[1][n], abs=1.0)  # same exposure all episode
+    assert len({round(v, 1) for v in offsets[0].values()}) == 3  # each camera its own gain
+
+
+def test_frame_hold_at_a_lower_rate():
+    env = Cameras(gym.make(LANE_ID), rate_hz=5.0)  # policy at 10 Hz: a new frame every other step
+    frames = [env.reset(seed=2)[0]["cameras"]["centre"]]
+    for _ in range(4):
+        frames.append(env.step(np.zeros(1, np.float32))[0]["cameras"]["centre"])
+    np.testing.assert_array_equal(frames[0], frames[1])
+    np.testing.assert_array_equal(frames[2], frames[3])
+    assert np.any(frames[1] != frames[2]) and np.any(frames[3] != frames[4])
+
+
+def test_fog_fades_far_things_more_and_night_is_darker():
+    env = lap_env("A", 0.0)
+    spec = CameraSpec()
+    clear = render_view(env, spec).astype(float)
+    foggy = render_view(env, spec, weather=Weather(fog_visibility=80.0)).astype(float)
+    road = road_mask(clear.astype(np.uint8))
+    h = int(np.ceil(spec.horizon_row))
+    loss = np.abs(foggy - clear).mean(-1)
+    far, near = loss[h + 2:h + 8][road[h + 2:h + 8]].mean(), loss[-8:][road[-8:]].mean()
+    assert far > near + 20  # road at ~50 m shifts most of the way to the airlight, road at ~4 m barely
+    night = render_view(env, spec, weather=Weather(night=True)).astype(float)
+    assert night.mean() < 0.5 * clear.mean()
+    # headlights: the road just ahead is lit more than the road near the horizon
+    assert night[-8:][road[-8:]].mean() > 1.5 * night[h + 2:h + 8][road[h + 2:h + 8]].mean()
+
+
+def test_bad_arguments_are_rejected():
+    with pytest.raises(ValueError):
+        CameraSpec(hfov_deg=0.0)
+    with pytest.raises(ValueError):
+        CameraNoise(pixel_std=-1.0)
+    with pytest.raises(ValueError):
+        Cameras(gym.make(LANE_ID), rate_hz=0.0)
+
+
+@pytest.mark.parametrize("env_id, config", [(LANE_ID, {}), (TURN_ID, {}), (TURN_ID, {"mode": "ccftap"})])
+def test_check_env_passes(env_id, config):
+    check_env(Cameras(gym.make(env_id, config=config)), skip_render_check=True)
