@@ -5,12 +5,65 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
+from gymnasium import spaces
 from stable_baselines3 import PPO
 from stable_baselines3.common.vec_env import VecEnv
 
 PPO_KEYS = ("learning_rate", "n_steps", "batch_size", "n_epochs", "gamma", "gae_lambda", "clip_range", "ent_coef",
             "vf_coef", "max_grad_norm")
+
+
+def flat_space(space: gym.Space) -> gym.Space:
+    """SB3's ``MultiInputPolicy`` takes one level of ``Dict``; sensors such as the cameras nest one more
+    (``cameras: {left, centre, right}``). Nested keys become ``cameras_left`` etc."""
+    if not isinstance(space, spaces.Dict):
+        return space
+    flat = {}
+    for key, sub in space.spaces.items():
+        if isinstance(sub, spaces.Dict):
+            flat.update({f"{key}_{k}": v for k, v in flat_space(sub).spaces.items()})
+        else:
+            flat[key] = sub
+    return spaces.Dict(flat)
+
+
+def flatten_obs(obs: Any) -> Any:
+    """The observation matching :func:`flat_space`."""
+    if not isinstance(obs, dict):
+        return obs
+    flat = {}
+    for key, value in obs.items():
+        if isinstance(value, dict):
+            flat.update({f"{key}_{k}": v for k, v in flatten_obs(value).items()})
+        else:
+            flat[key] = value
+    return flat
+
+
+def sb3_space(space: gym.Space) -> gym.Space:
+    """The observation space an SB3 model trained on ``space`` reports: flattened, images channel-first (SB3
+    wraps image envs in ``VecTransposeImage``). Used to check that a checkpoint fits an env."""
+    from stable_baselines3.common.preprocessing import is_image_space, is_image_space_channels_first
+    from stable_baselines3.common.vec_env import VecTransposeImage
+
+    space = flat_space(space)
+    if not isinstance(space, spaces.Dict):
+        return space
+    return spaces.Dict({k: VecTransposeImage.transpose_space(v, k) if is_image_space(v)
+                        and not is_image_space_channels_first(v) else v for k, v in space.spaces.items()})
+
+
+class FlatDictObservation(gym.ObservationWrapper):
+    """Applies :func:`flatten_obs` so SB3 can train on nested sensor observations."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        self.observation_space = flat_space(env.observation_space)
+
+    def observation(self, observation: Any) -> Any:
+        return flatten_obs(observation)
 
 
 def make_ppo(env: VecEnv, hyper: dict[str, Any], *, seed: int, tensorboard_log: str | None,
@@ -37,5 +90,5 @@ class SB3Policy:
         pass
 
     def act(self, obs: Any) -> Any:
-        action, _ = self.model.predict(obs, deterministic=True)
+        action, _ = self.model.predict(flatten_obs(obs), deterministic=True)
         return int(action) if np.ndim(action) == 0 else action

@@ -22,24 +22,16 @@ SHIELDS = ("none",)
 
 
 def _sensor_classes() -> dict:
-    """Sensor config key → wrapper class, in the order they are stacked (imported lazily: cameras pull OpenCV)."""
+    """Sensor config key → wrapper class, in the order they are stacked (imported here, not at module level, so
+    building a truth-only env does not load OpenCV)."""
     from av_gym.sensors.detector import Detector
     from av_gym.sensors.gnss import GNSS
     from av_gym.sensors.imu import IMU
 
-    classes = {"gnss": GNSS, "imu": IMU}
-    try:
-        from av_gym.sensors.lidar import Lidar
-        classes["lidar"] = Lidar
-    except ImportError:  # pragma: no cover - during development only
-        pass
-    try:
-        from av_gym.sensors.camera import Cameras
-        classes["cameras"] = Cameras
-    except ImportError:  # pragma: no cover
-        pass
-    classes["detector"] = Detector
-    return classes
+    from av_gym.sensors.camera import Cameras
+    from av_gym.sensors.lidar import Lidar
+
+    return {"gnss": GNSS, "imu": IMU, "lidar": Lidar, "cameras": Cameras, "detector": Detector}
 
 
 def add_sensors(env: gym.Env, sensors_cfg: Mapping | None) -> gym.Env:
@@ -69,7 +61,8 @@ def add_sensors(env: gym.Env, sensors_cfg: Mapping | None) -> gym.Env:
         try:
             env = cls(env, **params)
         except ValueError as exc:
-            raise ConfigError(str(exc)) from None
+            msg = str(exc)
+            raise ConfigError(msg if msg.startswith(f"sensors.{key}") else f"sensors.{key}: {msg}") from None
     if not c.get("keep_state", name == "truth"):
         keys = [k for k in env.observation_space.spaces if k != "state"]
         if not keys:

@@ -50,7 +50,7 @@ def _check_scenario(label: str, cfg: dict, env_name: str) -> None:
 
 
 def _load_trained(path: Path, env: gym.Env, env_name: str) -> Policy:
-    from agents.ppo import SB3Policy
+    from agents.ppo import SB3Policy, sb3_space
 
     model_path = path / "model.zip" if path.is_dir() else path
     if not model_path.is_file():
@@ -61,7 +61,7 @@ def _load_trained(path: Path, env: gym.Env, env_name: str) -> Policy:
         if saved_env != env_name:
             raise ConfigError(f"checkpoint {str(model_path)!r} was trained on env {saved_env!r}, not {env_name!r}")
     policy = SB3Policy.load(model_path)
-    if policy.model.observation_space != env.observation_space:
+    if policy.model.observation_space != sb3_space(env.observation_space):
         raise ConfigError(f"checkpoint {str(model_path)!r} expects observations {policy.model.observation_space}, "
                           f"this env gives {env.observation_space}")
     return policy

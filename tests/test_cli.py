@@ -68,6 +68,13 @@ def test_train_ppo_on_lane_keeping_override(tmp_path):
     assert "pid_paper" in res.stdout  # compared with the lane-keeping baseline
 
 
+def test_train_ppo_on_the_full_sensor_preset(tmp_path):
+    """Nested camera observations are flattened for SB3; the checkpoint then evaluates on the same preset."""
+    res = run("train", "sensors=full", *FAST_PPO, "run_name=full", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "| ppo | 2 |" in res.stdout
+
+
 @pytest.mark.parametrize("module, overrides, needle", [
     ("train", ["env.mode=rush_hour"], "env.mode must be one of ['traffic', 'ccftap']"),
     ("train", ["env=lane_keeping", "agent=always_proceed"], "drives scenarios ['left_turn']"),

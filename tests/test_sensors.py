@@ -226,7 +226,7 @@ def test_sensors_never_change_the_truth():
     assert [t["cte"] for t in plain] == [t["cte"] for t in sensed]
 
 
-@pytest.mark.parametrize("preset", ["truth", "gnss_imu", "detector"])
+@pytest.mark.parametrize("preset", ["truth", "gnss_imu", "lidar", "cameras", "detector", "full"])
 @pytest.mark.parametrize("scenario", ["lane_keeping", "left_turn"])
 def test_presets_pass_check_env(preset, scenario):
     cfg = compose_cfg(f"env={scenario}", f"sensors={preset}")
@@ -244,4 +244,16 @@ def test_bad_sensor_parameters_name_the_field():
         make_env(cfg.env, cfg.sensors, cfg.shield)
     with pytest.raises(ConfigError, match="sensors.gnss.outage must be one of"):
         cfg = compose_cfg("sensors=gnss_imu", "sensors.gnss.outage=tunnel")
+        make_env(cfg.env, cfg.sensors, cfg.shield)
+
+
+def test_full_preset_has_every_sensor_and_its_own_error_prefix():
+    cfg = compose_cfg("sensors=full")
+    env = make_env(cfg.env, cfg.sensors, cfg.shield)
+    assert set(env.observation_space.spaces) == {"gnss", "imu", "lidar", "cameras", "detector"}
+    with pytest.raises(ConfigError, match=r"^sensors.cameras: hfov_deg must be in \[1, 170\]"):
+        cfg = compose_cfg("sensors=cameras", "sensors.cameras.hfov_deg=500")
+        make_env(cfg.env, cfg.sensors, cfg.shield)
+    with pytest.raises(ConfigError, match=r"^sensors.lidar.range_sigma must be >= 0"):
+        cfg = compose_cfg("sensors=lidar", "sensors.lidar.range_sigma=-0.1")
         make_env(cfg.env, cfg.sensors, cfg.shield)

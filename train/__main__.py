@@ -22,9 +22,10 @@ RULE_BASED = ("pid", "always_proceed")
 
 
 def _env_factory(env_cfg: dict, sensors_cfg: dict, shield_cfg: dict):
+    from agents.ppo import FlatDictObservation
     from av_gym.make import make_env
 
-    return make_env(env_cfg, sensors_cfg, shield_cfg)
+    return FlatDictObservation(make_env(env_cfg, sensors_cfg, shield_cfg))
 
 
 def _validate(cfg: DictConfig) -> None:
