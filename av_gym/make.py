@@ -18,7 +18,11 @@ from av_gym.metrics.recorder import EpisodeMetrics
 
 KMH = 1 / 3.6
 SENSOR_PRESETS = ("truth", "gnss_imu", "lidar", "cameras", "detector", "full")
-SHIELDS = ("none",)
+
+
+def _shields() -> dict:
+    """shield config ``kind`` → builder ``f(env, params: dict) -> gym.Env`` (wraps the sensed env)."""
+    return {}
 
 
 def _sensor_classes() -> dict:
@@ -136,12 +140,27 @@ def make_env(env_cfg: Mapping, sensors_cfg: Mapping | None = None, shield_cfg: M
              render_mode: str | None = None, record_metrics: bool = True) -> gym.Env:
     """The full stack for one episode stream: scenario → sensors → shield → :class:`EpisodeMetrics`."""
     env_id, config = highway_config(env_cfg)
-    shield = _plain(shield_cfg).get("name", "none")
-    if shield not in SHIELDS:
-        raise ConfigError(f"shield must be one of {list(SHIELDS)}, got {shield!r}")
     try:
         env = gym.make(env_id, config=config, render_mode=render_mode)
     except ValueError as exc:  # the envs validate their own config and name the field
         raise ConfigError(str(exc)) from None
     env = add_sensors(env, sensors_cfg)
+    env = add_shield(env, shield_cfg)
     return EpisodeMetrics(env) if record_metrics else env
+
+
+def add_shield(env: gym.Env, shield_cfg: Mapping | None) -> gym.Env:
+    """Wrap ``env`` in the safety shield a ``shield`` config asks for (``kind: none`` leaves it unchanged)."""
+    c = _plain(shield_cfg)
+    kind = c.get("kind", c.get("name", "none"))
+    builders = _shields()
+    if kind == "none":
+        return env
+    if kind not in builders:
+        raise ConfigError(f"shield.kind must be one of {['none', *builders]}, got {kind!r}")
+    params = {k: v for k, v in c.items() if k not in ("name", "kind")}
+    try:
+        return builders[kind](env, params)
+    except (TypeError, ValueError) as exc:
+        msg = str(exc)
+        raise ConfigError(msg if msg.startswith("shield.") else f"shield: {msg}") from None

@@ -16,7 +16,21 @@ import yaml
 from agents import AlwaysProceed, PIDSteering, Policy
 from av_gym.errors import ConfigError
 
-TRAINED_KINDS = ("ppo",)
+def _load_sb3(model_path: Path, env: gym.Env) -> Policy:
+    from agents.ppo import SB3Policy, sb3_space
+
+    policy = SB3Policy.load(model_path)
+    if policy.model.observation_space != sb3_space(env.observation_space):
+        raise ConfigError(f"checkpoint {str(model_path)!r} expects observations {policy.model.observation_space}, "
+                          f"this env gives {env.observation_space}")
+    return policy
+
+
+# Trained agent kinds: the file their trainer writes in checkpoints/<run>/ and how to load it for an env.
+LOADERS = {
+    "ppo": ("model.zip", _load_sb3),
+}
+TRAINED_KINDS = tuple(LOADERS)
 
 
 def available_agents() -> list[str]:
@@ -31,11 +45,11 @@ def load_agent_config(name: str) -> dict[str, Any]:
 
 
 def find_checkpoint(kind: str, env_name: str, root: str | Path) -> Path:
-    """Newest ``checkpoints/<run>/model.zip`` whose saved config trained ``kind`` on ``env_name``."""
+    """Newest ``checkpoints/<run>/`` whose saved config trained ``kind`` on ``env_name`` and holds its model."""
     found = []
     for cfg_path in Path(root).glob("*/config.yaml"):
         cfg = yaml.safe_load(cfg_path.read_text()) or {}
-        model = cfg_path.parent / "model.zip"
+        model = cfg_path.parent / LOADERS[kind][0]
         if model.is_file() and cfg.get("env", {}).get("name") == env_name and cfg.get("agent", {}).get("kind") == kind:
             found.append(model)
     if not found:
@@ -50,9 +64,20 @@ def _check_scenario(label: str, cfg: dict, env_name: str) -> None:
 
 
 def _load_trained(path: Path, env: gym.Env, env_name: str) -> Policy:
-    from agents.ppo import SB3Policy, sb3_space
-
-    model_path = path / "model.zip" if path.is_dir() else path
+    """A checkpoint folder (its config.yaml says the kind) or a model file (its suffix does)."""
+    if path.is_dir():
+        cfg_path = path / "config.yaml"
+        kind = (yaml.safe_load(cfg_path.read_text()) or {}).get("agent", {}).get("kind") if cfg_path.is_file() \
+            else "ppo"
+        if kind not in LOADERS:
+            raise ConfigError(f"checkpoint folder {str(path)!r} holds agent kind {kind!r}; loadable: {list(LOADERS)}")
+        model_path = path / LOADERS[kind][0]
+    else:
+        model_path = path
+        kind = next((k for k, (name, _) in LOADERS.items() if Path(name).suffix == path.suffix), None)
+        if kind is None:
+            raise ConfigError(f"checkpoint {str(path)!r}: unknown file type; expected one of "
+                              f"{[name for name, _ in LOADERS.values()]}")
     if not model_path.is_file():
         raise ConfigError(f"checkpoint {str(model_path)!r} does not exist")
     cfg_path = model_path.parent / "config.yaml"
@@ -60,11 +85,7 @@ def _load_trained(path: Path, env: gym.Env, env_name: str) -> Policy:
         saved_env = (yaml.safe_load(cfg_path.read_text()) or {}).get("env", {}).get("name")
         if saved_env != env_name:
             raise ConfigError(f"checkpoint {str(model_path)!r} was trained on env {saved_env!r}, not {env_name!r}")
-    policy = SB3Policy.load(model_path)
-    if policy.model.observation_space != sb3_space(env.observation_space):
-        raise ConfigError(f"checkpoint {str(model_path)!r} expects observations {policy.model.observation_space}, "
-                          f"this env gives {env.observation_space}")
-    return policy
+    return LOADERS[kind][1](model_path, env)
 
 
 def resolve_agent(spec: str, env: gym.Env, env_name: str, checkpoints: str | Path) -> tuple[str, Policy]:
@@ -74,14 +95,17 @@ def resolve_agent(spec: str, env: gym.Env, env_name: str, checkpoints: str | Pat
         path = find_checkpoint(spec, env_name, checkpoints)
         print(f"[eval] {spec}: using {path}")
         return spec, _load_trained(path, env, env_name)
-    if spec.endswith(".zip") or "/" in spec or Path(spec).is_dir():
+    if Path(spec).suffix or "/" in spec or Path(spec).is_dir():
         path = Path(spec)
-        label = path.parent.name if path.suffix == ".zip" else path.name
+        label = path.parent.name if path.suffix else path.name
         return label, _load_trained(path, env, env_name)
     cfg = load_agent_config(spec)
     _check_scenario(spec, cfg, env_name)
     kind = cfg.get("kind")
     if kind == "pid":
+        if cfg["obs_key"] not in env.observation_space.spaces:
+            raise ConfigError(f"agent {spec!r} reads its CTE from obs[{cfg['obs_key']!r}], which this sensors preset "
+                              f"does not provide (keys: {list(env.observation_space.spaces)}); use sensors=truth")
         return spec, PIDSteering(kp=cfg["kp"], ki=cfg["ki"], kd=cfg["kd"], obs_key=cfg["obs_key"],
                                  cte_index=cfg["cte_index"])
     if kind == "always_proceed":

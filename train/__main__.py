@@ -6,9 +6,7 @@ resolved config beside them, then evaluates the result briefly against the scena
 
 from __future__ import annotations
 
-import functools
 import sys
-import time
 from pathlib import Path
 
 import hydra
@@ -21,44 +19,38 @@ BASELINES = {"left_turn": "always_proceed", "lane_keeping": "pid_paper"}
 RULE_BASED = ("pid", "always_proceed")
 
 
-def _env_factory(env_cfg: dict, sensors_cfg: dict, shield_cfg: dict):
-    from agents.ppo import FlatDictObservation
-    from av_gym.make import make_env
+def _trainers() -> dict:
+    """agent.kind → (validate(cfg) -> [problems], train(cfg, ckpt_dir, run_dir) -> checkpoint path)."""
+    from train import ppo
 
-    return FlatDictObservation(make_env(env_cfg, sensors_cfg, shield_cfg))
+    return {"ppo": (ppo.validate, ppo.train_ppo)}
 
 
 def _validate(cfg: DictConfig) -> None:
     from eval.agents import available_agents
 
     agent = cfg.agent
-    kinds = ("ppo", *RULE_BASED)
+    kinds = (*_trainers(), *RULE_BASED)
     if agent.get("kind") not in kinds:
         raise ConfigError(f"agent.kind must be one of {list(kinds)}, got {agent.get('kind')!r} "
                           f"(agents: {available_agents()})")
     if cfg.env.name not in agent.scenarios:
         raise ConfigError(f"agent {agent.name!r} drives scenarios {list(agent.scenarios)}, not env={cfg.env.name}")
-    if agent.kind == "ppo":
-        for key in ("total_timesteps", "n_envs", "n_steps", "batch_size"):
-            if int(agent[key]) < 1:
-                raise ConfigError(f"agent.{key} must be a positive integer, got {agent[key]}")
-        if agent.vec_env not in ("subproc", "dummy"):
-            raise ConfigError(f"agent.vec_env must be one of ['subproc', 'dummy'], got {agent.vec_env!r}")
+    if agent.kind in _trainers():
+        problems = _trainers()[agent.kind][0](cfg)
+        if problems:
+            raise ConfigError(problems[0])
 
 
 def train(cfg: DictConfig) -> dict:
     """Train and briefly evaluate; returns where things went (``run_dir``, ``tensorboard``, ``checkpoint``)."""
     import torch
-    from stable_baselines3.common.env_util import make_vec_env
-    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
-    from agents.ppo import make_ppo
     from av_gym.make import make_env
     from eval.agents import resolve_agent
     from eval.report import write_results
     from eval.runner import run_episodes
-    from train.callbacks import AtomicCheckpointCallback, EpisodeMetricsCallback
-    from train.checkpoint import save_model_atomic, write_text_atomic
+    from train.checkpoint import write_text_atomic
 
     _validate(cfg)
     make_env(cfg.env, cfg.sensors, cfg.shield).close()  # fail fast on a bad env/sensors/shield config
@@ -71,24 +63,8 @@ def train(cfg: DictConfig) -> dict:
 
     agent, env_name = cfg.agent, cfg.env.name
     model_path = None
-    t0 = time.time()
-    if agent.kind == "ppo":
-        plain = [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
-        vec_cls = SubprocVecEnv if (agent.vec_env == "subproc" and agent.n_envs > 1) else DummyVecEnv
-        venv = make_vec_env(functools.partial(_env_factory, *plain), n_envs=int(agent.n_envs), seed=int(cfg.seed),
-                            vec_env_cls=vec_cls)
-        model = make_ppo(venv, OmegaConf.to_container(agent, resolve=True), seed=int(cfg.seed),
-                         tensorboard_log=str(tb_dir), device=agent.device)
-        callbacks = [EpisodeMetricsCallback(env_name),
-                     AtomicCheckpointCallback(ckpt_dir, int(cfg.train.checkpoint_every))]
-        try:
-            model.learn(total_timesteps=int(agent.total_timesteps), callback=callbacks,
-                        progress_bar=bool(cfg.train.progress_bar), tb_log_name=agent.name)
-        except KeyboardInterrupt:
-            print(f"[train] interrupted at {model.num_timesteps} steps; saving what was learned")
-        model_path = save_model_atomic(model, ckpt_dir / "model.zip")
-        venv.close()
-        print(f"[train] {model.num_timesteps} env steps in {time.time() - t0:.0f} s")
+    if agent.kind in _trainers():
+        model_path = _trainers()[agent.kind][1](cfg, ckpt_dir, run_dir)
     else:
         print(f"[train] agent {agent.name!r} is rule-based: nothing to train")
 
