@@ -11,8 +11,10 @@ from av_gym.errors import ConfigError
 
 
 def evaluate(cfg: DictConfig) -> list[dict]:
+    from omegaconf import OmegaConf
+
     from av_gym.make import make_env
-    from eval.agents import resolve_agent
+    from eval.agents import plan_agent, resolve_agent
     from eval.report import write_results
     from eval.runner import run_episodes
 
@@ -21,10 +23,12 @@ def evaluate(cfg: DictConfig) -> list[dict]:
     env_name = cfg.env.name
     rows = []
     seeds = range(int(cfg.seed), int(cfg.seed) + int(cfg.episodes))
-    for spec in cfg.agents:
-        env = make_env(cfg.env, cfg.sensors, cfg.shield)
-        label, policy = resolve_agent(spec, env, env_name, cfg.paths.checkpoints)
-        rows += run_episodes(env, policy, seeds, label, progress=cfg.progress_bar)
+    sensors, shield = (OmegaConf.to_container(c, resolve=True) for c in (cfg.sensors, cfg.shield))
+    plans = [plan_agent(spec, env_name, sensors, shield, cfg.paths.checkpoints) for spec in cfg.agents]
+    for plan in plans:  # every spec is checked before any episode runs
+        env = make_env(cfg.env, plan.sensors, plan.shield)
+        _, policy = resolve_agent(plan.spec, env, env_name, cfg.paths.checkpoints)
+        rows += run_episodes(env, policy, seeds, plan.label, progress=cfg.progress_bar)
         env.close()
     title = f"{env_name} ({cfg.env.get('mode', '')}), {cfg.episodes} episodes from seed {cfg.seed}".replace(" ()", "")
     table = write_results(rows, cfg.out_dir, env_name, title)

@@ -6,6 +6,7 @@ A spec is one of: a rule-based agent named in ``conf/agent/`` (``pid_paper``, ``
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -115,3 +116,63 @@ def resolve_agent(spec: str, env: gym.Env, env_name: str, checkpoints: str | Pat
         print(f"[eval] {spec}: using {path}")
         return spec, _load_trained(path, env, env_name)
     raise ConfigError(f"agent {spec!r} has unknown kind {kind!r}; known: pid, always_proceed, {', '.join(TRAINED_KINDS)}")
+
+
+# ----------------------------------------------------------------------------------------------- per-agent stacks
+@dataclass
+class AgentPlan:
+    """What one agent spec needs: the label in tables, the sensors and shield configs its env is built with, and
+    the spec to hand to :func:`resolve_agent` once that env exists."""
+
+    label: str
+    spec: str
+    sensors: dict
+    shield: dict
+
+
+def compose_group(group: str, name: str) -> dict:
+    """The composed config of option ``name`` of Hydra group ``group`` (e.g. ``shield/aeb``)."""
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import HydraException
+    from omegaconf import OmegaConf
+
+    options = sorted(p.name[:-5] for p in (resources.files("conf") / group).iterdir() if p.name.endswith(".yaml"))
+    if name not in options:
+        raise ConfigError(f"{group} {name!r} is not in conf/{group}/; available: {options}")
+    try:
+        if GlobalHydra.instance().is_initialized():
+            cfg = compose(config_name="eval", overrides=[f"{group}={name}"])
+        else:
+            with initialize_config_module("conf", version_base="1.3"):
+                cfg = compose(config_name="eval", overrides=[f"{group}={name}"])
+    except HydraException as exc:  # pragma: no cover - a broken yaml in conf/
+        raise ConfigError(f"{group}={name}: {exc}") from None
+    return OmegaConf.to_container(cfg[group], resolve=True)
+
+
+def _saved_config(path: Path) -> dict:
+    cfg_path = (path if path.is_dir() else path.parent) / "config.yaml"
+    return (yaml.safe_load(cfg_path.read_text()) or {}) if cfg_path.is_file() else {}
+
+
+def plan_agent(spec: str, env_name: str, sensors: dict, shield: dict, checkpoints: str | Path) -> AgentPlan:
+    """Decide how agent ``spec`` runs. ``agent+shield`` (e.g. ``always_proceed+aeb``) wraps it in
+    ``conf/shield/<shield>.yaml``. An agent runs with its own sensors when it has them (a rule-based agent's
+    ``sensors:`` field; a checkpoint's training config), else with the ``sensors`` given; the privileged
+    ``truth`` state is what PID on the paper's simulator CTE needs, images are what PilotNet needs."""
+    base, _, shield_name = str(spec).partition("+")
+    if shield_name:
+        shield = compose_group("shield", shield_name)
+    if base in TRAINED_KINDS or Path(base).suffix or "/" in base or Path(base).is_dir():
+        path = find_checkpoint(base, env_name, checkpoints) if base in TRAINED_KINDS else Path(base)
+        saved = _saved_config(path)
+        return AgentPlan(str(spec), str(path) if base in TRAINED_KINDS else base,
+                         saved.get("sensors", sensors), shield)
+    cfg = load_agent_config(base)
+    if cfg.get("sensors"):
+        sensors = compose_group("sensors", cfg["sensors"])
+    if cfg.get("kind") in TRAINED_KINDS:
+        path = find_checkpoint(cfg["kind"], env_name, checkpoints)
+        return AgentPlan(str(spec), str(path), _saved_config(path).get("sensors", sensors), shield)
+    return AgentPlan(str(spec), base, sensors, shield)

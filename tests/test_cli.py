@@ -53,7 +53,8 @@ def test_eval_compares_checkpoint_with_baseline_on_the_same_seeds(trained):
 
 
 def test_eval_lane_keeping_pid(tmp_path):
-    res = run("eval", "env=lane_keeping", "agents=[pid_paper]", "episodes=2", "out_dir=out",
+    """pid_paper declares sensors=truth (the paper's simulator CTE), so it runs even when eval's sensors differ."""
+    res = run("eval", "env=lane_keeping", "sensors=gnss_imu", "agents=[pid_paper]", "episodes=2", "out_dir=out",
               "progress_bar=false", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     rows = list(csv.DictReader(open(tmp_path / "out" / "results.csv")))
@@ -80,6 +81,9 @@ def test_train_ppo_on_the_full_sensor_preset(tmp_path):
     ("train", ["env=lane_keeping", "agent=always_proceed"], "drives scenarios ['left_turn']"),
     ("train", ["agent.n_envs=0"], "agent.n_envs must be a positive integer"),
     ("eval", ["agents=[no_such_agent]"], "agent 'no_such_agent' is not in conf/agent/"),
+    ("eval", ["agents=[always_proceed+no_such_shield]"], "shield 'no_such_shield' is not in conf/shield/"),
+    ("eval", ["sensors=gnss_imu", "env.name=left_turn", "agents=[always_proceed]", "sensors.gnss.sigma=-2"],
+     "sensors.gnss.sigma must be >= 0"),
     ("eval", ["agents=[missing/model.zip]"], "does not exist"),
     ("eval", ["env=lane_keeping", "agents=[ppo]", "paths.checkpoints=nowhere"], "no ppo checkpoint"),
 ])

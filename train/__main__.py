@@ -47,7 +47,7 @@ def train(cfg: DictConfig) -> dict:
     import torch
 
     from av_gym.make import make_env
-    from eval.agents import resolve_agent
+    from eval.agents import plan_agent, resolve_agent
     from eval.report import write_results
     from eval.runner import run_episodes
     from train.checkpoint import write_text_atomic
@@ -74,10 +74,12 @@ def train(cfg: DictConfig) -> dict:
         seeds = range(int(cfg.train.eval_seed), int(cfg.train.eval_seed) + n)
         baseline = BASELINES[env_name] if cfg.train.baseline == "auto" else cfg.train.baseline
         specs = ([str(ckpt_dir)] if model_path else []) + [baseline if model_path else agent.name]
+        sensors, shield = (OmegaConf.to_container(c, resolve=True) for c in (cfg.sensors, cfg.shield))
         for spec in specs:
-            env = make_env(cfg.env, cfg.sensors, cfg.shield)
-            label, policy = resolve_agent(spec, env, env_name, cfg.paths.checkpoints)
-            label = agent.name if spec == str(ckpt_dir) else label
+            plan = plan_agent(spec, env_name, sensors, shield, cfg.paths.checkpoints)
+            env = make_env(cfg.env, plan.sensors, plan.shield)
+            _, policy = resolve_agent(plan.spec, env, env_name, cfg.paths.checkpoints)
+            label = agent.name if spec == str(ckpt_dir) else plan.label
             rows += run_episodes(env, policy, seeds, label, progress=bool(cfg.train.progress_bar))
             env.close()
         table = write_results(rows, run_dir, env_name, f"{cfg.run_name}: brief evaluation, {n} episodes")
