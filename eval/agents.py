@@ -46,17 +46,20 @@ def load_agent_config(name: str) -> dict[str, Any]:
 
 
 def find_checkpoint(kind: str, env_name: str, root: str | Path) -> Path:
-    """Newest ``checkpoints/<run>/`` whose saved config trained ``kind`` on ``env_name`` and holds its model."""
-    found = []
-    for cfg_path in Path(root).glob("*/config.yaml"):
-        cfg = yaml.safe_load(cfg_path.read_text()) or {}
-        model = cfg_path.parent / LOADERS[kind][0]
-        if model.is_file() and cfg.get("env", {}).get("name") == env_name and cfg.get("agent", {}).get("kind") == kind:
-            found.append(model)
-    if not found:
-        raise ConfigError(f"no {kind} checkpoint for env {env_name!r} under {root}/; train one with "
-                          f"`python -m train env={env_name} agent={kind}` or pass a checkpoint path")
-    return max(found, key=lambda p: p.stat().st_mtime)
+    """Newest ``checkpoints/<run>/`` whose saved config trained ``kind`` on ``env_name`` and holds its model;
+    if you trained none, the committed ``checkpoints/reference/<name>/`` one."""
+    for pattern in ("*/config.yaml", "reference/*/config.yaml"):
+        found = []
+        for cfg_path in Path(root).glob(pattern):
+            cfg = yaml.safe_load(cfg_path.read_text()) or {}
+            model = cfg_path.parent / LOADERS[kind][0]
+            if model.is_file() and cfg.get("env", {}).get("name") == env_name \
+                    and cfg.get("agent", {}).get("kind") == kind:
+                found.append(model)
+        if found:
+            return max(found, key=lambda p: p.stat().st_mtime)
+    raise ConfigError(f"no {kind} checkpoint for env {env_name!r} under {root}/; train one with "
+                      f"`python -m train env={env_name} agent={kind}` or pass a checkpoint path")
 
 
 def _check_scenario(label: str, cfg: dict, env_name: str) -> None:
