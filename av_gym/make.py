@@ -35,7 +35,13 @@ def _sensor_classes() -> dict:
     from av_gym.sensors.camera import Cameras
     from av_gym.sensors.lidar import Lidar
 
-    return {"gnss": GNSS, "imu": IMU, "lidar": Lidar, "cameras": Cameras, "detector": Detector}
+    return {"gnss": GNSS, "imu": IMU, "lidar": Lidar, "cameras": Cameras, "detector": Detector, **_estimators()}
+
+
+def _estimators() -> dict:
+    """Estimator config key → wrapper class. Estimators read sensor keys and add estimated ones beside them
+    (e.g. ``ego_estimate``), so they are stacked after every sensor, in this order."""
+    return {}
 
 
 def add_sensors(env: gym.Env, sensors_cfg: Mapping | None) -> gym.Env:
