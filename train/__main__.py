@@ -101,6 +101,8 @@ def main(cfg: DictConfig) -> None:
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)
+    except KeyboardInterrupt:  # SIGINT / SIGTERM: the trainer saved a checkpoint and said where
+        sys.exit(130)
 
 
 if __name__ == "__main__":

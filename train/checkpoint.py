@@ -31,3 +31,41 @@ def write_text_atomic(path: str | Path, text: str) -> Path:
     tmp.write_text(text)
     _fsync_replace(tmp, path)
     return path
+
+
+def save_rng_state(path: str | Path, extra: dict | None = None) -> Path:
+    """Python, NumPy and torch global RNG states (plus ``extra``), written atomically (a pickle: our own file,
+    loaded only on resume)."""
+    import pickle
+    import random
+
+    import numpy as np
+    import torch
+
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    state = {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
+             **(extra or {})}
+    with open(tmp, "wb") as f:
+        pickle.dump(state, f)
+    _fsync_replace(tmp, path)
+    return path
+
+
+def load_rng_state(path: str | Path) -> dict:
+    """Restore the RNG states :func:`save_rng_state` wrote and return the whole record ({} if no file)."""
+    import pickle
+    import random
+
+    import numpy as np
+    import torch
+
+    path = Path(path)
+    if not path.is_file():
+        return {}
+    with open(path, "rb") as f:
+        state = pickle.load(f)
+    random.setstate(state["python"])
+    np.random.set_state(state["numpy"])
+    torch.set_rng_state(state["torch"])
+    return state

@@ -27,29 +27,87 @@ def validate(cfg: DictConfig) -> list[str]:
     return problems
 
 
+def _tensorboard_logger(folder: Path, purge_step: int | None):
+    """SB3 logger writing TensorBoard events to ``folder``. When resuming, ``purge_step`` makes TensorBoard drop
+    what the killed run logged after its last checkpoint, so curves continue with neither a gap nor a duplicate."""
+    from stable_baselines3.common.logger import Logger, TensorBoardOutputFormat
+    from torch.utils.tensorboard import SummaryWriter
+
+    fmt = TensorBoardOutputFormat(str(folder))
+    if purge_step:
+        fmt.writer.close()
+        fmt.writer = SummaryWriter(log_dir=str(folder), purge_step=purge_step)
+    return Logger(folder=str(folder), output_formats=[fmt])
+
+
 def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
-    """Train PPO as ``cfg.agent`` says; TensorBoard under ``run_dir/tb``; returns the final checkpoint path."""
+    """Train PPO as ``cfg.agent`` says; TensorBoard under ``run_dir/tb``; returns the final checkpoint path.
+
+    ``train.resume=true`` continues ``checkpoints/<run_name>/latest.zip`` (policy, optimizer, step counter, RNG
+    states) to the same ``total_timesteps``. SIGINT and SIGTERM save a checkpoint before exiting."""
+    import signal
+
+    from stable_baselines3 import PPO
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
     from agents.ppo import make_ppo
+    from av_gym.errors import ConfigError
     from train.callbacks import AtomicCheckpointCallback, EpisodeMetricsCallback
-    from train.checkpoint import save_model_atomic
+    from train.checkpoint import load_rng_state, save_model_atomic
 
     agent, t0 = cfg.agent, time.time()
+    latest = ckpt_dir / "latest.zip"
+    resume = bool(cfg.train.get("resume", False))
+    if resume and not latest.is_file():
+        raise ConfigError(f"train.resume=true but {latest} does not exist (resume needs the run_name of a run "
+                          f"that wrote a checkpoint)")
+    for stale in ckpt_dir.glob(".*.tmp"):  # a save that was killed half-way; the previous file is intact
+        stale.unlink()
     plain = [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
     vec_cls = SubprocVecEnv if (agent.vec_env == "subproc" and agent.n_envs > 1) else DummyVecEnv
-    venv = make_vec_env(functools.partial(_env_factory, *plain), n_envs=int(agent.n_envs), seed=int(cfg.seed),
-                        vec_env_cls=vec_cls)
-    model = make_ppo(venv, OmegaConf.to_container(agent, resolve=True), seed=int(cfg.seed),
-                     tensorboard_log=str(run_dir / "tb"), device=agent.device)
-    callbacks = [EpisodeMetricsCallback(cfg.env.name), AtomicCheckpointCallback(ckpt_dir, int(cfg.train.checkpoint_every))]
+    done_steps = 0
+    if resume:
+        done_steps = int(PPO.load(str(latest), device=agent.device).num_timesteps)
+    # A resumed run's episodes come from fresh seeds (the env streams of the killed run cannot be restored).
+    venv = make_vec_env(functools.partial(_env_factory, *plain), n_envs=int(agent.n_envs),
+                        seed=int(cfg.seed) + done_steps, vec_env_cls=vec_cls)
+    if resume:
+        try:
+            model = PPO.load(str(latest), env=venv, device=agent.device)
+        except ValueError as exc:  # SB3's check that the spaces match the env
+            raise ConfigError(f"checkpoint {latest} does not fit this env/sensors config: {exc}") from None
+        saved = load_rng_state(ckpt_dir / "latest.rng")
+        print(f"[train] resuming {latest} at {model.num_timesteps} of {agent.total_timesteps} env steps")
+    else:
+        model = make_ppo(venv, OmegaConf.to_container(agent, resolve=True), seed=int(cfg.seed),
+                         tensorboard_log=None, device=agent.device)
+    # The checkpoint's own dump (at its step) is complete, so TensorBoard keeps it and drops only what came after.
+    model.set_logger(_tensorboard_logger(run_dir / "tb" / str(agent.name),
+                                         model.num_timesteps + 1 if resume else None))
+    if resume:  # values recorded by the last update but not yet written when the run was killed
+        for key, store in saved.get("logger", {}).items():
+            getattr(model.logger, key).update(store)
+    checkpoint = AtomicCheckpointCallback(ckpt_dir, int(cfg.train.checkpoint_every))
+    callbacks = [EpisodeMetricsCallback(cfg.env.name), checkpoint]
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM behaves like Ctrl-C
     try:
-        model.learn(total_timesteps=int(agent.total_timesteps), callback=callbacks,
-                    progress_bar=bool(cfg.train.progress_bar), tb_log_name=agent.name)
+        remaining = int(agent.total_timesteps) - int(model.num_timesteps)
+        if remaining > 0:
+            model.learn(total_timesteps=remaining, callback=callbacks, reset_num_timesteps=False,
+                        progress_bar=bool(cfg.train.progress_bar))
     except KeyboardInterrupt:
-        print(f"[train] interrupted at {model.num_timesteps} steps; saving what was learned")
+        if checkpoint.model is not None:  # learning had started
+            checkpoint.save()
+        print(f"[train] interrupted at {model.num_timesteps} env steps; checkpoint {latest} "
+              f"(continue with run_name={cfg.run_name} train.resume=true)")
+        raise
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        try:
+            venv.close()
+        except (EOFError, BrokenPipeError, ConnectionResetError):  # workers already gone after a signal
+            pass
     path = save_model_atomic(model, ckpt_dir / "model.zip")
-    venv.close()
     print(f"[train] {model.num_timesteps} env steps in {time.time() - t0:.0f} s")
     return path
