@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from typing import Callable
 
+import numpy as np
+
 
 class ScenarioMixin:
     """Mix in before ``AbstractEnv``.
@@ -43,3 +45,18 @@ class ScenarioMixin:
 
     def _on_tick(self) -> None:
         """Scenario bookkeeping after each tick (lap progress, arrival time)."""
+
+    def _info(self, obs, action=None) -> dict:
+        info = super()._info(obs, action)
+        info["truth"] = self.truth()
+        return info
+
+
+def ego_kinematics(vehicle) -> dict:
+    """Applied steering (rad), acceleration (m/s²) and the kinematic bicycle's yaw rate (rad/s, + = right turn:
+    ψ̇ = v·sin β / (L/2), β = atan(tan δ / 2), highway-env's model) of a vehicle."""
+    action = vehicle.action or {}
+    steering = float(action.get("steering", 0.0))
+    beta = np.arctan(0.5 * np.tan(steering))
+    return {"steering": steering, "acceleration": float(action.get("acceleration", 0.0)),
+            "yaw_rate": float(vehicle.speed * np.sin(beta) / (vehicle.LENGTH / 2))}

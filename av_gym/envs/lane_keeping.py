@@ -13,7 +13,7 @@ from highway_env import utils
 from highway_env.envs.common.abstract import AbstractEnv
 from highway_env.road.road import Road
 
-from av_gym.envs.base import ScenarioMixin
+from av_gym.envs.base import ScenarioMixin, ego_kinematics
 from av_gym.envs.observations import LaneKeepingState, StateDict
 from av_gym.envs.track import Track, build_track
 from av_gym.envs.vehicles import SpeedHeldVehicle, SteeringAction
@@ -117,14 +117,13 @@ class LaneKeepingLapEnv(ScenarioMixin, AbstractEnv):
         lane = self.track.lanes[self._lane_k]
         s, cte = lane.local_coordinates(ego.position)
         heading_error = utils.wrap_to_pi(ego.heading - lane.heading_at(s))
-        steering = float(ego.action.get("steering", 0.0)) if ego.action else 0.0
-        beta = np.arctan(0.5 * np.tan(steering))
+        kin = ego_kinematics(ego)
         return {
             "cte": float(cte),
             "heading_error": float(heading_error),
             "speed": float(ego.speed),
-            "yaw_rate": float(ego.speed * np.sin(beta) / (ego.LENGTH / 2)),
-            "steering": steering,
+            "yaw_rate": kin["yaw_rate"],
+            "steering": kin["steering"],
             "lap_s": float(self._lap_s),
         }
 
@@ -148,11 +147,6 @@ class LaneKeepingLapEnv(ScenarioMixin, AbstractEnv):
     def _is_truncated(self) -> bool:
         return bool(self.time >= self._time_limit)
 
-    def _info(self, obs, action=None) -> dict:
-        info = super()._info(obs, action)
-        info["truth"] = self.truth()
-        return info
-
     def truth(self) -> dict:
         """Ground truth for metrics and tests (never part of the observation). SI units throughout."""
         ego = self.vehicle
@@ -162,7 +156,7 @@ class LaneKeepingLapEnv(ScenarioMixin, AbstractEnv):
             "x": float(ego.position[0]),
             "y": float(ego.position[1]),
             "heading": float(ego.heading),
-            "acceleration": float(ego.action.get("acceleration", 0.0)) if ego.action else 0.0,
+            "acceleration": ego_kinematics(ego)["acceleration"],
             "progress": float(self._progress),
             "lap_length": float(self.track.length),
             "lap_completed": bool(self._lap_completed()),

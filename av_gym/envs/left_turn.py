@@ -23,7 +23,7 @@ from highway_env.envs.intersection_env import IntersectionEnv
 from highway_env.vehicle.kinematics import Vehicle
 
 from av_gym.envs.lane_path import LanePath
-from av_gym.envs.base import ScenarioMixin
+from av_gym.envs.base import ScenarioMixin, ego_kinematics
 from av_gym.envs.observations import FastKinematics, StateDict
 from av_gym.envs.vehicles import LongitudinalAction
 from av_gym.geometry import NO_OTHERS, box_corners, constant_velocity_ttc
@@ -181,19 +181,13 @@ class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
         limit = self._ccftap_time_limit if self.config["mode"] == "ccftap" else self.config["duration"]
         return bool(self.time >= limit)
 
-    def _info(self, obs, action=None) -> dict:
-        info = super()._info(obs, action)
-        info["truth"] = self.truth()
-        return info
-
     def truth(self) -> dict:
         """Ground truth for metrics and tests (never part of the observation). SI units throughout."""
         ego = self.vehicle
         self._route_k, s, lat = self.route.locate(ego.position, self._route_k)
         route_s = self.route.path_s(self._route_k, s)
         stop_line_s = self.route.starts[1]
-        steering = float(ego.action.get("steering", 0.0)) if ego.action else 0.0
-        beta = np.arctan(0.5 * np.tan(steering))
+        kin = ego_kinematics(ego)
         others = [v for v in self.road.vehicles if v is not ego]
         others_arr = np.array([[v.position[0], v.position[1], v.velocity[0], v.velocity[1], v.heading,
                                 v.LENGTH, v.WIDTH] for v in others]) if others else NO_OTHERS.copy()
@@ -206,9 +200,9 @@ class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
             "y": float(ego.position[1]),
             "heading": float(ego.heading),
             "speed": float(ego.speed),
-            "yaw_rate": float(ego.speed * np.sin(beta) / (ego.LENGTH / 2)),
-            "acceleration": float(ego.action.get("acceleration", 0.0)) if ego.action else 0.0,
-            "steering": steering,
+            "yaw_rate": kin["yaw_rate"],
+            "acceleration": kin["acceleration"],
+            "steering": kin["steering"],
             "route_s": route_s,
             "cte": lat,
             "stop_line_offset": route_s + ego.LENGTH / 2 - stop_line_s,
