@@ -17,12 +17,14 @@ from av_gym.errors import ConfigError
 from av_gym.metrics.recorder import EpisodeMetrics
 
 KMH = 1 / 3.6
-SENSOR_PRESETS = ("truth", "gnss_imu", "lidar", "cameras", "detector", "full")
+SENSOR_PRESETS = ("truth", "gnss_imu", "gnss_raw", "lidar", "cameras", "detector", "localized", "full")
 
 
 def _shields() -> dict:
     """shield config ``kind`` → builder ``f(env, params: dict) -> gym.Env`` (wraps the sensed env)."""
-    return {}
+    from agents.aeb import build_shield  # imported here: av_gym stays importable without agents/
+
+    return {"aeb": build_shield}
 
 
 def _sensor_classes() -> dict:
@@ -41,7 +43,9 @@ def _sensor_classes() -> dict:
 def _estimators() -> dict:
     """Estimator config key → wrapper class. Estimators read sensor keys and add estimated ones beside them
     (e.g. ``ego_estimate``), so they are stacked after every sensor, in this order."""
-    return {}
+    from av_gym.estimation.localization import Localizer
+
+    return {"localizer": Localizer}
 
 
 def add_sensors(env: gym.Env, sensors_cfg: Mapping | None) -> gym.Env:
@@ -109,7 +113,8 @@ def highway_config(env_cfg: Mapping) -> tuple[str, dict]:
         return _require(where, key, prefix)
 
     common = {"simulation_frequency": int(get("simulation_frequency")),
-              "policy_frequency": int(get("policy_frequency"))}
+              "policy_frequency": int(get("policy_frequency")),
+              "fast": bool(get("fast"))}
     if name == "lane_keeping":
         config = {
             "track": get("track"),

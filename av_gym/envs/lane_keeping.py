@@ -16,6 +16,7 @@ from highway_env.road.road import Road
 from av_gym.envs.base import ScenarioMixin, ego_kinematics
 from av_gym.envs.observations import LaneKeepingState, StateDict
 from av_gym.envs.track import Track, build_track
+from av_gym.sim.fast_network import FastRoadNetwork
 from av_gym.envs.vehicles import SpeedHeldVehicle, SteeringAction
 from av_gym.geometry import NO_OTHERS
 
@@ -49,6 +50,7 @@ class LaneKeepingLapEnv(ScenarioMixin, AbstractEnv):
             # Seeded start perturbation, so seeds give different laps even without sensor noise (our choice):
             "initial_lateral_std": 0.2,  # m, normal, clipped at ±3 std
             "initial_heading_std": 0.02,  # rad, normal, clipped at ±3 std
+            "fast": True,  # av_gym.sim fast paths (same results, tested); False = highway-env's own code
             "screen_width": 600,
             "screen_height": 600,
             "centering_position": [0.5, 0.5],
@@ -68,7 +70,8 @@ class LaneKeepingLapEnv(ScenarioMixin, AbstractEnv):
     def _reset(self) -> None:
         self._check_config()
         self.track: Track = build_track(self.config["track"], lane_width=float(self.config["lane_width"]))
-        self.road = Road(network=self.track.network, np_random=self.np_random,
+        network = FastRoadNetwork.from_network(self.track.network) if self.config["fast"] else self.track.network
+        self.road = Road(network=network, np_random=self.np_random,
                          record_history=self.config["show_trajectories"])
         start_s = float(self.config["start_s"]) % self.track.length
         k = int(np.searchsorted(self.track.starts, start_s, side="right") - 1)

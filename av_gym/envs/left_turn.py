@@ -19,14 +19,16 @@ from __future__ import annotations
 import numpy as np
 from highway_env import utils
 from highway_env.envs.common.action import DiscreteMetaAction
+from highway_env.envs.common.observation import KinematicObservation
 from highway_env.envs.intersection_env import IntersectionEnv
 from highway_env.vehicle.kinematics import Vehicle
 
-from av_gym.envs.lane_path import LanePath
 from av_gym.envs.base import ScenarioMixin, ego_kinematics
+from av_gym.envs.lane_path import LanePath
 from av_gym.envs.observations import FastKinematics, StateDict
 from av_gym.envs.vehicles import LongitudinalAction
 from av_gym.geometry import NO_OTHERS, box_corners, constant_velocity_ttc
+from av_gym.sim.fast_network import FastRoadNetwork
 
 MODES = ("traffic", "ccftap")
 ACTIONS = ("discrete", "continuous")
@@ -63,6 +65,7 @@ class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
             "ccftap_target_speed": 45 / 3.6,  # m/s
             "ccftap_dt": 0.0,  # s, target reaches the conflict point this long after the ego (0 = they meet)
             "ccftap_lead_time": 5.0,  # s, the ego starts this long (at its speed) before the stop line, >= 25 m
+            "fast": True,  # av_gym.sim fast paths (same results, tested); False = highway-env's own code
         })
         return config
 
@@ -70,7 +73,8 @@ class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
     def define_spaces(self) -> None:
         self._check_config()
         obs_config = {k: v for k, v in self.config["observation"].items() if k != "type"}
-        self.observation_type = StateDict(self, FastKinematics(self, **obs_config))
+        kinematics = FastKinematics if self.config["fast"] else KinematicObservation
+        self.observation_type = StateDict(self, kinematics(self, **obs_config))
         a = self.config["action"]
         if a["type"] == "discrete":
             speeds = [0.0, float(self.config["ccftap_ego_speed"])] if self.config["mode"] == "ccftap" \
@@ -106,6 +110,8 @@ class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
     # ----------------------------------------------------------------------------------------------- scene
     def _reset(self) -> None:
         self._make_road()
+        if self.config["fast"]:
+            self.road.network = FastRoadNetwork.from_network(self.road.network)
         self.route = LanePath([self.road.network.get_lane(i) for i in ROUTE])
         if self.config["mode"] == "traffic":
             self._make_vehicles(self.config["initial_vehicle_count"])

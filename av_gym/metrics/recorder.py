@@ -19,7 +19,9 @@ TRACES = {
 
 class EpisodeMetrics(gym.Wrapper):
     """Adds ``info["episode_metrics"]`` (a flat dict of floats, see :mod:`av_gym.metrics`) on the step that ends an
-    episode, plus ``return`` and ``length`` (policy steps) and, for shielded runs, ``interventions``."""
+    episode, plus ``return`` and ``length`` (policy steps), ``override_fraction`` (share of steps whose action a
+    safety shield overrode, ``info["shield_override"]``), ``intervention`` (1 if it overrode at least once) and
+    ``first_override_s`` (time of the first override, NaN if none)."""
 
     def __init__(self, env: gym.Env) -> None:
         super().__init__(env)
@@ -32,6 +34,7 @@ class EpisodeMetrics(gym.Wrapper):
         obs, info = self.env.reset(**kwargs)
         self._traces = {k: [] for k in TRACES[self.scenario]}
         self._return, self._length, self._overrides = 0.0, 0, 0
+        self._first_override = float("nan")
         self._last_truth = info["truth"]
         return obs, info
 
@@ -42,7 +45,10 @@ class EpisodeMetrics(gym.Wrapper):
             trace.append(truth[key])
         self._return += float(reward)
         self._length += 1
-        self._overrides += int(bool(info.get("shield_override", False)))
+        overridden = bool(info.get("shield_override", False))
+        self._overrides += int(overridden)
+        if overridden and self._first_override != self._first_override:
+            self._first_override = float(truth.get("time", self._length))
         self._last_truth = truth
         if terminated or truncated:
             info["episode_metrics"] = self.summary(truncated=truncated)
@@ -60,5 +66,6 @@ class EpisodeMetrics(gym.Wrapper):
             row = left_turn_summary(tr["time"], tr["speed"], tr["collision"], tr["arrived"], tr["ttc"],
                                     tr["stop_line_offset"], tr["oncoming_gap"])
         row.update({"return": self._return, "length": float(self._length), "truncated": float(truncated),
-                    "override_fraction": self._overrides / max(1, self._length)})
+                    "override_fraction": self._overrides / max(1, self._length),
+                    "intervention": float(self._overrides > 0), "first_override_s": self._first_override})
         return row

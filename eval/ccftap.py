@@ -1,0 +1,377 @@
+"""``python -m eval.ccftap``: the Euro NCAP CCFtap grid for the AEB shield variants (issue 5).
+
+3 ego speeds × 3 target speeds × 11 timing offsets Δt = 99 cases (digest 003 §3.3), each run with the
+always-proceed driver (it never yields: every conflict is the shield's to solve), for every shield variant in
+``--variants`` (``none``, ``standard``, ``paper``, ``improved``: ``conf/shield/aeb_standard.yaml``,
+``aeb_paper.yaml``, ``aeb.yaml``) × every mode in ``--modes`` (``ground_truth``, ``perceived``: the shield's own
+detector + tracker, with ``--miss-rate`` and ``--burst-length`` bursty misses).
+
+Per case: collision; intervention (the shield braked at least once); unnecessary intervention (it braked although
+the same case without shield is collision-free); stop position of the front bumper relative to the stop line at
+the first standstill under braking (m, ≤ 0 = still in its own lane, the paper's criterion); min gap to the
+oncoming lane while the target can still reach the ego (m, smallest x of the ego footprint minus the lane's near
+edge, until the target's rear has passed the turn; negative = the ego was inside the oncoming lane then); time to
+exit (s). Writes ``results.csv`` (one row per case), ``results.md`` (aggregates and per-case grids), ``grid.png``
+(every case coloured by outcome) and ``timeline.png`` (speed, predicted TTC and stage over time for one case).
+
+    python -m eval.ccftap                                    # all four variants × both modes, 2 workers
+    python -m eval.ccftap --variants improved --modes ground_truth --out runs/ccftap/gt
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import itertools
+import math
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+EGO_KMH = (10.0, 15.0, 20.0)
+TARGET_KMH = (30.0, 45.0, 60.0)
+DTS = (-3.0, -2.0, -1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5, 2.0, 3.0)
+VARIANTS = {"none": "none", "standard": "aeb_standard", "paper": "aeb_paper", "improved": "aeb"}
+MODES = ("ground_truth", "perceived")
+OUTCOMES = {  # code: (label, colour)
+    "pass": ("no intervention, no collision", "#d9d9d9"),
+    "stop": ("braked, stopped at/behind the stop line, no collision", "#4daf4a"),
+    "stop_past": ("braked, stopped past the stop line, no collision", "#ffd92f"),
+    "brake_safe": ("braked (no standstill), no collision", "#a6d96a"),
+    "collision_braked": ("collision after braking", "#e41a1c"),
+    "collision": ("collision, no intervention", "#67000d"),
+}
+
+
+def env_config(ego_kmh: float, target_kmh: float, dt: float, action: str = "discrete") -> dict:
+    cfg = yaml.safe_load((resources.files("conf") / "env" / "left_turn.yaml").read_text())
+    cfg.update(mode="ccftap", action=action)
+    cfg["ccftap"] = {"ego_speed_kmh": ego_kmh, "target_speed_kmh": target_kmh, "dt": dt}
+    return cfg
+
+
+def shield_config(variant: str, mode: str, miss_rate: float | None = None, burst_length: float | None = None,
+                  detector_range: float | None = None) -> dict:
+    """The shipped ``conf/shield/<name>.yaml`` for ``variant`` with ``mode`` (and perceived-mode overrides)."""
+    name = VARIANTS[variant]
+    cfg = yaml.safe_load((resources.files("conf") / "shield" / f"{name}.yaml").read_text())
+    if variant == "none":
+        return cfg
+    cfg["mode"] = mode
+    det = dict(cfg.get("detector") or {})
+    for key, value in (("miss_rate", miss_rate), ("burst_length", burst_length), ("max_range", detector_range)):
+        if value is not None:
+            det[key] = value
+    cfg["detector"] = det
+    return cfg
+
+
+def run_case(task: dict) -> dict:
+    """One CCFtap case with one shield config; returns the per-case row (and traces when asked)."""
+    from agents import AlwaysProceed
+    from av_gym.make import make_env
+
+    env = make_env(env_config(task["ego_kmh"], task["target_kmh"], task["dt"], task.get("action", "discrete")),
+                   None, task["shield"])
+    u = env.unwrapped
+    obs, info = env.reset(seed=int(task.get("seed", 0)))
+    policy = AlwaysProceed(u.cruise_action())
+    trace = {k: [] for k in ("time", "speed", "ttc", "stage", "stop_line_offset", "target_distance")}
+    intervention, min_gap, min_ttc, t_warn = False, math.inf, math.inf, math.nan
+    while True:
+        obs, _, terminated, truncated, info = env.step(policy.act(obs))
+        truth = info["truth"]
+        stage = int(info.get("aeb_stage", 0))
+        intervention |= stage == 2
+        if stage >= 1 and math.isnan(t_warn):
+            t_warn = truth["time"]
+        min_ttc = min(min_ttc, float(info.get("aeb_ttc", math.inf)))
+        if not u._target_passed():
+            min_gap = min(min_gap, truth["oncoming_gap"])
+        if task.get("trace"):
+            trace["time"].append(truth["time"])
+            trace["speed"].append(truth["speed"])
+            trace["ttc"].append(float(info.get("aeb_ttc", math.inf)))
+            trace["stage"].append(stage)
+            trace["stop_line_offset"].append(truth["stop_line_offset"])
+            trace["target_distance"].append(float(np.linalg.norm(u.ccftap_target.position - u.vehicle.position)))
+        if terminated or truncated:
+            break
+    m = info["episode_metrics"]
+    env.close()
+    row = {"variant": task["variant"], "mode": task["mode"], "ego_kmh": task["ego_kmh"],
+           "target_kmh": task["target_kmh"], "dt": task["dt"], "collision": int(m["collision"]),
+           "intervention": int(intervention),
+           "stop_line_offset_m": float(info.get("aeb_stop_position", math.nan)) if intervention else math.nan,
+           "min_oncoming_gap_m": min_gap, "time_to_exit_s": m["time_to_exit_s"],
+           "brake_time_s": float(info.get("aeb_brake_time", math.nan)), "warn_time_s": t_warn,
+           "min_pred_ttc_s": min_ttc, "override_fraction": m["override_fraction"], "duration_s": m["duration_s"]}
+    if task.get("trace"):
+        row["trace"] = trace
+    return row
+
+
+def outcome(row: dict) -> str:
+    if row["collision"]:
+        return "collision_braked" if row["intervention"] else "collision"
+    if not row["intervention"]:
+        return "pass"
+    off = row["stop_line_offset_m"]
+    if off != off:  # NaN: braked but never came to a standstill
+        return "brake_safe"
+    return "stop" if off <= 1e-6 else "stop_past"
+
+
+def add_unnecessary(rows: list[dict]) -> None:
+    """``unnecessary`` = intervention in a case whose no-shield run is collision-free (needs the ``none`` rows,
+    run on the fly when absent)."""
+    base = {(r["ego_kmh"], r["target_kmh"], r["dt"]): r["collision"] for r in rows if r["variant"] == "none"}
+    for r in rows:
+        key = (r["ego_kmh"], r["target_kmh"], r["dt"])
+        r["baseline_collision"] = base[key]
+        r["unnecessary"] = int(bool(r["intervention"]) and not base[key])
+        r["outcome"] = outcome(r)
+
+
+def aggregate(rows: list[dict]) -> list[dict]:
+    out = []
+    for (variant, mode), grp in itertools.groupby(rows, key=lambda r: (r["variant"], r["mode"])):
+        grp = list(grp)
+        stops = [r["stop_line_offset_m"] for r in grp
+                 if r["intervention"] and r["stop_line_offset_m"] == r["stop_line_offset_m"]]
+        exits = [r["time_to_exit_s"] for r in grp if r["time_to_exit_s"] == r["time_to_exit_s"]]
+        out.append({
+            "variant": variant, "mode": mode, "cases": len(grp),
+            "collisions": sum(r["collision"] for r in grp),
+            "missed (collision, no brake)": sum(r["collision"] and not r["intervention"] for r in grp),
+            "interventions": sum(r["intervention"] for r in grp),
+            "unnecessary": sum(r["unnecessary"] for r in grp),
+            "braking stops": len(stops),
+            "stops at/behind line": sum(o <= 1e-6 for o in stops),
+            "stop offset mean (max) m": f"{np.mean(stops):+.2f} ({np.max(stops):+.2f})" if stops else "–",
+            "time to exit mean s": f"{np.mean(exits):.2f}" if exits else "–",
+        })
+    return out
+
+
+def markdown(rows: list[dict], agg: list[dict], meta: str) -> str:
+    from av_gym.metrics import markdown_table
+
+    cols = list(agg[0])
+    lines = [f"# CCFtap grid: AEB shield variants\n\n{meta}\n", markdown_table(agg, cols), ""]
+    lines.append("Outcome codes per case below: `.` no intervention and no collision, `S` braked and stopped at or "
+                 "behind the stop line, `P` braked and stopped past the stop line, `b` braked without coming to a "
+                 "standstill, `X` collision after braking, `#` collision without intervention; a trailing `u` marks "
+                 "an unnecessary intervention (the no-shield case is collision-free).\n")
+    code = {"pass": ".", "stop": "S", "stop_past": "P", "brake_safe": "b", "collision_braked": "X", "collision": "#"}
+    for (variant, mode), grp in itertools.groupby(rows, key=lambda r: (r["variant"], r["mode"])):
+        grp = {(r["ego_kmh"], r["target_kmh"], r["dt"]): r for r in grp}
+        dts = sorted({k[2] for k in grp})
+        table = []
+        for e, t in sorted({k[:2] for k in grp}):
+            line = {"ego/target km/h": f"{e:g}/{t:g}"}
+            for dt in dts:
+                r = grp[(e, t, dt)]
+                off = r["stop_line_offset_m"]
+                cell = code[r["outcome"]] + ("u" if r["unnecessary"] else "")
+                if off == off:
+                    cell += f" {off:+.1f}"
+                line[f"{dt:+g}"] = cell
+            table.append(line)
+        lines += [f"## {variant} / {mode}\n", "Cell: outcome code, then the stop offset of the front bumper past "
+                  "the stop line (m) for braking stops.\n", markdown_table(table, list(table[0])), ""]
+    return "\n".join(lines)
+
+
+def grid_figure(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import ListedColormap
+    from matplotlib.patches import Patch
+
+    groups = [(k, list(g)) for k, g in itertools.groupby(rows, key=lambda r: (r["variant"], r["mode"]))]
+    codes = list(OUTCOMES)
+    cmap = ListedColormap([OUTCOMES[c][1] for c in codes])
+    ncol = 2 if len(groups) > 1 else 1
+    nrow = math.ceil(len(groups) / ncol)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(7.2 * ncol, 3.6 * nrow + 1.0), squeeze=False)
+    for ax, ((variant, mode), grp) in zip(axes.flat, groups):
+        pairs = sorted({(r["ego_kmh"], r["target_kmh"]) for r in grp})
+        dts = sorted({r["dt"] for r in grp})
+        img = np.zeros((len(pairs), len(dts)))
+        for r in grp:
+            i, j = pairs.index((r["ego_kmh"], r["target_kmh"])), dts.index(r["dt"])
+            img[i, j] = codes.index(r["outcome"])
+            if r["unnecessary"]:
+                ax.text(j, i, "u", ha="center", va="center", fontsize=8)
+        ax.imshow(img, cmap=cmap, vmin=-0.5, vmax=len(codes) - 0.5, aspect="auto")
+        ax.set_xticks(range(len(dts)), [f"{d:+g}" for d in dts], fontsize=8)
+        ax.set_yticks(range(len(pairs)), [f"{e:g} / {t:g}" for e, t in pairs], fontsize=8)
+        ax.set_xlabel("Δt: target reaches the conflict point this long after the ego (s)", fontsize=8)
+        ax.set_ylabel("ego / target speed (km/h)", fontsize=8)
+        n_col = sum(r["collision"] for r in grp)
+        ax.set_title(f"{variant} / {mode}: {n_col}/{len(grp)} collisions", fontsize=9)
+        for k in range(1, len(pairs)):
+            ax.axhline(k - 0.5, color="white", lw=0.5)
+    for ax in list(axes.flat)[len(groups):]:
+        ax.axis("off")
+    fig.legend(handles=[Patch(color=OUTCOMES[c][1], label=OUTCOMES[c][0]) for c in codes] +
+               [Patch(color="white", label="u = unnecessary intervention")], loc="lower center", ncol=3, fontsize=8)
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def timeline_figure(traces: dict, case: tuple, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(4, 1, figsize=(8, 8.5), sharex=True)
+    for label, tr in traces.items():
+        t = np.asarray(tr["time"])
+        line, = axes[0].plot(t, tr["speed"], label=label)
+        if tr.get("collision_time") is not None:
+            axes[0].plot([tr["collision_time"]], [tr["speed"][-1]], "x", color=line.get_color(), ms=9, mew=2)
+        ttc = np.asarray(tr["ttc"], dtype=float)
+        axes[1].plot(t, np.where(np.isfinite(ttc), ttc, np.nan), label=label)
+        axes[2].step(t, tr["stage"], where="post", label=label)
+        axes[3].plot(t, tr["stop_line_offset"], label=label)
+    axes[0].set_ylabel("ego speed (m/s)")
+    axes[1].set_ylabel("predicted TTC (s)")
+    axes[1].axhline(1.5, color="k", lw=0.6, ls="--")
+    axes[2].set_ylabel("stage")
+    axes[2].set_yticks([0, 1, 2], ["monitor", "warn", "brake"])
+    axes[3].set_ylabel("front bumper past\nstop line (m)")
+    axes[3].axhline(0.0, color="k", lw=0.6, ls="--")
+    axes[3].set_xlabel("time (s)")
+    axes[0].legend(fontsize=8)
+    e, tg, dt = case
+    axes[0].set_title(f"CCFtap ego {e:g} km/h, target {tg:g} km/h, Δt = {dt:+g} s (x marks a collision)")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m eval.ccftap", description=__doc__.split("\n\n")[0])
+    p.add_argument("--variants", default="none,standard,paper,improved")
+    p.add_argument("--modes", default="ground_truth,perceived")
+    p.add_argument("--ego", default=",".join(f"{v:g}" for v in EGO_KMH), help="ego speeds, km/h")
+    p.add_argument("--target", default=",".join(f"{v:g}" for v in TARGET_KMH), help="target speeds, km/h")
+    p.add_argument("--dts", default=",".join(f"{v:g}" for v in DTS), help="timing offsets, s")
+    p.add_argument("--miss-rate", type=float, default=None, help="perceived mode: detector miss rate (yaml: 0.3)")
+    p.add_argument("--burst-length", type=float, default=None, help="perceived mode: mean miss run, frames (yaml: 5)")
+    p.add_argument("--detector-range", type=float, default=None, help="perceived mode: detector range, m")
+    p.add_argument("--set", action="append", default=[], metavar="VARIANT.KEY=VALUE",
+                   help="override a shield parameter, e.g. paper.standstill_hold=null or paper.brake.delay=0")
+    p.add_argument("--action", default="discrete", choices=["discrete", "continuous"])
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--plot-case", default="15,45,0", help="ego km/h, target km/h, dt for timeline.png")
+    p.add_argument("--out", default=None, help="output folder (default runs/ccftap/<time>)")
+    a = p.parse_args(argv)
+    variants = [v for v in a.variants.split(",") if v]
+    modes = [m for m in a.modes.split(",") if m]
+    for v in variants:
+        if v not in VARIANTS:
+            print(f"error: --variants: {v!r} is not one of {list(VARIANTS)}", file=sys.stderr)
+            return 2
+    for m in modes:
+        if m not in MODES:
+            print(f"error: --modes: {m!r} is not one of {list(MODES)}", file=sys.stderr)
+            return 2
+    egos = [float(v) for v in a.ego.split(",")]
+    targets = [float(v) for v in a.target.split(",")]
+    dts = [float(v) for v in a.dts.split(",")]
+    plot_case = tuple(float(v) for v in a.plot_case.split(","))
+    out = Path(a.out or f"runs/ccftap/{time.strftime('%Y%m%d-%H%M%S')}")
+    out.mkdir(parents=True, exist_ok=True)
+
+    configs = [("none", "-")]  # the no-shield baseline is always run: it defines unnecessary interventions
+    configs += [(v, m) for v in variants if v != "none" for m in modes]
+    overrides = []
+    for item in a.set:
+        key, sep, value = item.partition("=")
+        variant_key, _, path = key.partition(".")
+        if not sep or variant_key not in VARIANTS or not path:
+            print(f"error: --set {item!r}: expected VARIANT.KEY=VALUE with VARIANT in {list(VARIANTS)}",
+                  file=sys.stderr)
+            return 2
+        overrides.append((variant_key, path.split("."), yaml.safe_load(value)))
+    tasks = []
+    for variant, mode in configs:
+        shield = shield_config(variant, mode if mode != "-" else "ground_truth", a.miss_rate, a.burst_length,
+                               a.detector_range)
+        for v, path, value in overrides:
+            if v == variant:
+                node = shield
+                for part in path[:-1]:
+                    node = node.setdefault(part, {})
+                node[path[-1]] = value
+        for e, tg, dt in itertools.product(egos, targets, dts):
+            tasks.append({"variant": variant, "mode": mode, "ego_kmh": e, "target_kmh": tg, "dt": dt,
+                          "shield": shield, "action": a.action, "seed": a.seed,
+                          "trace": (e, tg, dt) == plot_case and mode in ("-", "ground_truth")})
+    from av_gym.errors import ConfigError
+    from av_gym.make import make_env
+
+    for task in tasks[:: len(tasks) // len(configs)]:  # fail fast on a bad shield config, before any run
+        try:
+            make_env(env_config(task["ego_kmh"], task["target_kmh"], task["dt"], a.action), None,
+                     task["shield"]).close()
+        except ConfigError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+    t0 = time.time()
+    print(f"[ccftap] {len(tasks)} runs ({len(configs)} configs × {len(tasks) // len(configs)} cases), "
+          f"{a.workers} workers → {out}", flush=True)
+    if a.workers > 1:
+        with ProcessPoolExecutor(a.workers) as pool:
+            rows = list(pool.map(run_case, tasks, chunksize=4))
+    else:
+        rows = [run_case(t) for t in tasks]
+    add_unnecessary(rows)
+    if "none" not in variants:
+        rows = [r for r in rows if r["variant"] != "none"]
+    traces = {f"{r['variant']}": dict(r.pop("trace"), collision_time=(r["duration_s"] if r["collision"] else None))
+              for r in rows if "trace" in r}
+    for r in rows:
+        r.pop("trace", None)
+    agg = aggregate(rows)
+    pert = shield_config("improved", "perceived", a.miss_rate, a.burst_length, a.detector_range)["detector"]
+    meta = (f"`python -m eval.ccftap {' '.join(argv if argv is not None else sys.argv[1:])}`; always-proceed driver, "
+            f"{a.action} actions, seed {a.seed}; {len(rows) // max(1, len(agg))} cases per row "
+            f"({len(egos)} ego × {len(targets)} target speeds × {len(dts)} Δt). Perceived mode: the shield's own "
+            f"detector (miss_rate {pert.get('miss_rate')}, burst_length {pert.get('burst_length')} frames, "
+            f"max_range {pert.get('max_range')} m) + Kalman tracker. Wall time {time.time() - t0:.0f} s.")
+    columns = [k for k in rows[0]]
+    with open(out / "results.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=columns)
+        w.writeheader()
+        w.writerows(rows)
+    md = markdown(rows, agg, meta)
+    (out / "results.md").write_text(md)
+    grid_figure(rows, out / "grid.png")
+    if traces:
+        timeline_figure(traces, plot_case, out / "timeline.png")
+    from av_gym.metrics import markdown_table
+
+    print(markdown_table(agg, list(agg[0])))
+    print(f"[ccftap] {time.time() - t0:.0f} s; wrote {out}/results.csv, results.md, grid.png"
+          + (", timeline.png" if traces else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,235 @@
+"""Predictive AEB shield (agents/aeb.py, agents/aeb_predict.py): the paper's maths, the actuator, and a few
+deterministic CCFtap cases (the whole grid is `python -m eval.ccftap`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from agents import AlwaysProceed
+from agents.aeb import BrakeActuator
+from agents.aeb_predict import (aabb_limits, ca_predict, footprint_ttc, object_predict, paper_horizon,
+                                paper_limits, paper_ttc, standard_ttc)
+from av_gym.envs.left_turn import CONFLICT_POINT
+from av_gym.errors import ConfigError
+from conftest import Scripted, ccftap_cfg, conf, rollout
+
+KMH = 1 / 3.6
+
+
+def shield(name: str = "aeb", **overrides) -> dict:
+    cfg = conf("shield", name)
+    cfg.update(overrides)
+    return cfg
+
+
+def run_case(make, ego_kmh, target_kmh, dt, shield_cfg=None, action="discrete", seed=0):
+    env = make(ccftap_cfg(ego_kmh, target_kmh, dt, action=action), None, shield_cfg)
+    policy = AlwaysProceed(env.unwrapped.cruise_action())
+    obs, info = env.reset(seed=seed)
+    infos = []
+    while True:
+        obs, _, terminated, truncated, info = env.step(policy.act(obs))
+        infos.append(info)
+        if terminated or truncated:
+            return env, infos
+
+
+# ----------------------------------------------------------------------------------------------- paper maths
+def test_horizon_map_is_the_papers_linear_map_clamped():
+    assert paper_horizon(10 * KMH) == pytest.approx(4.0)
+    assert paper_horizon(15 * KMH) == pytest.approx(3.0)
+    assert paper_horizon(20 * KMH) == pytest.approx(2.0)
+    assert paper_horizon(12.5 * KMH) == pytest.approx(3.5)
+    assert paper_horizon(0.0) == pytest.approx(4.0) and paper_horizon(5 * KMH) == pytest.approx(4.0)
+    assert paper_horizon(40 * KMH) == pytest.approx(2.0)
+
+
+def test_collision_limits_eqs_7_8_at_0_and_90_degrees():
+    lt, wt, le, we = 4.8, 1.9, 4.4, 1.8
+    dx, dy = paper_limits(0.0, lt, wt, le, we)
+    assert (dx, dy) == pytest.approx((lt / 2 + le / 2, wt / 2))  # the ego half-width is missing at φ = 0
+    dx, dy = paper_limits(np.pi / 2, lt, wt, le, we)
+    assert (dx, dy) == pytest.approx((lt / 2, wt / 2 + we / 2))  # ... and Δy uses the half-width at 90°
+    assert aabb_limits(0.0, lt, wt, le, we) == pytest.approx(((lt + le) / 2, (wt + we) / 2))
+    assert aabb_limits(np.pi / 2, lt, wt, le, we) == pytest.approx((lt / 2 + we / 2, wt / 2 + le / 2))
+
+
+def test_ca_prediction_literal_and_kinematic():
+    x0, v0, a0 = np.array([1.0, 2.0]), np.array([3.0, -1.0]), np.array([0.5, 2.0])
+    literal = ca_predict(x0, v0, a0, np.array([1.0, 2.0]))
+    assert literal[0] == pytest.approx(x0 + v0 + a0)  # eqs. (2)-(3) substituted: X0 + (V0 + A0 t) t
+    assert literal[1] == pytest.approx(x0 + 2 * v0 + 4 * a0)
+    assert ca_predict(x0, v0, a0, np.array([1.0]), half_accel_term=True)[0] == pytest.approx(x0 + v0 + 0.5 * a0)
+    # constant acceleration of another vehicle: braking to a stop, never reversing
+    others = np.array([[0.0, 0.0, 10.0, 0.0, 0.0, 5.0, 2.0]])
+    pos, _ = object_predict(others, np.array([1.0, 3.0]), accel=np.array([[-5.0, 0.0]]), accel_time=5.0)
+    assert pos[0, 0] == pytest.approx([7.5, 0.0]) and pos[1, 0] == pytest.approx([10.0, 0.0])
+
+
+def test_synthetic_head_on_ttc_paper_footprint_and_standard():
+    """Ego at the origin at 5 m/s along x, target 30.5 m ahead coming back at 5 m/s: the 5 m gap between centres
+    (two 5 m cars) closes at 10 m/s, so contact at 2.55 s, i.e. the 26th slice of 0.1 s."""
+    size = np.array([[5.0, 2.0]])
+    ttc, i = paper_ttc(np.array([[30.5, 0.0]]), np.array([5.0, 0.0]), np.zeros(2), np.array([[-5.0, 0.0]]),
+                       np.zeros((1, 2)), size, (5.0, 2.0), 0.0, 0.0, horizon=4.0)
+    assert ttc == pytest.approx(2.6) and i == 0
+    ttc, _ = paper_ttc(np.array([[30.5, 0.0]]), np.array([5.0, 0.0]), np.zeros(2), np.array([[-5.0, 0.0]]),
+                       np.zeros((1, 2)), size, (5.0, 2.0), 0.0, 0.0, horizon=2.0)
+    assert ttc == np.inf  # beyond the horizon
+    ttc, _ = paper_ttc(np.array([[30.5, 2.5]]), np.array([5.0, 0.0]), np.zeros(2), np.array([[-5.0, 0.0]]),
+                       np.zeros((1, 2)), size, (5.0, 2.0), 0.0, 0.0, horizon=4.0)
+    assert ttc == np.inf  # passing 2.5 m to the side: no collision
+    t = 0.1 * np.arange(1, 41)
+    others = np.array([[30.5, 0.0, -5.0, 0.0, np.pi, 5.0, 2.0]])
+    xy, h = object_predict(others, t)
+    ego_xy = np.stack([5.0 * t, np.zeros_like(t)], -1)
+    assert footprint_ttc(ego_xy, np.zeros_like(t), (5.0, 2.0), xy, h, others[:, 5:7], t)[0] == pytest.approx(2.6)
+    assert footprint_ttc(ego_xy + [0, 2.5], np.zeros_like(t), (5.0, 2.0), xy, h, others[:, 5:7], t)[0] == np.inf
+    assert standard_ttc(np.zeros(2), 0.0, 5.0, (5.0, 2.0), others)[0] == pytest.approx(2.55)
+    beside = others.copy()
+    beside[0, 1] = 4.0  # in the next lane: not "ahead" for the standard AEB
+    assert standard_ttc(np.zeros(2), 0.0, 5.0, (5.0, 2.0), beside)[0] == np.inf
+
+
+def test_brake_actuator_delay_jerk_and_stopping_distance():
+    act = BrakeActuator(decel=8.0, delay=0.15, jerk=30.0)
+    dt = 0.05
+    assert act.deceleration(0.0, dt) is None and act.deceleration(0.1, dt) is None
+    assert act.deceleration(0.15, dt) == pytest.approx(1.5) and act.deceleration(1.0, dt) == pytest.approx(8.0)
+    xs, vs = act.profile(5.0, 0.0, 3.0, dt)
+    assert vs[2] == pytest.approx(5.0)  # nothing during the delay
+    assert vs.min() == 0.0 and np.all(np.diff(vs) <= 1e-12)  # stops, never reverses
+    d, t_stop = act.stopping_distance(5.0, 0.0, dt)
+    assert d == pytest.approx(xs[-1]) and 5.0**2 / 16 < d < 5.0**2 / 16 + 5.0 * 0.45
+    with pytest.raises(ValueError, match="shield.brake.decel"):
+        BrakeActuator(decel=0.0)
+
+
+# ----------------------------------------------------------------------------------------------- CCFtap cases
+def test_improved_stops_behind_the_stop_line_where_no_shield_collides(make):
+    _, infos = run_case(make, 15, 45, 0.0)  # the paper's case: they would meet in the middle
+    assert infos[-1]["truth"]["collision"]
+    env, infos = run_case(make, 15, 45, 0.0, shield())
+    m = infos[-1]["episode_metrics"]
+    assert not m["collision"] and m["intervention"] == 1.0 and m["success"] == 1.0
+    stages = [i["aeb_stage"] for i in infos]
+    assert stages.index(1) < stages.index(2)  # warned before braking
+    stop = infos[-1]["aeb_stop_position"]
+    assert -1.0 < stop <= 0.0  # front bumper at or behind the stop line, not a car length before it
+    assert m["stop_line_offset_at_stop_m"] == pytest.approx(stop, abs=1e-6)
+    assert m["oncoming_gap_at_stop_m"] > 0.5  # in its own lane
+    for key in ("aeb_stage", "aeb_ttc", "aeb_horizon", "aeb_override", "shield_override", "aeb_target_id",
+                "aeb_infeasible", "aeb_stop_position", "aeb_brake_time"):
+        assert key in infos[-1]
+
+
+def test_large_timing_offsets_get_no_intervention(make):
+    for dt in (-3.0, 3.0):
+        _, infos = run_case(make, 15, 45, dt, shield())
+        m = infos[-1]["episode_metrics"]
+        assert not m["collision"] and m["intervention"] == 0.0 and m["success"] == 1.0
+
+
+def test_continuous_actions_are_braked_too(make):
+    env, infos = run_case(make, 15, 45, 0.0, shield(), action="continuous")
+    m = infos[-1]["episode_metrics"]
+    assert not m["collision"] and m["intervention"] == 1.0
+    assert max(i["truth"]["stop_line_offset"] for i in infos if i["aeb_stage"] == 2) <= 0.0
+
+
+def test_standard_aeb_does_not_prevent_the_turn_across_path_collision(make):
+    _, infos = run_case(make, 10, 45, 0.0, shield("aeb_standard"))
+    assert infos[-1]["truth"]["collision"]
+    _, infos = run_case(make, 15, 45, 0.5, shield("aeb_standard"))
+    assert infos[-1]["truth"]["collision"] and infos[-1]["episode_metrics"]["intervention"] == 0.0
+
+
+def test_paper_variant_brakes_late_inside_the_intersection_and_latches(make):
+    _, infos = run_case(make, 15, 45, 0.0, shield("aeb_paper", standstill_hold=0.0))
+    stages = np.array([i["aeb_stage"] for i in infos])
+    first = int(np.argmax(stages == 2))
+    assert infos[first]["aeb_ttc"] <= 1.5
+    speeds = np.array([i["truth"]["speed"] for i in infos])
+    standstill = first + int(np.argmax(speeds[first:] < 0.1))
+    assert np.all(stages[first:standstill + 1] == 2)  # latched until standstill, whatever the TTC did
+    assert infos[first]["truth"]["stop_line_offset"] > 2.0  # only once the ego is turning: inside the box
+    assert infos[-1]["aeb_stop_position"] > 4.0
+
+
+def test_throttle_is_cut_while_braking(make):
+    env = make(ccftap_cfg(15, 45, 0.0), None, shield())
+    truths, info, *_ = rollout(env, Scripted(lambda k, o: 2), seed=0)  # the agent keeps asking for FASTER
+    assert not truths[-1]["collision"] and info["episode_metrics"]["intervention"] == 1.0
+
+
+def test_feasibility_check_does_not_park_the_ego_in_the_targets_path(make):
+    """The ego is 3 m before the conflict point at 15 km/h and the target 18 m away: both carrying on and braking
+    end in a collision, braking with the ego standing in the oncoming lane; the improved variant does not brake
+    there (the flag says why), with the check switched off it does."""
+    decisions = {}
+    for feasibility in (True, False):
+        env = make(ccftap_cfg(15, 45, 0.0), None, shield(feasibility=feasibility))
+        env.reset(seed=0)
+        u, aeb = env.unwrapped, env.env
+        s_conflict = aeb.route.starts[1] + u.route.lanes[1].local_coordinates(CONFLICT_POINT)[0]
+        xy, h = aeb.route.poses(np.array([s_conflict - 3.0]))
+        u.vehicle.position, u.vehicle.heading, u.vehicle.speed = xy[0].copy(), float(h[0]), 15 * KMH
+        u.vehicle.on_state_update()
+        u.ccftap_target.position = CONFLICT_POINT - np.array([0.0, 18.0])
+        stage, ttc, _, _, _, infeasible = aeb._decide()
+        decisions[feasibility] = (stage, infeasible)
+        assert ttc <= 1.5
+    assert decisions[True] == (1, True) and decisions[False] == (2, False)
+
+
+def test_perceived_mode_with_its_own_detector_and_tracker(make):
+    cfg = shield(mode="perceived")
+    env, infos = run_case(make, 15, 45, 0.0, cfg)
+    aeb = env.env
+    assert aeb.detector is not None and aeb.tracker is not None and len(aeb.tracker.tracks()) >= 1
+    m = infos[-1]["episode_metrics"]
+    assert not m["collision"] and m["intervention"] == 1.0 and infos[-1]["aeb_stop_position"] <= 0.0
+    # the agent's observation is untouched: no detector key appears for a truth-sensor agent
+    assert set(env.observation_space.spaces) == {"state"}
+
+
+def test_same_seed_same_decisions(make):
+    cfg = shield(mode="perceived")
+    runs = []
+    for _ in range(2):
+        _, infos = run_case(make, 20, 30, 0.5, cfg, seed=3)
+        runs.append([(i["aeb_stage"], i["aeb_ttc"], i["truth"]["speed"]) for i in infos])
+    assert runs[0] == runs[1]
+    _, infos = run_case(make, 20, 30, 0.5, cfg, seed=4)
+    assert [(i["aeb_stage"], i["aeb_ttc"], i["truth"]["speed"]) for i in infos] != runs[0]
+
+
+def test_traffic_episode_runs_and_counts_interventions(make, turn_cfg):
+    env = make(turn_cfg, None, shield())
+    truths, info, *_ = rollout(env, AlwaysProceed(1), seed=1002)
+    m = info["episode_metrics"]
+    assert {"intervention", "override_fraction", "first_override_s"} <= set(m)
+
+
+def test_bad_shield_config_names_the_field(make, turn_cfg, lane_cfg):
+    with pytest.raises(ConfigError, match=r"shield.variant must be one of \['paper', 'improved', 'standard'\]"):
+        make(turn_cfg, None, shield(variant="magic"))
+    with pytest.raises(ConfigError, match="shield.horizon_max is not|shield.bogus is not a parameter"):
+        make(turn_cfg, None, shield(bogus=1))
+    with pytest.raises(ConfigError, match="shield.detector.miss_rate"):
+        make(turn_cfg, None, shield(mode="perceived", detector={"miss_rate": 1.5}))
+    with pytest.raises(ConfigError, match="left_turn scenario only"):
+        make(lane_cfg, None, shield())
+
+
+def test_ccftap_cli_writes_tables_and_figures(tmp_path):
+    from eval.ccftap import main
+
+    rc = main(["--variants", "none,improved", "--modes", "ground_truth", "--ego", "15", "--target", "45",
+               "--dts", "0,3", "--workers", "1", "--plot-case", "15,45,0", "--out", str(tmp_path)])
+    assert rc == 0
+    for name in ("results.csv", "results.md", "grid.png", "timeline.png"):
+        assert (tmp_path / name).is_file()
+    md = (tmp_path / "results.md").read_text()
+    assert "| improved | ground_truth | 2 | 0 |" in md and "| none | - | 2 | 1 |" in md
