@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import sys
 
 import hydra
 from omegaconf import DictConfig
 
-from av_gym.errors import ConfigError
+from av_gym.errors import ConfigError, run_cli
 
 
 def evaluate(cfg: DictConfig) -> list[dict]:
@@ -34,16 +33,17 @@ def evaluate(cfg: DictConfig) -> list[dict]:
     table = write_results(rows, cfg.out_dir, env_name, title)
     print(f"\n{title}\n\n{table}\n")
     print(f"[eval] per-episode rows: {cfg.out_dir}/results.csv   summary: {cfg.out_dir}/results.md")
+    if env_name == "lane_keeping" and (cfg.get("plots") or cfg.get("videos")):
+        from eval.plots import lane_keeping_figures
+
+        paths = lane_keeping_figures(cfg, plans, cfg.out_dir, bool(cfg.get("plots")), bool(cfg.get("videos")))
+        print(f"[eval] figures (seed {cfg.seed}): {', '.join(p.name for p in paths)}")
     return rows
 
 
 @hydra.main(config_path="pkg://conf", config_name="eval", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    try:
-        evaluate(cfg)
-    except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        sys.exit(2)
+    run_cli(evaluate, cfg)
 
 
 if __name__ == "__main__":

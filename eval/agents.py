@@ -27,9 +27,23 @@ def _load_sb3(model_path: Path, env: gym.Env) -> Policy:
     return policy
 
 
+def _load_pilotnet(model_path: Path, env: gym.Env) -> Policy:
+    from agents.pilotnet import load_policy
+
+    space = getattr(env.observation_space, "spaces", {}).get("cameras")
+    if space is None or "centre" not in space.spaces:
+        raise ConfigError(f"checkpoint {str(model_path)!r} (PilotNet) drives from obs['cameras']['centre']; this env "
+                          f"gives {list(getattr(env.observation_space, 'spaces', {}))}; use sensors=cameras")
+    try:
+        return load_policy(model_path)  # torch.load(weights_only=True): tensors and plain values only
+    except (ValueError, RuntimeError) as exc:
+        raise ConfigError(f"checkpoint {str(model_path)!r}: {str(exc).splitlines()[0]}") from None
+
+
 # Trained agent kinds: the file their trainer writes in checkpoints/<run>/ and how to load it for an env.
 LOADERS = {
     "ppo": ("model.zip", _load_sb3),
+    "pilotnet": ("model.pt", _load_pilotnet),
 }
 TRAINED_KINDS = tuple(LOADERS)
 

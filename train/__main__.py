@@ -6,14 +6,13 @@ resolved config beside them, then evaluates the result briefly against the scena
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from av_gym.errors import ConfigError
+from av_gym.errors import ConfigError, run_cli
 
 BASELINES = {"left_turn": "always_proceed", "lane_keeping": "pid_paper"}
 RULE_BASED = ("pid", "always_proceed")
@@ -21,9 +20,9 @@ RULE_BASED = ("pid", "always_proceed")
 
 def _trainers() -> dict:
     """agent.kind → (validate(cfg) -> [problems], train(cfg, ckpt_dir, run_dir) -> checkpoint path)."""
-    from train import ppo
+    from train import bc, ppo
 
-    return {"ppo": (ppo.validate, ppo.train_ppo)}
+    return {"ppo": (ppo.validate, ppo.train_ppo), "pilotnet": (bc.validate, bc.train_pilotnet)}
 
 
 def _validate(cfg: DictConfig) -> None:
@@ -96,13 +95,7 @@ def train(cfg: DictConfig) -> dict:
 
 @hydra.main(config_path="pkg://conf", config_name="train", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    try:
-        train(cfg)
-    except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        sys.exit(2)
-    except KeyboardInterrupt:  # SIGINT / SIGTERM: the trainer saved a checkpoint and said where
-        sys.exit(130)
+    run_cli(train, cfg)
 
 
 if __name__ == "__main__":
