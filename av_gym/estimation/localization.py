@@ -338,11 +338,7 @@ class LocalizationPipeline:
                 self._init_ekf(fix, delay)
                 if self.reinit_count:
                     info["reinit"] = True
-                if self.mode == "fused":
-                    self.odometry.reset()
-                    self._register(info, prior=None)
-                    self._reset_interval()
-                    self._interval_start = self.lidar.scan_time
+                self._restart_lidar(info)
             return
         if usable:
             up = ekf.update_gnss_position(fix[:2], delay)
@@ -360,14 +356,18 @@ class LocalizationPipeline:
                     self._reinit(info, f"GNSS rejected for {self.t - self._rejected_since:.1f} s")
                     self._init_ekf(fix, delay)
                     info["reinit"] = True
-                    if self.mode == "fused":
-                        self.odometry.reset()
-                        self._register(info, prior=None)
-                        self._reset_interval()
-                        self._interval_start = self.lidar.scan_time
+                    self._restart_lidar(info)
                     return
         if self.mode == "fused" and self.lidar.scan_index != self._scan_seen:
             self._lidar_update(info)
+
+    def _restart_lidar(self, info: dict) -> None:
+        """After a (re)initialisation from GNSS, odometry restarts from the current scan (fused mode only)."""
+        if self.mode == "fused":
+            self.odometry.reset()
+            self._register(info, prior=None)
+            self._reset_interval()
+            self._interval_start = self.lidar.scan_time
 
     def _predict(self, a_long: float, gyro: float) -> None:
         ekf, dt = self.ekf, self.dt
