@@ -7,6 +7,8 @@ from typing import Callable
 
 import numpy as np
 
+from av_gym.sim import fmath
+
 
 class ScenarioMixin:
     """Mix in before ``AbstractEnv``.
@@ -57,6 +59,6 @@ def ego_kinematics(vehicle) -> dict:
     ψ̇ = v·sin β / (L/2), β = atan(tan δ / 2), highway-env's model) of a vehicle."""
     action = vehicle.action or {}
     steering = float(action.get("steering", 0.0))
-    beta = np.arctan(0.5 * np.tan(steering))
+    beta = fmath.atan(0.5 * fmath.tan(steering))  # = np.arctan(0.5 * np.tan(steering)), see av_gym.sim.fmath
     return {"steering": steering, "acceleration": float(action.get("acceleration", 0.0)),
-            "yaw_rate": float(vehicle.speed * np.sin(beta) / (vehicle.LENGTH / 2))}
+            "yaw_rate": float(vehicle.speed * fmath.sin(beta) / (vehicle.LENGTH / 2))}

@@ -16,9 +16,14 @@ from highway_env.road.road import Road
 from av_gym.envs.base import ScenarioMixin, ego_kinematics
 from av_gym.envs.observations import LaneKeepingState, StateDict
 from av_gym.envs.track import Track, build_track
+from av_gym.sim import fmath
+from av_gym.sim import lanes as fast_lanes
 from av_gym.sim.fast_network import FastRoadNetwork
 from av_gym.envs.vehicles import SpeedHeldVehicle, SteeringAction
 from av_gym.geometry import NO_OTHERS
+
+
+_FAST_TRACKS: dict = {}  # (layout, lane width) -> (Track, FastRoadNetwork), shared by fast envs
 
 
 class LaneKeepingLapEnv(ScenarioMixin, AbstractEnv):
@@ -62,15 +67,24 @@ class LaneKeepingLapEnv(ScenarioMixin, AbstractEnv):
     def define_spaces(self) -> None:
         self.observation_type = StateDict(self, LaneKeepingState(self))
         m = float(self.config["max_steering"])
-        self.action_type = SteeringAction(self, steering_range=(-m, m), target_speed=float(self.config["target_speed"]))
+        self.action_type = SteeringAction(self, steering_range=(-m, m), target_speed=float(self.config["target_speed"]),
+                                          fast=bool(self.config["fast"]))
         self.observation_space = self.observation_type.space()
         self.action_space = self.action_type.space()
 
     # ----------------------------------------------------------------------------------------------- scene
     def _reset(self) -> None:
         self._check_config()
-        self.track: Track = build_track(self.config["track"], lane_width=float(self.config["lane_width"]))
-        network = FastRoadNetwork.from_network(self.track.network) if self.config["fast"] else self.track.network
+        if self.config["fast"]:
+            # The track and its lane index are immutable: build them once per layout, not at every reset.
+            key = (self.config["track"], float(self.config["lane_width"]))
+            if key not in _FAST_TRACKS:
+                track = build_track(key[0], lane_width=key[1])
+                _FAST_TRACKS[key] = (track, FastRoadNetwork.from_network(track.network))
+            self.track, network = _FAST_TRACKS[key]
+        else:
+            self.track: Track = build_track(self.config["track"], lane_width=float(self.config["lane_width"]))
+            network = self.track.network
         self.road = Road(network=network, np_random=self.np_random,
                          record_history=self.config["show_trajectories"])
         start_s = float(self.config["start_s"]) % self.track.length
@@ -105,9 +119,35 @@ class LaneKeepingLapEnv(ScenarioMixin, AbstractEnv):
             raise ValueError(f"env.policy_frequency must be >= 10 Hz, got {c['policy_frequency']}")
 
     # ----------------------------------------------------------------------------------------------- dynamics
+    def step(self, action):
+        # fast: the lane-relative state is computed once per policy step (observation, reward, termination and
+        # truth each asked for it, up to six times) -- valid from the end of the simulation to the end of step().
+        self._lane_state_cache = None
+        try:
+            return super().step(action)
+        finally:
+            self._lane_state_cache = None
+
+    def _simulate(self, action=None) -> None:
+        self._lane_state_cache = None
+        super()._simulate(action)
+        if self.config["fast"]:
+            self._lane_state_cache = {}
+
     def _on_tick(self) -> None:
         # Lap progress is accumulated every tick, so a fast car cannot skip a lane between policy steps.
-        k, s, _ = self.track.locate(self.vehicle.position, self._lane_k)
+        if self.config["fast"]:  # the same arithmetic on floats
+            position = self.vehicle.position
+            k, s, _ = fast_lanes.locate(self.track, float(position[0]), float(position[1]), self._lane_k)
+            length = self.track.length
+            lap_s = float(self.track.starts[k]) + s
+            ds = lap_s - self._lap_s
+            ds -= length * float(round(ds / length))  # round() and np.round both round half to even
+            self._progress += ds
+            self._lane_k, self._lap_s = k, lap_s
+            return
+        else:
+            k, s, _ = self.track.locate(self.vehicle.position, self._lane_k)
         lap_s = self.track.starts[k] + s
         ds = lap_s - self._lap_s
         ds -= self.track.length * np.round(ds / self.track.length)  # across the start line
@@ -116,10 +156,23 @@ class LaneKeepingLapEnv(ScenarioMixin, AbstractEnv):
 
     def lane_state(self) -> dict:
         """Lane-relative ego state (SI units), shared by the observation and ``info["truth"]``."""
+        cache = getattr(self, "_lane_state_cache", None)
+        if cache:
+            return dict(cache)
+        state = self._lane_state()
+        if cache is not None:
+            cache.update(state)
+        return state
+
+    def _lane_state(self) -> dict:
         ego = self.vehicle
         lane = self.track.lanes[self._lane_k]
-        s, cte = lane.local_coordinates(ego.position)
-        heading_error = utils.wrap_to_pi(ego.heading - lane.heading_at(s))
+        if self.config["fast"]:  # the same formulas on floats (av_gym.sim.lanes)
+            s, cte = fast_lanes.local_coordinates(lane, float(ego.position[0]), float(ego.position[1]))
+            heading_error = fmath.wrap_to_pi(ego.heading - fast_lanes.heading_at(lane, s))
+        else:
+            s, cte = lane.local_coordinates(ego.position)
+            heading_error = utils.wrap_to_pi(ego.heading - lane.heading_at(s))
         kin = ego_kinematics(ego)
         return {
             "cte": float(cte),

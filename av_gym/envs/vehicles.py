@@ -16,6 +16,8 @@ from highway_env.envs.common.action import ContinuousAction
 from highway_env.vehicle.controller import ControlledVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
+from av_gym.sim.vehicles import kinematic_step
+
 
 class SpeedHeldVehicle(Vehicle):
     """Kinematic bicycle whose speed is held at ``target_speed`` (m/s) by a proportional controller
@@ -33,16 +35,26 @@ class SpeedHeldVehicle(Vehicle):
         self.action["acceleration"] = (self.target_speed - self.speed) / self.TAU_ACC
 
 
+class FastSpeedHeldVehicle(SpeedHeldVehicle):
+    """Same model, stepped by ``av_gym.sim.vehicles.kinematic_step`` (same bits, no numpy-scalar overhead)."""
+
+    def step(self, dt: float) -> None:
+        kinematic_step(self, dt)
+
+
 class SteeringAction(ContinuousAction):
     """Continuous steering in [-1, 1] mapped to ``steering_range`` (rad); + steers right. Speed is held."""
 
-    def __init__(self, env, steering_range=(-np.radians(25), np.radians(25)), target_speed: float = 10.0, **kwargs):
+    def __init__(self, env, steering_range=(-np.radians(25), np.radians(25)), target_speed: float = 10.0,
+                 fast: bool = False, **kwargs):
         super().__init__(env, steering_range=steering_range, longitudinal=False, lateral=True, dynamical=False)
         self.target_speed = target_speed
+        self.fast = fast  # FastSpeedHeldVehicle: same trajectories, faster step
 
     @property
     def vehicle_class(self) -> Callable:
-        return lambda road, position, heading=0.0, speed=0.0: SpeedHeldVehicle(
+        cls = FastSpeedHeldVehicle if self.fast else SpeedHeldVehicle
+        return lambda road, position, heading=0.0, speed=0.0: cls(
             road, position, heading, speed, target_speed=self.target_speed)
 
 
