@@ -1,0 +1,239 @@
+"""Soak test: many episodes of the left turn with every sensor and the AEB shield, in one process.
+
+    python benchmarks/soak.py [--episodes 2000] [--agent random|always_proceed] [--shield-mode perceived]
+                              [--out docs/soak.md] [--tracemalloc]
+
+Runs ``--episodes`` seeded episodes (seed, seed+1, ...) of ``env=left_turn sensors=full shield=aeb`` in a single env
+instance, as a long evaluation or training run would, and reports:
+
+- resident memory (RSS) growth between episode 100 (caches and lazy imports are warm by then) and the end, and
+  the slope of a line fitted to it (target: < 50 MB in all);
+- every exception an episode raised (target: none); the episode is abandoned, the env rebuilt, the run goes on;
+- episodes/s and policy steps/s.
+
+Exit status 0 when both targets are met, 1 otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import os
+import platform
+import signal
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+TARGET_GROWTH_MB = 50.0
+WARM_EPISODE = 100
+
+
+def rss_mb() -> tuple[float, str]:
+    """Current resident set size in MB and where it came from."""
+    try:
+        import psutil
+
+        return psutil.Process().memory_info().rss / 2**20, "psutil"
+    except ImportError:
+        pass
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20, "/proc/self/statm"
+    except (OSError, ValueError, IndexError):
+        # Peak, not current: growth read from it is an upper bound on the real growth.
+        import resource
+
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        return peak / (2**20 if sys.platform == "darwin" else 2**10), "getrusage peak"
+
+
+def build(overrides: list[str]):
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    from av_gym.make import make_env
+
+    GlobalHydra.instance().clear()
+    with initialize_config_module("conf", version_base="1.3"):
+        cfg = compose("train", overrides=overrides)
+    return make_env(cfg.env, cfg.sensors, cfg.shield), cfg
+
+
+def make_policy(kind: str, env, seed: int):
+    from agents import AlwaysProceed
+
+    if kind == "always_proceed":
+        policy = AlwaysProceed(env.unwrapped.cruise_action())
+        return lambda obs: policy.act(obs)
+    space = env.action_space
+    space.seed(seed)  # the random agent is reproducible too
+    return lambda obs: space.sample()
+
+
+class _Stop(BaseException):  # not Exception: the per-episode handler must not swallow it
+    pass
+
+
+def _on_sigterm(signum, frame):  # noqa: ARG001
+    raise _Stop
+
+
+def soak(episodes: int, agent: str, shield_mode: str, seed: int, sample_every: int, use_tracemalloc: bool,
+         progress: bool, on_report=None, report_every: int = 100) -> dict:
+    """Run the soak; ``on_report(result)`` is called every ``report_every`` episodes and at the end, so a run
+    that is stopped (Ctrl-C, SIGTERM) or too long to wait for still leaves figures for the episodes it did."""
+    overrides = ["env=left_turn", "sensors=full", "shield=aeb", f"shield.mode={shield_mode}"]
+    env, _ = build(overrides)
+    act = make_policy(agent, env, seed)
+    warm = min(WARM_EPISODE, max(episodes // 2, 0))
+    st = {"samples": [], "errors": [], "steps": 0, "collisions": 0, "interventions": 0, "done": 0,
+          "snap_warm": None}
+    if use_tracemalloc:
+        import tracemalloc
+
+        tracemalloc.start(12)
+    gc.collect()
+    rss0, source = rss_mb()
+    st["samples"].append((0, rss0))
+    t0 = time.perf_counter()
+
+    def result(final: bool) -> dict:
+        samples = st["samples"]
+        done = st["done"]
+        elapsed = time.perf_counter() - t0
+        w = warm if done >= warm else 0
+        rss_warm = next((r for n, r in samples if n == w), rss0)
+        late = np.array([(n, r) for n, r in samples if n >= w], dtype=float)
+        slope = float(np.polyfit(late[:, 0], late[:, 1], 1)[0]) * 1000 if len(late) >= 3 else float("nan")
+        top = []
+        if final and use_tracemalloc and st["snap_warm"] is not None:
+            import tracemalloc
+
+            top = [str(d) for d in tracemalloc.take_snapshot().compare_to(st["snap_warm"], "lineno")[:10]]
+        return {"episodes": episodes, "done": done, "final": final, "agent": agent, "shield_mode": shield_mode,
+                "seed": seed, "steps": st["steps"], "elapsed_s": elapsed, "eps_per_s": done / elapsed,
+                "steps_per_s": st["steps"] / elapsed, "rss_start_mb": rss0, "rss_warm_mb": rss_warm,
+                "rss_end_mb": samples[-1][1], "rss_peak_mb": max(r for _, r in samples),
+                "growth_mb": samples[-1][1] - rss_warm, "warm_episode": w, "slope_mb_per_1000": slope,
+                "rss_source": source, "errors": list(st["errors"]), "collisions": st["collisions"],
+                "interventions": st["interventions"], "samples": list(samples), "tracemalloc_top": top}
+
+    old = signal.signal(signal.SIGTERM, _on_sigterm)
+    try:
+        for i in range(episodes):
+            ep_seed = seed + i
+            try:
+                obs, _ = env.reset(seed=ep_seed)
+                done = False
+                while not done:
+                    obs, _, terminated, truncated, info = env.step(act(obs))
+                    st["steps"] += 1
+                    done = terminated or truncated
+                m = info.get("episode_metrics", {})
+                st["collisions"] += int(m.get("collision", 0) or 0)
+                st["interventions"] += int(m.get("intervention", 0) or 0)
+            except Exception as exc:  # noqa: BLE001 - a soak test records every failure and keeps going
+                st["errors"].append({"episode": i, "seed": ep_seed, "error": f"{type(exc).__name__}: {exc}",
+                                     "where": traceback.format_exc().strip().splitlines()[-3:]})
+                env.close()
+                env, _ = build(overrides)
+                act = make_policy(agent, env, seed + 10**6 + i)
+            st["done"] = n = i + 1
+            if n == warm and use_tracemalloc:
+                st["snap_warm"] = tracemalloc.take_snapshot()
+            if n % sample_every == 0 or n == warm or n == episodes:
+                gc.collect()
+                st["samples"].append((n, rss_mb()[0]))
+                if progress and n % max(sample_every, episodes // 20 or 1) == 0:
+                    print(f"[soak] {n}/{episodes} episodes, {time.perf_counter() - t0:.0f} s, "
+                          f"RSS {st['samples'][-1][1]:.1f} MB, {len(st['errors'])} errors", flush=True)
+            if on_report is not None and n % report_every == 0 and n < episodes:
+                on_report(result(False))
+    except (KeyboardInterrupt, _Stop):
+        print(f"[soak] stopped after {st['done']} episodes", flush=True)
+        if st["samples"][-1][0] != st["done"]:
+            gc.collect()
+            st["samples"].append((st["done"], rss_mb()[0]))
+    finally:
+        signal.signal(signal.SIGTERM, old)
+    env.close()
+    r = result(True)
+    if use_tracemalloc:
+        import tracemalloc
+
+        tracemalloc.stop()
+    if on_report is not None:
+        on_report(r)
+    return r
+
+
+def report(r: dict) -> str:
+    ok_mem = r["growth_mb"] < TARGET_GROWTH_MB
+    ok_err = not r["errors"]
+    rows = [
+        ("episodes done", f"{r['done']} of {r['episodes']} (seeds {r['seed']}..{r['seed'] + r['done'] - 1})"
+         + ("" if r["done"] == r["episodes"] else (" - still running" if not r["final"] else " - stopped early")),
+         ""),
+        ("stack", f"left_turn (traffic), sensors=full, shield=aeb mode={r['shield_mode']}, agent={r['agent']}", ""),
+        ("policy steps", f"{r['steps']}", ""),
+        ("wall time", f"{r['elapsed_s']:.0f} s", ""),
+        ("episodes/s", f"{r['eps_per_s']:.2f}", ""),
+        ("policy steps/s", f"{r['steps_per_s']:.1f}", ""),
+        ("RSS at start / episode "
+         f"{r['warm_episode']} / end", f"{r['rss_start_mb']:.1f} / {r['rss_warm_mb']:.1f} / {r['rss_end_mb']:.1f} MB",
+         ""),
+        ("RSS peak (sampled)", f"{r['rss_peak_mb']:.1f} MB", ""),
+        (f"RSS growth, episode {r['warm_episode']} to end", f"{r['growth_mb']:+.1f} MB",
+         f"{'PASS' if ok_mem else 'FAIL'} (< {TARGET_GROWTH_MB:.0f} MB)"),
+        ("fitted slope after warm-up", f"{r['slope_mb_per_1000']:+.2f} MB per 1000 episodes", ""),
+        ("exceptions", f"{len(r['errors'])}", f"{'PASS' if ok_err else 'FAIL'} (none)"),
+        ("collisions / shield interventions", f"{r['collisions']} / {r['interventions']}", ""),
+    ]
+    lines = ["| quantity | value | target |", "| --- | --- | --- |"]
+    lines += [f"| {a} | {b} | {c} |" for a, b, c in rows]
+    for e in r["errors"][:20]:
+        lines.append(f"\n- episode {e['episode']} (seed {e['seed']}): {e['error']}")
+    if r["tracemalloc_top"]:
+        lines.append("\nLargest allocation growth after warm-up (tracemalloc):\n")
+        lines += [f"    {t}" for t in r["tracemalloc_top"]]
+    lines.append(f"\nRSS from {r['rss_source']}, sampled after gc.collect(); Python {platform.python_version()}, "
+                 f"{platform.machine()}, {os.cpu_count()} CPUs.")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--episodes", type=int, default=2000)
+    parser.add_argument("--agent", choices=("random", "always_proceed"), default="random")
+    parser.add_argument("--shield-mode", choices=("ground_truth", "perceived"), default="perceived")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--sample-every", type=int, default=10, help="episodes between RSS samples")
+    parser.add_argument("--out", help="also write the report as Markdown here (e.g. docs/soak.md)")
+    parser.add_argument("--tracemalloc", action="store_true", help="list the allocations that grew (slow)")
+    parser.add_argument("--quiet", action="store_true")
+    args = parser.parse_args(argv)
+    if args.episodes < 1:
+        parser.error("--episodes must be >= 1")
+    cmd = "python benchmarks/soak.py " + " ".join(argv if argv is not None else sys.argv[1:])
+
+    def write(r: dict) -> None:
+        if not args.out:
+            return
+        curve = ", ".join(f"{n}: {m:.0f}" for n, m in r["samples"][:: max(len(r["samples"]) // 20, 1)])
+        tmp = Path(args.out).with_suffix(".tmp")
+        tmp.write_text(f"# Soak test\n\n`{cmd}`\n\n{report(r)}\n\nRSS (MB) by episodes done: {curve}\n")
+        tmp.replace(args.out)  # a reader never sees half a report
+
+    r = soak(args.episodes, args.agent, args.shield_mode, args.seed, max(args.sample_every, 1), args.tracemalloc,
+             not args.quiet, on_report=write)
+    print("\n" + report(r))
+    passed = r["growth_mb"] < TARGET_GROWTH_MB and not r["errors"] and r["done"] == r["episodes"]
+    return 0 if passed else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
