@@ -66,6 +66,21 @@ class FlatDictObservation(gym.ObservationWrapper):
         return flatten_obs(observation)
 
 
+class InterventionCost(gym.Wrapper):
+    """Training-time reward term: ``-cost`` per second during which a safety shield overrides the agent
+    (``info["shield_override"]``), so a policy trained with the shield in the loop learns not to need it."""
+
+    def __init__(self, env: gym.Env, cost: float) -> None:
+        super().__init__(env)
+        self.per_step = float(cost) / env.unwrapped.config["policy_frequency"]
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        if info.get("shield_override", False):
+            reward -= self.per_step
+        return obs, reward, terminated, truncated, info
+
+
 def make_ppo(env: VecEnv, hyper: dict[str, Any], *, seed: int, tensorboard_log: str | None,
              device: str = "cpu") -> PPO:
     """A fresh SB3 PPO on ``env``. ``hyper`` holds ``policy``, ``net_arch`` (hidden sizes) and :data:`PPO_KEYS`."""

@@ -17,7 +17,8 @@ from av_gym.errors import ConfigError
 from av_gym.metrics.recorder import EpisodeMetrics
 
 KMH = 1 / 3.6
-SENSOR_PRESETS = ("truth", "gnss_imu", "gnss_raw", "lidar", "cameras", "detector", "localized", "full")
+SENSOR_PRESETS = ("truth", "gnss_imu", "gnss_raw", "lidar", "cameras", "detector", "localized", "full",
+                  "turn_truth", "turn_perceived")
 
 
 def _shields() -> dict:
@@ -44,8 +45,10 @@ def _estimators() -> dict:
     """Estimator config key → wrapper class. Estimators read sensor keys and add estimated ones beside them
     (e.g. ``ego_estimate``), so they are stacked after every sensor, in this order."""
     from av_gym.estimation.localization import Localizer
+    from av_gym.estimation.object_tracking import ObjectTracker
+    from av_gym.estimation.turn_features import TurnFeatures
 
-    return {"localizer": Localizer}
+    return {"localizer": Localizer, "tracker": ObjectTracker, "turn_features": TurnFeatures}
 
 
 def add_sensors(env: gym.Env, sensors_cfg: Mapping | None) -> gym.Env:
@@ -60,7 +63,7 @@ def add_sensors(env: gym.Env, sensors_cfg: Mapping | None) -> gym.Env:
     if name not in SENSOR_PRESETS:
         raise ConfigError(f"sensors must be one of {list(SENSOR_PRESETS)}, got {name!r}")
     classes = _sensor_classes()
-    known = {"name", "keep_state", *classes}
+    known = {"name", "keep_state", "observe", *classes}
     unknown = sorted(set(c) - known)
     if unknown:
         raise ConfigError(f"sensors.{unknown[0]} is not a sensor; allowed: {sorted(classes)}")
@@ -68,8 +71,9 @@ def add_sensors(env: gym.Env, sensors_cfg: Mapping | None) -> gym.Env:
         params = c.get(key)
         if params is None:
             continue
-        allowed = [p for p in inspect.signature(cls.__init__).parameters if p not in ("self", "env")]
-        bad = sorted(set(params) - set(allowed))
+        signature = inspect.signature(cls.__init__).parameters
+        allowed = [p for p in signature if p not in ("self", "env")]
+        bad = [] if any(p.kind is p.VAR_KEYWORD for p in signature.values()) else sorted(set(params) - set(allowed))
         if bad:
             raise ConfigError(f"sensors.{key}.{bad[0]} is not a parameter of {cls.__name__}; allowed: {allowed}")
         try:
@@ -77,6 +81,12 @@ def add_sensors(env: gym.Env, sensors_cfg: Mapping | None) -> gym.Env:
         except ValueError as exc:
             msg = str(exc)
             raise ConfigError(msg if msg.startswith(f"sensors.{key}") else f"sensors.{key}: {msg}") from None
+    if c.get("observe"):  # the keys the agent sees (e.g. only the features an estimator computed)
+        missing = sorted(set(c["observe"]) - set(env.observation_space.spaces))
+        if missing:
+            raise ConfigError(f"sensors.observe lists {missing[0]!r}, which this preset does not provide; "
+                              f"allowed: {sorted(env.observation_space.spaces)}")
+        return FilterObservation(env, filter_keys=list(c["observe"]))
     if not c.get("keep_state", name == "truth"):
         keys = [k for k in env.observation_space.spaces if k != "state"]
         if not keys:

@@ -9,7 +9,7 @@ from av_gym.metrics import aggregate, format_ci, is_binary, markdown_table
 
 HEADLINE = {
     "left_turn": ["collision", "success", "time_to_exit_s", "min_ttc_s", "stopped", "mean_speed_mps",
-                  "intervention", "override_fraction", "return"],
+                  "intervention", "interventions", "override_fraction", "return"],
     "lane_keeping": ["lap_completed", "cte_mean_abs_m", "cte_max_abs_m", "cte_mean_abs_units", "cte_std_units",
                      "cte_max_abs_units", "lane_departures", "steering_sign_changes_per_100m", "return"],
 }

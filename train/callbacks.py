@@ -1,13 +1,22 @@
-"""SB3 callbacks: episode metrics to TensorBoard, periodic atomic checkpoints."""
+"""SB3 callbacks: episode metrics to TensorBoard, periodic evaluation on fixed seeds (best checkpoint, videos),
+hyperparameters and a custom-scalars layout, periodic atomic checkpoints."""
 
 from __future__ import annotations
 
+import csv
+import io
+import json
+import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
+import gymnasium as gym
+import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
 LOGGED = {
-    "left_turn": ("collision", "success", "time_to_exit_s", "min_ttc_s", "stopped", "mean_speed_mps"),
+    "left_turn": ("collision", "success", "time_to_exit_s", "min_ttc_s", "stopped", "mean_speed_mps",
+                  "intervention", "interventions", "override_fraction"),
     "lane_keeping": ("lap_completed", "cte_mean_abs_m", "cte_max_abs_m", "lane_departures",
                      "steering_sign_changes_per_100m"),
 }
@@ -72,3 +81,179 @@ class AtomicCheckpointCallback(BaseCallback):
         finally:
             self.model.num_timesteps = steps
         self._last_save = self._boundary
+
+
+def score(scenario: str, metrics: dict) -> float:
+    """One number per evaluation, higher is better, for keeping the best checkpoint: success rate minus collision
+    rate on the left turn (a collision costs as much as a success earns); laps completed minus mean |CTE| (m) on
+    lane keeping."""
+    if scenario == "left_turn":
+        return float(metrics["success"] - metrics["collision"])
+    return float(metrics["lap_completed"] - metrics["cte_mean_abs_m"])
+
+
+def tensorboard_writer(logger):
+    """The ``SummaryWriter`` behind an SB3 logger's TensorBoard output (None without one)."""
+    from stable_baselines3.common.logger import TensorBoardOutputFormat
+
+    for fmt in logger.output_formats:
+        if isinstance(fmt, TensorBoardOutputFormat):
+            return fmt.writer
+    return None
+
+
+def gif_bytes(frames: Sequence[np.ndarray], fps: float) -> bytes:
+    """Frames (H, W, 3) uint8 as an animated GIF."""
+    from PIL import Image
+
+    images = [Image.fromarray(f) for f in frames]
+    buf = io.BytesIO()
+    images[0].save(buf, format="GIF", save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
+    return buf.getvalue()
+
+
+def add_gif(writer, tag: str, gif: bytes, shape: tuple[int, int], step: int) -> None:
+    """An animated GIF as a TensorBoard image summary (TensorBoard plays it in the Images tab). Written by hand
+    because ``SummaryWriter.add_video`` needs moviepy and ffmpeg, which this project does not otherwise need."""
+    from tensorboard.compat.proto.summary_pb2 import Summary
+
+    image = Summary.Image(height=shape[0], width=shape[1], colorspace=3, encoded_image_string=gif)
+    writer.file_writer.add_summary(Summary(value=[Summary.Value(tag=tag, image=image)]), step)
+    writer.flush()
+
+
+class PeriodicEval(BaseCallback):
+    """SB3 ``EvalCallback`` for our metrics: at rollout ends, at least ``every`` env steps apart, and at the end of
+    training, runs the deterministic policy on the fixed ``seeds`` (disjoint from training) and
+
+    - logs ``eval/<metric>`` (collision, success, interventions, ... from ground truth) and ``eval/score``;
+    - keeps ``best.zip`` (atomic) when :func:`score` improves, with ``best.json`` (score, step) beside it;
+    - appends a row to ``eval.csv`` (env steps, wall-clock seconds since the run started, metrics): the data for
+      "steps and time to reach 90 % success";
+    - every ``video_every`` env steps renders the first seed's episode into ``videos/step_<n>.gif`` and TensorBoard.
+
+    ``make_env(render_mode)`` builds the evaluation stack (the training one: same sensors and shield)."""
+
+    def __init__(self, make_env: Callable[[str | None], gym.Env], scenario: str, seeds: Sequence[int], every: int,
+                 ckpt_dir: Path, run_dir: Path, video_every: int = 0, wall_offset: float = 0.0) -> None:
+        super().__init__()
+        self.make_env, self.scenario, self.seeds = make_env, scenario, [int(s) for s in seeds]
+        self.every, self.video_every = int(every), int(video_every)
+        self.ckpt_dir, self.run_dir = Path(ckpt_dir), Path(run_dir)
+        self.t0 = time.time() - wall_offset
+        self._env = None
+        self._last_eval = self._last_video = 0
+        best = self.ckpt_dir / "best.json"
+        self.best = json.loads(best.read_text())["score"] if best.is_file() else -np.inf
+
+    def _on_training_start(self) -> None:
+        self._last_eval = self._last_video = self.num_timesteps
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_end(self) -> None:
+        if self.every > 0 and self.num_timesteps - self._last_eval >= self.every:
+            self.evaluate()
+
+    def _on_training_end(self) -> None:
+        if self.every > 0 and self.num_timesteps > self._last_eval:
+            self.evaluate()
+
+    def evaluate(self) -> dict:
+        from agents.ppo import SB3Policy
+        from av_gym.metrics import aggregate
+        from eval.runner import run_episodes
+        from train.checkpoint import save_model_atomic, write_text_atomic
+
+        self._last_eval = step = self.num_timesteps
+        if self._env is None:
+            self._env = self.make_env(None)
+        rows = run_episodes(self._env, SB3Policy(self.model), self.seeds, "eval", progress=False)
+        means = {k: v for k, v in aggregate(rows, group_key="agent")[0].items()
+                 if k in LOGGED[self.scenario] or k in ("lap_completed", "cte_mean_abs_m")}
+        means["score"] = score(self.scenario, means)
+        for key, value in means.items():
+            if value == value:
+                self.logger.record(f"eval/{key}", value)
+        wall = time.time() - self.t0
+        self.logger.record("eval/wall_clock_s", wall)
+        new_file = not (self.run_dir / "eval.csv").is_file()
+        with open(self.run_dir / "eval.csv", "a", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=["env_steps", "wall_clock_s", *means])
+            if new_file:
+                writer.writeheader()
+            writer.writerow({"env_steps": step, "wall_clock_s": round(wall, 1), **means})
+        if means["score"] > self.best:
+            self.best = means["score"]
+            save_model_atomic(self.model, self.ckpt_dir / "best.zip")
+            write_text_atomic(self.ckpt_dir / "best.json", json.dumps({"score": self.best, "env_steps": step,
+                                                                       **means}, indent=1))
+        if self.video_every > 0 and (step - self._last_video >= self.video_every or self._last_video == 0):
+            self._last_video = step
+            self.video(step)
+        return means
+
+    def video(self, step: int) -> Path:
+        """Render the first evaluation seed's episode: a GIF file and a TensorBoard image (animated)."""
+        from agents.ppo import SB3Policy
+
+        env = self.make_env("rgb_array")
+        policy = SB3Policy(self.model)
+        obs, _ = env.reset(seed=self.seeds[0])
+        frames, done = [env.render()], False
+        while not done:
+            obs, _, terminated, truncated, _ = env.step(policy.act(obs))
+            frames.append(env.render())
+            done = terminated or truncated
+        fps = env.unwrapped.config["policy_frequency"]
+        env.close()
+        frames = [f[::2, ::2] for f in frames]  # half resolution keeps the event file small
+        gif = gif_bytes(frames, fps)
+        path = self.run_dir / "videos" / f"step_{step:08d}.gif"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(gif)
+        writer = tensorboard_writer(self.logger)
+        if writer is not None:
+            add_gif(writer, "eval/episode", gif, frames[0].shape[:2], step)
+        return path
+
+
+CUSTOM_SCALARS = {
+    "left_turn": {
+        "safety": {"collision rate": ["Multiline", ["episode/collision", "eval/collision"]],
+                   "shield interventions per episode": ["Multiline", ["episode/interventions", "eval/interventions"]],
+                   "min TTC (s)": ["Multiline", ["episode/min_ttc_s", "eval/min_ttc_s"]]},
+        "progress": {"success rate": ["Multiline", ["episode/success", "eval/success"]],
+                     "time to exit (s)": ["Multiline", ["episode/time_to_exit_s", "eval/time_to_exit_s"]],
+                     "mean speed (m/s)": ["Multiline", ["episode/mean_speed_mps", "eval/mean_speed_mps"]]},
+    },
+    "lane_keeping": {
+        "safety": {"lane departures": ["Multiline", ["episode/lane_departures"]],
+                   "max |CTE| (m)": ["Multiline", ["episode/cte_max_abs_m", "eval/cte_max_abs_m"]]},
+        "progress": {"laps completed": ["Multiline", ["episode/lap_completed", "eval/lap_completed"]],
+                     "mean |CTE| (m)": ["Multiline", ["episode/cte_mean_abs_m", "eval/cte_mean_abs_m"]]},
+    },
+}
+
+
+class HParamsCallback(BaseCallback):
+    """At the start of a (non-resumed) run: the hyperparameters in TensorBoard's HParams tab, against the final
+    evaluation metrics, and the custom-scalars layout that groups safety against progress curves."""
+
+    def __init__(self, hparams: dict, scenario: str) -> None:
+        super().__init__()
+        self.hparams, self.scenario = hparams, scenario
+
+    def _on_training_start(self) -> None:
+        from stable_baselines3.common.logger import HParam
+
+        metrics = {"eval/score": 0.0, **{f"eval/{k}": 0.0 for k in LOGGED[self.scenario][:2]}}
+        values = {k: v if isinstance(v, (int, float, str, bool)) else str(v) for k, v in self.hparams.items()}
+        self.logger.record("hparams", HParam(values, metrics), exclude=("stdout", "log", "json", "csv"))
+        writer = tensorboard_writer(self.logger)
+        if writer is not None:
+            writer.add_custom_scalars(CUSTOM_SCALARS[self.scenario])
+
+    def _on_step(self) -> bool:
+        return True

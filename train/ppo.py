@@ -9,11 +9,15 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 
-def _env_factory(env_cfg: dict, sensors_cfg: dict, shield_cfg: dict):
-    from agents.ppo import FlatDictObservation
+def _env_factory(env_cfg: dict, sensors_cfg: dict, shield_cfg: dict, intervention_cost: float = 0.0,
+                 render_mode: str | None = None):
+    from agents.ppo import FlatDictObservation, InterventionCost
     from av_gym.make import make_env
 
-    return FlatDictObservation(make_env(env_cfg, sensors_cfg, shield_cfg))
+    env = make_env(env_cfg, sensors_cfg, shield_cfg, render_mode=render_mode)
+    if intervention_cost > 0:
+        env = InterventionCost(env, intervention_cost)
+    return FlatDictObservation(env)
 
 
 def validate(cfg: DictConfig) -> list[str]:
@@ -24,6 +28,11 @@ def validate(cfg: DictConfig) -> list[str]:
             problems.append(f"agent.{key} must be a positive integer, got {agent[key]}")
     if agent.vec_env not in ("subproc", "dummy"):
         problems.append(f"agent.vec_env must be one of ['subproc', 'dummy'], got {agent.vec_env!r}")
+    if float(agent.get("intervention_cost", 0.0)) < 0:
+        problems.append(f"agent.intervention_cost must be >= 0, got {agent.intervention_cost}")
+    for key in ("eval_every", "eval_n", "video_every"):
+        if int(cfg.train[key]) < 0:
+            problems.append(f"train.{key} must be >= 0, got {cfg.train[key]}")
     return problems
 
 
@@ -53,7 +62,7 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
 
     from agents.ppo import make_ppo
     from av_gym.errors import ConfigError
-    from train.callbacks import AtomicCheckpointCallback, EpisodeMetricsCallback
+    from train.callbacks import AtomicCheckpointCallback, EpisodeMetricsCallback, HParamsCallback, PeriodicEval
     from train.checkpoint import load_rng_state, save_model_atomic
 
     agent, t0 = cfg.agent, time.time()
@@ -70,7 +79,8 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     if resume:
         done_steps = int(PPO.load(str(latest), device=agent.device).num_timesteps)
     # A resumed run's episodes come from fresh seeds (the env streams of the killed run cannot be restored).
-    venv = make_vec_env(functools.partial(_env_factory, *plain), n_envs=int(agent.n_envs),
+    cost = float(agent.get("intervention_cost", 0.0))
+    venv = make_vec_env(functools.partial(_env_factory, *plain, cost), n_envs=int(agent.n_envs),
                         seed=int(cfg.seed) + done_steps, vec_env_cls=vec_cls)
     if resume:
         try:
@@ -90,6 +100,14 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
             getattr(model.logger, key).update(store)
     checkpoint = AtomicCheckpointCallback(ckpt_dir, int(cfg.train.checkpoint_every))
     callbacks = [EpisodeMetricsCallback(cfg.env.name), checkpoint]
+    if not resume:
+        callbacks.append(HParamsCallback({**OmegaConf.to_container(agent, resolve=True), "env": cfg.env.name,
+                                          "sensors": cfg.sensors.name, "shield": cfg.shield.name,
+                                          "seed": int(cfg.seed)}, cfg.env.name))
+    if int(cfg.train.eval_n) > 0:
+        eval_seeds = range(int(cfg.train.eval_seed), int(cfg.train.eval_seed) + int(cfg.train.eval_n))
+        callbacks.append(PeriodicEval(lambda mode: _env_factory(*plain, render_mode=mode), cfg.env.name, eval_seeds,
+                                      int(cfg.train.eval_every), ckpt_dir, run_dir, int(cfg.train.video_every)))
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM behaves like Ctrl-C
     try:
         remaining = int(agent.total_timesteps) - int(model.num_timesteps)

@@ -20,7 +20,8 @@ TRACES = {
 class EpisodeMetrics(gym.Wrapper):
     """Adds ``info["episode_metrics"]`` (a flat dict of floats, see :mod:`av_gym.metrics`) on the step that ends an
     episode, plus ``return`` and ``length`` (policy steps), ``override_fraction`` (share of steps whose action a
-    safety shield overrode, ``info["shield_override"]``), ``intervention`` (1 if it overrode at least once) and
+    safety shield overrode, ``info["shield_override"]``), ``intervention`` (1 if it overrode at least once),
+    ``interventions`` (how many times an override started: a brake held for 2 s counts once) and
     ``first_override_s`` (time of the first override, NaN if none)."""
 
     def __init__(self, env: gym.Env) -> None:
@@ -33,7 +34,7 @@ class EpisodeMetrics(gym.Wrapper):
     def reset(self, **kwargs):
         obs, info = self.env.reset(**kwargs)
         self._traces = {k: [] for k in TRACES[self.scenario]}
-        self._return, self._length, self._overrides = 0.0, 0, 0
+        self._return, self._length, self._overrides, self._onsets, self._overriding = 0.0, 0, 0, 0, False
         self._first_override = float("nan")
         self._last_truth = info["truth"]
         return obs, info
@@ -47,6 +48,8 @@ class EpisodeMetrics(gym.Wrapper):
         self._length += 1
         overridden = bool(info.get("shield_override", False))
         self._overrides += int(overridden)
+        self._onsets += int(overridden and not self._overriding)
+        self._overriding = overridden
         if overridden and self._first_override != self._first_override:
             self._first_override = float(truth.get("time", self._length))
         self._last_truth = truth
@@ -67,5 +70,6 @@ class EpisodeMetrics(gym.Wrapper):
                                     tr["stop_line_offset"], tr["oncoming_gap"])
         row.update({"return": self._return, "length": float(self._length), "truncated": float(truncated),
                     "override_fraction": self._overrides / max(1, self._length),
-                    "intervention": float(self._overrides > 0), "first_override_s": self._first_override})
+                    "intervention": float(self._overrides > 0), "interventions": float(self._onsets),
+                    "first_override_s": self._first_override})
         return row

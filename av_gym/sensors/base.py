@@ -64,8 +64,11 @@ class SensorWrapper(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
         def recorded_init(self, *args, **kw):
             bound = signature.bind(self, *args, **kw)
             bound.apply_defaults()
-            gym.utils.RecordConstructorArgs.__init__(
-                self, **{k: v for k, v in bound.arguments.items() if k not in ("self", "env")})
+            recorded = {k: v for k, v in bound.arguments.items() if k not in ("self", "env")}
+            for name, param in signature.parameters.items():  # **kwargs are recorded as the keywords they hold
+                if param.kind is param.VAR_KEYWORD:
+                    recorded.update(recorded.pop(name, {}))
+            gym.utils.RecordConstructorArgs.__init__(self, **recorded)
             init(self, *args, **kw)
 
         cls.__init__ = recorded_init
