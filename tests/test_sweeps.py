@@ -1,0 +1,107 @@
+"""Sweeps: the launcher configs compose, a real multirun goes through submitit's local executor (the same code path
+as SLURM, minus sbatch), and eval.sweep aggregates a multirun folder over replicates."""
+
+from __future__ import annotations
+
+import csv
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from hydra import compose, initialize_config_module
+from scipy import stats
+
+from eval.sweep import load_jobs, sweep_report, swept_keys
+
+
+def _hydra(config: str, overrides: list[str]):
+    with initialize_config_module("conf", version_base="1.3"):
+        return compose(config, overrides=overrides, return_hydra_config=True).hydra
+
+
+@pytest.mark.parametrize("config", ["train", "eval"])
+def test_multirun_default_launcher_is_joblib_on_every_core(config):
+    launcher = _hydra(config, []).launcher
+    assert launcher._target_.endswith("JoblibLauncher") and launcher.n_jobs == -1
+
+
+def test_slurm_launcher_config_extends_submitit_slurm():
+    launcher = _hydra("train", ["hydra/launcher=slurm", "hydra.launcher.partition=cpu"]).launcher
+    assert launcher._target_.endswith("SlurmLauncher")
+    assert launcher.partition == "cpu" and launcher.cpus_per_task == 2 and launcher.timeout_min == 60
+    assert _hydra("train", ["hydra/launcher=submitit_slurm"]).launcher._target_.endswith("SlurmLauncher")
+
+
+def test_submitit_local_multirun_then_aggregate(tmp_path):
+    """Two rule-based jobs (one short episode each) through submitit's LocalExecutor, then the sweep table."""
+    sweep = tmp_path / "multirun"
+    cmd = [sys.executable, "-m", "train", "-m", "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=2",
+           f"hydra.sweep.dir={sweep}", f"paths.runs={tmp_path}/runs", f"paths.checkpoints={tmp_path}/ckpt",
+           "agent=always_proceed", "env.duration=2.0", "train.eval_episodes=1", "train.progress_bar=false",
+           "train.eval_seed=7,8"]
+    proc = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert (sweep / ".submitit").is_dir()  # it really went through submitit
+    jobs, missing = load_jobs(sweep)
+    assert len(jobs) == 2 and not missing
+    assert swept_keys(jobs) == ["train.eval_seed"]
+    result = sweep_report(sweep, plot=False)
+    assert result["summary"][0]["n_seeds"] == 2 and result["summary"][0]["episodes"] == 2
+    assert (sweep / "sweep.md").is_file() and (sweep / "sweep.csv").is_file()
+
+
+def _fake_job(root: Path, num: int, overrides: list[str], rows: list[dict], scenario: str = "lane_keeping"):
+    job = root / str(num)
+    (job / ".hydra").mkdir(parents=True)
+    (job / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump(overrides))
+    (job / ".hydra" / "config.yaml").write_text(yaml.safe_dump({"env": {"name": scenario}}))
+    with open(job / "results.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def test_sweep_groups_by_swept_values_and_gives_a_t_interval_over_seeds(tmp_path):
+    rng = np.random.default_rng(0)
+    expected = {}
+    num = 0
+    for sigma in (0.5, 1.5, 3.0):
+        per_seed = []
+        for seed in (0, 1, 2):
+            cte = rng.uniform(0, 1, size=3) * sigma
+            per_seed.append(cte.mean())
+            rows = [{"agent": "pid_gnss", "episode": i, "seed": 100 * seed + i, "cte_mean_abs_m": c,
+                     "lap_completed": float(i != 1)} for i, c in enumerate(cte)]
+            _fake_job(tmp_path, num, ["agent=pid_gnss", f"seed={seed}", f"sensors.gnss.sigma={sigma}"], rows)
+            num += 1
+        expected[sigma] = per_seed
+    (tmp_path / "9" / ".hydra").mkdir(parents=True)  # a job that died before writing results
+    (tmp_path / "9" / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump(["seed=3", "sensors.gnss.sigma=0.5"]))
+
+    result = sweep_report(tmp_path, metrics=["cte_mean_abs_m", "lap_completed"])
+    assert result["x"] == "sensors.gnss.sigma" and result["metric"] == "cte_mean_abs_m"
+    assert [p.name for p in result["missing"]] == ["9"]
+    assert [line["sensors.gnss.sigma"] for line in result["summary"]] == [0.5, 1.5, 3.0]
+    for line in result["summary"]:
+        vals = expected[line["sensors.gnss.sigma"]]
+        half = stats.t.ppf(0.975, 2) * np.std(vals, ddof=1) / np.sqrt(3)
+        assert line["n_seeds"] == 3 and line["episodes"] == 9
+        assert line["cte_mean_abs_m"] == pytest.approx(np.mean(vals))
+        assert line["cte_mean_abs_m_hi"] == pytest.approx(np.mean(vals) + half)
+        assert line["lap_completed"] == pytest.approx(2 / 3)
+        assert 0 < line["lap_completed_pooled_lo"] < 2 / 3 < line["lap_completed_pooled_hi"] < 1
+    assert result["png"].is_file() and "| 1.5 | pid_gnss | 3 | 9 |" in result["table"]
+    assert not result["warnings"]
+
+
+def test_sweep_warns_when_seeds_did_not_change_the_episodes(tmp_path):
+    rows = [{"agent": "always_proceed", "episode": 0, "seed": 100000, "collision": 1.0}]
+    for num, seed in enumerate((0, 1)):
+        _fake_job(tmp_path, num, [f"seed={seed}", "shield.detector.miss_rate=0.3"], rows, scenario="left_turn")
+    _fake_job(tmp_path, 2, ["seed=0", "shield.detector.miss_rate=0.6"], rows, scenario="left_turn")
+    result = sweep_report(tmp_path, plot=False)
+    assert any("same metrics" in w for w in result["warnings"])
+    assert any("share episode seeds" in w for w in result["warnings"])
