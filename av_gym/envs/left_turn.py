@@ -16,6 +16,8 @@ x ∈ [−4, 0]; the ego's arc crosses its centreline at the conflict point (−
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 from highway_env import utils
 from highway_env.envs.common.action import DiscreteMetaAction
@@ -26,10 +28,14 @@ from highway_env.vehicle.kinematics import Vehicle
 from av_gym.envs.base import ScenarioMixin, ego_kinematics
 from av_gym.envs.lane_path import LanePath
 from av_gym.envs.observations import FastKinematics, StateDict
-from av_gym.envs.vehicles import LongitudinalAction
+from av_gym.envs.vehicles import FastDiscreteMetaAction, LongitudinalAction
 from av_gym.geometry import NO_OTHERS, box_corners, constant_velocity_ttc
 from av_gym.sim.fast_network import FastRoadNetwork
+from av_gym.sim.road import FastRegulatedRoad
+from av_gym.sim.vehicles import FastVehicle
 
+STOCK_IDM = "highway_env.vehicle.behavior.IDMVehicle"
+FAST_IDM = "av_gym.sim.vehicles.FastIDMVehicle"
 MODES = ("traffic", "ccftap")
 ACTIONS = ("discrete", "continuous")
 ROUTE = [("o0", "ir0", 0), ("ir0", "il1", 0), ("il1", "o1", 0)]
@@ -65,6 +71,8 @@ class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
             "ccftap_target_speed": 45 / 3.6,  # m/s
             "ccftap_dt": 0.0,  # s, target reaches the conflict point this long after the ego (0 = they meet)
             "ccftap_lead_time": 5.0,  # s, the ego starts this long (at its speed) before the stop line, >= 25 m
+            "progress_reward": 0.0,  # total over the route to the arrival point
+            "comfort_reward": 0.0,  # per second at 3 m/s² of acceleration or braking (quadratic)
             "fast": True,  # av_gym.sim fast paths (same results, tested); False = highway-env's own code
         })
         return config
@@ -73,15 +81,17 @@ class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
     def define_spaces(self) -> None:
         self._check_config()
         obs_config = {k: v for k, v in self.config["observation"].items() if k != "type"}
-        kinematics = FastKinematics if self.config["fast"] else KinematicObservation
+        fast = bool(self.config["fast"])
+        kinematics = FastKinematics if fast else KinematicObservation
         self.observation_type = StateDict(self, kinematics(self, **obs_config))
         a = self.config["action"]
         if a["type"] == "discrete":
             speeds = [0.0, float(self.config["ccftap_ego_speed"])] if self.config["mode"] == "ccftap" \
                 else a["target_speeds"]
-            self.action_type = DiscreteMetaAction(self, longitudinal=True, lateral=False, target_speeds=speeds)
+            meta = FastDiscreteMetaAction if fast else DiscreteMetaAction
+            self.action_type = meta(self, longitudinal=True, lateral=False, target_speeds=speeds)
         else:
-            self.action_type = LongitudinalAction(self, acceleration_range=tuple(a["acceleration_range"]))
+            self.action_type = LongitudinalAction(self, acceleration_range=tuple(a["acceleration_range"]), fast=fast)
         self.observation_space = self.observation_type.space()
         self.action_space = self.action_type.space()
 
@@ -110,8 +120,8 @@ class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
     # ----------------------------------------------------------------------------------------------- scene
     def _reset(self) -> None:
         self._make_road()
-        if self.config["fast"]:
-            self.road.network = FastRoadNetwork.from_network(self.road.network)
+        if self.config["fast"]:  # same road and rules, faster (av_gym.sim)
+            self.road = FastRegulatedRoad.from_road(self.road, FastRoadNetwork.from_network(self.road.network))
         self.route = LanePath([self.road.network.get_lane(i) for i in ROUTE])
         if self.config["mode"] == "traffic":
             self._make_vehicles(self.config["initial_vehicle_count"])
@@ -120,6 +130,9 @@ class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
         self._route_k = 0
         self._arrived_time = None
         self._finish_reset()
+        self._progress_s = self._route_s()
+        # Route position where highway-env counts the ego as arrived: 25 m into the exit lane.
+        self._progress_total = max(1.0, self.route.starts[2] + 25.0 - self._progress_s)
 
     def _make_ccftap(self) -> None:
         """Ego and one constant-speed target timed by ``ccftap_dt`` (digest 003 §3.3, §9.8)."""
@@ -136,13 +149,35 @@ class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
         s_conflict, _ = turn.local_coordinates(CONFLICT_POINT)
         self.ccftap_ego_arrival = (d_start + s_conflict) / v_e  # s, ego centre at the conflict point
         t_target = self.ccftap_ego_arrival + float(self.config["ccftap_dt"])
-        target = Vehicle(self.road, CONFLICT_POINT - np.array([0.0, v_t * t_target]), heading=np.pi / 2, speed=v_t)
+        target_class = FastVehicle if self.config["fast"] else Vehicle
+        target = target_class(self.road, CONFLICT_POINT - np.array([0.0, v_t * t_target]), heading=np.pi / 2,
+                              speed=v_t)
         self.road.vehicles += [ego, target]
         self.controlled_vehicles = [ego]
         self.ccftap_target = target
         # Long enough for the ego to exit and the target to clear the intersection, with slack for a stop.
         t_clear = max(self.ccftap_ego_arrival + 25.0 / v_e, t_target + 30.0 / v_t)
         self._ccftap_time_limit = t_clear + 8.0
+
+    @contextlib.contextmanager
+    def _traffic_class(self):
+        """fast: highway-env's traffic code builds ``config["other_vehicles_type"]``; while it runs, the stock IDM
+        class is swapped for ``FastIDMVehicle`` (same model, same trajectories)."""
+        stock = self.config["other_vehicles_type"]
+        if self.config["fast"] and stock == STOCK_IDM:
+            self.config["other_vehicles_type"] = FAST_IDM
+        try:
+            yield
+        finally:
+            self.config["other_vehicles_type"] = stock
+
+    def _make_vehicles(self, n_vehicles: int = 10) -> None:
+        with self._traffic_class():
+            super()._make_vehicles(n_vehicles)
+
+    def _spawn_vehicle(self, *args, **kwargs):
+        with self._traffic_class():
+            return super()._spawn_vehicle(*args, **kwargs)
 
     def step(self, action):
         if self.config["mode"] == "traffic" and self.steps > 0:
@@ -165,10 +200,25 @@ class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
         t = self.ccftap_target
         return t.position[1] - t.LENGTH / 2 > 12.0
 
+    def _route_s(self) -> float:
+        """Ego position along its route (m), with the route-lane hint kept up to date."""
+        self._route_k, s, _ = self.route.locate(self.vehicle.position, self._route_k)
+        return self.route.path_s(self._route_k, s)
+
     def _reward(self, action) -> float:
+        """Per step: speed (rate per second in ``reward_speed_range``), progress (``progress_reward`` spread over the
+        route from the start to the arrival point, so standing still earns nothing and each metre earns the same),
+        comfort (``-comfort_reward`` × (a / 3 m/s²)² per second), and the one-off collision and arrival terms."""
         ego = self.vehicle
+        dt = 1.0 / self.config["policy_frequency"]
         speed_term = np.clip(utils.lmap(ego.speed, self.config["reward_speed_range"], [0, 1]), 0, 1)
-        reward = self.config["high_speed_reward"] * speed_term / self.config["policy_frequency"]
+        reward = self.config["high_speed_reward"] * speed_term * dt
+        if self.config["progress_reward"]:
+            s = self._route_s()
+            reward += self.config["progress_reward"] * max(0.0, s - self._progress_s) / self._progress_total
+            self._progress_s = max(s, self._progress_s)
+        if self.config["comfort_reward"]:
+            reward -= self.config["comfort_reward"] * (ego.action.get("acceleration", 0.0) / 3.0) ** 2 * dt
         if ego.crashed:
             reward += self.config["collision_reward"]
         elif self.has_arrived(ego):

@@ -38,12 +38,12 @@ T_MAX = 10.0  # s, horizon of the closest-approach time
 class TurnFeatures(SensorWrapper):
     """Adds ``obs["turn"]`` (see the module docstring). Parameters (config ``sensors.turn_features``):
     ``source`` (``truth`` | ``tracks``), ``max_objects`` (default 8), ``max_range`` (m, objects farther from the
-    ego are left out; default 80), ``time_scale`` (s, default 13: the traffic episode length)."""
+    ego are left out; default 80), ``time_scale`` (s, default 20: the traffic episode length)."""
 
     key = "turn"
 
     def __init__(self, env: gym.Env, source: str = "truth", max_objects: int = 8, max_range: float = 80.0,
-                 time_scale: float = 13.0) -> None:
+                 time_scale: float = 20.0) -> None:
         if source not in SOURCES:
             raise ValueError(f"sensors.turn_features.source must be one of {list(SOURCES)}, got {source!r}")
         if env.unwrapped.scenario != "left_turn":

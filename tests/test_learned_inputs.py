@@ -1,0 +1,142 @@
+"""What learned policies read and how they are trained: turn features (truth and tracked), the tracker estimator,
+lane features from the localizer, the left turn's reward terms, intervention cost, evaluation during training."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from av_gym.estimation.turn_features import OBJECT_FEATURES, TurnFeatures
+from av_gym.make import make_env
+from eval.agents import compose_group, plan_agent
+from tests.conftest import Scripted, conf, rollout
+
+CRUISE = Scripted(lambda k, obs: 1)
+STOP = Scripted(lambda k, obs: 0)
+
+
+def _turn_env(preset: str, **env):
+    return make_env({**conf("env", "left_turn"), **env}, compose_group("sensors", preset))
+
+
+def test_turn_features_are_bounded_and_only_they_are_observed():
+    env = _turn_env("turn_truth")
+    assert list(env.observation_space.spaces) == ["turn"]
+    obs, _ = env.reset(seed=1)
+    for _ in range(60):
+        obs, *_, info = env.step(1)
+        assert env.observation_space.contains(obs)
+    turn = obs["turn"]
+    n_present = int(turn[5::len(OBJECT_FEATURES)].sum())
+    assert 0 < n_present <= 8
+    t = info["truth"]
+    in_range = np.hypot(t["others"][:, 0] - t["x"], t["others"][:, 1] - t["y"]) <= 80.0
+    assert n_present == min(8, int(in_range.sum()))
+
+
+def test_closest_approach_time_of_a_car_driving_at_the_conflict_point():
+    env = _turn_env("turn_truth")
+    env.reset(seed=0)
+    features = next(w for w in _wrappers(env) if isinstance(w, TurnFeatures))
+    truth = dict(env.unwrapped.truth())
+    # One car 30 m south of the conflict point driving north at 10 m/s reaches it in 3 s and passes through it.
+    car = np.array([[features.conflict[0], features.conflict[1] - 30.0, 0.0, 10.0]])
+    f = features.features(truth, car)
+    obj = f[5:5 + len(OBJECT_FEATURES)]
+    t_star, miss = obj[OBJECT_FEATURES.index("t_star")] * 10.0, obj[OBJECT_FEATURES.index("miss")] * 10.0
+    assert t_star == pytest.approx(3.0, abs=1e-5) and miss == pytest.approx(0.0, abs=1e-5)
+    # A car driving away from it: closest approach now (t* = 0).
+    away = car * np.array([1, 1, 1, -1])
+    assert features.features(truth, away)[5 + OBJECT_FEATURES.index("t_star")] == 0.0
+
+
+def test_tracked_features_follow_the_true_ones():
+    """Same seed, same actions: the features from tracked detections stay close to those from the simulator."""
+    truth_env, perceived_env = _turn_env("turn_truth"), _turn_env("turn_perceived")
+    a, _ = truth_env.reset(seed=4)
+    b, _ = perceived_env.reset(seed=4)
+    diffs = []
+    for _ in range(40):
+        a, *_ = truth_env.step(1)
+        b, *_ = perceived_env.step(1)
+        assert np.isfinite(b["turn"]).all()
+        diffs.append(np.abs(a["turn"][:5 + 11] - b["turn"][:5 + 11]))  # ego + nearest object
+    ego = np.array(diffs)[:, :5]
+    assert ego.max() == 0.0  # the ego's own state is not perceived
+    nearest = np.array(diffs)[10:, 5 + 1:5 + 3] * 50.0  # relative position of the nearest object, m
+    assert np.median(nearest) < 1.5
+
+
+def test_tracker_needs_a_world_frame_detector():
+    from av_gym.errors import ConfigError
+
+    sensors = compose_group("sensors", "turn_perceived")
+    sensors["detector"]["frame"] = "ego"
+    with pytest.raises(ConfigError, match="sensors.tracker needs sensors.detector.frame=world"):
+        make_env(conf("env", "left_turn"), sensors)
+
+
+def test_progress_reward_sums_to_its_total_on_arrival_and_is_zero_when_stopped():
+    env = _turn_env("turn_truth")
+    cfg = conf("env", "left_turn")["rewards"]
+    seed = next(s for s in range(20) if rollout(env, CRUISE, s)[1]["episode_metrics"]["success"] == 1.0)
+    env.reset(seed=seed)
+    total, done = 0.0, False
+    while not done:
+        _, r, te, tr, info = env.step(1)
+        total += r
+        done = te or tr
+    # progress + arrival, less a small comfort cost
+    assert total == pytest.approx(cfg["progress"] + cfg["arrived"], abs=0.1)
+    env.reset(seed=seed)
+    for _ in range(40):  # brake to a stop, then stand
+        env.step(0)
+    rewards = [env.step(0)[1] for _ in range(10)]
+    assert max(abs(r) for r in rewards) < 1e-3  # speed decays towards 0 exponentially: a creep of mm per step
+
+
+def test_intervention_cost_charges_shield_overrides():
+    from agents.ppo import InterventionCost
+
+    base = make_env(conf("env", "left_turn"), conf("sensors", "truth"), conf("shield", "aeb"))
+    costly = InterventionCost(make_env(conf("env", "left_turn"), conf("sensors", "truth"), conf("shield", "aeb")),
+                              cost=2.0)
+    for seed in range(30):
+        base.reset(seed=seed)
+        costly.reset(seed=seed)
+        overrides, diff, done = 0, 0.0, False
+        while not done:
+            _, r0, te, tr, info = base.step(1)
+            _, r1, *_ = costly.step(1)
+            overrides += int(info.get("shield_override", False))
+            diff += r0 - r1
+            done = te or tr
+        if overrides:
+            assert diff == pytest.approx(2.0 * overrides / 10)
+            return
+    pytest.fail("the shield never intervened in 30 seeds")
+
+
+def test_lane_features_from_truth_match_the_privileged_state():
+    from av_gym.envs.observations import LaneKeepingState
+
+    sensors = {"name": "truth", "keep_state": True, "lane_features": {"source": "truth"}}
+    env = make_env(conf("env", "lane_keeping"), sensors)
+    obs, _ = env.reset(seed=0)
+    for _ in range(20):
+        obs, *_ = env.step(np.array([0.05], np.float32))
+        expected = np.clip(obs["state"] / LaneKeepingState.HIGH, -1, 1)
+        np.testing.assert_allclose(obs["lane"], expected, atol=1e-6)
+
+
+def test_an_agent_can_be_planned_on_another_sensors_preset():
+    plan = plan_agent("always_proceed@turn_perceived+aeb", "left_turn", conf("sensors", "truth"),
+                      {"kind": "none"}, "checkpoints")
+    assert plan.sensors["name"] == "turn_perceived" and plan.shield["kind"] == "aeb"
+    assert plan.label == "always_proceed@turn_perceived+aeb"
+
+
+def _wrappers(env):
+    while hasattr(env, "env"):
+        yield env
+        env = env.env
