@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+import textwrap
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -163,7 +164,8 @@ def table_markdown(summary: list[dict], group_keys: list[str], metrics: list[str
     return markdown_table(cells, [*group_keys, "agent", "n_seeds", "episodes", *metrics])
 
 
-def plot_curve(summary: list[dict], x: str, metric: str, group_keys: list[str], path: Path, title: str) -> Path:
+def plot_curve(summary: list[dict], x: str, metric: str, group_keys: list[str], path: Path, title: str,
+               ylabel: str | None = None) -> Path:
     """``metric`` against swept parameter ``x``, one line per agent and value of the other swept parameters,
     error bars the interval over replicates."""
     import matplotlib
@@ -190,8 +192,8 @@ def plot_curve(summary: list[dict], x: str, metric: str, group_keys: list[str], 
     if not numeric:
         ax.set_xticks(range(len(xs_all)), [str(v) for v in xs_all])
     ax.set_xlabel(x)
-    ax.set_ylabel(metric)
-    ax.set_title(title, fontsize=10)
+    ax.set_ylabel(ylabel or metric)
+    ax.set_title(textwrap.fill(title, 80), fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -259,8 +261,12 @@ def sweep_report(root: str | Path, x: str | None = None, metric: str | None = No
     png = None
     if plot and x is not None:
         png = out_dir / f"sweep_{metric}_vs_{x.replace('/', '_')}.png"
-        title = f"{scenario or ''} {metric} vs {x}: mean ± 95% CI over {'/'.join(map(str, n_seeds))} replicates"
-        plot_curve(summary, x, metric, group_keys, png, title.strip())
+        # The overrides every job shared say what was held fixed; paths and display flags say nothing about that.
+        fixed = [f"{k}={v}" for k, v in jobs[0].overrides.items() if k not in swept
+                 and not k.startswith("paths.") and not k.endswith("progress_bar")]
+        title = (f"{scenario or ''} {metric} vs {x}: mean ± 95% CI over {'/'.join(map(str, n_seeds))} replicates"
+                 f"{'; ' + ' '.join(fixed) if fixed else ''}").strip()
+        plot_curve(summary, x, metric, group_keys, png, title, f"{metric} (rate)" if binary[metric] else metric)
         text += f"\n![{metric} vs {x}]({png.name})\n"
     (out_dir / "sweep.md").write_text(text)
     return {"summary": summary, "table": table, "warnings": warnings, "missing": missing, "markdown": text,
