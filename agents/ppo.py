@@ -90,11 +90,35 @@ def make_ppo(env: VecEnv, hyper: dict[str, Any], *, seed: int, tensorboard_log: 
                policy_kwargs=policy_kwargs, device=device, verbose=0, **kwargs)
 
 
-class SB3Policy:
-    """Deterministic action of a trained SB3 model for one observation."""
+class ActionRepeat(gym.Wrapper):
+    """The agent decides every ``repeat`` env steps; its action is applied ``repeat`` times and the rewards summed
+    (the episode ends early if the env does). Why: on the left turn the decision that matters (wait or go) spans
+    seconds; at 10 Hz PPO must assign credit over ~150 steps, at 2 Hz over ~30, and learns several times faster
+    per simulated second. A safety shield inside still decides every env step (0.1 s)."""
 
-    def __init__(self, model: Any) -> None:
-        self.model = model
+    def __init__(self, env: gym.Env, repeat: int) -> None:
+        super().__init__(env)
+        if int(repeat) < 1:
+            raise ValueError(f"agent.action_repeat must be >= 1, got {repeat}")
+        self.repeat = int(repeat)
+
+    def step(self, action):
+        total = 0.0
+        for _ in range(self.repeat):
+            obs, reward, terminated, truncated, info = self.env.step(action)
+            total += float(reward)
+            if terminated or truncated:
+                break
+        return obs, total, terminated, truncated, info
+
+
+class SB3Policy:
+    """Deterministic action of a trained SB3 model for one observation. With ``repeat`` > 1 (a model trained with
+    :class:`ActionRepeat`) the model is asked every ``repeat`` calls and its action held in between."""
+
+    def __init__(self, model: Any, repeat: int = 1, actions: str = "env") -> None:
+        self.model, self.repeat, self.actions = model, int(repeat), actions
+        self._k, self._action = 0, None
 
     @classmethod
     def load(cls, path: str | Path, device: str = "cpu") -> "SB3Policy":
@@ -102,8 +126,15 @@ class SB3Policy:
         return cls(PPO.load(str(path), device=device))
 
     def reset(self) -> None:
-        pass
+        self._k, self._action = 0, None
 
     def act(self, obs: Any) -> Any:
-        action, _ = self.model.predict(flatten_obs(obs), deterministic=True)
-        return int(action) if np.ndim(action) == 0 else action
+        if self._k % self.repeat == 0:
+            action, _ = self.model.predict(flatten_obs(obs), deterministic=True)
+            self._action = int(action) if np.ndim(action) == 0 else action
+        self._k += 1
+        if self.actions == "go_yield":  # the held choice becomes a meta-action at every env step, as in training
+            from agents.go_yield import meta_action
+
+            return meta_action(self._action, obs["turn"])
+        return self._action

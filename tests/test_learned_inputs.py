@@ -140,3 +140,47 @@ def _wrappers(env):
     while hasattr(env, "env"):
         yield env
         env = env.env
+
+
+def test_yield_stops_at_the_line_and_go_sets_off():
+    from agents.go_yield import GO, YIELD, GoYieldActions
+
+    env = GoYieldActions(_turn_env("turn_truth", spawn_probability=0.0))
+    env.reset(seed=2)
+    for _ in range(120):
+        *_, info = env.step(YIELD)
+    t = info["truth"]
+    assert t["speed"] < 0.05 and -1.5 < t["stop_line_offset"] <= 0.0  # stopped just behind the line
+    done = False
+    while not done:
+        _, _, terminated, truncated, info = env.step(GO)
+        done = terminated or truncated
+    assert info["episode_metrics"]["success"] == 1.0
+
+
+def test_a_held_go_yield_choice_gives_the_same_episode_in_training_and_evaluation():
+    """train wraps the env (GoYieldActions + ActionRepeat); eval maps the held choice inside SB3Policy."""
+    from agents.go_yield import GoYieldActions
+    from agents.ppo import ActionRepeat, SB3Policy
+
+    class Model:  # yields for the first 10 decisions, then goes
+        def __init__(self):
+            self.k = 0
+
+        def predict(self, obs, deterministic=True):
+            self.k += 1
+            return np.array(int(self.k > 10)), None
+
+    trained = ActionRepeat(GoYieldActions(_turn_env("turn_truth")), 5)
+    trained.reset(seed=7)
+    model, done, trace_a = Model(), False, []
+    obs = None
+    while not done:
+        obs, _, terminated, truncated, info = trained.step(model.predict(obs)[0])
+        trace_a.append(info["truth"]["time"])
+        done = terminated or truncated
+    metrics_a = info["episode_metrics"]
+    policy = SB3Policy(Model(), repeat=5, actions="go_yield")
+    env = _turn_env("turn_truth")
+    truths, info, *_ = rollout(env, policy, 7)
+    np.testing.assert_equal(info["episode_metrics"], metrics_a)  # NaN == NaN here

@@ -206,7 +206,11 @@ class PeriodicEval(BaseCallback):
             obs, _, terminated, truncated, _ = env.step(policy.act(obs))
             frames.append(env.render())
             done = terminated or truncated
-        fps = env.unwrapped.config["policy_frequency"]
+        try:  # an ActionRepeat env renders one frame per decision
+            repeat = env.get_wrapper_attr("repeat")
+        except AttributeError:
+            repeat = 1
+        fps = env.unwrapped.config["policy_frequency"] / repeat
         env.close()
         frames = [f[::2, ::2] for f in frames]  # half resolution keeps the event file small
         gif = gif_bytes(frames, fps)

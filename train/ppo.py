@@ -9,14 +9,22 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 
+ACTIONS = ("env", "go_yield")  # agent.actions: the env's own action space, or agents/go_yield.py's two choices
+
+
 def _env_factory(env_cfg: dict, sensors_cfg: dict, shield_cfg: dict, intervention_cost: float = 0.0,
-                 render_mode: str | None = None):
-    from agents.ppo import FlatDictObservation, InterventionCost
+                 action_repeat: int = 1, actions: str = "env", render_mode: str | None = None):
+    from agents.go_yield import GoYieldActions
+    from agents.ppo import ActionRepeat, FlatDictObservation, InterventionCost
     from av_gym.make import make_env
 
     env = make_env(env_cfg, sensors_cfg, shield_cfg, render_mode=render_mode)
     if intervention_cost > 0:
         env = InterventionCost(env, intervention_cost)
+    if actions == "go_yield":
+        env = GoYieldActions(env)
+    if action_repeat > 1:
+        env = ActionRepeat(env, action_repeat)
     return FlatDictObservation(env)
 
 
@@ -28,6 +36,10 @@ def validate(cfg: DictConfig) -> list[str]:
             problems.append(f"agent.{key} must be a positive integer, got {agent[key]}")
     if agent.vec_env not in ("subproc", "dummy"):
         problems.append(f"agent.vec_env must be one of ['subproc', 'dummy'], got {agent.vec_env!r}")
+    if agent.get("actions", "env") not in ACTIONS:
+        problems.append(f"agent.actions must be one of {list(ACTIONS)}, got {agent.actions!r}")
+    if int(agent.get("action_repeat", 1)) < 1:
+        problems.append(f"agent.action_repeat must be >= 1, got {agent.action_repeat}")
     if float(agent.get("intervention_cost", 0.0)) < 0:
         problems.append(f"agent.intervention_cost must be >= 0, got {agent.intervention_cost}")
     for key in ("eval_every", "eval_n", "video_every"):
@@ -79,8 +91,9 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     if resume:
         done_steps = int(PPO.load(str(latest), device=agent.device).num_timesteps)
     # A resumed run's episodes come from fresh seeds (the env streams of the killed run cannot be restored).
-    cost = float(agent.get("intervention_cost", 0.0))
-    venv = make_vec_env(functools.partial(_env_factory, *plain, cost), n_envs=int(agent.n_envs),
+    cost, repeat = float(agent.get("intervention_cost", 0.0)), int(agent.get("action_repeat", 1))
+    actions = str(agent.get("actions", "env"))
+    venv = make_vec_env(functools.partial(_env_factory, *plain, cost, repeat, actions), n_envs=int(agent.n_envs),
                         seed=int(cfg.seed) + done_steps, vec_env_cls=vec_cls)
     if resume:
         try:
@@ -106,7 +119,9 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
                                           "seed": int(cfg.seed)}, cfg.env.name))
     if int(cfg.train.eval_n) > 0:
         eval_seeds = range(int(cfg.train.eval_seed), int(cfg.train.eval_seed) + int(cfg.train.eval_n))
-        callbacks.append(PeriodicEval(lambda mode: _env_factory(*plain, render_mode=mode), cfg.env.name, eval_seeds,
+        callbacks.append(PeriodicEval(lambda mode: _env_factory(*plain, 0.0, repeat, actions, render_mode=mode),
+                                      cfg.env.name,
+                                      eval_seeds,
                                       int(cfg.train.eval_every), ckpt_dir, run_dir, int(cfg.train.video_every)))
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM behaves like Ctrl-C
     try:
