@@ -1,7 +1,8 @@
-"""``python -m eval env=left_turn agents='[always_proceed,ppo]' episodes=100 seed=1000``"""
+"""``python -m eval env=left_turn agents='[always_proceed,ppo]' episodes=100 seed=1000 [n_envs=2]``"""
 
 from __future__ import annotations
 
+import sys
 
 import hydra
 from omegaconf import DictConfig
@@ -9,26 +10,48 @@ from omegaconf import DictConfig
 from av_gym.errors import ConfigError, run_cli
 
 
+def _plans(cfg: DictConfig) -> list:
+    """Every agent spec planned and its checkpoint (if any) checked, before any env is built."""
+    from omegaconf import OmegaConf
+
+    from av_gym.config_schema import validate_config
+    from eval.agents import check_plan, plan_agent
+
+    validate_config(cfg, "eval")
+    sensors, shield = (OmegaConf.to_container(c, resolve=True) for c in (cfg.sensors, cfg.shield))
+    plans = [plan_agent(spec, cfg.env.name, sensors, shield, cfg.paths.checkpoints) for spec in cfg.agents]
+    for plan in plans:
+        check_plan(plan, cfg.env.name)
+    return plans
+
+
 def evaluate(cfg: DictConfig) -> list[dict]:
     from omegaconf import OmegaConf
 
     from av_gym.make import make_env
-    from eval.agents import plan_agent, resolve_agent
+    from eval.agents import resolve_agent
     from eval.report import write_results
-    from eval.runner import run_episodes
+    from eval.runner import EpisodeJob, run_episodes, run_episodes_parallel
 
+    plans = _plans(cfg)
     if int(cfg.episodes) < 1:
         raise ConfigError(f"episodes must be >= 1, got {cfg.episodes}")
     env_name = cfg.env.name
+    n_envs = int(cfg.get("n_envs", 1))
     rows = []
     seeds = range(int(cfg.seed), int(cfg.seed) + int(cfg.episodes))
-    sensors, shield = (OmegaConf.to_container(c, resolve=True) for c in (cfg.sensors, cfg.shield))
-    plans = [plan_agent(spec, env_name, sensors, shield, cfg.paths.checkpoints) for spec in cfg.agents]
+    env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
     for plan in plans:  # every spec is checked before any episode runs
-        env = make_env(cfg.env, plan.sensors, plan.shield)
+        env = make_env(env_cfg, plan.sensors, plan.shield)
         _, policy = resolve_agent(plan.spec, env, env_name, cfg.paths.checkpoints)
-        rows += run_episodes(env, policy, seeds, plan.label, progress=cfg.progress_bar)
-        env.close()
+        if n_envs > 1:
+            env.close()
+            job = EpisodeJob(env_cfg, plan.sensors, plan.shield, plan.spec, env_name, str(cfg.paths.checkpoints),
+                             plan.label)
+            rows += run_episodes_parallel(job, seeds, n_envs, progress=cfg.progress_bar)
+        else:
+            rows += run_episodes(env, policy, seeds, plan.label, progress=cfg.progress_bar)
+            env.close()
     title = f"{env_name} ({cfg.env.get('mode', '')}), {cfg.episodes} episodes from seed {cfg.seed}".replace(" ()", "")
     table = write_results(rows, cfg.out_dir, env_name, title)
     print(f"\n{title}\n\n{table}\n")
@@ -41,9 +64,22 @@ def evaluate(cfg: DictConfig) -> list[dict]:
     return rows
 
 
+def _check_command_line() -> None:
+    from av_gym.config_schema import check_command_line
+
+    for cfg in check_command_line("eval", sys.argv[1:]):
+        _plans(cfg)
+
+
 @hydra.main(config_path="pkg://conf", config_name="eval", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    run_cli(evaluate, cfg)
+def _hydra_main(cfg: DictConfig) -> None:
+    run_cli(evaluate, cfg, hydra_run_dir=True)
+
+
+def main() -> None:
+    """Check the command line before Hydra makes a run folder (one line and exit 2 on bad input), then run."""
+    run_cli(_check_command_line)
+    _hydra_main()
 
 
 if __name__ == "__main__":

@@ -22,9 +22,24 @@ def _load_sb3(model_path: Path, env: gym.Env) -> Policy:
 
     policy = SB3Policy.load(model_path)
     if policy.model.observation_space != sb3_space(env.observation_space):
-        raise ConfigError(f"checkpoint {str(model_path)!r} expects observations {policy.model.observation_space}, "
-                          f"this env gives {env.observation_space}")
+        raise ConfigError(f"checkpoint {str(model_path)!r} expects observations {_shapes(policy.model.observation_space)}"
+                          f", this env gives {_shapes(sb3_space(env.observation_space))} (same sensors preset and env "
+                          f"settings as in its training, see its config.yaml)")
+    if policy.model.action_space != env.action_space:
+        raise ConfigError(f"checkpoint {str(model_path)!r} acts in {policy.model.action_space}, this env expects "
+                          f"{env.action_space} (env.action must be as in its training)")
     return policy
+
+
+def _shapes(space: gym.Space) -> str:
+    """A space in one line: ``{key: shape dtype [low, high]}``."""
+    import numpy as np
+
+    if isinstance(space, gym.spaces.Dict):
+        return "{" + ", ".join(f"{k}: {_shapes(v)}" for k, v in space.spaces.items()) + "}"
+    if isinstance(space, gym.spaces.Box):
+        return f"{space.shape} {space.dtype} [{np.min(space.low):g}, {np.max(space.high):g}]"
+    return str(space)
 
 
 def _load_pilotnet(model_path: Path, env: gym.Env) -> Policy:
@@ -81,8 +96,9 @@ def _check_scenario(label: str, cfg: dict, env_name: str) -> None:
         raise ConfigError(f"agent {label!r} drives scenarios {cfg['scenarios']}, not {env_name!r}")
 
 
-def _load_trained(path: Path, env: gym.Env, env_name: str) -> Policy:
-    """A checkpoint folder (its config.yaml says the kind) or a model file (its suffix does)."""
+def _checkpoint_file(path: Path, env_name: str) -> tuple[str, Path]:
+    """(kind, model file) of a checkpoint folder (its config.yaml says the kind) or a model file (its suffix
+    does), checked without loading it: the file exists and was trained on ``env_name``."""
     if path.is_dir():
         cfg_path = path / "config.yaml"
         kind = (yaml.safe_load(cfg_path.read_text()) or {}).get("agent", {}).get("kind") if cfg_path.is_file() \
@@ -103,7 +119,29 @@ def _load_trained(path: Path, env: gym.Env, env_name: str) -> Policy:
         saved_env = (yaml.safe_load(cfg_path.read_text()) or {}).get("env", {}).get("name")
         if saved_env != env_name:
             raise ConfigError(f"checkpoint {str(model_path)!r} was trained on env {saved_env!r}, not {env_name!r}")
+    return kind, model_path
+
+
+def _load_trained(path: Path, env: gym.Env, env_name: str) -> Policy:
+    kind, model_path = _checkpoint_file(path, env_name)
     return LOADERS[kind][1](model_path, env)
+
+
+def _is_path(spec: str) -> bool:
+    return bool(Path(spec).suffix) or "/" in spec or Path(spec).is_dir()
+
+
+def check_plan(plan: "AgentPlan", env_name: str) -> None:
+    """Everything about a plan that can be checked without building its env: the checkpoint file (exists, same
+    env) and the sensors and shield it will run with (a checkpoint's saved ones included)."""
+    from av_gym.config_schema import section_problems
+
+    if _is_path(plan.spec):
+        _checkpoint_file(Path(plan.spec), env_name)
+    for group, section in (("sensors", plan.sensors), ("shield", plan.shield)):
+        problems = section_problems(group, section)
+        if problems:
+            raise ConfigError(f"agent {plan.label!r}: {problems[0]}")
 
 
 def resolve_agent(spec: str, env: gym.Env, env_name: str, checkpoints: str | Path) -> tuple[str, Policy]:

@@ -1,8 +1,17 @@
-"""Run a policy on seeded episodes and collect one metrics row per episode."""
+"""Run a policy on seeded episodes and collect one metrics row per episode, in this process or spread over worker
+processes (``n_envs``).
+
+Determinism: an episode depends on its seed only (the env, every sensor and the shield reseed from it on reset;
+policies reset), so which process runs it, and after which other episode, does not change its row. The rows are
+put back in seed order, and the result is bit-identical for any ``n_envs`` (tests/test_determinism.py)."""
 
 from __future__ import annotations
 
+import contextlib
+import io
+import sys
 from collections.abc import Iterable
+from dataclasses import dataclass
 
 import gymnasium as gym
 from tqdm import tqdm
@@ -10,18 +19,78 @@ from tqdm import tqdm
 from agents import Policy
 
 
+def _single_threaded_torch() -> None:
+    # A multi-threaded matmul may sum in a different order from one run to the next (and from one process to
+    # another), which changes a network's action in the last bit; one thread makes it the same everywhere.
+    # Evaluation networks are small, so nothing is lost.
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(1)
+
+
 def run_episodes(env: gym.Env, policy: Policy, seeds: Iterable[int], label: str,
                  progress: bool = True) -> list[dict]:
     """One row per seed: ``{"agent", "episode", "seed", **info["episode_metrics"]}``. ``env`` must be wrapped in
     :class:`av_gym.metrics.recorder.EpisodeMetrics` (as :func:`av_gym.make.make_env` does)."""
+    _single_threaded_torch()
     seeds = list(seeds)
     rows = []
     for i, seed in enumerate(tqdm(seeds, desc=f"eval {label}", unit="ep", disable=not progress, leave=False)):
-        obs, _ = env.reset(seed=int(seed))
-        policy.reset()
-        done = False
-        while not done:
-            obs, _, terminated, truncated, info = env.step(policy.act(obs))
-            done = terminated or truncated
-        rows.append({"agent": label, "episode": i, "seed": int(seed), **info["episode_metrics"]})
+        rows.append({"agent": label, "episode": i, "seed": int(seed), **_episode(env, policy, int(seed))})
     return rows
+
+
+def _episode(env: gym.Env, policy: Policy, seed: int) -> dict:
+    obs, _ = env.reset(seed=seed)
+    policy.reset()
+    done = False
+    while not done:
+        obs, _, terminated, truncated, info = env.step(policy.act(obs))
+        done = terminated or truncated
+    return info["episode_metrics"]
+
+
+@dataclass(frozen=True)
+class EpisodeJob:
+    """What a worker process needs to build the same env stack and policy as the parent (plain, picklable)."""
+
+    env: dict
+    sensors: dict
+    shield: dict
+    spec: str
+    env_name: str
+    checkpoints: str
+    label: str
+
+
+_WORKER: dict = {}
+
+
+def _init_worker(job: EpisodeJob) -> None:
+    from av_gym.make import make_env
+    from eval.agents import resolve_agent
+
+    env = make_env(job.env, job.sensors, job.shield)
+    with contextlib.redirect_stdout(io.StringIO()):  # the parent already said which checkpoint it uses
+        _, policy = resolve_agent(job.spec, env, job.env_name, job.checkpoints)
+    _single_threaded_torch()
+    _WORKER.update(env=env, policy=policy)
+
+
+def _run_one(seed: int) -> dict:
+    return _episode(_WORKER["env"], _WORKER["policy"], seed)
+
+
+def run_episodes_parallel(job: EpisodeJob, seeds: Iterable[int], n_envs: int, progress: bool = True) -> list[dict]:
+    """:func:`run_episodes` over ``n_envs`` worker processes, each building ``job``'s env and policy once; rows
+    in the order of ``seeds``, identical to the in-process ones."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    seeds = [int(s) for s in seeds]
+    # spawn, not fork: the parent may hold torch's thread pool and open renderers, which a fork copies half-made.
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=min(n_envs, len(seeds)), mp_context=ctx, initializer=_init_worker,
+                             initargs=(job,)) as pool:
+        metrics = list(tqdm(pool.map(_run_one, seeds), total=len(seeds), desc=f"eval {job.label}", unit="ep",
+                            disable=not progress, leave=False))
+    return [{"agent": job.label, "episode": i, "seed": seed, **m} for i, (seed, m) in enumerate(zip(seeds, metrics))]

@@ -79,18 +79,48 @@ def test_train_ppo_on_the_full_sensor_preset(tmp_path):
 @pytest.mark.parametrize("module, overrides, needle", [
     ("train", ["env.mode=rush_hour"], "env.mode must be one of ['traffic', 'ccftap']"),
     ("train", ["env=lane_keeping", "agent=always_proceed"], "drives scenarios ['left_turn']"),
-    ("train", ["agent.n_envs=0"], "agent.n_envs must be a positive integer"),
+    ("train", ["agent.n_envs=0"], "agent.n_envs must be an integer >= 1, got 0"),
+    # Hydra's own errors (unknown key, unknown option), caught before Hydra reports them over several lines
+    ("train", ["agent.epoch=3"], "agent.epoch is not a field of agent=ppo; allowed: ['batch_size',"),
+    ("train", ["env=foo"], "env=foo: env must be one of ['lane_keeping', 'left_turn']"),
+    ("train", ["+foo=1"], "foo is not a train setting; allowed: ['agent', 'env',"),
+    ("train", ["seed=0,1"], "add -m to sweep over them"),
+    ("train", ["env.duration=abc"], "env.duration must be a number > 0, got 'abc'"),
+    ("train", ["env.spawn_probability=1.5"], "env.spawn_probability must be a number in [0, 1], got 1.5"),
+    ("train", ["-m", "sensors=gnss_imu", "sensors.gnss.sigma=0.5,-1"], "sensors.gnss.sigma must be a number >= 0"),
     ("eval", ["agents=[no_such_agent]"], "agent 'no_such_agent' is not in conf/agent/"),
     ("eval", ["agents=[always_proceed+no_such_shield]"], "shield 'no_such_shield' is not in conf/shield/"),
     ("eval", ["sensors=gnss_imu", "env.name=left_turn", "agents=[always_proceed]", "sensors.gnss.sigma=-2"],
-     "sensors.gnss.sigma must be >= 0"),
+     "sensors.gnss.sigma must be a number >= 0, got -2"),
     ("eval", ["agents=[missing/model.zip]"], "does not exist"),
     ("eval", ["env=lane_keeping", "agents=[ppo]", "paths.checkpoints=nowhere"], "no ppo checkpoint"),
+    ("eval", ["n_envs=0"], "n_envs must be an integer >= 1, got 0"),
+    ("eval", ["shield=aeb", "+shield.detector.sigma_vel=-1"], "shield.detector.sigma_vel must be a number >= 0"),
 ])
 def test_bad_input_gives_one_line_and_exit_code_2(tmp_path, module, overrides, needle):
     res = run(module, *overrides, "progress_bar=false" if module == "eval" else "train.progress_bar=false",
               cwd=tmp_path)
     assert res.returncode == 2, res.stderr[-2000:]
     lines = [line for line in res.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1 and needle in lines[0] and "Traceback" not in res.stderr
-    assert not (tmp_path / "checkpoints").exists() or not any((tmp_path / "checkpoints").iterdir())
+    assert len(lines) == 1 and needle in lines[0] and "Traceback" not in res.stderr, res.stderr[-2000:]
+    assert not any(tmp_path.iterdir()), f"nothing written, found {sorted(tmp_path.rglob('*'))}"
+
+
+def test_checkpoint_that_does_not_fit_the_env_is_refused_and_its_run_folder_removed(trained, tmp_path):
+    """Found only once the job runs (the model must be loaded): Hydra's run folder is removed again."""
+    cwd, _ = trained
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "model.zip").write_bytes((cwd / "checkpoints" / "tiny" / "model.zip").read_bytes())
+    config = (cwd / "checkpoints" / "tiny" / "config.yaml").read_text()
+    (other / "config.yaml").write_text(config.replace("name: truth", "name: gnss_imu\n  gnss: {}\n  imu: {}"))
+    res = run("eval", f"agents=[{other}]", "episodes=1", "progress_bar=false", cwd=tmp_path)
+    assert res.returncode == 2, res.stderr[-2000:]
+    lines = [line for line in res.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "expects observations {state:" in lines[0], res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["other"]
+
+    res = run("eval", f"agents=[{cwd / 'checkpoints' / 'tiny'}]", "env.action=continuous", "episodes=1",
+              "progress_bar=false", cwd=tmp_path)
+    assert res.returncode == 2 and "acts in Discrete(3)" in res.stderr, res.stderr[-2000:]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["other"]

@@ -6,6 +6,7 @@ resolved config beside them, then evaluates the result briefly against the scena
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import hydra
@@ -26,8 +27,11 @@ def _trainers() -> dict:
 
 
 def _validate(cfg: DictConfig) -> None:
+    """Every field against the schema (av_gym/config_schema.py), then what needs the agent's trainer."""
+    from av_gym.config_schema import validate_config
     from eval.agents import available_agents
 
+    validate_config(cfg, "train")
     agent = cfg.agent
     kinds = (*_trainers(), *RULE_BASED)
     if agent.get("kind") not in kinds:
@@ -93,9 +97,22 @@ def train(cfg: DictConfig) -> dict:
     return where
 
 
+def _check_command_line() -> None:
+    from av_gym.config_schema import check_command_line
+
+    for cfg in check_command_line("train", sys.argv[1:]):
+        _validate(cfg)
+
+
 @hydra.main(config_path="pkg://conf", config_name="train", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    run_cli(train, cfg)
+def _hydra_main(cfg: DictConfig) -> None:
+    run_cli(train, cfg, hydra_run_dir=True)
+
+
+def main() -> None:
+    """Check the command line before Hydra makes a run folder (one line and exit 2 on bad input), then run."""
+    run_cli(_check_command_line)
+    _hydra_main()
 
 
 if __name__ == "__main__":

@@ -1,0 +1,579 @@
+"""The schema of every config group and field (``conf/``), checked in one function, :func:`validate_config`, before
+anything runs or is written.
+
+Why an explicit schema rather than Hydra structured configs: the groups' options have different fields (an
+``env=lane_keeping`` has ``track``, ``env=left_turn`` has ``mode``; each shield variant its own parameters), the
+sensor and shield sections may carry any parameter of their class, and Hydra's own type errors are multi-line. One
+checker that knows the option (``env.name``, ``agent.kind``, ``shield.variant``) gives one line naming the field and
+what is allowed. Values are still *read* in one place each (:mod:`av_gym.make`, the trainers, the wrappers, whose
+constructors keep their own checks for use from Python); this module only says what is acceptable, and
+tests/test_validation.py keeps it in step with the wrappers' signatures and with every file under ``conf/``.
+
+Spec language (compact, so the whole schema reads as a table):
+
+- ``"num"``, ``"int"`` with optional bounds: ``"num >=0"``, ``"num >0"``, ``"int >=1"``, ``"num [0,1]"``,
+  ``"num [0,1)"``; a trailing ``"|null"`` allows null. Numbers are finite; bools are not numbers.
+- ``"bool"``, ``"str"``, ``"any"``; a tuple is an enum of allowed values.
+- ``["num"]`` a list of that spec; ``("list", n, "num")`` a list of exactly n.
+- a dict is a nested section; a key ending in ``?`` is optional (the class has a default).
+- ``Delegate(fn)``: ``fn(value, where) -> list of problems`` (a section another module defines as a dataclass).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from av_gym.errors import ConfigError
+
+ENV_NAMES = ("lane_keeping", "left_turn")
+AGENT_KINDS = ("ppo", "pilotnet", "pid", "always_proceed")
+
+
+@dataclass(frozen=True)
+class Delegate:
+    check: Callable[[Any, str], list[str]]
+
+
+def optional(spec: Mapping) -> dict:
+    """Every key of a section optional (a class's keyword arguments, each with a default)."""
+    return {k if k.endswith("?") else f"{k}?": v for k, v in spec.items()}
+
+
+# ------------------------------------------------------------------------------------------------ env
+_COMMON_ENV = {
+    "name": ENV_NAMES,
+    "policy_frequency": "int >=10",
+    "simulation_frequency": "int >=1",
+    "fast": "bool",
+}
+ENV = {
+    "lane_keeping": {
+        **_COMMON_ENV,
+        "track": ("A", "B"),
+        "target_speed_kmh": "num >0",
+        "lane_width": "num >0",
+        "max_steering_deg": "num (0,90)",
+        "offroad_margin": "num >0",
+        "time_limit": "num >0|null",
+        "initial_lateral_std": "num >=0",
+        "initial_heading_std_deg": "num >=0",
+    },
+    "left_turn": {
+        **_COMMON_ENV,
+        "mode": ("traffic", "ccftap"),
+        "action": ("discrete", "continuous"),
+        "duration": "num >0",
+        "spawn_probability": "num [0,1]",
+        "target_speeds_kmh": ("list", 3, "num >=0"),
+        "acceleration_range": ("list", 2, "num"),
+        "rewards": {"collision": "num", "arrived": "num", "high_speed": "num"},
+        "ccftap": {"ego_speed_kmh": "num >0", "target_speed_kmh": "num >0", "dt": "num"},
+    },
+}
+
+# ------------------------------------------------------------------------------------------------ sensors
+GNSS = {"rate_hz": "num >0", "sigma": "num >=0", "sigma_bias": "num >=0", "bias_tau": "num >0",
+        "velocity_sigma": "num >=0", "latency": "num >=0", "outage": ("none", "random", "scripted"),
+        "outage_rate": "num >=0", "outage_mean": "num >0", "outage_windows": [("list", 2, "num >=0")]}
+IMU = {"accel_sigma": "num >=0", "gyro_sigma": "num >=0", "accel_bias_sigma": "num >=0",
+       "gyro_bias_sigma": "num >=0", "accel_bias_walk": "num >=0", "gyro_bias_walk": "num >=0",
+       "scale_error": "num >=0", "accel_range": "num >0", "gyro_range": "num >0", "saturate": "bool"}
+LIDAR = {"beams": "int >=1", "fov_deg": "num (0,360]", "min_range": "num >=0", "max_range": "num >0",
+         "range_sigma": "num >=0", "dropout": "num [0,1]", "azimuth_jitter": "bool",
+         "elevations_deg": ["num (-89,89)"], "planar": "bool|null", "mount_x": "num", "mount_height": "num >=0",
+         "vehicle_height": "num >0", "rate_hz": "num >0", "sweep_time": "num >0", "deskew_poses": "bool"}
+CAMERA_NOISE = {"pixel_std": "num >=0", "night_pixel_std": "num >=0", "brightness": "num >=0",
+                "contrast": "num [0,1)", "camera_gain": "num [0,1)", "blur_sigma": "num >=0"}
+WEATHER = {"fog_visibility": "num >0|null", "fog_airlight": "num [0,255]", "night": "bool",
+           "night_ambient": "num [0,1]", "night_gamma": "num >0", "headlights": "bool"}
+CAMERAS = {"height": "int >=2", "width": "int >=2", "hfov_deg": "num [1,170]", "mount_height": "num >0",
+           "pitch_deg": "num (-90,90)", "lateral_offset": "num", "forward_offset": "num", "max_range": "num >0",
+           "supersample": "int [1,8]", "rate_hz": "num >0|null", "noise": Delegate(lambda v, w: _camera_noise(v, w)),
+           "fog_visibility": "num >0|null", "night": "bool", "weather": Delegate(lambda v, w: _weather(v, w))}
+DETECTOR = {"rate_hz": "num >0", "max_range": "num >0", "fov_deg": "num (0,360]", "miss_rate": "num [0,1)",
+            "burst_length": "num >=1|null", "occlusion": "bool", "occlusion_fraction": "num (0,1]",
+            "sigma_pos0": "num >=0", "sigma_pos_k": "num >=0", "sigma_vel": "num >=0", "sigma_size": "num >=0",
+            "sigma_heading": "num >=0", "clutter_rate": "num >=0", "max_objects": "int >=1",
+            "frame": ("world", "ego")}
+EKF_NOISE = {k: "num >=0" for k in (
+    "accel_sigma", "gyro_sigma", "accel_bias_walk", "gyro_bias_walk", "accel_bias0", "gyro_bias0", "speed_walk",
+    "heading_walk", "position_walk", "gnss_sigma", "gnss_bias_sigma", "gnss_velocity_sigma",
+    "velocity_model_sigma", "odom_window_forward", "odom_window_lateral", "odom_window_yaw", "odom_drift",
+    "odom_yaw_drift", "odom_forward_sigma", "odom_lateral_sigma", "odom_yaw_rate_sigma")}
+EKF_NOISE.update(gnss_bias_tau="num >0", gate_prob="num (0,1)")
+MAP_MATCHER = {"sample_step": "num >0", "gate": "num >0", "max_range": "num >0", "kernel": "num >0",
+               "iterations": "int >=1", "min_inliers": "int >=1", "sigma_floor": "num >0", "inflation": "num >0",
+               "inlier_distance": "num >0", "min_fraction": "num [0,1]"}
+LOCALIZER = {"mode": ("gnss", "gnss_imu", "lidar", "fused"), "map_matching": "bool", "map_sigma": "num >=0",
+             "gnss_latency": "num >=0|null", "rear_axle": "num >=0|null", "noise": optional(EKF_NOISE),
+             "odometry": optional({"voxel_size": "num >0|null", "min_points": "int >=3", "max_deviation": "num >0",
+                                   "deskew": "bool|null"}),
+             "map_matcher": optional(MAP_MATCHER), "odometry_update": ("relative_pose", "velocity"),
+             "odom_window": "int >=1", "reinit_after_s": "num >0", "max_position_std": "num >0",
+             "init_min_speed": "num >=0", "search_above_std": "num >=0", "relocalize_after": "int >=1",
+             "ambiguity_margin": "num [0,1]"}
+SENSORS = {"gnss": GNSS, "imu": IMU, "lidar": LIDAR, "cameras": CAMERAS, "detector": DETECTOR,
+           "localizer": LOCALIZER}
+"""Sensor key → its wrapper's keyword arguments (all optional: the wrappers have defaults)."""
+
+
+def _camera_noise(value: Any, where: str) -> list[str]:
+    if isinstance(value, bool):
+        return []
+    return _check(value, optional(CAMERA_NOISE), where)
+
+
+def _weather(value: Any, where: str) -> list[str]:
+    return [] if value is None else _check(value, optional(WEATHER), where)
+
+
+def _sensors_section(value: Any, where: str) -> list[str]:
+    # The registry in av_gym.make is the one list of sensors and estimators: one added there is checked here too.
+    from av_gym.make import SENSOR_PRESETS as presets, _sensor_classes
+
+    if not isinstance(value, Mapping):
+        return [f"{where} must be a mapping, got {value!r}"]
+    spec: dict = {"name": presets, "keep_state?": "bool", "observe?": ("list+", "str")}
+    shipped = _shipped("sensors", value.get("name"))
+    for key, cls in _sensor_classes().items():
+        own = shipped.get(key) if isinstance(shipped.get(key), Mapping) else {}
+        spec[f"{key}?"] = Delegate(lambda v, w, key=key, cls=cls, own=own: _sensor_params(v, w, key, cls, own))
+    return _check(value, spec, where, what="a sensor preset field or a sensor", shipped=shipped)
+
+
+def _sensor_params(value: Any, where: str, key: str, cls: type, shipped: Mapping) -> list[str]:
+    """A sensor's keyword arguments: the table's spec where it has one, else the type of the class default (or,
+    for a class taking ``**kwargs``, of the preset's shipped value)."""
+    import inspect
+
+    if not isinstance(value, Mapping):
+        return [f"{where} must be a mapping of {cls.__name__} parameters, got {_fmt(value)}"]
+    params = inspect.signature(cls.__init__).parameters
+    table = SENSORS.get(key, {})
+    spec = {f"{p}?": table.get(p, _like(param.default)) for p, param in params.items()
+            if p not in ("self", "env") and param.kind not in (param.VAR_KEYWORD, param.VAR_POSITIONAL)}
+    if any(param.kind is param.VAR_KEYWORD for param in params.values()):
+        spec.update({f"{k}?": _like(shipped.get(k)) for k in value if f"{k}?" not in spec})
+    return _check(value, spec, where, what=f"a parameter of {cls.__name__}")
+
+
+def _shipped(group: str, option: Any) -> dict:
+    """The option's yaml as shipped in conf/ (empty if there is none)."""
+    from importlib import resources
+
+    import yaml
+
+    path = resources.files("conf") / group / f"{option}.yaml" if group else resources.files("conf") / f"{option}.yaml"
+    if not isinstance(option, str) or not path.is_file():
+        return {}
+    text = path.read_text()
+    shipped = yaml.safe_load(text) or {}
+    inherited: dict = {}
+    for entry in shipped.get("defaults", []) if group else []:  # e.g. "/agent/ppo@agent": its fields count too
+        if isinstance(entry, str) and entry.startswith(f"/{group}/"):
+            inherited.update(_shipped(group, entry[len(group) + 2:].split("@")[0]))
+    if text.startswith("# @package _global_") and group:  # e.g. an agent that also picks its sensors
+        shipped = shipped.get(group, {}) if isinstance(shipped.get(group), dict) else {}
+    return {**inherited, **shipped}
+
+
+# ------------------------------------------------------------------------------------------------ shield
+BRAKE = {"decel": "num >0", "delay": "num >=0", "jerk": "num >=0"}
+TRACKER = {"sigma_acc": "num >0", "sigma_pos0": "num >0", "sigma_pos_k": "num >=0", "sigma_vel": "num >0",
+           "use_velocity": "bool", "init_vel_sigma": "num >0", "gate": "num >0", "max_distance": "num >0",
+           "min_hits": "int >=1", "max_coast": "num >=0", "size_alpha": "num [0,1]"}
+AEB = {"variant": ("improved", "paper", "standard"), "mode": ("ground_truth", "perceived"), "step": "num >0",
+       "ttc_brake": "num >0", "brake": optional(BRAKE), "detector": optional(DETECTOR), "tracker": optional(TRACKER),
+       "activation_distance": "num >0", "half_accel_term": "bool", "limits": ("paper", "aabb"),
+       "accel_alpha": "num (0,1]", "margin": "num >=0", "release_margin": "num >=0", "stop_margin": "num >=0",
+       "horizon_min": "num >0", "horizon_max": "num >0", "target_model": ("cv", "ca", "map"),
+       "release_hold": "num >=0", "feasibility": "bool", "go_speed": "num >0", "warn_ttc": "num >0",
+       "steering_inhibit_deg": "num >0|null", "lateral_margin": "num >=0", "standstill_hold": "num >=0|null",
+       "ignore_rear": "bool"}
+"""AEBShield's keyword arguments (agents/aeb.py); all optional."""
+
+
+def _shield_section(value: Any, where: str) -> list[str]:
+    if not isinstance(value, Mapping):
+        return [f"{where} must be a mapping, got {value!r}"]
+    kind = value.get("kind", value.get("name", "none"))
+    if kind == "none":
+        return _check(value, {"name": "str", "kind?": ("none",)}, where)
+    if kind != "aeb":
+        return [f"{where}.kind must be one of ['none', 'aeb'], got {kind!r}"]
+    return _check(value, {"name": "str", "kind": ("aeb",), **optional(AEB)}, where,
+                  what="a parameter of the AEB shield", shipped=_shipped("shield", value.get("name")))
+
+
+# ------------------------------------------------------------------------------------------------ agent
+_AGENT_COMMON = {"name": "str", "kind": AGENT_KINDS, "scenarios": [ENV_NAMES],
+                 "sensors?": Delegate(lambda v, w: _preset_name(v, w))}
+
+
+def _preset_name(value: Any, where: str) -> list[str]:
+    from av_gym.make import SENSOR_PRESETS
+
+    return _check(value, (*SENSOR_PRESETS, None), where)
+AGENT = {
+    "ppo": {**_AGENT_COMMON, "policy": ("MultiInputPolicy",), "total_timesteps": "int >=1", "n_envs": "int >=1",
+            "vec_env": ("subproc", "dummy"), "learning_rate": "num >0", "n_steps": "int >=2",
+            "batch_size": "int >=2", "n_epochs": "int >=1", "gamma": "num [0,1]", "gae_lambda": "num [0,1]",
+            "clip_range": "num >0", "ent_coef": "num >=0", "vf_coef": "num >=0", "max_grad_norm": "num >0",
+            "net_arch": ["int >=1"], "device": ("cpu", "cuda", "auto")},
+    "pid": {**_AGENT_COMMON, "kp": "num", "ki": "num", "kd": "num", "obs_key": "str", "cte_index": "int >=0",
+            "search?": "any"},  # search: the record of how the gains were found (documentation, never read)
+    "always_proceed": dict(_AGENT_COMMON),
+    "pilotnet": {**_AGENT_COMMON, "*": Delegate(lambda v, w: _pilotnet(v, w))},
+}
+"""agent.kind → its fields. PilotNet's own settings are :class:`agents.bc.Args` (a dataclass with its checks)."""
+
+
+def _pilotnet(value: Mapping, where: str) -> list[str]:
+    from dataclasses import fields
+
+    from agents.bc import Args
+
+    settings = {k: v for k, v in value.items() if k not in ("name", "kind", "scenarios", "sensors")}
+    types = {f"{f.name}?": _like(f.default) for f in fields(Args)}  # Args.problems() has the ranges
+    found = _check({k: v for k, v in settings.items() if f"{k}?" in types}, types, where)
+    if found:
+        return found
+    try:
+        return Args.from_mapping(settings, where).problems(where)
+    except (TypeError, ValueError) as exc:
+        return [str(exc)]
+
+
+def _agent_section(value: Any, where: str) -> list[str]:
+    if not isinstance(value, Mapping):
+        return [f"{where} must be a mapping, got {value!r}"]
+    kind = value.get("kind")
+    if kind not in AGENT:
+        return [f"{where}.kind must be one of {list(AGENT)}, got {kind!r}"]
+    spec = dict(AGENT[kind])
+    rest = spec.pop("*", None)
+    if rest is not None:
+        problems = _check({k: v for k, v in value.items() if k in spec or f"{k}?" in spec}, spec, where)
+        return problems or rest.check(value, where)
+    return _check(value, spec, where, what=f"a field of a {kind} agent", shipped=_shipped("agent", value.get("name")))
+
+
+# ------------------------------------------------------------------------------------------------ commands
+_PATHS_TRAIN = {"runs": "str", "checkpoints": "str"}
+TRAIN = {
+    "env": Delegate(lambda v, w: _env_section(v, w)),
+    "sensors": Delegate(_sensors_section),
+    "agent": Delegate(_agent_section),
+    "shield": Delegate(_shield_section),
+    "seed": "int >=0",
+    "run_name": "name",
+    "paths": _PATHS_TRAIN,
+    "train": {"checkpoint_every": "int >=1", "resume": "bool", "eval_episodes": "int >=0", "eval_seed": "int >=0",
+              "baseline": "str", "progress_bar": "bool", "torch_threads": "int >=1"},
+}
+EVAL = {
+    "env": Delegate(lambda v, w: _env_section(v, w)),
+    "sensors": Delegate(_sensors_section),
+    "shield": Delegate(_shield_section),
+    "agents": ("list+", "str"),
+    "episodes": "int >=1",
+    "seed": "int >=0",
+    "n_envs": "int >=1",
+    "paths": {"checkpoints": "str"},
+    "out_dir": "str",
+    "progress_bar": "bool",
+    "plots": "bool",
+    "videos": "bool",
+}
+COMMANDS = {"train": TRAIN, "eval": EVAL}
+
+
+def _env_section(value: Any, where: str) -> list[str]:
+    if not isinstance(value, Mapping):
+        return [f"{where} must be a mapping, got {value!r}"]
+    name = value.get("name")
+    if name not in ENV:
+        return [f"{where}.name must be one of {list(ENV)}, got {name!r}"]
+    return _check(value, ENV[name], where, what=f"a field of env={name}", shipped=_shipped("env", name))
+
+
+# ------------------------------------------------------------------------------------------------ checker
+_NUM = re.compile(r"^(num|int)(?:\s+(?:(>=|>|<=|<)(-?[\d.e]+)|([\[(])(-?[\d.e]+),(-?[\d.e]+)([\])])))?(\|null)?$")
+_NAME = re.compile(r"^[A-Za-z0-9_.=+,:-]+$")
+
+
+def _fmt(v: Any) -> str:
+    return repr(v) if isinstance(v, str) else str(v)
+
+
+def _describe(spec: str) -> str:
+    m = _NUM.match(spec)
+    kind, op, bound, lo_b, lo, hi, hi_b, null = m.groups()
+    text = "an integer" if kind == "int" else "a number"
+    if op:
+        text += f" {op} {bound}"
+    elif lo_b:
+        text += f" in {lo_b}{lo}, {hi}{hi_b}"
+    return text + (" or null" if null else "")
+
+
+def _check_num(value: Any, spec: str, where: str) -> list[str]:
+    m = _NUM.match(spec)
+    if m is None:  # pragma: no cover - a typo in this file
+        raise AssertionError(f"bad spec {spec!r}")
+    kind, op, bound, lo_b, lo, hi, hi_b, null = m.groups()
+    bad = [f"{where} must be {_describe(spec)}, got {_fmt(value)}"]
+    if value is None:
+        return [] if null else bad
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return bad
+    if kind == "int" and not isinstance(value, int):
+        return bad
+    if not math.isfinite(value):
+        return bad
+    if op:
+        b = float(bound)
+        ok = {">=": value >= b, ">": value > b, "<=": value <= b, "<": value < b}[op]
+    elif lo_b:
+        ok = (value >= float(lo) if lo_b == "[" else value > float(lo)) and \
+             (value <= float(hi) if hi_b == "]" else value < float(hi))
+    else:
+        ok = True
+    return [] if ok else bad
+
+
+def _like(default: Any) -> Any:
+    """The spec a field gets from its shipped default when the table above does not list it yet."""
+    if isinstance(default, bool):
+        return "bool"
+    if isinstance(default, int):
+        return "int"
+    if isinstance(default, float):
+        return "num"
+    if isinstance(default, str):
+        return "str"
+    if isinstance(default, list):
+        return [_like(default[0])] if default else "any"
+    return "any"
+
+
+def _check(value: Any, spec: Any, where: str, what: str = "a field", shipped: Mapping | None = None) -> list[str]:
+    """Problems of ``value`` against ``spec`` (module docstring), each one line naming the field. A key of a
+    section that the spec lacks is accepted only when the shipped yaml (``shipped``) has it, with its type: a
+    field someone added to conf/ is checked at once, a key a user invents (``+agent.foo=1``) is refused."""
+    if isinstance(spec, Delegate):
+        return spec.check(value, where)
+    if isinstance(spec, tuple) and spec and spec[0] in ("list", "list+"):
+        if spec[0] == "list+":
+            n, item = None, spec[1]
+        else:
+            n, item = spec[1], spec[2]
+        if not isinstance(value, (list, tuple)) or (n is not None and len(value) != n) or (n is None and not value):
+            size = f"of {n} items" if n is not None else "with at least one item"
+            return [f"{where} must be a list {size}, got {_fmt(value)}"]
+        return [p for i, v in enumerate(value) for p in _check(v, item, f"{where}[{i}]")]
+    if isinstance(spec, tuple):
+        if any(value == s and type(value) is type(s) for s in spec):
+            return []
+        return [f"{where} must be one of {list(spec)}, got {_fmt(value)}"]
+    if isinstance(spec, list):
+        if not isinstance(value, (list, tuple)):
+            return [f"{where} must be a list, got {_fmt(value)}"]
+        return [p for i, v in enumerate(value) for p in _check(v, spec[0], f"{where}[{i}]")]
+    if isinstance(spec, dict):
+        if not isinstance(value, Mapping):
+            return [f"{where} must be a mapping, got {_fmt(value)}"]
+        fields = {k.rstrip("?"): (s, not k.endswith("?")) for k, s in spec.items()}
+        for key, default in (shipped or {}).items():
+            if key not in fields and key != "defaults":
+                fields[key] = (_like(default), False)
+        problems = []
+        for key in value:
+            if key not in fields:
+                problems.append(f"{_join(where, key)} is not {what}; allowed: {sorted(fields)}")
+        for key, (s, required) in fields.items():
+            if key in value:
+                sub = (shipped or {}).get(key)
+                problems += _check(value[key], s, _join(where, key),
+                                   shipped=sub if isinstance(s, dict) and isinstance(sub, Mapping) else None)
+            elif required:
+                problems.append(f"{_join(where, key)} is missing")
+        return problems
+    if spec == "any":
+        return []
+    if spec in ("bool", "bool|null"):
+        if isinstance(value, bool) or (value is None and spec.endswith("null")):
+            return []
+        return [f"{where} must be true or false{' or null' if spec.endswith('null') else ''}, got {_fmt(value)}"]
+    if spec == "str":
+        return [] if isinstance(value, str) and value else [f"{where} must be a non-empty string, got {_fmt(value)}"]
+    if spec == "name":  # a folder name: no path separators
+        ok = isinstance(value, str) and bool(_NAME.match(value))
+        return [] if ok else [f"{where} must be a folder name (letters, digits, _ . = + , : -), got {_fmt(value)}"]
+    return _check_num(value, spec, where)
+
+
+def _join(where: str, key: Any) -> str:
+    return f"{where}.{key}" if where else str(key)
+
+
+def problems(cfg: Mapping, command: str) -> list[str]:
+    """Every problem of a composed, resolved ``train`` or ``eval`` config, one line each (empty if none)."""
+    what = f"{'an' if command[0] in 'aeiou' else 'a'} {command} setting"
+    shipped = {k: v for k, v in _shipped("", command).items() if k != "hydra"}  # Hydra's own, not ours
+    return _check(cfg, COMMANDS[command], "", what=what, shipped=shipped)
+
+
+def validate_config(cfg: Any, command: str) -> None:
+    """Raise :class:`ConfigError` with the first problem of ``cfg`` (an OmegaConf node or a plain mapping)."""
+    if hasattr(cfg, "_metadata"):
+        from omegaconf import OmegaConf
+
+        cfg = OmegaConf.to_container(cfg, resolve=True)
+    found = problems(cfg, command)
+    if found:
+        raise ConfigError(found[0])
+
+
+def section_problems(group: str, value: Any, where: str | None = None) -> list[str]:
+    """Problems of one group's section (``env``, ``sensors``, ``agent``, ``shield``) on its own."""
+    checks = {"env": _env_section, "sensors": _sensors_section, "agent": _agent_section, "shield": _shield_section}
+    return checks[group](value, where or group)
+
+
+# ------------------------------------------------------------------------------------------------ command line
+_PLACEHOLDER = "<hydra run dir>"
+
+
+def check_command_line(command: str, argv: list[str]) -> list:
+    """Compose the config the way Hydra will for ``python -m <command> <argv>`` and check it, *before* Hydra runs:
+    so a typo gives one line (not Hydra's multi-line report) and no run folder is created. Returns the composed
+    configs (one per swept value with ``-m``; ``hydra:`` interpolations replaced by a placeholder) for the
+    command's own checks. Hydra's own options (``--help``, ``--cfg``, ``-c`` ...) are left to Hydra.
+
+    A sweep is checked value by value (each swept value once, the other sweeps at their first value): linear in
+    the number of values, and every value a job will see has been checked."""
+    flags = [a for a in argv if a.startswith("-")]
+    if any(a not in ("-m", "--multirun") for a in flags):
+        return []
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    texts = [a for a in argv if not a.startswith("-")]
+    try:
+        parsed = OverridesParser.create().parse_overrides(texts)
+    except HydraException as exc:
+        raise ConfigError(f"cannot parse the command line: {_one_line(exc)}") from None
+    if not flags and any(o.is_sweep_override() for o in parsed):
+        sweep = next(o.input_line for o in parsed if o.is_sweep_override())
+        raise ConfigError(f"{sweep!r} lists several values: add -m to sweep over them, or write key=[a,b] for a list")
+    combos = _linear_combos(parsed)
+    groups = [next(iter(d)) for d in _shipped("", command).get("defaults", []) if isinstance(d, dict)]
+    composed = []
+    if GlobalHydra.instance().is_initialized():
+        GlobalHydra.instance().clear()
+    with initialize_config_module("conf", version_base="1.3"):
+        for combo in combos:
+            try:
+                composed.append(_compose_checked(command, combo, groups, compose))
+            except (HydraException, OmegaConfBaseException) as exc:
+                raise ConfigError(_one_line(exc)) from None
+    return composed
+
+
+def _one_line(exc: BaseException) -> str:
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    text = "; ".join(lines) if lines else type(exc).__name__
+    return text if len(text) <= 400 else text[:397] + "..."
+
+
+def _linear_combos(parsed: list) -> list[list[str]]:
+    """Override lists: each swept value once, every other sweep at its first value."""
+    values = []
+    for o in parsed:
+        if o.is_sweep_override():
+            key = o.get_key_element()
+            values.append([f"{key}={v}" for v in o.sweep_string_iterator()])
+        else:
+            values.append([o.input_line])
+    first = [v[0] for v in values]
+    combos = [first]
+    for i, vs in enumerate(values):
+        for v in vs[1:]:
+            combos.append(first[:i] + [v] + first[i + 1:])
+    return combos
+
+
+def _compose_checked(command: str, overrides: list[str], groups: list[str], compose) -> Any:
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from omegaconf import OmegaConf
+
+    parsed = OverridesParser.create().parse_overrides(overrides)
+    group_overrides, value_overrides = [], []
+    for o, text in zip(parsed, overrides):
+        key = o.key_or_group
+        if key.startswith("hydra") or "/" in key or "@" in key or key in groups:
+            group_overrides.append((o, text))
+        else:
+            value_overrides.append((o, text))
+    for o, _ in group_overrides:
+        if o.key_or_group in groups and not o.is_delete():
+            options = _options(o.key_or_group)
+            value = o.value()
+            if value not in options:
+                raise ConfigError(f"{o.key_or_group}={value}: {o.key_or_group} must be one of {options}")
+    base = compose(config_name=command, overrides=[t for _, t in group_overrides])
+    for o, _ in value_overrides:
+        if o.is_add() or o.is_force_add() or o.is_delete():
+            continue  # a new key: the schema below refuses it unless the section allows it
+        _check_path(base, o.key_or_group, command)
+    cfg = compose(config_name=command, overrides=overrides)
+    for key in list(cfg.keys()):  # filled by Hydra only once a job runs
+        if OmegaConf.is_interpolation(cfg, key) and "hydra:" in str(OmegaConf.to_container(cfg)[key]):
+            cfg[key] = _PLACEHOLDER
+    validate_config(cfg, command)
+    return cfg
+
+
+def _options(group: str) -> list[str]:
+    from importlib import resources
+
+    return sorted(p.name[:-5] for p in (resources.files("conf") / group).iterdir() if p.name.endswith(".yaml"))
+
+
+def _check_path(cfg: Any, key: str, command: str) -> None:
+    """``key`` (dotted) must name an existing field; else one line naming the nearest section's fields."""
+    from omegaconf import DictConfig
+
+    node, done = cfg, []
+    for part in key.split("."):
+        if not isinstance(node, DictConfig) or part not in node:
+            where = ".".join(done)
+            section = _option_of(cfg, where) if where else f"{'an' if command[0] in 'aeiou' else 'a'} {command} setting"
+            allowed = sorted(node.keys()) if isinstance(node, DictConfig) else []
+            name = ".".join([*done, part])
+            if isinstance(node, DictConfig):
+                raise ConfigError(f"{name} is not a field of {section}; allowed: {allowed}"
+                                  if where else f"{name} is not {section}; allowed: {allowed}")
+            raise ConfigError(f"{where} is a value, not a section: cannot set {key}")
+        node = node[part] if OmegaConf_is_not_missing(node, part) else None
+        done.append(part)
+
+
+def OmegaConf_is_not_missing(node: Any, part: str) -> bool:  # noqa: N802 - reads as OmegaConf's own helper
+    from omegaconf import OmegaConf
+
+    return not OmegaConf.is_missing(node, part)
+
+
+def _option_of(cfg: Any, where: str) -> str:
+    top = where.split(".")[0]
+    name = cfg[top].get("name") if hasattr(cfg[top], "get") else None
+    return f"{top}={name}" if name and top in ("env", "agent", "sensors", "shield") else where

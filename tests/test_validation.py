@@ -1,0 +1,235 @@
+"""The config schema (av_gym/config_schema.py): every shipped option passes, every field refuses a bad value with a
+line naming it, the schema agrees with the classes it describes, and the sensor presets' defaults with the
+wrappers'. In-process and fast; the command-line behaviour (one line, exit 2, nothing written) is in test_cli.py."""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+from importlib import resources
+
+import pytest
+import yaml
+
+from av_gym import config_schema as schema
+from av_gym.config_schema import check_command_line, problems
+from av_gym.errors import ConfigError
+
+
+def options(group: str) -> list[str]:
+    return sorted(p.name[:-5] for p in (resources.files("conf") / group).iterdir() if p.name.endswith(".yaml"))
+
+
+def scenario_of(agent: str) -> str:
+    raw = yaml.safe_load((resources.files("conf") / "agent" / f"{agent}.yaml").read_text())
+    return raw.get("scenarios", raw.get("agent", {}).get("scenarios", ["left_turn"]))[0]  # or a global package
+
+
+SHIPPED = ([("train", [f"env={e}"]) for e in options("env")]
+           + [("train", [f"agent={a}", f"env={scenario_of(a)}"]) for a in options("agent")]
+           + [("train", [f"sensors={s}"]) for s in options("sensors")]
+           + [("train", [f"shield={s}"]) for s in options("shield")]
+           + [("eval", []), ("eval", ["env=lane_keeping"])])
+
+
+def composed(command: str, overrides: list[str]) -> dict:
+    from omegaconf import OmegaConf
+
+    (cfg,) = check_command_line(command, overrides)
+    return OmegaConf.to_container(cfg, resolve=True)
+
+
+@pytest.mark.parametrize("command, overrides", SHIPPED)
+def test_every_shipped_option_is_valid(command, overrides):
+    assert problems(composed(command, overrides), command) == []
+
+
+def leaves(cfg, path=()):
+    if isinstance(cfg, dict):
+        for k, v in cfg.items():
+            yield from leaves(v, (*path, k))
+    else:
+        yield path, cfg
+
+
+def set_at(cfg: dict, path: tuple, value) -> None:
+    for k in path[:-1]:
+        cfg = cfg[k]
+    cfg[path[-1]] = value
+
+
+@pytest.mark.parametrize("command, overrides", SHIPPED)
+def test_every_field_refuses_a_value_of_the_wrong_type_naming_the_field(command, overrides):
+    """No field goes unchecked: each leaf of each shipped option, given a value of the wrong type, is refused by
+    a message that starts with its dotted name."""
+    import copy
+
+    base = composed(command, overrides)
+    unchecked = []
+    for path, value in leaves(base):
+        if path[:2] == ("agent", "search"):  # a record of how the PID gains were found; never read
+            continue
+        cfg = copy.deepcopy(base)
+        bad = 12345 if isinstance(value, str) else "abc"
+        set_at(cfg, path, bad)
+        found = problems(cfg, command)
+        name = ".".join(map(str, path))
+        if not any(p.startswith(name) for p in found):
+            unchecked.append((name, found[:1]))
+    assert unchecked == []
+
+
+@pytest.mark.parametrize("path, value, needle", [
+    (("sensors", "gnss", "sigma"), -0.5, "sensors.gnss.sigma must be a number >= 0, got -0.5"),
+    (("sensors", "imu", "gyro_sigma"), -1, "sensors.imu.gyro_sigma must be a number >= 0"),
+    (("sensors", "lidar", "dropout"), 1.2, "sensors.lidar.dropout must be a number in [0, 1], got 1.2"),
+    (("sensors", "lidar", "range_sigma"), float("nan"), "sensors.lidar.range_sigma must be a number >= 0, got nan"),
+    (("sensors", "detector", "miss_rate"), -0.1, "sensors.detector.miss_rate must be a number in [0, 1)"),
+    (("sensors", "cameras", "noise", "pixel_std"), -3, "sensors.cameras.noise.pixel_std must be a number >= 0"),
+    (("sensors", "cameras", "noise", "contrast"), 1.5, "sensors.cameras.noise.contrast must be a number in [0, 1)"),
+    (("sensors", "localizer", "noise"), {"gate_prob": 1.0}, "sensors.localizer.noise.gate_prob must be a number in (0, 1)"),
+    (("sensors", "localizer", "noise"), {"gnss_sigmaa": 1.0}, "sensors.localizer.noise.gnss_sigmaa is not"),
+    (("sensors", "gnss", "sigmaa"), 1.0, "sensors.gnss.sigmaa is not a parameter of GNSS; allowed: ["),
+    (("sensors", "gnss", "outage"), "sometimes", "sensors.gnss.outage must be one of ['none', 'random', 'scripted']"),
+    (("sensors", "gnss", "outage_windows"), [[1, 2, 3]], "sensors.gnss.outage_windows[0] must be a list of 2 items"),
+    (("env", "spawn_probability"), 1.01, "env.spawn_probability must be a number in [0, 1]"),
+    (("env", "fast"), "yes", "env.fast must be true or false, got 'yes'"),
+    (("env", "duration"), True, "env.duration must be a number > 0, got True"),
+    (("seed",), 1.5, "seed must be an integer >= 0, got 1.5"),
+    (("run_name",), "a/b", "run_name must be a folder name"),
+])
+def test_bad_values_name_the_field_and_what_is_allowed(path, value, needle):
+    cfg = composed("train", ["sensors=full", "+sensors.localizer={}"])
+    set_at(cfg, path, value)
+    found = problems(cfg, "train")
+    assert found and needle in found[0], found
+
+
+def test_shield_probability_and_agent_kind():
+    cfg = composed("eval", ["shield=aeb"])
+    cfg["shield"]["detector"]["miss_rate"] = 1.0
+    assert problems(cfg, "eval")[0].startswith("shield.detector.miss_rate must be a number in [0, 1)")
+    cfg = composed("train", [])
+    cfg["agent"]["kind"] = "sac"
+    assert problems(cfg, "train") == ["agent.kind must be one of ['ppo', 'pid', 'always_proceed', 'pilotnet'], "
+                                      "got 'sac'"]
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["agent.epoch=3"], "agent.epoch is not a field of agent=ppo; allowed: ['batch_size', 'clip_range'"),
+    (["env=foo"], "env=foo: env must be one of ['lane_keeping', 'left_turn']"),
+    (["env.foo.bar=1"], "env.foo is not a field of env=left_turn; allowed: ['acceleration_range'"),
+    (["seed.x=1"], "seed is a value, not a section"),
+    (["seed=abc"], "seed must be an integer >= 0, got 'abc'"),
+    (["seed=[1"], "cannot parse the command line"),
+    (["-m", "seed=0,1", "env.duration=5,-5"], "env.duration must be a number > 0, got -5"),
+])
+def test_command_line_problems_are_one_line(argv, needle):
+    with pytest.raises(ConfigError) as err:
+        check_command_line("train", argv)
+    assert needle in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_sweep_is_checked_value_by_value():
+    assert len(check_command_line("train", ["-m", "seed=0,1,2", "env.duration=5,6"])) == 1 + 2 + 1
+
+
+def test_hydra_options_are_left_to_hydra():
+    assert check_command_line("train", ["--cfg", "job"]) == []
+
+
+# ------------------------------------------------------------------------------------------------ schema vs code
+def kwargs_of(cls) -> set[str]:
+    return {p for p in inspect.signature(cls.__init__).parameters if p not in ("self", "env")}
+
+
+def test_schema_tables_match_the_classes_they_describe():
+    from agents.aeb import AEBShield, BrakeActuator
+    from av_gym.estimation.ekf import EKFNoise
+    from av_gym.estimation.lidar_odometry import MapMatcher
+    from av_gym.estimation.localization import Localizer
+    from av_gym.estimation.tracker import MultiObjectTracker
+    from av_gym.sensors.camera import CameraNoise, Cameras, Weather
+    from av_gym.sensors.detector import Detector
+    from av_gym.sensors.gnss import GNSS
+    from av_gym.sensors.imu import IMU
+    from av_gym.sensors.lidar import Lidar
+
+    fields = lambda dc: {f.name for f in dataclasses.fields(dc)}  # noqa: E731
+    assert set(schema.GNSS) == kwargs_of(GNSS)
+    assert set(schema.IMU) == kwargs_of(IMU)
+    assert set(schema.LIDAR) == kwargs_of(Lidar)
+    assert set(schema.CAMERAS) == kwargs_of(Cameras)
+    assert set(schema.DETECTOR) == kwargs_of(Detector)
+    assert set(schema.LOCALIZER) == kwargs_of(Localizer)
+    assert set(schema.AEB) == kwargs_of(AEBShield)
+    assert set(schema.TRACKER) == kwargs_of(MultiObjectTracker)
+    assert set(schema.MAP_MATCHER) == kwargs_of(MapMatcher) - {"segments", "circles"}  # the map, not settings
+    assert set(schema.EKF_NOISE) == fields(EKFNoise)
+    assert set(schema.CAMERA_NOISE) == fields(CameraNoise)
+    assert set(schema.WEATHER) == fields(Weather)
+    assert set(schema.BRAKE) == fields(BrakeActuator)
+
+
+# Where a preset deliberately differs from its class's default, and why.
+PRESET_DIFFERS = {
+    ("localizer", "map_matching"): "the preset turns map matching on (what reaches lane-keeping accuracy); the "
+                                   "class keeps it off so a bare Localizer needs no HD map",
+}
+
+
+@pytest.mark.parametrize("sensor", options("sensor"))
+def test_sensor_preset_defaults_match_the_wrapper_defaults(sensor):
+    from av_gym.make import _sensor_classes
+    from av_gym.sensors.camera import CameraNoise
+
+    cls = _sensor_classes()[sensor]
+    preset = yaml.safe_load((resources.files("conf") / "sensor" / f"{sensor}.yaml").read_text())
+    params = inspect.signature(cls.__init__).parameters
+    assert set(preset) <= set(params), set(preset) - set(params)
+    for key, value in preset.items():
+        default = params[key].default
+        if (sensor, key) in PRESET_DIFFERS:
+            assert value != default
+            continue
+        if sensor == "cameras" and key == "noise":
+            default = dataclasses.asdict(CameraNoise())
+        if value == {} and default is None:
+            continue
+        if isinstance(default, tuple):
+            default = list(default)
+        if isinstance(value, float) or isinstance(default, float):
+            assert value == pytest.approx(default, rel=1e-7), (key, value, default)
+        else:
+            assert value == default, (key, value, default)
+
+
+def test_pilotnet_weights_load_without_unpickling_code(monkeypatch):
+    import torch
+
+    from agents import pilotnet
+
+    seen = {}
+    real = torch.load
+
+    def spy(*args, **kwargs):
+        seen.update(kwargs)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(torch, "load", spy)
+    pilotnet.load_policy(resources.files("conf").parent / "checkpoints" / "reference" / "pilotnet_lane_keeping"
+                         / "model.pt")
+    assert seen.get("weights_only") is True
+
+
+def test_readme_says_a_checkpoint_is_code_and_must_be_trusted():
+    text = (resources.files("conf").parent / "README.md").read_text().lower()
+    assert "checkpoint is code" in text and "pickle" in text and "trust" in text
+
+
+def test_numbers_are_finite():
+    assert problems_of("num >=0", float("inf")) and problems_of("num", float("nan")) and not problems_of("num", 1)
+
+
+def problems_of(spec, value):
+    return schema._check(value, spec, "x")
