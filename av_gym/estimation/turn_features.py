@@ -10,15 +10,18 @@ point. This wrapper computes exactly those, from an object list that is either t
 Ego quantities come from the vehicle itself in both sources (its speed and its position along its own route, which
 a car knows from odometry and its map), as the AEB shield does; only the *other* road users are perceived.
 
-``obs["turn"]``: ``Box(-1, 1, (5 + 11·max_objects,))`` float32, every entry scaled to about [-1, 1] (so no running
+``obs["turn"]``: ``Box(-1, 1, (5 + 12·max_objects,))`` float32, every entry scaled to about [-1, 1] (so no running
 observation normalisation is needed) and clipped:
 
 - ego (5): speed / 10 m/s, cruise set-point / 10 m/s, distance of the front bumper to the stop line / 30 m,
   distance along the route to the conflict point / 30 m, elapsed time / ``time_scale``;
-- per object (11), nearest to the ego first, zero rows for fewer objects: present, position relative to the
+- per object (12), nearest to the ego first, zero rows for fewer objects: present, position relative to the
   ego in the ego frame (forward, left) / 50 m, velocity relative to the ego in the ego frame / 20 m/s, position
-  relative to the conflict point (world frame) / 50 m, velocity (world) / 15 m/s, and the constant-velocity
-  closest approach to the conflict point: its time t* ∈ [0, 10] s / 10 and the miss distance there / 10 m.
+  relative to the oncoming-lane conflict point (world frame) / 50 m, velocity (world) / 15 m/s, and its
+  constant-velocity closest approach to the ego's path through the intersection (stop line → turn → 10 m into the
+  exit, a point every 2 m): time t* ∈ [0, 10] s / 10, miss distance / 10 m, and where on the path (m past the
+  stop line / 30). Crossing traffic from the left and right, not only oncoming cars, hits a turning ego (measured:
+  26 of 34 always-proceed collisions on seeds 1000-1059 were with crossing or merging vehicles).
 """
 
 from __future__ import annotations
@@ -31,7 +34,9 @@ from av_gym.sensors.base import SensorWrapper
 
 SOURCES = ("truth", "tracks")
 EGO_FEATURES = ("speed", "set_point", "to_stop_line", "to_conflict", "time")
-OBJECT_FEATURES = ("present", "fwd", "left", "dv_fwd", "dv_left", "cx", "cy", "vx", "vy", "t_star", "miss")
+OBJECT_FEATURES = ("present", "fwd", "left", "dv_fwd", "dv_left", "cx", "cy", "vx", "vy", "t_star", "miss",
+                   "path_s")
+PATH_STEP = 2.0  # m between the points of the ego's path through the intersection that conflicts are checked at
 T_MAX = 10.0  # s, horizon of the closest-approach time
 
 
@@ -60,6 +65,14 @@ class TurnFeatures(SensorWrapper):
         from av_gym.envs.left_turn import CONFLICT_POINT
 
         self.conflict = CONFLICT_POINT
+        # The ego's path through the intersection, from the stop line along the turn and 10 m into the exit: where
+        # crossing, oncoming and merging traffic can meet it (the road is fixed, so computed once).
+        turn, exit_lane = env.unwrapped.road.network.get_lane(("ir0", "il1", 0)), \
+            env.unwrapped.road.network.get_lane(("il1", "o1", 0))
+        s_turn = np.arange(0.0, turn.length, PATH_STEP)
+        s_exit = np.arange(0.0, 10.0 + 1e-9, PATH_STEP)
+        self.path = np.array([turn.position(s, 0.0) for s in s_turn] + [exit_lane.position(s, 0.0) for s in s_exit])
+        self.path_s = np.concatenate([s_turn, turn.length + s_exit])  # m past the stop line
         self._last = np.zeros(self.sensor_space().shape, dtype=np.float32)
 
     def sensor_space(self) -> spaces.Box:
@@ -99,15 +112,24 @@ class TurnFeatures(SensorWrapper):
             c, s = np.cos(psi), np.sin(psi)
             to_ego = np.array([[c, s], [-s, c]])  # world → ego frame (x forward, y left)
             rel_p, rel_v = (p - p_ego) @ to_ego.T, (v - v_ego) @ to_ego.T
-            # Constant-velocity closest approach to the conflict point: t* = -(p - c)·v / |v|², clipped to [0, T].
             pc = p - self.conflict
-            vv = np.maximum((v * v).sum(axis=1), 1e-6)
-            t_star = np.clip(-(pc * v).sum(axis=1) / vv, 0.0, T_MAX)
-            miss = np.hypot(*(pc + v * t_star[:, None]).T)
+            t_star, miss, path_s = self._path_conflict(p, v)
             obj[: len(near)] = np.column_stack([np.ones(len(near)), rel_p / 50.0, rel_v / 20.0, pc / 50.0,
-                                                v / 15.0, t_star / T_MAX, miss / 10.0])
+                                                v / 15.0, t_star / T_MAX, miss / 10.0, path_s / 30.0])
         out = np.concatenate([ego, obj.ravel()])
         return np.clip(np.nan_to_num(out, nan=0.0), -1.0, 1.0).astype(np.float32)
+
+    def _path_conflict(self, p: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per object (positions ``p``, velocities ``v``, (N, 2)): the constant-velocity closest approach to the
+        ego's path, ``t* = clip(-(p - c)·v / |v|², 0, T)`` and ``miss = |p + v t* - c|`` for every path point ``c``;
+        returns t* (s), miss (m) and the path point's distance past the stop line (m) at the smallest miss."""
+        d = p[:, None, :] - self.path[None, :, :]  # (N, P, 2)
+        vv = np.maximum((v * v).sum(axis=1), 1e-6)[:, None]
+        t = np.clip(-(d * v[:, None, :]).sum(axis=2) / vv, 0.0, T_MAX)  # (N, P)
+        miss = np.hypot(*(d + v[:, None, :] * t[..., None]).transpose(2, 0, 1))
+        j = np.argmin(miss, axis=1)
+        rows = np.arange(len(p))
+        return t[rows, j], miss[rows, j], self.path_s[j]
 
     def _set_point(self) -> float:
         ego = self.env.unwrapped.vehicle
