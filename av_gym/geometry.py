@@ -40,13 +40,23 @@ def boxes_overlap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def constant_velocity_ttc(ego: np.ndarray, others: np.ndarray, horizon: float = 5.0, dt: float = 0.05) -> float:
     """First time (s) at which the ego box and any other box overlap when both keep their current velocity and
     heading; ``inf`` if none within ``horizon`` s, 0 if they overlap now. ``ego`` (7,), ``others`` (N, 7) in
-    :data:`OTHER_FIELDS` order."""
+    :data:`OTHER_FIELDS` order.
+
+    Two boxes can only overlap if their centres are within the sum of their half-diagonals, so the separating-axis
+    test runs only on the (step, vehicle) pairs that pass that check (usually none of the 101 × N): the same
+    per-pair arithmetic as testing every pair, hence the same answer, at a fraction of the cost."""
     if len(others) == 0:
         return float("inf")
     t = np.arange(0.0, horizon + 1e-9, dt)[:, None]  # (K, 1)
     ego_c = ego[None, None, 0:2] + t[..., None] * ego[None, None, 2:4]  # (K, 1, 2)
     oth_c = others[None, :, 0:2] + t[..., None] * others[None, :, 2:4]  # (K, N, 2)
-    ego_box = box_corners(ego_c, ego[4], ego[5], ego[6])
-    oth_box = box_corners(oth_c, others[:, 4], others[:, 5], others[:, 6])
-    hit = boxes_overlap(ego_box, oth_box).any(-1)
-    return float(t[np.argmax(hit), 0]) if hit.any() else float("inf")
+    d = oth_c - ego_c
+    reach = 0.5 * np.hypot(ego[5], ego[6]) + 0.5 * np.hypot(others[:, 5], others[:, 6])  # (N,)
+    near = d[..., 0] ** 2 + d[..., 1] ** 2 <= (reach * (1 + 1e-9) + 1e-9) ** 2  # conservative: rounding-safe
+    if not near.any():
+        return float("inf")
+    k, n = np.nonzero(near)  # row-major: ascending k
+    ego_box = box_corners(ego_c[k, 0], ego[4], ego[5], ego[6])
+    oth_box = box_corners(oth_c[k, n], others[n, 4], others[n, 5], others[n, 6])
+    hit = boxes_overlap(ego_box, oth_box)
+    return float(t[k[np.argmax(hit)], 0]) if hit.any() else float("inf")

@@ -184,17 +184,17 @@ class LaneKeepingLapEnv(ScenarioMixin, AbstractEnv):
         }
 
     # ----------------------------------------------------------------------------------------------- episode
-    def _offroad(self) -> bool:
-        cte = self.lane_state()["cte"]
+    def _offroad(self, cte: float | None = None) -> bool:
+        cte = self.lane_state()["cte"] if cte is None else cte
         return abs(cte) > self.config["lane_width"] / 2 + self.config["offroad_margin"]
 
     def _lap_completed(self) -> bool:
         return self._progress >= self.track.length
 
     def _reward(self, action) -> float:
-        if self._offroad():
-            return float(self.config["offroad_reward"])
         cte = self.lane_state()["cte"]
+        if self._offroad(cte):
+            return float(self.config["offroad_reward"])
         return float(max(-1.0, 1.0 - (cte / (self.config["lane_width"] / 2)) ** 2))
 
     def _is_terminated(self) -> bool:
@@ -212,11 +212,11 @@ class LaneKeepingLapEnv(ScenarioMixin, AbstractEnv):
             "x": float(ego.position[0]),
             "y": float(ego.position[1]),
             "heading": float(ego.heading),
-            "acceleration": ego_kinematics(ego)["acceleration"],
+            "acceleration": float((ego.action or {}).get("acceleration", 0.0)),  # = ego_kinematics(ego)[...]
             "progress": float(self._progress),
             "lap_length": float(self.track.length),
             "lap_completed": bool(self._lap_completed()),
-            "on_road": not self._offroad(),
+            "on_road": not self._offroad(t["cte"]),
             "lane_width": float(self.config["lane_width"]),
             "vehicle_width": float(ego.WIDTH),
             "collision": bool(ego.crashed),

@@ -57,17 +57,17 @@ class LaneKeepingState(ObservationType):
 def fast_curvature(path, s: np.ndarray) -> np.ndarray:
     """``LanePath.curvature`` by table look-up (the stock method loops over every lane with a boolean mask per
     lane); same values: the table holds the same ``direction / radius`` floats."""
-    table = path.__dict__.get("_curvature_table")
-    if table is None:
-        table = np.array([lane.direction / lane.radius if isinstance(lane, CircularLane) else 0.0
-                          for lane in path.lanes], dtype=float)
-        path._curvature_table = table
-    starts, n, length = path.starts, len(path.lanes) - 1, path.length
+    cached = path.__dict__.get("_curvature_table")
+    if cached is None:
+        table = [lane.direction / lane.radius if isinstance(lane, CircularLane) else 0.0 for lane in path.lanes]
+        cached = path._curvature_table = (table, [float(x) for x in path.starts])
+    table, starts = cached
+    n, length, closed = len(table) - 1, path.length, path.closed
     out = []
-    for x in s:  # a handful of points: plain floats beat numpy's per-call overhead
+    for x in s.tolist() if isinstance(s, np.ndarray) else s:  # a handful of points: floats beat numpy calls
         x = float(x)
-        x = x % length if path.closed else min(max(x, 0.0), length)  # float % == np.mod (same fmod-based rule)
-        k = bisect.bisect_right(starts, x) - 1  # == np.searchsorted(..., side="right") - 1
+        x = x % length if closed else min(max(x, 0.0), length)  # float % == np.mod (same fmod-based rule)
+        k = bisect.bisect_right(starts, x) - 1  # == np.searchsorted(starts, x, side="right") - 1
         out.append(table[min(max(k, 0), n)])
     return np.array(out)
 

@@ -7,16 +7,17 @@ agent steers, and the left turn follows its route laterally while the agent comm
 
 from __future__ import annotations
 
+import functools
 from typing import Callable
 
 import numpy as np
 from gymnasium import spaces
 from highway_env import utils
-from highway_env.envs.common.action import ContinuousAction
+from highway_env.envs.common.action import ContinuousAction, DiscreteMetaAction
 from highway_env.vehicle.controller import ControlledVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
-from av_gym.sim.vehicles import kinematic_step
+from av_gym.sim.vehicles import FastControlMixin, FastMDPVehicle, kinematic_step
 
 
 class SpeedHeldVehicle(Vehicle):
@@ -51,6 +52,14 @@ class SteeringAction(ContinuousAction):
         self.target_speed = target_speed
         self.fast = fast  # FastSpeedHeldVehicle: same trajectories, faster step
 
+    def get_action(self, action: np.ndarray):
+        if not (self.fast and self.clip and not self.speed_range):
+            return super().get_action(action)
+        # ContinuousAction.get_action (lateral only): np.clip's Python-level wrapper costs more than the rest of
+        # the action; minimum(maximum(.)) is the same operation (same dtype, NaN kept).
+        action = np.minimum(np.maximum(action, -1), 1)
+        return {"acceleration": 0, "steering": utils.lmap(action[0], [-1, 1], self.steering_range)}
+
     @property
     def vehicle_class(self) -> Callable:
         cls = FastSpeedHeldVehicle if self.fast else SpeedHeldVehicle
@@ -76,15 +85,23 @@ class RouteFollowingVehicle(ControlledVehicle):
         Vehicle.act(self, {"steering": steering, "acceleration": acceleration})
 
 
+class FastRouteFollowingVehicle(FastControlMixin, RouteFollowingVehicle):
+    """Same model; lane following on floats and ``kinematic_step`` (av_gym.sim.vehicles: same bits)."""
+
+    def step(self, dt: float) -> None:
+        kinematic_step(self, dt)
+
+
 class LongitudinalAction(ContinuousAction):
     """Continuous longitudinal command in [-1, 1] mapped to ``acceleration_range`` (m/s²); steering follows route."""
 
-    def __init__(self, env, acceleration_range=(-8.0, 3.0), **kwargs):
+    def __init__(self, env, acceleration_range=(-8.0, 3.0), fast: bool = False, **kwargs):
         super().__init__(env, acceleration_range=acceleration_range, longitudinal=True, lateral=False)
+        self.fast = fast
 
     @property
     def vehicle_class(self) -> Callable:
-        return RouteFollowingVehicle
+        return FastRouteFollowingVehicle if self.fast else RouteFollowingVehicle
 
     def space(self) -> spaces.Box:
         return spaces.Box(-1.0, 1.0, shape=(1,), dtype=np.float32)
@@ -93,3 +110,11 @@ class LongitudinalAction(ContinuousAction):
         a = float(np.clip(np.asarray(action, dtype=float).reshape(-1)[0], -1.0, 1.0))
         self.controlled_vehicle.act({"acceleration": utils.lmap(a, [-1, 1], self.acceleration_range)})
         self.last_action = np.array([a])
+
+
+class FastDiscreteMetaAction(DiscreteMetaAction):
+    """highway-env's meta-actions driving a ``FastMDPVehicle`` (same model, same trajectories, faster step)."""
+
+    @property
+    def vehicle_class(self) -> Callable:
+        return functools.partial(FastMDPVehicle, target_speeds=self.target_speeds)

@@ -33,7 +33,7 @@ CELL = 4.0  # m, grid cell size
 MARGIN = 1e-6  # m, lower bounds are lowered by this, so float rounding can never prune a lane that could win
 
 
-def _centreline_box(lane: AbstractLane) -> tuple[float, float, float, float] | None:
+def centreline_box(lane: AbstractLane) -> tuple[float, float, float, float] | None:
     """(xmin, ymin, xmax, ymax) of a lane's centreline, or None when no bound is known (lane always evaluated)."""
     if type(lane) is StraightLane:
         (x0, y0), (x1, y1) = lane.start, lane.end
@@ -72,7 +72,7 @@ class FastRoadNetwork(RoadNetwork):
                 for _id, lane in enumerate(ls):
                     indexes.append((_from, _to, _id))
                     lanes.append(lane)
-        index = {"indexes": indexes, "lanes": lanes, "boxes": [_centreline_box(lane) for lane in lanes],
+        index = {"indexes": indexes, "lanes": lanes, "boxes": [centreline_box(lane) for lane in lanes],
                  "cells": {}}
         self._index = index
         return index
@@ -87,7 +87,15 @@ class FastRoadNetwork(RoadNetwork):
             else:
                 dx = max(0.0, box[0] - x1, x0 - box[2])
                 dy = max(0.0, box[1] - y1, y0 - box[3])
-                lb = math.sqrt(dx * dx + dy * dy) - MARGIN
+                lb = math.sqrt(dx * dx + dy * dy)
+                lane = index["lanes"][k]
+                if type(lane) is CircularLane:  # an arc lies on its circle: distance to the circle's ring
+                    cx, cy, radius = float(lane.center[0]), float(lane.center[1]), lane.radius
+                    nx, ny = min(max(cx, x0), x1) - cx, min(max(cy, y0), y1) - cy  # nearest cell point
+                    fx, fy = max(abs(x0 - cx), abs(x1 - cx)), max(abs(y0 - cy), abs(y1 - cy))  # farthest
+                    near, far = math.sqrt(nx * nx + ny * ny), math.sqrt(fx * fx + fy * fy)
+                    lb = max(lb, near - radius, radius - far)
+                lb -= MARGIN
             bounds.append((lb, k))
         bounds.sort()
         index["cells"][(ix, iy)] = bounds
@@ -95,7 +103,7 @@ class FastRoadNetwork(RoadNetwork):
 
     def get_closest_lane_index(self, position: np.ndarray, heading: float | None = None) -> LaneIndex:
         index = self.__dict__.get("_index") or self._build_index()
-        x, y = float(position[0]), float(position[1])
+        x, y = position.tolist() if type(position) is np.ndarray else (float(position[0]), float(position[1]))
         try:
             key = (math.floor(x / CELL), math.floor(y / CELL))
         except (ValueError, OverflowError):  # NaN or infinite position
