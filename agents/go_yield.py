@@ -67,3 +67,38 @@ class GoYieldActions(gym.Wrapper):
         obs, reward, terminated, truncated, info = self.env.step(meta_action(int(action), self._turn))
         self._turn = obs["turn"]
         return obs, reward, terminated, truncated, info
+
+
+class GapAcceptance:
+    """Rule-based left-turn driver on the turn features: YIELD (stop at the line, wait) while any object will pass
+    within ``miss`` metres of the ego's path within ``t_gap`` seconds (constant-velocity closest approach, the
+    features' ``t_star`` and ``miss``); otherwise GO. Once past the stop line it commits and goes (stopping inside
+    the intersection puts the car in the crossing traffic's way). A gap-acceptance baseline, and the teacher PPO
+    can start from (``agent.init: gap_acceptance``).
+
+    ``act(obs)`` returns the env's meta-action (as any agent); :meth:`choice` the GO/YIELD decision."""
+
+    def __init__(self, t_gap: float = 4.0, miss: float = 3.0) -> None:
+        if not t_gap > 0 or not miss > 0:
+            raise ValueError(f"gap acceptance needs t_gap > 0 and miss > 0, got {t_gap}, {miss}")
+        from av_gym.estimation.turn_features import OBJECT_FEATURES, T_MAX
+
+        self.t_gap, self.miss = float(t_gap), float(miss)
+        self._n = len(OBJECT_FEATURES)
+        self._cols = (OBJECT_FEATURES.index("present"), OBJECT_FEATURES.index("t_star"),
+                      OBJECT_FEATURES.index("miss"))
+        self._t_max = T_MAX
+
+    def reset(self) -> None:
+        pass
+
+    def choice(self, turn: np.ndarray) -> int:
+        objs = np.asarray(turn[5:]).reshape(-1, self._n)
+        present, t_star, miss = objs[:, self._cols[0]] > 0, objs[:, self._cols[1]] * self._t_max, \
+            objs[:, self._cols[2]] * 10.0
+        threat = present & (t_star > 0) & (t_star < self.t_gap) & (miss < self.miss)
+        past_line = 30.0 * float(turn[2]) < -1.0  # front bumper over 1 m past the stop line
+        return YIELD if threat.any() and not past_line else GO
+
+    def act(self, obs) -> int:
+        return meta_action(self.choice(obs["turn"]), obs["turn"])

@@ -28,6 +28,55 @@ def _env_factory(env_cfg: dict, sensors_cfg: dict, shield_cfg: dict, interventio
     return FlatDictObservation(env)
 
 
+def pretrain_from_teacher(model, env, teacher, seeds, gamma: float, epochs: int, batch_size: int) -> dict:
+    """Behaviour cloning before PPO: the teacher (:class:`agents.go_yield.GapAcceptance`) drives ``env`` (the
+    training stack: go/yield actions, action repeat, flat observations) on ``seeds``; the policy is fitted to its
+    choices (cross-entropy) and the value head to the discounted returns it earned (MSE), with the model's own
+    optimizer. Why both: PPO's first updates on an untrained critic would undo a cloned actor.
+    Returns ``{"episodes", "decisions", "accuracy", "teacher_collision", "teacher_success"}``."""
+    import numpy as np
+    import torch as th
+
+    obs_list, actions, returns, outcomes = [], [], [], []
+    for seed in seeds:
+        obs, _ = env.reset(seed=int(seed))
+        rewards, done = [], False
+        while not done:
+            a = teacher.choice(obs["turn"])
+            obs_list.append(obs["turn"].copy())
+            actions.append(a)
+            obs, r, terminated, truncated, info = env.step(a)
+            rewards.append(r)
+            done = terminated or truncated
+        g, ret = 0.0, []
+        for r in reversed(rewards):
+            g = r + gamma * g
+            ret.append(g)
+        returns += ret[::-1]
+        m = info["episode_metrics"]
+        outcomes.append((m["collision"], m["success"]))
+    x = th.as_tensor(np.array(obs_list), dtype=th.float32)
+    y = th.as_tensor(np.array(actions), dtype=th.long)
+    g = th.as_tensor(np.array(returns), dtype=th.float32)
+    policy = model.policy
+    policy.set_training_mode(True)
+    gen = th.Generator().manual_seed(0)
+    for _ in range(epochs):
+        for idx in th.randperm(len(y), generator=gen).split(batch_size):
+            values, log_prob, _ = policy.evaluate_actions({"turn": x[idx]}, y[idx])
+            loss = -log_prob.mean() + th.nn.functional.mse_loss(values.flatten(), g[idx])
+            policy.optimizer.zero_grad()
+            loss.backward()
+            th.nn.utils.clip_grad_norm_(policy.parameters(), 0.5)
+            policy.optimizer.step()
+    policy.set_training_mode(False)
+    with th.no_grad():
+        accuracy = float((policy.get_distribution({"turn": x}).distribution.probs.argmax(1) == y).float().mean())
+    coll, succ = np.mean(outcomes, axis=0)
+    return {"episodes": len(outcomes), "decisions": len(y), "accuracy": accuracy, "teacher_collision": float(coll),
+            "teacher_success": float(succ)}
+
+
 def validate(cfg: DictConfig) -> list[str]:
     """Problems with ``cfg.agent`` for PPO, as one-line messages (empty if none)."""
     agent, problems = cfg.agent, []
@@ -105,6 +154,23 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     else:
         model = make_ppo(venv, OmegaConf.to_container(agent, resolve=True), seed=int(cfg.seed),
                          tensorboard_log=None, device=agent.device)
+        if agent.get("init"):
+            from agents.go_yield import GapAcceptance
+            from eval.agents import load_agent_config
+
+            if actions != "go_yield":
+                raise ConfigError(f"agent.init={agent.init} teaches go/yield choices: it needs agent.actions=go_yield")
+            teacher_cfg = load_agent_config(str(agent.init))
+            teacher = GapAcceptance(t_gap=teacher_cfg["t_gap"], miss=teacher_cfg["miss"])
+            demo_env = _env_factory(*plain, cost, repeat, actions)
+            # Demonstration seeds 500000+: disjoint from evaluation (1000+, 100000+) and from PPO's own episodes.
+            t_bc = time.time()
+            stats = pretrain_from_teacher(model, demo_env, teacher, range(500000, 500000 + int(agent.init_episodes)),
+                                          float(agent.gamma), int(agent.init_epochs), int(agent.batch_size))
+            demo_env.close()
+            print(f"[train] cloned {agent.init} from {stats['episodes']} episodes ({stats['decisions']} decisions, "
+                  f"teacher collision {stats['teacher_collision']:.2f}, success {stats['teacher_success']:.2f}): "
+                  f"accuracy {stats['accuracy']:.3f} in {time.time() - t_bc:.0f} s")
     # The checkpoint's own dump (at its step) is complete, so TensorBoard keeps it and drops only what came after.
     model.set_logger(_tensorboard_logger(run_dir / "tb" / str(agent.name),
                                          model.num_timesteps + 1 if resume else None))
