@@ -325,7 +325,16 @@ class LocalizationEKF:
         threshold = self._threshold(len(z))
         if not np.isfinite(nis) or (gate and nis > threshold):
             return Update(False, nis, threshold, y)
-        self.kf.update(z, lambda _x: H, lambda _x: hx, R=R, residual=residual)
+        x0, P0 = self.kf.x.copy(), self.kf.P.copy()
+        try:
+            self.kf.update(z, lambda _x: H, lambda _x: hx, R=R, residual=residual)
+        except np.linalg.LinAlgError:
+            self.kf.x, self.kf.P = x0, P0
+            return Update(False, nis, threshold, y)
+        if not (np.all(np.isfinite(self.kf.x)) and np.all(np.isfinite(self.kf.P))):
+            # An ill-conditioned update: refuse it rather than let the state go non-finite for good.
+            self.kf.x, self.kf.P = x0, P0
+            return Update(False, nis, threshold, y)
         self.kf.x[PSI] = wrap(self.kf.x[PSI])
         self.kf.P = 0.5 * (self.kf.P + self.kf.P.T)
         return Update(True, nis, threshold, y)

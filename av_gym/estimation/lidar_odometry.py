@@ -25,6 +25,7 @@ motion prior with NaN or non-orthogonal R      abort ("R is not orthogonal")  ra
 points not (N, 3) (e.g. (N, 2))                RuntimeError (pybind cast)    raises :class:`OdometryInputError`
 non-finite points                              silently kept                 dropped and counted
 empty / fewer than ``min_points``              returns the initial guess     ``ok=False``, library not called
+any other exception from ``register_frame``    raises                        ``ok=False``, local map restarted
 =============================================  ============================  ====================================
 
 A result whose pose is non-finite, or that jumps more than ``max_deviation`` m from the motion prior, is reported
@@ -232,7 +233,13 @@ class LidarOdometry:
         guess = kiss.last_pose @ kiss.last_delta
         prev = kiss.last_pose.copy()
         t0 = time.perf_counter()
-        kiss.register_frame(pts, ts)
+        try:
+            kiss.register_frame(pts, ts)
+        except Exception as exc:  # noqa: BLE001 - whatever the library raises, the scan is lost, not the process
+            self._restart()
+            first_line = str(exc).splitlines()[0] if str(exc) else ""
+            return OdometryResult(False, f"kiss-icp raised {type(exc).__name__}: {first_line}; local map restarted",
+                                  pose=self.pose, n_points=len(pts), n_dropped=n_dropped)
         runtime = time.perf_counter() - t0
         self.runtimes.append(runtime)
         new = kiss.last_pose

@@ -25,6 +25,13 @@ Never NaN: before the first GNSS fix everything is 0 with ``valid`` 0; a diverge
 the next GNSS fix (``info["localization"]["reinit"]``) and, until then, the last good estimate is held with
 ``valid`` 0. ``info["localization"]`` reports every update, rejection, failure and re-initialisation of the step
 (runtimes are kept on the pipeline, ``Localizer.pipeline.runtimes``, so that ``info`` stays deterministic for a seed).
+Divergence is detected three ways, each re-initialising from GNSS with ``reinit_reason`` saying which: the filter
+unhealthy (non-finite, not PSD, position std above ``max_position_std``) after a prediction or an update; every
+GNSS fix gated out for ``reinit_after_s``; a numerical exception anywhere in the step (``fault``, ``fault_count``:
+a singular matrix, a library error). Non-finite IMU samples are skipped (``imu_skipped``). In ``lidar`` mode a
+failed kiss-icp registration (an exception, too few points, a jump away from the prior) breaks the chain of
+increments, so the pose restarts from GNSS too; in ``fused`` mode the odometry restarts its local map and the EKF
+carries on with the IMU and GNSS.
 
 The lane map is the scenario's own: ``env.unwrapped.track`` (lap) or ``env.unwrapped.route`` (left turn),
 located with the estimator's own lane hint, never the simulator's. The HD map for map matching is the roadside
@@ -177,6 +184,7 @@ class LocalizationPipeline:
         self.ekf = LocalizationEKF(self.noise, rear_axle=lr) if self.mode in ("gnss_imu", "fused") else None
         self.lr = lr
         self.reinit_count = 0
+        self.fault_count = 0  # numerical failures caught in step() (each one re-initialises from GNSS)
         self._rejected_since: float | None = None
         self._last_good = np.zeros(len(FIELDS), dtype=np.float32)
         self.raw: np.ndarray | None = None  # gnss mode: [x, y, heading, speed]
@@ -220,13 +228,14 @@ class LocalizationPipeline:
         return {"mode": self.mode + ("+map" if self.map_matching else ""), "valid": False, "reinit": False,
                 "reinit_reason": "", "reinit_count": 0, "gnss_used": False, "gnss_rejected": False, "gnss_nis": 0.0,
                 "lidar_scan": False, "lidar_used": False, "lidar_failed": "", "lidar_nis": 0.0, "map_used": False,
-                "map_failed": "", "map_nis": 0.0, "map_searched": False, "map_relocalized": False}
+                "map_failed": "", "map_nis": 0.0, "map_searched": False, "map_relocalized": False,
+                "fault": "", "fault_count": self.fault_count, "imu_skipped": 0}
 
     # ------------------------------------------------------------------------------------------------ helpers
     def _gnss_fix(self, obs: dict) -> tuple[bool, np.ndarray, float]:
         """(usable fresh fix?, [x, y, vx, vy], delay s)."""
         g = np.asarray(obs["gnss"], dtype=float)
-        usable = bool(g[4] > 0.5 and g[5] > 0.5 and np.all(np.isfinite(g[:4])))
+        usable = bool(g[4] > 0.5 and g[5] > 0.5 and np.all(np.isfinite(g[:4])) and np.isfinite(g[6]))
         return usable, g[:4], self.latency + float(g[6])
 
     def _initial_heading(self, fix: np.ndarray, position: np.ndarray) -> tuple[float, float]:
@@ -259,14 +268,36 @@ class LocalizationPipeline:
         info = self._info()
         t = sim_time(self.env)
         dt_step, self.t = t - self.t, t
-        if self.mode == "gnss":
-            self._step_gnss(obs)
-        elif self.mode == "lidar":
-            self._step_lidar(obs, info, dt_step)
-        else:
-            self._step_ekf(obs, info)
+        try:
+            if self.mode == "gnss":
+                self._step_gnss(obs)
+            elif self.mode == "lidar":
+                self._step_lidar(obs, info, dt_step)
+            else:
+                self._step_ekf(obs, info)
+                if self.ekf.initialized and not self.ekf.is_healthy(self.max_position_std):
+                    self._reinit(info, "filter unhealthy after an update (non-finite, not PSD or position std too "
+                                       "large)")
+        except (ArithmeticError, ValueError, RuntimeError) as exc:
+            # A numerical failure anywhere in the estimator (a singular matrix, a library error) must not end the
+            # episode: the estimate restarts from the next GNSS fix, as after a divergence, and info says why.
+            self.fault_count += 1
+            info["fault"] = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
+            info["fault_count"] = self.fault_count
+            self._restart_from_gnss(info, f"fault ({info['fault']})")
         self.runtimes["step"].append(time.perf_counter() - t0)
         return self._finish(obs, info)
+
+    def _restart_from_gnss(self, info: dict, reason: str) -> None:
+        """Forget the estimate: the next usable GNSS fix starts it again (every mode)."""
+        if self.mode == "gnss":
+            self.raw = None
+            info["reinit_reason"] = reason
+            self.reinit_count += 1
+        elif self.mode == "lidar":
+            self._reinit_lidar(info, reason)
+        else:
+            self._reinit(info, reason)
 
     def _step_gnss(self, obs: dict) -> None:
         usable, fix, _ = self._gnss_fix(obs)
@@ -286,6 +317,7 @@ class LocalizationPipeline:
         if self.lidar_pose is None:
             usable, fix, delay = self._gnss_fix(obs)
             if usable:
+                info["reinit"] = self.reinit_count > 0
                 heading, speed = self._initial_heading(fix, fix[:2])
                 self.lidar_pose = np.array([*(fix[:2] + delay * fix[2:4]), heading])
                 self.lidar_speed = speed
@@ -298,7 +330,11 @@ class LocalizationPipeline:
             return
         prior = self._prime if self.odometry.scans_in_map == 1 else None  # kiss-icp starts at zero velocity
         res = self._register(info, prior)
-        if res is None or not res.ok or res.first:
+        if res is None or not res.ok:
+            # The chain of increments is broken (the car moved during the lost scan): start again from GNSS.
+            self._reinit_lidar(info, f"LiDAR odometry failed ({info['lidar_failed']})")
+            return
+        if res.first:
             return
         dx, dy, dpsi = planar_delta(res.delta, self.mount_x)
         x, y, psi = self.lidar_pose
@@ -308,6 +344,11 @@ class LocalizationPipeline:
         self.lidar_speed = float(np.hypot(dx, dy) / interval)
         self._interval_start = self.lidar.scan_time
         info["lidar_used"] = True
+
+    def _reinit_lidar(self, info: dict, reason: str) -> None:
+        self.lidar_pose = None
+        info["reinit_reason"] = reason
+        self.reinit_count += 1
 
     def _register(self, info: dict, prior):
         """Register the LiDAR's current scan; never raises (failures go to info)."""
@@ -330,6 +371,9 @@ class LocalizationPipeline:
         usable, fix, delay = self._gnss_fix(obs)
         if ekf.initialized:
             for a_long, _a_lat, gyro in np.asarray(obs["imu"], dtype=float):
+                if not (np.isfinite(a_long) and np.isfinite(gyro)):  # a bad sample is skipped, not integrated
+                    info["imu_skipped"] += 1
+                    continue
                 self._predict(float(a_long), float(gyro))
             if not ekf.is_healthy(self.max_position_std):
                 self._reinit(info, "filter unhealthy (non-finite, not PSD or position std too large)")

@@ -87,6 +87,7 @@ class MultiObjectTracker:
         self.reset()
 
     def reset(self) -> None:
+        self.faults = 0  # non-finite detections dropped and non-finite tracks deleted, this episode
         self._tracks: list[Track] = []
         self._next_id = 0
         self._last_frame = -np.inf
@@ -130,6 +131,10 @@ class MultiObjectTracker:
         t = float(t)
         det = np.asarray(detections, dtype=float)
         det = det[det[:, 0] > 0] if det.size else np.zeros((0, 9))
+        finite = np.all(np.isfinite(det), axis=1)
+        if not finite.all():  # a detection with NaN/inf would poison its track's filter for good: dropped
+            self.faults += int((~finite).sum())
+            det = det[finite]
         age = float(det[0, 8]) if det.shape[1] > 8 and len(det) else 0.0
         frame_t = t - age
         for tr in self._tracks:
@@ -165,7 +170,11 @@ class MultiObjectTracker:
             survivors.append(tr)
         for di in sorted(set(range(len(det))) - set(matched_d)):
             survivors.append(self._birth(zs[di], det[di], t, ranges[di]))
-        self._tracks = survivors
+        # A filter that went non-finite (a singular update) can never recover: delete it, the object is re-born
+        # from its next detection.
+        healthy = [tr for tr in survivors if np.all(np.isfinite(tr.kf.x)) and np.all(np.isfinite(tr.kf.P))]
+        self.faults += len(survivors) - len(healthy)
+        self._tracks = healthy
         return self.tracks()
 
     def _associate(self, zs: np.ndarray, ranges: np.ndarray) -> tuple[list[int], list[int]]:
@@ -180,7 +189,10 @@ class MultiObjectTracker:
                     continue
                 sp = self.sigma_pos0 + self.sigma_pos_k * ranges[j]
                 S = P[:2, :2] + np.eye(2) * sp**2
-                d2 = float(y @ np.linalg.solve(S, y))
+                try:
+                    d2 = float(y @ np.linalg.solve(S, y))
+                except np.linalg.LinAlgError:
+                    continue
                 if d2 <= self.gate:
                     cost[i, j] = d2
         rows, cols = linear_sum_assignment(cost)

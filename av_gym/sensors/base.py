@@ -81,6 +81,8 @@ class SensorWrapper(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
             raise ValueError(f"observation key {self.key!r} is already provided by an inner wrapper")
         self.observation_space = spaces.Dict({**env.observation_space.spaces, self.key: self.sensor_space()})
         self.rng = np.random.default_rng(0)
+        self.faults = 0  # readings that held NaN/inf, over the wrapper's life (see _guarded)
+        self._step_faults = 0
 
     def sensor_space(self) -> spaces.Space:
         raise NotImplementedError
@@ -98,4 +100,44 @@ class SensorWrapper(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
         return self.observation(obs), info
 
     def observation(self, observation: dict) -> dict:
-        return {**observation, self.key: self.measure()}
+        return {**observation, self.key: self._guarded(self.measure())}
+
+    def _guarded(self, value):
+        """The reading with any NaN/inf replaced (NaN → 0, ±inf → the space's bound, then clipped into it), so that
+        nothing non-finite ever reaches an agent or a network; each such reading is counted and reported in
+        ``info["sensor_faults"][key]``. A sensor's model should never produce one: this is the last line, after
+        the sensors' own checks (e.g. a GNSS fix that is not finite is dropped like one lost in an outage)."""
+        bad = _count_nonfinite(value)
+        if bad:
+            self.faults += 1
+            self._step_faults += bad
+            value = _finite(value, self.observation_space[self.key])
+        return value
+
+    def step(self, action):
+        self._step_faults = 0
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        obs = self.observation(obs)
+        if self._step_faults:
+            info = {**info, "sensor_faults": {**info.get("sensor_faults", {}), self.key: self._step_faults}}
+        return obs, reward, terminated, truncated, info
+
+
+def _count_nonfinite(value) -> int:
+    if isinstance(value, dict):
+        return sum(_count_nonfinite(v) for v in value.values())
+    a = np.asarray(value)
+    return int(a.size - np.count_nonzero(np.isfinite(a))) if a.dtype.kind in "fc" else 0
+
+
+def _finite(value, space: spaces.Space):
+    if isinstance(value, dict):
+        return {k: _finite(v, space[k]) for k, v in value.items()}
+    a = np.asarray(value)
+    if a.dtype.kind not in "fc" or not isinstance(space, spaces.Box):
+        return value
+    low = np.broadcast_to(space.low, a.shape)
+    high = np.broadcast_to(space.high, a.shape)
+    out = np.where(np.isnan(a), 0.0, a)
+    out = np.where(np.isposinf(out), high, np.where(np.isneginf(out), low, out))
+    return np.clip(out, low, high).astype(a.dtype)

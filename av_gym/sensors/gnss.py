@@ -86,6 +86,7 @@ class GNSS(SensorWrapper):
         self._fix_index = 0  # fixes are at k / rate_hz: counted, not accumulated, so no float drift
         self._in_outage = False
         self._outage_until = 0.0
+        self._fix_dropped = False
 
     def _record(self, unwrapped) -> None:
         ego = unwrapped.vehicle
@@ -126,10 +127,16 @@ class GNSS(SensorWrapper):
             self._bias = phi * self._bias + self.sigma_bias * np.sqrt(1 - phi**2) * self.rng.normal(size=2)
             truth = self._true_state(t_fix - self.latency)
             noise = np.concatenate([self.rng.normal(0, self.sigma, 2), self.rng.normal(0, self.velocity_sigma, 2)])
-            self._fix = truth + np.concatenate([self._bias, [0.0, 0.0]]) + noise
+            fix = truth + np.concatenate([self._bias, [0.0, 0.0]]) + noise
+            if not np.all(np.isfinite(fix)):  # a receiver reports no fix rather than a wrong one: held, as in an outage
+                self._bias = np.where(np.isfinite(self._bias), self._bias, 0.0)
+                self.faults += 1
+                self._fix_dropped = True
+                continue
+            self._fix, self._fix_dropped = fix, False
             self._fix_time = self._last_fix_time = t_fix
             fresh = True
-        valid = self._last_fix_time is not None and not self._in_outage_now(round(t, 9))
+        valid = self._last_fix_time is not None and not self._in_outage_now(round(t, 9)) and not self._fix_dropped
         age = 0.0 if self._last_fix_time is None else t - self._fix_time
         out = np.concatenate([self._fix, [float(fresh), float(valid), age]])
         return np.clip(out, self.observation_space[self.key].low, self.observation_space[self.key].high).astype(np.float32)
