@@ -30,7 +30,7 @@ from typing import Any
 from av_gym.errors import ConfigError
 
 ENV_NAMES = ("lane_keeping", "left_turn")
-AGENT_KINDS = ("ppo", "pilotnet", "pid", "always_proceed")
+AGENT_KINDS = ("ppo", "pilotnet", "pid", "always_proceed", "gap_acceptance")
 
 
 @dataclass(frozen=True)
@@ -70,7 +70,8 @@ ENV = {
         "spawn_probability": "num [0,1]",
         "target_speeds_kmh": ("list", 3, "num >=0"),
         "acceleration_range": ("list", 2, "num"),
-        "rewards": {"collision": "num", "arrived": "num", "high_speed": "num"},
+        "rewards": {"collision": "num", "arrived": "num", "high_speed": "num", "progress": "num >=0",
+                    "comfort": "num >=0"},
         "ccftap": {"ego_speed_kmh": "num >0", "target_speed_kmh": "num >0", "dt": "num"},
     },
 }
@@ -223,10 +224,13 @@ AGENT = {
             "vec_env": ("subproc", "dummy"), "learning_rate": "num >0", "n_steps": "int >=2",
             "batch_size": "int >=2", "n_epochs": "int >=1", "gamma": "num [0,1]", "gae_lambda": "num [0,1]",
             "clip_range": "num >0", "ent_coef": "num >=0", "vf_coef": "num >=0", "max_grad_norm": "num >0",
-            "net_arch": ["int >=1"], "device": ("cpu", "cuda", "auto")},
+            "net_arch": ["int >=1"], "device": ("cpu", "cuda", "auto"), "action_repeat?": "int >=1",
+            "actions?": ("env", "go_yield"), "intervention_cost?": "num >=0",
+            "init?": ("gap_acceptance", None), "init_episodes?": "int >=1", "init_epochs?": "int >=1"},
     "pid": {**_AGENT_COMMON, "kp": "num", "ki": "num", "kd": "num", "obs_key": "str", "cte_index": "int >=0",
             "search?": "any"},  # search: the record of how the gains were found (documentation, never read)
     "always_proceed": dict(_AGENT_COMMON),
+    "gap_acceptance": {**_AGENT_COMMON, "t_gap": "num >0", "miss": "num >0"},
     "pilotnet": {**_AGENT_COMMON, "*": Delegate(lambda v, w: _pilotnet(v, w))},
 }
 """agent.kind → its fields. PilotNet's own settings are :class:`agents.bc.Args` (a dataclass with its checks)."""
@@ -273,7 +277,8 @@ TRAIN = {
     "run_name": "name",
     "paths": _PATHS_TRAIN,
     "train": {"checkpoint_every": "int >=1", "resume": "bool", "eval_episodes": "int >=0", "eval_seed": "int >=0",
-              "baseline": "str", "progress_bar": "bool", "torch_threads": "int >=1"},
+              "baseline": "str", "progress_bar": "bool", "torch_threads": "int >=1", "eval_every": "int >=0",
+              "eval_n": "int >=0", "video_every": "int >=0"},
 }
 EVAL = {
     "env": Delegate(lambda v, w: _env_section(v, w)),
@@ -446,7 +451,7 @@ def section_problems(group: str, value: Any, where: str | None = None) -> list[s
 
 
 # ------------------------------------------------------------------------------------------------ command line
-_PLACEHOLDER = "<hydra run dir>"
+_PLACEHOLDER = "hydra-runtime-value"  # a valid folder name, so run_name=${hydra:...} passes
 
 
 def check_command_line(command: str, argv: list[str]) -> list:
@@ -535,9 +540,15 @@ def _compose_checked(command: str, overrides: list[str], groups: list[str], comp
             continue  # a new key: the schema below refuses it unless the section allows it
         _check_path(base, o.key_or_group, command)
     cfg = compose(config_name=command, overrides=overrides)
-    for key in list(cfg.keys()):  # filled by Hydra only once a job runs
-        if OmegaConf.is_interpolation(cfg, key) and "hydra:" in str(OmegaConf.to_container(cfg)[key]):
-            cfg[key] = _PLACEHOLDER
+    def hydra_values(node: Any, path: str = ""):  # ${hydra:...} values are filled by Hydra only once a job runs
+        if isinstance(node, dict):
+            for k, v in node.items():
+                yield from hydra_values(v, f"{path}.{k}" if path else str(k))
+        elif isinstance(node, str) and "${hydra:" in node:
+            yield path
+
+    for path in list(hydra_values(OmegaConf.to_container(cfg, resolve=False))):
+        OmegaConf.update(cfg, path, _PLACEHOLDER)
     validate_config(cfg, command)
     return cfg
 
@@ -563,14 +574,8 @@ def _check_path(cfg: Any, key: str, command: str) -> None:
                 raise ConfigError(f"{name} is not a field of {section}; allowed: {allowed}"
                                   if where else f"{name} is not {section}; allowed: {allowed}")
             raise ConfigError(f"{where} is a value, not a section: cannot set {key}")
-        node = node[part] if OmegaConf_is_not_missing(node, part) else None
+        node = node._get_node(part)  # not node[part]: that would resolve an interpolation (${hydra:...})
         done.append(part)
-
-
-def OmegaConf_is_not_missing(node: Any, part: str) -> bool:  # noqa: N802 - reads as OmegaConf's own helper
-    from omegaconf import OmegaConf
-
-    return not OmegaConf.is_missing(node, part)
 
 
 def _option_of(cfg: Any, where: str) -> str:
