@@ -26,6 +26,28 @@ import yaml
 from av_gym.metrics import aggregate, format_ci, is_binary, markdown_table, mean_ci, wilson_ci
 
 REPLICATE_KEYS = ("seed", "train.eval_seed")
+
+
+try:
+    from hydra.experimental.callback import Callback
+except ImportError:  # pragma: no cover - hydra-core < 1.1
+    Callback = object
+
+
+class JobSetup(Callback):
+    """Hydra callback (``hydra.callbacks.job_setup`` in conf/train.yaml and conf/eval.yaml) run at the start of
+    every job, in the job's own process.
+
+    The joblib launcher runs jobs in loky workers, which set the process-wide multiprocessing start method to
+    ``loky``. A process started from there (SB3's SubprocVecEnv, eval's worker processes) is told to use that
+    method, cannot (loky is not imported yet in the child) and dies with "cannot find context for 'loky'".
+    Resetting it to the platform default makes a sweep job behave like a plain run."""
+
+    def on_job_start(self, config: Any = None, **kwargs: Any) -> None:
+        import multiprocessing as mp
+
+        if mp.get_start_method(allow_none=True) not in (None, *mp.get_all_start_methods()):
+            mp.set_start_method(None, force=True)
 DEFAULT_METRIC = {"left_turn": "collision", "lane_keeping": "cte_mean_abs_m"}
 
 
