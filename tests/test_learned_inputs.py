@@ -190,3 +190,31 @@ def test_a_held_go_yield_choice_gives_the_same_episode_in_training_and_evaluatio
     env = _turn_env("turn_truth")
     truths, info, *_ = rollout(env, policy, 7)
     np.testing.assert_equal(info["episode_metrics"], metrics_a)  # NaN == NaN here
+
+
+def test_cloning_the_gap_acceptance_teacher_beats_its_majority_choice():
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from agents.go_yield import GapAcceptance
+    from agents.ppo import make_ppo
+    from train.ppo import _env_factory, pretrain_from_teacher
+
+    sensors = compose_group("sensors", "turn_truth")
+    make = lambda: _env_factory(conf("env", "left_turn"), sensors, {"kind": "none"}, 0.0, 5, "go_yield")  # noqa: E731
+    model = make_ppo(DummyVecEnv([make]), {"policy": "MultiInputPolicy", "net_arch": [64, 64], "n_steps": 64,
+                                           "batch_size": 64}, seed=0, tensorboard_log=None)
+    teacher = GapAcceptance(t_gap=4.0, miss=3.0)
+    stats = pretrain_from_teacher(model, make(), teacher, range(8), gamma=0.95, epochs=30, batch_size=64)
+    assert stats["decisions"] > 100
+    # how often the teacher yields on these decisions: "always go" would score 1 - that
+    env, yields, n = make(), 0, 0
+    for seed in range(8):
+        obs, _ = env.reset(seed=seed)
+        done = False
+        while not done:
+            a = teacher.choice(obs["turn"])
+            yields, n = yields + (a == 0), n + 1
+            obs, _, te, tr, _ = env.step(a)
+            done = te or tr
+    assert 0 < yields < n
+    assert stats["accuracy"] > max(yields, n - yields) / n

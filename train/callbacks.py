@@ -128,8 +128,9 @@ class PeriodicEval(BaseCallback):
 
     - logs ``eval/<metric>`` (collision, success, interventions, ... from ground truth) and ``eval/score``;
     - keeps ``best.zip`` (atomic) when :func:`score` improves, with ``best.json`` (score, step) beside it;
-    - appends a row to ``eval.csv`` (env steps, wall-clock seconds since the run started, metrics): the data for
-      "steps and time to reach 90 % success";
+    - appends a row to ``eval.csv`` (``steps``: SB3's ``num_timesteps``, i.e. agent decisions, which are env steps
+      unless ``agent.action_repeat`` > 1; wall-clock seconds since the run started; metrics): the data for "steps
+      and time to reach 90 % success";
     - every ``video_every`` env steps renders the first seed's episode into ``videos/step_<n>.gif`` and TensorBoard.
 
     ``make_env(render_mode)`` builds the evaluation stack (the training one: same sensors and shield)."""
@@ -180,14 +181,14 @@ class PeriodicEval(BaseCallback):
         self.logger.record("eval/wall_clock_s", wall)
         new_file = not (self.run_dir / "eval.csv").is_file()
         with open(self.run_dir / "eval.csv", "a", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=["env_steps", "wall_clock_s", *means])
+            writer = csv.DictWriter(f, fieldnames=["steps", "wall_clock_s", *means])
             if new_file:
                 writer.writeheader()
-            writer.writerow({"env_steps": step, "wall_clock_s": round(wall, 1), **means})
+            writer.writerow({"steps": step, "wall_clock_s": round(wall, 1), **means})
         if means["score"] > self.best:
             self.best = means["score"]
             save_model_atomic(self.model, self.ckpt_dir / "best.zip")
-            write_text_atomic(self.ckpt_dir / "best.json", json.dumps({"score": self.best, "env_steps": step,
+            write_text_atomic(self.ckpt_dir / "best.json", json.dumps({"score": self.best, "steps": step,
                                                                        **means}, indent=1))
         if self.video_every > 0 and (step - self._last_video >= self.video_every or self._last_video == 0):
             self._last_video = step
