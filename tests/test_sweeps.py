@@ -14,7 +14,7 @@ import yaml
 from hydra import compose, initialize_config_module
 from scipy import stats
 
-from eval.sweep import load_jobs, sweep_report, swept_keys
+from eval.sweep import JobSetup, load_jobs, sweep_report, swept_keys
 
 
 def _hydra(config: str, overrides: list[str]):
@@ -26,6 +26,20 @@ def _hydra(config: str, overrides: list[str]):
 def test_multirun_default_launcher_is_joblib_on_every_core(config):
     launcher = _hydra(config, []).launcher
     assert launcher._target_.endswith("JoblibLauncher") and launcher.n_jobs == -1
+
+
+@pytest.mark.parametrize("config", ["train", "eval"])
+def test_jobs_reset_the_start_method_a_loky_worker_leaves(config, monkeypatch):
+    import multiprocessing as mp
+
+    assert _hydra(config, []).callbacks.job_setup._target_ == "eval.sweep.JobSetup"
+    calls = []
+    monkeypatch.setattr(mp, "set_start_method", lambda method, force=False: calls.append((method, force)))
+    for method, expected in (("fork", []), (None, []), ("loky", [(None, True)])):
+        monkeypatch.setattr(mp, "get_start_method", lambda allow_none=False, m=method: m)
+        calls.clear()
+        JobSetup().on_job_start()
+        assert calls == expected, method
 
 
 def test_slurm_launcher_config_extends_submitit_slurm():
