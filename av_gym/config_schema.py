@@ -49,6 +49,7 @@ _COMMON_ENV = {
     "policy_frequency": "int >=10",
     "simulation_frequency": "int >=1",
     "fast": "bool",
+    "compare?": ("list+", "str"),
 }
 ENV = {
     "lane_keeping": {
@@ -226,7 +227,8 @@ AGENT = {
             "clip_range": "num >0", "ent_coef": "num >=0", "vf_coef": "num >=0", "max_grad_norm": "num >0",
             "net_arch": ["int >=1"], "device": ("cpu", "cuda", "auto"), "action_repeat?": "int >=1",
             "actions?": ("env", "go_yield"), "intervention_cost?": "num >=0",
-            "init?": ("gap_acceptance", None), "init_episodes?": "int >=1", "init_epochs?": "int >=1"},
+            "init?": ("gap_acceptance", None), "init_episodes?": "int >=1", "init_epochs?": "int >=1",
+            "timeout_is_terminal?": "bool"},
     "pid": {**_AGENT_COMMON, "kp": "num", "ki": "num", "kd": "num", "obs_key": "str", "cte_index": "int >=0",
             "search?": "any"},  # search: the record of how the gains were found (documentation, never read)
     "always_proceed": dict(_AGENT_COMMON),
@@ -570,6 +572,8 @@ def _check_path(cfg: Any, key: str, command: str) -> None:
             section = _option_of(cfg, where) if where else f"{'an' if command[0] in 'aeiou' else 'a'} {command} setting"
             allowed = sorted(node.keys()) if isinstance(node, DictConfig) else []
             name = ".".join([*done, part])
+            if isinstance(node, DictConfig) and not allowed:  # an empty section, e.g. localizer.noise: {}
+                raise ConfigError(f"{name} is not set in {section}; add a key with +{key}=<value>")
             if isinstance(node, DictConfig):
                 raise ConfigError(f"{name} is not a field of {section}; allowed: {allowed}"
                                   if where else f"{name} is not {section}; allowed: {allowed}")
@@ -581,4 +585,6 @@ def _check_path(cfg: Any, key: str, command: str) -> None:
 def _option_of(cfg: Any, where: str) -> str:
     top = where.split(".")[0]
     name = cfg[top].get("name") if hasattr(cfg[top], "get") else None
-    return f"{top}={name}" if name and top in ("env", "agent", "sensors", "shield") else where
+    if not name or top not in ("env", "agent", "sensors", "shield"):
+        return where
+    return f"{top}={name}" if where == top else f"{where} (in {top}={name})"
