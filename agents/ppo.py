@@ -112,6 +112,17 @@ class ActionRepeat(gym.Wrapper):
         return obs, total, terminated, truncated, info
 
 
+class TimeLimitIsTerminal(gym.Wrapper):
+    """Training-time: the episode's time limit ends it as a *termination* (no value bootstrapped after it). Why: SB3
+    bootstraps truncated episodes with the critic's value of the last state, as if the episode went on; on the left
+    turn, where not arriving in time is a failure and elapsed time is in the observation, that made waiting at the
+    line until the limit look as good as turning, and PPO drifted to never turning (measured, issue 7)."""
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        return obs, reward, terminated or truncated, False, info
+
+
 class SB3Policy:
     """Deterministic action of a trained SB3 model for one observation. With ``repeat`` > 1 (a model trained with
     :class:`ActionRepeat`) the model is asked every ``repeat`` calls and its action held in between."""

@@ -149,6 +149,8 @@ class PeriodicEval(BaseCallback):
 
     def _on_training_start(self) -> None:
         self._last_eval = self._last_video = self.num_timesteps
+        if self.every > 0 and self.num_timesteps == 0:  # the starting point (e.g. a cloned policy) on the curve
+            self.evaluate()
 
     def _on_step(self) -> bool:
         return True
@@ -190,7 +192,7 @@ class PeriodicEval(BaseCallback):
             save_model_atomic(self.model, self.ckpt_dir / "best.zip")
             write_text_atomic(self.ckpt_dir / "best.json", json.dumps({"score": self.best, "steps": step,
                                                                        **means}, indent=1))
-        if self.video_every > 0 and (step - self._last_video >= self.video_every or self._last_video == 0):
+        if self.video_every > 0 and (step - self._last_video >= self.video_every or step == 0):
             self._last_video = step
             self.video(step)
         return means

@@ -13,12 +13,15 @@ ACTIONS = ("env", "go_yield")  # agent.actions: the env's own action space, or a
 
 
 def _env_factory(env_cfg: dict, sensors_cfg: dict, shield_cfg: dict, intervention_cost: float = 0.0,
-                 action_repeat: int = 1, actions: str = "env", render_mode: str | None = None):
+                 action_repeat: int = 1, actions: str = "env", render_mode: str | None = None,
+                 timeout_is_terminal: bool = False):
     from agents.go_yield import GoYieldActions
-    from agents.ppo import ActionRepeat, FlatDictObservation, InterventionCost
+    from agents.ppo import ActionRepeat, FlatDictObservation, InterventionCost, TimeLimitIsTerminal
     from av_gym.make import make_env
 
     env = make_env(env_cfg, sensors_cfg, shield_cfg, render_mode=render_mode)
+    if timeout_is_terminal:
+        env = TimeLimitIsTerminal(env)
     if intervention_cost > 0:
         env = InterventionCost(env, intervention_cost)
     if actions == "go_yield":
@@ -142,7 +145,9 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     # A resumed run's episodes come from fresh seeds (the env streams of the killed run cannot be restored).
     cost, repeat = float(agent.get("intervention_cost", 0.0)), int(agent.get("action_repeat", 1))
     actions = str(agent.get("actions", "env"))
-    venv = make_vec_env(functools.partial(_env_factory, *plain, cost, repeat, actions), n_envs=int(agent.n_envs),
+    venv = make_vec_env(functools.partial(_env_factory, *plain, cost, repeat, actions,
+                                          timeout_is_terminal=bool(agent.get("timeout_is_terminal", False))),
+                        n_envs=int(agent.n_envs),
                         seed=int(cfg.seed) + done_steps, vec_env_cls=vec_cls)
     if resume:
         try:
@@ -208,5 +213,6 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
         except (EOFError, BrokenPipeError, ConnectionResetError):  # workers already gone after a signal
             pass
     path = save_model_atomic(model, ckpt_dir / "model.zip")
-    print(f"[train] {model.num_timesteps} env steps in {time.time() - t0:.0f} s")
+    env_steps = f" ({model.num_timesteps * repeat} env steps)" if repeat > 1 else ""
+    print(f"[train] {model.num_timesteps} steps{env_steps} in {time.time() - t0:.0f} s")
     return path
