@@ -18,7 +18,7 @@ from av_gym.metrics.recorder import EpisodeMetrics
 
 KMH = 1 / 3.6
 SENSOR_PRESETS = ("truth", "gnss_imu", "gnss_raw", "lidar", "cameras", "detector", "localized", "full",
-                  "turn_truth", "turn_perceived")
+                  "turn_truth", "turn_perceived", "lane_localized")
 
 
 def _shields() -> dict:
@@ -45,10 +45,12 @@ def _estimators() -> dict:
     """Estimator config key → wrapper class. Estimators read sensor keys and add estimated ones beside them
     (e.g. ``ego_estimate``), so they are stacked after every sensor, in this order."""
     from av_gym.estimation.localization import Localizer
+    from av_gym.estimation.lane_features import LaneFeatures
     from av_gym.estimation.object_tracking import ObjectTracker
     from av_gym.estimation.turn_features import TurnFeatures
 
-    return {"localizer": Localizer, "tracker": ObjectTracker, "turn_features": TurnFeatures}
+    return {"localizer": Localizer, "tracker": ObjectTracker, "turn_features": TurnFeatures,
+            "lane_features": LaneFeatures}
 
 
 def add_sensors(env: gym.Env, sensors_cfg: Mapping | None) -> gym.Env:
@@ -152,6 +154,8 @@ def highway_config(env_cfg: Mapping) -> tuple[str, dict]:
             "collision_reward": float(get("collision", rewards, "env.rewards")),
             "arrived_reward": float(get("arrived", rewards, "env.rewards")),
             "high_speed_reward": float(get("high_speed", rewards, "env.rewards")),
+            "progress_reward": float(get("progress", rewards, "env.rewards")),
+            "comfort_reward": float(get("comfort", rewards, "env.rewards")),
             **common,
         }
     return ENV_IDS[name], config

@@ -17,6 +17,12 @@ import yaml
 from agents import AlwaysProceed, PIDSteering, Policy
 from av_gym.errors import ConfigError
 
+def _go_yield(model_path: Path) -> bool:
+    cfg_path = model_path.parent / "config.yaml"
+    return cfg_path.is_file() and (yaml.safe_load(cfg_path.read_text()) or {}).get("agent", {}).get("actions") \
+        == "go_yield"
+
+
 def _load_sb3(model_path: Path, env: gym.Env) -> Policy:
     from agents.ppo import SB3Policy, sb3_space
 
@@ -25,9 +31,13 @@ def _load_sb3(model_path: Path, env: gym.Env) -> Policy:
         raise ConfigError(f"checkpoint {str(model_path)!r} expects observations {_shapes(policy.model.observation_space)}"
                           f", this env gives {_shapes(sb3_space(env.observation_space))} (same sensors preset and env "
                           f"settings as in its training, see its config.yaml)")
-    if policy.model.action_space != env.action_space:
+    if policy.model.action_space != env.action_space and not _go_yield(model_path):
         raise ConfigError(f"checkpoint {str(model_path)!r} acts in {policy.model.action_space}, this env expects "
                           f"{env.action_space} (env.action must be as in its training)")
+    cfg_path = model_path.parent / "config.yaml"
+    trained = (yaml.safe_load(cfg_path.read_text()) or {}).get("agent", {}) if cfg_path.is_file() else {}
+    policy.repeat = int(trained.get("action_repeat", 1) or 1)  # decides every `repeat` env steps, as in training
+    policy.actions = trained.get("actions", "env")  # go_yield: its two choices mapped to meta-actions, as in training
     return policy
 
 
@@ -71,24 +81,39 @@ def load_agent_config(name: str) -> dict[str, Any]:
     path = resources.files("conf") / "agent" / f"{name}.yaml"
     if not path.is_file():
         raise ConfigError(f"agent {name!r} is not in conf/agent/; available: {available_agents()} or a checkpoint path")
-    return yaml.safe_load(path.read_text())
+    cfg = yaml.safe_load(path.read_text())
+    if "agent" in cfg:  # a `# @package _global_` variant (it picks its sensors/shield): let Hydra compose it
+        from hydra import compose, initialize_config_module
+        from hydra.core.global_hydra import GlobalHydra
+        from omegaconf import OmegaConf
+
+        if GlobalHydra.instance().is_initialized():
+            composed = compose(config_name="train", overrides=[f"agent={name}"])
+        else:
+            with initialize_config_module("conf", version_base="1.3"):
+                composed = compose(config_name="train", overrides=[f"agent={name}"])
+        cfg = OmegaConf.to_container(composed.agent, resolve=True)
+    return cfg
 
 
-def find_checkpoint(kind: str, env_name: str, root: str | Path) -> Path:
-    """Newest ``checkpoints/<run>/`` whose saved config trained ``kind`` on ``env_name`` and holds its model;
-    if you trained none, the committed ``checkpoints/reference/<name>/`` one."""
+def find_checkpoint(kind: str, env_name: str, root: str | Path, name: str | None = None) -> Path:
+    """Newest ``checkpoints/<run>/`` whose saved config trained ``kind`` (and, if given, the agent config ``name``,
+    e.g. ``ppo_turn``) on ``env_name`` and holds its model; if you trained none, the committed
+    ``checkpoints/reference/<name>/`` one."""
     for pattern in ("*/config.yaml", "reference/*/config.yaml"):
         found = []
         for cfg_path in Path(root).glob(pattern):
             cfg = yaml.safe_load(cfg_path.read_text()) or {}
             model = cfg_path.parent / LOADERS[kind][0]
-            if model.is_file() and cfg.get("env", {}).get("name") == env_name \
-                    and cfg.get("agent", {}).get("kind") == kind:
+            agent = cfg.get("agent", {})
+            if model.is_file() and cfg.get("env", {}).get("name") == env_name and agent.get("kind") == kind \
+                    and (name is None or agent.get("name") == name):
                 found.append(model)
         if found:
             return max(found, key=lambda p: p.stat().st_mtime)
-    raise ConfigError(f"no {kind} checkpoint for env {env_name!r} under {root}/; train one with "
-                      f"`python -m train env={env_name} agent={kind}` or pass a checkpoint path")
+    what = name or kind
+    raise ConfigError(f"no {what} checkpoint for env {env_name!r} under {root}/; train one with "
+                      f"`python -m train env={env_name} agent={what}` or pass a checkpoint path")
 
 
 def _check_scenario(label: str, cfg: dict, env_name: str) -> None:
@@ -166,8 +191,14 @@ def resolve_agent(spec: str, env: gym.Env, env_name: str, checkpoints: str | Pat
                                  cte_index=cfg["cte_index"])
     if kind == "always_proceed":
         return spec, AlwaysProceed(env.unwrapped.cruise_action())
-    if kind in TRAINED_KINDS:  # e.g. a named variant of a trainable agent: newest checkpoint of that kind
-        path = find_checkpoint(kind, env_name, checkpoints)
+    if kind == "gap_acceptance":
+        from agents.go_yield import GapAcceptance
+
+        if "turn" not in env.observation_space.spaces:
+            raise ConfigError(f"agent {spec!r} reads obs['turn']; use sensors=turn_truth or turn_perceived")
+        return spec, GapAcceptance(t_gap=cfg["t_gap"], miss=cfg["miss"])
+    if kind in TRAINED_KINDS:  # a named variant of a trainable agent: newest checkpoint trained with that config
+        path = find_checkpoint(kind, env_name, checkpoints, name=None if spec == kind else spec)
         print(f"[eval] {spec}: using {path}")
         return spec, _load_trained(path, env, env_name)
     raise ConfigError(f"agent {spec!r} has unknown kind {kind!r}; known: pid, always_proceed, {', '.join(TRAINED_KINDS)}")
@@ -215,19 +246,24 @@ def plan_agent(spec: str, env_name: str, sensors: dict, shield: dict, checkpoint
     """Decide how agent ``spec`` runs. ``agent+shield`` (e.g. ``always_proceed+aeb``) wraps it in
     ``conf/shield/<shield>.yaml``. An agent runs with its own sensors when it has them (a rule-based agent's
     ``sensors:`` field; a checkpoint's training config), else with the ``sensors`` given; the privileged
-    ``truth`` state is what PID on the paper's simulator CTE needs, images are what PilotNet needs."""
+    ``truth`` state is what PID on the paper's simulator CTE needs, images are what PilotNet needs.
+
+    ``agent@preset`` runs the agent on another sensors preset than its own (``ppo_turn@turn_perceived``: a policy
+    trained on privileged objects, driven from tracked detections); the observation spaces must match."""
     base, _, shield_name = str(spec).partition("+")
+    base, _, preset = base.partition("@")
     if shield_name:
         shield = compose_group("shield", shield_name)
+    forced = compose_group("sensors", preset) if preset else None
     if base in TRAINED_KINDS or Path(base).suffix or "/" in base or Path(base).is_dir():
         path = find_checkpoint(base, env_name, checkpoints) if base in TRAINED_KINDS else Path(base)
         saved = _saved_config(path)
         return AgentPlan(str(spec), str(path) if base in TRAINED_KINDS else base,
-                         saved.get("sensors", sensors), shield)
+                         forced or saved.get("sensors", sensors), shield)
     cfg = load_agent_config(base)
     if cfg.get("sensors"):
         sensors = compose_group("sensors", cfg["sensors"])
     if cfg.get("kind") in TRAINED_KINDS:
-        path = find_checkpoint(cfg["kind"], env_name, checkpoints)
-        return AgentPlan(str(spec), str(path), _saved_config(path).get("sensors", sensors), shield)
-    return AgentPlan(str(spec), base, sensors, shield)
+        path = find_checkpoint(cfg["kind"], env_name, checkpoints, name=None if base == cfg["kind"] else base)
+        return AgentPlan(str(spec), str(path), forced or _saved_config(path).get("sensors", sensors), shield)
+    return AgentPlan(str(spec), base, forced or sensors, shield)

@@ -16,7 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 from av_gym.errors import ConfigError, run_cli
 
 BASELINES = {"left_turn": "always_proceed", "lane_keeping": "pid_paper"}
-RULE_BASED = ("pid", "always_proceed")
+RULE_BASED = ("pid", "always_proceed", "gap_acceptance")
 
 
 def _trainers() -> dict:
