@@ -46,7 +46,7 @@ def plot_curves(runs: dict[str, dict[str, list[tuple[int, float]]]], tags: list[
                 steps, values = zip(*scalars[tag])
                 ax.plot(steps, values, label=label, lw=1.4)
         ax.set_title(tag)
-        ax.set_xlabel("steps (SB3 num_timesteps: decisions when action_repeat > 1)")
+        ax.set_xlabel("steps (decisions if action_repeat > 1)")
         ax.grid(alpha=0.3)
     for ax in axes.ravel()[len(tags):]:
         ax.axis("off")
