@@ -52,7 +52,7 @@ def test_slurm_launcher_config_extends_submitit_slurm():
 def test_submitit_local_multirun_then_aggregate(tmp_path):
     """Two rule-based jobs (one short episode each) through submitit's LocalExecutor, then the sweep table."""
     sweep = tmp_path / "multirun"
-    cmd = [sys.executable, "-m", "train", "-m", "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=2",
+    cmd = [sys.executable, "-m", "train", "-m", "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=10",
            f"hydra.sweep.dir={sweep}", f"paths.runs={tmp_path}/runs", f"paths.checkpoints={tmp_path}/ckpt",
            "agent=always_proceed", "env.duration=2.0", "train.eval_episodes=1", "train.progress_bar=false",
            "train.eval_seed=7,8"]
