@@ -261,7 +261,9 @@ def plan_agent(spec: str, env_name: str, sensors: dict, shield: dict, checkpoint
         return AgentPlan(str(spec), str(path) if base in TRAINED_KINDS else base,
                          forced or saved.get("sensors", sensors), shield)
     cfg = load_agent_config(base)
-    if cfg.get("sensors"):
+    if cfg.get("sensors") and (sensors or {}).get("name") != cfg["sensors"]:
+        # the agent's own preset, unless the one given is that preset (then with the command line's overrides,
+        # e.g. a sweep over sensors.gnss.sigma for pid_gnss)
         sensors = compose_group("sensors", cfg["sensors"])
     if cfg.get("kind") in TRAINED_KINDS:
         path = find_checkpoint(cfg["kind"], env_name, checkpoints, name=None if base == cfg["kind"] else base)

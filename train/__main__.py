@@ -11,6 +11,7 @@ from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from av_gym.errors import ConfigError, run_cli
@@ -60,6 +61,8 @@ def train(cfg: DictConfig) -> dict:
     torch.set_num_threads(int(cfg.train.torch_threads))
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     ckpt_dir = Path(cfg.paths.checkpoints) / cfg.run_name
+    if HydraConfig.get().mode == RunMode.MULTIRUN:  # jobs of a sweep started in the same second share run_name
+        ckpt_dir = ckpt_dir.with_name(f"{ckpt_dir.name}-j{HydraConfig.get().job.num}")
     tb_dir = run_dir / "tb"
     ckpt_dir.mkdir(parents=True, exist_ok=True)
     write_text_atomic(ckpt_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
