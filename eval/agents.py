@@ -17,25 +17,18 @@ import yaml
 from agents import AlwaysProceed, PIDSteering, Policy
 from av_gym.errors import ConfigError
 
-def _go_yield(model_path: Path) -> bool:
-    cfg_path = model_path.parent / "config.yaml"
-    return cfg_path.is_file() and (yaml.safe_load(cfg_path.read_text()) or {}).get("agent", {}).get("actions") \
-        == "go_yield"
-
-
 def _load_sb3(model_path: Path, env: gym.Env) -> Policy:
     from agents.ppo import SB3Policy, sb3_space
 
     policy = SB3Policy.load(model_path)
+    trained = _saved_config(model_path).get("agent", {})
     if policy.model.observation_space != sb3_space(env.observation_space):
         raise ConfigError(f"checkpoint {str(model_path)!r} expects observations {_shapes(policy.model.observation_space)}"
                           f", this env gives {_shapes(sb3_space(env.observation_space))} (same sensors preset and env "
                           f"settings as in its training, see its config.yaml)")
-    if policy.model.action_space != env.action_space and not _go_yield(model_path):
+    if policy.model.action_space != env.action_space and trained.get("actions") != "go_yield":
         raise ConfigError(f"checkpoint {str(model_path)!r} acts in {policy.model.action_space}, this env expects "
                           f"{env.action_space} (env.action must be as in its training)")
-    cfg_path = model_path.parent / "config.yaml"
-    trained = (yaml.safe_load(cfg_path.read_text()) or {}).get("agent", {}) if cfg_path.is_file() else {}
     policy.repeat = int(trained.get("action_repeat", 1) or 1)  # decides every `repeat` env steps, as in training
     policy.actions = trained.get("actions", "env")  # go_yield: its two choices mapped to meta-actions, as in training
     return policy

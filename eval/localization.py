@@ -35,6 +35,7 @@ from av_gym.estimation.localization import FIELDS, LocalizationPipeline
 from av_gym.make import make_env
 from av_gym.metrics.localization import localization_summary, runtime_stats
 from av_gym.metrics.stats import markdown_table
+from eval.runner import run_episodes
 
 MODES = [  # key, label, LocalizationPipeline kwargs
     ("gnss", "GNSS only (raw)", {"mode": "gnss"}),
@@ -162,15 +163,8 @@ def run_closed_loop(seeds: list[int]) -> list[dict]:
         sensors = {"name": "truth", "keep_state": True} if loc is None else sensors_cfg(None, loc)
         env = make_env(_conf("env", "lane_keeping"), sensors)
         pid = PIDSteering(obs_key="state" if loc is None else "ego_estimate", cte_index=0)
-        for seed in seeds:
-            obs, _ = env.reset(seed=seed)
-            pid.reset()
-            done = False
-            while not done:
-                obs, _, terminated, truncated, info = env.step(pid.act(obs))
-                done = terminated or truncated
-            m = info["episode_metrics"]
-            rows.append({"agent": label, "seed": seed, "lap_completed": m["lap_completed"],
+        for m in run_episodes(env, pid, seeds, label, progress=False):
+            rows.append({"agent": label, "seed": m["seed"], "lap_completed": m["lap_completed"],
                          "cte_mean_abs_m": m["cte_mean_abs_m"], "cte_max_abs_m": m["cte_max_abs_m"],
                          "lane_departures": m["lane_departures"]})
         env.close()
