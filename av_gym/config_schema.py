@@ -30,7 +30,7 @@ from typing import Any
 from av_gym.errors import ConfigError
 
 ENV_NAMES = ("lane_keeping", "left_turn")
-AGENT_KINDS = ("ppo", "pilotnet", "pid", "always_proceed", "gap_acceptance")
+AGENT_KINDS = ("ppo", "pilotnet", "pid", "always_proceed", "gap_acceptance", "lookahead")
 
 
 @dataclass(frozen=True)
@@ -95,7 +95,8 @@ WEATHER = {"fog_visibility": "num >0|null", "fog_airlight": "num [0,255]", "nigh
 CAMERAS = {"height": "int >=2", "width": "int >=2", "hfov_deg": "num [1,170]", "mount_height": "num >0",
            "pitch_deg": "num (-90,90)", "lateral_offset": "num", "forward_offset": "num", "max_range": "num >0",
            "supersample": "int [1,8]", "rate_hz": "num >0|null", "noise": Delegate(lambda v, w: _camera_noise(v, w)),
-           "fog_visibility": "num >0|null", "night": "bool", "weather": Delegate(lambda v, w: _weather(v, w))}
+           "fog_visibility": "num >0|null", "night": "bool", "weather": Delegate(lambda v, w: _weather(v, w)),
+           "views": [("left", "centre", "right")]}
 DETECTOR = {"rate_hz": "num >0", "max_range": "num >0", "fov_deg": "num (0,360]", "miss_rate": "num [0,1)",
             "burst_length": "num >=1|null", "occlusion": "bool", "occlusion_fraction": "num (0,1]",
             "sigma_pos0": "num >=0", "sigma_pos_k": "num >=0", "sigma_vel": "num >=0", "sigma_size": "num >=0",
@@ -227,12 +228,15 @@ AGENT = {
             "clip_range": "num >0", "ent_coef": "num >=0", "vf_coef": "num >=0", "max_grad_norm": "num >0",
             "net_arch": ["int >=1"], "device": ("cpu", "cuda", "auto"), "action_repeat?": "int >=1",
             "actions?": ("env", "go_yield"), "intervention_cost?": "num >=0",
-            "init?": ("gap_acceptance", None), "init_episodes?": "int >=1", "init_epochs?": "int >=1",
+            "init?": ("gap_acceptance", "lookahead", "pid_tuned", "pid_paper", None), "init_episodes?": "int >=1",
+            "init_epochs?": "int >=1", "init_action_noise?": "num >=0", "init_lr?": "num >0|null",
+            "init_dagger_rounds?": "int >=0", "log_std_init?": "num|null",
             "timeout_is_terminal?": "bool"},
     "pid": {**_AGENT_COMMON, "kp": "num", "ki": "num", "kd": "num", "obs_key": "str", "cte_index": "int >=0",
             "search?": "any"},  # search: the record of how the gains were found (documentation, never read)
     "always_proceed": dict(_AGENT_COMMON),
     "gap_acceptance": {**_AGENT_COMMON, "t_gap": "num >0", "miss": "num >0"},
+    "lookahead": {**_AGENT_COMMON, "repeat": "int >=1"},
     "pilotnet": {**_AGENT_COMMON, "*": Delegate(lambda v, w: _pilotnet(v, w))},
 }
 """agent.kind → its fields. PilotNet's own settings are :class:`agents.bc.Args` (a dataclass with its checks)."""

@@ -18,7 +18,7 @@ from av_gym.metrics.recorder import EpisodeMetrics
 
 KMH = 1 / 3.6
 SENSOR_PRESETS = ("truth", "gnss_imu", "gnss_raw", "lidar", "cameras", "detector", "localized", "full",
-                  "turn_truth", "turn_perceived", "lane_localized")
+                  "turn_truth", "turn_perceived", "lane_localized", "camera_centre")
 
 
 def _shields() -> dict:

@@ -190,6 +190,12 @@ def resolve_agent(spec: str, env: gym.Env, env_name: str, checkpoints: str | Pat
         if "turn" not in env.observation_space.spaces:
             raise ConfigError(f"agent {spec!r} reads obs['turn']; use sensors=turn_truth or turn_perceived")
         return spec, GapAcceptance(t_gap=cfg["t_gap"], miss=cfg["miss"])
+    if kind == "lookahead":
+        from agents.go_yield import Lookahead
+
+        if "turn" not in env.observation_space.spaces:
+            raise ConfigError(f"agent {spec!r} reads obs['turn']; use sensors=turn_truth or turn_perceived")
+        return spec, Lookahead(env, repeat=cfg["repeat"])
     if kind in TRAINED_KINDS:  # a named variant of a trainable agent: newest checkpoint trained with that config
         path = find_checkpoint(kind, env_name, checkpoints, name=None if spec == kind else spec)
         print(f"[eval] {spec}: using {path}")

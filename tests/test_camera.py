@@ -232,6 +232,17 @@ def test_fog_fades_far_things_more_and_night_is_darker():
     assert night[-8:][road[-8:]].mean() > 1.5 * night[h + 2:h + 8][road[h + 2:h + 8]].mean()
 
 
+def test_a_subset_of_views_renders_the_same_images():
+    full = Cameras(gym.make(LANE_ID), noise=False)
+    centre = Cameras(gym.make(LANE_ID), noise=False, views=["centre"])
+    a, _ = full.reset(seed=4)
+    b, _ = centre.reset(seed=4)
+    assert set(b["cameras"]) == {"centre"} and centre.observation_space.contains(b)
+    np.testing.assert_array_equal(a["cameras"]["centre"], b["cameras"]["centre"])
+    with pytest.raises(ValueError, match="views"):
+        Cameras(gym.make(LANE_ID), views=["rear"])
+
+
 def test_bad_arguments_are_rejected():
     with pytest.raises(ValueError):
         CameraSpec(hfov_deg=0.0)

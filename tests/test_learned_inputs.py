@@ -197,14 +197,15 @@ def test_cloning_the_gap_acceptance_teacher_beats_its_majority_choice():
 
     from agents.go_yield import GapAcceptance
     from agents.ppo import make_ppo
-    from train.ppo import _env_factory, pretrain_from_teacher
+    from train.ppo import _env_factory, make_teacher, pretrain_from_teacher
 
     sensors = compose_group("sensors", "turn_truth")
     make = lambda: _env_factory(conf("env", "left_turn"), sensors, {"kind": "none"}, 0.0, 5, "go_yield")  # noqa: E731
     model = make_ppo(DummyVecEnv([make]), {"policy": "MultiInputPolicy", "net_arch": [64, 64], "n_steps": 64,
                                            "batch_size": 64}, seed=0, tensorboard_log=None)
     teacher = GapAcceptance(t_gap=4.0, miss=3.0)
-    stats = pretrain_from_teacher(model, make(), teacher, range(8), gamma=0.95, epochs=30, batch_size=64)
+    stats = pretrain_from_teacher(model, make(), make_teacher("gap_acceptance", "go_yield"), range(8), gamma=0.95,
+                                  epochs=30, batch_size=64)
     assert stats["decisions"] > 100
     # how often the teacher yields on these decisions: "always go" would score 1 - that
     env, yields, n = make(), 0, 0
@@ -218,3 +219,69 @@ def test_cloning_the_gap_acceptance_teacher_beats_its_majority_choice():
             done = te or tr
     assert 0 < yields < n
     assert stats["accuracy"] > max(yields, n - yields) / n
+
+
+def test_the_lookahead_oracle_avoids_the_collisions_of_always_proceed_and_leaves_the_env_untouched():
+    """The oracle simulates the future on a copy: the copy must not disturb the real episode, and on seeds where
+    driving on collides, waiting for the gap it finds must not."""
+    from agents.go_yield import GO, Lookahead, go_is_safe, meta_action
+
+    env = _turn_env("turn_truth")
+    obs, _ = env.reset(seed=1001)
+    go = lambda o: meta_action(GO, o["turn"])  # noqa: E731
+    assert isinstance(go_is_safe(env, obs, go), bool)
+    after_copy = rollout(env, Scripted(lambda k, o: go(o)), 1001)[1]["episode_metrics"]
+    untouched = rollout(_turn_env("turn_truth"), Scripted(lambda k, o: go(o)), 1001)[1]["episode_metrics"]
+    np.testing.assert_equal(after_copy, untouched)
+
+    outcomes = {}
+    for seed in range(1000, 1008):
+        proceed = rollout(env, Scripted(lambda k, o: go(o)), seed)[1]["episode_metrics"]
+        oracle = rollout(env, Lookahead(env, repeat=5), seed)[1]["episode_metrics"]
+        outcomes[seed] = (proceed["collision"], oracle["collision"], oracle["success"])
+    assert sum(p for p, _, _ in outcomes.values()) >= 3, outcomes  # the traffic is dangerous on these seeds
+    assert sum(c for _, c, _ in outcomes.values()) == 0, outcomes
+    assert sum(s for _, _, s in outcomes.values()) >= 6, outcomes
+
+
+def test_dagger_rounds_let_the_student_drive_and_the_teacher_label_its_states():
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from agents.ppo import make_ppo
+    from train.ppo import _env_factory, make_teacher, pretrain_from_teacher
+
+    sensors = compose_group("sensors", "turn_truth")
+    make = lambda: _env_factory(conf("env", "left_turn"), sensors, {"kind": "none"}, 0.0, 5, "go_yield")  # noqa: E731
+    model = make_ppo(DummyVecEnv([make]), {"policy": "MultiInputPolicy", "net_arch": [32], "n_steps": 64,
+                                           "batch_size": 64}, seed=0, tensorboard_log=None)
+    stats = pretrain_from_teacher(model, make(), make_teacher("gap_acceptance", "go_yield"), range(4), gamma=0.95,
+                                  epochs=5, batch_size=64, dagger_rounds=1, log=lambda msg: None)
+    assert stats["episodes"] == 4 and 0.0 <= stats["student_success"] <= 1.0
+
+
+def test_cloning_the_pid_teacher_steers_like_it():
+    """The privileged PID teacher (CTE from info["truth"]) for continuous steering: the cloned Gaussian mean keeps
+    the car in its lane for 15 s, where a straight wheel leaves the road within ~14 s (seeds 10, 11)."""
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from agents.ppo import make_ppo
+    from train.ppo import _env_factory, make_teacher, pretrain_from_teacher
+
+    sensors = compose_group("sensors", "truth")
+    make = lambda: _env_factory({**conf("env", "lane_keeping"), "time_limit": 15.0}, sensors, {"kind": "none"})  # noqa: E731
+    model = make_ppo(DummyVecEnv([make]), {"policy": "MultiInputPolicy", "net_arch": [64, 64], "n_steps": 64,
+                                           "batch_size": 64, "learning_rate": 1e-3}, seed=0, tensorboard_log=None)
+    env = make()
+    stats = pretrain_from_teacher(model, env, make_teacher("pid_tuned", "env"), range(3), gamma=0.98, epochs=80,
+                                  batch_size=64, action_noise=0.1)
+    assert stats["accuracy"] > 0.9
+    for seed in (10, 11):
+        for cloned, steer in ((True, lambda o: model.predict(o, deterministic=True)[0]),
+                              (False, lambda o: np.zeros(1, np.float32))):
+            obs, _ = env.reset(seed=seed)
+            done = False
+            while not done:
+                obs, _, terminated, truncated, info = env.step(steer(obs))
+                done = terminated or truncated
+            m = info["episode_metrics"]
+            assert (m["lane_departures"] == 0) == cloned, (seed, cloned, m["lane_departures"])

@@ -17,7 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from av_gym.errors import ConfigError, run_cli
 
 BASELINES = {"left_turn": "always_proceed", "lane_keeping": "pid_paper"}
-RULE_BASED = ("pid", "always_proceed", "gap_acceptance")
+RULE_BASED = ("pid", "always_proceed", "gap_acceptance", "lookahead")
 
 
 def _trainers() -> dict:

@@ -31,53 +31,150 @@ def _env_factory(env_cfg: dict, sensors_cfg: dict, shield_cfg: dict, interventio
     return FlatDictObservation(env)
 
 
-def pretrain_from_teacher(model, env, teacher, seeds, gamma: float, epochs: int, batch_size: int) -> dict:
-    """Behaviour cloning before PPO: the teacher (:class:`agents.go_yield.GapAcceptance`) drives ``env`` (the
-    training stack: go/yield actions, action repeat, flat observations) on ``seeds``; the policy is fitted to its
-    choices (cross-entropy) and the value head to the discounted returns it earned (MSE), with the model's own
-    optimizer. Why both: PPO's first updates on an untrained critic would undo a cloned actor.
-    Returns ``{"episodes", "decisions", "accuracy", "teacher_collision", "teacher_success"}``."""
+def make_teacher(name: str, actions: str):
+    """The teacher ``agent.init`` names, as ``teacher(env, obs, info) -> action`` in the training env's action space.
+
+    - ``gap_acceptance`` (kind gap_acceptance): GO/YIELD from ``obs["turn"]`` by its rule;
+    - ``lookahead`` (kind lookahead, :class:`agents.go_yield.Lookahead`): a privileged oracle that simulates the
+      future;
+    - a ``pid`` agent: steering from the simulator's CTE in ``info["truth"]``, so that a policy that sees only
+      images can start from lane keeping.
+
+    The privileged teachers read what the student never sees (``env``'s future, ``info``); only their labels reach
+    the student. The first two need ``agent.actions=go_yield``."""
+    import numpy as np
+
+    from av_gym.errors import ConfigError
+    from eval.agents import load_agent_config
+
+    cfg = load_agent_config(name)
+    kind = cfg.get("kind")
+    if kind in ("gap_acceptance", "lookahead") and actions != "go_yield":
+        raise ConfigError(f"agent.init={name} teaches go/yield choices: it needs agent.actions=go_yield")
+    if kind == "gap_acceptance":
+        from agents.go_yield import GapAcceptance
+
+        rule = GapAcceptance(t_gap=cfg["t_gap"], miss=cfg["miss"])
+        return lambda env, obs, info: rule.choice(obs["turn"])
+    if kind == "lookahead":
+        from agents.go_yield import GO, YIELD, go_is_safe
+
+        return lambda env, obs, info: GO if go_is_safe(env, obs, lambda o: GO) else YIELD
+    if kind == "pid":
+        from agents.pid import PIDSteering
+
+        pid = PIDSteering(kp=cfg["kp"], ki=cfg["ki"], kd=cfg["kd"], obs_key="cte")
+
+        def steer(env, obs, info):
+            if info["truth"]["time"] == 0.0:
+                pid.reset()
+            return np.asarray(pid.act({"cte": [info["truth"]["cte"]]}), dtype=np.float32).reshape(-1)
+        return steer
+    raise ConfigError(f"agent.init must name a gap_acceptance, lookahead or pid agent, got {name!r} (kind {kind!r})")
+
+
+def pretrain_from_teacher(model, env, teacher, seeds, gamma: float, epochs: int, batch_size: int,
+                          action_noise: float = 0.0, dagger_rounds: int = 0, lr: float | None = None,
+                          log=print) -> dict:
+    """Behaviour cloning before PPO: ``teacher(env, obs, info)`` (:func:`make_teacher`) labels the states of ``env``
+    (the training stack: its actions, action repeat, flat observations) on ``seeds``; the policy is fitted to the
+    labels (negative log-likelihood: cross-entropy for GO/YIELD, Gaussian for steering) and the value head to the
+    discounted returns of the episodes (MSE), with the model's own optimizer. Why both: PPO's first updates on an
+    untrained critic would undo a cloned actor.
+
+    ``action_noise`` (std, continuous actions only) perturbs the executed action but not the label (DART), so the
+    demonstrations include recoveries. ``dagger_rounds`` > 0 (DAgger, Ross et al. 2011): the seeds are split into
+    1 + rounds parts; the teacher drives the first, the student's own deterministic policy the others, the teacher
+    labels every state visited and the student is refitted on everything so far. Why: a cloned GO/YIELD policy
+    meets states its teacher never visited (waiting at the line after a wrong yield) and has no label for them.
+    ``lr``: the optimizer's learning rate while cloning (``None``: PPO's own); PPO resets it at its first update.
+    Returns ``{"episodes", "decisions", "accuracy" (share of matching choices, or 1 - mean |error| for continuous
+    actions), "teacher_collision", "teacher_success" (arrived, or lap completed; teacher-driven episodes),
+    "student_collision", "student_success" (the last DAgger round; NaN without DAgger)}``."""
     import numpy as np
     import torch as th
+    from gymnasium import spaces
 
-    obs_list, actions, returns, outcomes = [], [], [], []
-    for seed in seeds:
-        obs, _ = env.reset(seed=int(seed))
+    discrete = isinstance(env.action_space, spaces.Discrete)
+    rng = np.random.default_rng(0)
+    policy = model.policy
+    obs_list, actions, returns = [], [], []
+
+    def outcome(info):
+        m = info["episode_metrics"]
+        return m.get("collision", 0.0), m["success"] if "success" in m else m["lap_completed"]
+
+    def drive(seed: int, student: bool):
+        obs, info = env.reset(seed=int(seed))
         rewards, done = [], False
         while not done:
-            a = teacher.choice(obs["turn"])
-            obs_list.append(obs["turn"].copy())
-            actions.append(a)
-            obs, r, terminated, truncated, info = env.step(a)
+            label = teacher(env, obs, info)
+            obs_list.append({k: np.array(v, copy=True) for k, v in obs.items()})
+            actions.append(label)
+            executed = model.predict(obs, deterministic=True)[0] if student else label
+            if action_noise > 0 and not discrete:
+                executed = np.clip(executed + rng.normal(0.0, action_noise, np.shape(executed)),
+                                   env.action_space.low, env.action_space.high).astype(np.float32)
+            obs, r, terminated, truncated, info = env.step(executed)
             rewards.append(r)
             done = terminated or truncated
         g, ret = 0.0, []
         for r in reversed(rewards):
             g = r + gamma * g
             ret.append(g)
-        returns += ret[::-1]
-        m = info["episode_metrics"]
-        outcomes.append((m["collision"], m["success"]))
-    x = th.as_tensor(np.array(obs_list), dtype=th.float32)
-    y = th.as_tensor(np.array(actions), dtype=th.long)
-    g = th.as_tensor(np.array(returns), dtype=th.float32)
-    policy = model.policy
-    policy.set_training_mode(True)
-    gen = th.Generator().manual_seed(0)
-    for _ in range(epochs):
-        for idx in th.randperm(len(y), generator=gen).split(batch_size):
-            values, log_prob, _ = policy.evaluate_actions({"turn": x[idx]}, y[idx])
-            loss = -log_prob.mean() + th.nn.functional.mse_loss(values.flatten(), g[idx])
-            policy.optimizer.zero_grad()
-            loss.backward()
-            th.nn.utils.clip_grad_norm_(policy.parameters(), 0.5)
-            policy.optimizer.step()
-    policy.set_training_mode(False)
-    with th.no_grad():
-        accuracy = float((policy.get_distribution({"turn": x}).distribution.probs.argmax(1) == y).float().mean())
-    coll, succ = np.mean(outcomes, axis=0)
-    return {"episodes": len(outcomes), "decisions": len(y), "accuracy": accuracy, "teacher_collision": float(coll),
-            "teacher_success": float(succ)}
+        returns.extend(ret[::-1])
+        return outcome(info)
+
+    def batch(x, idx):  # obs_to_tensor transposes images to the policy's channel-first layout, as VecTransposeImage
+        return policy.obs_to_tensor({k: v[idx.numpy()] for k, v in x.items()})[0]
+
+    def fit():
+        if lr is not None:
+            for group in policy.optimizer.param_groups:
+                group["lr"] = float(lr)
+        x = {k: np.stack([o[k] for o in obs_list]) for k in obs_list[0]}
+        y = th.as_tensor(np.array(actions), dtype=th.long if discrete else th.float32)
+        g = th.as_tensor(np.array(returns), dtype=th.float32)
+        g_var = max(float(g.var()), 1.0) if len(g) > 1 else 1.0
+        policy.set_training_mode(True)
+        gen = th.Generator().manual_seed(0)
+        for _ in range(epochs):
+            for idx in th.randperm(len(y), generator=gen).split(batch_size):
+                values, log_prob, _ = policy.evaluate_actions(batch(x, idx), y[idx])
+                # The value error is scaled by the returns' variance: the actor and critic share the feature
+                # extractor (a CNN on images), and raw squared returns (a lap is worth ~50) would drown the actor's
+                # gradient (measured: the camera clone reached only 0.82 with them).
+                loss = -log_prob.mean() + th.nn.functional.mse_loss(values.flatten(), g[idx]) / g_var
+                policy.optimizer.zero_grad()
+                loss.backward()
+                th.nn.utils.clip_grad_norm_(policy.parameters(), 0.5)
+                policy.optimizer.step()
+        policy.set_training_mode(False)
+        with th.no_grad():
+            scores = []
+            for idx in th.arange(len(y)).split(1024):
+                dist = policy.get_distribution(batch(x, idx)).distribution
+                if discrete:
+                    scores.append((dist.probs.argmax(1) == y[idx]).float())
+                else:
+                    scores.append(1.0 - (dist.mean - y[idx]).abs().mean(1))
+            return float(th.cat(scores).mean())
+
+    parts = np.array_split(np.asarray(list(seeds)), 1 + int(dagger_rounds))
+    teacher_outcomes = [drive(seed, student=False) for seed in parts[0]]
+    accuracy = fit()
+    student_outcomes = [(np.nan, np.nan)]
+    for k, part in enumerate(parts[1:], start=1):
+        student_outcomes = [drive(seed, student=True) for seed in part]
+        coll, succ = np.mean(student_outcomes, axis=0)
+        log(f"[train] DAgger round {k}/{dagger_rounds}: the student drove {len(part)} episodes (collision "
+            f"{coll:.2f}, success {succ:.2f}), {len(actions)} labelled decisions")
+        accuracy = fit()
+    coll, succ = np.mean(teacher_outcomes, axis=0)
+    s_coll, s_succ = np.mean(student_outcomes, axis=0)
+    return {"episodes": sum(len(p) for p in parts), "decisions": len(actions), "accuracy": accuracy,
+            "teacher_collision": float(coll), "teacher_success": float(succ),
+            "student_collision": float(s_coll), "student_success": float(s_succ)}
 
 
 def validate(cfg: DictConfig) -> list[str]:
@@ -160,18 +257,14 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
         model = make_ppo(venv, OmegaConf.to_container(agent, resolve=True), seed=int(cfg.seed),
                          tensorboard_log=None, device=agent.device)
         if agent.get("init"):
-            from agents.go_yield import GapAcceptance
-            from eval.agents import load_agent_config
-
-            if actions != "go_yield":
-                raise ConfigError(f"agent.init={agent.init} teaches go/yield choices: it needs agent.actions=go_yield")
-            teacher_cfg = load_agent_config(str(agent.init))
-            teacher = GapAcceptance(t_gap=teacher_cfg["t_gap"], miss=teacher_cfg["miss"])
+            teacher = make_teacher(str(agent.init), actions)
             demo_env = _env_factory(*plain, cost, repeat, actions)
             # Demonstration seeds 500000+: disjoint from evaluation (1000+, 100000+) and from PPO's own episodes.
             t_bc = time.time()
             stats = pretrain_from_teacher(model, demo_env, teacher, range(500000, 500000 + int(agent.init_episodes)),
-                                          float(agent.gamma), int(agent.init_epochs), int(agent.batch_size))
+                                          float(agent.gamma), int(agent.init_epochs), int(agent.batch_size),
+                                          float(agent.get("init_action_noise", 0.0)),
+                                          int(agent.get("init_dagger_rounds", 0)), agent.get("init_lr"))
             demo_env.close()
             print(f"[train] cloned {agent.init} from {stats['episodes']} episodes ({stats['decisions']} decisions, "
                   f"teacher collision {stats['teacher_collision']:.2f}, success {stats['teacher_success']:.2f}): "

@@ -38,7 +38,7 @@ Gaussian pixel noise.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields, replace
 from functools import lru_cache
 
@@ -583,7 +583,8 @@ def render_view(env: gym.Env, camera: CameraSpec | None = None, pose: np.ndarray
 
 # ================================================================================================ the wrapper
 class Cameras(SensorWrapper):
-    """Adds ``obs["cameras"] = {"left", "centre", "right"}``: three (H, W, 3) uint8 RGB windshield images.
+    """Adds ``obs["cameras"] = {"left", "centre", "right"}``: three (H, W, 3) uint8 RGB windshield images (or the
+    subset named by ``views``).
 
     Args (SI units; see :class:`CameraSpec`, :class:`Weather`, :class:`CameraNoise` for meanings and sources):
         height, width: image size (px), default 66×200 (PilotNet input).
@@ -596,6 +597,8 @@ class Cameras(SensorWrapper):
             :func:`render_views`), or a :class:`CameraNoise` / mapping of its fields.
         fog_visibility: fog visibility V (m), ``None`` = clear. night: night-time rendering.
         weather: a full :class:`Weather`; overrides ``fog_visibility`` and ``night``.
+        views: which of left/centre/right to render (default all three). The per-episode exposure is drawn for all
+            three whatever the subset, so a subset's camera has the same exposure as in the full rig.
     """
 
     key = "cameras"
@@ -604,12 +607,17 @@ class Cameras(SensorWrapper):
                  mount_height: float = 1.4, pitch_deg: float = 8.0, lateral_offset: float = WINDSHIELD_HALF_WIDTH,
                  forward_offset: float = 0.5, max_range: float = 80.0, supersample: int = 2,
                  rate_hz: float | None = None, noise: bool | CameraNoise | Mapping = True,
-                 fog_visibility: float | None = None, night: bool = False, weather: Weather | None = None) -> None:
+                 fog_visibility: float | None = None, night: bool = False, weather: Weather | None = None,
+                 views: Sequence[str] = CAMERA_NAMES) -> None:
         base = CameraSpec(height=int(height), width=int(width), hfov_deg=float(hfov_deg),
                           mount_height=float(mount_height), pitch_deg=float(pitch_deg),
                           forward_offset=float(forward_offset), max_range=float(max_range),
                           supersample=int(supersample))
-        self.specs = camera_rig(base, float(lateral_offset))
+        unknown = [v for v in views if v not in CAMERA_NAMES]
+        if unknown or not views:
+            raise ValueError(f"views must be a non-empty subset of {list(CAMERA_NAMES)}, got {list(views)}")
+        rig = camera_rig(base, float(lateral_offset))
+        self.specs = {name: rig[name] for name in CAMERA_NAMES if name in views}
         self.weather = weather or Weather(fog_visibility=fog_visibility, night=bool(night))
         if noise is True:
             self.noise: CameraNoise | None = CameraNoise()
@@ -628,9 +636,8 @@ class Cameras(SensorWrapper):
         self._next_capture = 0.0
 
     def sensor_space(self) -> spaces.Dict:
-        spec = self.specs["centre"]
         return spaces.Dict({name: spaces.Box(0, 255, (spec.height, spec.width, 3), np.uint8)
-                            for name in CAMERA_NAMES})
+                            for name, spec in self.specs.items()})
 
     def on_reset(self) -> None:
         self._held, self._next_capture = None, 0.0
@@ -665,7 +672,7 @@ class Cameras(SensorWrapper):
                 self._next_capture += period
         frames = render_views(self.env, self.specs, weather=self.weather)
         if self.noise is not None:
-            frames = {name: self._noisy(name, frames[name]) for name in CAMERA_NAMES}
+            frames = {name: self._noisy(name, frames[name]) for name in self.specs}
         self._held = frames
         return {name: img.copy() for name, img in frames.items()} if self.rate_hz is not None else frames
 
