@@ -108,15 +108,19 @@ class GapAcceptance:
         return meta_action(self.choice(obs["turn"]), obs["turn"])
 
 
-def go_is_safe(env: gym.Env, obs: Any, go: Callable[[Any], Any]) -> bool:
+def go_is_safe(env: gym.Env, obs: Any, go: Callable[[Any], Any], visited: dict | None = None) -> bool:
     """Whether going now and never yielding again ends the episode without a collision: the rest of the episode is
     played on a deep copy of ``env``, random generators included, with ``go(obs)`` as the action at every step
-    (``obs``: the current observation of ``env``).
+    (``obs``: the current observation of ``env``). ``visited``, if given, receives ``time → (x, y, speed)`` of the
+    ego along the simulated future.
     The copy's future is the real future under GO (the other drivers react to the ego as they would), which is what
     makes :class:`Lookahead` an oracle. Cost: one simulated episode tail (~0.1 s on the left turn)."""
     future = copy.deepcopy(env)
     while True:
         obs, _, terminated, truncated, info = future.step(go(obs))
+        if visited is not None:
+            t = info["truth"]
+            visited[t["time"]] = (t["x"], t["y"], t["speed"])
         if terminated or truncated:
             return not info["episode_metrics"].get("collision")
 

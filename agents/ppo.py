@@ -84,11 +84,14 @@ class InterventionCost(gym.Wrapper):
 def make_ppo(env: VecEnv, hyper: dict[str, Any], *, seed: int, tensorboard_log: str | None,
              device: str = "cpu") -> PPO:
     """A fresh SB3 PPO on ``env``. ``hyper`` holds ``policy``, ``net_arch`` (hidden sizes), optionally
-    ``log_std_init`` (continuous actions: initial log std of the Gaussian) and :data:`PPO_KEYS`."""
+    ``log_std_init`` (continuous actions: initial log std of the Gaussian), ``cnn_output_dim`` (image inputs: width of
+    the NatureCNN's output layer, SB3's default 256) and :data:`PPO_KEYS`."""
     kwargs = {k: hyper[k] for k in PPO_KEYS if k in hyper}
     policy_kwargs = {"net_arch": list(hyper["net_arch"])} if hyper.get("net_arch") else {}
     if hyper.get("log_std_init") is not None:
         policy_kwargs["log_std_init"] = float(hyper["log_std_init"])
+    if hyper.get("cnn_output_dim") is not None:
+        policy_kwargs["features_extractor_kwargs"] = {"cnn_output_dim": int(hyper["cnn_output_dim"])}
     return PPO(hyper.get("policy", "MultiInputPolicy"), env, seed=seed, tensorboard_log=tensorboard_log,
                policy_kwargs=policy_kwargs or None, device=device, verbose=0, **kwargs)
 

@@ -76,6 +76,19 @@ def test_train_ppo_on_the_full_sensor_preset(tmp_path):
     assert "| ppo | 2 |" in res.stdout
 
 
+def test_train_the_camera_lane_keeper_with_a_narrow_cnn(tmp_path):
+    """agent=ppo_lane_camera composes (centre camera only, cloned PID start) and agent.cnn_output_dim reaches SB3."""
+    from stable_baselines3 import PPO
+
+    res = run("train", "env=lane_keeping", "agent=ppo_lane_camera", *FAST_PPO, "agent.init_episodes=1",
+              "agent.init_epochs=1", "agent.cnn_output_dim=16", "run_name=cam", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "cloned pid_tuned from 1 episodes" in res.stdout
+    model = PPO.load(tmp_path / "checkpoints" / "cam" / "model.zip", device="cpu")
+    assert list(model.observation_space.spaces) == ["cameras_centre"]
+    assert model.policy.features_extractor.features_dim == 16
+
+
 @pytest.mark.parametrize("module, overrides, needle", [
     ("train", ["env.mode=rush_hour"], "env.mode must be one of ['traffic', 'ccftap']"),
     ("train", ["env=lane_keeping", "agent=always_proceed"], "drives scenarios ['left_turn']"),

@@ -285,3 +285,30 @@ def test_cloning_the_pid_teacher_steers_like_it():
                 done = terminated or truncated
             m = info["episode_metrics"]
             assert (m["lane_departures"] == 0) == cloned, (seed, cloned, m["lane_departures"])
+
+
+def test_the_lookahead_teachers_shortcut_gives_the_labels_of_a_full_simulation(monkeypatch):
+    """The teacher skips re-simulating while the ego stays on the last collision-free GO future; on a trajectory a
+    wavering student drives (GO, YIELD, GO ...), its labels must equal a fresh simulation's at every decision."""
+    import agents.go_yield as go_yield
+    from train.ppo import _env_factory, make_teacher
+
+    calls = []
+    real = go_yield.go_is_safe
+    monkeypatch.setattr(go_yield, "go_is_safe", lambda *a, **k: calls.append(1) or real(*a, **k))
+    teacher = make_teacher("lookahead", "go_yield")
+    env = _env_factory(conf("env", "left_turn"), compose_group("sensors", "turn_truth"), {"kind": "none"}, 0.0, 5,
+                       "go_yield")
+    student = [go_yield.YIELD] * 4 + [go_yield.GO, go_yield.GO, go_yield.YIELD] * 20
+    labels, fresh = [], []
+    for seed in (1001, 1003):
+        obs, info = env.reset(seed=seed)
+        for choice in student:
+            labels.append(teacher(env, obs, info))
+            fresh.append(go_yield.GO if real(env, obs, lambda o: go_yield.GO) else go_yield.YIELD)
+            obs, _, terminated, truncated, info = env.step(choice)
+            if terminated or truncated:
+                break
+    assert labels == fresh
+    assert go_yield.GO in labels and go_yield.YIELD in labels, labels
+    assert len(calls) < len(labels), "the shortcut never skipped a simulation"
