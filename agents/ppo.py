@@ -12,7 +12,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.vec_env import VecEnv
 
 PPO_KEYS = ("learning_rate", "n_steps", "batch_size", "n_epochs", "gamma", "gae_lambda", "clip_range", "ent_coef",
-            "vf_coef", "max_grad_norm")
+            "vf_coef", "max_grad_norm", "target_kl")
 
 
 def flat_space(space: gym.Space) -> gym.Space:

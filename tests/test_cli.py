@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 FAST_PPO = ["agent.total_timesteps=256", "agent.n_steps=64", "agent.batch_size=64", "agent.n_epochs=1",
@@ -87,6 +88,18 @@ def test_train_the_camera_lane_keeper_with_a_narrow_cnn(tmp_path):
     model = PPO.load(tmp_path / "checkpoints" / "cam" / "model.zip", device="cpu")
     assert list(model.observation_space.spaces) == ["cameras_centre"]
     assert model.policy.features_extractor.features_dim == 16
+
+    # exported as a reference checkpoint: smaller (no optimizer state), the same actions
+    res = run("train.export", "checkpoints/cam", "ref", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    run_dir, ref_dir = tmp_path / "checkpoints" / "cam", tmp_path / "ref"
+    ref = PPO.load(ref_dir / "model.zip", device="cpu")
+    assert (ref_dir / "model.zip").stat().st_size < 0.6 * (run_dir / "model.zip").stat().st_size
+    obs = {k: s.sample() for k, s in model.observation_space.spaces.items()}
+    np.testing.assert_array_equal(ref.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
+    assert (ref_dir / "config.yaml").read_text() == (run_dir / "config.yaml").read_text()
+    res = run("train.export", "checkpoints/nothing_here", "ref", cwd=tmp_path)
+    assert res.returncode == 2 and "checkpoints/nothing_here/model.zip does not exist" in res.stderr
 
 
 @pytest.mark.parametrize("module, overrides, needle", [

@@ -149,6 +149,12 @@ def pretrain_from_teacher(model, env, teacher, seeds, gamma: float, epochs: int,
         y = th.as_tensor(np.array(actions), dtype=th.long if discrete else th.float32)
         g = th.as_tensor(np.array(returns), dtype=th.float32)
         g_var = max(float(g.var()), 1.0) if len(g) > 1 else 1.0
+        # Continuous actions: the Gaussian's std stays at agent.log_std_init. Fitted too, the NLL shrinks it to the
+        # labels' residual (0.05 of full lock from the camera) and PPO's KL per update grows as 1/std^2: the
+        # camera run then drifted off the road after 20k steps (approx KL 0.2-2, measured).
+        log_std = getattr(policy, "log_std", None)
+        if log_std is not None:
+            log_std.requires_grad_(False)
         policy.set_training_mode(True)
         gen = th.Generator().manual_seed(0)
         for _ in range(epochs):
@@ -163,6 +169,8 @@ def pretrain_from_teacher(model, env, teacher, seeds, gamma: float, epochs: int,
                 th.nn.utils.clip_grad_norm_(policy.parameters(), 0.5)
                 policy.optimizer.step()
         policy.set_training_mode(False)
+        if log_std is not None:
+            log_std.requires_grad_(True)
         with th.no_grad():
             scores = []
             for idx in th.arange(len(y)).split(1024):
