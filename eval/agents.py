@@ -200,7 +200,8 @@ def resolve_agent(spec: str, env: gym.Env, env_name: str, checkpoints: str | Pat
         path = find_checkpoint(kind, env_name, checkpoints, name=None if spec == kind else spec)
         print(f"[eval] {spec}: using {path}")
         return spec, _load_trained(path, env, env_name)
-    raise ConfigError(f"agent {spec!r} has unknown kind {kind!r}; known: pid, always_proceed, {', '.join(TRAINED_KINDS)}")
+    raise ConfigError(f"agent {spec!r} has unknown kind {kind!r}; known: pid, always_proceed, "
+                      f"gap_acceptance, lookahead, {', '.join(TRAINED_KINDS)}")
 
 
 # ----------------------------------------------------------------------------------------------- per-agent stacks
