@@ -136,7 +136,8 @@ class FastIDMVehicle(FastControlMixin, IDMVehicle):
         return acceleration
 
     def desired_gap(self, ego_vehicle: Vehicle, front_vehicle: Vehicle = None, projected: bool = True) -> float:
-        if not (projected and _plain_velocity(ego_vehicle) and _plain_velocity(front_vehicle)):
+        # The expanded dot product equals the stock ``np.dot`` only where BLAS does no fused multiply-add.
+        if not (projected and fmath.DOT_EXACT and _plain_velocity(ego_vehicle) and _plain_velocity(front_vehicle)):
             return super().desired_gap(ego_vehicle, front_vehicle, projected)
         d0 = self.DISTANCE_WANTED
         tau = self.TIME_WANTED
