@@ -171,6 +171,24 @@ def _wrap(a: float) -> float:
     return float((a + np.pi) % (2 * np.pi) - np.pi)
 
 
+class _ActuatedAct:
+    """The ego's ``act`` followed by the shield's brake actuator (:meth:`AEBShield._install_actuator`). An object,
+    not a closure: ``copy.deepcopy`` of the env stack (the lookahead oracle plays futures on copies) copies its
+    references, so the copied ego runs its own controller and the copied shield's actuator; a closure would be
+    shared and drive the original vehicle."""
+
+    def __init__(self, original, vehicle, shield: "AEBShield") -> None:
+        self.original, self.vehicle, self.shield = original, vehicle, shield
+
+    def __call__(self, action=None) -> None:
+        self.original(action)
+        u, shield = self.shield.env.unwrapped, self.shield
+        t = u.steps / float(u.config["simulation_frequency"])
+        a = shield.actuator.command(t, self.vehicle.speed, shield.sim_dt)
+        if a is not None:
+            self.vehicle.action["acceleration"] = a
+
+
 class AEBShield(gym.Wrapper):
     """Predictive AEB safety shield; see the module docstring for variants, modes and ``info`` keys.
 
@@ -305,17 +323,7 @@ class AEBShield(gym.Wrapper):
         """Patch this ego instance so that, while the brake is commanded, every simulation tick ends with the
         actuator's acceleration, whatever the vehicle's own controller (MDPVehicle's speed controller for
         discrete actions, RouteFollowingVehicle's commanded acceleration for continuous) asked for."""
-        original = vehicle.act
-        shield, u = self, self.env.unwrapped
-
-        def act(action=None):
-            original(action)
-            t = u.steps / float(u.config["simulation_frequency"])
-            a = shield.actuator.command(t, vehicle.speed, shield.sim_dt)
-            if a is not None:
-                vehicle.action["acceleration"] = a
-
-        vehicle.act = act
+        vehicle.act = _ActuatedAct(vehicle.act, vehicle, self)
 
     def step(self, action):
         stage, ttc, horizon, target, active, infeasible = self._decide()
@@ -375,7 +383,9 @@ class AEBShield(gym.Wrapper):
             rows = [[v.position[0], v.position[1], v.velocity[0], v.velocity[1], v.heading, v.LENGTH, v.WIDTH]
                     for v in vehicles]
             self._lanes = [getattr(v, "lane_index", None) for v in vehicles]
-            return np.array(rows, dtype=float).reshape(-1, 7), [id(v) for v in vehicles], list(range(len(vehicles)))
+            # Keyed by the vehicle objects, not id(): a deep copy of the stack (the lookahead oracle) then maps the
+            # history to the copied vehicles, and a removed vehicle's id can never hand its history to a new one.
+            return np.array(rows, dtype=float).reshape(-1, 7), vehicles, list(range(len(vehicles)))
         rows = self.detector.measure()
         tracks = self.tracker.step(rows, self._time(), ego["xy"])
         ids = [int(i) for i in self.tracker.track_ids()]

@@ -91,7 +91,9 @@ def make_ppo(env: VecEnv, hyper: dict[str, Any], *, seed: int, tensorboard_log: 
     if hyper.get("log_std_init") is not None:
         policy_kwargs["log_std_init"] = float(hyper["log_std_init"])
     if hyper.get("cnn_output_dim") is not None:
-        policy_kwargs["features_extractor_kwargs"] = {"cnn_output_dim": int(hyper["cnn_output_dim"])}
+        # MultiInputPolicy's CombinedExtractor names the CNN's width cnn_output_dim; CnnPolicy's NatureCNN features_dim
+        key = "features_dim" if hyper.get("policy") == "CnnPolicy" else "cnn_output_dim"
+        policy_kwargs["features_extractor_kwargs"] = {key: int(hyper["cnn_output_dim"])}
     return PPO(hyper.get("policy", "MultiInputPolicy"), env, seed=seed, tensorboard_log=tensorboard_log,
                policy_kwargs=policy_kwargs or None, device=device, verbose=0, **kwargs)
 

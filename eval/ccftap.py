@@ -108,7 +108,8 @@ def _policy(task: dict, env):
     from eval.agents import resolve_agent
 
     key = (task["agent_spec"], json.dumps(task.get("sensors"), sort_keys=True), task.get("action", "discrete"))
-    if key not in _POLICIES:
+    held = getattr(_POLICIES.get(key), "env", None)  # an agent bound to the env it drives (lookahead oracle)
+    if key not in _POLICIES or (held is not None and held is not env):
         with contextlib.redirect_stdout(io.StringIO()):  # its "[eval] ...: using <checkpoint>" line: said once
             _, _POLICIES[key] = resolve_agent(task["agent_spec"], env, "left_turn", task.get("checkpoints",
                                                                                             "checkpoints"))

@@ -90,8 +90,9 @@ def test_train_the_camera_lane_keeper_with_a_narrow_cnn(tmp_path):
     assert model.policy.features_extractor.features_dim == 16
 
     # exported as a reference checkpoint: smaller (no optimizer state), the same actions
-    res = run("train.export", "checkpoints/cam", "ref", cwd=tmp_path)
+    res = run("train.export", "checkpoints/cam", "ref", "--command", "python -m train run_name=cam", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
+    assert (tmp_path / "ref" / "COMMAND").read_text() == "python -m train run_name=cam\n"
     run_dir, ref_dir = tmp_path / "checkpoints" / "cam", tmp_path / "ref"
     ref = PPO.load(ref_dir / "model.zip", device="cpu")
     assert (ref_dir / "model.zip").stat().st_size < 0.6 * (run_dir / "model.zip").stat().st_size

@@ -31,7 +31,7 @@ def _env_factory(env_cfg: dict, sensors_cfg: dict, shield_cfg: dict, interventio
     return FlatDictObservation(env)
 
 
-def make_teacher(name: str, actions: str):
+def make_teacher(name: str, actions: str, scenario: str | None = None, action_repeat: int = 1):
     """The teacher ``agent.init`` names, as ``teacher(env, obs, info) -> action`` in the training env's action space.
 
     - ``gap_acceptance`` (kind gap_acceptance): GO/YIELD from ``obs["turn"]`` by its rule;
@@ -51,6 +51,11 @@ def make_teacher(name: str, actions: str):
     kind = cfg.get("kind")
     if kind in ("gap_acceptance", "lookahead") and actions != "go_yield":
         raise ConfigError(f"agent.init={name} teaches go/yield choices: it needs agent.actions=go_yield")
+    if kind == "pid" and (actions != "env" or scenario not in (None, "lane_keeping") or action_repeat != 1):
+        # Its gains are tuned for a 10 Hz steering loop on the lane's CTE (read from info["truth"]).
+        raise ConfigError(f"agent.init={name} teaches lane-keeping steering: it needs env=lane_keeping, "
+                          f"agent.actions=env and agent.action_repeat=1 (got env={scenario}, "
+                          f"agent.actions={actions}, agent.action_repeat={action_repeat})")
     if kind == "gap_acceptance":
         from agents.go_yield import GapAcceptance
 
@@ -278,7 +283,7 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
         model = make_ppo(venv, OmegaConf.to_container(agent, resolve=True), seed=int(cfg.seed),
                          tensorboard_log=None, device=agent.device)
         if agent.get("init"):
-            teacher = make_teacher(str(agent.init), actions)
+            teacher = make_teacher(str(agent.init), actions, str(cfg.env.name), repeat)
             demo_env = _env_factory(*plain, cost, repeat, actions)
             # Demonstration seeds 500000+: disjoint from evaluation (1000+, 100000+) and from PPO's own episodes.
             t_bc = time.time()

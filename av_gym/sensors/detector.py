@@ -86,7 +86,9 @@ class Detector(SensorWrapper):
         return spaces.Box(low, high, dtype=np.float32)
 
     def on_reset(self) -> None:
-        self._missing: dict[int, bool] = {}  # per-vehicle chain state, keyed by id(vehicle)
+        # Per-vehicle chain state, keyed by the vehicle object (not id(), which a deep copy of the stack would
+        # leave pointing at the original's vehicles, and which a new vehicle could reuse).
+        self._missing: dict[object, bool] = {}
         self._next_frame = 0.0
         self._frame_time = 0.0
         self._rows = np.zeros((self.max_objects, len(FIELDS)), dtype=np.float32)
@@ -128,7 +130,7 @@ class Detector(SensorWrapper):
             occluded = self._occluded(ego_xy, others) if self.occlusion else np.zeros(len(others), dtype=bool)
             vehicles = [v for v in self.env.unwrapped.road.vehicles if v is not self.env.unwrapped.vehicle]
             for i in np.flatnonzero(in_view):
-                key = id(vehicles[i])
+                key = vehicles[i]
                 if key not in self._missing:  # first sight: start in the chain's stationary distribution
                     missing = bool(self.rng.random() < self.miss_rate)
                 elif self._missing[key]:
