@@ -270,7 +270,8 @@ def _agent_section(value: Any, where: str) -> list[str]:
     if rest is not None:
         problems = _check({k: v for k, v in value.items() if k in spec or f"{k}?" in spec}, spec, where)
         return problems or rest.check(value, where)
-    problems = _check(value, spec, where, what=f"a field of a {kind} agent", shipped=_shipped("agent", value.get("name")))
+    problems = _check(value, spec, where, what=f"a field of a {kind} agent",
+                      shipped=_shipped("agent", value.get("name")))
     rounds, episodes = value.get("init_dagger_rounds") or 0, value.get("init_episodes")
     if not problems and value.get("init") and isinstance(episodes, int) and episodes < 1 + rounds:
         problems.append(f"{where}.init_episodes must be at least 1 + {where}.init_dagger_rounds = {1 + rounds} (the "

@@ -230,8 +230,8 @@ def _go_yield_future(env, obs, go_from: int, steps: int = 400) -> tuple[list, di
     for k in range(steps):
         obs, _, terminated, truncated, info = env.step(meta_action(YIELD if k < go_from else GO, obs["turn"]))
         t = info["truth"]
-        out.append((t["x"], t["y"], t["speed"], info.get("aeb_stage"), info.get("aeb_ttc"), info.get("shield_override"),
-                    t["collision"]))
+        out.append((t["x"], t["y"], t["speed"], t["collision"],
+                    info.get("aeb_stage"), info.get("aeb_ttc"), info.get("shield_override")))
         if terminated or truncated:
             break
     return out, obs

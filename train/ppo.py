@@ -41,7 +41,8 @@ def make_teacher(name: str, actions: str, scenario: str | None = None, action_re
       images can start from lane keeping.
 
     The privileged teachers read what the student never sees (``env``'s future, ``info``); only their labels reach
-    the student. The first two need ``agent.actions=go_yield``."""
+    the student. The first two need ``agent.actions=go_yield``; a pid teacher needs ``scenario`` lane_keeping (or
+    None: unchecked), continuous actions and ``action_repeat`` 1."""
     import numpy as np
 
     from av_gym.errors import ConfigError
