@@ -85,7 +85,9 @@ def make_ppo(env: VecEnv, hyper: dict[str, Any], *, seed: int, tensorboard_log: 
              device: str = "cpu") -> PPO:
     """A fresh SB3 PPO on ``env``. ``hyper`` holds ``policy``, ``net_arch`` (hidden sizes), optionally
     ``log_std_init`` (continuous actions: initial log std of the Gaussian), ``cnn_output_dim`` (image inputs: width of
-    the NatureCNN's output layer, SB3's default 256) and :data:`PPO_KEYS`."""
+    the NatureCNN's output layer, SB3's default 256), ``extractor`` (``mlp``: SB3's concatenation of the inputs;
+    ``attention``: :class:`agents.attention.EgoAttention` over the left turn's road users, ``attention_dim`` wide
+    with ``attention_heads`` heads) and :data:`PPO_KEYS`."""
     kwargs = {k: hyper[k] for k in PPO_KEYS if k in hyper}
     policy_kwargs = {"net_arch": list(hyper["net_arch"])} if hyper.get("net_arch") else {}
     if hyper.get("log_std_init") is not None:
@@ -94,6 +96,12 @@ def make_ppo(env: VecEnv, hyper: dict[str, Any], *, seed: int, tensorboard_log: 
         # MultiInputPolicy's CombinedExtractor names the CNN's width cnn_output_dim; CnnPolicy's NatureCNN features_dim
         key = "features_dim" if hyper.get("policy") == "CnnPolicy" else "cnn_output_dim"
         policy_kwargs["features_extractor_kwargs"] = {key: int(hyper["cnn_output_dim"])}
+    if hyper.get("extractor", "mlp") == "attention":  # the left turn's road users through ego-attention
+        from agents.attention import EgoAttention
+
+        policy_kwargs["features_extractor_class"] = EgoAttention
+        policy_kwargs["features_extractor_kwargs"] = {"embed_dim": int(hyper.get("attention_dim", 64)),
+                                                      "heads": int(hyper.get("attention_heads", 2))}
     return PPO(hyper.get("policy", "MultiInputPolicy"), env, seed=seed, tensorboard_log=tensorboard_log,
                policy_kwargs=policy_kwargs or None, device=device, verbose=0, **kwargs)
 

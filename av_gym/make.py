@@ -37,8 +37,10 @@ def _sensor_classes() -> dict:
 
     from av_gym.sensors.camera import Cameras
     from av_gym.sensors.lidar import Lidar
+    from av_gym.sensors.turn_signal import TurnSignals
 
-    return {"gnss": GNSS, "imu": IMU, "lidar": Lidar, "cameras": Cameras, "detector": Detector, **_estimators()}
+    return {"gnss": GNSS, "imu": IMU, "lidar": Lidar, "cameras": Cameras, "detector": Detector,
+            "turn_signals": TurnSignals, **_estimators()}
 
 
 def _estimators() -> dict:
@@ -47,10 +49,10 @@ def _estimators() -> dict:
     from av_gym.estimation.localization import Localizer
     from av_gym.estimation.lane_features import LaneFeatures
     from av_gym.estimation.object_tracking import ObjectTracker
-    from av_gym.estimation.turn_features import TurnFeatures
+    from av_gym.estimation.turn_features import TurnFeatures, TurnIntent
 
     return {"localizer": Localizer, "tracker": ObjectTracker, "turn_features": TurnFeatures,
-            "lane_features": LaneFeatures}
+            "turn_intent": TurnIntent, "lane_features": LaneFeatures}
 
 
 def add_sensors(env: gym.Env, sensors_cfg: Mapping | None) -> gym.Env:

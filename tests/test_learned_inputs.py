@@ -21,7 +21,7 @@ def _turn_env(preset: str, **env):
 
 def test_turn_features_are_bounded_and_only_they_are_observed():
     env = _turn_env("turn_truth")
-    assert list(env.observation_space.spaces) == ["turn"]
+    assert sorted(env.observation_space.spaces) == ["intent", "turn"]
     obs, _ = env.reset(seed=1)
     for _ in range(60):
         obs, *_, info = env.step(1)

@@ -74,6 +74,8 @@ class TurnFeatures(SensorWrapper):
         self.path = np.array([turn.position(s, 0.0) for s in s_turn] + [exit_lane.position(s, 0.0) for s in s_exit])
         self.path_s = np.concatenate([s_turn, turn.length + s_exit])  # m past the stop line
         self._last = np.zeros(self.sensor_space().shape, dtype=np.float32)
+        self.others = np.zeros((0, 4))  # the objects of the last call, (N, 4) [x, y, vx, vy] (world, m, m/s)
+        self.described = np.zeros(0, dtype=int)  # rows of ``others`` described, in feature order (nearest first)
 
     def sensor_space(self) -> spaces.Box:
         n = len(EGO_FEATURES) + len(OBJECT_FEATURES) * self.max_objects
@@ -107,6 +109,7 @@ class TurnFeatures(SensorWrapper):
         d = np.hypot(*(others[:, :2] - p_ego).T) if len(others) else np.zeros(0)
         near = np.argsort(d)[: self.max_objects]
         near = near[d[near] <= self.max_range]
+        self.others, self.described = others, near
         if len(near):
             p, v = others[near, :2], others[near, 2:4]
             c, s = np.cos(psi), np.sin(psi)
@@ -137,3 +140,95 @@ class TurnFeatures(SensorWrapper):
 
     def measure(self) -> np.ndarray:
         return self._last.copy()
+
+
+INTENT_FEATURES = ("acc", "signal")
+ACC_SCALE = 5.0  # m/s², a firm brake; IDM drivers here brake at up to ~5 m/s² and accelerate at up to 3 m/s²
+
+
+class TurnIntent(SensorWrapper):
+    """Adds ``obs["intent"]``: ``Box(-1, 1, (max_objects, 2))``, one row per object of ``obs["turn"]`` in the same
+    order (zero rows where ``obs["turn"]`` has none): what the other drivers are about to do, from sensors a car has.
+
+    - ``acc``: the object's longitudinal acceleration / 5 m/s², from its own short history: its velocity now
+      against its velocity ``history`` seconds ago (the object then is the one nearest to where it is now, moved
+      back at its current velocity, within ``gate`` m; 0 when none). Braking (< 0) is how a driver who yields to
+      the ego shows it (docs/ppo.md: the other drivers slow down for the ego, which constant-velocity features miss).
+      From the simulator's vehicles with ``turn_features.source=truth``, from the Kalman tracks with ``tracks``.
+    - ``signal``: the direction indicator the turn-signal sensor (``obs["signals"]``,
+      :class:`av_gym.sensors.turn_signal.TurnSignals`) reads on the vehicle at the object's position (within
+      ``signal_gate`` m): +1 left, -1 right, 0 none (or no reading, or no turn-signal sensor in the stack).
+
+    Stack it after ``turn_features`` (config ``sensors.turn_intent``)."""
+
+    key = "intent"
+
+    def __init__(self, env: gym.Env, history: float = 0.5, gate: float = 2.0, signal_gate: float = 3.0) -> None:
+        for name, value in (("history", history), ("gate", gate), ("signal_gate", signal_gate)):
+            if not value > 0:
+                raise ValueError(f"sensors.turn_intent.{name} must be > 0, got {value}")
+        self.features_wrapper = _find(env, TurnFeatures)
+        if self.features_wrapper is None:
+            raise ValueError("sensors.turn_intent needs turn_features below it (add `turn_features:` to the preset)")
+        self.history, self.gate, self.signal_gate = float(history), float(gate), float(signal_gate)
+        super().__init__(env)
+        self._past: list[tuple[float, np.ndarray]] = []  # (time s, objects (N, 4)) of the last `history` seconds
+        self._last = np.zeros(self.sensor_space().shape, dtype=np.float32)
+
+    def sensor_space(self) -> spaces.Box:
+        return spaces.Box(-1.0, 1.0, shape=(self.features_wrapper.max_objects, len(INTENT_FEATURES)),
+                          dtype=np.float32)
+
+    def on_reset(self) -> None:
+        self._past = []
+
+    def observation(self, observation: dict) -> dict:
+        from av_gym.sensors.base import sim_time
+
+        now = sim_time(self.env)
+        turn = self.features_wrapper
+        objects = turn.others[turn.described]
+        out = np.zeros(self.sensor_space().shape)
+        if len(objects):
+            out[: len(objects), 0] = self._acceleration(objects, now) / ACC_SCALE
+            if "signals" in observation:
+                out[: len(objects), 1] = self._signals(objects, observation["signals"])
+        self._past = [(t, o) for t, o in self._past if now - t < self.history - 1e-9] + [(now, turn.others)]
+        self._last = np.clip(np.nan_to_num(out), -1.0, 1.0).astype(np.float32)
+        return {**observation, self.key: self._guarded(self._last)}
+
+    def _acceleration(self, objects: np.ndarray, now: float) -> np.ndarray:
+        """Longitudinal acceleration (m/s²) of each row of ``objects`` (N, 4), from the oldest kept past."""
+        if not self._past or not len(self._past[0][1]):
+            return np.zeros(len(objects))
+        t_then, then = self._past[0]
+        dt = now - t_then
+        if dt <= 0:
+            return np.zeros(len(objects))
+        back = objects[:, :2] - objects[:, 2:4] * dt  # where each object was, had it kept its velocity
+        d = np.hypot(*(back[:, None, :] - then[None, :, :2]).transpose(2, 0, 1))  # (N, M)
+        j = np.argmin(d, axis=1)
+        matched = d[np.arange(len(objects)), j] <= self.gate
+        speed = np.hypot(objects[:, 2], objects[:, 3])
+        heading = objects[:, 2:4] / np.maximum(speed, 1e-6)[:, None]
+        acc = ((objects[:, 2:4] - then[j, 2:4]) * heading).sum(axis=1) / dt
+        return np.where(matched, acc, 0.0)
+
+    def _signals(self, objects: np.ndarray, signals: np.ndarray) -> np.ndarray:
+        seen = signals[signals[:, 0] > 0]
+        if not len(seen):
+            return np.zeros(len(objects))
+        d = np.hypot(*(objects[:, None, :2] - seen[None, :, 1:3]).transpose(2, 0, 1))
+        j = np.argmin(d, axis=1)
+        return np.where(d[np.arange(len(objects)), j] <= self.signal_gate, seen[j, 3], 0.0)
+
+    def measure(self) -> np.ndarray:
+        return self._last.copy()
+
+
+def _find(env: gym.Env, cls: type):
+    while isinstance(env, gym.Wrapper):
+        if isinstance(env, cls):
+            return env
+        env = env.env
+    return None
