@@ -231,7 +231,8 @@ AGENT = {
             "init?": ("gap_acceptance", "lookahead", "pid_tuned", "pid_paper", None), "init_episodes?": "int >=1",
             "init_epochs?": "int >=1", "init_action_noise?": "num >=0", "init_lr?": "num >0|null",
             "init_dagger_rounds?": "int >=0", "log_std_init?": "num|null", "cnn_output_dim?": "int >=1",
-            "target_kl?": "num >0|null",
+            "target_kl?": "num >0|null", "extractor?": ("mlp", "attention"), "attention_dim?": "int >=1",
+            "attention_heads?": "int >=1",
             "timeout_is_terminal?": "bool"},
     "pid": {**_AGENT_COMMON, "kp": "num", "ki": "num", "kd": "num", "obs_key": "str", "cte_index": "int >=0",
             "search?": "any"},  # search: the record of how the gains were found (documentation, never read)
