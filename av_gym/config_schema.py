@@ -292,7 +292,7 @@ TRAIN = {
     "paths": _PATHS_TRAIN,
     "train": {"checkpoint_every": "int >=1", "resume": "bool", "eval_episodes": "int >=0", "eval_seed": "int >=0",
               "baseline": "str", "progress_bar": "bool", "torch_threads": "int >=1", "eval_every": "int >=0",
-              "eval_n": "int >=0", "video_every": "int >=0"},
+              "eval_n": "int >=0", "video_every": "int >=0", "eval_n_envs": "int >=1"},
 }
 EVAL = {
     "env": Delegate(lambda v, w: _env_section(v, w)),

@@ -16,7 +16,9 @@ from omegaconf import DictConfig, OmegaConf
 
 from av_gym.errors import ConfigError, run_cli
 
-BASELINES = {"left_turn": "always_proceed", "lane_keeping": "pid_paper"}
+# What the brief evaluation after training compares the trained agent with (train.baseline: auto): on the left turn
+# the do-nothing-clever driver and the two-parameter rule a learned driver must beat.
+BASELINES = {"left_turn": ("always_proceed", "gap_acceptance"), "lane_keeping": ("pid_paper",)}
 RULE_BASED = ("pid", "always_proceed", "gap_acceptance", "lookahead")
 
 
@@ -53,7 +55,7 @@ def train(cfg: DictConfig) -> dict:
     from av_gym.make import make_env
     from eval.agents import plan_agent, resolve_agent
     from eval.report import write_results
-    from eval.runner import run_episodes
+    from eval.runner import EpisodeJob, run_episodes, run_episodes_parallel
     from train.checkpoint import write_text_atomic
 
     _validate(cfg)
@@ -78,15 +80,23 @@ def train(cfg: DictConfig) -> dict:
     n = int(cfg.train.eval_episodes)
     if n > 0:
         seeds = range(int(cfg.train.eval_seed), int(cfg.train.eval_seed) + n)
-        baseline = BASELINES[env_name] if cfg.train.baseline == "auto" else cfg.train.baseline
-        specs = ([str(ckpt_dir)] if model_path else []) + [baseline if model_path else agent.name]
+        baselines = list(BASELINES[env_name]) if cfg.train.baseline == "auto" else [cfg.train.baseline]
+        specs = [str(ckpt_dir), *baselines] if model_path else [agent.name]
         sensors, shield = (OmegaConf.to_container(c, resolve=True) for c in (cfg.sensors, cfg.shield))
+        env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
+        # A worker process costs a few seconds to start (imports, env, policy): worth it from ~10 episodes each.
+        n_envs, progress = min(int(cfg.train.eval_n_envs), n // 10), bool(cfg.train.progress_bar)
         for spec in specs:
             plan = plan_agent(spec, env_name, sensors, shield, cfg.paths.checkpoints)
-            env = make_env(cfg.env, plan.sensors, plan.shield)
-            _, policy = resolve_agent(plan.spec, env, env_name, cfg.paths.checkpoints)
             label = agent.name if spec == str(ckpt_dir) else plan.label
-            rows += run_episodes(env, policy, seeds, label, progress=bool(cfg.train.progress_bar))
+            if n_envs > 1:  # each episode depends on its seed only: the same rows as in-process, sooner
+                job = EpisodeJob(env_cfg, plan.sensors, plan.shield, plan.spec, env_name, str(cfg.paths.checkpoints),
+                                 label)
+                rows += run_episodes_parallel(job, seeds, n_envs, progress=progress)
+                continue
+            env = make_env(env_cfg, plan.sensors, plan.shield)
+            _, policy = resolve_agent(plan.spec, env, env_name, cfg.paths.checkpoints)
+            rows += run_episodes(env, policy, seeds, label, progress=progress)
             env.close()
         table = write_results(rows, run_dir, env_name, f"{cfg.run_name}: brief evaluation, {n} episodes")
         print(f"\n[train] brief evaluation on {n} held-out seeds ({seeds.start}..{seeds.stop - 1}):\n\n{table}\n")
