@@ -23,7 +23,9 @@ def run(module: str, *overrides: str, cwd: Path) -> subprocess.CompletedProcess:
 def trained(tmp_path_factory):
     """One tiny PPO run on the left turn, reused by the eval tests."""
     cwd = tmp_path_factory.mktemp("run")
-    res = run("train", *FAST_PPO, "run_name=tiny", cwd=cwd)
+    # the default agent (ppo_turn) clones the gap-acceptance rule first: a few episodes and epochs here
+    res = run("train", *FAST_PPO, "agent.init_episodes=3", "agent.init_epochs=1", "train.eval_every=0",
+              "run_name=tiny", cwd=cwd)
     assert res.returncode == 0, res.stderr[-3000:]
     return cwd, res
 
@@ -108,7 +110,7 @@ def test_train_the_camera_lane_keeper_with_a_narrow_cnn(tmp_path):
     ("train", ["env=lane_keeping", "agent=always_proceed"], "drives scenarios ['left_turn']"),
     ("train", ["agent.n_envs=0"], "agent.n_envs must be an integer >= 1, got 0"),
     # Hydra's own errors (unknown key, unknown option), caught before Hydra reports them over several lines
-    ("train", ["agent.epoch=3"], "agent.epoch is not a field of agent=ppo; allowed: ['batch_size',"),
+    ("train", ["agent.epoch=3"], "agent.epoch is not a field of agent=ppo_turn; allowed: ['batch_size',"),
     ("train", ["env=foo"], "env=foo: env must be one of ['lane_keeping', 'left_turn']"),
     ("train", ["+foo=1"], "foo is not a train setting; allowed: ['agent', 'env',"),
     ("train", ["seed=0,1"], "add -m to sweep over them"),
