@@ -7,7 +7,7 @@ import sys
 import hydra
 from omegaconf import DictConfig
 
-from av_gym.errors import ConfigError, run_cli
+from av_gym.errors import ConfigError, check_folder, folder_problem, run_cli
 
 
 def _plans(cfg: DictConfig) -> list:
@@ -15,13 +15,15 @@ def _plans(cfg: DictConfig) -> list:
     from omegaconf import OmegaConf
 
     from av_gym.config_schema import validate_config
-    from eval.agents import check_plan, plan_agent
+    from eval.agents import check_plan, check_sensor_overrides, plan_agent
 
     validate_config(cfg, "eval")
     sensors, shield = (OmegaConf.to_container(c, resolve=True) for c in (cfg.sensors, cfg.shield))
     plans = [plan_agent(spec, cfg.env.name, sensors, shield, cfg.paths.checkpoints) for spec in cfg.agents]
+    env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
     for plan in plans:
         check_plan(plan, cfg.env.name)
+        check_sensor_overrides(plan, env_cfg)  # a trained agent's sensors with the command line's on top
     return plans
 
 
@@ -36,6 +38,9 @@ def evaluate(cfg: DictConfig) -> list[dict]:
     plans = _plans(cfg)
     if int(cfg.episodes) < 1:
         raise ConfigError(f"episodes must be >= 1, got {cfg.episodes}")
+    check_folder(cfg.out_dir, "out_dir", create=True)  # before the first episode: results must have somewhere to go
+    title = f"{cfg.env.name} ({cfg.env.get('mode', '')}), {cfg.episodes} episodes from seed {cfg.seed}"
+    title = title.replace(" ()", "")
     env_name = cfg.env.name
     n_envs = int(cfg.get("n_envs", 1))
     rows = []
@@ -44,16 +49,24 @@ def evaluate(cfg: DictConfig) -> list[dict]:
     for plan in plans:  # every spec is checked before any episode runs
         env = make_env(env_cfg, plan.sensors, plan.shield)
         _, policy = resolve_agent(plan.spec, env, env_name, cfg.paths.checkpoints)
-        if n_envs > 1:
-            env.close()
-            job = EpisodeJob(env_cfg, plan.sensors, plan.shield, plan.spec, env_name, str(cfg.paths.checkpoints),
-                             plan.label)
-            rows += run_episodes_parallel(job, seeds, n_envs, progress=cfg.progress_bar)
-        else:
-            rows += run_episodes(env, policy, seeds, plan.label, progress=cfg.progress_bar)
-            env.close()
-    title = f"{env_name} ({cfg.env.get('mode', '')}), {cfg.episodes} episodes from seed {cfg.seed}".replace(" ()", "")
-    table = write_results(rows, cfg.out_dir, env_name, title)
+        try:  # rows are appended episode by episode: Ctrl-C keeps (and writes) every finished episode
+            if n_envs > 1:
+                env.close()
+                job = EpisodeJob(env_cfg, plan.sensors, plan.shield, plan.spec, env_name,
+                                 str(cfg.paths.checkpoints), plan.label)
+                run_episodes_parallel(job, seeds, n_envs, progress=cfg.progress_bar, out=rows)
+            else:
+                run_episodes(env, policy, seeds, plan.label, progress=cfg.progress_bar, out=rows)
+                env.close()
+        except KeyboardInterrupt:
+            if rows:
+                write_results(rows, cfg.out_dir, env_name, f"{title} (interrupted after {len(rows)} episodes)")
+                print(f"[eval] interrupted: the {len(rows)} episodes measured are in {cfg.out_dir}/results.csv",
+                      file=sys.stderr)
+            raise
+        # each agent's rows as soon as it is done: an evaluation interrupted or failing later keeps what it measured
+        write_results(rows, cfg.out_dir, env_name, title)
+    table = write_results(rows, cfg.out_dir, env_name, title, sensors={p.label: p.sensors for p in plans})
     print(f"\n{title}\n\n{table}\n")
     print(f"[eval] per-episode rows: {cfg.out_dir}/results.csv   summary: {cfg.out_dir}/results.md")
     if env_name == "lane_keeping" and (cfg.get("plots") or cfg.get("videos")):
@@ -65,10 +78,14 @@ def evaluate(cfg: DictConfig) -> list[dict]:
 
 
 def _check_command_line() -> None:
-    from av_gym.config_schema import check_command_line
+    from av_gym.config_schema import _PLACEHOLDER, check_command_line
 
     for cfg in check_command_line("eval", sys.argv[1:]):
         _plans(cfg)
+        if cfg.out_dir != _PLACEHOLDER:  # the default, Hydra's run folder, was checked with hydra.run.dir
+            problem = folder_problem(cfg.out_dir, "out_dir")
+            if problem:
+                raise ConfigError(problem)
 
 
 @hydra.main(config_path="pkg://conf", config_name="eval", version_base="1.3")

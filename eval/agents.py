@@ -6,7 +6,7 @@ A spec is one of: a rule-based agent named in ``conf/agent/`` (``pid_paper``, ``
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -16,11 +16,17 @@ import yaml
 
 from agents import AlwaysProceed, PIDSteering, Policy
 from av_gym.errors import ConfigError
+from train.checkpoint import check_sb3_zip, read_config_yaml
 
 def _load_sb3(model_path: Path, env: gym.Env) -> Policy:
     from agents.ppo import SB3Policy, sb3_space
 
-    policy = SB3Policy.load(model_path)
+    check_sb3_zip(model_path)  # again: the file may have changed since the command-line check
+    try:
+        policy = SB3Policy.load(model_path)
+    except Exception as exc:  # noqa: BLE001 - a zip of the right shape that SB3 still cannot unpickle
+        raise ConfigError(f"checkpoint {str(model_path)!r} cannot be loaded: {type(exc).__name__}: "
+                          f"{' '.join(str(exc).split())[:200]}") from None
     trained = _saved_config(model_path).get("agent", {})
     if policy.model.observation_space != sb3_space(env.observation_space):
         raise ConfigError(f"checkpoint {str(model_path)!r} expects observations {_shapes(policy.model.observation_space)}"
@@ -54,8 +60,9 @@ def _load_pilotnet(model_path: Path, env: gym.Env) -> Policy:
                           f"gives {list(getattr(env.observation_space, 'spaces', {}))}; use sensors=cameras")
     try:
         return load_policy(model_path)  # torch.load(weights_only=True): tensors and plain values only
-    except (ValueError, RuntimeError) as exc:
-        raise ConfigError(f"checkpoint {str(model_path)!r}: {str(exc).splitlines()[0]}") from None
+    except (ValueError, RuntimeError, EOFError, OSError, KeyError) as exc:  # torch's on a truncated/corrupt file
+        raise ConfigError(f"checkpoint {str(model_path)!r}: {(str(exc).splitlines() or [type(exc).__name__])[0]}") \
+            from None
 
 
 # Trained agent kinds: the file their trainer writes in checkpoints/<run>/ and how to load it for an env.
@@ -96,7 +103,7 @@ def find_checkpoint(kind: str, env_name: str, root: str | Path, name: str | None
     for pattern in ("*/config.yaml", "reference/*/config.yaml"):
         found = []
         for cfg_path in Path(root).glob(pattern):
-            cfg = yaml.safe_load(cfg_path.read_text()) or {}
+            cfg = read_config_yaml(cfg_path)
             model = cfg_path.parent / LOADERS[kind][0]
             agent = cfg.get("agent", {})
             if model.is_file() and cfg.get("env", {}).get("name") == env_name and agent.get("kind") == kind \
@@ -119,8 +126,7 @@ def _checkpoint_file(path: Path, env_name: str) -> tuple[str, Path]:
     does), checked without loading it: the file exists and was trained on ``env_name``."""
     if path.is_dir():
         cfg_path = path / "config.yaml"
-        kind = (yaml.safe_load(cfg_path.read_text()) or {}).get("agent", {}).get("kind") if cfg_path.is_file() \
-            else "ppo"
+        kind = read_config_yaml(cfg_path).get("agent", {}).get("kind") if cfg_path.is_file() else "ppo"
         if kind not in LOADERS:
             raise ConfigError(f"checkpoint folder {str(path)!r} holds agent kind {kind!r}; loadable: {list(LOADERS)}")
         model_path = path / LOADERS[kind][0]
@@ -132,9 +138,11 @@ def _checkpoint_file(path: Path, env_name: str) -> tuple[str, Path]:
                               f"{[name for name, _ in LOADERS.values()]}")
     if not model_path.is_file():
         raise ConfigError(f"checkpoint {str(model_path)!r} does not exist")
+    if kind == "ppo":  # empty, truncated or corrupt: one line now, not a traceback from SB3 when it is loaded
+        check_sb3_zip(model_path)
     cfg_path = model_path.parent / "config.yaml"
     if cfg_path.is_file():
-        saved_env = (yaml.safe_load(cfg_path.read_text()) or {}).get("env", {}).get("name")
+        saved_env = read_config_yaml(cfg_path).get("env", {}).get("name")
         if saved_env != env_name:
             raise ConfigError(f"checkpoint {str(model_path)!r} was trained on env {saved_env!r}, not {env_name!r}")
     return kind, model_path
@@ -208,12 +216,16 @@ def resolve_agent(spec: str, env: gym.Env, env_name: str, checkpoints: str | Pat
 @dataclass
 class AgentPlan:
     """What one agent spec needs: the label in tables, the sensors and shield configs its env is built with, and
-    the spec to hand to :func:`resolve_agent` once that env exists."""
+    the spec to hand to :func:`resolve_agent` once that env exists. For a trained agent, ``trained_sensors`` are
+    the sensors it was trained on (its checkpoint's, or the ``@preset``) and ``sensor_overrides`` the command
+    line's ``sensors.*`` changes applied on top of them to give ``sensors`` (dotted path → value)."""
 
     label: str
     spec: str
     sensors: dict
     shield: dict
+    trained_sensors: dict | None = None
+    sensor_overrides: dict = field(default_factory=dict)
 
 
 def compose_group(group: str, name: str) -> dict:
@@ -239,7 +251,79 @@ def compose_group(group: str, name: str) -> dict:
 
 def _saved_config(path: Path) -> dict:
     cfg_path = (path if path.is_dir() else path.parent) / "config.yaml"
-    return (yaml.safe_load(cfg_path.read_text()) or {}) if cfg_path.is_file() else {}
+    return read_config_yaml(cfg_path)
+
+
+def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:
+    """Nested mapping → ``{"a.b.c": leaf}`` (lists are leaves)."""
+    if not isinstance(d, dict):
+        return {prefix: d}
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        out.update(_flatten(v, f"{prefix}.{k}" if prefix else str(k)))
+    return out
+
+
+def sensor_overrides(sensors: dict | None) -> dict[str, Any]:
+    """The command line's ``sensors.*`` changes: every field of the composed ``sensors`` that differs from (or is
+    not in) the shipped preset it names, as ``{"cameras.night": True}``. Works for sweeps too (each job composes
+    its own ``sensors``), and needs no access to the raw command line."""
+    if not sensors or not sensors.get("name"):
+        return {}
+    try:
+        shipped = _flatten(compose_group("sensors", str(sensors["name"])))
+    except ConfigError:  # a preset that is not shipped (a hand-made dict): nothing to compare with
+        return {}
+    return {k: v for k, v in _flatten(sensors).items() if k != "name" and (k not in shipped or shipped[k] != v)}
+
+
+def _with_overrides(label: str, base: dict, overrides: dict[str, Any]) -> dict:
+    """``base`` sensors (a trained agent's) with the command line's ``overrides`` applied. An override of a sensor
+    the agent's stack does not have would add an observation key, so it is refused."""
+    import copy
+
+    out = copy.deepcopy(base)
+    for path, value in overrides.items():
+        keys = path.split(".")
+        if len(keys) > 1 and not isinstance(out.get(keys[0]), dict):
+            have = [k for k, v in out.items() if isinstance(v, dict)]
+            raise ConfigError(f"sensors.{path}={value!r}: agent {label!r} runs on the sensors it was trained with "
+                              f"({base.get('name')!r}: {have}), which have no {keys[0]!r}; that would change its "
+                              f"observation space")
+        node = out
+        for k in keys[:-1]:
+            if not isinstance(node.get(k), dict):
+                node[k] = {}
+            node = node[k]
+        node[keys[-1]] = copy.deepcopy(value)
+    return out
+
+
+def check_sensor_overrides(plan: AgentPlan, env_cfg: Any) -> None:
+    """Refuse (one line naming the field) command-line sensor overrides that change the observation space a
+    trained agent was trained on: its env is built with and without them and the spaces compared."""
+    if plan.trained_sensors is None or not plan.sensor_overrides:
+        return
+    from av_gym.make import make_env
+
+    def space(sensors: dict) -> gym.Space:
+        env = make_env(env_cfg, sensors, None)
+        try:
+            return env.observation_space
+        finally:
+            env.close()
+
+    trained = space(plan.trained_sensors)
+    if space(plan.sensors) == trained:
+        return
+    for path, value in plan.sensor_overrides.items():  # name the first override that changes it on its own
+        alone = space(_with_overrides(plan.label, plan.trained_sensors, {path: value}))
+        if alone != trained:
+            raise ConfigError(f"sensors.{path}={value!r} changes the observation space of agent {plan.label!r} "
+                              f"from {_shapes(trained)} to {_shapes(alone)}; a trained agent can only run with "
+                              f"settings that keep it")
+    raise ConfigError(f"sensors overrides {sorted(plan.sensor_overrides)} together change the observation space of "
+                      f"agent {plan.label!r}; a trained agent can only run with settings that keep it")
 
 
 def plan_agent(spec: str, env_name: str, sensors: dict, shield: dict, checkpoints: str | Path) -> AgentPlan:
@@ -248,6 +332,11 @@ def plan_agent(spec: str, env_name: str, sensors: dict, shield: dict, checkpoint
     ``sensors:`` field; a checkpoint's training config), else with the ``sensors`` given; the privileged
     ``truth`` state is what PID on the paper's simulator CTE needs, images are what PilotNet needs.
 
+    A trained agent's sensors are the base and the command line's ``sensors.*`` overrides (the fields of
+    ``sensors`` that differ from its shipped preset, :func:`sensor_overrides`) are applied on top, so
+    ``sensors.cameras.night=true`` reaches PilotNet; an override of a sensor its stack lacks is refused here, one
+    that changes its observation space by :func:`check_sensor_overrides` (which needs the env config).
+
     ``agent@preset`` runs the agent on another sensors preset than its own (``ppo_turn@turn_perceived``: a policy
     trained on privileged objects, driven from tracked detections); the observation spaces must match."""
     base, _, shield_name = str(spec).partition("+")
@@ -255,11 +344,17 @@ def plan_agent(spec: str, env_name: str, sensors: dict, shield: dict, checkpoint
     if shield_name:
         shield = compose_group("shield", shield_name)
     forced = compose_group("sensors", preset) if preset else None
+    overrides = sensor_overrides(sensors)  # before `sensors` is replaced by an agent's own preset below
+
+    def trained_plan(run_spec: str, path: Path) -> AgentPlan:
+        own = forced or _saved_config(path).get("sensors")
+        if own is None:  # a checkpoint without its config: it runs on the sensors given
+            return AgentPlan(str(spec), run_spec, sensors, shield)
+        return AgentPlan(str(spec), run_spec, _with_overrides(str(spec), own, overrides), shield, own, overrides)
+
     if base in TRAINED_KINDS or Path(base).suffix or "/" in base or Path(base).is_dir():
         path = find_checkpoint(base, env_name, checkpoints) if base in TRAINED_KINDS else Path(base)
-        saved = _saved_config(path)
-        return AgentPlan(str(spec), str(path) if base in TRAINED_KINDS else base,
-                         forced or saved.get("sensors", sensors), shield)
+        return trained_plan(str(path) if base in TRAINED_KINDS else base, path)
     cfg = load_agent_config(base)
     if cfg.get("sensors") and (sensors or {}).get("name") != cfg["sensors"]:
         # the agent's own preset, unless the one given is that preset (then with the command line's overrides,
@@ -267,5 +362,15 @@ def plan_agent(spec: str, env_name: str, sensors: dict, shield: dict, checkpoint
         sensors = compose_group("sensors", cfg["sensors"])
     if cfg.get("kind") in TRAINED_KINDS:
         path = find_checkpoint(cfg["kind"], env_name, checkpoints, name=None if base == cfg["kind"] else base)
-        return AgentPlan(str(spec), str(path), forced or _saved_config(path).get("sensors", sensors), shield)
+        return trained_plan(str(path), path)
     return AgentPlan(str(spec), base, forced or sensors, shield)
+
+
+def sensors_summary(sensors: dict | None) -> str:
+    """One line: the preset name and every field that differs from the shipped preset (``cameras: night=True``)."""
+    if not sensors:
+        return "none"
+    name = sensors.get("name", "?")
+    changed = sensor_overrides(sensors)
+    return f"{name}" + (f" with {', '.join(f'{k}={v!r}' for k, v in changed.items())}" if changed else
+                        " (as shipped)")

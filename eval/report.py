@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+from collections.abc import Mapping
 from pathlib import Path
 
 from av_gym.metrics import aggregate, format_ci, is_binary, markdown_table
@@ -29,8 +30,27 @@ def summary_table(rows: list[dict], scenario: str) -> str:
     return markdown_table(table, ["agent", "n", *metrics])
 
 
-def write_results(rows: list[dict], out_dir: str | Path, scenario: str, title: str) -> str:
-    """Write ``results.csv`` (every episode, every metric) and ``results.md``; returns the Markdown table."""
+def sensors_section(sensors: Mapping[str, dict]) -> str:
+    """Markdown: per agent, the sensors preset it ran with, the fields that differ from the shipped preset, and
+    the full settings (YAML, folded)."""
+    import yaml
+
+    from eval.agents import sensors_summary
+
+    lines = ["## Sensors each agent ran with", ""]
+    for label, cfg in sensors.items():
+        lines.append(f"- `{label}`: {sensors_summary(cfg)}")
+    lines += ["", "<details><summary>full sensor settings per agent</summary>", ""]
+    for label, cfg in sensors.items():
+        lines += [f"`{label}`:", "", "```yaml", yaml.safe_dump(cfg or {}, sort_keys=False).rstrip(), "```", ""]
+    lines.append("</details>")
+    return "\n".join(lines) + "\n"
+
+
+def write_results(rows: list[dict], out_dir: str | Path, scenario: str, title: str,
+                  sensors: Mapping[str, dict] | None = None) -> str:
+    """Write ``results.csv`` (every episode, every metric) and ``results.md`` (with, given ``sensors`` = agent
+    label → the sensors config it ran with, a section stating them); returns the Markdown table."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     columns = list(dict.fromkeys(k for r in rows for k in r))
@@ -40,5 +60,6 @@ def write_results(rows: list[dict], out_dir: str | Path, scenario: str, title: s
         writer.writerows(rows)
     table = summary_table(rows, scenario)
     (out / "results.md").write_text(f"# {title}\n\nMean with 95% confidence interval (Wilson for rates, Student-t "
-                                    f"otherwise) over episodes.\n\n{table}\n")
+                                    f"otherwise) over episodes.\n\n{table}\n"
+                                    + (f"\n{sensors_section(sensors)}" if sensors else ""))
     return table

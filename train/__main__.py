@@ -14,7 +14,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from av_gym.errors import ConfigError, run_cli
+from av_gym.errors import ConfigError, check_folder, folder_problem, run_cli
 
 # What the brief evaluation after training compares the trained agent with (train.baseline: auto): on the left turn
 # the do-nothing-clever driver and the two-parameter rule a learned driver must beat.
@@ -66,7 +66,7 @@ def train(cfg: DictConfig) -> dict:
     if HydraConfig.get().mode == RunMode.MULTIRUN:  # jobs of a sweep started in the same second share run_name
         ckpt_dir = ckpt_dir.with_name(f"{ckpt_dir.name}-j{HydraConfig.get().job.num}")
     tb_dir = run_dir / "tb"
-    ckpt_dir.mkdir(parents=True, exist_ok=True)
+    check_folder(ckpt_dir, "paths.checkpoints", create=True)  # one line, not a traceback, if it cannot be
     write_text_atomic(ckpt_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
 
     agent, env_name = cfg.agent, cfg.env.name
@@ -86,9 +86,11 @@ def train(cfg: DictConfig) -> dict:
         env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
         # A worker process costs a few seconds to start (imports, env, policy): worth it from ~10 episodes each.
         n_envs, progress = min(int(cfg.train.eval_n_envs), n // 10), bool(cfg.train.progress_bar)
+        ran_with = {}  # label → the sensors it ran with, stated in results.md
         for spec in specs:
             plan = plan_agent(spec, env_name, sensors, shield, cfg.paths.checkpoints)
             label = agent.name if spec == str(ckpt_dir) else plan.label
+            ran_with[label] = plan.sensors
             if n_envs > 1:  # each episode depends on its seed only: the same rows as in-process, sooner
                 job = EpisodeJob(env_cfg, plan.sensors, plan.shield, plan.spec, env_name, str(cfg.paths.checkpoints),
                                  label)
@@ -98,7 +100,8 @@ def train(cfg: DictConfig) -> dict:
             _, policy = resolve_agent(plan.spec, env, env_name, cfg.paths.checkpoints)
             rows += run_episodes(env, policy, seeds, label, progress=progress)
             env.close()
-        table = write_results(rows, run_dir, env_name, f"{cfg.run_name}: brief evaluation, {n} episodes")
+        table = write_results(rows, run_dir, env_name, f"{cfg.run_name}: brief evaluation, {n} episodes",
+                              sensors=ran_with)
         print(f"\n[train] brief evaluation on {n} held-out seeds ({seeds.start}..{seeds.stop - 1}):\n\n{table}\n")
 
     where = {"run_dir": str(run_dir), "tensorboard": str(tb_dir),
@@ -115,6 +118,11 @@ def _check_command_line() -> None:
 
     for cfg in check_command_line("train", sys.argv[1:]):
         _validate(cfg)
+        # where the checkpoints go, before Hydra makes the run folder (a sweep's -j<n> suffix fits: run_name is
+        # bounded in the schema)
+        problem = folder_problem(Path(cfg.paths.checkpoints) / str(cfg.run_name), "paths.checkpoints")
+        if problem:
+            raise ConfigError(problem)
 
 
 @hydra.main(config_path="pkg://conf", config_name="train", version_base="1.3")
