@@ -60,6 +60,7 @@ ROAD_STEP = 2.0  # m, asphalt and edge-line sampling along each lane (chord erro
 MARKING_WIDTH = 0.20  # m, painted line width (our choice; 0.15-0.30 m is usual)
 DASH_LENGTH, DASH_PERIOD = 3.0, 9.0  # m, striped lines: 3 m dash, 6 m gap (our choice, a common urban pattern)
 WALL_PIECE = 3.0  # m, long walls are split into pieces this long so far-to-near sorting stays right
+TEXTURE_RES = 0.04  # m per texel of the top-down ground texture (a 0.20 m marking is 5 texels wide)
 _SHIFT = 3  # fractional bits of the int32 pixel coordinates handed to OpenCV (sub-pixel polygon edges)
 
 # Palette (RGB, our choice). Kept within ~[20, 230] so moderate pixel noise is rarely clipped.
@@ -209,7 +210,7 @@ class StaticScene:
 
     ``road`` (Q, 4, 2) asphalt quads and ``road_group`` (Q,) lane index; ``marks`` (M, 4, 2) painted quads and
     ``mark_group`` (M,) lane-side index; ``walls`` (P, 4, 3) vertical quads ``[x, y, z]`` with ``wall_colour``
-    (P, 3) RGB; ``posts`` (K, 3) ``[x, y, radius]``, ``post_height`` (K,), ``post_kind`` (K,) index into
+    (P, 3) RGB and ``wall_group`` (P,) the roadside segment each piece belongs to; ``posts`` (K, 3) ``[x, y, radius]``, ``post_height`` (K,), ``post_kind`` (K,) index into
     :data:`CIRCLE_KINDS`. ``*_centre`` (·, 2) are centroids for range culling and depth sorting."""
 
     road: np.ndarray
@@ -221,21 +222,30 @@ class StaticScene:
     posts: np.ndarray
     post_height: np.ndarray
     post_kind: np.ndarray
+    wall_group: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.road_centre = self.road.mean(1) if len(self.road) else np.zeros((0, 2))
         self.mark_centre = self.marks.mean(1) if len(self.marks) else np.zeros((0, 2))
         self.wall_centre = self.walls[:, :2, :2].mean(1) if len(self.walls) else np.zeros((0, 2))
+        if self.wall_group is None:
+            self.wall_group = np.arange(len(self.walls))
 
-    def near(self, xy: np.ndarray, radius: float) -> StaticScene:
-        """The part of the scene whose pieces are within ``radius`` m of ``xy`` (shared by a rig's cameras)."""
+    def near(self, xy: np.ndarray, radius: float, ground: bool = True) -> StaticScene:
+        """The part of the scene whose pieces are within ``radius`` m of ``xy`` (shared by a rig's cameras);
+        ``ground=False`` leaves out the asphalt and markings (the texture renderer does not need them)."""
         def keep(centre: np.ndarray) -> np.ndarray:
             return np.einsum("ij,ij->i", centre - xy, centre - xy) <= radius * radius
 
-        r, m, w = keep(self.road_centre), keep(self.mark_centre), keep(self.wall_centre)
+        if ground:
+            r, m = keep(self.road_centre), keep(self.mark_centre)
+        else:
+            r, m = np.zeros(len(self.road), bool), np.zeros(len(self.marks), bool)
+        w = keep(self.wall_centre)
         p = keep(self.posts[:, :2]) if len(self.posts) else np.zeros(0, bool)
         return StaticScene(self.road[r], self.road_group[r], self.marks[m], self.mark_group[m], self.walls[w],
-                           self.wall_colour[w], self.posts[p], self.post_height[p], self.post_kind[p])
+                           self.wall_colour[w], self.posts[p], self.post_height[p], self.post_kind[p],
+                           self.wall_group[w])
 
 
 def _lane_points(lane: AbstractLane, s: np.ndarray, lat: float) -> np.ndarray:
@@ -275,7 +285,7 @@ def build_scene(env: gym.Env) -> StaticScene:
             mark_g.append(np.full(len(q), 2 * g + side))
 
     world = roadside_world(env)
-    walls, colours = [], []
+    walls, colours, wall_g = [], [], []
     for i, ((x0, y0, x1, y1), h, k) in enumerate(zip(world.segments, world.segment_height, world.segment_kind)):
         p0, p1 = np.array([x0, y0]), np.array([x1, y1])
         length = float(np.linalg.norm(p1 - p0))
@@ -289,6 +299,7 @@ def build_scene(env: gym.Env) -> StaticScene:
         for a, b in zip(pts[:-1], pts[1:]):
             walls.append([[*a, 0.0], [*b, 0.0], [*b, h], [*a, h]])
             colours.append(colour)
+            wall_g.append(i)
 
     def cat(parts: list, shape: tuple) -> np.ndarray:
         return np.concatenate(parts).astype(float) if parts else np.zeros(shape)
@@ -296,7 +307,7 @@ def build_scene(env: gym.Env) -> StaticScene:
     return StaticScene(cat(road, (0, 4, 2)), cat(road_g, (0,)).astype(int), cat(marks, (0, 4, 2)),
                        cat(mark_g, (0,)).astype(int), np.array(walls, float).reshape(-1, 4, 3),
                        np.array(colours, float).reshape(-1, 3), world.circles.reshape(-1, 3).astype(float),
-                       world.circle_height.astype(float), world.circle_kind.astype(int))
+                       world.circle_height.astype(float), world.circle_kind.astype(int), np.array(wall_g, int))
 
 
 def scene_of(env: gym.Env) -> StaticScene:
@@ -307,6 +318,137 @@ def scene_of(env: gym.Env) -> StaticScene:
     if cached is None or cached[0] != key:
         unwrapped._camera_scene = (key, build_scene(unwrapped))
     return unwrapped._camera_scene[1]
+
+
+# ================================================================================================ ground texture
+@dataclass(frozen=True)
+class GroundTexture:
+    """Top-down picture of the map's ground (asphalt and markings), one byte per ``res`` × ``res`` m texel:
+    0 = grass (nothing painted), 128 = asphalt, 255 = marking; texel ``(row, col)`` has its centre at world
+    ``(x0 + col·res, y0 + row·res)``. Intermediate values come from bilinear sampling at edges and are mapped to
+    colours by :data:`_GROUND_LUT` (grass → asphalt → marking), the grass showing the camera's own hazed
+    background."""
+
+    texels: np.ndarray
+    x0: float
+    y0: float
+    res: float
+
+
+_TEXTURES: dict[bytes, GroundTexture] = {}  # one per road geometry (a layout), shared by every episode on it
+
+
+def ground_texture(scene: StaticScene, res: float = TEXTURE_RES) -> GroundTexture:
+    """The :class:`GroundTexture` of ``scene``'s asphalt and markings (built once per road geometry, ~20 MB for a
+    lap layout at 4 cm). Drawn with the same polygons as the raster renderer, so both show the same road."""
+    import hashlib
+
+    cached = getattr(scene, "_texture", None)
+    if cached is not None and cached.res == res:
+        return cached
+    key = hashlib.blake2b(scene.road.tobytes() + scene.marks.tobytes() + np.float64(res).tobytes(),
+                          digest_size=16).digest()
+    tex = _TEXTURES.get(key)
+    if tex is None:
+        pts = np.concatenate([scene.road.reshape(-1, 2), scene.marks.reshape(-1, 2)])
+        lo = np.floor(pts.min(0)) - 1.0 if len(pts) else np.zeros(2)
+        hi = np.ceil(pts.max(0)) + 1.0 if len(pts) else np.ones(2)
+        w, h = (np.ceil((hi - lo) / res).astype(int) + 1).tolist()
+        texels = np.zeros((h, w), np.uint8)
+        for quads, groups, value in ((scene.road, scene.road_group, 128), (scene.marks, scene.mark_group, 255)):
+            if not len(quads):
+                continue
+            px = np.round((quads - lo) / res * (1 << _SHIFT)).astype(np.int32)
+            # one fillPoly per group (quads of a group never overlap; the even-odd rule would punch holes)
+            bounds = np.concatenate([[0], np.flatnonzero(np.diff(groups)) + 1, [len(groups)]])
+            for a, b in zip(bounds[:-1], bounds[1:]):
+                cv2.fillPoly(texels, px[a:b], value, cv2.LINE_8, _SHIFT)
+        if len(_TEXTURES) >= 4:
+            _TEXTURES.pop(next(iter(_TEXTURES)))
+        tex = _TEXTURES[key] = GroundTexture(texels, float(lo[0]), float(lo[1]), float(res))
+    scene._texture = tex
+    return tex
+
+
+@lru_cache(maxsize=32)
+def _ground_points(spec: CameraSpec) -> tuple[int, np.ndarray]:
+    """Where each output pixel's ray meets the ground, in the vehicle frame: ``(r0, pts)`` with ``r0`` the first
+    output row that sees ground and ``pts`` (rows r0.., W, 2) float32 ``[forward, right]`` metres from the
+    vehicle centre. Rays that miss the ground, or meet it further than ``max_range`` from the camera, point far
+    outside any texture (so they sample grass, i.e. the background). One ray per output pixel: the ground is
+    sampled bilinearly once per output pixel (not ``supersample``² times): 4x fewer samples, the main cost."""
+    hs, ws = spec.height, spec.width
+    f = spec.focal
+    xn = ((np.arange(ws) - (ws - 1) / 2) / f)[None, :]
+    yn = ((np.arange(hs) - (hs - 1) / 2) / f)[:, None]
+    ct, st = math.cos(spec.pitch), math.sin(spec.pitch)
+    down = st + yn * ct
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(down > 1e-6, spec.mount_height / np.maximum(down, 1e-6), np.inf)
+        a, b = t * (ct - yn * st), t * xn  # forward and right of the camera (m)
+    a, b = np.broadcast_arrays(a, b)
+    hit = np.isfinite(a) & np.isfinite(b) & (a * a + b * b <= spec.max_range ** 2)
+    a, b = np.where(hit, a, 0.0), np.where(hit, b, 0.0)
+    rows = np.flatnonzero(hit.any(1))
+    r0 = int(rows[0]) if len(rows) else hs
+    cy, sy = math.cos(spec.yaw), math.sin(spec.yaw)
+    fwd = spec.forward_offset + a * cy - b * sy
+    right = spec.lateral_offset + a * sy + b * cy
+    pts = np.stack([np.where(hit, fwd, 1e6), np.where(hit, right, 1e6)], -1)[r0:]
+    return r0, np.ascontiguousarray(pts, dtype=np.float32)
+
+
+@lru_cache(maxsize=32)
+def _ground_palette(spec: CameraSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Colour of a ground pixel from its texture byte v and its output row: ``palette`` (rows r0.., 256, 3)
+    uint8, where row i, column v is the camera's background of that row (hazed grass, area-averaged like the
+    internal image) covered by asphalt with coverage ``min(v/128, 1)``, then asphalt blended to the marking colour
+    for v in 128..255 (bilinear texture samples at edges give partial coverage, as area averaging did); and
+    ``rowmap`` (rows r0.., W) float32, each pixel's palette row for ``cv2.remap``."""
+    r0, pts = _ground_points(spec)
+    bg = _background(spec)
+    if spec.supersample > 1:
+        bg = cv2.resize(bg, (spec.width, spec.height), interpolation=cv2.INTER_AREA)
+    bg = bg[r0:, 0, :].astype(float)  # (rows, 3), constant along a row
+    v = np.arange(256, dtype=float)
+    alpha = np.clip(v / 128.0, 0.0, 1.0)[None, :, None]
+    t = np.clip((v - 128.0) / 127.0, 0.0, 1.0)[None, :, None]
+    paint = np.array(ASPHALT, float) * (1 - t) + np.array(MARKING, float) * t
+    palette = np.round(bg[:, None, :] * (1 - alpha) + paint * alpha).astype(np.uint8)
+    rowmap = np.broadcast_to(np.arange(len(bg), dtype=np.float32)[:, None], pts.shape[:2])
+    return palette, np.ascontiguousarray(rowmap)
+
+
+def _draw_ground_texture(img: np.ndarray, pose: np.ndarray, spec: CameraSpec, tex: GroundTexture) -> None:
+    """Sky, grass, road and markings into the internal image ``img`` (overwritten whole). The pixel rays are
+    fixed in the car frame, so one affine map (``cv2.transform``, from the ego pose) takes their ground points to
+    texels; ``cv2.remap`` samples the texture there (bilinear), a second ``cv2.remap`` (nearest) looks each byte
+    up in the camera's per-row palette, and the output-size picture is enlarged ×supersample (nearest) into
+    ``img``, over which the vertical things are drawn at the internal resolution."""
+    r0, pts = _ground_points(spec)
+    c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
+    k = 1.0 / tex.res
+    m = np.array([[c * k, -s * k, (float(pose[0]) - tex.x0) * k],
+                  [s * k, c * k, (float(pose[1]) - tex.y0) * k]], np.float32)
+    small = _background_out(spec).copy()
+    if r0 < spec.height:
+        uv = cv2.transform(pts, m)
+        v = cv2.remap(tex.texels, uv, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        palette, rowmap = _ground_palette(spec)
+        cv2.remap(palette, v.astype(np.float32), rowmap, cv2.INTER_NEAREST, dst=small[r0:])
+    ss = spec.supersample
+    if ss > 1:
+        cv2.resize(small, (spec.width * ss, spec.height * ss), dst=img, interpolation=cv2.INTER_NEAREST)
+    else:
+        img[:] = small
+
+
+@lru_cache(maxsize=32)
+def _background_out(spec: CameraSpec) -> np.ndarray:
+    """:func:`_background` area-averaged to the output size (H, W, 3) uint8."""
+    bg = _background(spec)
+    return cv2.resize(bg, (spec.width, spec.height), interpolation=cv2.INTER_AREA) if spec.supersample > 1 \
+        else bg.copy()
 
 
 # ================================================================================================ per-camera caches
@@ -439,6 +581,34 @@ def _draw_ground(img: np.ndarray, cam: _Pose, quads: np.ndarray, groups: np.ndar
         cv2.fillPoly(img, [poly], colour, cv2.LINE_8, _SHIFT)
 
 
+def _scenery_items(scene: StaticScene, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every roadside vertical quad seen from ``xy`` (m; the rig's centre, shared by its cameras): ((N, 4, 3) world
+    ``[x, y, z]``, (N, 3) RGB, (N,) sort distance m, (N,) merge group: the wall a piece belongs to, −1 = none).
+    Cylinders are drawn as rectangles facing ``xy`` (for a side camera 0.6 m away, the facing is off by
+    atan(0.6/d), which changes a 0.3 m pole's width by < 1 % beyond 5 m)."""
+    quads, colours, keys = [scene.walls], [scene.wall_colour], [np.linalg.norm(scene.wall_centre - xy, axis=1)]
+    groups = [scene.wall_group]
+    if len(scene.posts):
+        c, r, h = scene.posts[:, :2], scene.posts[:, 2], scene.post_height
+        ray = c - xy
+        dist = np.maximum(np.linalg.norm(ray, axis=1), 1e-6)
+        perp = np.stack([-ray[:, 1], ray[:, 0]], 1) / dist[:, None] * r[:, None]  # faces the camera
+        a, b = c - perp, c + perp
+        tree = scene.post_kind == CIRCLE_KINDS.index("tree")
+        z_top = np.where(tree, h * TREE_TRUNK_FRACTION, h)
+        kind_colour = np.array([CIRCLE_COLOURS[k][0] for k in CIRCLE_KINDS], float)
+        quads.append(_vertical_quads(a, b, np.zeros_like(h), z_top))
+        colours.append(kind_colour[scene.post_kind])
+        keys.append(dist)
+        groups.append(np.full(len(dist), -1))
+        if tree.any():  # crowns, drawn after their trunks (same key, later in the stable sort)
+            quads.append(_vertical_quads(a[tree], b[tree], z_top[tree], h[tree]))
+            colours.append(np.tile(np.array(CIRCLE_COLOURS["tree"][1], float), (int(tree.sum()), 1)))
+            keys.append(dist[tree])
+            groups.append(np.full(int(tree.sum()), -1))
+    return np.concatenate(quads), np.concatenate(colours), np.concatenate(keys), np.concatenate(groups)
+
+
 def _vertical_items(scene: StaticScene, others: np.ndarray, cam: _Pose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every vertical quad the camera may see: ((N, 4, 3) world ``[x, y, z]``, (N, 3) RGB, (N,) sort distance m)."""
     quads, colours, keys = [scene.walls], [scene.wall_colour], [np.linalg.norm(scene.wall_centre - cam.xy, axis=1)]
@@ -505,9 +675,10 @@ def _vehicle_faces(others: np.ndarray, cam: _Pose) -> tuple[np.ndarray, np.ndarr
     return np.concatenate(quads), np.concatenate(colours), np.concatenate(keys)
 
 
-def _render_one(scene: StaticScene, others: np.ndarray, pose: np.ndarray, spec: CameraSpec,
+def _render_one_raster(scene: StaticScene, others: np.ndarray, pose: np.ndarray, spec: CameraSpec,
                 weather: Weather) -> np.ndarray:
-    """Clean image (H, W, 3) uint8 RGB of ``scene`` and ``others`` from ego ``pose`` [x, y, heading]."""
+    """Clean image (H, W, 3) uint8 RGB of ``scene`` and ``others`` from ego ``pose`` [x, y, heading], the
+    original way: every road polygon projected and filled (the reference :func:`_render_rig` is checked against)."""
     cam = _camera_pose(pose, spec)
     img = _background(spec).copy()
     _draw_ground(img, cam, scene.road, scene.road_group, ASPHALT)
@@ -539,6 +710,144 @@ def _render_one(scene: StaticScene, others: np.ndarray, pose: np.ndarray, spec: 
     return _apply_weather(img, depth, spec, weather)
 
 
+def _vehicle_items(others: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Every face of the other vehicles' boxes, for a whole rig: ((F, 4, 3) quads, (F, 3) RGB, (F,) distance from
+    ``xy`` m, (F, 2) outward normal, (F, 2) face midpoint). Each camera keeps the faces whose normal points
+    towards it (back faces culled, as in :func:`_vehicle_faces`); roofs have a zero normal and are kept by every
+    camera mounted above :data:`VEHICLE_HEIGHT`. Sides come before their windows, windows before roofs, so the
+    stable far-to-near sort draws each window over its own side."""
+    corners = box_corners(others[:, 0:2], others[:, 4], others[:, 5], others[:, 6])  # (N, 4, 2)
+    centre = others[:, None, 0:2]
+    a, b = corners, np.roll(corners, -1, axis=1)
+    mid = (a + b) / 2
+    edge = b - a
+    normal = np.stack([-edge[..., 1], edge[..., 0]], -1)
+    normal *= np.sign(np.einsum("nik,nik->ni", normal, mid - centre))[..., None]
+    normal /= np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-9)
+    shade = (0.62 + 0.38 * np.clip(normal @ SUN, 0.0, 1.0)).reshape(-1, 1)
+    n = len(others)
+    sides = _vertical_quads(a.reshape(-1, 2), b.reshape(-1, 2), np.zeros(n * 4), np.full(n * 4, VEHICLE_HEIGHT))
+    wa, wb = a + WINDOW_INSET * edge, b - WINDOW_INSET * edge
+    windows = _vertical_quads(wa.reshape(-1, 2), wb.reshape(-1, 2), np.full(n * 4, WINDOW_BAND[0]),
+                              np.full(n * 4, WINDOW_BAND[1]))
+    roofs = np.concatenate([corners, np.full((n, 4, 1), VEHICLE_HEIGHT)], -1)
+    dist = np.linalg.norm(others[:, 0:2] - xy, axis=1)
+    side_keys = np.repeat(dist, 4)
+    nrm, mids = normal.reshape(-1, 2), mid.reshape(-1, 2)
+    return (np.concatenate([sides, windows, roofs]),
+            np.concatenate([VEHICLE_COLOUR * shade, WINDOW_COLOUR * shade,
+                            np.tile(np.minimum(VEHICLE_COLOUR * 1.1, 255), (n, 1))]),
+            np.concatenate([side_keys, side_keys, dist]),
+            np.concatenate([nrm, nrm, np.zeros((n, 2))]), np.concatenate([mids, mids, np.zeros((n, 2))]))
+
+
+def _render_rig(scene: StaticScene, others: np.ndarray, pose: np.ndarray, cameras: Mapping[str, CameraSpec],
+                weather: Weather, texture: GroundTexture) -> dict[str, np.ndarray]:
+    """Clean images of every camera in ``cameras`` from ego ``pose`` [x, y, heading]: the ground sampled from
+    ``texture`` (:func:`_draw_ground_texture`), then the vertical things far to near. What does not depend on
+    the camera is done once for the rig: the vertical quads (scenery facing the rig's centre, every vehicle
+    face), their coordinates in the vehicle frame, and the far-to-near order; each camera then only transforms,
+    culls (range, frustum, back faces), projects and fills."""
+    x, y, psi = float(pose[0]), float(pose[1]), float(pose[2])
+    cf, sf = math.cos(psi), math.sin(psi)
+    base = next(iter(cameras.values()))
+    centre = np.array([x + base.forward_offset * cf, y + base.forward_offset * sf])
+    quads, colours, keys, groups = _scenery_items(scene, centre)
+    normals = np.zeros((len(quads), 2))
+    mids = np.zeros((len(quads), 2))
+    kind = np.zeros(len(quads), np.int8)  # 0 scenery (always drawn), 1 vehicle side or window (culled), 2 roof
+    if len(others):
+        q, col, k, nrm, mid = _vehicle_items(others, centre)
+        quads, colours, keys = np.concatenate([quads, q]), np.concatenate([colours, col]), np.concatenate([keys, k])
+        groups = np.concatenate([groups, np.full(len(k), -1)])
+        normals, mids = np.concatenate([normals, nrm]), np.concatenate([mids, mid])
+        kind = np.concatenate([kind, np.where(nrm.any(1), 1, 2).astype(np.int8)])
+    reach = max(spec.max_range for spec in cameras.values())
+    idx = np.flatnonzero(keys <= reach)
+    idx = idx[np.argsort(-keys[idx], kind="stable")]  # far to near, once for the rig
+    quads, colours, keys, groups, normals, mids, kind = (v[idx] for v in (quads, colours, keys, groups, normals,
+                                                                           mids, kind))
+    # vehicle frame: a forward, b right of the ego centre, z up (m)
+    d0, d1 = quads[..., 0] - x, quads[..., 1] - y
+    fa, fb = d0 * cf + d1 * sf, -d0 * sf + d1 * cf
+    specs = list(cameras.values())
+    if len(quads) and all(sp.yaw == 0 and (sp.forward_offset, sp.pitch, sp.mount_height)
+                          == (base.forward_offset, base.pitch, base.mount_height) for sp in specs):
+        # one cull for the rig (the cameras differ only in lateral offset and image size): drop quads wholly
+        # behind the lenses or wholly beyond one side of every camera's frustum. Conservative: the camera depth
+        # is at most Zmax = a·cos(pitch) + h·sin(pitch) (nothing is below the ground), and a point with X > t·Zmax
+        # is outside whatever its height.
+        a = fa - base.forward_offset
+        zmax = a * math.cos(base.pitch) + base.mount_height * math.sin(base.pitch)
+        t = max((sp.width / 2 + 1) / sp.focal for sp in specs)
+        lo, hi = min(sp.lateral_offset for sp in specs), max(sp.lateral_offset for sp in specs)
+        out_ = (a < 0).all(1) | (fb - hi > t * zmax).all(1) | (lo - fb > t * zmax).all(1)
+        if out_.any():
+            keep = ~out_
+            quads, colours, keys, groups, normals, mids, kind, fa, fb = (
+                v[keep] for v in (quads, colours, keys, groups, normals, mids, kind, fa, fb))
+    fz = quads[..., 2]
+
+    out = {}
+    for name, spec in cameras.items():
+        ss = spec.supersample
+        img = np.empty((spec.height * ss, spec.width * ss, 3), np.uint8)
+        _draw_ground_texture(img, pose, spec, texture)
+        depth = _ground_rays(spec)[0].copy() if weather.needs_depth else None
+        if len(quads):
+            cy, sy = math.cos(spec.yaw), math.sin(spec.yaw)
+            a0, b0 = fa - spec.forward_offset, fb - spec.lateral_offset
+            a, b = a0 * cy + b0 * sy, -a0 * sy + b0 * cy
+            u = fz - spec.mount_height
+            ct, st = math.cos(spec.pitch), math.sin(spec.pitch)
+            pc = np.stack([b, -(a * st + u * ct), a * ct - u * st], -1)
+            keep = (keys <= spec.max_range) & _in_frustum(pc, spec)
+            cam_xy = np.array([x + spec.forward_offset * cf - spec.lateral_offset * sf,
+                               y + spec.forward_offset * sf + spec.lateral_offset * cf])
+            faces = np.einsum("ij,ij->i", normals, cam_xy - mids) > 0
+            keep &= (kind == 0) | ((kind == 1) & faces) | ((kind == 2) & (spec.mount_height > VEHICLE_HEIGHT))
+            _fill_far_to_near(img, depth, pc[keep], colours[keep], keys[keep], groups[keep], spec)
+        if depth is None:
+            out[name] = cv2.resize(img, (spec.width, spec.height), interpolation=cv2.INTER_AREA) \
+                if spec.supersample > 1 else img
+        else:
+            out[name] = _apply_weather(img, depth, spec, weather)
+    return out
+
+
+def _fill_far_to_near(img: np.ndarray, depth: np.ndarray | None, pc: np.ndarray, colours: np.ndarray,
+                      dist: np.ndarray, groups: np.ndarray, spec: CameraSpec) -> None:
+    """Painter's algorithm over camera-frame quads (N, 4, 3) already sorted far to near. Consecutive pieces of
+    one wall (same group ≥ 0, same colour, wholly in front of the near plane) lie side by side in one plane, so
+    they never overlap on screen and go to one ``fillPoly`` call (without a depth buffer): the same pixels as
+    one ``fillConvexPoly`` each, with a fraction of the calls."""
+    if not len(pc):
+        return
+    front = (pc[..., 2] >= NEAR_PLANE).all(1)
+    px = _to_pixels(np.where(front[:, None, None], pc, 1.0), spec)  # straddlers are clipped below instead
+    col = np.round(np.clip(colours, 0, 255)).astype(int).tolist()
+    runs = (groups[1:] >= 0) & (groups[1:] == groups[:-1]) & front[1:] & front[:-1]
+    if depth is not None:
+        runs[:] = False
+    starts = np.flatnonzero(np.concatenate([[True], ~runs])).tolist() + [len(groups)]
+    front_l, dist_l, polys = front.tolist(), dist.tolist(), list(px)
+    fill, fill_many = cv2.fillConvexPoly, cv2.fillPoly
+    for lo, hi in zip(starts[:-1], starts[1:]):
+        if hi - lo > 1:
+            fill_many(img, polys[lo:hi], col[lo], cv2.LINE_8, _SHIFT)
+            continue
+        if front_l[lo]:
+            p = polys[lo]
+        else:
+            c = _clip_near(pc[lo])
+            if len(c) < 3:
+                continue
+            p = _to_pixels(c, spec)
+        fill(img, p, col[lo], cv2.LINE_8, _SHIFT)
+        if depth is not None:
+            fill(depth, p, dist_l[lo], cv2.LINE_8, _SHIFT)
+
+
 def _apply_weather(img: np.ndarray, depth: np.ndarray, spec: CameraSpec, weather: Weather) -> np.ndarray:
     """Fog and night on an internal-resolution image, using its depth buffer (m); returns output-size uint8.
     Fog comes first (scattering happens in the scene), night second (it dims the airlight too)."""
@@ -561,24 +870,32 @@ def _apply_weather(img: np.ndarray, depth: np.ndarray, spec: CameraSpec, weather
 
 # ================================================================================================ public rendering
 def render_views(env: gym.Env, cameras: Mapping[str, CameraSpec], pose: np.ndarray | None = None,
-                 weather: Weather | None = None) -> dict[str, np.ndarray]:
+                 weather: Weather | None = None, ground: str = "texture") -> dict[str, np.ndarray]:
     """Clean renders of several cameras from one ego pose, sharing the scene culling.
 
     ``pose``: ego ``[x, y, heading]`` (m, m, rad); default the true ego pose (pass a displaced pose to render
-    what the car would see there, e.g. for behaviour-cloning recovery data). Returns name → (H, W, 3) uint8 RGB."""
+    what the car would see there, e.g. for behaviour-cloning recovery data). ``ground``: ``"texture"`` (sample the
+    top-down ground texture) or ``"raster"`` (project every road polygon: the original, ~10x slower renderer,
+    kept as the reference for ``docs/cameras/compare_renderers.py`` and the tests). Returns name → (H, W, 3)
+    uint8 RGB."""
+    if ground not in ("texture", "raster"):
+        raise ValueError(f"ground must be 'texture' or 'raster', got {ground!r}")
     pose = ego_pose(env)[:3] if pose is None else np.asarray(pose, dtype=float)
     scene = scene_of(env)
     reach = max(s.max_range + abs(s.forward_offset) + abs(s.lateral_offset) for s in cameras.values())
-    local = scene.near(pose[:2], reach + WALL_PIECE + ROAD_STEP)
+    texture = ground_texture(scene) if ground == "texture" else None
+    local = scene.near(pose[:2], reach + WALL_PIECE + ROAD_STEP, ground=texture is None)
     others = others_state(env)
     weather = weather or Weather()
-    return {name: _render_one(local, others, pose, spec, weather) for name, spec in cameras.items()}
+    if texture is None:  # the original renderer
+        return {name: _render_one_raster(local, others, pose, spec, weather) for name, spec in cameras.items()}
+    return _render_rig(local, others, pose, cameras, weather, texture)
 
 
 def render_view(env: gym.Env, camera: CameraSpec | None = None, pose: np.ndarray | None = None,
-                weather: Weather | None = None) -> np.ndarray:
+                weather: Weather | None = None, ground: str = "texture") -> np.ndarray:
     """Clean (noise-free) render (H, W, 3) uint8 RGB of one camera; see :func:`render_views`."""
-    return render_views(env, {"view": camera or CameraSpec()}, pose, weather)["view"]
+    return render_views(env, {"view": camera or CameraSpec()}, pose, weather, ground)["view"]
 
 
 # ================================================================================================ the wrapper
