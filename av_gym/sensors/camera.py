@@ -60,6 +60,7 @@ ROAD_STEP = 2.0  # m, asphalt and edge-line sampling along each lane (chord erro
 MARKING_WIDTH = 0.20  # m, painted line width (our choice; 0.15-0.30 m is usual)
 DASH_LENGTH, DASH_PERIOD = 3.0, 9.0  # m, striped lines: 3 m dash, 6 m gap (our choice, a common urban pattern)
 WALL_PIECE = 3.0  # m, long walls are split into pieces this long so far-to-near sorting stays right
+NEAR_REUSE = 5.0  # m the ego may move before the texture renderer culls the roadside scenery again
 TEXTURE_RES = 0.04  # m per texel of the top-down ground texture (a 0.20 m marking is 5 texels wide)
 _SHIFT = 3  # fractional bits of the int32 pixel coordinates handed to OpenCV (sub-pixel polygon edges)
 
@@ -415,6 +416,7 @@ def _ground_palette(spec: CameraSpec) -> tuple[np.ndarray, np.ndarray]:
     t = np.clip((v - 128.0) / 127.0, 0.0, 1.0)[None, :, None]
     paint = np.array(ASPHALT, float) * (1 - t) + np.array(MARKING, float) * t
     palette = np.round(bg[:, None, :] * (1 - alpha) + paint * alpha).astype(np.uint8)
+    palette = np.concatenate([palette, np.full(palette.shape[:2] + (1,), 255, np.uint8)], -1)  # RGBA (see below)
     rowmap = np.broadcast_to(np.arange(len(bg), dtype=np.float32)[:, None], pts.shape[:2])
     return palette, np.ascontiguousarray(rowmap)
 
@@ -430,7 +432,7 @@ def _draw_ground_texture(img: np.ndarray, pose: np.ndarray, spec: CameraSpec, te
     k = 1.0 / tex.res
     m = np.array([[c * k, -s * k, (float(pose[0]) - tex.x0) * k],
                   [s * k, c * k, (float(pose[1]) - tex.y0) * k]], np.float32)
-    small = _background_out(spec).copy()
+    small = _background_out(spec).copy()  # RGBA: OpenCV's 4-channel resize is ~2.5x faster than 3-channel
     if r0 < spec.height:
         uv = cv2.transform(pts, m)
         v = cv2.remap(tex.texels, uv, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
@@ -445,10 +447,10 @@ def _draw_ground_texture(img: np.ndarray, pose: np.ndarray, spec: CameraSpec, te
 
 @lru_cache(maxsize=32)
 def _background_out(spec: CameraSpec) -> np.ndarray:
-    """:func:`_background` area-averaged to the output size (H, W, 3) uint8."""
+    """:func:`_background` area-averaged to the output size, (H, W, 4) uint8 RGBA (alpha 255)."""
     bg = _background(spec)
-    return cv2.resize(bg, (spec.width, spec.height), interpolation=cv2.INTER_AREA) if spec.supersample > 1 \
-        else bg.copy()
+    bg = cv2.resize(bg, (spec.width, spec.height), interpolation=cv2.INTER_AREA) if spec.supersample > 1 else bg
+    return cv2.cvtColor(bg, cv2.COLOR_RGB2RGBA)
 
 
 # ================================================================================================ per-camera caches
@@ -585,28 +587,33 @@ def _scenery_items(scene: StaticScene, xy: np.ndarray) -> tuple[np.ndarray, np.n
     """Every roadside vertical quad seen from ``xy`` (m; the rig's centre, shared by its cameras): ((N, 4, 3) world
     ``[x, y, z]``, (N, 3) RGB, (N,) sort distance m, (N,) merge group: the wall a piece belongs to, −1 = none).
     Cylinders are drawn as rectangles facing ``xy`` (for a side camera 0.6 m away, the facing is off by
-    atan(0.6/d), which changes a 0.3 m pole's width by < 1 % beyond 5 m)."""
-    quads, colours, keys = [scene.walls], [scene.wall_colour], [np.linalg.norm(scene.wall_centre - xy, axis=1)]
-    groups = [scene.wall_group]
-    if len(scene.posts):
-        c, r, h = scene.posts[:, :2], scene.posts[:, 2], scene.post_height
-        ray = c - xy
-        dist = np.maximum(np.linalg.norm(ray, axis=1), 1e-6)
-        perp = np.stack([-ray[:, 1], ray[:, 0]], 1) / dist[:, None] * r[:, None]  # faces the camera
-        a, b = c - perp, c + perp
+    atan(0.6/d), which changes a 0.3 m pole's width by < 1 % beyond 5 m). Walls first, then poles and trunks,
+    then tree crowns (after their trunks: same key, later in the stable sort). What does not depend on ``xy`` is
+    kept on ``scene`` (the rig's cached cull)."""
+    st = getattr(scene, "_scenery", None)
+    if st is None:
         tree = scene.post_kind == CIRCLE_KINDS.index("tree")
+        h = scene.post_height
         z_top = np.where(tree, h * TREE_TRUNK_FRACTION, h)
         kind_colour = np.array([CIRCLE_COLOURS[k][0] for k in CIRCLE_KINDS], float)
-        quads.append(_vertical_quads(a, b, np.zeros_like(h), z_top))
-        colours.append(kind_colour[scene.post_kind])
-        keys.append(dist)
-        groups.append(np.full(len(dist), -1))
-        if tree.any():  # crowns, drawn after their trunks (same key, later in the stable sort)
-            quads.append(_vertical_quads(a[tree], b[tree], z_top[tree], h[tree]))
-            colours.append(np.tile(np.array(CIRCLE_COLOURS["tree"][1], float), (int(tree.sum()), 1)))
-            keys.append(dist[tree])
-            groups.append(np.full(int(tree.sum()), -1))
-    return np.concatenate(quads), np.concatenate(colours), np.concatenate(keys), np.concatenate(groups)
+        crown = np.flatnonzero(tree)
+        item = np.concatenate([np.arange(len(h)), crown])  # which post each cylinder quad stands on
+        z0 = np.concatenate([np.zeros(len(h)), z_top[crown]])
+        z1 = np.concatenate([z_top, h[crown]])
+        colour = np.concatenate([kind_colour[scene.post_kind].reshape(-1, 3),
+                                 np.tile(np.array(CIRCLE_COLOURS["tree"][1], float), (len(crown), 1))])
+        st = scene._scenery = (item, z0, z1, np.concatenate([scene.wall_colour, colour]),
+                               np.concatenate([scene.wall_group, np.full(len(item), -1)]))
+    item, z0, z1, colours, groups = st
+    wall_keys = np.linalg.norm(scene.wall_centre - xy, axis=1)
+    if not len(item):
+        return scene.walls, colours, wall_keys, groups
+    c, r = scene.posts[item, :2], scene.posts[item, 2]
+    ray = c - xy
+    dist = np.maximum(np.linalg.norm(ray, axis=1), 1e-6)
+    perp = np.stack([-ray[:, 1], ray[:, 0]], 1) * (r / dist)[:, None]  # faces the camera
+    quads = _vertical_quads(c - perp, c + perp, z0, z1)
+    return np.concatenate([scene.walls, quads]), colours, np.concatenate([wall_keys, dist]), groups
 
 
 def _vertical_items(scene: StaticScene, others: np.ndarray, cam: _Pose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -770,54 +777,72 @@ def _render_rig(scene: StaticScene, others: np.ndarray, pose: np.ndarray, camera
     # vehicle frame: a forward, b right of the ego centre, z up (m)
     d0, d1 = quads[..., 0] - x, quads[..., 1] - y
     fa, fb = d0 * cf + d1 * sf, -d0 * sf + d1 * cf
-    specs = list(cameras.values())
-    if len(quads) and all(sp.yaw == 0 and (sp.forward_offset, sp.pitch, sp.mount_height)
-                          == (base.forward_offset, base.pitch, base.mount_height) for sp in specs):
-        # one cull for the rig (the cameras differ only in lateral offset and image size): drop quads wholly
-        # behind the lenses or wholly beyond one side of every camera's frustum. Conservative: the camera depth
-        # is at most Zmax = a·cos(pitch) + h·sin(pitch) (nothing is below the ground), and a point with X > t·Zmax
-        # is outside whatever its height.
-        a = fa - base.forward_offset
-        zmax = a * math.cos(base.pitch) + base.mount_height * math.sin(base.pitch)
-        t = max((sp.width / 2 + 1) / sp.focal for sp in specs)
-        lo, hi = min(sp.lateral_offset for sp in specs), max(sp.lateral_offset for sp in specs)
-        out_ = (a < 0).all(1) | (fb - hi > t * zmax).all(1) | (lo - fb > t * zmax).all(1)
-        if out_.any():
-            keep = ~out_
-            quads, colours, keys, groups, normals, mids, kind, fa, fb = (
-                v[keep] for v in (quads, colours, keys, groups, normals, mids, kind, fa, fb))
     fz = quads[..., 2]
+    colours = np.round(np.clip(colours, 0, 255)).astype(np.int64)  # shared by the cameras
+    colours = np.concatenate([colours, np.full((len(colours), 1), 255)], 1)  # RGBA
+    shared = _shared_geometry(cameras)
+    if shared is not None and len(quads):
+        # The cameras differ only in lateral offset: Y, Z and the near/top/bottom culling are the rig's, and
+        # whatever is wholly behind the lenses or beyond the outer side planes is dropped once.
+        fo, h, pitch = base.forward_offset, base.mount_height, base.pitch
+        ct, st = math.cos(pitch), math.sin(pitch)
+        av, u = fa - fo, fz - h
+        Y, Z = -(av * st + u * ct), av * ct - u * st
+        tx, ty = (base.width / 2 + 1) / base.focal, (base.height / 2 + 1) / base.focal
+        lo, hi = min(sp.lateral_offset for sp in cameras.values()), max(sp.lateral_offset for sp in cameras.values())
+        common = ~((Z < NEAR_PLANE).all(1) | (Y > ty * Z).all(1) | (-Y > ty * Z).all(1)
+                   | (fb - hi > tx * Z).all(1) | (lo - fb > tx * Z).all(1)) & (keys <= base.max_range)
+        common &= (kind != 2) | (h > VEHICLE_HEIGHT)
+        sel = np.flatnonzero(common)
+        fb, Y, Z, colours, keys, groups, normals, mids, kind = (
+            v[sel] for v in (fb, Y, Z, colours, keys, groups, normals, mids, kind))
 
     out = {}
     for name, spec in cameras.items():
         ss = spec.supersample
-        img = np.empty((spec.height * ss, spec.width * ss, 3), np.uint8)
+        img = np.empty((spec.height * ss, spec.width * ss, 4), np.uint8)  # RGBA internally (faster resizes)
         _draw_ground_texture(img, pose, spec, texture)
         depth = _ground_rays(spec)[0].copy() if weather.needs_depth else None
-        if len(quads):
-            cy, sy = math.cos(spec.yaw), math.sin(spec.yaw)
-            a0, b0 = fa - spec.forward_offset, fb - spec.lateral_offset
-            a, b = a0 * cy + b0 * sy, -a0 * sy + b0 * cy
-            u = fz - spec.mount_height
-            ct, st = math.cos(spec.pitch), math.sin(spec.pitch)
-            pc = np.stack([b, -(a * st + u * ct), a * ct - u * st], -1)
-            keep = (keys <= spec.max_range) & _in_frustum(pc, spec)
-            cam_xy = np.array([x + spec.forward_offset * cf - spec.lateral_offset * sf,
-                               y + spec.forward_offset * sf + spec.lateral_offset * cf])
-            faces = np.einsum("ij,ij->i", normals, cam_xy - mids) > 0
-            keep &= (kind == 0) | ((kind == 1) & faces) | ((kind == 2) & (spec.mount_height > VEHICLE_HEIGHT))
+        if len(keys):
+            if shared is not None:
+                X = fb - spec.lateral_offset
+                keep = ~((X > tx * Z).all(1) | (-X > tx * Z).all(1))
+                pc = np.stack([X, Y, Z], -1)
+            else:
+                cy, sy = math.cos(spec.yaw), math.sin(spec.yaw)
+                a0, b0 = fa - spec.forward_offset, fb - spec.lateral_offset
+                a, b = a0 * cy + b0 * sy, -a0 * sy + b0 * cy
+                u = fz - spec.mount_height
+                ct, st = math.cos(spec.pitch), math.sin(spec.pitch)
+                pc = np.stack([b, -(a * st + u * ct), a * ct - u * st], -1)
+                keep = (keys <= spec.max_range) & _in_frustum(pc, spec)
+                keep &= (kind != 2) | (spec.mount_height > VEHICLE_HEIGHT)
+            if (kind == 1).any():  # back faces of vehicles, seen from this camera
+                cam_xy = np.array([x + spec.forward_offset * cf - spec.lateral_offset * sf,
+                                   y + spec.forward_offset * sf + spec.lateral_offset * cf])
+                keep &= (kind != 1) | (np.einsum("ij,ij->i", normals, cam_xy - mids) > 0)
             _fill_far_to_near(img, depth, pc[keep], colours[keep], keys[keep], groups[keep], spec)
         if depth is None:
-            out[name] = cv2.resize(img, (spec.width, spec.height), interpolation=cv2.INTER_AREA) \
-                if spec.supersample > 1 else img
+            small = cv2.resize(img, (spec.width, spec.height), interpolation=cv2.INTER_AREA) if ss > 1 else img
+            out[name] = cv2.cvtColor(small, cv2.COLOR_RGBA2RGB)
         else:
-            out[name] = _apply_weather(img, depth, spec, weather)
+            out[name] = _apply_weather(cv2.cvtColor(img, cv2.COLOR_RGBA2RGB), depth, spec, weather)
     return out
+
+
+def _shared_geometry(cameras: Mapping[str, CameraSpec]) -> CameraSpec | None:
+    """The rig's common spec when its cameras differ only in lateral offset (the windshield rig), else None."""
+    specs = list(cameras.values())
+    base = replace(specs[0], lateral_offset=0.0)
+    if base.yaw == 0 and all(replace(sp, lateral_offset=0.0) == base for sp in specs):
+        return base
+    return None
 
 
 def _fill_far_to_near(img: np.ndarray, depth: np.ndarray | None, pc: np.ndarray, colours: np.ndarray,
                       dist: np.ndarray, groups: np.ndarray, spec: CameraSpec) -> None:
-    """Painter's algorithm over camera-frame quads (N, 4, 3) already sorted far to near. Consecutive pieces of
+    """Painter's algorithm over camera-frame quads (N, 4, 3) already sorted far to near, with (N, 3) integer
+    RGB ``colours``. Consecutive pieces of
     one wall (same group ≥ 0, same colour, wholly in front of the near plane) lie side by side in one plane, so
     they never overlap on screen and go to one ``fillPoly`` call (without a depth buffer): the same pixels as
     one ``fillConvexPoly`` each, with a fraction of the calls."""
@@ -825,7 +850,7 @@ def _fill_far_to_near(img: np.ndarray, depth: np.ndarray | None, pc: np.ndarray,
         return
     front = (pc[..., 2] >= NEAR_PLANE).all(1)
     px = _to_pixels(np.where(front[:, None, None], pc, 1.0), spec)  # straddlers are clipped below instead
-    col = np.round(np.clip(colours, 0, 255)).astype(int).tolist()
+    col = colours.tolist()
     runs = (groups[1:] >= 0) & (groups[1:] == groups[:-1]) & front[1:] & front[:-1]
     if depth is not None:
         runs[:] = False
@@ -884,7 +909,14 @@ def render_views(env: gym.Env, cameras: Mapping[str, CameraSpec], pose: np.ndarr
     scene = scene_of(env)
     reach = max(s.max_range + abs(s.forward_offset) + abs(s.lateral_offset) for s in cameras.values())
     texture = ground_texture(scene) if ground == "texture" else None
-    local = scene.near(pose[:2], reach + WALL_PIECE + ROAD_STEP, ground=texture is None)
+    if texture is None:
+        local = scene.near(pose[:2], reach + WALL_PIECE + ROAD_STEP)
+    else:  # the texture renderer needs only the vertical scenery: culled again only every NEAR_REUSE m
+        cached = getattr(scene, "_near", None)
+        if cached is None or cached[1] != reach or np.hypot(*(pose[:2] - cached[0])) > NEAR_REUSE:
+            cached = scene._near = (pose[:2].copy(), reach,
+                                    scene.near(pose[:2], reach + WALL_PIECE + ROAD_STEP + NEAR_REUSE, ground=False))
+        local = cached[2]
     others = others_state(env)
     weather = weather or Weather()
     if texture is None:  # the original renderer
