@@ -317,12 +317,34 @@ def _env_section(value: Any, where: str) -> list[str]:
     name = value.get("name")
     if name not in ENV:
         return [f"{where}.name must be one of {list(ENV)}, got {name!r}"]
-    return _check(value, ENV[name], where, what=f"a field of env={name}", shipped=_shipped("env", name))
+    found = _check(value, ENV[name], where, what=f"a field of env={name}", shipped=_shipped("env", name))
+    return found or _env_relations(value, where)
+
+
+def _env_relations(env: Mapping, where: str) -> list[str]:
+    """What a field's own range cannot say: relations between fields (each field is valid on its own here). The
+    envs check the same in their constructors, for use from Python."""
+    problems = []
+    if env["name"] == "left_turn":
+        lo, hi = env["acceleration_range"]
+        if not lo < hi:  # the continuous action -1..1 maps linearly onto [lo, hi]
+            problems.append(f"{where}.acceleration_range must be [min, max] with min < max (m/s²), got [{lo}, {hi}]")
+    if env["name"] == "lane_keeping":
+        from av_gym.envs.vehicles import SpeedHeldVehicle
+
+        if not env["lane_width"] > SpeedHeldVehicle.WIDTH:
+            problems.append(f"{where}.lane_width must be wider than the ego vehicle's width, {SpeedHeldVehicle.WIDTH} "
+                            f"m, got {env['lane_width']}")
+    if env["simulation_frequency"] % env["policy_frequency"]:
+        problems.append(f"{where}.simulation_frequency ({env['simulation_frequency']}) must be a multiple of "
+                        f"{where}.policy_frequency ({env['policy_frequency']})")
+    return problems
 
 
 # ------------------------------------------------------------------------------------------------ checker
 _NUM = re.compile(r"^(num|int)(?:\s+(?:(>=|>|<=|<)(-?[\d.e]+)|([\[(])(-?[\d.e]+),(-?[\d.e]+)([\])])))?(\|null)?$")
 _NAME = re.compile(r"^[A-Za-z0-9_.=+,:-]+$")
+NAME_LENGTH = 240  # "name" fields (run_name): 255 bytes a folder name, less room for a sweep's -j<n>
 
 
 def _fmt(v: Any) -> str:
@@ -430,8 +452,12 @@ def _check(value: Any, spec: Any, where: str, what: str = "a field", shipped: Ma
         return [f"{where} must be true or false{' or null' if spec.endswith('null') else ''}, got {_fmt(value)}"]
     if spec == "str":
         return [] if isinstance(value, str) and value else [f"{where} must be a non-empty string, got {_fmt(value)}"]
-    if spec == "name":  # a folder name: no path separators
+    if spec == "name":  # a folder name: no path separators, and short enough for the file system with the -j<n>
+        # suffix a sweep job adds (ext4, xfs, btrfs: 255 bytes a name)
         ok = isinstance(value, str) and bool(_NAME.match(value))
+        if ok and len(value) > NAME_LENGTH:
+            return [f"{where} must be at most {NAME_LENGTH} characters (a folder name), got {len(value)}: "
+                    f"{value[:40]!r}..."]
         return [] if ok else [f"{where} must be a folder name (letters, digits, _ . = + , : -), got {_fmt(value)}"]
     return _check_num(value, spec, where)
 
@@ -501,7 +527,7 @@ def check_command_line(command: str, argv: list[str]) -> list:
     with initialize_config_module("conf", version_base="1.3"):
         for combo in combos:
             try:
-                composed.append(_compose_checked(command, combo, groups, compose))
+                composed.append(_compose_checked(command, combo, groups, compose, multirun=bool(flags)))
             except (HydraException, OmegaConfBaseException) as exc:
                 raise ConfigError(_one_line(exc)) from None
     return composed
@@ -530,9 +556,12 @@ def _linear_combos(parsed: list) -> list[list[str]]:
     return combos
 
 
-def _compose_checked(command: str, overrides: list[str], groups: list[str], compose) -> Any:
+def _compose_checked(command: str, overrides: list[str], groups: list[str], compose, multirun: bool = False) -> Any:
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    from av_gym.errors import folder_problem
 
     parsed = OverridesParser.create().parse_overrides(overrides)
     group_overrides, value_overrides = [], []
@@ -553,7 +582,10 @@ def _compose_checked(command: str, overrides: list[str], groups: list[str], comp
         if o.is_add() or o.is_force_add() or o.is_delete():
             continue  # a new key: the schema below refuses it unless the section allows it
         _check_path(base, o.key_or_group, command)
-    cfg = compose(config_name=command, overrides=overrides)
+    # With Hydra's own section, to check the folder Hydra will make for the job (hydra.run.dir, or hydra.sweep.dir
+    # with -m) before it makes it: one line for a path it cannot create, not Hydra's traceback.
+    cfg = compose(config_name=command, overrides=overrides, return_hydra_config=True)
+
     def hydra_values(node: Any, path: str = ""):  # ${hydra:...} values are filled by Hydra only once a job runs
         if isinstance(node, dict):
             for k, v in node.items():
@@ -563,7 +595,21 @@ def _compose_checked(command: str, overrides: list[str], groups: list[str], comp
 
     for path in list(hydra_values(OmegaConf.to_container(cfg, resolve=False))):
         OmegaConf.update(cfg, path, _PLACEHOLDER)
+    key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
+    try:
+        raw = OmegaConf.to_container(cfg.hydra, resolve=False)[key.split(".")[1]]["dir"]  # as written, to explain
+        job_dir = OmegaConf.select(cfg, key)
+    except OmegaConfBaseException:  # it names a value only the running job has: Hydra will report it
+        job_dir = None
+    OmegaConf.set_struct(cfg, False)
+    del cfg["hydra"]
+    OmegaConf.set_struct(cfg, True)
     validate_config(cfg, command)
+    if isinstance(job_dir, str):
+        problem = folder_problem(job_dir, key)
+        if problem:
+            given = any(o.key_or_group == key for o in parsed)
+            raise ConfigError(problem if given or raw == job_dir else f"{problem} ({key} is {raw})")
     return cfg
 
 

@@ -66,3 +66,69 @@ def discard_hydra_run_dir() -> bool:
             break
         parent = parent.parent
     return True
+
+
+def folder_problem(path: str | Path, field: str) -> str | None:
+    """Why folder ``path`` (the value of setting ``field``) could not be made and written, in one line, or None.
+
+    Checked before any work, so that a run does not measure for an hour and then fail to write: every name must fit
+    the file system (``NAME_MAX``, ``PATH_MAX``); an existing part must be a folder; and the nearest existing folder
+    must accept a new entry. The last is tried, not inferred from permissions (root passes ``os.access`` on
+    ``/proc``, where nothing can be created): a temporary folder is made there and removed at once, so nothing is
+    left behind."""
+    import errno
+    import os
+    import tempfile
+
+    path = Path(path)
+    text = str(path)
+    try:  # the file system of the working directory: good enough for the length limits (255 and 4096 on Linux)
+        name_max, path_max = os.pathconf(".", "PC_NAME_MAX"), os.pathconf(".", "PC_PATH_MAX")
+    except (OSError, ValueError):
+        name_max, path_max = 255, 4096
+    for part in path.parts:  # before anything is looked up: stat() itself fails on a name that is too long
+        if len(os.fsencode(part)) > name_max:
+            return (f"{field}: the folder name {part[:40]!r}... is {len(os.fsencode(part))} bytes long; the file "
+                    f"system allows {name_max}")
+    if len(os.fsencode(str(path.absolute()))) >= path_max:
+        return f"{field}: the path is {len(os.fsencode(str(path.absolute())))} bytes long; the file system allows " \
+               f"{path_max - 1}"
+    existing = path
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.exists():  # a relative path: the working directory is its base
+        existing = Path(".")
+    if existing.exists() and not existing.is_dir():
+        what = f"{text!r}" if existing == path else f"{str(existing)!r} (part of {text!r})"
+        return f"{field}={text}: {what} is a file, not a folder"
+    try:
+        probe = tempfile.mkdtemp(prefix=".write-check-", dir=existing)
+    except OSError as exc:
+        reason = os.strerror(exc.errno) if exc.errno else str(exc)
+        if exc.errno in (errno.ENOENT, errno.EROFS, errno.EACCES, errno.EPERM):
+            reason += ": a system, read-only or someone else's folder?"
+        return f"{field}={text}: nothing can be created in {str(existing)!r} ({reason})"
+    os.rmdir(probe)
+    return None
+
+
+def check_folder(path: str | Path, field: str, create: bool = False) -> Path:
+    """Raise :class:`ConfigError` with :func:`folder_problem`'s line; with ``create``, also make the folder and
+    write a probe file in it (what the job itself is about to do), so that the first episode starts only once
+    its results have somewhere to go."""
+    import os
+
+    problem = folder_problem(path, field)
+    if problem:
+        raise ConfigError(problem)
+    path = Path(path)
+    if create:
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+            probe = path / f".write-check-{os.getpid()}"
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError as exc:
+            raise ConfigError(f"{field}={path}: cannot be written: {os.strerror(exc.errno) if exc.errno else exc}") \
+                from None
+    return path

@@ -28,14 +28,19 @@ def _single_threaded_torch() -> None:
 
 
 def run_episodes(env: gym.Env, policy: Policy, seeds: Iterable[int], label: str,
-                 progress: bool = True) -> list[dict]:
+                 progress: bool = True, out: list | None = None) -> list[dict]:
     """One row per seed: ``{"agent", "episode", "seed", **info["episode_metrics"]}``. ``env`` must be wrapped in
-    :class:`av_gym.metrics.recorder.EpisodeMetrics` (as :func:`av_gym.make.make_env` does)."""
+    :class:`av_gym.metrics.recorder.EpisodeMetrics` (as :func:`av_gym.make.make_env` does). Each row is also
+    appended to ``out`` (if given) as its episode ends, so that a caller interrupted half-way keeps them."""
     _single_threaded_torch()
-    seeds = list(seeds)
+    # Seeds are drawn one by one, never listed: episodes=10**12 is a long run, not a MemoryError before the first.
+    total = len(seeds) if hasattr(seeds, "__len__") else None
     rows = []
-    for i, seed in enumerate(tqdm(seeds, desc=f"eval {label}", unit="ep", disable=not progress, leave=False)):
+    for i, seed in enumerate(tqdm(seeds, total=total, desc=f"eval {label}", unit="ep", disable=not progress,
+                                  leave=False)):
         rows.append({"agent": label, "episode": i, "seed": int(seed), **_episode(env, policy, int(seed))})
+        if out is not None:
+            out.append(rows[-1])
     return rows
 
 
@@ -80,17 +85,34 @@ def _run_one(seed: int) -> dict:
     return _episode(_WORKER["env"], _WORKER["policy"], seed)
 
 
-def run_episodes_parallel(job: EpisodeJob, seeds: Iterable[int], n_envs: int, progress: bool = True) -> list[dict]:
+def run_episodes_parallel(job: EpisodeJob, seeds: Iterable[int], n_envs: int, progress: bool = True,
+                          out: list | None = None) -> list[dict]:
     """:func:`run_episodes` over ``n_envs`` worker processes, each building ``job``'s env and policy once; rows
-    in the order of ``seeds``, identical to the in-process ones."""
+    in the order of ``seeds``, identical to the in-process ones (and appended to ``out`` as they come)."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
-    seeds = [int(s) for s in seeds]
+    from collections import deque
+    from itertools import islice
+
+    total = len(seeds) if hasattr(seeds, "__len__") else None
     # spawn, not fork: the parent may hold torch's thread pool and open renderers, which a fork copies half-made.
     ctx = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=min(n_envs, len(seeds)), mp_context=ctx, initializer=_init_worker,
-                             initargs=(job,)) as pool:
-        metrics = list(tqdm(pool.map(_run_one, seeds), total=len(seeds), desc=f"eval {job.label}", unit="ep",
-                            disable=not progress, leave=False))
-    return [{"agent": job.label, "episode": i, "seed": seed, **m} for i, (seed, m) in enumerate(zip(seeds, metrics))]
+    workers = max(1, min(n_envs, total if total is not None else n_envs))
+    rows = []
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
+                             initargs=(job,)) as pool, \
+            tqdm(total=total, desc=f"eval {job.label}", unit="ep", disable=not progress, leave=False) as bar:
+        # A bounded window of episodes in flight, not one future per seed up front (pool.map submits them all:
+        # episodes=10**12 would exhaust memory before the first ran). Rows come back in seed order.
+        it = iter(seeds)
+        pending = deque((int(s), pool.submit(_run_one, int(s))) for s in islice(it, 4 * workers))
+        while pending:
+            seed, future = pending.popleft()
+            rows.append({"agent": job.label, "episode": len(rows), "seed": seed, **future.result()})
+            if out is not None:
+                out.append(rows[-1])
+            bar.update()
+            for s in islice(it, 1):
+                pending.append((int(s), pool.submit(_run_one, int(s))))
+    return rows

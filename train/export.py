@@ -18,9 +18,7 @@ from av_gym.errors import ConfigError, run_cli
 def export_reference(run_dir: str | Path, dest: str | Path, best: bool = False, command: str | None = None) -> Path:
     """Copy run ``run_dir``'s policy (``model.zip`` or ``best.zip``) and ``config.yaml`` to ``dest``, and write
     ``command`` to ``dest/COMMAND`` if given; returns the written zip. Every file is written atomically."""
-    from stable_baselines3 import PPO
-
-    from train.checkpoint import save_model_atomic, write_text_atomic
+    from train.checkpoint import load_sb3, save_model_atomic, write_text_atomic
 
     run_dir, dest = Path(run_dir), Path(dest)
     src = run_dir / ("best.zip" if best else "model.zip")
@@ -28,7 +26,7 @@ def export_reference(run_dir: str | Path, dest: str | Path, best: bool = False, 
         if not path.is_file():
             raise ConfigError(f"{path} does not exist: run_dir must be a training run's checkpoint folder "
                               f"(checkpoints/<run_name>/ with model.zip{', best.zip' if best else ''} and config.yaml)")
-    model = PPO.load(str(src), device="cpu")
+    model = load_sb3(src, device="cpu")  # one line for an empty, truncated or corrupt zip
     policy = model.policy
     policy.optimizer = policy.optimizer_class(policy.parameters(), lr=model.lr_schedule(1.0),
                                               **policy.optimizer_kwargs)  # fresh: no moments

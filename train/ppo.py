@@ -251,7 +251,7 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     from agents.ppo import make_ppo
     from av_gym.errors import ConfigError
     from train.callbacks import AtomicCheckpointCallback, EpisodeMetricsCallback, HParamsCallback, PeriodicEval
-    from train.checkpoint import load_rng_state, save_model_atomic
+    from train.checkpoint import check_sb3_zip, load_rng_state, save_model_atomic
 
     agent, t0 = cfg.agent, time.time()
     latest = ckpt_dir / "latest.zip"
@@ -259,6 +259,8 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     if resume and not latest.is_file():
         raise ConfigError(f"train.resume=true but {latest} does not exist (resume needs the run_name of a run "
                           f"that wrote a checkpoint)")
+    if resume:
+        check_sb3_zip(latest)  # empty or corrupt (copied by hand?): one line, not SB3's traceback
     for stale in ckpt_dir.glob(".*.tmp"):  # a save that was killed half-way; the previous file is intact
         stale.unlink()
     plain = [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]

@@ -109,6 +109,9 @@ class LaneKeepingLapEnv(ScenarioMixin, AbstractEnv):
         for key in ("lane_width", "target_speed", "max_steering", "offroad_margin"):
             if not (np.isfinite(c[key]) and c[key] > 0):
                 raise ValueError(f"env.{key} must be a positive number, got {c[key]!r}")
+        width = SpeedHeldVehicle.WIDTH  # the ego (fast or not); the lane-departure metric needs it to fit its lane
+        if not c["lane_width"] > width:
+            raise ValueError(f"env.lane_width must be wider than the ego vehicle ({width} m), got {c['lane_width']!r}")
         for key in ("initial_lateral_std", "initial_heading_std"):
             if not (np.isfinite(c[key]) and c[key] >= 0):
                 raise ValueError(f"env.{key} must be a number >= 0, got {c[key]!r}")

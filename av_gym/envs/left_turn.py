@@ -104,6 +104,9 @@ class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
         if c["simulation_frequency"] % c["policy_frequency"]:
             raise ValueError(f"env.simulation_frequency ({c['simulation_frequency']}) must be a multiple of "
                              f"env.policy_frequency ({c['policy_frequency']})")
+        lo, hi = c["action"].get("acceleration_range", (-8.0, 3.0))
+        if not lo < hi:  # the continuous action -1..1 maps linearly onto [lo, hi]: an empty range divides by zero
+            raise ValueError(f"env.acceleration_range must be [min, max] with min < max (m/s²), got [{lo}, {hi}]")
         if not 0.0 <= c["spawn_probability"] <= 1.0:
             raise ValueError(f"env.spawn_probability must be in [0, 1], got {c['spawn_probability']}")
         for key in ("ccftap_ego_speed", "ccftap_target_speed", "ccftap_lead_time"):
