@@ -6,6 +6,11 @@ For each scenario, the same seeded episodes are driven with the same actions (PI
 IDLE for the left turn) by the bare env, the env with one sensor, and the env with the `full` preset. The table
 reports milliseconds per policy step (best of ``--repeats`` runs, to suppress scheduler noise) and the ratio to
 the bare env. Target (issue 3): env+full / env <= 2.0.
+
+A second table times one 66x200 camera frame on one core (OpenCV limited to one thread), for the texture
+renderer (the default) and the original raster renderer (``ground="raster"``) on the same poses: CPU time per
+frame (best of ``--repeats``), so load from other processes on a shared machine inflates it less than wall time.
+Target (issue 18): <= 0.3 ms per frame.
 """
 
 from __future__ import annotations
@@ -43,6 +48,45 @@ def run(env, steps: int, seed: int = 0) -> float:
     return total / n
 
 
+def frame_cost(scenario: str, steps: int, repeats: int) -> dict[str, float]:
+    """CPU seconds per camera frame of each renderer, on the poses of one seeded drive (best of ``repeats``)."""
+    import cv2
+    import gymnasium as gym
+
+    from av_gym.sensors.camera import camera_rig, render_views
+
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        env_id = {"lane_keeping": "av_gym/LaneKeepingLap-v0", "left_turn": "av_gym/UnprotectedLeftTurn-v0"}[scenario]
+        env = gym.make(env_id)
+        rig = camera_rig()
+        best = {"texture": np.inf, "raster": np.inf}
+        for _ in range(repeats):
+            seed, pid = 0, PIDSteering()
+            obs, info = env.reset(seed=seed)
+            for g in best:  # per-episode scene and per-layout texture built outside the timing
+                render_views(env, rig, ground=g)
+            total = {g: 0.0 for g in best}
+            for _ in range(steps):
+                a = pid.act({"state": np.array([info["truth"]["cte"]])}) if scenario == "lane_keeping" else 1
+                obs, _, terminated, truncated, info = env.step(a)
+                if terminated or truncated:
+                    seed += 1
+                    obs, info = env.reset(seed=seed)
+                    pid.reset()
+                    for g in best:
+                        render_views(env, rig, ground=g)
+                for g in best:
+                    t0 = time.process_time()
+                    render_views(env, rig, ground=g)
+                    total[g] += time.process_time() - t0
+            best = {g: min(best[g], total[g] / (steps * len(rig))) for g in best}
+        return best
+    finally:
+        cv2.setNumThreads(threads)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=300)
@@ -63,6 +107,11 @@ def main() -> None:
     print(f"\n{'scenario':<14} {'stack':<20} {'ms/step':>9} {'ratio':>7}")
     for scenario, stack, t, ratio in rows:
         print(f"{scenario:<14} {stack:<20} {1000 * t:>9.2f} {ratio:>7.2f}")
+    print(f"\n{'scenario':<14} {'camera frame (1 core)':<22} {'texture ms':>10} {'raster ms':>10} {'speed-up':>9}")
+    for scenario in ("lane_keeping", "left_turn"):
+        c = frame_cost(scenario, args.steps, args.repeats)
+        print(f"{scenario:<14} {'66x200, CPU time':<22} {1000 * c['texture']:>10.3f} {1000 * c['raster']:>10.3f} "
+              f"{c['raster'] / c['texture']:>9.2f}")
 
 
 def _exists(preset: str) -> bool:

@@ -1003,13 +1003,15 @@ class Cameras(SensorWrapper):
     def _noisy(self, name: str, clean: np.ndarray) -> np.ndarray:
         n = self.noise
         gain, offset = self._exposure[name]
-        im = clean.astype(np.float32) * np.float32(gain) + np.float32(offset)
-        if n.blur_sigma > 0:
-            im = cv2.GaussianBlur(im, (0, 0), n.blur_sigma)
         sigma = n.night_pixel_std if self.weather.night else n.pixel_std
-        if sigma > 0:
-            im += self.rng.standard_normal(im.shape, dtype=np.float32) * np.float32(sigma)
-        return np.clip(np.round(im), 0, 255).astype(np.uint8)
+        im = clean.astype(np.float32)
+        if n.blur_sigma > 0:
+            im = cv2.GaussianBlur(im * np.float32(gain) + np.float32(offset), (0, 0), n.blur_sigma)
+            gain, offset = 1.0, 0.0
+        # exposure, pixel noise, rounding and clipping to [0, 255] in one OpenCV pass (saturate_cast rounds to
+        # nearest); the noise is drawn from the wrapper's generator as before
+        noise = self.rng.standard_normal(im.shape, dtype=np.float32) if sigma > 0 else im
+        return cv2.addWeighted(im, float(gain), noise, float(sigma), float(offset), dtype=cv2.CV_8U)
 
     def measure(self) -> dict[str, np.ndarray]:
         t = sim_time(self.env)
