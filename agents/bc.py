@@ -64,11 +64,13 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any, Callable
 
+import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from agents.pilotnet import FORMAT, PilotNet, count_parameters, crop_resize, to_network_input
+from agents.pilotnet import (FORMAT, INPUT_HEIGHT, INPUT_WIDTH, PilotNet, count_parameters, crop_resize,
+                             to_network_input)
 
 CAMERAS = ("left", "centre", "right")
 DEMO_VERSION = 1
@@ -104,6 +106,14 @@ class Args:
     contrast: float = 0.25  # gain about mid-grey, uniform 1 ±
     gain: float = 0.15  # per-image gain, uniform 1 ±
     pixel_noise: float = 5.0  # Gaussian σ, uniform in [0, this] per image
+    # conditions the camera model renders (av_gym/sensors/camera.py), recreated on the clean demonstrations
+    night_p: float = 0.0  # share of images darkened to night (ambient, headlight pools, gamma)
+    night_pixel_noise: float = 16.0  # Gaussian σ, uniform in [0, this] for night images (camera: 12 at night)
+    fog_p: float = 0.0  # share of images in fog, visibility log-uniform in [fog_min_m, fog_max_m]
+    fog_min_m: float = 40.0
+    fog_max_m: float = 300.0
+    blur_p: float = 0.0  # share of images blurred, Gaussian σ uniform in [0, blur_max_px]
+    blur_max_px: float = 1.2
     # training
     learning_rate: float = 1e-3
     batch_size: int = 100
@@ -143,11 +153,17 @@ class Args:
             v = getattr(self, key)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 p.append(f"{where}.{key} must be a positive number, got {v!r}")
-        for key in ("perturb_std", "shift_px", "vshift_px", "rotate_deg", "brightness", "pixel_noise"):
+        for key in ("perturb_std", "shift_px", "vshift_px", "rotate_deg", "brightness", "pixel_noise",
+                    "night_pixel_noise", "blur_max_px"):
             v = getattr(self, key)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 p.append(f"{where}.{key} must be a number >= 0, got {v!r}")
-        for key, hi in (("flip_p", 1.0), ("contrast", 0.99), ("gain", 0.99), ("dropout", 0.99)):
+        if not (isinstance(self.fog_min_m, (int, float)) and isinstance(self.fog_max_m, (int, float))
+                and 0 < self.fog_min_m <= self.fog_max_m):
+            p.append(f"{where}.fog_min_m and fog_max_m must satisfy 0 < fog_min_m <= fog_max_m, got "
+                     f"{self.fog_min_m!r}, {self.fog_max_m!r}")
+        for key, hi in (("flip_p", 1.0), ("contrast", 0.99), ("gain", 0.99), ("dropout", 0.99), ("night_p", 1.0),
+                        ("fog_p", 1.0), ("blur_p", 1.0)):
             v = getattr(self, key)
             if not (isinstance(v, (int, float)) and 0 <= v <= hi):
                 p.append(f"{where}.{key} must be in [0, {hi}], got {v!r}")
@@ -339,14 +355,54 @@ def split_by_chunks(frame: np.ndarray, lap: np.ndarray, chunk_steps: int, val_fr
 
 
 # ================================================================================================ 5. augmentation
+@dataclass(frozen=True)
+class WeatherMaps:
+    """Per-pixel ground distance (m; capped at 1 km, the sky included) and headlight beam factor of the demo
+    camera, both (66, 200) float32 after the same crop/resize as the images: what :class:`av_gym.sensors.camera.
+    Weather` needs to turn a clean frame into a foggy or night one (vertical things are treated as the ground
+    behind them: nearer in truth, so augmented fog on them is a little thicker than the camera's)."""
+
+    depth: torch.Tensor
+    beam: torch.Tensor
+
+    @classmethod
+    def for_camera(cls, camera_cfg: dict, crop_top: int) -> WeatherMaps:
+        from av_gym.sensors.camera import CameraSpec, _ground_rays
+
+        keys = ("height", "width", "hfov_deg", "mount_height", "pitch_deg", "forward_offset", "max_range",
+                "supersample")
+        spec = CameraSpec(**{k: camera_cfg[k] for k in keys if k in camera_cfg})
+        depth, beam = (np.array(a, np.float32) for a in _ground_rays(spec))
+        out = []
+        for a in (np.minimum(depth, 1000.0), beam):
+            a = cv2.resize(a, (spec.width, spec.height), interpolation=cv2.INTER_AREA)[crop_top:]
+            out.append(torch.from_numpy(cv2.resize(a, (INPUT_WIDTH, INPUT_HEIGHT), interpolation=cv2.INTER_LINEAR)))
+        return cls(*out)
+
+
 def augment(rgb: torch.Tensor, y: torch.Tensor, dy_dyaw: torch.Tensor, args: Args, focal_px: float,
-            gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """Random flip, shift (as yaw, label corrected), vertical shift, roll, exposure and pixel noise on a float RGB
-    batch (B, 3, H, W) in [0, 255]; returns the augmented batch and labels (see the module docstring)."""
+            gen: torch.Generator, weather: WeatherMaps | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Random conditions (fog, night; needs ``weather``), flip, shift (as yaw, label corrected), vertical shift,
+    roll, exposure, blur and pixel noise on a float RGB batch (B, 3, H, W) in [0, 255]; returns the augmented batch
+    and labels (see the module docstring). Fog and night follow the camera model's equations
+    (``av_gym/sensors/camera.py: _apply_weather``) with parameters drawn per image around its defaults."""
     b, _, h, w = rgb.shape
 
     def uniform(lo: float, hi: float, n: int = b) -> torch.Tensor:
         return lo + (hi - lo) * torch.rand(n, generator=gen)
+
+    night = torch.zeros(b, dtype=torch.bool)
+    if weather is not None and (args.fog_p > 0 or args.night_p > 0):
+        fog = torch.rand(b, generator=gen) < args.fog_p
+        night = torch.rand(b, generator=gen) < args.night_p
+        vis = torch.exp(uniform(math.log(args.fog_min_m), math.log(args.fog_max_m)))[:, None, None, None]
+        t = torch.exp(-3.912 * weather.depth / vis)
+        rgb = torch.where(fog[:, None, None, None], rgb * t + 200.0 * (1 - t), rgb)  # airlight 200 (camera's)
+        ambient = uniform(0.3, 0.5)[:, None, None, None]
+        gamma = uniform(1.5, 2.2)[:, None, None, None]
+        light = ambient + (1 - ambient) * weather.beam / (1 + (weather.depth / 20.0) ** 2)
+        dark = 255.0 * (rgb * light / 255.0).clamp(0.0, 1.0) ** gamma
+        rgb = torch.where(night[:, None, None, None], dark, rgb)
 
     flip = torch.rand(b, generator=gen) < args.flip_p
     rgb = torch.where(flip[:, None, None, None], rgb.flip(-1), rgb)
@@ -368,8 +424,23 @@ def augment(rgb: torch.Tensor, y: torch.Tensor, dy_dyaw: torch.Tensor, args: Arg
     offset = uniform(-args.brightness, args.brightness)[:, None, None, None]
     gain = uniform(1 - args.gain, 1 + args.gain)[:, None, None, None]
     rgb = ((rgb - 128.0) * contrast + 128.0 + offset) * gain
-    sigma = uniform(0.0, args.pixel_noise)[:, None, None, None]
-    rgb = rgb + sigma * torch.randn(rgb.shape, generator=gen)
+    if args.blur_p > 0 and args.blur_max_px > 0:
+        # one σ per batch (a separable Gaussian kernel), applied to a random share of the images
+        sigma_b = float(uniform(0.0, args.blur_max_px, 1))
+        if sigma_b > 0.05:
+            r = max(1, int(math.ceil(3 * sigma_b)))
+            k = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=torch.float32) / sigma_b) ** 2)
+            k = (k / k.sum()).to(rgb.dtype)
+            blurred = F.conv2d(F.pad(rgb, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1).repeat(3, 1, 1, 1),
+                               groups=3)
+            blurred = F.conv2d(F.pad(blurred, (0, 0, r, r), mode="replicate"),
+                               k.view(1, 1, -1, 1).repeat(3, 1, 1, 1), groups=3)
+            pick = torch.rand(b, generator=gen) < args.blur_p
+            rgb = torch.where(pick[:, None, None, None], blurred, rgb)
+    sigma = uniform(0.0, args.pixel_noise)
+    if night.any():
+        sigma = torch.where(night, uniform(0.0, args.night_pixel_noise), sigma)
+    rgb = rgb + sigma[:, None, None, None] * torch.randn(rgb.shape, generator=gen)
     return rgb.clamp(0.0, 255.0), y
 
 
@@ -460,6 +531,8 @@ def train(args: Args, env_cfg: dict, sensors_cfg: dict, run_dir: str | Path, ckp
         x_val = crop_resize(demos["images"][val_idx], args.crop_top)
         y_val = demos["steering"][val_idx].astype(np.float32)
         focal = float(meta["focal_px"])
+        weather = WeatherMaps.for_camera(sensors_cfg["cameras"], args.crop_top) \
+            if (args.fog_p > 0 or args.night_p > 0) else None
         del demos
 
         # ---- model, optimiser
@@ -478,7 +551,7 @@ def train(args: Args, env_cfg: dict, sensors_cfg: dict, run_dir: str | Path, ckp
             for i in range(0, n, args.batch_size):
                 idx = np.sort(perm[i:i + args.batch_size])
                 rgb, y = augment(_as_batch(x_train[idx]), torch.from_numpy(y_train[idx]),
-                                 torch.from_numpy(s_train[idx]), args, focal, gen)
+                                 torch.from_numpy(s_train[idx]), args, focal, gen, weather)
                 if epoch == 0 and i == 0:
                     writer.add_images("samples/augmented_rgb", rgb[:16] / 255.0, 0)
                     writer.add_text("samples/augmented_labels", " ".join(f"{v:+.2f}" for v in y[:16].tolist()), 0)

@@ -92,6 +92,37 @@ def test_shift_is_read_as_a_yaw_and_corrects_the_label():
     assert (torch.sign(y_out[tx.abs() > 1]) == torch.sign(tx[tx.abs() > 1])).all()  # road moved right: steer right
 
 
+def test_night_and_fog_follow_the_camera_model_and_keep_the_label():
+    """Augmented night/fog on clean frames look like the camera's own night/fog renders of the same pose (issue 18):
+    darker / hazier by about as much, labels untouched."""
+    import gymnasium as gym
+
+    import av_gym  # noqa: F401
+    from agents.bc import WeatherMaps
+    from av_gym.sensors.camera import Weather, render_view
+
+    env = gym.make("av_gym/LaneKeepingLap-v0", config={"start_s": 60.0, "initial_lateral_std": 0.0,
+                                                       "initial_heading_std": 0.0})
+    env.reset(seed=0)
+    clean, night, fog = (crop_resize(render_view(env, weather=w), 12) for w in
+                         (Weather(), Weather(night=True), Weather(fog_visibility=80.0)))
+    maps = WeatherMaps.for_camera(conf("sensor", "cameras"), 12)
+    x = torch.from_numpy(np.stack([clean] * 64)).permute(0, 3, 1, 2).float()
+    y = torch.linspace(-0.5, 0.5, 64)
+    for args, target in ((_plain_args(night_p=1.0), night), (_plain_args(fog_p=1.0, fog_min_m=80.0, fog_max_m=80.0),
+                                                              fog)):
+        out, y_out = augment(x, y, torch.zeros(64), args, 142.8, torch.Generator().manual_seed(0), maps)
+        assert torch.equal(y_out, y)
+        mean_out = out.mean(0).permute(1, 2, 0).numpy()
+        # mean brightness within 15 % of the camera's render of the condition, and far from the clean frame
+        assert abs(mean_out.mean() - target.mean()) < 0.15 * target.mean(), (mean_out.mean(), target.mean())
+        assert abs(mean_out.mean() - clean.mean()) > 3 * abs(mean_out.mean() - target.mean())
+    # with the conditions off, the generator is used exactly as before (a plain run trains the same model)
+    a, _ = augment(x[:8], y[:8], torch.zeros(8), Args(), 142.8, torch.Generator().manual_seed(3), maps)
+    b, _ = augment(x[:8], y[:8], torch.zeros(8), Args(), 142.8, torch.Generator().manual_seed(3), None)
+    assert torch.equal(a, b)
+
+
 def test_balancing_caps_every_bin():
     rng = np.random.default_rng(0)
     steering = np.concatenate([np.zeros(5000), rng.uniform(-1, 1, 1000), np.full(300, 0.45)])
