@@ -132,3 +132,8 @@ def check_folder(path: str | Path, field: str, create: bool = False) -> Path:
             raise ConfigError(f"{field}={path}: cannot be written: {os.strerror(exc.errno) if exc.errno else exc}") \
                 from None
     return path
+
+
+class TrainingDiverged(ConfigError):
+    """Training produced a non-finite loss or parameter. Reported like bad input (one line, exit 2): the usual cause
+    is a setting (a learning rate far too large), and the message names it."""

@@ -83,6 +83,88 @@ class AtomicCheckpointCallback(BaseCallback):
         self._last_save = self._boundary
 
 
+class FiniteGuard(BaseCallback):
+    """Stops training with :class:`av_gym.errors.TrainingDiverged` (one line) when a loss or a parameter is NaN or
+    infinite, before the next rollout, and so before :class:`AtomicCheckpointCallback` could overwrite the last good
+    ``latest.zip`` with it (this callback must come first in the list). Checked once per rollout (after each update),
+    a few microseconds per parameter tensor.
+
+    ``learning_rate``: the configured one, named in the message when it is the likely cause; ``init_lr``: the
+    behaviour-cloning one (``agent.init_lr``), when cloning ran with its own."""
+
+    def __init__(self, learning_rate: float, checkpoint: Path | None = None, init_lr: float | None = None) -> None:
+        super().__init__()
+        self.learning_rate, self.checkpoint = float(learning_rate), checkpoint
+        self.init_lr = None if init_lr is None else float(init_lr)
+
+    def _on_training_start(self) -> None:
+        if self.init_lr is None:
+            self.check("the initial (cloned) policy")
+        else:
+            self.check("the initial (cloned) policy", ("agent.init_lr", self.init_lr))
+
+    def _on_rollout_start(self) -> None:
+        self.check("the last PPO update")
+
+    def _on_step(self) -> bool:
+        return True
+
+    def problem(self) -> str | None:
+        """What is not finite: a logged training loss, or a parameter (by name); None if all is finite."""
+        import math
+
+        for key, value in self.logger.name_to_value.items():
+            if key.startswith("train/") and isinstance(value, float) and not math.isfinite(value):
+                return f"{key} = {value}"
+        return nonfinite_parameter(self.model.policy)
+
+    def check(self, after: str, lr: tuple[str, float] | None = None) -> None:
+        found = self.problem()
+        if found:
+            raise self.diverged(found, after, lr)
+
+    def diverged(self, found: str, after: str, lr: tuple[str, float] | None = None):
+        name, value = lr or ("agent.learning_rate", self.learning_rate)
+        return diverged_error(found, after, name, value, self.checkpoint, self.num_timesteps)
+
+
+def diverged_error(found: str, after: str, lr_name: str, lr: float, checkpoint: Path | None = None,
+                   steps: int | None = None):
+    """The one-line :class:`av_gym.errors.TrainingDiverged` for ``found`` (what is not finite), naming the likely
+    cause (the learning rate ``lr_name`` when it is large) and whether ``checkpoint`` (the last good one) exists."""
+    from av_gym.errors import TrainingDiverged
+
+    if lr > 1e-2:  # Adam on these networks: 1e-4..1e-3 (conf/agent/); 1e-2 is already aggressive
+        cause = f"{lr_name}={lr:g} is far above PPO's usual 1e-4..1e-3: lower it"
+    else:
+        cause = (f"a reward or observation that is not finite, or steps too large for this problem: lower "
+                 f"{lr_name} ({lr:g}) or agent.max_grad_norm")
+    kept = (f"the last good checkpoint, {checkpoint}, is kept" if checkpoint and Path(checkpoint).is_file()
+            else "no checkpoint had been written yet")
+    at = f" at {steps} steps" if steps is not None else ""
+    return TrainingDiverged(f"training diverged{at}: {found} after {after}; likely cause: {cause}; {kept}")
+
+
+def raise_if_diverged(exc: BaseException, policy, after: str, lr_name: str, lr: float) -> None:
+    """Called with an exception from torch (a distribution refusing NaN logits, say): if ``policy`` has a
+    non-finite parameter, that is what happened; raise the one-line :class:`TrainingDiverged` instead."""
+    from av_gym.errors import ConfigError
+
+    found = None if isinstance(exc, ConfigError) else nonfinite_parameter(policy)
+    if found:
+        raise diverged_error(found, after, lr_name, lr) from None
+
+
+def nonfinite_parameter(policy) -> str | None:
+    """``"<name> has NaN/inf values"`` for the first policy parameter that is not finite, else None."""
+    import torch
+
+    for name, param in policy.named_parameters():
+        if not bool(torch.isfinite(param).all()):
+            return f"parameter {name} has NaN/inf values"
+    return None
+
+
 def score(scenario: str, metrics: dict) -> float:
     """One number per evaluation, higher is better, for keeping the best checkpoint: success rate minus collision
     rate on the left turn (a collision costs as much as a success earns); laps completed minus mean |CTE| (m) on

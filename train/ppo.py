@@ -250,7 +250,8 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
 
     from agents.ppo import make_ppo
     from av_gym.errors import ConfigError
-    from train.callbacks import AtomicCheckpointCallback, EpisodeMetricsCallback, HParamsCallback, PeriodicEval
+    from train.callbacks import (AtomicCheckpointCallback, EpisodeMetricsCallback, FiniteGuard, HParamsCallback,
+                                 PeriodicEval, nonfinite_parameter, raise_if_diverged)
     from train.checkpoint import check_sb3_zip, load_rng_state, save_model_atomic
 
     agent, t0 = cfg.agent, time.time()
@@ -290,10 +291,17 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
             demo_env = _env_factory(*plain, cost, repeat, actions)
             # Demonstration seeds 500000+: disjoint from evaluation (1000+, 100000+) and from PPO's own episodes.
             t_bc = time.time()
-            stats = pretrain_from_teacher(model, demo_env, teacher, range(500000, 500000 + int(agent.init_episodes)),
-                                          float(agent.gamma), int(agent.init_epochs), int(agent.batch_size),
-                                          float(agent.get("init_action_noise", 0.0)),
-                                          int(agent.get("init_dagger_rounds", 0)), agent.get("init_lr"))
+            try:
+                stats = pretrain_from_teacher(model, demo_env, teacher,
+                                              range(500000, 500000 + int(agent.init_episodes)),
+                                              float(agent.gamma), int(agent.init_epochs), int(agent.batch_size),
+                                              float(agent.get("init_action_noise", 0.0)),
+                                              int(agent.get("init_dagger_rounds", 0)), agent.get("init_lr"))
+            except (ValueError, RuntimeError) as exc:  # NaN logits refused inside torch: say why, in one line
+                lr = ("agent.init_lr", agent.init_lr) if agent.get("init_lr") else ("agent.learning_rate",
+                                                                                    agent.learning_rate)
+                raise_if_diverged(exc, model.policy, "behaviour cloning", lr[0], float(lr[1]))
+                raise
             demo_env.close()
             print(f"[train] cloned {agent.init} from {stats['episodes']} episodes ({stats['decisions']} decisions, "
                   f"teacher collision {stats['teacher_collision']:.2f}, success {stats['teacher_success']:.2f}): "
@@ -305,7 +313,9 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
         for key, store in saved.get("logger", {}).items():
             getattr(model.logger, key).update(store)
     checkpoint = AtomicCheckpointCallback(ckpt_dir, int(cfg.train.checkpoint_every))
-    callbacks = [EpisodeMetricsCallback(cfg.env.name), checkpoint]
+    guard = FiniteGuard(float(agent.learning_rate), latest,  # first: a diverged update never reaches a checkpoint
+                        agent.get("init_lr") if agent.get("init") and not resume else None)
+    callbacks = [guard, EpisodeMetricsCallback(cfg.env.name), checkpoint]
     if not resume:
         callbacks.append(HParamsCallback({**OmegaConf.to_container(agent, resolve=True), "env": cfg.env.name,
                                           "sensors": cfg.sensors.name, "shield": cfg.shield.name,
@@ -319,9 +329,20 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM behaves like Ctrl-C
     try:
         remaining = int(agent.total_timesteps) - int(model.num_timesteps)
+        # SB3 collects whole rollouts (n_steps x n_envs) until the total is reached: ask for that rounded-up total,
+        # which it would train anyway, so that the progress bar ends at its total (not 24,576/24,000).
+        rollout = int(agent.n_steps) * int(agent.n_envs)
+        remaining = -(-remaining // rollout) * rollout
         if remaining > 0:
             model.learn(total_timesteps=remaining, callback=callbacks, reset_num_timesteps=False,
                         progress_bar=bool(cfg.train.progress_bar))
+    except (ValueError, RuntimeError) as exc:
+        # a NaN in the middle of an update fails inside torch (a distribution's argument check) before the guard
+        # sees it: with non-finite parameters, that is the divergence, said in one line
+        found = None if isinstance(exc, ConfigError) else nonfinite_parameter(model.policy)
+        if found:
+            raise guard.diverged(found, f"an update ({type(exc).__name__} in torch)") from None
+        raise
     except KeyboardInterrupt:
         if checkpoint.model is not None:  # learning had started
             checkpoint.save()
@@ -334,6 +355,7 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
             venv.close()
         except (EOFError, BrokenPipeError, ConnectionResetError):  # workers already gone after a signal
             pass
+    guard.check("the last PPO update")  # model.zip only from finite parameters
     path = save_model_atomic(model, ckpt_dir / "model.zip")
     env_steps = f" ({model.num_timesteps * repeat} env steps)" if repeat > 1 else ""
     print(f"[train] {model.num_timesteps} steps{env_steps} in {time.time() - t0:.0f} s")
