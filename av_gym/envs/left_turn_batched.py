@@ -1,0 +1,314 @@
+"""The unprotected left turn (``av_gym.envs.left_turn``, ``mode: traffic``) for B environments at once, on the
+batched traffic of :mod:`av_gym.sim.batched` (issue 16).
+
+:class:`BatchedLeftTurn` is the env layer: per-environment seeded generators drawing the traffic exactly as
+``UnprotectedLeftTurnEnv.reset(seed=s)`` / ``step`` do, the reward terms, termination, ``info["truth"]``'s fields
+and the ``obs["turn"]`` turn features (``TurnFeatures(source=truth)``) for the whole batch as arrays. The RL
+interfaces (SB3 ``VecEnv``, Gymnasium ``VectorEnv``) are in :mod:`av_gym.envs.batched_vec`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from gymnasium.utils import seeding
+from highway_env import utils
+
+from av_gym.envs.left_turn import CONFLICT_POINT, ONCOMING_NEAR_EDGE_X, ROUTE, UnprotectedLeftTurnEnv
+from av_gym.estimation.turn_features import EGO_FEATURES, OBJECT_FEATURES, PATH_STEP, T_MAX
+from av_gym.sim.batched import EGO_TARGET_SPEEDS, LENGTH, WIDTH, LaneTable, Traffic
+
+SPAWN_CLEAR = 15.0  # m, IntersectionEnv._spawn_vehicle: no spawn this close to another vehicle
+EGO_CLEAR = 20.0  # m, _make_vehicles: vehicles this close to the ego are removed ("prevent early collisions")
+
+_TABLES = None
+
+
+def tables() -> tuple[LaneTable, object]:
+    """The intersection's lanes (IntersectionEnv._make_road), built once."""
+    global _TABLES
+    if _TABLES is None:
+        env = UnprotectedLeftTurnEnv(config={"fast": False})
+        env._make_road()
+        _TABLES = (LaneTable(env.road.network), env.road.network)
+    return _TABLES
+
+
+def full_config(config: dict | None) -> dict:
+    cfg = UnprotectedLeftTurnEnv.default_config()
+    for k, v in (config or {}).items():
+        cfg[k] = {**cfg[k], **v} if isinstance(v, dict) and isinstance(cfg.get(k), dict) else v
+    return cfg
+
+
+class BatchedLeftTurn:
+    """B left-turn episodes stepped together. ``reset(seeds)`` / ``reset_envs(rows, seeds)``; ``step(actions)``
+    with the env's discrete meta-actions (B,) returns obs["turn"] (B, F), reward, terminated, truncated and the
+    truth arrays (:meth:`truth`)."""
+
+    def __init__(self, n_envs: int, config: dict | None = None, max_objects: int = 8, max_range: float = 80.0,
+                 time_scale: float = 20.0) -> None:
+        self.config = c = full_config(config)
+        if c["mode"] != "traffic":
+            raise ValueError(f"the batched left turn runs env.mode=traffic only, got {c['mode']!r}")
+        if c["action"]["type"] != "discrete":
+            raise ValueError(f"the batched left turn runs env.action=discrete only, got {c['action']['type']!r}")
+        if not np.allclose(c["action"]["target_speeds"], EGO_TARGET_SPEEDS):
+            raise ValueError(f"the batched left turn has the set-points {list(EGO_TARGET_SPEEDS)} m/s, got "
+                             f"{c['action']['target_speeds']}")
+        self.B = int(n_envs)
+        self.T, network = tables()
+        self.dt = 1.0 / c["simulation_frequency"]
+        self.frames = int(c["simulation_frequency"] // c["policy_frequency"])
+        self.traffic = Traffic(self.T, self.B)
+        self.rngs = [seeding.np_random(None)[0] for _ in range(self.B)]
+        T = self.T
+        self.route = np.array([T.id[i] for i in ROUTE])
+        self.route_starts = np.concatenate([[0.0], np.cumsum(T.length[self.route])[:-1]])
+        turn = network.get_lane(ROUTE[1])
+        self.conflict_s = self.route_starts[1] + turn.local_coordinates(CONFLICT_POINT)[0]
+        # obs["turn"]
+        self.max_objects, self.max_range, self.time_scale = int(max_objects), float(max_range), float(time_scale)
+        exit_lane = network.get_lane(ROUTE[2])
+        s_turn = np.arange(0.0, turn.length, PATH_STEP)
+        s_exit = np.arange(0.0, 10.0 + 1e-9, PATH_STEP)
+        self.path = np.array([turn.position(s, 0.0) for s in s_turn] + [exit_lane.position(s, 0.0) for s in s_exit])
+        self.path_s = np.concatenate([s_turn, turn.length + s_exit])
+        self.n_features = len(EGO_FEATURES) + len(OBJECT_FEATURES) * self.max_objects
+        B = self.B
+        self.time, self.ticks = np.zeros(B), np.zeros(B, dtype=int)
+        self.route_k, self.progress_s, self.progress_total = np.zeros(B, dtype=int), np.zeros(B), np.ones(B)
+        self.arrived_time = np.full(B, np.nan)
+        self.episode_seed = np.zeros(B, dtype=np.int64)
+
+    # ------------------------------------------------------------------------------------------- traffic draws
+    def _spawn(self, t: Traffic, b: int, rng, longitudinal: float = 0.0, position_deviation: float = 1.0,
+               speed_deviation: float = 1.0, spawn_probability: float = 0.6, go_straight: bool = False) -> None:
+        """IntersectionEnv._spawn_vehicle: the same draws in the same order on env b's generator."""
+        if rng.uniform() > spawn_probability:
+            return
+        route = rng.choice(range(4), size=2, replace=False)
+        route[1] = (route[0] + 2) % 4 if go_straight else route[1]
+        T = self.T
+        lane = T.id[(f"o{route[0]}", f"ir{route[0]}", 0)]
+        s = longitudinal + 5.0 + rng.normal() * position_deviation
+        speed = 8.0 + rng.normal() * speed_deviation
+        x, y = T.position(lane, s, 0.0)
+        a = t.alive[b]
+        if (np.hypot(t.x[b, a] - x, t.y[b, a] - y) < SPAWN_CLEAR).any():
+            return
+        start = int(T.closest(np.array(x), np.array(y), np.array(T.heading_at(lane, s))))
+        dest = route[1]
+        plan = [start, T.id[(f"ir{route[0]}", f"il{dest}", 0)], T.id[(f"il{dest}", f"o{dest}", 0)]]
+        delta = rng.uniform(low=3.5, high=4.5)  # IDMVehicle.randomize_behavior
+        t.add(b, lane, s, speed, plan, delta=delta)
+
+    def _make_vehicles(self, rows: np.ndarray) -> Traffic:
+        """IntersectionEnv._make_vehicles(initial_vehicle_count) for the envs ``rows``, as a sub-batch: initial
+        traffic, 3 s of simulation (batched), the challenger, the ego, and no vehicle within 20 m of the ego."""
+        n_vehicles = int(self.config["initial_vehicle_count"])
+        t = Traffic(self.T, len(rows), N=max(16, n_vehicles + 4))
+        for b, row in enumerate(rows):
+            for k in range(n_vehicles - 1):
+                self._spawn(t, b, self.rngs[row], np.linspace(0, 80, n_vehicles)[k])
+        for _ in range(3 * int(self.config["simulation_frequency"])):
+            t.act()
+            t.step(self.dt)
+        T = self.T
+        ego_lane = T.id[ROUTE[0]]
+        for b, row in enumerate(rows):
+            rng = self.rngs[row]
+            self._spawn(t, b, rng, 60, spawn_probability=1.0, go_straight=True, position_deviation=0.1,
+                        speed_deviation=0.0)
+            s = 60.0 + 5.0 * rng.normal(1.0)
+            slot = t.add(b, ego_lane, s, T.speed_limit[ego_lane], [ego_lane, *self.route[1:]], ego=True,
+                         target=EGO_TARGET_SPEEDS[-1])  # speed_to_index(10 m/s) = 2: 9 m/s
+            t.h[b, slot] = T.heading_at(ego_lane, 60.0)
+            t.route[b, slot, 0] = t.lane[b, slot]
+            near = t.alive[b] & ~t.ego[b] & (np.hypot(t.x[b] - t.x[b, slot], t.y[b] - t.y[b, slot]) < EGO_CLEAR)
+            t.alive[b] &= ~near
+            self.episode_seed[row] = int(rng.integers(2**63 - 1))  # ScenarioMixin._finish_reset
+        t.compact()
+        return t
+
+    # ------------------------------------------------------------------------------------------- episodes
+    def reset(self, seeds=None):
+        return self.reset_envs(np.arange(self.B), seeds)
+
+    def reset_envs(self, rows, seeds=None):
+        """Reset the envs ``rows`` (seeded with ``seeds`` where given, else their generators go on)."""
+        rows = np.asarray(rows, dtype=int)
+        if seeds is not None:
+            for row, seed in zip(rows, seeds):
+                if seed is not None:
+                    self.rngs[row] = seeding.np_random(int(seed))[0]
+        self.traffic.put(rows, self._make_vehicles(rows))
+        self.time[rows], self.ticks[rows], self.route_k[rows] = 0.0, 0, 0
+        self.arrived_time[rows] = np.nan
+        s = self._route_s(rows)
+        self.progress_s[rows] = s
+        self.progress_total[rows] = np.maximum(1.0, self.route_starts[2] + 25.0 - s)
+        return self.observe(rows)
+
+    def ego_slot(self, rows=None) -> np.ndarray:
+        rows = np.arange(self.B) if rows is None else rows
+        return np.argmax(self.traffic.ego[rows], axis=1)
+
+    def _route_s(self, rows: np.ndarray) -> np.ndarray:
+        """LanePath.locate from the hint ``route_k`` + path_s, for the ego of each env in ``rows``."""
+        t, T = self.traffic, self.T
+        e = self.ego_slot(rows)
+        x, y = t.x[rows, e], t.y[rows, e]
+        k = self.route_k[rows].copy()
+        s, lat = T.local(self.route[k], x, y)
+        step = np.where(s > T.length[self.route[k]], 1, np.where(s < 0, -1, 0))
+        for _ in range(len(self.route)):
+            nxt = k + step
+            go = (step != 0) & (nxt >= 0) & (nxt < len(self.route))
+            if not go.any():
+                break
+            k = np.where(go, nxt, k)
+            s2, lat2 = T.local(self.route[k], x, y)
+            s, lat = np.where(go, s2, s), np.where(go, lat2, lat)
+            done = ((step > 0) & (s <= T.length[self.route[k]])) | ((step < 0) & (s >= 0))
+            step = np.where(go & ~done, step, 0)
+        self.route_k[rows] = k
+        self._lat = lat
+        return self.route_starts[k] + s
+
+    def has_arrived(self, rows, slots, exit_distance: float = 25.0) -> np.ndarray:
+        """IntersectionEnv.has_arrived: on an "il"→"o" lane, ≥ 25 m along it."""
+        t, T = self.traffic, self.T
+        lane = t.lane[rows, slots]
+        s, _ = T.local(lane, t.x[rows, slots], t.y[rows, slots])
+        return T.exit[lane] & (s >= exit_distance)
+
+    def _clear_and_spawn(self, rows: np.ndarray) -> None:
+        """The left turn's step prologue: IntersectionEnv._clear_vehicles, then one spawn try at
+        spawn_probability / policy_frequency."""
+        t, T = self.traffic, self.T
+        s, _ = T.local(t.lane, t.x, t.y)
+        leaving = T.exit[t.lane] & (s >= T.length[t.lane] - 4 * LENGTH)
+        gone = np.zeros_like(t.alive)
+        gone[rows] = (t.alive & ~t.ego & leaving)[rows]
+        if gone.any():
+            t.alive &= ~gone
+            t.compact()
+        p = self.config["spawn_probability"] / self.config["policy_frequency"]
+        for b in rows:
+            self._spawn(t, int(b), self.rngs[b], spawn_probability=p)
+
+    def step(self, actions: np.ndarray, active: np.ndarray | None = None):
+        """One policy step of every env (``active``: the envs to step; the others are left as they are).
+        ``actions``: meta-actions (B,) {0: SLOWER, 1: IDLE, 2: FASTER}."""
+        c, t = self.config, self.traffic
+        active = np.ones(self.B, bool) if active is None else np.asarray(active, bool)
+        rows = np.nonzero(active)[0]
+        self._clear_and_spawn(rows[self.ticks[rows] > 0])
+        self.time[rows] += 1.0 / c["policy_frequency"]
+        idle = ~active
+        frozen = {name: getattr(t, name)[idle].copy() for name in Traffic.FIELDS} if idle.any() else None
+        steps_frozen = t.road_steps[idle].copy()
+        for frame in range(self.frames):
+            t.act(np.where(active, actions, 1) if frame == 0 else None)
+            t.step(self.dt)
+            self.ticks[rows] += 1
+            e = self.ego_slot(rows)
+            arrived = self.has_arrived(rows, e) & np.isnan(self.arrived_time[rows])
+            self.arrived_time[rows[arrived]] = self.time[rows[arrived]]
+        if frozen is not None:  # envs already done wait for their reset unchanged
+            for name, value in frozen.items():
+                getattr(t, name)[idle] = value
+            t.road_steps[idle] = steps_frozen
+        reward = np.zeros(self.B)
+        reward[rows], terminated, truncated = self._reward(rows), np.zeros(self.B, bool), np.zeros(self.B, bool)
+        e = self.ego_slot(rows)
+        crashed, arrived = t.crashed[rows, e], self.has_arrived(rows, e)
+        terminated[rows] = crashed | arrived
+        truncated[rows] = self.time[rows] >= c["duration"]
+        return reward, terminated, truncated
+
+    def _reward(self, rows: np.ndarray) -> np.ndarray:
+        """UnprotectedLeftTurnEnv._reward for the envs ``rows``."""
+        c, t = self.config, self.traffic
+        e = self.ego_slot(rows)
+        dt = 1.0 / c["policy_frequency"]
+        v = t.v[rows, e]
+        lo, hi = c["reward_speed_range"]
+        reward = c["high_speed_reward"] * np.clip((v - lo) / (hi - lo), 0, 1) * dt
+        if c["progress_reward"]:
+            s = self._route_s(rows)
+            reward = reward + c["progress_reward"] * np.maximum(0.0, s - self.progress_s[rows]) \
+                / self.progress_total[rows]
+            self.progress_s[rows] = np.maximum(s, self.progress_s[rows])
+        if c["comfort_reward"]:
+            reward = reward - c["comfort_reward"] * (t.acc[rows, e] / 3.0) ** 2 * dt
+        crashed = t.crashed[rows, e]
+        arrived = self.has_arrived(rows, e)
+        return reward + np.where(crashed, c["collision_reward"], np.where(arrived, c["arrived_reward"], 0.0))
+
+    # ------------------------------------------------------------------------------------------- truth, obs
+    def truth(self, rows=None) -> dict:
+        """``info["truth"]``'s scalar fields as arrays over ``rows`` (SI units; see UnprotectedLeftTurnEnv.truth).
+        ``others`` is not built per env here: :meth:`others` gives (rows, N, 7) with a mask."""
+        rows = np.arange(self.B) if rows is None else np.asarray(rows)
+        t = self.traffic
+        e = self.ego_slot(rows)
+        route_s = self._route_s(rows)
+        x, y, h, v = t.x[rows, e], t.y[rows, e], t.h[rows, e], t.v[rows, e]
+        steer, acc = t.steer[rows, e], t.acc[rows, e]
+        beta = np.arctan(0.5 * np.tan(steer))
+        c, s = np.cos(h), np.sin(h)
+        corner_x = x[:, None] + np.array([-1, -1, 1, 1]) * LENGTH / 2 * c[:, None] \
+            - np.array([-1, 1, 1, -1]) * WIDTH / 2 * s[:, None]
+        return {"time": self.time[rows].copy(), "x": x, "y": y, "heading": h, "speed": v,
+                "yaw_rate": v * np.sin(beta) / (LENGTH / 2), "acceleration": acc, "steering": steer,
+                "route_s": route_s, "cte": self._lat, "stop_line_offset": route_s + LENGTH / 2 - self.route_starts[1],
+                "distance_to_conflict": self.conflict_s - route_s,
+                "oncoming_gap": corner_x.min(axis=1) - ONCOMING_NEAR_EDGE_X,
+                "collision": t.crashed[rows, e].copy(), "arrived": self.has_arrived(rows, e),
+                "arrived_time": self.arrived_time[rows].copy(), "set_point": t.target[rows, e].copy()}
+
+    def observe(self, rows=None) -> np.ndarray:
+        """TurnFeatures.features (source=truth) for the envs ``rows``: (len(rows), 5 + 12·max_objects) float32."""
+        rows = np.arange(self.B) if rows is None else np.asarray(rows)
+        t, tr = self.traffic, self.truth(rows)
+        n = len(rows)
+        ego = np.stack([tr["speed"] / 10.0, tr["set_point"] / 10.0, -tr["stop_line_offset"] / 30.0,
+                        tr["distance_to_conflict"] / 30.0, tr["time"] / self.time_scale], axis=1)
+        px, py, h, v = t.x[rows], t.y[rows], t.h[rows], t.v[rows]
+        vx, vy = v * np.cos(h), v * np.sin(h)
+        other = t.alive[rows] & ~t.ego[rows]
+        d = np.where(other, np.hypot(px - tr["x"][:, None], py - tr["y"][:, None]), np.inf)
+        M = self.max_objects
+        order = np.argsort(d, axis=1, kind="stable")[:, :M]
+        dn = np.take_along_axis(d, order, 1)
+        present = dn <= self.max_range
+        g = lambda a: np.take_along_axis(a, order, 1)  # noqa: E731
+        ox, oy, ovx, ovy = g(px), g(py), g(vx), g(vy)
+        psi = tr["heading"][:, None]
+        c, s = np.cos(psi), np.sin(psi)
+        ex, ey = tr["x"][:, None], tr["y"][:, None]
+        evx, evy = tr["speed"][:, None] * c, tr["speed"][:, None] * s
+        rx, ry = ox - ex, oy - ey
+        rvx, rvy = ovx - evx, ovy - evy
+        t_star, miss, path_s = self._path_conflict(ox, oy, ovx, ovy)
+        obj = np.stack([np.ones_like(ox), (rx * c + ry * s) / 50.0, (rx * -s + ry * c) / 50.0,
+                        (rvx * c + rvy * s) / 20.0, (rvx * -s + rvy * c) / 20.0,
+                        (ox - CONFLICT_POINT[0]) / 50.0, (oy - CONFLICT_POINT[1]) / 50.0, ovx / 15.0, ovy / 15.0,
+                        t_star / T_MAX, miss / 10.0, path_s / 30.0], axis=2)
+        obj = np.where(present[..., None], obj, 0.0)
+        if obj.shape[1] < M:
+            obj = np.concatenate([obj, np.zeros((n, M - obj.shape[1], obj.shape[2]))], axis=1)
+        self.described = (order, present)
+        out = np.concatenate([ego, obj.reshape(n, -1)], axis=1)
+        return np.clip(np.nan_to_num(out, nan=0.0), -1.0, 1.0).astype(np.float32)
+
+    def _path_conflict(self, x, y, vx, vy):
+        """TurnFeatures._path_conflict for (n, M) objects."""
+        dx = x[..., None] - self.path[:, 0]
+        dy = y[..., None] - self.path[:, 1]
+        vv = np.maximum(vx * vx + vy * vy, 1e-6)[..., None]
+        tt = np.clip(-(dx * vx[..., None] + dy * vy[..., None]) / vv, 0.0, T_MAX)
+        miss = np.hypot(dx + vx[..., None] * tt, dy + vy[..., None] * tt)
+        j = np.argmin(miss, axis=-1)[..., None]
+        return np.take_along_axis(tt, j, -1)[..., 0], np.take_along_axis(miss, j, -1)[..., 0], self.path_s[j[..., 0]]

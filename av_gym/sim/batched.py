@@ -1,0 +1,445 @@
+"""Batched left-turn traffic: B intersections stepped together, vehicle state as (B, N) arrays (issue 16).
+
+The same models as highway-env's ``IntersectionEnv`` as ``av_gym.envs.left_turn`` uses it, as array maths over
+every vehicle of every environment at once instead of one Python object per vehicle:
+
+- lanes (``StraightLane`` / ``CircularLane``): ``local_coordinates``, ``position``, ``heading_at`` on lane-id
+  arrays (:class:`LaneTable`); ``RoadNetwork.get_closest_lane_index`` as an argmin over all lanes;
+- ``Vehicle.step``: the kinematic bicycle; ``ControlledVehicle.steering_control`` / ``speed_control`` /
+  ``follow_road``; ``IDMVehicle.act`` (IDM with ``Road.neighbour_vehicles`` on the current and the target lane);
+  ``MDPVehicle.act`` for the ego's meta-actions;
+- ``RegulatedRoad.enforce_road_rules`` (every 0.5 s): constant-speed predictions along each route, the stock
+  pre-check and ``rotated_rectangles_intersect`` for every pair, ``respect_priorities``;
+- ``Road.step``'s collisions: the stock spherical pre-check on all pairs at once; the few pairs it lets through go
+  to highway-env's own ``utils.are_polygons_intersecting`` in the stock pair order (impacts overwrite as there);
+- ``IntersectionEnv._spawn_vehicle`` / ``_make_vehicles`` / ``_clear_vehicles``: per environment, the same calls on
+  that environment's own ``np.random.Generator`` in the same order, so env i reset with seed s draws the traffic
+  that ``reset(seed=s)`` of the per-env stack draws.
+
+Slot order in the arrays is ``road.vehicles`` order (the regulation, collisions and neighbour ties depend on it):
+new vehicles go after the last live one, cleared vehicles are removed with a stable compaction.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from highway_env import utils
+from highway_env.road.lane import CircularLane
+
+# highway-env constants (IntersectionEnv._make_vehicles sets the IDM class attributes to these)
+LENGTH, WIDTH = 5.0, 2.0
+DIAGONAL = float(np.sqrt(LENGTH**2 + WIDTH**2))
+VEHICLE_LENGTH = 5.0  # AbstractLane.VEHICLE_LENGTH
+COMFORT_ACC_MAX, COMFORT_ACC_MIN, ACC_MAX = 6.0, -3.0, 6.0
+DISTANCE_WANTED, TIME_WANTED = 7.0, 1.5
+DELTA_RANGE = (3.5, 4.5)
+TAU_PURSUIT, KP_LATERAL, KP_HEADING, KP_A = 0.1, 1 / 0.6, 1 / 0.2, 1 / 0.6
+MAX_STEERING = np.pi / 3
+REG_TIMES = np.arange(0.25, 3, 0.25)  # RegulatedRoad.is_conflict_possible(horizon=3, step=0.25)
+EGO_TARGET_SPEEDS = np.array([0.0, 4.5, 9.0])
+SLOWER, IDLE, FASTER = 0, 1, 2
+
+
+def not_zero(x: np.ndarray, eps: float = 1e-2) -> np.ndarray:
+    """utils.not_zero, elementwise."""
+    return np.where(np.abs(x) > eps, x, np.where(x >= 0, eps, -eps))
+
+
+def wrap_to_pi(x):
+    return ((x + np.pi) % (2 * np.pi)) - np.pi
+
+
+class LaneTable:
+    """Every lane of the intersection as arrays, in ``RoadNetwork.graph`` order (the argmin tie order of
+    ``get_closest_lane_index``)."""
+
+    def __init__(self, network) -> None:
+        self.index = []  # (from, to, id) per lane id
+        lanes = []
+        for _from, to_dict in network.graph.items():
+            for _to, ls in to_dict.items():
+                for _id, lane in enumerate(ls):
+                    self.index.append((_from, _to, _id))
+                    lanes.append(lane)
+        self.id = {idx: k for k, idx in enumerate(self.index)}
+        n = len(lanes)
+        self.circular = np.array([isinstance(lane, CircularLane) for lane in lanes])
+        self.length = np.array([float(lane.length) for lane in lanes])
+        self.width = np.array([float(lane.width) for lane in lanes])
+        self.priority = np.array([lane.priority for lane in lanes])
+        self.speed_limit = np.array([float(lane.speed_limit) for lane in lanes])
+        # straight: start, direction, heading; circular: centre, radius, start phase, direction (+1 clockwise)
+        self.ox, self.oy, self.dx, self.dy, self.h = (np.zeros(n) for _ in range(5))
+        self.radius, self.phase0, self.cdir = np.ones(n), np.zeros(n), np.ones(n)
+        for k, lane in enumerate(lanes):
+            if self.circular[k]:
+                self.ox[k], self.oy[k] = lane.center
+                self.radius[k], self.phase0[k], self.cdir[k] = lane.radius, lane.start_phase, lane.direction
+            else:
+                self.ox[k], self.oy[k] = lane.start
+                self.dx[k], self.dy[k] = lane.direction
+                self.h[k] = lane.heading
+        # leaving lanes: "il" → "o" (IntersectionEnv.has_arrived / _clear_vehicles)
+        self.exit = np.array(["il" in f and "o" in t for f, t, _ in self.index])
+        self.to_node = [t for _, t, _ in self.index]
+        self.from_node = [f for f, _, _ in self.index]
+
+    def local(self, k, x, y):
+        """(StraightLane|CircularLane).local_coordinates for lane ids ``k`` (broadcast with x, y)."""
+        ox, oy = self.ox[k], self.oy[k]
+        ex, ey = x - ox, y - oy
+        dx, dy = self.dx[k], self.dy[k]
+        s_str, r_str = ex * dx + ey * dy, ex * -dy + ey * dx
+        circ = self.circular[k]
+        if not circ.any():
+            return s_str, r_str
+        p0, R, cd = self.phase0[k], self.radius[k], self.cdir[k]
+        phi = p0 + wrap_to_pi(np.arctan2(ey, ex) - p0)
+        s_c = cd * (phi - p0) * R
+        r_c = cd * (R - np.hypot(ex, ey))
+        return np.where(circ, s_c, s_str), np.where(circ, r_c, r_str)
+
+    def position(self, k, s, r):
+        circ = self.circular[k]
+        phi = self.cdir[k] * s / self.radius[k] + self.phase0[k]
+        rad = self.radius[k] - r * self.cdir[k]
+        x_c, y_c = self.ox[k] + rad * np.cos(phi), self.oy[k] + rad * np.sin(phi)
+        dx, dy = self.dx[k], self.dy[k]
+        x_s, y_s = self.ox[k] + s * dx + r * -dy, self.oy[k] + s * dy + r * dx
+        return np.where(circ, x_c, x_s), np.where(circ, y_c, y_s)
+
+    def heading_at(self, k, s):
+        phi = self.cdir[k] * s / self.radius[k] + self.phase0[k]
+        return np.where(self.circular[k], phi + np.pi / 2 * self.cdir[k], self.h[k])
+
+    def closest(self, x, y, h):
+        """RoadNetwork.get_closest_lane_index(position, heading) for arrays of vehicles: argmin over all lanes of
+        AbstractLane.distance_with_heading (first lane on ties, as np.argmin)."""
+        k = np.arange(len(self.length))
+        xs, ys, hs = x[..., None], y[..., None], h[..., None]
+        s, r = self.local(k, xs, ys)
+        angle = np.abs(wrap_to_pi(hs - self.heading_at(k, s)))
+        d = np.abs(r) + np.maximum(s - self.length, 0) + np.maximum(0 - s, 0) + angle
+        return np.argmin(d, axis=-1)
+
+
+@dataclass
+class Traffic:
+    """The vehicles of B intersections: (B, N) arrays, slot order = ``road.vehicles`` order; ``alive`` marks used
+    slots (always a prefix of each row)."""
+
+    tables: LaneTable
+    B: int
+    N: int = 24
+    road_steps: np.ndarray = field(default=None)
+
+    def __post_init__(self) -> None:
+        B, N = self.B, self.N
+        z = lambda dt=float: np.zeros((B, N), dtype=dt)  # noqa: E731
+        self.alive, self.ego, self.crashed, self.yielding = z(bool), z(bool), z(bool), z(bool)
+        self.x, self.y, self.h, self.v, self.target = z(), z(), z(), z(), z()
+        self.steer, self.acc, self.delta = z(), z(), z()
+        self.delta[:] = 4.0
+        self.impact_x, self.impact_y, self.has_impact = z(), z(), z(bool)
+        self.lane, self.tlane = z(int), z(int)
+        self.route = np.full((B, N, 3), -1)  # lane ids of the planned route; route[rpos:] is what is left
+        self.rpos = z(int)
+        if self.road_steps is None:
+            self.road_steps = np.zeros(B, dtype=int)
+
+    FIELDS = ("alive", "ego", "crashed", "yielding", "x", "y", "h", "v", "target", "steer", "acc", "delta",
+              "impact_x", "impact_y", "has_impact", "lane", "tlane", "route", "rpos")
+
+    # -------------------------------------------------------------------------------------------- bookkeeping
+    def grow(self, n_new: int) -> None:
+        for name in self.FIELDS:
+            a = getattr(self, name)
+            pad = np.zeros((self.B, n_new) + a.shape[2:], dtype=a.dtype)
+            if name == "route":
+                pad[:] = -1
+            setattr(self, name, np.concatenate([a, pad], axis=1))
+        self.N += n_new
+
+    def compact(self) -> None:
+        """Remove dead slots keeping the order of the others (``road.vehicles = [v for v in ... if ...]``)."""
+        order = np.argsort(~self.alive, axis=1, kind="stable")
+        for name in self.FIELDS:
+            a = getattr(self, name)
+            idx = order if a.ndim == 2 else order[..., None]
+            setattr(self, name, np.take_along_axis(a, idx, axis=1))
+
+    def take(self, rows: np.ndarray) -> None:
+        """Overwrite rows ``rows`` of self with the rows of ``other`` (set through :meth:`put`)."""
+        raise NotImplementedError
+
+    def put(self, rows: np.ndarray, other: "Traffic") -> None:
+        if other.N > self.N:
+            self.grow(other.N - self.N)
+        for name in self.FIELDS:
+            a, b = getattr(self, name), getattr(other, name)
+            a[rows] = 0 if name != "route" else -1
+            a[rows, : other.N] = b
+        self.road_steps[rows] = other.road_steps
+
+    def add(self, b: int, lane: int, s: float, speed: float, route: list[int], delta: float = 4.0,
+            ego: bool = False, target: float | None = None) -> int:
+        """``Vehicle.make_on_lane`` + ``plan_route_to`` + append to ``road.vehicles`` in env ``b``."""
+        slot = int(self.alive[b].sum())
+        if slot >= self.N:
+            self.grow(8)
+        T = self.tables
+        x, y = T.position(lane, s, 0.0)
+        h = T.heading_at(lane, s)
+        self.alive[b, slot], self.ego[b, slot] = True, ego
+        self.x[b, slot], self.y[b, slot], self.h[b, slot], self.v[b, slot] = x, y, h, speed
+        self.target[b, slot] = speed if target is None else target  # ControlledVehicle: target_speed or speed
+        self.lane[b, slot] = T.closest(np.array(x), np.array(y), np.array(h))
+        self.tlane[b, slot] = self.lane[b, slot]
+        self.route[b, slot] = -1
+        self.route[b, slot, : len(route)] = route
+        self.rpos[b, slot] = 0
+        self.delta[b, slot] = delta
+        for name in ("crashed", "yielding", "has_impact"):
+            getattr(self, name)[b, slot] = False
+        self.steer[b, slot] = self.acc[b, slot] = self.impact_x[b, slot] = self.impact_y[b, slot] = 0.0
+        return slot
+
+    # -------------------------------------------------------------------------------------------- one tick
+    def act(self, ego_action: np.ndarray | None = None) -> None:
+        """``Road.act()`` (and, at a policy step's first tick, the action type's ``MDPVehicle.act(meta)``)."""
+        T, a = self.tables, self.alive
+        if ego_action is not None:  # MDPVehicle.act: FASTER / SLOWER move the index from the *current* speed
+            e = self.ego & a
+            ts = EGO_TARGET_SPEEDS
+            idx = np.clip(np.round((self.v - ts[0]) / (ts[-1] - ts[0]) * (ts.size - 1)), 0, ts.size - 1)
+            step = np.where(ego_action == FASTER, 1, np.where(ego_action == SLOWER, -1, 0))[:, None]
+            new = ts[np.clip(idx + step, 0, ts.size - 1).astype(int)]
+            self.target = np.where(e & (step != 0), new, self.target)
+        self._follow_road()
+        steer = np.clip(self._steering(), -MAX_STEERING, MAX_STEERING)
+        acc_idm = np.clip(self._idm(), -ACC_MAX, ACC_MAX)
+        acc_ego = KP_A * (self.target - self.v)  # ControlledVehicle.speed_control
+        live = a & ~self.crashed | self.ego & a  # IDMVehicle.act returns early when crashed (action kept)
+        self.steer = np.where(live, steer, self.steer)
+        self.acc = np.where(live, np.where(self.ego, acc_ego, acc_idm), self.acc)
+
+    def _follow_road(self) -> None:
+        """ControlledVehicle.follow_road + RoadNetwork.next_lane with a planned route: past a lane's end
+        (``after_end``), drop the finished route step and take the next one."""
+        T = self.tables
+        s, _ = T.local(self.tlane, self.x, self.y)
+        over = self.alive & (~self.crashed | self.ego) & (s > T.length[self.tlane] - VEHICLE_LENGTH / 2)
+        if not over.any():
+            return
+        for b, i in zip(*np.nonzero(over)):
+            r, p = self.route[b, i], self.rpos[b, i]
+            if p < 3 and r[p] == self.tlane[b, i]:
+                p += 1  # "We just finished the first step of the route, drop it."
+            if p < 3 and r[p] >= 0 and T.from_node[r[p]] == T.to_node[self.tlane[b, i]]:
+                self.tlane[b, i] = r[p]
+            self.rpos[b, i] = p
+            # (route exhausted: highway-env picks the closest next road; no vehicle here gets there before it
+            # is cleared or its episode ends, 80 m into the exit lane)
+
+    def _steering(self) -> np.ndarray:
+        """ControlledVehicle.steering_control(target_lane_index)."""
+        T, k = self.tables, self.tlane
+        s, r = T.local(k, self.x, self.y)
+        future_heading = T.heading_at(k, s + self.v * TAU_PURSUIT)
+        v_nz = not_zero(self.v)
+        heading_cmd = np.arcsin(np.clip(-KP_LATERAL * r / v_nz, -1, 1))
+        heading_ref = future_heading + np.clip(heading_cmd, -np.pi / 4, np.pi / 4)
+        rate = KP_HEADING * wrap_to_pi(heading_ref - self.h)
+        slip = np.arcsin(np.clip(LENGTH / 2 / v_nz * rate, -1, 1))
+        return np.clip(np.arctan(2 * np.tan(slip)), -MAX_STEERING, MAX_STEERING)
+
+    def _front(self, lanes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Road.neighbour_vehicles(vehicle, lane)[0] for every vehicle: among the other vehicles on ``lane``
+        (``on_lane`` with a 1 m margin), the one with the smallest s ≥ the vehicle's own (last in order on ties).
+        Returns the front slot (-1: none) and every vehicle's s on each vehicle's ``lanes`` (B, N, N)."""
+        T = self.tables
+        k = lanes[:, :, None]
+        s, r = T.local(k, self.x[:, None, :], self.y[:, None, :])  # (B, i, j): j on i's lane
+        s_self = np.diagonal(s, axis1=1, axis2=2)[:, :, None]
+        on = (np.abs(r) <= T.width[k] / 2 + 1) & (-VEHICLE_LENGTH <= s) & (s < T.length[k] + VEHICLE_LENGTH)
+        N = self.N
+        cand = on & self.alive[:, None, :] & ~np.eye(N, dtype=bool)[None] & (s_self <= s)
+        key = np.where(cand, s, np.inf)[:, :, ::-1]  # reversed: argmin returns the last of equal minima
+        j = N - 1 - np.argmin(key, axis=2)
+        has = cand.any(axis=2)
+        return np.where(has, j, -1), s
+
+    def _idm(self) -> np.ndarray:
+        """IDMVehicle.act's acceleration: IDM on the current lane's leader, and the min with the target lane's
+        leader while the two differ (``lane_distance_to`` stays on the current lane in both)."""
+        front, s_cur = self._front(self.lane)
+        acc = self._idm_acc(front, s_cur)
+        changing = self.alive & (self.lane != self.tlane)
+        if changing.any():
+            front_t, _ = self._front(self.tlane)
+            acc = np.where(changing, np.minimum(acc, self._idm_acc(front_t, s_cur)), acc)
+        return acc
+
+    def _idm_acc(self, front: np.ndarray, s_cur: np.ndarray) -> np.ndarray:
+        """IDMVehicle.acceleration + desired_gap (projected)."""
+        target = np.clip(self.target, 0, self.tables.speed_limit[self.lane])
+        acc = COMFORT_ACC_MAX * (1 - np.power(np.maximum(self.v, 0) / np.abs(not_zero(target)), self.delta))
+        has = front >= 0
+        f = np.maximum(front, 0)
+        s_self = np.diagonal(s_cur, axis1=1, axis2=2)
+        d = np.take_along_axis(s_cur, f[:, :, None], axis=2)[:, :, 0] - s_self
+        c, sn = np.cos(self.h), np.sin(self.h)
+        vf, hf = np.take_along_axis(self.v, f, axis=1), np.take_along_axis(self.h, f, axis=1)
+        dv = (self.v * c - vf * np.cos(hf)) * c + (self.v * sn - vf * np.sin(hf)) * sn
+        ab = -COMFORT_ACC_MAX * COMFORT_ACC_MIN
+        d_star = DISTANCE_WANTED + self.v * TIME_WANTED + self.v * dv / (2 * np.sqrt(ab))
+        return np.where(has, acc - COMFORT_ACC_MAX * np.power(d_star / not_zero(d), 2), acc)
+
+    def step(self, dt: float) -> None:
+        """RegulatedRoad.step: the rules every 1/(dt·2) ticks, Vehicle.step for all, then collisions."""
+        self.road_steps += 1
+        reg = self.road_steps % int(1 / dt / 2) == 0
+        if reg.any():
+            self._enforce_road_rules(reg)
+        self._kinematics(dt)
+        self._collisions(dt)
+
+    def _kinematics(self, dt: float) -> None:
+        """Vehicle.clip_actions + Vehicle.step (kinematic bicycle) + on_state_update (closest lane)."""
+        a = self.alive
+        steer = np.where(self.crashed, 0.0, self.steer)
+        acc = np.where(self.crashed, -1.0 * self.v, self.acc)
+        self.steer, self.acc = np.where(a, steer, self.steer), np.where(a, acc, self.acc)
+        beta = np.arctan(1 / 2 * np.tan(self.steer))
+        x = self.x + self.v * np.cos(self.h + beta) * dt
+        y = self.y + self.v * np.sin(self.h + beta) * dt
+        imp = self.has_impact & a
+        x, y = np.where(imp, x + self.impact_x, x), np.where(imp, y + self.impact_y, y)
+        self.crashed |= imp
+        self.has_impact &= ~imp
+        h = self.h + self.v * np.sin(beta) / (LENGTH / 2) * dt
+        v = self.v + self.acc * dt
+        self.x, self.y = np.where(a, x, self.x), np.where(a, y, self.y)
+        self.h, self.v = np.where(a, h, self.h), np.where(a, v, self.v)
+        self.lane = np.where(a, self.tables.closest(self.x, self.y, self.h), self.lane)
+
+    def polygon(self, b: int, i: int) -> np.ndarray:
+        """RoadObject.polygon."""
+        points = np.array([[-LENGTH / 2, -WIDTH / 2], [-LENGTH / 2, WIDTH / 2], [LENGTH / 2, WIDTH / 2],
+                           [LENGTH / 2, -WIDTH / 2]]).T
+        c, s = np.cos(self.h[b, i]), np.sin(self.h[b, i])
+        points = (np.array([[c, -s], [s, c]]) @ points).T + np.tile([self.x[b, i], self.y[b, i]], (4, 1))
+        return np.vstack([points, points[0:1]])
+
+    def _collisions(self, dt: float) -> None:
+        """Road.step's ``handle_collisions`` for every pair i < j: the spherical pre-check on all pairs at once,
+        the stock polygon test on what passes, in pair order."""
+        dist = np.hypot(self.x[:, None, :] - self.x[:, :, None], self.y[:, None, :] - self.y[:, :, None])
+        near = dist <= DIAGONAL + self.v[:, :, None] * dt
+        near &= self.alive[:, :, None] & self.alive[:, None, :] & np.triu(np.ones((self.N,) * 2, bool), 1)[None]
+        if not near.any():
+            return
+        for b, i, j in zip(*np.nonzero(near)):
+            vi = self.v[b, i] * np.array([np.cos(self.h[b, i]), np.sin(self.h[b, i])])
+            vj = self.v[b, j] * np.array([np.cos(self.h[b, j]), np.sin(self.h[b, j])])
+            inter, will, transition = utils.are_polygons_intersecting(self.polygon(b, i), self.polygon(b, j),
+                                                                      vi * dt, vj * dt)
+            if will:
+                self.impact_x[b, i], self.impact_y[b, i] = transition / 2
+                self.impact_x[b, j], self.impact_y[b, j] = -transition / 2
+                self.has_impact[b, i] = self.has_impact[b, j] = True
+            if inter:
+                self.crashed[b, i] = self.crashed[b, j] = True
+
+    def _predict(self, envs: np.ndarray):
+        """ControlledVehicle.predict_trajectory_constant_speed(times) along the rest of the route, for every
+        vehicle of the envs ``envs``: (b, N, T) positions and headings."""
+        T = self.tables
+        x, y, v, lane = self.x[envs], self.y[envs], self.v[envs], self.lane[envs]
+        route, rpos = self.route[envs], self.rpos[envs]
+        s0, _ = T.local(lane, x, y)
+        lon = s0[..., None] + v[..., None] * REG_TIMES  # (b, N, T)
+        n_left = np.clip(3 - rpos, 0, 3)
+        n_left = np.where(np.take_along_axis(route, np.minimum(rpos, 2)[..., None], 2)[..., 0] < 0, 0, n_left)
+        # route or [lane_index]
+        first = np.where(n_left > 0, np.take_along_axis(route, np.minimum(rpos, 2)[..., None], 2)[..., 0], lane)
+        k = np.broadcast_to(first[..., None], lon.shape).copy()
+        left = np.broadcast_to(np.maximum(n_left, 1)[..., None], lon.shape).copy()
+        pos = np.broadcast_to(rpos[..., None], lon.shape).copy()
+        for _ in range(2):  # while len(route) > 1 and longitudinal > lane.length: move on
+            move = (left > 1) & (lon > T.length[k])
+            if not move.any():
+                break
+            lon = np.where(move, lon - T.length[k], lon)
+            pos = np.where(move, pos + 1, pos)
+            left = np.where(move, left - 1, left)
+            nxt = np.take_along_axis(route, np.minimum(pos, 2).reshape(pos.shape[0], pos.shape[1], -1), 2)
+            k = np.where(move, nxt.reshape(lon.shape), k)
+        px, py = T.position(k, lon, 0.0)
+        return px, py, T.heading_at(k, lon)
+
+    def _enforce_road_rules(self, envs_mask: np.ndarray) -> None:
+        """RegulatedRoad.enforce_road_rules for the envs in ``envs_mask``."""
+        T = self.tables
+        envs = np.nonzero(envs_mask)[0]
+        # Unfreeze previous yielding vehicles (YIELD_DURATION = 0): back to the lane's speed limit
+        unf = self.yielding[envs]
+        if unf.any():
+            self.target[envs] = np.where(unf, T.speed_limit[self.lane[envs]], self.target[envs])
+            self.yielding[envs] = False
+        px, py, ph = self._predict(envs)  # (b, N, T)
+        alive = self.alive[envs]
+        N = self.N
+        dx = px[:, None, :, :] - px[:, :, None, :]  # (b, i, j, T): j - i
+        dy = py[:, None, :, :] - py[:, :, None, :]
+        close = np.hypot(dx, dy) <= LENGTH
+        pair = alive[:, :, None] & alive[:, None, :] & np.triu(np.ones((N, N), bool), 1)[None]
+        close &= pair[..., None]
+        if not close.any():
+            return
+        conflict = np.zeros_like(pair)
+        bb, ii, jj, tt = np.nonzero(close)
+        hit = _rects_intersect(px[bb, ii, tt], py[bb, ii, tt], ph[bb, ii, tt],
+                               px[bb, jj, tt], py[bb, jj, tt], ph[bb, jj, tt])
+        conflict[bb[hit], ii[hit], jj[hit]] = True
+        for b, i, j in zip(*np.nonzero(conflict)):
+            e = envs[b]
+            p1, p2 = T.priority[self.lane[e, i]], T.priority[self.lane[e, j]]
+            if p1 > p2:
+                y_ = j
+            elif p1 < p2:
+                y_ = i
+            else:  # the vehicle behind yields: front_distance_to
+                dxy = np.array([self.x[e, j] - self.x[e, i], self.y[e, j] - self.y[e, i]])
+                fi = np.cos(self.h[e, i]) * dxy[0] + np.sin(self.h[e, i]) * dxy[1]
+                fj = -(np.cos(self.h[e, j]) * dxy[0] + np.sin(self.h[e, j]) * dxy[1])
+                y_ = i if fi > fj else j
+            if not self.ego[e, y_]:  # MDPVehicle (the ego) never yields
+                self.target[e, y_] = 0.0
+                self.yielding[e, y_] = True
+
+
+def _rect_points(x, y, h, length, width):
+    """utils.rect_corners(include_midpoints=True, include_center=True): (M, 9, 2)."""
+    hl, hw = length / 2, width / 2
+    local = np.array([[-hl, -hw], [-hl, hw], [hl, hw], [hl, -hw], [0, 0], [-hl, 0], [hl, 0], [0, -hw], [0, hw]])
+    c, s = np.cos(h)[:, None], np.sin(h)[:, None]
+    return np.stack([c * local[:, 0] - s * local[:, 1] + x[:, None], s * local[:, 0] + c * local[:, 1] + y[:, None]],
+                    axis=-1)
+
+
+def _inside(points, x, y, h, length, width):
+    """utils.point_in_rotated_rectangle for (M, P, 2) points (its rotation is by +angle, as in highway-env)."""
+    c, s = np.cos(h)[:, None], np.sin(h)[:, None]
+    dx, dy = points[..., 0] - x[:, None], points[..., 1] - y[:, None]
+    ux, uy = c * dx - s * dy, s * dx + c * dy
+    return ((-length / 2 <= ux) & (ux <= length / 2) & (-width / 2 <= uy) & (uy <= width / 2)).any(axis=1)
+
+
+def _rects_intersect(x1, y1, h1, x2, y2, h2):
+    """utils.rotated_rectangles_intersect of the regulation's (1.5 L, 0.9 W) boxes, for arrays of pairs."""
+    L, W = 1.5 * LENGTH, 0.9 * WIDTH
+    return _inside(_rect_points(x1, y1, h1, L, W), x2, y2, h2, L, W) | \
+        _inside(_rect_points(x2, y2, h2, L, W), x1, y1, h1, L, W)
