@@ -1,6 +1,9 @@
 from __future__ import annotations
 
+import subprocess
+import sys
 from importlib import resources
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -61,6 +64,31 @@ class Scripted:
 @pytest.fixture
 def make():
     return make_env
+
+
+# A tiny PPO run: every budget at its smallest that still runs each part (a rollout, an update, a checkpoint, the
+# periodic evaluation on 2 episodes, the brief evaluation on 2).
+FAST_PPO = ["agent.total_timesteps=256", "agent.n_steps=64", "agent.batch_size=64", "agent.n_epochs=1",
+            "agent.n_envs=1", "train.eval_episodes=2", "train.eval_n=2", "train.progress_bar=false"]
+
+
+def run(module: str, *overrides: str, cwd: Path) -> subprocess.CompletedProcess:
+    """``python -m <module> <overrides>`` in ``cwd``, as a user runs it."""
+    return subprocess.run([sys.executable, "-m", module, *overrides], cwd=cwd, capture_output=True, text=True,
+                          timeout=300)
+
+
+@pytest.fixture(scope="session")
+def trained(tmp_path_factory):
+    """One tiny PPO run of the default agent on the left turn per test session (per xdist worker), shared by every
+    test that needs a trained checkpoint: ``(folder it ran in, its CompletedProcess)``. Tests leave its checkpoint
+    and run folders as they are (copies for anything they change)."""
+    cwd = tmp_path_factory.mktemp("run")
+    # the default agent (ppo_turn) clones the gap-acceptance rule first: a few episodes and epochs here
+    res = run("train", *FAST_PPO, "agent.init_episodes=3", "agent.init_epochs=1", "train.eval_every=0",
+              "run_name=tiny", cwd=cwd)
+    assert res.returncode == 0, res.stderr[-3000:]
+    return cwd, res
 
 
 def zeros_action(_k, _obs):

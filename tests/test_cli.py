@@ -3,31 +3,10 @@
 from __future__ import annotations
 
 import csv
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
-
-FAST_PPO = ["agent.total_timesteps=256", "agent.n_steps=64", "agent.batch_size=64", "agent.n_epochs=1",
-            "agent.n_envs=1", "train.eval_episodes=2", "train.progress_bar=false"]
-
-
-def run(module: str, *overrides: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", module, *overrides], cwd=cwd, capture_output=True, text=True,
-                          timeout=300)
-
-
-@pytest.fixture(scope="module")
-def trained(tmp_path_factory):
-    """One tiny PPO run on the left turn, reused by the eval tests."""
-    cwd = tmp_path_factory.mktemp("run")
-    # the default agent (ppo_turn) clones the gap-acceptance rule first: a few episodes and epochs here
-    res = run("train", *FAST_PPO, "agent.init_episodes=3", "agent.init_epochs=1", "train.eval_every=0",
-              "run_name=tiny", cwd=cwd)
-    assert res.returncode == 0, res.stderr[-3000:]
-    return cwd, res
+from conftest import FAST_PPO, run  # `trained` (one tiny PPO run per session) is a conftest fixture too
 
 
 def test_train_writes_checkpoint_config_tensorboard_and_prints_where(trained):
@@ -74,11 +53,12 @@ def test_train_ppo_on_lane_keeping_override(tmp_path):
 
 def test_train_ppo_on_the_full_sensor_preset(tmp_path):
     """Nested camera observations are flattened for SB3; the checkpoint then evaluates on the same preset."""
-    res = run("train", "sensors=full", *FAST_PPO, "run_name=full", cwd=tmp_path)
+    res = run("train", "agent=ppo", "sensors=full", *FAST_PPO, "run_name=full", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     assert "| ppo | 2 |" in res.stdout
 
 
+@pytest.mark.slow  # a CNN on camera images, cloned then trained, exported, reloaded twice: the second test command (README), also run by CI
 def test_train_the_camera_lane_keeper_with_a_narrow_cnn(tmp_path):
     """agent=ppo_lane_camera composes (centre camera only, cloned PID start) and agent.cnn_output_dim reaches SB3."""
     from stable_baselines3 import PPO

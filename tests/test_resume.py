@@ -11,10 +11,13 @@ import time
 import zipfile
 from pathlib import Path
 
+import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-ARGS = ["agent.total_timesteps=3072", "agent.n_steps=128", "agent.batch_size=64", "agent.n_epochs=1",
-        "agent.n_envs=1", "train.checkpoint_every=512", "train.eval_episodes=0", "train.progress_bar=false",
+# agent=ppo (no behaviour cloning first): what is tested is the crash-safety of PPO's loop, the same for every
+# PPO agent; eval_n=2: the periodic evaluation runs, on 2 episodes
+ARGS = ["agent=ppo", "train.eval_n=2", "agent.total_timesteps=3072", "agent.n_steps=128", "agent.batch_size=64",
+        "agent.n_epochs=1", "agent.n_envs=1", "train.checkpoint_every=512", "train.eval_episodes=0", "train.progress_bar=false",
         "run_name=crash"]
 
 
@@ -25,6 +28,7 @@ def _steps(model_zip: Path) -> int:
         return int(json.loads(z.read("data"))["num_timesteps"])
 
 
+@pytest.mark.slow  # two checkpoints, a kill, a resumed run to the total: the second test command (README), also run by CI
 def test_kill_9_then_resume_reaches_the_same_total_without_tensorboard_duplicates(tmp_path):
     ckpt = tmp_path / "checkpoints" / "crash"
     proc = subprocess.Popen([sys.executable, "-m", "train", *ARGS], cwd=tmp_path, stdout=subprocess.DEVNULL,
