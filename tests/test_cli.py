@@ -58,7 +58,7 @@ def test_train_ppo_on_the_full_sensor_preset(tmp_path):
     assert "| ppo | 2 |" in res.stdout
 
 
-@pytest.mark.slow  # a CNN on camera images, cloned then trained, exported, reloaded twice: the second test command (README), also run by CI
+@pytest.mark.slow  # a CNN on camera images, cloned then trained, exported, reloaded twice
 def test_train_the_camera_lane_keeper_with_a_narrow_cnn(tmp_path):
     """agent=ppo_lane_camera composes (centre camera only, cloned PID start) and agent.cnn_output_dim reaches SB3."""
     from stable_baselines3 import PPO

@@ -245,7 +245,7 @@ def _run(module, *overrides, cwd):
                           timeout=300)
 
 
-@pytest.mark.slow  # demonstrations, training, evaluation with plots and a video: the second test command (README), also run by CI
+@pytest.mark.slow  # demonstrations, training, evaluation with plots and a video
 def test_tiny_train_then_eval_loads_the_checkpoint(tmp_path):
     res = _run("train", "agent=pilotnet", "env=lane_keeping", "agent.demo_laps=1", "agent.demo_max_steps=30",
                "agent.epochs=1", "train.eval_episodes=0", "train.progress_bar=false", "run_name=tiny", cwd=tmp_path)

@@ -28,7 +28,7 @@ def _steps(model_zip: Path) -> int:
         return int(json.loads(z.read("data"))["num_timesteps"])
 
 
-@pytest.mark.slow  # two checkpoints, a kill, a resumed run to the total: the second test command (README), also run by CI
+@pytest.mark.slow  # two checkpoints, a kill, a resumed run to the total
 def test_kill_9_then_resume_reaches_the_same_total_without_tensorboard_duplicates(tmp_path):
     ckpt = tmp_path / "checkpoints" / "crash"
     proc = subprocess.Popen([sys.executable, "-m", "train", *ARGS], cwd=tmp_path, stdout=subprocess.DEVNULL,
