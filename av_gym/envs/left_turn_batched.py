@@ -46,7 +46,7 @@ class BatchedLeftTurn:
     truth arrays (:meth:`truth`)."""
 
     def __init__(self, n_envs: int, config: dict | None = None, max_objects: int = 8, max_range: float = 80.0,
-                 time_scale: float = 20.0) -> None:
+                 time_scale: float = 20.0, pool: int = 0) -> None:
         self.config = c = full_config(config)
         if c["mode"] != "traffic":
             raise ValueError(f"the batched left turn runs env.mode=traffic only, got {c['mode']!r}")
@@ -79,6 +79,10 @@ class BatchedLeftTurn:
         self.route_k, self.progress_s, self.progress_total = np.zeros(B, dtype=int), np.zeros(B), np.ones(B)
         self.arrived_time = np.full(B, np.nan)
         self.episode_seed = np.zeros(B, dtype=np.int64)
+        self._new: list[tuple[int, int]] = []  # (env, slot) of vehicles added since the last settle
+        self.pool_size = int(pool)
+        self._pending: list = []  # generators whose next episode is not made yet
+        self._ready, self._ready_rngs, self._ready_seeds = None, [], []
 
     # ------------------------------------------------------------------------------------------- traffic draws
     def _spawn(self, t: Traffic, b: int, rng, longitudinal: float = 0.0, position_deviation: float = 1.0,
@@ -96,39 +100,50 @@ class BatchedLeftTurn:
         a = t.alive[b]
         if (np.hypot(t.x[b, a] - x, t.y[b, a] - y) < SPAWN_CLEAR).any():
             return
-        start = int(T.closest(np.array(x), np.array(y), np.array(T.heading_at(lane, s))))
         dest = route[1]
-        plan = [start, T.id[(f"ir{route[0]}", f"il{dest}", 0)], T.id[(f"il{dest}", f"o{dest}", 0)]]
+        plan = [lane, T.id[(f"ir{route[0]}", f"il{dest}", 0)], T.id[(f"il{dest}", f"o{dest}", 0)]]
         delta = rng.uniform(low=3.5, high=4.5)  # IDMVehicle.randomize_behavior
-        t.add(b, lane, s, speed, plan, delta=delta)
+        self._new.append((b, t.add(b, lane, s, speed, plan, delta=delta)))  # plan[0]: settled to the closest lane
 
-    def _make_vehicles(self, rows: np.ndarray) -> Traffic:
-        """IntersectionEnv._make_vehicles(initial_vehicle_count) for the envs ``rows``, as a sub-batch: initial
-        traffic, 3 s of simulation (batched), the challenger, the ego, and no vehicle within 20 m of the ego."""
+    def _settle(self, t: Traffic) -> None:
+        if self._new:
+            b, slots = np.array(self._new).T
+            t.settle(b, slots)
+        self._new = []
+
+    def _make_vehicles(self, rngs: list) -> tuple[Traffic, list[int]]:
+        """IntersectionEnv._make_vehicles(initial_vehicle_count) + ScenarioMixin._finish_reset for one new episode
+        per generator in ``rngs``, as a sub-batch: initial traffic, 3 s of simulation (batched), the challenger,
+        the ego, no vehicle within 20 m of the ego, then the episode seed. Returns the traffic and episode seeds."""
         n_vehicles = int(self.config["initial_vehicle_count"])
-        t = Traffic(self.T, len(rows), N=max(16, n_vehicles + 4))
-        for b, row in enumerate(rows):
+        t = Traffic(self.T, len(rngs), N=max(16, n_vehicles + 4))
+        for b, rng in enumerate(rngs):
             for k in range(n_vehicles - 1):
-                self._spawn(t, b, self.rngs[row], np.linspace(0, 80, n_vehicles)[k])
+                self._spawn(t, b, rng, np.linspace(0, 80, n_vehicles)[k])
+        self._settle(t)
         for _ in range(3 * int(self.config["simulation_frequency"])):
             t.act()
             t.step(self.dt)
         T = self.T
         ego_lane = T.id[ROUTE[0]]
-        for b, row in enumerate(rows):
-            rng = self.rngs[row]
+        for b, rng in enumerate(rngs):
             self._spawn(t, b, rng, 60, spawn_probability=1.0, go_straight=True, position_deviation=0.1,
                         speed_deviation=0.0)
             s = 60.0 + 5.0 * rng.normal(1.0)
             slot = t.add(b, ego_lane, s, T.speed_limit[ego_lane], [ego_lane, *self.route[1:]], ego=True,
                          target=EGO_TARGET_SPEEDS[-1])  # speed_to_index(10 m/s) = 2: 9 m/s
             t.h[b, slot] = T.heading_at(ego_lane, 60.0)
-            t.route[b, slot, 0] = t.lane[b, slot]
+            self._new.append((b, slot))
+        self._settle(t)
+        seeds = []
+        for b, rng in enumerate(rngs):
+            slot = int(np.argmax(t.ego[b]))
             near = t.alive[b] & ~t.ego[b] & (np.hypot(t.x[b] - t.x[b, slot], t.y[b] - t.y[b, slot]) < EGO_CLEAR)
             t.alive[b] &= ~near
-            self.episode_seed[row] = int(rng.integers(2**63 - 1))  # ScenarioMixin._finish_reset
+            seeds.append(int(rng.integers(2**63 - 1)))  # ScenarioMixin._finish_reset
         t.compact()
-        return t
+        t.trim()
+        return t, seeds
 
     # ------------------------------------------------------------------------------------------- episodes
     def reset(self, seeds=None):
@@ -141,13 +156,69 @@ class BatchedLeftTurn:
             for row, seed in zip(rows, seeds):
                 if seed is not None:
                     self.rngs[row] = seeding.np_random(int(seed))[0]
-        self.traffic.put(rows, self._make_vehicles(rows))
+        traffic, episode_seeds = self._make_vehicles([self.rngs[r] for r in rows])
+        self._start(rows, traffic, episode_seeds)
+        if self.pool_size and len(rows) == self.B:  # spare streams, seeded from the batch's seeds
+            given = [int(s) for s in seeds if s is not None] if seeds is not None else []
+            self._fill_pool(np.random.SeedSequence(given or None))
+        return self.observe(rows)
+
+    def _start(self, rows, traffic: Traffic, episode_seeds) -> None:
+        self.traffic.put(rows, traffic)
+        self.episode_seed[rows] = episode_seeds
         self.time[rows], self.ticks[rows], self.route_k[rows] = 0.0, 0, 0
         self.arrived_time[rows] = np.nan
         s = self._route_s(rows)
         self.progress_s[rows] = s
         self.progress_total[rows] = np.maximum(1.0, self.route_starts[2] + 25.0 - s)
-        return self.observe(rows)
+
+    # ------------------------------------------------------------------------------------------- auto-reset
+    # A reset costs 3 s of warm-up simulation (60 ticks): alone, a numpy tick costs about as much for 1 env as
+    # for 30. So episodes for auto-reset come from a pool of ready episodes, made ~pool at a time. Each
+    # generator ("stream") plays exactly the episodes the per-env stack plays with it (reset(seed) then resets
+    # without a seed); only which slot a stream's next episode runs in changes.
+    def _fill_pool(self, seed_seq: np.random.SeedSequence | None = None) -> None:
+        """Make ready episodes from the streams waiting for one (or ``pool`` new streams from ``seed_seq``)."""
+        if seed_seq is not None:
+            self._pending = [np.random.Generator(np.random.PCG64(s)) for s in seed_seq.spawn(self.pool_size)]
+            self._ready = None
+        if not self._pending:
+            return
+        traffic, seeds = self._make_vehicles(self._pending)
+        if self._ready is None:
+            self._ready, self._ready_rngs, self._ready_seeds = traffic, list(self._pending), seeds
+        else:
+            self._ready = Traffic.concat(self._ready, traffic)
+            self._ready_rngs += self._pending
+            self._ready_seeds += seeds
+        self._pending = []
+
+    def step_autoreset(self, actions: np.ndarray):
+        """``step`` for every env; the envs whose episode ended start their next one (from the pool).
+        Returns obs (B, F) (the new episode's first for the ended ones), reward, terminated, truncated, and
+        for the ended envs: their rows, final obs and final truth."""
+        reward, terminated, truncated = self.step(actions)
+        done = np.nonzero(terminated | truncated)[0]
+        final_obs = final_truth = None
+        if len(done):
+            final_obs, final_truth = self.observe(done), self.last_truth
+            self._pending += [self.rngs[r] for r in done]
+            n_ready = 0 if self._ready is None else self._ready.B
+            if n_ready < len(done):
+                self._fill_pool()
+            k = len(done)
+            self._start(done, self._ready.subset(np.arange(k)), self._ready_seeds[:k])
+            for r, rng in zip(done, self._ready_rngs[:k]):
+                self.rngs[r] = rng
+            rest = np.arange(k, self._ready.B)
+            self._ready = self._ready.subset(rest) if len(rest) else None
+            self._ready_rngs, self._ready_seeds = self._ready_rngs[k:], self._ready_seeds[k:]
+        return self.observe(), reward, terminated, truncated, (done, final_obs, final_truth)
+
+    def state_bytes(self) -> int:
+        pool = 0 if self._ready is None else self._ready.state_bytes()
+        return self.traffic.state_bytes() + pool + sum(a.nbytes for a in (
+            self.time, self.ticks, self.route_k, self.progress_s, self.progress_total, self.arrived_time))
 
     def ego_slot(self, rows=None) -> np.ndarray:
         rows = np.arange(self.B) if rows is None else rows
@@ -196,6 +267,7 @@ class BatchedLeftTurn:
         p = self.config["spawn_probability"] / self.config["policy_frequency"]
         for b in rows:
             self._spawn(t, int(b), self.rngs[b], spawn_probability=p)
+        self._settle(t)
 
     def step(self, actions: np.ndarray, active: np.ndarray | None = None):
         """One policy step of every env (``active``: the envs to step; the others are left as they are).
@@ -219,6 +291,7 @@ class BatchedLeftTurn:
             for name, value in frozen.items():
                 getattr(t, name)[idle] = value
             t.road_steps[idle] = steps_frozen
+        t.trim()
         reward = np.zeros(self.B)
         reward[rows], terminated, truncated = self._reward(rows), np.zeros(self.B, bool), np.zeros(self.B, bool)
         e = self.ego_slot(rows)
@@ -272,6 +345,7 @@ class BatchedLeftTurn:
         """TurnFeatures.features (source=truth) for the envs ``rows``: (len(rows), 5 + 12·max_objects) float32."""
         rows = np.arange(self.B) if rows is None else np.asarray(rows)
         t, tr = self.traffic, self.truth(rows)
+        self.last_truth = tr
         n = len(rows)
         ego = np.stack([tr["speed"] / 10.0, tr["set_point"] / 10.0, -tr["stop_line_offset"] / 30.0,
                         tr["distance_to_conflict"] / 30.0, tr["time"] / self.time_scale], axis=1)

@@ -25,7 +25,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from highway_env import utils
 from highway_env.road.lane import CircularLane
 
 # highway-env constants (IntersectionEnv._make_vehicles sets the IDM class attributes to these)
@@ -82,24 +81,26 @@ class LaneTable:
                 self.dx[k], self.dy[k] = lane.direction
                 self.h[k] = lane.heading
         # leaving lanes: "il" → "o" (IntersectionEnv.has_arrived / _clear_vehicles)
+        self.box = np.array([_centreline_box(lane) for lane in lanes])  # (L, 4) xmin, ymin, xmax, ymax
         self.exit = np.array(["il" in f and "o" in t for f, t, _ in self.index])
         self.to_node = [t for _, t, _ in self.index]
         self.from_node = [f for f, _, _ in self.index]
 
     def local(self, k, x, y):
-        """(StraightLane|CircularLane).local_coordinates for lane ids ``k`` (broadcast with x, y)."""
-        ox, oy = self.ox[k], self.oy[k]
-        ex, ey = x - ox, y - oy
+        """(StraightLane|CircularLane).local_coordinates for lane ids ``k`` (broadcast with x, y); the arc formula
+        only where the lane is circular."""
+        k, x, y = np.broadcast_arrays(k, x, y)
+        ex, ey = x - self.ox[k], y - self.oy[k]
         dx, dy = self.dx[k], self.dy[k]
-        s_str, r_str = ex * dx + ey * dy, ex * -dy + ey * dx
+        s, r = ex * dx + ey * dy, ex * -dy + ey * dx
         circ = self.circular[k]
-        if not circ.any():
-            return s_str, r_str
-        p0, R, cd = self.phase0[k], self.radius[k], self.cdir[k]
-        phi = p0 + wrap_to_pi(np.arctan2(ey, ex) - p0)
-        s_c = cd * (phi - p0) * R
-        r_c = cd * (R - np.hypot(ex, ey))
-        return np.where(circ, s_c, s_str), np.where(circ, r_c, r_str)
+        if circ.any():
+            kc, exc, eyc = k[circ], ex[circ], ey[circ]
+            p0, R, cd = self.phase0[kc], self.radius[kc], self.cdir[kc]
+            phi = p0 + wrap_to_pi(np.arctan2(eyc, exc) - p0)
+            s[circ] = cd * (phi - p0) * R
+            r[circ] = cd * (R - np.hypot(exc, eyc))
+        return s, r
 
     def position(self, k, s, r):
         circ = self.circular[k]
@@ -114,15 +115,40 @@ class LaneTable:
         phi = self.cdir[k] * s / self.radius[k] + self.phase0[k]
         return np.where(self.circular[k], phi + np.pi / 2 * self.cdir[k], self.h[k])
 
+    def distance_with_heading(self, k, x, y, h):
+        """AbstractLane.distance_with_heading (heading weight 1)."""
+        s, r = self.local(k, x, y)
+        angle = np.abs(wrap_to_pi(h - self.heading_at(k, s)))
+        return np.abs(r) + np.maximum(s - self.length[k], 0) + np.maximum(0 - s, 0) + angle
+
     def closest(self, x, y, h):
-        """RoadNetwork.get_closest_lane_index(position, heading) for arrays of vehicles: argmin over all lanes of
-        AbstractLane.distance_with_heading (first lane on ties, as np.argmin)."""
-        k = np.arange(len(self.length))
-        xs, ys, hs = x[..., None], y[..., None], h[..., None]
-        s, r = self.local(k, xs, ys)
-        angle = np.abs(wrap_to_pi(hs - self.heading_at(k, s)))
-        d = np.abs(r) + np.maximum(s - self.length, 0) + np.maximum(0 - s, 0) + angle
-        return np.argmin(d, axis=-1)
+        """RoadNetwork.get_closest_lane_index(position, heading) for arrays of vehicles: the argmin over all lanes
+        of distance_with_heading (first lane on ties, as np.argmin). Exact, but only lanes that can win are
+        evaluated: the distance is ≥ the Euclidean distance to the lane's centreline (|r| plus the arc or line
+        length beyond an end), hence ≥ the distance to its bounding box; lanes whose box is farther than the
+        distance to the nearest box's lane cannot be the argmin."""
+        shape = np.shape(x)
+        x, y, h = np.ravel(x), np.ravel(y), np.ravel(h)
+        bx = np.maximum(np.maximum(self.box[:, 0] - x[:, None], x[:, None] - self.box[:, 2]), 0)
+        by = np.maximum(np.maximum(self.box[:, 1] - y[:, None], y[:, None] - self.box[:, 3]), 0)
+        lb = np.hypot(bx, by)  # (M, L)
+        best = self.distance_with_heading(np.argmin(lb, axis=1), x, y, h)
+        m, k = np.nonzero(lb <= best[:, None])
+        d = np.full(lb.shape, np.inf)
+        d[m, k] = self.distance_with_heading(k, x[m], y[m], h[m])
+        return np.argmin(d, axis=1).reshape(shape)
+
+
+def _centreline_box(lane) -> np.ndarray:
+    """Axis-aligned box containing a lane's centreline (an arc's sampled points, grown by the sagitta)."""
+    if isinstance(lane, CircularLane):
+        n = 256
+        phi = np.linspace(lane.start_phase, lane.end_phase, n)
+        pts = lane.center + lane.radius * np.stack([np.cos(phi), np.sin(phi)], axis=1)
+        pad = lane.radius * (1 - np.cos(abs(lane.end_phase - lane.start_phase) / (n - 1) / 2)) + 1e-6
+    else:
+        pts, pad = np.array([lane.start, lane.end]), 1e-6
+    return np.concatenate([pts.min(axis=0) - pad, pts.max(axis=0) + pad])
 
 
 @dataclass
@@ -170,9 +196,32 @@ class Traffic:
             idx = order if a.ndim == 2 else order[..., None]
             setattr(self, name, np.take_along_axis(a, idx, axis=1))
 
-    def take(self, rows: np.ndarray) -> None:
-        """Overwrite rows ``rows`` of self with the rows of ``other`` (set through :meth:`put`)."""
-        raise NotImplementedError
+    def trim(self, spare: int = 2) -> None:
+        """Drop trailing slots no env uses (the pairwise work is O(N²) in the slot count, not the vehicle count)."""
+        n = int(self.alive.sum(axis=1).max()) + spare
+        if n < self.N - spare:
+            for name in self.FIELDS:
+                setattr(self, name, np.ascontiguousarray(getattr(self, name)[:, :n]))
+            self.N = n
+
+    def subset(self, rows) -> "Traffic":
+        """A new Traffic with the rows ``rows`` of this one (copies)."""
+        rows = np.asarray(rows, dtype=int)
+        out = Traffic(self.tables, len(rows), N=self.N, road_steps=self.road_steps[rows].copy())
+        for name in self.FIELDS:
+            setattr(out, name, getattr(self, name)[rows].copy())
+        return out
+
+    @staticmethod
+    def concat(a: "Traffic", b: "Traffic") -> "Traffic":
+        n = max(a.N, b.N)
+        out = Traffic(a.tables, a.B + b.B, N=n, road_steps=np.concatenate([a.road_steps, b.road_steps]))
+        out.put(np.arange(a.B), a)
+        out.put(a.B + np.arange(b.B), b)
+        return out
+
+    def state_bytes(self) -> int:
+        return sum(getattr(self, name).nbytes for name in self.FIELDS) + self.road_steps.nbytes
 
     def put(self, rows: np.ndarray, other: "Traffic") -> None:
         if other.N > self.N:
@@ -183,9 +232,17 @@ class Traffic:
             a[rows, : other.N] = b
         self.road_steps[rows] = other.road_steps
 
+    def settle(self, b: np.ndarray, slots: np.ndarray) -> None:
+        """The new vehicles' lane index (RoadObject.__init__: the closest lane), which ControlledVehicle takes as
+        its target lane and plan_route_to as its route's first step; one vectorised search for all of them."""
+        if len(b):
+            lane = self.tables.closest(self.x[b, slots], self.y[b, slots], self.h[b, slots])
+            self.lane[b, slots] = self.tlane[b, slots] = self.route[b, slots, 0] = lane
+
     def add(self, b: int, lane: int, s: float, speed: float, route: list[int], delta: float = 4.0,
             ego: bool = False, target: float | None = None) -> int:
-        """``Vehicle.make_on_lane`` + ``plan_route_to`` + append to ``road.vehicles`` in env ``b``."""
+        """``Vehicle.make_on_lane`` + ``plan_route_to`` + append to ``road.vehicles`` in env ``b``; call
+        :meth:`settle` on the new slots before the next tick."""
         slot = int(self.alive[b].sum())
         if slot >= self.N:
             self.grow(8)
@@ -195,10 +252,9 @@ class Traffic:
         self.alive[b, slot], self.ego[b, slot] = True, ego
         self.x[b, slot], self.y[b, slot], self.h[b, slot], self.v[b, slot] = x, y, h, speed
         self.target[b, slot] = speed if target is None else target  # ControlledVehicle: target_speed or speed
-        self.lane[b, slot] = T.closest(np.array(x), np.array(y), np.array(h))
-        self.tlane[b, slot] = self.lane[b, slot]
         self.route[b, slot] = -1
         self.route[b, slot, : len(route)] = route
+        self.lane[b, slot] = self.tlane[b, slot] = route[0]  # until settle(): the closest lane
         self.rpos[b, slot] = 0
         self.delta[b, slot] = delta
         for name in ("crashed", "yielding", "has_impact"):
@@ -325,33 +381,26 @@ class Traffic:
         self.h, self.v = np.where(a, h, self.h), np.where(a, v, self.v)
         self.lane = np.where(a, self.tables.closest(self.x, self.y, self.h), self.lane)
 
-    def polygon(self, b: int, i: int) -> np.ndarray:
-        """RoadObject.polygon."""
-        points = np.array([[-LENGTH / 2, -WIDTH / 2], [-LENGTH / 2, WIDTH / 2], [LENGTH / 2, WIDTH / 2],
-                           [LENGTH / 2, -WIDTH / 2]]).T
-        c, s = np.cos(self.h[b, i]), np.sin(self.h[b, i])
-        points = (np.array([[c, -s], [s, c]]) @ points).T + np.tile([self.x[b, i], self.y[b, i]], (4, 1))
-        return np.vstack([points, points[0:1]])
-
     def _collisions(self, dt: float) -> None:
-        """Road.step's ``handle_collisions`` for every pair i < j: the spherical pre-check on all pairs at once,
-        the stock polygon test on what passes, in pair order."""
+        """Road.step's ``handle_collisions`` for every pair i < j: RoadObject._is_colliding's spherical pre-check,
+        then utils.are_polygons_intersecting (separating axes, with the constant-velocity sweep over dt) on all the
+        pairs that pass at once; impacts and crash flags are then assigned in the stock pair order (a later pair's
+        impact overwrites an earlier one's, as there)."""
         dist = np.hypot(self.x[:, None, :] - self.x[:, :, None], self.y[:, None, :] - self.y[:, :, None])
         near = dist <= DIAGONAL + self.v[:, :, None] * dt
         near &= self.alive[:, :, None] & self.alive[:, None, :] & np.triu(np.ones((self.N,) * 2, bool), 1)[None]
         if not near.any():
             return
-        for b, i, j in zip(*np.nonzero(near)):
-            vi = self.v[b, i] * np.array([np.cos(self.h[b, i]), np.sin(self.h[b, i])])
-            vj = self.v[b, j] * np.array([np.cos(self.h[b, j]), np.sin(self.h[b, j])])
-            inter, will, transition = utils.are_polygons_intersecting(self.polygon(b, i), self.polygon(b, j),
-                                                                      vi * dt, vj * dt)
-            if will:
-                self.impact_x[b, i], self.impact_y[b, i] = transition / 2
-                self.impact_x[b, j], self.impact_y[b, j] = -transition / 2
-                self.has_impact[b, i] = self.has_impact[b, j] = True
-            if inter:
-                self.crashed[b, i] = self.crashed[b, j] = True
+        b, i, j = np.nonzero(near)
+        inter, will, tx, ty = _polygons_intersecting(self, b, i, j, dt)
+        for n in np.nonzero(inter | will)[0]:  # rare: real contacts, in pair order
+            bn, in_, jn = b[n], i[n], j[n]
+            if will[n]:
+                self.impact_x[bn, in_], self.impact_y[bn, in_] = tx[n] / 2, ty[n] / 2
+                self.impact_x[bn, jn], self.impact_y[bn, jn] = -tx[n] / 2, -ty[n] / 2
+                self.has_impact[bn, in_] = self.has_impact[bn, jn] = True
+            if inter[n]:
+                self.crashed[bn, in_] = self.crashed[bn, jn] = True
 
     def _predict(self, envs: np.ndarray):
         """ControlledVehicle.predict_trajectory_constant_speed(times) along the rest of the route, for every
@@ -443,3 +492,43 @@ def _rects_intersect(x1, y1, h1, x2, y2, h2):
     L, W = 1.5 * LENGTH, 0.9 * WIDTH
     return _inside(_rect_points(x1, y1, h1, L, W), x2, y2, h2, L, W) | \
         _inside(_rect_points(x2, y2, h2, L, W), x1, y1, h1, L, W)
+
+
+def _polygons(t: Traffic, b, i):
+    """RoadObject.polygon for vehicles (b, i): (P, 5, 2), closed."""
+    local = np.array([[-LENGTH / 2, -WIDTH / 2], [-LENGTH / 2, WIDTH / 2], [LENGTH / 2, WIDTH / 2],
+                      [LENGTH / 2, -WIDTH / 2], [-LENGTH / 2, -WIDTH / 2]])
+    c, s = np.cos(t.h[b, i])[:, None], np.sin(t.h[b, i])[:, None]
+    return np.stack([c * local[:, 0] - s * local[:, 1] + t.x[b, i][:, None],
+                     s * local[:, 0] + c * local[:, 1] + t.y[b, i][:, None]], axis=-1)
+
+
+def _polygons_intersecting(t: Traffic, b, i, j, dt):
+    """utils.are_polygons_intersecting(polygon_i, polygon_j, velocity_i dt, velocity_j dt) for arrays of pairs:
+    intersecting, will intersect, and the translation (min |distance| axis, first on ties, pointing from j to
+    i). The stock loop's early exit only happens once both flags are False, when the translation is unused."""
+    pa, pb = _polygons(t, b, i), _polygons(t, b, j)
+    da = np.stack([np.cos(t.h[b, i]), np.sin(t.h[b, i])], -1) * (t.v[b, i] * dt)[:, None]
+    db = np.stack([np.cos(t.h[b, j]), np.sin(t.h[b, j])], -1) * (t.v[b, j] * dt)[:, None]
+    edges = np.concatenate([pa[:, 1:] - pa[:, :-1], pb[:, 1:] - pb[:, :-1]], axis=1)  # (P, 8, 2)
+    normal = np.stack([-edges[..., 1], edges[..., 0]], axis=-1)
+    normal = normal / np.linalg.norm(normal, axis=-1, keepdims=True)
+    proj_a = np.einsum("pkd,pad->pka", normal, pa)  # (P, 8 axes, 5 points)
+    proj_b = np.einsum("pkd,pad->pka", normal, pb)
+    min_a, max_a, min_b, max_b = proj_a.min(-1), proj_a.max(-1), proj_b.min(-1), proj_b.max(-1)
+
+    def interval_distance(min_a, max_a, min_b, max_b):
+        return np.where(min_a < min_b, min_b - max_a, min_a - max_b)
+
+    intersecting = ~(interval_distance(min_a, max_a, min_b, max_b) > 0).any(axis=1)
+    vp = np.einsum("pkd,pd->pk", normal, da - db)
+    min_a, max_a = np.where(vp < 0, min_a + vp, min_a), np.where(vp < 0, max_a, max_a + vp)
+    distance = interval_distance(min_a, max_a, min_b, max_b)
+    will = ~(distance > 0).any(axis=1)
+    k = np.argmin(np.abs(distance), axis=1)
+    rows = np.arange(len(b))
+    axis = normal[rows, k]
+    d = pa[:, :-1].mean(axis=1) - pb[:, :-1].mean(axis=1)
+    axis = np.where(((d * axis).sum(-1) > 0)[:, None], axis, -axis)
+    translation = np.abs(distance[rows, k])[:, None] * axis
+    return intersecting, will, translation[:, 0], translation[:, 1]

@@ -1,0 +1,108 @@
+"""Batched left turn vs the per-env fast stack, side by side in one run (issue 16).
+
+    python benchmarks/batched_speed.py [--sizes 1 4 16 64 256 1024] [--seconds 4] [--out docs/batched_speed.png]
+
+Env steps per CPU-second on one core (``time.process_time``: robust to other jobs sharing the cores; numpy's
+elementwise maths is single-threaded), both producing ``obs["turn"]`` (TurnFeatures, source=truth) every policy
+step, random meta-actions, episodes reset as they end (the batch through its auto-reset pool, as its VecEnv does).
+Per-env: ``UnprotectedLeftTurn-v0`` (``fast: true``) + ``TurnFeatures``, one env stepped in a loop (the per-env
+rate does not depend on how many are stepped one after the other). Memory per env: the batch's state arrays
+(bytes / B). Prints a markdown table and ``uptime``'s load average, and saves a plot.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import gymnasium as gym
+import numpy as np
+from omegaconf import OmegaConf
+
+from av_gym.envs.left_turn_batched import BatchedLeftTurn
+from av_gym.estimation.turn_features import TurnFeatures
+from av_gym.make import highway_config
+
+
+def load() -> str:
+    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def per_env_rate(config: dict, seconds: float) -> float:
+    env_id, _ = highway_config(OmegaConf.load("conf/env/left_turn.yaml"))
+    env = TurnFeatures(gym.make(env_id, config=config))
+    rng = np.random.default_rng(0)
+    seed, n = 0, 0
+    env.reset(seed=seed)
+    t0 = time.process_time()
+    while time.process_time() - t0 < seconds:
+        _, _, term, trunc, _ = env.step(int(rng.integers(0, 3)))
+        n += 1
+        if term or trunc:
+            seed += 1
+            env.reset(seed=seed)
+    return n / (time.process_time() - t0)
+
+
+def batched_rate(config: dict, B: int, seconds: float) -> tuple[float, float]:
+    """Env steps per CPU-second over whole episodes (resets included) and the state's bytes per env."""
+    bt = BatchedLeftTurn(B, config, pool=max(4, B // 8))
+    bt.reset(list(range(B)))
+    rng = np.random.default_rng(0)
+    n = 0
+    t0 = time.process_time()
+    while time.process_time() - t0 < seconds:
+        bt.step_autoreset(rng.integers(0, 3, B))
+        n += B
+    rate = n / (time.process_time() - t0)
+    return rate, bt.state_bytes() / B
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--sizes", type=int, nargs="+", default=[1, 4, 16, 64, 256, 1024])
+    parser.add_argument("--seconds", type=float, default=4.0)
+    parser.add_argument("--out", default="docs/batched_speed.png")
+    args = parser.parse_args()
+    _, config = highway_config(OmegaConf.load("conf/env/left_turn.yaml"))
+    print(f"load average before: {load()}")
+    base = per_env_rate(config, args.seconds)
+    rows = []
+    for B in args.sizes:
+        rate, mem = batched_rate(config, B, args.seconds)
+        rows.append((B, rate, mem))
+        print(f"B={B}: {rate:.0f} steps/s ({rate / base:.1f}x), load {load()}", flush=True)
+    base_after = per_env_rate(config, args.seconds)
+    print(f"\nper-env fast stack + TurnFeatures: {base:.0f} steps/s before, {base_after:.0f} after; load {load()}\n")
+    ref = 0.5 * (base + base_after)
+    print("| B | batched steps/s | per-env steps/s | ratio | state bytes / env |")
+    print("|---:|---:|---:|---:|---:|")
+    for B, rate, mem in rows:
+        print(f"| {B} | {rate:.0f} | {ref:.0f} | **{rate / ref:.1f}** | {mem:.0f} |")
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(5.5, 3.6))
+        sizes = [r[0] for r in rows]
+        ax.plot(sizes, [r[1] for r in rows], "o-", label="batched (numpy)")
+        ax.axhline(ref, color="grey", ls="--", label="per-env fast stack")
+        ax.axhline(20 * ref, color="tab:red", ls=":", label="20x target")
+        ax.set_xscale("log", base=2)
+        ax.set_yscale("log")
+        ax.set_xlabel("environments per batch B")
+        ax.set_ylabel("env steps / CPU-second (1 core)")
+        ax.set_title("left turn + obs['turn']")
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        fig.savefig(args.out, dpi=120)
+        print(f"\nplot: {args.out}")
+    except ImportError:
+        print("matplotlib not installed: no plot")
+
+
+if __name__ == "__main__":
+    main()
