@@ -223,7 +223,7 @@ def _preset_name(value: Any, where: str) -> list[str]:
     return _check(value, (*SENSOR_PRESETS, None), where)
 AGENT = {
     "ppo": {**_AGENT_COMMON, "policy": ("MultiInputPolicy",), "total_timesteps": "int >=1", "n_envs": "int >=1",
-            "vec_env": ("subproc", "dummy"), "learning_rate": "num >0", "n_steps": "int >=2",
+            "vec_env": ("subproc", "dummy", "batched"), "learning_rate": "num >0", "n_steps": "int >=2",
             "batch_size": "int >=2", "n_epochs": "int >=1", "gamma": "num [0,1]", "gae_lambda": "num [0,1]",
             "clip_range": "num >0", "ent_coef": "num >=0", "vf_coef": "num >=0", "max_grad_norm": "num >0",
             "net_arch": ["int >=1"], "device": ("cpu", "cuda", "auto"), "action_repeat?": "int >=1",

@@ -210,8 +210,8 @@ def validate(cfg: DictConfig) -> list[str]:
     for key in ("total_timesteps", "n_envs", "n_steps", "batch_size"):
         if int(agent[key]) < 1:
             problems.append(f"agent.{key} must be a positive integer, got {agent[key]}")
-    if agent.vec_env not in ("subproc", "dummy"):
-        problems.append(f"agent.vec_env must be one of ['subproc', 'dummy'], got {agent.vec_env!r}")
+    if agent.vec_env not in ("subproc", "dummy", "batched"):
+        problems.append(f"agent.vec_env must be one of ['subproc', 'dummy', 'batched'], got {agent.vec_env!r}")
     if agent.get("actions", "env") not in ACTIONS:
         problems.append(f"agent.actions must be one of {list(ACTIONS)}, got {agent.actions!r}")
     if int(agent.get("action_repeat", 1)) < 1:
@@ -272,10 +272,19 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     # A resumed run's episodes come from fresh seeds (the env streams of the killed run cannot be restored).
     cost, repeat = float(agent.get("intervention_cost", 0.0)), int(agent.get("action_repeat", 1))
     actions = str(agent.get("actions", "env"))
-    venv = make_vec_env(functools.partial(_env_factory, *plain, cost, repeat, actions,
-                                          timeout_is_terminal=bool(agent.get("timeout_is_terminal", False))),
-                        n_envs=int(agent.n_envs),
-                        seed=int(cfg.seed) + done_steps, vec_env_cls=vec_cls)
+    if agent.vec_env == "batched":  # issue 16: all envs in one numpy batch (av_gym/envs/batched_vec.py)
+        from av_gym.envs.batched_vec import BatchedLeftTurnVecEnv
+
+        if cost > 0:
+            raise ConfigError("agent.intervention_cost needs a shield: not available with agent.vec_env=batched")
+        venv = BatchedLeftTurnVecEnv(*plain, int(agent.n_envs), action_repeat=repeat, actions=actions,
+                                     timeout_is_terminal=bool(agent.get("timeout_is_terminal", False)))
+        venv.seed(int(cfg.seed) + done_steps)
+    else:
+        venv = make_vec_env(functools.partial(_env_factory, *plain, cost, repeat, actions,
+                                              timeout_is_terminal=bool(agent.get("timeout_is_terminal", False))),
+                            n_envs=int(agent.n_envs),
+                            seed=int(cfg.seed) + done_steps, vec_env_cls=vec_cls)
     if resume:
         try:
             model = PPO.load(str(latest), env=venv, device=agent.device)

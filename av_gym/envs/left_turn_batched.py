@@ -202,18 +202,23 @@ class BatchedLeftTurn:
         final_obs = final_truth = None
         if len(done):
             final_obs, final_truth = self.observe(done), self.last_truth
-            self._pending += [self.rngs[r] for r in done]
-            n_ready = 0 if self._ready is None else self._ready.B
-            if n_ready < len(done):
-                self._fill_pool()
-            k = len(done)
-            self._start(done, self._ready.subset(np.arange(k)), self._ready_seeds[:k])
-            for r, rng in zip(done, self._ready_rngs[:k]):
-                self.rngs[r] = rng
-            rest = np.arange(k, self._ready.B)
-            self._ready = self._ready.subset(rest) if len(rest) else None
-            self._ready_rngs, self._ready_seeds = self._ready_rngs[k:], self._ready_seeds[k:]
+            self.start_from_pool(done)
         return self.observe(), reward, terminated, truncated, (done, final_obs, final_truth)
+
+    def start_from_pool(self, done) -> None:
+        """The envs ``done`` (whose episodes ended) start the next episode of a ready stream; their own streams
+        wait for their next episode, made with the next batch of them."""
+        self._pending += [self.rngs[r] for r in done]
+        n_ready = 0 if self._ready is None else self._ready.B
+        if n_ready < len(done):
+            self._fill_pool()
+        k = len(done)
+        self._start(done, self._ready.subset(np.arange(k)), self._ready_seeds[:k])
+        for r, rng in zip(done, self._ready_rngs[:k]):
+            self.rngs[r] = rng
+        rest = np.arange(k, self._ready.B)
+        self._ready = self._ready.subset(rest) if len(rest) else None
+        self._ready_rngs, self._ready_seeds = self._ready_rngs[k:], self._ready_seeds[k:]
 
     def state_bytes(self) -> int:
         pool = 0 if self._ready is None else self._ready.state_bytes()
@@ -377,6 +382,22 @@ class BatchedLeftTurn:
         out = np.concatenate([ego, obj.reshape(n, -1)], axis=1)
         return np.clip(np.nan_to_num(out, nan=0.0), -1.0, 1.0).astype(np.float32)
 
+    def others_described(self, rows) -> tuple[list, list]:
+        """Per env of ``rows`` (after :meth:`observe` on them): the others ``(k, 4) [x, y, vx, vy]`` in road order
+        (``info["truth"]["others"][:, :4]``) and the indices into it that ``obs["turn"]`` describes, nearest
+        first (TurnFeatures.others / .described)."""
+        t = self.traffic
+        order, present = self.described
+        others, described = [], []
+        for n, r in enumerate(rows):
+            keep = t.alive[r] & ~t.ego[r]
+            v = t.v[r, keep]
+            others.append(np.stack([t.x[r, keep], t.y[r, keep], v * np.cos(t.h[r, keep]), v * np.sin(t.h[r, keep])],
+                                   axis=1))
+            slot_to_other = np.cumsum(keep) - 1
+            described.append(slot_to_other[order[n][present[n]]])
+        return others, described
+
     def _path_conflict(self, x, y, vx, vy):
         """TurnFeatures._path_conflict for (n, M) objects."""
         dx = x[..., None] - self.path[:, 0]
@@ -386,3 +407,122 @@ class BatchedLeftTurn:
         miss = np.hypot(dx + vx[..., None] * tt, dy + vy[..., None] * tt)
         j = np.argmin(miss, axis=-1)[..., None]
         return np.take_along_axis(tt, j, -1)[..., 0], np.take_along_axis(miss, j, -1)[..., 0], self.path_s[j[..., 0]]
+
+
+class BatchedIntent:
+    """``obs["signals"]`` (TurnSignals) and ``obs["intent"]`` (TurnIntent) for a :class:`BatchedLeftTurn`, the
+    same readings as the per-env sensors: each env's signal channel draws from its own
+    ``sensor_rng(episode_seed, "signals")`` in the same order (per new vehicle: indicates?, wrong?; per reading:
+    seen?), and the acceleration compares each described object with the nearest vehicle of the oldest kept past
+    (``history`` s)."""
+
+    def __init__(self, engine: BatchedLeftTurn, signals: dict | None, intent: dict) -> None:
+        import inspect
+        import zlib
+
+        from av_gym.sensors.turn_signal import TurnSignals
+        from av_gym.estimation.turn_features import TurnIntent
+
+        self.e = engine
+        def defaults(cls) -> dict:
+            return {k: p.default for k, p in inspect.signature(cls.__init__).parameters.items()
+                    if p.default is not inspect.Parameter.empty}
+
+        self.sig = {**defaults(TurnSignals), **signals} if signals is not None else None
+        p = {**defaults(TurnIntent), **(intent or {})}
+        self.history, self.gate, self.signal_gate = float(p["history"]), float(p["gate"]), float(p["signal_gate"])
+        self._crc = zlib.crc32(b"signals")
+        B = engine.B
+        self.rngs = [None] * B
+        self.channel: list[dict] = [{} for _ in range(B)]
+        self.past: list[list] = [[] for _ in range(B)]  # per env: [(t, others (n, 4))], as TurnIntent._past
+        T = engine.T
+        # intended_signal: origin of a vehicle on an approach (o{i}→ir{i}) or in the intersection (ir{i}→il{j})
+        self.origin = np.full(len(T.index), -1)
+        for k, (f, t, _) in enumerate(T.index):
+            if f.startswith("o") and t.startswith("ir"):
+                self.origin[k] = int(t[2:])
+            elif f.startswith("ir") and t.startswith("il"):
+                self.origin[k] = int(f[2:])
+        self.dest = np.array([int(t[1:]) if t.startswith("o") else -1 for _, t, _ in T.index])
+
+    def reset(self, rows) -> None:
+        from av_gym.sensors.base import sensor_rng  # noqa: F401  (the same seeding, below)
+
+        for r in rows:
+            self.rngs[r] = np.random.default_rng(np.random.SeedSequence([int(self.e.episode_seed[r]), self._crc]))
+            self.channel[r], self.past[r] = {}, []
+
+    def signals(self, rows) -> np.ndarray:
+        """TurnSignals.measure for the envs ``rows``: (n, max_objects, 4) float32."""
+        e, t, sig = self.e, self.e.traffic, self.sig
+        M = int(sig["max_objects"])
+        out = np.zeros((len(rows), M, 4), dtype=np.float32)
+        eslot = e.ego_slot(rows)
+        lane_origin = self.origin[t.lane[rows]]
+        dest = self.dest[np.take_along_axis(t.route[rows], np.full((len(rows), t.N, 1), 2), 2)[..., 0]]
+        turn = (dest - lane_origin) % 4
+        intended = np.where((lane_origin >= 0) & (dest >= 0), np.where(turn == 1, 1.0, np.where(turn == 3, -1.0, 0.0)),
+                            0.0)
+        ex, ey = t.x[rows, eslot], t.y[rows, eslot]
+        d = np.hypot(t.x[rows] - ex[:, None], t.y[rows] - ey[:, None])
+        seen_mask = t.alive[rows] & ~t.ego[rows] & (d <= sig["max_range"])
+        for n, r in enumerate(rows):
+            slots = np.nonzero(seen_mask[n])[0]
+            if not len(slots):
+                continue
+            ch, rng = self.channel[r], self.rngs[r]
+            values = []
+            for i in slots:  # road order, as the sensor's loop
+                vid = t.vid[r, i]
+                if vid not in ch:
+                    ch[vid] = (rng.uniform() >= sig["no_signal_rate"], rng.uniform() < sig["wrong_rate"])
+                indicates, wrong = ch[vid]
+                seen = rng.uniform() >= sig["miss_rate"]
+                values.append(intended[n, i] * (-1.0 if wrong else 1.0) if indicates and seen else 0.0)
+            order = sorted(range(len(slots)), key=lambda k: d[n, slots[k]])[:M]
+            for k, j in enumerate(order):
+                out[n, k] = (1.0, t.x[r, slots[j]], t.y[r, slots[j]], values[j])
+        return out
+
+    def intent(self, rows, turn_others, described, signals) -> np.ndarray:
+        """TurnIntent.observation for the envs ``rows``; ``turn_others[n]``: that env's others (k, 4) in road
+        order, ``described[n]``: the rows of it obs["turn"] describes, nearest first."""
+        e = self.e
+        M = e.max_objects
+        out = np.zeros((len(rows), M, 2))
+        for n, r in enumerate(rows):
+            now = e.ticks[r] / e.config["simulation_frequency"]
+            objects = turn_others[n][described[n]]
+            if len(objects):
+                out[n, : len(objects), 0] = self._acceleration(r, objects, now) / 5.0
+                if signals is not None:
+                    out[n, : len(objects), 1] = self._signals(objects, signals[n])
+            self.past[r] = [(tp, o) for tp, o in self.past[r] if now - tp < self.history - 1e-9] + \
+                [(now, turn_others[n])]
+        return np.clip(np.nan_to_num(out), -1.0, 1.0).astype(np.float32)
+
+    def _acceleration(self, r, objects, now):
+        past = self.past[r]
+        if not past or not len(past[0][1]):
+            return np.zeros(len(objects))
+        t_then, then = past[0]
+        dt = now - t_then
+        if dt <= 0:
+            return np.zeros(len(objects))
+        back = objects[:, :2] - objects[:, 2:4] * dt
+        d = np.hypot(*(back[:, None, :] - then[None, :, :2]).transpose(2, 0, 1))
+        j = np.argmin(d, axis=1)
+        matched = d[np.arange(len(objects)), j] <= self.gate
+        speed = np.hypot(objects[:, 2], objects[:, 3])
+        heading = objects[:, 2:4] / np.maximum(speed, 1e-6)[:, None]
+        acc = ((objects[:, 2:4] - then[j, 2:4]) * heading).sum(axis=1) / dt
+        return np.where(matched, acc, 0.0)
+
+    def _signals(self, objects, signals):
+        seen = signals[signals[:, 0] > 0]
+        if not len(seen):
+            return np.zeros(len(objects))
+        d = np.hypot(*(objects[:, None, :2] - seen[None, :, 1:3]).transpose(2, 0, 1))
+        j = np.argmin(d, axis=1)
+        return np.where(d[np.arange(len(objects)), j] <= self.signal_gate, seen[j, 3], 0.0)

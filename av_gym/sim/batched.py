@@ -22,6 +22,7 @@ new vehicles go after the last live one, cleared vehicles are removed with a sta
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,6 +40,7 @@ MAX_STEERING = np.pi / 3
 REG_TIMES = np.arange(0.25, 3, 0.25)  # RegulatedRoad.is_conflict_possible(horizon=3, step=0.25)
 EGO_TARGET_SPEEDS = np.array([0.0, 4.5, 9.0])
 SLOWER, IDLE, FASTER = 0, 1, 2
+_VEHICLE_IDS = itertools.count(1)  # unique over all batches of the process (episodes move between them)
 
 
 def not_zero(x: np.ndarray, eps: float = 1e-2) -> np.ndarray:
@@ -172,10 +174,11 @@ class Traffic:
         self.lane, self.tlane = z(int), z(int)
         self.route = np.full((B, N, 3), -1)  # lane ids of the planned route; route[rpos:] is what is left
         self.rpos = z(int)
+        self.vid = z(int)  # a vehicle's identity (per env, from 1), kept through compaction: sensors key on it
         if self.road_steps is None:
             self.road_steps = np.zeros(B, dtype=int)
 
-    FIELDS = ("alive", "ego", "crashed", "yielding", "x", "y", "h", "v", "target", "steer", "acc", "delta",
+    FIELDS = ("vid", "alive", "ego", "crashed", "yielding", "x", "y", "h", "v", "target", "steer", "acc", "delta",
               "impact_x", "impact_y", "has_impact", "lane", "tlane", "route", "rpos")
 
     # -------------------------------------------------------------------------------------------- bookkeeping
@@ -250,6 +253,7 @@ class Traffic:
         x, y = T.position(lane, s, 0.0)
         h = T.heading_at(lane, s)
         self.alive[b, slot], self.ego[b, slot] = True, ego
+        self.vid[b, slot] = next(_VEHICLE_IDS)
         self.x[b, slot], self.y[b, slot], self.h[b, slot], self.v[b, slot] = x, y, h, speed
         self.target[b, slot] = speed if target is None else target  # ControlledVehicle: target_speed or speed
         self.route[b, slot] = -1
