@@ -108,3 +108,75 @@ def test_batched_refuses_what_it_cannot_run():
     env_id, config = _config()
     with pytest.raises(ValueError, match="traffic only"):
         BatchedLeftTurn(2, {**config, "mode": "ccftap"})
+
+
+def _ppo_turn_config(*overrides):
+    from hydra import compose, initialize_config_module
+
+    with initialize_config_module("conf", version_base="1.3"):
+        cfg = compose("train", overrides=["agent=ppo_turn", *overrides])
+    return [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
+
+
+def test_vec_env_matches_the_training_stack():
+    """BatchedLeftTurnVecEnv against train/ppo.py's per-env stack for agent=ppo_turn (GO/YIELD at 2 Hz, action
+    repeat 5, obs turn + intent with the noisy turn signals), same seeds and choices: the same observations,
+    rewards and ends for the first 5 s of all but at most one of 8 envs (the split named), and over whole episodes
+    where nothing split, the same terminal observation and episode metrics.
+
+    Why not all, always: positions agree to ~1e-14, not bit for bit, and obs["turn"]'s closest approach to the
+    ego's path has exact ties (an object driving along the path's exit segment is equally far from each exit
+    point), which float noise breaks either way."""
+    from av_gym.envs.batched_vec import BatchedLeftTurnVecEnv
+    from train.ppo import _env_factory
+
+    plain = _ppo_turn_config()
+    n, seed = 8, 300
+    venv = BatchedLeftTurnVecEnv(*plain, n, action_repeat=5, actions="go_yield", timeout_is_terminal=True)
+    venv.seed(seed)
+    obs = venv.reset()
+    envs = [_env_factory(*plain, 0.0, 5, "go_yield", timeout_is_terminal=True) for _ in range(n)]
+    assert venv.observation_space == envs[0].observation_space
+    ref = [e.reset(seed=seed + i)[0] for i, e in enumerate(envs)]
+    rng = np.random.default_rng(1)
+    done, split = np.zeros(n, bool), [None] * n
+    ended = 0
+    for k in range(45):
+        for i in np.nonzero(~done)[0]:
+            bad = [key for key in ref[i] if np.abs(obs[key][i] - ref[i][key]).max() > 1e-5]
+            if bad and not split[i]:
+                col = int(np.abs(obs[bad[0]][i] - ref[i][bad[0]]).argmax())
+                split[i] = f"t={0.5 * k:.1f}s: obs[{bad[0]!r}] entry {col}"
+        if done.all():
+            break
+        a = rng.integers(0, 2, n)
+        obs, reward, over, infos = venv.step(a)
+        for i in np.nonzero(~done)[0]:
+            o, r, te, tu, info = envs[i].step(int(a[i]))
+            if (abs(r - reward[i]) > 1e-5 or (te or tu) != over[i]) and not split[i]:
+                split[i] = f"t={0.5 * (k + 1):.1f}s: reward/end"
+            ref[i] = o
+            if (te or tu) and not split[i]:
+                ended += 1
+                for key in o:
+                    np.testing.assert_allclose(infos[i]["terminal_observation"][key], o[key], atol=1e-5)
+                for key in ("collision", "success", "time_to_exit_s", "mean_speed_mps", "return", "length"):
+                    np.testing.assert_allclose(infos[i]["episode_metrics"][key], info["episode_metrics"][key],
+                                               atol=1e-5, err_msg=key)
+            done[i] |= te or tu
+    early = [f"env {i}: {s}" for i, s in enumerate(split) if s and float(s[2:s.index("s")]) <= 5.0]
+    assert len(early) <= 1, "split within 5 s:\n" + "\n".join(early)
+    assert ended >= n // 2, f"only {ended} whole episodes agreed: {split}"
+
+
+def test_vec_env_refuses_what_the_batch_cannot_give():
+    from av_gym.envs.batched_vec import BatchedLeftTurnVecEnv
+    from av_gym.errors import ConfigError
+
+    env, sensors, shield = _ppo_turn_config()
+    with pytest.raises(ConfigError, match=r"^sensors\.lidar is not available with agent\.vec_env=batched"):
+        BatchedLeftTurnVecEnv(env, {**sensors, "lidar": {}}, shield, 2)
+    with pytest.raises(ConfigError, match="turn_features.source=tracks"):
+        BatchedLeftTurnVecEnv(env, {**sensors, "turn_features": {"source": "tracks"}}, shield, 2)
+    with pytest.raises(ConfigError, match="env.mode=traffic only"):
+        BatchedLeftTurnVecEnv({**env, "mode": "ccftap"}, sensors, shield, 2)
