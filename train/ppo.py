@@ -341,7 +341,11 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
         # SB3 collects whole rollouts (n_steps x n_envs) until the total is reached: ask for that rounded-up total,
         # which it would train anyway, so that the progress bar ends at its total (not 24,576/24,000).
         rollout = int(agent.n_steps) * int(agent.n_envs)
-        remaining = -(-remaining // rollout) * rollout
+        rounded = -(-remaining // rollout) * rollout
+        if rounded != remaining:
+            print(f"[train] agent.total_timesteps={int(agent.total_timesteps)}: PPO trains whole rollouts of "
+                  f"n_steps x n_envs = {rollout} steps, so {int(model.num_timesteps) + rounded}")
+        remaining = rounded
         if remaining > 0:
             model.learn(total_timesteps=remaining, callback=callbacks, reset_num_timesteps=False,
                         progress_bar=bool(cfg.train.progress_bar))
