@@ -47,7 +47,7 @@ def per_env_rate(config: dict, seconds: float) -> float:
 
 def batched_rate(config: dict, B: int, seconds: float) -> tuple[float, float]:
     """Env steps per CPU-second over whole episodes (resets included) and the state's bytes per env."""
-    bt = BatchedLeftTurn(B, config, pool=max(4, B // 8))
+    bt = BatchedLeftTurn(B, config, pool=max(8, B // 4))
     bt.reset(list(range(B)))
     rng = np.random.default_rng(0)
     n = 0

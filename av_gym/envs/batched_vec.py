@@ -75,7 +75,7 @@ class BatchedLeftTurnVecEnv(VecEnv):
         _, config = highway_config(env_cfg)
         s = dict(sensors_cfg)
         tf = {k: v for k, v in (s.get("turn_features") or {}).items() if k != "source"}
-        self.engine = BatchedLeftTurn(n_envs, config, pool=max(4, n_envs // 4) if pool is None else pool, **tf)
+        self.engine = BatchedLeftTurn(n_envs, config, pool=max(8, n_envs // 4) if pool is None else pool, **tf)
         self.keys = list(s.get("observe") or ["turn", *(["signals"] if "turn_signals" in s else []),
                                               *(["intent"] if "turn_intent" in s else [])])
         need_intent = "intent" in self.keys or "signals" in self.keys

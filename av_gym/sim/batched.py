@@ -315,41 +315,46 @@ class Traffic:
         slip = np.arcsin(np.clip(LENGTH / 2 / v_nz * rate, -1, 1))
         return np.clip(np.arctan(2 * np.tan(slip)), -MAX_STEERING, MAX_STEERING)
 
-    def _front(self, lanes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _front(self, lanes: np.ndarray) -> np.ndarray:
         """Road.neighbour_vehicles(vehicle, lane)[0] for every vehicle: among the other vehicles on ``lane``
-        (``on_lane`` with a 1 m margin), the one with the smallest s ≥ the vehicle's own (last in order on ties).
-        Returns the front slot (-1: none) and every vehicle's s on each vehicle's ``lanes`` (B, N, N)."""
-        T = self.tables
-        k = lanes[:, :, None]
-        s, r = T.local(k, self.x[:, None, :], self.y[:, None, :])  # (B, i, j): j on i's lane
-        s_self = np.diagonal(s, axis1=1, axis2=2)[:, :, None]
-        on = (np.abs(r) <= T.width[k] / 2 + 1) & (-VEHICLE_LENGTH <= s) & (s < T.length[k] + VEHICLE_LENGTH)
-        N = self.N
-        cand = on & self.alive[:, None, :] & ~np.eye(N, dtype=bool)[None] & (s_self <= s)
-        key = np.where(cand, s, np.inf)[:, :, ::-1]  # reversed: argmin returns the last of equal minima
-        j = N - 1 - np.argmin(key, axis=2)
-        has = cand.any(axis=2)
-        return np.where(has, j, -1), s
+        (``on_lane`` with a 1 m margin), the one with the smallest s ≥ the vehicle's own (the last in road order on
+        ties, as the stock scan's ``<=``). Returns the front slot (-1: none). Only pairs whose vehicle j is within
+        6 m of lane i's centreline box are projected: ``on_lane`` needs |r| ≤ 3 m and s within 5 m of the lane,
+        i.e. within √(3² + 5²) < 6 m of the centreline."""
+        T, N = self.tables, self.N
+        box = T.box[lanes] + np.array([-6.0, -6.0, 6.0, 6.0])  # (B, i, 4)
+        x, y = self.x[:, None, :], self.y[:, None, :]
+        cand = (box[..., 0:1] <= x) & (x <= box[..., 2:3]) & (box[..., 1:2] <= y) & (y <= box[..., 3:4])
+        cand &= self.alive[:, None, :] & self.alive[:, :, None] & ~np.eye(N, dtype=bool)[None]
+        b, i, j = np.nonzero(cand)
+        k = lanes[b, i]
+        s, r = T.local(k, self.x[b, j], self.y[b, j])
+        s_self, _ = T.local(lanes, self.x, self.y)
+        ok = (np.abs(r) <= T.width[k] / 2 + 1) & (-VEHICLE_LENGTH <= s) & (s < T.length[k] + VEHICLE_LENGTH) \
+            & (s_self[b, i] <= s)
+        key = np.full((self.B, N, N), np.inf)
+        key[b[ok], i[ok], j[ok]] = s[ok]
+        j_front = N - 1 - np.argmin(key[:, :, ::-1], axis=2)  # reversed: the last of equal minima
+        return np.where(np.isfinite(key).any(axis=2), j_front, -1)
 
     def _idm(self) -> np.ndarray:
         """IDMVehicle.act's acceleration: IDM on the current lane's leader, and the min with the target lane's
         leader while the two differ (``lane_distance_to`` stays on the current lane in both)."""
-        front, s_cur = self._front(self.lane)
-        acc = self._idm_acc(front, s_cur)
+        acc = self._idm_acc(self._front(self.lane))
         changing = self.alive & (self.lane != self.tlane)
         if changing.any():
-            front_t, _ = self._front(self.tlane)
-            acc = np.where(changing, np.minimum(acc, self._idm_acc(front_t, s_cur)), acc)
+            acc = np.where(changing, np.minimum(acc, self._idm_acc(self._front(self.tlane))), acc)
         return acc
 
-    def _idm_acc(self, front: np.ndarray, s_cur: np.ndarray) -> np.ndarray:
-        """IDMVehicle.acceleration + desired_gap (projected)."""
-        target = np.clip(self.target, 0, self.tables.speed_limit[self.lane])
+    def _idm_acc(self, front: np.ndarray) -> np.ndarray:
+        """IDMVehicle.acceleration + desired_gap (projected); d = lane_distance_to(front) on the current lane."""
+        T = self.tables
+        target = np.clip(self.target, 0, T.speed_limit[self.lane])
         acc = COMFORT_ACC_MAX * (1 - np.power(np.maximum(self.v, 0) / np.abs(not_zero(target)), self.delta))
         has = front >= 0
         f = np.maximum(front, 0)
-        s_self = np.diagonal(s_cur, axis1=1, axis2=2)
-        d = np.take_along_axis(s_cur, f[:, :, None], axis=2)[:, :, 0] - s_self
+        xf, yf = np.take_along_axis(self.x, f, axis=1), np.take_along_axis(self.y, f, axis=1)
+        d = T.local(self.lane, xf, yf)[0] - T.local(self.lane, self.x, self.y)[0]
         c, sn = np.cos(self.h), np.sin(self.h)
         vf, hf = np.take_along_axis(self.v, f, axis=1), np.take_along_axis(self.h, f, axis=1)
         dv = (self.v * c - vf * np.cos(hf)) * c + (self.v * sn - vf * np.sin(hf)) * sn
@@ -383,7 +388,8 @@ class Traffic:
         v = self.v + self.acc * dt
         self.x, self.y = np.where(a, x, self.x), np.where(a, y, self.y)
         self.h, self.v = np.where(a, h, self.h), np.where(a, v, self.v)
-        self.lane = np.where(a, self.tables.closest(self.x, self.y, self.h), self.lane)
+        b, i = np.nonzero(a)
+        self.lane[b, i] = self.tables.closest(self.x[b, i], self.y[b, i], self.h[b, i])
 
     def _collisions(self, dt: float) -> None:
         """Road.step's ``handle_collisions`` for every pair i < j: RoadObject._is_colliding's spherical pre-check,
