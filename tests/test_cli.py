@@ -92,7 +92,7 @@ def test_train_the_camera_lane_keeper_with_a_narrow_cnn(tmp_path):
     ("train", ["env=lane_keeping", "agent=always_proceed"], "drives scenarios ['left_turn']"),
     ("train", ["agent.n_envs=0"], "agent.n_envs must be an integer >= 1, got 0"),
     # Hydra's own errors (unknown key, unknown option), caught before Hydra reports them over several lines
-    ("train", ["agent.epoch=3"], "agent.epoch is not a field of agent=ppo_turn; allowed: ['batch_size',"),
+    ("train", ["agent.epoch=3"], "agent.epoch is not a field of agent=ppo_turn; allowed: ['action_repeat', 'actions',"),
     ("train", ["env=foo"], "env=foo: env must be one of ['lane_keeping', 'left_turn']"),
     ("train", ["+foo=1"], "foo is not a train setting; allowed: ['agent', 'env',"),
     ("train", ["seed=0,1"], "add -m to sweep over them"),

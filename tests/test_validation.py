@@ -116,7 +116,7 @@ def test_shield_probability_and_agent_kind():
 
 
 @pytest.mark.parametrize("argv, needle", [
-    (["agent.epoch=3"], "agent.epoch is not a field of agent=ppo_turn; allowed: ['batch_size', 'clip_range'"),
+    (["agent.epoch=3"], "agent.epoch is not a field of agent=ppo_turn; allowed: ['action_repeat', 'actions',"),
     (["env=foo"], "env=foo: env must be one of ['lane_keeping', 'left_turn']"),
     (["env.foo.bar=1"], "env.foo is not a field of env=left_turn; allowed: ['acceleration_range'"),
     (["seed.x=1"], "seed is a value, not a section"),
