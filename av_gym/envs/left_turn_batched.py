@@ -86,9 +86,11 @@ class BatchedLeftTurn:
 
     # ------------------------------------------------------------------------------------------- traffic draws
     def _spawn(self, t: Traffic, b: int, rng, longitudinal: float = 0.0, position_deviation: float = 1.0,
-               speed_deviation: float = 1.0, spawn_probability: float = 0.6, go_straight: bool = False) -> None:
-        """IntersectionEnv._spawn_vehicle: the same draws in the same order on env b's generator."""
-        if rng.uniform() > spawn_probability:
+               speed_deviation: float = 1.0, spawn_probability: float = 0.6, go_straight: bool = False,
+               u: float | None = None) -> None:
+        """IntersectionEnv._spawn_vehicle: the same draws in the same order on env b's generator (``u``: its first
+        draw, when the caller made it)."""
+        if (rng.uniform() if u is None else u) > spawn_probability:
             return
         route = rng.choice(range(4), size=2, replace=False)
         route[1] = (route[0] + 2) % 4 if go_straight else route[1]
@@ -270,8 +272,10 @@ class BatchedLeftTurn:
             t.alive &= ~gone
             t.compact()
         p = self.config["spawn_probability"] / self.config["policy_frequency"]
-        for b in rows:
-            self._spawn(t, int(b), self.rngs[b], spawn_probability=p)
+        u = [self.rngs[b].uniform() for b in rows]  # the spawn try's first draw; most tries stop there
+        for b, u_b in zip(rows, u):
+            if u_b <= p:
+                self._spawn(t, int(b), self.rngs[b], spawn_probability=p, u=u_b)
         self._settle(t)
 
     def step(self, actions: np.ndarray, active: np.ndarray | None = None):
