@@ -59,12 +59,65 @@ def batched_rate(config: dict, B: int, seconds: float) -> tuple[float, float]:
     return rate, bt.state_bytes() / B
 
 
+def ppo_rate(batched: bool, decisions: int) -> tuple[float, float]:
+    """``agent=ppo_turn`` (GO/YIELD, action repeat 5, its hyperparameters; no cloning) in SB3's ``learn``: env steps
+    per second of wall clock and per CPU-second of this process and its children. Per-env: ``train/ppo.py``'s
+    stack, 2 subprocess envs × 256 decisions per rollout (today's ``python -m train agent=ppo_turn``); batched: 64
+    envs × 8 (the same 512-decision rollout, so the same update cost)."""
+    import functools
+    import resource
+
+    from hydra import compose, initialize_config_module
+    from omegaconf import OmegaConf as OC
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import SubprocVecEnv
+
+    from agents.ppo import make_ppo
+    from av_gym.envs.batched_vec import BatchedLeftTurnVecEnv
+    from train.ppo import _env_factory
+
+    with initialize_config_module("conf", version_base="1.3"):
+        cfg = compose("train", overrides=["agent=ppo_turn"])
+    plain = [OC.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
+    agent = OC.to_container(cfg.agent, resolve=True)
+    if batched:
+        agent.update(n_envs=64, n_steps=8)
+        venv = BatchedLeftTurnVecEnv(*plain, 64, action_repeat=5, actions="go_yield", timeout_is_terminal=True)
+        venv.seed(0)
+    else:
+        agent.update(n_envs=2, n_steps=256)
+        venv = make_vec_env(functools.partial(_env_factory, *plain, 0.0, 5, "go_yield", timeout_is_terminal=True),
+                            n_envs=2, seed=0, vec_env_cls=SubprocVecEnv, vec_env_kwargs={"start_method": "fork"})
+    model = make_ppo(venv, agent, seed=0, tensorboard_log=None, device="cpu")
+
+    def cpu() -> float:
+        me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+        return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
+
+    t0, c0 = time.time(), cpu()
+    model.learn(decisions)
+    venv.close()  # children's CPU counts once they are reaped
+    wall, used = time.time() - t0, cpu() - c0
+    steps = model.num_timesteps * 5  # env steps (action repeat 5; the last decisions of episodes may be shorter)
+    return steps / wall, steps / used
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--sizes", type=int, nargs="+", default=[1, 4, 16, 64, 256, 1024])
     parser.add_argument("--seconds", type=float, default=4.0)
     parser.add_argument("--out", default="docs/batched_speed.png")
+    parser.add_argument("--ppo", type=int, default=0, help="also time PPO learn for this many decisions per path")
     args = parser.parse_args()
+    if args.ppo:
+        print(f"load average: {load()}")
+        print("| ppo_turn learn | env steps/s (wall) | env steps / CPU-s |\n|---|---:|---:|")
+        for batched in (False, True):
+            wall, per_cpu = ppo_rate(batched, args.ppo)
+            name = "batched, 64 envs x 8" if batched else "per-env, 2 subprocess envs x 256"
+            print(f"| {name} | {wall:.0f} | {per_cpu:.0f} |", flush=True)
+        print(f"load average: {load()}")
+        return
     _, config = highway_config(OmegaConf.load("conf/env/left_turn.yaml"))
     print(f"load average before: {load()}")
     base = per_env_rate(config, args.seconds)

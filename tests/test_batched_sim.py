@@ -180,3 +180,21 @@ def test_vec_env_refuses_what_the_batch_cannot_give():
         BatchedLeftTurnVecEnv(env, {**sensors, "turn_features": {"source": "tracks"}}, shield, 2)
     with pytest.raises(ConfigError, match="env.mode=traffic only"):
         BatchedLeftTurnVecEnv({**env, "mode": "ccftap"}, sensors, shield, 2)
+
+
+def test_gymnasium_vector_env_autoresets_in_the_same_step():
+    from av_gym.envs.batched_vec import BatchedLeftTurnVectorEnv
+
+    env, sensors, _ = _ppo_turn_config()
+    venv = BatchedLeftTurnVectorEnv(env, sensors, 4, action_repeat=5, actions="go_yield")
+    obs, _ = venv.reset(seed=7)
+    assert venv.observation_space.contains(obs)
+    ended = 0
+    for _ in range(40):
+        obs, reward, terminated, truncated, info = venv.step(np.ones(4, dtype=int))  # GO: most episodes end < 20 s
+        assert obs["turn"].shape == (4, venv.single_observation_space["turn"].shape[0]) and reward.shape == (4,)
+        for i in np.nonzero(terminated | truncated)[0]:
+            ended += 1
+            assert info["_final_obs"][i] and info["final_obs"][i]["turn"].shape == obs["turn"][i].shape
+            assert obs["turn"][i][4] == 0.0  # the new episode's elapsed time
+    assert ended >= 4
