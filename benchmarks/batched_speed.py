@@ -76,8 +76,11 @@ def ppo_rate(batched: bool, decisions: int) -> tuple[float, float]:
     from av_gym.envs.batched_vec import BatchedLeftTurnVecEnv
     from train.ppo import _env_factory
 
+    import torch
+
     with initialize_config_module("conf", version_base="1.3"):
         cfg = compose("train", overrides=["agent=ppo_turn"])
+    torch.set_num_threads(int(cfg.train.torch_threads))  # as python -m train
     plain = [OC.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
     agent = OC.to_container(cfg.agent, resolve=True)
     if batched:
