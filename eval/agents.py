@@ -32,8 +32,10 @@ def _load_sb3(model_path: Path, env: gym.Env) -> Policy:
         raise ConfigError(f"checkpoint {str(model_path)!r} expects observations {_shapes(policy.model.observation_space)}"
                           f", this env gives {_shapes(sb3_space(env.observation_space))} (same sensors preset and env "
                           f"settings as in its training, see its config.yaml)")
-    if policy.model.action_space != env.action_space and trained.get("actions") != "go_yield":
-        raise ConfigError(f"checkpoint {str(model_path)!r} acts in {policy.model.action_space}, this env expects "
+    # A go/yield policy's two choices become the env's three meta-actions (agents/go_yield.py): it needs those.
+    needs = gym.spaces.Discrete(3) if trained.get("actions") == "go_yield" else policy.model.action_space
+    if needs != env.action_space:
+        raise ConfigError(f"checkpoint {str(model_path)!r} acts in {needs}, this env expects "
                           f"{env.action_space} (env.action must be as in its training)")
     policy.repeat = int(trained.get("action_repeat", 1) or 1)  # decides every `repeat` env steps, as in training
     policy.actions = trained.get("actions", "env")  # go_yield: its two choices mapped to meta-actions, as in training

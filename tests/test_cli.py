@@ -6,6 +6,7 @@ import csv
 
 import numpy as np
 import pytest
+import yaml
 from conftest import FAST_PPO, run  # `trained` (one tiny PPO run per session) is a conftest fixture too
 
 
@@ -123,12 +124,13 @@ def test_checkpoint_that_does_not_fit_the_env_is_refused_and_its_run_folder_remo
     other = tmp_path / "other"
     other.mkdir()
     (other / "model.zip").write_bytes((cwd / "checkpoints" / "tiny" / "model.zip").read_bytes())
-    config = (cwd / "checkpoints" / "tiny" / "config.yaml").read_text()
-    (other / "config.yaml").write_text(config.replace("name: truth", "name: gnss_imu\n  gnss: {}\n  imu: {}"))
+    config = yaml.safe_load((cwd / "checkpoints" / "tiny" / "config.yaml").read_text())
+    config["sensors"] = {"name": "gnss_imu", "gnss": {}, "imu": {}}  # another preset than it was trained on
+    (other / "config.yaml").write_text(yaml.safe_dump(config))
     res = run("eval", f"agents=[{other}]", "episodes=1", "progress_bar=false", cwd=tmp_path)
     assert res.returncode == 2, res.stderr[-2000:]
     lines = [line for line in res.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1 and "expects observations {state:" in lines[0], res.stderr
+    assert len(lines) == 1 and "expects observations {intent:" in lines[0], res.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["other"]
 
     res = run("eval", f"agents=[{cwd / 'checkpoints' / 'tiny'}]", "env.action=continuous", "episodes=1",
