@@ -111,8 +111,7 @@ class BatchedLeftTurnVecEnv(VecEnv):
             if new_episode is not None and new_episode.any():
                 self.intent.reset(rows[new_episode])
             signals = self.intent.signals(rows) if self.intent.sig is not None else None
-            others, described = e.others_described(rows)
-            out["intent"] = self.intent.intent(rows, others, described, signals)
+            out["intent"] = self.intent.intent(rows, signals)
             if signals is not None:
                 out["signals"] = signals
         tr = e.last_truth

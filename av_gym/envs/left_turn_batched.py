@@ -439,7 +439,10 @@ class BatchedIntent:
         B = engine.B
         self.rngs = [None] * B
         self.channel: list[dict] = [{} for _ in range(B)]
-        self.past: list[list] = [[] for _ in range(B)]  # per env: [(t, others (n, 4))], as TurnIntent._past
+        # per env, the past as TurnIntent._past: up to H snapshots (times ht, nan = empty) of the slot arrays
+        self.H = int(np.ceil(self.history * engine.config["policy_frequency"])) + 2
+        self.ht = np.full((B, self.H), np.nan)
+        self.hist = self.hmask = None
         T = engine.T
         # intended_signal: origin of a vehicle on an approach (o{i}→ir{i}) or in the intersection (ir{i}→il{j})
         self.origin = np.full(len(T.index), -1)
@@ -455,7 +458,8 @@ class BatchedIntent:
 
         for r in rows:
             self.rngs[r] = np.random.default_rng(np.random.SeedSequence([int(self.e.episode_seed[r]), self._crc]))
-            self.channel[r], self.past[r] = {}, []
+            self.channel[r] = {}
+        self.ht[np.asarray(rows, dtype=int)] = np.nan
 
     def signals(self, rows) -> np.ndarray:
         """TurnSignals.measure for the envs ``rows``: (n, max_objects, 4) float32."""
@@ -489,39 +493,65 @@ class BatchedIntent:
                 out[n, k] = (1.0, t.x[r, slots[j]], t.y[r, slots[j]], values[j])
         return out
 
-    def intent(self, rows, turn_others, described, signals) -> np.ndarray:
-        """TurnIntent.observation for the envs ``rows``; ``turn_others[n]``: that env's others (k, 4) in road
-        order, ``described[n]``: the rows of it obs["turn"] describes, nearest first."""
-        e = self.e
-        M = e.max_objects
-        out = np.zeros((len(rows), M, 2))
-        for n, r in enumerate(rows):
-            now = e.ticks[r] / e.config["simulation_frequency"]
-            objects = turn_others[n][described[n]]
-            if len(objects):
-                out[n, : len(objects), 0] = self._acceleration(r, objects, now) / 5.0
-                if signals is not None:
-                    out[n, : len(objects), 1] = self._signals(objects, signals[n])
-            self.past[r] = [(tp, o) for tp, o in self.past[r] if now - tp < self.history - 1e-9] + \
-                [(now, turn_others[n])]
-        return np.clip(np.nan_to_num(out), -1.0, 1.0).astype(np.float32)
-
-    def _acceleration(self, r, objects, now):
-        past = self.past[r]
-        if not past or not len(past[0][1]):
-            return np.zeros(len(objects))
-        t_then, then = past[0]
+    def intent(self, rows, signals) -> np.ndarray:
+        """TurnIntent.observation for the envs ``rows`` (after the engine's :meth:`BatchedLeftTurn.observe` on
+        them), for all of them at once. The past is kept per env as snapshots of the slot arrays (road order), at
+        most ``history`` s old, as TurnIntent._past."""
+        e, t = self.e, self.e.traffic
+        rows = np.asarray(rows)
+        n, M, N = len(rows), e.max_objects, t.N
+        now = e.ticks[rows] / e.config["simulation_frequency"]
+        keep = t.alive[rows] & ~t.ego[rows]
+        v = t.v[rows]
+        snap = np.stack([t.x[rows], t.y[rows], v * np.cos(t.h[rows]), v * np.sin(t.h[rows])], axis=-1)  # (n, N, 4)
+        order, present = e.described
+        objects = np.take_along_axis(snap, order[..., None], axis=1)  # (n, M', 4), nearest first
+        described = np.zeros((n, M), bool)
+        described[:, : present.shape[1]] = present
+        if objects.shape[1] < M:
+            objects = np.concatenate([objects, np.zeros((n, M - objects.shape[1], 4))], axis=1)
+        out = np.zeros((n, M, 2))
+        if self.hist is None or self.hist.shape[2] < N:  # (B, H, K, 4) snapshots, their masks and times
+            K = N if self.hist is None else N
+            hist = np.full((e.B, self.H, K, 4), np.nan)
+            hmask = np.zeros((e.B, self.H, K), bool)
+            if self.hist is not None:
+                hist[:, :, : self.hist.shape[2]], hmask[:, :, : self.hist.shape[2]] = self.hist, self.hmask
+            self.hist, self.hmask = hist, hmask
+        K = self.hist.shape[2]
+        ht = self.ht[rows]  # (n, H), nan = empty
+        oldest = np.argmin(np.where(np.isfinite(ht), ht, np.inf), axis=1)
+        t_then = ht[np.arange(n), oldest]
+        then, tmask = self.hist[rows, oldest], self.hmask[rows, oldest]  # (n, K, 4), (n, K)
         dt = now - t_then
-        if dt <= 0:
-            return np.zeros(len(objects))
-        back = objects[:, :2] - objects[:, 2:4] * dt
-        d = np.hypot(*(back[:, None, :] - then[None, :, :2]).transpose(2, 0, 1))
-        j = np.argmin(d, axis=1)
-        matched = d[np.arange(len(objects)), j] <= self.gate
-        speed = np.hypot(objects[:, 2], objects[:, 3])
-        heading = objects[:, 2:4] / np.maximum(speed, 1e-6)[:, None]
-        acc = ((objects[:, 2:4] - then[j, 2:4]) * heading).sum(axis=1) / dt
-        return np.where(matched, acc, 0.0)
+        usable = np.isfinite(t_then) & tmask.any(axis=1) & (dt > 0)
+        if usable.any():
+            dts = np.where(usable, dt, 1.0)[:, None]
+            back = objects[..., :2] - objects[..., 2:4] * dts[..., None]
+            d = np.hypot(back[:, :, None, 0] - then[:, None, :, 0], back[:, :, None, 1] - then[:, None, :, 1])
+            d = np.where(tmask[:, None, :], d, np.inf)  # (n, M, K)
+            j = np.argmin(d, axis=2)
+            matched = np.take_along_axis(d, j[..., None], 2)[..., 0] <= self.gate
+            speed = np.hypot(objects[..., 2], objects[..., 3])
+            heading = objects[..., 2:4] / np.maximum(speed, 1e-6)[..., None]
+            v_then = np.take_along_axis(then[..., 2:4], j[..., None], 1)
+            acc = ((objects[..., 2:4] - v_then) * heading).sum(axis=-1) / dts
+            out[..., 0] = np.where(usable[:, None] & matched & described, acc, 0.0) / 5.0
+        if signals is not None:
+            for k in range(n):
+                m = int(described[k].sum())
+                if m:
+                    out[k, :m, 1] = self._signals(objects[k, :m], signals[k])
+        # keep what is younger than `history`, add now (TurnIntent: [(t, o) for ... if now - t < history - 1e-9])
+        ht = np.where(np.isfinite(ht) & (now[:, None] - ht < self.history - 1e-9), ht, np.nan)
+        slot = np.argmax(~np.isfinite(ht), axis=1)  # a free slot (H > history / policy period)
+        ht[np.arange(n), slot] = now
+        self.ht[rows] = ht
+        self.hist[rows, slot] = np.nan
+        self.hist[rows, slot, :N] = snap
+        self.hmask[rows, slot] = False
+        self.hmask[rows, slot, :N] = keep
+        return np.clip(np.nan_to_num(out), -1.0, 1.0).astype(np.float32)
 
     def _signals(self, objects, signals):
         seen = signals[signals[:, 0] > 0]
