@@ -212,6 +212,14 @@ def validate(cfg: DictConfig) -> list[str]:
             problems.append(f"agent.{key} must be a positive integer, got {agent[key]}")
     if agent.vec_env not in ("subproc", "dummy", "batched"):
         problems.append(f"agent.vec_env must be one of ['subproc', 'dummy', 'batched'], got {agent.vec_env!r}")
+    elif agent.vec_env == "batched":  # what the batch cannot give, on the command line (before any folder)
+        from av_gym.envs.batched_vec import check_batchable
+        from av_gym.errors import ConfigError
+
+        try:
+            check_batchable(*[OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)])
+        except ConfigError as exc:
+            problems.append(str(exc))
     if agent.get("actions", "env") not in ACTIONS:
         problems.append(f"agent.actions must be one of {list(ACTIONS)}, got {agent.actions!r}")
     if int(agent.get("action_repeat", 1)) < 1:
