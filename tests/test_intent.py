@@ -9,6 +9,7 @@ import torch as th
 
 from av_gym.estimation.turn_features import ACC_SCALE, OBJECT_FEATURES, TurnFeatures
 from av_gym.make import make_env
+from av_gym.sensors.base import find_wrapper
 from av_gym.sensors.turn_signal import LEFT, NONE, RIGHT, TurnSignals, intended_signal
 from eval.agents import compose_group
 from tests.conftest import conf
@@ -18,12 +19,6 @@ def _env(preset: str = "turn_truth", **signals):
     sensors = compose_group("sensors", preset)
     sensors["turn_signals"].update(signals)
     return make_env(conf("env", "left_turn"), sensors)
-
-
-def _wrapper(env, cls):
-    while not isinstance(env, cls):
-        env = env.env
-    return env
 
 
 def test_intended_signal_follows_the_route_through_the_intersection():
@@ -44,7 +39,7 @@ def test_intended_signal_follows_the_route_through_the_intersection():
 def test_a_clean_channel_reports_every_intended_signal_in_range_and_a_mute_one_none():
     env = _env(no_signal_rate=0.0, wrong_rate=0.0, miss_rate=0.0)
     env.reset(seed=2)
-    sensor = _wrapper(env, TurnSignals)
+    sensor = find_wrapper(env, TurnSignals)
     checked = turning = 0
     for _ in range(60):
         obs, *_ = env.step(1)
@@ -77,7 +72,7 @@ def test_acceleration_rows_follow_the_vehicles_own_acceleration():
     agree = firm = 0
     for seed in range(3):
         env.reset(seed=seed)
-        features = _wrapper(env, TurnFeatures)
+        features = find_wrapper(env, TurnFeatures)
         past: list[dict] = []
         for _ in range(200):
             obs, _, terminated, truncated, _ = env.step(0)  # the ego waits at the line, traffic flows and yields

@@ -14,7 +14,7 @@ from gymnasium.utils import seeding
 from highway_env import utils
 
 from av_gym.envs.left_turn import CONFLICT_POINT, ONCOMING_NEAR_EDGE_X, ROUTE, UnprotectedLeftTurnEnv
-from av_gym.estimation.turn_features import EGO_FEATURES, OBJECT_FEATURES, PATH_STEP, T_MAX
+from av_gym.estimation.turn_features import EGO_FEATURES, OBJECT_FEATURES, PATH_STEP, T_MAX, signals_at
 from av_gym.sim.batched import EGO_TARGET_SPEEDS, LENGTH, WIDTH, LaneTable, Traffic
 
 SPAWN_CLEAR = 15.0  # m, IntersectionEnv._spawn_vehicle: no spawn this close to another vehicle
@@ -541,7 +541,7 @@ class BatchedIntent:
             for k in range(n):
                 m = int(described[k].sum())
                 if m:
-                    out[k, :m, 1] = self._signals(objects[k, :m], signals[k])
+                    out[k, :m, 1] = signals_at(objects[k, :m], signals[k], self.signal_gate)
         # keep what is younger than `history`, add now (TurnIntent: [(t, o) for ... if now - t < history - 1e-9])
         ht = np.where(np.isfinite(ht) & (now[:, None] - ht < self.history - 1e-9), ht, np.nan)
         slot = np.argmax(~np.isfinite(ht), axis=1)  # a free slot (H > history / policy period)
@@ -552,11 +552,3 @@ class BatchedIntent:
         self.hmask[rows, slot] = False
         self.hmask[rows, slot, :N] = keep
         return np.clip(np.nan_to_num(out), -1.0, 1.0).astype(np.float32)
-
-    def _signals(self, objects, signals):
-        seen = signals[signals[:, 0] > 0]
-        if not len(seen):
-            return np.zeros(len(objects))
-        d = np.hypot(*(objects[:, None, :2] - seen[None, :, 1:3]).transpose(2, 0, 1))
-        j = np.argmin(d, axis=1)
-        return np.where(d[np.arange(len(objects)), j] <= self.signal_gate, seen[j, 3], 0.0)

@@ -12,7 +12,7 @@ import numpy as np
 from gymnasium import spaces
 
 from av_gym.estimation.tracker import MultiObjectTracker
-from av_gym.sensors.base import SensorWrapper, ego_pose, sim_time
+from av_gym.sensors.base import SensorWrapper, ego_pose, find_wrapper, sim_time
 
 FIELDS = ("present", "x", "y", "vx", "vy", "heading", "length", "width")
 BOUND = 1e4
@@ -75,8 +75,4 @@ class ObjectTracker(SensorWrapper):
 def _find_detector(env: gym.Env):
     from av_gym.sensors.detector import Detector
 
-    while isinstance(env, gym.Wrapper):
-        if isinstance(env, Detector):
-            return env
-        env = env.env
-    return None
+    return find_wrapper(env, Detector)

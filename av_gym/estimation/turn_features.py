@@ -30,7 +30,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from av_gym.sensors.base import SensorWrapper
+from av_gym.sensors.base import SensorWrapper, find_wrapper, sim_time
 
 SOURCES = ("truth", "tracks")
 EGO_FEATURES = ("speed", "set_point", "to_stop_line", "to_conflict", "time")
@@ -167,7 +167,7 @@ class TurnIntent(SensorWrapper):
         for name, value in (("history", history), ("gate", gate), ("signal_gate", signal_gate)):
             if not value > 0:
                 raise ValueError(f"sensors.turn_intent.{name} must be > 0, got {value}")
-        self.features_wrapper = _find(env, TurnFeatures)
+        self.features_wrapper = find_wrapper(env, TurnFeatures)
         if self.features_wrapper is None:
             raise ValueError("sensors.turn_intent needs turn_features below it (add `turn_features:` to the preset)")
         self.history, self.gate, self.signal_gate = float(history), float(gate), float(signal_gate)
@@ -183,8 +183,6 @@ class TurnIntent(SensorWrapper):
         self._past = []
 
     def observation(self, observation: dict) -> dict:
-        from av_gym.sensors.base import sim_time
-
         now = sim_time(self.env)
         turn = self.features_wrapper
         objects = turn.others[turn.described]
@@ -192,7 +190,7 @@ class TurnIntent(SensorWrapper):
         if len(objects):
             out[: len(objects), 0] = self._acceleration(objects, now) / ACC_SCALE
             if "signals" in observation:
-                out[: len(objects), 1] = self._signals(objects, observation["signals"])
+                out[: len(objects), 1] = signals_at(objects, observation["signals"], self.signal_gate)
         self._past = [(t, o) for t, o in self._past if now - t < self.history - 1e-9] + [(now, turn.others)]
         self._last = np.clip(np.nan_to_num(out), -1.0, 1.0).astype(np.float32)
         return {**observation, self.key: self._guarded(self._last)}
@@ -214,21 +212,17 @@ class TurnIntent(SensorWrapper):
         acc = ((objects[:, 2:4] - then[j, 2:4]) * heading).sum(axis=1) / dt
         return np.where(matched, acc, 0.0)
 
-    def _signals(self, objects: np.ndarray, signals: np.ndarray) -> np.ndarray:
-        seen = signals[signals[:, 0] > 0]
-        if not len(seen):
-            return np.zeros(len(objects))
-        d = np.hypot(*(objects[:, None, :2] - seen[None, :, 1:3]).transpose(2, 0, 1))
-        j = np.argmin(d, axis=1)
-        return np.where(d[np.arange(len(objects)), j] <= self.signal_gate, seen[j, 3], 0.0)
-
     def measure(self) -> np.ndarray:
         return self._last.copy()
 
 
-def _find(env: gym.Env, cls: type):
-    while isinstance(env, gym.Wrapper):
-        if isinstance(env, cls):
-            return env
-        env = env.env
-    return None
+
+def signals_at(objects: np.ndarray, signals: np.ndarray, gate: float) -> np.ndarray:
+    """The turn signal read on each of ``objects`` (N, ≥2) ``[x, y, ...]``: that of the nearest reading of
+    ``signals`` (``obs["signals"]`` rows ``[present, x, y, signal]``) within ``gate`` m, else 0."""
+    seen = signals[signals[:, 0] > 0]
+    if not len(seen):
+        return np.zeros(len(objects))
+    d = np.hypot(*(objects[:, None, :2] - seen[None, :, 1:3]).transpose(2, 0, 1))
+    j = np.argmin(d, axis=1)
+    return np.where(d[np.arange(len(objects)), j] <= gate, seen[j, 3], 0.0)

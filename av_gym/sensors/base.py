@@ -41,6 +41,16 @@ def others_state(env: gym.Env) -> np.ndarray:
     return np.array(rows, dtype=float) if rows else NO_OTHERS.copy()
 
 
+def find_wrapper(env: gym.Env, cls: type):
+    """The outermost wrapper of type ``cls`` in ``env``'s stack (``env`` itself included), or ``None``: how an
+    estimator finds the sensor below it whose model or state it reads."""
+    while isinstance(env, gym.Wrapper):
+        if isinstance(env, cls):
+            return env
+        env = env.env
+    return None
+
+
 def sim_time(env: gym.Env) -> float:
     """Simulation time (s) since the start of the episode, at tick resolution."""
     unwrapped = env.unwrapped
