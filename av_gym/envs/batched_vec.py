@@ -98,6 +98,7 @@ class BatchedLeftTurnVecEnv(VecEnv):
         self._actions = None
         self._obs: dict | None = None
         self._ep_return = np.zeros(n_envs)
+        self._env_return = np.zeros(n_envs)  # EpisodeMetrics' return: summed per env step, in the same order
         self._ep_len = np.zeros(n_envs, dtype=int)
         self._ep_start = np.full(n_envs, time.time())
         self._traces: list[list] = [[] for _ in range(n_envs)]
@@ -115,9 +116,10 @@ class BatchedLeftTurnVecEnv(VecEnv):
             if signals is not None:
                 out["signals"] = signals
         tr = e.last_truth
+        ttc = e.ttc(rows) if trace else None
         for n, r in enumerate(rows if trace else ()):  # EpisodeMetrics records the truth of every step
             self._traces[r].append((tr["time"][n], tr["speed"][n], tr["collision"][n], tr["arrived"][n],
-                                    tr["stop_line_offset"][n], tr["oncoming_gap"][n]))
+                                    tr["stop_line_offset"][n], tr["oncoming_gap"][n], ttc[n]))
         return {k: out[k] for k in self.keys}
 
     def _store(self, rows, obs: dict) -> None:
@@ -134,7 +136,7 @@ class BatchedLeftTurnVecEnv(VecEnv):
         self._traces = [[] for _ in rows]
         obs = self._observe(rows, np.ones(self.num_envs, bool), trace=False)
         self._obs = {k: v.copy() for k, v in obs.items()}
-        self._ep_return[:], self._ep_len[:] = 0.0, 0
+        self._ep_return[:], self._env_return[:], self._ep_len[:] = 0.0, 0.0, 0
         self._ep_start[:] = time.time()
         return {k: v.copy() for k, v in self._obs.items()}
 
@@ -152,6 +154,7 @@ class BatchedLeftTurnVecEnv(VecEnv):
             rows = np.nonzero(active)[0]
             self._store(rows, self._observe(rows))
             total += np.where(active, reward, 0.0)
+            self._env_return += np.where(active, reward, 0.0)
             term_all |= term & active
             trunc_all |= trunc & active
             active &= ~(term | trunc)
@@ -173,7 +176,7 @@ class BatchedLeftTurnVecEnv(VecEnv):
             e.start_from_pool(rows)
             self._traces_reset(rows)
             self._store(rows, self._observe(rows, np.ones(len(rows), bool), trace=False))
-            self._ep_return[rows], self._ep_len[rows] = 0.0, 0
+            self._ep_return[rows], self._env_return[rows], self._ep_len[rows] = 0.0, 0.0, 0
             self._ep_start[rows] = time.time()
         if self.timeout_is_terminal:
             term_all, trunc_all = term_all | trunc_all, np.zeros(B, bool)
@@ -184,18 +187,17 @@ class BatchedLeftTurnVecEnv(VecEnv):
             self._traces[r] = []
 
     def _metrics(self, r: int, truncated: bool) -> dict:
-        """EpisodeMetrics' left-turn summary from the ego's per-step truth (min TTC is not computed on the batch:
-        NaN)."""
+        """EpisodeMetrics' row from the ego's per-step truth: the left-turn summary (min TTC from
+        :meth:`BatchedLeftTurn.ttc`), return, length, truncated, and the shield's columns (no shield on the batch:
+        no override, ``first_override_s`` NaN)."""
         from av_gym.metrics.left_turn import left_turn_summary
 
         tr = np.array(self._traces[r], dtype=float)
         row = left_turn_summary(tr[:, 0], tr[:, 1], tr[:, 2].astype(bool), tr[:, 3].astype(bool),
-                                np.full(len(tr), np.inf), tr[:, 4], tr[:, 5])
-        for k in row:
-            if "ttc" in k:
-                row[k] = float("nan")
-        row.update({"return": float(self._ep_return[r]), "length": float(len(tr)),
-                    "truncated": float(truncated)})
+                                tr[:, 6], tr[:, 4], tr[:, 5])
+        row.update({"return": float(self._env_return[r]), "length": float(len(tr)),
+                    "truncated": float(truncated), "override_fraction": 0.0, "intervention": 0.0,
+                    "interventions": 0.0, "first_override_s": float("nan")})
         return row
 
     def close(self) -> None:

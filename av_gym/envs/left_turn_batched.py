@@ -350,6 +350,78 @@ class BatchedLeftTurn:
                 "collision": t.crashed[rows, e].copy(), "arrived": self.has_arrived(rows, e),
                 "arrived_time": self.arrived_time[rows].copy(), "set_point": t.target[rows, e].copy()}
 
+    def ttc(self, rows=None) -> np.ndarray:
+        """``info["truth"]["ttc"]`` for the envs ``rows``: av_gym.geometry.constant_velocity_ttc (the first time on
+        its 0.05 s grid up to ``ttc_horizon`` at which the ego's box and another's overlap when both keep their
+        velocity and heading; +inf if none) for all of them at once.
+
+        Two boxes moving at constant velocity and fixed heading overlap during one time interval [t_in, t_out]:
+        on each of the four separating axes (the two boxes' edge normals) the projected centre distance is linear
+        in t and must stay within the summed half-extents. That interval is solved for every (env, vehicle) pair,
+        and only the grid times around t_in (t_in's grid step, one before, two after) get the per-env test itself
+        (box_corners / boxes_overlap at ``t``, the same arithmetic), so rounding at the interval's ends decides as
+        it does there; a pair whose interval is longer than those times and none overlapped (an end fixed by a
+        near-zero relative speed, where t_in is poorly conditioned) gets all its grid times tested."""
+        from av_gym.geometry import box_corners, boxes_overlap
+
+        rows = np.arange(self.B) if rows is None else np.asarray(rows)
+        t, n = self.traffic, len(rows)
+        horizon, dt = float(self.config["ttc_horizon"]), 0.05
+        grid = np.arange(0.0, horizon + 1e-9, dt)
+        K = len(grid)
+        out = np.full(n, np.inf)
+        e = self.ego_slot(rows)
+        ex, ey, eh, ev = t.x[rows, e], t.y[rows, e], t.h[rows, e], t.v[rows, e]
+        evx, evy = ev * np.cos(eh), ev * np.sin(eh)
+        other = t.alive[rows] & ~t.ego[rows]
+        oh = t.h[rows]
+        ovx, ovy = t.v[rows] * np.cos(oh), t.v[rows] * np.sin(oh)
+        px, py = t.x[rows] - ex[:, None], t.y[rows] - ey[:, None]
+        wx, wy = ovx - evx[:, None], ovy - evy[:, None]
+        t_in, t_out = np.full(px.shape, -np.inf), np.full(px.shape, np.inf)
+        eh2 = np.broadcast_to(eh[:, None], px.shape)
+        for theta in (eh2, eh2 + np.pi / 2, oh, oh + np.pi / 2):
+            ux, uy = np.cos(theta), np.sin(theta)
+            half = LENGTH / 2 * (np.abs(np.cos(eh2 - theta)) + np.abs(np.cos(oh - theta))) \
+                + WIDTH / 2 * (np.abs(np.sin(eh2 - theta)) + np.abs(np.sin(oh - theta)))
+            q, r = ux * px + uy * py, ux * wx + uy * wy
+            moving = r != 0.0
+            rr = np.where(moving, r, 1.0)
+            ta, tb = (-half - q) / rr, (half - q) / rr
+            lo = np.where(moving, np.minimum(ta, tb), np.where(np.abs(q) <= half, -np.inf, np.inf))
+            hi = np.where(moving, np.maximum(ta, tb), np.where(np.abs(q) <= half, np.inf, -np.inf))
+            t_in, t_out = np.maximum(t_in, lo), np.minimum(t_out, hi)
+        cand = other & (t_in <= t_out + dt) & (t_out >= -dt) & (t_in <= horizon + dt)
+        if not cand.any():
+            return out
+        m, j = np.nonzero(cand)
+        first = np.clip(np.floor(np.maximum(t_in[m, j], 0.0) / dt).astype(int) - 1, 0, K - 1)
+        last = np.clip(np.ceil(np.minimum(t_out[m, j], horizon) / dt).astype(int) + 1, 0, K - 1)
+
+        def test(pair, k):
+            mm, jj, tk = m[pair], j[pair], grid[k]
+            r = rows[mm]
+            ego_c = np.stack([ex[mm], ey[mm]], -1) + tk[:, None] * np.stack([evx[mm], evy[mm]], -1)
+            oth_c = np.stack([t.x[r, jj], t.y[r, jj]], -1) + tk[:, None] * np.stack([ovx[mm, jj], ovy[mm, jj]], -1)
+            hit = boxes_overlap(box_corners(ego_c, eh[mm], LENGTH, WIDTH),
+                                box_corners(oth_c, oh[mm, jj], LENGTH, WIDTH))
+            np.minimum.at(out, mm[hit], tk[hit])
+            found = np.zeros(len(m), bool)
+            found[pair[hit]] = True
+            return found
+
+        pair = np.repeat(np.arange(len(m)), 4)
+        k = first[pair] + np.tile(np.arange(4), len(m))
+        ok = k <= last[pair]
+        found = test(pair[ok], k[ok])
+        rest = np.nonzero(~found & (last > first + 3))[0]
+        if len(rest):
+            count = last[rest] - first[rest] - 3
+            pair = np.repeat(rest, count)
+            k = first[pair] + 4 + np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+            test(pair, k)
+        return out
+
     def observe(self, rows=None) -> np.ndarray:
         """TurnFeatures.features (source=truth) for the envs ``rows``: (len(rows), 5 + 12·max_objects) float32."""
         rows = np.arange(self.B) if rows is None else np.asarray(rows)
