@@ -78,9 +78,6 @@ ENV = {
 }
 
 # ------------------------------------------------------------------------------------------------ sensors
-GNSS = {"rate_hz": "num >0", "sigma": "num >=0", "sigma_bias": "num >=0", "bias_tau": "num >0",
-        "velocity_sigma": "num >=0", "latency": "num >=0", "outage": ("none", "random", "scripted"),
-        "outage_rate": "num >=0", "outage_mean": "num >0", "outage_windows": [("list", 2, "num >=0")]}
 IMU = {"accel_sigma": "num >=0", "gyro_sigma": "num >=0", "accel_bias_sigma": "num >=0",
        "gyro_bias_sigma": "num >=0", "accel_bias_walk": "num >=0", "gyro_bias_walk": "num >=0",
        "scale_error": "num >=0", "accel_range": "num >0", "gyro_range": "num >0", "saturate": "bool"}
@@ -119,7 +116,7 @@ LOCALIZER = {"mode": ("gnss", "gnss_imu", "lidar", "fused"), "map_matching": "bo
              "odom_window": "int >=1", "reinit_after_s": "num >0", "max_position_std": "num >0",
              "init_min_speed": "num >=0", "search_above_std": "num >=0", "relocalize_after": "int >=1",
              "ambiguity_margin": "num [0,1]"}
-SENSORS = {"gnss": GNSS, "imu": IMU, "lidar": LIDAR, "cameras": CAMERAS, "detector": DETECTOR,
+SENSORS = {"imu": IMU, "lidar": LIDAR, "cameras": CAMERAS, "detector": DETECTOR,
            "localizer": LOCALIZER}
 """Sensor key → its wrapper's keyword arguments (all optional: the wrappers have defaults)."""
 
@@ -155,6 +152,10 @@ def _sensor_params(value: Any, where: str, key: str, cls: type, shipped: Mapping
 
     if not isinstance(value, Mapping):
         return [f"{where} must be a mapping of {cls.__name__} parameters, got {_fmt(value)}"]
+    if getattr(cls, "Params", None) is not None:  # typed params (av_gym/params.py): the one source of truth
+        from av_gym.params import check
+
+        return check(cls.Params, value, where, what=f"a parameter of {cls.__name__}")
     params = inspect.signature(cls.__init__).parameters
     table = SENSORS.get(key, {})
     spec = {f"{p}?": table.get(p, _like(param.default)) for p, param in params.items()

@@ -75,6 +75,15 @@ def add_sensors(env: gym.Env, sensors_cfg: Mapping | None) -> gym.Env:
         params = c.get(key)
         if params is None:
             continue
+        if getattr(cls, "Params", None) is not None:
+            from av_gym.params import ParamError
+
+            try:
+                env = cls(env, cls.Params.from_mapping(params, where=f"sensors.{key}",
+                                                       what=f"a parameter of {cls.__name__}"))
+            except ParamError as exc:
+                raise ConfigError(str(exc)) from None
+            continue
         signature = inspect.signature(cls.__init__).parameters
         allowed = [p for p in signature if p not in ("self", "env")]
         bad = [] if any(p.kind is p.VAR_KEYWORD for p in signature.values()) else sorted(set(params) - set(allowed))

@@ -1,0 +1,21 @@
+"""Hydra's config tree. The defaults of every component are its ``Params`` dataclass (:mod:`av_gym.params`),
+stored in Hydra's ConfigStore when this package is imported (Hydra imports it to read ``pkg://conf``): ``sensor/<key>``
+for each sensor and estimator. The yaml files here hold only what differs from those defaults, with the reason."""
+
+from __future__ import annotations
+
+
+def register_configs() -> None:
+    """Store each registered kind's defaults as a Hydra config (``sensor/gnss`` ...), from its Params."""
+    from hydra.core.config_store import ConfigStore
+
+    from av_gym.registry import SENSORS
+
+    store = ConfigStore.instance()
+    for key, cls in SENSORS.items():
+        params = getattr(cls, "Params", None)
+        if params is not None:
+            store.store(group="sensor", name=key, node=params().as_dict())
+
+
+register_configs()

@@ -151,12 +151,10 @@ def test_schema_tables_match_the_classes_they_describe():
     from av_gym.estimation.tracker import MultiObjectTracker
     from av_gym.sensors.camera import CameraNoise, Cameras, Weather
     from av_gym.sensors.detector import Detector
-    from av_gym.sensors.gnss import GNSS
     from av_gym.sensors.imu import IMU
     from av_gym.sensors.lidar import Lidar
 
     fields = lambda dc: {f.name for f in dataclasses.fields(dc)}  # noqa: E731
-    assert set(schema.GNSS) == kwargs_of(GNSS)
     assert set(schema.IMU) == kwargs_of(IMU)
     assert set(schema.LIDAR) == kwargs_of(Lidar)
     assert set(schema.CAMERAS) == kwargs_of(Cameras)

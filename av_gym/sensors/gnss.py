@@ -18,52 +18,57 @@ a new fix arrived; ``valid`` = 0 while in an outage (or before the first fix); `
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from av_gym.params import Params, param
 from av_gym.sensors.base import SensorWrapper, sim_time
 
-OUTAGE_MODES = ("none", "random", "scripted")
 BOUND = 1e5  # m, m/s: far beyond any scenario, keeps the Box finite
 
 
-class GNSS(SensorWrapper):
-    """Adds ``obs["gnss"]``. Parameters (defaults and where they come from):
+@dataclass(frozen=True)
+class GNSSParams(Params):
+    """GNSS receiver noise (digest 000 §5.1, 002 §4.2; suggestions: neither paper gives values)."""
 
-    - ``rate_hz`` 10 Hz: update rate; digest 000 §5.1 suggests 1–10 Hz (default 10), thesis 002 used 1 Hz.
-    - ``sigma`` 1.5 m: white position noise per axis; consumer grade 1–3 m (digest 000 §5.1 / 002 §4.2).
-    - ``sigma_bias`` 0.5 m, ``bias_tau`` 30 s: multipath Gauss–Markov bias, open road 0.5 m, τ 10–60 s (000 §5.1).
-    - ``velocity_sigma`` 0.1 m/s: Doppler speed noise 0.05–0.2 m/s (000 §5.1).
-    - ``latency`` 0.1 s: 50–200 ms (000 §5.1).
-    - ``outage``: ``"none"``; ``"random"`` (two-state Markov chain, entry rate ``outage_rate`` 0.01 /s and mean
-      duration ``outage_mean`` 5 s, 000 §5.1 highway values); ``"scripted"`` with ``outage_windows``, a list of
-      ``[start, end]`` s (e.g. ``[[10, 30]]``, a 20 s tunnel, 002's motivation).
-    """
+    rate_hz: float = param(10.0, "Hz", gt=0, doc="fix rate, held between fixes (1-10 Hz suggested; thesis 002 "
+                                                  "used 1 Hz)")
+    sigma: float = param(1.5, "m", ge=0, doc="white position noise per axis (consumer grade 1-3 m)")
+    sigma_bias: float = param(0.5, "m", ge=0, doc="multipath Gauss-Markov bias, stationary std (open road)")
+    bias_tau: float = param(30.0, "s", gt=0, doc="bias correlation time (10-60 s)")
+    velocity_sigma: float = param(0.1, "m/s", ge=0, doc="Doppler velocity noise (0.05-0.2)")
+    latency: float = param(0.1, "s", ge=0, doc="fix latency (50-200 ms)")
+    outage: Literal["none", "random", "scripted"] = param("none", doc="outage model")
+    outage_rate: float = param(0.01, "1/s", ge=0, doc="random outage entry rate (highway value)")
+    outage_mean: float = param(5.0, "s", gt=0, doc="mean random outage duration")
+    outage_windows: tuple[tuple[float, float], ...] = param(
+        (), "s", ge=0, doc="scripted outages, [[start, end], ...], e.g. [[10, 30]] for a 20 s tunnel")
+
+    def relations(self) -> list[str]:
+        if any(end < start for start, end in self.outage_windows):
+            return [f"outage_windows must be [start, end] pairs with end >= start, got "
+                    f"{[list(w) for w in self.outage_windows]}"]
+        return []
+
+
+class GNSS(SensorWrapper):
+    """Adds ``obs["gnss"]``; parameters: :class:`GNSSParams`. ``outage``: ``"none"``; ``"random"`` (two-state
+    Markov chain, entry rate ``outage_rate`` and mean duration ``outage_mean``, 000 §5.1 highway values);
+    ``"scripted"`` with ``outage_windows`` (002's motivation: a tunnel)."""
 
     key = "gnss"
+    Params = GNSSParams
 
-    def __init__(self, env: gym.Env, rate_hz: float = 10.0, sigma: float = 1.5, sigma_bias: float = 0.5,
-                 bias_tau: float = 30.0, velocity_sigma: float = 0.1, latency: float = 0.1, outage: str = "none",
-                 outage_rate: float = 0.01, outage_mean: float = 5.0,
-                 outage_windows: Sequence[Sequence[float]] = ()) -> None:
-        for name, value in (("rate_hz", rate_hz), ("bias_tau", bias_tau), ("outage_mean", outage_mean)):
-            if not value > 0:
-                raise ValueError(f"sensors.gnss.{name} must be > 0, got {value}")
-        for name, value in (("sigma", sigma), ("sigma_bias", sigma_bias), ("velocity_sigma", velocity_sigma),
-                            ("latency", latency), ("outage_rate", outage_rate)):
-            if not value >= 0:
-                raise ValueError(f"sensors.gnss.{name} must be >= 0, got {value}")
-        if outage not in OUTAGE_MODES:
-            raise ValueError(f"sensors.gnss.outage must be one of {list(OUTAGE_MODES)}, got {outage!r}")
-        windows = np.array(outage_windows, dtype=float).reshape(-1, 2)
-        if np.any(windows[:, 1] < windows[:, 0]):
-            raise ValueError(f"sensors.gnss.outage_windows must be [start, end] pairs with end >= start, got {windows.tolist()}")
-        self.rate_hz, self.sigma, self.sigma_bias, self.bias_tau = rate_hz, sigma, sigma_bias, bias_tau
-        self.velocity_sigma, self.latency, self.outage = velocity_sigma, latency, outage
-        self.outage_rate, self.outage_mean, self.outage_windows = outage_rate, outage_mean, windows
+    def __init__(self, env: gym.Env, params: GNSSParams | None = None, **overrides) -> None:
+        p = self.params = GNSSParams.build(params, **overrides)
+        self.rate_hz, self.sigma, self.sigma_bias, self.bias_tau = p.rate_hz, p.sigma, p.sigma_bias, p.bias_tau
+        self.velocity_sigma, self.latency, self.outage = p.velocity_sigma, p.latency, p.outage
+        self.outage_rate, self.outage_mean = p.outage_rate, p.outage_mean
+        self.outage_windows = np.array(p.outage_windows, dtype=float).reshape(-1, 2)
         super().__init__(env)
         self._history: deque = deque()
 
