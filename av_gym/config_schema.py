@@ -303,6 +303,7 @@ EVAL = {
     "episodes": "int >=1",
     "seed": "int >=0",
     "n_envs": "int >=1",
+    "vec_env": ("subproc", "batched"),
     "paths": {"checkpoints": "str"},
     "out_dir": "str",
     "progress_bar": "bool",
