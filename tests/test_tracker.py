@@ -113,5 +113,5 @@ def test_tracker_raises_recall_on_the_detector_with_bursty_misses():
 
 
 def test_bad_tracker_parameter_is_named():
-    with pytest.raises(ValueError, match="tracker.sigma_acc"):
+    with pytest.raises(ValueError, match=r"^sigma_acc must be a number > 0, got 0.0"):
         MultiObjectTracker(sigma_acc=0.0)

@@ -148,7 +148,6 @@ def test_schema_tables_match_the_classes_they_describe():
     from av_gym.estimation.ekf import EKFNoise
     from av_gym.estimation.lidar_odometry import MapMatcher
     from av_gym.estimation.localization import Localizer
-    from av_gym.estimation.tracker import MultiObjectTracker
     from av_gym.sensors.camera import CameraNoise, Cameras, Weather
     from av_gym.sensors.detector import Detector
     from av_gym.sensors.imu import IMU
@@ -161,7 +160,6 @@ def test_schema_tables_match_the_classes_they_describe():
     assert set(schema.DETECTOR) == kwargs_of(Detector)
     assert set(schema.LOCALIZER) == kwargs_of(Localizer)
     assert set(schema.AEB) == kwargs_of(AEBShield)
-    assert set(schema.TRACKER) == kwargs_of(MultiObjectTracker)
     assert set(schema.MAP_MATCHER) == kwargs_of(MapMatcher) - {"segments", "circles"}  # the map, not settings
     assert set(schema.EKF_NOISE) == fields(EKFNoise)
     assert set(schema.CAMERA_NOISE) == fields(CameraNoise)

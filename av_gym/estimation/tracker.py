@@ -36,6 +36,8 @@ from filterpy.common import Q_discrete_white_noise
 from filterpy.kalman import KalmanFilter
 from scipy.optimize import linear_sum_assignment
 
+from av_gym.params import Params, param
+
 TRACK_FIELDS = ("x", "y", "vx", "vy", "heading", "length", "width")
 """Columns of :meth:`MultiObjectTracker.tracks`: the same layout as ``info["truth"]["others"]``."""
 _BIG = 1e9
@@ -61,27 +63,51 @@ class Track:
         return self.kf.x.reshape(-1)
 
 
-class MultiObjectTracker:
-    """CV Kalman tracker with Hungarian association; see the module docstring for the model and defaults."""
+@dataclass(frozen=True)
+class TrackingModel(Params):
+    """The tracker's motion model, gates and track management (digest 004 §10.3): everything but the measurement
+    noise, which :class:`TrackerParams` adds (and :class:`~av_gym.estimation.object_tracking.ObjectTrackerParams`
+    takes from the detector below it)."""
 
-    def __init__(self, sigma_acc: float = 2.0, sigma_pos0: float = 0.3, sigma_pos_k: float = 0.01,
-                 sigma_vel: float = 0.5, use_velocity: bool = True, init_vel_sigma: float = 10.0,
-                 gate: float = 13.8, max_distance: float = 6.0, min_hits: int = 2, max_coast: float = 2.0,
-                 size_alpha: float = 0.2) -> None:
-        for name, value in (("sigma_acc", sigma_acc), ("sigma_pos0", sigma_pos0), ("sigma_vel", sigma_vel),
-                            ("init_vel_sigma", init_vel_sigma), ("gate", gate), ("max_distance", max_distance)):
-            if not value > 0:
-                raise ValueError(f"tracker.{name} must be > 0, got {value}")
-        if sigma_pos_k < 0:
-            raise ValueError(f"tracker.sigma_pos_k must be >= 0, got {sigma_pos_k}")
-        if int(min_hits) < 1:
-            raise ValueError(f"tracker.min_hits must be >= 1, got {min_hits}")
-        if not max_coast >= 0:
-            raise ValueError(f"tracker.max_coast must be >= 0, got {max_coast}")
-        self.sigma_acc, self.sigma_pos0, self.sigma_pos_k = sigma_acc, sigma_pos0, sigma_pos_k
-        self.sigma_vel, self.use_velocity, self.init_vel_sigma = sigma_vel, bool(use_velocity), init_vel_sigma
-        self.gate, self.max_distance = gate, max_distance
-        self.min_hits, self.max_coast, self.size_alpha = int(min_hits), max_coast, size_alpha
+    sigma_acc: float = param(2.0, "m/s²", gt=0, doc="white-noise acceleration of the CV model (Q); covers IDM "
+                                                   "braking at -3 m/s² for a few frames and any turn (004 §10.3)")
+    use_velocity: bool = param(True, doc="the detector's velocity is measured too (H has 4 rows), else only the "
+                                         "position")
+    init_vel_sigma: float = param(10.0, "m/s", gt=0, doc="initial velocity std of a new track when velocity is not "
+                                                        "measured")
+    gate: float = param(13.8, gt=0, doc="association gate on the squared Mahalanobis distance of the position "
+                                        "innovation (chi²₂ at 99.9 %)")
+    max_distance: float = param(6.0, "m", gt=0, doc="association gate on the Euclidean distance")
+    min_hits: int = param(2, ge=1, doc="consecutive hits to confirm a track (004: detected in two consecutive "
+                                       "images)")
+    max_coast: float = param(2.0, "s", ge=0, doc="a confirmed track not updated for longer is deleted (covers "
+                                                 "bursts of misses at 10 Hz)")
+    size_alpha: float = param(0.2, le=1, ge=0, doc="weight of a new detection in the running mean of the box size")
+
+
+@dataclass(frozen=True)
+class TrackerParams(TrackingModel):
+    """:class:`MultiObjectTracker`'s parameters (also the AEB shield's own tracker): the model plus the measurement
+    noise R = diag(σ_p², σ_p², σ_v², σ_v²), σ_p = sigma_pos0 + sigma_pos_k·range; defaults = the detector's own
+    error model (:class:`~av_gym.sensors.detector.DetectorParams`, digest 004 §10.2)."""
+
+    sigma_pos0: float = param(0.3, "m", gt=0, doc="position noise at zero range (004: 0.3)")
+    sigma_pos_k: float = param(0.01, "m/m", ge=0, doc="position noise growth per metre of range (004: 0.01)")
+    sigma_vel: float = param(0.5, "m/s", gt=0, doc="velocity noise (the detector's)")
+
+
+class MultiObjectTracker:
+    """CV Kalman tracker with Hungarian association; see the module docstring for the model and
+    :class:`TrackerParams` for the parameters."""
+
+    Params = TrackerParams
+
+    def __init__(self, params: TrackerParams | None = None, **overrides) -> None:
+        p = self.params = TrackerParams.build(params, **overrides)
+        self.sigma_acc, self.sigma_pos0, self.sigma_pos_k = p.sigma_acc, p.sigma_pos0, p.sigma_pos_k
+        self.sigma_vel, self.use_velocity, self.init_vel_sigma = p.sigma_vel, bool(p.use_velocity), p.init_vel_sigma
+        self.gate, self.max_distance = p.gate, p.max_distance
+        self.min_hits, self.max_coast, self.size_alpha = int(p.min_hits), p.max_coast, p.size_alpha
         self.dim_z = 4 if self.use_velocity else 2
         self.H = np.eye(4)[: self.dim_z]
         self.reset()
