@@ -1,4 +1,5 @@
-"""``python -m eval env=left_turn agents='[always_proceed,ppo]' episodes=100 seed=1000 [n_envs=2]``"""
+"""``python -m eval env=left_turn agents='[always_proceed,ppo]' episodes=100 seed=1000 [n_envs=2]
+[vec_env=batched]``"""
 
 from __future__ import annotations
 
@@ -24,6 +25,10 @@ def _plans(cfg: DictConfig) -> list:
     for plan in plans:
         check_plan(plan, cfg.env.name)
         check_sensor_overrides(plan, env_cfg)  # a trained agent's sensors with the command line's on top
+        if cfg.get("vec_env", "subproc") == "batched":  # what the batched engine cannot run, before any folder
+            from eval.batched import check_batched_plan
+
+            check_batched_plan(plan, env_cfg)
     return plans
 
 
@@ -50,7 +55,13 @@ def evaluate(cfg: DictConfig) -> list[dict]:
         env = make_env(env_cfg, plan.sensors, plan.shield)
         _, policy = resolve_agent(plan.spec, env, env_name, cfg.paths.checkpoints)
         try:  # rows are appended episode by episode: Ctrl-C keeps (and writes) every finished episode
-            if n_envs > 1:
+            if cfg.get("vec_env", "subproc") == "batched":  # issue 16: n_envs episodes stepped together
+                from eval.batched import run_episodes_batched
+
+                env.close()
+                run_episodes_batched(env_cfg, plan, policy, seeds, n_envs, plan.label, progress=cfg.progress_bar,
+                                     out=rows)
+            elif n_envs > 1:
                 env.close()
                 job = EpisodeJob(env_cfg, plan.sensors, plan.shield, plan.spec, env_name,
                                  str(cfg.paths.checkpoints), plan.label)

@@ -204,3 +204,65 @@ def test_gymnasium_vector_env_autoresets_in_the_same_step():
             assert info["_final_obs"][i] and info["final_obs"][i]["turn"].shape == obs["turn"][i].shape
             assert obs["turn"][i][4] == 0.0  # the new episode's elapsed time
     assert ended >= 4
+
+
+def _eval_rows(specs: list[str], seeds: list[int], batched: bool) -> list[dict]:
+    from av_gym.make import make_env
+    from eval.agents import plan_agent, resolve_agent
+    from eval.batched import run_episodes_batched
+    from eval.runner import run_episodes
+
+    from tests.conftest import conf
+
+    env_cfg = conf("env", "left_turn")
+    rows = []
+    for spec in specs:
+        plan = plan_agent(spec, "left_turn", conf("sensors", "truth"), {"name": "none", "kind": "none"},
+                          "checkpoints")
+        env = make_env(env_cfg, plan.sensors, plan.shield)
+        label, policy = resolve_agent(plan.spec, env, "left_turn", "checkpoints")
+        if batched:
+            env.close()
+            rows += run_episodes_batched(env_cfg, plan, policy, seeds, 4, label, progress=False)
+        else:
+            rows += run_episodes(env, policy, seeds, label, progress=False)
+    return rows
+
+
+def test_eval_on_the_batched_engine_gives_the_per_env_rows():
+    """``python -m eval vec_env=batched``'s rows (4 envs stepped together, 6 episodes: envs restart on the next seed)
+    against the per-env rows for the same seeds, for a rule and the reference PPO checkpoint (go/yield, action
+    repeat 5, intent and turn signals): the same outcome (collision, success, length, truncated, interventions) in
+    every row, and every column within 1e-6 in all but at most one row per agent (the engine's equivalence: the
+    states agree to ~1e-14, and past 5 s float noise can grow; measured: gap_acceptance seed 1002 ends 1.2e-4 m
+    apart). A TTC after a crash may differ by one 0.05 s grid step (see above)."""
+    seeds = list(range(1000, 1006))
+    specs = ["gap_acceptance", "checkpoints/reference/ppo_turn"]
+    ref, bat = _eval_rows(specs, seeds, False), _eval_rows(specs, seeds, True)
+    assert [(r["agent"], r["seed"]) for r in bat] == [(r["agent"], r["seed"]) for r in ref]
+    differ: dict[str, list] = {}
+    for a, b in zip(ref, bat):
+        assert set(a) == set(b)
+        for key in ("collision", "success", "length", "truncated", "interventions"):
+            assert a[key] == b[key], f"{a['agent']} seed {a['seed']}: {key} {a[key]} (per-env) vs {b[key]} (batched)"
+        for key in a:
+            if key == "agent":
+                continue
+            tol = 0.05 + 1e-9 if key == "min_ttc_s" and a["collision"] else 1e-6
+            if not (a[key] == b[key] or abs(a[key] - b[key]) <= tol or (a[key] != a[key] and b[key] != b[key])):
+                differ.setdefault(a["agent"], []).append(f"seed {a['seed']}: {key} {a[key]} vs {b[key]}")
+    for agent, found in differ.items():
+        assert len({f.split(":")[0] for f in found}) <= 1, f"{agent}: {found}"
+
+
+@pytest.mark.parametrize("agents, needle", [
+    ("[always_proceed+aeb]", "agent 'always_proceed+aeb': shield=aeb is not available with vec_env=batched"),
+    ("[lookahead]", "agent 'lookahead' (kind lookahead) cannot run with vec_env=batched"),
+])
+def test_eval_batched_refuses_what_the_batch_cannot_run_in_one_line(tmp_path, agents, needle):
+    from tests.conftest import run
+
+    res = run("eval", "vec_env=batched", f"agents={agents}", "progress_bar=false", cwd=tmp_path)
+    lines = [line for line in res.stderr.splitlines() if line.strip()]
+    assert res.returncode == 2 and len(lines) == 1 and needle in lines[0], res.stderr[-2000:]
+    assert not any(tmp_path.iterdir())

@@ -102,6 +102,9 @@ class BatchedLeftTurnVecEnv(VecEnv):
         self._ep_len = np.zeros(n_envs, dtype=int)
         self._ep_start = np.full(n_envs, time.time())
         self._traces: list[list] = [[] for _ in range(n_envs)]
+        self._idle = np.zeros(n_envs, bool)  # no episode to play (play(): its seeds ran out)
+        self._queued = False
+        self.row_seed: list = [None] * n_envs  # play(): the seed of the episode each env is playing
 
     # ---------------------------------------------------------------------------------------------- observe
     def _observe(self, rows: np.ndarray, new_episode: np.ndarray | None = None, trace: bool = True) -> dict:
@@ -131,6 +134,7 @@ class BatchedLeftTurnVecEnv(VecEnv):
         e = self.engine
         seeds = self._seeds if self._seeds is not None else [None] * self.num_envs
         self._seeds = None
+        self._queued, self._idle[:] = False, False
         e.reset(seeds)
         rows = np.arange(self.num_envs)
         self._traces = [[] for _ in rows]
@@ -140,15 +144,51 @@ class BatchedLeftTurnVecEnv(VecEnv):
         self._ep_start[:] = time.time()
         return {k: v.copy() for k, v in self._obs.items()}
 
+    def play(self, seeds, chunk: int | None = None) -> dict:
+        """Evaluation: from now on the envs play the episodes of ``seeds`` (any iterable of ints), each the episode
+        ``reset(seed=s)`` of the per-env stack gives, in order as envs become free (made ``chunk`` at a time,
+        default ``num_envs``); an env left without one goes idle (``idle``) and is no longer stepped. The seed each
+        env plays is ``row_seed``; a finished episode's is ``info["seed"]``. Returns the first observations."""
+        e = self.engine
+        e.queue(seeds, self.num_envs if chunk is None else chunk)
+        self._queued = True
+        rows = np.arange(self.num_envs)
+        self.row_seed = e.start_queued(rows)
+        self._idle = np.array([s is None for s in self.row_seed])
+        self._traces = [[] for _ in rows]
+        live = rows[~self._idle]
+        obs = self._observe(live, np.ones(len(live), bool), trace=False)
+        self._obs = {k: np.zeros((self.num_envs, *self.observation_space[k].shape), np.float32) for k in self.keys}
+        self._store(live, obs)
+        self._ep_return[:], self._env_return[:], self._ep_len[:] = 0.0, 0.0, 0
+        self._ep_start[:] = time.time()
+        return {k: v.copy() for k, v in self._obs.items()}
+
+    @property
+    def idle(self) -> np.ndarray:
+        return self._idle.copy()
+
+    def _restart(self, rows: np.ndarray) -> np.ndarray:
+        """Start the next episodes of the envs ``rows`` (whose episodes ended); the rows that got one."""
+        if not self._queued:
+            self.engine.start_from_pool(rows)
+            return rows
+        seeds = self.engine.start_queued(rows)
+        for r, s in zip(rows, seeds):
+            self.row_seed[r] = s
+        started = np.array([s is not None for s in seeds], bool)
+        self._idle[rows[~started]] = True
+        return rows[started]
+
     def step_async(self, actions: np.ndarray) -> None:
         self._actions = np.asarray(actions).reshape(-1)
 
     def step_wait(self):
         e, B = self.engine, self.num_envs
-        active = np.ones(B, bool)
+        active = ~self._idle
         total = np.zeros(B)
         term_all, trunc_all = np.zeros(B, bool), np.zeros(B, bool)
-        for _ in range(self.repeat):
+        for _ in range(self.repeat if active.any() else 0):
             meta = meta_actions(self._actions, self._obs["turn"]) if self.actions == "go_yield" else self._actions
             reward, term, trunc = e.step(meta, active)
             rows = np.nonzero(active)[0]
@@ -173,9 +213,12 @@ class BatchedLeftTurnVecEnv(VecEnv):
                 infos[r]["episode"] = {"r": float(self._ep_return[r]), "l": int(self._ep_len[r]),
                                        "t": round(time.time() - self._ep_start[r], 6)}
                 infos[r]["episode_metrics"] = self._metrics(r, bool(trunc_all[r] and not term_all[r]))
-            e.start_from_pool(rows)
+                if self._queued:
+                    infos[r]["seed"] = self.row_seed[r]
             self._traces_reset(rows)
-            self._store(rows, self._observe(rows, np.ones(len(rows), bool), trace=False))
+            rows = self._restart(rows)
+            if len(rows):
+                self._store(rows, self._observe(rows, np.ones(len(rows), bool), trace=False))
             self._ep_return[rows], self._env_return[rows], self._ep_len[rows] = 0.0, 0.0, 0
             self._ep_start[rows] = time.time()
         if self.timeout_is_terminal:

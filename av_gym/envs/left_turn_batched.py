@@ -9,6 +9,8 @@ interfaces (SB3 ``VecEnv``, Gymnasium ``VectorEnv``) are in :mod:`av_gym.envs.ba
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 from gymnasium.utils import seeding
 from highway_env import utils
@@ -221,6 +223,37 @@ class BatchedLeftTurn:
         rest = np.arange(k, self._ready.B)
         self._ready = self._ready.subset(rest) if len(rest) else None
         self._ready_rngs, self._ready_seeds = self._ready_rngs[k:], self._ready_seeds[k:]
+
+    # ------------------------------------------------------------------------------------------- seeded queue
+    # Evaluation plays given seeds: episode k of the queue is the one ``reset(seed=seeds[k])`` gives (a fresh
+    # generator seeded with it, as reset_envs), made ``chunk`` at a time in one batched warm-up.
+    def queue(self, seeds, chunk: int) -> None:
+        """Episodes for :meth:`start_queued`, one per seed of ``seeds`` (any iterable of ints, drawn lazily)."""
+        self._q_iter, self._q_chunk = iter(seeds), max(1, int(chunk))
+        self._q, self._q_rngs, self._q_eps, self._q_seeds = None, [], [], []
+
+    def start_queued(self, rows) -> list:
+        """Start the envs ``rows`` on the next queued episodes, in order. Returns each row's seed, None where the
+        queue ran out (that env is left as it is)."""
+        rows = [int(r) for r in rows]
+        if len(self._q_seeds) < len(rows):
+            want = max(self._q_chunk, len(rows) - len(self._q_seeds))
+            new = [int(s) for s in itertools.islice(self._q_iter, want)]
+            if new:
+                rngs = [seeding.np_random(s)[0] for s in new]
+                traffic, eps = self._make_vehicles(rngs)
+                self._q = traffic if self._q is None else Traffic.concat(self._q, traffic)
+                self._q_rngs, self._q_eps, self._q_seeds = self._q_rngs + rngs, self._q_eps + eps, self._q_seeds + new
+        k = min(len(rows), len(self._q_seeds))
+        seeds = self._q_seeds[:k] + [None] * (len(rows) - k)
+        if k:
+            self._start(np.array(rows[:k]), self._q.subset(np.arange(k)), self._q_eps[:k])
+            for r, rng in zip(rows[:k], self._q_rngs[:k]):
+                self.rngs[r] = rng
+            rest = np.arange(k, self._q.B)
+            self._q = self._q.subset(rest) if len(rest) else None
+            self._q_rngs, self._q_eps, self._q_seeds = self._q_rngs[k:], self._q_eps[k:], self._q_seeds[k:]
+        return seeds
 
     def state_bytes(self) -> int:
         pool = 0 if self._ready is None else self._ready.state_bytes()
