@@ -13,8 +13,19 @@ from av_gym.make import make_env
 
 
 def conf(group: str, name: str) -> dict:
-    """A config section exactly as shipped in conf/ (tests build envs the way the CLI does)."""
-    return yaml.safe_load((resources.files("conf") / group / f"{name}.yaml").read_text())
+    """A config section exactly as shipped in conf/ (tests build envs the way the CLI does); a sensor without a
+    conf/sensor/ yaml has its defaults in its Params (what conf/__init__.py stores in Hydra's ConfigStore)."""
+    path = resources.files("conf") / group / f"{name}.yaml"
+    if group == "sensor" and not path.is_file():
+        from av_gym.registry import SENSORS
+
+        return SENSORS.get(name).Params().as_dict()
+    shipped = yaml.safe_load(path.read_text()) or {}
+    if group == "env":  # conf/env/<name>.yaml holds only what differs from the scenario's Params
+        from av_gym.registry import SCENARIOS
+
+        shipped = {**SCENARIOS.get(name).Params().as_dict(), **{k: v for k, v in shipped.items() if k != "defaults"}}
+    return shipped
 
 
 @pytest.fixture

@@ -236,10 +236,10 @@ def test_presets_pass_check_env(preset, scenario):
 
 
 def test_bad_sensor_parameters_name_the_field():
-    with pytest.raises(ConfigError, match=r"sensors.gnss.sigma must be >= 0, got -1"):
+    with pytest.raises(ConfigError, match=r"sensors.gnss.sigma must be a number >= 0, got -1"):
         cfg = compose_cfg("sensors=gnss_imu", "sensors.gnss.sigma=-1")
         make_env(cfg.env, cfg.sensors, cfg.shield)
-    with pytest.raises(ConfigError, match=r"sensors.detector.miss_rate must be in \[0, 1\)"):
+    with pytest.raises(ConfigError, match=r"sensors.detector.miss_rate must be a number in \[0, 1\), got 1.5"):
         cfg = compose_cfg("sensors=detector", "sensors.detector.miss_rate=1.5")
         make_env(cfg.env, cfg.sensors, cfg.shield)
     with pytest.raises(ConfigError, match="sensors.gnss.outage must be one of"):

@@ -19,65 +19,71 @@ y right of the ego), heading rad, size m, ``age`` s since this detector frame wa
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Literal
+
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
 from av_gym.geometry import box_corners
+from av_gym.params import Params, param
 from av_gym.sensors.base import SensorWrapper, ego_pose, others_state, sim_time
 
 FIELDS = ("present", "x", "y", "vx", "vy", "heading", "length", "width", "age")
-FRAMES = ("world", "ego")
 BOUND = 1e4
 
 
+@dataclass(frozen=True)
+class DetectorParams(Params):
+    """Object detector error profile after digest 004 §10.2 (the AEB shield's own detector uses it too)."""
+
+    rate_hz: float = param(10.0, "Hz", gt=0, doc="detector frames, held in between: the policy rate, half the 20 Hz "
+                                                 "simulation (004 needed >= 15 fps on real video; the scene here "
+                                                 "is simpler)")
+    max_range: float = param(60.0, "m", gt=0, doc="no vehicle detected farther out")
+    fov_deg: float = param(360.0, "deg", gt=0, le=360, doc="surround perception (our choice); 120 = one front "
+                                                           "camera as in paper 004")
+    miss_rate: float = param(0.1, ge=0, lt=1, doc="stationary probability that a visible vehicle is missed")
+    burst_length: float | None = param(None, "frames", ge=1, doc="mean length of a run of misses (Gilbert-Elliott "
+                                                                 "chain, our choice); null = independent misses")
+    occlusion: bool = param(True, doc="vehicles hidden behind nearer ones are missed")
+    occlusion_fraction: float = param(0.8, gt=0, le=1, doc="a vehicle whose bearing interval is this much covered "
+                                                           "by nearer vehicles is not detected")
+    sigma_pos0: float = param(0.3, "m", ge=0, doc="position noise at zero range (004: 0.3)")
+    sigma_pos_k: float = param(0.01, "m/m", ge=0, doc="position noise growth per metre of range (004: 0.01)")
+    sigma_vel: float = param(0.5, "m/s", ge=0, doc="velocity noise (our choice)")
+    sigma_size: float = param(0.1, "m", ge=0, doc="box length/width noise (our choice)")
+    sigma_heading: float = param(0.05, "rad", ge=0, doc="heading noise (our choice)")
+    clutter_rate: float = param(0.2, "1/frame", ge=0, doc="false positives per frame, Poisson (004: 0.2)")
+    max_objects: int = param(16, ge=1, doc="rows in the observation")
+    frame: Literal["world", "ego"] = param("world", doc="world, or ego (x forward, y right of the ego)")
+
+    def relations(self) -> list[str]:
+        if self.burst_length is not None and self.miss_rate > 0:
+            if self.miss_rate / self.burst_length / (1.0 - self.miss_rate) > 1.0:  # the chain's entry probability
+                need = self.miss_rate / (1 - self.miss_rate)
+                return [f"miss_rate {self.miss_rate} needs burst_length >= {need:.2f} frames"]
+        return []
+
+
 class Detector(SensorWrapper):
-    """Adds ``obs["detector"]``. Defaults: ``rate_hz`` 10 (policy rate, half the 20 Hz simulation; 004 found ≥ 15
-    fps needed by its tracker on real video — here the scene is simpler), ``max_range`` 60 m, ``fov_deg`` 360
-    (surround perception, our choice; 120 models one front camera like 004), ``miss_rate`` 0.1, ``burst_length``
-    None (independent), ``occlusion`` True, ``occlusion_fraction`` 0.8, ``sigma_pos0`` 0.3 m, ``sigma_pos_k`` 0.01, ``sigma_vel``
-    0.5 m/s, ``sigma_size`` 0.1 m, ``sigma_heading`` 0.05 rad, ``clutter_rate`` 0.2 per frame, ``max_objects`` 16.
-    """
+    """Adds ``obs["detector"]``; parameters: :class:`DetectorParams`."""
 
     key = "detector"
+    Params = DetectorParams
 
-    def __init__(self, env: gym.Env, rate_hz: float = 10.0, max_range: float = 60.0, fov_deg: float = 360.0,
-                 miss_rate: float = 0.1, burst_length: float | None = None, occlusion: bool = True,
-                 occlusion_fraction: float = 0.8,
-                 sigma_pos0: float = 0.3, sigma_pos_k: float = 0.01, sigma_vel: float = 0.5,
-                 sigma_size: float = 0.1, sigma_heading: float = 0.05, clutter_rate: float = 0.2,
-                 max_objects: int = 16, frame: str = "world") -> None:
-        if not 0.0 <= miss_rate < 1.0:
-            raise ValueError(f"sensors.detector.miss_rate must be in [0, 1), got {miss_rate}")
-        if not 0.0 < occlusion_fraction <= 1.0:
-            raise ValueError(f"sensors.detector.occlusion_fraction must be in (0, 1], got {occlusion_fraction}")
-        if frame not in FRAMES:
-            raise ValueError(f"sensors.detector.frame must be one of {list(FRAMES)}, got {frame!r}")
-        for name, value in (("rate_hz", rate_hz), ("max_range", max_range), ("fov_deg", fov_deg),
-                            ("max_objects", max_objects)):
-            if not value > 0:
-                raise ValueError(f"sensors.detector.{name} must be > 0, got {value}")
-        for name, value in (("sigma_pos0", sigma_pos0), ("sigma_pos_k", sigma_pos_k), ("sigma_vel", sigma_vel),
-                            ("sigma_size", sigma_size), ("sigma_heading", sigma_heading),
-                            ("clutter_rate", clutter_rate)):
-            if not value >= 0:
-                raise ValueError(f"sensors.detector.{name} must be >= 0, got {value}")
+    def __init__(self, env: gym.Env, params: DetectorParams | None = None, **overrides) -> None:
+        p = self.params = DetectorParams.build(params, **overrides)
+        miss_rate, burst_length = p.miss_rate, p.burst_length
         # Two-state chain (detect ↔ miss): leave a miss run with q = 1/L, enter it with p so that P(miss) = m.
-        if burst_length is None:
-            self.q = 1.0 - miss_rate  # memoryless: P(miss | missed before) = P(miss) = m
-        else:
-            if burst_length < 1.0:
-                raise ValueError(f"sensors.detector.burst_length must be >= 1 frame or null, got {burst_length}")
-            self.q = 1.0 / burst_length
+        self.q = 1.0 - miss_rate if burst_length is None else 1.0 / burst_length  # None: P(miss | missed) = m
         self.p = self.q * miss_rate / (1.0 - miss_rate) if miss_rate > 0 else 0.0
-        if self.p > 1.0:
-            raise ValueError(f"sensors.detector: miss_rate {miss_rate} needs burst_length >= "
-                             f"{miss_rate / (1 - miss_rate):.2f} frames")
-        self.rate_hz, self.max_range, self.half_fov = rate_hz, max_range, np.radians(fov_deg) / 2
-        self.miss_rate, self.occlusion, self.occlusion_fraction = miss_rate, bool(occlusion), occlusion_fraction
-        self.sigma_pos0, self.sigma_pos_k, self.sigma_vel = sigma_pos0, sigma_pos_k, sigma_vel
-        self.sigma_size, self.sigma_heading, self.clutter_rate = sigma_size, sigma_heading, clutter_rate
-        self.max_objects, self.frame = int(max_objects), frame
+        self.rate_hz, self.max_range, self.half_fov = p.rate_hz, p.max_range, np.radians(p.fov_deg) / 2
+        self.miss_rate, self.occlusion, self.occlusion_fraction = miss_rate, bool(p.occlusion), p.occlusion_fraction
+        self.sigma_pos0, self.sigma_pos_k, self.sigma_vel = p.sigma_pos0, p.sigma_pos_k, p.sigma_vel
+        self.sigma_size, self.sigma_heading, self.clutter_rate = p.sigma_size, p.sigma_heading, p.clutter_rate
+        self.max_objects, self.frame = int(p.max_objects), p.frame
         super().__init__(env)
 
     def sensor_space(self) -> spaces.Box:
