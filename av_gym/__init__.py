@@ -14,12 +14,12 @@ if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
 
 __version__ = "0.1.0"
 
-ENV_IDS = {
-    "lane_keeping": "av_gym/LaneKeepingLap-v0",
-    "left_turn": "av_gym/UnprotectedLeftTurn-v0",
+SCENARIO_ENTRIES = {  # env.name → (Gymnasium id, class); av_gym.registry.SCENARIOS is built from this table
+    "lane_keeping": ("av_gym/LaneKeepingLap-v0", "av_gym.envs.lane_keeping:LaneKeepingLapEnv"),
+    "left_turn": ("av_gym/UnprotectedLeftTurn-v0", "av_gym.envs.left_turn:UnprotectedLeftTurnEnv"),
 }
+ENV_IDS = {name: gym_id for name, (gym_id, _) in SCENARIO_ENTRIES.items()}
 
-if ENV_IDS["lane_keeping"] not in registry:
-    register(id=ENV_IDS["lane_keeping"], entry_point="av_gym.envs.lane_keeping:LaneKeepingLapEnv")
-if ENV_IDS["left_turn"] not in registry:
-    register(id=ENV_IDS["left_turn"], entry_point="av_gym.envs.left_turn:UnprotectedLeftTurnEnv")
+for _gym_id, _entry_point in SCENARIO_ENTRIES.values():
+    if _gym_id not in registry:  # defaults: the task the harness trains and reports (each env's Params)
+        register(id=_gym_id, entry_point=_entry_point)

@@ -29,7 +29,6 @@ from typing import Any
 
 from av_gym.errors import ConfigError
 
-ENV_NAMES = ("lane_keeping", "left_turn")
 AGENT_KINDS = ("ppo", "pilotnet", "pid", "always_proceed", "gap_acceptance", "lookahead")
 
 
@@ -42,40 +41,6 @@ def optional(spec: Mapping) -> dict:
     """Every key of a section optional (a class's keyword arguments, each with a default)."""
     return {k if k.endswith("?") else f"{k}?": v for k, v in spec.items()}
 
-
-# ------------------------------------------------------------------------------------------------ env
-_COMMON_ENV = {
-    "name": ENV_NAMES,
-    "policy_frequency": "int >=10",
-    "simulation_frequency": "int >=1",
-    "fast": "bool",
-    "compare?": ("list+", "str"),
-}
-ENV = {
-    "lane_keeping": {
-        **_COMMON_ENV,
-        "track": ("A", "B"),
-        "target_speed_kmh": "num >0",
-        "lane_width": "num >0",
-        "max_steering_deg": "num (0,90)",
-        "offroad_margin": "num >0",
-        "time_limit": "num >0|null",
-        "initial_lateral_std": "num >=0",
-        "initial_heading_std_deg": "num >=0",
-    },
-    "left_turn": {
-        **_COMMON_ENV,
-        "mode": ("traffic", "ccftap"),
-        "action": ("discrete", "continuous"),
-        "duration": "num >0",
-        "spawn_probability": "num [0,1]",
-        "target_speeds_kmh": ("list", 3, "num >=0"),
-        "acceleration_range": ("list", 2, "num"),
-        "rewards": {"collision": "num", "arrived": "num", "high_speed": "num", "progress": "num >=0",
-                    "comfort": "num >=0"},
-        "ccftap": {"ego_speed_kmh": "num >0", "target_speed_kmh": "num >0", "dt": "num"},
-    },
-}
 
 # ------------------------------------------------------------------------------------------------ sensors
 IMU = {"accel_sigma": "num >=0", "gyro_sigma": "num >=0", "accel_bias_sigma": "num >=0",
@@ -214,7 +179,7 @@ def _shield_section(value: Any, where: str) -> list[str]:
 
 
 # ------------------------------------------------------------------------------------------------ agent
-_AGENT_COMMON = {"name": "str", "kind": AGENT_KINDS, "scenarios": [ENV_NAMES],
+_AGENT_COMMON = {"name": "str", "kind": AGENT_KINDS, "scenarios": [tuple(__import__("av_gym").ENV_IDS)],
                  "sensors?": Delegate(lambda v, w: _preset_name(v, w))}
 
 
@@ -314,33 +279,16 @@ COMMANDS = {"train": TRAIN, "eval": EVAL}
 
 
 def _env_section(value: Any, where: str) -> list[str]:
+    """The ``env`` section against its scenario's Params (``env.name`` picks it in av_gym.registry.SCENARIOS)."""
+    from av_gym.params import check
+    from av_gym.registry import SCENARIOS
+
     if not isinstance(value, Mapping):
         return [f"{where} must be a mapping, got {value!r}"]
     name = value.get("name")
-    if name not in ENV:
-        return [f"{where}.name must be one of {list(ENV)}, got {name!r}"]
-    found = _check(value, ENV[name], where, what=f"a field of env={name}", shipped=_shipped("env", name))
-    return found or _env_relations(value, where)
-
-
-def _env_relations(env: Mapping, where: str) -> list[str]:
-    """What a field's own range cannot say: relations between fields (each field is valid on its own here). The
-    envs check the same in their constructors, for use from Python."""
-    problems = []
-    if env["name"] == "left_turn":
-        lo, hi = env["acceleration_range"]
-        if not lo < hi:  # the continuous action -1..1 maps linearly onto [lo, hi]
-            problems.append(f"{where}.acceleration_range must be [min, max] with min < max (m/s²), got [{lo}, {hi}]")
-    if env["name"] == "lane_keeping":
-        from av_gym.envs.vehicles import SpeedHeldVehicle
-
-        if not env["lane_width"] > SpeedHeldVehicle.WIDTH:
-            problems.append(f"{where}.lane_width must be wider than the ego vehicle's width, {SpeedHeldVehicle.WIDTH} "
-                            f"m, got {env['lane_width']}")
-    if env["simulation_frequency"] % env["policy_frequency"]:
-        problems.append(f"{where}.simulation_frequency ({env['simulation_frequency']}) must be a multiple of "
-                        f"{where}.policy_frequency ({env['policy_frequency']})")
-    return problems
+    if name not in SCENARIOS:
+        return [f"{where}.name must be one of {SCENARIOS.names()}, got {name!r}"]
+    return check(SCENARIOS.get(name).Params, value, where, what=f"a field of env={name}")
 
 
 # ------------------------------------------------------------------------------------------------ checker

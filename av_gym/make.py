@@ -9,14 +9,13 @@ from collections.abc import Mapping
 from typing import Any
 
 import gymnasium as gym
-import numpy as np
 
-import av_gym  # noqa: F401  (registers the envs)
 from av_gym import ENV_IDS
+from av_gym.envs.base import ScenarioParams
 from av_gym.errors import ConfigError
+from av_gym.registry import SCENARIOS
 from av_gym.metrics.recorder import EpisodeMetrics
 
-KMH = 1 / 3.6
 SENSOR_PRESETS = ("truth", "gnss_imu", "gnss_raw", "lidar", "cameras", "detector", "localized", "full",
                   "turn_truth", "turn_perceived", "lane_localized", "camera_centre")
 
@@ -120,56 +119,20 @@ def _plain(cfg: Any) -> dict:
     raise ConfigError(f"expected a mapping for a config section, got {type(cfg).__name__}")
 
 
-def _require(section: dict, key: str, where: str):
-    if key not in section:
-        raise ConfigError(f"{where}.{key} is missing")
-    return section[key]
-
-
-def highway_config(env_cfg: Mapping) -> tuple[str, dict]:
-    """Gymnasium id and highway-env ``config`` dict (SI units) for an ``env`` config section."""
+def scenario_params(env_cfg: Mapping | ScenarioParams) -> ScenarioParams:
+    """The ``env`` section as its scenario's typed params (``env.name`` picks the scenario in
+    :data:`av_gym.registry.SCENARIOS`); one line naming the field on bad input."""
+    if isinstance(env_cfg, ScenarioParams):
+        return env_cfg
     c = _plain(env_cfg)
-    name = _require(c, "name", "env")
-    if name not in ENV_IDS:
-        raise ConfigError(f"env.name must be one of {sorted(ENV_IDS)}, got {name!r}")
-    def get(key: str, where: dict = c, prefix: str = "env"):
-        return _require(where, key, prefix)
+    cls = SCENARIOS.get(c.get("name"), where="env.name")
+    return cls.Params.from_mapping(c, where="env", what=f"a field of env={c['name']}")
 
-    common = {"simulation_frequency": int(get("simulation_frequency")),
-              "policy_frequency": int(get("policy_frequency")),
-              "fast": bool(get("fast"))}
-    if name == "lane_keeping":
-        config = {
-            "track": get("track"),
-            "lane_width": float(get("lane_width")),
-            "target_speed": float(get("target_speed_kmh")) * KMH,
-            "max_steering": float(np.radians(get("max_steering_deg"))),
-            "offroad_margin": float(get("offroad_margin")),
-            "time_limit": get("time_limit"),
-            "initial_lateral_std": float(get("initial_lateral_std")),
-            "initial_heading_std": float(np.radians(get("initial_heading_std_deg"))),
-            **common,
-        }
-    else:
-        cc, rewards = get("ccftap"), get("rewards")
-        config = {
-            "mode": get("mode"),
-            "action": {"type": get("action"),
-                       "target_speeds": [float(v) * KMH for v in get("target_speeds_kmh")],
-                       "acceleration_range": [float(v) for v in get("acceleration_range")]},
-            "duration": float(get("duration")),
-            "spawn_probability": float(get("spawn_probability")),
-            "ccftap_ego_speed": float(get("ego_speed_kmh", cc, "env.ccftap")) * KMH,
-            "ccftap_target_speed": float(get("target_speed_kmh", cc, "env.ccftap")) * KMH,
-            "ccftap_dt": float(get("dt", cc, "env.ccftap")),
-            "collision_reward": float(get("collision", rewards, "env.rewards")),
-            "arrived_reward": float(get("arrived", rewards, "env.rewards")),
-            "high_speed_reward": float(get("high_speed", rewards, "env.rewards")),
-            "progress_reward": float(get("progress", rewards, "env.rewards")),
-            "comfort_reward": float(get("comfort", rewards, "env.rewards")),
-            **common,
-        }
-    return ENV_IDS[name], config
+
+def highway_config(env_cfg: Mapping | ScenarioParams) -> tuple[str, dict]:
+    """Gymnasium id and the env's ``config`` dict (SI units) for an ``env`` config section."""
+    params = scenario_params(env_cfg)
+    return ENV_IDS[params.name], params.env_config()
 
 
 def make_env(env_cfg: Mapping, sensors_cfg: Mapping | None = None, shield_cfg: Mapping | None = None, *,

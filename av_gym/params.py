@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import types
 import typing
 from collections.abc import Mapping
@@ -88,8 +89,9 @@ class Params:
         return check(type(self), self.as_dict(), where)
 
     def relations(self) -> list[str]:
-        """Problems a single field's bounds cannot say (e.g. ``min < max``), each naming its field(s) relative to
-        the section. Called only when every field is valid on its own."""
+        """Problems a single field's bounds cannot say (e.g. ``min < max``), one line each, with every field
+        named as ``@field`` (the checker writes its path: ``@lane_width`` → ``env.lane_width``). Called only when
+        every field is valid on its own."""
         return []
 
     @classmethod
@@ -130,7 +132,7 @@ def check(cls: type[Params], values: Any, where: str = "", what: str | None = No
         for name in fields:  # a frozen instance without __post_init__'s own check, to ask its relations
             value = _convert(hints[name], values[name]) if name in values else _default(fields[name])
             object.__setattr__(instance, name, value)
-        return [_join(where, p) if where else p for p in instance.relations()]
+        return [_REF.sub(lambda m: _join(where, m.group(1)), p) for p in instance.relations()]
     except (TypeError, ValueError) as exc:  # pragma: no cover - a relation that assumed more than was checked
         return [f"{where or cls.__name__}: {exc}"]
 
@@ -204,6 +206,9 @@ def _or_null(problem: str) -> str:
 
 
 # ----------------------------------------------------------------------------------------------- helpers
+_REF = re.compile(r"@(\w+)")
+
+
 def _hints(cls: type) -> dict[str, Any]:
     cached = cls.__dict__.get("_hints_cache")
     if cached is None:

@@ -15,6 +15,7 @@ import importlib
 from collections.abc import Iterator
 from typing import Any
 
+from av_gym import SCENARIO_ENTRIES
 from av_gym.errors import ConfigError
 
 
@@ -64,12 +65,9 @@ class Registry:
             yield name, self.get(name)
 
 
-SCENARIOS = Registry("env.name", {
-    "lane_keeping": "av_gym.envs.lane_keeping:LaneKeepingLapEnv",
-    "left_turn": "av_gym.envs.left_turn:UnprotectedLeftTurnEnv",
-})
-"""``env.name`` → the env class; its ``Params`` is the ``env`` config section (edge units), its ``gym_id`` the
-registered Gymnasium id."""
+SCENARIOS = Registry("env.name", {name: entry for name, (_, entry) in SCENARIO_ENTRIES.items()})
+"""``env.name`` → the env class; its ``Params`` is the ``env`` config section (edge units); its Gymnasium id is in
+:data:`av_gym.SCENARIO_ENTRIES`."""
 
 SENSORS = Registry("sensor", {
     "gnss": "av_gym.sensors.gnss:GNSS",

@@ -60,7 +60,7 @@ def run_batched(config: dict, policy: str, seeds: list[int], chunk: int = 500) -
 
 
 def run_per_env(config: dict, policy: str, seeds: list[int]) -> np.ndarray:
-    env_id, _ = highway_config(OmegaConf.load("conf/env/left_turn.yaml"))
+    env_id, _ = highway_config({"name": "left_turn"})
     env = TurnFeatures(gym.make(env_id, config=config))
     rule = GapAcceptance()
     rows = []
@@ -90,7 +90,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=2000)
     parser.add_argument("--seed", type=int, default=50000)
     args = parser.parse_args()
-    _, config = highway_config(OmegaConf.load("conf/env/left_turn.yaml"))
+    _, config = highway_config({"name": "left_turn"})
     seeds = list(range(args.seed, args.seed + args.episodes))
     print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     print("| policy | metric | per-env | batched | difference [95 % CI] | within |")

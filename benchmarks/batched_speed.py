@@ -30,7 +30,7 @@ def load() -> str:
 
 
 def per_env_rate(config: dict, seconds: float) -> float:
-    env_id, _ = highway_config(OmegaConf.load("conf/env/left_turn.yaml"))
+    env_id, _ = highway_config({"name": "left_turn"})
     env = TurnFeatures(gym.make(env_id, config=config))
     rng = np.random.default_rng(0)
     seed, n = 0, 0
@@ -121,7 +121,7 @@ def main() -> None:
             print(f"| {name} | {wall:.0f} | {per_cpu:.0f} |", flush=True)
         print(f"load average: {load()}")
         return
-    _, config = highway_config(OmegaConf.load("conf/env/left_turn.yaml"))
+    _, config = highway_config({"name": "left_turn"})
     print(f"load average before: {load()}")
     base = per_env_rate(config, args.seconds)
     rows = []

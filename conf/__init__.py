@@ -1,6 +1,6 @@
 """Hydra's config tree. The defaults of every component are its ``Params`` dataclass (:mod:`av_gym.params`),
-stored in Hydra's ConfigStore when this package is imported (Hydra imports it to read ``pkg://conf``): ``sensor/<key>``
-for each sensor and estimator. The yaml files here hold only what differs from those defaults, with the reason."""
+stored in Hydra's ConfigStore when this package is imported (Hydra imports it to read ``pkg://conf``):
+``scenario/<name>`` for each scenario, ``sensor/<key>`` for each sensor and estimator. The yaml files here hold only what differs from those defaults, with the reason."""
 
 from __future__ import annotations
 
@@ -9,9 +9,11 @@ def register_configs() -> None:
     """Store each registered kind's defaults as a Hydra config (``sensor/gnss`` ...), from its Params."""
     from hydra.core.config_store import ConfigStore
 
-    from av_gym.registry import SENSORS
+    from av_gym.registry import SCENARIOS, SENSORS
 
     store = ConfigStore.instance()
+    for name, cls in SCENARIOS.items():
+        store.store(group="scenario", name=name, node=cls.Params().as_dict())
     for key, cls in SENSORS.items():
         params = getattr(cls, "Params", None)
         if params is not None:

@@ -3,11 +3,40 @@ everything outside the simulator (sensor noise, the roadside world)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable
 
-import numpy as np
 
+from av_gym.params import Params, param
 from av_gym.sim import fmath
+
+KMH = 1 / 3.6  # m/s per km/h: scenario configs take km/h at the edge, the envs m/s
+
+
+@dataclass(frozen=True)
+class ScenarioParams(Params):
+    """What every scenario's ``env`` section holds (edge units: km/h, degrees); :meth:`env_config` gives the
+    env's own (highway-env) config in SI units. The registered Gymnasium ids default to these values."""
+
+    name: str = param("", doc="the scenario: a key of av_gym.registry.SCENARIOS")
+    policy_frequency: int = param(10, "Hz", ge=10, doc="decisions per second; >= 10 so a shield can decide every "
+                                                        "0.1 s (digest 003 §9.2)")
+    simulation_frequency: int = param(20, "Hz", ge=1, doc="simulation ticks per second, a multiple of "
+                                                           "policy_frequency")
+    fast: bool = param(True, doc="av_gym.sim fast paths, the same trajectories as highway-env's code (false = "
+                                 "stock highway-env)")
+    compare: tuple[str, ...] = param((), doc="python -m eval with no agents=: the agents compared on this scenario")
+
+    def relations(self) -> list[str]:
+        if self.simulation_frequency % self.policy_frequency:
+            return [f"@simulation_frequency ({self.simulation_frequency}) must be a multiple of @policy_frequency "
+                    f"({self.policy_frequency})"]
+        return []
+
+    def env_config(self) -> dict:
+        """The env's config dict (SI units), what ``gym.make(id, config=...)`` takes."""
+        return {"simulation_frequency": self.simulation_frequency, "policy_frequency": self.policy_frequency,
+                "fast": self.fast}
 
 
 class ScenarioMixin:

@@ -8,12 +8,15 @@ normal (digest 001 §8.1).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Literal
+
 import numpy as np
 from highway_env import utils
 from highway_env.envs.common.abstract import AbstractEnv
 from highway_env.road.road import Road
 
-from av_gym.envs.base import ScenarioMixin, ego_kinematics
+from av_gym.envs.base import KMH, ScenarioMixin, ScenarioParams, ego_kinematics
 from av_gym.envs.observations import LaneKeepingState, StateDict
 from av_gym.envs.track import Track, build_track
 from av_gym.sim import fmath
@@ -21,9 +24,45 @@ from av_gym.sim import lanes as fast_lanes
 from av_gym.sim.fast_network import FastRoadNetwork
 from av_gym.envs.vehicles import SpeedHeldVehicle, SteeringAction
 from av_gym.geometry import NO_OTHERS
+from av_gym.params import param
 
 
 _FAST_TRACKS: dict = {}  # (layout, lane width) -> (Track, FastRoadNetwork), shared by fast envs
+
+
+@dataclass(frozen=True)
+class LaneKeepingParams(ScenarioParams):
+    """``env=lane_keeping``: one lap of a closed circuit, steering only, speed held by a controller; the
+    registered id's defaults too."""
+
+    name: Literal["lane_keeping"] = param("lane_keeping")
+    track: Literal["A", "B"] = param("A", doc="layout: A (training) | B (held out: never used for training data)")
+    target_speed_kmh: float = param(36.0, "km/h", gt=0, doc="10 m/s, held by the speed controller")
+    lane_width: float = param(4.0, "m", gt=0, doc="highway-env's default lane width")
+    max_steering_deg: float = param(25.0, "deg", gt=0, lt=90, doc="action ±1 maps to ±25° (Udacity's, digest "
+                                                                  "001 §8.0)")
+    offroad_margin: float = param(1.0, "m", gt=0, doc="beyond the lane edge at which the car has left the road "
+                                                      "(half a car width)")
+    time_limit: float | None = param(None, "s", gt=0, doc="null = twice the nominal lap time")
+    initial_lateral_std: float = param(0.2, "m", ge=0, doc="seeded start offset from the centre line, so seeds "
+                                                           "differ without sensor noise (our choice)")
+    initial_heading_std_deg: float = param(1.15, "deg", ge=0, doc="seeded start heading error (~0.02 rad)")
+    compare: tuple[str, ...] = param(
+        ("pid_paper", "pid_tuned", "pid_localized", "pilotnet", "ppo_lane_localized", "ppo_lane_camera"),
+        doc="python -m eval env=lane_keeping with no agents=: every lane-keeping agent")
+
+    def relations(self) -> list[str]:
+        width = SpeedHeldVehicle.WIDTH  # the ego (fast or not); the lane-departure metric needs it to fit its lane
+        if not self.lane_width > width:
+            return [f"@lane_width must be wider than the ego vehicle's width, {width} m, got {self.lane_width:g}"]
+        return super().relations()
+
+    def env_config(self) -> dict:
+        return {**super().env_config(), "track": self.track, "lane_width": self.lane_width,
+                "target_speed": self.target_speed_kmh * KMH, "max_steering": float(np.radians(self.max_steering_deg)),
+                "offroad_margin": self.offroad_margin, "time_limit": self.time_limit,
+                "initial_lateral_std": self.initial_lateral_std,
+                "initial_heading_std": float(np.radians(self.initial_heading_std_deg))}
 
 
 class LaneKeepingLapEnv(ScenarioMixin, AbstractEnv):
@@ -37,6 +76,7 @@ class LaneKeepingLapEnv(ScenarioMixin, AbstractEnv):
     """
 
     scenario = "lane_keeping"
+    Params = LaneKeepingParams
 
     @classmethod
     def default_config(cls) -> dict:
@@ -61,6 +101,7 @@ class LaneKeepingLapEnv(ScenarioMixin, AbstractEnv):
             "centering_position": [0.5, 0.5],
             "scaling": 4.0,
         })
+        config.update(LaneKeepingParams().env_config())  # the harness's task (issue 20)
         return config
 
     # ----------------------------------------------------------------------------------------------- spaces

@@ -17,6 +17,8 @@ x ∈ [−4, 0]; the ego's arc crosses its centreline at the conflict point (−
 from __future__ import annotations
 
 import contextlib
+from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from highway_env import utils
@@ -25,10 +27,11 @@ from highway_env.envs.common.observation import KinematicObservation
 from highway_env.envs.intersection_env import IntersectionEnv
 from highway_env.vehicle.kinematics import Vehicle
 
-from av_gym.envs.base import ScenarioMixin, ego_kinematics
+from av_gym.envs.base import KMH, ScenarioMixin, ScenarioParams, ego_kinematics
 from av_gym.envs.lane_path import LanePath
 from av_gym.envs.observations import FastKinematics, StateDict
 from av_gym.envs.vehicles import FastDiscreteMetaAction, LongitudinalAction
+from av_gym.params import Params, param
 from av_gym.geometry import NO_OTHERS, box_corners, constant_velocity_ttc
 from av_gym.sim.fast_network import FastRoadNetwork
 from av_gym.sim.road import FastRegulatedRoad
@@ -43,6 +46,83 @@ ONCOMING_NEAR_EDGE_X = 0.0  # m, the oncoming lane spans x in [-4, 0]
 CONFLICT_POINT = np.array([-2.0, 11.0 - np.sqrt(13.0**2 - 9.0**2)])  # (-2, 1.62) m, see module docstring
 
 
+@dataclass(frozen=True)
+class LeftTurnRewards(Params):
+    """What PPO optimises; metrics never depend on it (they come from truth)."""
+
+    collision: float = param(-5.0, doc="once, on collision (stock)")
+    arrived: float = param(3.0, doc="once, on reaching the exit (stock: 1). At 1, waiting at the line until the time "
+                                    "limit (~1.2 of progress) was worth about as much as a gap-acceptance driver's mix "
+                                    "of arrivals and collisions, and PPO drifted to never turning (measured, issue 7)")
+    high_speed: float = param(0.0, "1/s", doc="per second spent at 7-9 m/s (stock: 1.0 per 1 Hz step). Off: at 1/s an "
+                                              "always-proceed driver earns ~6 from speed and loses ~2.6 (0.52 x 5) to "
+                                              "collisions, so PPO learnt never to yield (measured, issue 7); at 0.1/s "
+                                              "and no progress term it learnt to wait forever")
+    progress: float = param(2.0, ge=0, doc="in total over the route to the arrival point: dense, rate-free, zero "
+                                           "when waiting")
+    comfort: float = param(0.01, "1/s", ge=0, doc="per second at 3 m/s² (quadratic in acceleration): discourages "
+                                                  "SLOWER/FASTER chatter")
+
+
+@dataclass(frozen=True)
+class CCFtapParams(Params):
+    """Euro NCAP car-to-car front turn-across-path (digest 003 §3.2-3.3)."""
+
+    ego_speed_kmh: float = param(15.0, "km/h", gt=0, doc="VUT speed: Euro NCAP 10 / 15 / 20")
+    target_speed_kmh: float = param(45.0, "km/h", gt=0, doc="GVT speed: Euro NCAP 30 / 45 / 60")
+    dt: float = param(0.0, "s", doc="the target reaches the conflict point this long after the ego (0 = they meet)")
+
+
+@dataclass(frozen=True)
+class LeftTurnParams(ScenarioParams):
+    """``env=left_turn``: highway-env's four-way intersection, ego from the south turning left. These defaults are
+    the task the harness trains and reports, and the registered id's defaults; :data:`STOCK_CONFIG` restores
+    highway-env's own episode length and rewards."""
+
+    name: Literal["left_turn"] = param("left_turn")
+    mode: Literal["traffic", "ccftap"] = param("traffic", doc="traffic (random IDM traffic, for RL) | ccftap (Euro "
+                                                             "NCAP turn-across-path test)")
+    action: Literal["discrete", "continuous"] = param("discrete", doc="discrete {SLOWER, IDLE, FASTER} over "
+                                                                      "target_speeds_kmh | continuous acceleration")
+    duration: float = param(20.0, "s", gt=0, doc="traffic-mode time limit. Stock: 13 s, which leaves an "
+                                                 "always-proceed driver (exit at ~8.7 s) 4 s of slack: too little "
+                                                 "to yield to a stream of oncoming cars and still exit")
+    spawn_probability: float = param(0.6, "1/s", ge=0, le=1, doc="expected new traffic vehicles per second (stock "
+                                                                 "highway-env's rate)")
+    target_speeds_kmh: tuple[float, float, float] = param((0.0, 16.2, 32.4), "km/h", ge=0,
+                                                          doc="discrete set-points = stock 0 / 4.5 / 9 m/s")
+    acceleration_range: tuple[float, float] = param((-8.0, 3.0), "m/s²", doc="continuous action -1..1 maps onto this")
+    rewards: LeftTurnRewards = param(LeftTurnRewards())
+    ccftap: CCFtapParams = param(CCFtapParams())
+    compare: tuple[str, ...] = param(
+        ("always_proceed", "always_proceed+aeb", "gap_acceptance", "gap_acceptance+aeb", "ppo_turn", "ppo_turn+aeb",
+         "ppo_turn_shielded", "ppo_turn_shielded+aeb", "ppo_turn_perceived", "ppo_turn_perceived+aeb"),
+        doc="python -m eval env=left_turn with no agents=: the headline comparison (issue 7), each agent with and "
+            "without the AEB shield")
+
+    def relations(self) -> list[str]:
+        lo, hi = self.acceleration_range
+        if not lo < hi:  # the continuous action -1..1 maps linearly onto [lo, hi]: an empty range divides by zero
+            return [f"@acceleration_range must be [min, max] with min < max (m/s²), got [{lo:g}, {hi:g}]"]
+        return super().relations()
+
+    def env_config(self) -> dict:
+        r, cc = self.rewards, self.ccftap
+        return {**super().env_config(), "mode": self.mode,
+                "action": {"type": self.action, "target_speeds": [v * KMH for v in self.target_speeds_kmh],
+                           "acceleration_range": list(self.acceleration_range)},
+                "duration": self.duration, "spawn_probability": self.spawn_probability,
+                "ccftap_ego_speed": cc.ego_speed_kmh * KMH, "ccftap_target_speed": cc.target_speed_kmh * KMH,
+                "ccftap_dt": cc.dt, "collision_reward": r.collision, "arrived_reward": r.arrived,
+                "high_speed_reward": r.high_speed, "progress_reward": r.progress, "comfort_reward": r.comfort}
+
+
+STOCK_CONFIG = {"duration": 13.0, "arrived_reward": 1.0, "high_speed_reward": 1.0, "progress_reward": 0.0,
+                "comfort_reward": 0.0}
+"""highway-env's own intersection episode (13 s, its rewards): ``gym.make("av_gym/UnprotectedLeftTurn-v0",
+config=STOCK_CONFIG)``. The registered id otherwise defaults to :class:`LeftTurnParams`, the harness's task."""
+
+
 class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
     """Unprotected left turn across oncoming traffic; the agent controls only the ego's speed.
 
@@ -55,6 +135,7 @@ class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
     """
 
     scenario = "left_turn"
+    Params = LeftTurnParams
 
     @classmethod
     def default_config(cls) -> dict:
@@ -75,6 +156,7 @@ class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
             "comfort_reward": 0.0,  # per second at 3 m/s² of acceleration or braking (quadratic)
             "fast": True,  # av_gym.sim fast paths (same results, tested); False = highway-env's own code
         })
+        config.update(LeftTurnParams().env_config())  # the harness's task (issue 20); STOCK_CONFIG = highway-env's
         return config
 
     # ----------------------------------------------------------------------------------------------- spaces
