@@ -43,13 +43,6 @@ def optional(spec: Mapping) -> dict:
 
 
 # ------------------------------------------------------------------------------------------------ sensors
-IMU = {"accel_sigma": "num >=0", "gyro_sigma": "num >=0", "accel_bias_sigma": "num >=0",
-       "gyro_bias_sigma": "num >=0", "accel_bias_walk": "num >=0", "gyro_bias_walk": "num >=0",
-       "scale_error": "num >=0", "accel_range": "num >0", "gyro_range": "num >0", "saturate": "bool"}
-LIDAR = {"beams": "int >=1", "fov_deg": "num (0,360]", "min_range": "num >=0", "max_range": "num >0",
-         "range_sigma": "num >=0", "dropout": "num [0,1]", "azimuth_jitter": "bool",
-         "elevations_deg": ["num (-89,89)"], "planar": "bool|null", "mount_x": "num", "mount_height": "num >=0",
-         "vehicle_height": "num >0", "rate_hz": "num >0", "sweep_time": "num >0", "deskew_poses": "bool"}
 CAMERA_NOISE = {"pixel_std": "num >=0", "night_pixel_std": "num >=0", "brightness": "num >=0",
                 "contrast": "num [0,1)", "camera_gain": "num [0,1)", "blur_sigma": "num >=0"}
 WEATHER = {"fog_visibility": "num >0|null", "fog_airlight": "num [0,255]", "night": "bool",
@@ -81,7 +74,7 @@ LOCALIZER = {"mode": ("gnss", "gnss_imu", "lidar", "fused"), "map_matching": "bo
              "odom_window": "int >=1", "reinit_after_s": "num >0", "max_position_std": "num >0",
              "init_min_speed": "num >=0", "search_above_std": "num >=0", "relocalize_after": "int >=1",
              "ambiguity_margin": "num [0,1]"}
-SENSORS = {"imu": IMU, "lidar": LIDAR, "cameras": CAMERAS, "detector": DETECTOR,
+SENSORS = {"cameras": CAMERAS,
            "localizer": LOCALIZER}
 """Sensor key → its wrapper's keyword arguments (all optional: the wrappers have defaults)."""
 

@@ -30,7 +30,12 @@ from av_gym.sensors.world import roadside_world
 
 
 def _conf(group: str, name: str) -> dict:
-    return yaml.safe_load((resources.files("conf") / group / f"{name}.yaml").read_text())
+    path = resources.files("conf") / group / f"{name}.yaml"
+    if group == "sensor" and not path.is_file():  # its defaults are its Params (conf/__init__.py)
+        from av_gym.registry import SENSORS
+
+        return SENSORS.get(name).Params().as_dict()
+    return yaml.safe_load(path.read_text())
 
 
 def record(scenario: str, scans: int, deskew: bool = False, seed: int = 0) -> dict:

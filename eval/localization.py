@@ -49,7 +49,12 @@ FIELD = {name: i for i, name in enumerate(FIELDS)}
 
 
 def _conf(group: str, name: str) -> dict:
-    return yaml.safe_load((resources.files("conf") / group / f"{name}.yaml").read_text())
+    path = resources.files("conf") / group / f"{name}.yaml"
+    if group == "sensor" and not path.is_file():  # its defaults are its Params (conf/__init__.py)
+        from av_gym.registry import SENSORS
+
+        return SENSORS.get(name).Params().as_dict()
+    return yaml.safe_load(path.read_text())
 
 
 def sensors_cfg(outage: list | None, localizer: dict | None = None) -> dict:

@@ -254,6 +254,6 @@ def test_full_preset_has_every_sensor_and_its_own_error_prefix():
     with pytest.raises(ConfigError, match=r"^sensors.cameras: hfov_deg must be in \[1, 170\]"):
         cfg = compose_cfg("sensors=cameras", "sensors.cameras.hfov_deg=500")
         make_env(cfg.env, cfg.sensors, cfg.shield)
-    with pytest.raises(ConfigError, match=r"^sensors.lidar.range_sigma must be >= 0"):
+    with pytest.raises(ConfigError, match=r"^sensors.lidar.range_sigma must be a number >= 0, got -0.1"):
         cfg = compose_cfg("sensors=lidar", "sensors.lidar.range_sigma=-0.1")
         make_env(cfg.env, cfg.sensors, cfg.shield)

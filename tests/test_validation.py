@@ -149,12 +149,8 @@ def test_schema_tables_match_the_classes_they_describe():
     from av_gym.estimation.lidar_odometry import MapMatcher
     from av_gym.estimation.localization import Localizer
     from av_gym.sensors.camera import CameraNoise, Cameras, Weather
-    from av_gym.sensors.imu import IMU
-    from av_gym.sensors.lidar import Lidar
 
     fields = lambda dc: {f.name for f in dataclasses.fields(dc)}  # noqa: E731
-    assert set(schema.IMU) == kwargs_of(IMU)
-    assert set(schema.LIDAR) == kwargs_of(Lidar)
     assert set(schema.CAMERAS) == kwargs_of(Cameras)
     assert set(schema.LOCALIZER) == kwargs_of(Localizer)
     assert set(schema.AEB) == kwargs_of(AEBShield)

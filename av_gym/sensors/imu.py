@@ -14,50 +14,52 @@ highway-env's convention (y down on screen, so a right turn increases the headin
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 from highway_env import utils
 
+from av_gym.params import Params, param
 from av_gym.sensors.base import SensorWrapper
 
 G = 9.80665  # m/s²
 
 
-class IMU(SensorWrapper):
-    """Adds ``obs["imu"]``. Parameters (defaults and sources, all digest 000 §5.2 / 002 §4.2 suggestions: neither
-    paper gives IMU numbers):
+@dataclass(frozen=True)
+class IMUParams(Params):
+    """IMU noise (digest 000 §5.2 / 002 §4.2 suggestions: neither paper gives IMU numbers)."""
 
-    - ``accel_sigma`` 0.05 m/s², ``gyro_sigma`` 0.01 rad/s: white noise per sample.
-    - ``accel_bias_sigma`` 0.05 m/s², ``gyro_bias_sigma`` 0.005 rad/s: per-episode initial bias std.
-    - ``accel_bias_walk`` 0.002 m/s²/√s, ``gyro_bias_walk`` 1e-4 rad/s/√s: bias random walk.
-    - ``scale_error`` 0.01: per-episode scale-factor error std (1 %).
-    - ``accel_range`` 16 g, ``gyro_range`` 250 °/s (4.36 rad/s): saturation limits; ``saturate`` True.
-    """
+    accel_sigma: float = param(0.05, "m/s²", ge=0, doc="white noise per sample")
+    gyro_sigma: float = param(0.01, "rad/s", ge=0, doc="white noise per sample")
+    accel_bias_sigma: float = param(0.05, "m/s²", ge=0, doc="per-episode initial bias std")
+    gyro_bias_sigma: float = param(0.005, "rad/s", ge=0, doc="per-episode initial bias std")
+    accel_bias_walk: float = param(0.002, "m/s²/√s", ge=0, doc="bias random walk (bias instability)")
+    gyro_bias_walk: float = param(0.0001, "rad/s/√s", ge=0, doc="bias random walk (bias instability)")
+    scale_error: float = param(0.01, ge=0, doc="per-episode scale-factor error std (1 %)")
+    accel_range: float = param(156.9064, "m/s²", gt=0, doc="saturation (16 g)")
+    gyro_range: float = param(4.3633231, "rad/s", gt=0, doc="saturation (250 °/s)")
+    saturate: bool = param(True, doc="clip at the ranges (the observation space is bounded by them either way)")
+
+
+class IMU(SensorWrapper):
+    """Adds ``obs["imu"]``; parameters: :class:`IMUParams`."""
 
     key = "imu"
+    Params = IMUParams
 
-    def __init__(self, env: gym.Env, accel_sigma: float = 0.05, gyro_sigma: float = 0.01,
-                 accel_bias_sigma: float = 0.05, gyro_bias_sigma: float = 0.005, accel_bias_walk: float = 0.002,
-                 gyro_bias_walk: float = 1e-4, scale_error: float = 0.01, accel_range: float = 16 * G,
-                 gyro_range: float = np.radians(250.0), saturate: bool = True) -> None:
-        params = dict(accel_sigma=accel_sigma, gyro_sigma=gyro_sigma, accel_bias_sigma=accel_bias_sigma,
-                      gyro_bias_sigma=gyro_bias_sigma, accel_bias_walk=accel_bias_walk,
-                      gyro_bias_walk=gyro_bias_walk, scale_error=scale_error)
-        for name, value in params.items():
-            if not value >= 0:
-                raise ValueError(f"sensors.imu.{name} must be >= 0, got {value}")
-        for name, value in (("accel_range", accel_range), ("gyro_range", gyro_range)):
-            if not value > 0:
-                raise ValueError(f"sensors.imu.{name} must be > 0, got {value}")
+    def __init__(self, env: gym.Env, params: IMUParams | None = None, **overrides) -> None:
+        p = self.params = IMUParams.build(params, **overrides)
+        accel_sigma, gyro_sigma, accel_range, gyro_range = p.accel_sigma, p.gyro_sigma, p.accel_range, p.gyro_range
         u = env.unwrapped
         self.samples = int(u.config["simulation_frequency"] // u.config["policy_frequency"])
         self.dt = 1.0 / u.config["simulation_frequency"]
         self.sigma = np.array([accel_sigma, accel_sigma, gyro_sigma])
-        self.bias_sigma = np.array([accel_bias_sigma, accel_bias_sigma, gyro_bias_sigma])
-        self.bias_walk = np.array([accel_bias_walk, accel_bias_walk, gyro_bias_walk])
-        self.scale_error = scale_error
-        self.limits = np.array([accel_range, accel_range, gyro_range]) if saturate else np.full(3, np.inf)
+        self.bias_sigma = np.array([p.accel_bias_sigma, p.accel_bias_sigma, p.gyro_bias_sigma])
+        self.bias_walk = np.array([p.accel_bias_walk, p.accel_bias_walk, p.gyro_bias_walk])
+        self.scale_error = p.scale_error
+        self.limits = np.array([accel_range, accel_range, gyro_range]) if p.saturate else np.full(3, np.inf)
         self._space_limit = np.array([accel_range, accel_range, gyro_range])
         super().__init__(env)
 

@@ -41,13 +41,14 @@ Scan model
 
 from __future__ import annotations
 
-from typing import Sequence
+from dataclasses import dataclass
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
 from av_gym.geometry import box_corners
+from av_gym.params import Params, param
 from av_gym.sensors.base import SensorWrapper, ego_pose, others_state, sim_time
 from av_gym.sensors.world import roadside_world
 
@@ -245,86 +246,75 @@ def cast_rays(origin_xy: np.ndarray, angles: np.ndarray, elevations: np.ndarray,
 
 
 # --------------------------------------------------------------------------------------------------- the wrapper
+@dataclass(frozen=True)
+class LidarParams(Params):
+    """Roof-mounted ray-cast LiDAR (thesis 002: σ 0.02 m, 100 m, 1.7 m mount, 10 Hz; digest 000 §5.4)."""
+
+    beams: int = param(720, ge=1, doc="azimuth samples per channel over fov_deg; 720 = 0.5° (our choice; digest "
+                                      "002 §6.2 suggests 720-1080)")
+    fov_deg: float = param(360.0, "deg", gt=0, le=360, doc="horizontal field of view, centred forward (thesis 002: "
+                                                           "roof-mounted 360° Ouster)")
+    min_range: float = param(0.5, "m", ge=0, doc="closer hits are no return: a real sensor's blind zone, which "
+                                                 "also hides self-hits (our choice)")
+    max_range: float = param(100.0, "m", gt=0, doc="beams with no return read this value (thesis 002: Ouster)")
+    range_sigma: float = param(0.02, "m", ge=0, doc="Gaussian noise along each beam (thesis 002)")
+    dropout: float = param(0.01, ge=0, le=1, doc="probability that a beam returns nothing (digest 000: 1-3 % in "
+                                                 "clear weather)")
+    azimuth_jitter: bool = param(True, doc="one random azimuth offset in [0, fov/beams) per scan, so consecutive "
+                                           "scans do not sample the same bearings (identical sampling of a "
+                                           "corridor makes ICP stick at zero motion; digest 000/002)")
+    elevations_deg: tuple[float, ...] = param((0.0,), "deg", gt=-89, lt=89, doc="channel elevations, + = up; one "
+                                              "0° channel = a planar 2-D scan that sees every object (our choice; "
+                                              "the thesis's CARLA LiDAR has 32-64 channels over -30°...+10°)")
+    planar: bool | None = param(None, doc="ignore object heights (every beam sees every object, z = 0 in the "
+                                          "cloud, the 2-D scan of digest 002 §6.2); null = planar exactly when "
+                                          "elevations_deg == [0]")
+    mount_x: float = param(0.0, "m", doc="ahead of the vehicle centre (our choice)")
+    mount_height: float = param(1.7, "m", ge=0, doc="above the ground (thesis 002)")
+    vehicle_height: float = param(1.5, "m", gt=0, doc="height of the other vehicles' boxes (a passenger car)")
+    rate_hz: float = param(10.0, "Hz", gt=0, doc="scan rate; scans are taken at observations (at most the policy "
+                                                 "rate), the last one held in between (thesis 002)")
+    sweep_time: float = param(0.1, "s", gt=0, doc="one rotation, for per-point times and deskew_poses (one "
+                                                  "rotation per 10 Hz scan)")
+    deskew_poses: bool = param(False, doc="cast each beam from the sensor pose at its firing time (the sweep ends "
+                                          "at the scan time): the motion distortion of a real spinning LiDAR "
+                                          "(digest 002 §6.2 step 4 / §6.4). Without it run kiss-icp with "
+                                          "deskew=False, or its constant-velocity deskew adds a distortion that "
+                                          "is not there")
+
+    def relations(self) -> list[str]:
+        if not self.min_range < self.max_range:
+            return [f"min_range must be < max_range, got {self.min_range:g} and {self.max_range:g}"]
+        if not self.elevations_deg:
+            return ["elevations_deg must be a non-empty list"]
+        if self.planar and any(e != 0.0 for e in self.elevations_deg):
+            return [f"planar needs every elevation to be 0°, got elevations_deg {list(self.elevations_deg)}"]
+        return []
+
+
 class Lidar(SensorWrapper):
     """Roof-mounted ray-cast LiDAR; adds ``obs["lidar"]`` (ranges) and keeps the last scan's point cloud.
-
-    Parameters (keyword only; source in brackets):
-        beams: azimuth samples per channel over ``fov_deg``. Default 720 (0.5°) [our choice; digest 002 §6.2
-            suggests 720–1080].
-        fov_deg: horizontal field of view (deg), centred forward. Default 360 [thesis (digest 002): roof-mounted
-            360° Ouster].
-        min_range: m; closer hits are no return (a real sensor's blind zone, which also hides self-hits).
-            Default 0.5 [our choice].
-        max_range: m. Default 100 [thesis (digest 002) Ouster].
-        range_sigma: m, Gaussian noise added to each range along its beam. Default 0.02 [thesis (digest 002)].
-        dropout: probability that a beam returns nothing (reads ``max_range``). Default 0.01 [digest 000
-            suggestion, 1–3 % in clear weather].
-        azimuth_jitter: add one random azimuth offset in [0, fov/beams) per scan, so consecutive scans do not sample
-            the same bearings (identical sampling of a corridor makes ICP stick at zero motion). Default True
-            [digest 000/002 suggestion].
-        elevations_deg: channel elevations (deg, + = up). Default ``(0.0,)``, a single planar channel [our choice;
-            the thesis's CARLA LiDAR has 32–64 channels over −30°…+10°].
-        planar: ignore object heights (every beam sees every object, z = 0 in the cloud, the 2-D scan of digest
-            002 §6.2). Default None = planar exactly when ``elevations_deg == (0.0,)`` [our choice, see module
-            docstring].
-        mount_x: m ahead of the vehicle centre. Default 0.0 [our choice].
-        mount_height: m above the ground. Default 1.7 [thesis (digest 002)].
-        vehicle_height: m, height of the other vehicles' boxes. Default 1.5 [our choice: a passenger car].
-        rate_hz: scan rate (Hz). Scans are taken at observations, so the effective rate is at most the policy
-            rate; between scans the last one is held. Default 10 [thesis (digest 002)].
-        sweep_time: s, duration of one rotation, used for per-point times and ``deskew_poses``. Default 0.1
-            [our choice: one rotation per 10 Hz scan].
-        deskew_poses: cast each beam from the sensor pose interpolated at its firing time (the sweep ends at the
-            scan time), so fast motion distorts the scan as on a real spinning LiDAR. Default False [digest 002
-            §6.2 step 4 / §6.4 option]. Without it every beam is cast from the scan pose: then run kiss-icp with
-            ``deskew=False`` (or empty timestamps), or its constant-velocity deskew adds a distortion that is not
-            there.
-    """
+    Parameters: :class:`LidarParams`."""
 
     key = "lidar"
+    Params = LidarParams
 
-    def __init__(self, env: gym.Env, *, beams: int = 720, fov_deg: float = 360.0, min_range: float = 0.5,
-                 max_range: float = 100.0, range_sigma: float = 0.02, dropout: float = 0.01,
-                 azimuth_jitter: bool = True, elevations_deg: Sequence[float] = (0.0,), planar: bool | None = None,
-                 mount_x: float = 0.0, mount_height: float = 1.7, vehicle_height: float = 1.5,
-                 rate_hz: float = 10.0, sweep_time: float = 0.1, deskew_poses: bool = False) -> None:
-        self.beams = int(beams)
-        self.fov = float(np.radians(fov_deg))
-        self.min_range, self.max_range = float(min_range), float(max_range)
-        self.range_sigma, self.dropout = float(range_sigma), float(dropout)
-        self.azimuth_jitter = bool(azimuth_jitter)
-        self.elevations = np.radians(np.asarray(elevations_deg, dtype=float).reshape(-1))
-        self.planar = bool(planar) if planar is not None else bool(len(self.elevations) == 1
-                                                                      and self.elevations[0] == 0.0)
-        self.mount_x, self.mount_height = float(mount_x), float(mount_height)
-        self.vehicle_height = float(vehicle_height)
-        self.rate_hz, self.sweep_time = float(rate_hz), float(sweep_time)
-        self.deskew_poses = bool(deskew_poses)
-        self._check()
+    def __init__(self, env: gym.Env, params: LidarParams | None = None, **overrides) -> None:
+        p = self.params = LidarParams.build(params, **overrides)
+        self.beams = int(p.beams)
+        self.fov = float(np.radians(p.fov_deg))
+        self.min_range, self.max_range = float(p.min_range), float(p.max_range)
+        self.range_sigma, self.dropout = float(p.range_sigma), float(p.dropout)
+        self.azimuth_jitter = bool(p.azimuth_jitter)
+        self.elevations = np.radians(np.asarray(p.elevations_deg, dtype=float).reshape(-1))
+        self.planar = bool(p.planar) if p.planar is not None else bool(len(self.elevations) == 1
+                                                                        and self.elevations[0] == 0.0)
+        self.mount_x, self.mount_height = float(p.mount_x), float(p.mount_height)
+        self.vehicle_height = float(p.vehicle_height)
+        self.rate_hz, self.sweep_time = float(p.rate_hz), float(p.sweep_time)
+        self.deskew_poses = bool(p.deskew_poses)
         super().__init__(env)
         self._clear_scan()
-
-    def _check(self) -> None:
-        if self.beams < 1:
-            raise ValueError(f"sensors.lidar.beams must be >= 1, got {self.beams}")
-        if not 0 < self.fov <= TWO_PI + 1e-12:
-            raise ValueError(f"sensors.lidar.fov_deg must be in (0, 360], got {np.degrees(self.fov)}")
-        if not 0 <= self.min_range < self.max_range < np.inf:
-            raise ValueError(f"sensors.lidar needs 0 <= min_range < max_range < inf, got {self.min_range}, {self.max_range}")
-        if not (np.isfinite(self.range_sigma) and self.range_sigma >= 0):
-            raise ValueError(f"sensors.lidar.range_sigma must be >= 0, got {self.range_sigma}")
-        if not 0 <= self.dropout <= 1:
-            raise ValueError(f"sensors.lidar.dropout must be in [0, 1], got {self.dropout}")
-        if len(self.elevations) == 0 or np.any(np.abs(self.elevations) >= np.radians(89.0)):
-            raise ValueError(f"sensors.lidar.elevations_deg must be a non-empty list within ±89°, got "
-                             f"{np.degrees(self.elevations)}")
-        if self.planar and np.any(self.elevations != 0.0):
-            raise ValueError("sensors.lidar.planar needs every elevation to be 0°, got "
-                             f"{np.degrees(self.elevations)}")
-        if self.mount_height < 0 or self.vehicle_height <= 0:
-            raise ValueError("sensors.lidar.mount_height must be >= 0 and vehicle_height > 0")
-        if not (self.rate_hz > 0 and self.sweep_time > 0):
-            raise ValueError("sensors.lidar.rate_hz and sensors.lidar.sweep_time must be positive")
 
     # ----------------------------------------------------------------------------------------------- gym API
     def sensor_space(self) -> spaces.Box:
