@@ -43,20 +43,6 @@ def optional(spec: Mapping) -> dict:
 
 
 # ------------------------------------------------------------------------------------------------ sensors
-CAMERA_NOISE = {"pixel_std": "num >=0", "night_pixel_std": "num >=0", "brightness": "num >=0",
-                "contrast": "num [0,1)", "camera_gain": "num [0,1)", "blur_sigma": "num >=0"}
-WEATHER = {"fog_visibility": "num >0|null", "fog_airlight": "num [0,255]", "night": "bool",
-           "night_ambient": "num [0,1]", "night_gamma": "num >0", "headlights": "bool"}
-CAMERAS = {"height": "int >=2", "width": "int >=2", "hfov_deg": "num [1,170]", "mount_height": "num >0",
-           "pitch_deg": "num (-90,90)", "lateral_offset": "num", "forward_offset": "num", "max_range": "num >0",
-           "supersample": "int [1,8]", "rate_hz": "num >0|null", "noise": Delegate(lambda v, w: _camera_noise(v, w)),
-           "fog_visibility": "num >0|null", "night": "bool", "weather": Delegate(lambda v, w: _weather(v, w)),
-           "views": [("left", "centre", "right")]}
-DETECTOR = {"rate_hz": "num >0", "max_range": "num >0", "fov_deg": "num (0,360]", "miss_rate": "num [0,1)",
-            "burst_length": "num >=1|null", "occlusion": "bool", "occlusion_fraction": "num (0,1]",
-            "sigma_pos0": "num >=0", "sigma_pos_k": "num >=0", "sigma_vel": "num >=0", "sigma_size": "num >=0",
-            "sigma_heading": "num >=0", "clutter_rate": "num >=0", "max_objects": "int >=1",
-            "frame": ("world", "ego")}
 EKF_NOISE = {k: "num >=0" for k in (
     "accel_sigma", "gyro_sigma", "accel_bias_walk", "gyro_bias_walk", "accel_bias0", "gyro_bias0", "speed_walk",
     "heading_walk", "position_walk", "gnss_sigma", "gnss_bias_sigma", "gnss_velocity_sigma",
@@ -74,19 +60,8 @@ LOCALIZER = {"mode": ("gnss", "gnss_imu", "lidar", "fused"), "map_matching": "bo
              "odom_window": "int >=1", "reinit_after_s": "num >0", "max_position_std": "num >0",
              "init_min_speed": "num >=0", "search_above_std": "num >=0", "relocalize_after": "int >=1",
              "ambiguity_margin": "num [0,1]"}
-SENSORS = {"cameras": CAMERAS,
-           "localizer": LOCALIZER}
+SENSORS = {"localizer": LOCALIZER}
 """Sensor key → its wrapper's keyword arguments (all optional: the wrappers have defaults)."""
-
-
-def _camera_noise(value: Any, where: str) -> list[str]:
-    if isinstance(value, bool):
-        return []
-    return _check(value, optional(CAMERA_NOISE), where)
-
-
-def _weather(value: Any, where: str) -> list[str]:
-    return [] if value is None else _check(value, optional(WEATHER), where)
 
 
 def _sensors_section(value: Any, where: str) -> list[str]:

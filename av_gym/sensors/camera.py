@@ -38,8 +38,9 @@ Gaussian pixel noise.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, fields, replace
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from typing import Literal
 from functools import lru_cache
 
 import cv2
@@ -49,6 +50,7 @@ from gymnasium import spaces
 from highway_env.road.lane import AbstractLane, LineType
 
 from av_gym.geometry import box_corners
+from av_gym.params import Params, param
 from av_gym.sensors.base import SensorWrapper, ego_pose, others_state, sim_time
 from av_gym.sensors.world import CIRCLE_KINDS, SEGMENT_KINDS, roadside_world
 
@@ -148,28 +150,19 @@ def camera_rig(base: CameraSpec | None = None, d: float = WINDSHIELD_HALF_WIDTH)
 
 
 @dataclass(frozen=True)
-class Weather:
-    """Deterministic viewing conditions applied by :func:`render_view`.
+class Weather(Params):
+    """Deterministic viewing conditions applied by :func:`render_view` (a section of :class:`CamerasParams`)."""
 
-    ``fog_visibility``: meteorological visibility V (m), ``None`` = clear; transmission ``t = exp(−3.912 d / V)``
-    (Koschmieder; our choice of a distance-dependent t — at the default 120 m, t = 0.72 / 0.52 / 0.27 at 10 / 20 /
-    40 m, around digest 000's suggested global t = 0.4–0.8). ``fog_airlight``: airlight grey level A (8-bit; our
-    choice). ``night``: darken and gamma; ``night_ambient`` brightness factor (digest 000 suggestion ×0.3–0.5),
-    ``night_gamma`` (digest 000 suggestion 1.5–2.2), ``headlights``: add low-beam pools ahead of the ego (our
-    choice: ±~25° wide, falling off as 1/(1 + (d/20 m)²))."""
-
-    fog_visibility: float | None = None
-    fog_airlight: float = 200.0
-    night: bool = False
-    night_ambient: float = 0.4
-    night_gamma: float = 1.8
-    headlights: bool = True
-
-    def __post_init__(self) -> None:
-        if self.fog_visibility is not None and not self.fog_visibility > 0:
-            raise ValueError(f"fog_visibility must be > 0 m or None, got {self.fog_visibility}")
-        if not 0.0 <= self.night_ambient <= 1.0 or not self.night_gamma > 0:
-            raise ValueError("night_ambient must be in [0, 1] and night_gamma > 0")
+    fog_visibility: float | None = param(None, "m", gt=0, doc="meteorological visibility V, null = clear; "
+                                         "transmission t = exp(-3.912 d / V) (Koschmieder; our choice of a "
+                                         "distance-dependent t: at 120 m, t = 0.72 / 0.52 / 0.27 at 10 / 20 / 40 "
+                                         "m, around digest 000's suggested global t = 0.4-0.8)")
+    fog_airlight: float = param(200.0, "8-bit", ge=0, le=255, doc="airlight grey level A (our choice)")
+    night: bool = param(False, doc="darken and gamma")
+    night_ambient: float = param(0.4, ge=0, le=1, doc="night brightness factor (digest 000: x0.3-0.5)")
+    night_gamma: float = param(1.8, gt=0, doc="night gamma (digest 000: 1.5-2.2)")
+    headlights: bool = param(True, doc="at night, low-beam pools ahead of the ego (our choice: about ±25° wide, "
+                                       "falling off as 1/(1 + (d/20 m)²))")
 
     @property
     def needs_depth(self) -> bool:
@@ -177,34 +170,21 @@ class Weather:
 
 
 @dataclass(frozen=True)
-class CameraNoise:
-    """Random sensor noise, all drawn from the wrapper's generator.
+class CameraNoise(Params):
+    """Random sensor noise, all drawn from the wrapper's generator (a section of :class:`CamerasParams`). Applied
+    in this order: exposure (brightness, contrast, camera_gain), blur, pixel noise, clip to [0, 255], round."""
 
-    ``pixel_std``: per-frame Gaussian pixel noise σ (8-bit units, independent per pixel and channel; default 3,
-    digest 000 suggestion 2–8 by day). ``night_pixel_std``: σ used when ``Weather.night`` (default 12, digest 000
-    suggestion 8–20). ``brightness``: per-episode offset, uniform in ±this (8-bit units; default 15, our choice).
-    ``contrast``: per-episode gain about mid-grey 128, uniform in 1 ± this (default 0.15, our choice).
-    ``camera_gain``: per-episode, per-camera gain, uniform in 1 ± this (default 0.10, digest 000 suggestion:
-    inter-camera exposure mismatch ±10 %). ``blur_sigma``: Gaussian blur σ (output px; default 0 = off, our
-    choice). Applied in that order: exposure, blur, pixel noise, clip to [0, 255], round."""
-
-    pixel_std: float = 3.0
-    night_pixel_std: float = 12.0
-    brightness: float = 15.0
-    contrast: float = 0.15
-    camera_gain: float = 0.10
-    blur_sigma: float = 0.0
-
-    def __post_init__(self) -> None:
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if not (np.isfinite(v) and v >= 0):
-                raise ValueError(f"CameraNoise.{f.name} must be a number >= 0, got {v!r}")
-        if self.contrast >= 1 or self.camera_gain >= 1:
-            raise ValueError("contrast and camera_gain are fractions and must be < 1")
+    pixel_std: float = param(3.0, "8-bit", ge=0, doc="per-frame Gaussian pixel noise by day, independent per pixel "
+                                                     "and channel (digest 000: 2-8)")
+    night_pixel_std: float = param(12.0, "8-bit", ge=0, doc="pixel noise at night (digest 000: 8-20)")
+    brightness: float = param(15.0, "8-bit", ge=0, doc="per-episode offset, uniform in ±this (our choice)")
+    contrast: float = param(0.15, ge=0, lt=1, doc="per-episode gain about mid-grey 128, uniform in 1 ± this (our "
+                                                  "choice)")
+    camera_gain: float = param(0.10, ge=0, lt=1, doc="per-episode, per-camera gain, uniform in 1 ± this (digest "
+                                                     "000: inter-camera exposure mismatch ±10 %)")
+    blur_sigma: float = param(0.0, "px", ge=0, doc="Gaussian blur σ in output pixels; 0 = off (our choice)")
 
 
-# ================================================================================================ static scene
 @dataclass
 class StaticScene:
     """The episode's static geometry in world coordinates (m), flattened into arrays for vectorised culling.
@@ -931,54 +911,61 @@ def render_view(env: gym.Env, camera: CameraSpec | None = None, pose: np.ndarray
 
 
 # ================================================================================================ the wrapper
+@dataclass(frozen=True)
+class CamerasParams(Params):
+    """Three windshield cameras, left/centre/right (digest 001 §2, §8.5; 000 §5.7); see :class:`CameraSpec`."""
+
+    height: int = param(66, "px", ge=2, doc="image height (PilotNet input, paper 001 Table 1)")
+    width: int = param(200, "px", ge=2, doc="image width (PilotNet input)")
+    hfov_deg: float = param(70.0, "deg", ge=1, le=170, doc="horizontal field of view (our choice: a 4 m lane "
+                                                           "fills about a third of the bottom row)")
+    mount_height: float = param(1.4, "m", gt=0, doc="lens height above the ground")
+    pitch_deg: float = param(8.0, "deg", gt=-90, lt=90, doc="downward pitch (digest 001 §8.5: 5-10°)")
+    lateral_offset: float = param(WINDSHIELD_HALF_WIDTH, "m", doc="side cameras at ±this across the windshield "
+                                                                  "(half a windshield; 001 suggests 0.8-1.0)")
+    forward_offset: float = param(0.5, "m", doc="ahead of the vehicle centre (the windshield of a 5 m car)")
+    max_range: float = param(80.0, "m", gt=0, doc="nothing is drawn beyond")
+    supersample: int = param(2, ge=1, le=8, doc="render at this factor, shrink with area averaging "
+                                                "(anti-aliasing)")
+    rate_hz: float | None = param(None, "Hz", gt=0, doc="capture rate; null = every policy step; lower values hold "
+                                                        "the last frame")
+    noise: CameraNoise | None = param(CameraNoise(), doc="sensor noise; null = clean renders (bit-identical to "
+                                                         "render_views)")
+    fog_visibility: float | None = param(None, "m", gt=0, doc="fog visibility (null = clear); see Weather")
+    night: bool = param(False, doc="night-time rendering; see Weather")
+    weather: Weather | None = param(None, doc="a full Weather section; overrides fog_visibility and night")
+    views: tuple[Literal["left", "centre", "right"], ...] = param(
+        CAMERA_NAMES, doc="the cameras rendered (camera_centre: [centre]). The per-episode exposure is drawn for "
+                          "all three whatever the subset, so a subset's camera has the same exposure as in the rig")
+
+    def relations(self) -> list[str]:
+        return [] if self.views else [f"views must be a non-empty subset of {list(CAMERA_NAMES)}, got []"]
+
+
 class Cameras(SensorWrapper):
     """Adds ``obs["cameras"] = {"left", "centre", "right"}``: three (H, W, 3) uint8 RGB windshield images (or the
-    subset named by ``views``).
-
-    Args (SI units; see :class:`CameraSpec`, :class:`Weather`, :class:`CameraNoise` for meanings and sources):
-        height, width: image size (px), default 66×200 (PilotNet input).
-        hfov_deg, pitch_deg: horizontal field of view and downward pitch (deg).
-        mount_height, forward_offset: lens height above ground and position ahead of the vehicle centre (m).
-        lateral_offset: side-camera offset d (m); left/centre/right sit at −d, 0, +d.
-        max_range: draw distance (m). supersample: internal resolution factor.
-        rate_hz: capture rate (Hz); ``None`` = every policy step. Between captures the last frames are held.
-        noise: ``True`` = :class:`CameraNoise` defaults, ``False`` = clean renders (bit-identical to
-            :func:`render_views`), or a :class:`CameraNoise` / mapping of its fields.
-        fog_visibility: fog visibility V (m), ``None`` = clear. night: night-time rendering.
-        weather: a full :class:`Weather`; overrides ``fog_visibility`` and ``night``.
-        views: which of left/centre/right to render (default all three). The per-episode exposure is drawn for all
-            three whatever the subset, so a subset's camera has the same exposure as in the full rig.
-    """
+    subset named by ``views``); parameters: :class:`CamerasParams`. From Python, ``noise`` may also be ``True``
+    (the defaults) or ``False`` (clean renders), and ``noise``/``weather`` instances."""
 
     key = "cameras"
+    Params = CamerasParams
 
-    def __init__(self, env: gym.Env, *, height: int = 66, width: int = 200, hfov_deg: float = 70.0,
-                 mount_height: float = 1.4, pitch_deg: float = 8.0, lateral_offset: float = WINDSHIELD_HALF_WIDTH,
-                 forward_offset: float = 0.5, max_range: float = 80.0, supersample: int = 2,
-                 rate_hz: float | None = None, noise: bool | CameraNoise | Mapping = True,
-                 fog_visibility: float | None = None, night: bool = False, weather: Weather | None = None,
-                 views: Sequence[str] = CAMERA_NAMES) -> None:
-        base = CameraSpec(height=int(height), width=int(width), hfov_deg=float(hfov_deg),
-                          mount_height=float(mount_height), pitch_deg=float(pitch_deg),
-                          forward_offset=float(forward_offset), max_range=float(max_range),
-                          supersample=int(supersample))
-        unknown = [v for v in views if v not in CAMERA_NAMES]
-        if unknown or not views:
-            raise ValueError(f"views must be a non-empty subset of {list(CAMERA_NAMES)}, got {list(views)}")
-        rig = camera_rig(base, float(lateral_offset))
-        self.specs = {name: rig[name] for name in CAMERA_NAMES if name in views}
-        self.weather = weather or Weather(fog_visibility=fog_visibility, night=bool(night))
-        if noise is True:
-            self.noise: CameraNoise | None = CameraNoise()
-        elif noise is False or noise is None:
-            self.noise = None
-        elif isinstance(noise, CameraNoise):
-            self.noise = noise
-        else:
-            self.noise = CameraNoise(**dict(noise))
-        if rate_hz is not None and not rate_hz > 0:
-            raise ValueError(f"rate_hz must be > 0 or None, got {rate_hz}")
-        self.rate_hz = rate_hz
+    def __init__(self, env: gym.Env, params: CamerasParams | None = None, **overrides) -> None:
+        if isinstance(overrides.get("noise"), bool):
+            overrides["noise"] = CameraNoise().as_dict() if overrides["noise"] else None
+        for key in ("noise", "weather"):  # sections given as instances: checked as their fields
+            if isinstance(overrides.get(key), Params):
+                overrides[key] = overrides[key].as_dict()
+        p = self.params = CamerasParams.build(params, **overrides)
+        base = CameraSpec(height=int(p.height), width=int(p.width), hfov_deg=float(p.hfov_deg),
+                          mount_height=float(p.mount_height), pitch_deg=float(p.pitch_deg),
+                          forward_offset=float(p.forward_offset), max_range=float(p.max_range),
+                          supersample=int(p.supersample))
+        rig = camera_rig(base, float(p.lateral_offset))
+        self.specs = {name: rig[name] for name in CAMERA_NAMES if name in p.views}
+        self.weather = p.weather or Weather(fog_visibility=p.fog_visibility, night=bool(p.night))
+        self.noise: CameraNoise | None = p.noise
+        self.rate_hz = p.rate_hz
         super().__init__(env)
         self._exposure = {name: (1.0, 0.0) for name in CAMERA_NAMES}  # name → (gain, offset)
         self._held: dict[str, np.ndarray] | None = None
@@ -1029,4 +1016,4 @@ class Cameras(SensorWrapper):
 
 
 __all__ = ["CAMERA_NAMES", "WINDSHIELD_HALF_WIDTH", "VEHICLE_HEIGHT", "CameraSpec", "Weather", "CameraNoise",
-           "Cameras", "StaticScene", "build_scene", "scene_of", "camera_rig", "render_view", "render_views"]
+           "Cameras", "CamerasParams", "StaticScene", "build_scene", "scene_of", "camera_rig", "render_view", "render_views"]
