@@ -79,18 +79,33 @@ def run_pair(seeds: list[int], horizon: int = HORIZON, action_seed: int = 0) -> 
             obs[b] = o["turn"]
             if not split[b] and (abs(r - reward[b]) > TOL or te != term[b] or tu != trunc[b]):
                 split[b] = f"t={0.1 * (k + 1):.1f}s: reward/termination {r, te, tu} vs {reward[b], term[b], trunc[b]}"
-            if not split[b] and info["truth"]["ttc"] != ttc_b[b]:  # the same grid time, or both +inf
+            # The same grid time, or both +inf; at a crash, highway-env's impact translation leaves the boxes
+            # exactly touching (separation ~2e-16 m), so 0 or one grid step (0.05 s) is float noise there.
+            d_ttc = abs(info["truth"]["ttc"] - ttc_b[b]) if np.isfinite(ttc_b[b]) else np.inf
+            if not split[b] and info["truth"]["ttc"] != ttc_b[b] and not (info["truth"]["collision"] and
+                                                                           d_ttc <= 0.05 + 1e-9):
                 split[b] = f"t={0.1 * (k + 1):.1f}s: ttc {info['truth']['ttc']} vs {ttc_b[b]}"
             done[b] |= te or tu
     return split
 
 
-def test_batched_matches_per_env_stack_for_5_s():
-    seeds = list(range(7000, 7024))
+def _check_identical(seeds: list[int], share: float) -> None:
     split = run_pair(seeds)
-    same = [s is None for s in split]
+    same = np.mean([s is None for s in split])
     report = "\n".join(f"seed {seed}: {s}" for seed, s in zip(seeds, split) if s)
-    assert np.mean(same) >= 0.95, f"{np.mean(same):.0%} identical; first split events:\n{report}"
+    assert same >= share, f"{same:.0%} identical; first split events:\n{report}"
+
+
+def test_batched_matches_per_env_stack_for_5_s():
+    """States, rewards, ends, obs["turn"] and TTC of 24 episodes: identical for 5 s in >= 95 % of them."""
+    _check_identical(list(range(7000, 7024)), 0.95)
+
+
+@pytest.mark.slow
+def test_batched_matches_per_env_stack_for_5_s_200_episodes():
+    """The issue's 200 episodes, >= 95 % identical for 5 s (measured: 195/200; the 5 others split on obs["turn"]'s
+    closest-approach ties, which float noise of 1e-15 m breaks, see docs/sim_speed.md)."""
+    _check_identical(list(range(7000, 7200)), 0.95)
 
 
 def test_batched_envs_are_independent_of_the_batch():
