@@ -4,7 +4,9 @@
 
 Env steps per CPU-second on one core (``time.process_time``: robust to other jobs sharing the cores; numpy's
 elementwise maths is single-threaded), both producing ``obs["turn"]`` (TurnFeatures, source=truth) every policy
-step, random meta-actions, episodes reset as they end (the batch through its auto-reset pool, as its VecEnv does).
+step, and the ego's constant-velocity TTC (``info["truth"]["ttc"]`` on the per-env stack, ``BatchedLeftTurn.ttc``
+on the batch: the episode metrics' min TTC), random meta-actions, episodes reset as they end (the batch through its
+auto-reset pool, as its VecEnv does).
 Per-env: ``UnprotectedLeftTurn-v0`` (``fast: true``) + ``TurnFeatures``, one env stepped in a loop (the per-env
 rate does not depend on how many are stepped one after the other). Memory per env: the batch's state arrays
 (bytes / B). Prints a markdown table and ``uptime``'s load average, and saves a plot.
@@ -54,6 +56,7 @@ def batched_rate(config: dict, B: int, seconds: float) -> tuple[float, float]:
     t0 = time.process_time()
     while time.process_time() - t0 < seconds:
         bt.step_autoreset(rng.integers(0, 3, B))
+        bt.ttc()  # the per-env stack computes info["truth"]["ttc"] every step too
         n += B
     rate = n / (time.process_time() - t0)
     return rate, bt.state_bytes() / B
