@@ -43,24 +43,7 @@ def optional(spec: Mapping) -> dict:
 
 
 # ------------------------------------------------------------------------------------------------ sensors
-EKF_NOISE = {k: "num >=0" for k in (
-    "accel_sigma", "gyro_sigma", "accel_bias_walk", "gyro_bias_walk", "accel_bias0", "gyro_bias0", "speed_walk",
-    "heading_walk", "position_walk", "gnss_sigma", "gnss_bias_sigma", "gnss_velocity_sigma",
-    "velocity_model_sigma", "odom_window_forward", "odom_window_lateral", "odom_window_yaw", "odom_drift",
-    "odom_yaw_drift", "odom_forward_sigma", "odom_lateral_sigma", "odom_yaw_rate_sigma")}
-EKF_NOISE.update(gnss_bias_tau="num >0", gate_prob="num (0,1)")
-MAP_MATCHER = {"sample_step": "num >0", "gate": "num >0", "max_range": "num >0", "kernel": "num >0",
-               "iterations": "int >=1", "min_inliers": "int >=1", "sigma_floor": "num >0", "inflation": "num >0",
-               "inlier_distance": "num >0", "min_fraction": "num [0,1]"}
-LOCALIZER = {"mode": ("gnss", "gnss_imu", "lidar", "fused"), "map_matching": "bool", "map_sigma": "num >=0",
-             "gnss_latency": "num >=0|null", "rear_axle": "num >=0|null", "noise": optional(EKF_NOISE),
-             "odometry": optional({"voxel_size": "num >0|null", "min_points": "int >=3", "max_deviation": "num >0",
-                                   "deskew": "bool|null"}),
-             "map_matcher": optional(MAP_MATCHER), "odometry_update": ("relative_pose", "velocity"),
-             "odom_window": "int >=1", "reinit_after_s": "num >0", "max_position_std": "num >0",
-             "init_min_speed": "num >=0", "search_above_std": "num >=0", "relocalize_after": "int >=1",
-             "ambiguity_margin": "num [0,1]"}
-SENSORS = {"localizer": LOCALIZER}
+SENSORS: dict = {}  # every sensor and estimator has typed Params now (_sensor_params checks those)
 """Sensor key → its wrapper's keyword arguments (all optional: the wrappers have defaults)."""
 
 

@@ -112,7 +112,7 @@ def time_pipeline(scenario: str, scans: int, map_matching: bool) -> list[float]:
                                             "imu": _conf("sensor", "imu"), "lidar": _conf("sensor", "lidar")},
                    record_metrics=False)
     obs, info = env.reset(seed=0)
-    pipe = LocalizationPipeline("fused", map_matching=map_matching)
+    pipe = LocalizationPipeline(mode="fused", map_matching=map_matching)
     pipe.reset(env, obs, np.random.default_rng(0))
     pid = PIDSteering()
     for _ in range(scans):

@@ -38,10 +38,10 @@ from av_gym.metrics.stats import markdown_table
 from eval.runner import run_episodes
 
 MODES = [  # key, label, LocalizationPipeline kwargs
-    ("gnss", "GNSS only (raw)", {"mode": "gnss"}),
-    ("gnss_imu", "GNSS+IMU (EKF)", {"mode": "gnss_imu"}),
-    ("lidar", "LiDAR odometry only", {"mode": "lidar"}),
-    ("fused", "GNSS+IMU+LiDAR odometry", {"mode": "fused"}),
+    ("gnss", "GNSS only (raw)", {"mode": "gnss", "map_matching": False}),
+    ("gnss_imu", "GNSS+IMU (EKF)", {"mode": "gnss_imu", "map_matching": False}),
+    ("lidar", "LiDAR odometry only", {"mode": "lidar", "map_matching": False}),
+    ("fused", "GNSS+IMU+LiDAR odometry", {"mode": "fused", "map_matching": False}),
     ("fused_map", "GNSS+IMU+LiDAR odometry+map", {"mode": "fused", "map_matching": True}),
 ]
 OUTAGES = {"lane_keeping": [[10.0, 30.0]], "left_turn": [[2.0, 22.0]]}
@@ -155,9 +155,9 @@ def open_loop_rows(scenario: str, seed: int, outage: bool, run: dict) -> list[di
 # ----------------------------------------------------------------------------------------------- closed loop
 CLOSED_LOOP = [  # label, localizer config (None = PID on the true CTE)
     ("PID on true CTE (pid_paper)", None),
-    ("PID on raw GNSS (pid_gnss)", {"mode": "gnss"}),
-    ("PID on GNSS+IMU", {"mode": "gnss_imu"}),
-    ("PID on GNSS+IMU+LiDAR odometry", {"mode": "fused"}),
+    ("PID on raw GNSS (pid_gnss)", {"mode": "gnss", "map_matching": False}),
+    ("PID on GNSS+IMU", {"mode": "gnss_imu", "map_matching": False}),
+    ("PID on GNSS+IMU+LiDAR odometry", {"mode": "fused", "map_matching": False}),
     ("PID on GNSS+IMU+LiDAR+map (pid_localized)", {"mode": "fused", "map_matching": True}),
 ]
 

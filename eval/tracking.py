@@ -30,8 +30,9 @@ def run(miss_rate: float, burst_length: float | None, episodes: int, seed: int, 
     from av_gym.make import make_env
     from av_gym.metrics.tracking import TrackingScore
     from av_gym.sensors.base import ego_pose, others_state, sim_time
+    from av_gym.sensors.detector import DetectorParams
 
-    det_cfg = yaml.safe_load((resources.files("conf") / "sensor" / "detector.yaml").read_text())
+    det_cfg = DetectorParams().as_dict()  # the detector's defaults (sensors.detector)
     det_cfg.update(detector_overrides, miss_rate=miss_rate, burst_length=burst_length, frame="world")
     sensors = {"name": "detector", "keep_state": True, "detector": det_cfg}
     env_cfg = {"name": "left_turn"}  # every other field: its Params default
@@ -103,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     cmd = "python -m eval.tracking " + " ".join(argv if argv is not None else sys.argv[1:])
     (out / "tracking.md").write_text(
         f"# Tracking before/after the Kalman tracker\n\n`{cmd}`: {a.episodes} traffic episodes from seed {a.seed} "
-        f"(always-proceed ego, detector defaults of conf/sensor/detector.yaml: 60 m range, σ = 0.3 m + 0.01·r, "
+        f"(always-proceed ego, detector defaults (DetectorParams): 60 m range, σ = 0.3 m + 0.01·r, "
         f"clutter 0.2/frame, occlusion on), misses bursty with mean run {a.burst_length:g} frames; tracker as in "
         f"conf/shield/aeb.yaml. Scored every 0.1 s against the true vehicles within range, Hungarian matching, "
         f"2 m gate. Wall time {time.time() - t_start:.0f} s.\n\n{table}\n")

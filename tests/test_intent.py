@@ -105,7 +105,7 @@ def test_perceived_intent_is_read_off_tracks():
 def test_turn_signal_rates_are_checked():
     from av_gym.errors import ConfigError
 
-    with pytest.raises(ConfigError, match="sensors.turn_signals.miss_rate must be in"):
+    with pytest.raises(ConfigError, match=r"sensors.turn_signals.miss_rate must be a number in \[0, 1\], got 1.5"):
         _env(miss_rate=1.5)
 
 

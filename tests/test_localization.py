@@ -358,7 +358,7 @@ def lap_run():
     obs, info = env.reset(seed=3)
     modes = {"gnss": {"mode": "gnss"}, "gnss_imu": {"mode": "gnss_imu"}, "lidar": {"mode": "lidar"},
              "fused": {"mode": "fused"}, "fused_map": {"mode": "fused", "map_matching": True}}
-    pipes = {k: LocalizationPipeline(**kw) for k, kw in modes.items()}
+    pipes = {k: LocalizationPipeline(**{"map_matching": False, **kw}) for k, kw in modes.items()}
     est = {k: [p.reset(env, obs, np.random.default_rng(3))[0]] for k, p in pipes.items()}
     truth, pid = [info["truth"]], PIDSteering()
     for _ in range(250):
@@ -406,7 +406,8 @@ def test_lidar_odometry_alone_follows_the_shape_of_the_path(lap_run):
 
 
 def localized_env(localizer=None, outage=None):
-    return make_env(conf("env", "lane_keeping"), lap_sensors(outage, localizer or {"mode": "fused"}),
+    return make_env(conf("env", "lane_keeping"),
+                    lap_sensors(outage, {"map_matching": False, **(localizer or {"mode": "fused"})}),
                     record_metrics=False)
 
 

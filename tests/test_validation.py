@@ -4,8 +4,6 @@ wrappers'. In-process and fast; the command-line behaviour (one line, exit 2, no
 
 from __future__ import annotations
 
-import dataclasses
-import inspect
 from importlib import resources
 
 import pytest
@@ -136,25 +134,6 @@ def test_a_sweep_is_checked_value_by_value():
 
 def test_hydra_options_are_left_to_hydra():
     assert check_command_line("train", ["--cfg", "job"]) == []
-
-
-# ------------------------------------------------------------------------------------------------ schema vs code
-def kwargs_of(cls) -> set[str]:
-    return {p for p in inspect.signature(cls.__init__).parameters if p not in ("self", "env")}
-
-
-def test_schema_tables_match_the_classes_they_describe():
-    from agents.aeb import AEBShield, BrakeActuator
-    from av_gym.estimation.ekf import EKFNoise
-    from av_gym.estimation.lidar_odometry import MapMatcher
-    from av_gym.estimation.localization import Localizer
-
-    fields = lambda dc: {f.name for f in dataclasses.fields(dc)}  # noqa: E731
-    assert set(schema.LOCALIZER) == kwargs_of(Localizer)
-    assert set(schema.AEB) == kwargs_of(AEBShield)
-    assert set(schema.MAP_MATCHER) == kwargs_of(MapMatcher) - {"segments", "circles"}  # the map, not settings
-    assert set(schema.EKF_NOISE) == fields(EKFNoise)
-    assert set(schema.BRAKE) == fields(BrakeActuator)
 
 
 def test_pilotnet_weights_load_without_unpickling_code(monkeypatch):

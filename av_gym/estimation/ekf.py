@@ -64,6 +64,8 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 from scipy.stats import chi2
 
+from av_gym.params import Params, param
+
 PX, PY, PSI, V, BW, BA, GX, GY, CX, CY, CPSI = range(11)
 DIM_X = 11
 STATE_NAMES = ("p_x", "p_y", "psi", "v", "b_gyro", "b_accel", "gnss_bias_x", "gnss_bias_y", "clone_x", "clone_y",
@@ -75,67 +77,46 @@ def wrap(angle):
     return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
 
 
-@dataclass
-class EKFNoise:
-    """Noise model of the filter (standard deviations; sources in brackets; "our choice" = tuned on laps of
-    seeds 0–2, never on the evaluation seeds).
+@dataclass(frozen=True)
+class EKFNoise(Params):
+    """Noise model of the filter (standard deviations); "our choice" = tuned on laps of seeds 0-2, never on the
+    evaluation seeds. The IMU and GNSS values match the sensors' defaults (IMUParams, GNSSParams). The model
+    error terms cover what is not a state: the 1 % IMU scale-factor error and the bicycle model's longitudinal/total
+    speed mismatch. Per-scan odometry errors are anti-correlated (scan-to-map registration undoes the last scan's
+    error), so the chained odometry drifts far less than the per-scan values suggest."""
 
-    IMU (defaults = conf/sensor/imu.yaml, av_gym/sensors/imu.py; digest 002 §4.2 suggestions):
-        accel_sigma 0.05 m/s², gyro_sigma 0.01 rad/s: white noise per IMU sample.
-        accel_bias_walk 0.002 m/s²/√s, gyro_bias_walk 1e-4 rad/s/√s: bias random walks.
-        accel_bias0 0.05 m/s², gyro_bias0 0.005 rad/s: initial bias std (per-episode bias).
-    Model error (our choice): the 1 % IMU scale-factor error and the bicycle model's longitudinal/total speed
-        mismatch are not states, so they enter as extra random walks:
-        speed_walk 0.05 m/s/√s, heading_walk 0.003 rad/√s, position_walk 0.02 m/√s.
-    GNSS (defaults = conf/sensor/gnss.yaml; digest 000 §5.1 / 002 §4.2):
-        gnss_sigma 1.5 m white per axis; gnss_bias_sigma 0.5 m and gnss_bias_tau 30 s (Gauss–Markov bias);
-        gnss_velocity_sigma 0.1 m/s (Doppler) plus velocity_model_sigma 0.05 m/s for the latency
-        back-propagation error.
-    LiDAR odometry over a window (relative-pose form; our choice, from kiss-icp against truth on the same laps:
-        10-scan windows std 6.8 cm forward, 1.6 cm lateral, 0.001 rad): odom_window_forward 0.07 m,
-        odom_window_lateral 0.02 m, odom_window_yaw 0.001 rad, each plus odom_drift (0.002, the thesis's
-        0.2 %, digest 002 §3.5) times the window's length in m (rad/m for the yaw: odom_yaw_drift 1e-4).
-    LiDAR odometry per scan (velocity form; our choice, from the spread of kiss-icp increments against truth over
-        2 laps and 2 left turns, seeds 0 and 2: std 0.44 / 0.13 / 0.0067 on the lap, 0.39 / 0.16 / 0.0030 at the
-        turn, heavy-tailed):
-        odom_forward_sigma 0.5 m/s, odom_lateral_sigma 0.15 m/s (digest 002 §6.5: 0.1), odom_yaw_rate_sigma
-        0.008 rad/s (digest 002 §6.5: 0.003). Per-scan errors are anti-correlated (scan-to-map registration
-        undoes the last scan's error), so the chained odometry drifts far less than these suggest.
-    Gating: gate_prob 0.999, the χ² quantile per measurement dimension [our choice].
-    """
-
-    accel_sigma: float = 0.05
-    gyro_sigma: float = 0.01
-    accel_bias_walk: float = 0.002
-    gyro_bias_walk: float = 1e-4
-    accel_bias0: float = 0.05
-    gyro_bias0: float = 0.005
-    speed_walk: float = 0.05
-    heading_walk: float = 0.003
-    position_walk: float = 0.02
-    gnss_sigma: float = 1.5
-    gnss_bias_sigma: float = 0.5
-    gnss_bias_tau: float = 30.0
-    gnss_velocity_sigma: float = 0.1
-    velocity_model_sigma: float = 0.05
-    odom_window_forward: float = 0.07
-    odom_window_lateral: float = 0.02
-    odom_window_yaw: float = 0.001
-    odom_drift: float = 0.002
-    odom_yaw_drift: float = 1e-4
-    odom_forward_sigma: float = 0.5
-    odom_lateral_sigma: float = 0.15
-    odom_yaw_rate_sigma: float = 0.008
-    gate_prob: float = 0.999
-
-    def __post_init__(self) -> None:
-        for name, value in vars(self).items():
-            if not (np.isfinite(value) and value >= 0):
-                raise ValueError(f"EKF noise {name} must be a finite number >= 0, got {value!r}")
-        if not self.gnss_bias_tau > 0:
-            raise ValueError(f"EKF noise gnss_bias_tau must be > 0, got {self.gnss_bias_tau}")
-        if not 0 < self.gate_prob < 1:
-            raise ValueError(f"EKF gate_prob must be in (0, 1), got {self.gate_prob}")
+    accel_sigma: float = param(0.05, "m/s²", ge=0, doc="white noise per IMU sample (the IMU's; digest 002 §4.2)")
+    gyro_sigma: float = param(0.01, "rad/s", ge=0, doc="white noise per IMU sample (the IMU's)")
+    accel_bias_walk: float = param(0.002, "m/s²/√s", ge=0, doc="accelerometer bias random walk (the IMU's)")
+    gyro_bias_walk: float = param(1e-4, "rad/s/√s", ge=0, doc="gyro bias random walk (the IMU's)")
+    accel_bias0: float = param(0.05, "m/s²", ge=0, doc="initial accelerometer bias std (the IMU's per-episode bias)")
+    gyro_bias0: float = param(0.005, "rad/s", ge=0, doc="initial gyro bias std (the IMU's per-episode bias)")
+    speed_walk: float = param(0.05, "m/s/√s", ge=0, doc="model error as a random walk (our choice)")
+    heading_walk: float = param(0.003, "rad/√s", ge=0, doc="model error as a random walk (our choice)")
+    position_walk: float = param(0.02, "m/√s", ge=0, doc="model error as a random walk (our choice)")
+    gnss_sigma: float = param(1.5, "m", ge=0, doc="GNSS white noise per axis (the GNSS's; digest 000 §5.1)")
+    gnss_bias_sigma: float = param(0.5, "m", ge=0, doc="GNSS Gauss-Markov bias, stationary std (the GNSS's)")
+    gnss_bias_tau: float = param(30.0, "s", gt=0, doc="GNSS bias correlation time (the GNSS's)")
+    gnss_velocity_sigma: float = param(0.1, "m/s", ge=0, doc="Doppler velocity noise (the GNSS's)")
+    velocity_model_sigma: float = param(0.05, "m/s", ge=0, doc="added to the GNSS velocity for the latency "
+                                                              "back-propagation error (our choice)")
+    odom_window_forward: float = param(0.07, "m", ge=0, doc="relative-pose odometry over a window, forward (kiss-icp "
+                                                           "against truth on the tuning laps: 10-scan windows std "
+                                                           "6.8 cm)")
+    odom_window_lateral: float = param(0.02, "m", ge=0, doc="... lateral (measured 1.6 cm)")
+    odom_window_yaw: float = param(0.001, "rad", ge=0, doc="... yaw (measured 0.001 rad)")
+    odom_drift: float = param(0.002, "m/m", ge=0, doc="plus this times the window's length (the thesis's 0.2 %, "
+                                                     "digest 002 §3.5)")
+    odom_yaw_drift: float = param(1e-4, "rad/m", ge=0, doc="yaw drift per metre of the window")
+    odom_forward_sigma: float = param(0.5, "m/s", ge=0, doc="per-scan (velocity form) odometry, forward (kiss-icp "
+                                                           "increments against truth over 2 laps and 2 left turns: "
+                                                           "std 0.44 on the lap, 0.39 at the turn, heavy-tailed)")
+    odom_lateral_sigma: float = param(0.15, "m/s", ge=0, doc="... lateral (measured 0.13 / 0.16; digest 002 §6.5: "
+                                                            "0.1)")
+    odom_yaw_rate_sigma: float = param(0.008, "rad/s", ge=0, doc="... yaw rate (measured 0.0067 / 0.0030; digest "
+                                                                "002 §6.5: 0.003)")
+    gate_prob: float = param(0.999, gt=0, lt=1, doc="the chi² quantile of the innovation gate per measurement "
+                                                   "dimension (our choice)")
 
 
 @dataclass

@@ -10,32 +10,41 @@ source can be run on the other and both train without running observation normal
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Literal
+
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
 from av_gym.envs.base import ego_kinematics
 from av_gym.envs.observations import LaneKeepingState
+from av_gym.errors import ConfigError
+from av_gym.params import Params, param
 from av_gym.sensors.base import SensorWrapper
 
-SOURCES = ("truth", "estimate")
+@dataclass(frozen=True)
+class LaneFeaturesParams(Params):
+    source: Literal["truth", "estimate"] = param("estimate", doc="estimate (obs['ego_estimate'], the localizer's) "
+                                                                "or truth (the simulator's lane state)")
 
 
 class LaneFeatures(SensorWrapper):
     """Adds ``obs["lane"]``: :data:`LaneKeepingState.FEATURES` divided by :data:`LaneKeepingState.HIGH`
-    (``Box(-1, 1, (10,))``). Parameters (config ``sensors.lane_features``): ``source`` (``truth`` | ``estimate``).
-    Yaw rate and steering angle are the car's own signals in both sources (a car reads them off its CAN bus)."""
+    (``Box(-1, 1, (10,))``). Parameters: :class:`LaneFeaturesParams`. Yaw rate and steering angle are the car's
+    own signals in both sources (a car reads them off its CAN bus)."""
 
     key = "lane"
+    Params = LaneFeaturesParams
 
-    def __init__(self, env: gym.Env, source: str = "estimate") -> None:
-        if source not in SOURCES:
-            raise ValueError(f"sensors.lane_features.source must be one of {list(SOURCES)}, got {source!r}")
+    def __init__(self, env: gym.Env, params: LaneFeaturesParams | None = None, **overrides) -> None:
+        p = self.params = LaneFeaturesParams.build(params, **overrides)
+        source = p.source
         if env.unwrapped.scenario != "lane_keeping":
-            raise ValueError(f"sensors.lane_features is for env=lane_keeping, not env={env.unwrapped.scenario}")
+            raise ConfigError(f"sensors.lane_features is for env=lane_keeping, not env={env.unwrapped.scenario}")
         if source == "estimate" and "ego_estimate" not in env.observation_space.spaces:
-            raise ValueError("sensors.lane_features.source=estimate needs the localizer below it "
-                             "(`localizer:` in the sensors preset)")
+            raise ConfigError("sensors.lane_features.source=estimate needs the localizer below it "
+                              "(`localizer:` in the sensors preset)")
         self.source = source
         super().__init__(env)
 

@@ -44,6 +44,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from av_gym.params import Params, param
+
 KISS_ICP_VERSION = "1.3.0"
 """The version the guards above were verified against (``last_delta`` is public but internal, digest 002 §6.3)."""
 
@@ -102,34 +104,43 @@ def check_transform(T, name: str = "prior", tol: float = 1e-3) -> np.ndarray:
     return out
 
 
+@dataclass(frozen=True)
+class OdometryParams(Params):
+    """The kiss-icp odometry settings a config may change (the localizer's ``odometry`` section); the range filter
+    comes from the LiDAR."""
+
+    voxel_size: float | None = param(None, "m", gt=0, doc="null = kiss-icp's loader default max_range / 100 (1 m "
+                                                          "at 100 m; digest 002 §6.3). 0.5 and 0.75 m were tried on "
+                                                          "two laps and were no better")
+    min_points: int = param(30, ge=3, doc="scans with fewer valid points are not registered (our choice)")
+    max_deviation: float = param(3.0, "m", gt=0, doc="a result further than this from the motion prior is a "
+                                                    "failure and restarts the map (our choice: 3 lane widths' worth "
+                                                    "of scan at 10 Hz would need 30 m/s of prior error)")
+    deskew: bool | None = param(None, doc="undo motion distortion from per-point times (digest 002 §6.4); null = "
+                                          "the LiDAR's deskew_poses (it casts every beam from the scan pose "
+                                          "otherwise)")
+
+
 class LidarOdometry:
     """kiss-icp scan-to-map odometry behind input validation.
 
     Parameters (keyword only; source in brackets):
         max_range, min_range: m, kiss-icp's range filter; match the sensor's. Defaults 100 / 0.5 [the LiDAR's,
-            conf/sensor/lidar.yaml].
-        voxel_size: m; ``None`` = kiss-icp's loader default ``max_range / 100`` (1 m at 100 m) [digest 002 §6.3:
-            build the config with ``load_config``, a bare ``KISSConfig`` crashes]. 0.5 and 0.75 m were tried on
-            two laps and were no better.
+            LidarParams].
+        voxel_size, min_points, max_deviation: see :class:`OdometryParams` (build the kiss-icp config with
+            ``load_config``: a bare ``KISSConfig`` crashes, digest 002 §6.3).
         deskew: undo motion distortion from per-point times [digest 002 §6.4]. Default False: the simulated LiDAR
             casts every beam from the scan pose unless ``deskew_poses`` is on.
-        min_points: scans with fewer valid points are not registered (``ok=False``). Default 30 [our choice].
-        max_deviation: m; a result further than this from the motion prior is a failure and restarts the map.
-            Default 3.0 [our choice: 3 lane widths' worth of scan at 10 Hz would need 30 m/s of prior error].
         max_threads: kiss-icp registration threads. Default 1: deterministic sums and polite on shared cores.
     """
 
-    def __init__(self, *, max_range: float = 100.0, min_range: float = 0.5, voxel_size: float | None = None,
-                 deskew: bool = False, min_points: int = 30, max_deviation: float = 3.0,
+    def __init__(self, *, max_range: float = 100.0, min_range: float = 0.5,
+                 voxel_size: float | None = OdometryParams.voxel_size, deskew: bool = False,
+                 min_points: int = OdometryParams.min_points, max_deviation: float = OdometryParams.max_deviation,
                  max_threads: int = 1) -> None:
         if not 0 <= min_range < max_range < np.inf:
             raise ValueError(f"odometry needs 0 <= min_range < max_range < inf, got {min_range}, {max_range}")
-        if voxel_size is not None and not voxel_size > 0:
-            raise ValueError(f"odometry voxel_size must be > 0, got {voxel_size}")
-        if min_points < 3:
-            raise ValueError(f"odometry min_points must be >= 3, got {min_points}")
-        if not max_deviation > 0:
-            raise ValueError(f"odometry max_deviation must be > 0, got {max_deviation}")
+        OdometryParams(voxel_size=voxel_size, min_points=min_points, max_deviation=max_deviation)  # the checks
         self.max_range, self.min_range = float(max_range), float(min_range)
         self.voxel_size = voxel_size
         self.deskew = bool(deskew)
@@ -306,6 +317,26 @@ class MapMatch:
     fraction: float = 0.0
 
 
+@dataclass(frozen=True)
+class MapMatcherParams(Params):
+    """:class:`MapMatcher`'s settings (the localizer's ``map_matcher`` section); our choices unless noted."""
+
+    sample_step: float = param(0.25, "m", gt=0, doc="map primitives are sampled this often for the KD-tree")
+    gate: float = param(1.0, "m", gt=0, doc="pairs further apart are dropped (vehicles, unmapped clutter); 0.5 m "
+                                            "after the first two iterations")
+    max_range: float = param(60.0, "m", gt=0, doc="scan points farther out are not matched")
+    kernel: float = param(0.1, "m", gt=0, doc="Geman-McClure kernel scale σ_k (kiss-icp's kernel, digest 002 §6.3)")
+    iterations: int = param(8, ge=1, doc="Gauss-Newton iterations")
+    min_inliers: int = param(40, ge=1, doc="fewer correspondences: no match")
+    sigma_floor: float = param(0.02, "m", gt=0, doc="floor of the weighted RMS residual σ̂ in the covariance")
+    inflation: float = param(25.0, gt=0, doc="covariance = inflation·σ̂²(JᵀWJ)⁻¹: 25 = 5² in standard deviation, "
+                                             "for the residuals of one scan not being independent (map survey "
+                                             "errors are shared by every point on an object)")
+    inlier_distance: float = param(0.2, "m", gt=0, doc="a point this close to the map counts as fitting")
+    min_fraction: float = param(0.5, ge=0, le=1, doc="a solution with fewer of the scan's points fitting is refused "
+                                                     "(a wrong basin, or a scan mostly of unmapped vehicles)")
+
+
 class MapMatcher:
     """2-D point-to-line / point-to-circle ICP of a planar scan against a prior map of walls and cylinders.
 
@@ -326,16 +357,18 @@ class MapMatcher:
     wrong basin, or a scan mostly of unmapped vehicles); :meth:`search` finds the right basin from a poor guess.
     """
 
-    def __init__(self, segments: np.ndarray, circles: np.ndarray, *, sample_step: float = 0.25,
-                 gate: float = 1.0, max_range: float = 60.0, kernel: float = 0.1, iterations: int = 8,
-                 min_inliers: int = 40, sigma_floor: float = 0.02, inflation: float = 25.0,
-                 inlier_distance: float = 0.2, min_fraction: float = 0.5) -> None:
+    Params = MapMatcherParams
+
+    def __init__(self, segments: np.ndarray, circles: np.ndarray, params: MapMatcherParams | None = None,
+                 **overrides) -> None:
+        p = self.params = MapMatcherParams.build(params, **overrides)
+        sample_step = p.sample_step
         self.segments = np.asarray(segments, dtype=float).reshape(-1, 4)
         self.circles = np.asarray(circles, dtype=float).reshape(-1, 3)
-        self.gate, self.max_range, self.kernel = float(gate), float(max_range), float(kernel)
-        self.iterations, self.min_inliers = int(iterations), int(min_inliers)
-        self.sigma_floor, self.inflation = float(sigma_floor), float(inflation)
-        self.inlier_distance, self.min_fraction = float(inlier_distance), float(min_fraction)
+        self.gate, self.max_range, self.kernel = float(p.gate), float(p.max_range), float(p.kernel)
+        self.iterations, self.min_inliers = int(p.iterations), int(p.min_inliers)
+        self.sigma_floor, self.inflation = float(p.sigma_floor), float(p.inflation)
+        self.inlier_distance, self.min_fraction = float(p.inlier_distance), float(p.min_fraction)
         samples, ids = [], []
         for i, (x0, y0, x1, y1) in enumerate(self.segments):
             n = max(2, int(np.ceil(np.hypot(x1 - x0, y1 - y0) / sample_step)) + 1)

@@ -7,46 +7,57 @@ shield in perceived mode builds its own detector and tracker, like a car's AEB h
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from av_gym.estimation.tracker import MultiObjectTracker
+from av_gym.errors import ConfigError
+from av_gym.estimation.tracker import MultiObjectTracker, TrackerParams, TrackingModel
+from av_gym.params import ParamError, param
 from av_gym.sensors.base import SensorWrapper, ego_pose, find_wrapper, sim_time
 
 FIELDS = ("present", "x", "y", "vx", "vy", "heading", "length", "width")
 BOUND = 1e4
 
 
+@dataclass(frozen=True)
+class ObjectTrackerParams(TrackingModel):
+    """:class:`ObjectTracker`'s parameters: the tracker's model (:class:`~av_gym.estimation.tracker.TrackingModel`),
+    the rows of the observation, and the measurement noise, which defaults to the detector's own error model."""
+
+    max_tracks: int = param(16, ge=1, doc="rows of obs['tracks']")
+    sigma_pos0: float | None = param(None, "m", gt=0, doc="position noise at zero range; null = the detector's")
+    sigma_pos_k: float | None = param(None, "m/m", ge=0, doc="position noise growth per metre of range; null = the "
+                                                             "detector's")
+    sigma_vel: float | None = param(None, "m/s", gt=0, doc="velocity noise; null = the detector's")
+
+
 class ObjectTracker(SensorWrapper):
     """Adds ``obs["tracks"]``: ``Box(max_tracks, 8)`` rows ``[present, x, y, vx, vy, heading, length, width]``
-    (world frame, m, m/s, rad), confirmed tracks nearest the ego first, zero rows unused.
-
-    Parameters (config ``sensors.tracker``): ``max_tracks`` (rows, default 16) and any keyword of
-    :class:`~av_gym.estimation.tracker.MultiObjectTracker` (``sigma_acc``, ``min_hits``, ``max_coast``, ...). The
-    tracker's measurement noise defaults to the detector's own error model, read from the detector wrapper below.
-    Needs a ``detector`` with ``frame: world`` below it in the stack."""
+    (world frame, m, m/s, rad), confirmed tracks nearest the ego first, zero rows unused. Parameters:
+    :class:`ObjectTrackerParams`. Needs a ``detector`` with ``frame: world`` below it in the stack."""
 
     key = "tracks"
+    Params = ObjectTrackerParams
 
-    def __init__(self, env: gym.Env, max_tracks: int = 16, **tracker) -> None:
-        if int(max_tracks) < 1:
-            raise ValueError(f"sensors.tracker.max_tracks must be >= 1, got {max_tracks}")
+    def __init__(self, env: gym.Env, params: ObjectTrackerParams | None = None, **overrides) -> None:
+        p = self.params = ObjectTrackerParams.build(params, **overrides)
         detector = _find_detector(env)
         if detector is None:
-            raise ValueError("sensors.tracker needs a detector below it (add `detector:` to the sensors preset)")
+            raise ConfigError("sensors.tracker needs a detector below it (add `detector:` to the sensors preset)")
         if detector.frame != "world":
-            raise ValueError(f"sensors.tracker needs sensors.detector.frame=world, got {detector.frame!r}")
+            raise ConfigError(f"sensors.tracker needs sensors.detector.frame=world, got {detector.frame!r}")
         # The detector's error model is the tracker's R, unless the config says otherwise.
-        noise = {"sigma_pos0": detector.sigma_pos0, "sigma_pos_k": detector.sigma_pos_k,
-                 "sigma_vel": detector.sigma_vel}
+        noise = {name: getattr(detector, name) if getattr(p, name) is None else getattr(p, name)
+                 for name in ("sigma_pos0", "sigma_pos_k", "sigma_vel")}
+        model = {name: getattr(p, name) for name in TrackingModel.field_names()}
         try:
-            self.tracker = MultiObjectTracker(**{**noise, **tracker})
-        except TypeError as exc:
-            raise ValueError(f"sensors.tracker: {exc}") from None
-        except ValueError as exc:
-            raise ValueError(f"sensors.{exc}") from None
-        self.max_tracks = int(max_tracks)
+            self.tracker = MultiObjectTracker(TrackerParams(**model, **noise))
+        except ParamError as exc:
+            raise ParamError(f"{exc} (the detector's, the tracker's measurement noise unless set here)") from None
+        self.max_tracks = int(p.max_tracks)
         super().__init__(env)
         self._last = np.zeros((self.max_tracks, len(FIELDS)), dtype=np.float32)
 

@@ -26,13 +26,17 @@ observation normalisation is needed) and clipped:
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Literal
+
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from av_gym.errors import ConfigError
+from av_gym.params import Params, param
 from av_gym.sensors.base import SensorWrapper, find_wrapper, sim_time
 
-SOURCES = ("truth", "tracks")
 EGO_FEATURES = ("speed", "set_point", "to_stop_line", "to_conflict", "time")
 OBJECT_FEATURES = ("present", "fwd", "left", "dv_fwd", "dv_left", "cx", "cy", "vx", "vy", "t_star", "miss",
                    "path_s")
@@ -40,27 +44,32 @@ PATH_STEP = 2.0  # m between the points of the ego's path through the intersecti
 T_MAX = 10.0  # s, horizon of the closest-approach time
 
 
+@dataclass(frozen=True)
+class TurnFeaturesParams(Params):
+    source: Literal["truth", "tracks"] = param("truth", doc="the objects described: truth (the simulator's "
+                                                            "vehicles, privileged) or tracks (obs['tracks'] from the "
+                                                            "tracker, perceived)")
+    max_objects: int = param(8, ge=1, doc="nearest objects described (12 features each)")
+    max_range: float = param(80.0, "m", gt=0, doc="objects farther from the ego are left out (a 60 km/h car 5 s "
+                                                  "away is ~80 m out)")
+    time_scale: float = param(20.0, "s", gt=0, doc="elapsed time is divided by this (the traffic episode length)")
+
+
 class TurnFeatures(SensorWrapper):
-    """Adds ``obs["turn"]`` (see the module docstring). Parameters (config ``sensors.turn_features``):
-    ``source`` (``truth`` | ``tracks``), ``max_objects`` (default 8), ``max_range`` (m, objects farther from the
-    ego are left out; default 80), ``time_scale`` (s, default 20: the traffic episode length)."""
+    """Adds ``obs["turn"]`` (see the module docstring); parameters: :class:`TurnFeaturesParams`."""
 
     key = "turn"
+    Params = TurnFeaturesParams
 
-    def __init__(self, env: gym.Env, source: str = "truth", max_objects: int = 8, max_range: float = 80.0,
-                 time_scale: float = 20.0) -> None:
-        if source not in SOURCES:
-            raise ValueError(f"sensors.turn_features.source must be one of {list(SOURCES)}, got {source!r}")
+    def __init__(self, env: gym.Env, params: TurnFeaturesParams | None = None, **overrides) -> None:
+        p = self.params = TurnFeaturesParams.build(params, **overrides)
         if env.unwrapped.scenario != "left_turn":
-            raise ValueError(f"sensors.turn_features is for env=left_turn, not env={env.unwrapped.scenario}")
-        for name, value in (("max_objects", max_objects), ("max_range", max_range), ("time_scale", time_scale)):
-            if not value > 0:
-                raise ValueError(f"sensors.turn_features.{name} must be > 0, got {value}")
-        if source == "tracks" and "tracks" not in env.observation_space.spaces:
-            raise ValueError("sensors.turn_features.source=tracks needs a tracker below it (`tracker:` in the "
-                             "sensors preset, after `detector:`)")
-        self.source, self.max_objects = source, int(max_objects)
-        self.max_range, self.time_scale = float(max_range), float(time_scale)
+            raise ConfigError(f"sensors.turn_features is for env=left_turn, not env={env.unwrapped.scenario}")
+        if p.source == "tracks" and "tracks" not in env.observation_space.spaces:
+            raise ConfigError("sensors.turn_features.source=tracks needs a tracker below it (`tracker:` in the "
+                              "sensors preset, after `detector:`)")
+        self.source, self.max_objects = p.source, int(p.max_objects)
+        self.max_range, self.time_scale = float(p.max_range), float(p.time_scale)
         super().__init__(env)
         from av_gym.envs.left_turn import CONFLICT_POINT
 
@@ -146,6 +155,13 @@ INTENT_FEATURES = ("acc", "signal")
 ACC_SCALE = 5.0  # m/s², a firm brake; IDM drivers here brake at up to ~5 m/s² and accelerate at up to 3 m/s²
 
 
+@dataclass(frozen=True)
+class TurnIntentParams(Params):
+    history: float = param(0.5, "s", gt=0, doc="the object's velocity now against its velocity this long ago")
+    gate: float = param(2.0, "m", gt=0, doc="the object then is the one within this of where it is now, moved back")
+    signal_gate: float = param(3.0, "m", gt=0, doc="a turn-signal reading belongs to the object this close to it")
+
+
 class TurnIntent(SensorWrapper):
     """Adds ``obs["intent"]``: ``Box(-1, 1, (max_objects, 2))``, one row per object of ``obs["turn"]`` in the same
     order (zero rows where ``obs["turn"]`` has none): what the other drivers are about to do, from sensors a car has.
@@ -159,18 +175,18 @@ class TurnIntent(SensorWrapper):
       :class:`av_gym.sensors.turn_signal.TurnSignals`) reads on the vehicle at the object's position (within
       ``signal_gate`` m): +1 left, -1 right, 0 none (or no reading, or no turn-signal sensor in the stack).
 
-    Stack it after ``turn_features`` (config ``sensors.turn_intent``)."""
+    Stack it after ``turn_features`` (config ``sensors.turn_intent``); parameters: :class:`TurnIntentParams`."""
 
     key = "intent"
+    Params = TurnIntentParams
 
-    def __init__(self, env: gym.Env, history: float = 0.5, gate: float = 2.0, signal_gate: float = 3.0) -> None:
-        for name, value in (("history", history), ("gate", gate), ("signal_gate", signal_gate)):
-            if not value > 0:
-                raise ValueError(f"sensors.turn_intent.{name} must be > 0, got {value}")
+    def __init__(self, env: gym.Env, params: TurnIntentParams | None = None, **overrides) -> None:
+        p = self.params = TurnIntentParams.build(params, **overrides)
         self.features_wrapper = find_wrapper(env, TurnFeatures)
         if self.features_wrapper is None:
-            raise ValueError("sensors.turn_intent needs turn_features below it (add `turn_features:` to the preset)")
-        self.history, self.gate, self.signal_gate = float(history), float(gate), float(signal_gate)
+            raise ConfigError("sensors.turn_intent needs turn_features below it (add `turn_features:` to the "
+                              "preset)")
+        self.history, self.gate, self.signal_gate = float(p.history), float(p.gate), float(p.signal_gate)
         super().__init__(env)
         self._past: list[tuple[float, np.ndarray]] = []  # (time s, objects (N, 4)) of the last `history` seconds
         self._last = np.zeros(self.sensor_space().shape, dtype=np.float32)

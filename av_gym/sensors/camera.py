@@ -939,7 +939,7 @@ class CamerasParams(Params):
                           "all three whatever the subset, so a subset's camera has the same exposure as in the rig")
 
     def relations(self) -> list[str]:
-        return [] if self.views else [f"views must be a non-empty subset of {list(CAMERA_NAMES)}, got []"]
+        return [] if self.views else [f"@views must be a non-empty subset of {list(CAMERA_NAMES)}, got []"]
 
 
 class Cameras(SensorWrapper):

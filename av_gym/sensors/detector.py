@@ -63,7 +63,7 @@ class DetectorParams(Params):
         if self.burst_length is not None and self.miss_rate > 0:
             if self.miss_rate / self.burst_length / (1.0 - self.miss_rate) > 1.0:  # the chain's entry probability
                 need = self.miss_rate / (1 - self.miss_rate)
-                return [f"miss_rate {self.miss_rate} needs burst_length >= {need:.2f} frames"]
+                return [f"@miss_rate {self.miss_rate} needs @burst_length >= {need:.2f} frames"]
         return []
 
 

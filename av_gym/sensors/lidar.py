@@ -284,11 +284,11 @@ class LidarParams(Params):
 
     def relations(self) -> list[str]:
         if not self.min_range < self.max_range:
-            return [f"min_range must be < max_range, got {self.min_range:g} and {self.max_range:g}"]
+            return [f"@min_range must be < @max_range, got {self.min_range:g} and {self.max_range:g}"]
         if not self.elevations_deg:
-            return ["elevations_deg must be a non-empty list"]
+            return ["@elevations_deg must be a non-empty list"]
         if self.planar and any(e != 0.0 for e in self.elevations_deg):
-            return [f"planar needs every elevation to be 0°, got elevations_deg {list(self.elevations_deg)}"]
+            return [f"@planar needs every elevation to be 0°, got @elevations_deg {list(self.elevations_deg)}"]
         return []
 
 

@@ -27,10 +27,13 @@ track), ``signal`` is +1 left, -1 right, 0 none seen.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from av_gym.params import Params, param
 from av_gym.sensors.base import SensorWrapper, ego_pose
 
 LEFT, NONE, RIGHT = 1.0, 0.0, -1.0
@@ -59,25 +62,31 @@ def intended_signal(vehicle) -> float:
     return LEFT if turn == 1 else RIGHT if turn == 3 else NONE
 
 
+@dataclass(frozen=True)
+class TurnSignalsParams(Params):
+    """The indicator channel (module docstring). No source paper measures it: the values are our suggestions."""
+
+    max_range: float = param(60.0, "m", gt=0, doc="no indicator read farther out (a few pixels per lamp on a 66x200 "
+                                                  "camera)")
+    no_signal_rate: float = param(0.25, ge=0, le=1, doc="per vehicle: the driver does not indicate (pessimistic on "
+                                                        "purpose: the policy must not trust it blindly)")
+    wrong_rate: float = param(0.05, ge=0, le=1, doc="per vehicle: the indicator shows the other direction")
+    miss_rate: float = param(0.1, ge=0, le=1, doc="per reading: an indicator that is on is not seen (occlusion, "
+                                                  "blink phase)")
+    max_objects: int = param(16, ge=1, doc="rows in the observation")
+
+
 class TurnSignals(SensorWrapper):
-    """Adds ``obs["signals"]`` (see the module docstring). Parameters (config ``sensors.turn_signals``):
-    ``max_range`` (m), ``no_signal_rate``, ``wrong_rate`` (per vehicle), ``miss_rate`` (per reading),
-    ``max_objects`` (rows)."""
+    """Adds ``obs["signals"]`` (see the module docstring); parameters: :class:`TurnSignalsParams`."""
 
     key = "signals"
+    Params = TurnSignalsParams
 
-    def __init__(self, env: gym.Env, max_range: float = 60.0, no_signal_rate: float = 0.25, wrong_rate: float = 0.05,
-                 miss_rate: float = 0.1, max_objects: int = 16) -> None:
-        if not max_range > 0:
-            raise ValueError(f"sensors.turn_signals.max_range must be > 0 m, got {max_range}")
-        for name, rate in (("no_signal_rate", no_signal_rate), ("wrong_rate", wrong_rate), ("miss_rate", miss_rate)):
-            if not 0.0 <= rate <= 1.0:
-                raise ValueError(f"sensors.turn_signals.{name} must be in [0, 1], got {rate}")
-        if int(max_objects) < 1:
-            raise ValueError(f"sensors.turn_signals.max_objects must be >= 1, got {max_objects}")
-        self.max_range, self.max_objects = float(max_range), int(max_objects)
-        self.no_signal_rate, self.wrong_rate, self.miss_rate = float(no_signal_rate), float(wrong_rate), \
-            float(miss_rate)
+    def __init__(self, env: gym.Env, params: TurnSignalsParams | None = None, **overrides) -> None:
+        p = self.params = TurnSignalsParams.build(params, **overrides)
+        self.max_range, self.max_objects = float(p.max_range), int(p.max_objects)
+        self.no_signal_rate, self.wrong_rate, self.miss_rate = float(p.no_signal_rate), float(p.wrong_rate), \
+            float(p.miss_rate)
         super().__init__(env)
         # Per-vehicle channel, keyed by the vehicle object (not id(): a deep copy of the stack, as the lookahead
         # oracle makes, keeps each vehicle's draw through copy's memo).
