@@ -10,9 +10,15 @@ saturates (conditional integration) and clamped to ``i_max``.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any, Literal
 
 import numpy as np
+
+from agents.registry import AgentKind, AgentParams
+from av_gym.errors import ConfigError
+from av_gym.params import param
 
 PRESETS: dict[str, dict[str, float]] = {
     "paper": {"kp": 0.75, "ki": 0.0001, "kd": 1.0},  # digest 001 Table 2, set by hand by the authors
@@ -22,18 +28,31 @@ PRESETS: dict[str, dict[str, float]] = {
 }
 
 
-@dataclass
+@dataclass(frozen=True)
+class PIDParams(AgentParams):
+    """PID lane keeping on the CTE (conf/agent/pid_*.yaml); the gains default to paper 001's."""
+
+    kind: Literal["pid"] = param("pid")
+    name: str = param("pid_paper")
+    scenarios: tuple[str, ...] = param(("lane_keeping",))
+    kp: float = param(PRESETS["paper"]["kp"], "1/m", doc="proportional gain (paper 001 Table 2, set by hand)")
+    ki: float = param(PRESETS["paper"]["ki"], "1/(m step)", doc="integral gain, per-step sum (paper 001)")
+    kd: float = param(PRESETS["paper"]["kd"], "step/m", doc="derivative gain, per-step difference (paper 001)")
+    i_max: float = param(1000.0, "m step", gt=0, doc="integral clamp (anti-windup)")
+    obs_key: str = param("state", doc="the CTE comes from obs[obs_key][cte_index]; state = privileged "
+                                      "(sensors=truth), ego_estimate = the localizer's")
+    cte_index: int = param(0, ge=0, doc="index of the CTE in obs[obs_key]")
+    search: Any = param(None, doc="the record of how the gains were found (documentation, never read)")
+
+
 class PIDSteering:
-    """Per-step PID on CTE → normalised steering. ``cte_index`` picks the CTE from ``obs[obs_key]``."""
+    """Per-step PID on CTE → normalised steering. ``cte_index`` picks the CTE from ``obs[obs_key]``; parameters:
+    :class:`PIDParams`."""
 
-    kp: float = 0.75
-    ki: float = 0.0001
-    kd: float = 1.0
-    i_max: float = 1000.0  # m·steps, integral clamp
-    obs_key: str = "state"
-    cte_index: int = 0
-
-    def __post_init__(self) -> None:
+    def __init__(self, params: PIDParams | None = None, **overrides: Any) -> None:
+        p = self.params = PIDParams.build(params, **overrides)
+        self.kp, self.ki, self.kd, self.i_max = float(p.kp), float(p.ki), float(p.kd), float(p.i_max)
+        self.obs_key, self.cte_index = p.obs_key, int(p.cte_index)
         self.reset()
 
     def reset(self) -> None:
@@ -51,3 +70,32 @@ class PIDSteering:
         if abs(u) < 1.0:  # conditional integration: no wind-up while saturated
             self._integral = integral
         return np.array([np.clip(u, -1.0, 1.0)], dtype=np.float32)
+
+
+class PIDAgent(AgentKind):
+    Params = PIDParams
+
+    @classmethod
+    def build(cls, params: PIDParams, env: Any, label: str) -> PIDSteering:
+        if params.obs_key not in env.observation_space.spaces:
+            raise ConfigError(f"agent {label!r} reads its CTE from obs[{params.obs_key!r}], which this sensors preset "
+                              f"does not provide (keys: {list(env.observation_space.spaces)}); use sensors=truth")
+        return PIDSteering(kp=params.kp, ki=params.ki, kd=params.kd, obs_key=params.obs_key,
+                           cte_index=params.cte_index)
+
+
+def pid_teacher(params: PIDParams, actions: str, scenario: str | None = None, action_repeat: int = 1) -> Callable:
+    """Steering from the simulator's CTE in ``info["truth"]`` (a privileged teacher), so that a policy that sees
+    only images can start from lane keeping. Needs ``scenario`` lane_keeping (or None: unchecked), continuous
+    actions and ``action_repeat`` 1: its gains are tuned for a 10 Hz steering loop on the lane's CTE."""
+    if actions != "env" or scenario not in (None, "lane_keeping") or action_repeat != 1:
+        raise ConfigError(f"agent.init={params.name} teaches lane-keeping steering: it needs env=lane_keeping, "
+                          f"agent.actions=env and agent.action_repeat=1 (got env={scenario}, "
+                          f"agent.actions={actions}, agent.action_repeat={action_repeat})")
+    pid = PIDSteering(kp=params.kp, ki=params.ki, kd=params.kd, obs_key="cte")
+
+    def steer(env, obs, info):
+        if info["truth"]["time"] == 0.0:
+            pid.reset()
+        return np.asarray(pid.act({"cte": [info["truth"]["cte"]]}), dtype=np.float32).reshape(-1)
+    return steer

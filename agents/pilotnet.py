@@ -36,7 +36,7 @@ from torch import nn
 INPUT_HEIGHT, INPUT_WIDTH = 66, 200
 N_PARAMETERS = 252_219  # paper 001 Table 1 (with the two extraction errors corrected, digest 001 §3.1)
 DEFAULT_CROP_TOP = 12  # rows above the horizon of the default camera (see module docstring)
-FORMAT = "av_gym.pilotnet/1"  # tag of the checkpoint dict written by agents/bc.py
+FORMAT = "av_gym.pilotnet/1"  # tag of the checkpoint dict written by train/bc.py
 
 # OpenCV's COLOR_RGB2YUV (BT.601, analogue YUV scaled to 8 bits); checked against cv2 in tests/test_pilotnet.py.
 _RGB2YUV = torch.tensor([[0.299, 0.587, 0.114],
@@ -139,7 +139,7 @@ class PilotNetPolicy:
 
 
 def load_checkpoint(path: str | Path) -> dict:
-    """The checkpoint dict written by ``agents.bc`` (tensors and plain values only: ``weights_only=True``, so
+    """The checkpoint dict written by ``train.bc`` (tensors and plain values only: ``weights_only=True``, so
     loading it cannot run code, unlike a pickle)."""
     try:
         ckpt = torch.load(str(path), map_location="cpu", weights_only=True)

@@ -1,45 +1,104 @@
-"""PPO from stable-baselines3: a factory from plain hyperparameters, and a :class:`Policy` around a trained model."""
+"""PPO from stable-baselines3 as an agent kind: its parameters (:class:`PPOParams`, every field of
+``agent=ppo``), a factory from them, and a :class:`Policy` around a trained model. SB3 is imported only when a model
+is made or loaded, so the config checker and Hydra's defaults (``agent_kind/ppo``) do not pay for it."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
-from stable_baselines3 import PPO
-from stable_baselines3.common.vec_env import VecEnv
+
+from agents.registry import TEACHERS, AgentKind, AgentParams
+from av_gym.errors import ConfigError
+from av_gym.params import param
+from av_gym.wrappers import flat_space, flatten_obs
+
+if TYPE_CHECKING:
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import VecEnv
 
 PPO_KEYS = ("learning_rate", "n_steps", "batch_size", "n_epochs", "gamma", "gae_lambda", "clip_range", "ent_coef",
             "vf_coef", "max_grad_norm", "target_kl")
+__all__ = ["PPOAgent", "PPOParams", "SB3Policy", "flat_space", "flatten_obs", "make_ppo", "sb3_space"]
 
 
-def flat_space(space: gym.Space) -> gym.Space:
-    """SB3's ``MultiInputPolicy`` takes one level of ``Dict``; sensors such as the cameras nest one more
-    (``cameras: {left, centre, right}``). Nested keys become ``cameras_left`` etc."""
-    if not isinstance(space, spaces.Dict):
-        return space
-    flat = {}
-    for key, sub in space.spaces.items():
-        if isinstance(sub, spaces.Dict):
-            flat.update({f"{key}_{k}": v for k, v in flat_space(sub).spaces.items()})
-        else:
-            flat[key] = sub
-    return spaces.Dict(flat)
+@dataclass(frozen=True)
+class PPOParams(AgentParams):
+    """PPO (stable-baselines3) and its training setup. Defaults: conf/agent/ppo.yaml's, a budget sized so that the
+    default ``python -m train agent=ppo`` finishes in < 5 min on 2 CPU cores."""
+
+    kind: Literal["ppo"] = param("ppo")
+    name: str = param("ppo")
+    policy: Literal["MultiInputPolicy"] = param("MultiInputPolicy", doc="the envs observe a Dict")
+    total_timesteps: int = param(24000, "policy steps", ge=1, doc="summed over n_envs (x action_repeat env steps)")
+    n_envs: int = param(2, ge=1, doc="training envs, one per core")
+    vec_env: Literal["subproc", "dummy", "batched"] = param(
+        "subproc", doc="subproc: one process per env | dummy: in-process | batched: the left turn's numpy batch "
+                       "(av_gym/envs/batched_vec.py)")
+    learning_rate: float = param(3.0e-4, gt=0, doc="Adam step (SB3's default)")
+    n_steps: int = param(512, "policy steps", ge=2, doc="per env per rollout: 1024 steps per update with 2 envs")
+    batch_size: int = param(128, ge=2, doc="minibatch size")
+    n_epochs: int = param(10, ge=1, doc="passes over each rollout")
+    gamma: float = param(0.99, ge=0, le=1, doc="discount: at 10 Hz a 10 s effective horizon, about one left-turn "
+                                               "episode")
+    gae_lambda: float = param(0.95, ge=0, le=1, doc="GAE lambda (SB3's default)")
+    clip_range: float = param(0.2, gt=0, doc="PPO clip (SB3's default)")
+    ent_coef: float = param(0.01, ge=0, doc="entropy bonus: keeps exploring the slow-down actions early on")
+    vf_coef: float = param(0.5, ge=0, doc="value loss weight (SB3's default)")
+    max_grad_norm: float = param(0.5, gt=0, doc="gradient clip (SB3's default)")
+    target_kl: float | None = param(None, gt=0, doc="SB3 ends an update's epochs once the KL passes 1.5x this; "
+                                                    "null: no limit")
+    net_arch: tuple[int, ...] = param((128, 128), ge=1, doc="hidden sizes of the policy and value heads")
+    extractor: Literal["mlp", "attention"] = param(
+        "mlp", doc="mlp: SB3 concatenates the inputs | attention: ego-attention over the left turn's road users "
+                   "(agents/attention.py, Leurent & Mercat 2019), needs obs['turn']")
+    attention_dim: int = param(64, ge=1, doc="width of each entity's embedding (attention only; the paper's 64)")
+    attention_heads: int = param(2, ge=1, doc="attention heads (attention only; the paper's 2)")
+    log_std_init: float | None = param(None, doc="continuous actions: initial log std of the Gaussian; null: SB3's "
+                                                 "0 (std 1)")
+    cnn_output_dim: int | None = param(None, ge=1, doc="image inputs: width of the NatureCNN's output layer; null: "
+                                                       "SB3's 256")
+    device: Literal["cpu", "cuda", "auto"] = param("cpu", doc="torch device")
+    actions: Literal["env", "go_yield"] = param(
+        "env", doc="env: the env's own action space | go_yield: two choices, GO or YIELD at the stop line "
+                   "(av_gym/wrappers.py GoYieldActions), mapped onto the left turn's meta-actions every env step")
+    action_repeat: int = param(1, "env steps", ge=1, doc="env steps each decision is held for "
+                                                         "(av_gym/wrappers.py ActionRepeat)")
+    intervention_cost: float = param(0.0, "reward/s", ge=0, doc="reward per second of shield override "
+                                                                "(av_gym/wrappers.py InterventionCost)")
+    timeout_is_terminal: bool = param(False, doc="the time limit ends an episode as a failure, not bootstrapped "
+                                                 "(av_gym/wrappers.py TimeLimitIsTerminal)")
+    init: str | None = param(None, doc="behaviour-clone this agent (conf/agent/<init>.yaml, a kind in "
+                                       "agents/registry.py TEACHERS) before PPO; null: from scratch")
+    init_episodes: int = param(150, "episodes", ge=1, doc="teacher episodes (seeds 500000+), DAgger rounds "
+                                                          "included")
+    init_epochs: int = param(40, ge=1, doc="epochs of behaviour cloning")
+    init_action_noise: float = param(0.0, ge=0, doc="DART: std of the perturbation of the executed action "
+                                                    "(continuous actions; the label stays clean)")
+    init_lr: float | None = param(None, gt=0, doc="Adam step while cloning; null: learning_rate")
+    init_dagger_rounds: int = param(0, ge=0, doc="DAgger rounds after the teacher's episodes (Ross et al. 2011)")
+
+    def relations(self) -> list[str]:
+        found = super().relations()
+        if self.init is not None:
+            allowed = teacher_agents()
+            if self.init not in allowed:
+                found.append(f"@init must be one of {[*allowed, None]}, got {self.init!r}")
+            elif self.init_episodes < 1 + self.init_dagger_rounds:
+                found.append(f"@init_episodes must be at least 1 + @init_dagger_rounds = {1 + self.init_dagger_rounds} "
+                             f"(the teacher and each DAgger round drive their own episodes), got {self.init_episodes}")
+        return found
 
 
-def flatten_obs(obs: Any) -> Any:
-    """The observation matching :func:`flat_space`."""
-    if not isinstance(obs, dict):
-        return obs
-    flat = {}
-    for key, value in obs.items():
-        if isinstance(value, dict):
-            flat.update({f"{key}_{k}": v for k, v in flatten_obs(value).items()})
-        else:
-            flat[key] = value
-    return flat
+def teacher_agents() -> list[str]:
+    """The agent configs (``conf/agent/<name>.yaml``) ``agent.init`` may name: those of a kind in TEACHERS."""
+    from agents.configs import agent_kind_of, available_agents
+
+    return [name for name in available_agents() if agent_kind_of(name) in TEACHERS]
 
 
 def sb3_space(space: gym.Space) -> gym.Space:
@@ -55,39 +114,15 @@ def sb3_space(space: gym.Space) -> gym.Space:
                         and not is_image_space_channels_first(v) else v for k, v in space.spaces.items()})
 
 
-class FlatDictObservation(gym.ObservationWrapper):
-    """Applies :func:`flatten_obs` so SB3 can train on nested sensor observations."""
-
-    def __init__(self, env: gym.Env) -> None:
-        super().__init__(env)
-        self.observation_space = flat_space(env.observation_space)
-
-    def observation(self, observation: Any) -> Any:
-        return flatten_obs(observation)
-
-
-class InterventionCost(gym.Wrapper):
-    """Training-time reward term: ``-cost`` per second during which a safety shield overrides the agent
-    (``info["shield_override"]``), so a policy trained with the shield in the loop learns not to need it."""
-
-    def __init__(self, env: gym.Env, cost: float) -> None:
-        super().__init__(env)
-        self.per_step = float(cost) / env.unwrapped.config["policy_frequency"]
-
-    def step(self, action):
-        obs, reward, terminated, truncated, info = self.env.step(action)
-        if info.get("shield_override", False):
-            reward -= self.per_step
-        return obs, reward, terminated, truncated, info
-
-
 def make_ppo(env: VecEnv, hyper: dict[str, Any], *, seed: int, tensorboard_log: str | None,
-             device: str = "cpu") -> PPO:
+             device: str = "cpu") -> "PPO":
     """A fresh SB3 PPO on ``env``. ``hyper`` holds ``policy``, ``net_arch`` (hidden sizes), optionally
     ``log_std_init`` (continuous actions: initial log std of the Gaussian), ``cnn_output_dim`` (image inputs: width of
     the NatureCNN's output layer, SB3's default 256), ``extractor`` (``mlp``: SB3's concatenation of the inputs;
     ``attention``: :class:`agents.attention.EgoAttention` over the left turn's road users, ``attention_dim`` wide
     with ``attention_heads`` heads) and :data:`PPO_KEYS`."""
+    from stable_baselines3 import PPO
+
     kwargs = {k: hyper[k] for k in PPO_KEYS if k in hyper}
     policy_kwargs = {"net_arch": list(hyper["net_arch"])} if hyper.get("net_arch") else {}
     if hyper.get("log_std_init") is not None:
@@ -106,42 +141,9 @@ def make_ppo(env: VecEnv, hyper: dict[str, Any], *, seed: int, tensorboard_log: 
                policy_kwargs=policy_kwargs or None, device=device, verbose=0, **kwargs)
 
 
-class ActionRepeat(gym.Wrapper):
-    """The agent decides every ``repeat`` env steps; its action is applied ``repeat`` times and the rewards summed
-    (the episode ends early if the env does). Why: on the left turn the decision that matters (wait or go) spans
-    seconds; at 10 Hz PPO must assign credit over ~150 steps, at 2 Hz over ~30, and learns several times faster
-    per simulated second. A safety shield inside still decides every env step (0.1 s)."""
-
-    def __init__(self, env: gym.Env, repeat: int) -> None:
-        super().__init__(env)
-        if int(repeat) < 1:
-            raise ValueError(f"agent.action_repeat must be >= 1, got {repeat}")
-        self.repeat = int(repeat)
-
-    def step(self, action):
-        total = 0.0
-        for _ in range(self.repeat):
-            obs, reward, terminated, truncated, info = self.env.step(action)
-            total += float(reward)
-            if terminated or truncated:
-                break
-        return obs, total, terminated, truncated, info
-
-
-class TimeLimitIsTerminal(gym.Wrapper):
-    """Training-time: the episode's time limit ends it as a *termination* (no value bootstrapped after it). Why: SB3
-    bootstraps truncated episodes with the critic's value of the last state, as if the episode went on; on the left
-    turn, where not arriving in time is a failure and elapsed time is in the observation, that made waiting at the
-    line until the limit look as good as turning, and PPO drifted to never turning (measured, issue 7)."""
-
-    def step(self, action):
-        obs, reward, terminated, truncated, info = self.env.step(action)
-        return obs, reward, terminated or truncated, False, info
-
-
 class SB3Policy:
     """Deterministic action of a trained SB3 model for one observation. With ``repeat`` > 1 (a model trained with
-    :class:`ActionRepeat`) the model is asked every ``repeat`` calls and its action held in between."""
+    :class:`av_gym.wrappers.ActionRepeat`) the model is asked every ``repeat`` calls and its action held in between."""
 
     def __init__(self, model: Any, repeat: int = 1, actions: str = "env") -> None:
         self.model, self.repeat, self.actions = model, int(repeat), actions
@@ -150,6 +152,8 @@ class SB3Policy:
     @classmethod
     def load(cls, path: str | Path, device: str = "cpu") -> "SB3Policy":
         # SB3 zips contain pickled objects: only paths the user gave (or our own checkpoints/ folder) get here.
+        from stable_baselines3 import PPO
+
         return cls(PPO.load(str(path), device=device))
 
     def reset(self) -> None:
@@ -161,7 +165,41 @@ class SB3Policy:
             self._action = int(action) if np.ndim(action) == 0 else action
         self._k += 1
         if self.actions == "go_yield":  # the held choice becomes a meta-action at every env step, as in training
-            from agents.go_yield import meta_action
+            from av_gym.wrappers import meta_action
 
             return meta_action(self._action, obs["turn"])
         return self._action
+
+
+class PPOAgent(AgentKind):
+    """Trained by :func:`train.ppo.train_ppo`; ``model.zip`` is an SB3 zip (a pickle: load only what you trust)."""
+
+    Params = PPOParams
+    checkpoint = "model.zip"
+    trainer = "train.ppo:train_ppo"
+    train_checks = "train.ppo:validate"
+
+    @classmethod
+    def load(cls, model_path: Path, env: gym.Env) -> SB3Policy:
+        from agents.checkpoint import check_sb3_zip, describe_space, saved_config
+
+        check_sb3_zip(model_path)  # again: the file may have changed since the command-line check
+        try:
+            policy = SB3Policy.load(model_path)
+        except Exception as exc:  # noqa: BLE001 - a zip of the right shape that SB3 still cannot unpickle
+            raise ConfigError(f"checkpoint {str(model_path)!r} cannot be loaded: {type(exc).__name__}: "
+                              f"{' '.join(str(exc).split())[:200]}") from None
+        trained = saved_config(model_path).get("agent", {})
+        if policy.model.observation_space != sb3_space(env.observation_space):
+            raise ConfigError(f"checkpoint {str(model_path)!r} expects observations "
+                              f"{describe_space(policy.model.observation_space)}, this env gives "
+                              f"{describe_space(sb3_space(env.observation_space))} (same sensors preset and env "
+                              f"settings as in its training, see its config.yaml)")
+        # A go/yield policy's two choices become the env's three meta-actions (av_gym/wrappers.py): it needs those.
+        needs = spaces.Discrete(3) if trained.get("actions") == "go_yield" else policy.model.action_space
+        if needs != env.action_space:
+            raise ConfigError(f"checkpoint {str(model_path)!r} acts in {needs}, this env expects "
+                              f"{env.action_space} (env.action must be as in its training)")
+        policy.repeat = int(trained.get("action_repeat", 1) or 1)  # decides every `repeat` env steps, as in training
+        policy.actions = trained.get("actions", "env")  # go_yield: its two choices mapped to meta-actions
+        return policy

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Literal
 
 import numpy as np
+
+from agents.registry import AgentKind, AgentParams
+from av_gym.params import param
 
 
 class AlwaysProceed:
@@ -20,3 +24,20 @@ class AlwaysProceed:
     def act(self, obs: Any) -> Any:
         a = self.cruise_action
         return a.copy() if isinstance(a, np.ndarray) else a
+
+
+@dataclass(frozen=True)
+class AlwaysProceedParams(AgentParams):
+    """No parameters of its own: it holds the scenario's cruise action."""
+
+    kind: Literal["always_proceed"] = param("always_proceed")
+    name: str = param("always_proceed")
+    scenarios: tuple[str, ...] = param(("left_turn",))
+
+
+class AlwaysProceedAgent(AgentKind):
+    Params = AlwaysProceedParams
+
+    @classmethod
+    def build(cls, params: AlwaysProceedParams, env: Any, label: str) -> AlwaysProceed:
+        return AlwaysProceed(env.unwrapped.cruise_action())

@@ -29,8 +29,6 @@ from typing import Any
 
 from av_gym.errors import ConfigError
 
-AGENT_KINDS = ("ppo", "pilotnet", "pid", "always_proceed", "gap_acceptance", "lookahead")
-
 
 @dataclass(frozen=True)
 class Delegate:
@@ -130,71 +128,11 @@ def _shield_section(value: Any, where: str) -> list[str]:
 
 
 # ------------------------------------------------------------------------------------------------ agent
-_AGENT_COMMON = {"name": "str", "kind": AGENT_KINDS, "scenarios": [tuple(__import__("av_gym").ENV_IDS)],
-                 "sensors?": Delegate(lambda v, w: _preset_name(v, w))}
-
-
-def _preset_name(value: Any, where: str) -> list[str]:
-    from av_gym.make import SENSOR_PRESETS
-
-    return _check(value, (*SENSOR_PRESETS, None), where)
-AGENT = {
-    "ppo": {**_AGENT_COMMON, "policy": ("MultiInputPolicy",), "total_timesteps": "int >=1", "n_envs": "int >=1",
-            "vec_env": ("subproc", "dummy", "batched"), "learning_rate": "num >0", "n_steps": "int >=2",
-            "batch_size": "int >=2", "n_epochs": "int >=1", "gamma": "num [0,1]", "gae_lambda": "num [0,1]",
-            "clip_range": "num >0", "ent_coef": "num >=0", "vf_coef": "num >=0", "max_grad_norm": "num >0",
-            "net_arch": ["int >=1"], "device": ("cpu", "cuda", "auto"), "action_repeat?": "int >=1",
-            "actions?": ("env", "go_yield"), "intervention_cost?": "num >=0",
-            "init?": ("gap_acceptance", "lookahead", "pid_tuned", "pid_paper", None), "init_episodes?": "int >=1",
-            "init_epochs?": "int >=1", "init_action_noise?": "num >=0", "init_lr?": "num >0|null",
-            "init_dagger_rounds?": "int >=0", "log_std_init?": "num|null", "cnn_output_dim?": "int >=1",
-            "target_kl?": "num >0|null", "extractor?": ("mlp", "attention"), "attention_dim?": "int >=1",
-            "attention_heads?": "int >=1",
-            "timeout_is_terminal?": "bool"},
-    "pid": {**_AGENT_COMMON, "kp": "num", "ki": "num", "kd": "num", "obs_key": "str", "cte_index": "int >=0",
-            "search?": "any"},  # search: the record of how the gains were found (documentation, never read)
-    "always_proceed": dict(_AGENT_COMMON),
-    "gap_acceptance": {**_AGENT_COMMON, "t_gap": "num >0", "miss": "num >0"},
-    "lookahead": {**_AGENT_COMMON, "repeat": "int >=1"},
-    "pilotnet": {**_AGENT_COMMON, "*": Delegate(lambda v, w: _pilotnet(v, w))},
-}
-"""agent.kind → its fields. PilotNet's own settings are :class:`agents.bc.Args` (a dataclass with its checks)."""
-
-
-def _pilotnet(value: Mapping, where: str) -> list[str]:
-    from dataclasses import fields
-
-    from agents.bc import Args
-
-    settings = {k: v for k, v in value.items() if k not in ("name", "kind", "scenarios", "sensors")}
-    types = {f"{f.name}?": _like(f.default) for f in fields(Args)}  # Args.problems() has the ranges
-    found = _check({k: v for k, v in settings.items() if f"{k}?" in types}, types, where)
-    if found:
-        return found
-    try:
-        return Args.from_mapping(settings, where).problems(where)
-    except (TypeError, ValueError) as exc:
-        return [str(exc)]
-
-
 def _agent_section(value: Any, where: str) -> list[str]:
-    if not isinstance(value, Mapping):
-        return [f"{where} must be a mapping, got {value!r}"]
-    kind = value.get("kind")
-    if kind not in AGENT:
-        return [f"{where}.kind must be one of {list(AGENT)}, got {kind!r}"]
-    spec = dict(AGENT[kind])
-    rest = spec.pop("*", None)
-    if rest is not None:
-        problems = _check({k: v for k, v in value.items() if k in spec or f"{k}?" in spec}, spec, where)
-        return problems or rest.check(value, where)
-    problems = _check(value, spec, where, what=f"a field of a {kind} agent",
-                      shipped=_shipped("agent", value.get("name")))
-    rounds, episodes = value.get("init_dagger_rounds") or 0, value.get("init_episodes")
-    if not problems and value.get("init") and isinstance(episodes, int) and episodes < 1 + rounds:
-        problems.append(f"{where}.init_episodes must be at least 1 + {where}.init_dagger_rounds = {1 + rounds} (the "
-                        f"teacher and each DAgger round drive their own episodes), got {episodes}")
-    return problems
+    """The agent section: its kind's Params (agents/registry.py AGENT_KINDS), the one source of its fields."""
+    from agents.registry import agent_problems
+
+    return agent_problems(value, where)
 
 
 # ------------------------------------------------------------------------------------------------ commands

@@ -60,3 +60,8 @@ def constant_velocity_ttc(ego: np.ndarray, others: np.ndarray, horizon: float = 
     oth_box = box_corners(oth_c[k, n], others[n, 4], others[n, 5], others[n, 6])
     hit = boxes_overlap(ego_box, oth_box)
     return float(t[k[np.argmax(hit)], 0]) if hit.any() else float("inf")
+
+
+def wrap_angle(angle):
+    """An angle (rad; a float or an array) wrapped to [-pi, pi)."""
+    return (angle + np.pi) % (2 * np.pi) - np.pi

@@ -18,6 +18,9 @@ def register_configs() -> None:
         params = getattr(cls, "Params", None)
         if params is not None:
             store.store(group="sensor", name=key, node=params().as_dict())
+    from agents.registry import register_configs as register_agent_kinds  # agent_kind/<kind>: each kind's Params
+
+    register_agent_kinds(store)
 
 
 register_configs()

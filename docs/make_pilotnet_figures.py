@@ -27,7 +27,7 @@ OUT = Path(__file__).resolve().parent / "pilotnet"
 def main(argv=None) -> None:
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    from agents.bc import balance, load_demos, split_by_chunks
+    from train.bc import balance, load_demos, split_by_chunks
 
     p = argparse.ArgumentParser()
     p.add_argument("--run", type=Path, required=True, help="the train run folder (has tb/ and demos.npz)")

@@ -12,90 +12,42 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
-import yaml
 
-from agents import AlwaysProceed, PIDSteering, Policy
+from agents import Policy
+from agents.checkpoint import check_sb3_zip, describe_space, read_config_yaml, saved_config
+from agents.configs import KIND_DEFAULT, available_agents, kind_default, shipped_agent
+from agents.registry import AGENT_KINDS, agent_params, trained_kinds
 from av_gym.errors import ConfigError
-from train.checkpoint import check_sb3_zip, read_config_yaml
 
-def _load_sb3(model_path: Path, env: gym.Env) -> Policy:
-    from agents.ppo import SB3Policy, sb3_space
-
-    check_sb3_zip(model_path)  # again: the file may have changed since the command-line check
-    try:
-        policy = SB3Policy.load(model_path)
-    except Exception as exc:  # noqa: BLE001 - a zip of the right shape that SB3 still cannot unpickle
-        raise ConfigError(f"checkpoint {str(model_path)!r} cannot be loaded: {type(exc).__name__}: "
-                          f"{' '.join(str(exc).split())[:200]}") from None
-    trained = _saved_config(model_path).get("agent", {})
-    if policy.model.observation_space != sb3_space(env.observation_space):
-        raise ConfigError(f"checkpoint {str(model_path)!r} expects observations {_shapes(policy.model.observation_space)}"
-                          f", this env gives {_shapes(sb3_space(env.observation_space))} (same sensors preset and env "
-                          f"settings as in its training, see its config.yaml)")
-    # A go/yield policy's two choices become the env's three meta-actions (agents/go_yield.py): it needs those.
-    needs = gym.spaces.Discrete(3) if trained.get("actions") == "go_yield" else policy.model.action_space
-    if needs != env.action_space:
-        raise ConfigError(f"checkpoint {str(model_path)!r} acts in {needs}, this env expects "
-                          f"{env.action_space} (env.action must be as in its training)")
-    policy.repeat = int(trained.get("action_repeat", 1) or 1)  # decides every `repeat` env steps, as in training
-    policy.actions = trained.get("actions", "env")  # go_yield: its two choices mapped to meta-actions, as in training
-    return policy
-
-
-def _shapes(space: gym.Space) -> str:
-    """A space in one line: ``{key: shape dtype [low, high]}``."""
-    import numpy as np
-
-    if isinstance(space, gym.spaces.Dict):
-        return "{" + ", ".join(f"{k}: {_shapes(v)}" for k, v in space.spaces.items()) + "}"
-    if isinstance(space, gym.spaces.Box):
-        return f"{space.shape} {space.dtype} [{np.min(space.low):g}, {np.max(space.high):g}]"
-    return str(space)
-
-
-def _load_pilotnet(model_path: Path, env: gym.Env) -> Policy:
-    from agents.pilotnet import load_policy
-
-    space = getattr(env.observation_space, "spaces", {}).get("cameras")
-    if space is None or "centre" not in space.spaces:
-        raise ConfigError(f"checkpoint {str(model_path)!r} (PilotNet) drives from obs['cameras']['centre']; this env "
-                          f"gives {list(getattr(env.observation_space, 'spaces', {}))}; use sensors=cameras")
-    try:
-        return load_policy(model_path)  # torch.load(weights_only=True): tensors and plain values only
-    except (ValueError, RuntimeError, EOFError, OSError, KeyError) as exc:  # torch's on a truncated/corrupt file
-        raise ConfigError(f"checkpoint {str(model_path)!r}: {(str(exc).splitlines() or [type(exc).__name__])[0]}") \
-            from None
-
-
-# Trained agent kinds: the file their trainer writes in checkpoints/<run>/ and how to load it for an env.
-LOADERS = {
-    "ppo": ("model.zip", _load_sb3),
-    "pilotnet": ("model.pt", _load_pilotnet),
-}
-TRAINED_KINDS = tuple(LOADERS)
-
-
-def available_agents() -> list[str]:
-    return sorted(p.name[:-5] for p in (resources.files("conf") / "agent").iterdir() if p.name.endswith(".yaml"))
+__all__ = ["AgentPlan", "available_agents", "check_plan", "compose_group", "find_checkpoint", "load_agent_config",
+           "plan_agent", "resolve_agent", "sensor_overrides", "sensors_summary"]
 
 
 def load_agent_config(name: str) -> dict[str, Any]:
-    path = resources.files("conf") / "agent" / f"{name}.yaml"
-    if not path.is_file():
-        raise ConfigError(f"agent {name!r} is not in conf/agent/; available: {available_agents()} or a checkpoint path")
-    cfg = yaml.safe_load(path.read_text())
-    if "agent" in cfg:  # a `# @package _global_` variant (it picks its sensors/shield): let Hydra compose it
-        from hydra import compose, initialize_config_module
-        from hydra.core.global_hydra import GlobalHydra
-        from omegaconf import OmegaConf
+    """``conf/agent/<name>.yaml`` composed as Hydra composes ``agent=<name>``: its kind's defaults (the kind's
+    Params) with the file's values on top; a ``# @package _global_`` variant (it picks its sensors/shield too) is
+    composed by Hydra."""
+    raw = shipped_agent(name)
+    kind = kind_default(raw)
+    if "agent" not in raw and kind is not None and all(
+            entry in (f"{KIND_DEFAULT}{kind}@_here_", "_self_") for entry in raw.get("defaults", [])):
+        values = {k: v for k, v in raw.items() if k != "defaults"}
+        return {**AGENT_KINDS.get(kind).Params().as_dict(), **values}
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+    from omegaconf import OmegaConf
 
-        if GlobalHydra.instance().is_initialized():
+    if GlobalHydra.instance().is_initialized():
+        composed = compose(config_name="train", overrides=[f"agent={name}"])
+    else:
+        with initialize_config_module("conf", version_base="1.3"):
             composed = compose(config_name="train", overrides=[f"agent={name}"])
-        else:
-            with initialize_config_module("conf", version_base="1.3"):
-                composed = compose(config_name="train", overrides=[f"agent={name}"])
-        cfg = OmegaConf.to_container(composed.agent, resolve=True)
-    return cfg
+    return OmegaConf.to_container(composed.agent, resolve=True)
+
+
+def _checkpoint_name(kind: str) -> str:
+    """The model file a trained kind's trainer writes in ``checkpoints/<run>/`` (its AgentKind's ``checkpoint``)."""
+    return AGENT_KINDS.get(kind).checkpoint
 
 
 def find_checkpoint(kind: str, env_name: str, root: str | Path, name: str | None = None) -> Path:
@@ -106,7 +58,7 @@ def find_checkpoint(kind: str, env_name: str, root: str | Path, name: str | None
         found = []
         for cfg_path in Path(root).glob(pattern):
             cfg = read_config_yaml(cfg_path)
-            model = cfg_path.parent / LOADERS[kind][0]
+            model = cfg_path.parent / _checkpoint_name(kind)
             agent = cfg.get("agent", {})
             if model.is_file() and cfg.get("env", {}).get("name") == env_name and agent.get("kind") == kind \
                     and (name is None or agent.get("name") == name):
@@ -126,21 +78,22 @@ def _check_scenario(label: str, cfg: dict, env_name: str) -> None:
 def _checkpoint_file(path: Path, env_name: str) -> tuple[str, Path]:
     """(kind, model file) of a checkpoint folder (its config.yaml says the kind) or a model file (its suffix
     does), checked without loading it: the file exists and was trained on ``env_name``."""
+    loadable = trained_kinds()
     if path.is_dir():
         cfg_path = path / "config.yaml"
         kind = read_config_yaml(cfg_path).get("agent", {}).get("kind") if cfg_path.is_file() else "ppo"
-        if kind not in LOADERS:
-            raise ConfigError(f"checkpoint folder {str(path)!r} holds agent kind {kind!r}; loadable: {list(LOADERS)}")
-        model_path = path / LOADERS[kind][0]
+        if kind not in loadable:
+            raise ConfigError(f"checkpoint folder {str(path)!r} holds agent kind {kind!r}; loadable: {loadable}")
+        model_path = path / _checkpoint_name(kind)
     else:
         model_path = path
-        kind = next((k for k, (name, _) in LOADERS.items() if Path(name).suffix == path.suffix), None)
+        kind = next((k for k in loadable if Path(_checkpoint_name(k)).suffix == path.suffix), None)
         if kind is None:
             raise ConfigError(f"checkpoint {str(path)!r}: unknown file type; expected one of "
-                              f"{[name for name, _ in LOADERS.values()]}")
+                              f"{[_checkpoint_name(k) for k in loadable]}")
     if not model_path.is_file():
         raise ConfigError(f"checkpoint {str(model_path)!r} does not exist")
-    if kind == "ppo":  # empty, truncated or corrupt: one line now, not a traceback from SB3 when it is loaded
+    if model_path.suffix == ".zip":  # empty, truncated or corrupt: one line now, not a traceback from SB3 later
         check_sb3_zip(model_path)
     cfg_path = model_path.parent / "config.yaml"
     if cfg_path.is_file():
@@ -152,7 +105,7 @@ def _checkpoint_file(path: Path, env_name: str) -> tuple[str, Path]:
 
 def _load_trained(path: Path, env: gym.Env, env_name: str) -> Policy:
     kind, model_path = _checkpoint_file(path, env_name)
-    return LOADERS[kind][1](model_path, env)
+    return AGENT_KINDS.get(kind).load(model_path, env)
 
 
 def _is_path(spec: str) -> bool:
@@ -162,7 +115,7 @@ def _is_path(spec: str) -> bool:
 def check_plan(plan: "AgentPlan", env_name: str) -> None:
     """Everything about a plan that can be checked without building its env: the checkpoint file (exists, same
     env) and the sensors and shield it will run with (a checkpoint's saved ones included)."""
-    from av_gym.config_schema import section_problems
+    from conf.check import section_problems
 
     if _is_path(plan.spec):
         _checkpoint_file(Path(plan.spec), env_name)
@@ -173,45 +126,27 @@ def check_plan(plan: "AgentPlan", env_name: str) -> None:
 
 
 def resolve_agent(spec: str, env: gym.Env, env_name: str, checkpoints: str | Path) -> tuple[str, Policy]:
-    """``(label, policy)`` for one agent spec on ``env`` (the env instance the policy will drive)."""
+    """``(label, policy)`` for one agent spec on ``env`` (the env instance the policy will drive): a trained kind
+    (newest checkpoint), a checkpoint path, or an agent config of ``conf/agent/`` (a rule-based kind builds its
+    policy, a trained one loads the newest checkpoint trained with that config)."""
     spec = str(spec)
-    if spec in TRAINED_KINDS:
+    if spec in trained_kinds():
         path = find_checkpoint(spec, env_name, checkpoints)
         print(f"[eval] {spec}: using {path}")
         return spec, _load_trained(path, env, env_name)
-    if Path(spec).suffix or "/" in spec or Path(spec).is_dir():
+    if _is_path(spec):
         path = Path(spec)
         label = path.parent.name if path.suffix else path.name
         return label, _load_trained(path, env, env_name)
     cfg = load_agent_config(spec)
     _check_scenario(spec, cfg, env_name)
-    kind = cfg.get("kind")
-    if kind == "pid":
-        if cfg["obs_key"] not in env.observation_space.spaces:
-            raise ConfigError(f"agent {spec!r} reads its CTE from obs[{cfg['obs_key']!r}], which this sensors preset "
-                              f"does not provide (keys: {list(env.observation_space.spaces)}); use sensors=truth")
-        return spec, PIDSteering(kp=cfg["kp"], ki=cfg["ki"], kd=cfg["kd"], obs_key=cfg["obs_key"],
-                                 cte_index=cfg["cte_index"])
-    if kind == "always_proceed":
-        return spec, AlwaysProceed(env.unwrapped.cruise_action())
-    if kind == "gap_acceptance":
-        from agents.go_yield import GapAcceptance
-
-        if "turn" not in env.observation_space.spaces:
-            raise ConfigError(f"agent {spec!r} reads obs['turn']; use sensors=turn_truth or turn_perceived")
-        return spec, GapAcceptance(t_gap=cfg["t_gap"], miss=cfg["miss"])
-    if kind == "lookahead":
-        from agents.go_yield import Lookahead
-
-        if "turn" not in env.observation_space.spaces:
-            raise ConfigError(f"agent {spec!r} reads obs['turn']; use sensors=turn_truth or turn_perceived")
-        return spec, Lookahead(env, repeat=cfg["repeat"])
-    if kind in TRAINED_KINDS:  # a named variant of a trainable agent: newest checkpoint trained with that config
-        path = find_checkpoint(kind, env_name, checkpoints, name=None if spec == kind else spec)
+    params = agent_params(cfg, where=f"agent {spec!r}: agent")
+    kind = AGENT_KINDS.get(params.kind)
+    if kind.trained():  # a named variant of a trainable agent: newest checkpoint trained with that config
+        path = find_checkpoint(params.kind, env_name, checkpoints, name=None if spec == params.kind else spec)
         print(f"[eval] {spec}: using {path}")
         return spec, _load_trained(path, env, env_name)
-    raise ConfigError(f"agent {spec!r} has unknown kind {kind!r}; known: pid, always_proceed, "
-                      f"gap_acceptance, lookahead, {', '.join(TRAINED_KINDS)}")
+    return spec, kind.build(params, env, spec)
 
 
 # ----------------------------------------------------------------------------------------------- per-agent stacks
@@ -249,11 +184,6 @@ def compose_group(group: str, name: str) -> dict:
     except HydraException as exc:  # pragma: no cover - a broken yaml in conf/
         raise ConfigError(f"{group}={name}: {exc}") from None
     return OmegaConf.to_container(cfg[group], resolve=True)
-
-
-def _saved_config(path: Path) -> dict:
-    cfg_path = (path if path.is_dir() else path.parent) / "config.yaml"
-    return read_config_yaml(cfg_path)
 
 
 def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:
@@ -322,7 +252,7 @@ def check_sensor_overrides(plan: AgentPlan, env_cfg: Any) -> None:
         alone = space(_with_overrides(plan.label, plan.trained_sensors, {path: value}))
         if alone != trained:
             raise ConfigError(f"sensors.{path}={value!r} changes the observation space of agent {plan.label!r} "
-                              f"from {_shapes(trained)} to {_shapes(alone)}; a trained agent can only run with "
+                              f"from {describe_space(trained)} to {describe_space(alone)}; a trained agent can only run with "
                               f"settings that keep it")
     raise ConfigError(f"sensors overrides {sorted(plan.sensor_overrides)} together change the observation space of "
                       f"agent {plan.label!r}; a trained agent can only run with settings that keep it")
@@ -349,20 +279,20 @@ def plan_agent(spec: str, env_name: str, sensors: dict, shield: dict, checkpoint
     overrides = sensor_overrides(sensors)  # before `sensors` is replaced by an agent's own preset below
 
     def trained_plan(run_spec: str, path: Path) -> AgentPlan:
-        own = forced or _saved_config(path).get("sensors")
+        own = forced or saved_config(path).get("sensors")
         if own is None:  # a checkpoint without its config: it runs on the sensors given
             return AgentPlan(str(spec), run_spec, sensors, shield)
         return AgentPlan(str(spec), run_spec, _with_overrides(str(spec), own, overrides), shield, own, overrides)
 
-    if base in TRAINED_KINDS or Path(base).suffix or "/" in base or Path(base).is_dir():
-        path = find_checkpoint(base, env_name, checkpoints) if base in TRAINED_KINDS else Path(base)
-        return trained_plan(str(path) if base in TRAINED_KINDS else base, path)
+    if base in trained_kinds() or _is_path(base):
+        path = find_checkpoint(base, env_name, checkpoints) if base in trained_kinds() else Path(base)
+        return trained_plan(str(path) if base in trained_kinds() else base, path)
     cfg = load_agent_config(base)
     if cfg.get("sensors") and (sensors or {}).get("name") != cfg["sensors"]:
         # the agent's own preset, unless the one given is that preset (then with the command line's overrides,
         # e.g. a sweep over sensors.gnss.sigma for pid_gnss)
         sensors = compose_group("sensors", cfg["sensors"])
-    if cfg.get("kind") in TRAINED_KINDS:
+    if cfg.get("kind") in trained_kinds():
         path = find_checkpoint(cfg["kind"], env_name, checkpoints, name=None if base == cfg["kind"] else base)
         return trained_plan(str(path), path)
     return AgentPlan(str(spec), base, forced or sensors, shield)

@@ -29,10 +29,11 @@ NO_OBS_SENSORS = {"name": "turn_truth", "turn_features": {"source": "truth"}, "o
 
 def plan_kind(plan) -> str:
     """The agent kind of an :class:`eval.agents.AgentPlan` (a trained plan's spec is its checkpoint path)."""
-    from eval.agents import TRAINED_KINDS, _checkpoint_file, _is_path, load_agent_config
+    from agents.registry import trained_kinds
+    from eval.agents import _checkpoint_file, _is_path, load_agent_config
 
     spec = str(plan.spec)
-    if spec in TRAINED_KINDS:
+    if spec in trained_kinds():
         return spec
     if _is_path(spec):
         from pathlib import Path

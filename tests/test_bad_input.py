@@ -79,7 +79,7 @@ def test_a_damaged_checkpoint_is_one_line(tmp_path, monkeypatch, capsys, how, ne
 def test_a_damaged_checkpoint_is_refused_by_the_loaders_too(tmp_path):
     """From Python (and at job time, should the file change after the check): the same one line, not SB3's."""
     from av_gym.errors import ConfigError
-    from train.checkpoint import load_sb3
+    from agents.checkpoint import load_sb3
 
     for how in ("truncated", "flipped"):
         with pytest.raises(ConfigError, match="truncated or corrupt|CRC"):

@@ -102,7 +102,7 @@ def test_progress_reward_sums_to_its_total_on_arrival_and_is_zero_when_stopped()
 
 
 def test_intervention_cost_charges_shield_overrides():
-    from agents.ppo import InterventionCost
+    from av_gym.wrappers import InterventionCost
 
     base = make_env(conf("env", "left_turn"), conf("sensors", "truth"), conf("shield", "aeb"))
     costly = InterventionCost(make_env(conf("env", "left_turn"), conf("sensors", "truth"), conf("shield", "aeb")),
@@ -149,7 +149,7 @@ def _wrappers(env):
 
 
 def test_yield_stops_at_the_line_and_go_sets_off():
-    from agents.go_yield import GO, YIELD, GoYieldActions
+    from av_gym.wrappers import GO, YIELD, GoYieldActions
 
     env = GoYieldActions(_turn_env("turn_truth", spawn_probability=0.0))
     env.reset(seed=2)
@@ -166,8 +166,8 @@ def test_yield_stops_at_the_line_and_go_sets_off():
 
 def test_a_held_go_yield_choice_gives_the_same_episode_in_training_and_evaluation():
     """train wraps the env (GoYieldActions + ActionRepeat); eval maps the held choice inside SB3Policy."""
-    from agents.go_yield import GoYieldActions
-    from agents.ppo import ActionRepeat, SB3Policy
+    from agents.ppo import SB3Policy
+    from av_gym.wrappers import ActionRepeat, GoYieldActions
 
     class Model:  # yields for the first 10 decisions, then goes
         def __init__(self):

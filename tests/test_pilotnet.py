@@ -13,12 +13,13 @@ import numpy as np
 import pytest
 import torch
 
-from agents.bc import (Args, PurePursuitExpert, augment, balance, geometric_side_label, load_demos, save_demos,
-                       split_by_chunks)
+from agents.bc import PilotNetParams
 from agents.pilotnet import (FORMAT, N_PARAMETERS, PilotNet, PilotNetPolicy, count_parameters, crop_resize,
                              load_checkpoint, preprocess, rgb_to_yuv)
 from av_gym.errors import ConfigError
 from av_gym.sensors.camera import WINDSHIELD_HALF_WIDTH, CameraSpec
+from train.bc import (PurePursuitExpert, augment, balance, geometric_side_label, load_demos, save_demos,
+                      split_by_chunks)
 from conftest import conf
 
 
@@ -62,11 +63,15 @@ def test_crop_removes_the_sky_rows_and_keeps_the_input_size():
     assert crop_resize(np.stack([img, img]), 12).shape == (2, 66, 200, 3)
 
 
-def _plain_args(**kw) -> Args:
+def _plain_args(**kw) -> PilotNetParams:
     base = dict(flip_p=0.0, shift_px=0.0, vshift_px=0.0, rotate_deg=0.0, brightness=0.0, contrast=0.0, gain=0.0,
-                pixel_noise=0.0)
+                pixel_noise=0.0, night_p=0.0, fog_p=0.0, blur_p=0.0)
     base.update(kw)
-    return Args(**base)
+    return PilotNetParams(**base)
+
+
+# The conditions off, as the old Args() defaults had them (conf/agent/pilotnet.yaml, now the defaults, turns them on)
+NO_CONDITIONS = dict(night_p=0.0, fog_p=0.0, blur_p=0.0)
 
 
 def test_flip_mirrors_the_image_and_negates_the_label():
@@ -98,7 +103,7 @@ def test_night_and_fog_follow_the_camera_model_and_keep_the_label():
     import gymnasium as gym
 
     import av_gym  # noqa: F401
-    from agents.bc import WeatherMaps
+    from train.bc import WeatherMaps
     from av_gym.sensors.camera import Weather, render_view
 
     env = gym.make("av_gym/LaneKeepingLap-v0", config={"start_s": 60.0, "initial_lateral_std": 0.0,
@@ -118,8 +123,10 @@ def test_night_and_fog_follow_the_camera_model_and_keep_the_label():
         assert abs(mean_out.mean() - target.mean()) < 0.15 * target.mean(), (mean_out.mean(), target.mean())
         assert abs(mean_out.mean() - clean.mean()) > 3 * abs(mean_out.mean() - target.mean())
     # with the conditions off, the generator is used exactly as before (a plain run trains the same model)
-    a, _ = augment(x[:8], y[:8], torch.zeros(8), Args(), 142.8, torch.Generator().manual_seed(3), maps)
-    b, _ = augment(x[:8], y[:8], torch.zeros(8), Args(), 142.8, torch.Generator().manual_seed(3), None)
+    a, _ = augment(x[:8], y[:8], torch.zeros(8), PilotNetParams(**NO_CONDITIONS), 142.8,
+                   torch.Generator().manual_seed(3), maps)
+    b, _ = augment(x[:8], y[:8], torch.zeros(8), PilotNetParams(**NO_CONDITIONS), 142.8,
+                   torch.Generator().manual_seed(3), None)
     assert torch.equal(a, b)
 
 
@@ -157,7 +164,7 @@ def lap_env():
 def test_side_camera_labels_steer_back_towards_the_centre(lap_env):
     """The LEFT camera sees the car as if it were left of centre, so its label steers RIGHT (+ = right)."""
     u_env = lap_env.unwrapped
-    expert = PurePursuitExpert(u_env.track, Args().lookahead, u_env.config["max_steering"])
+    expert = PurePursuitExpert(u_env.track, PilotNetParams().lookahead, u_env.config["max_steering"])
     lane = u_env.track.lanes[0]  # the 120 m start straight
     x, y = lane.position(30.0, 0.0)
     offsets = {"left": -WINDSHIELD_HALF_WIDTH, "centre": 0.0, "right": WINDSHIELD_HALF_WIDTH}
@@ -179,7 +186,7 @@ def test_expert_drives_a_lap_better_than_the_paper_pid(make, lane_cfg, track):
     for name in ("expert", "pid"):
         obs, info = env.reset(seed=0)
         u_env, hint, done = env.unwrapped, 0, False
-        expert = PurePursuitExpert(u_env.track, Args().lookahead, u_env.config["max_steering"])
+        expert = PurePursuitExpert(u_env.track, PilotNetParams().lookahead, u_env.config["max_steering"])
         pid = PIDSteering(**PRESETS["paper"])
         while not done:
             t = info["truth"]
@@ -204,18 +211,24 @@ def test_demos_round_trip_without_pickles(tmp_path):
     assert back["images"].dtype == np.uint8 and back["images"].shape == (6, 66, 200, 3)
 
 
-def test_args_reject_unknown_and_bad_fields(tmp_path):
-    with pytest.raises(ValueError, match="agent.epoch is not a PilotNet/BC setting"):
-        Args.from_mapping({"epoch": 3})
-    problems = Args(epochs=0, side_labels="magic", demos=str(tmp_path / "none.npz")).problems()
-    assert any(p.startswith("agent.epochs must be a positive integer") for p in problems)
+def test_params_reject_unknown_and_bad_fields(tmp_path):
+    from agents.registry import agent_problems
+    from av_gym.params import ParamError
+
+    with pytest.raises(ParamError, match="agent.epoch is not a field of a pilotnet agent"):
+        PilotNetParams.from_mapping({"epoch": 3}, where="agent", what="a field of a pilotnet agent")
+    problems = agent_problems({"kind": "pilotnet", "epochs": 0, "side_labels": "magic"}, "agent")
+    assert any(p.startswith("agent.epochs must be an integer >= 1") for p in problems)
     assert any("agent.side_labels must be one of" in p for p in problems)
+    problems = agent_problems({"kind": "pilotnet", "demos": str(tmp_path / "none.npz")}, "agent")
     assert any(p.startswith("agent.demos: no such file") for p in problems)
 
 
 # ------------------------------------------------------------------------------------------------ checkpoints
 def test_checkpoint_loads_with_weights_only_and_rejects_code(tmp_path):
-    from eval.agents import _load_pilotnet
+    from agents.bc import PilotNetAgent
+
+    _load_pilotnet = PilotNetAgent.load
 
     net = PilotNet()
     good = tmp_path / "model.pt"
@@ -223,7 +236,7 @@ def test_checkpoint_loads_with_weights_only_and_rejects_code(tmp_path):
     ckpt = load_checkpoint(good)
     assert set(ckpt["state_dict"]) == set(net.state_dict())
     bad = tmp_path / "evil.pt"
-    torch.save({"format": FORMAT, "payload": Args()}, bad)  # an arbitrary Python object: needs unpickling
+    torch.save({"format": FORMAT, "payload": PilotNetParams()}, bad)  # an arbitrary Python object: needs unpickling
     with pytest.raises(Exception):
         torch.load(bad, weights_only=True)
 

@@ -110,7 +110,9 @@ def test_shield_probability_and_agent_kind():
     cfg = composed("train", [])
     cfg["agent"]["kind"] = "sac"
     (line,) = problems(cfg, "train")
-    assert line == f"agent.kind must be one of {list(schema.AGENT)}, got 'sac'" and "'ppo'" in line
+    from agents.registry import AGENT_KINDS
+
+    assert line == f"agent.kind must be one of {AGENT_KINDS.names()}, got 'sac'" and "'ppo'" in line
 
 
 @pytest.mark.parametrize("argv, needle", [

@@ -19,31 +19,27 @@ from av_gym.errors import ConfigError, check_folder, folder_problem, run_cli
 # What the brief evaluation after training compares the trained agent with (train.baseline: auto): on the left turn
 # the do-nothing-clever driver and the two-parameter rule a learned driver must beat.
 BASELINES = {"left_turn": ("always_proceed", "gap_acceptance"), "lane_keeping": ("pid_paper",)}
-RULE_BASED = ("pid", "always_proceed", "gap_acceptance", "lookahead")
 
 
-def _trainers() -> dict:
-    """agent.kind → (validate(cfg) -> [problems], train(cfg, ckpt_dir, run_dir) -> checkpoint path)."""
-    from train import bc, ppo
+def _kind(cfg: DictConfig):
+    """The agent's kind (agents/registry.py AGENT_KINDS): its Params, and for a trained kind its trainer."""
+    from agents.registry import AGENT_KINDS
 
-    return {"ppo": (ppo.validate, ppo.train_ppo), "pilotnet": (bc.validate, bc.train_pilotnet)}
+    return AGENT_KINDS.get(cfg.agent.get("kind"))
 
 
 def _validate(cfg: DictConfig) -> None:
-    """Every field against the schema (av_gym/config_schema.py), then what needs the agent's trainer."""
-    from av_gym.config_schema import validate_config
-    from eval.agents import available_agents
+    """Every field against the schema (the agent section: its kind's Params), then what its trainer needs."""
+    from agents.registry import resolve
+    from conf.check import validate_config
 
     validate_config(cfg, "train")
     agent = cfg.agent
-    kinds = (*_trainers(), *RULE_BASED)
-    if agent.get("kind") not in kinds:
-        raise ConfigError(f"agent.kind must be one of {list(kinds)}, got {agent.get('kind')!r} "
-                          f"(agents: {available_agents()})")
     if cfg.env.name not in agent.scenarios:
         raise ConfigError(f"agent {agent.name!r} drives scenarios {list(agent.scenarios)}, not env={cfg.env.name}")
-    if agent.kind in _trainers():
-        problems = _trainers()[agent.kind][0](cfg)
+    kind = _kind(cfg)
+    if kind.train_checks:
+        problems = resolve(kind.train_checks)(cfg)
         if problems:
             raise ConfigError(problems[0])
 
@@ -71,8 +67,10 @@ def train(cfg: DictConfig) -> dict:
 
     agent, env_name = cfg.agent, cfg.env.name
     model_path = None
-    if agent.kind in _trainers():
-        model_path = _trainers()[agent.kind][1](cfg, ckpt_dir, run_dir)
+    if _kind(cfg).trained():
+        from agents.registry import resolve
+
+        model_path = resolve(_kind(cfg).trainer)(cfg, ckpt_dir, run_dir)
     else:
         print(f"[train] agent {agent.name!r} is rule-based: nothing to train")
 
@@ -114,7 +112,7 @@ def train(cfg: DictConfig) -> dict:
 
 
 def _check_command_line() -> None:
-    from av_gym.config_schema import check_command_line
+    from conf.check import check_command_line
 
     for cfg in check_command_line("train", sys.argv[1:]):
         _validate(cfg)

@@ -18,7 +18,8 @@ from av_gym.errors import ConfigError, run_cli
 def export_reference(run_dir: str | Path, dest: str | Path, best: bool = False, command: str | None = None) -> Path:
     """Copy run ``run_dir``'s policy (``model.zip`` or ``best.zip``) and ``config.yaml`` to ``dest``, and write
     ``command`` to ``dest/COMMAND`` if given; returns the written zip. Every file is written atomically."""
-    from train.checkpoint import load_sb3, save_model_atomic, write_text_atomic
+    from agents.checkpoint import load_sb3
+    from train.checkpoint import save_model_atomic, write_text_atomic
 
     run_dir, dest = Path(run_dir), Path(dest)
     src = run_dir / ("best.zip" if best else "model.zip")

@@ -9,15 +9,11 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 
-ACTIONS = ("env", "go_yield")  # agent.actions: the env's own action space, or agents/go_yield.py's two choices
-
-
 def _env_factory(env_cfg: dict, sensors_cfg: dict, shield_cfg: dict, intervention_cost: float = 0.0,
                  action_repeat: int = 1, actions: str = "env", render_mode: str | None = None,
                  timeout_is_terminal: bool = False):
-    from agents.go_yield import GoYieldActions
-    from agents.ppo import ActionRepeat, FlatDictObservation, InterventionCost, TimeLimitIsTerminal
     from av_gym.make import make_env
+    from av_gym.wrappers import ActionRepeat, FlatDictObservation, GoYieldActions, InterventionCost, TimeLimitIsTerminal
 
     env = make_env(env_cfg, sensors_cfg, shield_cfg, render_mode=render_mode)
     if timeout_is_terminal:
@@ -32,64 +28,22 @@ def _env_factory(env_cfg: dict, sensors_cfg: dict, shield_cfg: dict, interventio
 
 
 def make_teacher(name: str, actions: str, scenario: str | None = None, action_repeat: int = 1):
-    """The teacher ``agent.init`` names, as ``teacher(env, obs, info) -> action`` in the training env's action space.
-
-    - ``gap_acceptance`` (kind gap_acceptance): GO/YIELD from ``obs["turn"]`` by its rule;
-    - ``lookahead`` (kind lookahead, :class:`agents.go_yield.Lookahead`): a privileged oracle that simulates the
-      future;
-    - a ``pid`` agent: steering from the simulator's CTE in ``info["truth"]``, so that a policy that sees only
-      images can start from lane keeping.
-
-    The privileged teachers read what the student never sees (``env``'s future, ``info``); only their labels reach
-    the student. The first two need ``agent.actions=go_yield``; a pid teacher needs ``scenario`` lane_keeping (or
-    None: unchecked), continuous actions and ``action_repeat`` 1."""
-    import numpy as np
-
+    """The teacher ``agent.init`` names (an agent config, ``conf/agent/<name>.yaml``), as
+    ``teacher(env, obs, info) -> action`` in the training env's action space: its kind's entry in
+    :data:`agents.registry.TEACHERS` (gap_acceptance and lookahead teach GO/YIELD choices, a pid agent steering
+    from the simulator's CTE). The privileged teachers read what the student never sees (``env``'s future,
+    ``info``); only their labels reach the student. A teacher refuses, in one line, a training setup it cannot
+    label (``actions``, ``scenario``, ``action_repeat``)."""
+    from agents.registry import TEACHERS, agent_params
     from av_gym.errors import ConfigError
     from eval.agents import load_agent_config
 
     cfg = load_agent_config(name)
     kind = cfg.get("kind")
-    if kind in ("gap_acceptance", "lookahead") and actions != "go_yield":
-        raise ConfigError(f"agent.init={name} teaches go/yield choices: it needs agent.actions=go_yield")
-    if kind == "pid" and (actions != "env" or scenario not in (None, "lane_keeping") or action_repeat != 1):
-        # Its gains are tuned for a 10 Hz steering loop on the lane's CTE (read from info["truth"]).
-        raise ConfigError(f"agent.init={name} teaches lane-keeping steering: it needs env=lane_keeping, "
-                          f"agent.actions=env and agent.action_repeat=1 (got env={scenario}, "
-                          f"agent.actions={actions}, agent.action_repeat={action_repeat})")
-    if kind == "gap_acceptance":
-        from agents.go_yield import GapAcceptance
-
-        rule = GapAcceptance(t_gap=cfg["t_gap"], miss=cfg["miss"])
-        return lambda env, obs, info: rule.choice(obs["turn"])
-    if kind == "lookahead":
-        from agents.go_yield import GO, YIELD, go_is_safe
-
-        safe_path: dict[float, tuple] = {}  # time → ego pose on the last collision-free GO future
-
-        def oracle(env, obs, info):
-            # Once GO was found safe, GO stays safe as long as the ego is still on that future (the simulation
-            # is deterministic): an exact shortcut that skips most of the simulated futures of an episode.
-            pose = (info["truth"]["x"], info["truth"]["y"], info["truth"]["speed"])
-            if safe_path.get(info["truth"]["time"]) == pose:
-                return GO
-            safe_path.clear()
-            if go_is_safe(env, obs, lambda o: GO, visited=safe_path):
-                return GO
-            safe_path.clear()
-            return YIELD
-        return oracle
-    if kind == "pid":
-        from agents.pid import PIDSteering
-
-        pid = PIDSteering(kp=cfg["kp"], ki=cfg["ki"], kd=cfg["kd"], obs_key="cte")
-
-        def steer(env, obs, info):
-            if info["truth"]["time"] == 0.0:
-                pid.reset()
-            return np.asarray(pid.act({"cte": [info["truth"]["cte"]]}), dtype=np.float32).reshape(-1)
-        return steer
-    raise ConfigError(f"agent.init must name a gap_acceptance, lookahead or pid agent, got {name!r} (kind {kind!r})")
+    if kind not in TEACHERS:
+        raise ConfigError(f"agent.init must name an agent of kind {' or '.join(TEACHERS.names())}, got {name!r} "
+                          f"(kind {kind!r})")
+    return TEACHERS.get(kind)(agent_params(cfg, where=f"agent.init={name}:"), actions, scenario, action_repeat)
 
 
 def pretrain_from_teacher(model, env, teacher, seeds, gamma: float, epochs: int, batch_size: int,
@@ -205,31 +159,19 @@ def pretrain_from_teacher(model, env, teacher, seeds, gamma: float, epochs: int,
 
 
 def validate(cfg: DictConfig) -> list[str]:
-    """Problems with ``cfg.agent`` for PPO, as one-line messages (empty if none)."""
-    agent, problems = cfg.agent, []
-    for key in ("total_timesteps", "n_envs", "n_steps", "batch_size"):
-        if int(agent[key]) < 1:
-            problems.append(f"agent.{key} must be a positive integer, got {agent[key]}")
-    if agent.vec_env not in ("subproc", "dummy", "batched"):
-        problems.append(f"agent.vec_env must be one of ['subproc', 'dummy', 'batched'], got {agent.vec_env!r}")
-    elif agent.vec_env == "batched":  # what the batch cannot give, on the command line (before any folder)
-        from av_gym.envs.batched_vec import check_batchable
-        from av_gym.errors import ConfigError
+    """What PPO's training needs beyond :class:`agents.ppo.PPOParams` (checked by the config checker), as one-line
+    messages: with ``agent.vec_env=batched``, an env, sensors and shield the batched engine can run (on the command
+    line, before any folder)."""
+    if cfg.agent.vec_env != "batched":
+        return []
+    from av_gym.envs.batched_vec import check_batchable
+    from av_gym.errors import ConfigError
 
-        try:
-            check_batchable(*[OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)])
-        except ConfigError as exc:
-            problems.append(str(exc))
-    if agent.get("actions", "env") not in ACTIONS:
-        problems.append(f"agent.actions must be one of {list(ACTIONS)}, got {agent.actions!r}")
-    if int(agent.get("action_repeat", 1)) < 1:
-        problems.append(f"agent.action_repeat must be >= 1, got {agent.action_repeat}")
-    if float(agent.get("intervention_cost", 0.0)) < 0:
-        problems.append(f"agent.intervention_cost must be >= 0, got {agent.intervention_cost}")
-    for key in ("eval_every", "eval_n", "video_every"):
-        if int(cfg.train[key]) < 0:
-            problems.append(f"train.{key} must be >= 0, got {cfg.train[key]}")
-    return problems
+    try:
+        check_batchable(*[OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)])
+    except ConfigError as exc:
+        return [str(exc)]
+    return []
 
 
 def _tensorboard_logger(folder: Path, purge_step: int | None):
@@ -256,13 +198,15 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
-    from agents.ppo import make_ppo
+    from agents.ppo import PPOParams, make_ppo
     from av_gym.errors import ConfigError
     from train.callbacks import (AtomicCheckpointCallback, EpisodeMetricsCallback, FiniteGuard, HParamsCallback,
                                  PeriodicEval, nonfinite_parameter, raise_if_diverged)
-    from train.checkpoint import check_sb3_zip, load_rng_state, save_model_atomic
+    from agents.checkpoint import check_sb3_zip
+    from train.checkpoint import load_rng_state, save_model_atomic
 
     agent, t0 = cfg.agent, time.time()
+    params = PPOParams.from_mapping(OmegaConf.to_container(agent, resolve=True), where="agent")
     latest = ckpt_dir / "latest.zip"
     resume = bool(cfg.train.get("resume", False))
     if resume and not latest.is_file():
@@ -278,19 +222,18 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     if resume:
         done_steps = int(PPO.load(str(latest), device=agent.device).num_timesteps)
     # A resumed run's episodes come from fresh seeds (the env streams of the killed run cannot be restored).
-    cost, repeat = float(agent.get("intervention_cost", 0.0)), int(agent.get("action_repeat", 1))
-    actions = str(agent.get("actions", "env"))
+    cost, repeat, actions = float(params.intervention_cost), int(params.action_repeat), str(params.actions)
     if agent.vec_env == "batched":  # issue 16: all envs in one numpy batch (av_gym/envs/batched_vec.py)
         from av_gym.envs.batched_vec import BatchedLeftTurnVecEnv
 
         if cost > 0:
             raise ConfigError("agent.intervention_cost needs a shield: not available with agent.vec_env=batched")
         venv = BatchedLeftTurnVecEnv(*plain, int(agent.n_envs), action_repeat=repeat, actions=actions,
-                                     timeout_is_terminal=bool(agent.get("timeout_is_terminal", False)))
+                                     timeout_is_terminal=params.timeout_is_terminal)
         venv.seed(int(cfg.seed) + done_steps)
     else:
         venv = make_vec_env(functools.partial(_env_factory, *plain, cost, repeat, actions,
-                                              timeout_is_terminal=bool(agent.get("timeout_is_terminal", False))),
+                                              timeout_is_terminal=params.timeout_is_terminal),
                             n_envs=int(agent.n_envs),
                             seed=int(cfg.seed) + done_steps, vec_env_cls=vec_cls)
     if resume:
@@ -303,7 +246,7 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     else:
         model = make_ppo(venv, OmegaConf.to_container(agent, resolve=True), seed=int(cfg.seed),
                          tensorboard_log=None, device=agent.device)
-        if agent.get("init"):
+        if params.init:
             teacher = make_teacher(str(agent.init), actions, str(cfg.env.name), repeat)
             demo_env = _env_factory(*plain, cost, repeat, actions)
             # Demonstration seeds 500000+: disjoint from evaluation (1000+, 100000+) and from PPO's own episodes.
@@ -312,11 +255,11 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
                 stats = pretrain_from_teacher(model, demo_env, teacher,
                                               range(500000, 500000 + int(agent.init_episodes)),
                                               float(agent.gamma), int(agent.init_epochs), int(agent.batch_size),
-                                              float(agent.get("init_action_noise", 0.0)),
-                                              int(agent.get("init_dagger_rounds", 0)), agent.get("init_lr"))
+                                              float(params.init_action_noise), int(params.init_dagger_rounds),
+                                              params.init_lr)
             except (ValueError, RuntimeError) as exc:  # NaN logits refused inside torch: say why, in one line
-                lr = ("agent.init_lr", agent.init_lr) if agent.get("init_lr") else ("agent.learning_rate",
-                                                                                    agent.learning_rate)
+                lr = ("agent.init_lr", params.init_lr) if params.init_lr else ("agent.learning_rate",
+                                                                                params.learning_rate)
                 raise_if_diverged(exc, model.policy, "behaviour cloning", lr[0], float(lr[1]))
                 raise
             demo_env.close()
@@ -331,7 +274,7 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
             getattr(model.logger, key).update(store)
     checkpoint = AtomicCheckpointCallback(ckpt_dir, int(cfg.train.checkpoint_every))
     guard = FiniteGuard(float(agent.learning_rate), latest,  # first: a diverged update never reaches a checkpoint
-                        agent.get("init_lr") if agent.get("init") and not resume else None)
+                        params.init_lr if params.init and not resume else None)
     callbacks = [guard, EpisodeMetricsCallback(cfg.env.name), checkpoint]
     if not resume:
         callbacks.append(HParamsCallback({**OmegaConf.to_container(agent, resolve=True), "env": cfg.env.name,

@@ -24,12 +24,12 @@ from av_gym.envs.left_turn_batched import BatchedIntent, BatchedLeftTurn
 from av_gym.errors import ConfigError
 
 SENSORS = ("name", "turn_features", "turn_signals", "turn_intent", "observe", "keep_state")
-SET_POINTS = np.array([0.0, 4.5, 9.0])  # agents.go_yield.SET_POINTS
+SET_POINTS = np.array([0.0, 4.5, 9.0])  # av_gym.wrappers.SET_POINTS
 
 
 def meta_actions(choice: np.ndarray, turn: np.ndarray) -> np.ndarray:
-    """agents.go_yield.meta_action for a batch: choices (B,) GO/YIELD and turn features (B, F) → meta-actions."""
-    from agents.go_yield import DECEL, FASTER, GO, IDLE, MARGIN, SLOWER
+    """av_gym.wrappers.meta_action for a batch: choices (B,) GO/YIELD and turn features (B, F) → meta-actions."""
+    from av_gym.wrappers import DECEL, FASTER, GO, IDLE, MARGIN, SLOWER
 
     set_point, d_stop = 10.0 * turn[:, 1].astype(float), 30.0 * turn[:, 2].astype(float)
     v_ok = np.sqrt(2.0 * DECEL * np.maximum(d_stop - MARGIN, 0.0))
