@@ -72,3 +72,21 @@ def test_smoke_episode_every_env_and_agent(make, scenario, tmp_path):
         assert terminated or truncated
         assert set(info["episode_metrics"]) >= {"return", "length"}
         assert all(np.isfinite(t["x"]) and np.isfinite(t["y"]) for t in truths)
+
+
+def test_every_shipped_agent_config_is_its_kinds_params():
+    """conf/agent/<name>.yaml composed (its kind's Params defaults + what the file changes) is a valid Params of
+    its kind (agents/registry.py), and a plain file holds only what differs from those defaults."""
+    import yaml
+
+    from agents.configs import AGENT_DIR, available_agents, kind_default
+    from agents.registry import AGENT_KINDS, agent_params
+
+    for name in available_agents():
+        params = agent_params(load_agent_config(name))
+        assert params.name == name and type(params) is AGENT_KINDS.get(params.kind).Params
+        raw = yaml.safe_load((AGENT_DIR / f"{name}.yaml").read_text())
+        if kind_default(raw):  # not a _global_ variant: every value it sets differs from the kind's default
+            defaults = AGENT_KINDS.get(kind_default(raw)).Params().as_dict()
+            same = [k for k, v in raw.items() if k not in ("defaults", "name") and defaults.get(k) == v]
+            assert same == [], (name, same)
