@@ -43,7 +43,7 @@ def make_teacher(name: str, actions: str, scenario: str | None = None, action_re
     if kind not in TEACHERS:
         raise ConfigError(f"agent.init must name an agent of kind {' or '.join(TEACHERS.names())}, got {name!r} "
                           f"(kind {kind!r})")
-    return TEACHERS.get(kind)(agent_params(cfg, where=f"agent.init={name}:"), actions, scenario, action_repeat)
+    return TEACHERS.get(kind)(agent_params(cfg, where=name), actions, scenario, action_repeat)
 
 
 def pretrain_from_teacher(model, env, teacher, seeds, gamma: float, epochs: int, batch_size: int,
