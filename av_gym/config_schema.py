@@ -41,6 +41,12 @@ def optional(spec: Mapping) -> dict:
 
 
 # ------------------------------------------------------------------------------------------------ sensors
+DETECTOR = {"rate_hz": "num >0", "max_range": "num >0", "fov_deg": "num (0,360]", "miss_rate": "num [0,1)",
+            "burst_length": "num >=1|null", "occlusion": "bool", "occlusion_fraction": "num (0,1]",
+            "sigma_pos0": "num >=0", "sigma_pos_k": "num >=0", "sigma_vel": "num >=0", "sigma_size": "num >=0",
+            "sigma_heading": "num >=0", "clutter_rate": "num >=0", "max_objects": "int >=1",
+            "frame": ("world", "ego")}
+"""The AEB shield's own detector (AEB below), until the shield checks it with DetectorParams."""
 SENSORS: dict = {}  # every sensor and estimator has typed Params now (_sensor_params checks those)
 """Sensor key → its wrapper's keyword arguments (all optional: the wrappers have defaults)."""
 
