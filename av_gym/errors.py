@@ -34,7 +34,7 @@ def discard_hydra_run_dir() -> bool:
     job log), then any parent that became empty, up to the working directory. A folder with anything of ours (a
     resumed run's TensorBoard logs, a previous run's results) is kept. Returns whether it was removed.
 
-    The command-line check (:func:`av_gym.config_schema.check_command_line`) runs before Hydra and catches most
+    The command-line check (:func:`conf.check.check_command_line`) runs before Hydra and catches most
     bad input with nothing written; this covers what can only be checked once the job runs (a checkpoint that
     does not fit the env, say)."""
     import shutil

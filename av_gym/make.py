@@ -16,83 +16,29 @@ from av_gym.errors import ConfigError
 from av_gym.registry import SCENARIOS
 from av_gym.metrics.recorder import EpisodeMetrics
 
-SENSOR_PRESETS = ("truth", "gnss_imu", "gnss_raw", "lidar", "cameras", "detector", "localized", "full",
-                  "turn_truth", "turn_perceived", "lane_localized", "camera_centre")
-
-
-def _shields() -> dict:
-    """shield config ``kind`` → builder ``f(env, params: dict) -> gym.Env`` (wraps the sensed env)."""
-    from agents.aeb import build_shield  # imported here: av_gym stays importable without agents/
-
-    return {"aeb": build_shield}
-
-
-def _sensor_classes() -> dict:
-    """Sensor config key → wrapper class, in the order they are stacked (imported here, not at module level, so
-    building a truth-only env does not load OpenCV)."""
-    from av_gym.sensors.detector import Detector
-    from av_gym.sensors.gnss import GNSS
-    from av_gym.sensors.imu import IMU
-
-    from av_gym.sensors.camera import Cameras
-    from av_gym.sensors.lidar import Lidar
-    from av_gym.sensors.turn_signal import TurnSignals
-
-    return {"gnss": GNSS, "imu": IMU, "lidar": Lidar, "cameras": Cameras, "detector": Detector,
-            "turn_signals": TurnSignals, **_estimators()}
-
-
-def _estimators() -> dict:
-    """Estimator config key → wrapper class. Estimators read sensor keys and add estimated ones beside them
-    (e.g. ``ego_estimate``), so they are stacked after every sensor, in this order."""
-    from av_gym.estimation.localization import Localizer
-    from av_gym.estimation.lane_features import LaneFeatures
-    from av_gym.estimation.object_tracking import ObjectTracker
-    from av_gym.estimation.turn_features import TurnFeatures, TurnIntent
-
-    return {"localizer": Localizer, "tracker": ObjectTracker, "turn_features": TurnFeatures,
-            "turn_intent": TurnIntent, "lane_features": LaneFeatures}
-
-
 def add_sensors(env: gym.Env, sensors_cfg: Mapping | None) -> gym.Env:
-    """Stack the sensor wrappers a ``sensors`` preset asks for; drop the privileged ``state`` unless
-    ``keep_state``. Parameter errors name the field (``sensors.gnss.sigma must be >= 0, got -1``)."""
-    import inspect
-
+    """Stack the sensor wrappers a ``sensors`` preset asks for, in :data:`av_gym.registry.SENSORS` order (sensors,
+    then the estimators that read them); drop the privileged ``state`` unless ``keep_state``. A bad parameter
+    gives one line naming it under ``sensors.<key>``."""
     from gymnasium.wrappers import FilterObservation
+
+    from av_gym.params import ParamError
+    from av_gym.registry import SENSORS
 
     c = _plain(sensors_cfg)
     name = c.get("name", "truth")
-    if name not in SENSOR_PRESETS:
-        raise ConfigError(f"sensors must be one of {list(SENSOR_PRESETS)}, got {name!r}")
-    classes = _sensor_classes()
-    known = {"name", "keep_state", "observe", *classes}
-    unknown = sorted(set(c) - known)
+    unknown = sorted(set(c) - {"name", "keep_state", "observe", *SENSORS})
     if unknown:
-        raise ConfigError(f"sensors.{unknown[0]} is not a sensor; allowed: {sorted(classes)}")
-    for key, cls in classes.items():
-        params = c.get(key)
-        if params is None:
+        raise ConfigError(f"sensors.{unknown[0]} is not a sensor; allowed: {sorted(SENSORS)}")
+    for key in SENSORS:
+        if c.get(key) is None:
             continue
-        if getattr(cls, "Params", None) is not None:
-            from av_gym.params import ParamError
-
-            try:
-                env = cls(env, cls.Params.from_mapping(params, where=f"sensors.{key}",
-                                                       what=f"a parameter of {cls.__name__}"))
-            except ParamError as exc:
-                raise ConfigError(str(exc)) from None
-            continue
-        signature = inspect.signature(cls.__init__).parameters
-        allowed = [p for p in signature if p not in ("self", "env")]
-        bad = [] if any(p.kind is p.VAR_KEYWORD for p in signature.values()) else sorted(set(params) - set(allowed))
-        if bad:
-            raise ConfigError(f"sensors.{key}.{bad[0]} is not a parameter of {cls.__name__}; allowed: {allowed}")
+        cls = SENSORS.get(key)  # imported only when used: a truth-only env does not load OpenCV
         try:
-            env = cls(env, **params)
-        except ValueError as exc:
-            msg = str(exc)
-            raise ConfigError(msg if msg.startswith(f"sensors.{key}") else f"sensors.{key}: {msg}") from None
+            params = cls.Params.from_mapping(c[key], where=f"sensors.{key}", what=f"a parameter of {cls.__name__}")
+            env = cls(env, params)
+        except ParamError as exc:
+            raise ConfigError(str(exc)) from None
     if c.get("observe"):  # the keys the agent sees (e.g. only the features an estimator computed)
         missing = sorted(set(c["observe"]) - set(env.observation_space.spaces))
         if missing:
@@ -150,16 +96,19 @@ def make_env(env_cfg: Mapping, sensors_cfg: Mapping | None = None, shield_cfg: M
 
 def add_shield(env: gym.Env, shield_cfg: Mapping | None) -> gym.Env:
     """Wrap ``env`` in the safety shield a ``shield`` config asks for (``kind: none`` leaves it unchanged)."""
+    from av_gym.params import ParamError
+    from av_gym.registry import SHIELDS
+
     c = _plain(shield_cfg)
     kind = c.get("kind", c.get("name", "none"))
-    builders = _shields()
     if kind == "none":
         return env
-    if kind not in builders:
-        raise ConfigError(f"shield.kind must be one of {['none', *builders]}, got {kind!r}")
-    params = {k: v for k, v in c.items() if k not in ("name", "kind")}
-    try:
-        return builders[kind](env, params)
+    if kind not in SHIELDS:
+        raise ConfigError(f"shield.kind must be one of {['none', *SHIELDS]}, got {kind!r}")
+    try:  # the shield class reads its own fields (name and kind aside) and names them under `shield`
+        return SHIELDS.get(kind).from_config(env, c, where="shield")
+    except ParamError as exc:
+        raise ConfigError(str(exc)) from None
     except (TypeError, ValueError) as exc:
         msg = str(exc)
         raise ConfigError(msg if msg.startswith("shield.") else f"shield: {msg}") from None

@@ -141,7 +141,7 @@ def test_the_envs_check_the_same_relations_from_python(turn_cfg, lane_cfg):
 
     with pytest.raises(ConfigError, match=r"env.acceleration_range must be \[min, max\] with min < max"):
         make_env({**turn_cfg, "action": "continuous", "acceleration_range": [0.0, 0.0]})
-    with pytest.raises(ConfigError, match=r"env.lane_width must be wider than the ego vehicle \(2.0 m\)"):
+    with pytest.raises(ConfigError, match=r"env.lane_width must be wider than the ego vehicle.s width, 2.0 m"):
         make_env({**lane_cfg, "lane_width": 1e-9})
 
 

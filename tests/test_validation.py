@@ -1,6 +1,6 @@
-"""The config schema (av_gym/config_schema.py): every shipped option passes, every field refuses a bad value with a
-line naming it, the schema agrees with the classes it describes, and the sensor presets' defaults with the
-wrappers'. In-process and fast; the command-line behaviour (one line, exit 2, nothing written) is in test_cli.py."""
+"""The config checker (conf/check.py, every section against its kind's Params): every shipped option passes, every
+field refuses a bad value with a line naming it. In-process and fast; the command-line behaviour (one line, exit 2,
+nothing written) is in test_cli.py, the Params checker itself in test_params.py."""
 
 from __future__ import annotations
 
@@ -9,8 +9,7 @@ from importlib import resources
 import pytest
 import yaml
 
-from av_gym import config_schema as schema
-from av_gym.config_schema import check_command_line, problems
+from conf.check import check_command_line, problems
 from av_gym.errors import ConfigError
 
 
@@ -162,8 +161,8 @@ def test_readme_says_a_checkpoint_is_code_and_must_be_trusted():
 
 
 def test_numbers_are_finite():
-    assert problems_of("num >=0", float("inf")) and problems_of("num", float("nan")) and not problems_of("num", 1)
+    from av_gym.params import check
+    from av_gym.sensors.gnss import GNSSParams
 
-
-def problems_of(spec, value):
-    return schema._check(value, spec, "x")
+    assert check(GNSSParams, {"sigma": float("inf")}) and check(GNSSParams, {"latency": float("nan")})
+    assert not check(GNSSParams, {"sigma": 1})

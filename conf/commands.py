@@ -1,0 +1,81 @@
+"""The settings of ``python -m train`` and ``python -m eval`` besides their sections (``env``, ``sensors``,
+``agent``, ``shield``, each checked by its own kind's Params): typed, with defaults and reasons here, stored in
+Hydra's ConfigStore as ``command/train`` and ``command/eval`` (conf/__init__.py) so that train.yaml and eval.yaml
+hold only the defaults list, interpolations and Hydra's own settings."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from av_gym.params import Params, param
+
+
+@dataclass(frozen=True)
+class TrainOptions(Params):
+    """``train.*``: checkpoints, the evaluations during and after training, progress."""
+
+    checkpoint_every: int = param(8000, "env steps", ge=1, doc="between atomic checkpoints (latest.zip + latest.rng)")
+    resume: bool = param(False, doc="continue checkpoints/<run_name>/latest.zip to the same total steps")
+    eval_episodes: int = param(100, "episodes", ge=0, doc="brief evaluation after training, seeds eval_seed.. "
+                                                          "(100: a rate's 95 % interval is about ±0.1, enough to tell "
+                                                          "a policy from always-proceed's 0.5 / 0.5)")
+    eval_n_envs: int = param(2, "processes", ge=1, doc="worker processes for the brief evaluation (1 = in this "
+                                                       "process; the same rows)")
+    eval_seed: int = param(100000, ge=0, doc="first seed of the evaluations: disjoint from training seeds")
+    eval_every: int = param(10000, "env steps", ge=0, doc="between evaluations on fixed seeds during training (0 = "
+                                                           "none)")
+    eval_n: int = param(30, "episodes", ge=0, doc="per evaluation during training (seeds eval_seed..; best.zip kept)")
+    video_every: int = param(50000, "env steps", ge=0, doc="between rendered evaluation episodes (GIF + TensorBoard; "
+                                                           "0 = none)")
+    baseline: str = param("auto", doc="agent compared against in the brief evaluation (auto: always_proceed and "
+                                      "gap_acceptance on the left turn, pid_paper on lane keeping)")
+    progress_bar: bool = param(True)
+    torch_threads: int = param(1, ge=1, doc="torch intra-op threads (one per process: the envs use the other core)")
+
+
+@dataclass(frozen=True)
+class TrainPaths(Params):
+    runs: str = param("runs", doc="logs and TensorBoard: runs/<run_name>/")
+    checkpoints: str = param("checkpoints", doc="checkpoints/<run_name>/{model.zip,latest.zip,config.yaml}")
+
+
+@dataclass(frozen=True)
+class TrainCommand(Params):
+    """``python -m train``'s own settings."""
+
+    seed: int = param(0, ge=0, doc="seeds the env stream, the policy's initialisation and PPO's sampling")
+    run_name: str = param("run", name_like=True, doc="folder name under paths.runs and paths.checkpoints (train.yaml: "
+                                                     "env-agent-seed-time)")
+    paths: TrainPaths = param(TrainPaths())
+    train: TrainOptions = param(TrainOptions())
+
+
+@dataclass(frozen=True)
+class EvalPaths(Params):
+    checkpoints: str = param("checkpoints", doc="where trained kinds (ppo, ppo_turn ...) find their newest checkpoint")
+
+
+@dataclass(frozen=True)
+class EvalCommand(Params):
+    """``python -m eval``'s own settings."""
+
+    agents: tuple[str, ...] = param((), min_items=1, doc="names from conf/agent/ (rule-based, or trained: the newest checkpoint "
+                                            "of that config), a trained kind, or a checkpoint path; eval.yaml: the "
+                                            "env's compare list")
+    episodes: int = param(20, ge=1, doc="episodes per agent")
+    seed: int = param(1000, ge=0, doc="episode i uses seed + i; the same seeds for every agent")
+    n_envs: int = param(1, ge=1, doc="worker processes sharing the episodes (1 = in this process); the metrics are "
+                                     "bit-identical whatever n_envs, as every episode is seeded on its own")
+    vec_env: Literal["subproc", "batched"] = param("subproc", doc="subproc: per-env stacks (n_envs worker processes); "
+                                                                  "batched: the left turn's batched engine, n_envs "
+                                                                  "episodes stepped together (eval/batched.py)")
+    paths: EvalPaths = param(EvalPaths())
+    out_dir: str = param("runs/eval", doc="results.csv and results.md (eval.yaml: Hydra's run folder)")
+    progress_bar: bool = param(True)
+    plots: bool = param(True, doc="lane keeping: CTE along the lap (PNG) per agent, on the first seed")
+    videos: bool = param(False, doc="lane keeping: one lap per agent from the centre camera (MP4)")
+
+
+COMMANDS: dict[str, type[Params]] = {"train": TrainCommand, "eval": EvalCommand}
+SECTIONS = {"train": ("env", "sensors", "agent", "shield"), "eval": ("env", "sensors", "shield")}
