@@ -15,7 +15,7 @@ def _plans(cfg: DictConfig) -> list:
     """Every agent spec planned and its checkpoint (if any) checked, before any env is built."""
     from omegaconf import OmegaConf
 
-    from av_gym.config_schema import validate_config
+    from conf.check import validate_config
     from eval.agents import check_plan, check_sensor_overrides, plan_agent
 
     validate_config(cfg, "eval")
@@ -89,7 +89,7 @@ def evaluate(cfg: DictConfig) -> list[dict]:
 
 
 def _check_command_line() -> None:
-    from av_gym.config_schema import _PLACEHOLDER, check_command_line
+    from conf.check import _PLACEHOLDER, check_command_line
 
     for cfg in check_command_line("eval", sys.argv[1:]):
         _plans(cfg)

@@ -115,7 +115,7 @@ def _is_path(spec: str) -> bool:
 def check_plan(plan: "AgentPlan", env_name: str) -> None:
     """Everything about a plan that can be checked without building its env: the checkpoint file (exists, same
     env) and the sensors and shield it will run with (a checkpoint's saved ones included)."""
-    from av_gym.config_schema import section_problems
+    from conf.check import section_problems
 
     if _is_path(plan.spec):
         _checkpoint_file(Path(plan.spec), env_name)

@@ -85,10 +85,7 @@ def toy_kinds(monkeypatch):
 
 
 def test_the_config_check_knows_a_registered_kind(toy_kinds):
-    try:
-        from conf.check import problems, section_problems
-    except ImportError:  # the checker before it moved to conf/check.py
-        from av_gym.config_schema import problems, section_problems
+    from conf.check import problems, section_problems
     from test_validation import composed
 
     assert section_problems("agent", {"name": "mine", "kind": "toy", "action": 0}) == []

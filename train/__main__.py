@@ -31,7 +31,7 @@ def _kind(cfg: DictConfig):
 def _validate(cfg: DictConfig) -> None:
     """Every field against the schema (the agent section: its kind's Params), then what its trainer needs."""
     from agents.registry import resolve
-    from av_gym.config_schema import validate_config
+    from conf.check import validate_config
 
     validate_config(cfg, "train")
     agent = cfg.agent
@@ -112,7 +112,7 @@ def train(cfg: DictConfig) -> dict:
 
 
 def _check_command_line() -> None:
-    from av_gym.config_schema import check_command_line
+    from conf.check import check_command_line
 
     for cfg in check_command_line("train", sys.argv[1:]):
         _validate(cfg)
