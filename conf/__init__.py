@@ -23,4 +23,17 @@ def register_configs() -> None:
     register_agent_kinds(store)
 
 
+
+def register_shield_configs() -> None:
+    """``aeb/<variant>``: each AEB shield variant's defaults (av_gym/shields/aeb.py, ``config_defaults()`` of the
+    classes in ``AEB_VARIANTS``), which conf/shield/aeb*.yaml start from (``defaults: [/aeb/<variant>@_here_]``)."""
+    from hydra.core.config_store import ConfigStore
+
+    from av_gym.shields.aeb import AEB_VARIANTS
+
+    for name, cls in AEB_VARIANTS.items():
+        ConfigStore.instance().store(group="aeb", name=name, node=cls.config_defaults())
+
+
 register_configs()
+register_shield_configs()

@@ -93,7 +93,7 @@ def shield_problems(value: Any, where: str = "shield") -> list[str]:
                         else [])
     if kind not in SHIELDS:
         return [f"{where}.kind must be one of {['none', *SHIELDS.names()]}, got {kind!r}"]
-    return found + [f"{where}.{p}" for p in SHIELDS.get(kind).config_problems(value)]
+    return found + SHIELDS.get(kind).config_problems(value, where)
 
 
 def agent_problems(value: Any, where: str = "agent") -> list[str]:

@@ -84,6 +84,7 @@ def shield_config(variant: str, mode: str, miss_rate: float | None = None, burst
     """The shipped ``conf/shield/<name>.yaml`` for ``variant`` with ``mode`` (and perceived-mode overrides)."""
     name = VARIANTS[variant]
     cfg = yaml.safe_load((resources.files("conf") / "shield" / f"{name}.yaml").read_text())
+    cfg.pop("defaults", None)  # the variant's Params defaults (/aeb/<variant>): the shield fills them in
     if variant == "none":
         return cfg
     cfg["mode"] = mode

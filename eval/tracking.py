@@ -17,11 +17,9 @@ import argparse
 import csv
 import sys
 import time
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 
 def run(miss_rate: float, burst_length: float | None, episodes: int, seed: int, detector_overrides: dict,
@@ -82,8 +80,9 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(a.out or f"runs/tracking/{time.strftime('%Y%m%d-%H%M%S')}")
     out.mkdir(parents=True, exist_ok=True)
     burst = a.burst_length if a.burst_length > 0 else None
-    shield = yaml.safe_load((resources.files("conf") / "shield" / "aeb.yaml").read_text())
-    tracker_cfg = dict(shield.get("tracker") or {})
+    from av_gym.shields.aeb import ImprovedAEB
+
+    tracker_cfg = ImprovedAEB.config_defaults()["tracker"]  # the AEB shield's tracker settings (shield=aeb)
     rows = []
     t_start = time.time()
     for m in (float(v) for v in a.miss_rates.split(",")):

@@ -25,6 +25,8 @@ def conf(group: str, name: str) -> dict:
         from av_gym.registry import SCENARIOS
 
         shipped = {**SCENARIOS.get(name).Params().as_dict(), **{k: v for k, v in shipped.items() if k != "defaults"}}
+    if group == "shield":  # conf/shield/aeb*.yaml: the variant's Params defaults (/aeb/<variant>), filled by the shield
+        shipped.pop("defaults", None)
     return shipped
 
 

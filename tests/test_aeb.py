@@ -1,5 +1,5 @@
-"""Predictive AEB shield (agents/aeb.py, agents/aeb_predict.py): the paper's maths, the actuator, and a few
-deterministic CCFtap cases (the whole grid is `python -m eval.ccftap`)."""
+"""Predictive AEB shield (av_gym/shields/aeb.py, av_gym/shields/predict.py): the paper's maths, the actuator, each
+variant's typed parameters, and a few deterministic CCFtap cases (the whole grid is `python -m eval.ccftap`)."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from agents import AlwaysProceed
-from agents.aeb import BrakeActuator
-from agents.aeb_predict import (aabb_limits, ca_predict, footprint_ttc, object_predict, paper_horizon,
-                                paper_limits, paper_ttc, standard_ttc)
+from av_gym.shields.aeb import AEB_VARIANTS, BrakeActuator
+from av_gym.shields.predict import (aabb_limits, ca_predict, footprint_ttc, object_predict, paper_horizon,
+                                    paper_limits, paper_ttc, standard_ttc)
 from av_gym.envs.left_turn import CONFLICT_POINT
 from av_gym.errors import ConfigError
 from conftest import Scripted, ccftap_cfg, conf, rollout
@@ -102,7 +102,7 @@ def test_brake_actuator_delay_jerk_and_stopping_distance():
     assert vs.min() == 0.0 and np.all(np.diff(vs) <= 1e-12)  # stops, never reverses
     d, t_stop = act.stopping_distance(5.0, 0.0, dt)
     assert d == pytest.approx(xs[-1]) and 5.0**2 / 16 < d < 5.0**2 / 16 + 5.0 * 0.45
-    with pytest.raises(ValueError, match="shield.brake.decel"):
+    with pytest.raises(ValueError, match="decel must be a number > 0, got 0.0"):
         BrakeActuator(decel=0.0)
 
 
@@ -221,6 +221,26 @@ def test_bad_shield_config_names_the_field(make, turn_cfg, lane_cfg):
         make(turn_cfg, None, shield(mode="perceived", detector={"miss_rate": 1.5}))
     with pytest.raises(ConfigError, match="left_turn scenario only"):
         make(lane_cfg, None, shield())
+
+
+def test_each_variant_takes_only_the_fields_it_reads(make, turn_cfg):
+    """Per-variant Params: a field another variant reads is refused, naming the variant; a partial detector
+    section is completed from the shield's own defaults and the tracker's noise follows the detector's."""
+    with pytest.raises(ConfigError, match=r"shield.margin is not a parameter of the AEB shield's paper variant"):
+        make(turn_cfg, None, shield("aeb_paper", margin=0.5))
+    with pytest.raises(ConfigError, match=r"shield.step is not a parameter of the AEB shield's standard variant"):
+        make(turn_cfg, None, shield("aeb_standard", step=0.1))
+    with pytest.raises(ConfigError, match=r"shield.horizon_max \(1.0\) must be >= shield.horizon_min \(2.0\)"):
+        make(turn_cfg, None, shield(horizon_max=1.0))
+    improved = AEB_VARIANTS.get("improved")
+    p = improved.Params.from_mapping({"mode": "perceived", "detector": {"sigma_vel": 1.0}})
+    assert (p.detector.miss_rate, p.detector.burst_length, p.detector.max_range) == (0.3, 5.0, 150.0)
+    assert p.tracker.sigma_vel == 1.0 and p.tracker.sigma_acc == 2.0
+    assert improved.Params.from_mapping({"detector": {"sigma_vel": 1.0}, "tracker": {"sigma_vel": 0.7}}) \
+        .tracker.sigma_vel == 0.7
+    for name in AEB_VARIANTS:  # the Hydra defaults (conf/shield/aeb*.yaml start from them) are valid as they are
+        cls = AEB_VARIANTS.get(name)
+        assert cls.config_problems({"variant": name, **cls.config_defaults()}) == []
 
 
 def test_ccftap_cli_writes_tables_and_figures(tmp_path):

@@ -1,4 +1,4 @@
-"""Motion prediction and collision tests for the predictive AEB shield (:mod:`agents.aeb`).
+"""Motion prediction and collision tests for the predictive AEB shield (:mod:`av_gym.shields.aeb`).
 
 Pure functions on numpy arrays, SI units (m, s, rad), highway-env's world frame (x right, y down on screen; a
 left turn *decreases* the heading). Three families:

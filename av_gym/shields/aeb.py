@@ -6,7 +6,12 @@ T = 0.1 s) it predicts the ego and the other vehicles, decides a stage — 0 mon
 braking it cuts the throttle in the agent's action and applies a :class:`BrakeActuator` directly to the ego
 vehicle, whatever the agent commands.
 
-Variants (``variant``):
+Variants (``variant``): one wrapper class each, registered in :data:`AEB_VARIANTS` (:class:`PaperAEB`,
+:class:`ImprovedAEB`, :class:`StandardAEB`), each with its own parameters (:class:`PaperParams`,
+:class:`ImprovedParams`, :class:`StandardParams`: the fields it reads, defaults and reasons) on a common
+:class:`AEBParams` (mode, ``ttc_brake``, the brake actuator, the perceived mode's detector and tracker). The
+config section ``shield`` (``kind: aeb``, ``variant: ...``) builds one through :meth:`AEBShield.from_config`.
+
 
 - ``paper`` — faithful to digest 003 §4.1–4.8: constant-acceleration prediction of ego and targets in fixed,
   approach-aligned axes with the literal ``(V0 + A0·t)·t`` (``half_accel_term`` False), accelerations from finite
@@ -20,7 +25,7 @@ Variants (``variant``):
 - ``improved`` — our design, aimed at the paper's intended outcome (stop *before leaving its own lane*):
 
   * the ego predicted **along its planned route**, where it will actually drive: highway-env's route-following
-    controller cuts the turn by up to 0.6 m and lags 10° in heading, so :class:`agents.aeb_predict.DrivenPath`
+    controller cuts the turn by up to 0.6 m and lags 10° in heading, so :class:`av_gym.shields.predict.DrivenPath`
     replays that controller (tabulated per speed) instead of assuming the lane centreline; longitudinally the
     vehicle's own cruise-control response to its set-point (discrete actions), or its current acceleration for
     1 s (continuous);
@@ -44,9 +49,9 @@ Variants (``variant``):
   a steering angle (``steering_inhibit_deg``; off by default, i.e. the most generous standard AEB). Always active.
 
 Modes (``mode``): ``ground_truth`` reads the other vehicles from the simulator; ``perceived`` builds its **own**
-:class:`av_gym.sensors.detector.Detector` (from the ``detector`` sub-config, world frame, its own random stream
+:class:`av_gym.sensors.detector.Detector` (the ``detector`` section, world frame, its own random stream
 ``"aeb_detector"`` from the episode seed) and a :class:`av_gym.estimation.MultiObjectTracker` (``tracker``
-sub-config) and uses the confirmed tracks. The shield owns its perception so it works whatever sensors the agent
+section) and uses the confirmed tracks. The shield owns its perception so it works whatever sensors the agent
 has (an agent with only cameras, or with the privileged state) and the agent's observation is left untouched; a
 vehicle has a dedicated AEB sensor in the same way. The ego's own state (position on its route, speed,
 acceleration, yaw rate) is read from the vehicle in both modes: the shield is part of the ego's own stack.
@@ -66,43 +71,190 @@ braking would park the ego in the target's path), ``aeb_brake_time`` (s, first b
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar, Literal
 
 import gymnasium as gym
 import numpy as np
 
-from agents.aeb_predict import (DrivenPath, LaneHypotheses, RouteTable, cruise_profile, footprint_ttc,
-                                go_profile, object_predict, paper_horizon, paper_ttc, profile_speeds,
-                                standard_ttc)
+from av_gym.estimation.tracker import TrackerParams
+from av_gym.params import ParamError, Params, check, param
+from av_gym.registry import Registry
 from av_gym.sensors.base import sensor_rng
+from av_gym.sensors.detector import DetectorParams
+from av_gym.shields.predict import (DrivenPath, LaneHypotheses, RouteTable, cruise_profile, footprint_ttc,
+                                    go_profile, object_predict, paper_horizon, paper_ttc, profile_speeds,
+                                    standard_ttc)
 
-VARIANTS = ("paper", "improved", "standard")
-MODES = ("ground_truth", "perceived")
-TARGET_MODELS = ("cv", "ca", "map")
 STOP_SPEED = 0.1  # m/s, standstill (as av_gym.metrics.left_turn.STOP_SPEED)
 MONITOR, WARN, BRAKE = 0, 1, 2
 
 
+# ----------------------------------------------------------------------------------------------- parameters
+@dataclass(frozen=True)
+class BrakeParams(Params):
+    """The brake actuator (digest 003 §9.4 suggestions; none of it is in the paper). The same for every variant,
+    so that only the decision logic differs between them."""
+
+    decel: float = param(8.0, "m/s²", gt=0, doc="full AEB braking, ≈ 0.8 g: a typical AEB peak on a dry road")
+    delay: float = param(0.15, "s", ge=0, doc="command to onset of deceleration (middle of the 0.1-0.2 s suggested)")
+    jerk: float = param(30.0, "m/s³", ge=0, doc="ramp to full deceleration; 0 = a step")
+
+
+SHIELD_DETECTOR = DetectorParams(miss_rate=0.3, burst_length=5.0, max_range=150.0)
+"""The shield's own detector: :class:`DetectorParams` defaults except a miss rate of 30 % of frames per vehicle in
+bursts of 5 frames (0.5 s) on average (Gilbert-Elliott chain) and a long (radar-class) range of 150 m: a 60 km/h
+target 1.5 s behind a 10 km/h ego is ~110 m away when the ego must decide (docs/aeb.md; 100 m gives 4/99
+collisions)."""
+
+TRACKER_FOLLOWS_DETECTOR = ("sigma_pos0", "sigma_pos_k", "sigma_vel")
+"""The tracker's measurement noise: the shield's detector's values unless the ``tracker`` section sets them."""
+
+CONFIG_SECTION_KEYS = {"detector": ("miss_rate", "burst_length", "max_range"),
+                       "tracker": ("sigma_acc", "min_hits", "max_coast")}
+"""The detector and tracker fields the Hydra defaults (``conf/shield/aeb*.yaml`` via ``/aeb/<variant>``) list, so
+``shield.detector.miss_rate=0.5`` works on the command line; any other field of theirs is added with
+``+shield.detector.<field>=...`` (as before the params port)."""
+
+
+def _standstill_hold() -> Any:
+    return param(2.0, "s", ge=0, doc="how long the brake stays on after standstill before the function hands back "
+                                     "to the driver (not in the paper: a typical AEB brake-hold); null = as long "
+                                     "as the function is active, as digest 003's prototype; 0 = released at once, "
+                                     "the most literal reading")
+
+
+@dataclass(frozen=True)
+class AEBParams(Params):
+    """What every AEB variant reads. A partial ``brake``/``detector``/``tracker`` mapping is completed from these
+    defaults (the shield's, not the component's own), and the tracker's measurement noise follows the detector's
+    unless set (:meth:`with_section_defaults`)."""
+
+    mode: Literal["ground_truth", "perceived"] = param(
+        "ground_truth", doc="ground_truth: reads the simulator's vehicles | perceived: its own detector + tracker")
+    ttc_brake: float = param(1.5, "s", gt=0, doc="brake at TTC <= this (003 §4.7: the paper triggered at exactly "
+                                                 "1.5 s, the 15th slice); improved: the emergency brake past the "
+                                                 "stop-line trigger point")
+    brake: BrakeParams = param(BrakeParams(), doc="the brake actuator")
+    detector: DetectorParams = param(
+        SHIELD_DETECTOR, doc="perceived mode only: the shield's OWN detector (world frame, own random stream), so it "
+                             "works whatever sensors the agent has and never touches the agent's observation, as a "
+                             "car's AEB has its own sensor; defaults: SHIELD_DETECTOR (30 % misses in 5-frame bursts, "
+                             "150 m range)")
+    tracker: TrackerParams = param(
+        TrackerParams(), doc="perceived mode only: the shield's CV Kalman tracker (Hungarian association) on its "
+                             "detector; measurement noise = the detector's unless set")
+
+    @classmethod
+    def with_section_defaults(cls, values: Mapping) -> dict:
+        """``values`` with each partial ``brake``/``detector``/``tracker`` mapping completed from this class's
+        defaults, and the tracker's measurement noise (:data:`TRACKER_FOLLOWS_DETECTOR`) from the detector unless
+        the tracker section sets it. Values that are not mappings are left to the checks."""
+        out = dict(values)
+        base = cls()
+        for key in ("brake", "detector"):
+            if isinstance(out.get(key), Mapping):
+                out[key] = {**getattr(base, key).as_dict(), **out[key]}
+        det = out.get("detector", base.detector)
+        det = det.as_dict() if isinstance(det, Params) else det
+        trk = out.get("tracker", {})
+        if isinstance(det, Mapping) and isinstance(trk, Mapping):
+            follow = {k: det[k] for k in TRACKER_FOLLOWS_DETECTOR if k in det}
+            out["tracker"] = {**base.tracker.as_dict(), **follow, **trk}
+        return out
+
+    @classmethod
+    def from_mapping(cls, values: Mapping | None = None, where: str = "", what: str | None = None,
+                     **overrides: Any):
+        return super().from_mapping(cls.with_section_defaults({**(values or {}), **overrides}), where, what)
+
+    @classmethod
+    def problems_of(cls, values: Mapping, where: str = "", what: str | None = None) -> list[str]:
+        """:func:`av_gym.params.check` of a config section as :meth:`from_mapping` will build it."""
+        if not isinstance(values, Mapping):
+            return check(cls, values, where, what)
+        return check(cls, cls.with_section_defaults(values), where, what)
+
+
+@dataclass(frozen=True)
+class TurnParams(AEBParams):
+    """What the turn-window variants (paper, improved) read besides :class:`AEBParams`."""
+
+    step: float = param(0.1, "s", gt=0, doc="prediction slice T (digest 003 §4.3; the paper's 15th slice = 1.5 s), "
+                                            "and the decision period: the 10 Hz policy step")
+    activation_distance: float = param(50.0, "m", gt=0, doc="before the stop line at which the turn function "
+                                                            "engages: our stand-in for 'left indicator on'")
+    accel_alpha: float = param(0.5, gt=0, le=1, doc="EMA of the finite-difference accelerations (003 §9.3); "
+                                                    "improved: only for target_model ca")
+
+
+@dataclass(frozen=True)
+class PaperParams(TurnParams):
+    """The ``paper`` variant, faithful to paper 003 (digest 003 §4.1-4.8), to reproduce it and show where it falls
+    short in highway-env's geometry."""
+
+    half_accel_term: bool = param(False, doc="false = the literal X0 + (V0 + A0 t) t of eqs. (2)-(5); true = the "
+                                             "kinematic 1/2 A t²")
+    limits: Literal["paper", "aabb"] = param("paper", doc="paper = eqs. (7)-(8) as printed | aabb = corrected "
+                                                          "half-extents")
+    standstill_hold: float | None = _standstill_hold()
+
+
+@dataclass(frozen=True)
+class ImprovedParams(TurnParams):
+    """The ``improved`` variant, our design (issue 5): the ego predicted along its planned route, others
+    constant-velocity, oriented-box overlap with a margin, a stop-line-aware brake trigger, a brake-feasibility
+    check and a release rule."""
+
+    margin: float = param(0.3, "m", ge=0, doc="the ego footprint is grown by this on every side for the conflict "
+                                              "test")
+    release_margin: float = param(0.6, "m", ge=0, doc="the larger margin the release test uses (hysteresis)")
+    stop_margin: float = param(0.3, "m", ge=0, doc="the stop-line trigger aims this far behind the line")
+    horizon_min: float = param(2.0, "s", gt=0, doc="the geometry horizon (time to clear the turn) is clipped to "
+                                                   "[horizon_min, horizon_max]")
+    horizon_max: float = param(8.0, "s", gt=0, doc="see horizon_min")
+    target_model: Literal["cv", "ca", "map"] = param(
+        "cv", doc="cv: constant velocity | ca: constant acceleration for 1.5 s (EMA finite differences) | map: CV "
+                  "along every lane continuation the road network allows, plus CV")
+    release_hold: float = param(0.3, "s", ge=0, doc="the release test must pass this long before the brake lets go")
+    feasibility: bool = param(True, doc="no braking when it would leave the ego parked in the target's path "
+                                        "(003 §9.7)")
+    go_speed: float = param(4.5, "m/s", gt=0, doc="speed assumed for setting off when the ego has no cruise "
+                                                  "set-point (commanded acceleration)")
+    warn_ttc: float = param(2.5, "s", gt=0, doc="outside the turn window: forward-collision warning at TTC <= this")
+    ignore_rear: bool = param(False, doc="never count a hit from behind (a vehicle running into the ego)")
+
+    def relations(self) -> list[str]:
+        if self.horizon_max < self.horizon_min:
+            return [f"@horizon_max ({self.horizon_max}) must be >= @horizon_min ({self.horizon_min})"]
+        return []
+
+
+@dataclass(frozen=True)
+class StandardParams(AEBParams):
+    """The ``standard`` variant: the standard AEB baseline of paper 003 §2, always active."""
+
+    warn_ttc: float = param(2.5, "s", gt=0, doc="forward-collision warning at TTC <= this")
+    lateral_margin: float = param(0.2, "m", ge=0, doc="added to the corridor half-width")
+    steering_inhibit_deg: float | None = param(None, "deg", gt=0, doc="production cars inhibit AEB above a steering "
+                                                                      "angle; null = never inhibited (the most "
+                                                                      "generous standard AEB)")
+    standstill_hold: float | None = _standstill_hold()
+
+
 # ----------------------------------------------------------------------------------------------- actuator
-@dataclass
 class BrakeActuator:
-    """Brake actuator: after a command, nothing happens for ``delay`` s, then the deceleration ramps up at
-    ``jerk`` m/s³ (0 = a step) to ``decel`` m/s² and is held, never reversing the car; applied every simulation
-    tick. Defaults after digest 003 §9.4 (none is in the paper): 8 m/s² (≈ 0.8 g, a typical AEB peak on a dry
-    road), 0.15 s (middle of the 0.1–0.2 s suggested), 30 m/s³."""
+    """Brake actuator (:class:`BrakeParams`): after a command, nothing happens for ``delay`` s, then the
+    deceleration ramps up at ``jerk`` m/s³ (0 = a step) to ``decel`` m/s² and is held, never reversing the car;
+    applied every simulation tick."""
 
-    decel: float = 8.0
-    delay: float = 0.15
-    jerk: float = 30.0
+    Params = BrakeParams
 
-    def __post_init__(self) -> None:
-        if not self.decel > 0:
-            raise ValueError(f"shield.brake.decel must be > 0 m/s², got {self.decel}")
-        if not self.delay >= 0:
-            raise ValueError(f"shield.brake.delay must be >= 0 s, got {self.delay}")
-        if not self.jerk >= 0:
-            raise ValueError(f"shield.brake.jerk must be >= 0 m/s³ (0 = step), got {self.jerk}")
+    def __init__(self, params: BrakeParams | None = None, **overrides) -> None:
+        p = self.params = BrakeParams.build(params, **overrides)
+        self.decel, self.delay, self.jerk = p.decel, p.delay, p.jerk
         self.engaged_at: float | None = None
 
     def engage(self, t: float) -> None:
@@ -167,6 +319,10 @@ def _route_tables(lanes) -> tuple[RouteTable, DrivenPath]:
     return _ROUTE_CACHE[key]
 
 
+def _join(where: str, key: str) -> str:
+    return f"{where}.{key}" if where else key
+
+
 def _wrap(a: float) -> float:
     return float((a + np.pi) % (2 * np.pi) - np.pi)
 
@@ -189,102 +345,96 @@ class _ActuatedAct:
             self.vehicle.action["acceleration"] = a
 
 
+AEB_VARIANTS = Registry("variant")
+"""``shield.variant`` → the AEB wrapper class with that decision logic; its ``Params`` is the section's fields."""
+
+
 class AEBShield(gym.Wrapper):
-    """Predictive AEB safety shield; see the module docstring for variants, modes and ``info`` keys.
+    """Predictive AEB safety shield, the machinery every variant shares (perception, ego state, actuator, latch,
+    ``info``); the decision logic is a subclass per variant, registered in :data:`AEB_VARIANTS`. See the module
+    docstring for variants, modes and ``info`` keys.
 
-    Parameters (all SI): ``variant``, ``mode``; ``step`` prediction slice T (0.1 s); ``ttc_brake`` (1.5 s);
-    ``brake`` dict for :class:`BrakeActuator`; ``detector``/``tracker`` dicts for the perceived mode;
-    ``activation_distance`` (m before the stop line at which paper/improved engage, 50);
-    paper: ``half_accel_term`` (False), ``limits`` (``paper`` eqs. 7–8 | ``aabb`` corrected), ``accel_alpha``
-    (EMA of the finite-difference accelerations, 0.5); improved: ``margin`` (0.3 m), ``release_margin`` (0.6 m),
-    ``stop_margin`` (0.3 m), ``horizon_min``/``horizon_max`` (2/8 s), ``target_model`` (cv), ``release_hold``
-    (0.3 s), ``feasibility`` (True), ``go_speed`` (m/s the ego is assumed to set off to when its own set-point is
-    unknown, 4.5); standard: ``warn_ttc`` (2.5 s), ``steering_inhibit_deg`` (None), ``lateral_margin`` (0.2 m);
-    paper and standard: ``standstill_hold`` (2 s; None = while active).
-    """
+    ``ImprovedAEB(env, params=None, **overrides)`` (likewise each variant) with its own Params; from a config
+    section (``variant`` + fields) :meth:`from_config`, as :func:`av_gym.make.add_shield` does."""
 
-    def __init__(self, env: gym.Env, variant: str = "improved", mode: str = "ground_truth", step: float = 0.1,
-                 ttc_brake: float = 1.5, brake: dict | None = None, detector: dict | None = None,
-                 tracker: dict | None = None, activation_distance: float = 50.0,
-                 half_accel_term: bool = False, limits: str = "paper", accel_alpha: float = 0.5,
-                 margin: float = 0.3, release_margin: float = 0.6, stop_margin: float = 0.3,
-                 horizon_min: float = 2.0, horizon_max: float = 8.0, target_model: str = "cv",
-                 release_hold: float = 0.3, feasibility: bool = True, go_speed: float = 4.5,
-                 warn_ttc: float = 2.5, steering_inhibit_deg: float | None = None,
-                 lateral_margin: float = 0.2, standstill_hold: float | None = 2.0,
-                 ignore_rear: bool = False) -> None:
+    Params: ClassVar[type[AEBParams]] = AEBParams
+    variant: ClassVar[str] = ""
+    decides_outside_window: ClassVar[bool] = False  # improved: a forward AEB outside the turn window
+    needs_lanes: bool = False  # the objects' lane indices (improved with target_model map)
+    accel_alpha: float | None = None  # EMA of the finite-difference accelerations; None: not computed
+
+    # ------------------------------------------------------------------------------------------- config
+    @classmethod
+    def variant_class(cls, variant: str, where: str = "") -> type["AEBShield"]:
+        """The wrapper class of ``variant`` (a :class:`ParamError` naming the allowed ones otherwise)."""
+        if variant not in AEB_VARIANTS:
+            raise ParamError(f"{_join(where, 'variant')} must be one of {AEB_VARIANTS.names()}, got {variant!r}")
+        return AEB_VARIANTS.get(variant)
+
+    @classmethod
+    def _split(cls, section: Mapping) -> tuple[str, dict]:
+        values = {k: v for k, v in section.items() if k not in ("name", "kind", "variant")}
+        return section.get("variant", "improved"), values
+
+    @classmethod
+    def from_config(cls, env: gym.Env, section: Mapping, where: str = "") -> "AEBShield":
+        """The shield a ``shield`` config section asks for: ``variant`` (default ``improved``) picks the class, the
+        other fields (``name``/``kind`` aside) are its Params. A :class:`ParamError` names the field under
+        ``where`` (the section's config path, e.g. ``shield``)."""
+        variant, values = cls._split(section)
+        sub = cls.variant_class(variant, where)
+        params = sub.Params.from_mapping(values, where, what=f"a parameter of the AEB shield's {variant} variant")
+        try:
+            return sub(env, params)
+        except ParamError as exc:  # the scenario check: a field-relative message
+            raise ParamError(_join(where, str(exc))) from None
+
+    @classmethod
+    def config_problems(cls, section: Mapping, where: str = "") -> list[str]:
+        """Every problem of a ``shield`` section (``kind: aeb``), one line each naming the field under ``where``;
+        what :meth:`from_config` would refuse."""
+        variant, values = cls._split(section)
+        try:
+            sub = cls.variant_class(variant, where)
+        except ParamError as exc:
+            return [str(exc)]
+        return sub.Params.problems_of(values, where, what=f"a parameter of the AEB shield's {variant} variant")
+
+    @classmethod
+    def config_defaults(cls) -> dict:
+        """This variant's Hydra defaults (``/aeb/<variant>``, conf/__init__.py): its Params' values, the detector
+        and tracker sections with the fields in :data:`CONFIG_SECTION_KEYS`."""
+        node = cls.Params().as_dict()
+        for key, keep in CONFIG_SECTION_KEYS.items():
+            node[key] = {k: node[key][k] for k in keep}
+        return node
+
+    # ------------------------------------------------------------------------------------------- construction
+    def __init__(self, env: gym.Env, params: AEBParams | None = None, **overrides) -> None:
+        if type(self) is AEBShield:
+            raise TypeError("AEBShield is the variants' base: use AEBShield.from_config(env, section) or a variant "
+                            f"class ({AEB_VARIANTS.names()} in AEB_VARIANTS)")
+        p = self.params = self.Params.build(params, **overrides)
         super().__init__(env)
         if getattr(env.unwrapped, "scenario", None) != "left_turn":
-            raise ValueError(f"shield.kind aeb works on the left_turn scenario only, not "
+            raise ParamError(f"kind aeb works on the left_turn scenario only, not "
                              f"{getattr(env.unwrapped, 'scenario', '?')!r}")
-        if variant not in VARIANTS:
-            raise ValueError(f"shield.variant must be one of {list(VARIANTS)}, got {variant!r}")
-        if mode not in MODES:
-            raise ValueError(f"shield.mode must be one of {list(MODES)}, got {mode!r}")
-        if target_model not in TARGET_MODELS:
-            raise ValueError(f"shield.target_model must be one of {list(TARGET_MODELS)}, got {target_model!r}")
-        if limits not in ("paper", "aabb"):
-            raise ValueError(f"shield.limits must be one of ['paper', 'aabb'], got {limits!r}")
-        for name, value in (("step", step), ("ttc_brake", ttc_brake), ("horizon_min", horizon_min),
-                            ("horizon_max", horizon_max), ("warn_ttc", warn_ttc), ("go_speed", go_speed),
-                            ("activation_distance", activation_distance)):
-            if not value > 0:
-                raise ValueError(f"shield.{name} must be > 0, got {value}")
-        for name, value in (("margin", margin), ("release_margin", release_margin), ("stop_margin", stop_margin),
-                            ("release_hold", release_hold), ("lateral_margin", lateral_margin)):
-            if not value >= 0:
-                raise ValueError(f"shield.{name} must be >= 0, got {value}")
-        if standstill_hold is not None and not standstill_hold >= 0:
-            raise ValueError(f"shield.standstill_hold must be >= 0 s or null, got {standstill_hold}")
-        if not 0 < accel_alpha <= 1:
-            raise ValueError(f"shield.accel_alpha must be in (0, 1], got {accel_alpha}")
-        if horizon_max < horizon_min:
-            raise ValueError(f"shield.horizon_max ({horizon_max}) must be >= shield.horizon_min ({horizon_min})")
-        self.variant, self.mode, self.T, self.ttc_brake = variant, mode, float(step), float(ttc_brake)
-        try:
-            self.actuator = BrakeActuator(**(brake or {}))
-        except TypeError as exc:
-            raise ValueError(f"shield.brake: {exc}") from None
-        self.activation_distance = float(activation_distance)
-        self.half_accel_term, self.limits, self.accel_alpha = bool(half_accel_term), limits, float(accel_alpha)
-        self.margin, self.release_margin, self.stop_margin = float(margin), float(release_margin), float(stop_margin)
-        self.horizon_min, self.horizon_max, self.target_model = float(horizon_min), float(horizon_max), target_model
-        self.release_hold, self.feasibility, self.go_speed = float(release_hold), bool(feasibility), float(go_speed)
-        self.warn_ttc, self.lateral_margin = float(warn_ttc), float(lateral_margin)
-        self.standstill_hold = None if standstill_hold is None else float(standstill_hold)
-        self.ignore_rear = bool(ignore_rear)
-        self._hypotheses: LaneHypotheses | None = None
-        self.steering_inhibit = None if steering_inhibit_deg is None else np.radians(float(steering_inhibit_deg))
+        self.mode, self.ttc_brake = p.mode, p.ttc_brake
+        self.actuator = BrakeActuator(p.brake)
         self.detector = self.tracker = None
         self._lanes: list = []
-        if mode == "perceived":
-            self._build_perception(detector or {}, tracker or {})
+        if self.mode == "perceived":
+            self._build_perception(p.detector, p.tracker)
 
     # ------------------------------------------------------------------------------------------- perception
-    def _build_perception(self, det_cfg: dict, trk_cfg: dict) -> None:
-        import inspect
-
+    def _build_perception(self, detector: DetectorParams, tracker: TrackerParams) -> None:
         from av_gym.estimation import MultiObjectTracker
         from av_gym.sensors.detector import Detector
 
-        det_cfg = {k: v for k, v in dict(det_cfg).items() if k != "frame"}
-        allowed = [p for p in inspect.signature(Detector.__init__).parameters if p not in ("self", "env", "frame")]
-        bad = sorted(set(det_cfg) - set(allowed))
-        if bad:
-            raise ValueError(f"shield.detector.{bad[0]} is not a parameter of Detector; allowed: {allowed}")
-        try:
-            # Around the bare scenario env: its own sensor, independent of the agent's sensor stack.
-            self.detector = Detector(self.env.unwrapped, frame="world", **det_cfg)
-        except ValueError as exc:
-            raise ValueError(str(exc).replace("sensors.detector", "shield.detector")) from None
-        trk_defaults = {"sigma_pos0": det_cfg.get("sigma_pos0", 0.3), "sigma_pos_k": det_cfg.get("sigma_pos_k", 0.01),
-                        "sigma_vel": det_cfg.get("sigma_vel", 0.5)}
-        try:
-            self.tracker = MultiObjectTracker(**{**trk_defaults, **dict(trk_cfg)})
-        except TypeError as exc:
-            raise ValueError(f"shield.tracker: {exc}") from None
-        except ValueError as exc:
-            raise ValueError(f"shield.{exc}") from None
+        # Around the bare scenario env: its own sensor, independent of the agent's sensor stack; world frame
+        # whatever the section says (the tracker and the prediction work in world coordinates).
+        self.detector = Detector(self.env.unwrapped, dataclasses.replace(detector, frame="world"))
+        self.tracker = MultiObjectTracker(tracker)
 
     # ------------------------------------------------------------------------------------------- episode
     def reset(self, **kwargs):
@@ -307,10 +457,7 @@ class AEBShield(gym.Wrapper):
         self._stop_position = float("nan")
         self.actuator.release()
         self._install_actuator(u.vehicle)
-        if self.target_model == "map":
-            if self._hypotheses is None:
-                self._hypotheses = LaneHypotheses(u.road.network)
-            self._hypotheses.network = u.road.network
+        self._on_reset(u)
         if self.detector is not None:
             self.detector.rng = sensor_rng(self.env, "aeb_detector")
             self.detector.on_reset()
@@ -318,6 +465,9 @@ class AEBShield(gym.Wrapper):
         self._info = self._make_info(MONITOR, float("inf"), 0.0, -1, False, False, None)
         info.update(self._info)
         return obs, info
+
+    def _on_reset(self, u) -> None:
+        """A variant's own episode start (``u``: the scenario env, reset)."""
 
     def _install_actuator(self, vehicle) -> None:
         """Patch this ego instance so that, while the brake is commanded, every simulation tick ends with the
@@ -372,7 +522,7 @@ class AEBShield(gym.Wrapper):
                 "yaw_rate": float(ego.speed * np.sin(beta) / (ego.LENGTH / 2)), "steering": steering,
                 "size": (float(ego.LENGTH), float(ego.WIDTH)), "s": s, "lane": self._route_k,
                 "set_speed": float(ego.target_speed) if hasattr(ego, "speed_index") else None,
-                "speed_limit": float(getattr(ego.lane, "speed_limit", None) or self.go_speed)}
+                "speed_limit": getattr(ego.lane, "speed_limit", None)}
 
     def _objects(self, ego: dict) -> tuple[np.ndarray, list, list]:
         """Other vehicles ``(N, 7)`` [x, y, vx, vy, heading, length, width], a persistent key per row (for the
@@ -389,7 +539,7 @@ class AEBShield(gym.Wrapper):
         rows = self.detector.measure()
         tracks = self.tracker.step(rows, self._time(), ego["xy"])
         ids = [int(i) for i in self.tracker.track_ids()]
-        if self.target_model == "map":  # map matching of each track, as highway-env does for its vehicles
+        if self.needs_lanes:  # map matching of each track, as highway-env does for its vehicles
             net = u.road.network
             self._lanes = [net.get_closest_lane_index(tr[0:2], tr[4]) for tr in tracks]
         return tracks, [("track", i) for i in ids], ids
@@ -415,8 +565,7 @@ class AEBShield(gym.Wrapper):
         return ego["s"] + 0.5 * ego["size"][0] - self.stop_line_s
 
     def _is_active(self, ego: dict) -> bool:
-        if self.variant == "standard":
-            return True
+        """Inside the turn window: from ``activation_distance`` before the stop line until the turn is cleared."""
         front_to_line = self.stop_line_s - (ego["s"] + 0.5 * ego["size"][0])
         return ego["s"] < self.clear_s and front_to_line <= self.activation_distance
 
@@ -427,23 +576,26 @@ class AEBShield(gym.Wrapper):
         ego = self._ego()
         others, keys, out_ids = self._objects(ego)
         ego_key = "__ego__"
-        accels = self._accelerations([ego_key, *keys], np.vstack([ego["velocity"][None], others[:, 2:4]]), t)
+        if self.accel_alpha is not None:
+            accels = self._accelerations([ego_key, *keys], np.vstack([ego["velocity"][None], others[:, 2:4]]), t)
+        else:  # a variant that reads no accelerations
+            accels = np.zeros((len(others) + 1, 2))
         self._prev_t = t
         active = self._is_active(ego)
-        if not active and self.variant != "improved":
+        if not active and not self.decides_outside_window:
             self._release()
             return MONITOR, float("inf"), 0.0, -1, False, False
-        if self.variant == "paper":
-            out = self._decide_paper(ego, others, accels[0], accels[1:], t)
-        elif self.variant == "standard":
-            out = self._decide_standard(ego, others, t)
-        else:
-            out = self._decide_improved(ego, others, accels[1:], t, active)
-        stage, ttc, horizon, target, infeasible = out
+        stage, ttc, horizon, target, infeasible = self._decide_variant(ego, others, accels[0], accels[1:], t, active)
         if stage == BRAKE and np.isnan(self._brake_time):
             self._brake_time = t
         target_key = out_ids[target] if 0 <= target < len(out_ids) else -1
         return stage, ttc, horizon, target_key, active, infeasible
+
+    def _decide_variant(self, ego, others, a_ego, a_others, t, active):
+        """The variant's decision: ``(stage, ttc, horizon, target row, infeasible)``; ``a_ego``/``a_others``: the
+        EMA finite-difference accelerations (zeros where the variant reads none); ``active``: inside the turn
+        window (always True for a variant that decides only there)."""
+        raise NotImplementedError
 
     def _latch(self, t: float) -> None:
         self._latched = True
@@ -469,8 +621,21 @@ class AEBShield(gym.Wrapper):
         self._release()
         return False
 
-    # paper ------------------------------------------------------------------------------------------------
-    def _decide_paper(self, ego, others, a_ego, a_others, t):
+
+@AEB_VARIANTS.register("paper")
+class PaperAEB(AEBShield):
+    """``paper``: the predictive AEB of digest 003 §4.1-4.8 (module docstring); parameters :class:`PaperParams`."""
+
+    Params = PaperParams
+    variant = "paper"
+
+    def __init__(self, env: gym.Env, params: PaperParams | None = None, **overrides) -> None:
+        super().__init__(env, params, **overrides)
+        p = self.params
+        self.T, self.activation_distance, self.accel_alpha = p.step, p.activation_distance, p.accel_alpha
+        self.half_accel_term, self.limits, self.standstill_hold = p.half_accel_term, p.limits, p.standstill_hold
+
+    def _decide_variant(self, ego, others, a_ego, a_others, t, active):
         horizon = paper_horizon(ego["speed"])
         ttc, target = float("inf"), -1
         if len(others):
@@ -488,20 +653,35 @@ class AEBShield(gym.Wrapper):
             return BRAKE, ttc, horizon, target, False
         return (WARN if ttc <= horizon else MONITOR), ttc, horizon, target, False
 
-    # standard ---------------------------------------------------------------------------------------------
-    def _decide_standard(self, ego, others, t):
-        ttc, target = standard_ttc(ego["xy"], ego["heading"], ego["speed"], ego["size"], others,
-                                   self.lateral_margin)
-        if self.steering_inhibit is not None and abs(ego["steering"]) > self.steering_inhibit:
-            ttc, target = float("inf"), -1
-        if self._latched and self._latched_until_standstill(ego["speed"], t):
-            return BRAKE, ttc, self.warn_ttc, target, False
-        if ttc <= self.ttc_brake:
-            self._latch(t)
-            return BRAKE, ttc, self.warn_ttc, target, False
-        return (WARN if ttc <= self.warn_ttc else MONITOR), ttc, self.warn_ttc, target, False
 
-    # improved ---------------------------------------------------------------------------------------------
+@AEB_VARIANTS.register("improved")
+class ImprovedAEB(AEBShield):
+    """``improved``: our design (module docstring); parameters :class:`ImprovedParams`."""
+
+    Params = ImprovedParams
+    variant = "improved"
+    decides_outside_window = True
+
+    def __init__(self, env: gym.Env, params: ImprovedParams | None = None, **overrides) -> None:
+        super().__init__(env, params, **overrides)
+        p = self.params
+        self.T, self.activation_distance, self.accel_alpha = p.step, p.activation_distance, p.accel_alpha
+        self.margin, self.release_margin, self.stop_margin = p.margin, p.release_margin, p.stop_margin
+        self.horizon_min, self.horizon_max, self.target_model = p.horizon_min, p.horizon_max, p.target_model
+        self.release_hold, self.feasibility, self.go_speed = p.release_hold, p.feasibility, p.go_speed
+        self.warn_ttc, self.ignore_rear = p.warn_ttc, p.ignore_rear
+        self.needs_lanes = self.target_model == "map"
+        self._hypotheses: LaneHypotheses | None = None
+
+    def _on_reset(self, u) -> None:
+        if self.target_model == "map":
+            if self._hypotheses is None:
+                self._hypotheses = LaneHypotheses(u.road.network)
+            self._hypotheses.network = u.road.network
+
+    def _decide_variant(self, ego, others, a_ego, a_others, t, active):
+        return self._decide_improved(ego, others, a_others, t, active)
+
     def _relevant(self, ego, others) -> np.ndarray:
         """Mask of objects that matter: not a vehicle following the ego in its lane."""
         if not len(others):
@@ -592,7 +772,7 @@ class AEBShield(gym.Wrapper):
         ``go_speed`` from a standstill), never reversing."""
         if ego["set_speed"] is not None:
             return go_profile(ego["speed"], ego["set_speed"], t)
-        v_cap = max(ego["speed"], self.go_speed, ego["speed_limit"])
+        v_cap = max(ego["speed"], self.go_speed, ego["speed_limit"] or self.go_speed)
         a = ego["accel"] if ego["speed"] > STOP_SPEED else max(ego["accel"], 0.0)
         return cruise_profile(ego["speed"], a, t, v_max=v_cap)
 
@@ -620,13 +800,31 @@ class AEBShield(gym.Wrapper):
         return bool(stopped[k])
 
 
-def build_shield(env: gym.Env, params: dict) -> gym.Env:
-    """Builder for :func:`av_gym.make.add_shield` (``kind: aeb``): ``params`` are :class:`AEBShield`'s keyword
-    arguments (the shield config minus ``name``/``kind``)."""
-    import inspect
+@AEB_VARIANTS.register("standard")
+class StandardAEB(AEBShield):
+    """``standard``: the standard AEB of paper 003 §2 (``TTC = Δx/Δv`` on targets ahead in the ego's corridor),
+    always active; parameters :class:`StandardParams`."""
 
-    allowed = [p for p in inspect.signature(AEBShield.__init__).parameters if p not in ("self", "env")]
-    bad = sorted(set(params) - set(allowed))
-    if bad:
-        raise ValueError(f"shield.{bad[0]} is not a parameter of the AEB shield; allowed: {allowed}")
-    return AEBShield(env, **params)
+    Params = StandardParams
+    variant = "standard"
+
+    def __init__(self, env: gym.Env, params: StandardParams | None = None, **overrides) -> None:
+        super().__init__(env, params, **overrides)
+        p = self.params
+        self.warn_ttc, self.lateral_margin, self.standstill_hold = p.warn_ttc, p.lateral_margin, p.standstill_hold
+        self.steering_inhibit = None if p.steering_inhibit_deg is None else np.radians(p.steering_inhibit_deg)
+
+    def _is_active(self, ego: dict) -> bool:
+        return True
+
+    def _decide_variant(self, ego, others, a_ego, a_others, t, active):
+        ttc, target = standard_ttc(ego["xy"], ego["heading"], ego["speed"], ego["size"], others,
+                                   self.lateral_margin)
+        if self.steering_inhibit is not None and abs(ego["steering"]) > self.steering_inhibit:
+            ttc, target = float("inf"), -1
+        if self._latched and self._latched_until_standstill(ego["speed"], t):
+            return BRAKE, ttc, self.warn_ttc, target, False
+        if ttc <= self.ttc_brake:
+            self._latch(t)
+            return BRAKE, ttc, self.warn_ttc, target, False
+        return (WARN if ttc <= self.warn_ttc else MONITOR), ttc, self.warn_ttc, target, False
