@@ -2,7 +2,7 @@
 
     python benchmarks/odometry.py [--repeats 3] [--scans 300]
 
-Scans are recorded once (the shipped conf/sensor/lidar.yaml: 720 beams, planar, 100 m), then each stage is timed
+Scans are recorded once (the LiDAR's defaults, LidarParams: 720 beams, planar, 100 m), then each stage is timed
 on the same scans: kiss-icp ``register_frame`` alone (plain and with a motion prior, and with deskew on scans cast
 with ``deskew_poses``), the scan-to-map matcher, the EKF steps, and a whole ``fused``+map localizer step. Times are
 the best of ``--repeats`` passes (per-scan mean, to suppress scheduler noise on shared cores) with the median and

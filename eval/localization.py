@@ -7,7 +7,7 @@ outage; then PID lane keeping driven by each estimate.
 
 Open loop: every estimator runs side by side on the *same* episode (:class:`LocalizationPipeline` objects fed the
 same observations), so the rows differ only in the estimator. The lap is driven by PID on the true CTE, the left
-turn by "always proceed" in random traffic. Sensors are the shipped conf/sensor/{gnss,imu,lidar}.yaml (GNSS
+turn by "always proceed" in random traffic. Sensors are at their defaults (GNSSParams, IMUParams, LidarParams; GNSS
 σ 1.5 m + 0.5 m Gauss–Markov bias at 10 Hz); the outage is a scripted GNSS window of 20 s: [10, 30] s on the lap,
 [2, 22] s at the turn (the episode ends first: the whole approach and turn without GNSS).
 
