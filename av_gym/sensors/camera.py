@@ -1016,4 +1016,5 @@ class Cameras(SensorWrapper):
 
 
 __all__ = ["CAMERA_NAMES", "WINDSHIELD_HALF_WIDTH", "VEHICLE_HEIGHT", "CameraSpec", "Weather", "CameraNoise",
-           "Cameras", "CamerasParams", "StaticScene", "build_scene", "scene_of", "camera_rig", "render_view", "render_views"]
+           "Cameras", "CamerasParams", "StaticScene", "build_scene", "scene_of", "camera_rig", "render_view",
+           "render_views"]
