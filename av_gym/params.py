@@ -40,9 +40,13 @@ class ParamError(ConfigError):
 
 
 def param(default: Any = MISSING, unit: str = "", *, ge: float | None = None, gt: float | None = None,
-          le: float | None = None, lt: float | None = None, doc: str = "", name_like: bool = False) -> Any:
-    """A dataclass field with its unit, bounds and reason (``doc``: where the default comes from, why)."""
-    meta = {"unit": unit, "ge": ge, "gt": gt, "le": le, "lt": lt, "doc": doc, "name_like": name_like}
+          le: float | None = None, lt: float | None = None, doc: str = "", name_like: bool = False,
+          min_items: int = 0) -> Any:
+    """A dataclass field with its unit, bounds and reason (``doc``: where the default comes from, why);
+    ``name_like``: a string that becomes a folder name; ``min_items``: a list's least length (checked where the
+    config layer checks, not on construction, so a default may be empty and be filled by a yaml)."""
+    meta = {"unit": unit, "ge": ge, "gt": gt, "le": le, "lt": lt, "doc": doc, "name_like": name_like,
+            "min_items": min_items}
     if isinstance(default, Params):  # a nested section: a fresh default per instance (frozen anyway)
         return dataclasses.field(default_factory=lambda: default, metadata=meta)
     if isinstance(default, (list, dict)):
@@ -55,7 +59,7 @@ class Params:
     """Base of every parameter dataclass: checked on construction (``ParamError`` naming the first bad field)."""
 
     def __post_init__(self) -> None:
-        found = self.problems()
+        found = check(type(self), self.as_dict(), construction=True)
         if found:
             raise ParamError(found[0])
 
@@ -111,7 +115,8 @@ class Params:
 
 
 # ----------------------------------------------------------------------------------------------- the checker
-def check(cls: type[Params], values: Any, where: str = "", what: str | None = None) -> list[str]:
+def check(cls: type[Params], values: Any, where: str = "", what: str | None = None, *,
+          construction: bool = False) -> list[str]:
     """Every problem of ``values`` (a mapping) against ``cls``'s fields, one line each naming the field under
     ``where``. A key ``cls`` lacks is refused, listing the allowed ones."""
     if not isinstance(values, Mapping):
@@ -122,7 +127,8 @@ def check(cls: type[Params], values: Any, where: str = "", what: str | None = No
     found = [f"{_join(where, k)} is not {what}; allowed: {sorted(fields)}" for k in values if k not in fields]
     for name, f in fields.items():
         if name in values:
-            found += _check_value(values[name], hints[name], f.metadata, _join(where, name))
+            meta = {**f.metadata, "min_items": 0} if construction else f.metadata
+            found += _check_value(values[name], hints[name], meta, _join(where, name))
         elif f.default is MISSING and f.default_factory is MISSING:
             found.append(f"{_join(where, name)} is missing")
     if found:
@@ -164,12 +170,21 @@ def _check_value(value: Any, hint: Any, meta: Mapping, where: str) -> list[str]:
             items = args
         else:
             items = (args[0] if args else Any,) * len(value)
+            if len(value) < meta.get("min_items", 0):
+                return [f"{where} must be a list with at least {meta['min_items']} item"
+                        f"{'s' if meta['min_items'] > 1 else ''}, got {_fmt(list(value))}"]
         return [p for i, (v, h) in enumerate(zip(value, items)) for p in _check_value(v, h, meta, f"{where}[{i}]")]
     if hint is bool:
         return [] if isinstance(value, bool) else [f"{where} must be true or false, got {_fmt(value)}"]
     if hint is str:
         if not (isinstance(value, str) and value):
             return [f"{where} must be a non-empty string, got {_fmt(value)}"]
+        if meta.get("name_like"):  # a folder name: no separators, short enough for the -j<n> a sweep job adds
+            if not _NAME.match(value):
+                return [f"{where} must be a folder name (letters, digits, _ . = + , : -), got {_fmt(value)}"]
+            if len(value) > NAME_LENGTH:
+                return [f"{where} must be at most {NAME_LENGTH} characters (a folder name), got {len(value)}: "
+                        f"{value[:40]!r}..."]
         return []
     if hint in (int, float):
         return _check_number(value, hint is int, meta, where)
@@ -207,6 +222,8 @@ def _or_null(problem: str) -> str:
 
 # ----------------------------------------------------------------------------------------------- helpers
 _REF = re.compile(r"@(\w+)")
+_NAME = re.compile(r"^[A-Za-z0-9_.=+,:-]+$")
+NAME_LENGTH = 240  # name_like fields (run_name): 255 bytes a folder name (ext4, xfs, btrfs), less a sweep's -j<n>
 
 
 def _hints(cls: type) -> dict[str, Any]:

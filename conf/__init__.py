@@ -1,6 +1,8 @@
 """Hydra's config tree. The defaults of every component are its ``Params`` dataclass (:mod:`av_gym.params`),
 stored in Hydra's ConfigStore when this package is imported (Hydra imports it to read ``pkg://conf``):
-``scenario/<name>`` for each scenario, ``sensor/<key>`` for each sensor and estimator. The yaml files here hold only what differs from those defaults, with the reason."""
+``scenario/<name>`` for each scenario, ``sensor/<key>`` for each sensor and estimator, ``command/train`` and
+``command/eval`` for the commands' own settings (conf/commands.py). The yaml files here hold only what differs
+from those defaults, with the reason."""
 
 from __future__ import annotations
 
@@ -11,7 +13,12 @@ def register_configs() -> None:
 
     from av_gym.registry import SCENARIOS, SENSORS
 
+    from conf.commands import COMMANDS
+
     store = ConfigStore.instance()
+    for command, cls in COMMANDS.items():
+        store.store(group="command", name=command, node=cls().as_dict() if command == "train" else
+                    {k: v for k, v in cls().as_dict().items() if k != "agents"})  # eval.yaml sets agents
     for name, cls in SCENARIOS.items():
         store.store(group="scenario", name=name, node=cls.Params().as_dict())
     for key, cls in SENSORS.items():

@@ -18,7 +18,7 @@ HORIZON = 50  # policy steps at 10 Hz: 5 s
 
 
 def _config():
-    return highway_config(OmegaConf.load("conf/env/left_turn.yaml"))
+    return highway_config({"name": "left_turn"})
 
 
 def _state(env) -> np.ndarray:

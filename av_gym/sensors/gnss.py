@@ -50,7 +50,7 @@ class GNSSParams(Params):
 
     def relations(self) -> list[str]:
         if any(end < start for start, end in self.outage_windows):
-            return [f"outage_windows must be [start, end] pairs with end >= start, got "
+            return [f"@outage_windows must be [start, end] pairs with end >= start, got "
                     f"{[list(w) for w in self.outage_windows]}"]
         return []
 
