@@ -46,7 +46,7 @@ def seed_mean(values: list[float]) -> str:
     if len(v) < 2:
         return f"{m:.3f}"
     h = stats.t.ppf(0.975, len(v) - 1) * v.std(ddof=1) / np.sqrt(len(v))
-    return f"{m:.3f} [{m - h:.3f}, {m + h:.3f}]"
+    return f"{m:.3f} [{max(m - h, 0.0):.3f}, {min(m + h, 1.0):.3f}]"  # a rate: the interval clipped to [0, 1]
 
 
 def main() -> None:
