@@ -64,6 +64,7 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 from scipy.stats import chi2
 
+from av_gym.geometry import wrap_angle
 from av_gym.params import Params, param
 
 PX, PY, PSI, V, BW, BA, GX, GY, CX, CY, CPSI = range(11)
@@ -73,8 +74,8 @@ STATE_NAMES = ("p_x", "p_y", "psi", "v", "b_gyro", "b_accel", "gnss_bias_x", "gn
 
 
 def wrap(angle):
-    """Angle(s) wrapped to [-π, π)."""
-    return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
+    """Angle(s) wrapped to [-π, π) (:func:`av_gym.geometry.wrap_angle` on an array: lists too)."""
+    return wrap_angle(np.asarray(angle))
 
 
 @dataclass(frozen=True)

@@ -80,6 +80,7 @@ import gymnasium as gym
 import numpy as np
 
 from av_gym.estimation.tracker import TrackerParams
+from av_gym.geometry import wrap_angle
 from av_gym.params import ParamError, Params, check, param
 from av_gym.registry import Registry
 from av_gym.sensors.base import sensor_rng
@@ -324,7 +325,7 @@ def _join(where: str, key: str) -> str:
 
 
 def _wrap(a: float) -> float:
-    return float((a + np.pi) % (2 * np.pi) - np.pi)
+    return float(wrap_angle(a))
 
 
 class _ActuatedAct:

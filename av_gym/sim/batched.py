@@ -28,6 +28,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from highway_env.road.lane import CircularLane
 
+from av_gym.geometry import wrap_angle
+
 # highway-env constants (IntersectionEnv._make_vehicles sets the IDM class attributes to these)
 LENGTH, WIDTH = 5.0, 2.0
 DIAGONAL = float(np.sqrt(LENGTH**2 + WIDTH**2))
@@ -48,8 +50,7 @@ def not_zero(x: np.ndarray, eps: float = 1e-2) -> np.ndarray:
     return np.where(np.abs(x) > eps, x, np.where(x >= 0, eps, -eps))
 
 
-def wrap_to_pi(x):
-    return ((x + np.pi) % (2 * np.pi)) - np.pi
+wrap_to_pi = wrap_angle  # highway_env.utils.wrap_to_pi on arrays (av_gym.geometry, the one angle wrap)
 
 
 class LaneTable:
