@@ -5,7 +5,6 @@ from __future__ import annotations
 import pytest
 
 from agents.pid import PRESETS
-from conftest import conf
 from train import pid_search
 
 
@@ -24,7 +23,9 @@ def test_search_refuses_evaluation_seeds():
 
 
 def test_tuned_preset_matches_its_yaml_and_beats_the_paper_on_a_training_seed():
-    cfg = conf("agent", "pid_tuned")
+    from eval.agents import load_agent_config
+
+    cfg = load_agent_config("pid_tuned")  # composed: conf/agent/pid_tuned.yaml over the pid kind's defaults
     assert {k: cfg[k] for k in ("kp", "ki", "kd")} == PRESETS["tuned"]
     assert cfg["sensors"] == "truth" and cfg["kind"] == "pid"
     env = pid_search.lane_env("A")

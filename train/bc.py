@@ -48,7 +48,7 @@ Balancing, preprocessing, augmentation (digest 001 §8.5 steps 4–6)
     corrected by the expert's own sensitivity, u += (∂u/∂ψ)·Δψ, ∂u/∂ψ measured per sample by finite differences at
     collection time; a vertical shift of ±``vshift_px`` px and a roll of ±``rotate_deg`` (label unchanged: the
     road ahead does not change with a small pitch or roll); brightness offset, contrast and gain per image and
-    Gaussian pixel noise, wider than the evaluation camera's noise (``conf/sensor/cameras.yaml``).
+    Gaussian pixel noise, wider than the evaluation camera's noise (``CameraNoise`` in av_gym/sensors/camera.py).
 
 Training (digest 001 §3.3, §8.5 step 7): Adam, lr 1e-3, batch 100, MSE on the normalised steering; validation on
 ``val_fraction`` of the data split by contiguous ``val_chunk_s``-second pieces of driving (all cameras of a frame
