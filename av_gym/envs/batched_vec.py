@@ -212,7 +212,9 @@ class BatchedLeftTurnVecEnv(VecEnv):
                                                        not self.timeout_is_terminal)
                 infos[r]["episode"] = {"r": float(self._ep_return[r]), "l": int(self._ep_len[r]),
                                        "t": round(time.time() - self._ep_start[r], 6)}
-                infos[r]["episode_metrics"] = self._metrics(r, bool(trunc_all[r] and not term_all[r]))
+                # EpisodeMetrics' `truncated` is the env's flag as it is, also when the episode ends both ways (the
+                # ego arrives on the time limit's step); SB3's TimeLimit.truncated above is not
+                infos[r]["episode_metrics"] = self._metrics(r, bool(trunc_all[r]))
                 if self._queued:
                     infos[r]["seed"] = self.row_seed[r]
             self._traces_reset(rows)
