@@ -232,14 +232,14 @@ def _compose_checked(command: str, overrides: list[str], groups: list[str], comp
             value_overrides.append((o, text))
     for o, _ in group_overrides:
         if o.key_or_group in groups and not o.is_delete():
-            options = _options(o.key_or_group)
+            allowed = options(o.key_or_group)
             value = o.value()
-            if value not in options:
-                raise ConfigError(f"{o.key_or_group}={value}: {o.key_or_group} must be one of {options}")
+            if value not in allowed:
+                raise ConfigError(f"{o.key_or_group}={value}: {o.key_or_group} must be one of {allowed}")
     base = compose(config_name=command, overrides=[t for _, t in group_overrides])
     for o, _ in value_overrides:
         if o.is_add() or o.is_force_add() or o.is_delete():
-            continue  # a new key: the schema below refuses it unless the section allows it
+            continue  # a new key: the section's Params refuse it below unless it is one of their fields
         _check_path(base, o.key_or_group, command)
     # With Hydra's own section, to check the folder Hydra will make for the job (hydra.run.dir, or hydra.sweep.dir
     # with -m) before it makes it: one line for a path it cannot create, not Hydra's traceback.
@@ -270,10 +270,6 @@ def _compose_checked(command: str, overrides: list[str], groups: list[str], comp
             given = any(o.key_or_group == key for o in parsed)
             raise ConfigError(problem if given or raw == job_dir else f"{problem} ({key} is {raw})")
     return cfg
-
-
-def _options(group: str) -> list[str]:
-    return options(group)
 
 
 def _groups(command: str) -> list[str]:
