@@ -13,8 +13,9 @@ import gymnasium as gym
 from av_gym import ENV_IDS
 from av_gym.envs.base import ScenarioParams
 from av_gym.errors import ConfigError
-from av_gym.registry import SCENARIOS
 from av_gym.metrics.recorder import EpisodeMetrics
+from av_gym.registry import SCENARIOS
+
 
 def add_sensors(env: gym.Env, sensors_cfg: Mapping | None) -> gym.Env:
     """Stack the sensor wrappers a ``sensors`` preset asks for, in :data:`av_gym.registry.SENSORS` order (sensors,
