@@ -102,17 +102,6 @@ class Params:
     def field_names(cls) -> list[str]:
         return [f.name for f in dataclasses.fields(cls)]
 
-    @classmethod
-    def describe(cls) -> list[tuple[str, str, Any, str, str]]:
-        """``(name, type, default, unit, doc)`` per field, for documentation tables."""
-        rows = []
-        hints = _hints(cls)
-        for f in dataclasses.fields(cls):
-            default = f.default if f.default is not MISSING else f.default_factory()  # type: ignore[misc]
-            rows.append((f.name, _type_text(hints[f.name]), _plain(default), f.metadata.get("unit", ""),
-                         f.metadata.get("doc", "")))
-        return rows
-
 
 # ----------------------------------------------------------------------------------------------- the checker
 def check(cls: type[Params], values: Any, where: str = "", what: str | None = None, *,
@@ -266,17 +255,6 @@ def _plain(value: Any) -> Any:
     return value
 
 
-def _type_text(hint: Any) -> str:
-    origin, args = get_origin(hint), get_args(hint)
-    if origin is Literal:
-        return " | ".join(map(str, args))
-    if origin in (Union, types.UnionType):
-        return " | ".join(_type_text(a) for a in args).replace("NoneType", "null")
-    if origin in (tuple, list):
-        return f"list[{_type_text(args[0]) if args else 'any'}]"
-    return getattr(hint, "__name__", str(hint))
-
-
 def _num(x: float) -> str:
     return f"{x:g}"
 
@@ -287,8 +265,3 @@ def _fmt(v: Any) -> str:
 
 def _join(where: str, key: Any) -> str:
     return f"{where}.{key}" if where else str(key)
-
-
-def prefixed(exc: ParamError, where: str) -> ConfigError:
-    """``exc`` (a field-relative message) under the config path ``where`` (``sensors.gnss``)."""
-    return ConfigError(_join(where, str(exc)))
