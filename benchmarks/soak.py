@@ -100,6 +100,7 @@ def soak(episodes: int, agent: str, shield_mode: str, seed: int, sample_every: i
     rss0, source = rss_mb()
     st["samples"].append((0, rss0))
     t0 = time.perf_counter()
+    st["times"] = [(0, 0.0)]  # (episodes done, seconds): episodes/s over the run, beside the memory
 
     def result(final: bool) -> dict:
         samples = st["samples"]
@@ -120,7 +121,8 @@ def soak(episodes: int, agent: str, shield_mode: str, seed: int, sample_every: i
                 "rss_end_mb": samples[-1][1], "rss_peak_mb": max(r for _, r in samples),
                 "growth_mb": samples[-1][1] - rss_warm, "warm_episode": w, "slope_mb_per_1000": slope,
                 "rss_source": source, "errors": list(st["errors"]), "collisions": st["collisions"],
-                "interventions": st["interventions"], "samples": list(samples), "tracemalloc_top": top}
+                "interventions": st["interventions"], "samples": list(samples), "times": list(st["times"]),
+                "tracemalloc_top": top}
 
     old = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
@@ -148,6 +150,7 @@ def soak(episodes: int, agent: str, shield_mode: str, seed: int, sample_every: i
             if n % sample_every == 0 or n == warm or n == episodes:
                 gc.collect()
                 st["samples"].append((n, rss_mb()[0]))
+                st["times"].append((n, time.perf_counter() - t0))
                 if progress and n % max(sample_every, episodes // 20 or 1) == 0:
                     print(f"[soak] {n}/{episodes} episodes, {time.perf_counter() - t0:.0f} s, "
                           f"RSS {st['samples'][-1][1]:.1f} MB, {len(st['errors'])} errors", flush=True)
@@ -158,6 +161,7 @@ def soak(episodes: int, agent: str, shield_mode: str, seed: int, sample_every: i
         if st["samples"][-1][0] != st["done"]:
             gc.collect()
             st["samples"].append((st["done"], rss_mb()[0]))
+            st["times"].append((st["done"], time.perf_counter() - t0))
     finally:
         signal.signal(signal.SIGTERM, old)
     env.close()
@@ -205,6 +209,33 @@ def report(r: dict) -> str:
     return "\n".join(lines)
 
 
+def plot(r: dict, png: Path) -> None:
+    """RSS and episodes/s against episodes done: a leak is a slope, a slowdown a falling rate."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n, rss = np.array(r["samples"], dtype=float).T
+    tn, ts = np.array(r["times"], dtype=float).T
+    fig, (a, b) = plt.subplots(2, 1, figsize=(7, 5), sharex=True)
+    a.plot(n, rss, ".-", ms=2)
+    a.axvline(r["warm_episode"], color="grey", ls=":", label=f"warm-up ends (episode {r['warm_episode']})")
+    a.set_ylabel("RSS (MB)")
+    a.set_title(f"Soak: left_turn, sensors=full, shield=aeb ({r['shield_mode']}), agent={r['agent']}")
+    a.legend(loc="lower right")
+    rate = np.diff(tn) / np.maximum(np.diff(ts), 1e-9)
+    b.step(tn[1:], rate, where="pre")
+    b.set_ylabel("episodes/s (per sample)")
+    b.set_xlabel("episodes done")
+    b.set_ylim(bottom=0)
+    fig.tight_layout()
+    tmp = png.with_name(png.stem + ".tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    tmp.replace(png)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", type=int, default=2000)
@@ -227,6 +258,13 @@ def main(argv: list[str] | None = None) -> int:
         tmp = Path(args.out).with_suffix(".tmp")
         tmp.write_text(f"# Soak test\n\n`{cmd}`\n\n{report(r)}\n\nRSS (MB) by episodes done: {curve}\n")
         tmp.replace(args.out)  # a reader never sees half a report
+        out = Path(args.out)
+        rows = dict(r["times"])
+        csv = out.with_name(out.stem + "_samples.csv")
+        csv.with_suffix(".tmp").write_text("episodes,rss_mb,elapsed_s\n" + "".join(
+            f"{n},{m:.2f},{rows.get(n, float('nan')):.1f}\n" for n, m in r["samples"]))
+        csv.with_suffix(".tmp").replace(csv)
+        plot(r, out.with_name(out.stem + "_memory.png"))
 
     r = soak(args.episodes, args.agent, args.shield_mode, args.seed, max(args.sample_every, 1), args.tracemalloc,
              not args.quiet, on_report=write)
