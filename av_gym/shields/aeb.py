@@ -363,6 +363,10 @@ class AEBShield(gym.Wrapper):
     decides_outside_window: ClassVar[bool] = False  # improved: a forward AEB outside the turn window
     needs_lanes: bool = False  # the objects' lane indices (improved with target_model map)
     accel_alpha: float | None = None  # EMA of the finite-difference accelerations; None: not computed
+    # The counterfactual labeller's handles (eval/interventions.py); neither changes a decision.
+    on_intervention: Any = None  # called as on_intervention(shield, action) when a brake starts, before the step
+    bypass: bool = False  # True: pass the agent's action through untouched and decide nothing
+    target_xy: np.ndarray | None = None  # position of the object the last decision named (NaN when none)
 
     # ------------------------------------------------------------------------------------------- config
     @classmethod
@@ -477,8 +481,16 @@ class AEBShield(gym.Wrapper):
         vehicle.act = _ActuatedAct(vehicle.act, vehicle, self)
 
     def step(self, action):
+        if self.bypass:  # a counterfactual replay (eval/interventions.py): the agent's action, no shield
+            obs, reward, terminated, truncated, info = self.env.step(action)
+            self._info = self._make_info(MONITOR, float("inf"), 0.0, -1, False, False, action)
+            info.update(self._info)
+            return obs, reward, terminated, truncated, info
         stage, ttc, horizon, target, active, infeasible = self._decide()
         override = stage == BRAKE
+        if override and not self._info["aeb_override"] and self.on_intervention is not None:
+            # before the env steps: the hook may copy the whole stack and replay this step without the brake
+            self.on_intervention(self, action)
         applied = self._throttle_cut(action) if override else action
         obs, reward, terminated, truncated, info = self.env.step(applied)
         ego = self.env.unwrapped.vehicle
@@ -590,6 +602,7 @@ class AEBShield(gym.Wrapper):
         if stage == BRAKE and np.isnan(self._brake_time):
             self._brake_time = t
         target_key = out_ids[target] if 0 <= target < len(out_ids) else -1
+        self.target_xy = others[target, 0:2].copy() if 0 <= target < len(others) else np.full(2, np.nan)
         return stage, ttc, horizon, target_key, active, infeasible
 
     def _decide_variant(self, ego, others, a_ego, a_others, t, active):
