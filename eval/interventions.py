@@ -282,9 +282,12 @@ def main(argv: list[str] | None = None) -> int:
         e, r = run(spec, seeds, a.env_set, a.shield_set, a.window, a.workers)
         episodes += e
         rows += r
-    meta = (f"{a.episodes} episodes from seed {a.seed}, window {a.window:g} s, env overrides {a.env_set or '-'}, "
-            f"shield overrides {a.shield_set or '-'}; {time.perf_counter() - start:.0f} s wall")
-    print(write_outputs(episodes, rows, Path(a.out), meta))
+        # after each agent: a long run stopped later keeps what it measured
+        meta = (f"{a.episodes} episodes from seed {a.seed}, window {a.window:g} s, env overrides "
+                f"{a.env_set or '-'}, shield overrides {a.shield_set or '-'}; {time.perf_counter() - start:.0f} s "
+                f"wall")
+        text = write_outputs(episodes, rows, Path(a.out), meta)
+    print(text)
     return 0
 
 
