@@ -7,11 +7,11 @@ checkpoint asked every ``action_repeat`` steps, its held choice mapped to a meta
 is ``EpisodeMetrics``' row: rows equal to ``vec_env=subproc``'s within the engine's equivalence (tests and
 docs/sim_speed.md). Rows come back in seed order.
 
-What runs: ``env=left_turn`` in traffic mode with discrete actions, no shield, and the agents ``always_proceed``
-(it reads no observation: it runs on the batch whatever the sensors), ``gap_acceptance`` and PPO checkpoints
-trained on the batch's sensors (``turn_truth``: turn features from truth, turn signals, intent). Anything else
-(``lookahead``, which simulates a copy of its env; a shield; ``turn_perceived``; CCFtap) is refused in one line
-before any episode runs, and runs with ``vec_env=subproc``.
+What runs: ``env=left_turn`` in either mode (traffic; ``env.mode=ccftap`` with its ``env.ccftap.*`` case) and with
+either action type, no shield, and the agents ``always_proceed`` (it reads no observation: it runs on the batch
+whatever the sensors), ``gap_acceptance`` and PPO checkpoints trained on the batch's sensors (``turn_truth``: turn
+features from truth, turn signals, intent). Anything else (``lookahead``, which simulates a copy of its env; a
+shield; ``turn_perceived``) is refused in one line before any episode runs, and runs with ``vec_env=subproc``.
 """
 
 from __future__ import annotations
@@ -64,16 +64,19 @@ def check_batched_plan(plan, env_cfg: dict) -> None:
 class _Decider:
     """The agents' decisions for a batch: per env as :class:`agents.Policy.act` would decide for it."""
 
-    def __init__(self, policy, n: int) -> None:
+    def __init__(self, policy, n: int, continuous: bool = False) -> None:
         from agents import AlwaysProceed
         from agents.go_yield import GapAcceptance
         from agents.ppo import SB3Policy
 
         self.policy, self.n = policy, n
+        # the env's actions: meta-action ints, or the continuous action's one float (what each agent hands the
+        # per-env env, which LongitudinalAction.act reads as its first float)
+        self.dtype = float if continuous else int
         if isinstance(policy, SB3Policy):
             self.kind = "ppo"
             self.k = np.zeros(n, dtype=int)  # SB3Policy._k: env steps since the episode started
-            self.held = np.zeros(n, dtype=int)  # SB3Policy._action
+            self.held = np.zeros(n, dtype=self.dtype)  # SB3Policy._action (its first entry)
         elif isinstance(policy, AlwaysProceed):
             self.kind = "always_proceed"
         elif isinstance(policy, GapAcceptance):
@@ -89,10 +92,10 @@ class _Decider:
         """Meta-actions (n,) for the envs ``live`` (the others get IDLE, unused)."""
         from av_gym.envs.batched_vec import meta_actions
 
-        out = np.ones(self.n, dtype=int)
+        out = np.ones(self.n, dtype=self.dtype)
         rows = np.nonzero(live)[0]
         if self.kind == "always_proceed":
-            out[rows] = int(self.policy.act(None))
+            out[rows] = np.asarray(self.policy.act(None), dtype=self.dtype).reshape(-1)[0]
         elif self.kind == "gap_acceptance":
             for r in rows:
                 out[r] = self.policy.act({"turn": obs["turn"][r]})
@@ -103,7 +106,7 @@ class _Decider:
                 from agents.ppo import flatten_obs
 
                 action, _ = p.model.predict(flatten_obs({k: v[ask] for k, v in obs.items()}), deterministic=True)
-                self.held[ask] = np.asarray(action).reshape(len(ask))
+                self.held[ask] = np.asarray(action).reshape(len(ask), -1)[:, 0]
             self.k[rows] += 1
             if p.actions == "go_yield":
                 out[rows] = meta_actions(self.held[rows], obs["turn"][rows])
@@ -126,7 +129,7 @@ def run_episodes_batched(env_cfg: dict, plan, policy, seeds: Iterable[int], n_en
     B = max(1, min(int(n_envs), total if total is not None else int(n_envs)))
     sensors = NO_OBS_SENSORS if plan_kind(plan) == "always_proceed" else plan.sensors
     venv = BatchedLeftTurnVecEnv(env_cfg, sensors, plan.shield, B, action_repeat=1, actions="env", pool=0)
-    decide = _Decider(policy, B)
+    decide = _Decider(policy, B, continuous=venv.engine.continuous)
     order = iter(seeds)
     wanted: list[int] = []  # seeds handed to the engine, in order
 

@@ -17,8 +17,14 @@ TOL = 1e-6
 HORIZON = 50  # policy steps at 10 Hz: 5 s
 
 
-def _config():
-    return highway_config({"name": "left_turn"})
+def _config(**env):
+    return highway_config({"name": "left_turn", **env})
+
+
+def _ccftap(ego_kmh: float, target_kmh: float, dt: float, action: str = "discrete") -> dict:
+    """A CCFtap grid case (eval/ccftap.py's env config)."""
+    return {"mode": "ccftap", "action": action,
+            "ccftap": {"ego_speed_kmh": ego_kmh, "target_speed_kmh": target_kmh, "dt": dt}}
 
 
 def _state(env) -> np.ndarray:
@@ -46,17 +52,22 @@ def _split_event(env, bt: BatchedLeftTurn, b: int, p: np.ndarray, q: np.ndarray)
     return f"vehicle {i} drifted by {np.abs(p - q)[i].max():.2e} (lane {env.road.vehicles[i].lane_index})"
 
 
-def run_pair(seeds: list[int], horizon: int = HORIZON, action_seed: int = 0) -> list[str | None]:
+def run_pair(seeds: list[int], horizon: int = HORIZON, action_seed: int = 0, env: dict | None = None,
+             actions: np.ndarray | None = None, ends: dict | None = None) -> list[str | None]:
     """Per seed: None if both stacks agree for ``horizon`` policy steps (or to the episode's end), else the first
-    split event with its time."""
+    split event with its time. ``env``: env config fields (default: the traffic task); ``actions`` (horizon,
+    len(seeds)): the env's actions (default: seeded random meta-actions); ``ends``, if given, gets each ended
+    episode's (terminated, truncated, collision, time) of the per-env stack by index."""
     from av_gym.estimation.turn_features import TurnFeatures
 
-    env_id, config = _config()
+    env_id, config = _config(**(env or {}))
     bt = BatchedLeftTurn(len(seeds), config)
     obs_b = bt.reset(seeds)
     envs = [TurnFeatures(gym.make(env_id, config=config)) for _ in seeds]
     obs = [e.reset(seed=s)[0]["turn"] for e, s in zip(envs, seeds)]
-    actions = np.random.default_rng(action_seed).integers(0, 3, size=(horizon, len(seeds)))
+    if actions is None:
+        actions = np.random.default_rng(action_seed).integers(0, 3, size=(horizon, len(seeds)))
+    continuous = bt.continuous
     split: list[str | None] = [None] * len(seeds)
     done = np.zeros(len(seeds), bool)
     for k in range(horizon + 1):
@@ -75,7 +86,7 @@ def run_pair(seeds: list[int], horizon: int = HORIZON, action_seed: int = 0) -> 
         for b, e in enumerate(envs):
             if done[b]:
                 continue
-            o, r, te, tu, info = e.step(int(actions[k, b]))
+            o, r, te, tu, info = e.step(np.array([actions[k, b]], np.float32) if continuous else int(actions[k, b]))
             obs[b] = o["turn"]
             if not split[b] and (abs(r - reward[b]) > TOL or te != term[b] or tu != trunc[b]):
                 split[b] = f"t={0.1 * (k + 1):.1f}s: reward/termination {r, te, tu} vs {reward[b], term[b], trunc[b]}"
@@ -86,6 +97,8 @@ def run_pair(seeds: list[int], horizon: int = HORIZON, action_seed: int = 0) -> 
                                                                            d_ttc <= 0.05 + 1e-9):
                 split[b] = f"t={0.1 * (k + 1):.1f}s: ttc {info['truth']['ttc']} vs {ttc_b[b]}"
             done[b] |= te or tu
+            if done[b] and ends is not None:
+                ends[b] = (te, tu, info["truth"]["collision"], info["truth"]["time"])
     return split
 
 
@@ -121,10 +134,65 @@ def test_batched_envs_are_independent_of_the_batch():
         np.testing.assert_array_equal(one.observe()[0], many.observe()[1])
 
 
+# CCFtap grid cases (eval/ccftap.py): a head-on meeting, the target late / early, the fastest pair, and an ego that
+# stops in the target's path. Actions per case: random meta-actions (the set-points are [0, test speed]), and
+# always-proceed (IDLE: keeps the test speed into the target).
+CCFTAP_CASES = [(15.0, 45.0, 0.0), (10.0, 30.0, -1.0), (20.0, 60.0, 1.5), (10.0, 60.0, 3.0), (20.0, 30.0, -3.0)]
+
+
+@pytest.mark.parametrize("case", CCFTAP_CASES)
+def test_batched_ccftap_matches_per_env_stack_for_5_s(case):
+    """CCFtap (the ego and one plain Vehicle target, av_gym.sim.vehicles.kinematic_step on the per-env stack):
+    states, rewards, ends, obs["turn"] and TTC identical for 5 s, for random meta-actions (3 seeds) and
+    always-proceed (2 seeds)."""
+    seeds = [1, 2, 3, 4, 5]
+    actions = np.random.default_rng(0).integers(0, 3, size=(HORIZON, len(seeds)))
+    actions[:, 3:] = 1  # IDLE
+    split = run_pair(seeds, env=_ccftap(*case), actions=actions)
+    assert split == [None] * len(seeds), split
+
+
+def test_batched_ccftap_ends_as_the_per_env_env():
+    """Whole CCFtap episodes (the target-passed rule and the case's own time limit): always-proceed into the target
+    (a collision), an ego that stops for good before the line (truncated at the limit) and one that waits, then
+    goes (arrives after the target passed): the same rewards and ends at every step."""
+    seeds = [1, 2, 3]
+    horizon = 400  # > every case's time limit (~28 s)
+    actions = np.ones((horizon, 3), dtype=int)
+    actions[:5, 1] = 0  # SLOWER: set-point 0, never raised again
+    actions[:5, 2], actions[30, 2] = 0, 2  # stop, then FASTER at 3 s
+    for case in [(15.0, 45.0, 0.0), (10.0, 30.0, -1.0)]:
+        ends: dict = {}
+        split = run_pair(seeds, horizon=horizon, env=_ccftap(*case), actions=actions, ends=ends)
+        assert split == [None] * 3, split
+        (te0, tu0, crash0, _), (te1, tu1, crash1, t1), (te2, tu2, crash2, _) = (ends[b] for b in range(3))
+        assert te0 and crash0, ends  # always-proceed: hit
+        assert tu1 and not te1 and t1 > 20.0, ends  # stopped for good: the case's time limit
+        assert te2 and not crash2, ends  # waited, went after the target: arrived with the target passed
+
+
+@pytest.mark.parametrize("mode", ["traffic", "ccftap"])
+def test_batched_continuous_actions_match_per_env_stack_for_5_s(mode):
+    """env.action=continuous (RouteFollowingVehicle: commanded acceleration, route-following steering; a
+    ControlledVehicle, so the regulation may set its unused target speed, which obs["turn"]'s set-point reads):
+    vehicle states identical for 5 s in every episode for seeded random accelerations in [-1, 1] and cruising
+    (0 m/s², the always-proceed action), and rewards, ends, obs["turn"] and TTC too in most: obs["turn"]'s
+    closest-approach ties (docs/sim_speed.md, the known TurnFeatures._path_conflict tie) split 2 of these 12 traffic
+    episodes on path_s (measured on seeds 20000-20099: states 100/100, everything 95/100, as with meta-actions)."""
+    seeds = list(range(7000, 7012)) if mode == "traffic" else [1, 2, 3, 4]
+    rng = np.random.default_rng(3)
+    actions = rng.uniform(-1.0, 1.0, size=(HORIZON, len(seeds)))
+    actions[:, ::2] = (0.0 - -8.0) / (3.0 - -8.0) * 2 - 1  # cruise: lmap(0, [-8, 3], [-1, 1])
+    env = {"action": "continuous"} if mode == "traffic" else _ccftap(15.0, 45.0, 0.0, "continuous")
+    split = run_pair(seeds, env=env, actions=actions)
+    assert all(s is None or "obs['turn']" in s for s in split), split
+    assert np.mean([s is None for s in split]) >= (0.8 if mode == "traffic" else 1.0), split
+
+
 def test_batched_refuses_what_it_cannot_run():
     env_id, config = _config()
-    with pytest.raises(ValueError, match="traffic only"):
-        BatchedLeftTurn(2, {**config, "mode": "ccftap"})
+    with pytest.raises(ValueError, match="env.mode must be one of"):
+        BatchedLeftTurn(2, {**config, "mode": "roundabout"})
 
 
 def _ppo_turn_config(*overrides):
@@ -199,8 +267,8 @@ def test_vec_env_refuses_what_the_batch_cannot_give():
         BatchedLeftTurnVecEnv(env, {**sensors, "lidar": {}}, shield, 2)
     with pytest.raises(ConfigError, match="turn_features.source=tracks"):
         BatchedLeftTurnVecEnv(env, {**sensors, "turn_features": {"source": "tracks"}}, shield, 2)
-    with pytest.raises(ConfigError, match="env.mode=traffic only"):
-        BatchedLeftTurnVecEnv({**env, "mode": "ccftap"}, sensors, shield, 2)
+    with pytest.raises(ConfigError, match="go_yield needs env.action=discrete"):
+        BatchedLeftTurnVecEnv({**env, "action": "continuous"}, sensors, shield, 2, actions="go_yield")
 
 
 def test_gymnasium_vector_env_autoresets_in_the_same_step():
@@ -221,7 +289,7 @@ def test_gymnasium_vector_env_autoresets_in_the_same_step():
     assert ended >= 4
 
 
-def _eval_rows(specs: list[str], seeds: list[int], batched: bool) -> list[dict]:
+def _eval_rows(specs: list[str], seeds: list[int], batched: bool, env: dict | None = None) -> list[dict]:
     from av_gym.make import make_env
     from eval.agents import plan_agent, resolve_agent
     from eval.batched import run_episodes_batched
@@ -229,7 +297,7 @@ def _eval_rows(specs: list[str], seeds: list[int], batched: bool) -> list[dict]:
 
     from tests.conftest import conf
 
-    env_cfg = conf("env", "left_turn")
+    env_cfg = {**conf("env", "left_turn"), **(env or {})}
     rows = []
     for spec in specs:
         plan = plan_agent(spec, "left_turn", conf("sensors", "truth"), {"name": "none", "kind": "none"},
@@ -268,6 +336,32 @@ def test_eval_on_the_batched_engine_gives_the_per_env_rows():
                 differ.setdefault(a["agent"], []).append(f"seed {a['seed']}: {key} {a[key]} vs {b[key]}")
     for agent, found in differ.items():
         assert len({f.split(":")[0] for f in found}) <= 1, f"{agent}: {found}"
+
+
+def test_eval_ccftap_on_the_batched_engine_gives_the_per_env_rows():
+    """``python -m eval env.mode=ccftap env.ccftap.* vec_env=batched``: the CCFtap case's rows for a rule that never
+    yields (a collision), gap acceptance and the reference PPO checkpoint (go/yield over the ccftap set-points, its
+    noisy turn signals seeded per episode) equal the per-env rows, every column within 1e-6 (a TTC after a crash: one
+    0.05 s grid step, the touching boxes above)."""
+    seeds = [5, 6, 7]
+    specs = ["always_proceed", "gap_acceptance", "checkpoints/reference/ppo_turn"]
+    for case in [(15.0, 45.0, 0.5), (20.0, 60.0, -1.0)]:
+        env = _ccftap(*case)
+        env["ccftap"] = {**conf_env_ccftap(), **env["ccftap"]}
+        ref, bat = _eval_rows(specs, seeds, False, env), _eval_rows(specs, seeds, True, env)
+        assert [(r["agent"], r["seed"]) for r in bat] == [(r["agent"], r["seed"]) for r in ref]
+        for a, b in zip(ref, bat):
+            for key in a:
+                tol = 0.05 + 1e-9 if key == "min_ttc_s" and a["collision"] else 1e-6
+                if key != "agent":
+                    assert a[key] == b[key] or abs(a[key] - b[key]) <= tol or (a[key] != a[key] and b[key] != b[key]), \
+                        f"{case} {a['agent']} seed {a['seed']}: {key} {a[key]} (per-env) vs {b[key]} (batched)"
+
+
+def conf_env_ccftap() -> dict:
+    from tests.conftest import conf
+
+    return dict(conf("env", "left_turn")["ccftap"])
 
 
 @pytest.mark.parametrize("agents, needle", [

@@ -1,10 +1,11 @@
 """The batched left turn (:mod:`av_gym.envs.left_turn_batched`) as an SB3 ``VecEnv`` and a Gymnasium
 ``VectorEnv`` (issue 16): ``python -m train agent=ppo_turn agent.vec_env=batched agent.n_envs=64``.
 
-What the batch gives: ``env=left_turn`` in traffic mode with discrete actions, and the sensors of the
-``turn_truth`` preset (``turn_features`` with ``source: truth``, ``turn_signals``, ``turn_intent``, ``observe``);
-agent options ``actions`` (``env`` | ``go_yield``), ``action_repeat``, ``timeout_is_terminal``. Anything else
-(another sensor, a shield, CCFtap) is refused with one line naming it; it runs on the per-env stack.
+What the batch gives: ``env=left_turn`` in both modes (traffic, CCFtap) with discrete or continuous actions, and the
+sensors of the ``turn_truth`` preset (``turn_features`` with ``source: truth``, ``turn_signals``, ``turn_intent``,
+``observe``); agent options ``actions`` (``env`` | ``go_yield``, the latter with discrete actions only, as
+``GoYieldActions``), ``action_repeat``, ``timeout_is_terminal``. Anything else (another sensor, a shield) is refused
+with one line naming it; it runs on the per-env stack.
 
 Auto-reset: an env whose episode ended starts its next one at once (SB3's convention: the step returns the new
 episode's first observation, the last one is ``info["terminal_observation"]``), taken from a pool of ready
@@ -42,10 +43,6 @@ def check_batchable(env_cfg: dict, sensors_cfg: dict | None, shield_cfg: dict | 
     """One-line ConfigError for what the batch cannot run."""
     if env_cfg.get("name") != "left_turn":
         raise ConfigError(f"agent.vec_env=batched runs env=left_turn only, got env={env_cfg.get('name')}")
-    if env_cfg.get("mode") != "traffic":
-        raise ConfigError(f"agent.vec_env=batched runs env.mode=traffic only, got {env_cfg.get('mode')!r}")
-    if env_cfg.get("action") != "discrete":
-        raise ConfigError(f"agent.vec_env=batched runs env.action=discrete only, got {env_cfg.get('action')!r}")
     s = dict(sensors_cfg or {})
     for key in s:
         if key not in SENSORS:
@@ -92,7 +89,13 @@ class BatchedLeftTurnVecEnv(VecEnv):
                               f"allowed: {sorted(all_spaces)}")
         obs_space = spaces.Dict({k: all_spaces[k] for k in self.keys})
         self.repeat, self.actions, self.timeout_is_terminal = int(action_repeat), actions, bool(timeout_is_terminal)
-        action_space = spaces.Discrete(2) if actions == "go_yield" else spaces.Discrete(3)
+        if actions == "go_yield" and self.engine.continuous:
+            raise ConfigError("agent.actions=go_yield needs env.action=discrete (GO/YIELD become meta-actions), got "
+                              "env.action=continuous")
+        if self.engine.continuous:  # LongitudinalAction.space
+            action_space = spaces.Box(-1.0, 1.0, shape=(1,), dtype=np.float32)
+        else:
+            action_space = spaces.Discrete(2) if actions == "go_yield" else spaces.Discrete(3)
         super().__init__(n_envs, obs_space, action_space)
         self._seeds: list | None = None
         self._actions = None
@@ -181,7 +184,7 @@ class BatchedLeftTurnVecEnv(VecEnv):
         return rows[started]
 
     def step_async(self, actions: np.ndarray) -> None:
-        self._actions = np.asarray(actions).reshape(-1)
+        self._actions = np.asarray(actions).reshape(self.num_envs, -1)[:, 0]
 
     def step_wait(self):
         e, B = self.engine, self.num_envs

@@ -1,5 +1,5 @@
-"""The unprotected left turn (``av_gym.envs.left_turn``, ``mode: traffic``) for B environments at once, on the
-batched traffic of :mod:`av_gym.sim.batched` (issue 16).
+"""The unprotected left turn (``av_gym.envs.left_turn``, both modes, both action types) for B environments at
+once, on the batched traffic of :mod:`av_gym.sim.batched` (issue 16).
 
 :class:`BatchedLeftTurn` is the env layer: per-environment seeded generators drawing the traffic exactly as
 ``UnprotectedLeftTurnEnv.reset(seed=s)`` / ``step`` do, the reward terms, termination, ``info["truth"]``'s fields
@@ -15,9 +15,9 @@ import numpy as np
 from gymnasium.utils import seeding
 from highway_env import utils
 
-from av_gym.envs.left_turn import CONFLICT_POINT, ONCOMING_NEAR_EDGE_X, ROUTE, UnprotectedLeftTurnEnv
+from av_gym.envs.left_turn import ACTIONS, CONFLICT_POINT, MODES, ONCOMING_NEAR_EDGE_X, ROUTE, UnprotectedLeftTurnEnv
 from av_gym.estimation.turn_features import EGO_FEATURES, OBJECT_FEATURES, PATH_STEP, T_MAX, signals_at
-from av_gym.sim.batched import EGO_TARGET_SPEEDS, LENGTH, WIDTH, LaneTable, Traffic
+from av_gym.sim.batched import LENGTH, WIDTH, LaneTable, Traffic
 
 SPAWN_CLEAR = 15.0  # m, IntersectionEnv._spawn_vehicle: no spawn this close to another vehicle
 EGO_CLEAR = 20.0  # m, _make_vehicles: vehicles this close to the ego are removed ("prevent early collisions")
@@ -44,20 +44,28 @@ def full_config(config: dict | None) -> dict:
 
 class BatchedLeftTurn:
     """B left-turn episodes stepped together. ``reset(seeds)`` / ``reset_envs(rows, seeds)``; ``step(actions)``
-    with the env's discrete meta-actions (B,) returns obs["turn"] (B, F), reward, terminated, truncated and the
-    truth arrays (:meth:`truth`)."""
+    with the env's actions (discrete meta-actions (B,), or continuous (B,) / (B, 1) in [-1, 1]) returns reward,
+    terminated, truncated; :meth:`observe` gives obs["turn"] (B, F) and the truth arrays (:meth:`truth`).
+
+    ``mode: ccftap``: every episode is the Euro NCAP test case of the config (the ego and one plain ``Vehicle``
+    target, no traffic); an episode's only draw is its episode seed, as on the per-env stack."""
 
     def __init__(self, n_envs: int, config: dict | None = None, max_objects: int = 8, max_range: float = 80.0,
                  time_scale: float = 20.0, pool: int = 0) -> None:
         self.config = c = full_config(config)
-        if c["mode"] != "traffic":
-            raise ValueError(f"the batched left turn runs env.mode=traffic only, got {c['mode']!r}")
-        if c["action"]["type"] != "discrete":
-            raise ValueError(f"the batched left turn runs env.action=discrete only, got {c['action']['type']!r}")
-        if not np.allclose(c["action"]["target_speeds"], EGO_TARGET_SPEEDS):
-            raise ValueError(f"the batched left turn has the set-points {list(EGO_TARGET_SPEEDS)} m/s, got "
-                             f"{c['action']['target_speeds']}")
+        if c["mode"] not in MODES:
+            raise ValueError(f"env.mode must be one of {list(MODES)}, got {c['mode']!r}")
+        if c["action"]["type"] not in ACTIONS:
+            raise ValueError(f"env.action.type must be one of {list(ACTIONS)}, got {c['action']['type']!r}")
+        self.ccftap, self.continuous = c["mode"] == "ccftap", c["action"]["type"] == "continuous"
+        # the MDPVehicle's set-points (UnprotectedLeftTurnEnv.define_spaces: ccftap has [0, test speed])
+        self.speeds = np.array([0.0, float(c["ccftap_ego_speed"])] if self.ccftap else c["action"]["target_speeds"],
+                               dtype=float)
+        self.acceleration_range = [float(a) for a in c["action"]["acceleration_range"]]
         self.B = int(n_envs)
+        self.cmd = np.zeros(self.B)  # RouteFollowingVehicle.commanded_acceleration (continuous actions), m/s²
+        self._case = self._ccftap_case() if self.ccftap else None
+        self.time_limit = self._case["time_limit"] if self.ccftap else float(c["duration"])
         self.T, network = tables()
         self.dt = 1.0 / c["simulation_frequency"]
         self.frames = int(c["simulation_frequency"] // c["policy_frequency"])
@@ -115,10 +123,44 @@ class BatchedLeftTurn:
             t.settle(b, slots)
         self._new = []
 
+    def _ccftap_case(self) -> dict:
+        """The CCFtap case's initial ego and target and its time limit, from the per-env env's own set-up
+        (UnprotectedLeftTurnEnv._make_ccftap, which draws nothing): one source for the test's geometry and timing,
+        whose floats the batch then starts from."""
+        env = UnprotectedLeftTurnEnv(config={k: v for k, v in self.config.items() if k != "observation"})
+        env.reset(seed=0)
+        ego, target = env.vehicle, env.ccftap_target
+        state = lambda v: (float(v.position[0]), float(v.position[1]), float(v.heading), float(v.speed))  # noqa: E731
+        case = {"ego": state(ego), "ego_target": float(getattr(ego, "target_speed", ego.speed)),
+                "target": state(target), "time_limit": float(env._ccftap_time_limit)}
+        env.close()
+        return case
+
+    def _make_ccftap(self, rngs: list) -> tuple[Traffic, list[int]]:
+        """UnprotectedLeftTurnEnv._make_ccftap + ScenarioMixin._finish_reset for one episode per generator: the ego
+        and the target in road order, then the episode seed (the episode's only draw)."""
+        t, T, case = Traffic(self.T, len(rngs), N=4), self.T, self._case
+        ego_lane = T.id[ROUTE[0]]
+        for b in range(len(rngs)):
+            for key, ego in (("ego", True), ("target", False)):
+                x, y, h, v = case[key]
+                slot = t.add(b, ego_lane, 0.0, v, [ego_lane, *self.route[1:]] if ego else [-1], ego=ego,
+                             target=case["ego_target"] if ego else v, plain=not ego, mdp=ego and not self.continuous)
+                t.x[b, slot], t.y[b, slot], t.h[b, slot] = x, y, h
+                if not ego:
+                    t.route[b, slot] = -1
+                self._new.append((b, slot))
+        self._settle(t)
+        t.route[t.plain] = -1  # settle() wrote the closest lane as the route's first step: a plain Vehicle has none
+        return t, [int(rng.integers(2**63 - 1)) for rng in rngs]
+
     def _make_vehicles(self, rngs: list) -> tuple[Traffic, list[int]]:
         """IntersectionEnv._make_vehicles(initial_vehicle_count) + ScenarioMixin._finish_reset for one new episode
         per generator in ``rngs``, as a sub-batch: initial traffic, 3 s of simulation (batched), the challenger,
-        the ego, no vehicle within 20 m of the ego, then the episode seed. Returns the traffic and episode seeds."""
+        the ego, no vehicle within 20 m of the ego, then the episode seed. Returns the traffic and episode seeds.
+        CCFtap: :meth:`_make_ccftap`."""
+        if self.ccftap:
+            return self._make_ccftap(rngs)
         n_vehicles = int(self.config["initial_vehicle_count"])
         t = Traffic(self.T, len(rngs), N=max(16, n_vehicles + 4))
         for b, rng in enumerate(rngs):
@@ -135,7 +177,7 @@ class BatchedLeftTurn:
                         speed_deviation=0.0)
             s = 60.0 + 5.0 * rng.normal(1.0)
             slot = t.add(b, ego_lane, s, T.speed_limit[ego_lane], [ego_lane, *self.route[1:]], ego=True,
-                         target=EGO_TARGET_SPEEDS[-1])  # speed_to_index(10 m/s) = 2: 9 m/s
+                         target=self._ego_target(T.speed_limit[ego_lane]), mdp=not self.continuous)
             t.h[b, slot] = T.heading_at(ego_lane, 60.0)
             self._new.append((b, slot))
         self._settle(t)
@@ -148,6 +190,16 @@ class BatchedLeftTurn:
         t.compact()
         t.trim()
         return t, seeds
+
+    def _ego_target(self, speed: float) -> float:
+        """The new ego's target speed: MDPVehicle.__init__'s speed_to_index / index_to_speed of its speed
+        (discrete: 10 m/s → 9 m/s), or ControlledVehicle's (the speed itself) for the continuous action's
+        RouteFollowingVehicle."""
+        if self.continuous:
+            return float(speed)
+        ts = self.speeds
+        x = (speed - ts[0]) / (ts[-1] - ts[0])
+        return float(ts[int(np.clip(np.round(x * (ts.size - 1)), 0, ts.size - 1))])
 
     # ------------------------------------------------------------------------------------------- episodes
     def reset(self, seeds=None):
@@ -172,6 +224,7 @@ class BatchedLeftTurn:
         self.episode_seed[rows] = episode_seeds
         self.time[rows], self.ticks[rows], self.route_k[rows] = 0.0, 0, 0
         self.arrived_time[rows] = np.nan
+        self.cmd[rows] = 0.0
         s = self._route_s(rows)
         self.progress_s[rows] = s
         self.progress_total[rows] = np.maximum(1.0, self.route_starts[2] + 25.0 - s)
@@ -313,17 +366,26 @@ class BatchedLeftTurn:
 
     def step(self, actions: np.ndarray, active: np.ndarray | None = None):
         """One policy step of every env (``active``: the envs to step; the others are left as they are).
-        ``actions``: meta-actions (B,) {0: SLOWER, 1: IDLE, 2: FASTER}."""
+        ``actions``: discrete meta-actions (B,) {0: SLOWER, 1: IDLE, 2: FASTER}, or continuous (B,) / (B, 1) in
+        [-1, 1] mapped onto ``acceleration_range`` (LongitudinalAction.act)."""
         c, t = self.config, self.traffic
         active = np.ones(self.B, bool) if active is None else np.asarray(active, bool)
         rows = np.nonzero(active)[0]
-        self._clear_and_spawn(rows[self.ticks[rows] > 0])
+        if not self.ccftap:
+            self._clear_and_spawn(rows[self.ticks[rows] > 0])
         self.time[rows] += 1.0 / c["policy_frequency"]
         idle = ~active
         frozen = {name: getattr(t, name)[idle].copy() for name in Traffic.FIELDS} if idle.any() else None
         steps_frozen = t.road_steps[idle].copy()
+        meta = None
+        if self.continuous:  # LongitudinalAction.act: clip to [-1, 1], then utils.lmap onto the range
+            a = np.clip(np.asarray(actions, dtype=float).reshape(self.B, -1)[:, 0], -1.0, 1.0)
+            lo, hi = self.acceleration_range
+            self.cmd[rows] = (lo + (a - -1) * (hi - lo) / (1 - -1))[rows]
+        else:
+            meta = np.where(active, np.asarray(actions).reshape(self.B), 1)
         for frame in range(self.frames):
-            t.act(np.where(active, actions, 1) if frame == 0 else None)
+            t.act(meta if frame == 0 else None, self.speeds, self.cmd if self.continuous else None)
             t.step(self.dt)
             self.ticks[rows] += 1
             e = self.ego_slot(rows)
@@ -338,9 +400,18 @@ class BatchedLeftTurn:
         reward[rows], terminated, truncated = self._reward(rows), np.zeros(self.B, bool), np.zeros(self.B, bool)
         e = self.ego_slot(rows)
         crashed, arrived = t.crashed[rows, e], self.has_arrived(rows, e)
-        terminated[rows] = crashed | arrived
-        truncated[rows] = self.time[rows] >= c["duration"]
+        if self.ccftap:  # the episode runs on until the target has passed, so an ego parked in its path is hit
+            terminated[rows] = crashed | (arrived & self.target_passed(rows))
+        else:
+            terminated[rows] = crashed | arrived
+        truncated[rows] = self.time[rows] >= self.time_limit
         return reward, terminated, truncated
+
+    def target_passed(self, rows) -> np.ndarray:
+        """UnprotectedLeftTurnEnv._target_passed: the CCFtap target's rear beyond y = 12 m."""
+        t = self.traffic
+        j = np.argmax(t.plain[rows], axis=1)
+        return t.y[rows, j] - LENGTH / 2 > 12.0
 
     def _reward(self, rows: np.ndarray) -> np.ndarray:
         """UnprotectedLeftTurnEnv._reward for the envs ``rows``."""

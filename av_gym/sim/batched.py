@@ -168,6 +168,12 @@ class Traffic:
         B, N = self.B, self.N
         z = lambda dt=float: np.zeros((B, N), dtype=dt)  # noqa: E731
         self.alive, self.ego, self.crashed, self.yielding = z(bool), z(bool), z(bool), z(bool)
+        # highway-env's plain ``Vehicle`` (the CCFtap target): no controller, its action is kept as it is (zero
+        # steering and acceleration until a crash's clip_actions brakes it), no route, never yields
+        self.plain = z(bool)
+        # an MDPVehicle (the discrete-action ego) never yields in the regulation; the continuous action's ego
+        # (RouteFollowingVehicle, a ControlledVehicle) does: its target speed, which it ignores, goes to 0 and back
+        self.mdp = z(bool)
         self.x, self.y, self.h, self.v, self.target = z(), z(), z(), z(), z()
         self.steer, self.acc, self.delta = z(), z(), z()
         self.delta[:] = 4.0
@@ -179,7 +185,7 @@ class Traffic:
         if self.road_steps is None:
             self.road_steps = np.zeros(B, dtype=int)
 
-    FIELDS = ("vid", "alive", "ego", "crashed", "yielding", "x", "y", "h", "v", "target", "steer", "acc", "delta",
+    FIELDS = ("vid", "alive", "ego", "plain", "mdp", "crashed", "yielding", "x", "y", "h", "v", "target", "steer", "acc", "delta",
               "impact_x", "impact_y", "has_impact", "lane", "tlane", "route", "rpos")
 
     # -------------------------------------------------------------------------------------------- bookkeeping
@@ -244,7 +250,7 @@ class Traffic:
             self.lane[b, slots] = self.tlane[b, slots] = self.route[b, slots, 0] = lane
 
     def add(self, b: int, lane: int, s: float, speed: float, route: list[int], delta: float = 4.0,
-            ego: bool = False, target: float | None = None) -> int:
+            ego: bool = False, target: float | None = None, plain: bool = False, mdp: bool | None = None) -> int:
         """``Vehicle.make_on_lane`` + ``plan_route_to`` + append to ``road.vehicles`` in env ``b``; call
         :meth:`settle` on the new slots before the next tick."""
         slot = int(self.alive[b].sum())
@@ -253,7 +259,8 @@ class Traffic:
         T = self.tables
         x, y = T.position(lane, s, 0.0)
         h = T.heading_at(lane, s)
-        self.alive[b, slot], self.ego[b, slot] = True, ego
+        self.alive[b, slot], self.ego[b, slot], self.plain[b, slot] = True, ego, plain
+        self.mdp[b, slot] = ego if mdp is None else mdp
         self.vid[b, slot] = next(_VEHICLE_IDS)
         self.x[b, slot], self.y[b, slot], self.h[b, slot], self.v[b, slot] = x, y, h, speed
         self.target[b, slot] = speed if target is None else target  # ControlledVehicle: target_speed or speed
@@ -268,12 +275,15 @@ class Traffic:
         return slot
 
     # -------------------------------------------------------------------------------------------- one tick
-    def act(self, ego_action: np.ndarray | None = None) -> None:
-        """``Road.act()`` (and, at a policy step's first tick, the action type's ``MDPVehicle.act(meta)``)."""
+    def act(self, ego_action: np.ndarray | None = None, speeds: np.ndarray = EGO_TARGET_SPEEDS,
+            ego_acceleration: np.ndarray | None = None) -> None:
+        """``Road.act()`` (and, at a policy step's first tick, the action type's ``MDPVehicle.act(meta)`` over the
+        set-points ``speeds``). ``ego_acceleration`` (B,): the continuous action's commanded acceleration (m/s²),
+        av_gym.envs.vehicles.RouteFollowingVehicle in place of the MDPVehicle's speed control."""
         T, a = self.tables, self.alive
         if ego_action is not None:  # MDPVehicle.act: FASTER / SLOWER move the index from the *current* speed
             e = self.ego & a
-            ts = EGO_TARGET_SPEEDS
+            ts = np.asarray(speeds, dtype=float)
             idx = np.clip(np.round((self.v - ts[0]) / (ts[-1] - ts[0]) * (ts.size - 1)), 0, ts.size - 1)
             step = np.where(ego_action == FASTER, 1, np.where(ego_action == SLOWER, -1, 0))[:, None]
             new = ts[np.clip(idx + step, 0, ts.size - 1).astype(int)]
@@ -281,8 +291,12 @@ class Traffic:
         self._follow_road()
         steer = np.clip(self._steering(), -MAX_STEERING, MAX_STEERING)
         acc_idm = np.clip(self._idm(), -ACC_MAX, ACC_MAX)
-        acc_ego = KP_A * (self.target - self.v)  # ControlledVehicle.speed_control
-        live = a & ~self.crashed | self.ego & a  # IDMVehicle.act returns early when crashed (action kept)
+        if ego_acceleration is None:
+            acc_ego = KP_A * (self.target - self.v)  # ControlledVehicle.speed_control
+        else:  # RouteFollowingVehicle.act: no reversing, a standstill is held
+            acc_ego = np.maximum(np.asarray(ego_acceleration, dtype=float)[:, None], -self.v / 0.05)
+        # IDMVehicle.act returns early when crashed (action kept); a plain Vehicle's act(None) keeps its action
+        live = a & ~self.plain & (~self.crashed | self.ego)
         self.steer = np.where(live, steer, self.steer)
         self.acc = np.where(live, np.where(self.ego, acc_ego, acc_idm), self.acc)
 
@@ -291,7 +305,8 @@ class Traffic:
         (``after_end``), drop the finished route step and take the next one."""
         T = self.tables
         s, _ = T.local(self.tlane, self.x, self.y)
-        over = self.alive & (~self.crashed | self.ego) & (s > T.length[self.tlane] - VEHICLE_LENGTH / 2)
+        over = self.alive & ~self.plain & (~self.crashed | self.ego) \
+            & (s > T.length[self.tlane] - VEHICLE_LENGTH / 2)
         if not over.any():
             return
         for b, i in zip(*np.nonzero(over)):
@@ -438,7 +453,15 @@ class Traffic:
             nxt = np.take_along_axis(route, np.minimum(pos, 2).reshape(pos.shape[0], pos.shape[1], -1), 2)
             k = np.where(move, nxt.reshape(lon.shape), k)
         px, py = T.position(k, lon, 0.0)
-        return px, py, T.heading_at(k, lon)
+        ph = T.heading_at(k, lon)
+        plain = self.plain[envs]
+        if plain.any():  # Vehicle.predict_trajectory_constant_speed: integrated, zero acceleration; a plain
+            # vehicle here never steers (its action keeps steering 0), so a straight line at constant speed
+            h = self.h[envs][..., None]
+            px = np.where(plain[..., None], x[..., None] + v[..., None] * np.cos(h) * REG_TIMES, px)
+            py = np.where(plain[..., None], y[..., None] + v[..., None] * np.sin(h) * REG_TIMES, py)
+            ph = np.where(plain[..., None], h, ph)
+        return px, py, ph
 
     def _enforce_road_rules(self, envs_mask: np.ndarray) -> None:
         """RegulatedRoad.enforce_road_rules for the envs in ``envs_mask``."""
@@ -476,7 +499,7 @@ class Traffic:
                 fi = np.cos(self.h[e, i]) * dxy[0] + np.sin(self.h[e, i]) * dxy[1]
                 fj = -(np.cos(self.h[e, j]) * dxy[0] + np.sin(self.h[e, j]) * dxy[1])
                 y_ = i if fi > fj else j
-            if not self.ego[e, y_]:  # MDPVehicle (the ego) never yields
+            if not (self.mdp[e, y_] or self.plain[e, y_]):  # ControlledVehicles but MDPVehicle yield
                 self.target[e, y_] = 0.0
                 self.yielding[e, y_] = True
 
