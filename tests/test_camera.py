@@ -313,3 +313,71 @@ def test_texture_covers_the_road_and_its_markings():
     assert texel(30.0, 0.0) == 128  # asphalt on the centreline
     assert texel(30.0, w / 2) == 255 or texel(30.0, -w / 2) == 255  # an edge line
     assert texel(30.0, w / 2 + 0.5) == 0 and texel(30.0, -w / 2 - 0.5) == 0  # grass
+
+
+# ------------------------------------------------------------------------------------------------ fast paths (issue 18)
+@pytest.mark.parametrize("env_id", [LANE_ID, TURN_ID])
+def test_painting_only_the_band_the_quads_cover_gives_the_same_pixels(env_id):
+    # The band shortcut must be exact: nearest enlargement and 2x2 area averaging work block by block.
+    import cv2
+
+    from av_gym.sensors.camera import _draw_rig_ground, _render_rig, ground_texture, others_state
+
+    drawn = 0
+    for env in _drive(env_id, 25, seed=5):
+        scene = scene_of(env)
+        local = scene.near(env.unwrapped.vehicle.position, 200.0, ground=False)
+        pose = np.array([*env.unwrapped.vehicle.position, env.unwrapped.vehicle.heading])
+        args = (local, others_state(env), pose, camera_rig(), Weather(), ground_texture(scene))
+        band, whole = _render_rig(*args), _render_rig(*args, whole_image=True)
+        ground = _draw_rig_ground(pose, list(camera_rig().values()), ground_texture(scene))
+        for k, g in zip(CAMERA_NAMES, ground):
+            np.testing.assert_array_equal(band[k], whole[k])
+            drawn += int(np.any(band[k] != cv2.cvtColor(g, cv2.COLOR_RGBA2RGB)))
+    assert drawn > 0  # vertical things were drawn over the ground
+
+
+def test_a_sideways_camera_is_culled_and_drawn_like_the_raster_renderer():
+    # Cameras with yaw take the general (not the windshield-rig) path, whose culling must not drop what they see.
+    env = next(iter(_drive(TURN_ID, 30, seed=2)))
+    rig = {"side": CameraSpec(yaw_deg=60.0), "back": CameraSpec(yaw_deg=180.0, lateral_offset=0.3)}
+    new, old = render_views(env, rig), render_views(env, rig, ground="raster")
+    for k in rig:
+        d = np.abs(new[k].astype(int) - old[k]).max(-1)
+        assert d.mean() < 2.5 and (d > 30).mean() < 0.04, (k, d.mean(), (d > 30).mean())
+
+
+def test_pixel_noise_from_the_bank_is_independent_per_pixel_and_frame():
+    # Each frame takes a window of a fixed, seeded bank at an offset drawn from the wrapper's generator: within a
+    # frame N(0, sigma) per pixel; across frames a pixel's noise is uncorrelated (the same value only if two
+    # offsets coincide); the residuals are the bank's values (exposure off, so frame = clean + sigma * bank).
+    from av_gym.sensors.camera import NOISE_BANK_SIZE, _noise_bank
+
+    noise = CameraNoise(pixel_std=8.0, brightness=0.0, contrast=0.0, camera_gain=0.0)
+    env = Cameras(gym.make(LANE_ID), noise=noise, rate_hz=None)
+    env.reset(seed=11)
+    res = []
+    for _ in range(6):
+        obs, *_ = env.step(np.zeros(1, np.float32))
+        clean = render_views(env, env.specs)
+        res.append(np.stack([obs["cameras"][n].astype(float) - clean[n] for n in CAMERA_NAMES]))
+    r = np.stack(res)  # (frames, cameras, H, W, 3)
+    inner = (r > -200) & (r < 200)  # residual with no clipping at 0/255 (clean frames stay within ~[20, 230])
+    assert inner.all()
+    assert r.std() == pytest.approx(8.0, rel=0.05) and abs(r.mean()) < 0.2
+    flat = r.reshape(len(r), -1)
+    for a, b in zip(flat[:-1], flat[1:]):  # same pixel, consecutive frames
+        assert abs(np.corrcoef(a, b)[0, 1]) < 0.03
+    cams = r[0].reshape(3, -1)  # the three cameras of one frame: disjoint windows
+    assert abs(np.corrcoef(cams[0], cams[1])[0, 1]) < 0.03
+    # the residuals are the bank's window at the offset the wrapper's generator draws
+    bank = _noise_bank()
+    assert len(bank) == NOISE_BANK_SIZE
+    g = np.random.default_rng()
+    g.bit_generator.state = env.rng.bit_generator.state
+    obs, *_ = env.step(np.zeros(1, np.float32))
+    clean = render_views(env, env.specs)
+    start = int(g.integers(0, NOISE_BANK_SIZE - 3 * 66 * 200 * 3 + 1))
+    for j, n in enumerate(CAMERA_NAMES):
+        window = bank[start + j * 66 * 200 * 3:start + (j + 1) * 66 * 200 * 3].reshape(66, 200, 3)
+        np.testing.assert_array_equal(obs["cameras"][n].astype(int) - clean[n], np.rint(8.0 * window))

@@ -541,37 +541,72 @@ def _draw_ground(img: np.ndarray, cam: _Pose, quads: np.ndarray, groups: np.ndar
         cv2.fillPoly(img, [poly], colour, cv2.LINE_8, _SHIFT)
 
 
-def _scenery_items(scene: StaticScene, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Every roadside vertical quad seen from ``xy`` (m; the rig's centre, shared by its cameras): ((N, 4, 3) world
-    ``[x, y, z]``, (N, 3) RGB, (N,) sort distance m, (N,) merge group: the wall a piece belongs to, −1 = none).
-    Cylinders are drawn as rectangles facing ``xy`` (for a side camera 0.6 m away, the facing is off by
-    atan(0.6/d), which changes a 0.3 m pole's width by < 1 % beyond 5 m). Walls first, then poles and trunks,
-    then tree crowns (after their trunks: same key, later in the stable sort). What does not depend on ``xy`` is
-    kept on ``scene`` (the rig's cached cull)."""
-    st = getattr(scene, "_scenery", None)
+def _rig_scenery(scene: StaticScene, pose: np.ndarray, base: CameraSpec, reach: float,
+                 side: tuple[float, float] | None) -> tuple[np.ndarray, ...]:
+    """The roadside vertical quads a rig may see, in the vehicle frame: ``(fa, fb, fz)`` (N, 4) forward, right,
+    up (m) of the corners ``[(A, z0), (B, z0), (B, z1), (A, z1)]`` of quads standing on ground segments A→B;
+    ``keys`` (N,) distance (m) from the rig's centre (the lens position of ``base``), items beyond ``reach`` m dropped, ``colours`` (N, 4) RGBA int. Walls first, then poles and trunks, then tree
+    crowns (after their trunks: same key, later in the stable far-to-near sort).
+
+    Cylinders are drawn as rectangles facing the rig's centre (for a side camera 0.6 m away, the facing is off by
+    atan(0.6/d), which changes a 0.3 m pole's width by < 1 % beyond 5 m). Before any per-corner work, items are
+    dropped by their bounding circle when no part can be within ``reach`` of the rig centre and, for a windshield
+    rig (``side``: the cameras' lateral offsets span ``side[0]``..``side[1]`` m, all else equal to ``base``), when
+    no part can be ahead of the near plane or inside the outer side planes (conservative: the exact per-corner
+    culling follows in :func:`_render_rig`). What does not depend on the pose is kept on ``scene`` (the rig's cached cull)."""
+    st = getattr(scene, "_rig_scenery", None)
     if st is None:
         tree = scene.post_kind == CIRCLE_KINDS.index("tree")
         h = scene.post_height
         z_top = np.where(tree, h * TREE_TRUNK_FRACTION, h)
         kind_colour = np.array([CIRCLE_COLOURS[k][0] for k in CIRCLE_KINDS], float)
         crown = np.flatnonzero(tree)
-        item = np.concatenate([np.arange(len(h)), crown])  # which post each cylinder quad stands on
-        z0 = np.concatenate([np.zeros(len(h)), z_top[crown]])
-        z1 = np.concatenate([z_top, h[crown]])
-        colour = np.concatenate([kind_colour[scene.post_kind].reshape(-1, 3),
+        item = np.concatenate([np.arange(len(h)), crown]).astype(int)  # which post each cylinder quad stands on
+        nw = len(scene.walls)
+        colour = np.concatenate([scene.wall_colour.reshape(-1, 3), kind_colour[scene.post_kind].reshape(-1, 3),
                                  np.tile(np.array(CIRCLE_COLOURS["tree"][1], float), (len(crown), 1))])
-        st = scene._scenery = (item, z0, z1, np.concatenate([scene.wall_colour, colour]),
-                               np.concatenate([scene.wall_group, np.full(len(item), -1)]))
-    item, z0, z1, colours, groups = st
-    wall_keys = np.linalg.norm(scene.wall_centre - xy, axis=1)
-    if not len(item):
-        return scene.walls, colours, wall_keys, groups
-    c, r = scene.posts[item, :2], scene.posts[item, 2]
-    ray = c - xy
-    dist = np.maximum(np.linalg.norm(ray, axis=1), 1e-6)
-    perp = np.stack([-ray[:, 1], ray[:, 0]], 1) * (r / dist)[:, None]  # faces the camera
-    quads = _vertical_quads(c - perp, c + perp, z0, z1)
-    return np.concatenate([scene.walls, quads]), colours, np.concatenate([wall_keys, dist]), groups
+        colour = np.round(np.clip(colour, 0, 255)).astype(np.int64)
+        w = scene.walls.reshape(-1, 4, 3)
+        st = scene._rig_scenery = dict(
+            nw=nw, ends=np.concatenate([w[:, 0, :2], w[:, 1, :2]], 1),  # (P, 4): A and B of each wall piece
+            centre=np.concatenate([scene.wall_centre.reshape(-1, 2), scene.posts[item, :2].reshape(-1, 2)]),
+            radius=np.concatenate([np.hypot(*(w[:, 1, :2] - w[:, 0, :2]).T) / 2, scene.posts[item, 2]]),
+            z0=np.concatenate([w[:, 0, 2], np.zeros(len(h)), z_top[crown]]),
+            z1=np.concatenate([w[:, 2, 2], z_top, h[crown]]),
+            colour=np.concatenate([colour, np.full((len(colour), 1), 255)], 1))
+    x, y, psi = float(pose[0]), float(pose[1]), float(pose[2])
+    cf, sf = math.cos(psi), math.sin(psi)
+    fo, hgt = base.forward_offset, base.mount_height
+    c = st["centre"]
+    d0, d1 = c[:, 0] - x, c[:, 1] - y
+    ca, cb = d0 * cf + d1 * sf, -d0 * sf + d1 * cf  # centres in the vehicle frame
+    keys = np.hypot(ca - fo, cb)
+    r = st["radius"]
+    ct, stp = math.cos(base.pitch), math.sin(base.pitch)
+    tx = (base.width / 2 + 1) / base.focal
+    near = keys <= reach + r
+    if side is not None:
+        lo, hi = side
+        # the largest camera depth Z = a·cosθ − (z − h)·sinθ any part can have
+        zmax = (ca + r - fo) * ct + np.maximum((hgt - st["z0"]) * stp, (hgt - st["z1"]) * stp)
+        near &= (zmax >= NEAR_PLANE) & (cb - r - hi <= tx * zmax) & (lo - cb - r <= tx * zmax)
+    sel = np.flatnonzero(near)
+    nw = st["nw"]
+    wsel, psel = sel[sel < nw], sel[sel >= nw]
+    e = st["ends"][wsel]
+    e0, e1 = e[:, 0::2] - x, e[:, 1::2] - y  # (n, 2): A and B, x and y offsets
+    wa, wb = e0 * cf + e1 * sf, -e0 * sf + e1 * cf  # (n, 2) forward, right of A and B
+    pa, pb = ca[psel], cb[psel]
+    ray_a, ray_b = pa - fo, pb
+    k = r[psel] / np.maximum(np.hypot(ray_a, ray_b), 1e-6)
+    qa, qb = -ray_b * k, ray_a * k  # perpendicular to the ray from the rig centre, radius long
+    A_a, B_a = np.concatenate([wa[:, 0], pa - qa]), np.concatenate([wa[:, 1], pa + qa])
+    A_b, B_b = np.concatenate([wb[:, 0], pb - qb]), np.concatenate([wb[:, 1], pb + qb])
+    z0, z1 = st["z0"][sel], st["z1"][sel]
+    fa = np.stack([A_a, B_a, B_a, A_a], 1)
+    fb = np.stack([A_b, B_b, B_b, A_b], 1)
+    fz = np.stack([z0, z0, z1, z1], 1)
+    return fa, fb, fz, keys[sel], st["colour"][sel]
 
 
 def _vertical_items(scene: StaticScene, others: np.ndarray, cam: _Pose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -680,30 +715,41 @@ def _vehicle_items(others: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, ...]
     ``xy`` m, (F, 2) outward normal, (F, 2) face midpoint). Each camera keeps the faces whose normal points
     towards it (back faces culled, as in :func:`_vehicle_faces`); roofs have a zero normal and are kept by every
     camera mounted above :data:`VEHICLE_HEIGHT`. Sides come before their windows, windows before roofs, so the
-    stable far-to-near sort draws each window over its own side."""
-    corners = box_corners(others[:, 0:2], others[:, 4], others[:, 5], others[:, 6])  # (N, 4, 2)
-    centre = others[:, None, 0:2]
-    a, b = corners, np.roll(corners, -1, axis=1)
-    mid = (a + b) / 2
-    edge = b - a
-    normal = np.stack([-edge[..., 1], edge[..., 0]], -1)
-    normal *= np.sign(np.einsum("nik,nik->ni", normal, mid - centre))[..., None]
-    normal /= np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-9)
-    shade = (0.62 + 0.38 * np.clip(normal @ SUN, 0.0, 1.0)).reshape(-1, 1)
+    stable far-to-near sort draws each window over its own side. The same boxes as :func:`box_corners` (corner
+    i at (±l/2, ±w/2) in the order front-left, front-right, rear-right, rear-left of the heading frame; side i
+    runs corner i → i+1), written out per coordinate because this runs every frame and numpy's per-call cost
+    dominated the general version (~70 us per rig)."""
     n = len(others)
-    sides = _vertical_quads(a.reshape(-1, 2), b.reshape(-1, 2), np.zeros(n * 4), np.full(n * 4, VEHICLE_HEIGHT))
-    wa, wb = a + WINDOW_INSET * edge, b - WINDOW_INSET * edge
-    windows = _vertical_quads(wa.reshape(-1, 2), wb.reshape(-1, 2), np.full(n * 4, WINDOW_BAND[0]),
-                              np.full(n * 4, WINDOW_BAND[1]))
-    roofs = np.concatenate([corners, np.full((n, 4, 1), VEHICLE_HEIGHT)], -1)
-    dist = np.linalg.norm(others[:, 0:2] - xy, axis=1)
+    c, s = np.cos(others[:, 4])[:, None], np.sin(others[:, 4])[:, None]
+    lx, ly = others[:, 5:6] / 2 * _BOX_X, others[:, 6:7] / 2 * _BOX_Y  # (n, 4) corners in the box frame
+    ax, ay = others[:, 0:1] + c * lx - s * ly, others[:, 1:2] + s * lx + c * ly
+    bx, by = ax[:, _NEXT], ay[:, _NEXT]
+    nx = np.concatenate([c, s, -c, -s], 1)  # outward unit normals: front, right, rear, left side
+    ny = np.concatenate([s, -c, -s, c], 1)
+    shade = (0.62 + 0.38 * np.clip(nx * SUN[0] + ny * SUN[1], 0.0, 1.0)).reshape(-1, 1)
+    ex, ey = bx - ax, by - ay
+    q = np.empty((9 * n, 4, 3))
+    sides, windows, roofs = q[:4 * n], q[4 * n:8 * n], q[8 * n:]
+    for quad, (x0, y0, x1, y1), (z0, z1) in (
+            (sides, (ax, ay, bx, by), (0.0, VEHICLE_HEIGHT)),
+            (windows, (ax + WINDOW_INSET * ex, ay + WINDOW_INSET * ey, bx - WINDOW_INSET * ex,
+                       by - WINDOW_INSET * ey), WINDOW_BAND)):
+        quad[:, [0, 3], 0], quad[:, [0, 3], 1] = x0.reshape(-1, 1), y0.reshape(-1, 1)
+        quad[:, [1, 2], 0], quad[:, [1, 2], 1] = x1.reshape(-1, 1), y1.reshape(-1, 1)
+        quad[:, :2, 2], quad[:, 2:, 2] = z0, z1
+    roofs[..., 0], roofs[..., 1], roofs[..., 2] = ax, ay, VEHICLE_HEIGHT
+    dist = np.hypot(others[:, 0] - xy[0], others[:, 1] - xy[1])
     side_keys = np.repeat(dist, 4)
-    nrm, mids = normal.reshape(-1, 2), mid.reshape(-1, 2)
-    return (np.concatenate([sides, windows, roofs]),
-            np.concatenate([VEHICLE_COLOUR * shade, WINDOW_COLOUR * shade,
-                            np.tile(np.minimum(VEHICLE_COLOUR * 1.1, 255), (n, 1))]),
+    nrm = np.stack([nx.ravel(), ny.ravel()], 1)
+    mids = np.stack([(ax + bx).ravel() / 2, (ay + by).ravel() / 2], 1)
+    return (q, np.concatenate([VEHICLE_COLOUR * shade, WINDOW_COLOUR * shade,
+                               np.tile(np.minimum(VEHICLE_COLOUR * 1.1, 255), (n, 1))]),
             np.concatenate([side_keys, side_keys, dist]),
             np.concatenate([nrm, nrm, np.zeros((n, 2))]), np.concatenate([mids, mids, np.zeros((n, 2))]))
+
+
+_BOX_X, _BOX_Y = np.array([1.0, 1.0, -1.0, -1.0]), np.array([1.0, -1.0, -1.0, 1.0])
+_NEXT = [1, 2, 3, 0]
 
 
 def _render_rig(scene: StaticScene, others: np.ndarray, pose: np.ndarray, cameras: Mapping[str, CameraSpec],
@@ -711,42 +757,52 @@ def _render_rig(scene: StaticScene, others: np.ndarray, pose: np.ndarray, camera
     """Clean images of every camera in ``cameras`` from ego ``pose`` [x, y, heading]: the ground of all cameras
     sampled from ``texture`` in one stacked pass (:func:`_draw_rig_ground`), then the vertical things far to near
     (:func:`_paint`). What does not depend on the camera is done once for the rig: the vertical quads (scenery
-    facing the rig's centre, every vehicle face), their coordinates in the vehicle frame, the far-to-near order
-    and, for the windshield rig (cameras that differ only in lateral offset), the projection itself: row
-    coordinates, depths and the near/top/bottom culling are shared, and each camera's column coordinates are the
-    centre's shifted by ``f·d/Z``, all cameras in one numpy pass. ``whole_image`` repaints the whole internal
-    image instead of the band the quads cover (the reference the band is tested against)."""
+    facing the rig's centre, every vehicle face) in the vehicle frame, culled by bounding circle first
+    (:func:`_rig_scenery`), the far-to-near order and, for the windshield rig (cameras that differ only in
+    lateral offset), the projection itself: row coordinates, depths and the near/top/bottom culling are shared,
+    and each camera's column coordinates are the centre's shifted by ``f·d/Z``, all cameras in one numpy pass.
+    ``whole_image`` repaints the whole internal image instead of the band the quads cover (the reference the band
+    is tested against).
+
+    Measured and not taken: merging runs of neighbouring wall pieces into one quad where no quad in between
+    overlaps them (keeps the painter's order) removed only ~12 of 55-65 wall quads per camera, since the
+    roadside walls are chains of short straight segments, and its overlap test cost more than the fills saved."""
     x, y, psi = float(pose[0]), float(pose[1]), float(pose[2])
     cf, sf = math.cos(psi), math.sin(psi)
     specs = list(cameras.values())
     base = specs[0]
-    centre = np.array([x + base.forward_offset * cf, y + base.forward_offset * sf])
-    quads, colours, keys, groups = _scenery_items(scene, centre)
-    normals = np.zeros((len(quads), 2))
-    mids = np.zeros((len(quads), 2))
-    kind = np.zeros(len(quads), np.int8)  # 0 scenery (always drawn), 1 vehicle side or window (culled), 2 roof
+    shared = _shared_geometry(cameras)
+    lats = np.array([sp.lateral_offset for sp in specs])
+    reach = max(spec.max_range for spec in specs)
+    fa, fb, fz, keys, colours = _rig_scenery(
+        scene, pose, base, reach, (float(lats.min()), float(lats.max())) if shared is not None else None)
+    kind = np.zeros(len(keys), np.int8)  # 0 scenery (always drawn), 1 vehicle side or window (culled), 2 roof
+    normals = mids = None
+    if len(others):
+        centre = np.array([x + base.forward_offset * cf, y + base.forward_offset * sf])
+        others = others[np.hypot(*(others[:, :2] - centre).T) <= reach + np.hypot(others[:, 5], others[:, 6])]
     if len(others):
         q, col, k, nrm, mid = _vehicle_items(others, centre)
-        quads, colours, keys = np.concatenate([quads, q]), np.concatenate([colours, col]), np.concatenate([keys, k])
-        normals, mids = np.concatenate([normals, nrm]), np.concatenate([mids, mid])
+        d0, d1 = q[..., 0] - x, q[..., 1] - y
+        fa, fb = np.concatenate([fa, d0 * cf + d1 * sf]), np.concatenate([fb, -d0 * sf + d1 * cf])
+        fz = np.concatenate([fz, q[..., 2]])
+        col = np.round(np.clip(col, 0, 255)).astype(np.int64)
+        colours = np.concatenate([colours, np.concatenate([col, np.full((len(col), 1), 255)], 1)])
+        keys = np.concatenate([keys, k])
+        normals = np.concatenate([np.zeros((len(kind), 2)), nrm])
+        mids = np.concatenate([np.zeros((len(kind), 2)), mid])
         kind = np.concatenate([kind, np.where(nrm.any(1), 1, 2).astype(np.int8)])
-    reach = max(spec.max_range for spec in specs)
     idx = np.flatnonzero(keys <= reach)
     idx = idx[np.argsort(-keys[idx], kind="stable")]  # far to near, once for the rig
-    quads, colours, keys, normals, mids, kind = (v[idx] for v in (quads, colours, keys, normals, mids, kind))
-    # vehicle frame: a forward, b right of the ego centre, z up (m)
-    d0, d1 = quads[..., 0] - x, quads[..., 1] - y
-    fa, fb = d0 * cf + d1 * sf, -d0 * sf + d1 * cf
-    fz = quads[..., 2]
-    colours = np.round(np.clip(colours, 0, 255)).astype(np.int64)
-    colours = np.concatenate([colours, np.full((len(colours), 1), 255)], 1).tolist()  # RGBA, shared by the cameras
+    fa, fb, fz, keys, colours, kind = (v[idx] for v in (fa, fb, fz, keys, colours, kind))
     vehicle = np.flatnonzero(kind == 1)
     if len(vehicle):  # back-face test per camera: normal · (camera − face midpoint) > 0
-        nm = np.einsum("ij,ij->i", normals[vehicle], mids[vehicle])
+        normals, mids = normals[idx][vehicle], mids[idx][vehicle]
+        nm = np.einsum("ij,ij->i", normals, mids)
     smalls = _draw_rig_ground(pose, specs, texture)
+    colours = colours.tolist()
 
-    shared = _shared_geometry(cameras) if len(quads) else None
-    if shared is not None:
+    if shared is not None and len(keys):
         # The cameras differ only in lateral offset: Y, Z and the near/top/bottom culling are the rig's, and
         # whatever is wholly behind the lenses or beyond the outer side planes is dropped once.
         fo, h, pitch = base.forward_offset, base.mount_height, base.pitch
@@ -754,7 +810,6 @@ def _render_rig(scene: StaticScene, others: np.ndarray, pose: np.ndarray, camera
         av, u = fa - fo, fz - h
         Y, Z = -(av * st + u * ct), av * ct - u * st
         tx, ty = (base.width / 2 + 1) / base.focal, (base.height / 2 + 1) / base.focal
-        lats = np.array([sp.lateral_offset for sp in specs])
         lo, hi = lats.min(), lats.max()
         common = ~((Z < NEAR_PLANE).all(1) | (Y > ty * Z).all(1) | (-Y > ty * Z).all(1)
                    | (fb - hi > tx * Z).all(1) | (lo - fb > tx * Z).all(1)) & (keys <= base.max_range)
@@ -764,7 +819,7 @@ def _render_rig(scene: StaticScene, others: np.ndarray, pose: np.ndarray, camera
         keep = common & ~((X > tx * Z).all(2) | (-X > tx * Z).all(2))
         if len(vehicle):
             cam_xy = np.stack([x + fo * cf - lats * sf, y + fo * sf + lats * cf], 1)  # (K, 2) world
-            keep[:, vehicle] &= cam_xy @ normals[vehicle].T > nm
+            keep[:, vehicle] &= cam_xy @ normals.T > nm
         front = (Z >= NEAR_PLANE).all(1)
         ss = base.supersample
         f, cx, cy = base.focal * ss, (base.width * ss - 1) / 2, (base.height * ss - 1) / 2
@@ -776,7 +831,7 @@ def _render_rig(scene: StaticScene, others: np.ndarray, pose: np.ndarray, camera
             sel = np.flatnonzero(keep[k])
             pc = np.stack([X[k], Y, Z], -1) if not front[sel].all() else None
             smalls[k] = _paint(smalls[k], sel, px[k], front, pc, colours, keys, spec, weather, whole_image)
-    elif len(quads):
+    elif len(keys):
         for k, spec in enumerate(specs):
             cy_, sy_ = math.cos(spec.yaw), math.sin(spec.yaw)
             a0, b0 = fa - spec.forward_offset, fb - spec.lateral_offset
@@ -789,7 +844,7 @@ def _render_rig(scene: StaticScene, others: np.ndarray, pose: np.ndarray, camera
             if len(vehicle):
                 cam_xy = np.array([x + spec.forward_offset * cf - spec.lateral_offset * sf,
                                    y + spec.forward_offset * sf + spec.lateral_offset * cf])
-                keep[vehicle] &= normals[vehicle] @ cam_xy > nm
+                keep[vehicle] &= normals @ cam_xy > nm
             front = (pc[..., 2] >= NEAR_PLANE).all(1)
             px = _to_pixels(np.where(front[:, None, None], pc, 1.0), spec)
             smalls[k] = _paint(smalls[k], np.flatnonzero(keep), px, front, pc, colours, keys, spec, weather,
@@ -802,7 +857,11 @@ def _render_rig(scene: StaticScene, others: np.ndarray, pose: np.ndarray, camera
 
 def _shared_geometry(cameras: Mapping[str, CameraSpec]) -> CameraSpec | None:
     """The rig's common spec when its cameras differ only in lateral offset (the windshield rig), else None."""
-    specs = list(cameras.values())
+    return _shared_spec(tuple(cameras.values()))
+
+
+@lru_cache(maxsize=32)
+def _shared_spec(specs: tuple[CameraSpec, ...]) -> CameraSpec | None:
     base = replace(specs[0], lateral_offset=0.0)
     if base.yaw == 0 and all(replace(sp, lateral_offset=0.0) == base for sp in specs):
         return base
@@ -882,7 +941,7 @@ def _paint(small: np.ndarray, sel: np.ndarray, px: np.ndarray | None, front: np.
                 kept.append(j)
         cols, sel = [cols[j] for j in kept], sel[kept]
     if weather.needs_depth:
-        img = cv2.resize(small, None, fx=ss, fy=ss, interpolation=cv2.INTER_NEAREST) if ss > 1 else small.copy()
+        img = _enlarge(small, ss)
         depth = _ground_rays(spec)[0].copy()
         for p, c, d in zip(polys, cols, dist[sel].tolist()):
             cv2.fillConvexPoly(img, p, c, cv2.LINE_8, _SHIFT)
@@ -905,13 +964,21 @@ def _paint(small: np.ndarray, sel: np.ndarray, px: np.ndarray | None, front: np.
             else:
                 polys = [p - shift for p in polys]
             band = small[r0:r1, c0:c1]
-            img = cv2.resize(band, None, fx=ss, fy=ss, interpolation=cv2.INTER_NEAREST) if ss > 1 else band.copy()
+            img = _enlarge(band, ss)
             fill = cv2.fillConvexPoly
             for p, c in zip(polys, cols):
                 fill(img, p, c, cv2.LINE_8, _SHIFT)
             small[r0:r1, c0:c1] = cv2.resize(img, (c1 - c0, r1 - r0), interpolation=cv2.INTER_AREA) \
                 if ss > 1 else img
     return cv2.cvtColor(small, cv2.COLOR_RGBA2RGB)
+
+
+def _enlarge(img: np.ndarray, ss: int) -> np.ndarray:
+    """``img`` enlarged ``ss`` times, each pixel an ss×ss block: ``INTER_NEAREST_EXACT``, which for an integer
+    factor picks the same source pixels as ``INTER_NEAREST`` and runs ~2x faster here."""
+    if ss == 1:
+        return img.copy()
+    return cv2.resize(img, (img.shape[1] * ss, img.shape[0] * ss), interpolation=cv2.INTER_NEAREST_EXACT)
 
 
 def _apply_weather(img: np.ndarray, depth: np.ndarray, spec: CameraSpec, weather: Weather) -> np.ndarray:
@@ -932,6 +999,9 @@ def _apply_weather(img: np.ndarray, depth: np.ndarray, spec: CameraSpec, weather
         light = resize(light)[..., None]
         im = 255.0 * np.clip(im * light / 255.0, 0.0, 1.0) ** weather.night_gamma
     return np.clip(np.round(im), 0, 255).astype(np.uint8)
+
+
+_CLEAR = Weather()  # the default conditions, built once (validating a Params costs ~0.1 ms)
 
 
 # ================================================================================================ public rendering
@@ -959,7 +1029,7 @@ def render_views(env: gym.Env, cameras: Mapping[str, CameraSpec], pose: np.ndarr
                                     scene.near(pose[:2], reach + WALL_PIECE + ROAD_STEP + NEAR_REUSE, ground=False))
         local = cached[2]
     others = others_state(env)
-    weather = weather or Weather()
+    weather = weather or _CLEAR
     if texture is None:  # the original renderer
         return {name: _render_one_raster(local, others, pose, spec, weather) for name, spec in cameras.items()}
     return _render_rig(local, others, pose, cameras, weather, texture)
