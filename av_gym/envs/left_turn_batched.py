@@ -16,7 +16,7 @@ from gymnasium.utils import seeding
 from highway_env import utils
 
 from av_gym.envs.left_turn import ACTIONS, CONFLICT_POINT, MODES, ONCOMING_NEAR_EDGE_X, ROUTE, UnprotectedLeftTurnEnv
-from av_gym.estimation.turn_features import EGO_FEATURES, OBJECT_FEATURES, PATH_STEP, T_MAX, signals_at
+from av_gym.estimation.turn_features import EGO_FEATURES, OBJECT_FEATURES, PATH_STEP, T_MAX
 from av_gym.sim.batched import LENGTH, WIDTH, LaneTable, Traffic
 
 SPAWN_CLEAR = 15.0  # m, IntersectionEnv._spawn_vehicle: no spawn this close to another vehicle
@@ -614,7 +614,8 @@ class BatchedIntent:
         self._crc = zlib.crc32(b"signals")
         B = engine.B
         self.rngs = [None] * B
-        self.channel: list[dict] = [{} for _ in range(B)]
+        # TurnSignals._channel, by vehicle id: seen before, indicates, indicates the wrong way
+        self.known, self.indicates, self.wrong = (np.zeros(1024, bool) for _ in range(3))
         # per env, the past as TurnIntent._past: up to H snapshots (times ht, nan = empty) of the slot arrays
         self.H = int(np.ceil(self.history * engine.config["policy_frequency"])) + 2
         self.ht = np.full((B, self.H), np.nan)
@@ -634,39 +635,62 @@ class BatchedIntent:
 
         for r in rows:
             self.rngs[r] = np.random.default_rng(np.random.SeedSequence([int(self.e.episode_seed[r]), self._crc]))
-            self.channel[r] = {}
         self.ht[np.asarray(rows, dtype=int)] = np.nan
 
+    def _grow(self, n: int) -> None:
+        if n > len(self.known):
+            size = max(n, 2 * len(self.known))
+            for name in ("known", "indicates", "wrong"):
+                a = np.zeros(size, bool)
+                a[: len(getattr(self, name))] = getattr(self, name)
+                setattr(self, name, a)
+
     def signals(self, rows) -> np.ndarray:
-        """TurnSignals.measure for the envs ``rows``: (n, max_objects, 4) float32."""
+        """TurnSignals.measure for the envs ``rows``: (n, max_objects, 4) float32.
+
+        The sensor draws, per reading, in road order: on a vehicle's first sighting ``indicates?`` and ``wrong?``,
+        then ``seen?``. One ``Generator.uniform(size=k)`` per env gives the same k numbers as k scalar calls
+        (the same bit generator and transform, element by element), so each env draws its step's numbers at once
+        and they are handed out in that order. The channel's per-driver choices are kept by vehicle id (unique in
+        the process, so a table by id is the per-episode channel of the sensor)."""
         e, t, sig = self.e, self.e.traffic, self.sig
         M = int(sig["max_objects"])
-        out = np.zeros((len(rows), M, 4), dtype=np.float32)
+        n = len(rows)
         eslot = e.ego_slot(rows)
         lane_origin = self.origin[t.lane[rows]]
-        dest = self.dest[np.take_along_axis(t.route[rows], np.full((len(rows), t.N, 1), 2), 2)[..., 0]]
+        last = t.route[rows][..., 2]  # -1: no route (a plain Vehicle): intended_signal is 0
+        dest = np.where(last >= 0, self.dest[last], -1)
         turn = (dest - lane_origin) % 4
         intended = np.where((lane_origin >= 0) & (dest >= 0), np.where(turn == 1, 1.0, np.where(turn == 3, -1.0, 0.0)),
                             0.0)
         ex, ey = t.x[rows, eslot], t.y[rows, eslot]
         d = np.hypot(t.x[rows] - ex[:, None], t.y[rows] - ey[:, None])
         seen_mask = t.alive[rows] & ~t.ego[rows] & (d <= sig["max_range"])
-        for n, r in enumerate(rows):
-            slots = np.nonzero(seen_mask[n])[0]
-            if not len(slots):
-                continue
-            ch, rng = self.channel[r], self.rngs[r]
-            values = []
-            for i in slots:  # road order, as the sensor's loop
-                vid = t.vid[r, i]
-                if vid not in ch:
-                    ch[vid] = (rng.uniform() >= sig["no_signal_rate"], rng.uniform() < sig["wrong_rate"])
-                indicates, wrong = ch[vid]
-                seen = rng.uniform() >= sig["miss_rate"]
-                values.append(intended[n, i] * (-1.0 if wrong else 1.0) if indicates and seen else 0.0)
-            order = sorted(range(len(slots)), key=lambda k: d[n, slots[k]])[:M]
-            for k, j in enumerate(order):
-                out[n, k] = (1.0, t.x[r, slots[j]], t.y[r, slots[j]], values[j])
+        vids = t.vid[rows]
+        self._grow(int(vids.max()) + 1)
+        new = seen_mask & ~self.known[vids]
+        width = np.where(seen_mask, 1 + 2 * new, 0)  # draws per reading, road order, env after env
+        counts = width.sum(axis=1)
+        draws = [self.rngs[r].uniform(size=int(c)) for r, c in zip(rows, counts) if c]
+        u = np.concatenate(draws) if draws else np.zeros(0)
+        end = np.cumsum(width.ravel()).reshape(width.shape)  # one past each reading's last draw in u
+        if new.any():  # first sighting: does this driver indicate, and the right way?
+            ids, last = vids[new], end[new]
+            self.known[ids] = True
+            self.indicates[ids] = u[last - 3] >= sig["no_signal_rate"]
+            self.wrong[ids] = u[last - 2] < sig["wrong_rate"]
+        seen = np.zeros(seen_mask.shape, bool)
+        seen[seen_mask] = u[end[seen_mask] - 1] >= sig["miss_rate"]
+        indicates, wrong = self.indicates[vids], self.wrong[vids]
+        value = np.where(seen_mask & indicates & seen, intended * np.where(wrong, -1.0, 1.0), 0.0)
+        # nearest first; ties in road order (the sensor's stable sort)
+        order = np.argsort(np.where(seen_mask, d, np.inf), axis=1, kind="stable")[:, :M]
+        g = lambda a: np.take_along_axis(a, order, 1)  # noqa: E731
+        present = g(seen_mask)
+        out = np.zeros((n, M, 4), dtype=np.float32)
+        m = order.shape[1]
+        out[:, :m] = np.where(present[..., None], np.stack([np.ones((n, m)), g(t.x[rows]), g(t.y[rows]), g(value)],
+                                                             axis=-1), 0.0)
         return out
 
     def intent(self, rows, signals) -> np.ndarray:
@@ -713,11 +737,15 @@ class BatchedIntent:
             v_then = np.take_along_axis(then[..., 2:4], j[..., None], 1)
             acc = ((objects[..., 2:4] - v_then) * heading).sum(axis=-1) / dts
             out[..., 0] = np.where(usable[:, None] & matched & described, acc, 0.0) / 5.0
-        if signals is not None:
-            for k in range(n):
-                m = int(described[k].sum())
-                if m:
-                    out[k, :m, 1] = signals_at(objects[k, :m], signals[k], self.signal_gate)
+        if signals is not None:  # signals_at for every described object of every env at once
+            valid = signals[..., 0] > 0  # (n, S)
+            ds = np.hypot(objects[:, :, None, 0] - signals[:, None, :, 1],
+                          objects[:, :, None, 1] - signals[:, None, :, 2])
+            ds = np.where(valid[:, None, :], ds, np.inf)  # (n, M, S): argmin over the seen readings, first on ties
+            j = np.argmin(ds, axis=2)
+            near = np.take_along_axis(ds, j[..., None], 2)[..., 0] <= self.signal_gate
+            read = np.take_along_axis(np.broadcast_to(signals[:, None, :, 3], ds.shape), j[..., None], 2)[..., 0]
+            out[..., 1] = np.where(described & near, read, 0.0)
         # keep what is younger than `history`, add now (TurnIntent: [(t, o) for ... if now - t < history - 1e-9])
         ht = np.where(np.isfinite(ht) & (now[:, None] - ht < self.history - 1e-9), ht, np.nan)
         slot = np.argmax(~np.isfinite(ht), axis=1)  # a free slot (H > history / policy period)
