@@ -137,7 +137,10 @@ def labelled_episode(env, policy, seed: int, window: float = WINDOW) -> tuple[di
             done = terminated or truncated
     finally:
         shield.on_intervention = None
-    return info["episode_metrics"], rows
+    metrics = dict(info["episode_metrics"])
+    u = env.unwrapped
+    metrics["collision_partner"] = _classify(u, _collision_partner(u)) if u.vehicle.crashed else ""
+    return metrics, rows
 
 
 # ----------------------------------------------------------------------------------------------- tables

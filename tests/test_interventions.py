@@ -53,6 +53,7 @@ def test_labelling_leaves_the_real_episode_unchanged(make, turn_cfg):
     while not done:
         obs, _, term, trunc, info = env.step(policy.act(obs))
         done = term or trunc
+    assert (labelled.pop("collision_partner") != "") == bool(labelled["collision"])
     np.testing.assert_equal(info["episode_metrics"], labelled)  # NaN == NaN here
     assert len(rows) == labelled["interventions"]
 

@@ -73,3 +73,150 @@ def partner_type(vehicle, network, ego_route: list[tuple], ego_starts: np.ndarra
     if ego_approach is not None and origin is not None and origin == (ego_approach + 2) % 4:
         return "oncoming"
     return "crossing"
+
+
+# ----------------------------------------------------------------------------------------------- conflict model
+def path_turn(seq: tuple) -> float:
+    """The indicator a driver on lane sequence ``seq`` would show: +1 left, -1 right, 0 straight or unknown (the
+    rule of :func:`av_gym.sensors.turn_signal.intended_signal`, applied to a hypothesis instead of a route)."""
+    origin = approach_of(seq[0])
+    end = str(seq[-1][1])
+    if origin is None or not (end.startswith("o") and end[1:].isdigit()):
+        dest = [str(li[1]) for li in seq if str(li[1]).startswith("il")]
+        if origin is None or not dest or not dest[0][2:].isdigit():
+            return 0.0
+        end = "o" + dest[0][2:]
+    turn = (int(end[1:]) - origin) % 4
+    return 1.0 if turn == 1 else -1.0 if turn == 3 else 0.0
+
+
+def signal_likelihood(signal: float, turn: float, no_signal_rate: float, wrong_rate: float, miss_rate: float,
+                      floor: float) -> float:
+    """P(reading ``signal`` | the driver's path turns ``turn``) under the indicator channel of
+    :mod:`av_gym.sensors.turn_signal` (no signal at all, the wrong side, a missed reading), never below ``floor``
+    (the channel is a model: a driver it says never indicates may still do so)."""
+    if turn == 0.0:
+        p = 1.0 if signal == 0.0 else 0.0
+    else:
+        shown = (1.0 - no_signal_rate) * (1.0 - miss_rate)
+        p_right, p_wrong = shown * (1.0 - wrong_rate), shown * wrong_rate
+        p = p_right if signal == turn else p_wrong if signal == -turn else 1.0 - p_right - p_wrong
+    return max(p, floor)
+
+
+_DRIVEN: dict = {}  # lane sequence geometry -> DrivenPath, shared by every shield in the process
+
+
+class ConflictModel:
+    """Every road user's possible paths across the ego's (issue 17): one hypothesis per way the road network lets
+    it continue from the lane it is on (:class:`av_gym.shields.predict.LaneHypotheses`: straight, left, right at
+    the intersection, any lane the graph continues to), each with a probability, uniform over the continuations
+    and, where an indicator reading is available, weighted by the reading's likelihood under the indicator
+    channel (:func:`signal_likelihood`); hypotheses below ``min_p`` are dropped. Along each path the vehicle
+    keeps its along-path acceleration for ``accel_time`` s (a braking car stops, it does not reverse), then its
+    speed (``accel_time`` 0, the default: constant speed; see :class:`~av_gym.shields.aeb.ImprovedParams`), on
+    the path highway-env's route-following controller actually drives (:meth:`driven`). An object off the map (farther than ``on_lane`` m from its lane, or heading more than 30° off it) or
+    standing still gets the constant-velocity hypothesis instead.
+
+    Compared with constant velocity (the improved shield's old default) it sees the car that turns across or into
+    the ego's path; compared with the ``map`` model it drops the straight-line hypothesis of a car that follows a
+    curved lane (a phantom conflict for every car already turning in the box), uses the car's braking (one that
+    slows to yield is not predicted through the ego), and lets a turn signal rule out going straight."""
+
+    def __init__(self, network, min_p: float = 0.1, accel_time: float = 0.0, on_lane: float = 2.0,
+                 depth: int = 3, min_length: float = 60.0) -> None:
+        from av_gym.shields.predict import LaneHypotheses
+
+        self.lanes = LaneHypotheses(network, depth, min_length)
+        self.min_p, self.accel_time, self.on_lane = min_p, accel_time, on_lane
+        self._seqs: dict[tuple, list[tuple[tuple, float]]] = {}
+
+    def driven(self, seq: tuple):
+        """Where a car following lane sequence ``seq`` actually drives: highway-env's traffic uses the same
+        route-following controller as the ego, which cuts a turn by up to ~1 m, so the ego's
+        :class:`~av_gym.shields.predict.DrivenPath` replays it along the hypothesis (cached by geometry: a
+        centreline prediction missed cars from the east turning left by ~1 m, seeds 1025 and 1088)."""
+        from av_gym.shields.predict import DrivenPath
+
+        table = self.lanes.table(seq)
+        key = (seq, round(table.length, 4), *np.round(table.xy[0], 4))
+        if key not in _DRIVEN:
+            turns = [k for k, li in enumerate(seq) if str(li[0]).startswith("ir")]
+            k = turns[0] if turns else 0
+            s_to = table.starts[k + 1] if k + 1 < len(table.starts) else table.length
+            _DRIVEN[key] = DrivenPath(table, float(table.starts[k]), float(s_to))
+        return _DRIVEN[key]
+
+    @property
+    def network(self):
+        return self.lanes.network
+
+    @network.setter
+    def network(self, net) -> None:
+        self.lanes.network = net
+
+    def hypotheses(self, lane_index: tuple) -> list[tuple[tuple, float]]:
+        """``(lane sequence, turn)`` for every continuation of ``lane_index`` (cached)."""
+        key = tuple(lane_index)
+        if key not in self._seqs:
+            self._seqs[key] = [(seq, path_turn(seq)) for seq in self.lanes.sequences(key)]
+        return self._seqs[key]
+
+    def along(self, v: float, a: float, t: np.ndarray) -> np.ndarray:
+        """Distance (m) along a path at times ``t`` from speed ``v`` with acceleration ``a`` for ``accel_time`` s,
+        never reversing."""
+        ta = np.minimum(t, self.accel_time)
+        if a < 0:
+            ta = np.minimum(ta, v / -a)
+        s = v * ta + 0.5 * a * ta**2
+        return s + (v + a * ta) * (t - ta)
+
+    def predict(self, others: np.ndarray, lane_indices: list, accels: np.ndarray, t: np.ndarray,
+                signals: np.ndarray | None = None, likelihood=None):
+        """Positions (K, M', 2), headings (K, M'), owner (M',), whether each is a map hypothesis (M',) and its
+        probability (M',) over the hypotheses of ``others`` (M, 7) on ``lane_indices`` (None = off the map),
+        ``accels`` (M, 2) m/s² world frame; ``signals`` (M,) indicator readings (+1/-1/0, NaN = none) with
+        ``likelihood(signal, turn)``."""
+        from av_gym.shields.predict import object_predict, profile_speeds
+
+        t = np.asarray(t, dtype=float)
+        xs, hs, owner, is_map, prob = [], [], [], [], []
+        cv = []
+        for m, lane_index in enumerate(lane_indices):
+            speed = float(np.hypot(others[m, 2], others[m, 3]))
+            lane = self.network.get_lane(lane_index) if lane_index is not None else None
+            if lane is not None and speed >= 0.5:
+                s0, lat = (float(x) for x in lane.local_coordinates(others[m, 0:2]))
+                dh = abs((float(lane.heading_at(s0)) - others[m, 4] + np.pi) % (2 * np.pi) - np.pi)
+                if abs(lat) <= self.on_lane and dh <= np.radians(30):
+                    a_along = float(accels[m] @ others[m, 2:4]) / speed
+                    ds = self.along(speed, a_along, t)
+                    hyps = self.hypotheses(lane_index)
+                    p = np.full(len(hyps), 1.0 / len(hyps))
+                    sig = None if signals is None else signals[m]
+                    if sig is not None and np.isfinite(sig) and likelihood is not None:
+                        p = p * np.array([likelihood(float(sig), turn) for _, turn in hyps])
+                        p = p / p.sum()
+                    for (seq, _), pk in zip(hyps, p):
+                        if pk < self.min_p:
+                            continue
+                        xy, h = self.driven(seq).poses(s0, ds, profile_speeds(ds, t, speed))
+                        xs.append(xy[:, None, :])
+                        hs.append(h[:, None])
+                        owner.append(m)
+                        is_map.append(True)
+                        prob.append(float(pk))
+                    continue
+            cv.append(m)
+        if cv:
+            cv_xy, cv_h = object_predict(others[cv], t)
+            xs.append(cv_xy)
+            hs.append(cv_h)
+            owner += cv
+            is_map += [False] * len(cv)
+            prob += [1.0] * len(cv)
+        if not xs:
+            return np.zeros((len(t), 0, 2)), np.zeros((len(t), 0)), np.zeros(0, int), np.zeros(0, bool), \
+                np.zeros(0)
+        return (np.concatenate(xs, 1), np.concatenate(hs, 1), np.asarray(owner, dtype=int),
+                np.asarray(is_map, dtype=bool), np.asarray(prob, dtype=float))
