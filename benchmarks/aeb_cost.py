@@ -1,0 +1,73 @@
+"""AEB shield cost per decision (issue 17 target: < 1 ms at 20 road users).
+
+A traffic episode is run until ``--vehicles`` other road users are on the map (extra traffic is spawned with the
+env's own spawner, so every vehicle is on a lane with a route, as in an evaluation); then the shield's decision
+(:meth:`AEBShield._decide`, everything it does per 0.1 s step except the simulation) is timed on copies of that
+state, for each target model of the improved variant, with the old default (``cv``) as the reference run in the
+same process. Prints a table: ms per decision (median of ``--repeat`` runs of ``--n`` decisions) and the ratio to
+``cv``. Note the load average beside any number you quote.
+
+    python benchmarks/aeb_cost.py --vehicles 20
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import os
+import time
+
+import numpy as np
+
+
+def scene(n_vehicles: int, seed: int, target_model: str):
+    from agents import AlwaysProceed
+    from av_gym.make import make_env
+    from eval.agents import compose_group
+    from eval.interventions import find_shield
+
+    shield = compose_group("shield", "aeb")
+    shield["target_model"] = target_model
+    env = make_env({"name": "left_turn", "spawn_probability": 1.0}, None, shield)
+    policy = AlwaysProceed(env.unwrapped.cruise_action())
+    obs, _ = env.reset(seed=seed)
+    u = env.unwrapped
+    while len(u.road.vehicles) - 1 < n_vehicles:
+        u._spawn_vehicle(spawn_probability=1.0)
+    # one step so the shield has its history (finite differences, lanes)
+    env.step(policy.act(obs))
+    return env, find_shield(env)
+
+
+def time_decisions(shield, n: int) -> float:
+    """Seconds per decision over ``n`` decisions, each on a fresh copy of the shield's state."""
+    copies = [copy.deepcopy(shield) for _ in range(n)]
+    start = time.perf_counter()
+    for sh in copies:
+        sh._decide()
+    return (time.perf_counter() - start) / n
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--vehicles", type=int, default=20)
+    ap.add_argument("--seed", type=int, default=1000)
+    ap.add_argument("--n", type=int, default=50)
+    ap.add_argument("--repeat", type=int, default=5)
+    a = ap.parse_args()
+    rows = []
+    for model in ("cv", "map", "conflict"):
+        env, shield = scene(a.vehicles, a.seed, model)
+        time_decisions(shield, 5)  # warm the caches (route tables, driven paths), as after the first episode
+        times = [time_decisions(shield, a.n) for _ in range(a.repeat)]
+        rows.append((model, len(env.unwrapped.road.vehicles) - 1, float(np.median(times)) * 1e3))
+    ref = rows[0][2]
+    print(f"load average {os.getloadavg()[0]:.2f} (1 min); median of {a.repeat} x {a.n} decisions")
+    print("| target_model | road users | ms per decision | ratio to cv |")
+    print("| --- | --- | --- | --- |")
+    for model, n, ms in rows:
+        print(f"| {model} | {n} | {ms:.3f} | {ms / ref:.2f} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,101 @@
+"""The AEB shield's conflict model (av_gym/shields/conflicts.py, target_model conflict; issue 17)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from agents import AlwaysProceed
+from av_gym.shields.conflicts import ConflictModel, path_turn, signal_likelihood
+from conftest import conf
+
+LEFT_FROM_EAST = (("o3", "ir3", 0), ("ir3", "il0", 0), ("il0", "o0", 0))
+
+
+def test_path_turn_is_the_indicator_a_driver_on_that_path_shows():
+    assert path_turn(LEFT_FROM_EAST) == 1.0
+    assert path_turn((("o3", "ir3", 0), ("ir3", "il2", 0), ("il2", "o2", 0))) == -1.0
+    assert path_turn((("o3", "ir3", 0), ("ir3", "il1", 0), ("il1", "o1", 0))) == 0.0
+    assert path_turn((("ir0", "il1", 0), ("il1", "o1", 0))) == 1.0  # already in the box
+    assert path_turn((("il1", "o1", 0),)) == 0.0  # on an exit: unknown
+
+
+def test_signal_likelihood_follows_the_indicator_channel():
+    rates = dict(no_signal_rate=0.25, wrong_rate=0.05, miss_rate=0.1, floor=0.02)
+    shown = 0.75 * 0.9
+    assert signal_likelihood(1.0, 1.0, **rates) == pytest.approx(shown * 0.95)
+    assert signal_likelihood(-1.0, 1.0, **rates) == pytest.approx(shown * 0.05)
+    assert signal_likelihood(0.0, 1.0, **rates) == pytest.approx(1 - shown)
+    assert signal_likelihood(1.0, 0.0, **rates) == 0.02  # a straight driver never indicates: only the floor
+    assert signal_likelihood(0.0, 0.0, **rates) == 1.0
+
+
+@pytest.fixture
+def network(make, turn_cfg):
+    env = make(turn_cfg, None, None)
+    env.reset(seed=0)
+    return env.unwrapped.road.network
+
+
+def _on_approach(network, speed=8.0):
+    lane = network.get_lane(("o3", "ir3", 0))
+    s = lane.length - 20.0
+    x, y = lane.position(s, 0.0)
+    h = lane.heading_at(s)
+    return np.array([[x, y, speed * np.cos(h), speed * np.sin(h), h, 5.0, 2.0]])
+
+
+def test_every_continuation_is_a_hypothesis_and_a_turn_signal_prunes_straight(network):
+    model = ConflictModel(network, min_p=0.1)
+    t = 0.1 * np.arange(1, 41)
+    others = _on_approach(network)
+    lanes = [("o3", "ir3", 0)]
+    xy, h, owner, is_map, p = model.predict(others, lanes, np.zeros((1, 2)), t)
+    assert xy.shape == (40, 3, 2) and list(owner) == [0, 0, 0] and is_map.all()
+    assert p == pytest.approx([1 / 3] * 3)
+    # the three paths end in three different places after 4 s
+    ends = xy[-1]
+    assert min(np.hypot(*(ends[i] - ends[j])) for i in range(3) for j in range(i + 1, 3)) > 5.0
+
+    def lik(signal, turn):
+        return signal_likelihood(signal, turn, 0.25, 0.05, 0.1, floor=0.02)
+
+    full = xy
+    left = [turn for _, turn in model.hypotheses(lanes[0])].index(1.0)
+    xy, h, owner, is_map, p = model.predict(others, lanes, np.zeros((1, 2)), t, np.array([1.0]), lik)
+    assert len(owner) == 1 and p[0] > 0.9  # left only: straight (floor) and right (wrong side) below min_p
+    np.testing.assert_allclose(xy[:, 0], full[:, left])
+
+
+def test_standing_or_off_the_map_objects_get_constant_velocity(network):
+    model = ConflictModel(network)
+    t = 0.1 * np.arange(1, 11)
+    standing = _on_approach(network, speed=0.0)
+    off_map = _on_approach(network)
+    off_map[0, 0:2] += np.array([0.0, 6.0])  # 6 m to the side of its lane
+    for obj, lane in ((standing, ("o3", "ir3", 0)), (off_map, ("o3", "ir3", 0)), (_on_approach(network), None)):
+        xy, h, owner, is_map, p = model.predict(obj, [lane], np.zeros((1, 2)), t)
+        assert len(owner) == 1 and not is_map[0]
+        np.testing.assert_allclose(xy[-1, 0], obj[0, 0:2] + obj[0, 2:4] * t[-1])
+
+
+def _episode(make, turn_cfg, seed, **shield):
+    cfg = conf("shield", "aeb")
+    cfg.update(shield)
+    env = make(turn_cfg, None, cfg)
+    policy = AlwaysProceed(env.unwrapped.cruise_action())
+    obs, _ = env.reset(seed=seed)
+    done = False
+    while not done:
+        obs, _, term, trunc, info = env.step(policy.act(obs))
+        done = term or trunc
+    return info["episode_metrics"]
+
+
+def test_a_car_turning_across_from_the_right_is_braked_for(make, turn_cfg):
+    # seed 1025: a car from the east turns left across the ego's path into the south exit; constant velocity
+    # never predicts the conflict (no intervention, collision), the conflict model does
+    cv = _episode(make, turn_cfg, 1025, target_model="cv")
+    assert cv["collision"] == 1.0 and cv["interventions"] == 0
+    conflict = _episode(make, turn_cfg, 1025, target_model="conflict")
+    assert conflict["collision"] == 0.0 and conflict["interventions"] >= 1
