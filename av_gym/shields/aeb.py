@@ -29,8 +29,11 @@ config section ``shield`` (``kind: aeb``, ``variant: ...``) builds one through :
     replays that controller (tabulated per speed) instead of assuming the lane centreline; longitudinally the
     vehicle's own cruise-control response to its set-point (discrete actions), or its current acceleration for
     1 s (continuous);
-  * the others constant-velocity (``target_model: cv``, default), constant-acceleration (``ca``) or on every way
-    the map lets them continue (``map``: CV along each lane continuation plus the plain CV hypothesis);
+  * the others on every way the road network lets them continue, each hypothesis with its probability, at
+    constant speed on the path highway-env's controller drives (``target_model: conflict``, the default since
+    issue 17: :class:`av_gym.shields.conflicts.ConflictModel`), or constant-velocity (``cv``, the default
+    before), constant-acceleration (``ca``), CV along each lane continuation plus the plain CV hypothesis
+    (``map``);
   * footprints as oriented boxes, the ego's grown by ``margin`` m, overlap by the separating-axis test, over a
     **geometry horizon**: the time to clear the turn, clipped to [``horizon_min``, ``horizon_max``];
   * a **stop-line-aware trigger**: while a conflict is predicted, brake once the distance from the front bumper
