@@ -114,9 +114,10 @@ class ConflictModel:
     and, where an indicator reading is available, weighted by the reading's likelihood under the indicator
     channel (:func:`signal_likelihood`); hypotheses below ``min_p`` are dropped. Along each path the vehicle
     keeps its along-path acceleration for ``accel_time`` s (a braking car stops, it does not reverse), then its
-    speed (``accel_time`` 0, the default: constant speed; see :class:`~av_gym.shields.aeb.ImprovedParams`), on
-    the path highway-env's route-following controller actually drives (:meth:`driven`). An object off the map (farther than ``on_lane`` m from its lane, or heading more than 30° off it) or
-    standing still gets the constant-velocity hypothesis instead.
+    speed (``accel_time`` 0, the default: constant speed; measured, docs/aeb.md: 1.5 s parked the ego in the box
+    more often), on the path highway-env's route-following controller actually drives (:meth:`driven`). An
+    object off the map (farther than ``on_lane`` m from its lane, or heading more than 30° off it) or standing
+    still gets the constant-velocity hypothesis instead.
 
     Compared with constant velocity (the improved shield's old default) it sees the car that turns across or into
     the ego's path; compared with the ``map`` model it drops the straight-line hypothesis of a car that follows a
