@@ -36,7 +36,7 @@ def evaluate(cfg: DictConfig) -> list[dict]:
     from omegaconf import OmegaConf
 
     from av_gym.make import make_env
-    from eval.agents import resolve_agent
+    from eval.agents import _is_path, resolve_agent
     from eval.report import write_results
     from eval.runner import EpisodeJob, run_episodes, run_episodes_parallel
 
@@ -51,6 +51,9 @@ def evaluate(cfg: DictConfig) -> list[dict]:
     rows = []
     seeds = range(int(cfg.seed), int(cfg.seed) + int(cfg.episodes))
     env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
+    ran = {p.label: p.spec for p in plans if _is_path(p.spec)}  # trained agents: the checkpoint they resolved to
+    for label, path in ran.items():
+        print(f"[eval] {label}: {path}")
     for plan in plans:  # every spec is checked before any episode runs
         env = make_env(env_cfg, plan.sensors, plan.shield)
         _, policy = resolve_agent(plan.spec, env, env_name, cfg.paths.checkpoints)
@@ -77,7 +80,8 @@ def evaluate(cfg: DictConfig) -> list[dict]:
             raise
         # each agent's rows as soon as it is done: an evaluation interrupted or failing later keeps what it measured
         write_results(rows, cfg.out_dir, env_name, title)
-    table = write_results(rows, cfg.out_dir, env_name, title, sensors={p.label: p.sensors for p in plans})
+    table = write_results(rows, cfg.out_dir, env_name, title, sensors={p.label: p.sensors for p in plans},
+                          checkpoints=ran)
     print(f"\n{title}\n\n{table}\n")
     print(f"[eval] per-episode rows: {cfg.out_dir}/results.csv   summary: {cfg.out_dir}/results.md")
     if env_name == "lane_keeping" and (cfg.get("plots") or cfg.get("videos")):

@@ -47,10 +47,18 @@ def sensors_section(sensors: Mapping[str, dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def checkpoints_section(checkpoints: Mapping[str, str]) -> str:
+    """Markdown: the checkpoint each trained agent ran (a name like ``ppo_turn`` resolves to the newest local run
+    of that config, so the table alone does not say which policy it measured)."""
+    return "\n".join(["## Checkpoint each trained agent ran", ""]
+                     + [f"- `{label}`: `{path}`" for label, path in checkpoints.items()]) + "\n"
+
+
 def write_results(rows: list[dict], out_dir: str | Path, scenario: str, title: str,
-                  sensors: Mapping[str, dict] | None = None) -> str:
+                  sensors: Mapping[str, dict] | None = None, checkpoints: Mapping[str, str] | None = None) -> str:
     """Write ``results.csv`` (every episode, every metric) and ``results.md`` (with, given ``sensors`` = agent
-    label → the sensors config it ran with, a section stating them); returns the Markdown table."""
+    label → the sensors config it ran with and ``checkpoints`` = label → the checkpoint a trained agent loaded,
+    sections stating them); returns the Markdown table."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     columns = list(dict.fromkeys(k for r in rows for k in r))
@@ -61,5 +69,6 @@ def write_results(rows: list[dict], out_dir: str | Path, scenario: str, title: s
     table = summary_table(rows, scenario)
     (out / "results.md").write_text(f"# {title}\n\nMean with 95% confidence interval (Wilson for rates, Student-t "
                                     f"otherwise) over episodes.\n\n{table}\n"
+                                    + (f"\n{checkpoints_section(checkpoints)}" if checkpoints else "")
                                     + (f"\n{sensors_section(sensors)}" if sensors else ""))
     return table

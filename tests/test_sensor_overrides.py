@@ -90,3 +90,6 @@ def test_results_md_states_the_sensors_each_agent_ran_with(tmp_path):
     assert f"- `{PILOTNET}`: cameras with cameras.night=True" in text
     full = yaml.safe_load(text.split("```yaml\n")[1].split("```")[0])
     assert full["cameras"]["night"] is True
+    # which policy the row measured: the checkpoint is named beside the sensors
+    assert "## Checkpoint each trained agent ran" in text
+    assert str(PILOTNET) in text.split("## Checkpoint each trained agent ran")[1].split("##")[0]
