@@ -120,15 +120,24 @@ def run_episodes_batched(env_cfg: dict, plan, policy, seeds: Iterable[int], n_en
     """:func:`eval.runner.run_episodes` on the batched engine: one row per seed, ``{"agent", "episode", "seed",
     **episode_metrics}``, in the order of ``seeds`` (each appended to ``out``, if given, once every earlier seed's
     row is in)."""
-    from av_gym.envs.batched_vec import BatchedLeftTurnVecEnv
     from eval.runner import _single_threaded_torch
 
     check_batched_plan(plan, env_cfg)
     _single_threaded_torch()
+    sensors = NO_OBS_SENSORS if plan_kind(plan) == "always_proceed" else plan.sensors
+    return play_batched(env_cfg, sensors, plan.shield, policy, seeds, n_envs, label, progress, out)
+
+
+def play_batched(env_cfg: dict, sensors: dict, shield: dict, policy, seeds: Iterable[int], n_envs: int, label: str,
+                 progress: bool = True, out: list | None = None) -> list[dict]:
+    """The episodes ``seeds`` of ``policy`` on the batched engine (``n_envs`` at a time), rows in seed order; the
+    caller has checked that the engine can run this env, sensors, shield and policy (:func:`check_batched_plan`,
+    or ``train/ppo.py``'s own check for the stack it trains on)."""
+    from av_gym.envs.batched_vec import BatchedLeftTurnVecEnv
+
     total = len(seeds) if hasattr(seeds, "__len__") else None
     B = max(1, min(int(n_envs), total if total is not None else int(n_envs)))
-    sensors = NO_OBS_SENSORS if plan_kind(plan) == "always_proceed" else plan.sensors
-    venv = BatchedLeftTurnVecEnv(env_cfg, sensors, plan.shield, B, action_repeat=1, actions="env", pool=0)
+    venv = BatchedLeftTurnVecEnv(env_cfg, sensors, shield, B, action_repeat=1, actions="env", pool=0)
     decide = _Decider(policy, B, continuous=venv.engine.continuous)
     order = iter(seeds)
     wanted: list[int] = []  # seeds handed to the engine, in order

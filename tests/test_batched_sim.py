@@ -375,3 +375,32 @@ def test_eval_batched_refuses_what_the_batch_cannot_run_in_one_line(tmp_path, ag
     lines = [line for line in res.stderr.splitlines() if line.strip()]
     assert res.returncode == 2 and len(lines) == 1 and needle in lines[0], res.stderr[-2000:]
     assert not any(tmp_path.iterdir())
+
+
+def test_training_on_the_batch_validates_on_the_batch_and_its_last_row_is_model_zip(tmp_path):
+    """``agent.vec_env=batched`` runs its periodic validation (``train.eval_n`` episodes) on the batched engine too,
+    at rollout starts, so ``eval.csv`` has a row at every ``train.eval_every`` decisions and the last one describes
+    the ``model.zip`` written at the end (before issue 15's round 3 the last row was taken before the final PPO
+    update). Checked against ``python -m eval vec_env=batched`` of that ``model.zip`` on the same seeds (the same
+    engine and batch: a policy this barely trained sits near its GO/YIELD tie, where the engines' 1e-15 differences
+    can flip a decision; batched against per-env rows: ``test_eval_on_the_batched_engine_gives_the_per_env_rows``)."""
+    import csv
+
+    from tests.conftest import run
+
+    res = run("train", "agent.vec_env=batched", "agent.n_envs=8", "agent.n_steps=8", "agent.total_timesteps=128",
+              "agent.batch_size=64", "agent.n_epochs=1", "agent.init_episodes=2", "agent.init_epochs=1",
+              "train.eval_every=64", "train.eval_n=6", "train.eval_episodes=0", "train.video_every=0",
+              "train.progress_bar=false", "run_name=b", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    with open(tmp_path / "runs" / "b" / "eval.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["steps"]) for r in rows] == [0, 64, 128]
+    res = run("eval", "env=left_turn", "agents=[checkpoints/b/model.zip]", "episodes=6", "seed=100000",
+              "vec_env=batched", "n_envs=8", "out_dir=ev", "progress_bar=false", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    with open(tmp_path / "ev" / "results.csv") as f:
+        evaluated = list(csv.DictReader(f))
+    for key in ("collision", "success", "mean_speed_mps", "stopped"):
+        mean = np.mean([float(r[key]) for r in evaluated])
+        assert abs(mean - float(rows[-1][key])) < 1e-6, f"{key}: eval.csv {rows[-1][key]} vs python -m eval {mean}"

@@ -205,7 +205,7 @@ def add_gif(writer, tag: str, gif: bytes, shape: tuple[int, int], step: int) -> 
 
 
 class PeriodicEval(BaseCallback):
-    """SB3 ``EvalCallback`` for our metrics: at rollout ends, at least ``every`` env steps apart, and at the end of
+    """SB3 ``EvalCallback`` for our metrics: at rollout starts, at least ``every`` env steps apart, and at the end of
     training, runs the deterministic policy on the fixed ``seeds`` (disjoint from training) and
 
     - logs ``eval/<metric>`` (collision, success, interventions, ... from ground truth) and ``eval/score``;
@@ -215,12 +215,19 @@ class PeriodicEval(BaseCallback):
       and time to reach 90 % success";
     - every ``video_every`` env steps renders the first seed's episode into ``videos/step_<n>.gif`` and TensorBoard.
 
-    ``make_env(render_mode)`` builds the evaluation stack (the training one: same sensors and shield)."""
+    ``make_env(render_mode)`` builds the evaluation stack (the training one: same sensors and shield). ``play``, if
+    given, plays the episodes instead (``play(policy, seeds) -> rows``: the batched engine, issue 15/16, where a
+    few hundred validation episodes cost seconds); videos still come from ``make_env``.
+
+    Evaluating at a rollout's *start* (not its end, as before) means each row describes the model after every update
+    of the steps it counts, and the last row, at the end of training, is ``model.zip`` itself."""
 
     def __init__(self, make_env: Callable[[str | None], gym.Env], scenario: str, seeds: Sequence[int], every: int,
-                 ckpt_dir: Path, run_dir: Path, video_every: int = 0, wall_offset: float = 0.0) -> None:
+                 ckpt_dir: Path, run_dir: Path, video_every: int = 0, wall_offset: float = 0.0,
+                 play: Callable[[object, list[int]], list[dict]] | None = None) -> None:
         super().__init__()
         self.make_env, self.scenario, self.seeds = make_env, scenario, [int(s) for s in seeds]
+        self.play = play
         self.every, self.video_every = int(every), int(video_every)
         self.ckpt_dir, self.run_dir = Path(ckpt_dir), Path(run_dir)
         self.t0 = time.time() - wall_offset
@@ -237,7 +244,7 @@ class PeriodicEval(BaseCallback):
     def _on_step(self) -> bool:
         return True
 
-    def _on_rollout_end(self) -> None:
+    def _on_rollout_start(self) -> None:
         if self.every > 0 and self.num_timesteps - self._last_eval >= self.every:
             self.evaluate()
 
@@ -252,9 +259,12 @@ class PeriodicEval(BaseCallback):
         from train.checkpoint import save_model_atomic, write_text_atomic
 
         self._last_eval = step = self.num_timesteps
-        if self._env is None:
-            self._env = self.make_env(None)
-        rows = run_episodes(self._env, SB3Policy(self.model), self.seeds, "eval", progress=False)
+        if self.play is not None:
+            rows = self.play(SB3Policy(self.model), self.seeds)
+        else:
+            if self._env is None:
+                self._env = self.make_env(None)
+            rows = run_episodes(self._env, SB3Policy(self.model), self.seeds, "eval", progress=False)
         means = {k: v for k, v in aggregate(rows, group_key="agent")[0].items()
                  if k in LOGGED[self.scenario] or k in ("lap_completed", "cte_mean_abs_m")}
         means["score"] = score(self.scenario, means)

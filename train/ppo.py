@@ -198,7 +198,7 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
-    from agents.ppo import PPOParams, make_ppo
+    from agents.ppo import PPOParams, SB3Policy, make_ppo
     from av_gym.errors import ConfigError
     from train.callbacks import (AtomicCheckpointCallback, EpisodeMetricsCallback, FiniteGuard, HParamsCallback,
                                  PeriodicEval, nonfinite_parameter, raise_if_diverged)
@@ -282,10 +282,18 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
                                           "seed": int(cfg.seed)}, cfg.env.name))
     if int(cfg.train.eval_n) > 0:
         eval_seeds = range(int(cfg.train.eval_seed), int(cfg.train.eval_seed) + int(cfg.train.eval_n))
+        play = None
+        if agent.vec_env == "batched":  # the stack it trains on, checked by validate(): validation on the batch too
+            from eval.batched import play_batched
+
+            def play(policy, seeds):  # the batch steps at 10 Hz: the policy holds its choice as ActionRepeat does
+                held = SB3Policy(policy.model, repeat, actions)
+                return play_batched(*plain, held, seeds, int(agent.n_envs), "eval", progress=False)
         callbacks.append(PeriodicEval(lambda mode: _env_factory(*plain, 0.0, repeat, actions, render_mode=mode),
                                       cfg.env.name,
                                       eval_seeds,
-                                      int(cfg.train.eval_every), ckpt_dir, run_dir, int(cfg.train.video_every)))
+                                      int(cfg.train.eval_every), ckpt_dir, run_dir, int(cfg.train.video_every),
+                                      play=play))
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM behaves like Ctrl-C
     try:
         remaining = int(agent.total_timesteps) - int(model.num_timesteps)
