@@ -23,11 +23,13 @@ class TrainOptions(Params):
     eval_n_envs: int = param(2, "processes", ge=1, doc="worker processes for the brief evaluation (1 = in this "
                                                        "process; the same rows)")
     eval_seed: int = param(100000, ge=0, doc="first seed of the evaluations: disjoint from training seeds")
-    eval_every: int = param(10000, "env steps", ge=0, doc="between evaluations on fixed seeds during training (0 = "
-                                                           "none)")
-    eval_n: int = param(30, "episodes", ge=0, doc="per evaluation during training (seeds eval_seed..; best.zip kept)")
-    video_every: int = param(50000, "env steps", ge=0, doc="between rendered evaluation episodes (GIF + TensorBoard; "
-                                                           "0 = none)")
+    eval_every: int = param(10000, "policy steps", ge=0, doc="between evaluations on fixed seeds during training, "
+                                                              "counted as agent.total_timesteps is (x action_repeat "
+                                                              "env steps; 0 = none)")
+    eval_n: int = param(30, "episodes", ge=0, doc="per evaluation during training (seeds eval_seed..; best.zip kept; "
+                                                  "on the batched engine with agent.vec_env=batched)")
+    video_every: int = param(50000, "policy steps", ge=0, doc="between rendered evaluation episodes (GIF + "
+                                                               "TensorBoard; 0 = none)")
     baseline: str = param("auto", doc="agent compared against in the brief evaluation (auto: always_proceed and "
                                       "gap_acceptance on the left turn, pid_paper on lane keeping)")
     progress_bar: bool = param(True)
