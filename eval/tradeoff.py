@@ -7,7 +7,8 @@ Each ``results.csv`` is what ``python -m eval`` writes (one row per episode); ev
 point with 95 % Wilson intervals on both axes. ``--point`` adds a point measured elsewhere (label=collision,success).
 ``--rule-sweep`` first evaluates the gap-acceptance rule (``conf/agent/gap_acceptance.yaml``'s miss distance) at each
 ``t_gap`` (s) on ``--episodes`` seeds from ``--seed`` and adds the rule's curve; its rows go beside the PNG
-(``<out>.rule_sweep.csv``). Labels with the same name before ``#`` (``ppo_turn#s1``) are drawn in one colour, their
+(``<out>.rule_sweep.csv``). The sweep plays on the batched engine (``--n-envs`` episodes at a time; the per-env rows
+within the engine's equivalence, docs/sim_speed.md), so 500 episodes per threshold cost about a minute. Labels with the same name before ``#`` (``ppo_turn#s1``) are drawn in one colour, their
 mean as a larger marker.
 """
 
@@ -32,20 +33,19 @@ def read_rows(paths: list[str]) -> list[dict]:
     return rows
 
 
-def rule_sweep(t_gaps: list[float], episodes: int, seed: int, n_envs: int = 1) -> list[dict]:
-    """The gap-acceptance rule at each ``t_gap`` on the left turn's traffic, the same seeds for every threshold."""
+def rule_sweep(t_gaps: list[float], episodes: int, seed: int, n_envs: int = 250) -> list[dict]:
+    """The gap-acceptance rule at each ``t_gap`` on the left turn's traffic, the same seeds for every threshold,
+    ``n_envs`` episodes at a time on the batched engine."""
     from agents.go_yield import GapAcceptance
-    from av_gym.make import make_env
     from eval.agents import compose_group, load_agent_config
-    from eval.runner import run_episodes
+    from eval.batched import play_batched
 
     miss = float(load_agent_config("gap_acceptance")["miss"])
-    env = make_env(compose_group("env", "left_turn"), compose_group("sensors", "turn_truth"))
+    stack = [compose_group("env", "left_turn"), compose_group("sensors", "turn_truth"), compose_group("shield", "none")]
     rows = []
     for t_gap in t_gaps:
-        rows += run_episodes(env, GapAcceptance(t_gap=t_gap, miss=miss), range(seed, seed + episodes),
+        rows += play_batched(*stack, GapAcceptance(t_gap=t_gap, miss=miss), range(seed, seed + episodes), n_envs,
                              f"gap_acceptance t_gap={t_gap:g}s")
-    env.close()
     return rows
 
 
@@ -108,12 +108,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--rule-sweep", default="", help="t_gap values (s), comma-separated")
     parser.add_argument("--episodes", type=int, default=300)
     parser.add_argument("--seed", type=int, default=1000)
+    parser.add_argument("--n-envs", type=int, default=250, help="episodes stepped together in the rule sweep")
     parser.add_argument("--title", default="Left turn in traffic: safety vs progress")
     args = parser.parse_args(argv)
     rows = read_rows(args.results)
     rule: list[str] = []
     if args.rule_sweep:
-        swept = rule_sweep([float(v) for v in args.rule_sweep.split(",")], args.episodes, args.seed)
+        swept = rule_sweep([float(v) for v in args.rule_sweep.split(",")], args.episodes, args.seed,
+                           args.n_envs)
         sweep_csv = args.out.with_suffix(".rule_sweep.csv")
         sweep_csv.parent.mkdir(parents=True, exist_ok=True)
         with open(sweep_csv, "w", newline="") as f:
