@@ -40,26 +40,30 @@ def mean_ci(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return mean, stats.t.ppf(0.975, n - 1) * values.std(axis=0, ddof=1) / np.sqrt(n)
 
 
-def milestones(frames: list[pd.DataFrame], targets: list[tuple[float, float]], repeat: int) -> list[str]:
+def milestones(frames: list[pd.DataFrame], targets: list[tuple[float, float]], repeat: int,
+               names: list[str] | None = None) -> list[str]:
+    """Per run (named by ``names``, default "seed run k"): the first evaluation reaching each target, and the last."""
+    names = names or [f"seed run {k}" for k in range(len(frames))]
     lines = []
-    for k, f in enumerate(frames):
+    for name, f in zip(names, frames):
         for s, c in targets:
             hit = f[(f.success >= s) & (f.collision <= c)]
             where = (f"{int(hit.steps.iloc[0]) * repeat:,} env steps, {hit.wall_clock_s.iloc[0]:.0f} s"
                      if len(hit) else "not reached")
-            lines.append(f"seed run {k}: success >= {s:.2f} at collision <= {c:.2f}: {where}")
+            lines.append(f"{name}: success >= {s:.2f} at collision <= {c:.2f}: {where}")
         last = f.iloc[-1]
-        lines.append(f"seed run {k}: last evaluation at {int(last.steps) * repeat:,} env steps: collision "
+        lines.append(f"{name}: last evaluation at {int(last.steps) * repeat:,} env steps: collision "
                      f"{last.collision:.2f}, success {last.success:.2f}")
     return lines
 
 
-def plot(frames: list[pd.DataFrame], out: Path, label: str, repeat: int) -> None:
+def plot(frames: list[pd.DataFrame], out: Path, label: str, repeat: int, names: list[str] | None = None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    names = names or [f"seed run {k}" for k in range(len(frames))]
     n = min(len(f) for f in frames)  # evaluations every seed reached (same schedule)
     steps = frames[0].steps.to_numpy()[:n] * repeat
     wall = np.mean([f.wall_clock_s.to_numpy()[:n] for f in frames], axis=0)
@@ -69,9 +73,9 @@ def plot(frames: list[pd.DataFrame], out: Path, label: str, repeat: int) -> None
         mean, ci = mean_ci(values)
         for col, x in enumerate((steps, wall)):
             ax = axes[row, col]
-            for k, f in enumerate(frames):
+            for name, f in zip(names, frames):
                 xs = f.steps.to_numpy() * repeat if col == 0 else f.wall_clock_s.to_numpy()
-                ax.plot(xs, f[metric], lw=0.8, alpha=0.5, label=f"seed run {k}")
+                ax.plot(xs, f[metric], lw=0.8, alpha=0.5, label=name)
             ax.plot(x, mean, lw=2.2, color="k", label=f"mean of {len(frames)}")
             ax.fill_between(x, np.clip(mean - ci, 0, 1), np.clip(mean + ci, 0, 1), color="k", alpha=0.15, label="95 % CI")
             ax.set_xlabel("env steps" if col == 0 else "wall-clock s (mean over seeds)")
@@ -96,8 +100,9 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     targets = [tuple(float(v) for v in m.split(",")) for m in args.milestone] or [(0.75, 0.05), (0.85, 0.03)]
     frames = load(args.runs)
-    plot(frames, args.out, args.label or Path(args.runs[0]).name, args.repeat)
-    print("\n".join(milestones(frames, targets, args.repeat)))
+    names = [Path(run).name for run in args.runs]
+    plot(frames, args.out, args.label or names[0], args.repeat, names)
+    print("\n".join(milestones(frames, targets, args.repeat, names)))
     print(f"[seed_curves] {args.out}")
 
 

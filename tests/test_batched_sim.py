@@ -404,3 +404,26 @@ def test_training_on_the_batch_validates_on_the_batch_and_its_last_row_is_model_
     for key in ("collision", "success", "mean_speed_mps", "stopped"):
         mean = np.mean([float(r[key]) for r in evaluated])
         assert abs(mean - float(rows[-1][key])) < 1e-6, f"{key}: eval.csv {rows[-1][key]} vs python -m eval {mean}"
+
+
+def test_cloning_on_the_batch_gives_the_per_env_demonstrations():
+    """``agent.vec_env=batched`` clones the gap-acceptance rule from episodes on the batched engine
+    (train/ppo.py pretrain_from_teacher): the same labelled decisions, discounted returns and teacher outcomes as
+    the per-env stack gives for the same seeds (the rule reads only the observation, which the engine reproduces)."""
+    from stable_baselines3 import PPO
+
+    from av_gym.envs.batched_vec import BatchedLeftTurnVecEnv
+    from train.ppo import _env_factory, make_teacher, pretrain_from_teacher
+
+    plain, seeds = _ppo_turn_config(), range(500000, 500006)
+    teacher = make_teacher("gap_acceptance", "go_yield", "left_turn", 5)
+    per_env = _env_factory(*plain, 0.0, 5, "go_yield", timeout_is_terminal=True)
+    batch = BatchedLeftTurnVecEnv(*plain, 4, action_repeat=5, actions="go_yield", timeout_is_terminal=True)
+    stats = []
+    for env in (per_env, batch):
+        model = PPO("MultiInputPolicy", batch, n_steps=8, batch_size=32, seed=0, device="cpu")
+        stats.append(pretrain_from_teacher(model, env, teacher, seeds, gamma=0.95, epochs=1, batch_size=64))
+    ref, got = stats
+    assert got["decisions"] == ref["decisions"] > 6 * 5  # each episode lasts seconds: several decisions each
+    for key in ("teacher_collision", "teacher_success", "accuracy"):
+        assert got[key] == pytest.approx(ref[key], abs=1e-6), key

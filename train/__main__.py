@@ -85,10 +85,19 @@ def train(cfg: DictConfig) -> dict:
         # A worker process costs a few seconds to start (imports, env, policy): worth it from ~10 episodes each.
         n_envs, progress = min(int(cfg.train.eval_n_envs), n // 10), bool(cfg.train.progress_bar)
         ran_with = {}  # label → the sensors it ran with, stated in results.md
+        batched = agent.get("vec_env") == "batched"  # trained on the batch: evaluated there too, all at once
         for spec in specs:
             plan = plan_agent(spec, env_name, sensors, shield, cfg.paths.checkpoints)
             label = agent.name if spec == str(ckpt_dir) else plan.label
             ran_with[label] = plan.sensors
+            if batched:
+                from eval.batched import run_episodes_batched
+
+                env = make_env(env_cfg, plan.sensors, plan.shield)
+                _, policy = resolve_agent(plan.spec, env, env_name, cfg.paths.checkpoints)
+                env.close()
+                rows += run_episodes_batched(env_cfg, plan, policy, seeds, min(n, 256), label, progress=progress)
+                continue
             if n_envs > 1:  # each episode depends on its seed only: the same rows as in-process, sooner
                 job = EpisodeJob(env_cfg, plan.sensors, plan.shield, plan.spec, env_name, str(cfg.paths.checkpoints),
                                  label)

@@ -141,8 +141,48 @@ def pretrain_from_teacher(model, env, teacher, seeds, gamma: float, epochs: int,
                     scores.append(1.0 - (dist.mean - y[idx]).abs().mean(1))
             return float(th.cat(scores).mean())
 
+    def drive_batch(seeds) -> list:
+        """The teacher's episodes of ``seeds`` on a batched VecEnv (issue 16), all rows stepped together: the same
+        (observation, label, return) triples as :func:`drive` gives per env, episode by episode in seed order."""
+        obs, B = env.play(iter(seeds)), env.num_envs
+        open_eps: list[list] = [[] for _ in range(B)]  # per row: [observation, label, reward] of its episode so far
+        finished: dict[int, tuple] = {}
+        while not env.idle.all():
+            rows = np.nonzero(~env.idle)[0]
+            labels = np.zeros(B, dtype=np.int64)
+            for r in rows:
+                o = {k: v[r].copy() for k, v in obs.items()}
+                labels[r] = teacher(None, o, None)
+                open_eps[r].append([o, labels[r]])
+            obs, rewards, done, infos = env.step(labels)
+            for r in rows:
+                open_eps[r][-1].append(float(rewards[r]))
+                if done[r]:
+                    finished[int(infos[r]["seed"])] = (open_eps[r], outcome(infos[r]))
+                    open_eps[r] = []
+        outcomes = []
+        for seed in seeds:
+            steps, result = finished[int(seed)]
+            g, ret = 0.0, []
+            for _, _, r in reversed(steps):
+                g = r + gamma * g
+                ret.append(g)
+            obs_list.extend(o for o, _, _ in steps)
+            actions.extend(int(a) for _, a, _ in steps)
+            returns.extend(ret[::-1])
+            outcomes.append(result)
+        return outcomes
+
     parts = np.array_split(np.asarray(list(seeds)), 1 + int(dagger_rounds))
-    teacher_outcomes = [drive(seed, student=False) for seed in parts[0]]
+    if hasattr(env, "play"):  # the batched engine: teacher-driven episodes only (no DAgger, no action noise)
+        from av_gym.errors import ConfigError
+
+        if dagger_rounds or action_noise:
+            raise ConfigError("agent.init_dagger_rounds and agent.init_action_noise need the per-env stack: "
+                              "agent.vec_env=subproc")
+        teacher_outcomes = drive_batch(parts[0])
+    else:
+        teacher_outcomes = [drive(seed, student=False) for seed in parts[0]]
     accuracy = fit()
     student_outcomes = [(np.nan, np.nan)]
     for k, part in enumerate(parts[1:], start=1):
@@ -170,7 +210,11 @@ def validate(cfg: DictConfig) -> list[str]:
     try:
         check_batchable(*[OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)])
     except ConfigError as exc:
-        return [str(exc)]
+        # the same rollout on the per-env stack: one env per core, as many decisions per update
+        per_env = max(2, int(cfg.agent.n_steps) * int(cfg.agent.n_envs) // 2)
+        msg = str(exc).replace("use agent.vec_env=subproc", f"use agent.vec_env=subproc agent.n_envs=2 "
+                                                             f"agent.n_steps={per_env}")
+        return [msg]
     return []
 
 
@@ -203,6 +247,7 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     from train.callbacks import (AtomicCheckpointCallback, EpisodeMetricsCallback, FiniteGuard, HParamsCallback,
                                  PeriodicEval, nonfinite_parameter, raise_if_diverged)
     from agents.checkpoint import check_sb3_zip
+    from eval.agents import load_agent_config
     from train.checkpoint import load_rng_state, save_model_atomic
 
     agent, t0 = cfg.agent, time.time()
@@ -248,7 +293,12 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
                          tensorboard_log=None, device=agent.device)
         if params.init:
             teacher = make_teacher(str(agent.init), actions, str(cfg.env.name), repeat)
-            demo_env = _env_factory(*plain, cost, repeat, actions)
+            if agent.vec_env == "batched" and load_agent_config(str(agent.init)).get("kind") == "gap_acceptance":
+                # a rule of the observation alone: its episodes on the batch too (lookahead simulates its env's copy)
+                demo_env = BatchedLeftTurnVecEnv(*plain, int(agent.n_envs), action_repeat=repeat, actions=actions,
+                                                 timeout_is_terminal=params.timeout_is_terminal)
+            else:
+                demo_env = _env_factory(*plain, cost, repeat, actions)
             # Demonstration seeds 500000+: disjoint from evaluation (1000+, 100000+) and from PPO's own episodes.
             t_bc = time.time()
             try:
