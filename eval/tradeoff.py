@@ -7,7 +7,8 @@ Each ``results.csv`` is what ``python -m eval`` writes (one row per episode); ev
 point with 95 % Wilson intervals on both axes. ``--point`` adds a point measured elsewhere (label=collision,success).
 ``--rule-sweep`` first evaluates the gap-acceptance rule (``conf/agent/gap_acceptance.yaml``'s miss distance) at each
 ``t_gap`` (s) on ``--episodes`` seeds from ``--seed`` and adds the rule's curve; its rows go beside the PNG
-(``<out>.rule_sweep.csv``). The sweep plays on the batched engine (``--n-envs`` episodes at a time; the per-env rows
+(``<out>.rule_sweep.csv``; given back as a results file, those rows draw the curve without re-running it). ``--relabel
+agent=label`` renames an agent of the rows. The sweep plays on the batched engine (``--n-envs`` episodes at a time; the per-env rows
 within the engine's equivalence, docs/sim_speed.md), so 500 episodes per threshold cost about a minute. Labels with the same name before ``#`` (``ppo_turn#s1``) are drawn in one colour, their
 mean as a larger marker.
 """
@@ -109,10 +110,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--episodes", type=int, default=300)
     parser.add_argument("--seed", type=int, default=1000)
     parser.add_argument("--n-envs", type=int, default=250, help="episodes stepped together in the rule sweep")
+    parser.add_argument("--relabel", action="append", default=[],
+                        help='"agent in results.csv=label" (repeatable): e.g. seeds of one run as "ppo_turn#s1"')
     parser.add_argument("--title", default="Left turn in traffic: safety vs progress")
     args = parser.parse_args(argv)
     rows = read_rows(args.results)
-    rule: list[str] = []
+    relabel = dict(r.split("=", 1) for r in args.relabel)
+    for r in rows:
+        r["agent"] = relabel.get(r["agent"], r["agent"])
+    # a sweep's rows read back (<out>.rule_sweep.csv of an earlier run) draw the rule's curve too
+    rule = sorted(dict.fromkeys(r["agent"] for r in rows if r["agent"].startswith("gap_acceptance t_gap=")),
+                  key=lambda k: float(k.split("=")[1].rstrip("s")))
     if args.rule_sweep:
         swept = rule_sweep([float(v) for v in args.rule_sweep.split(",")], args.episodes, args.seed,
                            args.n_envs)
@@ -122,7 +130,8 @@ def main(argv: list[str] | None = None) -> None:
             writer = csv.DictWriter(f, fieldnames=list(swept[0]))
             writer.writeheader()
             writer.writerows(swept)
-        rule = list(dict.fromkeys(r["agent"] for r in swept))
+        rule = list(dict.fromkeys(r["agent"] for r in swept))  # the new sweep replaces any rule rows read back
+        rows = [r for r in rows if not r["agent"].startswith("gap_acceptance t_gap=")]
         rows += [{k: str(v) for k, v in r.items()} for r in swept]
     pts = points(rows)
     for extra in args.point:

@@ -91,17 +91,59 @@ def run(module: str, *overrides: str, cwd: Path) -> subprocess.CompletedProcess:
                           timeout=300)
 
 
+def cli(module: str, *overrides: str, cwd: Path) -> subprocess.CompletedProcess:
+    """:func:`run`, for a command line that its command-line check may refuse: that check (what
+    ``python -m <module>`` runs before Hydra, ``<module>/__main__.py: _check_command_line`` under
+    :func:`av_gym.errors.run_cli`) runs in this process first, with the same argv and working directory, and a
+    refusal comes back as the command's would (exit status 2, its stderr). Why: a Python process that imports
+    torch, SB3 and highway-env costs ~4 s, most of a bad-input test; what passes the check runs for real."""
+    import contextlib
+    import importlib
+    import io
+    import os
+
+    from av_gym.errors import run_cli
+
+    entry = importlib.import_module(f"{module}.__main__")
+    err, argv, here = io.StringIO(), sys.argv, os.getcwd()
+    sys.argv = [f"{module}/__main__.py", *overrides]
+    os.chdir(cwd)
+    try:
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            run_cli(entry._check_command_line)
+    except SystemExit as exc:
+        return subprocess.CompletedProcess([module, *overrides], exc.code, "", err.getvalue())
+    finally:
+        sys.argv = argv
+        os.chdir(here)
+    return run(module, *overrides, cwd=cwd)
+
+
 @pytest.fixture(scope="session")
-def trained(tmp_path_factory):
-    """One tiny PPO run of the default agent on the left turn per test session (per xdist worker), shared by every
-    test that needs a trained checkpoint: ``(folder it ran in, its CompletedProcess)``. Tests leave its checkpoint
-    and run folders as they are (copies for anything they change)."""
-    cwd = tmp_path_factory.mktemp("run")
-    # the default agent (ppo_turn) clones the gap-acceptance rule first: a few episodes and epochs here
-    res = run("train", *FAST_PPO, "agent.init_episodes=3", "agent.init_epochs=1", "train.eval_every=0",
-              "run_name=tiny", cwd=cwd)
-    assert res.returncode == 0, res.stderr[-3000:]
-    return cwd, res
+def trained(tmp_path_factory, worker_id):
+    """One tiny PPO run of the default agent on the left turn per test session, shared by every test (and every
+    xdist worker: the first to get here trains, under a file lock, the others read its output) that needs a trained
+    checkpoint: ``(folder it ran in, its CompletedProcess)``. Tests leave its checkpoint and run folders as they
+    are (copies for anything they change)."""
+    import json
+
+    from filelock import FileLock
+
+    root = tmp_path_factory.getbasetemp()
+    root = root if worker_id == "master" else root.parent  # the session's folder, above each worker's own
+    cwd, saved = root / "trained_run", root / "trained_run.json"
+    with FileLock(str(root / "trained_run.lock")):
+        if not saved.is_file():
+            cwd.mkdir(exist_ok=True)
+            # the default agent (ppo_turn) trains on the batched engine: 8 envs x 8 decisions per rollout (one env
+            # would step the batch 8 times as often), and clones the gap-acceptance rule first (a few episodes)
+            fast = [o for o in FAST_PPO if not o.startswith(("agent.n_envs=", "agent.n_steps="))]
+            res = run("train", *fast, "agent.n_envs=8", "agent.n_steps=8", "agent.init_episodes=3",
+                      "agent.init_epochs=1", "train.eval_every=0", "run_name=tiny", cwd=cwd)
+            assert res.returncode == 0, res.stderr[-3000:]
+            saved.write_text(json.dumps({"args": res.args, "stdout": res.stdout, "stderr": res.stderr}))
+        out = json.loads(saved.read_text())
+    return cwd, subprocess.CompletedProcess(out["args"], 0, out["stdout"], out["stderr"])
 
 
 def zeros_action(_k, _obs):

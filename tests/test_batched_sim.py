@@ -369,9 +369,9 @@ def conf_env_ccftap() -> dict:
     ("[lookahead]", "agent 'lookahead' (kind lookahead) cannot run with vec_env=batched"),
 ])
 def test_eval_batched_refuses_what_the_batch_cannot_run_in_one_line(tmp_path, agents, needle):
-    from tests.conftest import run
+    from tests.conftest import cli
 
-    res = run("eval", "vec_env=batched", f"agents={agents}", "progress_bar=false", cwd=tmp_path)
+    res = cli("eval", "vec_env=batched", f"agents={agents}", "progress_bar=false", cwd=tmp_path)
     lines = [line for line in res.stderr.splitlines() if line.strip()]
     assert res.returncode == 2 and len(lines) == 1 and needle in lines[0], res.stderr[-2000:]
     assert not any(tmp_path.iterdir())

@@ -7,7 +7,7 @@ import csv
 import numpy as np
 import pytest
 import yaml
-from conftest import FAST_PPO, run  # `trained` (one tiny PPO run per session) is a conftest fixture too
+from conftest import FAST_PPO, cli, run  # `trained` (one tiny PPO run per session) is a conftest fixture too
 
 
 def test_train_writes_checkpoint_config_tensorboard_and_prints_where(trained):
@@ -52,6 +52,7 @@ def test_train_ppo_on_lane_keeping_override(tmp_path):
     assert "pid_paper" in res.stdout  # compared with the lane-keeping baseline
 
 
+@pytest.mark.slow  # every sensor, cameras and LiDAR included, renders at every step
 def test_train_ppo_on_the_full_sensor_preset(tmp_path):
     """Nested camera observations are flattened for SB3; the checkpoint then evaluates on the same preset."""
     # every sensor renders at every step: one rollout (64 steps) and one evaluation episode say what is tested
@@ -110,8 +111,10 @@ def test_train_the_camera_lane_keeper_with_a_narrow_cnn(tmp_path):
     ("eval", ["shield=aeb", "+shield.detector.sigma_vel=-1"], "shield.detector.sigma_vel must be a number >= 0"),
 ])
 def test_bad_input_gives_one_line_and_exit_code_2(tmp_path, module, overrides, needle):
-    res = run(module, *overrides, "progress_bar=false" if module == "eval" else "train.progress_bar=false",
-              cwd=tmp_path)
+    # the command-line check in this process (conftest.cli); two cases as a user runs them, in a new process
+    runner = run if overrides in (["env.mode=rush_hour"], ["n_envs=0"]) else cli
+    res = runner(module, *overrides, "progress_bar=false" if module == "eval" else "train.progress_bar=false",
+                 cwd=tmp_path)
     assert res.returncode == 2, res.stderr[-2000:]
     lines = [line for line in res.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and needle in lines[0] and "Traceback" not in res.stderr, res.stderr[-2000:]

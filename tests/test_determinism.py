@@ -8,7 +8,7 @@ from eval.agents import plan_agent, resolve_agent
 from eval.runner import EpisodeJob, run_episodes, run_episodes_parallel
 from conftest import conf
 
-SEEDS = range(1000, 1004)
+SEEDS = range(1000, 1003)
 # Sensor noise in the agent's observation and a perceived-mode shield (its own noisy detector and tracker), so
 # that every random stream of an episode is exercised.
 SENSORS = {"name": "gnss_imu", "gnss": conf("sensor", "gnss"), "imu": conf("sensor", "imu")}
@@ -42,7 +42,7 @@ def test_eval_rows_are_bit_identical_across_runs_and_n_envs():
     again = in_process(p)
     job = EpisodeJob(conf("env", "left_turn"), p.sensors, p.shield, p.spec, "left_turn", "checkpoints", p.label)
     two = run_episodes_parallel(job, SEEDS, n_envs=2, progress=False)
-    assert [r["seed"] for r in two] == list(SEEDS) and [r["episode"] for r in two] == [0, 1, 2, 3]
+    assert [r["seed"] for r in two] == list(SEEDS) and [r["episode"] for r in two] == [0, 1, 2]
     assert same_bits(one, again)
     assert same_bits(one, two), [(r["seed"], r.get("collision"), r.get("min_ttc_s")) for r in one + two]
     # the episodes differ from one another (the check would be empty otherwise)

@@ -248,7 +248,7 @@ def test_a_deep_copy_of_the_stack_plays_the_real_future_and_leaves_the_original_
 
     shield_cfg = {**compose_group("shield", shield), **({"mode": mode} if mode else {})}
     make = lambda: make_env(conf("env", "left_turn"), compose_group("sensors", sensors), shield_cfg)  # noqa: E731
-    for seed in (1000, 1005):
+    for seed in (1000, 1005) if shield == "none" else (1000,):  # with a shield: one seed (seconds each)
         env = make()
         obs, _ = env.reset(seed=seed)
         start, obs = _go_yield_future(env, obs, go_from=10, steps=10)  # wait 1 s at the line, then copy

@@ -49,6 +49,7 @@ def test_slurm_launcher_config_extends_submitit_slurm():
     assert _hydra("train", ["hydra/launcher=submitit_slurm"]).launcher._target_.endswith("SlurmLauncher")
 
 
+@pytest.mark.slow  # submitit starts a job process per value, each importing the whole stack
 def test_submitit_local_multirun_then_aggregate(tmp_path):
     """Two rule-based jobs (one short episode each) through submitit's LocalExecutor, then the sweep table."""
     sweep = tmp_path / "multirun"
