@@ -78,6 +78,8 @@ def plot(pts: dict[str, tuple], rule: list[str], out: Path, title: str) -> None:
     for label in pts:
         groups.setdefault(label.split("#")[0], []).append(label)
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    if len(groups) > len(colours):  # the default cycle repeats after 10: two agents would share a colour
+        colours = [plt.get_cmap("tab20")(i) for i in range(20)]
     for k, (group, labels) in enumerate(groups.items()):
         colour = "0.4" if labels[0] in rule else colours[k % len(colours)]
         for label in labels:
