@@ -40,6 +40,7 @@ import numpy as np
 import yaml
 
 from av_gym.shields.conflicts import PARTNER_TYPES, partner_type
+from eval.runner import play_episode
 
 WINDOW = 8.0  # s, default counterfactual window (module docstring)
 
@@ -129,15 +130,9 @@ def labelled_episode(env, policy, seed: int, window: float = WINDOW) -> tuple[di
 
     shield.on_intervention = on_intervention
     try:
-        obs, _ = env.reset(seed=seed)
-        policy.reset()
-        done = False
-        while not done:
-            obs, _, terminated, truncated, info = env.step(policy.act(obs))
-            done = terminated or truncated
+        metrics = dict(play_episode(env, policy, seed))
     finally:
         shield.on_intervention = None
-    metrics = dict(info["episode_metrics"])
     u = env.unwrapped
     metrics["collision_partner"] = _classify(u, _collision_partner(u)) if u.vehicle.crashed else ""
     return metrics, rows

@@ -38,13 +38,14 @@ def run_episodes(env: gym.Env, policy: Policy, seeds: Iterable[int], label: str,
     rows = []
     for i, seed in enumerate(tqdm(seeds, total=total, desc=f"eval {label}", unit="ep", disable=not progress,
                                   leave=False)):
-        rows.append({"agent": label, "episode": i, "seed": int(seed), **_episode(env, policy, int(seed))})
+        rows.append({"agent": label, "episode": i, "seed": int(seed), **play_episode(env, policy, int(seed))})
         if out is not None:
             out.append(rows[-1])
     return rows
 
 
-def _episode(env: gym.Env, policy: Policy, seed: int) -> dict:
+def play_episode(env: gym.Env, policy: Policy, seed: int) -> dict:
+    """One seeded episode of ``policy`` on ``env``; its ``info["episode_metrics"]``."""
     obs, _ = env.reset(seed=seed)
     policy.reset()
     done = False
@@ -82,7 +83,7 @@ def _init_worker(job: EpisodeJob) -> None:
 
 
 def _run_one(seed: int) -> dict:
-    return _episode(_WORKER["env"], _WORKER["policy"], seed)
+    return play_episode(_WORKER["env"], _WORKER["policy"], seed)
 
 
 def run_episodes_parallel(job: EpisodeJob, seeds: Iterable[int], n_envs: int, progress: bool = True,
