@@ -77,6 +77,14 @@ def pretrain_from_teacher(model, env, teacher, seeds, gamma: float, epochs: int,
         m = info["episode_metrics"]
         return m.get("collision", 0.0), m["success"] if "success" in m else m["lap_completed"]
 
+    def discounted(rewards: list[float]) -> list[float]:
+        """Each step's discounted return to the episode's end (the critic's regression target)."""
+        g, ret = 0.0, []
+        for r in reversed(rewards):
+            g = r + gamma * g
+            ret.append(g)
+        return ret[::-1]
+
     def drive(seed: int, student: bool):
         obs, info = env.reset(seed=int(seed))
         rewards, done = [], False
@@ -91,11 +99,7 @@ def pretrain_from_teacher(model, env, teacher, seeds, gamma: float, epochs: int,
             obs, r, terminated, truncated, info = env.step(executed)
             rewards.append(r)
             done = terminated or truncated
-        g, ret = 0.0, []
-        for r in reversed(rewards):
-            g = r + gamma * g
-            ret.append(g)
-        returns.extend(ret[::-1])
+        returns.extend(discounted(rewards))
         return outcome(info)
 
     def batch(x, idx):  # obs_to_tensor transposes images to the policy's channel-first layout, as VecTransposeImage
@@ -163,13 +167,9 @@ def pretrain_from_teacher(model, env, teacher, seeds, gamma: float, epochs: int,
         outcomes = []
         for seed in seeds:
             steps, result = finished[int(seed)]
-            g, ret = 0.0, []
-            for _, _, r in reversed(steps):
-                g = r + gamma * g
-                ret.append(g)
             obs_list.extend(o for o, _, _ in steps)
             actions.extend(int(a) for _, a, _ in steps)
-            returns.extend(ret[::-1])
+            returns.extend(discounted([r for _, _, r in steps]))
             outcomes.append(result)
         return outcomes
 
