@@ -29,6 +29,11 @@ import numpy as np
 from highway_env.road.lane import CircularLane
 
 from av_gym.geometry import wrap_angle
+from av_gym.sim import kernels
+
+# The pairwise parts run as numba kernels (av_gym/sim/kernels.py: the same formulas, bit-identical results) when
+# named here; the numpy code below stays as their reference (tests/test_kernels.py runs the batch both ways).
+KERNELS = {"front", "collisions", "conflicts"}
 
 # highway-env constants (IntersectionEnv._make_vehicles sets the IDM class attributes to these)
 LENGTH, WIDTH = 5.0, 2.0
@@ -88,6 +93,7 @@ class LaneTable:
         self.exit = np.array(["il" in f and "o" in t for f, t, _ in self.index])
         self.to_node = [t for _, t, _ in self.index]
         self.from_node = [f for f, _, _ in self.index]
+        self.arr = kernels.lane_array(self)  # the same table for the kernels
 
     def local(self, k, x, y):
         """(StraightLane|CircularLane).local_coordinates for lane ids ``k`` (broadcast with x, y); the arc formula
@@ -338,6 +344,9 @@ class Traffic:
         6 m of lane i's centreline box are projected: ``on_lane`` needs |r| ≤ 3 m and s within 5 m of the lane,
         i.e. within √(3² + 5²) < 6 m of the centreline."""
         T, N = self.tables, self.N
+        if "front" in KERNELS:
+            return kernels.front(T.arr, np.ascontiguousarray(lanes), *_contiguous(self, "x", "y", "alive"),
+                                 VEHICLE_LENGTH)
         box = T.box[lanes] + np.array([-6.0, -6.0, 6.0, 6.0])  # (B, i, 4)
         x, y = self.x[:, None, :], self.y[:, None, :]
         cand = (box[..., 0:1] <= x) & (x <= box[..., 2:3]) & (box[..., 1:2] <= y) & (y <= box[..., 3:4])
@@ -412,6 +421,10 @@ class Traffic:
         then utils.are_polygons_intersecting (separating axes, with the constant-velocity sweep over dt) on all the
         pairs that pass at once; impacts and crash flags are then assigned in the stock pair order (a later pair's
         impact overwrites an earlier one's, as there)."""
+        if "collisions" in KERNELS:
+            kernels.collisions(*_contiguous(self, "x", "y", "h", "v", "alive"), dt, LENGTH, WIDTH,
+                               *_contiguous(self, "crashed", "has_impact", "impact_x", "impact_y"))
+            return
         dist = np.hypot(self.x[:, None, :] - self.x[:, :, None], self.y[:, None, :] - self.y[:, :, None])
         near = dist <= DIAGONAL + self.v[:, :, None] * dt
         near &= self.alive[:, :, None] & self.alive[:, None, :] & np.triu(np.ones((self.N,) * 2, bool), 1)[None]
@@ -474,20 +487,11 @@ class Traffic:
             self.yielding[envs] = False
         px, py, ph = self._predict(envs)  # (b, N, T)
         alive = self.alive[envs]
-        N = self.N
-        dx = px[:, None, :, :] - px[:, :, None, :]  # (b, i, j, T): j - i
-        dy = py[:, None, :, :] - py[:, :, None, :]
-        close = np.hypot(dx, dy) <= LENGTH
-        pair = alive[:, :, None] & alive[:, None, :] & np.triu(np.ones((N, N), bool), 1)[None]
-        close &= pair[..., None]
-        if not close.any():
-            return
-        conflict = np.zeros_like(pair)
-        bb, ii, jj, tt = np.nonzero(close)
-        hit = _rects_intersect(px[bb, ii, tt], py[bb, ii, tt], ph[bb, ii, tt],
-                               px[bb, jj, tt], py[bb, jj, tt], ph[bb, jj, tt])
-        conflict[bb[hit], ii[hit], jj[hit]] = True
-        for b, i, j in zip(*np.nonzero(conflict)):
+        if "conflicts" in KERNELS:
+            conflict = kernels.conflicts(*map(np.ascontiguousarray, (px, py, ph, alive)), LENGTH, WIDTH)
+        else:
+            conflict = _conflicts(px, py, ph, alive)
+        for b, i, j in zip(*np.nonzero(conflict)):  # respect_priorities, in pair order
             e = envs[b]
             p1, p2 = T.priority[self.lane[e, i]], T.priority[self.lane[e, j]]
             if p1 > p2:
@@ -502,6 +506,30 @@ class Traffic:
             if not (self.mdp[e, y_] or self.plain[e, y_]):  # ControlledVehicles but MDPVehicle yield
                 self.target[e, y_] = 0.0
                 self.yielding[e, y_] = True
+
+
+def _contiguous(t: Traffic, *names: str) -> list[np.ndarray]:
+    """The named state arrays, made C-contiguous in place (no copy when they are: the kernels write into some)."""
+    for name in names:
+        setattr(t, name, np.ascontiguousarray(getattr(t, name)))
+    return [getattr(t, name) for name in names]
+
+
+def _conflicts(px, py, ph, alive) -> np.ndarray:
+    """The regulation's pairwise conflict test on (b, N, T) predictions: (b, N, N), pairs i < j of live vehicles
+    whose centres come within LENGTH (the stock pre-check) and whose boxes then intersect at some time."""
+    N = alive.shape[1]
+    dx = px[:, None, :, :] - px[:, :, None, :]  # (b, i, j, T): j - i
+    dy = py[:, None, :, :] - py[:, :, None, :]
+    close = np.hypot(dx, dy) <= LENGTH
+    pair = alive[:, :, None] & alive[:, None, :] & np.triu(np.ones((N, N), bool), 1)[None]
+    close &= pair[..., None]
+    conflict = np.zeros_like(pair)
+    bb, ii, jj, tt = np.nonzero(close)
+    hit = _rects_intersect(px[bb, ii, tt], py[bb, ii, tt], ph[bb, ii, tt],
+                           px[bb, jj, tt], py[bb, jj, tt], ph[bb, jj, tt])
+    conflict[bb[hit], ii[hit], jj[hit]] = True
+    return conflict
 
 
 def _rect_points(x, y, h, length, width):

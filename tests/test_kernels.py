@@ -1,0 +1,126 @@
+"""The numba kernels (av_gym/sim/kernels.py) against the numpy code they replace in av_gym/sim/batched.py (issue 16):
+on random inputs with ties and boundary cases (duplicate vehicles, boxes exactly touching, centres exactly 5 m
+apart), every decision and every float must be the same, bit for bit; and a batch run with the kernels equals one
+without them, every state array at every step."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from av_gym.envs.left_turn_batched import BatchedLeftTurn, tables
+from av_gym.make import highway_config
+from av_gym.sim import batched as sb
+from av_gym.sim import kernels
+
+
+def _traffic(rng, B: int, N: int, spread: float) -> sb.Traffic:
+    """Random vehicles near the intersection's lanes (or in a ``spread`` m square at the centre if spread > 0), with
+    duplicated vehicles (exact ties) and some on a grid with headings multiple of pi/2 (exactly touching boxes)."""
+    T = tables()[0]
+    t = sb.Traffic(T, B, N=N)
+    n = rng.integers(0, N + 1, B)
+    t.alive[:] = np.arange(N)[None] < n[:, None]
+    k = rng.integers(0, len(T.length), (B, N))
+    if spread > 0:
+        t.x[:], t.y[:] = rng.uniform(-spread / 2, spread / 2, (2, B, N))
+        t.h[:] = rng.uniform(-np.pi, np.pi, (B, N))
+    else:
+        s = rng.uniform(-9, 1, (B, N)) + rng.uniform(0, 1, (B, N)) * (T.length[k] + 8)
+        t.x[:], t.y[:] = T.position(k, s, rng.uniform(-4.5, 4.5, (B, N)))
+        t.h[:] = T.heading_at(k, s) + rng.normal(0, 0.2, (B, N))
+    grid = rng.random((B, N)) < 0.3  # integer positions, axis-aligned: exact contacts and exact distances
+    t.x[grid], t.y[grid] = rng.integers(-3, 4, (2, grid.sum())) * 2.5
+    t.h[grid] = rng.integers(-2, 3, grid.sum()) * (np.pi / 2)
+    t.v[:] = np.where(rng.random((B, N)) < 0.2, 0.0, rng.uniform(0, 12, (B, N)))
+    dup = rng.random((B, N)) < 0.2  # a copy of slot 0 (same position, heading and speed)
+    for name in ("x", "y", "h", "v"):
+        a = getattr(t, name)
+        a[dup] = np.broadcast_to(a[:, :1], a.shape)[dup]
+    t.lane[:] = np.where(rng.random((B, N)) < 0.8, k, rng.integers(0, len(T.length), (B, N)))
+    return t
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_front_kernel_is_the_numpy_leader_search(monkeypatch, seed):
+    rng = np.random.default_rng(seed)
+    t = _traffic(rng, 64, 14, spread=0)
+    monkeypatch.setattr(sb, "KERNELS", set())
+    ref = t._front(t.lane)
+    monkeypatch.setattr(sb, "KERNELS", {"front"})
+    got = t._front(t.lane)
+    assert np.array_equal(got, ref)
+    assert (ref >= 0).sum() > 50 and (ref < 0).sum() > 50  # both outcomes occur
+    # ties occur and go to the last slot: some leader is a duplicate of slot 0 that has a copy after it
+    leaders = ref[ref > 0]
+    assert len(leaders) and (t.x[np.nonzero(ref > 0)[0], leaders] == t.x[np.nonzero(ref > 0)[0], 0]).any()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_collision_kernel_is_the_numpy_separating_axes(monkeypatch, seed):
+    rng = np.random.default_rng(seed)
+    t = _traffic(rng, 96, 10, spread=25.0)
+    a, b = t.subset(range(t.B)), t.subset(range(t.B))
+    monkeypatch.setattr(sb, "KERNELS", set())
+    a._collisions(1 / 15)
+    monkeypatch.setattr(sb, "KERNELS", {"collisions"})
+    b._collisions(1 / 15)
+    for name in ("crashed", "has_impact", "impact_x", "impact_y"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    assert 0 < a.crashed.sum() < a.alive.sum() and (a.has_impact & ~a.crashed).any()  # contacts and near misses
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_conflict_kernel_is_the_numpy_regulation_test(seed):
+    rng = np.random.default_rng(seed)
+    b, N, T = 48, 10, len(sb.REG_TIMES)
+    px, py = rng.uniform(-15, 15, (2, b, N, T))
+    ph = rng.uniform(-np.pi, np.pi, (b, N, T))
+    grid = rng.random((b, N, T)) < 0.3  # centres exactly 5 m apart (the pre-check's bound), aligned boxes
+    px[grid], py[grid] = rng.integers(-2, 3, (2, grid.sum())) * 5.0
+    ph[grid] = rng.integers(-2, 3, grid.sum()) * (np.pi / 2)
+    px[:, 3], py[:, 3], ph[:, 3] = px[:, 1], py[:, 1], ph[:, 1]  # duplicates
+    alive = np.arange(N)[None] < rng.integers(0, N + 1, b)[:, None]
+    ref = sb._conflicts(px, py, ph, alive)
+    got = kernels.conflicts(px, py, ph, alive, sb.LENGTH, sb.WIDTH)
+    assert np.array_equal(got, ref)
+    assert 0 < ref.sum() < np.triu(alive[:, :, None] & alive[:, None, :], 1).sum()
+
+
+def test_point_in_box_kernel_is_the_numpy_one_on_its_edges():
+    """The regulation's point-in-box test, boxes on a 3.75 / 4 m grid heading 0 (exact arithmetic): points exactly
+    on an edge count as inside, as utils.point_in_rotated_rectangle's ``<=`` (the pre-check keeps such pairs out of
+    the tests above: centres within 5 m always have an interior point)."""
+    L, W = 1.5 * sb.LENGTH, 0.9 * sb.WIDTH
+    lx = np.array([-L / 2, -L / 2, L / 2, L / 2, 0.0, -L / 2, L / 2, 0.0, 0.0])
+    ly = np.array([-W / 2, W / 2, W / 2, -W / 2, 0.0, 0.0, 0.0, -W / 2, W / 2])
+    rng = np.random.default_rng(0)
+    x1, y1, x2, y2 = rng.integers(-10, 11, (4, 400)) * (L / 8)
+    y1[::2], y2[::2] = rng.integers(-3, 4, (2, 200)) * (W / 2)
+    ref = sb._inside(sb._rect_points(x1, y1, np.zeros(400), L, W), x2, y2, np.zeros(400), L, W)
+    got = np.array([kernels._any_inside(1.0, 0.0, x1[n], y1[n], 1.0, 0.0, x2[n], y2[n], lx, ly, L / 2, W / 2)
+                    for n in range(400)])
+    assert np.array_equal(got, ref) and 0 < ref.sum() < 400
+    edge = np.abs(np.abs(x1 - x2) - L).min(), np.abs(np.abs(y1 - y2) - W).min()
+    assert edge == (0.0, 0.0)  # some boxes touch exactly
+
+
+@pytest.mark.parametrize("env", [{}, {"mode": "ccftap"}])
+def test_batch_with_kernels_is_the_batch_without(monkeypatch, env):
+    """Whole runs (spawns, resets through the pool, yields, crashes, TTC): every state array equal at every step."""
+    _, config = highway_config({"name": "left_turn", **env})
+    runs = []
+    for kset in (set(sb.KERNELS) | {"front", "collisions", "conflicts"}, set()):
+        monkeypatch.setattr(sb, "KERNELS", kset)
+        bt = BatchedLeftTurn(16, config, pool=8)
+        bt.reset(list(range(16)))
+        rng, states = np.random.default_rng(0), []
+        for _ in range(120):
+            bt.step_autoreset(rng.integers(0, 3, 16))
+            t = bt.traffic
+            states.append([getattr(t, n).copy() for n in t.FIELDS if n != "vid"] + [bt.ttc()])
+        runs.append(states)
+    for step, (p, q) in enumerate(zip(*runs)):
+        for n, u, w in zip([n for n in sb.Traffic.FIELDS if n != "vid"] + ["ttc"], p, q):
+            assert u.shape == w.shape and np.array_equal(u, w), f"step {step}: {n}"
+    assert runs[0][-1][sb.Traffic.FIELDS.index("crashed") - 1].any() or env  # the traffic run had a crash
