@@ -87,6 +87,55 @@ def test_conflict_kernel_is_the_numpy_regulation_test(seed):
     assert 0 < ref.sum() < np.triu(alive[:, :, None] & alive[:, None, :], 1).sum()
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_closest_lane_kernel_is_the_numpy_argmin(monkeypatch, seed):
+    """Points anywhere near the intersection, on lane ends (where two lanes meet: near-ties) and duplicated."""
+    T, rng = tables()[0], np.random.default_rng(seed)
+    k = rng.integers(0, len(T.length), 3000)
+    s = np.where(rng.random(3000) < 0.3, rng.integers(0, 2, 3000) * T.length[k], rng.uniform(-5, 1, 3000) * T.length[k])
+    x, y = T.position(k, s, np.where(rng.random(3000) < 0.5, 0.0, rng.normal(0, 3, 3000)))
+    h = T.heading_at(k, s) + np.where(rng.random(3000) < 0.5, 0.0, rng.normal(0, 1, 3000))
+    x[::7], y[::7], h[::7] = x[1::7][: len(x[::7])], y[1::7][: len(x[::7])], h[1::7][: len(x[::7])]
+    x[-500:], y[-500:] = rng.uniform(-120, 120, (2, 500))
+    monkeypatch.setattr(sb, "KERNELS", set())
+    ref = T.closest(x, y, h)
+    monkeypatch.setattr(sb, "KERNELS", {"closest"})
+    got = T.closest(x, y, h)
+    assert np.array_equal(got, ref) and len(np.unique(ref)) > len(T.length) // 2
+    assert np.array_equal(T.closest(x[:60].reshape(3, 20), y[:60].reshape(3, 20), h[:60].reshape(3, 20)),
+                          ref[:60].reshape(3, 20))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_ttc_kernel_is_the_numpy_ttc(monkeypatch, seed):
+    """Random traffic around the ego (slot 0): overlapping now (0 s), stationary and equal-velocity pairs (the
+    axes' zero relative speed branch), axis-aligned grid boxes (exact touching), duplicates of the ego."""
+    _, config = highway_config({"name": "left_turn"})
+    bt = BatchedLeftTurn(8, config)
+    rng = np.random.default_rng(seed)
+    t = _traffic(rng, 128, 10, spread=60.0)
+    t.alive[:, 0], t.ego[:, 0] = True, True
+    x, y = rng.uniform(-30, 30, (2, 96, 10))  # rows 32+: no duplicates, half the others aimed at the ego
+    aim = np.arctan2(y[:, :1] - y, x[:, :1] - x) + rng.normal(0, 0.1, (96, 10))
+    t.x[32:], t.y[32:] = x, y
+    t.h[32:] = np.where(rng.random((96, 10)) < 0.5, aim, t.h[32:])
+    same = rng.random((128, 10)) < 0.15  # the ego's velocity
+    t.h[same], t.v[same] = np.broadcast_to(t.h[:, :1], t.h.shape)[same], np.broadcast_to(t.v[:, :1], t.v.shape)[same]
+    # exact contacts, heading 0: touching now (x, y), touching and moving together (zero relative speed, |q| =
+    # half), and closing 5 m at 10 m/s: touching exactly at the grid time 0.5 s
+    for row, (ox, oy, ev, ov) in enumerate([(5, 0, 0, 0), (0, 2, 0, 0), (5, 0, 3, 3), (10, 0, 10, 0), (-5, 0, 0, 0)]):
+        t.alive[row, :2], t.alive[row, 2:] = True, False
+        t.x[row, :2], t.y[row, :2], t.h[row, :2], t.v[row, :2] = (0, ox), (0, oy), (0, 0), (ev, ov)
+    bt.traffic = t
+    monkeypatch.setattr(sb, "KERNELS", set())
+    every, rows = np.arange(128), rng.permutation(128)[:50]
+    ref, ref_rows = bt.ttc(every), bt.ttc(rows)
+    monkeypatch.setattr(sb, "KERNELS", {"ttc"})
+    assert np.array_equal(bt.ttc(every), ref) and np.array_equal(bt.ttc(rows), ref_rows)
+    assert (ref == 0).sum() > 3 and ((ref > 0) & np.isfinite(ref)).sum() > 10 and np.isinf(ref).sum() > 10
+    assert list(ref[:5]) == [0, 0, 0, 0.5, 0]
+
+
 def test_point_in_box_kernel_is_the_numpy_one_on_its_edges():
     """The regulation's point-in-box test, boxes on a 3.75 / 4 m grid heading 0 (exact arithmetic): points exactly
     on an edge count as inside, as utils.point_in_rotated_rectangle's ``<=`` (the pre-check keeps such pairs out of
@@ -110,7 +159,7 @@ def test_batch_with_kernels_is_the_batch_without(monkeypatch, env):
     """Whole runs (spawns, resets through the pool, yields, crashes, TTC): every state array equal at every step."""
     _, config = highway_config({"name": "left_turn", **env})
     runs = []
-    for kset in (set(sb.KERNELS) | {"front", "collisions", "conflicts"}, set()):
+    for kset in (set(sb.KERNELS) | {"front", "collisions", "conflicts", "closest", "ttc"}, set()):
         monkeypatch.setattr(sb, "KERNELS", kset)
         bt = BatchedLeftTurn(16, config, pool=8)
         bt.reset(list(range(16)))

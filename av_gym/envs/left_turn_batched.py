@@ -17,6 +17,7 @@ from highway_env import utils
 
 from av_gym.envs.left_turn import ACTIONS, CONFLICT_POINT, MODES, ONCOMING_NEAR_EDGE_X, ROUTE, UnprotectedLeftTurnEnv
 from av_gym.estimation.turn_features import EGO_FEATURES, OBJECT_FEATURES, PATH_STEP, T_MAX
+from av_gym.sim import batched, kernels
 from av_gym.sim.batched import LENGTH, WIDTH, LaneTable, Traffic
 
 SPAWN_CLEAR = 15.0  # m, IntersectionEnv._spawn_vehicle: no spawn this close to another vehicle
@@ -475,6 +476,10 @@ class BatchedLeftTurn:
         K = len(grid)
         out = np.full(n, np.inf)
         e = self.ego_slot(rows)
+        if "ttc" in batched.KERNELS:  # the same intervals and box tests, pair by pair (av_gym/sim/kernels.py)
+            rx, ry, rh, rv = (np.ascontiguousarray(a[rows]) for a in (t.x, t.y, t.h, t.v))
+            return kernels.ttc(rx, ry, rh, rv, np.ascontiguousarray(t.alive[rows] & ~t.ego[rows]), e, grid, horizon,
+                               dt, LENGTH, WIDTH)
         ex, ey, eh, ev = t.x[rows, e], t.y[rows, e], t.h[rows, e], t.v[rows, e]
         evx, evy = ev * np.cos(eh), ev * np.sin(eh)
         other = t.alive[rows] & ~t.ego[rows]

@@ -32,8 +32,9 @@ from av_gym.geometry import wrap_angle
 from av_gym.sim import kernels
 
 # The pairwise parts run as numba kernels (av_gym/sim/kernels.py: the same formulas, bit-identical results) when
-# named here; the numpy code below stays as their reference (tests/test_kernels.py runs the batch both ways).
-KERNELS = {"front", "collisions", "conflicts"}
+# named here (``ttc``: BatchedLeftTurn.ttc); the numpy code stays as their reference (tests/test_kernels.py runs
+# the batch both ways).
+KERNELS = {"front", "collisions", "conflicts", "closest", "ttc"}
 
 # highway-env constants (IntersectionEnv._make_vehicles sets the IDM class attributes to these)
 LENGTH, WIDTH = 5.0, 2.0
@@ -138,6 +139,8 @@ class LaneTable:
         distance to the nearest box's lane cannot be the argmin."""
         shape = np.shape(x)
         x, y, h = np.ravel(x), np.ravel(y), np.ravel(h)
+        if "closest" in KERNELS:
+            return kernels.closest(self.arr, *(np.ascontiguousarray(a, dtype=float) for a in (x, y, h))).reshape(shape)
         bx = np.maximum(np.maximum(self.box[:, 0] - x[:, None], x[:, None] - self.box[:, 2]), 0)
         by = np.maximum(np.maximum(self.box[:, 1] - y[:, None], y[:, None] - self.box[:, 3]), 0)
         lb = np.hypot(bx, by)  # (M, L)

@@ -14,7 +14,7 @@ tests/test_kernels.py checks each kernel against the numpy code on random inputs
 with and without kernels. ``cache=True``: compiled once per machine into ``__pycache__`` (cold: see
 docs/sim_speed.md), so the test suite does not pay the compile time again.
 
-The lane table is passed as one (L, 14) float array (:func:`lane_array`); column indices below.
+The lane table is passed as one (L, 15) float array (:func:`lane_array`); column indices below.
 """
 
 from __future__ import annotations
@@ -24,13 +24,14 @@ import math
 import numba
 import numpy as np
 
-OX, OY, DX, DY, CIRC, PHASE0, RADIUS, CDIR, WIDTH, LENGTH, BX0, BY0, BX1, BY1 = range(14)
+OX, OY, DX, DY, CIRC, PHASE0, RADIUS, CDIR, WIDTH, LENGTH, BX0, BY0, BX1, BY1, HEAD = range(15)
 
 
 def lane_array(T) -> np.ndarray:
-    """A LaneTable's lanes as one C-contiguous (L, 14) float array for the kernels."""
+    """A LaneTable's lanes as one C-contiguous (L, 15) float array for the kernels."""
     return np.ascontiguousarray(np.column_stack([
-        T.ox, T.oy, T.dx, T.dy, T.circular.astype(float), T.phase0, T.radius, T.cdir, T.width, T.length, T.box]))
+        T.ox, T.oy, T.dx, T.dy, T.circular.astype(float), T.phase0, T.radius, T.cdir, T.width, T.length, T.box,
+        T.h]))
 
 
 @numba.njit(cache=True, inline="always")
@@ -43,6 +44,47 @@ def _local(lt, k, x, y):
         return cd * (phi - p0) * R, cd * (R - math.hypot(ex, ey))
     dx, dy = lt[k, DX], lt[k, DY]
     return ex * dx + ey * dy, ex * -dy + ey * dx
+
+
+@numba.njit(cache=True, inline="always")
+def _distance_with_heading(lt, k, x, y, h):
+    """LaneTable.distance_with_heading for one lane and one vehicle (heading_at: the arc's tangent, or the line's
+    heading)."""
+    s, r = _local(lt, k, x, y)
+    if lt[k, CIRC] != 0.0:
+        heading = lt[k, CDIR] * s / lt[k, RADIUS] + lt[k, PHASE0] + math.pi / 2 * lt[k, CDIR]
+    else:
+        heading = lt[k, HEAD]
+    angle = abs((h - heading + math.pi) % (2 * math.pi) - math.pi)
+    return abs(r) + max(s - lt[k, LENGTH], 0.0) + max(0.0 - s, 0.0) + angle
+
+
+@numba.njit(cache=True)
+def closest(lt, x, y, h):
+    """LaneTable.closest for 1-d arrays of vehicles: the first lane of least distance_with_heading among the lanes
+    whose centreline box is no farther than the nearest box's lane's distance (the same pruning, the same
+    comparisons: first on ties)."""
+    L = lt.shape[0]
+    out = np.zeros(x.shape[0], dtype=np.int64)
+    lb = np.empty(L)
+    for m in range(x.shape[0]):
+        xm, ym = x[m], y[m]
+        k0 = 0
+        for k in range(L):
+            bx = max(max(lt[k, BX0] - xm, xm - lt[k, BX1]), 0.0)
+            by = max(max(lt[k, BY0] - ym, ym - lt[k, BY1]), 0.0)
+            lb[k] = math.hypot(bx, by)
+            if lb[k] < lb[k0]:
+                k0 = k
+        best = _distance_with_heading(lt, k0, xm, ym, h[m])
+        dmin, kmin = np.inf, 0
+        for k in range(L):
+            if lb[k] <= best:
+                d = _distance_with_heading(lt, k, xm, ym, h[m])
+                if d < dmin:
+                    dmin, kmin = d, k
+        out[m] = kmin
+    return out
 
 
 @numba.njit(cache=True)
@@ -195,3 +237,79 @@ def _any_inside(c1, s1, x1, y1, c2, s2, x2, y2, lx, ly, hl, hw):
         if -hl <= ux and ux <= hl and -hw <= uy and uy <= hw:
             return True
     return False
+
+
+@numba.njit(cache=True)
+def ttc(x, y, h, v, other, e, grid, horizon, dt, length, width):
+    """BatchedLeftTurn.ttc for (n, N) rows with the ego in slot ``e`` (n,): per pair, the constant-velocity
+    overlap interval [t_in, t_out] from the four separating axes, then the per-env box test (geometry.box_corners /
+    boxes_overlap arithmetic) at the grid times first..last around it, in ascending order: the first hit is the
+    pair's time (the numpy code tests first..first+3, then the rest if none hit: the same times, the same minimum)."""
+    n, N = x.shape
+    K = grid.shape[0]
+    out = np.full(n, np.inf)
+    hl, hw = 0.5 * length, 0.5 * width
+    lx = np.array([hl, hl, -hl, -hl])
+    ly = np.array([hw, -hw, -hw, hw])
+    ca, cb = np.empty((4, 2)), np.empty((4, 2))
+    for m in range(n):
+        ex, ey, eh, ev = x[m, e[m]], y[m, e[m]], h[m, e[m]], v[m, e[m]]
+        evx, evy = ev * math.cos(eh), ev * math.sin(eh)
+        ce, se = math.cos(eh), math.sin(eh)
+        for j in range(N):
+            if not other[m, j]:
+                continue
+            oh = h[m, j]
+            ovx, ovy = v[m, j] * math.cos(oh), v[m, j] * math.sin(oh)
+            px, py = x[m, j] - ex, y[m, j] - ey
+            wx, wy = ovx - evx, ovy - evy
+            t_in, t_out = -np.inf, np.inf
+            for a in range(4):
+                theta = eh if a == 0 else eh + math.pi / 2 if a == 1 else oh if a == 2 else oh + math.pi / 2
+                ux, uy = math.cos(theta), math.sin(theta)
+                half = length / 2 * (abs(math.cos(eh - theta)) + abs(math.cos(oh - theta))) \
+                    + width / 2 * (abs(math.sin(eh - theta)) + abs(math.sin(oh - theta)))
+                q, r = ux * px + uy * py, ux * wx + uy * wy
+                if r != 0.0:
+                    ta, tb = (-half - q) / r, (half - q) / r
+                    lo, hi = min(ta, tb), max(ta, tb)
+                elif abs(q) <= half:
+                    lo, hi = -np.inf, np.inf
+                else:
+                    lo, hi = np.inf, -np.inf
+                t_in, t_out = max(t_in, lo), min(t_out, hi)
+            if not (t_in <= t_out + dt and t_out >= -dt and t_in <= horizon + dt):
+                continue
+            first = min(max(int(math.floor(max(t_in, 0.0) / dt)) - 1, 0), K - 1)
+            last = min(max(int(math.ceil(min(t_out, horizon) / dt)) + 1, 0), K - 1)
+            co, so = math.cos(oh), math.sin(oh)
+            for k in range(first, last + 1):
+                tk = grid[k]
+                if tk >= out[m]:
+                    break
+                ax, ay = ex + tk * evx, ey + tk * evy
+                bx, by = x[m, j] + tk * ovx, y[m, j] + tk * ovy
+                for p in range(4):  # box_corners: centre + rot @ local
+                    ca[p, 0], ca[p, 1] = ax + (ce * lx[p] + -se * ly[p]), ay + (se * lx[p] + ce * ly[p])
+                    cb[p, 0], cb[p, 1] = bx + (co * lx[p] + -so * ly[p]), by + (so * lx[p] + co * ly[p])
+                if _boxes_overlap(ca, cb):
+                    out[m] = tk
+                    break
+    return out
+
+
+@numba.njit(cache=True, inline="always")
+def _boxes_overlap(a, b):
+    """geometry.boxes_overlap for one pair of (4, 2) corner arrays: two edge normals of each box, touching counts."""
+    for poly in range(2):
+        c = a if poly == 0 else b
+        for i in range(2):
+            nx, ny = -(c[i + 1, 1] - c[i, 1]), c[i + 1, 0] - c[i, 0]
+            amin = amax = a[0, 0] * nx + a[0, 1] * ny
+            bmin = bmax = b[0, 0] * nx + b[0, 1] * ny
+            for p in range(1, 4):
+                qa, qb = a[p, 0] * nx + a[p, 1] * ny, b[p, 0] * nx + b[p, 1] * ny
+                amin, amax, bmin, bmax = min(amin, qa), max(amax, qa), min(bmin, qb), max(bmax, qb)
+            if not (amax >= bmin and bmax >= amin):
+                return False
+    return True
