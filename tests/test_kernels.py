@@ -57,6 +57,26 @@ def test_front_kernel_is_the_numpy_leader_search(monkeypatch, seed):
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
+def test_idm_kernel_is_the_numpy_idm(monkeypatch, seed):
+    """IDM acceleration with the leader search's fronts (and none), set-points at and around utils.not_zero's
+    bound (0, +-0.01, negative, above the lane's limit), standing vehicles, zero gaps (duplicates)."""
+    rng = np.random.default_rng(seed)
+    t = _traffic(rng, 64, 14, spread=0)
+    t.target[:] = rng.choice([0.0, 0.01, -0.01, 0.005, -3.0, 4.5, 9.0, 30.0], t.target.shape)
+    t.delta[:] = np.where(rng.random(t.delta.shape) < 0.5, 4.0, rng.uniform(3.5, 4.5, t.delta.shape))
+    front = t._front(t.lane)
+    front[:, ::5] = -1
+    monkeypatch.setattr(sb, "KERNELS", set())
+    ref = t._idm_acc(front)
+    monkeypatch.setattr(sb, "KERNELS", {"idm"})
+    got = t._idm_acc(front)
+    assert np.array_equal(got, ref)
+    d = t.tables.local(t.lane, np.take_along_axis(t.x, np.maximum(front, 0), 1),
+                       np.take_along_axis(t.y, np.maximum(front, 0), 1))[0] - t.tables.local(t.lane, t.x, t.y)[0]
+    assert ((front >= 0) & (d == 0)).any() and ((front >= 0) & (d != 0)).any()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
 def test_collision_kernel_is_the_numpy_separating_axes(monkeypatch, seed):
     rng = np.random.default_rng(seed)
     t = _traffic(rng, 96, 10, spread=25.0)
@@ -159,7 +179,7 @@ def test_batch_with_kernels_is_the_batch_without(monkeypatch, env):
     """Whole runs (spawns, resets through the pool, yields, crashes, TTC): every state array equal at every step."""
     _, config = highway_config({"name": "left_turn", **env})
     runs = []
-    for kset in (set(sb.KERNELS) | {"front", "collisions", "conflicts", "closest", "ttc"}, set()):
+    for kset in (set(sb.KERNELS) | {"front", "collisions", "conflicts", "closest", "ttc", "idm"}, set()):
         monkeypatch.setattr(sb, "KERNELS", kset)
         bt = BatchedLeftTurn(16, config, pool=8)
         bt.reset(list(range(16)))

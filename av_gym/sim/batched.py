@@ -34,7 +34,7 @@ from av_gym.sim import kernels
 # The pairwise parts run as numba kernels (av_gym/sim/kernels.py: the same formulas, bit-identical results) when
 # named here (``ttc``: BatchedLeftTurn.ttc); the numpy code stays as their reference (tests/test_kernels.py runs
 # the batch both ways).
-KERNELS = {"front", "collisions", "conflicts", "closest", "ttc"}
+KERNELS = {"front", "collisions", "conflicts", "closest", "ttc", "idm"}
 
 # highway-env constants (IntersectionEnv._make_vehicles sets the IDM class attributes to these)
 LENGTH, WIDTH = 5.0, 2.0
@@ -377,6 +377,10 @@ class Traffic:
     def _idm_acc(self, front: np.ndarray) -> np.ndarray:
         """IDMVehicle.acceleration + desired_gap (projected); d = lane_distance_to(front) on the current lane."""
         T = self.tables
+        if "idm" in KERNELS:
+            return kernels.idm(T.arr, *_contiguous(self, "x", "y", "h", "v", "target", "delta", "lane"),
+                               np.ascontiguousarray(front), T.speed_limit, COMFORT_ACC_MAX, COMFORT_ACC_MIN,
+                               DISTANCE_WANTED, TIME_WANTED)
         target = np.clip(self.target, 0, T.speed_limit[self.lane])
         acc = COMFORT_ACC_MAX * (1 - np.power(np.maximum(self.v, 0) / np.abs(not_zero(target)), self.delta))
         has = front >= 0

@@ -313,3 +313,28 @@ def _boxes_overlap(a, b):
             if not (amax >= bmin and bmax >= amin):
                 return False
     return True
+
+
+@numba.njit(cache=True)
+def idm(lt, x, y, h, v, target, delta, lane, front, speed_limit, acc_max, acc_min, distance_wanted, time_wanted):
+    """Traffic._idm_acc: IDMVehicle.acceleration with the leader ``front`` (-1: none), the gap measured along the
+    current lane (lane_distance_to), utils.not_zero as there; every slot, as the numpy code."""
+    B, N = x.shape
+    out = np.empty((B, N))
+    ab = -acc_max * acc_min
+    for b in range(B):
+        for i in range(N):
+            k = lane[b, i]
+            tg = min(max(target[b, i], 0.0), speed_limit[k])
+            tg = tg if abs(tg) > 1e-2 else (1e-2 if tg >= 0 else -1e-2)
+            acc = acc_max * (1 - (max(v[b, i], 0.0) / abs(tg)) ** delta[b, i])
+            f = front[b, i]
+            if f >= 0:
+                d = _local(lt, k, x[b, f], y[b, f])[0] - _local(lt, k, x[b, i], y[b, i])[0]
+                d = d if abs(d) > 1e-2 else (1e-2 if d >= 0 else -1e-2)
+                c, sn = math.cos(h[b, i]), math.sin(h[b, i])
+                dv = (v[b, i] * c - v[b, f] * math.cos(h[b, f])) * c + (v[b, i] * sn - v[b, f] * math.sin(h[b, f])) * sn
+                d_star = distance_wanted + v[b, i] * time_wanted + v[b, i] * dv / (2 * math.sqrt(ab))
+                acc = acc - acc_max * (d_star / d) ** 2.0
+            out[b, i] = acc
+    return out
