@@ -9,7 +9,7 @@ import pytest
 from agents import AlwaysProceed
 from av_gym.shields.aeb import AEB_VARIANTS, BrakeActuator
 from av_gym.shields.predict import (aabb_limits, ca_predict, footprint_ttc, object_predict, paper_horizon,
-                                    paper_limits, paper_ttc, standard_ttc)
+                                    paper_limits, paper_ttc, setpoint_profile, standard_ttc)
 from av_gym.envs.left_turn import CONFLICT_POINT
 from av_gym.errors import ConfigError
 from conftest import Scripted, ccftap_cfg, conf, rollout
@@ -161,6 +161,66 @@ def test_throttle_is_cut_while_braking(make):
     env = make(ccftap_cfg(15, 45, 0.0), None, shield())
     truths, info, *_ = rollout(env, Scripted(lambda k, o: 2), seed=0)  # the agent keeps asking for FASTER
     assert not truths[-1]["collision"] and info["episode_metrics"]["intervention"] == 1.0
+
+
+def test_an_agent_that_chooses_to_stop_at_the_line_is_not_braked(make):
+    """The shield checks the action it is given: an agent that asks for SLOWER (set-point 0) at the very step the
+    shield would brake for the paper's case stops short of the box by itself, so the improved shield lets it;
+    predicting the set-point as it was before the action (``check_action`` false), the shield brakes it anyway."""
+    _, infos = run_case(make, 15, 45, 0.0, shield())
+    k = [i["aeb_stage"] for i in infos].index(2)  # the step at which an always-proceeding ego is braked
+    outcome = {}
+    for check in (True, False):
+        env = make(ccftap_cfg(15, 45, 0.0), None, shield(check_action=check))
+        truths, info, *_ = rollout(env, Scripted(lambda j, o: 1 if j < k else 0), seed=0)  # IDLE, then SLOWER
+        outcome[check] = info["episode_metrics"], truths
+    m, truths = outcome[True]
+    assert m["intervention"] == 0.0 and not truths[-1]["collision"]
+    assert max(t["stop_line_offset"] for t in truths) <= 0.0  # it stopped behind the line on its own
+    assert outcome[False][0]["intervention"] == 1.0 and not outcome[False][1][-1]["collision"]
+
+
+def test_repeated_faster_profile_follows_the_ego_setting_off(make, turn_cfg):
+    """setpoint_profile (the improved shield's prediction of an agent repeating FASTER) against the simulated ego
+    setting off from a standstill through the set-points 0 → 4.5 → 9 m/s: within 0.1 m over 4 s (29 m)."""
+    turn_cfg.update(spawn_probability=0.0)
+    env = make(turn_cfg, None, None)
+    env.reset(seed=0)
+    u = env.unwrapped
+    for _ in range(40):  # SLOWER until standing
+        env.step(0)
+    assert u.vehicle.speed < 0.05
+    t = 0.1 * np.arange(1, 41)
+    ego = u.vehicle
+    predicted = setpoint_profile(ego.speed, lambda v: ego.index_to_speed(min(int(ego.speed_to_index(v)) + 1, 2)), t,
+                                 dt=1 / u.config["simulation_frequency"])
+    travelled, xy = [0.0], np.array(ego.position)
+    for _ in t:  # distance driven (the route's s runs faster than the car where it cuts the turn)
+        env.step(2)
+        travelled.append(travelled[-1] + float(np.hypot(*(ego.position - xy))))
+        xy = np.array(ego.position)
+    travelled = travelled[1:]
+    assert u.vehicle.speed > 8.0 and not u.vehicle.crashed  # it did climb to the top set-point
+    assert np.max(np.abs(np.array(travelled) - predicted)) < 0.1
+
+
+def test_driven_path_predictions_start_where_the_ego_is_all_along_the_route(make, turn_cfg):
+    """DrivenPath.poses from route position s0 with no distance to drive is the ego's own place, before, inside
+    and after the tabulated turn (past its end the table used to clamp: every prediction started there, 6.9 m
+    behind an ego 22 m down the exit road, and the forward AEB saw the car ahead 6.9 m too far away)."""
+    from av_gym.shields.aeb import _route_tables
+    from av_gym.envs.left_turn import ROUTE
+
+    env = make(turn_cfg, None, None)
+    env.reset(seed=0)
+    net = env.unwrapped.road.network
+    route, driven = _route_tables([net.get_lane(i) for i in ROUTE])
+    for s0 in (50.0, 110.0, 130.0, driven.s_end + 5.0, 180.0):
+        xy, _ = driven.poses(s0, np.array([0.0, 9.0]), np.array([9.0, 9.0]))
+        centre, _ = route.poses(np.array([s0, s0 + 9.0]))
+        # on the straight parts the driven path is the centreline; in the turn it cuts the corner by < 1 m
+        tol = 1.0 if driven.s_start < s0 < driven.s_end else 0.05
+        assert np.max(np.hypot(*(xy - centre).T)) < tol, s0
 
 
 def test_feasibility_check_does_not_park_the_ego_in_the_targets_path(make):

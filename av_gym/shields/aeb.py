@@ -92,7 +92,7 @@ from av_gym.sensors.turn_signal import TurnSignalsParams, intended_signal
 from av_gym.shields.conflicts import ConflictModel, signal_likelihood
 from av_gym.shields.predict import (DrivenPath, LaneHypotheses, RouteTable, cruise_profile, footprint_ttc,
                                     go_profile, object_predict, paper_horizon, paper_ttc, profile_speeds,
-                                    standard_ttc)
+                                    setpoint_profile, standard_ttc)
 
 STOP_SPEED = 0.1  # m/s, standstill (as av_gym.metrics.left_turn.STOP_SPEED)
 MONITOR, WARN, BRAKE = 0, 1, 2
@@ -240,6 +240,11 @@ class ImprovedParams(TurnParams):
     go_speed: float = param(4.5, "m/s", gt=0, doc="speed assumed for setting off when the ego has no cruise "
                                                   "set-point (commanded acceleration)")
     warn_ttc: float = param(2.5, "s", gt=0, doc="outside the turn window: forward-collision warning at TTC <= this")
+    check_action: bool = param(True, doc="predict the ego under the action the agent proposes for this step (its new "
+                                         "set-point, or its commanded acceleration), as a safety filter checks the "
+                                         "action it is given; false: under the set-point before it (the default "
+                                         "before issue 17's second pass), which brakes an agent that has just "
+                                         "chosen to stop at the line")
     ignore_rear: bool = param(False, doc="never count a hit from behind (a vehicle running into the ego)")
 
     def relations(self) -> list[str]:
@@ -501,6 +506,7 @@ class AEBShield(gym.Wrapper):
             self._info = self._make_info(MONITOR, float("inf"), 0.0, -1, False, False, action)
             info.update(self._info)
             return obs, reward, terminated, truncated, info
+        self._proposed = action  # what the agent asks for this step (an action filter checks what it is given)
         stage, ttc, horizon, target, active, infeasible = self._decide()
         override = stage == BRAKE
         if override and not self._info["aeb_override"] and self.on_intervention is not None:
@@ -698,7 +704,7 @@ class ImprovedAEB(AEBShield):
         self.margin, self.release_margin, self.stop_margin = p.margin, p.release_margin, p.stop_margin
         self.horizon_min, self.horizon_max, self.target_model = p.horizon_min, p.horizon_max, p.target_model
         self.release_hold, self.feasibility, self.go_speed = p.release_hold, p.feasibility, p.go_speed
-        self.warn_ttc, self.ignore_rear = p.warn_ttc, p.ignore_rear
+        self.warn_ttc, self.ignore_rear, self.check_action = p.warn_ttc, p.ignore_rear, p.check_action
         self.needs_lanes = self.target_model in ("map", "conflict")
         self._hypotheses: LaneHypotheses | None = None
         self._conflicts: ConflictModel | None = None
@@ -845,11 +851,29 @@ class ImprovedAEB(AEBShield):
         with a cruise set-point (MDPVehicle, discrete actions) highway-env's first-order speed response to that
         set-point (exact for its controller, including setting off from a standstill); otherwise (commanded
         acceleration) its current acceleration for 1 s, the speed capped at the lane's speed limit (or
-        ``go_speed`` from a standstill), never reversing."""
+        ``go_speed`` from a standstill), never reversing.
+
+        With ``check_action``, under the agent's proposed action instead, held over the horizon (a policy step is
+        the decision period): FASTER/SLOWER repeated (the set-point moves one step from the one nearest the speed
+        at every step, :func:`setpoint_profile`), IDLE the set-point kept, a commanded acceleration held for 1 s."""
+        action = getattr(self, "_proposed", None) if self.check_action else None
+        u = self.env.unwrapped
         if ego["set_speed"] is not None:
+            name = u.action_type.actions.get(int(action)) if action is not None and np.ndim(action) == 0 else None
+            if name in ("FASTER", "SLOWER"):
+                vehicle, step = u.vehicle, 1 if name == "FASTER" else -1
+                top = len(vehicle.target_speeds) - 1
+
+                def set_at(v: float) -> float:  # MDPVehicle.act for this action
+                    return float(vehicle.index_to_speed(int(np.clip(int(vehicle.speed_to_index(v)) + step, 0, top))))
+                return setpoint_profile(ego["speed"], set_at, t, dt=self.sim_dt)
             return go_profile(ego["speed"], ego["set_speed"], t)
+        accel = ego["accel"]
+        if action is not None:  # LongitudinalAction: [-1, 1] mapped linearly onto the acceleration range
+            lo, hi = u.action_type.acceleration_range
+            accel = lo + (float(np.clip(np.ravel(action)[0], -1.0, 1.0)) + 1.0) * 0.5 * (hi - lo)
         v_cap = max(ego["speed"], self.go_speed, ego["speed_limit"] or self.go_speed)
-        a = ego["accel"] if ego["speed"] > STOP_SPEED else max(ego["accel"], 0.0)
+        a = accel if ego["speed"] > STOP_SPEED else max(accel, 0.0)
         return cruise_profile(ego["speed"], a, t, v_max=v_cap)
 
     def _go_profile(self, ego: dict, t: np.ndarray) -> np.ndarray:

@@ -182,7 +182,9 @@ class DrivenPath:
 
     def _poses_bin(self, i: int, s0: float, ds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         d_tab, x, y, h, s_tab = self._table(i)
-        d0 = s0 if s0 <= self.s_start else float(np.interp(s0, s_tab, d_tab))
+        # distance driven at route position s0: the table's inside it, shifted one for one after it (np.interp
+        # alone clamps there, which froze every prediction started past the table's end at that end)
+        d0 = s0 if s0 <= self.s_start else float(np.interp(s0, s_tab, d_tab)) + max(s0 - s_tab[-1], 0.0)
         d = d0 + ds
         xy_c, h_c = self.route.poses(np.where(d < self.s_start, d, d - d_tab[-1] + s_tab[-1]))
         inside = (d >= self.s_start) & (d <= d_tab[-1])
@@ -243,6 +245,25 @@ def go_profile(v0: float, v_set: float, t: np.ndarray, tau: float = 0.6) -> np.n
     ``tau`` (highway-env's cruise controller, ``TAU_ACC`` = 0.6 s): the ego setting off again after a stop."""
     t = np.asarray(t, dtype=float)
     return v_set * t + (v0 - v_set) * tau * (1.0 - np.exp(-t / tau))
+
+
+def setpoint_profile(v0: float, set_at, t: np.ndarray, dt: float = 0.05, tau: float = 0.6) -> np.ndarray:
+    """Distance (m) at times ``t`` (multiples of ``dt``) when the cruise set-point is chosen anew at the start of
+    every interval of ``t`` from the speed then, ``set_at(v)`` (m/s): a discrete agent that repeats FASTER or
+    SLOWER at every policy step (``MDPVehicle.act`` moves one set-point from the one nearest the current speed),
+    so setting off climbs the set-points as the speed does. Integrated tick by tick as highway-env does (speed
+    controller ``(v_set - v) / tau`` with ``TAU_ACC`` = 0.6 s, position with the speed before the update): the
+    moment a set-point switches depends on it (the continuous response reaches 2.25 m/s one policy step later)."""
+    v, s, prev = float(v0), 0.0, 0.0
+    out = np.empty(len(t))
+    for i, ti in enumerate(np.asarray(t, dtype=float)):
+        v_set = float(set_at(v))
+        for _ in range(int(round((ti - prev) / dt))):
+            s += v * dt
+            v += (v_set - v) / tau * dt
+        prev = ti
+        out[i] = s
+    return out
 
 
 def object_predict(others: np.ndarray, t: np.ndarray, accel: np.ndarray | None = None,
