@@ -147,7 +147,7 @@ def main() -> None:
 
         fig, ax = plt.subplots(figsize=(5.5, 3.6))
         sizes = [r[0] for r in rows]
-        ax.plot(sizes, [r[1] for r in rows], "o-", label="batched (numpy)")
+        ax.plot(sizes, [r[1] for r in rows], "o-", label="batched (numpy + numba kernels)")
         ax.axhline(ref, color="grey", ls="--", label="per-env fast stack")
         ax.axhline(20 * ref, color="tab:red", ls=":", label="20x target")
         ax.set_xscale("log", base=2)

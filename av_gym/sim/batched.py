@@ -16,6 +16,9 @@ every vehicle of every environment at once instead of one Python object per vehi
   that environment's own ``np.random.Generator`` in the same order, so env i reset with seed s draws the traffic
   that ``reset(seed=s)`` of the per-env stack draws.
 
+The pairwise parts (leader search and IDM, regulation conflicts, collisions, closest lane) run as numba kernels
+(:mod:`av_gym.sim.kernels`, bit-identical to the numpy code here, which stays as their reference: ``KERNELS``).
+
 Slot order in the arrays is ``road.vehicles`` order (the regulation, collisions and neighbour ties depend on it):
 new vehicles go after the last live one, cleared vehicles are removed with a stable compaction.
 """

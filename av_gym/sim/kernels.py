@@ -1,18 +1,20 @@
 """Numba kernels for the batched left turn's pairwise parts (issue 16).
 
 Why compiled code here: highway-env has no batched version of these models, and av_gym/sim/batched.py's numpy
-formulation of the pairwise parts (leader search, collisions, the regulation's conflict test) builds (B, N, N)
-or (B, N, N, T) masks, gathers the candidate pairs with ``nonzero`` and evaluates them in many small array calls;
-at B = 256 that bookkeeping, not the arithmetic, is most of their cost (docs/sim_speed.md). A loop over the pairs
-skips the masks and stops at the first hit.
+formulation of the pairwise parts (leader search, IDM gap, collisions, the regulation's conflict test, the closest
+lane, the ego's TTC) builds (B, N, N), (B, N, N, T) or (vehicles, lanes) arrays, gathers the candidates with
+``nonzero`` and evaluates them in many small array calls; at B = 256 that bookkeeping, not the arithmetic, was
+most of their cost (docs/sim_speed.md, "Numba kernels"). A loop over the candidates skips the masks and stops at
+the first hit.
 
 What stays identical: each kernel evaluates the numpy code's formulas in the same order of operations (no
 ``fastmath``, so no reassociation or fused multiply-adds), on the same inputs, and makes every decision with the
-same comparisons (``<=`` / ``<``, first or last on ties as there). On this machine numba's ``math`` functions and
-numpy's ufuncs give bit-identical results (libm), so the kernels reproduce the numpy path bit for bit;
-tests/test_kernels.py checks each kernel against the numpy code on random inputs with ties, and the whole batch
-with and without kernels. ``cache=True``: compiled once per machine into ``__pycache__`` (cold: see
-docs/sim_speed.md), so the test suite does not pay the compile time again.
+same comparisons (``<=`` / ``<``, first or last on ties as there). numba's ``math`` calls the C library, and so
+do numpy's float64 ufuncs on this project's (AVX2) machines, so the kernels reproduce the numpy path bit for bit:
+tests/test_kernels.py checks each kernel against the numpy code on random inputs with ties and exact contacts, and
+whole batch runs with and without kernels (where a numpy build uses its own SIMD maths, e.g. AVX-512, floats may
+differ in the last bit, as the numpy path's own results already do between batch layouts). ``cache=True``: compiled once per
+checkout into ``__pycache__`` (cold: ~5-9 s for all of them), so later processes only load them.
 
 The lane table is passed as one (L, 15) float array (:func:`lane_array`); column indices below.
 """
