@@ -223,6 +223,17 @@ def test_driven_path_predictions_start_where_the_ego_is_all_along_the_route(make
         assert np.max(np.hypot(*(xy - centre).T)) < tol, s0
 
 
+def test_a_car_braking_ahead_on_the_exit_road_is_braked_for(make, turn_cfg):
+    """Traffic seed 1019: down the exit road the always-proceeding ego closes on a car that then brakes at 6 m/s².
+    The improved shield brakes in time; it used to hold off, its feasibility check finding a car merging into the
+    exit lane predicted through the standing ego 5.9 s later (the check now looks at the object braked for)."""
+    env = make(turn_cfg, None, shield())
+    truths, info, *_ = rollout(env, AlwaysProceed(env.unwrapped.cruise_action()), seed=1019)
+    m = info["episode_metrics"]
+    assert not truths[-1]["collision"] and m["success"] == 1.0 and m["intervention"] == 1.0
+    assert any(t["speed"] < 0.1 and t["stop_line_offset"] > 40.0 for t in truths)  # it stopped on the exit road
+
+
 def test_feasibility_check_does_not_park_the_ego_in_the_targets_path(make):
     """The ego is 3 m before the conflict point at 15 km/h and the target 18 m away: both carrying on and braking
     end in a collision, braking with the ego standing in the oncoming lane; the improved variant does not brake

@@ -841,7 +841,13 @@ class ImprovedAEB(AEBShield):
             emergency = ttc_raw <= self.ttc_brake
         if not (stop_line_trigger or emergency):
             return (WARN if in_turn or ttc <= self.warn_ttc else MONITOR), ttc, horizon, target_out, False
-        if self.feasibility and self._parked_in_path(v, a, s0, ego, obj_xy, obj_h, size, t_long, rear):
+        # Feasibility against the object braked for (any of its path hypotheses) only: another road user that
+        # would reach the standing ego seconds later is a later conflict (it can brake, the ego can set off),
+        # not a reason to drive into this one (seed 1019: a rear-end at TTC 1.3 s went unbraked because a car
+        # merging into the exit lane was predicted through the stopped ego 5.9 s later).
+        mine = owner == owner[target]
+        if self.feasibility and self._parked_in_path(v, a, s0, ego, obj_xy[:, mine], obj_h[:, mine], size[mine],
+                                                     t_long, np.broadcast_to(rear, owner.shape)[mine]):
             return WARN, ttc, horizon, target_out, True
         self._latch(t)
         return BRAKE, ttc, horizon, target_out, False
