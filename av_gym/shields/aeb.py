@@ -26,9 +26,11 @@ config section ``shield`` (``kind: aeb``, ``variant: ...``) builds one through :
 
   * the ego predicted **along its planned route**, where it will actually drive: highway-env's route-following
     controller cuts the turn by up to 0.6 m and lags 10° in heading, so :class:`av_gym.shields.predict.DrivenPath`
-    replays that controller (tabulated per speed) instead of assuming the lane centreline; longitudinally the
-    vehicle's own cruise-control response to its set-point (discrete actions), or its current acceleration for
-    1 s (continuous);
+    replays that controller (tabulated per speed) instead of assuming the lane centreline; longitudinally under
+    the action the agent proposes for this step, held (``check_action``, issue 17: a safety filter checks the
+    action it is given, so an agent that has just chosen to stop is not braked): highway-env's cruise-control
+    response through the set-points FASTER/SLOWER step to (discrete actions), or the commanded acceleration
+    for 1 s (continuous);
   * the others on every way the road network lets them continue, each hypothesis with its probability, at
     constant speed on the path highway-env's controller drives (``target_model: conflict``, the default since
     issue 17: :class:`av_gym.shields.conflicts.ConflictModel`), or constant-velocity (``cv``, the default
@@ -42,7 +44,8 @@ config section ``shield`` (``kind: aeb``, ``variant: ...``) builds one through :
     outside the turn window, where the shield acts as a forward AEB on the predicted footprints) only an
     emergency brake at TTC ≤ ``ttc_brake`` on the unmargined footprints;
   * a **brake-feasibility check** (003 §9.7): no braking if the braking profile predicts the ego standing still
-    in a target's path when it is hit (a hit while still moving does not stop the brake: it mitigates);
+    in the path of the object braked for when it is hit (a hit while still moving does not stop the brake: it
+    mitigates; another road user reaching the standing ego later is a later conflict);
   * a **release rule**: once latched, the brake lets go when the ego setting off again (or carrying on, for a
     continuous agent both) is predicted conflict-free with the larger ``release_margin`` for ``release_hold`` s.
   * Vehicles following the ego in its lane are ignored (they are responsible for their own gap).
