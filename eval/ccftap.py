@@ -488,7 +488,11 @@ def main(argv: list[str] | None = None) -> int:
     for r in rows:
         r.pop("trace", None)
     agg = aggregate(rows)
-    pert = shield_config("improved", "perceived", a.miss_rate, a.burst_length, a.detector_range)["detector"]
+    from av_gym.shields.aeb import ImprovedParams
+
+    # the yaml names only what differs from the Params defaults (the shield completes the section the same way)
+    pert = {**ImprovedParams().detector.as_dict(),
+            **shield_config("improved", "perceived", a.miss_rate, a.burst_length, a.detector_range)["detector"]}
     driver = "always-proceed driver" if [q.label for q in plans] == [DEFAULT_AGENT] else \
         "agents " + ", ".join(f"{q.label} ({q.spec}, sensors {(q.sensors or {}).get('name', 'truth')})"
                               for q in plans)
