@@ -390,6 +390,7 @@ class AEBShield(gym.Wrapper):
     on_intervention: Any = None  # called as on_intervention(shield, action) when a brake starts, before the step
     bypass: bool = False  # True: pass the agent's action through untouched and decide nothing
     target_xy: np.ndarray | None = None  # position of the object the last decision named (NaN when none)
+    _proposed: Any = None  # the agent's action for the step being decided (the improved variant's check_action)
 
     # ------------------------------------------------------------------------------------------- config
     @classmethod
@@ -865,7 +866,7 @@ class ImprovedAEB(AEBShield):
         With ``check_action``, under the agent's proposed action instead, held over the horizon (a policy step is
         the decision period): FASTER/SLOWER repeated (the set-point moves one step from the one nearest the speed
         at every step, :func:`setpoint_profile`), IDLE the set-point kept, a commanded acceleration held for 1 s."""
-        action = getattr(self, "_proposed", None) if self.check_action else None
+        action = self._proposed if self.check_action else None
         u = self.env.unwrapped
         if ego["set_speed"] is not None:
             name = u.action_type.actions.get(int(action)) if action is not None and np.ndim(action) == 0 else None
