@@ -71,14 +71,25 @@ class GapAcceptance:
         return meta_action(self.choice(obs["turn"]), obs["turn"])
 
 
-def go_is_safe(env: gym.Env, obs: Any, go: Callable[[Any], Any], visited: dict | None = None) -> bool:
+def go_is_safe(env: gym.Env, obs: Any, go: Callable[[Any], Any], visited: dict | None = None,
+               shield_off: bool = False) -> bool:
     """Whether going now and never yielding again ends the episode without a collision: the rest of the episode is
     played on a deep copy of ``env``, random generators included, with ``go(obs)`` as the action at every step
     (``obs``: the current observation of ``env``). ``visited``, if given, receives ``time → (x, y, speed)`` of the
-    ego along the simulated future.
+    ego along the simulated future; ``shield_off``: a safety shield in ``env`` is bypassed in the copy (the future
+    of the driver alone).
     The copy's future is the real future under GO (the other drivers react to the ego as they would), which is what
     makes :class:`Lookahead` an oracle. Cost: one simulated episode tail (~0.1 s on the left turn)."""
     future = copy.deepcopy(env)
+    if shield_off:
+        from av_gym.shields.aeb import AEBShield
+
+        layer = future
+        while layer is not None:
+            if isinstance(layer, AEBShield):
+                layer.bypass = True
+                layer.actuator.release()
+            layer = getattr(layer, "env", None)
     while True:
         obs, _, terminated, truncated, info = future.step(go(obs))
         if visited is not None:
@@ -97,6 +108,11 @@ class LookaheadParams(AgentParams):
     scenarios: tuple[str, ...] = param(("left_turn",))
     repeat: int = param(5, "env steps", ge=1, doc="env steps between decisions (2 Hz, as the PPO policies); "
                                                   "~0.1 s of simulation each")
+    plan_with_shield: bool = param(False, doc="agent+aeb: simulate the futures with the shield in them (the oracle "
+                                              "then goes whenever the shield would save it, i.e. defers to the "
+                                              "shield: 0.89 success, as always_proceed+aeb) | false: the driver's "
+                                              "own futures, the shield a backup (issue 17: what the shield costs a "
+                                              "perfect driver)")
 
 
 class Lookahead:
@@ -109,7 +125,7 @@ class Lookahead:
 
     def __init__(self, env: gym.Env, params: LookaheadParams | None = None, **overrides: Any) -> None:
         p = self.params = LookaheadParams.build(params, **overrides)
-        self.env, self.repeat = env, int(p.repeat)
+        self.env, self.repeat, self.plan_with_shield = env, int(p.repeat), bool(p.plan_with_shield)
         self.reset()
 
     def reset(self) -> None:
@@ -118,7 +134,8 @@ class Lookahead:
     def act(self, obs) -> int:
         if self._choice != GO and self._t % self.repeat == 0:
             # GO is final: once its future is collision-free it stays so (same copy, same draws)
-            self._choice = GO if go_is_safe(self.env, obs, lambda o: meta_action(GO, o["turn"])) else YIELD
+            safe = go_is_safe(self.env, obs, lambda o: meta_action(GO, o["turn"]), shield_off=not self.plan_with_shield)
+            self._choice = GO if safe else YIELD
         self._t += 1
         return meta_action(self._choice, obs["turn"])
 
@@ -145,7 +162,7 @@ class LookaheadAgent(AgentKind):
     @classmethod
     def build(cls, params: LookaheadParams, env: gym.Env, label: str) -> Lookahead:
         _needs_turn(env, label)
-        return Lookahead(env, repeat=params.repeat)
+        return Lookahead(env, params)
 
 
 def _go_yield_only(params: AgentParams, actions: str) -> None:

@@ -277,6 +277,21 @@ def test_the_lookahead_oracle_avoids_the_collisions_of_always_proceed():
     assert sum(s for _, _, s in outcomes.values()) >= 6, outcomes
 
 
+def test_the_lookahead_oracle_plans_without_the_shield_unless_asked():
+    """lookahead+aeb on the paper's CCFtap case (the target would hit an ego that drives on; the shield stops it):
+    the oracle's own futures (the default) show the collision, so it waits for the target and the shield never
+    brakes; planning with the shield in its futures it goes at once and leaves the stopping to the shield."""
+    from agents.go_yield import Lookahead
+
+    env = make_env({**conf("env", "left_turn"), "mode": "ccftap",
+                    "ccftap": {"ego_speed_kmh": 15, "target_speed_kmh": 45, "dt": 0.0}},
+                   compose_group("sensors", "turn_truth"), compose_group("shield", "aeb"))
+    own = rollout(env, Lookahead(env, repeat=5), 0)[1]["episode_metrics"]
+    leaning = rollout(env, Lookahead(env, repeat=5, plan_with_shield=True), 0)[1]["episode_metrics"]
+    assert own["collision"] == 0.0 and own["success"] == 1.0 and own["intervention"] == 0.0
+    assert leaning["collision"] == 0.0 and leaning["intervention"] == 1.0
+
+
 def test_dagger_rounds_let_the_student_drive_and_the_teacher_label_its_states():
     from stable_baselines3.common.vec_env import DummyVecEnv
 
