@@ -82,14 +82,11 @@ def go_is_safe(env: gym.Env, obs: Any, go: Callable[[Any], Any], visited: dict |
     makes :class:`Lookahead` an oracle. Cost: one simulated episode tail (~0.1 s on the left turn)."""
     future = copy.deepcopy(env)
     if shield_off:
-        from av_gym.shields.aeb import AEBShield
+        from av_gym.shields.aeb import find_shield
 
-        layer = future
-        while layer is not None:
-            if isinstance(layer, AEBShield):
-                layer.bypass = True
-                layer.actuator.release()
-            layer = getattr(layer, "env", None)
+        shield = find_shield(future)
+        if shield is not None:
+            shield.switch_off()
     while True:
         obs, _, terminated, truncated, info = future.step(go(obs))
         if visited is not None:

@@ -37,6 +37,13 @@ def boxes_overlap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return overlap
 
 
+def may_overlap(d: np.ndarray, reach: np.ndarray) -> np.ndarray:
+    """Whether boxes whose centres are ``d`` (..., 2) m apart can overlap at all: the distance is within ``reach``
+    (broadcast: the sum of their half-diagonals), with a relative and absolute slack so that rounding never drops a
+    pair the separating-axis test would find."""
+    return d[..., 0] ** 2 + d[..., 1] ** 2 <= (reach * (1 + 1e-9) + 1e-9) ** 2
+
+
 def constant_velocity_ttc(ego: np.ndarray, others: np.ndarray, horizon: float = 5.0, dt: float = 0.05) -> float:
     """First time (s) at which the ego box and any other box overlap when both keep their current velocity and
     heading; ``inf`` if none within ``horizon`` s, 0 if they overlap now. ``ego`` (7,), ``others`` (N, 7) in
@@ -52,7 +59,7 @@ def constant_velocity_ttc(ego: np.ndarray, others: np.ndarray, horizon: float = 
     oth_c = others[None, :, 0:2] + t[..., None] * others[None, :, 2:4]  # (K, N, 2)
     d = oth_c - ego_c
     reach = 0.5 * np.hypot(ego[5], ego[6]) + 0.5 * np.hypot(others[:, 5], others[:, 6])  # (N,)
-    near = d[..., 0] ** 2 + d[..., 1] ** 2 <= (reach * (1 + 1e-9) + 1e-9) ** 2  # conservative: rounding-safe
+    near = may_overlap(d, reach)
     if not near.any():
         return float("inf")
     k, n = np.nonzero(near)  # row-major: ascending k

@@ -23,7 +23,7 @@ def scene(n_vehicles: int, seed: int, target_model: str):
     from agents import AlwaysProceed
     from av_gym.make import make_env
     from eval.agents import compose_group
-    from eval.interventions import find_shield
+    from av_gym.shields.aeb import find_shield
 
     shield = compose_group("shield", "aeb")
     shield["target_model"] = target_model

@@ -39,22 +39,11 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from av_gym.shields.aeb import find_shield
 from av_gym.shields.conflicts import PARTNER_TYPES, partner_type
 from eval.runner import play_episode
 
 WINDOW = 8.0  # s, default counterfactual window (module docstring)
-
-
-def find_shield(env):
-    """The AEB shield in a wrapped env stack (None if there is none)."""
-    from av_gym.shields.aeb import AEBShield
-
-    e = env
-    while e is not None:
-        if isinstance(e, AEBShield):
-            return e
-        e = getattr(e, "env", None)
-    return None
 
 
 def _ego_s(u) -> float:
@@ -121,9 +110,7 @@ def labelled_episode(env, policy, seed: int, window: float = WINDOW) -> tuple[di
                "front_past_line_m": sh._front_past_line(), "target": _classify(u, target)}
         # The stack and the agent in one deep copy, so a policy bound to its env (the oracle) drives the copy.
         cf_env, cf_policy = copy.deepcopy((env, policy))
-        cf = find_shield(cf_env)
-        cf.on_intervention, cf.bypass = None, True
-        cf.actuator.release()
+        find_shield(cf_env).switch_off()
         row.update(counterfactual(cf_env, cf_policy, action, window))
         row["needed"] = bool(row["cf_collision"])
         rows.append(row)

@@ -106,10 +106,17 @@ class LongitudinalAction(ContinuousAction):
     def space(self) -> spaces.Box:
         return spaces.Box(-1.0, 1.0, shape=(1,), dtype=np.float32)
 
+    def acceleration(self, action: np.ndarray) -> float:
+        """The acceleration (m/s²) ``action`` commands (also what the AEB shield predicts the ego under)."""
+        return utils.lmap(self._command(action), [-1, 1], self.acceleration_range)
+
+    @staticmethod
+    def _command(action: np.ndarray) -> float:
+        return float(np.clip(np.asarray(action, dtype=float).reshape(-1)[0], -1.0, 1.0))
+
     def act(self, action: np.ndarray) -> None:
-        a = float(np.clip(np.asarray(action, dtype=float).reshape(-1)[0], -1.0, 1.0))
-        self.controlled_vehicle.act({"acceleration": utils.lmap(a, [-1, 1], self.acceleration_range)})
-        self.last_action = np.array([a])
+        self.controlled_vehicle.act({"acceleration": self.acceleration(action)})
+        self.last_action = np.array([self._command(action)])
 
 
 class FastDiscreteMetaAction(DiscreteMetaAction):

@@ -369,6 +369,16 @@ class _ActuatedAct:
             self.vehicle.action["acceleration"] = a
 
 
+def find_shield(env: gym.Env) -> "AEBShield | None":
+    """The AEB shield in a wrapped env stack (None if there is none)."""
+    e = env
+    while e is not None:
+        if isinstance(e, AEBShield):
+            return e
+        e = getattr(e, "env", None)
+    return None
+
+
 AEB_VARIANTS = Registry("variant")
 """``shield.variant`` → the AEB wrapper class with that decision logic; its ``Params`` is the section's fields."""
 
@@ -524,6 +534,12 @@ class AEBShield(gym.Wrapper):
         self._info = self._make_info(stage, ttc, horizon, target, active, infeasible, applied)
         info.update(self._info)
         return obs, reward, terminated, truncated, info
+
+    def switch_off(self) -> None:
+        """Bypass this shield from now on and let go of any brake: the driver alone (a counterfactual replay, or
+        an oracle's own simulated future, on a deep copy of the stack)."""
+        self.on_intervention, self.bypass = None, True
+        self.actuator.release()
 
     def _make_info(self, stage, ttc, horizon, target, active, infeasible, applied) -> dict:
         return {"aeb_stage": int(stage), "aeb_ttc": float(ttc), "aeb_horizon": float(horizon),
@@ -878,10 +894,7 @@ class ImprovedAEB(AEBShield):
                     return float(vehicle.index_to_speed(int(np.clip(int(vehicle.speed_to_index(v)) + step, 0, top))))
                 return setpoint_profile(ego["speed"], set_at, t, dt=self.sim_dt)
             return go_profile(ego["speed"], ego["set_speed"], t)
-        accel = ego["accel"]
-        if action is not None:  # LongitudinalAction: [-1, 1] mapped linearly onto the acceleration range
-            lo, hi = u.action_type.acceleration_range
-            accel = lo + (float(np.clip(np.ravel(action)[0], -1.0, 1.0)) + 1.0) * 0.5 * (hi - lo)
+        accel = ego["accel"] if action is None else u.action_type.acceleration(action)
         v_cap = max(ego["speed"], self.go_speed, ego["speed_limit"] or self.go_speed)
         a = accel if ego["speed"] > STOP_SPEED else max(accel, 0.0)
         return cruise_profile(ego["speed"], a, t, v_max=v_cap)

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from av_gym.geometry import box_corners, boxes_overlap
+from av_gym.geometry import box_corners, boxes_overlap, may_overlap
 
 KMH = 1 / 3.6
 PAPER_SPEEDS_KMH = (10.0, 15.0, 20.0)
@@ -310,7 +310,7 @@ def footprint_ttc(ego_xy: np.ndarray, ego_heading: np.ndarray, ego_size: tuple[f
     # only, usually a few of the 80 x ~40 (it was half of the shield's cost per decision, docs/aeb.md)
     d = others_xy - ego_xy[:, None, :]
     reach = 0.5 * np.hypot(length, width) + 0.5 * np.hypot(others_size[:, 0], others_size[:, 1])  # (M,)
-    near = d[..., 0] ** 2 + d[..., 1] ** 2 <= (reach * (1 + 1e-9) + 1e-9) ** 2  # (K, M), rounding-safe
+    near = may_overlap(d, reach)  # (K, M)
     hit = np.zeros(near.shape, dtype=bool)
     if near.any():
         k, m = np.nonzero(near)
