@@ -51,6 +51,7 @@ from highway_env.road.lane import AbstractLane, LineType
 
 from av_gym.geometry import box_corners
 from av_gym.params import Params, param
+from av_gym.sensors import raster
 from av_gym.sensors.base import SensorWrapper, ego_pose, others_state, sim_time
 from av_gym.sensors.world import CIRCLE_KINDS, SEGMENT_KINDS, roadside_world
 
@@ -795,64 +796,20 @@ def _render_rig(scene: StaticScene, others: np.ndarray, pose: np.ndarray, camera
     idx = np.flatnonzero(keys <= reach)
     idx = idx[np.argsort(-keys[idx], kind="stable")]  # far to near, once for the rig
     fa, fb, fz, keys, colours, kind = (v[idx] for v in (fa, fb, fz, keys, colours, kind))
+    nrm, nm = np.zeros((len(keys), 2)), np.zeros(len(keys))
     vehicle = np.flatnonzero(kind == 1)
-    if len(vehicle):  # back-face test per camera: normal · (camera − face midpoint) > 0
-        normals, mids = normals[idx][vehicle], mids[idx][vehicle]
-        nm = np.einsum("ij,ij->i", normals, mids)
+    if len(vehicle):  # back-face test per camera (in project_rig): normal · (camera − face midpoint) > 0
+        nrm[vehicle] = normals[idx][vehicle]
+        nm[vehicle] = np.einsum("ij,ij->i", nrm[vehicle], mids[idx][vehicle])
     smalls = _draw_rig_ground(pose, specs, texture)
-    colours = colours.tolist()
-
-    if shared is not None and len(keys):
-        # The cameras differ only in lateral offset: Y, Z and the near/top/bottom culling are the rig's, and
-        # whatever is wholly behind the lenses or beyond the outer side planes is dropped once.
-        fo, h, pitch = base.forward_offset, base.mount_height, base.pitch
-        ct, st = math.cos(pitch), math.sin(pitch)
-        av, u = fa - fo, fz - h
-        Y, Z = -(av * st + u * ct), av * ct - u * st
-        tx, ty = (base.width / 2 + 1) / base.focal, (base.height / 2 + 1) / base.focal
-        lo, hi = lats.min(), lats.max()
-        common = ~((Z < NEAR_PLANE).all(1) | (Y > ty * Z).all(1) | (-Y > ty * Z).all(1)
-                   | (fb - hi > tx * Z).all(1) | (lo - fb > tx * Z).all(1)) & (keys <= base.max_range)
-        if h <= VEHICLE_HEIGHT:
-            common &= kind != 2
-        X = fb[None] - lats[:, None, None]  # (K, N, 4)
-        keep = common & ~((X > tx * Z).all(2) | (-X > tx * Z).all(2))
-        if len(vehicle):
-            cam_xy = np.stack([x + fo * cf - lats * sf, y + fo * sf + lats * cf], 1)  # (K, 2) world
-            keep[:, vehicle] &= cam_xy @ normals.T > nm
-        front = (Z >= NEAR_PLANE).all(1)
-        ss = base.supersample
-        f, cx, cy = base.focal * ss, (base.width * ss - 1) / 2, (base.height * ss - 1) / 2
-        w = f / np.where(front[:, None], Z, 1.0)  # straddlers are clipped in _paint instead
-        px = np.empty((len(specs),) + Z.shape + (2,), np.int32)
-        np.rint((cx + X * w) * (1 << _SHIFT), out=px[..., 0], casting="unsafe")
-        px[..., 1] = np.rint((cy + Y * w) * (1 << _SHIFT))
-        for k, spec in enumerate(specs):
-            sel = np.flatnonzero(keep[k])
-            pc = np.stack([X[k], Y, Z], -1) if not front[sel].all() else None
-            smalls[k] = _paint(smalls[k], sel, px[k], front, pc, colours, keys, spec, weather, whole_image)
-    elif len(keys):
-        for k, spec in enumerate(specs):
-            cy_, sy_ = math.cos(spec.yaw), math.sin(spec.yaw)
-            a0, b0 = fa - spec.forward_offset, fb - spec.lateral_offset
-            a, b = a0 * cy_ + b0 * sy_, -a0 * sy_ + b0 * cy_
-            u = fz - spec.mount_height
-            ct, st = math.cos(spec.pitch), math.sin(spec.pitch)
-            pc = np.stack([b, -(a * st + u * ct), a * ct - u * st], -1)
-            keep = (keys <= spec.max_range) & _in_frustum(pc, spec)
-            keep &= (kind != 2) | (spec.mount_height > VEHICLE_HEIGHT)
-            if len(vehicle):
-                cam_xy = np.array([x + spec.forward_offset * cf - spec.lateral_offset * sf,
-                                   y + spec.forward_offset * sf + spec.lateral_offset * cf])
-                keep[vehicle] &= normals @ cam_xy > nm
-            front = (pc[..., 2] >= NEAR_PLANE).all(1)
-            px = _to_pixels(np.where(front[:, None, None], pc, 1.0), spec)
-            smalls[k] = _paint(smalls[k], np.flatnonzero(keep), px, front, pc, colours, keys, spec, weather,
-                               whole_image)
-    else:
-        smalls = [_paint(sm, np.zeros(0, int), None, None, None, [], keys, spec, weather, whole_image)
-                  for sm, spec in zip(smalls, specs)]
-    return {name: sm for name, sm in zip(cameras, smalls)}
+    cams = np.array([[sp.forward_offset, sp.lateral_offset, sp.yaw, sp.mount_height, sp.pitch, sp.focal, sp.width,
+                      sp.height, sp.supersample, sp.max_range, x + sp.forward_offset * cf - sp.lateral_offset * sf,
+                      y + sp.forward_offset * sf + sp.lateral_offset * cf, sp.mount_height > VEHICLE_HEIGHT]
+                     for sp in specs], float)
+    polys, npts = raster.project_rig(fa, fb, fz, keys, kind, nrm, nm, cams, NEAR_PLANE, _SHIFT, shared is not None)
+    colours = np.ascontiguousarray(colours.astype(np.uint8)).view(np.uint32)[:, 0]  # RGBA packed as the images
+    return {name: _paint(sm, polys[k], npts[k], colours, keys, spec, weather, whole_image)
+            for k, (name, sm, spec) in enumerate(zip(cameras, smalls, specs))}
 
 
 def _shared_geometry(cameras: Mapping[str, CameraSpec]) -> CameraSpec | None:
@@ -911,66 +868,29 @@ def _rig_ground(specs: tuple[CameraSpec, ...]) -> tuple[np.ndarray, np.ndarray, 
     return np.ascontiguousarray(pts), np.ascontiguousarray(palette), rowmap
 
 
-def _paint(small: np.ndarray, sel: np.ndarray, px: np.ndarray | None, front: np.ndarray | None,
-           pc: np.ndarray | None, colours: list, dist: np.ndarray, spec: CameraSpec, weather: Weather,
-           whole: bool = False) -> np.ndarray:
+def _paint(small: np.ndarray, polys: np.ndarray, npts: np.ndarray, colours: np.ndarray, dist: np.ndarray,
+           spec: CameraSpec, weather: Weather, whole: bool = False) -> np.ndarray:
     """The vertical things over one camera's ground image ``small`` (H, W, 4) RGBA at the output size; returns
-    the (H, W, 3) RGB frame. ``sel``: the quads this camera draws, far to near; ``px`` (N, 4, 2) int32 internal
-    pixels (``_SHIFT`` bits) of every quad, valid where ``front`` (wholly before the near plane); ``pc`` (N, 4, 3)
-    camera-frame quads, for clipping the others (may be None when none is selected).
+    the (H, W, 3) RGB frame. ``polys`` (N, MAX_VERTS, 2) / ``npts`` (N,): this camera's internal-pixel polygons,
+    far to near (:func:`raster.project_rig`); ``colours`` (N, 4) uint8 RGBA; ``dist`` (N,) m, for the depth buffer.
 
-    Painter's algorithm at ``supersample``x, one ``cv2.fillConvexPoly`` per quad, then area-averaged down. Only
-    the band of the image the quads cover (their bounding box, one output pixel of margin) is enlarged, painted
-    and shrunk: the ground outside it is already final, and nearest enlargement and 2x2 area averaging both work
-    block by block, so the band gives the same pixels as the whole image. (Batching quads into few ``fillPoly``
-    calls was measured and not taken: ``fillPoly`` costs about as much per polygon as ``fillConvexPoly`` per
-    call, ~0.7-0.9 us for these small quads, and keeping the painter's order needs an overlap test per pair.)
-    With fog or night the whole image is painted, with a depth buffer beside it."""
-    ss = spec.supersample
-    cols = [colours[i] for i in sel.tolist()]
-    if len(sel) and front[sel].all():
-        arr = px[sel]  # (n, 4, 2), a copy: shifted into the band below
-        polys = list(arr)
-    else:
-        arr = None
-        polys, kept = [], []  # straddlers clipped at the near plane; nothing left of them: dropped
-        for j, (i, ok) in enumerate(zip(sel.tolist(), front[sel].tolist() if len(sel) else [])):
-            c = pc[i] if ok else _clip_near(pc[i])
-            if len(c) >= 3:
-                polys.append(px[i].copy() if ok else _to_pixels(c, spec))
-                kept.append(j)
-        cols, sel = [cols[j] for j in kept], sel[kept]
+    Painter's algorithm at ``supersample``x, then area-averaged down, compiled (:func:`raster.paint_band`): only
+    the band the quads cover is enlarged, painted and shrunk (the ground outside it is final already); ``whole``
+    repaints the whole image (the reference the band is tested against). With fog or night the whole image is
+    painted, with a depth buffer beside it."""
     if weather.needs_depth:
-        img = _enlarge(small, ss)
+        img = _enlarge(small, spec.supersample)
         depth = _ground_rays(spec)[0].copy()
-        for p, c, d in zip(polys, cols, dist[sel].tolist()):
-            cv2.fillConvexPoly(img, p, c, cv2.LINE_8, _SHIFT)
-            cv2.fillConvexPoly(depth, p, d, cv2.LINE_8, _SHIFT)
+        raster.paint_depth(_as_pixels(img), depth, polys, npts, colours, dist, _SHIFT)
         return _apply_weather(cv2.cvtColor(img, cv2.COLOR_RGBA2RGB), depth, spec, weather)
-    if polys:
-        if whole:
-            r0, r1, c0, c1 = 0, spec.height, 0, spec.width
-        else:
-            allp = arr.reshape(-1, 2) if arr is not None else np.concatenate(polys)
-            r0 = r1 = c0 = c1 = 0
-            if len(allp):
-                lo, hi = allp.min(0) >> _SHIFT, allp.max(0) >> _SHIFT  # internal pixels
-                c0, r0 = max(0, int(lo[0]) // ss - 1), max(0, int(lo[1]) // ss - 1)
-                c1, r1 = min(spec.width, int(hi[0]) // ss + 2), min(spec.height, int(hi[1]) // ss + 2)
-        if r1 > r0 and c1 > c0:
-            shift = np.array([c0 * ss << _SHIFT, r0 * ss << _SHIFT], np.int32)
-            if arr is not None:
-                arr -= shift  # the views in polys follow
-            else:
-                polys = [p - shift for p in polys]
-            band = small[r0:r1, c0:c1]
-            img = _enlarge(band, ss)
-            fill = cv2.fillConvexPoly
-            for p, c in zip(polys, cols):
-                fill(img, p, c, cv2.LINE_8, _SHIFT)
-            small[r0:r1, c0:c1] = cv2.resize(img, (c1 - c0, r1 - r0), interpolation=cv2.INTER_AREA) \
-                if ss > 1 else img
+    raster.paint_band(_as_pixels(small), polys, npts, colours, spec.supersample, _SHIFT, whole)
     return cv2.cvtColor(small, cv2.COLOR_RGBA2RGB)
+
+
+def _as_pixels(img: np.ndarray) -> np.ndarray:
+    """An (H, W, 4) uint8 RGBA image viewed as (H, W) uint32, one value per pixel (same memory), as the compiled
+    painter fills it."""
+    return img.view(np.uint32)[..., 0]
 
 
 def _enlarge(img: np.ndarray, ss: int) -> np.ndarray:
