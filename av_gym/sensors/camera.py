@@ -542,19 +542,10 @@ def _draw_ground(img: np.ndarray, cam: _Pose, quads: np.ndarray, groups: np.ndar
         cv2.fillPoly(img, [poly], colour, cv2.LINE_8, _SHIFT)
 
 
-def _rig_scenery(scene: StaticScene, pose: np.ndarray, base: CameraSpec, reach: float,
-                 side: tuple[float, float] | None) -> tuple[np.ndarray, ...]:
-    """The roadside vertical quads a rig may see, in the vehicle frame: ``(fa, fb, fz)`` (N, 4) forward, right,
-    up (m) of the corners ``[(A, z0), (B, z0), (B, z1), (A, z1)]`` of quads standing on ground segments A→B;
-    ``keys`` (N,) distance (m) from the rig's centre (the lens position of ``base``), items beyond ``reach`` m dropped, ``colours`` (N, 4) RGBA int. Walls first, then poles and trunks, then tree
-    crowns (after their trunks: same key, later in the stable far-to-near sort).
-
-    Cylinders are drawn as rectangles facing the rig's centre (for a side camera 0.6 m away, the facing is off by
-    atan(0.6/d), which changes a 0.3 m pole's width by < 1 % beyond 5 m). Before any per-corner work, items are
-    dropped by their bounding circle when no part can be within ``reach`` of the rig centre and, for a windshield
-    rig (``side``: the cameras' lateral offsets span ``side[0]``..``side[1]`` m, all else equal to ``base``), when
-    no part can be ahead of the near plane or inside the outer side planes (conservative: the exact per-corner
-    culling follows in :func:`_render_rig`). What does not depend on the pose is kept on ``scene`` (the rig's cached cull)."""
+def _scenery_state(scene: StaticScene) -> dict:
+    """The roadside vertical things of ``scene`` as :func:`raster.rig_quads` takes them, built once per scene:
+    wall pieces' ends, every item's bounding circle, bottom and top heights (m) and RGBA colour; walls first, then
+    poles and trunks, then tree crowns (after their trunks: same key, later in the stable far-to-near sort)."""
     st = getattr(scene, "_rig_scenery", None)
     if st is None:
         tree = scene.post_kind == CIRCLE_KINDS.index("tree")
@@ -575,39 +566,7 @@ def _rig_scenery(scene: StaticScene, pose: np.ndarray, base: CameraSpec, reach: 
             z0=np.concatenate([w[:, 0, 2], np.zeros(len(h)), z_top[crown]]),
             z1=np.concatenate([w[:, 2, 2], z_top, h[crown]]),
             colour=np.concatenate([colour, np.full((len(colour), 1), 255)], 1))
-    x, y, psi = float(pose[0]), float(pose[1]), float(pose[2])
-    cf, sf = math.cos(psi), math.sin(psi)
-    fo, hgt = base.forward_offset, base.mount_height
-    c = st["centre"]
-    d0, d1 = c[:, 0] - x, c[:, 1] - y
-    ca, cb = d0 * cf + d1 * sf, -d0 * sf + d1 * cf  # centres in the vehicle frame
-    keys = np.hypot(ca - fo, cb)
-    r = st["radius"]
-    ct, stp = math.cos(base.pitch), math.sin(base.pitch)
-    tx = (base.width / 2 + 1) / base.focal
-    near = keys <= reach + r
-    if side is not None:
-        lo, hi = side
-        # the largest camera depth Z = a·cosθ − (z − h)·sinθ any part can have
-        zmax = (ca + r - fo) * ct + np.maximum((hgt - st["z0"]) * stp, (hgt - st["z1"]) * stp)
-        near &= (zmax >= NEAR_PLANE) & (cb - r - hi <= tx * zmax) & (lo - cb - r <= tx * zmax)
-    sel = np.flatnonzero(near)
-    nw = st["nw"]
-    wsel, psel = sel[sel < nw], sel[sel >= nw]
-    e = st["ends"][wsel]
-    e0, e1 = e[:, 0::2] - x, e[:, 1::2] - y  # (n, 2): A and B, x and y offsets
-    wa, wb = e0 * cf + e1 * sf, -e0 * sf + e1 * cf  # (n, 2) forward, right of A and B
-    pa, pb = ca[psel], cb[psel]
-    ray_a, ray_b = pa - fo, pb
-    k = r[psel] / np.maximum(np.hypot(ray_a, ray_b), 1e-6)
-    qa, qb = -ray_b * k, ray_a * k  # perpendicular to the ray from the rig centre, radius long
-    A_a, B_a = np.concatenate([wa[:, 0], pa - qa]), np.concatenate([wa[:, 1], pa + qa])
-    A_b, B_b = np.concatenate([wb[:, 0], pb - qb]), np.concatenate([wb[:, 1], pb + qb])
-    z0, z1 = st["z0"][sel], st["z1"][sel]
-    fa = np.stack([A_a, B_a, B_a, A_a], 1)
-    fb = np.stack([A_b, B_b, B_b, A_b], 1)
-    fz = np.stack([z0, z0, z1, z1], 1)
-    return fa, fb, fz, keys[sel], st["colour"][sel]
+    return st
 
 
 def _vertical_items(scene: StaticScene, others: np.ndarray, cam: _Pose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -711,46 +670,7 @@ def _render_one_raster(scene: StaticScene, others: np.ndarray, pose: np.ndarray,
     return _apply_weather(img, depth, spec, weather)
 
 
-def _vehicle_items(others: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Every face of the other vehicles' boxes, for a whole rig: ((F, 4, 3) quads, (F, 3) RGB, (F,) distance from
-    ``xy`` m, (F, 2) outward normal, (F, 2) face midpoint). Each camera keeps the faces whose normal points
-    towards it (back faces culled, as in :func:`_vehicle_faces`); roofs have a zero normal and are kept by every
-    camera mounted above :data:`VEHICLE_HEIGHT`. Sides come before their windows, windows before roofs, so the
-    stable far-to-near sort draws each window over its own side. The same boxes as :func:`box_corners` (corner
-    i at (±l/2, ±w/2) in the order front-left, front-right, rear-right, rear-left of the heading frame; side i
-    runs corner i → i+1), written out per coordinate because this runs every frame and numpy's per-call cost
-    dominated the general version (~70 us per rig)."""
-    n = len(others)
-    c, s = np.cos(others[:, 4])[:, None], np.sin(others[:, 4])[:, None]
-    lx, ly = others[:, 5:6] / 2 * _BOX_X, others[:, 6:7] / 2 * _BOX_Y  # (n, 4) corners in the box frame
-    ax, ay = others[:, 0:1] + c * lx - s * ly, others[:, 1:2] + s * lx + c * ly
-    bx, by = ax[:, _NEXT], ay[:, _NEXT]
-    nx = np.concatenate([c, s, -c, -s], 1)  # outward unit normals: front, right, rear, left side
-    ny = np.concatenate([s, -c, -s, c], 1)
-    shade = (0.62 + 0.38 * np.clip(nx * SUN[0] + ny * SUN[1], 0.0, 1.0)).reshape(-1, 1)
-    ex, ey = bx - ax, by - ay
-    q = np.empty((9 * n, 4, 3))
-    sides, windows, roofs = q[:4 * n], q[4 * n:8 * n], q[8 * n:]
-    for quad, (x0, y0, x1, y1), (z0, z1) in (
-            (sides, (ax, ay, bx, by), (0.0, VEHICLE_HEIGHT)),
-            (windows, (ax + WINDOW_INSET * ex, ay + WINDOW_INSET * ey, bx - WINDOW_INSET * ex,
-                       by - WINDOW_INSET * ey), WINDOW_BAND)):
-        quad[:, [0, 3], 0], quad[:, [0, 3], 1] = x0.reshape(-1, 1), y0.reshape(-1, 1)
-        quad[:, [1, 2], 0], quad[:, [1, 2], 1] = x1.reshape(-1, 1), y1.reshape(-1, 1)
-        quad[:, :2, 2], quad[:, 2:, 2] = z0, z1
-    roofs[..., 0], roofs[..., 1], roofs[..., 2] = ax, ay, VEHICLE_HEIGHT
-    dist = np.hypot(others[:, 0] - xy[0], others[:, 1] - xy[1])
-    side_keys = np.repeat(dist, 4)
-    nrm = np.stack([nx.ravel(), ny.ravel()], 1)
-    mids = np.stack([(ax + bx).ravel() / 2, (ay + by).ravel() / 2], 1)
-    return (q, np.concatenate([VEHICLE_COLOUR * shade, WINDOW_COLOUR * shade,
-                               np.tile(np.minimum(VEHICLE_COLOUR * 1.1, 255), (n, 1))]),
-            np.concatenate([side_keys, side_keys, dist]),
-            np.concatenate([nrm, nrm, np.zeros((n, 2))]), np.concatenate([mids, mids, np.zeros((n, 2))]))
-
-
-_BOX_X, _BOX_Y = np.array([1.0, 1.0, -1.0, -1.0]), np.array([1.0, -1.0, -1.0, 1.0])
-_NEXT = [1, 2, 3, 0]
+_VEHICLE_LOOK = np.array([VEHICLE_HEIGHT, *VEHICLE_COLOUR, *WINDOW_COLOUR, WINDOW_INSET, *WINDOW_BAND, *SUN])
 
 
 def _render_rig(scene: StaticScene, others: np.ndarray, pose: np.ndarray, cameras: Mapping[str, CameraSpec],
@@ -775,32 +695,13 @@ def _render_rig(scene: StaticScene, others: np.ndarray, pose: np.ndarray, camera
     shared = _shared_geometry(cameras)
     lats = np.array([sp.lateral_offset for sp in specs])
     reach = max(spec.max_range for spec in specs)
-    fa, fb, fz, keys, colours = _rig_scenery(
-        scene, pose, base, reach, (float(lats.min()), float(lats.max())) if shared is not None else None)
-    kind = np.zeros(len(keys), np.int8)  # 0 scenery (always drawn), 1 vehicle side or window (culled), 2 roof
-    normals = mids = None
-    if len(others):
-        centre = np.array([x + base.forward_offset * cf, y + base.forward_offset * sf])
-        others = others[np.hypot(*(others[:, :2] - centre).T) <= reach + np.hypot(others[:, 5], others[:, 6])]
-    if len(others):
-        q, col, k, nrm, mid = _vehicle_items(others, centre)
-        d0, d1 = q[..., 0] - x, q[..., 1] - y
-        fa, fb = np.concatenate([fa, d0 * cf + d1 * sf]), np.concatenate([fb, -d0 * sf + d1 * cf])
-        fz = np.concatenate([fz, q[..., 2]])
-        col = np.round(np.clip(col, 0, 255)).astype(np.int64)
-        colours = np.concatenate([colours, np.concatenate([col, np.full((len(col), 1), 255)], 1)])
-        keys = np.concatenate([keys, k])
-        normals = np.concatenate([np.zeros((len(kind), 2)), nrm])
-        mids = np.concatenate([np.zeros((len(kind), 2)), mid])
-        kind = np.concatenate([kind, np.where(nrm.any(1), 1, 2).astype(np.int8)])
-    idx = np.flatnonzero(keys <= reach)
-    idx = idx[np.argsort(-keys[idx], kind="stable")]  # far to near, once for the rig
-    fa, fb, fz, keys, colours, kind = (v[idx] for v in (fa, fb, fz, keys, colours, kind))
-    nrm, nm = np.zeros((len(keys), 2)), np.zeros(len(keys))
-    vehicle = np.flatnonzero(kind == 1)
-    if len(vehicle):  # back-face test per camera (in project_rig): normal · (camera − face midpoint) > 0
-        nrm[vehicle] = normals[idx][vehicle]
-        nm[vehicle] = np.einsum("ij,ij->i", nrm[vehicle], mids[idx][vehicle])
+    st = _scenery_state(scene)
+    lo, hi = float(lats.min()), float(lats.max())
+    fa, fb, fz, keys, colours, kind, nrm, nm = raster.rig_quads(
+        st["ends"], st["centre"], st["radius"], st["z0"], st["z1"], st["colour"], st["nw"],
+        np.asarray(pose, float), base.forward_offset, base.mount_height, base.pitch,
+        (base.width / 2 + 1) / base.focal, reach, shared is not None, lo, hi, NEAR_PLANE,
+        np.ascontiguousarray(others, float) if len(others) else np.zeros((0, 7)), _VEHICLE_LOOK)
     smalls = _draw_rig_ground(pose, specs, texture)
     cams = np.array([[sp.forward_offset, sp.lateral_offset, sp.yaw, sp.mount_height, sp.pitch, sp.focal, sp.width,
                       sp.height, sp.supersample, sp.max_range, x + sp.forward_offset * cf - sp.lateral_offset * sf,

@@ -403,3 +403,149 @@ def _shrink(img, small, r0, c0, ss):
                         s += (np.int64(img[r * ss + dy, c * ss + dx]) >> (8 * ch)) & 0xFF
                 out |= np.int64(np.rint(np.float32(s) * inv)) << (8 * ch)
             small[r0 + r, c0 + c] = np.uint32(out)
+
+
+@numba.njit(cache=True)
+def rig_quads(ends, centre, radius, z0s, z1s, scenery_colour, nw, pose, fo, mount, pitch, tx, reach, side, lo, hi,
+              near, others, vehicle):
+    """Every vertical quad a rig may see, in the vehicle frame and far to near (the painter's order): the
+    roadside scenery culled by bounding circle, and all faces of the other vehicles' boxes.
+
+    Scenery (the cached per-map arrays of ``camera._scenery_state``): ``ends`` (Pw, 4) wall pieces' ends A, B
+    (world x, y); ``centre`` (P, 2), ``radius`` (P,) bounding circles of walls then posts (cylinders, tree crowns
+    after their trunks); ``z0s``/``z1s`` (P,) bottom/top heights (m); ``scenery_colour`` (P, 4) RGBA. Each item is
+    dropped when no part can be within ``reach`` m of the rig centre (the lens position of the base camera,
+    ``fo`` m ahead of the vehicle centre at ``mount`` m, ``pitch`` rad down) and, for a windshield rig (``side``:
+    the cameras' lateral offsets span ``lo``..``hi`` m), when no part can be ahead of the ``near`` plane or inside
+    the outer side planes (``tx``: tan of half the horizontal FOV, one pixel of margin); conservative, the exact
+    per-camera culling is :func:`project_rig`'s. Walls stand on A→B; a cylinder is a rectangle ``2r`` wide facing
+    the rig centre (for a side camera 0.6 m away the facing is off by atan(0.6/d), < 1 % of a 0.3 m pole's width
+    beyond 5 m).
+
+    Vehicles: ``others`` (n, 7+) world ``[x, y, _, _, heading, length, width]``, those within ``reach`` plus their
+    half-diagonal of the rig centre; per box 4 sides, 4 windows (a band inset in each side, listed after the
+    sides so the stable sort draws each over its own side) and a roof; ``vehicle`` = (height, body R, G, B, window
+    R, G, B, window inset fraction, window bottom, window top, sun x, sun y): faces are shaded by
+    ``0.62 + 0.38·max(0, normal·sun)``. Sides and windows carry their outward normal and normal·midpoint for the
+    per-camera back-face test; roofs are drawn only by cameras above them.
+
+    Returns ``fa``, ``fb``, ``fz`` (M, 4) forward, right, up (m) of the corners ``[(A, z0), (B, z0), (B, z1),
+    (A, z1)]``, ``keys`` (M,) distance (m) from the rig centre (a vehicle's faces: its centre's), ``colours``
+    (M, 4) RGBA, ``kind`` (M,) 0 scenery, 1 side or window, 2 roof, ``normals`` (M, 2) world, ``nm`` (M,), sorted
+    far to near (stable), items beyond ``reach`` dropped. The formulas are the numpy renderer's, in its order."""
+    x, y, psi = pose[0], pose[1], pose[2]
+    cf, sf = math.cos(psi), math.sin(psi)
+    ct, stp = math.cos(pitch), math.sin(pitch)
+    p_all = centre.shape[0]
+    keys_s = np.empty(p_all)
+    ca = np.empty(p_all)
+    cb = np.empty(p_all)
+    sel = np.empty(p_all, np.int64)
+    m_s = 0
+    for i in range(p_all):
+        d0, d1 = centre[i, 0] - x, centre[i, 1] - y
+        ca[i], cb[i] = d0 * cf + d1 * sf, -d0 * sf + d1 * cf
+        keys_s[i] = math.hypot(ca[i] - fo, cb[i])
+        r = radius[i]
+        ok = keys_s[i] <= reach + r
+        if ok and side:
+            zmax = (ca[i] + r - fo) * ct + max((mount - z0s[i]) * stp, (mount - z1s[i]) * stp)
+            ok = (zmax >= near) and (cb[i] - r - hi <= tx * zmax) and (lo - cb[i] - r <= tx * zmax)
+        if ok:
+            sel[m_s] = i
+            m_s += 1
+    cx, cy = x + fo * cf, y + fo * sf
+    n_o = others.shape[0]
+    keep_o = np.empty(n_o, np.int64)
+    m_o = 0
+    for v in range(n_o):
+        if math.hypot(others[v, 0] - cx, others[v, 1] - cy) <= reach + math.hypot(others[v, 5], others[v, 6]):
+            keep_o[m_o] = v
+            m_o += 1
+    total = m_s + 9 * m_o
+    fa = np.empty((total, 4))
+    fb = np.empty((total, 4))
+    fz = np.empty((total, 4))
+    keys = np.empty(total)
+    colours = np.empty((total, 4), np.int64)
+    kind = np.zeros(total, np.int8)
+    normals = np.zeros((total, 2))
+    nm = np.zeros(total)
+    for j in range(m_s):
+        i = sel[j]
+        if i < nw:
+            e0a, e1a = ends[i, 0] - x, ends[i, 1] - y
+            e0b, e1b = ends[i, 2] - x, ends[i, 3] - y
+            a_a, b_a = e0a * cf + e1a * sf, e0b * cf + e1b * sf
+            a_b, b_b = -e0a * sf + e1a * cf, -e0b * sf + e1b * cf
+        else:
+            pa, pb = ca[i], cb[i]
+            ray_a, ray_b = pa - fo, pb
+            k = radius[i] / max(math.hypot(ray_a, ray_b), 1e-6)
+            qa, qb = -ray_b * k, ray_a * k
+            a_a, b_a = pa - qa, pa + qa
+            a_b, b_b = pb - qb, pb + qb
+        fa[j, 0], fa[j, 1], fa[j, 2], fa[j, 3] = a_a, b_a, b_a, a_a
+        fb[j, 0], fb[j, 1], fb[j, 2], fb[j, 3] = a_b, b_b, b_b, a_b
+        fz[j, 0], fz[j, 1], fz[j, 2], fz[j, 3] = z0s[i], z0s[i], z1s[i], z1s[i]
+        keys[j] = keys_s[i]
+        colours[j] = scenery_colour[i]
+    height, inset, wz0, wz1, sunx, suny = vehicle[0], vehicle[7], vehicle[8], vehicle[9], vehicle[10], vehicle[11]
+    ax, ay = np.empty(4), np.empty(4)
+    bx, by = np.empty(4), np.empty(4)
+    nxs, nys = np.empty(4), np.empty(4)
+    box_x = (1.0, 1.0, -1.0, -1.0)
+    box_y = (1.0, -1.0, -1.0, 1.0)
+    for jv in range(m_o):
+        v = keep_o[jv]
+        c, s = math.cos(others[v, 4]), math.sin(others[v, 4])
+        for q in range(4):
+            lx, ly = others[v, 5] / 2 * box_x[q], others[v, 6] / 2 * box_y[q]
+            ax[q], ay[q] = others[v, 0] + c * lx - s * ly, others[v, 1] + s * lx + c * ly
+        for q in range(4):
+            bx[q], by[q] = ax[(q + 1) % 4], ay[(q + 1) % 4]
+        nxs[0], nxs[1], nxs[2], nxs[3] = c, s, -c, -s  # outward unit normals: front, right, rear, left side
+        nys[0], nys[1], nys[2], nys[3] = s, -c, -s, c
+        dist = math.hypot(others[v, 0] - cx, others[v, 1] - cy)
+        for q in range(4):
+            shade = 0.62 + 0.38 * min(max(nxs[q] * sunx + nys[q] * suny, 0.0), 1.0)
+            ex, ey = bx[q] - ax[q], by[q] - ay[q]
+            mx, my = (ax[q] + bx[q]) / 2, (ay[q] + by[q]) / 2
+            for w in range(2):  # 0 side, 1 window
+                j = m_s + (4 * w) * m_o + 4 * jv + q
+                if w == 0:
+                    x0, y0, x1, y1, z0, z1 = ax[q], ay[q], bx[q], by[q], 0.0, height
+                else:
+                    x0, y0 = ax[q] + inset * ex, ay[q] + inset * ey
+                    x1, y1 = bx[q] - inset * ex, by[q] - inset * ey
+                    z0, z1 = wz0, wz1
+                _to_vehicle(fa, fb, j, 0, x0, y0, x, y, cf, sf)
+                _to_vehicle(fa, fb, j, 3, x0, y0, x, y, cf, sf)
+                _to_vehicle(fa, fb, j, 1, x1, y1, x, y, cf, sf)
+                _to_vehicle(fa, fb, j, 2, x1, y1, x, y, cf, sf)
+                fz[j, 0], fz[j, 1], fz[j, 2], fz[j, 3] = z0, z0, z1, z1
+                keys[j] = dist
+                for ch in range(3):
+                    colours[j, ch] = np.int64(np.rint(min(max(vehicle[1 + 3 * w + ch] * shade, 0.0), 255.0)))
+                colours[j, 3] = 255
+                kind[j] = 1
+                normals[j, 0], normals[j, 1] = nxs[q], nys[q]
+                nm[j] = nxs[q] * mx + nys[q] * my
+        j = m_s + 8 * m_o + jv
+        for q in range(4):
+            _to_vehicle(fa, fb, j, q, ax[q], ay[q], x, y, cf, sf)
+            fz[j, q] = height
+        keys[j] = dist
+        for ch in range(3):
+            colours[j, ch] = np.int64(np.rint(min(max(min(vehicle[1 + ch] * 1.1, 255.0), 0.0), 255.0)))
+        colours[j, 3] = 255
+        kind[j] = 2
+    idx = np.flatnonzero(keys <= reach)
+    order = idx[np.argsort(-keys[idx], kind="mergesort")]  # stable: far to near, ties in listed order
+    return fa[order], fb[order], fz[order], keys[order], colours[order], kind[order], normals[order], nm[order]
+
+
+@numba.njit(cache=True, inline="always")
+def _to_vehicle(fa, fb, j, corner, px, py, x, y, cf, sf):
+    d0, d1 = px - x, py - y
+    fa[j, corner], fb[j, corner] = d0 * cf + d1 * sf, -d0 * sf + d1 * cf
