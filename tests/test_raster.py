@@ -100,3 +100,31 @@ def test_quads_straddling_the_near_plane_are_clipped_as_the_numpy_clip():
         assert np.array_equal(polys[0, i, :len(c)], uv.astype(np.int64))
         clipped += 1
     assert clipped > 50
+
+
+@pytest.mark.parametrize("whole", [False, True])
+def test_paint_band_paints_what_opencv_paints_on_the_whole_enlarged_image(whole):
+    """Polygons painted in order at 2x, then area-averaged: the band (or whole image) path of paint_band against
+    cv2 (enlarge everything, fillConvexPoly each, INTER_AREA), including polygons partly off the image and the
+    culled ones (npts 0), which must leave no trace."""
+    rng = np.random.default_rng(7)
+    for t in range(60):
+        h, w, ss = 66, 200, 2
+        small = rng.integers(0, 256, (h, w, 4), dtype=np.uint8)
+        small[..., 3] = 255
+        n = int(rng.integers(1, 40))
+        polys = np.zeros((n, raster.MAX_VERTS, 2), np.int64)
+        npts = np.zeros(n, np.int64)
+        cols = rng.integers(0, 256, (n, 4)).astype(np.uint8)
+        cols[:, 3] = 255
+        ref = cv2.resize(small, (w * ss, h * ss), interpolation=cv2.INTER_NEAREST_EXACT)
+        for i in range(n):
+            p = _random_polygon(rng, t * 40 + i, h * ss, w * ss)
+            if rng.uniform() < 0.2:
+                continue  # culled: npts stays 0
+            polys[i, :len(p)], npts[i] = p, len(p)
+            cv2.fillConvexPoly(ref, p, cols[i].tolist(), cv2.LINE_8, _SHIFT)
+        ref = cv2.resize(ref, (w, h), interpolation=cv2.INTER_AREA)
+        out = small.copy()
+        raster.paint_band(out.view(np.uint32)[..., 0], polys, npts, cols.view(np.uint32)[:, 0], ss, _SHIFT, whole)
+        assert np.array_equal(out, ref), t

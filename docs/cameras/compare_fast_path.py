@@ -1,6 +1,8 @@
 """The camera renderer of this commit against the one before the per-frame speed-ups (issue 18, second pass).
 
-    .venv/bin/python docs/cameras/compare_fast_path.py [--steps 150] [--before 50eaf6e]
+    .venv/bin/python docs/cameras/compare_fast_path.py [--steps 150] [--before 50eaf6e] [--out NAME.md]
+
+(third pass, the compiled painter: ``--before 118f99e --out compiled_painter_comparison.md``)
 
 Loads ``av_gym/sensors/camera.py`` as it was at ``--before`` (``git show``) beside the current module, drives
 the same poses as ``compare_renderers.py`` (lap A and B with PID on the true CTE, the left turn with IDLE), renders
@@ -44,6 +46,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=150)
     parser.add_argument("--before", default="50eaf6e")
+    parser.add_argument("--out", default="fast_path_comparison.md", help="file name in docs/cameras/")
     args = parser.parse_args()
     old = load_before(args.before)
     rig = camera_rig()
@@ -60,13 +63,13 @@ def main() -> None:
             rows.append((scenario, wname, len(d), d.mean(), (d > 0).mean(), (d > 10).mean(), (d > 30).mean(),
                          int(d.max())))
             print(rows[-1], flush=True)
-    lines = [f"Renderer of this commit vs `{args.before}` (before the per-frame speed-ups), clean frames, "
+    lines = [f"Renderer of this commit vs `{args.before}`, clean frames, "
              f"{args.steps} steps per scenario, 3 cameras; difference per pixel = largest channel difference.", "",
              "| scenario | conditions | frames | mean abs diff | pixels differing | pixels > 10 | pixels > 30 | max |",
              "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     lines += [f"| {s} | {w} | {n} | {m:.4f} | {p0:.3%} | {p10:.3%} | {p30:.3%} | {mx} |"
               for s, w, n, m, p0, p10, p30, mx in rows]
-    (OUT / "fast_path_comparison.md").write_text("\n".join(lines) + "\n")
+    (OUT / args.out).write_text("\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":
