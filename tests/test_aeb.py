@@ -223,6 +223,88 @@ def test_driven_path_predictions_start_where_the_ego_is_all_along_the_route(make
         assert np.max(np.hypot(*(xy - centre).T)) < tol, s0
 
 
+def _numpy_cos_sin_are_libm() -> bool:
+    """numpy's float64 cos and sin give the C library's results (numba's ``math`` calls the C library), as on this
+    project's AVX2 machines (tests/test_kernels.py); an AVX-512 numpy build may differ in the last bit."""
+    import ctypes
+    import ctypes.util
+
+    libm = ctypes.CDLL(ctypes.util.find_library("m"))
+    a = np.random.default_rng(0).uniform(-10, 10, 2000)
+    for name, ours in (("cos", np.cos(a)), ("sin", np.sin(a))):
+        c = getattr(libm, name)
+        c.restype, c.argtypes = ctypes.c_double, [ctypes.c_double]
+        if not np.array_equal(ours, [c(x) for x in a]):
+            return False
+    return True
+
+
+def test_driven_path_kernel_equals_the_numpy_reference(make, turn_cfg):
+    """The compiled driven-path look-up (av_gym/shields/kernels.py, issue 17: < 1 ms per decision) against
+    DrivenPath.poses_numpy, the code it replaces, on random batches over every path hypothesis of the
+    intersection and the ego's route: starts before, inside (exactly at the table's start too) and past the
+    tables, constant and changing speeds across the speed bins and beyond them. Bit for bit where numpy's cos/sin
+    are libm's (as numba's are)."""
+    from av_gym.shields.aeb import _route_tables
+    from av_gym.envs.left_turn import ROUTE
+    from av_gym.shields.conflicts import ConflictModel
+    from av_gym.shields.predict import driven_poses
+
+    env = make(turn_cfg, None, None)
+    env.reset(seed=0)
+    net = env.unwrapped.road.network
+    model = ConflictModel(net)
+    paths = [model.driven(seq) for a in net.graph for b in net.graph[a] for i in range(len(net.graph[a][b]))
+             for seq, _ in model.hypotheses((a, b, i))]
+    paths.append(_route_tables([net.get_lane(i) for i in ROUTE])[1])
+    exact = _numpy_cos_sin_are_libm()
+    rng = np.random.default_rng(17)
+    t = 0.1 * np.arange(1, 81)
+    for trial in range(40):
+        H = 12
+        batch = [paths[j] for j in rng.integers(0, len(paths), H)]
+        s0 = np.array([rng.uniform(-5.0, p.route.length + 20.0) for p in batch])
+        if trial % 4 == 0:
+            s0 = np.array([p.s_start + rng.choice([0.0, -1e-9, 1e-9]) for p in batch])
+        v, a = rng.uniform(0.0, 14.0, H), rng.choice([0.0, -3.0, 1.0], H)
+        ds = np.maximum.accumulate(np.maximum(v[:, None] * t + 0.5 * a[:, None] * t**2, 0.0), 1)
+        speeds = np.maximum(np.diff(np.concatenate([np.zeros((H, 1)), ds], 1), axis=1) / 0.1, 0.0)
+        if trial % 3 == 0:
+            speeds[:] = rng.choice(np.arange(0.5, 12.01, 0.5), (H, 1))  # exactly on a bin
+        xy, h = driven_poses(batch, s0, ds, speeds)
+        for m, p in enumerate(batch):
+            ref_xy, ref_h = p.poses_numpy(s0[m], ds[m], speeds[m])
+            if exact:
+                assert np.array_equal(xy[m], ref_xy) and np.array_equal(h[m], ref_h), (trial, m)
+            else:
+                np.testing.assert_allclose(xy[m], ref_xy, rtol=0, atol=1e-9)
+                np.testing.assert_allclose(h[m], ref_h, rtol=0, atol=1e-9)
+
+
+def test_shield_decisions_are_the_same_with_the_kernel_and_with_numpy(make, turn_cfg):
+    """A traffic episode with braking and release (seed 1001), every step's decision, with the compiled look-up
+    and with the numpy reference (DrivenPath.kernel False)."""
+    from av_gym.shields.predict import DrivenPath
+
+    runs = []
+    for kernel in (True, False):
+        DrivenPath.kernel = kernel
+        try:
+            env = make(turn_cfg, None, shield())
+            policy = AlwaysProceed(env.unwrapped.cruise_action())
+            obs, _ = env.reset(seed=1001)
+            steps, done = [], False
+            while not done:
+                obs, _, terminated, truncated, info = env.step(policy.act(obs))
+                steps.append((info["aeb_stage"], info["aeb_ttc"], info["aeb_target_id"], info["aeb_horizon"]))
+                done = terminated or truncated
+            runs.append(steps)
+        finally:
+            DrivenPath.kernel = True
+    assert any(s[0] == 2 for s in runs[0])  # it does brake
+    assert runs[0] == runs[1]
+
+
 def test_a_car_braking_ahead_on_the_exit_road_is_braked_for(make, turn_cfg):
     """Traffic seed 1019: down the exit road the always-proceeding ego closes on a car that then brakes at 6 m/s².
     The improved shield brakes in time; it used to hold off, its feasibility check finding a car merging into the

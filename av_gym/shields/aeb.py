@@ -584,8 +584,8 @@ class AEBShield(gym.Wrapper):
         u = self.env.unwrapped
         if self.mode == "ground_truth":
             vehicles = [v for v in u.road.vehicles if v is not u.vehicle]
-            rows = [[v.position[0], v.position[1], v.velocity[0], v.velocity[1], v.heading, v.LENGTH, v.WIDTH]
-                    for v in vehicles]
+            rows = [[v.position[0], v.position[1], *v.velocity, v.heading, v.LENGTH, v.WIDTH]
+                    for v in vehicles]  # velocity is a property (speed x direction): computed once per vehicle
             self._lanes = [getattr(v, "lane_index", None) for v in vehicles]
             # Keyed by the vehicle objects, not id(): a deep copy of the stack (the lookahead oracle) then maps the
             # history to the copied vehicles, and a removed vehicle's id can never hand its history to a new one.

@@ -181,43 +181,92 @@ class ConflictModel:
         s = v * ta + 0.5 * a * ta**2
         return s + (v + a * ta) * (t - ta)
 
+    def along_many(self, v: np.ndarray, a: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """:meth:`along` for speeds ``v`` and accelerations ``a`` (M,) at once: (M, K), row m equal to
+        ``along(v[m], a[m], t)`` bit for bit (the same operations, element by element)."""
+        v, a = np.asarray(v, dtype=float)[:, None], np.asarray(a, dtype=float)[:, None]
+        ta = np.minimum(t, self.accel_time)[None, :].repeat(len(v), 0)
+        neg = a[:, 0] < 0
+        if neg.any():
+            ta[neg] = np.minimum(ta[neg], v[neg] / -a[neg])
+        s = v * ta + 0.5 * a * ta**2
+        return s + (v + a * ta) * (t - ta)
+
+    def _driven_all(self, lane_index: tuple) -> list:
+        """:meth:`driven` of every hypothesis of ``lane_index``, in :meth:`hypotheses`' order (cached per road
+        network, beside the paths themselves)."""
+        by_seq = _BY_NETWORK.setdefault(self.network, {})
+        key = ("hypotheses", tuple(lane_index))
+        if key not in by_seq:
+            by_seq[key] = [self.driven(seq) for seq, _ in self.hypotheses(lane_index)]
+        return by_seq[key]
+
     def predict(self, others: np.ndarray, lane_indices: list, accels: np.ndarray, t: np.ndarray,
                 signals: np.ndarray | None = None, likelihood=None):
         """Positions (K, M', 2), headings (K, M'), owner (M',), whether each is a map hypothesis (M',) and its
         probability (M',) over the hypotheses of ``others`` (M, 7) on ``lane_indices`` (None = off the map),
         ``accels`` (M, 2) m/s² world frame; ``signals`` (M,) indicator readings (+1/-1/0, NaN = none) with
-        ``likelihood(signal, turn)``."""
-        from av_gym.shields.predict import object_predict, profile_speeds
+        ``likelihood(signal, turn)``.
+
+        Every map hypothesis is placed on its driven path in one compiled call
+        (:func:`av_gym.shields.predict.driven_poses`; ``DrivenPath.kernel = False``: one numpy look-up at a time,
+        the reference), the distance and speed profiles of all objects computed at once (issue 17, cost)."""
+        from av_gym.shields.predict import DrivenPath, driven_poses, object_predict, profile_speeds
 
         t = np.asarray(t, dtype=float)
         xs, hs, owner, is_map, prob = [], [], [], [], []
         cv = []
+        max_dh = np.radians(30)
+        speeds_all = np.hypot(others[:, 2], others[:, 3]) if len(others) else np.zeros(0)
+        on_map, v_on, a_on = [], [], []  # objects with map hypotheses: row, speed, along-path acceleration
+        paths, starts, rows = [], [], []  # per map hypothesis: its driven path, start, object's row in on_map
         for m, lane_index in enumerate(lane_indices):
-            speed = float(np.hypot(others[m, 2], others[m, 3]))
+            speed = float(speeds_all[m])
             lane = self.network.get_lane(lane_index) if lane_index is not None else None
             if lane is not None and speed >= 0.5:
                 s0, lat = (float(x) for x in lane.local_coordinates(others[m, 0:2]))
                 dh = abs((float(lane.heading_at(s0)) - others[m, 4] + np.pi) % (2 * np.pi) - np.pi)
-                if abs(lat) <= self.on_lane and dh <= np.radians(30):
+                if abs(lat) <= self.on_lane and dh <= max_dh:
                     a_along = float(accels[m] @ others[m, 2:4]) / speed
-                    ds = self.along(speed, a_along, t)
                     hyps = self.hypotheses(lane_index)
-                    p = np.full(len(hyps), 1.0 / len(hyps))
+                    n_h = len(hyps)
                     sig = None if signals is None else signals[m]
                     if sig is not None and np.isfinite(sig) and likelihood is not None:
+                        p = np.full(n_h, 1.0 / n_h)
                         p = p * np.array([likelihood(float(sig), turn) for _, turn in hyps])
-                        p = p / p.sum()
-                    for (seq, _), pk in zip(hyps, p):
-                        if pk < self.min_p:
-                            continue
-                        xy, h = self.driven(seq).poses(s0, ds, profile_speeds(ds, t, speed))
-                        xs.append(xy[:, None, :])
-                        hs.append(h[:, None])
-                        owner.append(m)
-                        is_map.append(True)
-                        prob.append(float(pk))
+                        p = (p / p.sum()).tolist()
+                    else:
+                        p = [1.0 / n_h] * n_h
+                    row = len(on_map)
+                    on_map.append(m), v_on.append(speed), a_on.append(a_along)
+                    kept = [(path, float(pk)) for path, pk in zip(self._driven_all(lane_index), p)
+                            if not pk < self.min_p]
+                    n_k = len(kept)
+                    paths += [path for path, _ in kept]
+                    prob += [pk for _, pk in kept]
+                    starts += [s0] * n_k
+                    rows += [row] * n_k
+                    owner += [m] * n_k
+                    is_map += [True] * n_k
                     continue
             cv.append(m)
+        if paths:
+            dist = self.along_many(np.array(v_on), np.array(a_on), t)  # (objects, K)
+            zero = np.zeros((len(dist), 1))
+            # profile_speeds, row by row the same
+            v_path = np.maximum(np.diff(np.concatenate([zero, dist], 1), axis=1)
+                                / np.maximum(np.diff(np.concatenate([[0.0], t])), 1e-9), 0.0)
+            rows = np.asarray(rows)
+            if DrivenPath.kernel:  # every hypothesis on its driven path in one compiled call
+                xy, h = driven_poses(paths, np.array(starts), dist[rows], v_path[rows])
+                xs.append(xy.transpose(1, 0, 2))
+                hs.append(h.T)
+            else:  # the numpy reference, one look-up at a time, with the per-object profiles of before
+                for path, s0, r in zip(paths, starts, rows):
+                    ds = self.along(v_on[r], a_on[r], t)
+                    xy, h = path.poses_numpy(s0, ds, profile_speeds(ds, t, v_on[r]))
+                    xs.append(xy[:, None, :])
+                    hs.append(h[:, None])
         if cv:
             cv_xy, cv_h = object_predict(others[cv], t)
             xs.append(cv_xy)

@@ -139,13 +139,15 @@ class DrivenPath:
 
     KP_LATERAL, KP_HEADING, TAU_PURSUIT = 1 / 0.6, 1 / 0.2, 0.1  # highway-env ControlledVehicle
     MAX_STEERING, LENGTH, LANE_SWITCH = np.pi / 3, 5.0, 2.5
+    kernel = True  # False: every look-up through the numpy reference :meth:`poses_numpy` (tests, A/B checks)
 
     def __init__(self, route: RouteTable, s_from: float, s_to: float, lead: float = 15.0, dt: float = 0.05,
                  speeds: np.ndarray | None = None) -> None:
         self.route, self.dt = route, dt
         self.s_start, self.s_end = max(0.0, s_from - lead), min(route.length, s_to + lead)
-        self.speeds = np.arange(0.5, 12.01, 0.5) if speeds is None else np.asarray(speeds, dtype=float)
+        self.speeds = DRIVEN_SPEEDS if speeds is None else np.asarray(speeds, dtype=float)
         self._tables: dict[int, tuple[np.ndarray, ...]] = {}
+        self.store_id = -1  # its row in the kernel's store (av_gym.shields.kernels.Store), once registered
 
     def _simulate(self, v: float) -> tuple[np.ndarray, ...]:
         lanes, starts = self.route.lanes, self.route.starts
@@ -178,7 +180,19 @@ class DrivenPath:
     def _table(self, i: int) -> tuple[np.ndarray, ...]:
         if i not in self._tables:
             self._tables[i] = self._simulate(float(self.speeds[i]))
+            if self.store_id >= 0:
+                _store().add_bin(self.store_id, i, self._tables[i])
         return self._tables[i]
+
+    def _register(self) -> int:
+        """This path's id in the kernel's store (registered on first use, with the bins simulated so far); -1 for
+        speed bins other than the default ones (the numpy reference serves those)."""
+        if self.store_id < 0 and self.speeds is DRIVEN_SPEEDS:
+            store, r = _store(), self.route
+            self.store_id = store.register((r.s, r.xy[:, 0], r.xy[:, 1], r.heading), self.s_start, r.length)
+            for i, tab in self._tables.items():
+                store.add_bin(self.store_id, i, tab)
+        return self.store_id
 
     def _poses_bin(self, i: int, s0: float, ds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         d_tab, x, y, h, s_tab = self._table(i)
@@ -198,7 +212,16 @@ class DrivenPath:
 
     def poses(self, s0: float, ds: np.ndarray, speeds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Positions (K, 2) and headings (K,) after driving ``ds`` (K,) m from route position ``s0`` at the
-        speeds ``speeds`` (K,) m/s."""
+        speeds ``speeds`` (K,) m/s (:func:`driven_poses`, the compiled look-up; :meth:`poses_numpy` is the
+        reference it reproduces bit for bit)."""
+        if not DrivenPath.kernel:
+            return self.poses_numpy(s0, ds, speeds)
+        ds = np.asarray(ds, dtype=float)
+        xy, h = driven_poses([self], np.array([float(s0)]), ds[None], np.asarray(speeds, dtype=float)[None])
+        return xy[0], h[0]
+
+    def poses_numpy(self, s0: float, ds: np.ndarray, speeds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The numpy reference of :meth:`poses` (the code before the kernel, issue 17's third pass)."""
         ds, speeds = np.asarray(ds, dtype=float), np.asarray(speeds, dtype=float)
         if s0 + (ds[-1] if len(ds) else 0.0) < self.s_start:
             return self.route.poses(s0 + ds)
@@ -214,6 +237,50 @@ class DrivenPath:
             xy += wi[:, None] * xy_i
             hh += wi * h_i
         return xy, hh
+
+
+DRIVEN_SPEEDS = np.arange(0.5, 12.01, 0.5)
+"""DrivenPath's default speed bins (m/s); shared, so that a batch of paths on it blends in one vectorised step."""
+
+
+_STORE = None
+
+
+def _store():
+    """The kernel's store of driven-path tables (av_gym.shields.kernels.Store), made on first use (numba is
+    imported then, not with this module)."""
+    global _STORE
+    if _STORE is None:
+        from av_gym.shields.kernels import Store
+
+        _STORE = Store(DRIVEN_SPEEDS)
+    return _STORE
+
+
+def driven_poses(paths: list, s0: np.ndarray, ds: np.ndarray, speeds: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`DrivenPath.poses` of H look-ups at once: ``paths`` (H DrivenPaths, repeats allowed), route positions
+    ``s0`` (H,), distances ``ds`` and speeds ``speeds`` (H, K); positions (H, K, 2) and headings (H, K), each row
+    the reference's (:meth:`DrivenPath.poses_numpy`) bit for bit, in one compiled call
+    (:func:`av_gym.shields.kernels.driven_poses`) instead of ~20 numpy calls per look-up."""
+    from av_gym.shields.kernels import driven_poses as kernel
+
+    ds = np.ascontiguousarray(ds, dtype=float)
+    H, K = ds.shape
+    ids = np.array([p.store_id if p.store_id >= 0 else p._register() for p in paths], dtype=np.int64)
+    if H and ids.min() < 0:  # speed bins of its own: the reference, one look-up at a time
+        out = [p.poses_numpy(float(a), d, v) for p, a, d, v in zip(paths, s0, ds, speeds)]
+        return np.stack([o[0] for o in out]), np.stack([o[1] for o in out])
+    s0 = np.ascontiguousarray(s0, dtype=float)
+    speeds = np.ascontiguousarray(speeds, dtype=float)
+    xy, hh = np.empty((H, K, 2)), np.empty((H, K))
+    st = _store()
+    need = np.zeros((H, len(DRIVEN_SPEEDS)), dtype=np.bool_)
+    while kernel(st.data, st.route, st.limits, st.bins, st.grid_table, ids, s0, ds, speeds, xy, hh, need):
+        for m, i in zip(*np.nonzero(need)):  # simulate the speed bins the look-ups read, lazily as the reference
+            paths[m]._table(int(i))
+        need[:] = False
+    return xy, hh
 
 
 def profile_speeds(ds: np.ndarray, t: np.ndarray, v0: float) -> np.ndarray:
