@@ -28,10 +28,16 @@ from gymnasium import spaces
 
 from av_gym.geometry import box_corners
 from av_gym.params import Params, param
+from av_gym.sensors import kernels as _kernels
 from av_gym.sensors.base import SensorWrapper, ego_pose, others_state, sim_time
 
 FIELDS = ("present", "x", "y", "vx", "vy", "heading", "length", "width", "age")
 BOUND = 1e4
+PROBES = np.linspace(0.05, 0.95, 9)
+"""Where along a vehicle's bearing interval occlusion is tested (fractions of the interval)."""
+KERNELS = {"occlusion"}
+"""Which parts run as numba kernels (:mod:`av_gym.sensors.kernels`, bit-identical to the numpy code here, which
+stays as their reference): ``occlusion`` :meth:`Detector._occluded`."""
 
 
 @dataclass(frozen=True)
@@ -106,13 +112,17 @@ class Detector(SensorWrapper):
         n = len(others)
         if n < 2:
             return np.zeros(n, dtype=bool)
+        if "occlusion" in KERNELS:
+            return _kernels.occluded(float(ego_xy[0]), float(ego_xy[1]), others[:, 0], others[:, 1],
+                                     np.cos(others[:, 4]), np.sin(others[:, 4]), others[:, 5], others[:, 6], PROBES,
+                                     float(self.occlusion_fraction))
         corners = box_corners(others[:, :2], others[:, 4], others[:, 5], others[:, 6]) - ego_xy  # (N, 4, 2)
         bearings = np.arctan2(corners[..., 1], corners[..., 0])
         centre = np.arctan2(others[:, 1] - ego_xy[1], others[:, 0] - ego_xy[0])
         rel = (bearings - centre[:, None] + np.pi) % (2 * np.pi) - np.pi  # unwrap around each vehicle's centre
         lo, hi = centre + rel.min(1), centre + rel.max(1)
         dist = np.linalg.norm(others[:, :2] - ego_xy, axis=1)
-        probes = lo[:, None] + (hi - lo)[:, None] * np.linspace(0.05, 0.95, 9)[None]  # (N, 9) bearings
+        probes = lo[:, None] + (hi - lo)[:, None] * PROBES[None]  # (N, 9) bearings
         occluded = np.zeros(n, dtype=bool)
         for i in range(n):
             nearer = dist < dist[i]
@@ -147,11 +157,10 @@ class Detector(SensorWrapper):
                 if missing or occluded[i]:
                     continue
                 sp = self.sigma_pos0 + self.sigma_pos_k * r[i]
-                o = others[i]
-                rows.append([1.0, o[0] + self.rng.normal(0, sp), o[1] + self.rng.normal(0, sp),
-                             o[2] + self.rng.normal(0, self.sigma_vel), o[3] + self.rng.normal(0, self.sigma_vel),
-                             o[4] + self.rng.normal(0, self.sigma_heading),
-                             o[5] + self.rng.normal(0, self.sigma_size), o[6] + self.rng.normal(0, self.sigma_size)])
+                # One call for the seven draws: the same numbers, in the same order, as seven scalar normal() calls.
+                noise = self.rng.normal(0.0, [sp, sp, self.sigma_vel, self.sigma_vel, self.sigma_heading,
+                                              self.sigma_size, self.sigma_size])
+                rows.append([1.0, *(others[i] + noise)])
                 ids.append(int(i))
         for _ in range(self.rng.poisson(self.clutter_rate)):
             rng_r = self.max_range * np.sqrt(self.rng.random())  # uniform over the area

@@ -49,10 +49,15 @@ from gymnasium import spaces
 
 from av_gym.geometry import box_corners
 from av_gym.params import Params, param
+from av_gym.sensors import kernels as _kernels
 from av_gym.sensors.base import SensorWrapper, ego_pose, others_state, sim_time
 from av_gym.sensors.world import roadside_world
 
 TWO_PI = 2.0 * np.pi
+KERNELS = {"cast", "corners", "points"}
+"""Which parts run as numba kernels (:mod:`av_gym.sensors.kernels`, bit-identical to the numpy code here, which
+stays as their reference): ``cast`` the ray cast of :func:`_cast`, ``corners`` the other vehicles' boxes,
+``points`` the noisy returns, observation and point cloud at the end of ``Lidar._scan``."""
 LABEL_STATIC, LABEL_VEHICLE = 0, 1
 """Per-point labels of :meth:`Lidar.labels`: the roadside world, or another vehicle."""
 
@@ -162,6 +167,12 @@ def _ray_boxes(o: np.ndarray, u: np.ndarray, corners: np.ndarray) -> tuple[np.nd
     return t_in, t_out
 
 
+def _per_object(height: float | np.ndarray, n: int) -> np.ndarray:
+    """One height per object, ``(n,)`` float (a scalar repeated, or an array broadcast), contiguous."""
+    height = np.asarray(height, dtype=float)
+    return np.full(n, float(height)) if height.ndim == 0 else np.ascontiguousarray(np.broadcast_to(height, (n,)))
+
+
 def _cast(origin_xy: np.ndarray, angles: np.ndarray, elevations: np.ndarray, mount_height: float,
           segments: np.ndarray, seg_height: np.ndarray, circles: np.ndarray, circ_height: np.ndarray,
           boxes_corners: np.ndarray, box_height: float | np.ndarray, max_range: float
@@ -178,9 +189,19 @@ def _cast(origin_xy: np.ndarray, angles: np.ndarray, elevations: np.ndarray, mou
     segments = np.asarray(segments, dtype=float).reshape(-1, 4)
     circles = np.asarray(circles, dtype=float).reshape(-1, 3)
     boxes_corners = np.asarray(boxes_corners, dtype=float).reshape(-1, 4, 2)
-    seg_height = np.broadcast_to(np.asarray(seg_height, dtype=float), (len(segments),))
-    circ_height = np.broadcast_to(np.asarray(circ_height, dtype=float), (len(circles),))
-    box_height = np.broadcast_to(np.asarray(box_height, dtype=float), (len(boxes_corners),))
+    seg_height = _per_object(seg_height, len(segments))
+    circ_height = _per_object(circ_height, len(circles))
+    box_height = _per_object(box_height, len(boxes_corners))
+    if "cast" in KERNELS:  # the same culling, pairs and formulas in one compiled loop (av_gym/sensors/kernels.py)
+        sorted_mod = np.mod(angles, TWO_PI)
+        order = np.argsort(sorted_mod, kind="stable")
+        sorted_mod = sorted_mod[order]
+        origins = origin_xy if per_beam else origin_xy[None]
+        return _kernels.cast(np.ascontiguousarray(origins), float(ref[0]), float(ref[1]), slack, np.cos(angles),
+                             np.sin(angles), order, np.concatenate([sorted_mod, sorted_mod + TWO_PI]),
+                             np.tan(elevations), np.cos(elevations), float(mount_height),
+                             np.ascontiguousarray(segments), seg_height, np.ascontiguousarray(circles), circ_height,
+                             np.ascontiguousarray(boxes_corners), box_height, float(max_range))
 
     # One bounding circle per object, all kinds together, so candidates are generated in a single pass.
     seg_mid = 0.5 * (segments[:, 0:2] + segments[:, 2:4])
@@ -411,8 +432,16 @@ class Lidar(SensorWrapper):
             origin, world_angles = pose[0:2], psi - phi
 
         world = roadside_world(self.env)
-        others = others_state(self.env)
-        boxes = box_corners(others[:, 0:2], others[:, 4], others[:, 5], others[:, 6])
+        if "corners" in KERNELS:  # the columns of others_state() that a box needs (not the velocities)
+            unwrapped = self.env.unwrapped
+            ego = unwrapped.vehicle
+            bx, by, bh, length, width = np.array([(v.position[0], v.position[1], v.heading, v.LENGTH, v.WIDTH)
+                                                  for v in unwrapped.road.vehicles if v is not ego],
+                                                 dtype=float).reshape(-1, 5).T
+            boxes = _kernels.box_corners(bx, by, np.cos(bh), np.sin(bh), length, width)
+        else:
+            others = others_state(self.env)
+            boxes = box_corners(others[:, 0:2], others[:, 4], others[:, 5], others[:, 6])
         if self.planar:  # a 2-D scan plane cuts every object, whatever its height
             seg_h, circ_h, box_h = np.inf, np.inf, np.inf
         else:
@@ -420,21 +449,36 @@ class Lidar(SensorWrapper):
         ranges, is_vehicle = _cast(origin, world_angles, self.elevations, self.mount_height, world.segments, seg_h,
                                    world.circles, circ_h, boxes, box_h, self.max_range)
 
-        hit = ranges < self.max_range
-        measured = ranges + self.range_sigma * noise
-        valid = hit & ~dropped & (measured >= self.min_range) & (measured < self.max_range)
-        self._obs = np.where(valid, measured, self.max_range).astype(np.float32)
-
-        ch, k = np.nonzero(valid)  # channel-major, beams in firing order within a channel
-        r, e, a = measured[ch, k], self.elevations[ch], phi[k]
-        z = np.zeros_like(r) if self.planar else r * np.sin(e)
-        horiz = r if self.planar else r * np.cos(e)
-        self._points = np.stack([horiz * np.cos(a), horiz * np.sin(a), z], axis=1)
-        self._times = frac[k]
-        self._labels = np.where(is_vehicle[ch, k], LABEL_VEHICLE, LABEL_STATIC).astype(int)
+        returns = _kernels.scan_points if "points" in KERNELS else _scan_points
+        self._obs, self._points, self._times, self._labels = returns(
+            ranges, is_vehicle, noise, dropped, self.range_sigma, self.min_range, self.max_range, np.cos(phi),
+            np.sin(phi), frac, np.sin(self.elevations), np.cos(self.elevations), self.planar, LABEL_STATIC,
+            LABEL_VEHICLE)
         self._pose = pose
         self._scan_time = t
         self._scan_index += 1
+
+
+def _scan_points(ranges: np.ndarray, is_vehicle: np.ndarray, noise: np.ndarray, dropped: np.ndarray,
+                 range_sigma: float, min_range: float, max_range: float, cos_phi: np.ndarray, sin_phi: np.ndarray,
+                 frac: np.ndarray, sin_e: np.ndarray, cos_e: np.ndarray, planar: bool, label_static: int,
+                 label_vehicle: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The noisy returns of a scan: the observation ``(E, B)`` float32, and the valid returns' points ``(N, 3)``
+    (sensor frame), per-point times ``(N,)`` and labels ``(N,)``, channel-major with beams in firing order.
+    ``ranges``/``is_vehicle`` from :func:`_cast`; ``noise``, ``dropped`` the scan's draws; ``cos_phi``,
+    ``sin_phi``, ``frac`` (B,) per beam; ``sin_e``, ``cos_e`` (E,) per channel."""
+    hit = ranges < max_range
+    measured = ranges + range_sigma * noise
+    valid = hit & ~dropped & (measured >= min_range) & (measured < max_range)
+    obs = np.where(valid, measured, max_range).astype(np.float32)
+
+    ch, k = np.nonzero(valid)  # channel-major, beams in firing order within a channel
+    r = measured[ch, k]
+    z = np.zeros_like(r) if planar else r * sin_e[ch]
+    horiz = r if planar else r * cos_e[ch]
+    points = np.stack([horiz * cos_phi[k], horiz * sin_phi[k], z], axis=1)
+    labels = np.where(is_vehicle[ch, k], label_vehicle, label_static).astype(int)
+    return obs, points, frac[k], labels
 
 
 def sensor_to_world(points: np.ndarray, pose: np.ndarray) -> np.ndarray:

@@ -76,6 +76,12 @@ def generate_world(env, seed: int) -> RoadsideWorld:
     closed_track = env.unwrapped.scenario == "lane_keeping"
     sides = (1.0, -1.0) if closed_track else (1.0,)  # a lap's lane has road edges on both sides
     segs, seg_h, seg_k, circ, circ_h, circ_k = [], [], [], [], [], []
+    # Candidates in generation order: (points that must clear the road or None if already tested, margin m, lists,
+    # row, height, kind). Guard rails and roadside furniture draw no random number after their clearance test, so
+    # theirs are deferred to one k-d tree query at the end (the same distances, one call instead of thousands); a
+    # building draws its height only when it is clear, so it is tested at once.
+    candidates: list[tuple[np.ndarray | None, float, tuple[list, list, list], list, float, int]] = []
+    seg_lists, circ_lists = (segs, seg_h, seg_k), (circ, circ_h, circ_k)
 
     def clear(points: np.ndarray, margin: float) -> bool:
         d, _ = tree.query(np.atleast_2d(points))
@@ -92,8 +98,7 @@ def generate_world(env, seed: int) -> RoadsideWorld:
                     b = min(a + 2.0, s_end)
                     p0 = lane.position(a, side * (width / 2 + 1.0))
                     p1 = lane.position(b, side * (width / 2 + 1.0))
-                    if clear(np.array([p0, p1]), 0.9):
-                        segs.append([*p0, *p1]); seg_h.append(GUARD_RAIL_HEIGHT); seg_k.append(0)
+                    candidates.append(([p0, p1], 0.9, seg_lists, [*p0, *p1], GUARD_RAIL_HEIGHT, 0))
                 s = s_end + rng.uniform(10, 40)
             # Poles, sign posts and trees every 8-20 m, 2-6 m beyond the edge line.
             s = rng.uniform(0, 8)
@@ -106,8 +111,7 @@ def generate_world(env, seed: int) -> RoadsideWorld:
                     r, h = SIGN_POST
                 else:
                     r, h = rng.uniform(*TREE_RADIUS), rng.uniform(*TREE_HEIGHT)
-                if clear(p, 1.5 + r):
-                    circ.append([*p, r]); circ_h.append(h); circ_k.append(int(kind))
+                candidates.append(([p], 1.5 + r, circ_lists, [*p, r], h, int(kind)))
                 s += rng.uniform(8, 20)
             # Building fronts 10-25 m off the road, only along straight stretches (facades are straight).
             if lane.heading_at(0.0) == lane.heading_at(lane.length):
@@ -118,8 +122,21 @@ def generate_world(env, seed: int) -> RoadsideWorld:
                     p0, p1 = lane.position(s, off), lane.position(min(s + length, lane.length), off)
                     mid = np.linspace(p0, p1, 5)
                     if clear(mid, 6.0):
-                        segs.append([*p0, *p1]); seg_h.append(rng.uniform(*BUILDING_HEIGHT)); seg_k.append(1)
+                        candidates.append((None, 0.0, seg_lists, [*p0, *p1], rng.uniform(*BUILDING_HEIGHT), 1))
                     s += length + rng.uniform(5, 25)
+
+    deferred = [c for c in candidates if c[0] is not None]
+    owner = np.repeat(np.arange(len(deferred)), [len(c[0]) for c in deferred])
+    d, _ = tree.query(np.array([p for c in deferred for p in c[0]], dtype=float).reshape(-1, 2))
+    margin = np.array([width / 2 + c[1] for c in deferred])  # clear(): every point at least this far
+    blocked = np.bincount(owner, weights=~(d >= margin[owner]), minlength=len(deferred)) > 0
+    i = 0
+    for points, _, (rows, heights, kinds), row, h, kind in candidates:
+        if points is not None:
+            i += 1
+            if blocked[i - 1]:
+                continue
+        rows.append(row); heights.append(h); kinds.append(kind)
 
     def arr(x, cols=None):
         return np.array(x, dtype=float).reshape(-1, cols) if cols else np.array(x)
