@@ -245,8 +245,46 @@ def _strip(lane: AbstractLane, s: np.ndarray, lat0: float, lat1: float) -> np.nd
 def build_scene(env: gym.Env) -> StaticScene:
     """Asphalt, markings and roadside scenery of ``env``'s current episode (see :class:`StaticScene`)."""
     unwrapped = env.unwrapped
+    road, road_g, marks, mark_g = _road_quads(unwrapped.road.network)
+    world = roadside_world(env)
+    walls, colours, wall_g = [], [], []
+    for i, ((x0, y0, x1, y1), h, k) in enumerate(zip(world.segments, world.segment_height, world.segment_kind)):
+        p0, p1 = np.array([x0, y0]), np.array([x1, y1])
+        length = float(np.linalg.norm(p1 - p0))
+        if length < 1e-6:
+            continue
+        n = max(1, int(np.ceil(length / WALL_PIECE)))
+        pts = p0 + np.linspace(0.0, 1.0, n + 1)[:, None] * (p1 - p0)
+        normal = np.array([-(y1 - y0), x1 - x0]) / length
+        palette = SEGMENT_COLOURS[SEGMENT_KINDS[k]]
+        colour = np.array(palette[i % len(palette)], float) * (0.65 + 0.35 * abs(normal @ SUN))
+        for a, b in zip(pts[:-1], pts[1:]):
+            walls.append([[*a, 0.0], [*b, 0.0], [*b, h], [*a, h]])
+            colours.append(colour)
+            wall_g.append(i)
+
+    return StaticScene(road, road_g, marks, mark_g, np.array(walls, float).reshape(-1, 4, 3),
+                       np.array(colours, float).reshape(-1, 3), world.circles.reshape(-1, 3).astype(float),
+                       world.circle_height.astype(float), world.circle_kind.astype(int), np.array(wall_g, int))
+
+
+_ROADS: dict[tuple, tuple] = {}  # road quads per road geometry (a layout), shared by every episode on it
+
+
+def _road_quads(network) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Asphalt quads (Q, 4, 2) with their lane index (Q,), marking quads (M, 4, 2) with their lane-side index (M,)
+    of a road network. highway-env builds a new network every episode, but its geometry is the layout's: the quads
+    are kept per geometry (each lane's class, width, line types, length and three points; ~10 ms per episode of
+    ``lane.position`` calls otherwise)."""
+    lanes = network.lanes_list()
+    key = tuple((type(lane).__name__, float(lane.width_at(0.0)), tuple(lane.line_types), float(lane.length),
+                 *(float(c) for s_ in (0.0, lane.length / 2, lane.length) for c in lane.position(s_, 0.0)))
+                for lane in lanes)
+    cached = _ROADS.get(key)
+    if cached is not None:
+        return cached
     road, road_g, marks, mark_g = [], [], [], []
-    for g, lane in enumerate(unwrapped.road.network.lanes_list()):
+    for g, lane in enumerate(lanes):
         w = float(lane.width_at(0.0))
         s = np.linspace(0.0, lane.length, max(1, int(np.ceil(lane.length / ROAD_STEP))) + 1)
         q = _strip(lane, s, -w / 2, w / 2)
@@ -268,30 +306,16 @@ def build_scene(env: gym.Env) -> StaticScene:
             marks.append(q)
             mark_g.append(np.full(len(q), 2 * g + side))
 
-    world = roadside_world(env)
-    walls, colours, wall_g = [], [], []
-    for i, ((x0, y0, x1, y1), h, k) in enumerate(zip(world.segments, world.segment_height, world.segment_kind)):
-        p0, p1 = np.array([x0, y0]), np.array([x1, y1])
-        length = float(np.linalg.norm(p1 - p0))
-        if length < 1e-6:
-            continue
-        n = max(1, int(np.ceil(length / WALL_PIECE)))
-        pts = p0 + np.linspace(0.0, 1.0, n + 1)[:, None] * (p1 - p0)
-        normal = np.array([-(y1 - y0), x1 - x0]) / length
-        palette = SEGMENT_COLOURS[SEGMENT_KINDS[k]]
-        colour = np.array(palette[i % len(palette)], float) * (0.65 + 0.35 * abs(normal @ SUN))
-        for a, b in zip(pts[:-1], pts[1:]):
-            walls.append([[*a, 0.0], [*b, 0.0], [*b, h], [*a, h]])
-            colours.append(colour)
-            wall_g.append(i)
-
     def cat(parts: list, shape: tuple) -> np.ndarray:
         return np.concatenate(parts).astype(float) if parts else np.zeros(shape)
 
-    return StaticScene(cat(road, (0, 4, 2)), cat(road_g, (0,)).astype(int), cat(marks, (0, 4, 2)),
-                       cat(mark_g, (0,)).astype(int), np.array(walls, float).reshape(-1, 4, 3),
-                       np.array(colours, float).reshape(-1, 3), world.circles.reshape(-1, 3).astype(float),
-                       world.circle_height.astype(float), world.circle_kind.astype(int), np.array(wall_g, int))
+    out = (cat(road, (0, 4, 2)), cat(road_g, (0,)).astype(int), cat(marks, (0, 4, 2)), cat(mark_g, (0,)).astype(int))
+    for a in out:
+        a.flags.writeable = False  # shared by every episode on this layout
+    if len(_ROADS) >= 8:
+        _ROADS.pop(next(iter(_ROADS)))
+    _ROADS[key] = out
+    return out
 
 
 def scene_of(env: gym.Env) -> StaticScene:
