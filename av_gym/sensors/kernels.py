@@ -133,8 +133,12 @@ def cast(origins, ref_x, ref_y, slack, cos_a, sin_a, order, doubled, tan_e, cos_
             len1, len2 = math.sqrt(e1x * e1x + e1y * e1y), math.sqrt(e2x * e2x + e2y * e2y)
             a1x, a1y, a2x, a2y = e1x / len1, e1y / len1, e2x / len2, e2y / len2
             half1, half2 = 0.5 * len1, 0.5 * len2
-        for j in range(count):
-            k = order[(i0 + j) % n_beams]
+        idx = i0 - n_beams if i0 >= n_beams else i0  # (i0 + j) mod n_beams without an integer division
+        for _ in range(count):
+            k = order[idx]
+            idx += 1
+            if idx == n_beams:
+                idx = 0
             b = k if per_beam else 0
             ox, oy, ux, uy = origins[b, 0], origins[b, 1], cos_a[k], sin_a[k]
             if kind == 0:  # _ray_segments

@@ -54,10 +54,10 @@ from av_gym.sensors.base import SensorWrapper, ego_pose, others_state, sim_time
 from av_gym.sensors.world import roadside_world
 
 TWO_PI = 2.0 * np.pi
-KERNELS = {"cast", "corners", "points"}
+KERNELS = {"cast", "points"}
 """Which parts run as numba kernels (:mod:`av_gym.sensors.kernels`, bit-identical to the numpy code here, which
-stays as their reference): ``cast`` the ray cast of :func:`_cast`, ``corners`` the other vehicles' boxes,
-``points`` the noisy returns, observation and point cloud at the end of ``Lidar._scan``."""
+stays as their reference): ``cast`` the ray cast of :func:`_cast` and the other vehicles' boxes, ``points`` the
+noisy returns, observation and point cloud of a scan (:func:`_scan_points`)."""
 LABEL_STATIC, LABEL_VEHICLE = 0, 1
 """Per-point labels of :meth:`Lidar.labels`: the roadside world, or another vehicle."""
 
@@ -173,6 +173,24 @@ def _per_object(height: float | np.ndarray, n: int) -> np.ndarray:
     return np.full(n, float(height)) if height.ndim == 0 else np.ascontiguousarray(np.broadcast_to(height, (n,)))
 
 
+def _cast_kernel(origin_xy: np.ndarray, angles: np.ndarray, tan_e: np.ndarray, cos_e: np.ndarray, mount_height: float,
+                 segments: np.ndarray, seg_height: np.ndarray, circles: np.ndarray, circ_height: np.ndarray,
+                 boxes_corners: np.ndarray, box_height: np.ndarray, max_range: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_cast` by :func:`av_gym.sensors.kernels.cast`, on inputs already in shape: float arrays, shapes
+    C-contiguous, one height per object; ``tan_e``, ``cos_e`` of the channels' elevations. The culling origin, its
+    slack and the sorted beam angles are :func:`_cast`'s / :func:`_candidate_pairs`'."""
+    per_beam = origin_xy.ndim == 2
+    ref = origin_xy.mean(axis=0) if per_beam else origin_xy
+    slack = float(np.max(np.linalg.norm(origin_xy - ref, axis=1))) if per_beam else 0.0
+    sorted_mod = np.mod(angles, TWO_PI)
+    order = np.argsort(sorted_mod, kind="stable")
+    sorted_mod = sorted_mod[order]
+    return _kernels.cast(np.ascontiguousarray(origin_xy if per_beam else origin_xy[None]), float(ref[0]),
+                         float(ref[1]), slack, np.cos(angles), np.sin(angles), order,
+                         np.concatenate([sorted_mod, sorted_mod + TWO_PI]), tan_e, cos_e, float(mount_height),
+                         segments, seg_height, circles, circ_height, boxes_corners, box_height, float(max_range))
+
+
 def _cast(origin_xy: np.ndarray, angles: np.ndarray, elevations: np.ndarray, mount_height: float,
           segments: np.ndarray, seg_height: np.ndarray, circles: np.ndarray, circ_height: np.ndarray,
           boxes_corners: np.ndarray, box_height: float | np.ndarray, max_range: float
@@ -193,15 +211,9 @@ def _cast(origin_xy: np.ndarray, angles: np.ndarray, elevations: np.ndarray, mou
     circ_height = _per_object(circ_height, len(circles))
     box_height = _per_object(box_height, len(boxes_corners))
     if "cast" in KERNELS:  # the same culling, pairs and formulas in one compiled loop (av_gym/sensors/kernels.py)
-        sorted_mod = np.mod(angles, TWO_PI)
-        order = np.argsort(sorted_mod, kind="stable")
-        sorted_mod = sorted_mod[order]
-        origins = origin_xy if per_beam else origin_xy[None]
-        return _kernels.cast(np.ascontiguousarray(origins), float(ref[0]), float(ref[1]), slack, np.cos(angles),
-                             np.sin(angles), order, np.concatenate([sorted_mod, sorted_mod + TWO_PI]),
-                             np.tan(elevations), np.cos(elevations), float(mount_height),
-                             np.ascontiguousarray(segments), seg_height, np.ascontiguousarray(circles), circ_height,
-                             np.ascontiguousarray(boxes_corners), box_height, float(max_range))
+        return _cast_kernel(origin_xy, angles, np.tan(elevations), np.cos(elevations), mount_height,
+                            np.ascontiguousarray(segments), seg_height, np.ascontiguousarray(circles), circ_height,
+                            np.ascontiguousarray(boxes_corners), box_height, max_range)
 
     # One bounding circle per object, all kinds together, so candidates are generated in a single pass.
     seg_mid = 0.5 * (segments[:, 0:2] + segments[:, 2:4])
@@ -334,6 +346,10 @@ class Lidar(SensorWrapper):
         self.vehicle_height = float(p.vehicle_height)
         self.rate_hz, self.sweep_time = float(p.rate_hz), float(p.sweep_time)
         self.deskew_poses = bool(p.deskew_poses)
+        self._sin_e, self._cos_e = np.sin(self.elevations), np.cos(self.elevations)
+        self._tan_e = np.tan(self.elevations)
+        self._beam_index = np.arange(self.beams)
+        self._world_arrays: tuple | None = None  # (world, its kernel inputs), see _world_inputs
         super().__init__(env)
         self._clear_scan()
 
@@ -410,6 +426,17 @@ class Lidar(SensorWrapper):
         y = np.interp(times, log[:, 0], log[:, 2]) + self.mount_x * np.sin(psi)
         return np.stack([x, y, psi], axis=1)
 
+    def _world_inputs(self, world, seg_h, circ_h) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The static world as the ray-cast kernel takes it (contiguous shapes, one height per object), built once
+        per episode's world."""
+        cached = self._world_arrays
+        if cached is None or cached[0] is not world:
+            segments = np.ascontiguousarray(world.segments, dtype=float).reshape(-1, 4)
+            circles = np.ascontiguousarray(world.circles, dtype=float).reshape(-1, 3)
+            cached = self._world_arrays = (world, (segments, _per_object(seg_h, len(segments)), circles,
+                                                   _per_object(circ_h, len(circles))))
+        return cached[1]
+
     def _scan(self, t: float) -> None:
         n_ch, n_beams = len(self.elevations), self.beams
         rng = self.rng
@@ -420,7 +447,7 @@ class Lidar(SensorWrapper):
         noise = rng.standard_normal((n_ch, n_beams))
         dropped = rng.random((n_ch, n_beams)) < self.dropout
 
-        phi = -0.5 * self.fov + offset + step * np.arange(n_beams)  # sensor azimuth, + = left
+        phi = -0.5 * self.fov + offset + step * self._beam_index  # sensor azimuth, + = left
         frac = np.clip((phi + np.pi) / TWO_PI, 0.0, np.nextafter(1.0, 0.0))  # firing time within the sweep
         if self.deskew_poses:
             poses = self._sensor_pose_at(t - (1.0 - frac) * self.sweep_time)
@@ -432,28 +459,31 @@ class Lidar(SensorWrapper):
             origin, world_angles = pose[0:2], psi - phi
 
         world = roadside_world(self.env)
-        if "corners" in KERNELS:  # the columns of others_state() that a box needs (not the velocities)
-            unwrapped = self.env.unwrapped
+        if self.planar:  # a 2-D scan plane cuts every object, whatever its height
+            seg_h, circ_h, box_h = np.inf, np.inf, np.inf
+        else:
+            seg_h, circ_h, box_h = world.segment_height, world.circle_height, self.vehicle_height
+        if "cast" in KERNELS:
+            unwrapped = self.env.unwrapped  # the columns of others_state() that a box needs (not the velocities)
             ego = unwrapped.vehicle
             bx, by, bh, length, width = np.array([(v.position[0], v.position[1], v.heading, v.LENGTH, v.WIDTH)
                                                   for v in unwrapped.road.vehicles if v is not ego],
                                                  dtype=float).reshape(-1, 5).T
             boxes = _kernels.box_corners(bx, by, np.cos(bh), np.sin(bh), length, width)
+            segments, seg_h, circles, circ_h = self._world_inputs(world, seg_h, circ_h)
+            ranges, is_vehicle = _cast_kernel(np.asarray(origin, dtype=float), world_angles, self._tan_e, self._cos_e,
+                                              self.mount_height, segments, seg_h, circles, circ_h, boxes,
+                                              np.full(len(boxes), box_h), self.max_range)
         else:
             others = others_state(self.env)
             boxes = box_corners(others[:, 0:2], others[:, 4], others[:, 5], others[:, 6])
-        if self.planar:  # a 2-D scan plane cuts every object, whatever its height
-            seg_h, circ_h, box_h = np.inf, np.inf, np.inf
-        else:
-            seg_h, circ_h, box_h = world.segment_height, world.circle_height, self.vehicle_height
-        ranges, is_vehicle = _cast(origin, world_angles, self.elevations, self.mount_height, world.segments, seg_h,
-                                   world.circles, circ_h, boxes, box_h, self.max_range)
+            ranges, is_vehicle = _cast(origin, world_angles, self.elevations, self.mount_height, world.segments,
+                                       seg_h, world.circles, circ_h, boxes, box_h, self.max_range)
 
         returns = _kernels.scan_points if "points" in KERNELS else _scan_points
         self._obs, self._points, self._times, self._labels = returns(
             ranges, is_vehicle, noise, dropped, self.range_sigma, self.min_range, self.max_range, np.cos(phi),
-            np.sin(phi), frac, np.sin(self.elevations), np.cos(self.elevations), self.planar, LABEL_STATIC,
-            LABEL_VEHICLE)
+            np.sin(phi), frac, self._sin_e, self._cos_e, self.planar, LABEL_STATIC, LABEL_VEHICLE)
         self._pose = pose
         self._scan_time = t
         self._scan_index += 1
