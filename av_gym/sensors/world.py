@@ -62,9 +62,34 @@ def _edge_lanes(env) -> tuple[list[AbstractLane], list[AbstractLane]]:
     return edge, lanes
 
 
+_TREES: dict[tuple, cKDTree] = {}
+"""Centreline trees by road geometry (:func:`_geometry_key`): highway-env rebuilds the intersection's road network
+every episode, identical each time, and its every-metre centreline sampling was a third of a world's cost."""
+
+
+def _geometry_key(lanes: list[AbstractLane], step: float) -> tuple:
+    """Every lane's class and numeric parameters (start, end, centre, radius, phases, length, ...: all that
+    ``lane.position`` reads), exactly (as bytes), in order: equal keys give the same centreline points."""
+    key = [step]
+    for lane in lanes:
+        key.append(type(lane).__qualname__)
+        for name, value in sorted(vars(lane).items()):
+            if not name.startswith("_") and isinstance(value, (int, float, np.ndarray, np.number)):
+                value = np.asarray(value)
+                key.append((name, value.dtype.str, value.shape, value.tobytes()))
+    return tuple(key)
+
+
 def _centreline_tree(lanes: list[AbstractLane], step: float = 1.0) -> cKDTree:
-    pts = [lane.position(s, 0.0) for lane in lanes for s in np.arange(0.0, lane.length + step, step)]
-    return cKDTree(np.array(pts))
+    key = _geometry_key(lanes, step)
+    tree = _TREES.get(key)
+    if tree is None:
+        pts = [lane.position(s, 0.0) for lane in lanes for s in np.arange(0.0, lane.length + step, step)]
+        tree = cKDTree(np.array(pts))
+        if len(_TREES) >= 16:  # a handful of road layouts per process; drop the oldest
+            del _TREES[next(iter(_TREES))]
+        _TREES[key] = tree
+    return tree
 
 
 def generate_world(env, seed: int) -> RoadsideWorld:
