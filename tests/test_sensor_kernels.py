@@ -318,3 +318,33 @@ def test_detections_with_kernels_are_the_numpy_detections():
 
 def test_kernels_are_on_by_default():
     assert lid.KERNELS == {"cast", "points"} and det.KERNELS == {"occlusion"}
+
+
+# --------------------------------------------------------------------------------------------- the roadside world
+@pytest.mark.parametrize("env_id", [TURN, LANE])
+def test_world_with_a_cached_centreline_tree_is_the_world_without(env_id):
+    """generate_world keeps the centreline k-d tree per road geometry and tests clearances in one query: the world
+    of a rebuilt road (a new episode) is the world built from a fresh tree, and every object keeps its clearance
+    (guard rails 0.9 m, furniture 1.5 m + radius, buildings 6 m beyond the lane's half width)."""
+    from scipy.spatial import cKDTree
+
+    from av_gym.sensors import world as w
+
+    env = gym.make(env_id)
+    env.reset(seed=0)
+    w._TREES.clear()
+    fresh = w.generate_world(env.unwrapped, 123)
+    env.reset(seed=1)  # the intersection's network is rebuilt: a new object, the same geometry
+    assert len(w._TREES) == 1
+    cached = w.generate_world(env.unwrapped, 123)
+    assert len(w._TREES) == 1
+    for f in ("segments", "segment_height", "segment_kind", "circles", "circle_height", "circle_kind"):
+        assert getattr(fresh, f).tobytes() == getattr(cached, f).tobytes(), f
+    lanes = env.unwrapped.road.network.lanes_list()
+    tree = cKDTree([lane.position(s, 0.0) for lane in lanes for s in np.arange(0.0, lane.length + 1.0, 1.0)])
+    half = lanes[0].width / 2
+    rails = cached.segments[cached.segment_kind == 0]
+    assert (tree.query(rails.reshape(-1, 2))[0] >= half + 0.9).all()
+    assert (tree.query(cached.circles[:, :2])[0] >= half + 1.5 + cached.circles[:, 2]).all()
+    assert len(rails) > 50 and len(cached.circles) > 20 and (cached.segment_kind == 1).any()
+    assert w._geometry_key(lanes[:-1], 1.0) != w._geometry_key(lanes, 1.0)
