@@ -37,7 +37,8 @@ PROBES = np.linspace(0.05, 0.95, 9)
 """Where along a vehicle's bearing interval occlusion is tested (fractions of the interval)."""
 KERNELS = {"occlusion"}
 """Which parts run as numba kernels (:mod:`av_gym.sensors.kernels`, bit-identical to the numpy code here, which
-stays as their reference): ``occlusion`` :meth:`Detector._occluded`."""
+stays as their reference): ``occlusion`` :meth:`Detector._occluded` and :meth:`Detector._view` (ranges, field of
+view and occlusion together)."""
 
 
 @dataclass(frozen=True)
@@ -133,17 +134,27 @@ class Detector(SensorWrapper):
             occluded[i] = covered.mean() >= self.occlusion_fraction
         return occluded
 
+    def _view(self, ego_xy: np.ndarray, psi: float, others: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per other vehicle: range (m), in view (within ``max_range`` and the field of view), occluded."""
+        if "occlusion" in KERNELS:  # the three in one compiled pass
+            return _kernels.detector_view(
+                float(ego_xy[0]), float(ego_xy[1]), float(psi), others[:, 0], others[:, 1], np.cos(others[:, 4]),
+                np.sin(others[:, 4]), others[:, 5], others[:, 6], float(self.max_range), float(self.half_fov),
+                bool(self.occlusion), PROBES, float(self.occlusion_fraction))
+        rel = others[:, :2] - ego_xy
+        r = np.sqrt(rel[:, 0] * rel[:, 0] + rel[:, 1] * rel[:, 1])  # np.linalg.norm(rel, axis=1), faster
+        bearing = np.arctan2(rel[:, 1], rel[:, 0]) - psi
+        in_view = (r <= self.max_range) & (np.abs((bearing + np.pi) % (2 * np.pi) - np.pi) <= self.half_fov)
+        occluded = self._occluded(ego_xy, others) if self.occlusion else np.zeros(len(others), dtype=bool)
+        return r, in_view, occluded
+
     def _frame(self) -> None:
         x, y, psi, _ = ego_pose(self.env)
         ego_xy = np.array([x, y])
         others = others_state(self.env)
         detections, clutter, ids, draws = np.zeros((0, 7)), [], [], []
         if len(others):
-            rel = others[:, :2] - ego_xy
-            r = np.sqrt(rel[:, 0] * rel[:, 0] + rel[:, 1] * rel[:, 1])  # np.linalg.norm(rel, axis=1), faster
-            bearing = np.arctan2(rel[:, 1], rel[:, 0]) - psi
-            in_view = (r <= self.max_range) & (np.abs((bearing + np.pi) % (2 * np.pi) - np.pi) <= self.half_fov)
-            occluded = self._occluded(ego_xy, others) if self.occlusion else np.zeros(len(others), dtype=bool)
+            r, in_view, occluded = self._view(ego_xy, psi, others)
             unwrapped = self.env.unwrapped
             vehicles = [v for v in unwrapped.road.vehicles if v is not unwrapped.vehicle]
             rng, chain = self.rng, self._missing

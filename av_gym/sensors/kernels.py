@@ -274,3 +274,21 @@ def occluded(ex, ey, x, y, c, s, length, width, probes, fraction):
                         break
         out[i] = covered / n_probes >= fraction
     return out
+
+
+@numba.njit(cache=True)
+def detector_view(ex, ey, psi, x, y, c, s, length, width, max_range, half_fov, occlusion, probes, fraction):
+    """Detector._frame's geometry in one pass: per other vehicle its range ``r`` (as np.linalg.norm), whether it is
+    in view (within ``max_range`` and ``half_fov`` of the heading ``psi``, the wrapped bearing compared as there),
+    and whether it is occluded (:func:`occluded`; all False without ``occlusion``)."""
+    n = x.shape[0]
+    r = np.empty(n)
+    in_view = np.empty(n, dtype=np.bool_)
+    for i in range(n):
+        dx, dy = x[i] - ex, y[i] - ey
+        r[i] = math.sqrt(dx * dx + dy * dy)
+        bearing = math.atan2(dy, dx) - psi
+        in_view[i] = r[i] <= max_range and abs((bearing + math.pi) % (2 * math.pi) - math.pi) <= half_fov
+    if occlusion:
+        return r, in_view, occluded(ex, ey, x, y, c, s, length, width, probes, fraction)
+    return r, in_view, np.zeros(n, dtype=np.bool_)
