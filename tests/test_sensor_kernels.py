@@ -144,18 +144,19 @@ def test_cast_kernel_edge_cases():
 @pytest.mark.parametrize("elev", [[0.0], [-3.0, 0.0, 4.0]])
 def test_exact_ties_decide_as_numpy_does(elev):
     """A vehicle's near face on a wall (x = 10 along the beam at 0: both at exactly 10 m; the wall wins, the return is
-    not labelled a vehicle), a wall exactly at max_range (no return) and one just inside it, a pole the beam at π/2
-    grazes (tangent: disc = 0)."""
-    angles = np.array([0.0, np.pi, np.pi / 2, -np.pi / 2, 0.25])
-    segs = np.array([[10.0, -3.0, 10.0, 3.0], [-30.0, -3.0, -30.0, 3.0], [-3.0, -29.5, 3.0, -29.5]])
-    circ = np.array([[1.0, 20.0, 1.0]])
-    boxes = box_corners(np.array([[12.0, 0.0]]), np.array([0.0]), np.array([4.0]), np.array([2.0]))
-    args = (np.zeros(2), angles, np.radians(elev), 1.7, segs, 20.0, circ, 20.0, boxes, 20.0, 30.0)
+    not labelled a vehicle), a vehicle face exactly at max_range (no return, no vehicle label) and a wall just inside
+    it, a pole the beam at π/2 grazes (tangent: disc = 0), a pole exactly as tall as the sensor is high (a level beam
+    hits it)."""
+    angles = np.array([0.0, np.pi, np.pi / 2, -np.pi / 2, 0.6])
+    segs = np.array([[10.0, -3.0, 10.0, 3.0], [-3.0, -29.5, 3.0, -29.5]])
+    circ = np.array([[1.0, 20.0, 1.0], [15 * np.cos(0.6), 15 * np.sin(0.6), 0.5]])
+    boxes = box_corners(np.array([[12.0, 0.0], [-32.0, 0.0]]), np.zeros(2), np.array([4.0, 4.0]), np.array([2.0, 2.0]))
+    args = (np.zeros(2), angles, np.radians(elev), 1.7, segs, 20.0, circ, np.array([20.0, 1.7]), boxes, 20.0, 30.0)
     (r0, v0), (r1, v1) = _both(lid._cast, *args)
     assert _same(r1, r0) and _same(v1, v0)
     level = elev.index(0.0)
     assert r0[level, 0] == 10.0 and not v0[level, 0]
-    assert r0[level, 1] == 30.0 and r0[level, 3] == 29.5 and not v0.any()
+    assert r0[level, 1] == 30.0 and r0[level, 3] == 29.5 and abs(r0[level, 4] - 14.5) < 1e-9 and not v0.any()
 
 
 @pytest.mark.parametrize("planar", [True, False])
