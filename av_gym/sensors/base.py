@@ -36,8 +36,11 @@ def others_state(env: gym.Env) -> np.ndarray:
     """True state of every other vehicle, ``(N, 7)`` ``[x, y, vx, vy, heading, length, width]``."""
     unwrapped = env.unwrapped
     ego = unwrapped.vehicle
-    rows = [[v.position[0], v.position[1], v.velocity[0], v.velocity[1], v.heading, v.LENGTH, v.WIDTH]
-            for v in unwrapped.road.vehicles if v is not ego]
+    rows = []
+    for v in unwrapped.road.vehicles:
+        if v is not ego:
+            velocity = v.velocity  # a property that builds its array: read once
+            rows.append([v.position[0], v.position[1], velocity[0], velocity[1], v.heading, v.LENGTH, v.WIDTH])
     return np.array(rows, dtype=float) if rows else NO_OTHERS.copy()
 
 
