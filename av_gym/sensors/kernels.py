@@ -5,14 +5,18 @@ candidate pairs with ``repeat``/``searchsorted``, gathers the shapes, solves eac
 and scatters with ``np.minimum.at``: about 60 numpy calls per scan, whose overhead, not the arithmetic (a few
 thousand pairs), was most of the LiDAR's cost per step. The detector's occlusion test loops over vehicles in
 Python with small array calls. Here one loop over the objects, their beams and the channels does the same
-arithmetic with no intermediate arrays.
+arithmetic with no intermediate arrays; likewise the scan's point cloud (:func:`scan_points`), the vehicles' boxes
+(:func:`box_corners`) and the detector's ranges, field of view and occlusion (:func:`detector_view`).
+benchmarks/sensor_kernels.py times them against the numpy code: at the left turn a ray cast 0.83 -> 0.15 ms, a
+whole scan 1.04 -> 0.24 ms, a detector frame 0.47 -> 0.15 ms (CPU time, 2026-11-25).
 
 What stays identical (as in :mod:`av_gym.sim.kernels`): each kernel evaluates the numpy code's formulas in the same
 order of operations (no ``fastmath``: no reassociation, no fused multiply-adds), on the same inputs, and makes every
 decision with the same comparisons. The candidate pairs are the numpy code's: the same bounding circles, angular
 spans and binary searches over the same sorted beam angles. numba's ``math`` calls the C library, as numpy's
 float64 ufuncs do on this project's (AVX2) machines, so the kernels reproduce the numpy path bit for bit (the beam
-directions' cos/sin and the channels' tan/cos are computed by the caller in numpy and passed in).
+directions' and headings' cos/sin and the channels' tan/cos are computed by the caller in numpy and passed in;
+where a numpy build uses its own SIMD maths, e.g. AVX-512, the asin/atan2/hypot here may differ in the last bit).
 tests/test_sensor_kernels.py checks each kernel against the numpy code, and whole seeded drives with and without
 the kernels. Each caller keeps the numpy code as the reference behind its module's ``KERNELS`` set.
 ``cache=True``: compiled once per checkout into ``__pycache__``; later processes only load them.
