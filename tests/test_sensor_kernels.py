@@ -385,4 +385,4 @@ def test_world_with_a_cached_centreline_tree_is_the_world_without(env_id):
     assert (tree.query(rails.reshape(-1, 2))[0] >= half + 0.9).all()
     assert (tree.query(cached.circles[:, :2])[0] >= half + 1.5 + cached.circles[:, 2]).all()
     assert len(rails) > 50 and len(cached.circles) > 20 and (cached.segment_kind == 1).any()
-    assert w._geometry_key(lanes[:-1], 1.0) != w._geometry_key(lanes, 1.0)
+    assert w.geometry_key(lanes[:-1], 1.0) != w.geometry_key(lanes, 1.0)

@@ -53,7 +53,7 @@ from av_gym.geometry import box_corners
 from av_gym.params import Params, param
 from av_gym.sensors import raster
 from av_gym.sensors.base import SensorWrapper, ego_pose, others_state, sim_time
-from av_gym.sensors.world import CIRCLE_KINDS, SEGMENT_KINDS, roadside_world
+from av_gym.sensors.world import CIRCLE_KINDS, SEGMENT_KINDS, geometry_key, roadside_world
 
 CAMERA_NAMES = ("left", "centre", "right")
 WINDSHIELD_HALF_WIDTH = 0.6  # m, side-camera offset d (our choice, see module docstring)
@@ -274,12 +274,10 @@ _ROADS: dict[tuple, tuple] = {}  # road quads per road geometry (a layout), shar
 def _road_quads(network) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Asphalt quads (Q, 4, 2) with their lane index (Q,), marking quads (M, 4, 2) with their lane-side index (M,)
     of a road network. highway-env builds a new network every episode, but its geometry is the layout's: the quads
-    are kept per geometry (each lane's class, width, line types, length and three points; ~10 ms per episode of
-    ``lane.position`` calls otherwise)."""
+    are kept per geometry (:func:`av_gym.sensors.world.geometry_key` and each lane's line types; ~10 ms per
+    episode of ``lane.position`` calls otherwise)."""
     lanes = network.lanes_list()
-    key = tuple((type(lane).__name__, float(lane.width_at(0.0)), tuple(lane.line_types), float(lane.length),
-                 *(float(c) for s_ in (0.0, lane.length / 2, lane.length) for c in lane.position(s_, 0.0)))
-                for lane in lanes)
+    key = geometry_key(lanes, tuple(tuple(int(t) for t in lane.line_types) for lane in lanes))
     cached = _ROADS.get(key)
     if cached is not None:
         return cached

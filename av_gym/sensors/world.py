@@ -63,13 +63,14 @@ def _edge_lanes(env) -> tuple[list[AbstractLane], list[AbstractLane]]:
 
 
 _TREES: dict[tuple, cKDTree] = {}
-"""Centreline trees by road geometry (:func:`_geometry_key`): highway-env rebuilds the intersection's road network
+"""Centreline trees by road geometry (:func:`geometry_key`): highway-env rebuilds the intersection's road network
 every episode, identical each time, and its every-metre centreline sampling was a third of a world's cost."""
 
 
-def _geometry_key(lanes: list[AbstractLane], step: float) -> tuple:
+def geometry_key(lanes: list[AbstractLane], step: float) -> tuple:
     """Every lane's class and numeric parameters (start, end, centre, radius, phases, length, ...: all that
-    ``lane.position`` reads), exactly (as bytes), in order: equal keys give the same centreline points."""
+    ``lane.position`` reads), exactly (as bytes), in order: equal keys give the same centreline points. ``step``
+    (or anything else hashable) is part of the key. Also the cameras' key for their road quads."""
     key = [step]
     for lane in lanes:
         key.append(type(lane).__qualname__)
@@ -81,7 +82,7 @@ def _geometry_key(lanes: list[AbstractLane], step: float) -> tuple:
 
 
 def _centreline_tree(lanes: list[AbstractLane], step: float = 1.0) -> cKDTree:
-    key = _geometry_key(lanes, step)
+    key = geometry_key(lanes, step)
     tree = _TREES.get(key)
     if tree is None:
         pts = [lane.position(s, 0.0) for lane in lanes for s in np.arange(0.0, lane.length + step, step)]
