@@ -699,17 +699,16 @@ def _render_rig(scene: StaticScene, others: np.ndarray, pose: np.ndarray, camera
                 weather: Weather, texture: GroundTexture, whole_image: bool = False) -> dict[str, np.ndarray]:
     """Clean images of every camera in ``cameras`` from ego ``pose`` [x, y, heading]: the ground of all cameras
     sampled from ``texture`` in one stacked pass (:func:`_draw_rig_ground`), then the vertical things far to near
-    (:func:`_paint`). What does not depend on the camera is done once for the rig: the vertical quads (scenery
-    facing the rig's centre, every vehicle face) in the vehicle frame, culled by bounding circle first
-    (:func:`_rig_scenery`), the far-to-near order and, for the windshield rig (cameras that differ only in
-    lateral offset), the projection itself: row coordinates, depths and the near/top/bottom culling are shared,
-    and each camera's column coordinates are the centre's shifted by ``f·d/Z``, all cameras in one numpy pass.
-    ``whole_image`` repaints the whole internal image instead of the band the quads cover (the reference the band
-    is tested against).
+    (:func:`_paint`). The vertical quads are built once for the rig in the vehicle frame, culled by bounding circle
+    and sorted far to near (:func:`raster.rig_quads`: scenery facing the rig's centre, every vehicle face), then
+    projected, culled and clipped per camera (:func:`raster.project_rig`; the windshield rig, whose cameras
+    differ only in lateral offset, with the shared-rig formula the numpy renderer had), both compiled: per rig a
+    handful of calls instead of ~30 numpy passes and one OpenCV call per quad. ``whole_image`` repaints the whole
+    internal image instead of the band the quads cover (the reference the band is tested against).
 
-    Measured and not taken: merging runs of neighbouring wall pieces into one quad where no quad in between
-    overlaps them (keeps the painter's order) removed only ~12 of 55-65 wall quads per camera, since the
-    roadside walls are chains of short straight segments, and its overlap test cost more than the fills saved."""
+    Measured and not taken (second pass, OpenCV painter): merging runs of neighbouring wall pieces into one quad
+    where no quad in between overlaps them removed only ~12 of 55-65 wall quads per camera, since the roadside
+    walls are chains of short straight segments, and its overlap test cost more than the fills saved."""
     x, y, psi = float(pose[0]), float(pose[1]), float(pose[2])
     cf, sf = math.cos(psi), math.sin(psi)
     specs = list(cameras.values())

@@ -309,10 +309,11 @@ def project_rig(fa, fb, fz, keys, kind, normals, nm, cams, near, shift, shared):
 @numba.njit(cache=True)
 def paint_band(small, polys, npts, colours, ss, shift, whole):
     """Paint the polygons (``polys``/``npts`` of one camera, :func:`project_rig`) over ``small`` (H, W) uint32 (an
-    RGBA image viewed one pixel per value), the camera's ground image at the output size, in place: the band they cover (bounding box plus one output
-    pixel; the whole image with ``whole``) is enlarged ``ss`` times (nearest), painted in order with
-    ``colours[i]`` (RGBA packed the same way) and area-averaged back; the pixels outside the band are final already. Both resamplings work
-    block by block, so the band gives the pixels painting the whole image would."""
+    RGBA image viewed one pixel per value), the camera's ground image at the output size, in place: the band they
+    cover (bounding box plus one output pixel; the whole image with ``whole``) is enlarged ``ss`` times (nearest),
+    painted in order with ``colours[i]`` (RGBA packed the same way) and area-averaged back; the pixels outside the
+    band are final already. Both resamplings work block by block, so the band gives the pixels painting the whole
+    image would."""
     h, w = small.shape[0], small.shape[1]
     n = npts.shape[0]
     lox = loy = np.int64(1) << 62

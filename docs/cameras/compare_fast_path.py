@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from av_gym.sensors.camera import CAMERA_NAMES, Weather, camera_rig, render_views
+from av_gym.sensors.camera import CAMERA_NAMES, camera_rig, render_views
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from compare_renderers import SCENARIOS, WEATHERS, poses  # noqa: E402
