@@ -316,6 +316,46 @@ def test_a_car_braking_ahead_on_the_exit_road_is_braked_for(make, turn_cfg):
     assert any(t["speed"] < 0.1 and t["stop_line_offset"] > 40.0 for t in truths)  # it stopped on the exit road
 
 
+def test_a_crossing_car_braking_hard_in_front_is_braked_for_in_time(make, turn_cfg):
+    """Traffic seed 1399 (issue 17, third pass): released behind the line, the always-proceeding ego enters the box
+    at 7 m/s as a crossing car ahead brakes at 6 m/s². At constant speed that car's footprint only grazes the ego's
+    grown one, so the emergency brake (unmargined footprints) came 0.3 s late and the ego hit it at 5 m/s; the
+    emergency test now also predicts a braking road user keeping its deceleration (``emergency_accel_time``), and
+    the ego stops in time and arrives. With the old rule (0) the same episode collides."""
+    for accel_time, collides in ((1.5, False), (0.0, True)):
+        env = make(turn_cfg, None, shield(emergency_accel_time=accel_time))
+        truths, info, *_ = rollout(env, AlwaysProceed(env.unwrapped.cruise_action()), seed=1399)
+        assert bool(truths[-1]["collision"]) is collides, accel_time
+        assert info["episode_metrics"]["success"] == (0.0 if collides else 1.0)
+
+
+def test_a_car_that_may_set_off_in_the_box_holds_the_ego_at_the_line(make, turn_cfg):
+    """Traffic seed 1215 (issue 17, third pass): an oncoming car going straight stands in the box, creeping, as
+    the unbraked always-proceeding ego comes up to the line at 9 m/s; it sets off just as the ego enters, and the
+    emergency brake parks the ego in its path. Predicting a car that stands in the box after moving as possibly
+    setting off (``setoff_speed``) stops the ego at the line, and it arrives; without (0) the same episode
+    collides."""
+    for setoff, collides in ((2.0, False), (0.0, True)):
+        env = make(turn_cfg, None, shield(setoff_speed=setoff))
+        truths, info, *_ = rollout(env, AlwaysProceed(env.unwrapped.cruise_action()), seed=1215)
+        assert bool(truths[-1]["collision"]) is collides, setoff
+        assert info["episode_metrics"]["success"] == (0.0 if collides else 1.0)
+
+
+def test_the_ego_braked_in_the_box_sets_off_past_a_car_standing_there(make, turn_cfg):
+    """Traffic seed 1300 (issue 17, third pass): braked to a standstill in the box, the ego waited for two cars
+    that had collided with each other there and were sliding to a stop at ~0.5 m/s (their path hypotheses at that
+    speed crossed the ego's), until the episode timed out; the release test now predicts road users slower than
+    ``release_standing`` standing where they are, and the ego clears the box and arrives. With the old release (0)
+    it stands there until the time-out."""
+    for standing, arrives in ((1.0, True), (0.0, False)):
+        env = make(turn_cfg, None, shield(release_standing=standing))
+        truths, info, *_ = rollout(env, AlwaysProceed(env.unwrapped.cruise_action()), seed=1300)
+        m = info["episode_metrics"]
+        assert not truths[-1]["collision"]
+        assert m["success"] == (1.0 if arrives else 0.0) and m["truncated"] == (0.0 if arrives else 1.0), standing
+
+
 def test_feasibility_check_does_not_park_the_ego_in_the_targets_path(make):
     """The ego is 3 m before the conflict point at 15 km/h and the target 18 m away: both carrying on and braking
     end in a collision, braking with the ego standing in the oncoming lane; the improved variant does not brake

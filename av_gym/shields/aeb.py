@@ -47,7 +47,11 @@ config section ``shield`` (``kind: aeb``, ``variant: ...``) builds one through :
     in the path of the object braked for when it is hit (a hit while still moving does not stop the brake: it
     mitigates; another road user reaching the standing ego later is a later conflict);
   * a **release rule**: once latched, the brake lets go when the ego setting off again (or carrying on, for a
-    continuous agent both) is predicted conflict-free with the larger ``release_margin`` for ``release_hold`` s.
+    continuous agent both) is predicted conflict-free with the larger ``release_margin`` for ``release_hold`` s;
+    standing in the box, road users slower than ``release_standing`` count as standing where they are;
+  * issue 17's third pass (``target_model: conflict``): the emergency test also predicts a braking road user
+    keeping its deceleration (``emergency_accel_time``), and before the line a road user that stands in the box
+    after moving may set off (``setoff_speed``: for the stop-line trigger and the release test).
   * Vehicles following the ego in its lane are ignored (they are responsible for their own gap).
 - ``standard`` — the baseline of paper 003 §2: ``TTC = Δx/Δv`` for targets ahead in the ego's corridor only,
   warn at TTC ≤ ``warn_ttc``, brake at TTC ≤ ``ttc_brake``, latched until standstill (and held like the paper
@@ -238,6 +242,37 @@ class ImprovedParams(TurnParams):
                                      "own indicator channel (the defaults of av_gym.sensors.turn_signal: 25 % never "
                                      "indicate, 5 % the wrong side, 10 % of readings missed, 60 m)")
     release_hold: float = param(0.3, "s", ge=0, doc="the release test must pass this long before the brake lets go")
+    emergency_accel_time: float = param(
+        1.5, "s", ge=0, doc="the emergency test (past the stop-line trigger point) also predicts every road user that "
+                            "is braking keeping its measured deceleration this long along each path hypothesis (a "
+                            "braking car stops, it never reverses), beside the constant-speed prediction (issue 17, "
+                            "third pass: a crossing car braking hard in front of the ego, or two cars colliding there, "
+                            "were braked for 0.2-0.3 s late, when the constant-speed footprints first touched); 0 = "
+                            "constant speed only (the rule before)")
+    release_accel_time: float = param(
+        0.0, "s", ge=0, doc="the release test also predicts every road user that is speeding up keeping its "
+                            "measured acceleration this long along each path hypothesis, beside the constant-speed "
+                            "prediction, so a car setting off again after slowing holds the brake; 0 = constant "
+                            "speed only, the default: measured with 1.5 s (issue 17, third pass, always_proceed+aeb "
+                            "on seeds 1000-1499) it prevented one collision (seed 1298) and added two (1185, 1231)")
+    setoff_speed: float = param(
+        2.0, "m/s", ge=0, doc="before the stop line, a road user slower than this in the box (on a lane through "
+                              "it) that was faster within setoff_recent s is also predicted setting off along each "
+                              "path hypothesis (from 0.5 m/s at setoff_accel), for the stop-line trigger and the "
+                              "release test (issue 17, third pass: seed 1215, an oncoming car standing in the box set "
+                              "off as the unbraked ego entered it at 9 m/s); 0 = off (the rule before)")
+    setoff_accel: float = param(3.0, "m/s²", gt=0, doc="see setoff_speed")
+    setoff_recent: float = param(3.0, "s", gt=0, doc="only a road user that was faster than setoff_speed within "
+                                                    "this many seconds may set off (a wreck, or a car parked in "
+                                                    "the box for long, does not hold the ego at the line)")
+    setoff_horizon: float = param(3.0, "s", gt=0, doc="only a conflict with a setting-off car within this many "
+                                                      "seconds counts (see setoff_speed)")
+    release_standing: float = param(
+        1.0, "m/s", ge=0, doc="gridlock release (issue 17, third pass): with the ego braked to a standstill in the "
+                              "box (front past the stop line, turn not cleared), the release test predicts every road "
+                              "user slower than this standing where it is, not along its path hypotheses, so the ego "
+                              "clears the box when what it braked for stands or yields to it; 0 = off (the rule "
+                              "before)")
     feasibility: bool = param(True, doc="no braking when it would leave the ego parked in the target's path "
                                         "(003 §9.7)")
     go_speed: float = param(4.5, "m/s", gt=0, doc="speed assumed for setting off when the ego has no cruise "
@@ -629,6 +664,7 @@ class AEBShield(gym.Wrapper):
         t = self._time()
         ego = self._ego()
         others, keys, out_ids = self._objects(ego)
+        self._keys = keys  # a persistent key per row of ``others`` (for a variant's own per-object memory)
         ego_key = "__ego__"
         if self.accel_alpha is not None:
             accels = self._accelerations([ego_key, *keys], np.vstack([ego["velocity"][None], others[:, 2:4]]), t)
@@ -724,6 +760,11 @@ class ImprovedAEB(AEBShield):
         self.margin, self.release_margin, self.stop_margin = p.margin, p.release_margin, p.stop_margin
         self.horizon_min, self.horizon_max, self.target_model = p.horizon_min, p.horizon_max, p.target_model
         self.release_hold, self.feasibility, self.go_speed = p.release_hold, p.feasibility, p.go_speed
+        self.release_standing, self.emergency_accel_time = p.release_standing, p.emergency_accel_time
+        self.release_accel_time = p.release_accel_time
+        self.setoff_speed, self.setoff_accel, self.setoff_horizon = p.setoff_speed, p.setoff_accel, p.setoff_horizon
+        self.setoff_recent = p.setoff_recent
+        self._moved_at: dict = {}
         self.warn_ttc, self.ignore_rear, self.check_action = p.warn_ttc, p.ignore_rear, p.check_action
         self.needs_lanes = self.target_model in ("map", "conflict")
         self._hypotheses: LaneHypotheses | None = None
@@ -743,6 +784,7 @@ class ImprovedAEB(AEBShield):
             self._conflicts.network = u.road.network
             self._signal_channel = {}
             self._signal_rng = sensor_rng(self.env, "aeb_signals")
+        self._moved_at = {}
 
     def _signal_readings(self, others: np.ndarray) -> np.ndarray | None:
         """The indicator reading (+1 left, -1 right, 0 none seen) of each object, through the shield's own
@@ -802,9 +844,19 @@ class ImprovedAEB(AEBShield):
         part runs — a forward AEB on the predicted footprints (the paper's function also sat inside the car's
         existing AEB) — so, e.g., a slower car ahead on the exit lane is still braked for."""
         keep = self._relevant(ego, others)
+        recent = None
+        if self.setoff_speed > 0:  # when each object was last faster than setoff_speed
+            keys = getattr(self, "_keys", None) or [None] * len(others)
+            fast = np.hypot(others[:, 2], others[:, 3]) >= self.setoff_speed if len(others) else np.zeros(0, bool)
+            for key, f in zip(keys, fast):
+                if f and key is not None:
+                    self._moved_at[key] = t
+            recent = np.array([key is not None and t - self._moved_at.get(key, -np.inf) <= self.setoff_recent + 1e-9
+                               for key in keys], dtype=bool)[keep] if len(others) else np.zeros(0, bool)
         others, a_others = others[keep], a_others[keep]
         v, a, s0 = ego["speed"], ego["accel"], ego["s"]
         t_long = self.T * np.arange(1, int(round(max(self.horizon_max, 4.0 + self.horizon_min) / self.T)) + 1)
+        lanes, signals = None, None
         if self.target_model == "map":
             lanes = [lane for lane, k in zip(self._lanes, keep) if k]
             obj_xy, obj_h, owner, turn = self._hypotheses.predict(others, lanes, t_long)
@@ -813,8 +865,9 @@ class ImprovedAEB(AEBShield):
             rear = turn | self.ignore_rear
         elif self.target_model == "conflict":
             lanes = [lane for lane, k in zip(self._lanes, keep) if k]
+            signals = self._signal_readings(others)
             obj_xy, obj_h, owner, turn, _ = self._conflicts.predict(
-                others, lanes, a_others, t_long, self._signal_readings(others), self._likelihood)
+                others, lanes, a_others, t_long, signals, self._likelihood)
             rear = turn | self.ignore_rear
         else:
             obj_xy, obj_h = object_predict(others, t_long, a_others if self.target_model == "ca" else None)
@@ -823,42 +876,80 @@ class ImprovedAEB(AEBShield):
         idx = np.flatnonzero(keep)[owner]  # hypothesis → row of the full object list
         size = np.asarray(others[owner, 5:7], dtype=float).reshape(-1, 2)
 
-        def ttc_of(ds: np.ndarray, n: int, margin: float) -> tuple[float, int]:
+        def ttc_of(ds: np.ndarray, n: int, margin: float, xy_o=obj_xy, h_o=obj_h, size_o=size,
+                   rear_o=rear) -> tuple[float, int]:
             xy, h = self.driven.poses(s0, ds[:n], profile_speeds(ds[:n], t_long[:n], v))
-            return footprint_ttc(xy, h, ego["size"], obj_xy[:n], obj_h[:n], size, t_long[:n], margin, rear)
+            return footprint_ttc(xy, h, ego["size"], xy_o[:n], h_o[:n], size_o, t_long[:n], margin, rear_o)
 
         ds_cruise = self._continue_profile(ego, t_long)
         horizon = self._horizon(s0, ds_cruise, t_long)
         n = int(round(horizon / self.T))
         ttc, target = ttc_of(ds_cruise, n, self.margin)
         target_out = int(idx[target]) if target >= 0 else -1
+        front_to_line = self.stop_line_s - (s0 + 0.5 * ego["size"][0])
+
+        def at_trigger_point() -> bool:
+            """The stop-line trigger: the front bumper within the stopping distance (+ one decision period and
+            stop_margin) of the line, not past it."""
+            if not (in_turn and 0.0 <= front_to_line):
+                return False
+            d_stop, _ = self.actuator.stopping_distance(v, a, self.sim_dt)
+            return front_to_line <= d_stop + v * self.T + self.stop_margin
+
+        # A car standing in the box that may set off (before the line only): checked where it can make a
+        # difference, in the release test and at the stop-line trigger point (it never warns or brakes elsewhere)
+        setoff_rule = self.setoff_speed > 0 and self.target_model == "conflict" and in_turn and front_to_line >= 0.0
+        setoff = None
+        if setoff_rule and (self._latched or (not np.isfinite(ttc) and at_trigger_point())):
+            setoff = self._setoff_predict(others, lanes, t_long, signals, recent)
 
         if self._latched:
             # Release rule: the ego setting off again (or carrying on, if still rolling) must be predicted
             # conflict-free, with the larger release margin (hysteresis), for release_hold s.
             ttc_go, tgo = float("inf"), -1
             profiles = [ds_cruise] if ego["set_speed"] is not None else [ds_cruise, self._go_profile(ego, t_long)]
-            for ds_p in profiles:  # commanded acceleration: safe whether the agent holds its speed or sets off
-                n_p = int(round(self._horizon(s0, ds_p, t_long) / self.T))
-                ttc_p, tg_p = ttc_of(ds_p, n_p, self.release_margin)
-                if ttc_p < ttc_go:
-                    ttc_go, tgo = ttc_p, tg_p
+            predictions = [(obj_xy, obj_h)]
+            speeding_up = self._along_accel(others, a_others, sign=1.0)
+            if self.release_accel_time > 0 and self.target_model == "conflict" and speeding_up.any():
+                accel_xy, accel_h, _, _ = self._accel_predict(others, lanes, speeding_up, t_long, signals,
+                                                              self.release_accel_time)
+                predictions.append((accel_xy, accel_h))
+            for p_xy, p_h in predictions:
+                xy_r, h_r = self._release_objects(ego, others, owner, p_xy, p_h)
+                for ds_p in profiles:  # commanded acceleration: safe whether the agent holds its speed or sets off
+                    n_p = int(round(self._horizon(s0, ds_p, t_long) / self.T))
+                    ttc_p, tg_p = ttc_of(ds_p, n_p, self.release_margin, xy_r, h_r)
+                    if ttc_p < ttc_go:
+                        ttc_go, tgo = ttc_p, tg_p
+            if setoff is not None:  # a car standing in the box that may set off (before the line only)
+                for ds_p in profiles:
+                    n_p = int(round(self._horizon(s0, ds_p, t_long) / self.T))
+                    n_p = min(n_p, int(round(self.setoff_horizon / self.T)))
+                    ttc_p, _ = ttc_of(ds_p, n_p, self.release_margin, *setoff[:2], *setoff[3:])
+                    ttc_go = min(ttc_go, ttc_p)
             self._clear_for = self._clear_for + self.T if not np.isfinite(ttc_go) else 0.0
             if not np.isfinite(ttc_go) and self._clear_for + 1e-9 >= self.release_hold:
                 self._release()
             else:
                 t_out = int(idx[tgo]) if tgo >= 0 else target_out
                 return BRAKE, min(ttc, ttc_go), horizon, t_out, False
+        if not np.isfinite(ttc) and setoff is not None and at_trigger_point():
+            # a standing car that may set off: a reason to stop at the line, never an emergency
+            n_set = min(n, int(round(self.setoff_horizon / self.T)))
+            ttc_set, k = ttc_of(ds_cruise, n_set, self.margin, *setoff[:2], *setoff[3:])
+            if np.isfinite(ttc_set):
+                self._latch(t)
+                return BRAKE, ttc_set, horizon, int(np.flatnonzero(keep)[setoff[2][k]]), False
         if not np.isfinite(ttc):
             return MONITOR, ttc, horizon, -1, False
-
-        front_to_line = self.stop_line_s - (s0 + 0.5 * ego["size"][0])
-        d_stop, _ = self.actuator.stopping_distance(v, a, self.sim_dt)
-        stop_line_trigger = in_turn and 0.0 <= front_to_line <= d_stop + v * self.T + self.stop_margin
+        stop_line_trigger = at_trigger_point()
         emergency = False
         if ttc <= self.ttc_brake:
             ttc_raw, _ = ttc_of(ds_cruise, n, 0.0)
             emergency = ttc_raw <= self.ttc_brake
+            if not emergency and self.emergency_accel_time > 0 and self.target_model == "conflict":
+                emergency = self._braking_ttc(ego, ds_cruise, n, others, lanes, a_others, t_long,
+                                              signals) <= self.ttc_brake
         if not (stop_line_trigger or emergency):
             return (WARN if in_turn or ttc <= self.warn_ttc else MONITOR), ttc, horizon, target_out, False
         # Feasibility against the object braked for (any of its path hypotheses) only: another road user that
@@ -871,6 +962,86 @@ class ImprovedAEB(AEBShield):
             return WARN, ttc, horizon, target_out, True
         self._latch(t)
         return BRAKE, ttc, horizon, target_out, False
+
+    @staticmethod
+    def _along_accel(others: np.ndarray, a_others: np.ndarray, sign: float) -> np.ndarray:
+        """``a_others`` (M, 2) kept for the road users whose acceleration along their velocity has the sign
+        ``sign`` (-1 braking, +1 speeding up), zero for the others."""
+        if len(others) == 0:
+            return np.zeros((0, 2))
+        speed = np.hypot(others[:, 2], others[:, 3])
+        along = np.einsum("mi,mi->m", a_others, others[:, 2:4]) / np.maximum(speed, 1e-6)
+        return np.where((sign * along > 0.0)[:, None], a_others, 0.0)
+
+    def _setoff_predict(self, others, lanes, t_long, signals, recent):
+        """Positions (K, H, 2), headings (K, H), owners (H,: rows of ``others``), sizes (H, 2) and rear flags (H,)
+        of the path hypotheses of every road user slower than ``setoff_speed`` on a lane through the box, setting
+        off from 0.5 m/s at ``setoff_accel`` (for 3 s); None when there is none."""
+        box = np.array([lane is not None and str(lane[0]).startswith("ir") for lane in lanes], dtype=bool)
+        speed = np.hypot(others[:, 2], others[:, 3]) if len(others) else np.zeros(0)
+        slow = box & (speed < self.setoff_speed) & recent
+        if not slow.any():
+            return None
+        idx = np.flatnonzero(slow)
+        mod = others[idx].copy()
+        direction = np.stack([np.cos(mod[:, 4]), np.sin(mod[:, 4])], 1)
+        mod[:, 2:4] = 0.5 * direction
+        sub_lanes = [lanes[i] for i in idx]
+        sub_signals = None if signals is None else signals[idx]
+        xy, h, owner, turn = self._accel_predict(mod, sub_lanes, self.setoff_accel * direction, t_long,
+                                                 sub_signals, 3.0)
+        return xy, h, idx[owner], np.asarray(others[idx[owner], 5:7], dtype=float).reshape(-1, 2), \
+            turn | self.ignore_rear
+
+    def _accel_predict(self, others, lanes, accels, t_long, signals, accel_time):
+        """The conflict model's path hypotheses (same ones, same order) with each road user keeping the
+        acceleration ``accels`` (M, 2, world frame; along its path) for ``accel_time`` s, never reversing."""
+        model = self._conflicts
+        saved = model.accel_time
+        model.accel_time = accel_time
+        try:
+            obj_xy, obj_h, owner, turn, _ = model.predict(others, lanes, accels, t_long, signals, self._likelihood)
+        finally:
+            model.accel_time = saved
+        return obj_xy, obj_h, owner, turn
+
+    def _braking_ttc(self, ego, ds, n, others, lanes, a_others, t_long, signals) -> float:
+        """Unmargined TTC of the ego on the profile ``ds`` against every road user that is braking (along its
+        path) predicted keeping that deceleration for ``emergency_accel_time`` s along each of its path
+        hypotheses, the others at constant speed as in the conflict test (:class:`ConflictModel` with
+        ``accel_time``; the accelerations are the finite-difference EMA the shield keeps per object)."""
+        braking = self._along_accel(others, a_others, sign=-1.0)
+        if not braking.any():
+            return float("inf")
+        obj_xy, obj_h, owner, turn = self._accel_predict(others, lanes, braking, t_long, signals,
+                                                         self.emergency_accel_time)
+        v, s0 = ego["speed"], ego["s"]
+        xy, h = self.driven.poses(s0, ds[:n], profile_speeds(ds[:n], t_long[:n], v))
+        size_b = np.asarray(others[owner, 5:7], dtype=float).reshape(-1, 2)
+        ttc, _ = footprint_ttc(xy, h, ego["size"], obj_xy[:n], obj_h[:n], size_b, t_long[:n], 0.0,
+                               turn | self.ignore_rear)
+        return ttc
+
+    def _release_objects(self, ego: dict, others: np.ndarray, owner: np.ndarray, obj_xy: np.ndarray,
+                         obj_h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The predicted objects the release test checks: all path hypotheses, except (``release_standing``) with
+        the ego standing in the box, where every road user slower than ``release_standing`` is predicted standing
+        at its current place and heading. Why: braked to a standstill in the box, the ego would otherwise wait for
+        a car that is barely moving there itself (one yielding, creeping, or sliding to a stop after a collision
+        with another car) whose path hypotheses at that speed cross the ego's, until the time-out or until a third
+        car runs into the standing ego; a car that does set off again is still met by the emergency brake."""
+        if self.release_standing <= 0 or ego["speed"] > STOP_SPEED or len(owner) == 0:
+            return obj_xy, obj_h
+        front_to_line = self.stop_line_s - (ego["s"] + 0.5 * ego["size"][0])
+        if front_to_line >= 0.0 or ego["s"] >= self.clear_s:
+            return obj_xy, obj_h
+        slow = np.hypot(others[owner, 2], others[owner, 3]) < self.release_standing
+        if not slow.any():
+            return obj_xy, obj_h
+        xy, h = obj_xy.copy(), obj_h.copy()
+        xy[:, slow] = others[owner[slow], 0:2][None]
+        h[:, slow] = others[owner[slow], 4][None]
+        return xy, h
 
     def _continue_profile(self, ego: dict, t: np.ndarray) -> np.ndarray:
         """Distance (m) along the route at times ``t`` if the ego carries on as it is driven now: for a vehicle

@@ -192,10 +192,11 @@ class ConflictModel:
         s = v * ta + 0.5 * a * ta**2
         return s + (v + a * ta) * (t - ta)
 
-    def _driven_all(self, lane_index: tuple) -> list:
+    def _driven_all(self, lane_index: tuple, by_seq: dict | None = None) -> list:
         """:meth:`driven` of every hypothesis of ``lane_index``, in :meth:`hypotheses`' order (cached per road
-        network, beside the paths themselves)."""
-        by_seq = _BY_NETWORK.setdefault(self.network, {})
+        network, beside the paths themselves; ``by_seq``: that network's cache, if the caller has it)."""
+        if by_seq is None:
+            by_seq = _BY_NETWORK.setdefault(self.network, {})
         key = ("hypotheses", tuple(lane_index))
         if key not in by_seq:
             by_seq[key] = [self.driven(seq) for seq, _ in self.hypotheses(lane_index)]
@@ -220,9 +221,11 @@ class ConflictModel:
         speeds_all = np.hypot(others[:, 2], others[:, 3]) if len(others) else np.zeros(0)
         on_map, v_on, a_on = [], [], []  # objects with map hypotheses: row, speed, along-path acceleration
         paths, starts, rows = [], [], []  # per map hypothesis: its driven path, start, object's row in on_map
+        net = self.network
+        by_seq = _BY_NETWORK.setdefault(net, {}) if len(lane_indices) else None
         for m, lane_index in enumerate(lane_indices):
             speed = float(speeds_all[m])
-            lane = self.network.get_lane(lane_index) if lane_index is not None else None
+            lane = net.get_lane(lane_index) if lane_index is not None else None
             if lane is not None and speed >= 0.5:
                 s0, lat = (float(x) for x in lane.local_coordinates(others[m, 0:2]))
                 dh = abs((float(lane.heading_at(s0)) - others[m, 4] + np.pi) % (2 * np.pi) - np.pi)
@@ -239,7 +242,7 @@ class ConflictModel:
                         p = [1.0 / n_h] * n_h
                     row = len(on_map)
                     on_map.append(m), v_on.append(speed), a_on.append(a_along)
-                    kept = [(path, float(pk)) for path, pk in zip(self._driven_all(lane_index), p)
+                    kept = [(path, float(pk)) for path, pk in zip(self._driven_all(lane_index, by_seq), p)
                             if not pk < self.min_p]
                     n_k = len(kept)
                     paths += [path for path, _ in kept]

@@ -182,14 +182,15 @@ def driven_poses(data, route, limits, bins, grid_table, ids, s0, ds, speeds, xy,
     index found is the same from any guess)."""
     H, K = ds.shape
     B = bins.shape[1]
-    f = np.empty(K)
+    f = np.empty((H, K))
     missing = 0
     for m in range(H):
         p = ids[m]
         if s0[m] + (ds[m, K - 1] if K else 0.0) < limits[p, 0]:
             continue
         for k in range(K):
-            lo = int(math.floor(_bin_index(speeds[m, k], grid_table, B)))
+            f[m, k] = _bin_index(speeds[m, k], grid_table, B)
+            lo = int(math.floor(f[m, k]))
             hi = min(lo + 1, B - 1)
             if bins[p, lo, 1] == 0 and not need[m, lo]:
                 need[m, lo] = True
@@ -212,14 +213,12 @@ def driven_poses(data, route, limits, bins, grid_table, ids, s0, ds, speeds, xy,
                 x, y, h, rg = _route_pose(data, ro, rn, r_len, sm + ds[m, k], rg)
                 xy[m, k, 0], xy[m, k, 1], hh[m, k] = x, y, h
             continue
-        for k in range(K):
-            f[k] = _bin_index(speeds[m, k], grid_table, B)
         have[:] = False
         guess[:] = 0
         for k in range(K):
-            lo = int(math.floor(f[k]))
+            lo = int(math.floor(f[m, k]))
             hi = min(lo + 1, B - 1)
-            w = f[k] - lo
+            w = f[m, k] - lo
             ax, ay, ah = 0.0, 0.0, 0.0
             for r in range(2):
                 i = lo if r == 0 else hi
