@@ -924,7 +924,12 @@ class CamerasParams(Params):
 class Cameras(SensorWrapper):
     """Adds ``obs["cameras"] = {"left", "centre", "right"}``: three (H, W, 3) uint8 RGB windshield images (or the
     subset named by ``views``); parameters: :class:`CamerasParams`. From Python, ``noise`` may also be ``True``
-    (the defaults) or ``False`` (clean renders), and ``noise``/``weather`` instances."""
+    (the defaults) or ``False`` (clean renders), and ``noise``/``weather`` instances.
+
+    Building one sets OpenCV to one thread for the process (``cv2.setNumThreads(1)``): its thread pool splits each
+    66×200 remap and colour conversion across cores, which bought 0.05 ms of a 3.2 ms left-turn `full` step for
+    0.8 ms more CPU on 2 idle cores (session 27; ``python benchmarks/sensor_cost.py``), and an RL run steps one
+    environment per core anyway."""
 
     key = "cameras"
     Params = CamerasParams
@@ -945,6 +950,7 @@ class Cameras(SensorWrapper):
         self.weather = p.weather or Weather(fog_visibility=p.fog_visibility, night=bool(p.night))
         self.noise: CameraNoise | None = p.noise
         self.rate_hz = p.rate_hz
+        cv2.setNumThreads(1)
         super().__init__(env)
         self._exposure = {name: (1.0, 0.0) for name in CAMERA_NAMES}  # name → (gain, offset)
         self._held: dict[str, np.ndarray] | None = None
