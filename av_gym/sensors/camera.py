@@ -405,13 +405,12 @@ def _ground_points(spec: CameraSpec) -> tuple[int, np.ndarray]:
 
 
 @lru_cache(maxsize=32)
-def _ground_palette(spec: CameraSpec) -> tuple[np.ndarray, np.ndarray]:
-    """Colour of a ground pixel from its texture byte v and its output row: ``palette`` (rows r0.., 256, 3)
-    uint8, where row i, column v is the camera's background of that row (hazed grass, area-averaged like the
-    internal image) covered by asphalt with coverage ``min(v/128, 1)``, then asphalt blended to the marking colour
-    for v in 128..255 (bilinear texture samples at edges give partial coverage, as area averaging did); and
-    ``rowmap`` (rows r0.., W) float32, each pixel's palette row for ``cv2.remap``."""
-    r0, pts = _ground_points(spec)
+def _ground_palette(spec: CameraSpec) -> np.ndarray:
+    """Colour of a ground pixel from its texture byte v and its output row: (rows r0.., 256, 4) uint8 RGBA,
+    where row i, column v is the camera's background of that row (hazed grass, area-averaged like the internal
+    image) covered by asphalt with coverage ``min(v/128, 1)``, then asphalt blended to the marking colour for v in
+    128..255 (bilinear texture samples at edges give partial coverage, as area averaging did)."""
+    r0, _ = _ground_points(spec)
     bg = _background(spec)
     if spec.supersample > 1:
         bg = cv2.resize(bg, (spec.width, spec.height), interpolation=cv2.INTER_AREA)
@@ -421,10 +420,7 @@ def _ground_palette(spec: CameraSpec) -> tuple[np.ndarray, np.ndarray]:
     t = np.clip((v - 128.0) / 127.0, 0.0, 1.0)[None, :, None]
     paint = np.array(ASPHALT, float) * (1 - t) + np.array(MARKING, float) * t
     palette = np.round(bg[:, None, :] * (1 - alpha) + paint * alpha).astype(np.uint8)
-    palette = np.concatenate([palette, np.full(palette.shape[:2] + (1,), 255, np.uint8)], -1)  # RGBA (see below)
-    rowmap = np.broadcast_to(np.arange(len(bg), dtype=np.float32)[:, None], pts.shape[:2])
-    return palette, np.ascontiguousarray(rowmap)
-
+    return np.concatenate([palette, np.full(palette.shape[:2] + (1,), 255, np.uint8)], -1)  # RGBA, alpha 255
 
 @lru_cache(maxsize=32)
 def _background_out(spec: CameraSpec) -> np.ndarray:
@@ -751,43 +747,42 @@ def _draw_rig_ground(pose: np.ndarray, specs: list[CameraSpec], tex: GroundTextu
     """Sky, grass, road and markings of every camera at the output size, (H, W, 4) uint8 RGBA each (views of one
     stacked buffer). The pixel rays are fixed in the car frame, so one affine map (``cv2.transform``, from the
     ego pose) takes the ground points of all cameras (:func:`_rig_ground`) to texels; one ``cv2.remap`` samples
-    the texture there (bilinear) and a second ``cv2.remap`` (nearest) looks each byte up in its row's palette.
+    the texture there (bilinear) and :func:`raster.palette_lookup` looks each byte up in its row's palette.
     Cameras of another size than the first are done in their own pass."""
     c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
     out: list[np.ndarray | None] = [None] * len(specs)
     for size in dict.fromkeys((sp.height, sp.width) for sp in specs):
         ks = [k for k, sp in enumerate(specs) if (sp.height, sp.width) == size]
-        pts, palette, rowmap = _rig_ground(tuple(specs[k] for k in ks))
+        pts, palette = _rig_ground(tuple(specs[k] for k in ks))
         k_ = 1.0 / tex.res
         m = np.array([[c * k_, -s * k_, (float(pose[0]) - tex.x0) * k_],
                       [s * k_, c * k_, (float(pose[1]) - tex.y0) * k_]], np.float32)
         v = cv2.remap(tex.texels, cv2.transform(pts, m), None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                       borderValue=0)
-        small = cv2.remap(palette, v.astype(np.float32), rowmap, cv2.INTER_NEAREST)
+        small = raster.palette_lookup(v, palette).view(np.uint8).reshape(v.shape + (4,))
         for j, k in enumerate(ks):
             out[k] = small[j * size[0]:(j + 1) * size[0]]
     return out
 
 
 @lru_cache(maxsize=8)
-def _rig_ground(specs: tuple[CameraSpec, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _rig_ground(specs: tuple[CameraSpec, ...]) -> tuple[np.ndarray, np.ndarray]:
     """Ground lookup of cameras of one output size, stacked vertically (K cameras of H×W): ``pts`` (K·H, W, 2)
     float32 vehicle-frame ground points of every output pixel (:func:`_ground_points`; far outside any texture
-    where the ray meets no ground within range), ``palette`` (K·H, 256, 4) uint8 RGBA (:func:`_ground_palette`
-    below the first ground row, the row's background for every byte above it, so a sky pixel looks up its sky
-    colour) and ``rowmap`` (K·H, W) float32, each pixel's palette row."""
+    where the ray meets no ground within range) and ``palette`` (K·H, 256) RGBA viewed as uint32
+    (:func:`_ground_palette` below the first ground row, the row's background for every byte above it, so a sky
+    pixel looks up its sky colour)."""
     pts_all, pal_all = [], []
     for spec in specs:
         r0, pts = _ground_points(spec)
         full = np.full((spec.height, spec.width, 2), 1e6, np.float32)
         full[r0:] = pts
         pal = np.repeat(_background_out(spec)[:, :1], 256, axis=1)  # a background row is one colour
-        pal[r0:] = _ground_palette(spec)[0]
+        pal[r0:] = _ground_palette(spec)
         pts_all.append(full)
         pal_all.append(pal)
     pts, palette = np.concatenate(pts_all), np.concatenate(pal_all)
-    rowmap = np.ascontiguousarray(np.broadcast_to(np.arange(len(pts), dtype=np.float32)[:, None], pts.shape[:2]))
-    return np.ascontiguousarray(pts), np.ascontiguousarray(palette), rowmap
+    return np.ascontiguousarray(pts), np.ascontiguousarray(palette).view(np.uint32)[..., 0]
 
 
 def _paint(small: np.ndarray, polys: np.ndarray, npts: np.ndarray, colours: np.ndarray, dist: np.ndarray,

@@ -71,6 +71,8 @@ class GNSS(SensorWrapper):
         self.outage_windows = np.array(p.outage_windows, dtype=float).reshape(-1, 2)
         super().__init__(env)
         self._history: deque = deque()
+        space = self.observation_space[self.key]
+        self._low, self._high = space.low, space.high  # the reading is clipped into the space every step
 
     def sensor_space(self) -> spaces.Box:
         low = np.array([-BOUND] * 4 + [0, 0, 0], dtype=np.float32)
@@ -143,8 +145,10 @@ class GNSS(SensorWrapper):
             fresh = True
         valid = self._last_fix_time is not None and not self._in_outage_now(round(t, 9)) and not self._fix_dropped
         age = 0.0 if self._last_fix_time is None else t - self._fix_time
-        out = np.concatenate([self._fix, [float(fresh), float(valid), age]])
-        return np.clip(out, self.observation_space[self.key].low, self.observation_space[self.key].high).astype(np.float32)
+        out = np.empty(7)
+        out[:4], out[4], out[5], out[6] = self._fix, float(fresh), float(valid), age
+        # np.clip's values by minimum/maximum, without its per-call dispatch (this runs every step)
+        return np.minimum(np.maximum(out, self._low), self._high).astype(np.float32)
 
     def _in_outage_now(self, t: float) -> bool:
         if self.outage == "scripted":

@@ -550,3 +550,16 @@ def rig_quads(ends, centre, radius, z0s, z1s, scenery_colour, nw, pose, fo, moun
 def _to_vehicle(fa, fb, j, corner, px, py, x, y, cf, sf):
     d0, d1 = px - x, py - y
     fa[j, corner], fb[j, corner] = d0 * cf + d1 * sf, -d0 * sf + d1 * cf
+
+
+@numba.njit(cache=True)
+def palette_lookup(v, palette):
+    """``out[r, c] = palette[r, v[r, c]]``: each ground pixel's colour from its texture byte and its row's palette
+    (``v`` (R, W) uint8, ``palette`` (R, 256) uint32 RGBA) → (R, W) uint32. What ``cv2.remap(palette, v, row,
+    INTER_NEAREST)`` computed, without converting the bytes to a float map first."""
+    out = np.empty(v.shape, np.uint32)
+    for r in range(v.shape[0]):
+        row = palette[r]
+        for c in range(v.shape[1]):
+            out[r, c] = row[v[r, c]]
+    return out
