@@ -1,5 +1,6 @@
-"""Compiled painter for the cameras' vertical things: projection, culling, near-plane clipping and convex-polygon
-fill of every quad of a rig in two numba calls (issue 18, third pass).
+"""Compiled painter for the cameras: the rig's vertical quads built and sorted (:func:`rig_quads`), projected,
+culled and clipped per camera (:func:`project_rig`) and filled (:func:`paint_band`, :func:`paint_depth`), and the
+ground's palette looked up (:func:`palette_lookup`), a handful of numba calls per rig (issue 18, third pass).
 
 Why hand-written: OpenCV fills one polygon per Python call (``cv2.fillConvexPoly``, ~1-2 us each plus the numpy
 bookkeeping that prepares its arguments); a rig shows 50-90 small quads per camera, so the calls and the per-rig
@@ -215,7 +216,7 @@ def _fill_convex(img, depth, vx, vy, npts, colour, d, shift, use_depth):
             break
 
 
-# Columns of the per-camera parameter rows handed to :func:`project_rig` (see ``camera._rig_params``).
+# Columns of the per-camera parameter rows handed to :func:`project_rig` (built in ``camera._render_rig``).
 FO, LAT, YAW, MOUNT, PITCH, FOCAL, WIDTH, HEIGHT, SS, RANGE, CAM_X, CAM_Y, ROOFS = range(13)
 
 
