@@ -150,16 +150,23 @@ def summarise(jobs: list[Job], group_keys: list[str], replicate_keys: list[str],
         eps = episodes[key]
         line: dict[str, Any] = {**reps[0]["values"], "agent": reps[0]["agent"], "n_seeds": len(reps),
                                 "episodes": len(eps)}
+        # One replicate has no seed-to-seed spread: its cell shows the interval over its episodes instead
+        # (t for a mean, Wilson for a rate), named in ``interval`` so the table and the plot can say so.
+        line["interval"] = "replicates" if len(reps) > 1 else "episodes"
         for m in metrics:
             mean, half = mean_ci([r[m] for r in reps], confidence)
+            vals = np.array([r.get(m, math.nan) for r in eps], dtype=float)
+            vals = vals[~np.isnan(vals)]
+            if len(reps) == 1 and not binary[m]:
+                half = mean_ci(vals, confidence)[1]
             line[m], line[m + "_lo"], line[m + "_hi"] = mean, mean - half, mean + half
             if binary[m]:
                 # A rate cannot leave [0, 1]; the t interval over a few seeds can.
                 line[m + "_lo"], line[m + "_hi"] = max(line[m + "_lo"], 0.0), min(line[m + "_hi"], 1.0)
-                vals = np.array([r.get(m, math.nan) for r in eps], dtype=float)
-                vals = vals[~np.isnan(vals)]
                 _, line[m + "_pooled_lo"], line[m + "_pooled_hi"] = wilson_ci(int(vals.sum()), int(vals.size),
                                                                               confidence)
+                if len(reps) == 1:
+                    line[m + "_lo"], line[m + "_hi"] = line[m + "_pooled_lo"], line[m + "_pooled_hi"]
         out.append(line)
         label = ", ".join(f"{k}={v}" for k, v in reps[0]["values"].items()) or "all jobs"
         if len(reps) > 1 and all(all(_same(r[m], reps[0][m]) for m in metrics) for r in reps):
@@ -176,18 +183,26 @@ def summarise(jobs: list[Job], group_keys: list[str], replicate_keys: list[str],
     return out, warnings
 
 
+_EPISODE_NOTE = (" Cells with a single replicate (interval: episodes) show the interval over their episodes "
+                 "instead: a t interval for a mean, Wilson for a rate; it measures episode-to-episode spread under one "
+                 "seed, not seed-to-seed.")
+
+
 def _same(a: float, b: float) -> bool:
     return (math.isnan(a) and math.isnan(b)) or a == b
 
 
 def table_markdown(summary: list[dict], group_keys: list[str], metrics: list[str], binary: dict[str, bool]) -> str:
+    """One row per cell; an ``interval`` column (over ``replicates`` or ``episodes``) when any cell had a single
+    replicate."""
+    shown = ("interval",) if any(line["interval"] == "episodes" for line in summary) else ()
     cells = []
     for line in summary:
-        cell = {k: line[k] for k in (*group_keys, "agent", "n_seeds", "episodes")}
+        cell = {k: line[k] for k in (*group_keys, "agent", "n_seeds", "episodes", *shown)}
         for m in metrics:
             cell[m] = format_ci(line[m], line[m + "_lo"], line[m + "_hi"], binary[m])
         cells.append(cell)
-    return markdown_table(cells, [*group_keys, "agent", "n_seeds", "episodes", *metrics])
+    return markdown_table(cells, [*group_keys, "agent", "n_seeds", "episodes", *shown, *metrics])
 
 
 def plot_curve(summary: list[dict], x: str, metric: str, group_keys: list[str], path: Path, title: str,
@@ -278,7 +293,8 @@ def sweep_report(root: str | Path, x: str | None = None, metric: str | None = No
               f"{', '.join(k for k in replicate_keys if k in swept) or 'none'} ({'/'.join(map(str, n_seeds))} per "
               f"cell). Each cell is the mean over replicates of the per-replicate mean, with a Student-t 95% "
               f"interval over replicates (rates too, clipped to [0, 1]; sweep.csv adds a Wilson interval over "
-              f"the pooled episodes).\n")
+              f"the pooled episodes)."
+              f"{_EPISODE_NOTE if any(line['interval'] == 'episodes' for line in summary) else ''}\n")
     text = header + "\n" + table + "\n"
     for w in warnings:
         text += f"\n> warning: {w}\n"
@@ -290,7 +306,9 @@ def sweep_report(root: str | Path, x: str | None = None, metric: str | None = No
         # The overrides every job shared say what was held fixed; paths and display flags say nothing about that.
         fixed = [f"{k}={v}" for k, v in jobs[0].overrides.items() if k not in swept
                  and not k.startswith("paths.") and not k.endswith("progress_bar")]
-        title = (f"{scenario or ''} {metric} vs {x}: mean ± 95% CI over {'/'.join(map(str, n_seeds))} replicates"
+        over = (f"{'/'.join(map(str, n_seeds))} replicates" if n_seeds != [1]
+                else "episodes (one replicate per cell)")
+        title = (f"{scenario or ''} {metric} vs {x}: mean ± 95% CI over {over}"
                  f"{'; ' + ' '.join(fixed) if fixed else ''}").strip()
         plot_curve(summary, x, metric, group_keys, png, title, f"{metric} (rate)" if binary[metric] else metric)
         text += f"\n![{metric} vs {x}]({png.name})\n"

@@ -132,3 +132,28 @@ def test_sweep_warns_when_replicates_overlap(tmp_path):
     result = sweep_report(tmp_path, plot=False)
     assert result["summary"][0]["n_seeds"] == 2
     assert any("share some episode seeds" in w for w in result["warnings"])
+
+
+def test_a_cell_with_one_replicate_shows_the_interval_over_its_episodes(tmp_path):
+    """One job per swept value (no replicate key swept): the seed-to-seed interval does not exist, so the cell
+    carries the t interval over its episodes (Wilson for a rate), and the table and header say so."""
+    rng = np.random.default_rng(1)
+    ctes = {}
+    for num, sigma in enumerate((0.5, 1.5)):
+        cte = rng.uniform(0, 1, size=5) * sigma
+        ctes[sigma] = cte
+        rows = [{"agent": "pid_gnss", "episode": i, "seed": 1000 + i, "cte_mean_abs_m": c,
+                 "lap_completed": float(i != 1)} for i, c in enumerate(cte)]
+        _fake_job(tmp_path, num, ["agent=pid_gnss", f"sensors.gnss.sigma={sigma}"], rows)
+    result = sweep_report(tmp_path, metrics=["cte_mean_abs_m", "lap_completed"])
+    for line in result["summary"]:
+        cte = ctes[line["sensors.gnss.sigma"]]
+        half = stats.t.ppf(0.975, 4) * np.std(cte, ddof=1) / np.sqrt(5)
+        assert line["n_seeds"] == 1 and line["interval"] == "episodes"
+        assert line["cte_mean_abs_m_lo"] == pytest.approx(cte.mean() - half)
+        assert line["cte_mean_abs_m_hi"] == pytest.approx(cte.mean() + half)
+        assert (line["lap_completed_lo"], line["lap_completed_hi"]) == (line["lap_completed_pooled_lo"],
+                                                                        line["lap_completed_pooled_hi"])
+        assert 0 < line["lap_completed_lo"] < 0.8 < line["lap_completed_hi"] < 1
+    assert "| interval |" in result["table"] and "| episodes |" in result["table"]
+    assert "episode-to-episode" in result["markdown"]
