@@ -50,32 +50,6 @@ def box_corners(x, y, c, s, length, width):
     return out
 
 
-@numba.njit(cache=True, inline="always")
-def _left(a, v):
-    """np.searchsorted(a, v, side="left") for a sorted 1-d ``a``."""
-    lo, hi = 0, a.shape[0]
-    while lo < hi:
-        mid = (lo + hi) >> 1
-        if a[mid] < v:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo
-
-
-@numba.njit(cache=True, inline="always")
-def _right(a, v):
-    """np.searchsorted(a, v, side="right") for a sorted 1-d ``a``."""
-    lo, hi = 0, a.shape[0]
-    while lo < hi:
-        mid = (lo + hi) >> 1
-        if a[mid] <= v:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo
-
-
 @numba.njit(cache=True)
 def cast(origins, ref_x, ref_y, slack, cos_a, sin_a, order, doubled, tan_e, cos_e, mount_height,
          segments, seg_h, circles, circ_h, corners, box_h, max_range):
@@ -129,8 +103,8 @@ def cast(origins, ref_x, ref_y, slack, cos_a, sin_a, order, doubled, tan_e, cos_
         else:
             half = math.pi  # origin inside: every beam
         lo = (math.atan2(dy, dx) - half) % TWO_PI
-        i0 = _left(doubled, lo)
-        count = min(_right(doubled, lo + 2.0 * half) - i0, n_beams)
+        i0 = np.searchsorted(doubled, lo, side="left")
+        count = min(np.searchsorted(doubled, lo + 2.0 * half, side="right") - i0, n_beams)
         if kind == 2:  # _ray_boxes' slab frame of this box
             e1x, e1y = corners[q, 1, 0] - corners[q, 0, 0], corners[q, 1, 1] - corners[q, 0, 1]
             e2x, e2y = corners[q, 3, 0] - corners[q, 0, 0], corners[q, 3, 1] - corners[q, 0, 1]
