@@ -12,6 +12,7 @@ from av_gym.shields.predict import (aabb_limits, ca_predict, footprint_ttc, obje
                                     paper_limits, paper_ttc, setpoint_profile, standard_ttc)
 from av_gym.envs.left_turn import CONFLICT_POINT
 from av_gym.errors import ConfigError
+from _libm import numpy_is_libm
 from conftest import Scripted, ccftap_cfg, conf, rollout
 
 KMH = 1 / 3.6
@@ -223,22 +224,6 @@ def test_driven_path_predictions_start_where_the_ego_is_all_along_the_route(make
         assert np.max(np.hypot(*(xy - centre).T)) < tol, s0
 
 
-def _numpy_cos_sin_are_libm() -> bool:
-    """numpy's float64 cos and sin give the C library's results (numba's ``math`` calls the C library), as on this
-    project's AVX2 machines (tests/test_kernels.py); an AVX-512 numpy build may differ in the last bit."""
-    import ctypes
-    import ctypes.util
-
-    libm = ctypes.CDLL(ctypes.util.find_library("m"))
-    a = np.random.default_rng(0).uniform(-10, 10, 2000)
-    for name, ours in (("cos", np.cos(a)), ("sin", np.sin(a))):
-        c = getattr(libm, name)
-        c.restype, c.argtypes = ctypes.c_double, [ctypes.c_double]
-        if not np.array_equal(ours, [c(x) for x in a]):
-            return False
-    return True
-
-
 def test_driven_path_kernel_equals_the_numpy_reference(make, turn_cfg):
     """The compiled driven-path look-up (av_gym/shields/kernels.py, issue 17: < 1 ms per decision) against
     DrivenPath.poses_numpy, the code it replaces, on random batches over every path hypothesis of the
@@ -257,7 +242,7 @@ def test_driven_path_kernel_equals_the_numpy_reference(make, turn_cfg):
     paths = [model.driven(seq) for a in net.graph for b in net.graph[a] for i in range(len(net.graph[a][b]))
              for seq, _ in model.hypotheses((a, b, i))]
     paths.append(_route_tables([net.get_lane(i) for i in ROUTE])[1])
-    exact = _numpy_cos_sin_are_libm()
+    exact = numpy_is_libm("cos", "sin")
     rng = np.random.default_rng(17)
     t = 0.1 * np.arange(1, 81)
     for trial in range(40):

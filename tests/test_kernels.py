@@ -9,9 +9,6 @@ compared to 1e-9 (decisions still exactly)."""
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
-
 import numpy as np
 import pytest
 
@@ -20,22 +17,9 @@ from av_gym.make import highway_config
 from av_gym.sim import batched as sb
 from av_gym.sim import kernels
 
+from _libm import numpy_is_libm
 
-def _numpy_is_libm() -> bool:
-    """numpy's float64 cos, sin, arctan2, hypot and power give the C library's results on sample values (numba's
-    ``math`` calls the C library; Python's math.hypot does not, hence ctypes)."""
-    libm = ctypes.CDLL(ctypes.util.find_library("m"))
-    a, b = np.random.default_rng(0).uniform(-10, 10, (2, 2000))
-    for name, ours, args in [("cos", np.cos(a), (a,)), ("sin", np.sin(a), (a,)), ("atan2", np.arctan2(a, b), (a, b)),
-                             ("hypot", np.hypot(a, b), (a, b)), ("pow", np.abs(a) ** (b / 3), (np.abs(a), b / 3))]:
-        c = getattr(libm, name)
-        c.restype, c.argtypes = ctypes.c_double, [ctypes.c_double] * len(args)
-        if not np.array_equal(ours, [c(*x) for x in zip(*args)]):
-            return False
-    return True
-
-
-LIBM = _numpy_is_libm()
+LIBM = numpy_is_libm("cos", "sin", "atan2", "hypot", "pow")
 
 
 def _same(a: np.ndarray, b: np.ndarray) -> bool:

@@ -11,8 +11,6 @@ elsewhere (numpy's own SIMD maths, AVX-512 builds) floats are compared to 1e-9 a
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 from types import SimpleNamespace
 
 import gymnasium as gym
@@ -25,27 +23,12 @@ from av_gym.sensors import detector as det
 from av_gym.sensors import kernels
 from av_gym.sensors import lidar as lid
 
+from _libm import numpy_is_libm
+
 LANE = "av_gym/LaneKeepingLap-v0"
 TURN = "av_gym/UnprotectedLeftTurn-v0"
 
-
-def _numpy_is_libm() -> bool:
-    """numpy's float64 cos, sin, tan, arcsin, arctan2 and hypot give the C library's results on sample values."""
-    libm = ctypes.CDLL(ctypes.util.find_library("m"))
-    rng = np.random.default_rng(0)
-    a, b = rng.uniform(-10, 10, (2, 2000))
-    x = rng.uniform(-1, 1, 2000)
-    for name, ours, args in [("cos", np.cos(a), (a,)), ("sin", np.sin(a), (a,)), ("tan", np.tan(a / 7), (a / 7,)),
-                             ("asin", np.arcsin(x), (x,)), ("atan2", np.arctan2(a, b), (a, b)),
-                             ("hypot", np.hypot(a, b), (a, b))]:
-        c = getattr(libm, name)
-        c.restype, c.argtypes = ctypes.c_double, [ctypes.c_double] * len(args)
-        if not np.array_equal(ours, [c(*v) for v in zip(*args)]):
-            return False
-    return True
-
-
-LIBM = _numpy_is_libm()
+LIBM = numpy_is_libm("cos", "sin", "tan", "asin", "atan2", "hypot")
 
 
 def _same(a: np.ndarray, b: np.ndarray) -> bool:
