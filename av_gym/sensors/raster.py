@@ -521,10 +521,10 @@ def rig_quads(ends, centre, radius, z0s, z1s, scenery_colour, nw, pose, fo, moun
                     x0, y0 = ax[q] + inset * ex, ay[q] + inset * ey
                     x1, y1 = bx[q] - inset * ex, by[q] - inset * ey
                     z0, z1 = wz0, wz1
-                _to_vehicle(fa, fb, j, 0, x0, y0, x, y, cf, sf)
-                _to_vehicle(fa, fb, j, 3, x0, y0, x, y, cf, sf)
-                _to_vehicle(fa, fb, j, 1, x1, y1, x, y, cf, sf)
-                _to_vehicle(fa, fb, j, 2, x1, y1, x, y, cf, sf)
+                a0, b0 = _to_vehicle(x0, y0, x, y, cf, sf)  # corners 0 and 3 stand on A, 1 and 2 on B
+                a1, b1 = _to_vehicle(x1, y1, x, y, cf, sf)
+                fa[j, 0], fa[j, 1], fa[j, 2], fa[j, 3] = a0, a1, a1, a0
+                fb[j, 0], fb[j, 1], fb[j, 2], fb[j, 3] = b0, b1, b1, b0
                 fz[j, 0], fz[j, 1], fz[j, 2], fz[j, 3] = z0, z0, z1, z1
                 keys[j] = dist
                 for ch in range(3):
@@ -535,7 +535,7 @@ def rig_quads(ends, centre, radius, z0s, z1s, scenery_colour, nw, pose, fo, moun
                 nm[j] = nxs[q] * mx + nys[q] * my
         j = m_s + 8 * m_o + jv
         for q in range(4):
-            _to_vehicle(fa, fb, j, q, ax[q], ay[q], x, y, cf, sf)
+            fa[j, q], fb[j, q] = _to_vehicle(ax[q], ay[q], x, y, cf, sf)
             fz[j, q] = height
         keys[j] = dist
         for ch in range(3):
@@ -548,9 +548,10 @@ def rig_quads(ends, centre, radius, z0s, z1s, scenery_colour, nw, pose, fo, moun
 
 
 @numba.njit(cache=True, inline="always")
-def _to_vehicle(fa, fb, j, corner, px, py, x, y, cf, sf):
+def _to_vehicle(px, py, x, y, cf, sf):
+    """World point (px, py) → (forward, right) of the vehicle at (x, y) with heading cos ``cf``, sin ``sf``."""
     d0, d1 = px - x, py - y
-    fa[j, corner], fb[j, corner] = d0 * cf + d1 * sf, -d0 * sf + d1 * cf
+    return d0 * cf + d1 * sf, -d0 * sf + d1 * cf
 
 
 @numba.njit(cache=True)
