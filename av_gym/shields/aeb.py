@@ -96,7 +96,8 @@ from av_gym.registry import Registry
 from av_gym.sensors.base import sensor_rng
 from av_gym.sensors.detector import DetectorParams
 from av_gym.sensors.turn_signal import TurnSignalsParams, intended_signal
-from av_gym.shields.conflicts import ConflictModel, signal_likelihood
+from av_gym.shields.conflicts import ConflictModel
+from av_gym.shields.intent import IntentBelief
 from av_gym.shields.predict import (DrivenPath, LaneHypotheses, RouteTable, cruise_profile, footprint_ttc,
                                     go_profile, object_predict, paper_horizon, paper_ttc, profile_speeds,
                                     setpoint_profile, standard_ttc)
@@ -167,8 +168,8 @@ class AEBParams(Params):
         the tracker section sets it. Values that are not mappings are left to the checks."""
         out = dict(values)
         base = cls()
-        for key in ("brake", "detector"):
-            if isinstance(out.get(key), Mapping):
+        for key in ("brake", "detector", "signal_channel"):
+            if isinstance(out.get(key), Mapping) and hasattr(base, key):
                 out[key] = {**getattr(base, key).as_dict(), **out[key]}
         det = out.get("detector", base.detector)
         det = det.as_dict() if isinstance(det, Params) else det
@@ -239,8 +240,13 @@ class ImprovedParams(TurnParams):
                                                          "this is dropped (uniform over the continuations: 1/3 "
                                                          "each at the intersection, so only a turn signal prunes)")
     signals: bool = param(False, doc="target_model conflict: read the other drivers' indicators through the shield's "
-                                     "own indicator channel (the defaults of av_gym.sensors.turn_signal: 25 % never "
-                                     "indicate, 5 % the wrong side, 10 % of readings missed, 60 m)")
+                                     "own indicator channel (signal_channel), each driver's readings accumulated in "
+                                     "a Bayes filter over its turn (av_gym.shields.intent)")
+    signal_channel: TurnSignalsParams = param(
+        TurnSignalsParams(), doc="signals: the shield's indicator channel (av_gym.sensors.turn_signal's model and "
+                                 "defaults: 25 % of drivers never indicate, 5 % the wrong side, 10 % of readings "
+                                 "missed, 60 m); all three rates 0 = every driver's intent known (an upper bound: "
+                                 "what perfect intent would buy)")
     release_hold: float = param(0.3, "s", ge=0, doc="the release test must pass this long before the brake lets go")
     emergency_accel_time: float = param(
         1.5, "s", ge=0, doc="the emergency test (past the stop-line trigger point) also predicts every road user that "
@@ -770,8 +776,9 @@ class ImprovedAEB(AEBShield):
         self._hypotheses: LaneHypotheses | None = None
         self._conflicts: ConflictModel | None = None
         self.hypothesis_min_p, self.signals = p.hypothesis_min_p, p.signals
-        self._signal_params = TurnSignalsParams()
+        self._signal_params = p.signal_channel
         self._signal_channel: dict = {}
+        self._beliefs: dict = {}
 
     def _on_reset(self, u) -> None:
         if self.target_model == "map":
@@ -782,41 +789,44 @@ class ImprovedAEB(AEBShield):
             if self._conflicts is None:
                 self._conflicts = ConflictModel(u.road.network, min_p=self.hypothesis_min_p)
             self._conflicts.network = u.road.network
-            self._signal_channel = {}
+            self._signal_channel, self._beliefs = {}, {}
             self._signal_rng = sensor_rng(self.env, "aeb_signals")
         self._moved_at = {}
 
-    def _signal_readings(self, others: np.ndarray) -> np.ndarray | None:
-        """The indicator reading (+1 left, -1 right, 0 none seen) of each object, through the shield's own
-        indicator channel (:mod:`av_gym.sensors.turn_signal`'s model and defaults, its own random stream): the
-        reading belongs to the true vehicle at the object's place (within 2 m; a track elsewhere gets none);
-        NaN beyond the channel's range."""
+    def _intent(self, others: np.ndarray) -> np.ndarray | None:
+        """The weight of each turn (right, straight, left) of each object from every indicator reading of it so far
+        (:class:`av_gym.shields.intent.IntentBelief`, one per true vehicle); a NaN row for an object never read.
+
+        A reading comes through the shield's own indicator channel (``signal_channel``; its own random stream) and
+        belongs to the true vehicle at the object's place (within 2 m; a track elsewhere gets none); none beyond
+        the channel's range."""
         if not self.signals:
             return None
         u, sp = self.env.unwrapped, self._signal_params
         ego = u.vehicle
         vehicles = [v for v in u.road.vehicles if v is not ego]
-        out = np.full(len(others), np.nan)
+        out = np.full((len(others), 3), np.nan)
         if not vehicles:
             return out
         pos = np.array([v.position for v in vehicles], dtype=float)
         for m, row in enumerate(others):
             d = np.hypot(*(pos - row[0:2]).T)
             k = int(np.argmin(d))
-            if d[k] > 2.0 or np.hypot(*(row[0:2] - ego.position)) > sp.max_range:
+            if d[k] > 2.0:
                 continue
             v = vehicles[k]
-            if v not in self._signal_channel:  # first sighting: does this driver indicate, and the right way?
-                self._signal_channel[v] = (self._signal_rng.uniform() >= sp.no_signal_rate,
-                                           self._signal_rng.uniform() < sp.wrong_rate)
-            indicates, wrong = self._signal_channel[v]
-            seen = self._signal_rng.uniform() >= sp.miss_rate
-            out[m] = intended_signal(v) * (-1.0 if wrong else 1.0) if indicates and seen else 0.0
+            if np.hypot(*(row[0:2] - ego.position)) <= sp.max_range:
+                if v not in self._signal_channel:  # first sighting: does this driver indicate, and the right way?
+                    self._signal_channel[v] = (self._signal_rng.uniform() >= sp.no_signal_rate,
+                                               self._signal_rng.uniform() < sp.wrong_rate)
+                    self._beliefs[v] = IntentBelief(sp.no_signal_rate, sp.wrong_rate)
+                indicates, wrong = self._signal_channel[v]
+                seen = self._signal_rng.uniform() >= sp.miss_rate
+                reading = intended_signal(v) * (-1.0 if wrong else 1.0) if indicates and seen else 0.0
+                self._beliefs[v].update(reading, sp.miss_rate)
+            if v in self._beliefs:  # out of range again: what was read stays known
+                out[m] = self._beliefs[v].turn_likelihood()
         return out
-
-    def _likelihood(self, signal: float, turn: float) -> float:
-        sp = self._signal_params
-        return signal_likelihood(signal, turn, sp.no_signal_rate, sp.wrong_rate, sp.miss_rate, floor=0.02)
 
     def _decide_variant(self, ego, others, a_ego, a_others, t, active):
         return self._decide_improved(ego, others, a_others, t, active)
@@ -856,7 +866,7 @@ class ImprovedAEB(AEBShield):
         others, a_others = others[keep], a_others[keep]
         v, a, s0 = ego["speed"], ego["accel"], ego["s"]
         t_long = self.T * np.arange(1, int(round(max(self.horizon_max, 4.0 + self.horizon_min) / self.T)) + 1)
-        lanes, signals = None, None
+        lanes, intent = None, None
         if self.target_model == "map":
             lanes = [lane for lane, k in zip(self._lanes, keep) if k]
             obj_xy, obj_h, owner, turn = self._hypotheses.predict(others, lanes, t_long)
@@ -865,9 +875,8 @@ class ImprovedAEB(AEBShield):
             rear = turn | self.ignore_rear
         elif self.target_model == "conflict":
             lanes = [lane for lane, k in zip(self._lanes, keep) if k]
-            signals = self._signal_readings(others)
-            obj_xy, obj_h, owner, turn, _ = self._conflicts.predict(
-                others, lanes, a_others, t_long, signals, self._likelihood)
+            intent = self._intent(others)
+            obj_xy, obj_h, owner, turn, _ = self._conflicts.predict(others, lanes, a_others, t_long, intent)
             rear = turn | self.ignore_rear
         else:
             obj_xy, obj_h = object_predict(others, t_long, a_others if self.target_model == "ca" else None)
@@ -901,7 +910,7 @@ class ImprovedAEB(AEBShield):
         setoff_rule = self.setoff_speed > 0 and self.target_model == "conflict" and in_turn and front_to_line >= 0.0
         setoff = None
         if setoff_rule and (self._latched or (not np.isfinite(ttc) and at_trigger_point())):
-            setoff = self._setoff_predict(others, lanes, t_long, signals, recent)
+            setoff = self._setoff_predict(others, lanes, t_long, intent, recent)
 
         if self._latched:
             # Release rule: the ego setting off again (or carrying on, if still rolling) must be predicted
@@ -911,7 +920,7 @@ class ImprovedAEB(AEBShield):
             predictions = [(obj_xy, obj_h)]
             speeding_up = self._along_accel(others, a_others, sign=1.0)
             if self.release_accel_time > 0 and self.target_model == "conflict" and speeding_up.any():
-                accel_xy, accel_h, _, _ = self._accel_predict(others, lanes, speeding_up, t_long, signals,
+                accel_xy, accel_h, _, _ = self._accel_predict(others, lanes, speeding_up, t_long, intent,
                                                               self.release_accel_time)
                 predictions.append((accel_xy, accel_h))
             for p_xy, p_h in predictions:
@@ -949,7 +958,7 @@ class ImprovedAEB(AEBShield):
             emergency = ttc_raw <= self.ttc_brake
             if not emergency and self.emergency_accel_time > 0 and self.target_model == "conflict":
                 emergency = self._braking_ttc(ego, ds_cruise, n, others, lanes, a_others, t_long,
-                                              signals) <= self.ttc_brake
+                                              intent) <= self.ttc_brake
         if not (stop_line_trigger or emergency):
             return (WARN if in_turn or ttc <= self.warn_ttc else MONITOR), ttc, horizon, target_out, False
         # Feasibility against the object braked for (any of its path hypotheses) only: another road user that
@@ -973,7 +982,7 @@ class ImprovedAEB(AEBShield):
         along = np.einsum("mi,mi->m", a_others, others[:, 2:4]) / np.maximum(speed, 1e-6)
         return np.where((sign * along > 0.0)[:, None], a_others, 0.0)
 
-    def _setoff_predict(self, others, lanes, t_long, signals, recent):
+    def _setoff_predict(self, others, lanes, t_long, intent, recent):
         """Positions (K, H, 2), headings (K, H), owners (H,: rows of ``others``), sizes (H, 2) and rear flags (H,)
         of the path hypotheses of every road user slower than ``setoff_speed`` on a lane through the box, setting
         off from 0.5 m/s at ``setoff_accel`` (for 3 s); None when there is none."""
@@ -987,25 +996,25 @@ class ImprovedAEB(AEBShield):
         direction = np.stack([np.cos(mod[:, 4]), np.sin(mod[:, 4])], 1)
         mod[:, 2:4] = 0.5 * direction
         sub_lanes = [lanes[i] for i in idx]
-        sub_signals = None if signals is None else signals[idx]
+        sub_intent = None if intent is None else intent[idx]
         xy, h, owner, turn = self._accel_predict(mod, sub_lanes, self.setoff_accel * direction, t_long,
-                                                 sub_signals, 3.0)
+                                                 sub_intent, 3.0)
         return xy, h, idx[owner], np.asarray(others[idx[owner], 5:7], dtype=float).reshape(-1, 2), \
             turn | self.ignore_rear
 
-    def _accel_predict(self, others, lanes, accels, t_long, signals, accel_time):
+    def _accel_predict(self, others, lanes, accels, t_long, intent, accel_time):
         """The conflict model's path hypotheses (same ones, same order) with each road user keeping the
         acceleration ``accels`` (M, 2, world frame; along its path) for ``accel_time`` s, never reversing."""
         model = self._conflicts
         saved = model.accel_time
         model.accel_time = accel_time
         try:
-            obj_xy, obj_h, owner, turn, _ = model.predict(others, lanes, accels, t_long, signals, self._likelihood)
+            obj_xy, obj_h, owner, turn, _ = model.predict(others, lanes, accels, t_long, intent)
         finally:
             model.accel_time = saved
         return obj_xy, obj_h, owner, turn
 
-    def _braking_ttc(self, ego, ds, n, others, lanes, a_others, t_long, signals) -> float:
+    def _braking_ttc(self, ego, ds, n, others, lanes, a_others, t_long, intent) -> float:
         """Unmargined TTC of the ego on the profile ``ds`` against every road user that is braking (along its
         path) predicted keeping that deceleration for ``emergency_accel_time`` s along each of its path
         hypotheses, the others at constant speed as in the conflict test (:class:`ConflictModel` with
@@ -1013,7 +1022,7 @@ class ImprovedAEB(AEBShield):
         braking = self._along_accel(others, a_others, sign=-1.0)
         if not braking.any():
             return float("inf")
-        obj_xy, obj_h, owner, turn = self._accel_predict(others, lanes, braking, t_long, signals,
+        obj_xy, obj_h, owner, turn = self._accel_predict(others, lanes, braking, t_long, intent,
                                                          self.emergency_accel_time)
         v, s0 = ego["speed"], ego["s"]
         xy, h = self.driven.poses(s0, ds[:n], profile_speeds(ds[:n], t_long[:n], v))

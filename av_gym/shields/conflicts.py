@@ -92,20 +92,6 @@ def path_turn(seq: tuple) -> float:
     return 1.0 if turn == 1 else -1.0 if turn == 3 else 0.0
 
 
-def signal_likelihood(signal: float, turn: float, no_signal_rate: float, wrong_rate: float, miss_rate: float,
-                      floor: float) -> float:
-    """P(reading ``signal`` | the driver's path turns ``turn``) under the indicator channel of
-    :mod:`av_gym.sensors.turn_signal` (no signal at all, the wrong side, a missed reading), never below ``floor``
-    (the channel is a model: a driver it says never indicates may still do so)."""
-    if turn == 0.0:
-        p = 1.0 if signal == 0.0 else 0.0
-    else:
-        shown = (1.0 - no_signal_rate) * (1.0 - miss_rate)
-        p_right, p_wrong = shown * (1.0 - wrong_rate), shown * wrong_rate
-        p = p_right if signal == turn else p_wrong if signal == -turn else 1.0 - p_right - p_wrong
-    return max(p, floor)
-
-
 _DRIVEN: dict = {}  # lane sequence geometry -> DrivenPath, shared by every shield in the process
 # network -> {lane sequence -> DrivenPath}: the look-up without the geometry key, per road network (a reset builds a
 # new one); module-level and weak so that deep copies of the stack (the lookahead oracle) neither copy nor keep it
@@ -116,8 +102,8 @@ class ConflictModel:
     """Every road user's possible paths across the ego's (issue 17): one hypothesis per way the road network lets
     it continue from the lane it is on (:class:`av_gym.shields.predict.LaneHypotheses`: straight, left, right at
     the intersection, any lane the graph continues to), each with a probability, uniform over the continuations
-    and, where an indicator reading is available, weighted by the reading's likelihood under the indicator
-    channel (:func:`signal_likelihood`); hypotheses below ``min_p`` are dropped. Along each path the vehicle
+    and, where the driver's indicator has been read, weighted by what its readings say about each turn
+    (:class:`av_gym.shields.intent.IntentBelief`); hypotheses below ``min_p`` are dropped. Along each path the vehicle
     keeps its along-path acceleration for ``accel_time`` s (a braking car stops, it does not reverse), then its
     speed (``accel_time`` 0, the default: constant speed; measured, docs/aeb.md: 1.5 s parked the ego in the box
     more often), on the path highway-env's route-following controller actually drives (:meth:`driven`). An
@@ -203,11 +189,11 @@ class ConflictModel:
         return by_seq[key]
 
     def predict(self, others: np.ndarray, lane_indices: list, accels: np.ndarray, t: np.ndarray,
-                signals: np.ndarray | None = None, likelihood=None):
+                intent: np.ndarray | None = None):
         """Positions (K, M', 2), headings (K, M'), owner (M',), whether each is a map hypothesis (M',) and its
         probability (M',) over the hypotheses of ``others`` (M, 7) on ``lane_indices`` (None = off the map),
-        ``accels`` (M, 2) m/s² world frame; ``signals`` (M,) indicator readings (+1/-1/0, NaN = none) with
-        ``likelihood(signal, turn)``.
+        ``accels`` (M, 2) m/s² world frame; ``intent`` (M, 3) the weight of each turn (right, straight, left:
+        :data:`av_gym.shields.intent.TURNS`) from the object's indicator readings, a NaN row where there are none.
 
         Every map hypothesis is placed on its driven path in one compiled call
         (:func:`av_gym.shields.predict.driven_poses`; ``DrivenPath.kernel = False``: one numpy look-up at a time,
@@ -233,10 +219,9 @@ class ConflictModel:
                     a_along = float(accels[m] @ others[m, 2:4]) / speed
                     hyps = self.hypotheses(lane_index)
                     n_h = len(hyps)
-                    sig = None if signals is None else signals[m]
-                    if sig is not None and np.isfinite(sig) and likelihood is not None:
-                        p = np.full(n_h, 1.0 / n_h)
-                        p = p * np.array([likelihood(float(sig), turn) for _, turn in hyps])
+                    w = None if intent is None else intent[m]
+                    if w is not None and np.isfinite(w).all():
+                        p = np.array([w[int(turn) + 1] for _, turn in hyps]) / n_h  # TURNS: right, straight, left
                         p = (p / p.sum()).tolist()
                     else:
                         p = [1.0 / n_h] * n_h
