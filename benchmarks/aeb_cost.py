@@ -19,14 +19,14 @@ import time
 import numpy as np
 
 
-def scene(n_vehicles: int, seed: int, target_model: str):
+def scene(n_vehicles: int, seed: int, overrides: dict):
     from agents import AlwaysProceed
     from av_gym.make import make_env
     from eval.agents import compose_group
     from av_gym.shields.aeb import find_shield
 
     shield = compose_group("shield", "aeb")
-    shield["target_model"] = target_model
+    shield.update(overrides)
     env = make_env({"name": "left_turn", "spawn_probability": 1.0}, None, shield)
     policy = AlwaysProceed(env.unwrapped.cruise_action())
     obs, _ = env.reset(seed=seed)
@@ -59,15 +59,19 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=5)
     a = ap.parse_args()
     rows = []
-    for model in ("cv", "map", "conflict"):
-        env, shield = scene(a.vehicles, a.seed, model)
+    # the shipped default (conflict model, indicators read) and the models and options it is compared with
+    configs = {"cv": {"target_model": "cv"}, "map": {"target_model": "map"},
+               "conflict, no indicators": {"target_model": "conflict", "signals": False},
+               "conflict (default)": {}}
+    for model, overrides in configs.items():
+        env, shield = scene(a.vehicles, a.seed, overrides)
         print(f"[aeb_cost] {model}: {len(env.unwrapped.road.vehicles) - 1} road users", flush=True)
         time_decisions(shield, 5)  # warm the caches (route tables, driven paths), as after the first episode
         times = [time_decisions(shield, a.n) for _ in range(a.repeat)]
         rows.append((model, len(env.unwrapped.road.vehicles) - 1, float(np.median(times)) * 1e3))
     ref = rows[0][2]
     print(f"load average {os.getloadavg()[0]:.2f} (1 min); median of {a.repeat} x {a.n} decisions")
-    print("| target_model | road users | ms per decision | ratio to cv |")
+    print("| prediction | road users | ms per decision | ratio to cv |")
     print("| --- | --- | --- | --- |")
     for model, n, ms in rows:
         print(f"| {model} | {n} | {ms:.3f} | {ms / ref:.2f} |")

@@ -53,18 +53,30 @@ def _checkpoint_name(kind: str) -> str:
 def find_checkpoint(kind: str, env_name: str, root: str | Path, name: str | None = None) -> Path:
     """Newest ``checkpoints/<run>/`` whose saved config trained ``kind`` (and, if given, the agent config ``name``,
     e.g. ``ppo_turn``) on ``env_name`` and holds its model; if you trained none, the committed
-    ``checkpoints/reference/<name>/`` one."""
-    for pattern in ("*/config.yaml", "reference/*/config.yaml"):
-        found = []
-        for cfg_path in Path(root).glob(pattern):
-            cfg = read_config_yaml(cfg_path)
-            model = cfg_path.parent / _checkpoint_name(kind)
-            agent = cfg.get("agent", {})
-            if model.is_file() and cfg.get("env", {}).get("name") == env_name and agent.get("kind") == kind \
-                    and (name is None or agent.get("name") == name):
-                found.append(model)
-        if found:
-            return max(found, key=lambda p: p.stat().st_mtime)
+    ``checkpoints/reference/<name>/`` one (or, without a name or that folder, the first such reference folder by
+    name).
+
+    Reference folders are never ordered by modification time: in a fresh clone that is the order git happened to
+    write them in, and several hold the same agent (``reference/ppo_turn_v3_s2``, the other seeds and the older
+    rounds say ``name: ppo_turn`` too): ``ppo_turn`` picked one of seven policies, whichever git wrote last."""
+    def matches(cfg_path: Path) -> Path | None:
+        cfg = read_config_yaml(cfg_path)
+        model = cfg_path.parent / _checkpoint_name(kind)
+        agent = cfg.get("agent", {})
+        if model.is_file() and cfg.get("env", {}).get("name") == env_name and agent.get("kind") == kind \
+                and (name is None or agent.get("name") == name):
+            return model
+        return None
+
+    runs = [m for m in map(matches, Path(root).glob("*/config.yaml")) if m is not None]
+    if runs:  # your own training runs: the newest
+        return max(runs, key=lambda p: p.stat().st_mtime)
+    own = Path(root) / "reference" / (name or kind) / "config.yaml"
+    if own.is_file() and matches(own) is not None:
+        return matches(own)
+    found = sorted(m for m in map(matches, Path(root).glob("reference/*/config.yaml")) if m is not None)
+    if found:
+        return found[0]
     what = name or kind
     raise ConfigError(f"no {what} checkpoint for env {env_name!r} under {root}/; train one with "
                       f"`python -m train env={env_name} agent={what}` or pass a checkpoint path")

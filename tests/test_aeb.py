@@ -293,8 +293,11 @@ def test_shield_decisions_are_the_same_with_the_kernel_and_with_numpy(make, turn
 def test_a_car_braking_ahead_on_the_exit_road_is_braked_for(make, turn_cfg):
     """Traffic seed 1019: down the exit road the always-proceeding ego closes on a car that then brakes at 6 m/s².
     The improved shield brakes in time; it used to hold off, its feasibility check finding a car merging into the
-    exit lane predicted through the standing ego 5.9 s later (the check now looks at the object braked for)."""
-    env = make(turn_cfg, None, shield())
+    exit lane predicted through the standing ego 5.9 s later (the check now looks at the object braked for).
+    Without indicators (``signals: false``, the default before issue 17's fourth pass): reading them, the shield no
+    longer stops the ego at the line for that merging car's other paths, the ego reaches the exit road earlier and
+    the car ahead never brakes in front of it."""
+    env = make(turn_cfg, None, shield(signals=False))
     truths, info, *_ = rollout(env, AlwaysProceed(env.unwrapped.cruise_action()), seed=1019)
     m = info["episode_metrics"]
     assert not truths[-1]["collision"] and m["success"] == 1.0 and m["intervention"] == 1.0

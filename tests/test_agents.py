@@ -90,3 +90,28 @@ def test_every_shipped_agent_config_is_its_kinds_params():
             defaults = AGENT_KINDS.get(kind_default(raw)).Params().as_dict()
             same = [k for k, v in raw.items() if k not in ("defaults", "name") and defaults.get(k) == v]
             assert same == [], (name, same)
+
+
+def test_a_named_agent_resolves_to_its_own_reference_folder_whatever_the_file_times(tmp_path):
+    import os
+
+    from eval.agents import find_checkpoint
+
+    def folder(name: str, agent_name: str, mtime: float):
+        d = tmp_path / "reference" / name
+        d.mkdir(parents=True)
+        (d / "config.yaml").write_text(f"env: {{name: left_turn}}\nagent: {{kind: ppo, name: {agent_name}}}\n")
+        (d / "model.zip").write_bytes(b"")
+        os.utime(d / "model.zip", (mtime, mtime))
+        return d / "model.zip"
+
+    own = folder("ppo_turn", "ppo_turn", 1_000.0)
+    folder("ppo_turn_v2_s1", "ppo_turn", 2_000.0)  # another round of the same agent, written later by git
+    folder("ppo_turn_v3_s2", "ppo_turn", 3_000.0)
+    assert find_checkpoint("ppo", "left_turn", tmp_path, name="ppo_turn") == own
+    # a run you trained yourself (not under reference/) is preferred: the newest of them
+    run = tmp_path / "my_run"
+    run.mkdir()
+    (run / "config.yaml").write_text("env: {name: left_turn}\nagent: {kind: ppo, name: ppo_turn}\n")
+    (run / "model.zip").write_bytes(b"")
+    assert find_checkpoint("ppo", "left_turn", tmp_path, name="ppo_turn") == run / "model.zip"

@@ -97,12 +97,13 @@ from av_gym.sensors.base import sensor_rng
 from av_gym.sensors.detector import DetectorParams
 from av_gym.sensors.turn_signal import TurnSignalsParams, intended_signal
 from av_gym.shields.conflicts import ConflictModel
-from av_gym.shields.intent import IntentBelief
+from av_gym.shields.intent import DriverIntent
 from av_gym.shields.predict import (DrivenPath, LaneHypotheses, RouteTable, cruise_profile, footprint_ttc,
                                     go_profile, object_predict, paper_horizon, paper_ttc, profile_speeds,
                                     setpoint_profile, standard_ttc)
 
 STOP_SPEED = 0.1  # m/s, standstill (as av_gym.metrics.left_turn.STOP_SPEED)
+_NO_ACCEL = np.zeros(2)  # an object's acceleration before its second sighting (never written to)
 MONITOR, WARN, BRAKE = 0, 1, 2
 
 
@@ -239,9 +240,11 @@ class ImprovedParams(TurnParams):
     hypothesis_min_p: float = param(0.1, ge=0, le=1, doc="target_model conflict: a path hypothesis less likely than "
                                                          "this is dropped (uniform over the continuations: 1/3 "
                                                          "each at the intersection, so only a turn signal prunes)")
-    signals: bool = param(False, doc="target_model conflict: read the other drivers' indicators through the shield's "
-                                     "own indicator channel (signal_channel), each driver's readings accumulated in "
-                                     "a Bayes filter over its turn (av_gym.shields.intent)")
+    signals: bool = param(True, doc="target_model conflict: read the other drivers' indicators through the shield's "
+                                    "own indicator channel (signal_channel), each driver's readings accumulated in a "
+                                    "Bayes filter over its turn (av_gym.shields.intent). Default since issue 17's "
+                                    "fourth pass: always_proceed+aeb on seeds 1000-1499, fewer collisions, more "
+                                    "arrivals and fewer unneeded brakes than without (docs/aeb.md)")
     signal_channel: TurnSignalsParams = param(
         TurnSignalsParams(), doc="signals: the shield's indicator channel (av_gym.sensors.turn_signal's model and "
                                  "defaults: 25 % of drivers never indicate, 5 % the wrong side, 10 % of readings "
@@ -625,12 +628,17 @@ class AEBShield(gym.Wrapper):
         u = self.env.unwrapped
         if self.mode == "ground_truth":
             vehicles = [v for v in u.road.vehicles if v is not u.vehicle]
-            rows = [[v.position[0], v.position[1], *v.velocity, v.heading, v.LENGTH, v.WIDTH]
-                    for v in vehicles]  # velocity is a property (speed x direction): computed once per vehicle
+            state = np.array([(v.position[0], v.position[1], v.speed, v.heading, v.LENGTH, v.WIDTH)
+                              for v in vehicles], dtype=float).reshape(-1, 6)
+            # highway-env's Vehicle.velocity (speed x [cos, sin] of the heading) for all at once: the same products
+            # (numpy's cos/sin give an array the values they give each element), without ~20 property calls
+            speed, heading = state[:, 2:3], state[:, 3]
+            rows = np.hstack([state[:, 0:2], speed * np.stack([np.cos(heading), np.sin(heading)], axis=1),
+                              state[:, 3:6]])
             self._lanes = [getattr(v, "lane_index", None) for v in vehicles]
             # Keyed by the vehicle objects, not id(): a deep copy of the stack (the lookahead oracle) then maps the
             # history to the copied vehicles, and a removed vehicle's id can never hand its history to a new one.
-            return np.array(rows, dtype=float).reshape(-1, 7), vehicles, list(range(len(vehicles)))
+            return rows, vehicles, list(range(len(vehicles)))
         rows = self.detector.measure()
         tracks = self.tracker.step(rows, self._time(), ego["xy"])
         ids = [int(i) for i in self.tracker.track_ids()]
@@ -640,19 +648,20 @@ class AEBShield(gym.Wrapper):
         return tracks, [("track", i) for i in ids], ids
 
     def _accelerations(self, keys: list, velocities: np.ndarray, t: float) -> np.ndarray:
-        """Finite-difference accelerations (m/s², world frame) low-passed by an EMA, per object key."""
-        out = np.zeros((len(keys), 2))
+        """Finite-difference accelerations (m/s², world frame) low-passed by an EMA, per object key (all keys at once:
+        the same element-wise arithmetic as one key at a time, without ~20 small numpy calls per decision)."""
+        velocities = np.array(velocities, dtype=float).reshape(-1, 2)
         dt = None if self._prev_t is None else t - self._prev_t
-        for i, (k, v) in enumerate(zip(keys, velocities)):
-            if dt and dt > 1e-9 and k in self._prev_v:
-                raw = (v - self._prev_v[k]) / dt
-                self._ema[k] = self.accel_alpha * raw + (1 - self.accel_alpha) * self._ema.get(k, np.zeros(2))
-            out[i] = self._ema.get(k, np.zeros(2))
-            self._prev_v[k] = np.array(v, dtype=float)
-        present = set(keys)
-        for store in (self._prev_v, self._ema):
-            for k in [k for k in store if k not in present]:
-                del store[k]
+        if dt and dt > 1e-9:
+            seen = [i for i, k in enumerate(keys) if k in self._prev_v]
+            if seen:
+                prev = np.array([self._prev_v[keys[i]] for i in seen])
+                ema = np.array([self._ema.get(keys[i], _NO_ACCEL) for i in seen])
+                raw = (velocities[seen] - prev) / dt
+                self._ema.update(zip([keys[i] for i in seen], self.accel_alpha * raw + (1 - self.accel_alpha) * ema))
+        out = np.array([self._ema.get(k, _NO_ACCEL) for k in keys], dtype=float).reshape(-1, 2)
+        self._prev_v = dict(zip(keys, velocities))  # keys no longer present are dropped, as from the EMA
+        self._ema = {k: self._ema[k] for k in keys if k in self._ema}
         return out
 
     def _front_past_line(self) -> float:
@@ -778,7 +787,9 @@ class ImprovedAEB(AEBShield):
         self.hypothesis_min_p, self.signals = p.hypothesis_min_p, p.signals
         self._signal_params = p.signal_channel
         self._signal_channel: dict = {}
-        self._beliefs: dict = {}
+        self._intended_at: dict = {}  # vehicle -> (lane index, the indicator its route asks for there)
+        self._beliefs = DriverIntent(p.signal_channel.no_signal_rate, p.signal_channel.wrong_rate,
+                                     p.signal_channel.miss_rate)
 
     def _on_reset(self, u) -> None:
         if self.target_model == "map":
@@ -789,44 +800,52 @@ class ImprovedAEB(AEBShield):
             if self._conflicts is None:
                 self._conflicts = ConflictModel(u.road.network, min_p=self.hypothesis_min_p)
             self._conflicts.network = u.road.network
-            self._signal_channel, self._beliefs = {}, {}
+            self._signal_channel, self._intended_at = {}, {}
+            self._beliefs.clear()
             self._signal_rng = sensor_rng(self.env, "aeb_signals")
         self._moved_at = {}
 
-    def _intent(self, others: np.ndarray) -> np.ndarray | None:
-        """The weight of each turn (right, straight, left) of each object from every indicator reading of it so far
-        (:class:`av_gym.shields.intent.IntentBelief`, one per true vehicle); a NaN row for an object never read.
+    def _intent(self, others: np.ndarray, keys: list) -> np.ndarray | None:
+        """The weight of each turn (right, straight, left) of each object from every indicator reading of its
+        driver so far (:class:`av_gym.shields.intent.DriverIntent`); a NaN row for a driver never read.
 
-        A reading comes through the shield's own indicator channel (``signal_channel``; its own random stream) and
-        belongs to the true vehicle at the object's place (within 2 m; a track elsewhere gets none); none beyond
-        the channel's range."""
+        A reading comes through the shield's own indicator channel (``signal_channel``; its own random stream:
+        per driver when first read, does it indicate and on which side; per reading, is it missed) and belongs to
+        the true vehicle: the object itself in ground-truth mode (``keys``), the vehicle within 2 m of the track
+        in perceived mode (none elsewhere). None beyond the channel's range; what was read stays known."""
         if not self.signals:
             return None
         u, sp = self.env.unwrapped, self._signal_params
-        ego = u.vehicle
-        vehicles = [v for v in u.road.vehicles if v is not ego]
-        out = np.full((len(others), 3), np.nan)
-        if not vehicles:
-            return out
-        pos = np.array([v.position for v in vehicles], dtype=float)
-        for m, row in enumerate(others):
-            d = np.hypot(*(pos - row[0:2]).T)
-            k = int(np.argmin(d))
-            if d[k] > 2.0:
-                continue
-            v = vehicles[k]
-            if np.hypot(*(row[0:2] - ego.position)) <= sp.max_range:
-                if v not in self._signal_channel:  # first sighting: does this driver indicate, and the right way?
+        if self.mode == "ground_truth":
+            drivers = list(keys)
+        else:
+            vehicles = [v for v in u.road.vehicles if v is not u.vehicle]
+            drivers = [None] * len(others)
+            if vehicles and len(others):
+                pos = np.array([v.position for v in vehicles], dtype=float)
+                d = np.hypot(*(others[:, None, 0:2] - pos[None]).transpose(2, 0, 1))  # (objects, vehicles)
+                nearest = np.argmin(d, axis=1)
+                drivers = [vehicles[k] if d[m, k] <= 2.0 else None for m, k in enumerate(nearest)]
+        in_range = (np.square(others[:, 0:2] - u.vehicle.position).sum(axis=1) <= sp.max_range**2).tolist()
+        read = [v for v, r in zip(drivers, in_range) if r and v is not None]
+        if read:
+            for v in read:
+                if v not in self._signal_channel:  # first reading: does this driver indicate, and on which side?
                     self._signal_channel[v] = (self._signal_rng.uniform() >= sp.no_signal_rate,
                                                self._signal_rng.uniform() < sp.wrong_rate)
-                    self._beliefs[v] = IntentBelief(sp.no_signal_rate, sp.wrong_rate)
-                indicates, wrong = self._signal_channel[v]
-                seen = self._signal_rng.uniform() >= sp.miss_rate
-                reading = intended_signal(v) * (-1.0 if wrong else 1.0) if indicates and seen else 0.0
-                self._beliefs[v].update(reading, sp.miss_rate)
-            if v in self._beliefs:  # out of range again: what was read stays known
-                out[m] = self._beliefs[v].turn_likelihood()
-        return out
+            seen = self._signal_rng.uniform(size=len(read)) >= sp.miss_rate
+            readings = [self._intended(v) * (-1.0 if self._signal_channel[v][1] else 1.0)
+                        if self._signal_channel[v][0] and s else 0.0 for v, s in zip(read, seen)]
+            self._beliefs.update(read, readings)
+        return self._beliefs.turn_weights(drivers)
+
+    def _intended(self, vehicle) -> float:
+        """:func:`intended_signal` of ``vehicle``, recomputed only when it changes lanes (its route is fixed)."""
+        lane = vehicle.lane_index
+        held = self._intended_at.get(vehicle)
+        if held is None or held[0] != lane:
+            held = self._intended_at[vehicle] = (lane, intended_signal(vehicle))
+        return held[1]
 
     def _decide_variant(self, ego, others, a_ego, a_others, t, active):
         return self._decide_improved(ego, others, a_others, t, active)
@@ -875,7 +894,7 @@ class ImprovedAEB(AEBShield):
             rear = turn | self.ignore_rear
         elif self.target_model == "conflict":
             lanes = [lane for lane, k in zip(self._lanes, keep) if k]
-            intent = self._intent(others)
+            intent = self._intent(others, [k for k, kept in zip(self._keys, keep) if kept])
             obj_xy, obj_h, owner, turn, _ = self._conflicts.predict(others, lanes, a_others, t_long, intent)
             rear = turn | self.ignore_rear
         else:

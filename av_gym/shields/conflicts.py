@@ -209,29 +209,32 @@ class ConflictModel:
         paths, starts, rows = [], [], []  # per map hypothesis: its driven path, start, object's row in on_map
         net = self.network
         by_seq = _BY_NETWORK.setdefault(net, {}) if len(lane_indices) else None
+        read = None if intent is None else np.isfinite(intent).all(axis=1)  # objects whose indicator was read
         for m, lane_index in enumerate(lane_indices):
             speed = float(speeds_all[m])
             lane = net.get_lane(lane_index) if lane_index is not None else None
             if lane is not None and speed >= 0.5:
-                s0, lat = (float(x) for x in lane.local_coordinates(others[m, 0:2]))
+                s0, lat = lane.local_coordinates(others[m, 0:2])
+                s0, lat = float(s0), float(lat)
                 dh = abs((float(lane.heading_at(s0)) - others[m, 4] + np.pi) % (2 * np.pi) - np.pi)
                 if abs(lat) <= self.on_lane and dh <= max_dh:
                     a_along = float(accels[m] @ others[m, 2:4]) / speed
                     hyps = self.hypotheses(lane_index)
                     n_h = len(hyps)
-                    w = None if intent is None else intent[m]
-                    if w is not None and np.isfinite(w).all():
+                    if read is not None and read[m]:
+                        w = intent[m]
                         p = np.array([w[int(turn) + 1] for _, turn in hyps]) / n_h  # TURNS: right, straight, left
                         p = (p / p.sum()).tolist()
                     else:
                         p = [1.0 / n_h] * n_h
                     row = len(on_map)
                     on_map.append(m), v_on.append(speed), a_on.append(a_along)
-                    kept = [(path, float(pk)) for path, pk in zip(self._driven_all(lane_index, by_seq), p)
-                            if not pk < self.min_p]
-                    n_k = len(kept)
-                    paths += [path for path, _ in kept]
-                    prob += [pk for _, pk in kept]
+                    driven = self._driven_all(lane_index, by_seq)
+                    if min(p) < self.min_p:
+                        driven, p = zip(*[(path, pk) for path, pk in zip(driven, p) if not pk < self.min_p])
+                    n_k = len(p)
+                    paths += driven
+                    prob += p
                     starts += [s0] * n_k
                     rows += [row] * n_k
                     owner += [m] * n_k
