@@ -149,3 +149,41 @@ def test_an_indicating_driver_is_not_braked_for_on_a_path_its_indicator_rules_ou
                     signal_channel={"no_signal_rate": 0.0, "wrong_rate": 0.0, "miss_rate": 0.0})
     assert read["interventions"] == 0 and read["collision"] == 0.0 and read["success"] == 1.0
     assert read["duration_s"] < blind["duration_s"] - 5.0
+
+
+@pytest.mark.parametrize("mode", ["ground_truth", "perceived"])
+def test_each_object_reads_the_indicator_of_the_car_it_is(make, turn_cfg, mode):
+    # a channel without noise: every object read within 60 m must weigh its own car's intended turn highest, in
+    # perceived mode a track too (its reading belongs to the vehicle within 2 m of it); once a car is on its exit
+    # road its indicator is off and it has one path left, so only approach and box lanes are checked
+    from av_gym.sensors.turn_signal import intended_signal
+    from av_gym.shields.aeb import find_shield
+
+    cfg = conf("shield", "aeb")
+    cfg.update(mode=mode, signal_channel={"no_signal_rate": 0.0, "wrong_rate": 0.0, "miss_rate": 0.0})
+    env = make(turn_cfg, None, cfg)
+    shield, u = find_shield(env), env.unwrapped
+    calls = []
+    original = shield._intent
+
+    def spy(others, keys):
+        weights = original(others, keys)
+        vehicles = [v for v in u.road.vehicles if v is not u.vehicle]
+        for row, w in zip(others, weights):
+            if np.isfinite(w).all():
+                d = [np.hypot(*(v.position - row[0:2])) for v in vehicles]
+                v = vehicles[int(np.argmin(d))]
+                if not str(v.lane_index[0]).startswith("il"):  # on the exit road the indicator is off, moot
+                    calls.append((w, intended_signal(v), min(d)))
+        return weights
+
+    shield._intent = spy
+    policy = AlwaysProceed(u.cruise_action())
+    obs, _ = env.reset(seed=1015)
+    for _ in range(60):
+        obs, _, term, trunc, _ = env.step(policy.act(obs))
+        if term or trunc:
+            break
+    near = [(w, turn) for w, turn, d in calls if d < 1.0]
+    assert len(near) > 50 and len({turn for _, turn in near}) >= 2  # several cars, more than one intent
+    assert all(int(np.argmax(w)) == int(turn) + 1 for w, turn in near)  # TURNS: right, straight, left
