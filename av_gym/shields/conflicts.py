@@ -103,7 +103,7 @@ class ConflictModel:
     it continue from the lane it is on (:class:`av_gym.shields.predict.LaneHypotheses`: straight, left, right at
     the intersection, any lane the graph continues to), each with a probability, uniform over the continuations
     and, where the driver's indicator has been read, weighted by what its readings say about each turn
-    (:class:`av_gym.shields.intent.IntentBelief`); hypotheses below ``min_p`` are dropped. Along each path the vehicle
+    (:class:`av_gym.shields.intent.DriverIntent`); hypotheses below ``min_p`` are dropped. Along each path the vehicle
     keeps its along-path acceleration for ``accel_time`` s (a braking car stops, it does not reverse), then its
     speed (``accel_time`` 0, the default: constant speed; measured, docs/aeb.md: 1.5 s parked the ego in the box
     more often), on the path highway-env's route-following controller actually drives (:meth:`driven`). An

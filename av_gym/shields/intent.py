@@ -25,7 +25,6 @@ import numpy as np
 
 TURNS = (-1.0, 0.0, 1.0)
 """The order of the turn axis in every array here: right, straight, left."""
-KINDS = ("right_side", "wrong_side", "never")
 
 
 def reading_likelihood(reading: float, miss_rate: float, floor: float) -> np.ndarray:
@@ -70,9 +69,6 @@ class DriverIntent:
     def clear(self) -> None:
         """Forget every driver (a new episode)."""
         self.counts: dict[Hashable, tuple[int, int, int]] = {}  # driver -> readings (-1, 0, +1) so far
-
-    def __contains__(self, key: Hashable) -> bool:
-        return key in self.counts
 
     def update(self, keys: Sequence[Hashable], readings: Sequence[float]) -> None:
         """One reading (+1 / 0 / -1) per driver in ``keys``; a driver first read here starts from the prior."""
