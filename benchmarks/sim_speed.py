@@ -19,10 +19,16 @@ import time
 
 import numpy as np
 from hydra import compose, initialize_config_module
+from omegaconf import OmegaConf
 
 from av_gym.make import make_env
 
 SCENARIOS = [("left_turn", []), ("left_turn", ["env.mode=ccftap"]), ("lane_keeping", [])]
+
+
+def _plain(node) -> dict:
+    """A composed config section as plain containers (the Params checkers want lists, not OmegaConf's ListConfig)."""
+    return OmegaConf.to_container(node, resolve=True)
 
 
 def steps_per_second(env, steps: int) -> float:
@@ -50,7 +56,7 @@ def ppo_steps_per_second(cfg, fast: bool, n_envs: int, steps: int) -> float:
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
-    env_cfg, sensors = {**dict(cfg.env), "fast": fast}, dict(cfg.sensors)
+    env_cfg, sensors = {**_plain(cfg.env), "fast": fast}, _plain(cfg.sensors)
     subproc = n_envs > 1
     venv = make_vec_env(functools.partial(make_env, env_cfg, sensors, record_metrics=False), n_envs=n_envs, seed=0,
                         vec_env_cls=SubprocVecEnv if subproc else DummyVecEnv,
@@ -79,7 +85,10 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=400)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--ppo-steps", type=int, default=2048, help="0 = skip the PPO throughput table")
+    parser.add_argument("--quick", action="store_true", help="a smoke run: 20 steps, 1 repeat, no PPO table")
     args = parser.parse_args()
+    if args.quick:
+        args.steps, args.repeats, args.ppo_steps = 20, 1, 0
     rows = []
     with initialize_config_module("conf", version_base="1.3"):
         for scenario, extra in SCENARIOS:
@@ -87,8 +96,8 @@ def main() -> None:
                 cfg = compose("train", overrides=[f"env={scenario}", f"sensors={sensors}", *extra])
                 rates = {}
                 for fast in (False, True):
-                    env_cfg = {**dict(cfg.env), "fast": fast}
-                    env = make_env(env_cfg, cfg.sensors, record_metrics=False)
+                    env_cfg = {**_plain(cfg.env), "fast": fast}
+                    env = make_env(env_cfg, _plain(cfg.sensors), record_metrics=False)
                     rates[fast] = max(steps_per_second(env, args.steps) for _ in range(args.repeats))
                 ticks = cfg.env.simulation_frequency // cfg.env.policy_frequency
                 label = f"{scenario}{' ccftap' if extra else ''}"

@@ -135,7 +135,21 @@ def problems(cfg: Mapping, command: str) -> list[str]:
     unknown = [k for k in settings if k not in settings_cls.field_names()]
     found += [f"{k} is not {what}; allowed: {allowed}" for k in unknown]
     found += check(settings_cls, {k: v for k, v in settings.items() if k not in unknown}, "", what=what)
+    if not found and command == "train":
+        found += _agent_sensor_problems(cfg.get("agent"), cfg.get("sensors"))
     return found
+
+
+def _agent_sensor_problems(agent: Any, sensors: Any) -> list[str]:
+    """What an agent's settings need from the sensors preset, checked before a run folder exists (the wrappers
+    check it again when the env is built, too late to keep the folders clean)."""
+    if not isinstance(agent, Mapping) or not isinstance(sensors, Mapping) or "turn_features" in sensors:
+        return []
+    wants = [f"agent.{key}={agent.get(key)}" for key, value in (("actions", "go_yield"), ("extractor", "attention"))
+             if agent.get(key) == value]
+    presets = [name for name in options("sensors") if name.startswith("turn_")]
+    return [f"{want} needs obs['turn'] (sensors={' or '.join(presets)}), got sensors={sensors.get('name')}"
+            for want in wants[:1]]
 
 
 def validate_config(cfg: Any, command: str) -> None:

@@ -91,6 +91,8 @@ def _checkpoint_file(path: Path, env_name: str) -> tuple[str, Path]:
     """(kind, model file) of a checkpoint folder (its config.yaml says the kind) or a model file (its suffix
     does), checked without loading it: the file exists and was trained on ``env_name``."""
     loadable = trained_kinds()
+    if not path.exists():
+        raise ConfigError(f"checkpoint {str(path)!r}: no such file or folder")
     if path.is_dir():
         cfg_path = path / "config.yaml"
         kind = read_config_yaml(cfg_path).get("agent", {}).get("kind") if cfg_path.is_file() else "ppo"

@@ -3,7 +3,7 @@ LiDAR map matching), on the lane-keeping lap and the left-turn approach, with an
 outage; then PID lane keeping driven by each estimate.
 
     python -m eval.localization [--lap-seeds 100 101 102 103 104] [--turn-seeds 100 ... ] [--pid-seeds 100 101 102]
-                                [--out-dir docs] [--quick]
+                                [--out-dir runs/localization/<time>] [--quick]
 
 Open loop: every estimator runs side by side on the *same* episode (:class:`LocalizationPipeline` objects fed the
 same observations), so the rows differ only in the estimator. The lap is driven by PID on the true CTE, the left
@@ -14,8 +14,10 @@ turn by "always proceed" in random traffic. Sensors are at their defaults (GNSSP
 Closed loop: PID (paper gains) steering on ``ego_estimate``'s CTE for each mode, against PID on the true CTE.
 
 Writes ``<out-dir>/localization_results.md`` (the tables), ``localization_trajectories.png`` (true vs estimated
-trajectories), ``localization_errors.png`` (position error over time, outage shaded) and
-``runs/localization/open_loop.csv`` (every run's metrics). Seeds 0–2 were used for tuning; the defaults
+trajectories), ``localization_errors.png`` (position error over time, outage shaded) and ``open_loop.csv`` /
+``closed_loop.csv`` (every run's metrics; ``--csv-dir`` to put them elsewhere). The default ``--out-dir`` is a new
+``runs/localization/<time>/``: a tool never writes into the tracked docs/ unless told to (the committed tables in
+docs/ were written with ``--out-dir docs``). Seeds 0–2 were used for tuning; the defaults
 evaluate on 100+.
 """
 
@@ -24,17 +26,16 @@ from __future__ import annotations
 import argparse
 import csv
 import time
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from agents.pid import PIDSteering
 from av_gym.estimation.localization import FIELDS, LocalizationPipeline
 from av_gym.make import make_env
 from av_gym.metrics.localization import localization_summary, runtime_stats
 from av_gym.metrics.stats import markdown_table
+from eval.agents import compose_group
 from eval.runner import run_episodes
 
 MODES = [  # key, label, LocalizationPipeline kwargs
@@ -49,12 +50,13 @@ FIELD = {name: i for i, name in enumerate(FIELDS)}
 
 
 def _conf(group: str, name: str) -> dict:
-    path = resources.files("conf") / group / f"{name}.yaml"
-    if group == "sensor" and not path.is_file():  # its defaults are its Params (conf/__init__.py)
+    """A sensor's defaults (its Params), or a config group's option composed as Hydra composes it (conf/env/*.yaml
+    are defaults lists over the scenario Params, not plain YAML)."""
+    if group == "sensor":
         from av_gym.registry import SENSORS
 
         return SENSORS.get(name).Params().as_dict()
-    return yaml.safe_load(path.read_text())
+    return compose_group(group, name)
 
 
 def sensors_cfg(outage: list | None, localizer: dict | None = None) -> dict:
@@ -323,13 +325,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--lap-seeds", type=int, nargs="+", default=[100, 101, 102, 103, 104])
     parser.add_argument("--turn-seeds", type=int, nargs="+", default=[100, 101, 102, 103, 104, 105, 106, 107])
     parser.add_argument("--pid-seeds", type=int, nargs="+", default=[100, 101, 102])
-    parser.add_argument("--out-dir", default="docs")
-    parser.add_argument("--csv-dir", default="runs/localization")
+    parser.add_argument("--out-dir", default=None, help="tables and plots (default: runs/localization/<time>)")
+    parser.add_argument("--csv-dir", default=None, help="per-run CSVs (default: --out-dir)")
     parser.add_argument("--quick", action="store_true", help="one seed of each, for a smoke run")
     args = parser.parse_args(argv)
     if args.quick:
         args.lap_seeds, args.turn_seeds, args.pid_seeds = args.lap_seeds[:1], args.turn_seeds[:1], args.pid_seeds[:1]
-    out_dir, csv_dir = Path(args.out_dir), Path(args.csv_dir)
+    out_dir = Path(args.out_dir or f"runs/localization/{time.strftime('%Y%m%d-%H%M%S')}")
+    csv_dir = Path(args.csv_dir) if args.csv_dir else out_dir
     out_dir.mkdir(parents=True, exist_ok=True)
     csv_dir.mkdir(parents=True, exist_ok=True)
 

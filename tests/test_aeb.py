@@ -12,7 +12,7 @@ from av_gym.shields.predict import (aabb_limits, ca_predict, footprint_ttc, obje
                                     paper_limits, paper_ttc, setpoint_profile, standard_ttc)
 from av_gym.envs.left_turn import CONFLICT_POINT
 from av_gym.errors import ConfigError
-from _libm import numpy_is_libm
+from _numerics import assert_same
 from conftest import Scripted, ccftap_cfg, conf, rollout
 
 KMH = 1 / 3.6
@@ -228,8 +228,8 @@ def test_driven_path_kernel_equals_the_numpy_reference(make, turn_cfg):
     """The compiled driven-path look-up (av_gym/shields/kernels.py, issue 17: < 1 ms per decision) against
     DrivenPath.poses_numpy, the code it replaces, on random batches over every path hypothesis of the
     intersection and the ego's route: starts before, inside (exactly at the table's start too) and past the
-    tables, constant and changing speeds across the speed bins and beyond them. Bit for bit where numpy's cos/sin
-    are libm's (as numba's are)."""
+    tables, constant and changing speeds across the speed bins and beyond them. Floats to tests/_numerics.py's
+    portable 1e-12 relative (numba's cos/sin are libm's, numpy's may be its own SIMD maths)."""
     from av_gym.shields.aeb import _route_tables
     from av_gym.envs.left_turn import ROUTE
     from av_gym.shields.conflicts import ConflictModel
@@ -242,7 +242,6 @@ def test_driven_path_kernel_equals_the_numpy_reference(make, turn_cfg):
     paths = [model.driven(seq) for a in net.graph for b in net.graph[a] for i in range(len(net.graph[a][b]))
              for seq, _ in model.hypotheses((a, b, i))]
     paths.append(_route_tables([net.get_lane(i) for i in ROUTE])[1])
-    exact = numpy_is_libm("cos", "sin")
     rng = np.random.default_rng(17)
     t = 0.1 * np.arange(1, 81)
     for trial in range(40):
@@ -259,11 +258,8 @@ def test_driven_path_kernel_equals_the_numpy_reference(make, turn_cfg):
         xy, h = driven_poses(batch, s0, ds, speeds)
         for m, p in enumerate(batch):
             ref_xy, ref_h = p.poses_numpy(s0[m], ds[m], speeds[m])
-            if exact:
-                assert np.array_equal(xy[m], ref_xy) and np.array_equal(h[m], ref_h), (trial, m)
-            else:
-                np.testing.assert_allclose(xy[m], ref_xy, rtol=0, atol=1e-9)
-                np.testing.assert_allclose(h[m], ref_h, rtol=0, atol=1e-9)
+            assert_same(xy[m], ref_xy, f"trial {trial}, object {m}: positions")
+            assert_same(h[m], ref_h, f"trial {trial}, object {m}: headings")
 
 
 def test_shield_decisions_are_the_same_with_the_kernel_and_with_numpy(make, turn_cfg):

@@ -1,7 +1,17 @@
 """The batched left turn (av_gym/sim/batched.py, av_gym/envs/left_turn_batched.py) against the per-env stack
 (``fast: true``, itself equal to stock highway-env, tests/test_fast_sim.py): same seeds, same action sequences,
 every vehicle's position, heading and speed within 1e-6 for the first 5 s, and the same rewards, terminations
-and obs["turn"] (issue 16)."""
+and obs["turn"] (issue 16).
+
+Portable bounds (issue 29): the two stacks compute the same maths in another order (numpy over a batch, numba
+kernels, highway-env per vehicle), so positions agree to ~1e-14, not bit for bit, and a knife-edge decision (an
+obs["turn"] closest-approach tie, a spawn or yield test at its threshold) can go either way depending on the last
+bit, which differs between CPUs, compilers and numpy/numba builds. So each test states (1) a run is identical until
+its first split, and a split is named; (2) the share of runs identical for 5 s is at least what any machine gives
+(measured: 24/24 and 12/12 here, 21/24 and 8/12 on an AVX-512 Intel machine, with the bounds 2/3 and 1/2 below),
+and (3) whole episodes end the same way (collision, arrival, time-out) in nearly all of them, with equal rates.
+A real change fails all three at once: a changed IDM constant or a dropped reward term splits every run in its
+first second (tests/mutations.py applies such changes and checks that these tests fail)."""
 
 from __future__ import annotations
 
@@ -110,15 +120,66 @@ def _check_identical(seeds: list[int], share: float) -> None:
 
 
 def test_batched_matches_per_env_stack_for_5_s():
-    """States, rewards, ends, obs["turn"] and TTC of 24 episodes: identical for 5 s in >= 95 % of them."""
-    _check_identical(list(range(7000, 7024)), 0.95)
+    """States, rewards, ends, obs["turn"] and TTC of 24 episodes: identical for 5 s in >= 2/3 of them (measured:
+    24/24 on AMD EPYC under numba's native and generic CPU targets, 21/24 on an AVX-512 Intel machine)."""
+    _check_identical(list(range(7000, 7024)), 2 / 3)
 
 
 @pytest.mark.slow
 def test_batched_matches_per_env_stack_for_5_s_200_episodes():
-    """The issue's 200 episodes, >= 95 % identical for 5 s (measured: 195/200; the 5 others split on obs["turn"]'s
+    """200 episodes, >= 85 % identical for 5 s (measured: 195/200 on AMD EPYC; the 5 others split on obs["turn"]'s
     closest-approach ties, which float noise of 1e-15 m breaks, see docs/sim_speed.md)."""
-    _check_identical(list(range(7000, 7200)), 0.95)
+    _check_identical(list(range(7000, 7200)), 0.85)
+
+
+def _outcomes(seeds: list[int], policy: str) -> tuple[list[str], list[str]]:
+    """Each seed's whole episode on the per-env and on the batched stack: 'collision', 'arrived' or 'timeout'.
+    ``policy``: 'idle' (always-proceed: IDLE every step) or 'random' (seeded meta-actions, the same sequence for
+    both stacks)."""
+    from av_gym.estimation.turn_features import TurnFeatures
+
+    env_id, config = _config()
+    n = len(seeds)
+    steps = int(config.get("duration", 20) * config.get("policy_frequency", 10)) + 1
+    actions = (np.ones((steps, n), int) if policy == "idle"
+               else np.random.default_rng(5).choice([0, 1, 1, 2, 2], size=(steps, n)))
+
+    def label(collision: bool, arrived: bool) -> str:
+        return "collision" if collision else "arrived" if arrived else "timeout"
+
+    bt = BatchedLeftTurn(n, config)
+    bt.reset(seeds)
+    done, batched = np.zeros(n, bool), [""] * n
+    for k in range(steps):
+        _, te, tu = bt.step(actions[k], active=~done)
+        truth = bt.truth()
+        for b in np.nonzero(~done & (te | tu))[0]:
+            batched[b] = label(truth["collision"][b], truth["arrived"][b])
+        done |= te | tu
+        if done.all():
+            break
+    per_env = []
+    for b, seed in enumerate(seeds):
+        e = TurnFeatures(gym.make(env_id, config=config))
+        e.reset(seed=seed)
+        for k in range(steps):
+            _, _, te, tu, info = e.step(int(actions[k, b]))
+            if te or tu:
+                per_env.append(label(info["truth"]["collision"], info["truth"]["arrived"]))
+                break
+    return per_env, batched
+
+
+@pytest.mark.parametrize("policy", ["idle", "random"])
+def test_batched_episodes_end_as_on_the_per_env_stack(policy):
+    """Whole episodes (24 seeds): the same outcome in >= 22 of 24, and both outcomes occur. A last-bit split late
+    in an episode may change its outcome (the issue's measurement: 2,998 of 3,000 episodes agree); a real change to
+    the engine changes many."""
+    seeds = list(range(7100, 7124))
+    per_env, batched = _outcomes(seeds, policy)
+    agree = sum(p == q for p, q in zip(per_env, batched))
+    assert agree >= 22, list(zip(seeds, per_env, batched))
+    assert {"collision", "arrived"} <= set(per_env), per_env
 
 
 def test_batched_envs_are_independent_of_the_batch():
@@ -186,7 +247,8 @@ def test_batched_continuous_actions_match_per_env_stack_for_5_s(mode):
     env = {"action": "continuous"} if mode == "traffic" else _ccftap(15.0, 45.0, 0.0, "continuous")
     split = run_pair(seeds, env=env, actions=actions)
     assert all(s is None or "obs['turn']" in s for s in split), split
-    assert np.mean([s is None for s in split]) >= (0.8 if mode == "traffic" else 1.0), split
+    # measured: traffic 12/12 here, 8/12 on an AVX-512 Intel machine (all obs["turn"] ties); CCFtap 4/4 everywhere
+    assert np.mean([s is None for s in split]) >= (0.5 if mode == "traffic" else 1.0), split
 
 
 def test_batched_refuses_what_it_cannot_run():

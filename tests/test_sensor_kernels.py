@@ -3,11 +3,10 @@ cast and point cloud (av_gym/sensors/lidar.py) and the detector's occlusion test
 
 On random scenes with exact ties and boundary cases (a vehicle face coincident with a wall, beams exactly along box
 axes and segments, duplicate objects, the sensor inside a bounding circle or on a wall, tangent beams, several
-channels with finite heights, per-beam origins), every decision must be the same and every float the same bit for
-bit; and seeded drives with and without the kernels give the same observations, points, times and labels.
-
-Bit for bit where numpy's float64 ufuncs are libm's (as numba's ``math`` is): checked below on sample values;
-elsewhere (numpy's own SIMD maths, AVX-512 builds) floats are compared to 1e-9 and decisions exactly."""
+channels with finite heights, per-beam origins), every decision must be the same and every float the same to
+tests/_numerics.py's portable tolerance (1e-12 relative: numba's libm calls and numpy's SIMD maths may differ in
+the last bits between machines); and seeded drives with and without the kernels give the same observations, points,
+times and labels."""
 
 from __future__ import annotations
 
@@ -23,28 +22,16 @@ from av_gym.sensors import detector as det
 from av_gym.sensors import kernels
 from av_gym.sensors import lidar as lid
 
-from _libm import numpy_is_libm
+from _numerics import same as _same_values
 
 LANE = "av_gym/LaneKeepingLap-v0"
 TURN = "av_gym/UnprotectedLeftTurn-v0"
 
-LIBM = numpy_is_libm("cos", "sin", "tan", "asin", "atan2", "hypot")
-
 
 def _same(a: np.ndarray, b: np.ndarray) -> bool:
-    """Same shape and dtype; bools and ints exactly; floats bit for bit (to 1e-9 where numpy is not libm)."""
+    """Same shape and dtype; decisions exactly, floats to tests/_numerics.py's portable tolerance."""
     a, b = np.asarray(a), np.asarray(b)
-    if a.shape != b.shape or a.dtype != b.dtype:
-        return False
-    if a.dtype.kind != "f" or LIBM:
-        return a.tobytes() == b.tobytes() or np.array_equal(a, b)  # array_equal: -0.0 == 0.0
-    return np.array_equal(np.isfinite(a), np.isfinite(b)) and np.allclose(a, b, rtol=0, atol=1e-9, equal_nan=True)
-
-
-def test_numpy_is_libm_here():
-    """Documents the machine: on this project's machines numpy's ufuncs are libm's, so the float tests are exact."""
-    if not LIBM:
-        pytest.skip("numpy uses its own SIMD maths on this CPU: floats compared to 1e-9")
+    return a.dtype == b.dtype and _same_values(a, b)
 
 
 # --------------------------------------------------------------------------------------------- random scenes
