@@ -14,7 +14,6 @@ rate does not depend on how many are stepped one after the other). Memory per en
 
 from __future__ import annotations
 
-import argparse
 import os
 import time
 
@@ -25,6 +24,7 @@ from omegaconf import OmegaConf
 from av_gym.envs.left_turn_batched import BatchedLeftTurn
 from av_gym.estimation.turn_features import TurnFeatures
 from av_gym.make import highway_config
+from conf.cli import Extend, ToolParser, items
 
 
 def load() -> str:
@@ -109,10 +109,13 @@ def ppo_rate(batched: bool, decisions: int) -> tuple[float, float]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser()
-    parser.add_argument("--sizes", type=int, nargs="+", default=[1, 4, 16, 64, 256, 1024])
+    parser = ToolParser(prog="benchmarks/batched_speed.py", description=__doc__.splitlines()[0])
+    # 4096 envs hold ~40 MB of state; more says nothing new about the batch's scaling
+    parser.add_argument("--sizes", type=items(int, low=1, high=4096), nargs="+", action=Extend,
+                        default=[1, 4, 16, 64, 256, 1024], help="batch sizes, [1,16,256]")
     parser.add_argument("--seconds", type=float, default=4.0)
-    parser.add_argument("--out", default="docs/batched_speed.png")
+    parser.add_argument("--out", default="runs/benchmarks/batched_speed.png",
+                        help="the plot (a tool writes into docs/ only when told to)")
     parser.add_argument("--ppo", type=int, default=0, help="also time PPO learn for this many decisions per path")
     args = parser.parse_args()
     if args.ppo:
@@ -157,6 +160,7 @@ def main() -> None:
         ax.set_title("left turn + obs['turn']")
         ax.legend(fontsize=8)
         fig.tight_layout()
+        os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
         fig.savefig(args.out, dpi=120)
         print(f"\nplot: {args.out}")
     except ImportError:

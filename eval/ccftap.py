@@ -44,7 +44,6 @@ TTC and stage over time for one case).
 
 from __future__ import annotations
 
-import argparse
 import csv
 import itertools
 import math
@@ -56,6 +55,8 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+
+from conf.cli import ToolParser, items
 
 EGO_KMH = (10.0, 15.0, 20.0)
 TARGET_KMH = (30.0, 45.0, 60.0)
@@ -378,16 +379,16 @@ def plan_agents(specs: list[str], checkpoints: str, action: str, case: tuple) ->
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m eval.ccftap", description=__doc__.split("\n\n")[0])
-    p.add_argument("--agents", default=DEFAULT_AGENT,
-                   help="comma list of agent specs as for `python -m eval` (conf/agent/ name, ppo, checkpoint path, "
+    p = ToolParser(prog="python -m eval.ccftap", description=__doc__.split("\n\n")[0])
+    p.add_argument("--agents", default=[DEFAULT_AGENT], type=items(str),
+                   help="list of agent specs, [a,b] as for `python -m eval` (conf/agent/ name, ppo, checkpoint path, "
                         "name@sensors); default always_proceed")
     p.add_argument("--checkpoints", default="checkpoints", help="where named trained agents' checkpoints are found")
-    p.add_argument("--variants", default="none,standard,paper,improved")
-    p.add_argument("--modes", default="ground_truth,perceived")
-    p.add_argument("--ego", default=",".join(f"{v:g}" for v in EGO_KMH), help="ego speeds, km/h")
-    p.add_argument("--target", default=",".join(f"{v:g}" for v in TARGET_KMH), help="target speeds, km/h")
-    p.add_argument("--dts", default=",".join(f"{v:g}" for v in DTS), help="timing offsets, s")
+    p.add_argument("--variants", default=list(VARIANTS), type=items(str, choices=list(VARIANTS)))
+    p.add_argument("--modes", default=list(MODES), type=items(str, choices=list(MODES)))
+    p.add_argument("--ego", default=list(EGO_KMH), type=items(float, low=0), help="ego speeds, km/h, [10,15,20]")
+    p.add_argument("--target", default=list(TARGET_KMH), type=items(float, low=0), help="target speeds, km/h")
+    p.add_argument("--dts", default=list(DTS), type=items(float), help="timing offsets, s")
     p.add_argument("--miss-rate", type=float, default=None, help="perceived mode: detector miss rate (yaml: 0.3)")
     p.add_argument("--burst-length", type=float, default=None, help="perceived mode: mean miss run, frames (yaml: 5)")
     p.add_argument("--detector-range", type=float, default=None, help="perceived mode: detector range, m")
@@ -396,27 +397,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--action", default="discrete", choices=["discrete", "continuous"])
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=2)
-    p.add_argument("--plot-case", default="15,45,0", help="ego km/h, target km/h, dt for timeline.png")
+    p.add_argument("--plot-case", default=[15.0, 45.0, 0.0], type=items(float),
+                   help="ego km/h, target km/h, dt for timeline.png: [15,45,0]")
     p.add_argument("--out", default=None, help="output folder (default runs/ccftap/<time>)")
     a = p.parse_args(argv)
-    variants = [v for v in a.variants.split(",") if v]
-    modes = [m for m in a.modes.split(",") if m]
-    for v in variants:
-        if v not in VARIANTS:
-            print(f"error: --variants: {v!r} is not one of {list(VARIANTS)}", file=sys.stderr)
-            return 2
-    for m in modes:
-        if m not in MODES:
-            print(f"error: --modes: {m!r} is not one of {list(MODES)}", file=sys.stderr)
-            return 2
-    egos = [float(v) for v in a.ego.split(",")]
-    targets = [float(v) for v in a.target.split(",")]
-    dts = [float(v) for v in a.dts.split(",")]
-    plot_case = tuple(float(v) for v in a.plot_case.split(","))
+    variants, modes, egos, targets, dts = a.variants, a.modes, a.ego, a.target, a.dts
+    if len(a.plot_case) != 3:
+        p.error(f"argument --plot-case: expected [ego km/h, target km/h, dt], got {a.plot_case}")
+    plot_case = tuple(a.plot_case)
     from av_gym.errors import ConfigError
     from av_gym.make import make_env
 
-    specs = [x.strip() for x in a.agents.split(",") if x.strip()]
+    specs = a.agents
     if not specs:
         print("error: --agents: give at least one agent", file=sys.stderr)
         return 2

@@ -7,8 +7,8 @@ One panel per scalar tag, one line per run (labelled by the run folder), x = env
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
+from conf.cli import Extend, ToolParser, items
 
 DEFAULT_TAGS = ("eval/success", "eval/collision", "eval/interventions", "episode/success", "episode/collision",
                 "eval/time_to_exit_s")
@@ -60,7 +60,7 @@ def plot_curves(runs: dict[str, dict[str, list[tuple[int, float]]]], tags: list[
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = ToolParser(description=__doc__.splitlines()[0])
     parser.add_argument("tb_dirs", nargs="+", help="TensorBoard folders (runs/<run>/tb)")
     parser.add_argument("--out", default="curves.png")
     parser.add_argument("--tags", nargs="+", default=list(DEFAULT_TAGS))

@@ -27,7 +27,6 @@ partner type).
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import copy
 import csv
@@ -42,6 +41,7 @@ import yaml
 from av_gym.shields.aeb import find_shield
 from av_gym.shields.conflicts import PARTNER_TYPES, partner_type
 from eval.runner import play_episode
+from conf.cli import Extend, ToolParser, items
 
 WINDOW = 8.0  # s, default counterfactual window (module docstring)
 
@@ -246,9 +246,10 @@ def run(spec: str, seeds, env_set=(), shield_set=(), window: float = WINDOW, wor
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m eval.interventions", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--agents", default="always_proceed+aeb,lookahead+aeb", help="comma-separated agent+aeb specs")
-    ap.add_argument("--episodes", type=int, default=100)
+    ap = ToolParser(prog="python -m eval.interventions", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--agents", default=["always_proceed+aeb", "lookahead+aeb"], type=items(str),
+                    help="agent+shield specs, [a+aeb,b+aeb]")
+    ap.add_argument("--episodes", type=int, default=100, choices=range(1, 100_001), metavar="[1, 100000]")
     ap.add_argument("--seed", type=int, default=1000, help="first seed (the eval convention: 1000..)")
     ap.add_argument("--window", type=float, default=WINDOW, help="counterfactual window (s)")
     ap.add_argument("--env-set", action="append", default=[], metavar="KEY=VALUE", help="env field override")
@@ -260,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
     seeds = list(range(a.seed, a.seed + a.episodes))
     episodes, rows = [], []
     start = time.perf_counter()
-    for spec in [s for s in a.agents.split(",") if s]:
+    for spec in a.agents:
         if "+" not in spec:
             print(f"error: {spec!r} has no shield: use an agent+aeb spec", file=sys.stderr)
             return 2

@@ -23,7 +23,6 @@ evaluate on 100+.
 
 from __future__ import annotations
 
-import argparse
 import csv
 import time
 from pathlib import Path
@@ -37,6 +36,7 @@ from av_gym.metrics.localization import localization_summary, runtime_stats
 from av_gym.metrics.stats import markdown_table
 from eval.agents import compose_group
 from eval.runner import run_episodes
+from conf.cli import Extend, ToolParser, items
 
 MODES = [  # key, label, LocalizationPipeline kwargs
     ("gnss", "GNSS only (raw)", {"mode": "gnss", "map_matching": False}),
@@ -321,10 +321,11 @@ def plot(runs: dict, out_dir: Path) -> list[Path]:
 
 # ----------------------------------------------------------------------------------------------- main
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--lap-seeds", type=int, nargs="+", default=[100, 101, 102, 103, 104])
-    parser.add_argument("--turn-seeds", type=int, nargs="+", default=[100, 101, 102, 103, 104, 105, 106, 107])
-    parser.add_argument("--pid-seeds", type=int, nargs="+", default=[100, 101, 102])
+    parser = ToolParser(prog="python -m eval.localization", description=__doc__.splitlines()[0])
+    parser.add_argument("--lap-seeds", type=items(int, low=0), nargs="+", action=Extend, default=[100, 101, 102, 103, 104])
+    parser.add_argument("--turn-seeds", type=items(int, low=0), nargs="+", action=Extend,
+                        default=[100, 101, 102, 103, 104, 105, 106, 107])
+    parser.add_argument("--pid-seeds", type=items(int, low=0), nargs="+", action=Extend, default=[100, 101, 102])
     parser.add_argument("--out-dir", default=None, help="tables and plots (default: runs/localization/<time>)")
     parser.add_argument("--csv-dir", default=None, help="per-run CSVs (default: --out-dir)")
     parser.add_argument("--quick", action="store_true", help="one seed of each, for a smoke run")

@@ -12,11 +12,11 @@ with its env steps and wall-clock seconds, and the curve's last values.
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from conf.cli import Extend, ToolParser, items
 
 
 def load(runs: list[str]) -> list[pd.DataFrame]:
@@ -90,7 +90,7 @@ def plot(frames: list[pd.DataFrame], out: Path, label: str, repeat: int, names: 
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = ToolParser(description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="+", help="run folders holding eval.csv")
     parser.add_argument("--out", required=True, type=Path)
     parser.add_argument("--label", default="")

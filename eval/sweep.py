@@ -11,7 +11,6 @@ between seeds, not between episodes of one seed. Writes ``sweep.md``, ``sweep.cs
 
 from __future__ import annotations
 
-import argparse
 import csv
 import math
 import textwrap
@@ -24,6 +23,7 @@ import numpy as np
 import yaml
 
 from av_gym.metrics import aggregate, format_ci, is_binary, markdown_table, mean_ci, wilson_ci
+from conf.cli import Extend, ToolParser, items
 
 REPLICATE_KEYS = ("seed", "train.eval_seed")
 
@@ -318,20 +318,19 @@ def sweep_report(root: str | Path, x: str | None = None, metric: str | None = No
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m eval.sweep", description=__doc__.split("\n\n")[0])
+    parser = ToolParser(prog="python -m eval.sweep", description=__doc__.split("\n\n")[0])
     parser.add_argument("multirun", help="a multirun folder, e.g. runs/multirun/20260101-120000")
     parser.add_argument("--x", help="swept parameter on the curve's x axis (default: the first numeric one)")
     parser.add_argument("--metric", help="metric on the curve (default: collision / cte_mean_abs_m)")
-    parser.add_argument("--metrics", help="comma-separated table columns (default: the scenario's headline)")
-    parser.add_argument("--replicate", default=",".join(REPLICATE_KEYS),
-                        help="comma-separated overrides that are replicates, not groups (default: %(default)s)")
+    parser.add_argument("--metrics", type=items(str),
+                        help="table columns, [collision,success] (default: the scenario's headline)")
+    parser.add_argument("--replicate", default=list(REPLICATE_KEYS), type=items(str),
+                        help="overrides that are replicates, not groups, [seed,train.eval_seed] (default: %(default)s)")
     parser.add_argument("--out", help="output folder (default: the multirun folder)")
     parser.add_argument("--no-plot", action="store_true")
     args = parser.parse_args(argv)
-    result = sweep_report(args.multirun, x=args.x, metric=args.metric,
-                          metrics=args.metrics.split(",") if args.metrics else None,
-                          replicate_keys=[k for k in args.replicate.split(",") if k], out=args.out,
-                          plot=not args.no_plot)
+    result = sweep_report(args.multirun, x=args.x, metric=args.metric, metrics=args.metrics,
+                          replicate_keys=args.replicate, out=args.out, plot=not args.no_plot)
     print(result["markdown"])
     print(f"[sweep] table: {result['md']}  numbers: {result['csv']}" + (f"  curve: {result['png']}"
                                                                           if result["png"] else ""))

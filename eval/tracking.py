@@ -13,13 +13,13 @@ TrackingScore`: Hungarian matching, 2 m gate): recall, precision, F1, position R
 
 from __future__ import annotations
 
-import argparse
 import csv
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from conf.cli import Extend, ToolParser, items
 
 
 def run(miss_rate: float, burst_length: float | None, episodes: int, seed: int, detector_overrides: dict,
@@ -70,8 +70,9 @@ def run(miss_rate: float, burst_length: float | None, episodes: int, seed: int, 
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m eval.tracking", description=__doc__.split("\n\n")[0])
-    p.add_argument("--miss-rates", default="0.1,0.3,0.5")
+    p = ToolParser(prog="python -m eval.tracking", description=__doc__.split("\n\n")[0])
+    p.add_argument("--miss-rates", default=[0.1, 0.3, 0.5], type=items(float, low=0, high=1),
+                   help="detector miss rates, [0.1,0.3]")
     p.add_argument("--burst-length", type=float, default=5.0, help="mean miss run, frames (0 = independent)")
     p.add_argument("--episodes", type=int, default=20)
     p.add_argument("--seed", type=int, default=1000)
@@ -85,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     tracker_cfg = ImprovedAEB.config_defaults()["tracker"]  # the AEB shield's tracker settings (shield=aeb)
     rows = []
     t_start = time.time()
-    for m in (float(v) for v in a.miss_rates.split(",")):
+    for m in a.miss_rates:
         raw, trk, cost = run(m, burst, a.episodes, a.seed, {}, tracker_cfg)
         for stage, s in (("raw detections", raw), ("tracker", trk)):
             rows.append({"miss_rate": m, "burst_length": burst if burst else "indep.", "output": stage,

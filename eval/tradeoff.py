@@ -15,13 +15,13 @@ mean as a larger marker.
 
 from __future__ import annotations
 
-import argparse
 import csv
 from pathlib import Path
 
 import numpy as np
 
 from av_gym.metrics.stats import wilson_ci
+from conf.cli import Extend, ToolParser, items
 
 
 def read_rows(paths: list[str]) -> list[dict]:
@@ -104,11 +104,11 @@ def plot(pts: dict[str, tuple], rule: list[str], out: Path, title: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = ToolParser(description=__doc__.splitlines()[0])
     parser.add_argument("results", nargs="*", help="results.csv files of python -m eval")
     parser.add_argument("--out", required=True, type=Path)
     parser.add_argument("--point", action="append", default=[], help='"label=collision,success"')
-    parser.add_argument("--rule-sweep", default="", help="t_gap values (s), comma-separated")
+    parser.add_argument("--rule-sweep", default=[], type=items(float, low=0), help="t_gap values (s), [2,4,8]")
     parser.add_argument("--episodes", type=int, default=300)
     parser.add_argument("--seed", type=int, default=1000)
     parser.add_argument("--n-envs", type=int, default=250, help="episodes stepped together in the rule sweep")
@@ -124,7 +124,7 @@ def main(argv: list[str] | None = None) -> None:
     rule = sorted(dict.fromkeys(r["agent"] for r in rows if r["agent"].startswith("gap_acceptance t_gap=")),
                   key=lambda k: float(k.split("=")[1].rstrip("s")))
     if args.rule_sweep:
-        swept = rule_sweep([float(v) for v in args.rule_sweep.split(",")], args.episodes, args.seed,
+        swept = rule_sweep(args.rule_sweep, args.episodes, args.seed,
                            args.n_envs)
         sweep_csv = args.out.with_suffix(".rule_sweep.csv")
         sweep_csv.parent.mkdir(parents=True, exist_ok=True)

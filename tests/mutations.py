@@ -24,9 +24,9 @@ MUTATIONS = [
      ["tests/test_batched_sim.py::test_batched_matches_per_env_stack_for_5_s",
       "tests/test_batched_sim.py::test_batched_episodes_end_as_on_the_per_env_stack",
       "tests/test_batched_sim.py::test_batched_continuous_actions_match_per_env_stack_for_5_s"]),
-    ("av_gym/envs/left_turn_batched.py", "reward = c[\"high_speed_reward\"] * np.clip((v - lo) / (hi - lo), 0, 1) * dt",
-     "reward = c[\"high_speed_reward\"] * np.clip((v - lo) / (hi - lo), 0, 1)", "a dropped dt in the speed reward",
-     ["tests/test_batched_sim.py::test_batched_matches_per_env_stack_for_5_s"]),
+    ("av_gym/envs/left_turn_batched.py", "            terminated[rows] = crashed | arrived\n",
+     "            terminated[rows] = crashed\n", "arrival no longer ends a batched episode",
+     ["tests/test_batched_sim.py::test_batched_episodes_end_as_on_the_per_env_stack"]),
     ("av_gym/shields/kernels.py", "return x + extra * math.cos(h), y + extra * math.sin(h), h, max(j, 0)",
      "return x + extra * math.cos(h) * (1 + 1e-9), y + extra * math.sin(h), h, max(j, 0)",
      "a 1e-9 relative error in the shield's driven-path extrapolation",
@@ -48,14 +48,15 @@ def main() -> int:
             continue
         path.write_text(text.replace(old, new))
         try:
-            rc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:xdist", "-p", "no:cacheprovider",
-                                 *tests], cwd=ROOT, capture_output=True, text=True).returncode
+            for test in tests:  # each test on its own: every one of them must fail
+                rc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:xdist", "-p",
+                                     "no:cacheprovider", test], cwd=ROOT, capture_output=True, text=True).returncode
+                ok = rc != 0
+                bad += not ok
+                print(f"{'caught' if ok else 'MISSED'}: {what} ({rel}) -> {test.split('::')[1]} "
+                      f"{'failed' if ok else 'passed'}", flush=True)
         finally:
             path.write_text(text)
-        ok = rc != 0
-        bad += not ok
-        print(f"{'caught' if ok else 'MISSED'}: {what} ({rel}) -> {', '.join(t.split('::')[1] for t in tests)} "
-              f"{'failed' if ok else 'passed'}")
     return 1 if bad else 0
 
 

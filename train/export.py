@@ -9,10 +9,10 @@ training reads the run's own folder). The policy's weights, and so its actions, 
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 from av_gym.errors import ConfigError, run_cli
+from conf.cli import Extend, ToolParser, items
 
 
 def export_reference(run_dir: str | Path, dest: str | Path, best: bool = False, command: str | None = None) -> Path:
@@ -40,7 +40,7 @@ def export_reference(run_dir: str | Path, dest: str | Path, best: bool = False, 
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m train.export", description=__doc__.split("\n\n")[0])
+    parser = ToolParser(prog="python -m train.export", description=__doc__.split("\n\n")[0])
     parser.add_argument("run_dir", help="checkpoints/<run_name>/ of a PPO training run")
     parser.add_argument("dest", help="folder to write, e.g. checkpoints/reference/<agent>")
     parser.add_argument("--best", action="store_true", help="export best.zip (the best periodic evaluation)")

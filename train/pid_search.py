@@ -29,13 +29,13 @@ gains and the lines to paste into ``agents/pid.py`` and ``conf/agent/pid_tuned.y
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import json
 import time
 from pathlib import Path
 
 import numpy as np
+from conf.cli import Extend, ToolParser, items
 
 GRIDS = {
     "full": {"kp": [0.5, 1.0, 2.0, 3.0, 4.0, 6.0], "ki": [0.0, 1e-4, 1e-3, 1e-2], "kd": [0.0, 0.5, 1.0, 2.0, 4.0]},
@@ -131,9 +131,10 @@ def search(grid: dict, seeds, track: str = "A", osc_weight: float = 0.1, refine:
 
 
 def main(argv=None) -> dict:
-    p = argparse.ArgumentParser(prog="python -m train.pid_search", description=__doc__.split("\n\n")[0])
+    p = ToolParser(prog="python -m train.pid_search", description=__doc__.split("\n\n")[0])
     p.add_argument("--track", default="A", help="training layout (default A; B is held out)")
-    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4], help="training seeds (< 1000)")
+    p.add_argument("--seeds", type=items(int, low=0, high=999), nargs="+", action=Extend, default=[0, 1, 2, 3, 4],
+                   help="training seeds (< 1000)")
     p.add_argument("--grid", choices=sorted(GRIDS), default="full")
     p.add_argument("--refine", type=int, default=60, help="Nelder-Mead evaluations after the grid (0 = none)")
     p.add_argument("--osc-weight", type=float, default=0.1, help="cost of one steering sign change per 100 m, units")

@@ -1,0 +1,380 @@
+"""Every command README.md and docs/ invite a reader to type, and how the tests run each (issue 29).
+
+This is the one list: a fenced ``bash``/``sh``/``console`` block (or one with no language) in README.md or
+docs/**/*.md is read line by line; each command line (``python``, ``python3``, ``tensorboard``, ``nice`` ...; a
+``$ `` prompt is dropped, ``\\`` continuations joined, ``# comments`` removed, ``VAR=value`` lines expanded into the
+block's later ``$VAR``) must appear in :data:`KNOWN` with how it is tested:
+
+- ``"run"``: tests/test_documented_commands.py runs its tiny form (:func:`tiny`: the same command with the
+  smallest budgets that still run every part, output in a temporary folder), as a subprocess, under ``-m slow``;
+  the commands of one block run in order in one folder, so a later command reads what an earlier one wrote
+  (``eval.sweep`` the multirun, ``train.export`` the run);
+- ``"error"``: an example of a refused command line; the fast suite checks that the command prints exactly the
+  ``error: ...`` line the document shows below it, with exit status 2;
+- ``"ci"``: an install or test command that ``.ci/run`` itself runs (tests/test_ci.py checks they are the same);
+- ``"covered:<test>"``: a test that already runs that command in a tiny form (the test must exist).
+
+A new documented command without an entry fails ``test_every_documented_command_is_known``; an entry whose
+command left the documents fails it too, so the list stays the documents' list.
+"""
+
+from __future__ import annotations
+
+import re
+import shlex
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+PROGRAMS = ("python", "python3", "tensorboard", "nice", "pip", "av-gym-train", "av-gym-eval")
+
+
+@dataclass(frozen=True)
+class Command:
+    doc: str          # file it is documented in, relative to the repository
+    line: int         # its first line there
+    text: str         # normalised: one line, no prompt, no comment, variables expanded
+    expected: tuple[str, ...] = ()  # for a ``$ `` prompt: the lines the document shows it printing
+
+
+def documents() -> list[Path]:
+    return [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+
+
+def blocks(path: Path) -> list[list[Command]]:
+    """The command lines of each fenced shell block of ``path``, in order."""
+    rel = str(path.relative_to(ROOT))
+    text = path.read_text()
+    found = []
+    for m in re.finditer(r"^```(\w*)[^\n]*\n(.*?)^```", text, re.S | re.M):
+        lang, body = m.group(1), m.group(2)
+        if lang not in ("", "bash", "sh", "shell", "console"):
+            continue
+        first = text[:m.start(2)].count("\n") + 1
+        commands, env = [], {}
+        lines = body.splitlines()
+        i = 0
+        while i < len(lines):
+            start, line = i, lines[i]
+            while line.rstrip().endswith("\\") and i + 1 < len(lines):
+                i += 1
+                line = line.rstrip()[:-1] + " " + lines[i].strip()
+            i += 1
+            prompt = line.lstrip().startswith("$ ")
+            words = line.lstrip()[2:] if prompt else line.strip()
+            try:
+                argv = shlex.split(words, comments=True)
+            except ValueError:
+                continue
+            if len(argv) == 1 and re.fullmatch(r"[A-Z_]+=\S+", argv[0]):
+                key, value = argv[0].split("=", 1)
+                env[key] = value
+                continue
+            if not argv or argv[0] not in PROGRAMS:
+                continue
+            normal = " ".join(argv)
+            for key, value in env.items():
+                normal = normal.replace(f"${key}", value)
+            expected = []
+            while prompt and i < len(lines) and lines[i].strip() and not lines[i].lstrip().startswith("$ "):
+                expected.append(lines[i].strip())
+                i += 1
+            commands.append(Command(rel, first + start, normal, tuple(expected)))
+        if commands:
+            found.append(commands)
+    return found
+
+
+def all_blocks() -> list[list[Command]]:
+    return [b for path in documents() for b in blocks(path)]
+
+
+# Every documented command (normalised as above) -> how it is tested. Kept in document order;
+# ``python tests/documented_commands.py`` prints the documented commands not listed yet, ready to paste.
+RESUME = "covered:tests/test_resume.py::test_kill_9_then_resume_reaches_the_same_total_without_tensorboard_duplicates"
+KNOWN: dict[str, str] = {
+    # README.md
+    "python3 -m venv .venv && . .venv/bin/activate && pip install torch==2.13.0 && pip install -e . && python -m train":
+        "covered:tests/test_cli.py::test_train_writes_checkpoint_config_tensorboard_and_prints_where",
+    "python3 -m venv .venv && . .venv/bin/activate && pip install torch==2.13.0 && pip install -e .[test] && "
+    "python -m pytest -q -n auto -m not slow": "ci",
+    "python -m pytest -q -n auto -m slow": "ci",
+    "tensorboard --logdir runs/": "run",
+    "python -m train agent.total_timesteps=200000 seed=3": "run",
+    "python -m train agent.vec_env=subproc agent.n_envs=2 agent.n_steps=256": "run",
+    "python -m train env=lane_keeping agent=ppo agent.total_timesteps=3000 seed=4": "run",
+    "python -m train env=lane_keeping agent=pid_paper": "run",
+    "python -m eval env=left_turn agents=[always_proceed,ppo] episodes=100": "run",
+    "python -m eval agents=[always_proceed,checkpoints/<run_name>]": "run",
+    "python -m eval env=lane_keeping agents=[pid_paper] episodes=20": "run",
+    "python -m eval env=lane_keeping env.track=B agents=[pid_paper] episodes=20": "run",
+    "python -m eval env=left_turn env.mode=ccftap env.ccftap.ego_speed_kmh=20 env.ccftap.target_speed_kmh=60 "
+    "env.ccftap.dt=0 agents=[always_proceed] episodes=1": "run",
+    "python -m train env.mode=rush_hour": "error",
+    "python -m train agent.epoch=3": "error",
+    "python -m train -m env=lane_keeping agent=ppo sensors=gnss_imu seed=0,1,2 sensors.gnss.sigma=0.5,1.5,3": "run",
+    "python -m eval -m env=lane_keeping agents=[pid_gnss] sensors=gnss_raw sensors.gnss.sigma=0.5,1.5,3 seed=0,100 "
+    "episodes=3": "run",
+    "python -m train -m agent=always_proceed shield=aeb shield.mode=perceived shield.detector.miss_rate=0,0.3,0.6,0.8 "
+    "train.eval_seed=100000,200000,300000 train.eval_episodes=20": "run",
+    "python -m train -m hydra/launcher=slurm hydra.launcher.partition=cpu hydra.launcher.timeout_min=60 "
+    "env=lane_keeping agent=ppo sensors=gnss_imu seed=0,1,2 sensors.gnss.sigma=0.5,1.5,3 "
+    "run_name=ppo-s${seed}-g${sensors.gnss.sigma}": "run",
+    "python -m eval.sweep runs/multirun/<stamp> --x shield.detector.miss_rate --metric collision": "run",
+    "python -m eval env=lane_keeping agents=[pid_paper,pid_tuned,pilotnet] episodes=20": "run",
+    "python -m eval env=lane_keeping env.track=B agents=[pid_paper,pid_tuned,pilotnet] episodes=20": "run",
+    "python -m train agent=ppo_turn": "run",
+    "python -m train agent=ppo_turn_shielded": "run",
+    "python -m train agent=ppo_lane_localized env=lane_keeping": "run",
+    "python -m train agent=ppo_lane_camera env=lane_keeping": "run",
+    "python -m eval.curves runs/<run>/tb --out curves.png": "run",
+    "python -m train.export checkpoints/<run> checkpoints/reference/<agent> --command python -m train ...": "run",
+    "python -m eval env=left_turn episodes=500 n_envs=2": "run",
+    "python -m eval env=lane_keeping episodes=20": "run",
+    "python -m eval.ccftap --agents always_proceed,ppo_turn,ppo_turn_shielded --variants none,improved "
+    "--modes ground_truth": "run",
+    "python -m eval env=left_turn agents=[always_proceed,always_proceed+aeb] episodes=200": "run",
+    "python -m eval.ccftap --out docs/ccftap": "run",
+    "python -m eval.tracking --episodes 20": "run",
+    "python -m eval.interventions --agents always_proceed+aeb --episodes 100": "run",
+    "python -m eval env=lane_keeping agents=[pid_paper,pid_gnss,pid_localized] episodes=5": "run",
+    "python -m eval.localization": "run",
+    "python benchmarks/odometry.py": "run",
+    "python -m train run_name=my-run agent.total_timesteps=200000": RESUME,
+    "python -m train run_name=my-run agent.total_timesteps=200000 train.resume=true": RESUME,
+    # docs/aeb.md
+    "python -m eval env=left_turn env.mode=ccftap agents=[always_proceed+aeb_paper] episodes=1": "run",
+    "python -m eval.tracking --episodes 20 --out docs/tracking": "run",
+    # docs/cameras.md
+    "python -m eval env=lane_keeping env.track=A agents=[pilotnet] sensors=cameras episodes=5": "run",
+    "python -m eval env=lane_keeping env.track=A agents=[pilotnet] sensors=cameras sensors.cameras.night=true "
+    "episodes=5": "run",
+    "python -m eval env=lane_keeping env.track=A agents=[checkpoints/reference/pilotnet_lane_keeping] sensors=cameras "
+    "episodes=20 n_envs=2": "run",
+    "python -m eval env=lane_keeping env.track=A agents=[checkpoints/reference/pilotnet_lane_keeping] sensors=cameras "
+    "sensors.cameras.fog_visibility=80 episodes=20 n_envs=2": "run",
+    "python -m eval env=lane_keeping env.track=A agents=[checkpoints/reference/pilotnet_lane_keeping] sensors=cameras "
+    "sensors.cameras.night=true episodes=20 n_envs=2": "run",
+    "python -m eval env=lane_keeping env.track=A agents=[checkpoints/reference/pilotnet_lane_keeping] sensors=cameras "
+    "sensors.cameras.noise.pixel_std=8 sensors.cameras.noise.blur_sigma=0.8 sensors.cameras.noise.brightness=25 "
+    "episodes=20 n_envs=2": "run",
+    "python -m eval -m env=lane_keeping env.track=B agents=[checkpoints/reference/pilotnet_lane_keeping] "
+    "sensors=cameras sensors.cameras.noise.pixel_std=0,8,16,24,32 episodes=5 plots=false hydra.sweep.dir=<folder>":
+        "run",
+    "python -m eval.sweep <folder> --x sensors.cameras.noise.pixel_std --metric cte_mean_abs_units "
+    "--out docs/cameras/sweep_pixel_noise": "run",
+    "python -m eval -m env=lane_keeping env.track=B agents=[checkpoints/reference/pilotnet_lane_keeping] "
+    "sensors=cameras sensors.cameras.fog_visibility=40,80,150,300,1000 sensors.cameras.night=false,true episodes=5 "
+    "plots=false hydra.sweep.dir=<folder>": "run",
+    "python -m eval.sweep <folder> --x sensors.cameras.fog_visibility --metric cte_mean_abs_units "
+    "--out docs/cameras/sweep_fog_night": "run",
+    # docs/pilotnet/README.md
+    "python -m train.pid_search": "run",
+    "python -m train agent=pilotnet env=lane_keeping": "run",
+    "python -m eval env=lane_keeping agents=[pid_paper,pid_tuned,pilotnet] episodes=20 videos=true": "run",
+    "python -m eval env=lane_keeping env.track=B agents=[pid_paper,pid_tuned,pilotnet] episodes=20 videos=true": "run",
+    "python benchmarks/pilotnet_inference.py": "run",
+    # docs/ppo/v3/README.md
+    'python -m eval.tradeoff docs/ppo/v3/headline_results.csv docs/ppo/v3/aeb_results.csv docs/ppo/v3/perceived_results.csv docs/ppo/v3/perceived_s23_results.csv docs/ppo/v3/shielded_results.csv docs/ppo/v3/tradeoff.rule_sweep.csv --out docs/ppo/v3/tradeoff.png --relabel checkpoints/ppo_turn_v3_s1/best.zip=ppo_turn#s1 --relabel checkpoints/ppo_turn_v3_s2/best.zip=ppo_turn#s2 --relabel checkpoints/ppo_turn_v3_s3/best.zip=ppo_turn#s3 --relabel checkpoints/ppo_turn_v3_s1/model.zip=ppo_turn last (122,880)#s1 --relabel checkpoints/ppo_turn_v3_s2/model.zip=ppo_turn last (122,880)#s2 --relabel checkpoints/ppo_turn_v3_s3/model.zip=ppo_turn last (122,880)#s3 --relabel checkpoints/reference/ppo_turn+aeb=ppo_turn+aeb#s1 --relabel checkpoints/reference/ppo_turn_v3_s2+aeb=ppo_turn+aeb#s2 --relabel checkpoints/reference/ppo_turn_v3_s3+aeb=ppo_turn+aeb#s3 --relabel checkpoints/reference/ppo_turn_perceived_v3_s1=ppo_turn_perceived --relabel checkpoints/reference/ppo_turn_perceived_v3_s1+aeb=ppo_turn_perceived+aeb --relabel checkpoints/reference/ppo_turn@turn_perceived=ppo_turn@turn_perceived#s1 --relabel checkpoints/reference/ppo_turn_v3_s2@turn_perceived=ppo_turn@turn_perceived#s2 --relabel checkpoints/reference/ppo_turn_v3_s3@turn_perceived=ppo_turn@turn_perceived#s3 --relabel checkpoints/reference/ppo_turn_shielded_v3_s1=ppo_turn_shielded --relabel checkpoints/reference/ppo_turn_shielded_v3_s1+aeb=ppo_turn_shielded+aeb --point lookahead (oracle)=0.01,0.92 --point always_proceed+aeb=0.036,0.848 --title left turn, 500 test episodes (seeds 1000-1499): round 3': "run",
+    # docs/ppo.md
+    "python -m eval env=left_turn agents=[always_proceed,always_proceed+aeb,gap_acceptance,gap_acceptance+aeb] "
+    "episodes=500": "run",
+    "python -m eval env=left_turn agents=[ppo_turn,ppo_turn+aeb] episodes=500 n_envs=2": "run",
+    "python -m eval env=left_turn agents=[ppo_turn_shielded,ppo_turn_shielded+aeb,ppo_turn_perceived,"
+    "ppo_turn_perceived+aeb] episodes=500 n_envs=2": "run",
+    "python -m eval env=left_turn agents=[lookahead,lookahead+aeb] episodes=500 n_envs=2": "run",
+    # docs/robustness/README.md
+    "nice -n 10 python -m train -m agent=always_proceed shield=aeb shield.mode=perceived "
+    "shield.detector.miss_rate=0.0,0.3,0.6,0.8 train.eval_seed=100000,200000,300000 train.eval_episodes=20 "
+    "train.progress_bar=false paths.checkpoints=/tmp/sweep_ckpt hydra.sweep.dir=runs/multirun/aeb_miss_rate": "run",
+    "nice -n 10 python -m train -m agent=always_proceed shield=none,aeb train.eval_seed=100000,200000,300000 "
+    "train.eval_episodes=20 train.progress_bar=false paths.checkpoints=/tmp/sweep_ckpt "
+    "hydra.sweep.dir=runs/multirun/aeb_reference": "run",
+    "python -m eval.sweep runs/multirun/aeb_miss_rate --out docs/robustness/aeb_miss_rate "
+    "--metrics collision,success,time_to_exit_s,min_ttc_s,intervention,override_fraction": "run",
+    "python -m eval.sweep runs/multirun/aeb_reference --out docs/robustness/aeb_reference "
+    "--metrics collision,success,time_to_exit_s,min_ttc_s,intervention,override_fraction": "run",
+    "python -m eval.sweep runs/multirun/<stamp> --x sensors.gnss.sigma --metric cte_mean_abs_m": "run",
+}
+
+# A command that reads what another documented command writes, documented in a block of its own: the tiny form
+# of the producer runs first (the eval.sweep example reads the shield sweep of the block above it).
+PRODUCERS: dict[str, str] = {
+    "python -m eval.sweep runs/multirun/<stamp> --x shield.detector.miss_rate --metric collision":
+        "python -m train -m agent=always_proceed shield=aeb shield.mode=perceived "
+        "shield.detector.miss_rate=0,0.3,0.6,0.8 train.eval_seed=100000,200000,300000 train.eval_episodes=20",
+}
+
+# Placeholders a document writes for the reader's own value -> what the tiny form uses.
+PLACEHOLDERS = {"checkpoints/<run_name>": "checkpoints/reference/ppo_turn"}
+
+
+def kind(command: Command) -> str | None:
+    return KNOWN.get(command.text)
+
+
+# ------------------------------------------------------------------------------------------------ tiny forms
+FAST_TRAIN = ["train.progress_bar=false", "train.eval_episodes=1", "train.eval_every=0", "train.eval_n=0",
+              "train.video_every=0", "train.checkpoint_every=64"]
+PPO_BATCHED = ["agent.total_timesteps=64", "agent.n_envs=8", "agent.n_steps=8", "agent.batch_size=64",
+               "agent.n_epochs=1", "agent.init_episodes=2", "agent.init_epochs=1"]
+PPO_PER_ENV = ["agent.total_timesteps=64", "agent.n_steps=32", "agent.batch_size=32", "agent.n_epochs=1",
+               "agent.init_episodes=2", "agent.init_epochs=1"]
+PILOTNET = ["agent.demo_laps=1", "agent.demo_max_steps=30", "agent.epochs=1"]
+# agents whose config trains per-env (a tracker, a shield, an image): their tiny form keeps n_envs at 1
+PER_ENV_AGENTS = ("ppo", "ppo_turn_shielded", "ppo_turn_perceived", "ppo_lane_localized", "ppo_lane_camera")
+
+
+def _set(argv: list[str], key: str, value: str) -> list[str]:
+    """``key=value`` in place of any ``key=...`` of ``argv`` (Hydra refuses a key given twice)."""
+    kept = [a for a in argv if not a.startswith(f"{key}=")]
+    return [*kept, f"{key}={value}"]
+
+
+def _first_two(argv: list[str]) -> list[str]:
+    """A ``-m`` sweep's comma lists cut to their first two values (still a sweep, a fraction of the jobs)."""
+    out = []
+    for a in argv:
+        key, eq, value = a.partition("=")
+        if eq and "," in value and not value.startswith(("[", "'[", '"[')) and not key.startswith(("agents", "'agents")):
+            value = ",".join(value.split(",")[:2])
+        out.append(f"{key}{eq}{value}")
+    return out
+
+
+@dataclass
+class Chain:
+    """What earlier commands of a block left for later ones, in the block's temporary folder."""
+
+    tmp: Path
+    multirun: Path | None = None
+    run: str | None = None
+    runs: int = 0
+    named: dict | None = None  # a documented hydra.sweep.dir (``<folder>``, runs/multirun/x) -> where it went
+
+
+def tiny(command: Command, chain: Chain) -> list[str]:
+    """The command's argv with the smallest budgets that still run each part, writing under ``chain.tmp``."""
+    text = command.text
+    for placeholder, value in PLACEHOLDERS.items():
+        text = text.replace(placeholder, value)
+    argv = shlex.split(text)
+    while argv and argv[0] == "nice":  # nice -n 10 python ...
+        argv = argv[3:] if argv[1] == "-n" else argv[1:]
+    tmp = chain.tmp
+    if argv[0] == "tensorboard":
+        return ["tensorboard", "--inspect", "--logdir", str(tmp)]
+    assert argv[0] in ("python", "python3"), command
+    if argv[1] != "-m":  # a script: benchmarks/*.py
+        return ["python", *argv[1:], *SCRIPT_ARGS.get(argv[1], [])]
+    module, args = argv[2], argv[3:]
+    if module == "train":
+        return ["python", "-m", "train", *_tiny_train(args, chain)]
+    if module == "eval":
+        return ["python", "-m", "eval", *_tiny_eval(args, chain)]
+    return ["python", "-m", module, *_tiny_tool(module, args, chain)]
+
+
+def _sweep_dir(args: list[str], chain: Chain) -> list[str]:
+    chain.multirun = chain.tmp / f"multirun{chain.runs}"
+    chain.runs += 1
+    documented = next((a.split("=", 1)[1] for a in args if a.startswith("hydra.sweep.dir=")), None)
+    if documented:
+        chain.named = {**(chain.named or {}), documented: chain.multirun}
+    return _set(_first_two(args), "hydra.sweep.dir", str(chain.multirun))
+
+
+def _tiny_train(args: list[str], chain: Chain) -> list[str]:
+    sweep = "-m" in args
+    if sweep and any(a.startswith("hydra.launcher.partition=") for a in args):  # the SLURM example, run locally
+        args = ["hydra/launcher=submitit_local" if a == "hydra/launcher=slurm" else a for a in args
+                if not a.startswith("hydra.launcher.partition=")]
+    agent = next((a.split("=", 1)[1] for a in args if a.startswith("agent=")), "ppo_turn")
+    for option in FAST_TRAIN:
+        args = _set(args, *option.split("=", 1))
+    if agent.startswith("ppo") or agent == "ppo":
+        per_env = agent in PER_ENV_AGENTS or any(a == "agent.vec_env=subproc" for a in args)
+        for option in PPO_PER_ENV if per_env else PPO_BATCHED:
+            args = _set(args, *option.split("=", 1))
+        if per_env and not any(a.startswith("agent.n_envs=") for a in args):
+            args = _set(args, "agent.n_envs", "1")
+    elif agent == "pilotnet":
+        for option in PILOTNET:
+            args = _set(args, *option.split("=", 1))
+    args = _set(args, "paths.runs", str(chain.tmp / "runs"))
+    args = _set(args, "paths.checkpoints", str(chain.tmp / "checkpoints"))
+    if sweep:
+        args = _set(_sweep_dir(args, chain), "hydra.launcher.n_jobs", "1") if not any(
+            a.startswith("hydra/launcher=submitit") for a in args) else _sweep_dir(args, chain)
+    elif not any(a.startswith("run_name=") for a in args):
+        chain.run = f"run{chain.runs}"
+        chain.runs += 1
+        args = _set(args, "run_name", chain.run)
+    else:
+        chain.run = next(a.split("=", 1)[1] for a in args if a.startswith("run_name="))
+    return args
+
+
+def _tiny_eval(args: list[str], chain: Chain) -> list[str]:
+    n_envs = next((a.split("=", 1)[1] for a in args if a.startswith("n_envs=")), "1")
+    args = _set(args, "episodes", n_envs if n_envs.isdigit() and int(n_envs) <= 2 else "2")
+    args = _set(args, "progress_bar", "false")
+    if "-m" in args:
+        return _set(_sweep_dir(args, chain), "hydra.launcher.n_jobs", "1")
+    return _set(args, "out_dir", str(chain.tmp / f"eval{chain.runs}"))
+
+
+def _flag(args: list[str], flag: str, *values: str) -> list[str]:
+    """``flag values`` in place of any ``flag ...`` (argparse keeps the last one, but the tiny form reads better)."""
+    out, skip = [], 0
+    for a in args:
+        if skip:
+            skip -= 1
+            continue
+        if a == flag:
+            skip = 1
+            continue
+        out.append(a)
+    return [*out, flag, *values]
+
+
+def _tiny_tool(module: str, args: list[str], chain: Chain) -> list[str]:
+    tmp = chain.tmp
+    if module == "eval.sweep":
+        folder = str((chain.named or {}).get(args[0]) or chain.multirun or args[0])
+        return _flag([folder, *args[1:]], "--out", str(tmp / "sweep"))
+    if module == "eval.curves":
+        tb = str(tmp / "runs" / (chain.run or "run0") / "tb")
+        return _flag([tb, *args[1:]], "--out", str(tmp / "curves.png"))
+    if module == "train.export":
+        run = str(tmp / "checkpoints" / (chain.run or "run0"))
+        return [run, str(tmp / "export"), *args[2:]]
+    for flag, values in TOOL_ARGS.get(module, []):
+        args = _flag(args, flag, *values)
+    if module in OUT_FLAG:
+        args = _flag(args, OUT_FLAG[module], str(tmp / module))
+    return args
+
+
+OUT_FLAG = {"eval.ccftap": "--out", "eval.tracking": "--out", "eval.interventions": "--out",
+            "eval.localization": "--out-dir", "eval.tradeoff": "--out", "train.pid_search": "--out"}
+TOOL_ARGS = {
+    "eval.ccftap": [("--ego", ["20"]), ("--target", ["60"]), ("--dts", ["0"]), ("--workers", ["1"])],
+    "eval.tracking": [("--episodes", ["1"]), ("--miss-rates", ["0.3"])],
+    "eval.interventions": [("--episodes", ["1"])],
+    "eval.localization": [("--lap-seeds", ["100"]), ("--turn-seeds", ["100"]), ("--pid-seeds", ["100"])],
+    "eval.tradeoff": [("--episodes", ["4"]), ("--n-envs", ["4"])],
+    "train.pid_search": [("--grid", ["quick"]), ("--refine", ["0"]), ("--seeds", ["0"])],
+}
+SCRIPT_ARGS = {
+    "benchmarks/odometry.py": ["--scans", "20", "--repeats", "1"],
+    "benchmarks/pilotnet_inference.py": ["--frames", "20"],
+    "benchmarks/sim_speed.py": ["--quick"],
+}
+
+
+if __name__ == "__main__":
+    for block in all_blocks():
+        for c in block:
+            if c.text not in KNOWN:
+                print(f"    {c.text!r}: \"run\",  # {c.doc}:{c.line}")

@@ -1,0 +1,105 @@
+"""Every command README.md and docs/ invite a reader to run is run here, in a tiny form (issue 29). The list, and
+how each command's tiny form is made, is tests/documented_commands.py."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import documented_commands as dc
+from documented_commands import KNOWN, ROOT, Chain, Command, all_blocks, tiny
+
+
+def test_every_documented_command_is_known():
+    """A documented command without an entry (how it is tested) fails; so does an entry no document has any more."""
+    documented = [c for block in all_blocks() for c in block]
+    unknown = [f"{c.doc}:{c.line}: {c.text}" for c in documented if c.text not in KNOWN]
+    assert not unknown, ("documented commands with no test; add each to tests/documented_commands.py KNOWN "
+                         "(`python tests/documented_commands.py` prints them):\n" + "\n".join(unknown))
+    stale = sorted(set(KNOWN) - {c.text for c in documented})
+    assert not stale, f"KNOWN lists commands no document has any more: {stale}"
+
+
+def test_covered_commands_name_tests_that_exist():
+    for text, how in KNOWN.items():
+        if how.startswith("covered:"):
+            path, name = how.split(":", 1)[1].split("::")
+            assert f"def {name}(" in (ROOT / path).read_text(), (text, how)
+        else:
+            assert how in ("run", "error", "ci"), (text, how)
+
+
+def test_ci_commands_are_what_ci_runs():
+    ci = (ROOT / ".ci" / "run").read_text()
+    for text, how in KNOWN.items():
+        if how == "ci":
+            last = text.split("&&")[-1].strip()
+            assert last.replace("-m not slow", '-m "not slow"') in ci, text
+
+
+ERRORS = [c for block in all_blocks() for c in block if KNOWN.get(c.text) == "error"]
+
+
+@pytest.mark.parametrize("command", ERRORS, ids=[c.text for c in ERRORS])
+def test_documented_error_examples_print_what_the_document_shows(command: Command, tmp_path):
+    """``$ python -m train env.mode=rush_hour`` and the line under it: the same one-line error, exit status 2
+    (``...`` in the document stands for the rest of the line)."""
+    from conftest import cli
+
+    argv = command.text.split()
+    assert argv[:2] == ["python", "-m"] and command.expected, command
+    res = cli(argv[2], *argv[3:], cwd=tmp_path)
+    assert res.returncode == 2, res.stderr
+    lines = [line for line in res.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, res.stderr
+    want = command.expected[0]
+    if want.endswith("...]"):
+        assert lines[0].startswith(want[:-len("...]")]), (lines[0], want)
+    else:
+        assert lines[0] == want
+
+
+def _runnable_blocks() -> list:
+    params = []
+    for block in all_blocks():
+        commands = [c for c in block if KNOWN.get(c.text) == "run"]
+        if commands:
+            label = f"{commands[0].doc}:{commands[0].line}"
+            params.append(pytest.param(commands, id=label, marks=pytest.mark.slow))
+    return params
+
+
+def _run(argv: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    if argv[0] == "python":
+        argv = [sys.executable, *argv[1:]]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    return subprocess.run(argv, cwd=cwd, capture_output=True, text=True, timeout=600, env=env)
+
+
+@pytest.mark.parametrize("commands", _runnable_blocks())
+def test_documented_commands_run(commands: list[Command], tmp_path):
+    """Each block's commands in order, in their tiny forms, in the repository (so named reference agents are
+    found) with every output under a temporary folder; each must exit 0 and leave nothing in the repository."""
+    before = _tracked_changes()
+    chain = Chain(tmp_path)
+    for command in commands:
+        producer = dc.PRODUCERS.get(command.text)
+        if producer:
+            res = _run(tiny(Command(command.doc, command.line, producer), chain), ROOT)
+            assert res.returncode == 0, f"producer of {command.text}\n{res.stderr[-3000:]}"
+        argv = tiny(command, chain)
+        res = _run(argv, ROOT)
+        assert res.returncode == 0, f"{command.doc}:{command.line}: {command.text}\ntiny form: {argv}\n" \
+                                    f"{res.stdout[-1500:]}\n{res.stderr[-3000:]}"
+    assert _tracked_changes() == before, "a documented command wrote into tracked files"
+
+
+def _tracked_changes() -> str:
+    """What git sees changed or new outside runs/ and checkpoints/<run>/ (where commands write by design)."""
+    res = subprocess.run(["git", "status", "--porcelain", "--", "docs", "README.md", "conf", "av_gym", "agents",
+                          "train", "eval", "checkpoints/reference"], cwd=ROOT, capture_output=True, text=True)
+    return res.stdout if res.returncode == 0 else ""
