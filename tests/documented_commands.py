@@ -131,12 +131,12 @@ KNOWN: dict[str, str] = {
     "python -m train.export checkpoints/<run> checkpoints/reference/<agent> --command python -m train ...": "run",
     "python -m eval env=left_turn episodes=500 n_envs=2": "run",
     "python -m eval env=lane_keeping episodes=20": "run",
-    "python -m eval.ccftap --agents always_proceed,ppo_turn,ppo_turn_shielded --variants none,improved "
-    "--modes ground_truth": "run",
+    "python -m eval.ccftap --agents [always_proceed,ppo_turn,ppo_turn_shielded] --variants [none,improved] "
+    "--modes [ground_truth]": "run",
     "python -m eval env=left_turn agents=[always_proceed,always_proceed+aeb] episodes=200": "run",
     "python -m eval.ccftap --out docs/ccftap": "run",
     "python -m eval.tracking --episodes 20": "run",
-    "python -m eval.interventions --agents always_proceed+aeb --episodes 100": "run",
+    "python -m eval.interventions --agents [always_proceed+aeb] --episodes 100": "run",
     "python -m eval env=lane_keeping agents=[pid_paper,pid_gnss,pid_localized] episodes=5": "run",
     "python -m eval.localization": "run",
     "python benchmarks/odometry.py": "run",
