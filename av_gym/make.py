@@ -21,10 +21,9 @@ def add_sensors(env: gym.Env, sensors_cfg: Mapping | None) -> gym.Env:
     """Stack the sensor wrappers a ``sensors`` preset asks for, in :data:`av_gym.registry.SENSORS` order (sensors,
     then the estimators that read them); drop the privileged ``state`` unless ``keep_state``. A bad parameter
     gives one line naming it under ``sensors.<key>``."""
-    from gymnasium.wrappers import FilterObservation
-
     from av_gym.params import ParamError
     from av_gym.registry import SENSORS
+    from av_gym.wrappers import SelectKeys
 
     c = _plain(sensors_cfg)
     name = c.get("name", "truth")
@@ -45,12 +44,12 @@ def add_sensors(env: gym.Env, sensors_cfg: Mapping | None) -> gym.Env:
         if missing:
             raise ConfigError(f"sensors.observe lists {missing[0]!r}, which this preset does not provide; "
                               f"allowed: {sorted(env.observation_space.spaces)}")
-        return FilterObservation(env, filter_keys=list(c["observe"]))
+        return SelectKeys(env, list(c["observe"]))
     if not c.get("keep_state", name == "truth"):
         keys = [k for k in env.observation_space.spaces if k != "state"]
         if not keys:
             raise ConfigError(f"sensors={name} removes the privileged state and adds no sensor")
-        env = FilterObservation(env, filter_keys=keys)
+        env = SelectKeys(env, keys)
     return env
 
 

@@ -55,6 +55,20 @@ class FlatDictObservation(gym.ObservationWrapper):
         return flatten_obs(observation)
 
 
+class SelectKeys(gym.ObservationWrapper):
+    """Keep only ``keys`` of a ``Dict`` observation (a sensors preset's ``observe``, or dropping the privileged
+    ``state``). Gymnasium's ``FilterObservation`` does the same through a lambda, which cannot be pickled: every
+    sensor stack then failed to pickle, and async vector envs and multiprocessing with it (issue 31 row 17)."""
+
+    def __init__(self, env: gym.Env, keys: list[str]) -> None:
+        super().__init__(env)
+        self.keys = list(keys)
+        self.observation_space = spaces.Dict({k: env.observation_space[k] for k in self.keys})
+
+    def observation(self, observation: dict) -> dict:
+        return {k: observation[k] for k in self.keys}
+
+
 # ----------------------------------------------------------------------------------------------- rewards, time limit
 class InterventionCost(gym.Wrapper):
     """Training-time reward term: ``-cost`` per second during which a safety shield overrides the agent

@@ -165,10 +165,32 @@ class LidarOdometry:
     def reset(self) -> None:
         """Forget everything: the next scan starts a new local map at the identity."""
         self._kiss = self._new_pipeline()
+        self._deviations: list[np.ndarray] = []  # what the current pipeline's adaptive threshold was fed
         self._origin = np.eye(4)  # pose of the current pipeline's first frame in the first scan's frame
         self._pose = np.eye(4)
         self._registered = 0  # scans registered by the current pipeline
         self.restarts = 0
+
+    # kiss-icp's pipeline holds native (pybind11) objects that neither pickle nor deep-copy, which made every stack
+    # with a localizer impossible to copy (issue 31 row 17; async vector envs pickle their envs' results, lookahead
+    # copies envs). Its whole state is public or can be rebuilt: the last pose and delta, the local map's points,
+    # and the adaptive threshold, which is a function of the model deviations it was fed (replayed in order).
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        kiss = state.pop("_kiss")
+        state["_kiss_state"] = {"last_pose": kiss.last_pose.copy(), "last_delta": kiss.last_delta.copy(),
+                                "map": kiss.local_map.point_cloud().copy()}
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        kiss_state = state.pop("_kiss_state")
+        self.__dict__.update(state)
+        kiss = self._kiss = self._new_pipeline()
+        kiss.last_pose, kiss.last_delta = kiss_state["last_pose"], kiss_state["last_delta"]
+        if len(kiss_state["map"]):
+            kiss.local_map.add_points(kiss_state["map"])
+        for deviation in self._deviations:
+            kiss.adaptive_threshold.update_model_deviation(deviation)
 
     @property
     def scans_in_map(self) -> int:
@@ -183,6 +205,7 @@ class LidarOdometry:
     def _restart(self) -> None:
         self._origin = self._pose.copy()
         self._kiss = self._new_pipeline()
+        self._deviations = []
         self._registered = 0
         self.restarts += 1
 
@@ -254,6 +277,7 @@ class LidarOdometry:
         runtime = time.perf_counter() - t0
         self.runtimes.append(runtime)
         new = kiss.last_pose
+        self._deviations.append(np.linalg.inv(guess) @ new)  # = register_frame's own model_deviation
         first = self._registered == 0
         if not np.all(np.isfinite(new)):
             self._restart()
