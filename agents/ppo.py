@@ -38,7 +38,7 @@ class PPOParams(AgentParams):
     n_envs: int = param(2, ge=1, doc="training envs, one per core")
     vec_env: Literal["subproc", "dummy", "batched"] = param(
         "subproc", doc="subproc: one process per env | dummy: in-process | batched: the left turn's numpy batch "
-                       "(av_gym/envs/batched_vec.py)")
+                       "(av_gym/batched/vec_env.py)")
     learning_rate: float = param(3.0e-4, gt=0, doc="Adam step (SB3's default)")
     n_steps: int = param(512, "policy steps", ge=2, doc="per env per rollout: 1024 steps per update with 2 envs")
     batch_size: int = param(128, ge=2, doc="minibatch size")

@@ -3,7 +3,7 @@ not what it simulates): flat observations for SB3, an action held for several st
 the left turn's meta-actions, a reward term per second of shield override, and the time limit as a termination.
 
 They live in ``av_gym`` (not ``agents`` or ``train``) because they are env wrappers: the trainers build them
-(:func:`train.ppo._env_factory`), the batched engine mirrors them (:mod:`av_gym.envs.batched_vec`), and the
+(:func:`train.ppo._env_factory`), the batched engine mirrors them (:mod:`av_gym.batched.vec_env`), and the
 evaluation maps a trained policy's actions the same way (:class:`agents.ppo.SB3Policy`).
 """
 

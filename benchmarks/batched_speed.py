@@ -21,7 +21,7 @@ import gymnasium as gym
 import numpy as np
 from omegaconf import OmegaConf
 
-from av_gym.envs.left_turn_batched import BatchedLeftTurn
+from av_gym.batched.left_turn import BatchedLeftTurn
 from av_gym.estimation.turn_features import TurnFeatures
 from av_gym.make import highway_config
 from conf.cli import Extend, ToolParser, items
@@ -76,7 +76,7 @@ def ppo_rate(batched: bool, decisions: int) -> tuple[float, float]:
     from stable_baselines3.common.vec_env import SubprocVecEnv
 
     from agents.ppo import make_ppo
-    from av_gym.envs.batched_vec import BatchedLeftTurnVecEnv
+    from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
     from train.ppo import _env_factory
 
     import torch

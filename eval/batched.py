@@ -1,5 +1,5 @@
 """``python -m eval env=left_turn vec_env=batched n_envs=64 ...``: the left turn's evaluation episodes on the
-batched engine (:mod:`av_gym.envs.batched_vec`, issue 16), ``n_envs`` episodes stepped together in this process.
+batched engine (:mod:`av_gym.batched.vec_env`, issue 16), ``n_envs`` episodes stepped together in this process.
 
 Episode ``seed`` is the episode ``reset(seed=seed)`` of the per-env stack gives (the engine draws it from a
 generator seeded with it), the policy decides as it does there (every env step at 10 Hz; a trained go/yield
@@ -44,7 +44,7 @@ def plan_kind(plan) -> str:
 
 def check_batched_plan(plan, env_cfg: dict) -> None:
     """One-line ConfigError for an agent the batched engine cannot evaluate (checked before any folder is made)."""
-    from av_gym.envs.batched_vec import check_batchable
+    from av_gym.batched.vec_env import check_batchable
 
     if env_cfg.get("name") != "left_turn":
         raise ConfigError(f"vec_env=batched runs env=left_turn only, got env={env_cfg.get('name')}")
@@ -90,7 +90,7 @@ class _Decider:
 
     def act(self, obs: dict, live: np.ndarray) -> np.ndarray:
         """Meta-actions (n,) for the envs ``live`` (the others get IDLE, unused)."""
-        from av_gym.envs.batched_vec import meta_actions
+        from av_gym.batched.vec_env import meta_actions
 
         out = np.ones(self.n, dtype=self.dtype)
         rows = np.nonzero(live)[0]
@@ -133,7 +133,7 @@ def play_batched(env_cfg: dict, sensors: dict, shield: dict, policy, seeds: Iter
     """The episodes ``seeds`` of ``policy`` on the batched engine (``n_envs`` at a time), rows in seed order; the
     caller has checked that the engine can run this env, sensors, shield and policy (:func:`check_batched_plan`,
     or ``train/ppo.py``'s own check for the stack it trains on)."""
-    from av_gym.envs.batched_vec import BatchedLeftTurnVecEnv
+    from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
 
     total = len(seeds) if hasattr(seeds, "__len__") else None
     B = max(1, min(int(n_envs), total if total is not None else int(n_envs)))

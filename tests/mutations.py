@@ -24,7 +24,7 @@ MUTATIONS = [
      ["tests/test_batched_sim.py::test_batched_matches_per_env_stack_for_5_s",
       "tests/test_batched_sim.py::test_batched_episodes_end_as_on_the_per_env_stack",
       "tests/test_batched_sim.py::test_batched_continuous_actions_match_per_env_stack_for_5_s"]),
-    ("av_gym/envs/left_turn_batched.py", "            terminated[rows] = crashed | arrived\n",
+    ("av_gym/batched/left_turn.py", "            terminated[rows] = crashed | arrived\n",
      "            terminated[rows] = crashed\n", "arrival no longer ends a batched episode",
      ["tests/test_batched_sim.py::test_batched_episodes_end_as_on_the_per_env_stack"]),
     ("av_gym/shields/kernels.py", "return x + extra * math.cos(h), y + extra * math.sin(h), h, max(j, 0)",

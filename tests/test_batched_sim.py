@@ -1,4 +1,4 @@
-"""The batched left turn (av_gym/sim/batched.py, av_gym/envs/left_turn_batched.py) against the per-env stack
+"""The batched left turn (av_gym/sim/batched.py, av_gym/batched/left_turn.py) against the per-env stack
 (``fast: true``, itself equal to stock highway-env, tests/test_fast_sim.py): same seeds, same action sequences,
 every vehicle's position, heading and speed within 1e-6 for the first 5 s, and the same rewards, terminations
 and obs["turn"] (issue 16).
@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
-from av_gym.envs.left_turn_batched import BatchedLeftTurn
+from av_gym.batched.left_turn import BatchedLeftTurn
 from av_gym.make import highway_config
 
 TOL = 1e-6
@@ -274,7 +274,7 @@ def test_vec_env_matches_the_training_stack():
     Why not all, always: positions agree to ~1e-14, not bit for bit, and obs["turn"]'s closest approach to the
     ego's path has exact ties (an object driving along the path's exit segment is equally far from each exit
     point), which float noise breaks either way."""
-    from av_gym.envs.batched_vec import BatchedLeftTurnVecEnv
+    from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
     from train.ppo import _env_factory
 
     plain = _ppo_turn_config()
@@ -321,7 +321,7 @@ def test_vec_env_matches_the_training_stack():
 
 
 def test_vec_env_refuses_what_the_batch_cannot_give():
-    from av_gym.envs.batched_vec import BatchedLeftTurnVecEnv
+    from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
     from av_gym.errors import ConfigError
 
     env, sensors, shield = _ppo_turn_config()
@@ -334,7 +334,7 @@ def test_vec_env_refuses_what_the_batch_cannot_give():
 
 
 def test_gymnasium_vector_env_autoresets_in_the_same_step():
-    from av_gym.envs.batched_vec import BatchedLeftTurnVectorEnv
+    from av_gym.batched.vec_env import BatchedLeftTurnVectorEnv
 
     env, sensors, _ = _ppo_turn_config()
     venv = BatchedLeftTurnVectorEnv(env, sensors, 4, action_repeat=5, actions="go_yield")
@@ -474,7 +474,7 @@ def test_cloning_on_the_batch_gives_the_per_env_demonstrations():
     the per-env stack gives for the same seeds (the rule reads only the observation, which the engine reproduces)."""
     from stable_baselines3 import PPO
 
-    from av_gym.envs.batched_vec import BatchedLeftTurnVecEnv
+    from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
     from train.ppo import _env_factory, make_teacher, pretrain_from_teacher
 
     plain, seeds = _ppo_turn_config(), range(500000, 500006)

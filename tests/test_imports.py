@@ -1,59 +1,114 @@
-"""Dependencies run one way: av_gym (envs, sensors, estimation, shields, metrics) ← agents ← conf ← train, eval,
-and eval never imports train (issue 20). Read from the source (every import statement, also those inside
-functions), so a lazy import cannot hide an arrow."""
+"""Dependencies run one way, floor by floor (docs/design.md, "Layers"): a module imports only from its own unit or
+from units on a lower floor, so no import runs back up (issue 34: ``envs/batched_vec.py`` → ``make.py`` → ``envs``
+and ``estimation/*_features.py`` → ``envs`` were two that did). Read from the source (every import statement, also
+those inside functions), so a lazy import cannot hide an arrow."""
 
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("av_gym", "agents", "conf", "train", "eval")
-FORBIDDEN = {
-    "av_gym": {"agents", "conf", "train", "eval"},
-    "agents": {"conf", "train", "eval"},
-    "conf": {"train", "eval"},
-    "eval": {"train"},
-    "train": set(),
+
+# unit → floor. A unit is a top-level package, or ``av_gym.<module or subpackage>``; ``av_gym`` itself is the
+# package's __init__ (the Gymnasium ids). Units on one floor do not import each other.
+FLOORS = {
+    "av_gym": 0, "av_gym.errors": 0, "av_gym.geometry": 0,      # no av_gym imports but errors
+    "av_gym.params": 1, "av_gym.registry": 1, "av_gym.metrics": 1,
+    "av_gym.sim": 2,                                            # the simulator (highway-env fast paths, batched traffic)
+    "av_gym.sensors": 3,                                        # sensor models, wrappers over any env
+    "av_gym.estimation": 4,                                     # EKF, tracker, features from sensor readings
+    "av_gym.envs": 5, "av_gym.shields": 5, "av_gym.wrappers": 5,  # scenarios; shields; action/observation wrappers
+    "av_gym.make": 6,                                           # config → env + sensors + shield
+    "av_gym.batched": 7,                                        # the batched left turn (reuses all of the above)
+    "agents": 8,
+    "conf": 9,
+    "eval": 10,
+    "train": 11,                                                # train evaluates (eval); eval never trains
 }
+# third-party libraries that only the upper floors may use: the RL stack stays out of the simulator/sensor layers
+RL_LIBRARIES = ("stable_baselines3", "torch")
+RL_FLOOR = FLOORS["av_gym.batched"]
 
 
-def imports_of(package: str) -> dict[str, set[str]]:
-    """Top-level package → the files of ``package`` that import it."""
-    found: dict[str, set[str]] = {}
-    for path in sorted((ROOT / package).rglob("*.py")):
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
-            if isinstance(node, ast.Import):
-                names = [alias.name for alias in node.names]
-            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-                names = [node.module]
-            else:
-                continue
-            for name in names:
+def unit_of(module: str) -> str:
+    """``av_gym.sensors.camera`` → ``av_gym.sensors``; ``agents.ppo`` → ``agents``."""
+    parts = module.split(".")
+    return parts[0] if parts[0] != "av_gym" or len(parts) == 1 else f"av_gym.{parts[1]}"
+
+
+def imported_modules(path: Path, root: Path) -> list[str]:
+    names: list[str] = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names += [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            for alias in node.names:  # ``from av_gym import make`` names a module, ``... import ENV_IDS`` a name
+                module = f"{node.module}.{alias.name}"
+                is_module = (root / Path(*module.split("."))).is_dir() or \
+                    (root / Path(*module.split("."))).with_suffix(".py").exists()
+                names.append(module if node.module == "av_gym" and is_module else node.module)
+    return names
+
+
+@functools.lru_cache(maxsize=None)
+def edges(root: Path | None = None) -> dict[tuple[str, str], set[str]]:
+    """(unit, imported unit or RL library) → the files making that import."""
+    root = root or ROOT
+    found: dict[tuple[str, str], set[str]] = {}
+    for package in PACKAGES:
+        for path in sorted((root / package).rglob("*.py")):
+            rel = path.relative_to(root)
+            src = unit_of(".".join(rel.with_suffix("").parts).removesuffix(".__init__"))
+            for name in imported_modules(path, root):
                 top = name.split(".")[0]
-                if top in PACKAGES and top != package:
-                    found.setdefault(top, set()).add(str(path.relative_to(ROOT)))
+                if top in PACKAGES:
+                    dst = unit_of(name)
+                elif top in RL_LIBRARIES:
+                    dst = top
+                else:
+                    continue
+                if dst != src:
+                    found.setdefault((src, dst), set()).add(str(rel))
     return found
 
 
 def import_picture() -> list[str]:
-    """``package → package`` lines, the picture the README's layout section shows."""
-    return [f"{package} → {other}" for package in PACKAGES for other in sorted(imports_of(package))]
+    """``unit → unit`` lines (floor order), the picture docs/design.md shows."""
+    return [f"{s} → {d}" for s, d in sorted(edges(), key=lambda e: (FLOORS.get(e[0], 99), e[0], e[1]))]
 
 
-def test_imports_run_one_way():
-    wrong = {(package, other): sorted(files) for package in PACKAGES
-             for other, files in imports_of(package).items() if other in FORBIDDEN[package]}
-    assert wrong == {}, f"imports against the direction: {wrong}\n" + "\n".join(import_picture())
+def test_every_unit_has_a_floor():
+    units = {s for s, _ in edges()} | {d for _, d in edges() if d not in RL_LIBRARIES}
+    assert units - set(FLOORS) == set(), "give each new package a floor in FLOORS (and docs/design.md)"
 
 
-def test_the_checker_sees_lazy_imports(tmp_path, monkeypatch):
-    """The walker finds an import inside a function (how av_gym used to reach agents)."""
-    pkg = tmp_path / "av_gym"
-    pkg.mkdir()
-    (pkg / "m.py").write_text("def f():\n    from agents.aeb import build_shield\n    return build_shield\n")
-    monkeypatch.setattr(__import__(__name__), "ROOT", tmp_path)
-    assert imports_of("av_gym") == {"agents": {"av_gym/m.py"}}
+def test_imports_only_go_down():
+    wrong = {f"{s} → {d}": sorted(files) for (s, d), files in edges().items()
+             if d not in RL_LIBRARIES and FLOORS.get(d, 99) >= FLOORS.get(s, -1)}
+    assert wrong == {}, f"imports that do not go down a floor: {wrong}\n" + "\n".join(import_picture())
+
+
+def test_rl_libraries_stay_above_the_simulator():
+    wrong = {f"{s} → {d}": sorted(files) for (s, d), files in edges().items()
+             if d in RL_LIBRARIES and FLOORS.get(s, 99) < RL_FLOOR}
+    assert wrong == {}, f"stable_baselines3/torch below av_gym.batched: {wrong}"
+
+
+def test_the_checker_sees_lazy_and_upward_imports(tmp_path):
+    """The walker finds an import inside a function (how av_gym used to reach agents) and an import from a lower
+    av_gym floor to a higher one (estimation → envs, how the turn features used to reach the env)."""
+    for package in PACKAGES:
+        (tmp_path / package).mkdir()
+    (tmp_path / "av_gym" / "m.py").write_text("def f():\n    from agents.aeb import build_shield\n")
+    (tmp_path / "av_gym" / "estimation").mkdir()
+    (tmp_path / "av_gym" / "estimation" / "f.py").write_text("from av_gym.envs.left_turn import CONFLICT_POINT\n")
+    found = edges(tmp_path)
+    assert found[("av_gym.m", "agents")] == {"av_gym/m.py"}
+    assert found[("av_gym.estimation", "av_gym.envs")] == {"av_gym/estimation/f.py"}
+    assert FLOORS["av_gym.envs"] > FLOORS["av_gym.estimation"]
 
 
 if __name__ == "__main__":

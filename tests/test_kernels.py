@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from av_gym.envs.left_turn_batched import BatchedLeftTurn, tables
+from av_gym.batched.left_turn import BatchedLeftTurn, tables
 from av_gym.make import highway_config
 from av_gym.sim import batched as sb
 from av_gym.sim import kernels

@@ -204,7 +204,7 @@ def validate(cfg: DictConfig) -> list[str]:
     line, before any folder)."""
     if cfg.agent.vec_env != "batched":
         return []
-    from av_gym.envs.batched_vec import check_batchable
+    from av_gym.batched.vec_env import check_batchable
     from av_gym.errors import ConfigError
 
     try:
@@ -268,8 +268,8 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
         done_steps = int(PPO.load(str(latest), device=agent.device).num_timesteps)
     # A resumed run's episodes come from fresh seeds (the env streams of the killed run cannot be restored).
     cost, repeat, actions = float(params.intervention_cost), int(params.action_repeat), str(params.actions)
-    if agent.vec_env == "batched":  # issue 16: all envs in one numpy batch (av_gym/envs/batched_vec.py)
-        from av_gym.envs.batched_vec import BatchedLeftTurnVecEnv
+    if agent.vec_env == "batched":  # issue 16: all envs in one numpy batch (av_gym/batched/vec_env.py)
+        from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
 
         if cost > 0:
             raise ConfigError("agent.intervention_cost needs a shield: not available with agent.vec_env=batched")

@@ -8,7 +8,6 @@ from typing import Callable
 
 
 from av_gym.params import Params, param
-from av_gym.sim import fmath
 
 KMH = 1 / 3.6  # m/s per km/h: scenario configs take km/h at the edge, the envs m/s
 
@@ -81,13 +80,3 @@ class ScenarioMixin:
         info = super()._info(obs, action)
         info["truth"] = self.truth()
         return info
-
-
-def ego_kinematics(vehicle) -> dict:
-    """Applied steering (rad), acceleration (m/s²) and the kinematic bicycle's yaw rate (rad/s, + = right turn:
-    ψ̇ = v·sin β / (L/2), β = atan(tan δ / 2), highway-env's model) of a vehicle."""
-    action = vehicle.action or {}
-    steering = float(action.get("steering", 0.0))
-    beta = fmath.atan(0.5 * fmath.tan(steering))  # = np.arctan(0.5 * np.tan(steering)), see av_gym.sim.fmath
-    return {"steering": steering, "acceleration": float(action.get("acceleration", 0.0)),
-            "yaw_rate": float(vehicle.speed * fmath.sin(beta) / (vehicle.LENGTH / 2))}

@@ -16,7 +16,8 @@ from highway_env import utils
 from highway_env.envs.common.abstract import AbstractEnv
 from highway_env.road.road import Road
 
-from av_gym.envs.base import KMH, ScenarioMixin, ScenarioParams, ego_kinematics
+from av_gym.envs.base import KMH, ScenarioMixin, ScenarioParams
+from av_gym.sim.vehicles import ego_kinematics
 from av_gym.envs.observations import LaneKeepingState, StateDict
 from av_gym.envs.track import Track, build_track
 from av_gym.sim import fmath
@@ -76,6 +77,9 @@ class LaneKeepingLapEnv(ScenarioMixin, AbstractEnv):
     """
 
     scenario = "lane_keeping"
+    # the lane state's layout (features, preview distances, bounds): read through the env by
+    # estimation.lane_features, which sits below envs and may not import it (tests/test_imports.py)
+    STATE = LaneKeepingState
     Params = LaneKeepingParams
 
     @classmethod

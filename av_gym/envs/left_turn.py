@@ -27,7 +27,8 @@ from highway_env.envs.common.observation import KinematicObservation
 from highway_env.envs.intersection_env import IntersectionEnv
 from highway_env.vehicle.kinematics import Vehicle
 
-from av_gym.envs.base import KMH, ScenarioMixin, ScenarioParams, ego_kinematics
+from av_gym.envs.base import KMH, ScenarioMixin, ScenarioParams
+from av_gym.sim.vehicles import ego_kinematics
 from av_gym.envs.lane_path import LanePath
 from av_gym.envs.observations import FastKinematics, StateDict
 from av_gym.envs.vehicles import FastDiscreteMetaAction, LongitudinalAction
@@ -135,6 +136,8 @@ class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
     """
 
     scenario = "left_turn"
+    # read through the env by estimation.turn_features (below envs, so it may not import this module)
+    CONFLICT_POINT = CONFLICT_POINT
     Params = LeftTurnParams
 
     @classmethod

@@ -71,9 +71,7 @@ class TurnFeatures(SensorWrapper):
         self.source, self.max_objects = p.source, int(p.max_objects)
         self.max_range, self.time_scale = float(p.max_range), float(p.time_scale)
         super().__init__(env)
-        from av_gym.envs.left_turn import CONFLICT_POINT
-
-        self.conflict = CONFLICT_POINT
+        self.conflict = env.unwrapped.CONFLICT_POINT
         # The ego's path through the intersection, from the stop line along the turn and 10 m into the exit: where
         # crossing, oncoming and merging traffic can meet it (the road is fixed, so computed once).
         turn, exit_lane = env.unwrapped.road.network.get_lane(("ir0", "il1", 0)), \

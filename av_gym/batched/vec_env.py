@@ -1,4 +1,4 @@
-"""The batched left turn (:mod:`av_gym.envs.left_turn_batched`) as an SB3 ``VecEnv`` and a Gymnasium
+"""The batched left turn (:mod:`av_gym.batched.left_turn`) as an SB3 ``VecEnv`` and a Gymnasium
 ``VectorEnv`` (issue 16): ``python -m train agent=ppo_turn agent.vec_env=batched agent.n_envs=64``.
 
 What the batch gives: ``env=left_turn`` in both modes (traffic, CCFtap) with discrete or continuous actions, and the
@@ -21,7 +21,7 @@ import numpy as np
 from gymnasium import spaces
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
-from av_gym.envs.left_turn_batched import BatchedIntent, BatchedLeftTurn
+from av_gym.batched.left_turn import BatchedIntent, BatchedLeftTurn
 from av_gym.errors import ConfigError
 
 SENSORS = ("name", "turn_features", "turn_signals", "turn_intent", "observe", "keep_state")

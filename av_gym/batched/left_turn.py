@@ -4,7 +4,7 @@ once, on the batched traffic of :mod:`av_gym.sim.batched` (issue 16).
 :class:`BatchedLeftTurn` is the env layer: per-environment seeded generators drawing the traffic exactly as
 ``UnprotectedLeftTurnEnv.reset(seed=s)`` / ``step`` do, the reward terms, termination, ``info["truth"]``'s fields
 and the ``obs["turn"]`` turn features (``TurnFeatures(source=truth)``) for the whole batch as arrays. The RL
-interfaces (SB3 ``VecEnv``, Gymnasium ``VectorEnv``) are in :mod:`av_gym.envs.batched_vec`.
+interfaces (SB3 ``VecEnv``, Gymnasium ``VectorEnv``) are in :mod:`av_gym.batched.vec_env`.
 """
 
 from __future__ import annotations
