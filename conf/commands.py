@@ -22,7 +22,9 @@ class TrainOptions(Params):
                                                           "a policy from always-proceed's 0.5 / 0.5)")
     eval_n_envs: int = param(2, "processes", ge=1, doc="worker processes for the brief evaluation (1 = in this "
                                                        "process; the same rows)")
-    eval_seed: int = param(100000, ge=0, doc="first seed of the evaluations: disjoint from training seeds")
+    eval_seed: int | None = param(None, ge=0, doc="first seed of the evaluations during and after training, in the "
+                                                   "validation split (av_gym/seeds.py; null = its start): they pick "
+                                                   "best.zip, so they must never be test seeds")
     eval_every: int = param(10000, "policy steps", ge=0, doc="between evaluations on fixed seeds during training, "
                                                               "counted as agent.total_timesteps is (x action_repeat "
                                                               "env steps; 0 = none)")
@@ -66,7 +68,11 @@ class EvalCommand(Params):
                                             "of that config), a trained kind, or a checkpoint path; eval.yaml: the "
                                             "env's compare list")
     episodes: int = param(20, ge=1, doc="episodes per agent")
-    seed: int = param(1000, ge=0, doc="episode i uses seed + i; the same seeds for every agent")
+    split: Literal["train", "validation", "test"] = param(
+        "validation", doc="which seed range the episodes come from (av_gym/seeds.py): validation for looking and "
+                          "deciding, test only for reported tables (docs/results.md), train is what learning saw")
+    seed: int | None = param(None, ge=0, doc="episode i uses seed + i, the same seeds for every agent; null = the "
+                                             "split's first seed; a seed range outside the split is refused")
     n_envs: int = param(1, ge=1, doc="worker processes sharing the episodes (1 = in this process); the metrics are "
                                      "bit-identical whatever n_envs, as every episode is seeded on its own")
     vec_env: Literal["subproc", "batched"] = param("subproc", doc="subproc: per-env stacks (n_envs worker processes); "

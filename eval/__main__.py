@@ -1,5 +1,5 @@
-"""``python -m eval env=left_turn agents='[always_proceed,ppo]' episodes=100 seed=1000 [n_envs=2]
-[vec_env=batched]``"""
+"""``python -m eval env=left_turn agents='[always_proceed,ppo]' episodes=100 [split=validation|test|train]
+[seed=...] [n_envs=2] [vec_env=batched]``"""
 
 from __future__ import annotations
 
@@ -19,6 +19,11 @@ def _plans(cfg: DictConfig) -> list:
     from eval.agents import check_plan, check_sensor_overrides, plan_agent
 
     validate_config(cfg, "eval")
+    episode_seeds(cfg)  # the seed range fits its split, before any agent is loaded
+    duplicates = sorted({str(a) for a in cfg.agents if list(map(str, cfg.agents)).count(str(a)) > 1})
+    if duplicates:  # one row would pool the same seeds twice and count each episode as two
+        raise ConfigError(f"agents lists {duplicates[0]!r} more than once; each agent is one row over the same "
+                          f"episode seeds, so list it once")
     sensors, shield = (OmegaConf.to_container(c, resolve=True) for c in (cfg.sensors, cfg.shield))
     plans = [plan_agent(spec, cfg.env.name, sensors, shield, cfg.paths.checkpoints) for spec in cfg.agents]
     env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
@@ -30,6 +35,14 @@ def _plans(cfg: DictConfig) -> list:
 
             check_batched_plan(plan, env_cfg)
     return plans
+
+
+def episode_seeds(cfg: DictConfig) -> range:
+    """The episodes' seeds: ``episodes`` consecutive seeds of ``split`` from ``seed`` (default the split's start);
+    ConfigError naming the field when they leave the split (av_gym/seeds.py)."""
+    from av_gym.seeds import config_seeds
+
+    return config_seeds(str(cfg.split), int(cfg.episodes), cfg.seed, "seed")
 
 
 def evaluate(cfg: DictConfig) -> list[dict]:
@@ -44,12 +57,13 @@ def evaluate(cfg: DictConfig) -> list[dict]:
     if int(cfg.episodes) < 1:
         raise ConfigError(f"episodes must be >= 1, got {cfg.episodes}")
     check_folder(cfg.out_dir, "out_dir", create=True)  # before the first episode: results must have somewhere to go
-    title = f"{cfg.env.name} ({cfg.env.get('mode', '')}), {cfg.episodes} episodes from seed {cfg.seed}"
+    seeds = episode_seeds(cfg)
+    title = (f"{cfg.env.name} ({cfg.env.get('mode', '')}), {cfg.episodes} episodes of the {cfg.split} split "
+             f"(seeds {seeds.start}..{seeds.stop - 1})")
     title = title.replace(" ()", "")
     env_name = cfg.env.name
     n_envs = int(cfg.get("n_envs", 1))
     rows = []
-    seeds = range(int(cfg.seed), int(cfg.seed) + int(cfg.episodes))
     env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
     ran = {p.label: p.spec for p in plans if _is_path(p.spec)}  # trained agents: the checkpoint they resolved to
     for label, path in ran.items():
@@ -74,21 +88,22 @@ def evaluate(cfg: DictConfig) -> list[dict]:
                 env.close()
         except KeyboardInterrupt:
             if rows:
-                write_results(rows, cfg.out_dir, env_name, f"{title} (interrupted after {len(rows)} episodes)")
+                write_results(rows, cfg.out_dir, env_name, f"{title} (interrupted after {len(rows)} episodes)",
+                              split=str(cfg.split))
                 print(f"[eval] interrupted: the {len(rows)} episodes measured are in {cfg.out_dir}/results.csv",
                       file=sys.stderr)
             raise
         # each agent's rows as soon as it is done: an evaluation interrupted or failing later keeps what it measured
-        write_results(rows, cfg.out_dir, env_name, title)
+        write_results(rows, cfg.out_dir, env_name, title, split=str(cfg.split))
     table = write_results(rows, cfg.out_dir, env_name, title, sensors={p.label: p.sensors for p in plans},
-                          checkpoints=ran)
+                          checkpoints=ran, split=str(cfg.split))
     print(f"\n{title}\n\n{table}\n")
     print(f"[eval] per-episode rows: {cfg.out_dir}/results.csv   summary: {cfg.out_dir}/results.md")
     if env_name == "lane_keeping" and (cfg.get("plots") or cfg.get("videos")):
         from eval.plots import lane_keeping_figures
 
         paths = lane_keeping_figures(cfg, plans, cfg.out_dir, bool(cfg.get("plots")), bool(cfg.get("videos")))
-        print(f"[eval] figures (seed {cfg.seed}): {', '.join(p.name for p in paths)}")
+        print(f"[eval] figures (seed {seeds.start}): {', '.join(p.name for p in paths)}")
     return rows
 
 

@@ -1,7 +1,7 @@
 """Lane-keeping figures for ``python -m eval env=lane_keeping``: CTE along the lap (PNG) for each agent and, with
 ``videos=true``, one lap per agent seen from the centre camera (MP4, or GIF if no MP4 encoder is available).
 
-Each agent drives the first evaluation seed (``cfg.seed``) once more with the same sensors and shield as in the
+Each agent drives the first evaluation seed once more with the same sensors and shield as in the
 table, so the figure shows one of the laps that were scored (policies are deterministic and sensors are seeded).
 Output, in the eval folder: ``cte_<agent>.png`` per agent, ``cte_all.png`` (every agent on one axis) and
 ``lap_<agent>.mp4``. The video is the clean centre-camera render (the same 66×200 view PilotNet drives from,
@@ -145,7 +145,10 @@ def write_video(trace: dict, label: str, path: str | Path, policy_hz: float = 10
 
 
 def lane_keeping_figures(cfg, plans, out_dir: str | Path, plots: bool = True, videos: bool = False) -> list[Path]:
-    """For ``python -m eval``: one more lap per agent plan on seed ``cfg.seed``; PNGs and optional videos."""
+    """For ``python -m eval``: one more lap per agent plan on the first evaluation seed; PNGs and optional videos."""
+    from eval.__main__ import episode_seeds
+
+    first = episode_seeds(cfg).start
     from av_gym.make import make_env
     from eval.agents import resolve_agent
 
@@ -153,14 +156,14 @@ def lane_keeping_figures(cfg, plans, out_dir: str | Path, plots: bool = True, vi
     for plan in plans:
         env = make_env(cfg.env, plan.sensors, plan.shield)
         _, policy = resolve_agent(plan.spec, env, cfg.env.name, cfg.paths.checkpoints)
-        traces[plan.label] = record_lap(env, policy, int(cfg.seed), video=videos)
+        traces[plan.label] = record_lap(env, policy, first, video=videos)
         policy_hz = float(env.unwrapped.config["policy_frequency"])
         env.close()
         if videos:
             paths.append(write_video(traces[plan.label], plan.label, Path(out_dir) / f"lap_{_slug(plan.label)}.mp4",
                                      policy_hz))
     if plots:
-        title = f"layout {cfg.env.get('track', '?')}, seed {cfg.seed}"
+        title = f"layout {cfg.env.get('track', '?')}, seed {first} ({cfg.split})"
         paths += plot_cte(traces, out_dir, title)
     return paths
 

@@ -55,12 +55,15 @@ def checkpoints_section(checkpoints: Mapping[str, str]) -> str:
 
 
 def write_results(rows: list[dict], out_dir: str | Path, scenario: str, title: str,
-                  sensors: Mapping[str, dict] | None = None, checkpoints: Mapping[str, str] | None = None) -> str:
+                  sensors: Mapping[str, dict] | None = None, checkpoints: Mapping[str, str] | None = None,
+                  split: str | None = None) -> str:
     """Write ``results.csv`` (every episode, every metric) and ``results.md`` (with, given ``sensors`` = agent
     label → the sensors config it ran with and ``checkpoints`` = label → the checkpoint a trained agent loaded,
     sections stating them); returns the Markdown table."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    if split is not None:  # every row says which seed split it came from (av_gym/seeds.py)
+        rows = [{**r, "split": split} for r in rows]
     columns = list(dict.fromkeys(k for r in rows for k in r))
     with open(out / "results.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=columns)

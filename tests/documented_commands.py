@@ -113,10 +113,10 @@ KNOWN: dict[str, str] = {
     "python -m train env.mode=rush_hour": "error",
     "python -m train agent.epoch=3": "error",
     "python -m train -m env=lane_keeping agent=ppo sensors=gnss_imu seed=0,1,2 sensors.gnss.sigma=0.5,1.5,3": "run",
-    "python -m eval -m env=lane_keeping agents=[pid_gnss] sensors=gnss_raw sensors.gnss.sigma=0.5,1.5,3 seed=0,100 "
+    "python -m eval -m env=lane_keeping agents=[pid_gnss] sensors=gnss_raw sensors.gnss.sigma=0.5,1.5,3 seed=1000000,1000100 "
     "episodes=3": "run",
     "python -m train -m agent=always_proceed shield=aeb shield.mode=perceived shield.detector.miss_rate=0,0.3,0.6,0.8 "
-    "train.eval_seed=100000,200000,300000 train.eval_episodes=20": "run",
+    "train.eval_seed=1000000,1100000,1200000 train.eval_episodes=20": "run",
     "python -m train -m hydra/launcher=slurm hydra.launcher.partition=cpu hydra.launcher.timeout_min=60 "
     "env=lane_keeping agent=ppo sensors=gnss_imu seed=0,1,2 sensors.gnss.sigma=0.5,1.5,3 "
     "run_name=ppo-s${seed}-g${sensors.gnss.sigma}": "run",
@@ -185,9 +185,9 @@ KNOWN: dict[str, str] = {
     "python -m eval env=left_turn agents=[lookahead,lookahead+aeb] episodes=500 n_envs=2": "run",
     # docs/robustness/README.md
     "nice -n 10 python -m train -m agent=always_proceed shield=aeb shield.mode=perceived "
-    "shield.detector.miss_rate=0.0,0.3,0.6,0.8 train.eval_seed=100000,200000,300000 train.eval_episodes=20 "
+    "shield.detector.miss_rate=0.0,0.3,0.6,0.8 train.eval_seed=1000000,1100000,1200000 train.eval_episodes=20 "
     "train.progress_bar=false paths.checkpoints=/tmp/sweep_ckpt hydra.sweep.dir=runs/multirun/aeb_miss_rate": "run",
-    "nice -n 10 python -m train -m agent=always_proceed shield=none,aeb train.eval_seed=100000,200000,300000 "
+    "nice -n 10 python -m train -m agent=always_proceed shield=none,aeb train.eval_seed=1000000,1100000,1200000 "
     "train.eval_episodes=20 train.progress_bar=false paths.checkpoints=/tmp/sweep_ckpt "
     "hydra.sweep.dir=runs/multirun/aeb_reference": "run",
     "python -m eval.sweep runs/multirun/aeb_miss_rate --out docs/robustness/aeb_miss_rate "
@@ -202,7 +202,7 @@ KNOWN: dict[str, str] = {
 PRODUCERS: dict[str, str] = {
     "python -m eval.sweep runs/multirun/<stamp> --x shield.detector.miss_rate --metric collision":
         "python -m train -m agent=always_proceed shield=aeb shield.mode=perceived "
-        "shield.detector.miss_rate=0,0.3,0.6,0.8 train.eval_seed=100000,200000,300000 train.eval_episodes=20",
+        "shield.detector.miss_rate=0,0.3,0.6,0.8 train.eval_seed=1000000,1100000,1200000 train.eval_episodes=20",
 }
 
 # Placeholders a document writes for the reader's own value -> what the tiny form uses.

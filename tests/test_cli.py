@@ -24,7 +24,7 @@ def test_train_writes_checkpoint_config_tensorboard_and_prints_where(trained):
 
 def test_eval_compares_checkpoint_with_baseline_on_the_same_seeds(trained):
     cwd, _ = trained
-    res = run("eval", "agents=[always_proceed,ppo]", "episodes=3", "seed=7", "out_dir=out", "progress_bar=false",
+    res = run("eval", "agents=[always_proceed,ppo]", "episodes=3", "split=train", "seed=7", "out_dir=out", "progress_bar=false",
               cwd=cwd)
     assert res.returncode == 0, res.stderr[-3000:]
     rows = list(csv.DictReader(open(cwd / "out" / "results.csv")))

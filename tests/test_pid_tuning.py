@@ -18,8 +18,11 @@ def test_search_on_a_tiny_grid_returns_the_best_gains():
 
 
 def test_search_refuses_evaluation_seeds():
-    with pytest.raises(ValueError, match="training seeds"):
-        pid_search.search(pid_search.GRIDS["quick"], seeds=[1000], refine=0)
+    from av_gym.seeds import SPLITS
+
+    for split in ("validation", "test"):  # a search tunes: train seeds only (av_gym/seeds.py)
+        with pytest.raises(ValueError, match="train split"):
+            pid_search.search(pid_search.GRIDS["quick"], seeds=[SPLITS[split].start], refine=0)
 
 
 def test_tuned_preset_matches_its_yaml_and_beats_the_paper_on_a_training_seed():

@@ -56,7 +56,7 @@ def test_submitit_local_multirun_then_aggregate(tmp_path):
     cmd = [sys.executable, "-m", "train", "-m", "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=10",
            f"hydra.sweep.dir={sweep}", f"paths.runs={tmp_path}/runs", f"paths.checkpoints={tmp_path}/ckpt",
            "agent=always_proceed", "env.duration=2.0", "train.eval_episodes=1", "train.progress_bar=false",
-           "train.eval_seed=7,8"]
+           "train.eval_seed=1000007,1000008"]
     # About 5 CPU-seconds per process (the launcher and 2 parallel jobs, mostly imports). The timeout only guards
     # against a hang: on a loaded machine the wall time can stretch to minutes.
     proc = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)

@@ -28,12 +28,21 @@ def _kind(cfg: DictConfig):
     return AGENT_KINDS.get(cfg.agent.get("kind"))
 
 
+def validation_seeds(cfg: DictConfig, n: int) -> range:
+    """``n`` seeds of the validation split from ``train.eval_seed`` (default: the split's start): the evaluations
+    during training pick ``best.zip`` and the one after it is looked at, so they may never be test seeds."""
+    from av_gym.seeds import config_seeds
+
+    return config_seeds("validation", n, cfg.train.get("eval_seed"), "train.eval_seed")
+
+
 def _validate(cfg: DictConfig) -> None:
     """Every field against the schema (the agent section: its kind's Params), then what its trainer needs."""
     from agents.registry import resolve
     from conf.check import validate_config
 
     validate_config(cfg, "train")
+    validation_seeds(cfg, max(int(cfg.train.eval_episodes), int(cfg.train.eval_n)))
     agent = cfg.agent
     if cfg.env.name not in agent.scenarios:
         raise ConfigError(f"agent {agent.name!r} drives scenarios {list(agent.scenarios)}, not env={cfg.env.name}")
@@ -77,7 +86,7 @@ def train(cfg: DictConfig) -> dict:
     rows = []
     n = int(cfg.train.eval_episodes)
     if n > 0:
-        seeds = range(int(cfg.train.eval_seed), int(cfg.train.eval_seed) + n)
+        seeds = validation_seeds(cfg, n)
         baselines = list(BASELINES[env_name]) if cfg.train.baseline == "auto" else [cfg.train.baseline]
         specs = [str(ckpt_dir), *baselines] if model_path else [agent.name]
         sensors, shield = (OmegaConf.to_container(c, resolve=True) for c in (cfg.sensors, cfg.shield))
@@ -107,9 +116,10 @@ def train(cfg: DictConfig) -> dict:
             _, policy = resolve_agent(plan.spec, env, env_name, cfg.paths.checkpoints)
             rows += run_episodes(env, policy, seeds, label, progress=progress)
             env.close()
-        table = write_results(rows, run_dir, env_name, f"{cfg.run_name}: brief evaluation, {n} episodes",
-                              sensors=ran_with)
-        print(f"\n[train] brief evaluation on {n} held-out seeds ({seeds.start}..{seeds.stop - 1}):\n\n{table}\n")
+        table = write_results(rows, run_dir, env_name, f"{cfg.run_name}: brief evaluation, {n} episodes of the "
+                              f"validation split (seeds {seeds.start}..{seeds.stop - 1})", sensors=ran_with,
+                              split="validation")
+        print(f"\n[train] brief evaluation on {n} validation seeds ({seeds.start}..{seeds.stop - 1}):\n\n{table}\n")
 
     where = {"run_dir": str(run_dir), "tensorboard": str(tb_dir),
              "checkpoint": str(model_path) if model_path else None, "config": str(ckpt_dir / "config.yaml")}

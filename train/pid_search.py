@@ -3,8 +3,9 @@
     python -m train.pid_search                      # the search behind the committed preset (~6 min on 1 core)
     python -m train.pid_search --seeds 0 --grid quick --refine 0     # a smoke run
 
-Where: the TRAINING layout A only, on training seeds (default 0..4). Evaluation uses seeds 1000+ (conf/eval.yaml)
-and the brief evaluation after training 100000+, so neither is ever seen by the search; layout B is held out.
+Where: the TRAINING layout A only, on train-split seeds (default 0..4; av_gym/seeds.py; others are refused).
+Evaluation uses the validation (ad hoc, the evaluations during and after training) and test (reported tables)
+splits, so neither is ever seen by the search; layout B is held out.
 
 What is minimised, per gain triple (Kp, Ki, Kd) of the per-step PID in ``agents/pid.py`` (same anti-windup and
 clipping as the paper preset, input the true CTE as the paper's simulator gave):
@@ -35,13 +36,15 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from av_gym.seeds import SPLITS
 from conf.cli import Extend, ToolParser, items
 
 GRIDS = {
     "full": {"kp": [0.5, 1.0, 2.0, 3.0, 4.0, 6.0], "ki": [0.0, 1e-4, 1e-3, 1e-2], "kd": [0.0, 0.5, 1.0, 2.0, 4.0]},
     "quick": {"kp": [0.75, 1.5], "ki": [1e-4], "kd": [1.0, 4.0]},
 }
-EVAL_SEEDS_START = 1000  # conf/eval.yaml; the search refuses to touch seeds at or above this
+TRAIN_SEEDS = SPLITS["train"]  # av_gym/seeds.py: a search tunes, so it draws from the train split only
 
 
 def lane_env(track: str = "A"):
@@ -90,8 +93,9 @@ def search(grid: dict, seeds, track: str = "A", osc_weight: float = 0.1, refine:
     from scipy.optimize import minimize
 
     seeds = [int(s) for s in seeds]
-    if any(s >= EVAL_SEEDS_START for s in seeds):
-        raise ValueError(f"training seeds must be < {EVAL_SEEDS_START} (evaluation seeds), got {seeds}")
+    if any(s not in TRAIN_SEEDS for s in seeds):
+        raise ValueError(f"seeds must lie in the train split ({TRAIN_SEEDS.start}..{TRAIN_SEEDS.stop - 1}), "
+                         f"got {seeds}")
     env = lane_env(track)
     table: list[dict] = []
 
@@ -133,8 +137,8 @@ def search(grid: dict, seeds, track: str = "A", osc_weight: float = 0.1, refine:
 def main(argv=None) -> dict:
     p = ToolParser(prog="python -m train.pid_search", description=__doc__.split("\n\n")[0])
     p.add_argument("--track", default="A", help="training layout (default A; B is held out)")
-    p.add_argument("--seeds", type=items(int, low=0, high=999), nargs="+", action=Extend, default=[0, 1, 2, 3, 4],
-                   help="training seeds (< 1000)")
+    p.add_argument("--seeds", type=items(int, low=TRAIN_SEEDS.start, high=TRAIN_SEEDS.stop - 1), nargs="+",
+                   action=Extend, default=[0, 1, 2, 3, 4], help="seeds of the train split (av_gym/seeds.py)")
     p.add_argument("--grid", choices=sorted(GRIDS), default="full")
     p.add_argument("--refine", type=int, default=60, help="Nelder-Mead evaluations after the grid (0 = none)")
     p.add_argument("--osc-weight", type=float, default=0.1, help="cost of one steering sign change per 100 m, units")

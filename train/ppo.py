@@ -8,6 +8,8 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from av_gym.seeds import DEMONSTRATIONS, config_seeds, train_seed
+
 
 def _env_factory(env_cfg: dict, sensors_cfg: dict, shield_cfg: dict, intervention_cost: float = 0.0,
                  action_repeat: int = 1, actions: str = "env", render_mode: str | None = None,
@@ -266,7 +268,9 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     done_steps = 0
     if resume:
         done_steps = int(PPO.load(str(latest), device=agent.device).num_timesteps)
-    # A resumed run's episodes come from fresh seeds (the env streams of the killed run cannot be restored).
+    # A resumed run's episodes come from fresh seeds (the env streams of the killed run cannot be restored); every
+    # stream's seed is folded into the train split (av_gym/seeds.py), whatever the seed and the steps done.
+    stream_seed = train_seed(int(cfg.seed), done_steps)
     cost, repeat, actions = float(params.intervention_cost), int(params.action_repeat), str(params.actions)
     if agent.vec_env == "batched":  # issue 16: all envs in one numpy batch (av_gym/batched/vec_env.py)
         from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
@@ -275,12 +279,12 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
             raise ConfigError("agent.intervention_cost needs a shield: not available with agent.vec_env=batched")
         venv = BatchedLeftTurnVecEnv(*plain, int(agent.n_envs), action_repeat=repeat, actions=actions,
                                      timeout_is_terminal=params.timeout_is_terminal)
-        venv.seed(int(cfg.seed) + done_steps)
+        venv.seed(stream_seed)
     else:
         venv = make_vec_env(functools.partial(_env_factory, *plain, cost, repeat, actions,
                                               timeout_is_terminal=params.timeout_is_terminal),
                             n_envs=int(agent.n_envs),
-                            seed=int(cfg.seed) + done_steps, vec_env_cls=vec_cls)
+                            seed=stream_seed, vec_env_cls=vec_cls)
     if resume:
         try:
             model = PPO.load(str(latest), env=venv, device=agent.device)
@@ -299,11 +303,12 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
                                                  timeout_is_terminal=params.timeout_is_terminal)
             else:
                 demo_env = _env_factory(*plain, cost, repeat, actions)
-            # Demonstration seeds 500000+: disjoint from evaluation (1000+, 100000+) and from PPO's own episodes.
+            # Demonstration seeds: train split, 500000+, away from PPO's own streams (seed + steps, from 0).
             t_bc = time.time()
             try:
                 stats = pretrain_from_teacher(model, demo_env, teacher,
-                                              range(500000, 500000 + int(agent.init_episodes)),
+                                              config_seeds("train", int(agent.init_episodes), DEMONSTRATIONS,
+                                                           "agent.init_episodes from seed"),
                                               float(agent.gamma), int(agent.init_epochs), int(agent.batch_size),
                                               float(params.init_action_noise), int(params.init_dagger_rounds),
                                               params.init_lr)
@@ -331,7 +336,8 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
                                           "sensors": cfg.sensors.name, "shield": cfg.shield.name,
                                           "seed": int(cfg.seed)}, cfg.env.name))
     if int(cfg.train.eval_n) > 0:
-        eval_seeds = range(int(cfg.train.eval_seed), int(cfg.train.eval_seed) + int(cfg.train.eval_n))
+        # they pick best.zip: validation, never test
+        eval_seeds = config_seeds("validation", int(cfg.train.eval_n), cfg.train.get("eval_seed"), "train.eval_seed")
         play = None
         if agent.vec_env == "batched":  # the stack it trains on, checked by validate(): validation on the batch too
             from eval.batched import play_batched

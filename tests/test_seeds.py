@@ -1,0 +1,73 @@
+"""Seed splits (av_gym/seeds.py): disjoint ranges, and every tool draws from the split its use allows."""
+
+from __future__ import annotations
+
+import pytest
+from omegaconf import OmegaConf
+
+from av_gym.errors import ConfigError
+from av_gym.seeds import SPLITS, config_seeds, seeds, split_of, train_seed
+
+
+def test_splits_are_disjoint_and_contiguous():
+    ranges = list(SPLITS.values())
+    for i, a in enumerate(ranges):
+        for b in ranges[i + 1:]:
+            assert not set(range(max(a.start, b.start), min(a.stop, b.stop)))  # no common seed
+    assert [split_of(r.start) for r in ranges] == list(SPLITS)
+    assert [split_of(r.stop - 1) for r in ranges] == list(SPLITS)
+
+
+def test_a_seed_range_leaving_its_split_is_refused():
+    test = SPLITS["test"]
+    assert seeds("test", 3) == range(test.start, test.start + 3)
+    with pytest.raises(ValueError, match="leaves split 'test'"):
+        seeds("test", 10, first=SPLITS["validation"].stop - 5)  # starts in validation
+    with pytest.raises(ValueError, match="leaves split 'validation'"):
+        seeds("validation", 10, first=SPLITS["validation"].stop - 5)  # runs into test
+    with pytest.raises(ConfigError, match="train.eval_seed="):
+        config_seeds("validation", 1, test.start, "train.eval_seed")
+    with pytest.raises(ValueError, match="split must be one of"):
+        seeds("holdout", 1)
+
+
+@pytest.mark.parametrize("base,offset", [(0, 0), (3, 122_880), (999_999, 1), (10**9, 5 * 10**6)])
+def test_training_streams_stay_in_the_train_split(base, offset):
+    """PPO seeds its env streams with seed + steps done (a resume): any seed, any run length stays in train."""
+    assert split_of(train_seed(base, offset)) == "train"
+
+
+def _train_cfg(**train):
+    return OmegaConf.create({"train": {"eval_seed": None, "eval_episodes": 100, "eval_n": 30, **train}})
+
+
+def test_training_evaluations_draw_from_validation():
+    """The periodic evaluation (best.zip) and the brief one after training: validation, never test."""
+    from train.__main__ import validation_seeds
+
+    assert split_of(validation_seeds(_train_cfg(), 100).start) == "validation"
+    assert split_of(validation_seeds(_train_cfg(), 100)[-1]) == "validation"
+    with pytest.raises(ConfigError, match="train.eval_seed"):
+        validation_seeds(_train_cfg(eval_seed=SPLITS["test"].start), 30)
+
+
+def test_eval_defaults_to_validation_and_reports_the_split():
+    from eval.__main__ import episode_seeds
+
+    cfg = OmegaConf.create({"split": "validation", "seed": None, "episodes": 20})
+    assert episode_seeds(cfg) == seeds("validation", 20)
+    with pytest.raises(ConfigError, match="leaves split 'validation'"):
+        episode_seeds(OmegaConf.create({"split": "validation", "seed": 1000, "episodes": 20}))  # the old default
+
+
+def test_demonstrations_and_pid_search_draw_from_train():
+    import inspect
+
+    from av_gym.seeds import DEMONSTRATIONS
+    from train import pid_search, ppo
+
+    assert split_of(DEMONSTRATIONS) == "train" and split_of(DEMONSTRATIONS + 10_000) == "train"
+    assert 'config_seeds("train"' in inspect.getsource(ppo.train_ppo)  # cloning's teacher episodes
+    with pytest.raises(ValueError, match="train split"):
+        pid_search.search(pid_search.GRIDS["quick"], [SPLITS["test"].start])
+    assert pid_search.TRAIN_SEEDS == SPLITS["train"]
