@@ -6,7 +6,7 @@ import csv
 from collections.abc import Mapping
 from pathlib import Path
 
-from av_gym.metrics import aggregate, format_ci, is_binary, markdown_table
+from av_gym.metrics import aggregate, format_ci, kind_of, markdown_table
 
 HEADLINE = {
     "left_turn": ["collision", "success", "time_to_exit_s", "min_ttc_s", "stopped", "mean_speed_mps",
@@ -17,15 +17,15 @@ HEADLINE = {
 
 
 def summary_table(rows: list[dict], scenario: str) -> str:
-    """Markdown table: one line per agent, each headline metric as ``mean [95% CI]`` (Wilson for rates)."""
+    """Markdown table: one line per agent, each headline metric as ``mean [95% CI]``, the interval its declared
+    kind calls for (av_gym/metrics/kinds.py)."""
     agg = aggregate(rows, group_key="agent")
     metrics = [m for m in HEADLINE[scenario] if m in rows[0]]
     table = []
     for g in agg:
         line = {"agent": g["agent"], "n": g["n"]}
         for m in metrics:
-            binary = is_binary([r[m] for r in rows])
-            line[m] = format_ci(g[m], g[m + "_lo"], g[m + "_hi"], binary)
+            line[m] = format_ci(g[m], g[m + "_lo"], g[m + "_hi"], kind_of(m) == "rate")
         table.append(line)
     return markdown_table(table, ["agent", "n", *metrics])
 
@@ -70,8 +70,10 @@ def write_results(rows: list[dict], out_dir: str | Path, scenario: str, title: s
         writer.writeheader()
         writer.writerows(rows)
     table = summary_table(rows, scenario)
-    (out / "results.md").write_text(f"# {title}\n\nMean with 95% confidence interval (Wilson for rates, Student-t "
-                                    f"otherwise) over episodes.\n\n{table}\n"
+    (out / "results.md").write_text(f"# {title}\n\nMean with 95% confidence interval over episodes, by each metric's "
+                                    f"declared kind (av_gym/metrics/kinds.py): Wilson for rates, a seeded bootstrap "
+                                    f"for counts, durations and other non-negative quantities, Student t for signed "
+                                    f"ones.\n\n{table}\n"
                                     + (f"\n{checkpoints_section(checkpoints)}" if checkpoints else "")
                                     + (f"\n{sensors_section(sensors)}" if sensors else ""))
     return table

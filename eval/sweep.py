@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from av_gym.metrics import aggregate, format_ci, is_binary, markdown_table, mean_ci, wilson_ci
+from av_gym.metrics import aggregate, format_ci, interval, kind_of, markdown_table, mean_ci, wilson_ci
 from conf.cli import Extend, ToolParser, items
 
 REPLICATE_KEYS = ("seed", "train.eval_seed")
@@ -143,7 +143,7 @@ def summarise(jobs: list[Job], group_keys: list[str], replicate_keys: list[str],
                                     and isinstance(r.get("seed"), float) and not math.isnan(r["seed"])),
                  **{m: agg[m] for m in metrics}})
             episodes.setdefault(key, []).extend(r for r in job.rows if r["agent"] == agg["agent"])
-    binary = {m: is_binary([r.get(m, math.nan) for j in jobs for r in j.rows]) for m in metrics}
+    binary = {m: kind_of(m) == "rate" for m in metrics}  # declared (av_gym/metrics/kinds.py), not guessed
 
     out, warnings = [], []
     for key, reps in per_job.items():
@@ -157,9 +157,11 @@ def summarise(jobs: list[Job], group_keys: list[str], replicate_keys: list[str],
             mean, half = mean_ci([r[m] for r in reps], confidence)
             vals = np.array([r.get(m, math.nan) for r in eps], dtype=float)
             vals = vals[~np.isnan(vals)]
-            if len(reps) == 1 and not binary[m]:
-                half = mean_ci(vals, confidence)[1]
             line[m], line[m + "_lo"], line[m + "_hi"] = mean, mean - half, mean + half
+            if len(reps) == 1 and not binary[m]:  # the interval over its episodes that the metric's kind calls for
+                _, line[m + "_lo"], line[m + "_hi"] = interval(vals, kind_of(m), confidence)
+            elif kind_of(m) in ("count", "duration", "nonnegative"):  # a t over few seeds may cross zero
+                line[m + "_lo"] = max(line[m + "_lo"], 0.0)
             if binary[m]:
                 # A rate cannot leave [0, 1]; the t interval over a few seeds can.
                 line[m + "_lo"], line[m + "_hi"] = max(line[m + "_lo"], 0.0), min(line[m + "_hi"], 1.0)
@@ -184,7 +186,7 @@ def summarise(jobs: list[Job], group_keys: list[str], replicate_keys: list[str],
 
 
 _EPISODE_NOTE = (" Cells with a single replicate (interval: episodes) show the interval over their episodes "
-                 "instead: a t interval for a mean, Wilson for a rate; it measures episode-to-episode spread under one "
+                 "instead: Wilson for a rate, a bootstrap for a non-negative quantity, t for a signed one; it measures episode-to-episode spread under one "
                  "seed, not seed-to-seed.")
 
 
@@ -281,7 +283,7 @@ def sweep_report(root: str | Path, x: str | None = None, metric: str | None = No
         raise SystemExit(f"error: --x {x!r} was not swept (swept, not replicates: {group_keys})")
 
     summary, warnings = summarise(jobs, group_keys, replicate_keys, metrics)
-    binary = {m: is_binary([r.get(m, math.nan) for j in jobs for r in j.rows]) for m in metrics}
+    binary = {m: kind_of(m) == "rate" for m in metrics}
     table = table_markdown(summary, group_keys, metrics, binary)
     out_dir = Path(out) if out else Path(root)
     out_dir.mkdir(parents=True, exist_ok=True)

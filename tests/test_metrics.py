@@ -12,7 +12,6 @@ from av_gym.metrics import (
     STOP_SPEED,
     aggregate,
     format_ci,
-    is_binary,
     lane_keeping_summary,
     left_turn_summary,
     markdown_table,
@@ -309,17 +308,6 @@ def test_wilson_edge_cases():
         wilson_ci(3, 2)
     with pytest.raises(ValueError):
         wilson_ci(-1, 2)
-
-
-def test_is_binary():
-    assert is_binary([0, 1, 1, 0])
-    assert is_binary([1.0, np.nan, 0.0])
-    assert is_binary(np.array([True, False]))
-    assert not is_binary([0, 1, 2])
-    assert not is_binary([0.5])
-    assert not is_binary([])
-    assert not is_binary([np.nan])
-    assert not is_binary(["a", "b"])
 
 
 def test_aggregate_groups_binary_and_continuous():

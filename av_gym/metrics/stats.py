@@ -10,7 +10,10 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy import stats as _st
 
-__all__ = ["mean_ci", "wilson_ci", "is_binary", "aggregate", "markdown_table", "format_ci"]
+__all__ = ["mean_ci", "wilson_ci", "bootstrap_ci", "interval", "aggregate", "markdown_table", "format_ci"]
+
+BOOTSTRAP_RESAMPLES = 2000  # resampled means per interval: bounds stable to ~1 % of their width
+BOOTSTRAP_SEED = 0  # every interval is reproducible: the same episodes give the same bounds
 
 _NAN = float("nan")
 _DASH = "\u2013"  # en dash, shown for NaN cells
@@ -69,14 +72,50 @@ def wilson_ci(successes: int, n: int, confidence: float = 0.95) -> tuple[float, 
     return float(p), float(lo), float(hi)
 
 
-def is_binary(x: Any) -> bool:
-    """True iff ``x`` has at least one finite value and all finite values are 0 or 1."""
-    try:
-        a = np.asarray(x, dtype=float).ravel()
-    except (TypeError, ValueError):
-        return False
-    a = a[np.isfinite(a)]
-    return bool(a.size > 0 and np.all((a == 0.0) | (a == 1.0)))
+def bootstrap_ci(x: ArrayLike, confidence: float = 0.95, seed: int = BOOTSTRAP_SEED) -> tuple[float, float, float]:
+    """Mean and a bootstrap interval ``(mean, lo, hi)`` of a quantity that cannot be negative (or is otherwise
+    bounded by its episodes' values): scipy's BCa bootstrap of the mean over resampled episodes, from a generator
+    seeded with ``seed``. Its bounds are means of resampled episodes, so they lie in [min, max] of the data: never
+    negative for a non-negative quantity, exactly [0, 0] when every episode is 0. NaNs are ignored; no data gives
+    NaNs, one value (or all equal) gives ``(v, v, v)``."""
+    confidence = _check_confidence(confidence)
+    a = np.asarray(x, dtype=float).ravel()
+    a = a[~np.isnan(a)]
+    if a.size == 0:
+        return _NAN, _NAN, _NAN
+    mean = float(a.mean())
+    lo_data, hi_data = float(a.min()), float(a.max())
+    if lo_data == hi_data:  # no spread: nothing to resample (BCa's acceleration would divide by zero)
+        return mean, lo_data, hi_data
+    res = _st.bootstrap((a,), np.mean, confidence_level=confidence, n_resamples=BOOTSTRAP_RESAMPLES,
+                        method="BCa", random_state=np.random.default_rng(seed))
+    lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
+    if not (math.isfinite(lo) and math.isfinite(hi)):  # BCa undefined (e.g. one odd value): plain percentiles
+        res = _st.bootstrap((a,), np.mean, confidence_level=confidence, n_resamples=BOOTSTRAP_RESAMPLES,
+                            method="percentile", random_state=np.random.default_rng(seed))
+        lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
+    # A resampled mean cannot leave [min, max]; the clip only removes rounding in scipy's interpolation.
+    return mean, min(max(lo, lo_data), mean), max(min(hi, hi_data), mean)
+
+
+def interval(x: ArrayLike, kind: str, confidence: float = 0.95) -> tuple[float, float, float]:
+    """``(mean, lo, hi)`` of per-episode values of a metric of ``kind`` (av_gym/metrics/kinds.py): Wilson for a
+    rate (0/1 per episode; ValueError otherwise), a seeded bootstrap for counts, durations and other non-negative
+    quantities, Student t for signed ones."""
+    a = np.asarray(x, dtype=float).ravel()
+    a = a[~np.isnan(a)]
+    if kind == "rate":
+        if not np.all((a == 0.0) | (a == 1.0)):
+            raise ValueError(f"a rate's episodes must each be 0 or 1, got values {sorted(set(a.tolist()))[:5]}")
+        return wilson_ci(int(a.sum()), int(a.size), confidence)
+    if kind in ("count", "duration", "nonnegative"):
+        if np.any(a < 0):
+            raise ValueError(f"a {kind} cannot be negative, got {float(a.min())}")
+        return bootstrap_ci(a, confidence)
+    if kind == "signed":
+        mean, half = mean_ci(a, confidence)
+        return mean, mean - half, mean + half
+    raise ValueError(f"kind must be one of ['rate', 'count', 'duration', 'nonnegative', 'signed'], got {kind!r}")
 
 
 def _is_number(v: Any) -> bool:
@@ -95,11 +134,13 @@ def aggregate(
     """Per-group mean and confidence bounds of per-episode metrics.
 
     Each output dict has ``group_key`` (the group name), ``n`` (episodes in the
-    group) and, for each metric, ``metric``, ``metric_lo`` and ``metric_hi``.
-    Binary metrics (0/1 over all rows) get Wilson bounds, others mean +/- the
-    Student-t half-width. NaNs and missing values are ignored. Groups keep
-    first-appearance order.
+    group) and, for each metric, ``metric``, ``metric_lo`` and ``metric_hi``, the
+    interval its declared kind calls for (:func:`interval`, av_gym/metrics/kinds.py:
+    Wilson for rates, bootstrap for non-negative quantities, t for signed ones).
+    NaNs and missing values are ignored. Groups keep first-appearance order.
     """
+    from av_gym.metrics.kinds import kind_of
+
     if metrics is None:
         metrics = []
         for row in rows:
@@ -117,9 +158,6 @@ def aggregate(
             raise ValueError(f"metric {key!r} has non-numeric value {v!r}") from None
 
     columns = {m: np.array([value(r, m) for r in rows], dtype=float) for m in metrics}
-    # Decide binary-ness over all rows so every group of one metric uses the
-    # same kind of interval.
-    binary = {m: is_binary(col) for m, col in columns.items()}
 
     groups: dict[Any, list[int]] = {}
     for i, row in enumerate(rows):
@@ -131,13 +169,7 @@ def aggregate(
     for name, idx in groups.items():
         entry: dict[str, Any] = {group_key: name, "n": len(idx)}
         for m in metrics:
-            vals = columns[m][idx]
-            vals = vals[~np.isnan(vals)]
-            if binary[m]:
-                p, lo, hi = wilson_ci(int(vals.sum()), int(vals.size), confidence)
-            else:
-                p, half = mean_ci(vals, confidence)
-                lo, hi = p - half, p + half
+            p, lo, hi = interval(columns[m][idx], kind_of(m), confidence)
             entry[m] = p
             entry[m + "_lo"] = lo
             entry[m + "_hi"] = hi
