@@ -84,6 +84,9 @@ class PilotNetParams(AgentParams):
                                                        "demo_seed+demo_laps+j, camera noise on) driven and logged to "
                                                        "TensorBoard")
     torch_threads: int = param(2, ge=1, doc="torch threads while training")
+    device: Literal["cpu", "cuda", "auto"] = param("cpu", doc="torch device of the network while training (the "
+                                                              "augmentation stays on the CPU, same random stream); "
+                                                              "auto: cuda when available")
     seed: int | None = param(None, ge=0, doc="null: the run's seed")
 
     def relations(self) -> list[str]:

@@ -132,7 +132,8 @@ class PilotNetPolicy:
     @torch.no_grad()
     def steer(self, image: np.ndarray) -> float:
         """Normalised steering in [−1, 1] for one uint8 RGB image (H, W, 3)."""
-        return float(np.clip(self.model(preprocess(image, self.crop_top))[0].item(), -1.0, 1.0))
+        x = preprocess(image, self.crop_top).to(next(self.model.parameters()).device)  # a model trained on a GPU
+        return float(np.clip(self.model(x)[0].item(), -1.0, 1.0))
 
     def act(self, obs: Any) -> np.ndarray:
         return np.array([self.steer(obs["cameras"][self.camera])], dtype=np.float32)

@@ -77,6 +77,7 @@ from agents.pilotnet import (FORMAT, INPUT_HEIGHT, INPUT_WIDTH, PilotNet, count_
                              to_network_input)
 from agents.registry import AgentParams
 from av_gym.geometry import wrap_angle
+from train.device import device_problems, resolve_device
 
 CAMERAS = ("left", "centre", "right")
 DEMO_VERSION = 1
@@ -293,12 +294,12 @@ def augment(rgb: torch.Tensor, y: torch.Tensor, dy_dyaw: torch.Tensor, args: Pil
     b, _, h, w = rgb.shape
 
     def uniform(lo: float, hi: float, n: int = b) -> torch.Tensor:
-        return lo + (hi - lo) * torch.rand(n, generator=gen)
+        return lo + (hi - lo) * torch.rand(n, generator=gen, device=gen.device)
 
-    night = torch.zeros(b, dtype=torch.bool)
+    night = torch.zeros(b, dtype=torch.bool, device=rgb.device)
     if weather is not None and (args.fog_p > 0 or args.night_p > 0):
-        fog = torch.rand(b, generator=gen) < args.fog_p
-        night = torch.rand(b, generator=gen) < args.night_p
+        fog = torch.rand(b, generator=gen, device=gen.device) < args.fog_p
+        night = torch.rand(b, generator=gen, device=gen.device) < args.night_p
         vis = torch.exp(uniform(math.log(args.fog_min_m), math.log(args.fog_max_m)))[:, None, None, None]
         t = torch.exp(-3.912 * weather.depth / vis)
         rgb = torch.where(fog[:, None, None, None], rgb * t + 200.0 * (1 - t), rgb)  # airlight 200 (camera's)
@@ -308,7 +309,7 @@ def augment(rgb: torch.Tensor, y: torch.Tensor, dy_dyaw: torch.Tensor, args: Pil
         dark = 255.0 * (rgb * light / 255.0).clamp(0.0, 1.0) ** gamma
         rgb = torch.where(night[:, None, None, None], dark, rgb)
 
-    flip = torch.rand(b, generator=gen) < args.flip_p
+    flip = torch.rand(b, generator=gen, device=gen.device) < args.flip_p
     rgb = torch.where(flip[:, None, None, None], rgb.flip(-1), rgb)
     y = torch.where(flip, -y, y)
 
@@ -333,18 +334,18 @@ def augment(rgb: torch.Tensor, y: torch.Tensor, dy_dyaw: torch.Tensor, args: Pil
         sigma_b = float(uniform(0.0, args.blur_max_px, 1))
         if sigma_b > 0.05:
             r = max(1, int(math.ceil(3 * sigma_b)))
-            k = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=torch.float32) / sigma_b) ** 2)
+            k = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=torch.float32, device=rgb.device) / sigma_b) ** 2)
             k = (k / k.sum()).to(rgb.dtype)
             blurred = F.conv2d(F.pad(rgb, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1).repeat(3, 1, 1, 1),
                                groups=3)
             blurred = F.conv2d(F.pad(blurred, (0, 0, r, r), mode="replicate"),
                                k.view(1, 1, -1, 1).repeat(3, 1, 1, 1), groups=3)
-            pick = torch.rand(b, generator=gen) < args.blur_p
+            pick = torch.rand(b, generator=gen, device=gen.device) < args.blur_p
             rgb = torch.where(pick[:, None, None, None], blurred, rgb)
     sigma = uniform(0.0, args.pixel_noise)
     if night.any():
         sigma = torch.where(night, uniform(0.0, args.night_pixel_noise), sigma)
-    rgb = rgb + sigma[:, None, None, None] * torch.randn(rgb.shape, generator=gen)
+    rgb = rgb + sigma[:, None, None, None] * torch.randn(rgb.shape, generator=gen, device=gen.device)
     return rgb.clamp(0.0, 255.0), y
 
 
@@ -366,11 +367,25 @@ def _as_batch(images: np.ndarray) -> torch.Tensor:
 @torch.no_grad()
 def _evaluate(model: PilotNet, x: np.ndarray, y: np.ndarray, batch: int = 500) -> float:
     model.eval()
+    device = _device_of(model)
     se = 0.0
     for i in range(0, len(x), batch):
-        pred = model(to_network_input(_as_batch(x[i:i + batch])))
-        se += float(((pred - torch.from_numpy(y[i:i + batch])) ** 2).sum())
+        pred = model(to_network_input(_as_batch(x[i:i + batch]).to(device)))
+        se += float(((pred - torch.from_numpy(y[i:i + batch]).to(device)) ** 2).sum())
     return se / max(1, len(x))
+
+
+def _device_of(model: torch.nn.Module) -> torch.device:
+    return next(model.parameters()).device
+
+
+def _cpu_state(model: torch.nn.Module) -> dict:
+    """The state dict to save: CPU tensors whatever the training device (eval loads with map_location=cpu, but a
+    checkpoint should not name a GPU). On the CPU it is the state dict itself, so the file is as before."""
+    state = model.state_dict()
+    if _device_of(model).type == "cpu":
+        return state
+    return type(state)((k, v.detach().cpu()) for k, v in state.items())
 
 
 def drive_laps(model: PilotNet, crop_top: int, env_cfg: dict, sensors_cfg: dict, seeds) -> list[dict]:
@@ -439,18 +454,21 @@ def train(args: PilotNetParams, env_cfg: dict, sensors_cfg: dict, run_dir: str |
             if (args.fog_p > 0 or args.night_p > 0) else None
         del demos
 
-        # ---- model, optimiser
-        model = PilotNet(dropout=args.dropout)
+        # ---- model, optimiser: initialised on the CPU (the same weights on every device), then moved
+        device = resolve_device(args.device)
+        with torch.device("cpu"):
+            model = PilotNet(dropout=args.dropout)
+        model.to(device)
         opt = torch.optim.Adam(model.parameters(), lr=args.learning_rate)
-        log(f"[bc] PilotNet: {count_parameters(model):,} parameters; Adam lr {args.learning_rate}, batch "
-            f"{args.batch_size}, up to {args.epochs} epochs, patience {args.patience}")
+        log(f"[bc] PilotNet: {count_parameters(model):,} parameters on {device}; Adam lr {args.learning_rate}, "
+            f"batch {args.batch_size}, up to {args.epochs} epochs, patience {args.patience}")
         best, best_epoch, bad = float("inf"), -1, 0
         best_path = ckpt_dir / "model.pt"
         n = len(x_train)
         for epoch in range(args.epochs):
             t0 = time.time()
             model.train()
-            perm = torch.randperm(n, generator=gen).numpy()
+            perm = torch.randperm(n, generator=gen, device="cpu").numpy()
             total = 0.0
             for i in range(0, n, args.batch_size):
                 idx = np.sort(perm[i:i + args.batch_size])
@@ -459,7 +477,8 @@ def train(args: PilotNetParams, env_cfg: dict, sensors_cfg: dict, run_dir: str |
                 if epoch == 0 and i == 0:
                     writer.add_images("samples/augmented_rgb", rgb[:16] / 255.0, 0)
                     writer.add_text("samples/augmented_labels", " ".join(f"{v:+.2f}" for v in y[:16].tolist()), 0)
-                loss = F.mse_loss(model(to_network_input(rgb)), y)
+                # augmented on the CPU (its generator's stream), learned on the device
+                loss = F.mse_loss(model(to_network_input(rgb.to(device))), y.to(device))
                 opt.zero_grad()
                 loss.backward()
                 opt.step()
@@ -481,7 +500,7 @@ def train(args: PilotNetParams, env_cfg: dict, sensors_cfg: dict, run_dir: str |
             improved = val_loss < best
             if improved:
                 best, best_epoch, bad = val_loss, epoch, 0
-                _save_atomic({"format": FORMAT, "state_dict": model.state_dict(),
+                _save_atomic({"format": FORMAT, "state_dict": _cpu_state(model),
                               "preprocess": {"crop_top": int(args.crop_top), "colour": "yuv_bt601",
                                              "normalise": "x/127.5-1", "input": [3, 66, 200]},
                               "epoch": epoch, "val_loss": float(val_loss), "train_loss": float(train_loss),
@@ -523,7 +542,7 @@ def _sensors(cfg: DictConfig) -> dict:
 
 def validate(cfg: DictConfig) -> list[str]:
     """What PilotNet's training needs beyond its Params (checked by the config checker), as one-line messages."""
-    problems = []
+    problems = device_problems(str(cfg.agent.device))
     if cfg.env.name != "lane_keeping":
         problems.append(f"agent pilotnet drives env=lane_keeping, not env={cfg.env.name}")
     try:
