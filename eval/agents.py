@@ -1,8 +1,9 @@
 """Turn an agent spec from the command line into a :class:`agents.Policy` for a given env.
 
-A spec is one of: a rule-based agent named in ``conf/agent/`` (``pid_paper``, ``always_proceed``); a trained kind
-(``ppo``) meaning the newest checkpoint for this env under ``checkpoints/``; or a path to a checkpoint folder or
-``.zip``. Checkpoints are pickles (SB3 zips): load only those you trust."""
+A spec is one of: a rule-based agent named in ``conf/agent/`` (``pid_paper``, ``always_proceed``); a trained agent
+named in ``conf/agent/`` (``ppo_turn``), meaning its shipped reference ``checkpoints/reference/<name>/``, or with
+``:latest`` (``ppo_turn:latest``) your newest run of it; a trained kind (``ppo``) meaning the newest checkpoint for
+this env under ``checkpoints/``; or a path to a checkpoint folder or ``.zip``. ``@preset`` and ``+shield`` go after. Checkpoints are pickles (SB3 zips): load only those you trust."""
 
 from __future__ import annotations
 
@@ -50,15 +51,31 @@ def _checkpoint_name(kind: str) -> str:
     return AGENT_KINDS.get(kind).checkpoint
 
 
-def find_checkpoint(kind: str, env_name: str, root: str | Path, name: str | None = None) -> Path:
-    """Newest ``checkpoints/<run>/`` whose saved config trained ``kind`` (and, if given, the agent config ``name``,
-    e.g. ``ppo_turn``) on ``env_name`` and holds its model; if you trained none, the committed
-    ``checkpoints/reference/<name>/`` one (or, without a name or that folder, the first such reference folder by
-    name).
+LATEST = ":latest"  # `ppo_turn:latest`: your newest run of that agent config, not its shipped reference
+
+
+def split_latest(spec: str) -> tuple[str, bool]:
+    """``("ppo_turn", True)`` for ``ppo_turn:latest``, ``("ppo_turn", False)`` for ``ppo_turn``."""
+    spec = str(spec)
+    return (spec[: -len(LATEST)], True) if spec.endswith(LATEST) else (spec, False)
+
+
+def find_checkpoint(kind: str, env_name: str, root: str | Path, name: str | None = None,
+                    latest: bool = False) -> Path:
+    """The checkpoint an agent spec means, the same on every day and in every clone:
+
+    - a named agent (``name``, e.g. ``ppo_turn``) is its shipped reference, ``checkpoints/reference/<name>/``,
+      whatever you trained since (a name that meant "the newest run" evaluated a 4-minute run under the row label
+      of the reference);
+    - ``latest=True`` (the spec ``ppo_turn:latest``) is your newest ``checkpoints/<run>/`` whose saved config
+      trained that agent config (or, without a name, that ``kind``) on ``env_name``; none is an error, never a
+      silent fall-back to the reference;
+    - a bare trained kind (``ppo``, no name) has no reference of its own: your newest run of that kind, else the
+      first reference folder of that kind by name.
 
     Reference folders are never ordered by modification time: in a fresh clone that is the order git happened to
     write them in, and several hold the same agent (``reference/ppo_turn_v3_s2``, the other seeds and the older
-    rounds say ``name: ppo_turn`` too): ``ppo_turn`` picked one of seven policies, whichever git wrote last."""
+    rounds say ``name: ppo_turn`` too)."""
     def matches(cfg_path: Path) -> Path | None:
         cfg = read_config_yaml(cfg_path)
         model = cfg_path.parent / _checkpoint_name(kind)
@@ -68,16 +85,23 @@ def find_checkpoint(kind: str, env_name: str, root: str | Path, name: str | None
             return model
         return None
 
+    what = name or kind
+    if name is not None and not latest:
+        own = Path(root) / "reference" / name / "config.yaml"
+        if own.is_file() and matches(own) is not None:
+            return matches(own)
+        raise ConfigError(f"no shipped reference checkpoint for {name!r} on env {env_name!r} "
+                          f"({Path(root) / 'reference' / name}/); for your newest run say {name}{LATEST}, or pass a "
+                          f"checkpoint path")
     runs = [m for m in map(matches, Path(root).glob("*/config.yaml")) if m is not None]
     if runs:  # your own training runs: the newest
         return max(runs, key=lambda p: p.stat().st_mtime)
-    own = Path(root) / "reference" / (name or kind) / "config.yaml"
-    if own.is_file() and matches(own) is not None:
-        return matches(own)
+    if latest:
+        raise ConfigError(f"{what}{LATEST}: you have no {what} run for env {env_name!r} under {root}/; train one with "
+                          f"`python -m train env={env_name} agent={what}`, or say {what} for its shipped reference")
     found = sorted(m for m in map(matches, Path(root).glob("reference/*/config.yaml")) if m is not None)
     if found:
         return found[0]
-    what = name or kind
     raise ConfigError(f"no {what} checkpoint for env {env_name!r} under {root}/; train one with "
                       f"`python -m train env={env_name} agent={what}` or pass a checkpoint path")
 
@@ -144,20 +168,24 @@ def resolve_agent(spec: str, env: gym.Env, env_name: str, checkpoints: str | Pat
     (newest checkpoint), a checkpoint path, or an agent config of ``conf/agent/`` (a rule-based kind builds its
     policy, a trained one loads the newest checkpoint trained with that config)."""
     spec = str(spec)
-    if spec in trained_kinds():
-        path = find_checkpoint(spec, env_name, checkpoints)
+    name, latest = split_latest(spec)
+    if name in trained_kinds():
+        path = find_checkpoint(name, env_name, checkpoints, latest=latest)
         print(f"[eval] {spec}: using {path}")
         return spec, _load_trained(path, env, env_name)
     if _is_path(spec):
         path = Path(spec)
         label = path.parent.name if path.suffix else path.name
         return label, _load_trained(path, env, env_name)
-    cfg = load_agent_config(spec)
-    _check_scenario(spec, cfg, env_name)
-    params = agent_params(cfg, where=f"agent {spec!r}: agent")
+    cfg = load_agent_config(name)
+    _check_scenario(name, cfg, env_name)
+    params = agent_params(cfg, where=f"agent {name!r}: agent")
     kind = AGENT_KINDS.get(params.kind)
-    if kind.trained():  # a named variant of a trainable agent: newest checkpoint trained with that config
-        path = find_checkpoint(params.kind, env_name, checkpoints, name=None if spec == params.kind else spec)
+    if latest and not kind.trained():
+        raise ConfigError(f"agent {spec!r}: {name!r} is rule-based, it has no runs; say {name}")
+    if kind.trained():  # a named trained agent: its shipped reference (name:latest: your newest run of it)
+        path = find_checkpoint(params.kind, env_name, checkpoints, name=None if name == params.kind else name,
+                               latest=latest)
         print(f"[eval] {spec}: using {path}")
         return spec, _load_trained(path, env, env_name)
     return spec, kind.build(params, env, spec)
@@ -287,6 +315,7 @@ def plan_agent(spec: str, env_name: str, sensors: dict, shield: dict, checkpoint
     trained on privileged objects, driven from tracked detections); the observation spaces must match."""
     base, _, shield_name = str(spec).partition("+")
     base, _, preset = base.partition("@")
+    base, latest = split_latest(base)
     if shield_name:
         shield = compose_group("shield", shield_name)
     forced = compose_group("sensors", preset) if preset else None
@@ -299,15 +328,18 @@ def plan_agent(spec: str, env_name: str, sensors: dict, shield: dict, checkpoint
         return AgentPlan(str(spec), run_spec, _with_overrides(str(spec), own, overrides), shield, own, overrides)
 
     if base in trained_kinds() or _is_path(base):
-        path = find_checkpoint(base, env_name, checkpoints) if base in trained_kinds() else Path(base)
+        path = find_checkpoint(base, env_name, checkpoints, latest=latest) if base in trained_kinds() else Path(base)
         return trained_plan(str(path) if base in trained_kinds() else base, path)
     cfg = load_agent_config(base)
+    if latest and cfg.get("kind") not in trained_kinds():
+        raise ConfigError(f"agent {spec!r}: {base!r} is rule-based, it has no runs; say {base}")
     if cfg.get("sensors") and (sensors or {}).get("name") != cfg["sensors"]:
         # the agent's own preset, unless the one given is that preset (then with the command line's overrides,
         # e.g. a sweep over sensors.gnss.sigma for pid_gnss)
         sensors = compose_group("sensors", cfg["sensors"])
     if cfg.get("kind") in trained_kinds():
-        path = find_checkpoint(cfg["kind"], env_name, checkpoints, name=None if base == cfg["kind"] else base)
+        path = find_checkpoint(cfg["kind"], env_name, checkpoints, name=None if base == cfg["kind"] else base,
+                               latest=latest)
         return trained_plan(str(path), path)
     return AgentPlan(str(spec), base, forced or sensors, shield)
 

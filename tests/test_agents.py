@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from stable_baselines3 import PPO
 
 from agents import AlwaysProceed, PIDSteering, Policy
 from agents.ppo import SB3Policy
+from av_gym.errors import ConfigError
 from conftest import conf, rollout
 from eval.agents import load_agent_config, resolve_agent
 
@@ -109,9 +112,33 @@ def test_a_named_agent_resolves_to_its_own_reference_folder_whatever_the_file_ti
     folder("ppo_turn_v2_s1", "ppo_turn", 2_000.0)  # another round of the same agent, written later by git
     folder("ppo_turn_v3_s2", "ppo_turn", 3_000.0)
     assert find_checkpoint("ppo", "left_turn", tmp_path, name="ppo_turn") == own
-    # a run you trained yourself (not under reference/) is preferred: the newest of them
-    run = tmp_path / "my_run"
-    run.mkdir()
-    (run / "config.yaml").write_text("env: {name: left_turn}\nagent: {kind: ppo, name: ppo_turn}\n")
-    (run / "model.zip").write_bytes(b"")
-    assert find_checkpoint("ppo", "left_turn", tmp_path, name="ppo_turn") == run / "model.zip"
+    with pytest.raises(ConfigError, match="you have no ppo_turn run"):  # :latest never falls back to the reference
+        find_checkpoint("ppo", "left_turn", tmp_path, name="ppo_turn", latest=True)
+    # a run you trained yourself does not change what the name means; ppo_turn:latest is that run (the newest)
+    for i, run_name in enumerate(("old_run", "my_run")):
+        run = tmp_path / run_name
+        run.mkdir()
+        (run / "config.yaml").write_text("env: {name: left_turn}\nagent: {kind: ppo, name: ppo_turn}\n")
+        (run / "model.zip").write_bytes(b"")
+        os.utime(run / "model.zip", (5_000.0 + i, 5_000.0 + i))
+    assert find_checkpoint("ppo", "left_turn", tmp_path, name="ppo_turn") == own
+    assert find_checkpoint("ppo", "left_turn", tmp_path, name="ppo_turn", latest=True) == run / "model.zip"
+    with pytest.raises(ConfigError, match="no shipped reference checkpoint for 'ppo_turn_v9'.*ppo_turn_v9:latest"):
+        find_checkpoint("ppo", "left_turn", tmp_path, name="ppo_turn_v9")
+
+
+def test_latest_spec_plans_the_newest_run_and_labels_its_row(tmp_path):
+    """`ppo_turn` and `ppo_turn:latest` are two rows with two labels: the reference and your newest run."""
+    import shutil
+
+    from eval.agents import plan_agent
+
+    root = tmp_path / "checkpoints"
+    shutil.copytree("checkpoints/reference/ppo_turn", root / "reference" / "ppo_turn")
+    shutil.copytree("checkpoints/reference/ppo_turn_v3_s2", root / "my_run")
+    ref = plan_agent("ppo_turn", "left_turn", {"name": "truth"}, {"name": "none"}, root)
+    mine = plan_agent("ppo_turn:latest+aeb", "left_turn", {"name": "truth"}, {"name": "none"}, root)
+    assert Path(ref.spec).parent.name == "ppo_turn" and ref.label == "ppo_turn"
+    assert Path(mine.spec).parent.name == "my_run" and mine.label == "ppo_turn:latest+aeb"
+    with pytest.raises(ConfigError, match="rule-based"):
+        plan_agent("gap_acceptance:latest", "left_turn", {"name": "truth"}, {"name": "none"}, root)

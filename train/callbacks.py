@@ -174,6 +174,20 @@ def score(scenario: str, metrics: dict) -> float:
     return float(metrics["lap_completed"] - metrics["cte_mean_abs_m"])
 
 
+def dump_prefix(logger, prefix: str, step: int) -> None:
+    """Write the logger's pending values whose names start with ``prefix`` at ``step`` and keep the others
+    pending. SB3's EvalCallback dumps everything at an evaluation; here that would write PPO's ``train/*`` values
+    a rollout early and twice at the last step, so the others wait for SB3's own dump as before."""
+    stores = (logger.name_to_value, logger.name_to_count, logger.name_to_excluded)
+    held = [{k: v for k, v in store.items() if not k.startswith(prefix)} for store in stores]
+    for store, keep in zip(stores, held):
+        for k in keep:
+            del store[k]
+    logger.dump(step)  # writes the prefix's values and clears every store
+    for store, keep in zip(stores, held):
+        store.update(keep)
+
+
 def tensorboard_writer(logger):
     """The ``SummaryWriter`` behind an SB3 logger's TensorBoard output (None without one)."""
     from stable_baselines3.common.logger import TensorBoardOutputFormat
@@ -220,7 +234,11 @@ class PeriodicEval(BaseCallback):
     few hundred validation episodes cost seconds); videos still come from ``make_env``.
 
     Evaluating at a rollout's *start* (not its end, as before) means each row describes the model after every update
-    of the steps it counts, and the last row, at the end of training, is ``model.zip`` itself."""
+    of the steps it counts, and the last row, at the end of training, is ``model.zip`` itself.
+
+    TensorBoard's ``eval/*`` equal ``eval.csv`` row for row: each evaluation writes its scalars at its own step
+    (:func:`dump_prefix`; recorded without a dump they appeared one rollout late, and the final one never), and a
+    resumed run drops the rows of evaluations after its checkpoint from ``eval.csv``, as TensorBoard purges them."""
 
     def __init__(self, make_env: Callable[[str | None], gym.Env], scenario: str, seeds: Sequence[int], every: int,
                  ckpt_dir: Path, run_dir: Path, video_every: int = 0, wall_offset: float = 0.0,
@@ -238,11 +256,25 @@ class PeriodicEval(BaseCallback):
 
     def _on_training_start(self) -> None:
         self._last_eval = self._last_video = self.num_timesteps
+        if self.num_timesteps > 0:  # a resume: evaluations after the checkpoint are of a model that is gone
+            self._trim_csv(self.num_timesteps)
         if self.every > 0 and self.num_timesteps == 0:  # the starting point (e.g. a cloned policy) on the curve
             self.evaluate()
 
     def _on_step(self) -> bool:
         return True
+
+    def _trim_csv(self, last_step: int) -> None:
+        """Keep the ``eval.csv`` rows at steps <= ``last_step`` (TensorBoard purges the later ones on resume)."""
+        from train.checkpoint import write_text_atomic
+
+        path = self.run_dir / "eval.csv"
+        if not path.is_file():
+            return
+        lines = path.read_text().splitlines(keepends=True)
+        kept = lines[:1] + [ln for ln in lines[1:] if int(float(ln.split(",", 1)[0])) <= last_step]
+        if len(kept) != len(lines):
+            write_text_atomic(path, "".join(kept))
 
     def _on_rollout_start(self) -> None:
         if self.every > 0 and self.num_timesteps - self._last_eval >= self.every:
@@ -273,6 +305,7 @@ class PeriodicEval(BaseCallback):
                 self.logger.record(f"eval/{key}", value)
         wall = time.time() - self.t0
         self.logger.record("eval/wall_clock_s", wall)
+        dump_prefix(self.logger, "eval/", step)  # now, at this evaluation's step: TensorBoard = eval.csv
         new_file = not (self.run_dir / "eval.csv").is_file()
         with open(self.run_dir / "eval.csv", "a", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=["steps", "wall_clock_s", *means])
