@@ -60,14 +60,28 @@ def test_eval_defaults_to_validation_and_reports_the_split():
         episode_seeds(OmegaConf.create({"split": "validation", "seed": 1000, "episodes": 20}))  # the old default
 
 
-def test_demonstrations_and_pid_search_draw_from_train():
-    import inspect
+def test_demonstrations_and_pid_search_draw_from_train(monkeypatch):
+    from types import SimpleNamespace
 
-    from av_gym.seeds import DEMONSTRATIONS
     from train import pid_search, ppo
 
-    assert split_of(DEMONSTRATIONS) == "train" and split_of(DEMONSTRATIONS + 10_000) == "train"
-    assert 'config_seeds("train"' in inspect.getsource(ppo.train_ppo)  # cloning's teacher episodes
+    drawn = []
+
+    class Drawn(Exception):
+        pass
+
+    def pretrain(model, env, teacher, seeds, *args):  # what cloning would drive the teacher on
+        drawn.extend(seeds)
+        raise Drawn
+
+    monkeypatch.setattr(ppo, "pretrain_from_teacher", pretrain)
+    params = SimpleNamespace(init="gap_acceptance", actions="go_yield", action_repeat=5, vec_env="subproc",
+                             init_episodes=40, gamma=0.99, init_epochs=1, batch_size=8, init_action_noise=0.0,
+                             init_dagger_rounds=0, init_lr=None, learning_rate=1e-3)
+    stack = SimpleNamespace(params=params, one=lambda **_: None)
+    with pytest.raises(Drawn):
+        ppo.clone_teacher(None, stack, "left_turn")
+    assert len(drawn) == 40 and {split_of(s) for s in drawn} == {"train"}
     with pytest.raises(ValueError, match="train split"):
         pid_search.search(pid_search.GRIDS["quick"], [SPLITS["test"].start])
     assert pid_search.TRAIN_SEEDS == SPLITS["train"]
