@@ -99,6 +99,8 @@ KNOWN: dict[str, str] = {
     "python3 -m venv .venv && . .venv/bin/activate && pip install torch==2.13.0 && pip install -e .[test] && "
     "python -m pytest -q -n auto -m not slow": "ci",
     "python -m pytest -q -n auto -m slow": "ci",
+    "python -m eval.results_page --readme README.md":
+        "covered:tests/test_results_page.py::test_check_fails_when_a_result_or_the_readme_changes",
     "tensorboard --logdir runs/": "run",
     "python -m train agent.total_timesteps=200000 seed=3": "run",
     "python -m train agent.vec_env=subproc agent.n_envs=2 agent.n_steps=256": "run",

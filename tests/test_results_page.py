@@ -1,0 +1,54 @@
+"""The results page and the README's headline block are what the committed result files give (issue 30)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from eval.results_page import BEGIN, END, load_all, main, page, quoted_block
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _folder(root: Path, name: str, seeds, collisions, agent="always_proceed") -> Path:
+    d = root / name
+    d.mkdir(parents=True)
+    with open(d / "results.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["agent", "episode", "seed", "collision", "success", "min_ttc_s"])
+        w.writeheader()
+        for i, (s, c) in enumerate(zip(seeds, collisions)):
+            w.writerow({"agent": agent, "episode": i, "seed": s, "collision": c, "success": 1 - c, "min_ttc_s": 0.0})
+    (d / "meta.json").write_text(json.dumps({"command": "python -m eval env=left_turn split=test", "commit": "0" * 40,
+                                             "started": "t0", "finished": "t1", "wall_s": 1, "load": "1"}))
+    return d
+
+
+def test_check_fails_when_a_result_or_the_readme_changes(tmp_path, capsys):
+    results = tmp_path / "results"
+    _folder(results, "lt", range(2_000_000, 2_000_020), [1] + [0] * 19)
+    readme = tmp_path / "README.md"
+    readme.write_text(f"intro\n{BEGIN}\n{END}\nrest\n")
+    args = ["--results", str(results), "--out", str(tmp_path / "results.md"), "--readme", str(readme)]
+    assert main(args) == 0 and main([*args, "--check"]) == 0
+    assert "0.050 [0.009, 0.236]" in readme.read_text() and readme.read_text().startswith("intro\n")
+    assert "| 0 [0, 0] |" in (tmp_path / "results.md").read_text()  # an all-zero min TTC: a point, not [0, 0.79]
+    readme.write_text(readme.read_text().replace("0.050 [0.009", "0.040 [0.009"))  # a number typed by hand
+    assert main([*args, "--check"]) == 1 and "README.md differs" in capsys.readouterr().err
+    main(args)
+    shutil.rmtree(results / "lt")
+    _folder(results, "lt", range(2_000_000, 2_000_020), [0] * 20)  # a result folder re-measured
+    assert main([*args, "--check"]) == 1 and "results.md differs" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("seeds, needle", [
+    ([1_999_999, 2_000_000], "episodes from splits"),  # a validation seed in a test table
+    ([2_000_000, 2_000_000], "same seed more than once"),  # one episode counted twice
+])
+def test_a_folder_mixing_splits_or_repeating_an_episode_is_refused(tmp_path, capsys, seeds, needle):
+    _folder(tmp_path / "results", "lt", seeds, [0, 0])
+    assert main(["--results", str(tmp_path / "results"), "--out", str(tmp_path / "p.md")]) == 2
+    assert needle in capsys.readouterr().err
