@@ -417,8 +417,12 @@ def _callbacks(cfg: DictConfig, stack: _Stack, ckpt_dir: Path, run_dir: Path, re
                         p.init_lr if p.init and not resume else None)
     callbacks = [guard, EpisodeMetricsCallback(scenario), checkpoint]
     if not resume:
+        first = config_seeds("validation", max(1, int(cfg.train.eval_n)), cfg.train.get("eval_seed"),
+                             "train.eval_seed").start
+        # the run says which split its evaluations (and so best.zip) came from (av_gym/seeds.py)
         callbacks.append(HParamsCallback({**p.as_dict(), "env": scenario, "sensors": cfg.sensors.name,
-                                          "shield": cfg.shield.name, "seed": int(cfg.seed)}, scenario))
+                                          "shield": cfg.shield.name, "seed": int(cfg.seed),
+                                          "eval_split": "validation", "eval_seed": first}, scenario))
     if int(cfg.train.eval_n) > 0:
         # they pick best.zip: validation, never test
         eval_seeds = config_seeds("validation", int(cfg.train.eval_n), cfg.train.get("eval_seed"), "train.eval_seed")
