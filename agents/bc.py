@@ -15,7 +15,7 @@ from typing import Any, Literal
 
 from agents.registry import AgentKind, AgentParams
 from av_gym.errors import ConfigError
-from av_gym.params import param
+from av_gym.params import SEED_MAX, param
 
 
 @dataclass(frozen=True)
@@ -33,7 +33,7 @@ class PilotNetParams(AgentParams):
                                         "of collecting")
     demo_laps: int = param(8, "laps", ge=1, doc="laps of the training layout A, env seeds demo_seed.. (eval uses "
                                                 "1000+)")
-    demo_seed: int = param(0, ge=0, doc="lap i uses env seed demo_seed + i")
+    demo_seed: int = param(0, ge=0, le=SEED_MAX, doc="lap i uses env seed demo_seed + i")
     demo_max_steps: int | None = param(None, "steps", ge=1, doc="cap on steps per lap (tests); null = whole lap")
     lookahead: float = param(6.0, "m", gt=0, doc="pure-pursuit lookahead of the expert (slip-compensated)")
     perturb_std: float = param(0.15, ge=0, doc="OU steering perturbation, stationary std (normalised steering), "
@@ -87,7 +87,7 @@ class PilotNetParams(AgentParams):
     device: Literal["cpu", "cuda", "auto"] = param("cpu", doc="torch device of the network while training (the "
                                                               "augmentation stays on the CPU, same random stream); "
                                                               "auto: cuda when available")
-    seed: int | None = param(None, ge=0, doc="null: the run's seed")
+    seed: int | None = param(None, ge=0, le=SEED_MAX, doc="null: the run's seed")
 
     def relations(self) -> list[str]:
         found = super().relations()

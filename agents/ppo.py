@@ -21,6 +21,9 @@ if TYPE_CHECKING:
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import VecEnv
 
+# Env stacks outside the batched engine (per-env sensors, a process each with subproc, ~180 MB apiece): 64 already
+# oversubscribes any workstation's cores.
+PROCESSES_MAX = 64
 PPO_KEYS = ("learning_rate", "n_steps", "batch_size", "n_epochs", "gamma", "gae_lambda", "clip_range", "ent_coef",
             "vf_coef", "max_grad_norm", "target_kl")
 __all__ = ["PPOAgent", "PPOParams", "SB3Policy", "flat_space", "flatten_obs", "make_ppo", "sb3_space"]
@@ -35,7 +38,8 @@ class PPOParams(AgentParams):
     name: str = param("ppo")
     policy: Literal["MultiInputPolicy"] = param("MultiInputPolicy", doc="the envs observe a Dict")
     total_timesteps: int = param(24000, "policy steps", ge=1, doc="summed over n_envs (x action_repeat env steps)")
-    n_envs: int = param(2, ge=1, doc="training envs, one per core")
+    n_envs: int = param(2, ge=1, le=4096, doc="training envs, one per core (batched: rows of one numpy batch, "
+                                                "<= 4096, ~16x ppo_turn's 64; more asked for GiBs)")
     vec_env: Literal["subproc", "dummy", "batched"] = param(
         "subproc", doc="subproc: one process per env | dummy: in-process | batched: the left turn's numpy batch "
                        "(av_gym/batched/vec_env.py)")
@@ -84,6 +88,9 @@ class PPOParams(AgentParams):
 
     def relations(self) -> list[str]:
         found = super().relations()
+        if self.vec_env != "batched" and self.n_envs > PROCESSES_MAX:
+            found.append(f"@n_envs must be at most {PROCESSES_MAX} with @vec_env={self.vec_env} (one env stack, and "
+                         f"with subproc one process, each), got {self.n_envs}; vec_env=batched takes more")
         if self.init is not None:
             allowed = teacher_agents()
             if self.init not in allowed:

@@ -169,8 +169,9 @@ def _check_value(value: Any, hint: Any, meta: Mapping, where: str) -> list[str]:
         if not (isinstance(value, str) and value):
             return [f"{where} must be a non-empty string, got {_fmt(value)}"]
         if meta.get("name_like"):  # a folder name: no separators, short enough for the -j<n> a sweep job adds
-            if not _NAME.match(value):
-                return [f"{where} must be a folder name (letters, digits, _ . = + , : -), got {_fmt(value)}"]
+            if not _NAME.match(value) or not value.strip("."):  # '.' and '..' name this folder or the one above
+                return [f"{where} must be a folder name (letters, digits, _ . = + , : -; not '.' or '..'), got "
+                        f"{_fmt(value)}"]
             if len(value) > NAME_LENGTH:
                 return [f"{where} must be at most {NAME_LENGTH} characters (a folder name), got {len(value)}: "
                         f"{value[:40]!r}..."]
@@ -212,6 +213,19 @@ def _or_null(problem: str) -> str:
 # ----------------------------------------------------------------------------------------------- helpers
 _REF = re.compile(r"@(\w+)")
 _NAME = re.compile(r"^[A-Za-z0-9_.=+,:-]+$")
+# Seeds: numpy's legacy RandomState (SB3's set_random_seed, gymnasium's spaces) takes seeds below 2**32, and a run
+# uses seed + i for its i-th env or episode: 2**31 - 1 (the largest int32) leaves room for 2**31 more.
+SEED_MAX = 2**31 - 1
+# Episode counts: seed + episodes must stay below 2**32 (above), and 10 million episodes is already days on a
+# workstation.
+EPISODES_MAX = 10_000_000
+# Rates (sensor Hz, simulation and policy frequency): above the simulation's own ceiling a sensor samples at every
+# observation anyway, and 1000 Hz over a 20 s episode is 20,000 ticks (~50x the default's cost); a larger value only
+# makes the catch-up loops run for hours (issue 31: 1e9 Hz hung).
+RATE_MAX_HZ = 1000
+# Rows of an object list in an observation (detections, tracks, turn signals, turn features): every row is
+# allocated per step, per env; 256 is 16x the defaults and more vehicles than the intersection ever holds.
+ROWS_MAX = 256
 NAME_LENGTH = 240  # name_like fields (run_name): 255 bytes a folder name (ext4, xfs, btrfs), less a sweep's -j<n>
 
 
@@ -256,7 +270,7 @@ def _plain(value: Any) -> Any:
 
 
 def _num(x: float) -> str:
-    return f"{x:g}"
+    return str(x) if isinstance(x, int) else f"{x:g}"  # an integer bound in full (2147483647, not 2.14748e+09)
 
 
 def _fmt(v: Any) -> str:

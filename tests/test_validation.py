@@ -119,9 +119,9 @@ def test_shield_probability_and_agent_kind():
     (["env=foo"], "env=foo: env must be one of ['lane_keeping', 'left_turn']"),
     (["env.foo.bar=1"], "env.foo is not a field of env=left_turn; allowed: ['acceleration_range'"),
     (["seed.x=1"], "seed is a value, not a section"),
-    (["seed=abc"], "seed must be an integer >= 0, got 'abc'"),
+    (["seed=abc"], "seed must be an integer in [0, 2147483647], got 'abc'"),
     (["seed=[1"], "cannot parse the command line"),
-    (["-m", "seed=0,1", "env.duration=5,-5"], "env.duration must be a number > 0, got -5"),
+    (["-m", "seed=0,1", "env.duration=5,-5"], "env.duration must be a number in (0, 600], got -5"),
 ])
 def test_command_line_problems_are_one_line(argv, needle):
     with pytest.raises(ConfigError) as err:

@@ -62,6 +62,7 @@ def train(cfg: DictConfig) -> dict:
     from eval.report import write_results
     from eval.runner import EpisodeJob, run_episodes, run_episodes_parallel
     from train.checkpoint import write_text_atomic
+    from train.run_folder import clear_for_overwrite, release_all
 
     _validate(cfg)
     make_env(cfg.env, cfg.sensors, cfg.shield).close()  # fail fast on a bad env/sensors/shield config
@@ -71,7 +72,13 @@ def train(cfg: DictConfig) -> dict:
     if HydraConfig.get().mode == RunMode.MULTIRUN:  # jobs of a sweep started in the same second share run_name
         ckpt_dir = ckpt_dir.with_name(f"{ckpt_dir.name}-j{HydraConfig.get().job.num}")
     tb_dir = run_dir / "tb"
-    check_folder(ckpt_dir, "paths.checkpoints", create=True)  # one line, not a traceback, if it cannot be
+    check_folder(ckpt_dir, "paths.checkpoints")  # one line, not a traceback, if it cannot be
+    claim_run(cfg, ckpt_dir, None)  # ours alone (a lock), resumable, or refused: before config.yaml is written
+    release_all(keep=ckpt_dir)
+    if bool(cfg.train.overwrite) and not bool(cfg.train.resume):
+        removed = clear_for_overwrite(ckpt_dir, run_dir)
+        if removed:
+            print(f"[train] train.overwrite=true: removed the previous run's {len(removed)} files and folders")
     write_text_atomic(ckpt_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
 
     agent, env_name = cfg.agent, cfg.env.name
@@ -130,16 +137,31 @@ def train(cfg: DictConfig) -> dict:
     return where
 
 
+def claim_run(cfg: DictConfig, ckpt_dir: Path, runs_dir: Path | None) -> None:
+    """The run's folders for this process alone (train/run_folder.py): refused if they hold another run (unless
+    resuming or overwriting), if a resume does not match the run's config.yaml, or if another process trains it."""
+    from train.run_folder import claim
+
+    claim(ckpt_dir, runs_dir, bool(cfg.train.resume), bool(cfg.train.overwrite),
+          {k: OmegaConf.to_container(cfg[k], resolve=True) for k in ("env", "sensors", "shield", "agent")})
+
+
 def _check_command_line() -> None:
     from conf.check import check_command_line
 
-    for cfg in check_command_line("train", sys.argv[1:]):
+    configs = check_command_line("train", sys.argv[1:])
+    for cfg in configs:
         _validate(cfg)
         # where the checkpoints go, before Hydra makes the run folder (a sweep's -j<n> suffix fits: run_name is
         # bounded in the schema)
         problem = folder_problem(Path(cfg.paths.checkpoints) / str(cfg.run_name), "paths.checkpoints")
         if problem:
             raise ConfigError(problem)
+    if len(configs) == 1 and not any(a in ("-m", "--multirun") for a in sys.argv[1:]):
+        # before Hydra writes runs/<run_name>/.hydra: a run that is not ours is refused with nothing written; the
+        # lock is held by this process until it exits (a sweep's jobs each claim their own -j<n> folder)
+        cfg = configs[0]
+        claim_run(cfg, Path(cfg.paths.checkpoints) / str(cfg.run_name), Path(cfg.paths.runs) / str(cfg.run_name))
 
 
 @hydra.main(config_path="pkg://conf", config_name="train", version_base="1.3")

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 
-from av_gym.params import Params, param
+from av_gym.params import RATE_MAX_HZ, Params, param
 
 KMH = 1 / 3.6  # m/s per km/h: scenario configs take km/h at the edge, the envs m/s
 
@@ -18,9 +18,9 @@ class ScenarioParams(Params):
     env's own (highway-env) config in SI units. The registered Gymnasium ids default to these values."""
 
     name: str = param("", doc="the scenario: a key of av_gym.registry.SCENARIOS")
-    policy_frequency: int = param(10, "Hz", ge=10, doc="decisions per second; >= 10 so a shield can decide every "
+    policy_frequency: int = param(10, "Hz", ge=10, le=RATE_MAX_HZ, doc="decisions per second; >= 10 so a shield can decide every "
                                                         "0.1 s (digest 003 §9.2)")
-    simulation_frequency: int = param(20, "Hz", ge=1, doc="simulation ticks per second, a multiple of "
+    simulation_frequency: int = param(20, "Hz", ge=1, le=RATE_MAX_HZ, doc="simulation ticks per second, a multiple of "
                                                            "policy_frequency")
     fast: bool = param(True, doc="av_gym.sim fast paths, the same trajectories as highway-env's code (false = "
                                  "stock highway-env)")

@@ -38,13 +38,15 @@ class LaneKeepingParams(ScenarioParams):
 
     name: Literal["lane_keeping"] = param("lane_keeping")
     track: Literal["A", "B"] = param("A", doc="layout: A (training) | B (held out: never used for training data)")
-    target_speed_kmh: float = param(36.0, "km/h", gt=0, doc="10 m/s, held by the speed controller")
+    target_speed_kmh: float = param(36.0, "km/h", ge=1, le=200, doc="10 m/s, held by the speed controller (the default "
+                                                                  "time limit is twice a lap at this speed)")
     lane_width: float = param(4.0, "m", gt=0, doc="highway-env's default lane width")
     max_steering_deg: float = param(25.0, "deg", gt=0, lt=90, doc="action ±1 maps to ±25° (Udacity's, digest "
                                                                   "001 §8.0)")
     offroad_margin: float = param(1.0, "m", gt=0, doc="beyond the lane edge at which the car has left the road "
                                                       "(half a car width)")
-    time_limit: float | None = param(None, "s", gt=0, doc="null = twice the nominal lap time")
+    time_limit: float | None = param(None, "s", gt=0, le=3600, doc="null = twice the nominal lap time (<= 1 h: the "
+                                                                  "episode steps until it)")
     initial_lateral_std: float = param(0.2, "m", ge=0, doc="seeded start offset from the centre line, so seeds "
                                                            "differ without sensor noise (our choice)")
     initial_heading_std_deg: float = param(1.15, "deg", ge=0, doc="seeded start heading error (~0.02 rad)")

@@ -69,9 +69,13 @@ class LeftTurnRewards(Params):
 class CCFtapParams(Params):
     """Euro NCAP car-to-car front turn-across-path (digest 003 §3.2-3.3)."""
 
-    ego_speed_kmh: float = param(15.0, "km/h", gt=0, doc="VUT speed: Euro NCAP 10 / 15 / 20")
-    target_speed_kmh: float = param(45.0, "km/h", gt=0, doc="GVT speed: Euro NCAP 30 / 45 / 60")
-    dt: float = param(0.0, "s", doc="the target reaches the conflict point this long after the ego (0 = they meet)")
+    ego_speed_kmh: float = param(15.0, "km/h", ge=1, le=100, doc="VUT speed: Euro NCAP 10 / 15 / 20 (below 1 km/h "
+                                                  "the ego takes minutes to arrive; no turn is driven at 100)")
+    target_speed_kmh: float = param(45.0, "km/h", ge=1, le=200, doc="GVT speed: Euro NCAP 30 / 45 / 60 (bounds: "
+                                                  "the episode lasts until it clears the junction)")
+    dt: float = param(0.0, "s", ge=-30, le=30, doc="the target reaches the conflict point this long after the ego (0 = "
+                                                 "they meet); the episode lasts until it clears, so |dt| is "
+                                                 "bounded (Euro NCAP uses a few s; 1e9 hung)")
 
 
 @dataclass(frozen=True)
@@ -85,9 +89,11 @@ class LeftTurnParams(ScenarioParams):
                                                              "NCAP turn-across-path test)")
     action: Literal["discrete", "continuous"] = param("discrete", doc="discrete {SLOWER, IDLE, FASTER} over "
                                                                       "target_speeds_kmh | continuous acceleration")
-    duration: float = param(20.0, "s", gt=0, doc="traffic-mode time limit. Stock: 13 s, which leaves an "
-                                                 "always-proceed driver (exit at ~8.7 s) 4 s of slack: too little "
-                                                 "to yield to a stream of oncoming cars and still exit")
+    duration: float = param(20.0, "s", gt=0, le=600, doc="traffic-mode time limit (<= 10 min: a turn takes ~9 s, "
+                                                         "a waiting policy steps until the limit). Stock: 13 s, "
+                                                         "which leaves an always-proceed driver (exit at ~8.7 s) 4 s "
+                                                         "of slack: too little to yield to a stream of oncoming cars "
+                                                         "and still exit")
     spawn_probability: float = param(0.6, "1/s", ge=0, le=1, doc="expected new traffic vehicles per second (stock "
                                                                  "highway-env's rate)")
     target_speeds_kmh: tuple[float, float, float] = param((0.0, 16.2, 32.4), "km/h", ge=0,

@@ -15,7 +15,7 @@ from gymnasium import spaces
 
 from av_gym.errors import ConfigError
 from av_gym.estimation.tracker import MultiObjectTracker, TrackerParams, TrackingModel
-from av_gym.params import ParamError, param
+from av_gym.params import ROWS_MAX, ParamError, param
 from av_gym.sensors.base import SensorWrapper, ego_pose, find_wrapper, sim_time
 
 FIELDS = ("present", "x", "y", "vx", "vy", "heading", "length", "width")
@@ -27,7 +27,7 @@ class ObjectTrackerParams(TrackingModel):
     """:class:`ObjectTracker`'s parameters: the tracker's model (:class:`~av_gym.estimation.tracker.TrackingModel`),
     the rows of the observation, and the measurement noise, which defaults to the detector's own error model."""
 
-    max_tracks: int = param(16, ge=1, doc="rows of obs['tracks']")
+    max_tracks: int = param(16, ge=1, le=ROWS_MAX, doc="rows of obs['tracks']")
     sigma_pos0: float | None = param(None, "m", gt=0, doc="position noise at zero range; null = the detector's")
     sigma_pos_k: float | None = param(None, "m/m", ge=0, doc="position noise growth per metre of range; null = the "
                                                              "detector's")

@@ -34,7 +34,7 @@ import numpy as np
 from gymnasium import spaces
 
 from av_gym.errors import ConfigError
-from av_gym.params import Params, param
+from av_gym.params import ROWS_MAX, Params, param
 from av_gym.sensors.base import SensorWrapper, find_wrapper, sim_time
 
 EGO_FEATURES = ("speed", "set_point", "to_stop_line", "to_conflict", "time")
@@ -49,7 +49,7 @@ class TurnFeaturesParams(Params):
     source: Literal["truth", "tracks"] = param("truth", doc="the objects described: truth (the simulator's "
                                                             "vehicles, privileged) or tracks (obs['tracks'] from the "
                                                             "tracker, perceived)")
-    max_objects: int = param(8, ge=1, doc="nearest objects described (12 features each)")
+    max_objects: int = param(8, ge=1, le=ROWS_MAX, doc="nearest objects described (12 features each)")
     max_range: float = param(80.0, "m", gt=0, doc="objects farther from the ego are left out (a 60 km/h car 5 s "
                                                   "away is ~80 m out)")
     time_scale: float = param(20.0, "s", gt=0, doc="elapsed time is divided by this (the traffic episode length)")

@@ -50,7 +50,7 @@ from gymnasium import spaces
 from highway_env.road.lane import AbstractLane, LineType
 
 from av_gym.geometry import box_corners
-from av_gym.params import Params, param
+from av_gym.params import RATE_MAX_HZ, Params, param
 from av_gym.sensors import raster
 from av_gym.sensors.base import SensorWrapper, ego_pose, others_state, sim_time
 from av_gym.sensors.world import CIRCLE_KINDS, SEGMENT_KINDS, geometry_key, roadside_world
@@ -884,13 +884,19 @@ def _noise_bank() -> np.ndarray:
     return np.random.default_rng(NOISE_BANK_SEED).standard_normal(NOISE_BANK_SIZE, dtype=np.float32)
 
 
+# Pixels rendered per camera and frame (height x width x supersample²): the renderer holds a few float arrays of this
+# size per camera; 2**23 (e.g. 1024 x 2048 at supersample 2) is ~0.2 GB per camera, where 10000 x 10000 asked for
+# 8.9 GiB (issue 31). PilotNet's input is 66 x 200.
+RENDER_PIXELS_MAX = 2**23
+
+
 # ================================================================================================ the wrapper
 @dataclass(frozen=True)
 class CamerasParams(Params):
     """Three windshield cameras, left/centre/right (digest 001 §2, §8.5; 000 §5.7); see :class:`CameraSpec`."""
 
-    height: int = param(66, "px", ge=2, doc="image height (PilotNet input, paper 001 Table 1)")
-    width: int = param(200, "px", ge=2, doc="image width (PilotNet input)")
+    height: int = param(66, "px", ge=2, le=2160, doc="image height (PilotNet input, paper 001 Table 1); <= 4K")
+    width: int = param(200, "px", ge=2, le=3840, doc="image width (PilotNet input); <= 4K")
     hfov_deg: float = param(70.0, "deg", ge=1, le=170, doc="horizontal field of view (our choice: a 4 m lane "
                                                            "fills about a third of the bottom row)")
     mount_height: float = param(1.4, "m", gt=0, doc="lens height above the ground")
@@ -901,7 +907,7 @@ class CamerasParams(Params):
     max_range: float = param(80.0, "m", gt=0, doc="nothing is drawn beyond")
     supersample: int = param(2, ge=1, le=8, doc="render at this factor, shrink with area averaging "
                                                 "(anti-aliasing)")
-    rate_hz: float | None = param(None, "Hz", gt=0, doc="capture rate; null = every policy step; lower values hold "
+    rate_hz: float | None = param(None, "Hz", gt=0, le=RATE_MAX_HZ, doc="capture rate; null = every policy step; lower values hold "
                                                         "the last frame")
     noise: CameraNoise | None = param(CameraNoise(), doc="sensor noise; null = clean renders (bit-identical to "
                                                          "render_views)")
@@ -913,7 +919,13 @@ class CamerasParams(Params):
                           "all three whatever the subset, so a subset's camera has the same exposure as in the rig")
 
     def relations(self) -> list[str]:
-        return [] if self.views else [f"@views must be a non-empty subset of {list(CAMERA_NAMES)}, got []"]
+        if not self.views:
+            return [f"@views must be a non-empty subset of {list(CAMERA_NAMES)}, got []"]
+        rendered = self.height * self.width * self.supersample**2
+        if rendered > RENDER_PIXELS_MAX:
+            return [f"@height x @width x @supersample² must be at most {RENDER_PIXELS_MAX} rendered pixels per "
+                    f"camera, got {self.height} x {self.width} x {self.supersample}² = {rendered}"]
+        return []
 
 
 class Cameras(SensorWrapper):

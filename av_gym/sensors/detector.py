@@ -27,7 +27,7 @@ import numpy as np
 from gymnasium import spaces
 
 from av_gym.geometry import box_corners
-from av_gym.params import Params, param
+from av_gym.params import RATE_MAX_HZ, ROWS_MAX, Params, param
 from av_gym.sensors import kernels as _kernels
 from av_gym.sensors.base import SensorWrapper, ego_pose, others_state, sim_time
 
@@ -45,7 +45,7 @@ view and occlusion together)."""
 class DetectorParams(Params):
     """Object detector error profile after digest 004 §10.2 (the AEB shield's own detector uses it too)."""
 
-    rate_hz: float = param(10.0, "Hz", gt=0, doc="detector frames, held in between: the policy rate, half the 20 Hz "
+    rate_hz: float = param(10.0, "Hz", gt=0, le=RATE_MAX_HZ, doc="detector frames, held in between: the policy rate, half the 20 Hz "
                                                  "simulation (004 needed >= 15 fps on real video; the scene here "
                                                  "is simpler)")
     max_range: float = param(60.0, "m", gt=0, doc="no vehicle detected farther out")
@@ -62,8 +62,9 @@ class DetectorParams(Params):
     sigma_vel: float = param(0.5, "m/s", ge=0, doc="velocity noise (our choice)")
     sigma_size: float = param(0.1, "m", ge=0, doc="box length/width noise (our choice)")
     sigma_heading: float = param(0.05, "rad", ge=0, doc="heading noise (our choice)")
-    clutter_rate: float = param(0.2, "1/frame", ge=0, doc="false positives per frame, Poisson (004: 0.2)")
-    max_objects: int = param(16, ge=1, doc="rows in the observation")
+    clutter_rate: float = param(0.2, "1/frame", ge=0, le=100, doc="false positives per frame, Poisson (004: 0.2; "
+                                                                    "each is drawn in a loop: 1e9 hung)")
+    max_objects: int = param(16, ge=1, le=ROWS_MAX, doc="rows in the observation")
     frame: Literal["world", "ego"] = param("world", doc="world, or ego (x forward, y right of the ego)")
 
     def relations(self) -> list[str]:

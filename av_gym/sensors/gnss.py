@@ -25,7 +25,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from av_gym.params import Params, param
+from av_gym.params import RATE_MAX_HZ, Params, param
 from av_gym.sensors.base import SensorWrapper, sim_time
 
 BOUND = 1e5  # m, m/s: far beyond any scenario, keeps the Box finite
@@ -35,7 +35,7 @@ BOUND = 1e5  # m, m/s: far beyond any scenario, keeps the Box finite
 class GNSSParams(Params):
     """GNSS receiver noise (digest 000 §5.1, 002 §4.2; suggestions: neither paper gives values)."""
 
-    rate_hz: float = param(10.0, "Hz", gt=0, doc="fix rate, held between fixes (1-10 Hz suggested; thesis 002 "
+    rate_hz: float = param(10.0, "Hz", gt=0, le=RATE_MAX_HZ, doc="fix rate, held between fixes (1-10 Hz suggested; thesis 002 "
                                                   "used 1 Hz)")
     sigma: float = param(1.5, "m", ge=0, doc="white position noise per axis (consumer grade 1-3 m)")
     sigma_bias: float = param(0.5, "m", ge=0, doc="multipath Gauss-Markov bias, stationary std (open road)")

@@ -49,7 +49,7 @@ import numpy as np
 from gymnasium import spaces
 
 from av_gym.geometry import box_corners
-from av_gym.params import Params, param
+from av_gym.params import RATE_MAX_HZ, Params, param
 from av_gym.sensors import kernels as _kernels
 from av_gym.sensors.base import SensorWrapper, ego_pose, others_state, sim_time
 from av_gym.sensors.world import roadside_world
@@ -279,13 +279,19 @@ def cast_rays(origin_xy: np.ndarray, angles: np.ndarray, elevations: np.ndarray,
                  boxes_corners, box_height, max_range)[0]
 
 
+# Rays per scan: every ray is cast against every box and kept per point (several float arrays of this length per
+# scan). An Ouster OS-128 at 2048 columns gives 262,144 = 2**18; 1e8 beams asked for GiBs (issue 31).
+RAYS_MAX = 2**18
+BEAMS_MAX = 2**15  # one channel: 0.011° steps, finer than any spinning LiDAR's azimuth resolution
+
+
 # --------------------------------------------------------------------------------------------------- the wrapper
 @dataclass(frozen=True)
 class LidarParams(Params):
     """Roof-mounted ray-cast LiDAR (thesis 002: σ 0.02 m, 100 m, 1.7 m mount, 10 Hz; digest 000 §5.4)."""
 
-    beams: int = param(720, ge=1, doc="azimuth samples per channel over fov_deg; 720 = 0.5° (our choice; digest "
-                                      "002 §6.2 suggests 720-1080)")
+    beams: int = param(720, ge=1, le=BEAMS_MAX, doc="azimuth samples per channel over fov_deg; 720 = 0.5° (our "
+                                                    "choice; digest 002 §6.2 suggests 720-1080)")
     fov_deg: float = param(360.0, "deg", gt=0, le=360, doc="horizontal field of view, centred forward (thesis 002: "
                                                            "roof-mounted 360° Ouster)")
     min_range: float = param(0.5, "m", ge=0, doc="closer hits are no return: a real sensor's blind zone, which "
@@ -306,7 +312,7 @@ class LidarParams(Params):
     mount_x: float = param(0.0, "m", doc="ahead of the vehicle centre (our choice)")
     mount_height: float = param(1.7, "m", ge=0, doc="above the ground (thesis 002)")
     vehicle_height: float = param(1.5, "m", gt=0, doc="height of the other vehicles' boxes (a passenger car)")
-    rate_hz: float = param(10.0, "Hz", gt=0, doc="scan rate; scans are taken at observations (at most the policy "
+    rate_hz: float = param(10.0, "Hz", gt=0, le=RATE_MAX_HZ, doc="scan rate; scans are taken at observations (at most the policy "
                                                  "rate), the last one held in between (thesis 002)")
     sweep_time: float = param(0.1, "s", gt=0, doc="one rotation, for per-point times and deskew_poses (one "
                                                   "rotation per 10 Hz scan)")
@@ -321,6 +327,9 @@ class LidarParams(Params):
             return [f"@min_range must be < @max_range, got {self.min_range:g} and {self.max_range:g}"]
         if not self.elevations_deg:
             return ["@elevations_deg must be a non-empty list"]
+        if self.beams * len(self.elevations_deg) > RAYS_MAX:
+            return [f"@beams x len(@elevations_deg) must be at most {RAYS_MAX} rays per scan, got "
+                    f"{self.beams} x {len(self.elevations_deg)}"]
         if self.planar and any(e != 0.0 for e in self.elevations_deg):
             return [f"@planar needs every elevation to be 0°, got @elevations_deg {list(self.elevations_deg)}"]
         return []

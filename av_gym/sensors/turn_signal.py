@@ -33,7 +33,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from av_gym.params import Params, param
+from av_gym.params import ROWS_MAX, Params, param
 from av_gym.sensors.base import SensorWrapper, ego_pose
 
 LEFT, NONE, RIGHT = 1.0, 0.0, -1.0
@@ -73,7 +73,7 @@ class TurnSignalsParams(Params):
     wrong_rate: float = param(0.05, ge=0, le=1, doc="per vehicle: the indicator shows the other direction")
     miss_rate: float = param(0.1, ge=0, le=1, doc="per reading: an indicator that is on is not seen (occlusion, "
                                                   "blink phase)")
-    max_objects: int = param(16, ge=1, doc="rows in the observation")
+    max_objects: int = param(16, ge=1, le=ROWS_MAX, doc="rows in the observation")
 
 
 class TurnSignals(SensorWrapper):

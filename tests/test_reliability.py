@@ -1,0 +1,204 @@
+"""Issue 31, the command line and faults: what a 150-case probe broke, each row a test. Bounds on every value that
+sets a loop count, an allocation or a time limit; seeds numpy can take; run folders owned by one run; writes that
+stay consistent on a full disk; signals; side tools; a sweep that finishes what it can.
+
+Most cases run the command-line check in this process (what ``python -m train|eval`` runs before Hydra makes any
+folder); a few run the whole command in a subprocess, for what only the job can find."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.test_bad_input import check_line
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run(argv: list[str], cwd: Path, timeout: float = 120, **kw) -> subprocess.CompletedProcess:
+    """``python <argv>`` with this checkout first on the path, in ``cwd``."""
+    env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    return subprocess.run([sys.executable, *argv], cwd=cwd, env=env, capture_output=True, text=True,
+                          timeout=timeout, **kw)
+
+
+def one_error_line(proc: subprocess.CompletedProcess) -> str:
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: "), \
+        (proc.returncode, proc.stderr[-2000:])
+    return lines[0]
+
+
+# --------------------------------------------------------------------------------------- rows 5, 7, 8: bounds
+@pytest.mark.parametrize("module, argv, needle", [
+    # row 5: seeds numpy's legacy RandomState (SB3's set_random_seed) can take, also inside a -m sweep
+    ("train", ["agent=ppo", "env=lane_keeping", "sensors=gnss_imu", "seed=4294967296"], "seed must be an integer in [0, 2147483647]"),
+    ("train", ["agent=ppo", "env=lane_keeping", "sensors=gnss_imu", "seed=2**70"], "seed must be an integer"),
+    ("train", ["-m", "agent=ppo", "env=lane_keeping", "sensors=gnss_imu", "seed=0,4294967296"], "seed must be an integer in [0, 2147483647]"),
+    ("train", ["train.eval_seed=4294967296"], "train.eval_seed must be an integer in [0, 2147483647]"),
+    ("eval", ["seed=4294967296"], "seed must be an integer in [0, 2147483647]"),
+    ("eval", ["-m", "seed=1,99999999999"], "seed must be an integer in [0, 2147483647]"),
+    ("eval", ["episodes=100000000000"], "episodes must be an integer in [1, 10000000]"),
+    # row 7: values that hung (a catch-up loop or a Poisson draw per unit, or an episode of ~forever)
+    ("eval", ["sensors=gnss_imu", "sensors.gnss.rate_hz=1e9"], "sensors.gnss.rate_hz must be a number in (0, 1000]"),
+    ("eval", ["sensors=cameras", "sensors.cameras.rate_hz=1e9"], "sensors.cameras.rate_hz must be a number in (0, 1000]"),
+    ("eval", ["sensors=lidar", "sensors.lidar.rate_hz=1e9"], "sensors.lidar.rate_hz must be a number in (0, 1000]"),
+    ("eval", ["sensors=detector", "sensors.detector.rate_hz=1e9"], "sensors.detector.rate_hz must be a number in (0, 1000]"),
+    ("eval", ["sensors=detector", "sensors.detector.clutter_rate=1e9"], "sensors.detector.clutter_rate must be a number in [0, 100]"),
+    ("eval", ["env.policy_frequency=1000000000", "env.simulation_frequency=1000000000"], "env.policy_frequency must be an integer in [10, 1000]"),
+    ("eval", ["env.simulation_frequency=1000000000"], "env.simulation_frequency must be an integer in [1, 1000]"),
+    ("eval", ["env.mode=ccftap", "env.ccftap.dt=1e9"], "env.ccftap.dt must be a number in [-30, 30]"),
+    ("eval", ["env.mode=ccftap", "env.ccftap.ego_speed_kmh=1e-9"], "env.ccftap.ego_speed_kmh must be a number in [1, 100]"),
+    ("eval", ["env.duration=1e9"], "env.duration must be a number in (0, 600]"),
+    ("eval", ["env=lane_keeping", "env.time_limit=1e9"], "env.time_limit must be a number in (0, 3600]"),
+    ("eval", ["env=lane_keeping", "env.target_speed_kmh=1e-9"], "env.target_speed_kmh must be a number in [1, 200]"),
+    # row 8: allocations of GiBs
+    ("eval", ["sensors=cameras", "sensors.cameras.height=10000", "sensors.cameras.width=10000"], "sensors.cameras.height must be an integer in [2, 2160]"),
+    ("eval", ["sensors=cameras", "sensors.cameras.height=2000", "sensors.cameras.width=3000"], "rendered pixels per camera"),
+    ("eval", ["sensors=lidar", "sensors.lidar.beams=1e8"], "sensors.lidar.beams must be an integer"),
+    ("eval", ["sensors=lidar", "sensors.lidar.beams=100000000"], "sensors.lidar.beams must be an integer in [1, 32768]"),
+    ("eval", ["sensors=lidar", "sensors.lidar.beams=32768", "sensors.lidar.elevations_deg=[0,1,2,3,4,5,6,7,8]"], "rays per scan"),
+    ("eval", ["sensors=detector", "sensors.detector.max_objects=100000000"], "sensors.detector.max_objects must be an integer in [1, 256]"),
+    ("train", ["agent.n_envs=100000000"], "agent.n_envs must be an integer in [1, 4096]"),
+    ("train", ["agent=ppo", "env=lane_keeping", "sensors=gnss_imu", "agent.n_envs=500"], "agent.n_envs must be at most 64 with agent.vec_env=subproc"),
+    ("train", ["train.eval_n_envs=1000"], "train.eval_n_envs must be an integer in [1, 64]"),
+    ("eval", ["n_envs=100"], "n_envs must be at most 64 with vec_env=subproc"),
+    ("eval", ["n_envs=100000", "vec_env=batched"], "n_envs must be an integer in [1, 1024]"),
+])
+def test_values_that_hung_or_asked_for_gibibytes_are_one_line(module, argv, needle, monkeypatch, capsys, tmp_path):
+    monkeypatch.chdir(tmp_path)
+    line = check_line(module, argv, monkeypatch, capsys)
+    assert needle in line, line
+    assert not any(tmp_path.iterdir())  # nothing written
+
+
+def test_the_bounds_admit_every_shipped_config(monkeypatch, capsys, tmp_path):
+    """Every shipped sensors preset and agent config still passes (a bound is not a new default)."""
+    from conf.check import check_command_line, options
+
+    monkeypatch.chdir(tmp_path)
+    for sensors in options("sensors"):
+        env = "lane_keeping" if sensors in ("camera_centre", "cameras", "lane_localized", "gnss_raw") else "left_turn"
+        assert check_command_line("eval", [f"env={env}", f"sensors={sensors}"])
+    for agent in ("ppo_turn", "ppo_turn_perceived", "ppo_turn_shielded"):
+        assert check_command_line("train", [f"agent={agent}"])
+
+
+@pytest.mark.parametrize("name", [".", "..", "...", "a/b", "../up"])
+@pytest.mark.parametrize("module", ["train"])
+def test_run_name_cannot_leave_its_folder(module, name, monkeypatch, capsys, tmp_path):
+    """Row 4: ``run_name=..`` wrote .hydra/, logs and config.yaml into the repo root."""
+    monkeypatch.chdir(tmp_path)
+    line = check_line(module, [f"run_name={name}"], monkeypatch, capsys)
+    assert "run_name must be a folder name" in line, line
+    assert not any(tmp_path.iterdir())
+
+
+# ------------------------------------------------------------------------------ rows 2, 3, 12: run folders owned
+LANE = ["agent=ppo", "env=lane_keeping", "sensors=gnss_imu"]
+
+
+@pytest.fixture
+def released():
+    """Whatever a test's command-line check claimed is released afterwards (the check holds the lock for the
+    life of the process, which here is pytest's)."""
+    from train.run_folder import release_all
+
+    yield
+    release_all()
+
+
+def a_run(tmp_path: Path, name: str = "R", argv: list[str] = LANE, latest: bool = True) -> Path:
+    """checkpoints/<name>/ as a run trained with ``argv`` leaves it: config.yaml (composed as train composes it),
+    latest.zip, model.zip (placeholders: the checks read config.yaml and test that the zip exists)."""
+    from omegaconf import OmegaConf
+
+    from conf.check import check_command_line
+
+    (cfg,) = check_command_line("train", [*argv, f"run_name={name}"])
+    ckpt = tmp_path / "checkpoints" / name
+    ckpt.mkdir(parents=True)
+    (ckpt / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    for zip_ in ("latest.zip", "model.zip") if latest else ("model.zip",):
+        (ckpt / zip_).write_bytes(b"PK placeholder")
+    return ckpt
+
+
+def snapshot(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("argv, needle", [
+    ([*LANE, "run_name=R"], "checkpoints/R already holds a run (config.yaml, latest.zip, model.zip)"),  # row 3
+    (["run_name=R", "train.resume=true"], "train.resume=true: env.name is 'left_turn' here but 'lane_keeping' in "),  # row 2
+    ([*LANE, "run_name=R", "train.resume=true", "sensors.gnss.sigma=3"], "sensors.gnss.sigma is 3 here but 1.5"),
+    ([*LANE, "run_name=nosuchrun", "train.resume=true"], "train.resume=true but checkpoints/nosuchrun/latest.zip does "
+                                                         "not exist"),  # row 12
+])
+def test_a_run_that_is_not_ours_is_refused_with_nothing_written(argv, needle, tmp_path, monkeypatch, capsys, released):
+    monkeypatch.chdir(tmp_path)
+    a_run(tmp_path)
+    before = snapshot(tmp_path)
+    line = check_line("train", argv, monkeypatch, capsys)
+    assert needle in line, line
+    assert snapshot(tmp_path) == before  # config.yaml not rewritten, no folder for nosuchrun, no lock left
+    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == ["R"]
+
+
+def test_runs_folder_of_another_run_is_refused(tmp_path, monkeypatch, capsys, released):
+    """Row 3: its TensorBoard curves would go into the same folder as the first run's."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "runs" / "R" / "tb").mkdir(parents=True)
+    line = check_line("train", [*LANE, "run_name=R"], monkeypatch, capsys)
+    assert "runs/R already holds a run's logs (tb)" in line, line
+    assert not (tmp_path / "checkpoints").exists()
+
+
+def test_resume_and_overwrite_are_allowed_and_hold_the_lock(tmp_path, monkeypatch, released):
+    from train import __main__ as train_main
+    from train.run_folder import release_all
+
+    monkeypatch.chdir(tmp_path)
+    ckpt = a_run(tmp_path)
+    for extra in (["train.resume=true"], ["train.overwrite=true"], ["train.resume=true", "agent.total_timesteps=99"]):
+        monkeypatch.setattr(sys, "argv", ["train", *LANE, "run_name=R", *extra])
+        train_main._check_command_line()
+        assert (ckpt / ".lock").read_text().strip() == str(os.getpid())
+        release_all()
+        assert not (ckpt / ".lock").exists()
+
+
+def test_a_second_process_on_the_same_run_is_refused(tmp_path, monkeypatch, capsys, released):
+    """Rows 3: two at once with the same run_name. Another process's flock (taken here on a separate open file
+    description, which flock treats as another owner) refuses the second, resume or not."""
+    import fcntl
+
+    monkeypatch.chdir(tmp_path)
+    ckpt = a_run(tmp_path)
+    fd = os.open(ckpt / ".lock", os.O_RDWR | os.O_CREAT)
+    os.write(fd, b"4242\n")
+    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    try:
+        line = check_line("train", [*LANE, "run_name=R", "train.resume=true"], monkeypatch, capsys)
+        assert "another process (pid 4242) is training this run" in line, line
+    finally:
+        os.close(fd)
+    assert (ckpt / ".lock").exists()  # the holder's file is left to the holder
+
+
+@pytest.mark.slow  # three runs of python -m train (a rule-based agent: nothing trained)
+def test_train_twice_refuses_then_overwrite_replaces(tmp_path):
+    argv = ["-m", "train", "agent=always_proceed", "train.eval_episodes=0", "run_name=R"]
+    first = run(argv, tmp_path)
+    assert first.returncode == 0, first.stderr[-2000:]
+    config = (tmp_path / "checkpoints" / "R" / "config.yaml").read_bytes()
+    assert "already holds a run" in one_error_line(run([*argv, "env.duration=30"], tmp_path))
+    assert (tmp_path / "checkpoints" / "R" / "config.yaml").read_bytes() == config
+    third = run([*argv, "env.duration=30", "train.overwrite=true"], tmp_path)
+    assert third.returncode == 0, third.stderr[-2000:]
+    assert b"duration: 30" in (tmp_path / "checkpoints" / "R" / "config.yaml").read_bytes()
+    assert not list((tmp_path / "checkpoints").rglob(".lock"))
