@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from av_gym.seeds import SPLITS
 from av_gym.shields.aeb import find_shield
 from av_gym.shields.conflicts import PARTNER_TYPES, partner_type
 from eval.runner import play_episode
@@ -250,7 +251,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--agents", default=["always_proceed+aeb", "lookahead+aeb"], type=items(str),
                     help="agent+shield specs, [a+aeb,b+aeb]")
     ap.add_argument("--episodes", type=int, default=100, choices=range(1, 100_001), metavar="[1, 100000]")
-    ap.add_argument("--seed", type=int, default=1000, help="first seed (the eval convention: 1000..)")
+    ap.add_argument("--seed", type=int, default=SPLITS["validation"].start,
+                    help="first seed (default: the validation split's first, av_gym/seeds.py: shield "
+                         "development looks at validation, never test)")
     ap.add_argument("--window", type=float, default=WINDOW, help="counterfactual window (s)")
     ap.add_argument("--env-set", action="append", default=[], metavar="KEY=VALUE", help="env field override")
     ap.add_argument("--shield-set", action="append", default=[], metavar="KEY=VALUE",

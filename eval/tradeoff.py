@@ -1,7 +1,7 @@
 """Collision vs success of left-turn drivers, one point per agent, from evaluation rows.
 
     python -m eval.tradeoff runs/eval/a/results.csv runs/eval/b/results.csv --out tradeoff.png \
-        [--point "lookahead (oracle)=0.01,0.92"] [--rule-sweep 2,3,4,6,8 --episodes 300 --seed 1000]
+        [--point "lookahead (oracle)=0.01,0.92"] [--rule-sweep 2,3,4,6,8 --episodes 300 --seed 1000000]
 
 Each ``results.csv`` is what ``python -m eval`` writes (one row per episode); every agent label in them becomes a
 point with 95 % Wilson intervals on both axes. ``--point`` adds a point measured elsewhere (label=collision,success).
@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from av_gym.metrics.stats import wilson_ci
+from av_gym.seeds import SPLITS
 from conf.cli import Extend, ToolParser, items
 
 
@@ -110,7 +111,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--point", action="append", default=[], help='"label=collision,success"')
     parser.add_argument("--rule-sweep", default=[], type=items(float, low=0), help="t_gap values (s), [2,4,8]")
     parser.add_argument("--episodes", type=int, default=300)
-    parser.add_argument("--seed", type=int, default=1000)
+    parser.add_argument("--seed", type=int, default=SPLITS["validation"].start,
+                        help="first seed of the rule sweep (default: the validation split's first, av_gym/seeds.py)")
     parser.add_argument("--n-envs", type=int, default=250, help="episodes stepped together in the rule sweep")
     parser.add_argument("--relabel", action="append", default=[],
                         help='"agent in results.csv=label" (repeatable): e.g. seeds of one run as "ppo_turn#s1"')
