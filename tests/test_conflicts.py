@@ -7,7 +7,10 @@ import pytest
 
 from agents import AlwaysProceed
 from av_gym.shields.conflicts import ConflictModel, path_turn
+from av_gym.sensors.turn_signal import TurnSignalsParams
 from av_gym.shields.intent import DriverIntent, reading_likelihood
+
+CHANNEL = TurnSignalsParams(no_signal_rate=0.25, wrong_rate=0.05, miss_rate=0.1)
 from conftest import conf
 
 LEFT_FROM_EAST = (("o3", "ir3", 0), ("ir3", "il0", 0), ("il0", "o0", 0))
@@ -23,7 +26,7 @@ def test_path_turn_is_the_indicator_a_driver_on_that_path_shows():
 
 def _read(readings, floor=0.02):
     """Turn weights (right, straight, left) of one driver after ``readings``, channel defaults."""
-    belief = DriverIntent(no_signal_rate=0.25, wrong_rate=0.05, miss_rate=0.1, floor=floor)
+    belief = DriverIntent(CHANNEL, floor=floor)
     for r in readings:
         belief.update(["driver"], [r])
     return belief.turn_weights(["driver"])[0]
@@ -35,7 +38,7 @@ def test_one_reading_weighs_the_turns_as_the_indicator_channel_says():
         np.testing.assert_allclose(_read([reading], floor=1e-9), np.array(expected) / max(expected), rtol=1e-6,
                                    atol=1e-8)
     assert reading_likelihood(1.0, 0.1, floor=0.02)[1].tolist() == [0.02] * 3  # straight never indicates: floor
-    assert np.isnan(DriverIntent(0.25, 0.05, 0.1).turn_weights(["never read"])).all()
+    assert np.isnan(DriverIntent(CHANNEL).turn_weights(["never read"])).all()
 
 
 def test_readings_accumulate_the_per_reading_misses_average_out_the_per_driver_ones_do_not():
@@ -53,7 +56,7 @@ def test_the_belief_is_filterpy_s_discrete_bayes_update_applied_reading_by_readi
     rng = np.random.default_rng(0)
     for _ in range(20):
         readings = rng.choice([-1.0, 0.0, 1.0], size=int(rng.integers(1, 40)), p=[0.2, 0.6, 0.2])
-        belief = DriverIntent(0.25, 0.05, 0.1)
+        belief = DriverIntent(CHANNEL)
         post = belief.prior.copy()
         for r in readings:
             belief.update(["driver"], [r])
@@ -62,7 +65,7 @@ def test_the_belief_is_filterpy_s_discrete_bayes_update_applied_reading_by_readi
 
 
 def test_many_drivers_are_updated_as_each_alone():
-    together = DriverIntent(0.25, 0.05, 0.1)
+    together = DriverIntent(CHANNEL)
     readings = {"a": [1.0, 1.0, 0.0], "b": [0.0, 0.0, 0.0], "c": [-1.0, 1.0, -1.0]}
     for k in range(3):
         together.update(list(readings), np.array([r[k] for r in readings.values()]))

@@ -16,7 +16,10 @@ from gymnasium.utils import seeding
 from highway_env import utils
 
 from av_gym.envs.left_turn import ACTIONS, CONFLICT_POINT, MODES, ONCOMING_NEAR_EDGE_X, ROUTE, UnprotectedLeftTurnEnv
-from av_gym.estimation.turn_features import EGO_FEATURES, OBJECT_FEATURES, PATH_STEP, T_MAX
+from av_gym.estimation.turn_features import (ACC_SCALE, EGO_FEATURES, OBJECT_FEATURES, PATH_STEP, T_MAX,
+                                            TurnIntentParams, acceleration, path_conflict, signals_at)
+from av_gym.sensors.turn_signal import (TurnSignalsParams, draws_needed, node_index, read_channel, route_origin,
+                                       turn_signal)
 from av_gym.sim import batched, kernels
 from av_gym.sim.batched import LENGTH, WIDTH, LaneTable, Traffic
 
@@ -584,14 +587,8 @@ class BatchedLeftTurn:
         return others, described
 
     def _path_conflict(self, x, y, vx, vy):
-        """TurnFeatures._path_conflict for (n, M) objects."""
-        dx = x[..., None] - self.path[:, 0]
-        dy = y[..., None] - self.path[:, 1]
-        vv = np.maximum(vx * vx + vy * vy, 1e-6)[..., None]
-        tt = np.clip(-(dx * vx[..., None] + dy * vy[..., None]) / vv, 0.0, T_MAX)
-        miss = np.hypot(dx + vx[..., None] * tt, dy + vy[..., None] * tt)
-        j = np.argmin(miss, axis=-1)[..., None]
-        return np.take_along_axis(tt, j, -1)[..., 0], np.take_along_axis(miss, j, -1)[..., 0], self.path_s[j[..., 0]]
+        """TurnFeatures._path_conflict (the same function) for (n, M) objects."""
+        return path_conflict(np.stack([x, y], axis=-1), np.stack([vx, vy], axis=-1), self.path, self.path_s)
 
 
 class BatchedIntent:
@@ -602,20 +599,13 @@ class BatchedIntent:
     (``history`` s)."""
 
     def __init__(self, engine: BatchedLeftTurn, signals: dict | None, intent: dict) -> None:
-        import inspect
         import zlib
 
-        from av_gym.sensors.turn_signal import TurnSignals
-        from av_gym.estimation.turn_features import TurnIntent
-
         self.e = engine
-        def defaults(cls) -> dict:
-            return {k: p.default for k, p in inspect.signature(cls.__init__).parameters.items()
-                    if p.default is not inspect.Parameter.empty}
-
-        self.sig = {**defaults(TurnSignals), **signals} if signals is not None else None
-        p = {**defaults(TurnIntent), **(intent or {})}
-        self.history, self.gate, self.signal_gate = float(p["history"]), float(p["gate"]), float(p["signal_gate"])
+        # the sensors' own Params (defaults and checks), as the per-env wrappers build them
+        self.sig = None if signals is None else TurnSignalsParams.from_mapping(signals, "sensors.turn_signals")
+        p = TurnIntentParams.from_mapping(intent or {}, "sensors.turn_intent")
+        self.history, self.gate, self.signal_gate = float(p.history), float(p.gate), float(p.signal_gate)
         self._crc = zlib.crc32(b"signals")
         B = engine.B
         self.rngs = [None] * B
@@ -626,14 +616,9 @@ class BatchedIntent:
         self.ht = np.full((B, self.H), np.nan)
         self.hist = self.hmask = None
         T = engine.T
-        # intended_signal: origin of a vehicle on an approach (o{i}→ir{i}) or in the intersection (ir{i}→il{j})
-        self.origin = np.full(len(T.index), -1)
-        for k, (f, t, _) in enumerate(T.index):
-            if f.startswith("o") and t.startswith("ir"):
-                self.origin[k] = int(t[2:])
-            elif f.startswith("ir") and t.startswith("il"):
-                self.origin[k] = int(f[2:])
-        self.dest = np.array([int(t[1:]) if t.startswith("o") else -1 for _, t, _ in T.index])
+        # intended_signal's route origin and destination of every lane (the rule is in av_gym.sensors.turn_signal)
+        self.origin = np.array([route_origin(f, t) for f, t, _ in T.index])
+        self.dest = np.array([node_index(t, "o") for _, t, _ in T.index])
 
     def reset(self, rows) -> None:
         from av_gym.sensors.base import sensor_rng  # noqa: F401  (the same seeding, below)
@@ -659,35 +644,24 @@ class BatchedIntent:
         and they are handed out in that order. The channel's per-driver choices are kept by vehicle id (unique in
         the process, so a table by id is the per-episode channel of the sensor)."""
         e, t, sig = self.e, self.e.traffic, self.sig
-        M = int(sig["max_objects"])
+        M = int(sig.max_objects)
         n = len(rows)
         eslot = e.ego_slot(rows)
-        lane_origin = self.origin[t.lane[rows]]
         last = t.route[rows][..., 2]  # -1: no route (a plain Vehicle): intended_signal is 0
-        dest = np.where(last >= 0, self.dest[last], -1)
-        turn = (dest - lane_origin) % 4
-        intended = np.where((lane_origin >= 0) & (dest >= 0), np.where(turn == 1, 1.0, np.where(turn == 3, -1.0, 0.0)),
-                            0.0)
+        intended = turn_signal(self.origin[t.lane[rows]], np.where(last >= 0, self.dest[last], -1))
         ex, ey = t.x[rows, eslot], t.y[rows, eslot]
         d = np.hypot(t.x[rows] - ex[:, None], t.y[rows] - ey[:, None])
-        seen_mask = t.alive[rows] & ~t.ego[rows] & (d <= sig["max_range"])
+        seen_mask = t.alive[rows] & ~t.ego[rows] & (d <= sig.max_range)
         vids = t.vid[rows]
         self._grow(int(vids.max()) + 1)
         new = seen_mask & ~self.known[vids]
-        width = np.where(seen_mask, 1 + 2 * new, 0)  # draws per reading, road order, env after env
-        counts = width.sum(axis=1)
+        counts = draws_needed(seen_mask, new).sum(axis=1)  # this step's uniforms, env after env
         draws = [self.rngs[r].uniform(size=int(c)) for r, c in zip(rows, counts) if c]
         u = np.concatenate(draws) if draws else np.zeros(0)
-        end = np.cumsum(width.ravel()).reshape(width.shape)  # one past each reading's last draw in u
-        if new.any():  # first sighting: does this driver indicate, and the right way?
-            ids, last = vids[new], end[new]
-            self.known[ids] = True
-            self.indicates[ids] = u[last - 3] >= sig["no_signal_rate"]
-            self.wrong[ids] = u[last - 2] < sig["wrong_rate"]
-        seen = np.zeros(seen_mask.shape, bool)
-        seen[seen_mask] = u[end[seen_mask] - 1] >= sig["miss_rate"]
-        indicates, wrong = self.indicates[vids], self.wrong[vids]
-        value = np.where(seen_mask & indicates & seen, intended * np.where(wrong, -1.0, 1.0), 0.0)
+        value, indicates, wrong = read_channel(u, seen_mask, new, intended, self.indicates[vids], self.wrong[vids],
+                                               sig)
+        self.known[vids[new]] = True
+        self.indicates[vids[new]], self.wrong[vids[new]] = indicates[new], wrong[new]
         # nearest first; ties in road order (the sensor's stable sort)
         order = np.argsort(np.where(seen_mask, d, np.inf), axis=1, kind="stable")[:, :M]
         g = lambda a: np.take_along_axis(a, order, 1)  # noqa: E731
@@ -730,27 +704,11 @@ class BatchedIntent:
         then, tmask = self.hist[rows, oldest], self.hmask[rows, oldest]  # (n, K, 4), (n, K)
         dt = now - t_then
         usable = np.isfinite(t_then) & tmask.any(axis=1) & (dt > 0)
-        if usable.any():
-            dts = np.where(usable, dt, 1.0)[:, None]
-            back = objects[..., :2] - objects[..., 2:4] * dts[..., None]
-            d = np.hypot(back[:, :, None, 0] - then[:, None, :, 0], back[:, :, None, 1] - then[:, None, :, 1])
-            d = np.where(tmask[:, None, :], d, np.inf)  # (n, M, K)
-            j = np.argmin(d, axis=2)
-            matched = np.take_along_axis(d, j[..., None], 2)[..., 0] <= self.gate
-            speed = np.hypot(objects[..., 2], objects[..., 3])
-            heading = objects[..., 2:4] / np.maximum(speed, 1e-6)[..., None]
-            v_then = np.take_along_axis(then[..., 2:4], j[..., None], 1)
-            acc = ((objects[..., 2:4] - v_then) * heading).sum(axis=-1) / dts
-            out[..., 0] = np.where(usable[:, None] & matched & described, acc, 0.0) / 5.0
-        if signals is not None:  # signals_at for every described object of every env at once
-            valid = signals[..., 0] > 0  # (n, S)
-            ds = np.hypot(objects[:, :, None, 0] - signals[:, None, :, 1],
-                          objects[:, :, None, 1] - signals[:, None, :, 2])
-            ds = np.where(valid[:, None, :], ds, np.inf)  # (n, M, S): argmin over the seen readings, first on ties
-            j = np.argmin(ds, axis=2)
-            near = np.take_along_axis(ds, j[..., None], 2)[..., 0] <= self.signal_gate
-            read = np.take_along_axis(np.broadcast_to(signals[:, None, :, 3], ds.shape), j[..., None], 2)[..., 0]
-            out[..., 1] = np.where(described & near, read, 0.0)
+        if usable.any():  # TurnIntent._acceleration (the same function) for every env at once
+            acc = acceleration(objects, then, tmask & usable[:, None], np.where(usable, dt, 1.0), self.gate)
+            out[..., 0] = np.where(usable[:, None] & described, acc, 0.0) / ACC_SCALE
+        if signals is not None:  # TurnIntent's signals_at, likewise
+            out[..., 1] = np.where(described, signals_at(objects, signals, self.signal_gate), 0.0)
         # keep what is younger than `history`, add now (TurnIntent: [(t, o) for ... if now - t < history - 1e-9])
         ht = np.where(np.isfinite(ht) & (now[:, None] - ht < self.history - 1e-9), ht, np.nan)
         slot = np.argmax(~np.isfinite(ht), axis=1)  # a free slot (H > history / policy period)

@@ -82,7 +82,7 @@ class BatchedLeftTurnVecEnv(VecEnv):
         all_spaces = {"turn": spaces.Box(-1.0, 1.0, (self.engine.n_features,), np.float32),
                       "intent": spaces.Box(-1.0, 1.0, (M, 2), np.float32)}
         if self.intent is not None and self.intent.sig is not None:
-            all_spaces["signals"] = spaces.Box(-1e4, 1e4, (int(self.intent.sig["max_objects"]), 4), np.float32)
+            all_spaces["signals"] = spaces.Box(-1e4, 1e4, (int(self.intent.sig.max_objects), 4), np.float32)
         missing = [k for k in self.keys if k not in all_spaces]
         if missing:
             raise ConfigError(f"sensors.observe lists {missing[0]!r}, which agent.vec_env=batched does not provide; "

@@ -130,16 +130,7 @@ class TurnFeatures(SensorWrapper):
         return np.clip(np.nan_to_num(out, nan=0.0), -1.0, 1.0).astype(np.float32)
 
     def _path_conflict(self, p: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per object (positions ``p``, velocities ``v``, (N, 2)): the constant-velocity closest approach to the
-        ego's path, ``t* = clip(-(p - c)·v / |v|², 0, T)`` and ``miss = |p + v t* - c|`` for every path point ``c``;
-        returns t* (s), miss (m) and the path point's distance past the stop line (m) at the smallest miss."""
-        d = p[:, None, :] - self.path[None, :, :]  # (N, P, 2)
-        vv = np.maximum((v * v).sum(axis=1), 1e-6)[:, None]
-        t = np.clip(-(d * v[:, None, :]).sum(axis=2) / vv, 0.0, T_MAX)  # (N, P)
-        miss = np.hypot(*(d + v[:, None, :] * t[..., None]).transpose(2, 0, 1))
-        j = np.argmin(miss, axis=1)
-        rows = np.arange(len(p))
-        return t[rows, j], miss[rows, j], self.path_s[j]
+        return path_conflict(p, v, self.path, self.path_s)
 
     def _set_point(self) -> float:
         ego = self.env.unwrapped.vehicle
@@ -217,26 +208,57 @@ class TurnIntent(SensorWrapper):
         dt = now - t_then
         if dt <= 0:
             return np.zeros(len(objects))
-        back = objects[:, :2] - objects[:, 2:4] * dt  # where each object was, had it kept its velocity
-        d = np.hypot(*(back[:, None, :] - then[None, :, :2]).transpose(2, 0, 1))  # (N, M)
-        j = np.argmin(d, axis=1)
-        matched = d[np.arange(len(objects)), j] <= self.gate
-        speed = np.hypot(objects[:, 2], objects[:, 3])
-        heading = objects[:, 2:4] / np.maximum(speed, 1e-6)[:, None]
-        acc = ((objects[:, 2:4] - then[j, 2:4]) * heading).sum(axis=1) / dt
-        return np.where(matched, acc, 0.0)
+        return acceleration(objects, then, np.ones(len(then), dtype=bool), np.asarray(dt), self.gate)
 
     def measure(self) -> np.ndarray:
         return self._last.copy()
 
 
+# The models both stacks run: the per-env wrappers above call them with one env's arrays, the batched left turn
+# (av_gym/batched/left_turn.py) with a leading batch axis (tests/test_one_model.py).
+def path_conflict(p: np.ndarray, v: np.ndarray, path: np.ndarray,
+                  path_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per object (positions ``p``, velocities ``v``, (..., N, 2)): the constant-velocity closest approach to the
+    ego's ``path`` (P, 2), ``t* = clip(-(p - c)·v / |v|², 0, T)`` and ``miss = |p + v t* - c|`` for every path
+    point ``c``; returns t* (s), miss (m) and the path point's ``path_s`` (m past the stop line) at the smallest
+    miss, each (..., N). Exact ties in miss (an object driving along the exit) go to the first point."""
+    d = p[..., :, None, :] - path  # (..., N, P, 2)
+    vv = np.maximum((v * v).sum(axis=-1), 1e-6)[..., None]
+    t = np.clip(-(d * v[..., :, None, :]).sum(axis=-1) / vv, 0.0, T_MAX)  # (..., N, P)
+    q = d + v[..., :, None, :] * t[..., None]
+    miss = np.hypot(q[..., 0], q[..., 1])
+    j = np.argmin(miss, axis=-1)[..., None]
+    return np.take_along_axis(t, j, -1)[..., 0], np.take_along_axis(miss, j, -1)[..., 0], path_s[j[..., 0]]
+
+
+def acceleration(objects: np.ndarray, then: np.ndarray, then_valid: np.ndarray, dt: np.ndarray,
+                 gate: float) -> np.ndarray:
+    """Longitudinal acceleration (m/s²) of ``objects`` (..., N, 4) ``[x, y, vx, vy]`` against the objects ``then``
+    (..., K, 4) (``then_valid`` (..., K)) ``dt`` (...) s ago: the one nearest to where each object was had it kept
+    its velocity, within ``gate`` m; 0 when none."""
+    dt = np.asarray(dt, dtype=float)
+    back = objects[..., :2] - objects[..., 2:4] * dt[..., None, None]
+    d = np.hypot(back[..., :, None, 0] - then[..., None, :, 0], back[..., :, None, 1] - then[..., None, :, 1])
+    d = np.where(then_valid[..., None, :], d, np.inf)  # (..., N, K)
+    j = np.argmin(d, axis=-1)[..., None]
+    matched = np.take_along_axis(d, j, -1)[..., 0] <= gate
+    speed = np.hypot(objects[..., 2], objects[..., 3])
+    heading = objects[..., 2:4] / np.maximum(speed, 1e-6)[..., None]
+    v_then = np.take_along_axis(then[..., 2:4], j, -2)
+    acc = ((objects[..., 2:4] - v_then) * heading).sum(axis=-1) / dt[..., None]
+    return np.where(matched, acc, 0.0)
+
 
 def signals_at(objects: np.ndarray, signals: np.ndarray, gate: float) -> np.ndarray:
-    """The turn signal read on each of ``objects`` (N, ≥2) ``[x, y, ...]``: that of the nearest reading of
-    ``signals`` (``obs["signals"]`` rows ``[present, x, y, signal]``) within ``gate`` m, else 0."""
-    seen = signals[signals[:, 0] > 0]
-    if not len(seen):
-        return np.zeros(len(objects))
-    d = np.hypot(*(objects[:, None, :2] - seen[None, :, 1:3]).transpose(2, 0, 1))
-    j = np.argmin(d, axis=1)
-    return np.where(d[np.arange(len(objects)), j] <= gate, seen[j, 3], 0.0)
+    """The turn signal read on each of ``objects`` (..., N, ≥2) ``[x, y, ...]``: that of the nearest reading of
+    ``signals`` (..., S, 4) (``obs["signals"]`` rows ``[present, x, y, signal]``) within ``gate`` m, else 0."""
+    valid = signals[..., 0] > 0
+    d = np.hypot(objects[..., :, None, 0] - signals[..., None, :, 1],
+                 objects[..., :, None, 1] - signals[..., None, :, 2])
+    d = np.where(valid[..., None, :], d, np.inf)  # (..., N, S): the nearest seen reading, first on ties
+    if d.shape[-1] == 0:
+        return np.zeros(d.shape[:-1])
+    j = np.argmin(d, axis=-1)[..., None]
+    near = np.take_along_axis(d, j, -1)[..., 0] <= gate
+    read = np.take_along_axis(np.broadcast_to(signals[..., None, :, 3], d.shape), j, -1)[..., 0]
+    return np.where(near, read, 0.0)

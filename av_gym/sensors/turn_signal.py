@@ -41,6 +41,33 @@ FIELDS = ("present", "x", "y", "signal")
 BOUND = 1e4
 
 
+def node_index(node: str, prefix: str) -> int:
+    """``"o3", "o"`` → 3: the index of an intersection node with that prefix, -1 for any other node."""
+    node = str(node)
+    return int(node[len(prefix):]) if node.startswith(prefix) and node[len(prefix):].isdigit() else -1
+
+
+def route_origin(start: str, end: str) -> int:
+    """The approach ``i`` of a lane ``start → end`` on the way in (``o{i}→ir{i}``) or across (``ir{i}→il{j}``);
+    -1 on the exit road or a road this rule does not know."""
+    start, end = str(start), str(end)
+    if start.startswith("o") and end.startswith("ir"):
+        return node_index(end, "ir")
+    if start.startswith("ir") and end.startswith("il"):
+        return node_index(start, "ir")
+    return -1
+
+
+def turn_signal(origin, destination) -> np.ndarray:
+    """The indicator for a drive from approach ``origin`` to exit ``destination`` (ints or arrays of them, -1 =
+    unknown): +1 left towards ``o{(i+1) % 4}``, -1 right towards ``o{(i-1) % 4}``, 0 straight or unknown. The one
+    rule the per-env sensor, the batched stack and the shield use."""
+    origin, destination = np.asarray(origin), np.asarray(destination)
+    turn = (destination - origin) % 4
+    known = (origin >= 0) & (destination >= 0)
+    return np.where(known, np.where(turn == 1, LEFT, np.where(turn == 3, RIGHT, NONE)), NONE)
+
+
 def intended_signal(vehicle) -> float:
     """The indicator ``vehicle`` should show on highway-env's four-way intersection, from its route: +1 left, -1
     right, 0 straight, on the exit road, or off the intersection's roads (no route, e.g. a CCFtap target)."""
@@ -48,18 +75,69 @@ def intended_signal(vehicle) -> float:
     route = getattr(vehicle, "route", None)
     if not lane or not route:
         return NONE
-    start, end = str(lane[0]), str(lane[1])
-    destination = str(route[-1][1])
-    if start.startswith("o") and end.startswith("ir"):
-        origin = end[2:]
-    elif start.startswith("ir") and end.startswith("il"):
-        origin = start[2:]
-    else:  # on the exit road, or a road this rule does not know
-        return NONE
-    if not (origin.isdigit() and destination.startswith("o") and destination[1:].isdigit()):
-        return NONE
-    turn = (int(destination[1:]) - int(origin)) % 4
-    return LEFT if turn == 1 else RIGHT if turn == 3 else NONE
+    return float(turn_signal(route_origin(lane[0], lane[1]), node_index(route[-1][1], "o")))
+
+
+# The channel (module docstring) as vectorised functions of uniform draws, one implementation for the per-env
+# sensor (a batch of one), the batched stack (av_gym/batched/left_turn.py: BatchedIntent) and the shield's own
+# channel (av_gym/shields/aeb.py), whose Bayes filter (av_gym/shields/intent.py) reads the same model's likelihood
+# below. A new rate is a TurnSignalsParams field and these functions (tests/test_one_model.py).
+DRIVER_DRAWS = 2  # uniforms per driver at its first sighting: does it indicate?, the wrong side?
+
+
+def first_sighting(u: np.ndarray, p: "TurnSignalsParams") -> tuple[np.ndarray, np.ndarray]:
+    """Per driver, from ``u`` (..., DRIVER_DRAWS) uniforms: (indicates, indicates the wrong side)."""
+    u = np.asarray(u)
+    return u[..., 0] >= p.no_signal_rate, u[..., 1] < p.wrong_rate
+
+
+def reported(intended, indicates, wrong, u_seen, p: "TurnSignalsParams") -> np.ndarray:
+    """What one reading reports (+1 / -1 / 0) for drivers with ``intended`` signals and their per-driver draws,
+    ``u_seen`` a uniform per reading (seen unless below ``miss_rate``)."""
+    seen = np.asarray(u_seen) >= p.miss_rate
+    return np.where(np.asarray(indicates) & seen, np.asarray(intended) * np.where(wrong, -1.0, 1.0), NONE)
+
+
+def read_channel(u: np.ndarray, in_range: np.ndarray, new: np.ndarray, intended: np.ndarray,
+                 indicates: np.ndarray, wrong: np.ndarray, p: "TurnSignalsParams"):
+    """One reading of (n envs, N vehicles in road order) with the sensor's draw order: env after env, per vehicle
+    in range ``DRIVER_DRAWS`` uniforms if ``new`` (first sighting), then one for ``seen?``; ``u`` holds them all
+    (:func:`draws_needed` of them). ``indicates``/``wrong`` hold the earlier drivers' draws (ignored where new).
+    Returns (signal (n, N), indicates (n, N), wrong (n, N)) with the new drivers' draws filled in."""
+    width = draws_needed(in_range, new)
+    end = np.cumsum(width.ravel()).reshape(width.shape)  # one past each reading's last draw in u
+    indicates, wrong = np.array(indicates, dtype=bool), np.array(wrong, dtype=bool)
+    if new.any():
+        first = end[new] - 1 - DRIVER_DRAWS
+        indicates[new], wrong[new] = first_sighting(u[first[:, None] + np.arange(DRIVER_DRAWS)], p)
+    u_seen = np.full(in_range.shape, -np.inf)  # out of range: never seen
+    u_seen[in_range] = u[end[in_range] - 1]
+    return reported(intended, indicates, wrong, u_seen, p), indicates, wrong
+
+
+def draws_needed(in_range: np.ndarray, new: np.ndarray) -> np.ndarray:
+    """Uniforms each reading takes (:func:`read_channel`)."""
+    return np.where(in_range, 1 + DRIVER_DRAWS * new, 0)
+
+
+def channel_likelihood(reading: float, miss_rate: float) -> np.ndarray:
+    """``P(reading | turn, driver kind)`` (3 turns right/straight/left × 3 kinds right side/wrong side/never) of
+    this channel: the inverse view of :func:`first_sighting` and :func:`reported`, what a Bayes filter over a
+    driver's readings uses (av_gym/shields/intent.py)."""
+    lik = np.zeros((3, 3))
+    for i, turn in enumerate((RIGHT, NONE, LEFT)):
+        for j, shows in enumerate((turn, -turn, NONE)):  # indicates the right side, the wrong side, never
+            if shows == NONE:  # going straight shows nothing, whatever the driver
+                lik[i, j] = 1.0 if reading == NONE else 0.0
+            else:
+                lik[i, j] = (1.0 - miss_rate) if reading == shows else miss_rate if reading == NONE else 0.0
+    return lik
+
+
+def driver_kinds(p: "TurnSignalsParams") -> np.ndarray:
+    """Prior of the driver kinds (right side, wrong side, never), from the per-driver rates."""
+    return np.array([(1.0 - p.no_signal_rate) * (1.0 - p.wrong_rate), (1.0 - p.no_signal_rate) * p.wrong_rate,
+                     p.no_signal_rate])
 
 
 @dataclass(frozen=True)
@@ -103,22 +181,24 @@ class TurnSignals(SensorWrapper):
         unwrapped = self.env.unwrapped
         ego = unwrapped.vehicle
         x, y = ego_pose(self.env)[:2]
-        rows = []
-        for v in unwrapped.road.vehicles:
-            if v is ego:
-                continue
-            d = float(np.hypot(v.position[0] - x, v.position[1] - y))
-            if d > self.max_range:
-                continue
-            if v not in self._channel:  # first sighting: does this driver indicate, and the right way?
-                self._channel[v] = (self.rng.uniform() >= self.no_signal_rate, self.rng.uniform() < self.wrong_rate)
-            indicates, wrong = self._channel[v]
-            seen = self.rng.uniform() >= self.miss_rate
-            signal = intended_signal(v) * (-1.0 if wrong else 1.0) if indicates and seen else NONE
-            rows.append((d, v.position[0], v.position[1], signal))
         out = np.zeros((self.max_objects, len(FIELDS)), dtype=np.float32)
-        rows.sort(key=lambda r: r[0])
-        for k, (_, px, py, signal) in enumerate(rows[: self.max_objects]):
-            out[k] = (1.0, px, py, signal)
+        vehicles = [v for v in unwrapped.road.vehicles if v is not ego]
+        if vehicles:
+            pos = np.array([v.position for v in vehicles], dtype=float)
+            d = np.hypot(pos[:, 0] - x, pos[:, 1] - y)
+            in_range = d <= self.max_range
+            new = in_range & np.array([v not in self._channel for v in vehicles])
+            known = [self._channel.get(v, (False, False)) for v in vehicles]
+            intended = np.array([intended_signal(v) if r else NONE for v, r in zip(vehicles, in_range)])
+            n_draws = int(draws_needed(in_range, new).sum())
+            u = self.rng.uniform(size=n_draws) if n_draws else np.zeros(0)
+            signal, indicates, wrong = read_channel(u, in_range[None], new[None], intended[None],
+                                                    np.array([[k[0] for k in known]]),
+                                                    np.array([[k[1] for k in known]]), self.params)
+            for k in np.flatnonzero(new):  # the driver's draws, kept for the episode
+                self._channel[vehicles[k]] = (bool(indicates[0, k]), bool(wrong[0, k]))
+            near = np.flatnonzero(in_range)
+            near = near[np.argsort(d[near], kind="stable")][: self.max_objects]  # nearest first, road order on ties
+            out[: len(near)] = np.column_stack([np.ones(len(near)), pos[near], signal[0, near]])
         self.last = out
         return out

@@ -95,7 +95,7 @@ from av_gym.params import ParamError, Params, check, param
 from av_gym.registry import Registry
 from av_gym.sensors.base import sensor_rng
 from av_gym.sensors.detector import DetectorParams
-from av_gym.sensors.turn_signal import TurnSignalsParams, intended_signal
+from av_gym.sensors.turn_signal import DRIVER_DRAWS, TurnSignalsParams, first_sighting, intended_signal, reported
 from av_gym.shields.conflicts import ConflictModel
 from av_gym.shields.intent import DriverIntent
 from av_gym.shields.predict import (DrivenPath, LaneHypotheses, RouteTable, cruise_profile, footprint_ttc,
@@ -788,8 +788,7 @@ class ImprovedAEB(AEBShield):
         self._signal_params = p.signal_channel
         self._signal_channel: dict = {}
         self._intended_at: dict = {}  # vehicle -> (lane index, the indicator its route asks for there)
-        self._beliefs = DriverIntent(p.signal_channel.no_signal_rate, p.signal_channel.wrong_rate,
-                                     p.signal_channel.miss_rate)
+        self._beliefs = DriverIntent(p.signal_channel)
 
     def _on_reset(self, u) -> None:
         if self.target_model == "map":
@@ -831,12 +830,11 @@ class ImprovedAEB(AEBShield):
         if read:
             for v in read:
                 if v not in self._signal_channel:  # first reading: does this driver indicate, and on which side?
-                    self._signal_channel[v] = (self._signal_rng.uniform() >= sp.no_signal_rate,
-                                               self._signal_rng.uniform() < sp.wrong_rate)
-            seen = self._signal_rng.uniform(size=len(read)) >= sp.miss_rate
-            readings = [self._intended(v) * (-1.0 if self._signal_channel[v][1] else 1.0)
-                        if self._signal_channel[v][0] and s else 0.0 for v, s in zip(read, seen)]
-            self._beliefs.update(read, readings)
+                    self._signal_channel[v] = first_sighting(self._signal_rng.uniform(size=DRIVER_DRAWS), sp)
+            u_seen = self._signal_rng.uniform(size=len(read))
+            channel = np.array([self._signal_channel[v] for v in read], dtype=bool).reshape(-1, 2)
+            readings = reported([self._intended(v) for v in read], channel[:, 0], channel[:, 1], u_seen, sp)
+            self._beliefs.update(read, readings.tolist())
         return self._beliefs.turn_weights(drivers)
 
     def _intended(self, vehicle) -> float:

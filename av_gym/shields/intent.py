@@ -23,24 +23,17 @@ from collections.abc import Hashable, Sequence
 
 import numpy as np
 
+from av_gym.sensors.turn_signal import TurnSignalsParams, channel_likelihood, driver_kinds
+
 TURNS = (-1.0, 0.0, 1.0)
 """The order of the turn axis in every array here: right, straight, left."""
 
 
 def reading_likelihood(reading: float, miss_rate: float, floor: float) -> np.ndarray:
     """``P(reading | T, D)`` (3 turns × 3 driver kinds) for one indicator reading (+1 left, -1 right, 0 none
-    seen), each entry at least ``floor``."""
-    lik = np.zeros((3, 3))
-    for i, turn in enumerate(TURNS):
-        if turn == 0.0:  # going straight: no indicator, whatever the driver
-            lik[i, :] = 1.0 if reading == 0.0 else 0.0
-            continue
-        for j, shows in enumerate((turn, -turn, 0.0)):  # right side, wrong side, never
-            if shows == 0.0:
-                lik[i, j] = 1.0 if reading == 0.0 else 0.0
-            else:
-                lik[i, j] = (1.0 - miss_rate) if reading == shows else miss_rate if reading == 0.0 else 0.0
-    return np.maximum(lik, floor)
+    seen): the channel's own likelihood (:func:`av_gym.sensors.turn_signal.channel_likelihood`, beside the model
+    that draws the readings), each entry at least ``floor``."""
+    return np.maximum(channel_likelihood(reading, miss_rate), floor)
 
 
 class DriverIntent:
@@ -55,11 +48,10 @@ class DriverIntent:
     ~12 small numpy calls per driver cost more than the rest of the indicator path (docs/aeb.md);
     ``tests/test_conflicts.py`` checks the result against filterpy's update reading by reading."""
 
-    def __init__(self, no_signal_rate: float, wrong_rate: float, miss_rate: float, floor: float = 0.02) -> None:
-        kinds = np.array([(1.0 - no_signal_rate) * (1.0 - wrong_rate), (1.0 - no_signal_rate) * wrong_rate,
-                          no_signal_rate])
-        self.prior = np.outer(np.full(3, 1.0 / 3.0), kinds).ravel()  # P(T, D): turn uniform, kind from the channel
-        self.likelihood = np.stack([reading_likelihood(r, miss_rate, floor).ravel() for r in TURNS])  # row: reading
+    def __init__(self, channel: TurnSignalsParams, floor: float = 0.02) -> None:
+        # P(T, D): turn uniform, kind from the channel's per-driver rates
+        self.prior = np.outer(np.full(3, 1.0 / 3.0), driver_kinds(channel)).ravel()
+        self.likelihood = np.stack([reading_likelihood(r, channel.miss_rate, floor).ravel() for r in TURNS])
         self.floor = floor
         with np.errstate(divide="ignore"):  # a kind the channel rules out (rate 0) has log prior -inf
             self._log_prior = np.log(self.prior)
