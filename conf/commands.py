@@ -18,7 +18,7 @@ PROCESSES_MAX = 64
 class TrainOptions(Params):
     """``train.*``: checkpoints, the evaluations during and after training, progress."""
 
-    checkpoint_every: int = param(8000, "env steps", ge=1, doc="between atomic checkpoints (latest.zip + latest.rng)")
+    checkpoint_every: int = param(8000, "env steps", ge=1, doc="between atomic checkpoints (latest.zip, RNG states inside)")
     resume: bool = param(False, doc="continue checkpoints/<run_name>/latest.zip to the same total steps (the "
                                     "run's config.yaml must match this one)")
     overwrite: bool = param(False, doc="a run_name whose checkpoints/ or runs/ folder exists is refused unless "

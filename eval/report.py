@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import csv
+import io
 from collections.abc import Mapping
 from pathlib import Path
 
+from av_gym.atomic import write_texts_atomic
 from av_gym.metrics import aggregate, format_ci, kind_of, markdown_table
 
 HEADLINE = {
@@ -65,15 +67,16 @@ def write_results(rows: list[dict], out_dir: str | Path, scenario: str, title: s
     if split is not None:  # every row says which seed split it came from (av_gym/seeds.py)
         rows = [{**r, "split": split} for r in rows]
     columns = list(dict.fromkeys(k for r in rows for k in r))
-    with open(out / "results.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=columns)
-        writer.writeheader()
-        writer.writerows(rows)
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, fieldnames=columns)
+    writer.writeheader()
+    writer.writerows(rows)
     table = summary_table(rows, scenario)
-    (out / "results.md").write_text(f"# {title}\n\nMean with 95% confidence interval over episodes, by each metric's "
-                                    f"declared kind (av_gym/metrics/kinds.py): Wilson for rates, a seeded bootstrap "
-                                    f"for counts, durations and other non-negative quantities, Student t for signed "
-                                    f"ones.\n\n{table}\n"
-                                    + (f"\n{checkpoints_section(checkpoints)}" if checkpoints else "")
-                                    + (f"\n{sensors_section(sensors)}" if sensors else ""))
+    summary = (f"# {title}\n\nMean with 95% confidence interval over episodes, by each metric's declared kind "
+               f"(av_gym/metrics/kinds.py): Wilson for rates, a seeded bootstrap for counts, durations and other "
+               f"non-negative quantities, Student t for signed ones.\n\n{table}\n"
+               + (f"\n{checkpoints_section(checkpoints)}" if checkpoints else "")
+               + (f"\n{sensors_section(sensors)}" if sensors else ""))
+    # both files replaced together or neither (a full disk used to leave results.csv torn, results.md stale)
+    write_texts_atomic({out / "results.csv": text.getvalue(), out / "results.md": summary}, field="out_dir")
     return table

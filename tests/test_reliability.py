@@ -202,3 +202,114 @@ def test_train_twice_refuses_then_overwrite_replaces(tmp_path):
     assert third.returncode == 0, third.stderr[-2000:]
     assert b"duration: 30" in (tmp_path / "checkpoints" / "R" / "config.yaml").read_bytes()
     assert not list((tmp_path / "checkpoints").rglob(".lock"))
+
+
+# ------------------------------------------------------------------------------- rows 9, 10: a full disk tears nothing
+def no_space(*_args, **_kw):
+    import errno
+
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+class HalfWritten:
+    """A file whose writes put half their text on disk, then fail as a full disk does."""
+
+    def __init__(self, f):
+        self.f = f
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.f.close()
+
+    def write(self, text):
+        self.f.write(text[: len(text) // 2])
+        self.f.flush()
+        no_space()
+
+    def __getattr__(self, name):
+        return getattr(self.f, name)
+
+
+def fill_the_disk(monkeypatch, how: str) -> None:
+    """``fsync``: the data cannot be flushed; ``write``: half of it reaches the file, then ENOSPC."""
+    import builtins
+
+    import av_gym.atomic
+
+    if how == "fsync":
+        monkeypatch.setattr(av_gym.atomic.os, "fsync", no_space)
+    else:
+        monkeypatch.setattr(av_gym.atomic, "open", lambda *a, **k: HalfWritten(builtins.open(*a, **k)),
+                            raising=False)
+
+
+def rows(n: int, value: float = 0.0) -> list[dict]:
+    return [{"agent": "a", "seed": i, "collision": i % 2, "success": 1 - i % 2, "return": value + i} for i in range(n)]
+
+
+@pytest.mark.parametrize("how", ["fsync", "write"])
+def test_results_on_a_full_disk_stay_whole(how, tmp_path, monkeypatch, capsys):
+    """Row 10: results.csv was torn at row 10 of 20 and results.md stale; now both stay as they were, no temporary
+    file is left, and the command says so in one line."""
+    from av_gym.errors import run_cli
+    from eval.report import write_results
+
+    write_results(rows(10), tmp_path, "left_turn", "first")
+    before = snapshot(tmp_path)
+    fill_the_disk(monkeypatch, how)
+    with pytest.raises(SystemExit) as exit_:
+        run_cli(write_results, rows(20, 5.0), tmp_path, "left_turn", "second")
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exit_.value.code == 2 and len(err) == 1, err
+    assert err[0].startswith("error: out_dir: cannot write ") and "No space left on device" in err[0], err
+    assert "previous versions are intact" in err[0]
+    assert snapshot(tmp_path) == before  # the same two files, byte for byte: nothing torn, nothing left over
+
+
+@pytest.fixture(scope="module")
+def tiny_ppo():
+    """A small SB3 PPO (CartPole): what a checkpoint holds is the same whatever the env."""
+    import gymnasium as gym
+    from stable_baselines3 import PPO
+
+    return PPO("MlpPolicy", gym.make("CartPole-v1"), n_steps=64, batch_size=32, seed=0, device="cpu")
+
+
+@pytest.mark.parametrize("how", ["fsync", "write", "save"])
+def test_a_checkpoint_on_a_full_disk_keeps_the_last_pair(how, tiny_ppo, tmp_path, monkeypatch):
+    """Row 9: latest.rng was replaced while latest.zip was not. The RNG states now live inside latest.zip (one
+    file, one rename); a failed save leaves the previous zip, with its own states, and no temporary file."""
+    import pickle
+    import zipfile
+
+    from av_gym.atomic import WriteFailed
+    from train.callbacks import AtomicCheckpointCallback
+    from train.checkpoint import RNG_MEMBER, load_rng_state
+
+    callback = AtomicCheckpointCallback(tmp_path, every=1)
+    callback.init_callback(tiny_ppo)
+    callback._boundary = 64
+    callback.save()
+    before = snapshot(tmp_path)
+    with zipfile.ZipFile(tmp_path / "latest.zip") as z:
+        state = pickle.loads(z.read(RNG_MEMBER))
+    assert set(state) >= {"python", "numpy", "torch", "logger"}
+    if how == "save":  # SB3's own write fails half-way
+
+        def save(self, path, *a, **k):
+            Path(path).write_bytes(b"PK\x03\x04 half a zip")
+            no_space()
+        monkeypatch.setattr(type(tiny_ppo), "save", save)
+    else:
+        fill_the_disk(monkeypatch, how)
+        if how == "write":  # the zip member is added through zipfile's own open: fail there too
+            monkeypatch.setattr(zipfile.ZipFile, "writestr", lambda *a, **k: no_space())
+    callback._boundary = 128
+    with pytest.raises(WriteFailed, match=r"paths.checkpoints: cannot write .*latest.zip: No space left on device "
+                                          r"\(the previous version is intact\)"):
+        callback.save()
+    monkeypatch.undo()
+    assert snapshot(tmp_path) == before
+    assert load_rng_state(tmp_path / "latest.zip")["numpy"][1].tolist() == state["numpy"][1].tolist()

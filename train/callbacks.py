@@ -42,8 +42,7 @@ class EpisodeMetricsCallback(BaseCallback):
 
 class AtomicCheckpointCallback(BaseCallback):
     """Checkpoints at rollout boundaries, at least ``every`` env steps apart: ``latest.zip`` (policy, optimizer,
-    step counter) and ``latest.rng`` (RNG states and the logger values not yet written to TensorBoard), both
-    atomically. At a boundary the parameters, the step counter and the pending log values are consistent, so a
+    step counter, and inside it the RNG states and the logger values not yet written to TensorBoard), atomically. At a boundary the parameters, the step counter and the pending log values are consistent, so a
     resumed run repeats no update and loses no TensorBoard point.
 
     :meth:`save` may also be called mid-rollout (on SIGINT/SIGTERM): parameters do not change while a rollout is
@@ -71,13 +70,15 @@ class AtomicCheckpointCallback(BaseCallback):
         return True
 
     def save(self) -> None:
-        from train.checkpoint import save_model_atomic, save_rng_state
+        from train.checkpoint import save_model_atomic
 
         steps = self.model.num_timesteps
         self.model.num_timesteps = self._boundary
-        try:
-            save_rng_state(self.folder / "latest.rng", extra={"logger": self._pending})
-            save_model_atomic(self.model, self.folder / "latest.zip")
+        try:  # the RNG states inside latest.zip: one file, replaced at once (a pair of files could tear)
+            save_model_atomic(self.model, self.folder / "latest.zip", rng_extra={"logger": self._pending})
+            stale = self.folder / "latest.rng"  # an older run's: the zip's own states win, and it would mislead
+            if stale.exists():
+                stale.unlink()
         finally:
             self.model.num_timesteps = steps
         self._last_save = self._boundary

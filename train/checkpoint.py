@@ -1,62 +1,71 @@
-"""Atomic checkpoint writes: write a temporary file beside the target, flush it to disk, then rename over the
-target. A crash at any point leaves either the old complete file or the new complete file, never a torn one."""
+"""Atomic checkpoint writes (av_gym/atomic.py): a temporary file beside the target, flushed, renamed over it. A
+crash or a full disk at any point leaves the old complete file or the new one, never a torn one, and no temporary
+file.
+
+``latest.zip`` carries its RNG states inside (member ``av_gym_rng.pkl``, which SB3's loader ignores): the policy
+and the random streams it continues with are one file, replaced together (issue 31: a full disk replaced
+``latest.rng`` while ``latest.zip`` stayed old, a pair that no longer matched)."""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any
+
+from av_gym.atomic import atomic_path
+from av_gym.atomic import write_text_atomic as _write_text_atomic
 
 # Reading checkpoints (check_sb3_zip, load_sb3, read_config_yaml) is agents/checkpoint.py: the evaluation needs it
 # and must not import train.
 
-
-def _fsync_replace(tmp: Path, path: Path) -> None:
-    with open(tmp, "rb") as f:
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+RNG_MEMBER = "av_gym_rng.pkl"
+FIELD = "paths.checkpoints"
 
 
-def save_model_atomic(model: Any, path: str | Path) -> Path:
-    """``model.save`` (SB3) to ``path`` (a .zip) atomically."""
+def rng_state(extra: dict | None = None) -> dict:
+    """Python, NumPy and torch global RNG states, plus ``extra``."""
+    import random
+
+    import numpy as np
+    import torch
+
+    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
+            **(extra or {})}
+
+
+def save_model_atomic(model: Any, path: str | Path, rng_extra: dict | None = None, with_rng: bool = False) -> Path:
+    """``model.save`` (SB3) to ``path`` (a .zip) atomically; with ``with_rng`` (or ``rng_extra``), the RNG states
+    (and ``rng_extra``) inside the same zip, so that both are replaced at once."""
+    import pickle
+    import zipfile
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp")
-    model.save(str(tmp))
-    _fsync_replace(tmp, path)
+    with atomic_path(path, FIELD) as tmp:
+        model.save(str(tmp))
+        if with_rng or rng_extra is not None:
+            with zipfile.ZipFile(tmp, "a") as z:
+                z.writestr(RNG_MEMBER, pickle.dumps(rng_state(rng_extra)))
     return path
 
 
 def write_text_atomic(path: str | Path, text: str) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    _fsync_replace(tmp, path)
-    return path
+    """A text file beside the checkpoints (config.yaml, best.json ...), atomically."""
+    return _write_text_atomic(path, text, FIELD)
 
 
 def save_rng_state(path: str | Path, extra: dict | None = None) -> Path:
-    """Python, NumPy and torch global RNG states (plus ``extra``), written atomically (a pickle: our own file,
-    loaded only on resume)."""
+    """The RNG states (plus ``extra``) as a file of their own, atomically (a pickle: our own file, loaded only on
+    resume). Checkpoints keep them inside latest.zip instead (:func:`save_model_atomic`)."""
     import pickle
-    import random
-
-    import numpy as np
-    import torch
 
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    state = {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
-             **(extra or {})}
-    with open(tmp, "wb") as f:
-        pickle.dump(state, f)
-    _fsync_replace(tmp, path)
+    with atomic_path(path, FIELD) as tmp:
+        tmp.write_bytes(pickle.dumps(rng_state(extra)))
     return path
 
 
 def load_rng_state(path: str | Path) -> dict:
-    """Restore the RNG states :func:`save_rng_state` wrote and return the whole record ({} if no file)."""
+    """Restore the RNG states saved in checkpoint ``path`` (a .zip; else its .rng sibling, as older runs wrote) or
+    in file ``path`` (:func:`save_rng_state`), and return the whole record ({} if there are none)."""
     import pickle
     import random
 
@@ -64,10 +73,19 @@ def load_rng_state(path: str | Path) -> dict:
     import torch
 
     path = Path(path)
-    if not path.is_file():
-        return {}
-    with open(path, "rb") as f:
-        state = pickle.load(f)
+    state = None
+    if path.suffix == ".zip" and path.is_file():
+        import zipfile
+
+        with zipfile.ZipFile(path) as z:
+            if RNG_MEMBER in z.namelist():
+                state = pickle.loads(z.read(RNG_MEMBER))
+        path = path.with_suffix(".rng")  # a checkpoint written before the states moved inside the zip
+    if state is None:
+        if not path.is_file():
+            return {}
+        with open(path, "rb") as f:
+            state = pickle.load(f)
     random.setstate(state["python"])
     np.random.set_state(state["numpy"])
     torch.set_rng_state(state["torch"])

@@ -359,7 +359,7 @@ def resume_model(latest: Path, venv, params) -> tuple[Any, dict]:
         model = PPO.load(str(latest), env=venv, device=params.device)
     except ValueError as exc:  # SB3's check that the spaces match the env
         raise ConfigError(f"checkpoint {latest} does not fit this env/sensors config: {exc}") from None
-    saved = load_rng_state(latest.with_name("latest.rng"))
+    saved = load_rng_state(latest)  # inside the zip (older runs: latest.rng beside it)
     print(f"[train] resuming {latest} at {model.num_timesteps} of {params.total_timesteps} env steps")
     return model, saved
 
