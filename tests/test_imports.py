@@ -16,7 +16,7 @@ PACKAGES = ("av_gym", "agents", "conf", "train", "eval")
 # package's __init__ (the Gymnasium ids). Units on one floor do not import each other.
 FLOORS = {
     "av_gym": 0, "av_gym.errors": 0, "av_gym.geometry": 0,      # no av_gym imports but errors
-    "av_gym.params": 1, "av_gym.registry": 1, "av_gym.metrics": 1, "av_gym.atomic": 1,
+    "av_gym.params": 1, "av_gym.registry": 1, "av_gym.metrics": 1, "av_gym.atomic": 1, "av_gym.seeds": 1,
     "av_gym.sim": 2,                                            # the simulator (highway-env fast paths, batched traffic)
     "av_gym.sensors": 3,                                        # sensor models, wrappers over any env
     "av_gym.estimation": 4,                                     # EKF, tracker, features from sensor readings
