@@ -321,7 +321,8 @@ def test_painting_only_the_band_the_quads_cover_gives_the_same_pixels(env_id):
     # The band shortcut must be exact: nearest enlargement and 2x2 area averaging work block by block.
     import cv2
 
-    from av_gym.sensors.camera import _draw_rig_ground, _render_rig, ground_texture, others_state
+    from av_gym.sensors.camera import ground_texture
+    from av_gym.sensors.camera_render import _draw_rig_ground, _render_rig, others_state
 
     drawn = 0
     for env in _drive(env_id, 25, seed=5):

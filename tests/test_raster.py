@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from av_gym.sensors import raster
-from av_gym.sensors.camera import NEAR_PLANE, _clip_near, _SHIFT
+from av_gym.sensors.camera_render import _clip_near
+from av_gym.sensors.camera_scene import _SHIFT, NEAR_PLANE
 
 
 def _random_polygon(rng, t, h, w):
@@ -75,7 +76,7 @@ def test_enlarge_and_shrink_are_opencvs(ss):
 
 
 def test_quads_straddling_the_near_plane_are_clipped_as_the_numpy_clip():
-    """project_rig's Sutherland-Hodgman clip gives the corners camera._clip_near gives, projected the same way."""
+    """project_rig's Sutherland-Hodgman clip gives the corners camera_render._clip_near gives, projected the same way."""
     rng = np.random.default_rng(3)
     n = 400
     fa = rng.uniform(-2, 6, (n, 4))  # forward (m): many quads cross the lens plane

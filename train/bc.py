@@ -272,7 +272,8 @@ class WeatherMaps:
 
     @classmethod
     def for_camera(cls, camera_cfg: dict, crop_top: int) -> WeatherMaps:
-        from av_gym.sensors.camera import CameraSpec, _ground_rays
+        from av_gym.sensors.camera import CameraSpec
+        from av_gym.sensors.camera_render import _ground_rays
 
         keys = ("height", "width", "hfov_deg", "mount_height", "pitch_deg", "forward_offset", "max_range",
                 "supersample")

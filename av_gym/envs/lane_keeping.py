@@ -87,21 +87,9 @@ class LaneKeepingLapEnv(ScenarioMixin, AbstractEnv):
     @classmethod
     def default_config(cls) -> dict:
         config = super().default_config()
-        config.update({
-            "track": "A",  # layout name, see av_gym.envs.track.LAYOUTS ("A" training, "B" held out)
-            "lane_width": 4.0,  # m, highway-env's default lane width
-            "target_speed": 10.0,  # m/s, held by SpeedHeldVehicle's controller
-            "max_steering": float(np.radians(25.0)),  # rad, action ±1 maps to this (Udacity's ±25°, digest 001)
-            "simulation_frequency": 20,  # Hz
-            "policy_frequency": 10,  # Hz
-            "offroad_margin": 1.0,  # m beyond the lane edge at which the car has left the road (half a car width)
+        config.update({  # what LaneKeepingParams does not hold; every other key comes from it, below
             "offroad_reward": -10.0,
-            "time_limit": None,  # s; None = twice the nominal lap time
             "start_s": 0.0,  # m along the lap where the car starts
-            # Seeded start perturbation, so seeds give different laps even without sensor noise (our choice):
-            "initial_lateral_std": 0.2,  # m, normal, clipped at ±3 std
-            "initial_heading_std": 0.02,  # rad, normal, clipped at ±3 std
-            "fast": True,  # av_gym.sim fast paths (same results, tested); False = highway-env's own code
             "screen_width": 600,
             "screen_height": 600,
             "centering_position": [0.5, 0.5],

@@ -149,21 +149,9 @@ class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
     @classmethod
     def default_config(cls) -> dict:
         config = super().default_config()
-        config.update({
-            "mode": "traffic",
-            "action": {"type": "discrete", "target_speeds": [0.0, 4.5, 9.0], "acceleration_range": [-8.0, 3.0]},
-            "simulation_frequency": 20,  # Hz
-            "policy_frequency": 10,  # Hz: a safety shield must be able to decide every 0.1 s (digest 003 §9.2)
-            "duration": 13.0,  # s (traffic); ccftap computes its own limit
-            "spawn_probability": 0.6,  # expected new vehicles per second, as stock highway-env at its 1 Hz policy rate
+        config.update({  # what LeftTurnParams does not hold; every other key comes from it, below
             "ttc_horizon": 5.0,  # s, horizon of the constant-velocity TTC reported in truth
-            "ccftap_ego_speed": 15 / 3.6,  # m/s
-            "ccftap_target_speed": 45 / 3.6,  # m/s
-            "ccftap_dt": 0.0,  # s, target reaches the conflict point this long after the ego (0 = they meet)
             "ccftap_lead_time": 5.0,  # s, the ego starts this long (at its speed) before the stop line, >= 25 m
-            "progress_reward": 0.0,  # total over the route to the arrival point
-            "comfort_reward": 0.0,  # per second at 3 m/s² of acceleration or braking (quadratic)
-            "fast": True,  # av_gym.sim fast paths (same results, tested); False = highway-env's own code
         })
         config.update(LeftTurnParams().env_config())  # the harness's task (issue 20); STOCK_CONFIG = highway-env's
         return config

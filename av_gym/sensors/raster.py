@@ -216,7 +216,7 @@ def _fill_convex(img, depth, vx, vy, npts, colour, d, shift, use_depth):
             break
 
 
-# Columns of the per-camera parameter rows handed to :func:`project_rig` (built in ``camera._render_rig``).
+# Columns of the per-camera parameter rows handed to :func:`project_rig` (built in ``camera_render._render_rig``).
 FO, LAT, YAW, MOUNT, PITCH, FOCAL, WIDTH, HEIGHT, SS, RANGE, CAM_X, CAM_Y, ROOFS = range(13)
 
 
@@ -287,7 +287,7 @@ def project_rig(fa, fb, fz, keys, kind, normals, nm, cams, near, shift, shared):
                         polys[k, i, j, 1] = np.int64(np.rint((cy + f * Y[j] / Z[j]) * scale))
                 npts[k, i] = 4
                 continue
-            m = 0  # Sutherland-Hodgman against Z >= near, as camera._clip_near
+            m = 0  # Sutherland-Hodgman against Z >= near, as camera_render._clip_near
             for j in range(4):
                 q = (j + 1) % 4
                 p_in, q_in = Z[j] >= near, Z[q] >= near
@@ -413,8 +413,11 @@ def rig_quads(ends, centre, radius, z0s, z1s, scenery_colour, nw, pose, fo, moun
     """Every vertical quad a rig may see, in the vehicle frame and far to near (the painter's order): the
     roadside scenery culled by bounding circle, and all faces of the other vehicles' boxes.
 
-    Scenery (the cached per-map arrays of ``camera._scenery_state``): ``ends`` (Pw, 4) wall pieces' ends A, B
-    (world x, y); ``centre`` (P, 2), ``radius`` (P,) bounding circles of walls then posts (cylinders, tree crowns
+    Flat arguments because a numba kernel takes arrays and scalars; callers use ``camera_render.rig_quads(scenery,
+    view, others)`` with the two dataclasses ``camera_scene.RigScenery`` and ``camera_render.RigView``.
+
+    Scenery (``RigScenery``, built once per scene): ``ends`` (Pw, 4) wall pieces' ends A, B (world x, y);
+    ``centre`` (P, 2), ``radius`` (P,) bounding circles of walls then posts (cylinders, tree crowns
     after their trunks); ``z0s``/``z1s`` (P,) bottom/top heights (m); ``scenery_colour`` (P, 4) RGBA. Each item is
     dropped when no part can be within ``reach`` m of the rig centre (the lens position of the base camera,
     ``fo`` m ahead of the vehicle centre at ``mount`` m, ``pitch`` rad down) and, for a windshield rig (``side``:
