@@ -12,12 +12,14 @@ class ConfigError(ValueError):
 
 def run_cli(fn, *args, hydra_run_dir: bool = False) -> None:
     """Run a command-line entry point: a :class:`ConfigError` becomes one line on stderr and exit status 2;
-    Ctrl-C / SIGTERM exit with 130 (whatever needed saving was saved by the code that was interrupted).
+    Ctrl-C / SIGTERM exit with 130 (SIGTERM is raised as KeyboardInterrupt: whatever needed saving was saved by the
+    code that was interrupted).
 
     ``hydra_run_dir``: ``fn`` runs as a Hydra job, whose folder Hydra made before ``fn`` could check anything; on a
     ConfigError it is removed again when it holds nothing but what Hydra wrote (see :func:`discard_hydra_run_dir`)."""
     import sys
 
+    interrupt_on_sigterm()
     try:
         fn(*args)
     except ConfigError as exc:
@@ -27,6 +29,23 @@ def run_cli(fn, *args, hydra_run_dir: bool = False) -> None:
         sys.exit(2)
     except KeyboardInterrupt:
         sys.exit(130)
+
+
+def interrupt_on_sigterm() -> None:
+    """SIGTERM (``kill PID``, ``timeout``, a scheduler's end of job) raises KeyboardInterrupt, as Ctrl-C does, so
+    that what the code keeps on Ctrl-C (measured episodes, a checkpoint) is kept on SIGTERM too; it used to end the
+    process at once (rc 143, the episodes lost). Only where SIGTERM still has its default action, in the main
+    thread (a handler set by the code, e.g. training's, is left alone)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread() and \
+            signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
+        signal.signal(signal.SIGTERM, _raise_interrupt)
+
+
+def _raise_interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
 
 
 def discard_hydra_run_dir() -> bool:

@@ -71,8 +71,43 @@ class EpisodeJob:
 _WORKER: dict = {}
 
 
+def guard_worker() -> None:
+    """In a worker process (an evaluation pool's, a SubprocVecEnv's): end with the parent, and leave Ctrl-C to it.
+
+    - Ctrl-C in a terminal sends SIGINT to the whole process group: every worker used to print its own
+      KeyboardInterrupt traceback (74 lines for 2 workers, issue 31). Workers ignore it; the parent, interrupted,
+      stops the pool and writes what it measured.
+    - A parent killed outright (``kill -9``, the OOM killer) used to leave its workers running as orphans, ~180 MB
+      each. Linux's ``prctl(PR_SET_PDEATHSIG, SIGKILL)`` has the kernel kill this process when its parent dies;
+      if the parent died before the call, this process exits now. Elsewhere (no prctl) the parent's own clean-up
+      on SIGINT/SIGTERM still ends them.
+
+    A no-op in the main process: only processes started by ``multiprocessing`` are workers."""
+    import multiprocessing
+    import os
+    import signal
+
+    parent = multiprocessing.parent_process()
+    if parent is None:
+        return
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+            libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        except (OSError, AttributeError):  # no libc symbol: the parent's clean-up is all there is
+            return
+        if os.getppid() != parent.pid:  # the parent died before prctl took effect
+            os._exit(1)
+
+
 def _init_worker(job: EpisodeJob) -> None:
     from av_gym.make import make_env
+
+    guard_worker()
     from eval.agents import resolve_agent
 
     env = make_env(job.env, job.sensors, job.shield)
@@ -107,13 +142,29 @@ def run_episodes_parallel(job: EpisodeJob, seeds: Iterable[int], n_envs: int, pr
         # A bounded window of episodes in flight, not one future per seed up front (pool.map submits them all:
         # episodes=10**12 would exhaust memory before the first ran). Rows come back in seed order.
         it = iter(seeds)
-        pending = deque((int(s), pool.submit(_run_one, int(s))) for s in islice(it, 4 * workers))
-        while pending:
-            seed, future = pending.popleft()
-            rows.append({"agent": job.label, "episode": len(rows), "seed": seed, **future.result()})
-            if out is not None:
-                out.append(rows[-1])
-            bar.update()
-            for s in islice(it, 1):
-                pending.append((int(s), pool.submit(_run_one, int(s))))
+        try:
+            pending = deque((int(s), pool.submit(_run_one, int(s))) for s in islice(it, 4 * workers))
+            while pending:
+                seed, future = pending.popleft()
+                rows.append({"agent": job.label, "episode": len(rows), "seed": seed, **future.result()})
+                if out is not None:
+                    out.append(rows[-1])
+                bar.update()
+                for s in islice(it, 1):
+                    pending.append((int(s), pool.submit(_run_one, int(s))))
+        except BaseException:  # Ctrl-C, SIGTERM, a failed episode: stop the workers now, not after the queue
+            _stop(pool)
+            raise
     return rows
+
+
+def _stop(pool) -> None:
+    """Cancel what is queued and end the workers at once (the pool's shutdown would let every running episode,
+    and with ``wait=True`` every queued one, finish first)."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())  # no public handle on the workers
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        if process.is_alive():
+            process.terminate()
+    for process in processes:
+        process.join(timeout=5)

@@ -313,3 +313,151 @@ def test_a_checkpoint_on_a_full_disk_keeps_the_last_pair(how, tiny_ppo, tmp_path
     monkeypatch.undo()
     assert snapshot(tmp_path) == before
     assert load_rng_state(tmp_path / "latest.zip")["numpy"][1].tolist() == state["numpy"][1].tolist()
+
+
+# ---------------------------------------------------------------------------- rows 6, 11: signals and worker processes
+def children(pid: int) -> set[int]:
+    """Every descendant process of ``pid`` (Linux /proc)."""
+    found, todo = set(), [pid]
+    while todo:
+        parent = todo.pop()
+        for task in Path(f"/proc/{parent}/task").glob("*"):
+            try:
+                kids = {int(k) for k in (task / "children").read_text().split()}
+            except OSError:
+                continue
+            todo += list(kids - found)
+            found |= kids
+    return found
+
+
+def alive(pids: set[int]) -> set[int]:
+    out = set()
+    for pid in pids:
+        try:
+            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except OSError:
+            continue
+        if state != "Z":
+            out.add(pid)
+    return out
+
+
+class Eval:
+    """``python -m eval`` with 2 worker processes on a run that does not end, started and waited for until its
+    progress bar shows ``episodes`` measured; its stderr is read as it comes (``err()``: without the bar)."""
+
+    EVAL = ["-m", "eval", "agents=[always_proceed]", "episodes=100000", "n_envs=2", "progress_bar=true", "out_dir=out"]
+
+    def __init__(self, tmp_path: Path, episodes: int = 4, argv: list[str] = EVAL, total: int = 100000):
+        import re
+        import threading
+        import time
+
+        env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+        self.total = total
+        self.proc = subprocess.Popen([sys.executable, *argv], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True)
+        self.chunks: list[str] = []
+        reader = threading.Thread(target=self._read, daemon=True)
+        reader.start()
+        deadline = time.time() + 150
+        while time.time() < deadline:
+            done = [int(n) for n in re.findall(rf"\| *(\d+)/{total}", "".join(self.chunks))]
+            if done and max(done) >= episodes:
+                break
+            assert self.proc.poll() is None, self.err()
+            time.sleep(0.2)
+        self.workers = children(self.proc.pid)
+        assert len(self.workers) >= 2, self.workers
+
+    def _read(self) -> None:
+        while True:
+            chunk = self.proc.stderr.read(1)
+            if not chunk:
+                return
+            self.chunks.append(chunk)
+
+    def err(self) -> str:
+        """stderr without the progress bar's redraws."""
+        text = "".join(self.chunks).replace("\r", "\n")
+        return "\n".join(line for line in text.splitlines() if line.strip() and f"/{self.total}" not in line)
+
+    def wait(self) -> int:
+        self.proc.stdout.read()
+        rc = self.proc.wait(timeout=60)
+        import time
+
+        time.sleep(0.5)  # the reader's last bytes
+        return rc
+
+
+@pytest.mark.slow  # an evaluation with 2 worker processes, ~15-20 s
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc and PR_SET_PDEATHSIG: Linux")
+def test_sigterm_keeps_the_episodes_and_ends_the_workers(tmp_path):
+    """Row 6: SIGTERM (kill, timeout) used to end eval at once, rc 143, out_dir empty, workers orphaned."""
+    import signal
+
+    run_ = Eval(tmp_path)
+    run_.proc.send_signal(signal.SIGTERM)
+    rc, err = run_.wait(), run_.err()
+    assert rc == 130, err[-3000:]
+    assert "Traceback" not in err and "interrupted: the" in err, err[-3000:]
+    lines = (tmp_path / "out" / "results.csv").read_text().splitlines()
+    assert len(lines) > 4 and "(interrupted after" in (tmp_path / "out" / "results.md").read_text()
+    assert not alive(run_.workers)
+
+
+@pytest.mark.slow  # an evaluation with 2 worker processes, ~15-20 s
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc and PR_SET_PDEATHSIG: Linux")
+def test_workers_die_with_a_killed_parent(tmp_path):
+    """Row 6: after kill -9 of eval, its workers and the resource tracker lived on (~180 MB each)."""
+    import signal
+    import time
+
+    run_ = Eval(tmp_path, episodes=1)
+    assert len(run_.workers) >= 3  # 2 workers and multiprocessing's resource tracker
+    run_.proc.send_signal(signal.SIGKILL)
+    run_.wait()
+    deadline = time.time() + 20
+    while alive(run_.workers) and time.time() < deadline:
+        time.sleep(0.2)
+    assert not alive(run_.workers)
+
+
+@pytest.mark.slow  # an evaluation with 2 worker processes, ~15-20 s
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="process groups and /proc: Linux")
+def test_ctrl_c_to_the_process_group_is_one_line_not_worker_tracebacks(tmp_path):
+    """Row 11: Ctrl-C reaches every process of the terminal's group; each worker printed its own traceback."""
+    import signal
+
+    run_ = Eval(tmp_path)
+    for pid in {run_.proc.pid, *run_.workers}:  # what a terminal's Ctrl-C does: SIGINT to the whole foreground group
+        try:
+            os.kill(pid, signal.SIGINT)
+        except ProcessLookupError:
+            pass
+    rc, err = run_.wait(), run_.err()
+    assert rc == 130 and "Traceback" not in err and "KeyboardInterrupt" not in err, err[-3000:]
+    assert len(err.splitlines()) == 1 and "interrupted: the" in err, err
+    assert (tmp_path / "out" / "results.csv").is_file() and not alive(run_.workers)
+
+
+@pytest.mark.slow  # python -m train of a rule-based agent, its brief evaluation on 2 worker processes, ~20 s
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="process groups and /proc: Linux")
+def test_ctrl_c_during_trains_brief_evaluation_is_one_line_and_keeps_its_rows(tmp_path):
+    """Row 11: 74 stderr lines of worker tracebacks, and the brief evaluation's rows were not written."""
+    import signal
+
+    run_ = Eval(tmp_path, argv=["-m", "train", "agent=always_proceed", "train.eval_episodes=1000",
+                                "train.eval_n_envs=2", "run_name=R"], total=1000)
+    for pid in {run_.proc.pid, *run_.workers}:
+        try:
+            os.kill(pid, signal.SIGINT)
+        except ProcessLookupError:
+            pass
+    rc, err = run_.wait(), run_.err()
+    assert rc == 130 and "Traceback" not in err and "KeyboardInterrupt" not in err, err[-3000:]
+    assert len(err.splitlines()) == 1 and "interrupted during the brief evaluation" in err, err
+    assert len((tmp_path / "runs" / "R" / "results.csv").read_text().splitlines()) > 4
+    assert not alive(run_.workers) and not (tmp_path / "checkpoints" / "R" / ".lock").exists()

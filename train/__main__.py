@@ -102,30 +102,39 @@ def train(cfg: DictConfig) -> dict:
         n_envs, progress = min(int(cfg.train.eval_n_envs), n // 10), bool(cfg.train.progress_bar)
         ran_with = {}  # label → the sensors it ran with, stated in results.md
         batched = agent.get("vec_env") == "batched"  # trained on the batch: evaluated there too, all at once
-        for spec in specs:
-            plan = plan_agent(spec, env_name, sensors, shield, cfg.paths.checkpoints)
-            label = agent.name if spec == str(ckpt_dir) else plan.label
-            ran_with[label] = plan.sensors
-            if batched:
-                from eval.batched import run_episodes_batched
+        title = f"{cfg.run_name}: brief evaluation, {n} episodes of the validation split (seeds {seeds.start}.." \
+                f"{seeds.stop - 1})"
+        try:  # rows are appended episode by episode: Ctrl-C/SIGTERM keeps (and writes) every finished one
+            for spec in specs:
+                plan = plan_agent(spec, env_name, sensors, shield, cfg.paths.checkpoints)
+                label = agent.name if spec == str(ckpt_dir) else plan.label
+                ran_with[label] = plan.sensors
+                if batched:
+                    from eval.batched import run_episodes_batched
 
+                    env = make_env(env_cfg, plan.sensors, plan.shield)
+                    _, policy = resolve_agent(plan.spec, env, env_name, cfg.paths.checkpoints)
+                    env.close()
+                    run_episodes_batched(env_cfg, plan, policy, seeds, min(n, 256), label, progress=progress,
+                                         out=rows)
+                    continue
+                if n_envs > 1:  # each episode depends on its seed only: the same rows as in-process, sooner
+                    job = EpisodeJob(env_cfg, plan.sensors, plan.shield, plan.spec, env_name,
+                                     str(cfg.paths.checkpoints), label)
+                    run_episodes_parallel(job, seeds, n_envs, progress=progress, out=rows)
+                    continue
                 env = make_env(env_cfg, plan.sensors, plan.shield)
                 _, policy = resolve_agent(plan.spec, env, env_name, cfg.paths.checkpoints)
+                run_episodes(env, policy, seeds, label, progress=progress, out=rows)
                 env.close()
-                rows += run_episodes_batched(env_cfg, plan, policy, seeds, min(n, 256), label, progress=progress)
-                continue
-            if n_envs > 1:  # each episode depends on its seed only: the same rows as in-process, sooner
-                job = EpisodeJob(env_cfg, plan.sensors, plan.shield, plan.spec, env_name, str(cfg.paths.checkpoints),
-                                 label)
-                rows += run_episodes_parallel(job, seeds, n_envs, progress=progress)
-                continue
-            env = make_env(env_cfg, plan.sensors, plan.shield)
-            _, policy = resolve_agent(plan.spec, env, env_name, cfg.paths.checkpoints)
-            rows += run_episodes(env, policy, seeds, label, progress=progress)
-            env.close()
-        table = write_results(rows, run_dir, env_name, f"{cfg.run_name}: brief evaluation, {n} episodes of the "
-                              f"validation split (seeds {seeds.start}..{seeds.stop - 1})", sensors=ran_with,
-                              split="validation")
+        except KeyboardInterrupt:
+            if rows:
+                write_results(rows, run_dir, env_name, f"{title} (interrupted after {len(rows)} episodes)",
+                              sensors=ran_with, split="validation")
+            print(f"[train] interrupted during the brief evaluation: {len(rows)} episodes measured"
+                  + (f", in {run_dir}/results.csv" if rows else ""), file=sys.stderr)
+            raise
+        table = write_results(rows, run_dir, env_name, title, sensors=ran_with, split="validation")
         print(f"\n[train] brief evaluation on {n} validation seeds ({seeds.start}..{seeds.stop - 1}):\n\n{table}\n")
 
     where = {"run_dir": str(run_dir), "tensorboard": str(tb_dir),

@@ -325,10 +325,19 @@ def build_envs(stack: _Stack, seed: int):
         venv.seed(seed)
         return venv
     vec_cls = SubprocVecEnv if (p.vec_env == "subproc" and p.n_envs > 1) else DummyVecEnv
-    return make_vec_env(functools.partial(_env_factory, *stack.plain, float(p.intervention_cost),
-                                          int(p.action_repeat), str(p.actions),
-                                          timeout_is_terminal=p.timeout_is_terminal),
-                        n_envs=p.n_envs, seed=seed, vec_env_cls=vec_cls)
+    factory = functools.partial(_env_factory, *stack.plain, float(p.intervention_cost), int(p.action_repeat),
+                                str(p.actions), timeout_is_terminal=p.timeout_is_terminal)
+    if vec_cls is SubprocVecEnv:  # its workers end with this process and leave Ctrl-C to it (issue 31)
+        factory = functools.partial(_in_worker, factory)
+    return make_vec_env(factory, n_envs=p.n_envs, seed=seed, vec_env_cls=vec_cls)
+
+
+def _in_worker(factory, **kwargs):
+    """``factory(**kwargs)`` in a SubprocVecEnv worker, after :func:`eval.runner.guard_worker`."""
+    from eval.runner import guard_worker
+
+    guard_worker()
+    return factory(**kwargs)
 
 
 def _check_resume(ckpt_dir: Path, resume: bool) -> Path:
