@@ -83,6 +83,7 @@ def resolve(target: str) -> Callable:
 
 AGENT_KINDS = Registry("agent.kind", {
     "ppo": "agents.ppo:PPOAgent",
+    "dagger": "agents.dagger:DaggerAgent",
     "pilotnet": "agents.bc:PilotNetAgent",
     "pid": "agents.pid:PIDAgent",
     "always_proceed": "agents.rules:AlwaysProceedAgent",

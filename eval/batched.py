@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from av_gym.errors import ConfigError
 
-KINDS = ("always_proceed", "gap_acceptance", "ppo")
+KINDS = ("always_proceed", "gap_acceptance", "ppo", "dagger")
 NO_OBS_SENSORS = {"name": "turn_truth", "turn_features": {"source": "truth"}, "observe": ["turn"]}
 
 

@@ -1,0 +1,145 @@
+"""Oracle labels per second, per-env vs batched, and their agreement on the same states (issue 32).
+
+    python benchmarks/oracle_labels.py [--episodes 120] [--batch 64] [--quick]
+
+The states: ``--episodes`` left-turn episodes (seeds from ``--seed``; the default 7,000,000+ is used nowhere else)
+driven on the per-env training stack (``agent=ppo_turn``'s: GO/YIELD, action repeat 5, ``turn_truth``) by the
+gap-acceptance rule whose choice is flipped with probability ``--flip`` (a seeded draw per decision), so the
+states include the risky ones a learning student visits. At every decision the per-env oracle
+(:func:`agents.go_yield.lookahead_teacher`, deep copy + simulated GO future) labels the state. Then the batched
+engine replays the same episodes with the same choices and :func:`agents.batched_oracle.oracle_labels` labels every
+env's decision at once; the labels are compared decision by decision (a decision counts while both stacks are still
+in the same episode step).
+
+Throughput: labels per second of wall clock and per CPU-second of this process, per-env (as training uses it,
+with its exact "still on the safe path" shortcut, and without it: one future per decision) vs batched (``--batch``
+envs at a time, all futures rolled together). Prints a markdown table and the load average.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+
+from conf.cli import ToolParser
+
+
+def load() -> str:
+    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def stacks():
+    """The plain env / sensors configs of ``agent=ppo_turn`` (turn_truth) through Hydra, as ``python -m train``."""
+    from hydra import compose, initialize_config_module
+    from omegaconf import OmegaConf
+
+    with initialize_config_module("conf", version_base="1.3"):
+        cfg = compose("train", overrides=["agent=ppo_turn"])
+    return [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
+
+
+def per_env(plain, seeds, flip: float, shortcut: bool) -> tuple[dict, float, float, int]:
+    """Drive ``seeds`` on the per-env stack; returns {seed: [(choice, oracle label), ...]}, wall s and CPU s spent in
+    the oracle, and its number of labels."""
+    from agents.go_yield import GapAcceptance, LookaheadParams, go_is_safe, lookahead_teacher
+    from av_gym.wrappers import GO, YIELD
+    from train.ppo import _env_factory
+
+    env = _env_factory(*plain, 0.0, 5, "go_yield")
+    rule = GapAcceptance()
+    teacher = lookahead_teacher(LookaheadParams(), "go_yield") if shortcut else \
+        (lambda e, o, i: GO if go_is_safe(e, o, lambda _o: GO) else YIELD)
+    out, wall, cpu, n = {}, 0.0, 0.0, 0
+    for seed in seeds:
+        rng = np.random.default_rng([int(seed), 32])
+        obs, info = env.reset(seed=int(seed))
+        steps, done = [], False
+        while not done:
+            w0, c0 = time.perf_counter(), time.process_time()
+            label = int(teacher(env, obs, info))
+            wall, cpu, n = wall + time.perf_counter() - w0, cpu + time.process_time() - c0, n + 1
+            choice = rule.choice(obs["turn"])
+            if rng.uniform() < flip:
+                choice = 1 - choice
+            steps.append((choice, label))
+            obs, _, terminated, truncated, info = env.step(choice)
+            done = terminated or truncated
+        out[int(seed)] = steps
+    env.close()
+    return out, wall, cpu, n
+
+
+def batched(plain, recorded: dict, B: int, margin: float = 0.0) -> tuple[dict, float, float, int]:
+    """Replay the recorded choices on the batched engine, ``B`` envs at a time; label every decision with the
+    batched oracle. Returns {seed: [label, ...]}, wall s and CPU s spent in the oracle, number of labels."""
+    from agents.batched_oracle import oracle_labels
+    from av_gym.envs.batched_vec import BatchedLeftTurnVecEnv
+    from av_gym.wrappers import YIELD
+
+    venv = BatchedLeftTurnVecEnv(*plain, B, action_repeat=5, actions="go_yield")
+    venv.play(iter(recorded))
+    labels = {s: [] for s in recorded}
+    wall = cpu = 0.0
+    n = 0
+    while not venv.idle.all():
+        rows = np.nonzero(~venv.idle)[0]
+        w0, c0 = time.perf_counter(), time.process_time()
+        y, _ = oracle_labels(venv.engine, rows, margin)
+        wall, cpu, n = wall + time.perf_counter() - w0, cpu + time.process_time() - c0, n + len(rows)
+        actions = np.full(B, YIELD)
+        for r, label in zip(rows, y):
+            seed = venv.row_seed[r]
+            k = len(labels[seed])
+            labels[seed].append(int(label))
+            # the recorded choice; past the recorded episode's end (the stacks diverged) the row just yields
+            actions[r] = recorded[seed][k][0] if k < len(recorded[seed]) else YIELD
+        venv.step(actions)
+    return labels, wall, cpu, n
+
+
+def agreement(recorded: dict, labels: dict) -> tuple[int, int, int, int]:
+    """(decisions compared, agreeing, per-env GO count, episodes whose lengths differ)."""
+    n = agree = go = differ = 0
+    for seed, steps in recorded.items():
+        mine = labels[seed]
+        differ += len(mine) != len(steps)
+        for (_, ref), lab in zip(steps, mine):
+            n, agree, go = n + 1, agree + (ref == lab), go + ref
+    return n, agree, go, differ
+
+
+def main() -> None:
+    parser = ToolParser(prog="benchmarks/oracle_labels.py", description=__doc__.splitlines()[0])
+    parser.add_argument("--episodes", type=int, default=120, help="episodes (decisions: ~20 each)")
+    parser.add_argument("--seed", type=int, default=7_000_000, help="first seed (7,000,000+: used nowhere else)")
+    parser.add_argument("--batch", type=int, default=64, help="envs labelled together on the batch")
+    parser.add_argument("--flip", type=float, default=0.25, help="probability of flipping the rule's choice")
+    parser.add_argument("--quick", action="store_true", help="12 episodes, batch 12 (a smoke run, ~1 min)")
+    args = parser.parse_args()
+    if args.episodes < 1 or args.batch < 1 or not 0 <= args.flip <= 1:
+        parser.error("--episodes and --batch must be >= 1 and --flip in [0, 1]")
+    if args.quick:
+        args.episodes, args.batch = 12, 12
+    plain = stacks()
+    seeds = range(args.seed, args.seed + args.episodes)
+    print(f"load average before: {load()}", flush=True)
+    recorded, w_pe, c_pe, n_pe = per_env(plain, seeds, args.flip, shortcut=True)
+    print(f"per-env oracle (with the safe-path shortcut): {n_pe} labels in {w_pe:.1f} s", flush=True)
+    k = max(1, args.episodes // 4)  # the shortcut-free per-env cost on a quarter of the episodes
+    _, w_raw, c_raw, n_raw = per_env(plain, seeds[:k], args.flip, shortcut=False)
+    labels, w_b, c_b, n_b = batched(plain, recorded, args.batch)
+    n, agree, go, differ = agreement(recorded, labels)
+    print(f"load average after: {load()}\n")
+    print(f"agreement: {agree}/{n} decisions = {agree / max(n, 1):.4f} (per-env labels GO on {go}; "
+          f"{differ} of {len(recorded)} episodes differ in length between the stacks)\n")
+    print("| oracle | labels | labels/s (wall) | labels / CPU-s |")
+    print("|---|---:|---:|---:|")
+    print(f"| per-env, one future per decision | {n_raw} | {n_raw / w_raw:.1f} | {n_raw / c_raw:.1f} |")
+    print(f"| per-env, safe-path shortcut (as training) | {n_pe} | {n_pe / w_pe:.1f} | {n_pe / c_pe:.1f} |")
+    print(f"| batched, {args.batch} envs | {n_b} | {n_b / w_b:.1f} | {n_b / c_b:.1f} |")
+
+
+if __name__ == "__main__":
+    main()
