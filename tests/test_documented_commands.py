@@ -76,6 +76,11 @@ def _runnable_blocks() -> list:
 def _run(argv: list[str], cwd: Path) -> subprocess.CompletedProcess:
     if argv[0] == "python":
         argv = [sys.executable, *argv[1:]]
+    # Console scripts (tensorboard, av-gym-*) live beside the interpreter: found there even when the venv that
+    # runs the tests is not activated.
+    env_bin = Path(sys.executable).parent
+    if "/" not in argv[0] and (env_bin / argv[0]).exists():
+        argv = [str(env_bin / argv[0]), *argv[1:]]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     return subprocess.run(argv, cwd=cwd, capture_output=True, text=True, timeout=600, env=env)
 
