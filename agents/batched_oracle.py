@@ -1,7 +1,7 @@
 """The look-ahead oracle (:class:`agents.go_yield.Lookahead`) for a whole batch of left turns at once (issue 32).
 
 The per-env oracle deep-copies one env and plays its GO future to the end (~0.1 s per decision). Here the states of
-every env of a :class:`~av_gym.envs.left_turn_batched.BatchedLeftTurn` that needs a label are copied as arrays
+every env of a :class:`~av_gym.batched.left_turn.BatchedLeftTurn` that needs a label are copied as arrays
 (traffic rows, clocks, and each env's random generator, so the future spawns are the real ones) into one future
 batch, which is stepped with GO in all rows together until each row's episode ends. A row's label is the oracle's:
 GO is safe now iff its GO future ends without a collision. The future also gives the *margin* of that decision: the
@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from av_gym.envs.batched_vec import meta_actions
-from av_gym.envs.left_turn_batched import BatchedLeftTurn
+from av_gym.batched.vec_env import meta_actions
+from av_gym.batched.left_turn import BatchedLeftTurn
 from av_gym.wrappers import GO, YIELD
 
 __all__ = ["GoFutures", "future_rows", "go_futures", "oracle_labels"]

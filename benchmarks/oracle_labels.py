@@ -75,7 +75,7 @@ def batched(plain, recorded: dict, B: int, margin: float = 0.0) -> tuple[dict, f
     """Replay the recorded choices on the batched engine, ``B`` envs at a time; label every decision with the
     batched oracle. Returns {seed: [label, ...]}, wall s and CPU s spent in the oracle, number of labels."""
     from agents.batched_oracle import oracle_labels
-    from av_gym.envs.batched_vec import BatchedLeftTurnVecEnv
+    from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
     from av_gym.wrappers import YIELD
 
     venv = BatchedLeftTurnVecEnv(*plain, B, action_repeat=5, actions="go_yield")

@@ -16,8 +16,8 @@ import pytest
 from omegaconf import OmegaConf
 
 from agents.batched_oracle import go_futures
-from av_gym.envs.batched_vec import BatchedLeftTurnVecEnv, meta_actions
-from av_gym.envs.left_turn_batched import BatchedLeftTurn
+from av_gym.batched.vec_env import BatchedLeftTurnVecEnv, meta_actions
+from av_gym.batched.left_turn import BatchedLeftTurn
 from av_gym.make import highway_config
 from av_gym.sim.batched import LENGTH, WIDTH
 from av_gym.wrappers import GO, YIELD

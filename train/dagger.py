@@ -108,7 +108,7 @@ def outcome(info: dict) -> tuple[float, float]:
 
 
 class BatchedLabels:
-    """Labels for the live rows of a :class:`~av_gym.envs.batched_vec.BatchedLeftTurnVecEnv`: the look-ahead
+    """Labels for the live rows of a :class:`~av_gym.batched.vec_env.BatchedLeftTurnVecEnv`: the look-ahead
     oracle's futures for all of them at once, or a rule of the observation row by row. Exact shortcut (as the
     per-env teacher's): a row labelled GO that then went GO is on its GO future, which stays collision-free (the
     engine is deterministic, the future used the row's own generator), so it keeps its label without a new future."""
@@ -259,6 +259,7 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     from tqdm import tqdm
 
     from agents.dagger import DaggerParams
+    from av_gym.seeds import train_seed
     from agents.ppo import make_ppo
     from train.checkpoint import save_model_atomic, write_text_atomic
     from train.ppo import _env_factory, make_teacher
@@ -278,7 +279,7 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
         drive = lambda seeds, by_teacher: drive_per_env(env, model, teacher, seeds, by_teacher,  # noqa: E731
                                                         float(params.gamma))
     else:
-        from av_gym.envs.batched_vec import BatchedLeftTurnVecEnv
+        from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
 
         env = BatchedLeftTurnVecEnv(*plain, int(params.n_envs), action_repeat=repeat, actions=actions,
                                     timeout_is_terminal=params.timeout_is_terminal, pool=0)
@@ -291,15 +292,16 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     writer = SummaryWriter(str(run_dir / "tb" / str(params.name)))
     rows: list[dict] = []
     data, best = Round(), -np.inf
-    # each training seed drives its own episodes: train_seed + 100,000 x seed + the round's offset
-    first = int(params.train_seed) + 100_000 * int(cfg.seed)
+    # each training seed drives its own episodes, train_seed + 50,000 x seed + the round's offset, all in the
+    # train split (av_gym/seeds.py: folded into it)
+    first = int(params.train_seed) + 50_000 * int(cfg.seed)
     print(f"[train] DAgger: {params.rounds} rounds x {params.round_episodes} episodes, teacher {params.teacher} "
           f"({how} labels), student {params.extractor} on {cfg.sensors.name}; episode seeds {first}+")
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM behaves like Ctrl-C
     bar = tqdm(range(int(params.rounds)), desc="DAgger rounds", disable=not bool(cfg.train.progress_bar))
     try:
         for k in bar:
-            seeds = range(first + k * int(params.round_episodes), first + (k + 1) * int(params.round_episodes))
+            seeds = [train_seed(first, k * int(params.round_episodes) + i) for i in range(int(params.round_episodes))]
             new = drive(seeds, k == 0)
             aggregate(data, new)
             accuracy = fit(model, data, int(params.fit_epochs), int(params.fit_batch), float(params.fit_lr),
@@ -340,11 +342,13 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
 
 
 def _validation(cfg: DictConfig, plain: list, repeat: int, actions: str, batched: bool):
-    """``model -> (collision, success)`` on ``train.eval_n`` episodes from ``train.eval_seed`` (None if 0)."""
+    """``model -> (collision, success)`` on ``train.eval_n`` episodes of the validation split from ``train.eval_seed`` (None if 0)."""
+    from av_gym.seeds import config_seeds
+
     n = int(cfg.train.eval_n)
     if n <= 0:
         return None
-    seeds = range(int(cfg.train.eval_seed), int(cfg.train.eval_seed) + n)
+    seeds = config_seeds("validation", n, cfg.train.get("eval_seed"), "train.eval_seed")
 
     def run(model):
         from agents.ppo import SB3Policy
