@@ -1,7 +1,7 @@
 """Soak test: many episodes of the left turn with every sensor and the AEB shield, in one process.
 
     python benchmarks/soak.py [--episodes 2000] [--agent random|always_proceed] [--shield-mode perceived]
-                              [--out docs/soak.md] [--tracemalloc]
+                              [--out runs/soak.md] [--tracemalloc]
 
 Runs ``--episodes`` seeded episodes (seed, seed+1, ...) of ``env=left_turn sensors=full shield=aeb`` in a single env
 instance, as a long evaluation or training run would, and reports:
@@ -243,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--shield-mode", choices=("ground_truth", "perceived"), default="perceived")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--sample-every", type=int, default=10, help="episodes between RSS samples")
-    parser.add_argument("--out", help="also write the report as Markdown here (e.g. docs/soak.md)")
+    parser.add_argument("--out", help="also write the report as Markdown here (e.g. runs/soak.md; the committed report is in docs/performance.md)")
     parser.add_argument("--tracemalloc", action="store_true", help="list the allocations that grew (slow)")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)

@@ -74,8 +74,8 @@ def find_checkpoint(kind: str, env_name: str, root: str | Path, name: str | None
       first reference folder of that kind by name.
 
     Reference folders are never ordered by modification time: in a fresh clone that is the order git happened to
-    write them in, and several hold the same agent (``reference/ppo_turn_v3_s2``, the other seeds and the older
-    rounds say ``name: ppo_turn`` too)."""
+    write them in. Extra training seeds of a reference live under ``reference/seeds/<name>/s<seed>/`` (their configs
+    say ``name: ppo_turn`` too), out of the ``reference/*/`` a bare kind searches: a name means one folder."""
     def matches(cfg_path: Path) -> Path | None:
         cfg = read_config_yaml(cfg_path)
         model = cfg_path.parent / _checkpoint_name(kind)

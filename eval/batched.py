@@ -5,7 +5,7 @@ Episode ``seed`` is the episode ``reset(seed=seed)`` of the per-env stack gives 
 generator seeded with it), the policy decides as it does there (every env step at 10 Hz; a trained go/yield
 checkpoint asked every ``action_repeat`` steps, its held choice mapped to a meta-action at every step), and the row
 is ``EpisodeMetrics``' row: rows equal to ``vec_env=subproc``'s within the engine's equivalence (tests and
-docs/sim_speed.md). Rows come back in seed order.
+docs/performance.md). Rows come back in seed order.
 
 What runs: ``env=left_turn`` in either mode (traffic; ``env.mode=ccftap`` with its ``env.ccftap.*`` case) and with
 either action type, no shield, and the agents ``always_proceed`` (it reads no observation: it runs on the batch

@@ -9,7 +9,7 @@ point with 95 % Wilson intervals on both axes. ``--point`` adds a point measured
 ``t_gap`` (s) on ``--episodes`` seeds from ``--seed`` and adds the rule's curve; its rows go beside the PNG
 (``<out>.rule_sweep.csv``; given back as a results file, those rows draw the curve without re-running it). ``--relabel
 agent=label`` renames an agent of the rows. The sweep plays on the batched engine (``--n-envs`` episodes at a time; the per-env rows
-within the engine's equivalence, docs/sim_speed.md), so 500 episodes per threshold cost about a minute. Labels with the same name before ``#`` (``ppo_turn#s1``) are drawn in one colour, their
+within the engine's equivalence, docs/performance.md), so 500 episodes per threshold cost about a minute. Labels with the same name before ``#`` (``ppo_turn#s1``) are drawn in one colour, their
 mean as a larger marker.
 """
 

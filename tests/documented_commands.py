@@ -144,13 +144,10 @@ KNOWN: dict[str, str] = {
     "python benchmarks/odometry.py": "run",
     "python -m train run_name=my-run agent.total_timesteps=200000": RESUME,
     "python -m train run_name=my-run agent.total_timesteps=200000 train.resume=true": RESUME,
-    # docs/aeb.md
+    # docs/shield.md
     "python -m eval env=left_turn env.mode=ccftap agents=[always_proceed+aeb_paper] episodes=1": "run",
     "python -m eval.tracking --episodes 20 --out docs/tracking": "run",
-    # docs/cameras.md
-    "python -m eval env=lane_keeping env.track=A agents=[pilotnet] sensors=cameras episodes=5": "run",
-    "python -m eval env=lane_keeping env.track=A agents=[pilotnet] sensors=cameras sensors.cameras.night=true "
-    "episodes=5": "run",
+    # docs/sensors.md
     "python -m eval env=lane_keeping env.track=A agents=[checkpoints/reference/pilotnet_lane_keeping] sensors=cameras "
     "episodes=20 n_envs=2": "run",
     "python -m eval env=lane_keeping env.track=A agents=[checkpoints/reference/pilotnet_lane_keeping] sensors=cameras "
@@ -170,21 +167,12 @@ KNOWN: dict[str, str] = {
     "plots=false hydra.sweep.dir=<folder>": "run",
     "python -m eval.sweep <folder> --x sensors.cameras.fog_visibility --metric cte_mean_abs_units "
     "--out docs/cameras/sweep_fog_night": "run",
-    # docs/pilotnet/README.md
+    # docs/agents.md (PilotNet)
     "python -m train.pid_search": "run",
     "python -m train agent=pilotnet env=lane_keeping": "run",
     "python -m eval env=lane_keeping agents=[pid_paper,pid_tuned,pilotnet] episodes=20 videos=true": "run",
     "python -m eval env=lane_keeping env.track=B agents=[pid_paper,pid_tuned,pilotnet] episodes=20 videos=true": "run",
     "python benchmarks/pilotnet_inference.py": "run",
-    # docs/ppo/v3/README.md
-    'python -m eval.tradeoff docs/ppo/v3/headline_results.csv docs/ppo/v3/aeb_results.csv docs/ppo/v3/perceived_results.csv docs/ppo/v3/perceived_s23_results.csv docs/ppo/v3/shielded_results.csv docs/ppo/v3/tradeoff.rule_sweep.csv --out docs/ppo/v3/tradeoff.png --relabel checkpoints/ppo_turn_v3_s1/best.zip=ppo_turn#s1 --relabel checkpoints/ppo_turn_v3_s2/best.zip=ppo_turn#s2 --relabel checkpoints/ppo_turn_v3_s3/best.zip=ppo_turn#s3 --relabel checkpoints/ppo_turn_v3_s1/model.zip=ppo_turn last (122,880)#s1 --relabel checkpoints/ppo_turn_v3_s2/model.zip=ppo_turn last (122,880)#s2 --relabel checkpoints/ppo_turn_v3_s3/model.zip=ppo_turn last (122,880)#s3 --relabel checkpoints/reference/ppo_turn+aeb=ppo_turn+aeb#s1 --relabel checkpoints/reference/ppo_turn_v3_s2+aeb=ppo_turn+aeb#s2 --relabel checkpoints/reference/ppo_turn_v3_s3+aeb=ppo_turn+aeb#s3 --relabel checkpoints/reference/ppo_turn_perceived_v3_s1=ppo_turn_perceived --relabel checkpoints/reference/ppo_turn_perceived_v3_s1+aeb=ppo_turn_perceived+aeb --relabel checkpoints/reference/ppo_turn@turn_perceived=ppo_turn@turn_perceived#s1 --relabel checkpoints/reference/ppo_turn_v3_s2@turn_perceived=ppo_turn@turn_perceived#s2 --relabel checkpoints/reference/ppo_turn_v3_s3@turn_perceived=ppo_turn@turn_perceived#s3 --relabel checkpoints/reference/ppo_turn_shielded_v3_s1=ppo_turn_shielded --relabel checkpoints/reference/ppo_turn_shielded_v3_s1+aeb=ppo_turn_shielded+aeb --point lookahead (oracle)=0.01,0.92 --point always_proceed+aeb=0.036,0.848 --title left turn, 500 test episodes (seeds 1000-1499): round 3': "run",
-    # docs/ppo.md
-    "python -m eval env=left_turn agents=[always_proceed,always_proceed+aeb,gap_acceptance,gap_acceptance+aeb] "
-    "episodes=500": "run",
-    "python -m eval env=left_turn agents=[ppo_turn,ppo_turn+aeb] episodes=500 n_envs=2": "run",
-    "python -m eval env=left_turn agents=[ppo_turn_shielded,ppo_turn_shielded+aeb,ppo_turn_perceived,"
-    "ppo_turn_perceived+aeb] episodes=500 n_envs=2": "run",
-    "python -m eval env=left_turn agents=[lookahead,lookahead+aeb] episodes=500 n_envs=2": "run",
     # docs/robustness/README.md
     "nice -n 10 python -m train -m agent=always_proceed shield=aeb shield.mode=perceived "
     "shield.detector.miss_rate=0.0,0.3,0.6,0.8 train.eval_seed=1000000,1100000,1200000 train.eval_episodes=20 "

@@ -110,7 +110,7 @@ def test_a_named_agent_resolves_to_its_own_reference_folder_whatever_the_file_ti
 
     own = folder("ppo_turn", "ppo_turn", 1_000.0)
     folder("ppo_turn_v2_s1", "ppo_turn", 2_000.0)  # another round of the same agent, written later by git
-    folder("ppo_turn_v3_s2", "ppo_turn", 3_000.0)
+    folder("seeds/ppo_turn/s2", "ppo_turn", 3_000.0)  # an extra training seed (the layout that says so)
     assert find_checkpoint("ppo", "left_turn", tmp_path, name="ppo_turn") == own
     with pytest.raises(ConfigError, match="you have no ppo_turn run"):  # :latest never falls back to the reference
         find_checkpoint("ppo", "left_turn", tmp_path, name="ppo_turn", latest=True)
@@ -135,7 +135,7 @@ def test_latest_spec_plans_the_newest_run_and_labels_its_row(tmp_path):
 
     root = tmp_path / "checkpoints"
     shutil.copytree("checkpoints/reference/ppo_turn", root / "reference" / "ppo_turn")
-    shutil.copytree("checkpoints/reference/ppo_turn_v3_s2", root / "my_run")
+    shutil.copytree("checkpoints/reference/seeds/ppo_turn/s2", root / "my_run")
     ref = plan_agent("ppo_turn", "left_turn", {"name": "truth"}, {"name": "none"}, root)
     mine = plan_agent("ppo_turn:latest+aeb", "left_turn", {"name": "truth"}, {"name": "none"}, root)
     assert Path(ref.spec).parent.name == "ppo_turn" and ref.label == "ppo_turn"

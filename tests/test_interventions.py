@@ -25,7 +25,7 @@ def _labelled(make, ego_kmh, target_kmh, dt):
 
 
 def test_brake_against_a_turn_across_path_collision_is_needed(make):
-    # 15/45 km/h, dt = 0: without a shield the two meet in the middle (docs/aeb.md: a collision)
+    # 15/45 km/h, dt = 0: without a shield the two meet in the middle (docs/shield.md: a collision)
     metrics, rows = _labelled(make, 15, 45, 0.0)
     assert metrics["collision"] == 0.0
     assert len(rows) == 1
@@ -36,7 +36,7 @@ def test_brake_against_a_turn_across_path_collision_is_needed(make):
 
 
 def test_brake_that_the_driver_did_not_need_is_unneeded(make):
-    # 10/30 km/h, dt = +2 s: the shield brakes, but the case clears by 0.2 m without it (docs/aeb.md)
+    # 10/30 km/h, dt = +2 s: the shield brakes, but the case clears by 0.2 m without it (docs/shield.md)
     metrics, rows = _labelled(make, 10, 30, 2.0)
     assert rows, "the shield brakes in this case"
     assert not any(r["needed"] for r in rows)

@@ -1,5 +1,5 @@
 """The committed reference checkpoints (checkpoints/reference/): each carries the command and config that made it,
-fits the env stack its config describes, and the lane keepers drive a held-out lap as docs/ppo.md reports."""
+fits the env stack its config describes, and the lane keepers drive a held-out lap as docs/agents.md reports."""
 
 from __future__ import annotations
 
@@ -14,6 +14,10 @@ from eval.runner import run_episodes
 
 REF = resources.files("conf").parent / "checkpoints" / "reference"
 SB3_REFS = sorted(p.name for p in REF.iterdir() if (p / "model.zip").is_file())
+# extra training seeds a multi-seed row needs: reference/seeds/<name>/s<seed>/ (seed 1 is the reference itself)
+SEED_REFS = sorted(str(p.relative_to(REF)) for p in REF.glob("seeds/*/s*") if (p / "model.zip").is_file())
+NAMED = ("pilotnet_lane_keeping", "ppo_lane_camera", "ppo_lane_localized", "ppo_turn", "ppo_turn_perceived",
+         "ppo_turn_shielded")
 
 
 def _env_and_policy(name: str):
@@ -30,7 +34,19 @@ def test_every_reference_checkpoint_is_listed():
             "ppo_lane_camera"} <= set(SB3_REFS)
 
 
-@pytest.mark.parametrize("name", SB3_REFS)
+def test_reference_holds_the_named_agents_and_a_name_means_one_folder():
+    """checkpoints/reference/ = the named agents plus seeds/ (issue 34: 14 folders, 8 saying name: ppo_turn)."""
+    assert sorted(p.name for p in REF.iterdir() if p.is_dir()) == sorted([*NAMED, "seeds"])
+    names = [yaml.safe_load((REF / n / "config.yaml").read_text())["agent"]["name"] for n in SB3_REFS]
+    assert len(names) == len(set(names)) and all(n == folder for n, folder in zip(names, SB3_REFS))
+    for seed in SEED_REFS:  # each extra seed belongs to a named agent and says which seed it is
+        name, s = seed.split("/")[1:]
+        saved = yaml.safe_load((REF / seed / "config.yaml").read_text())
+        assert saved["agent"]["name"] == name and f"s{saved['seed']}" == s
+    assert SEED_REFS == ["seeds/ppo_turn/s2", "seeds/ppo_turn/s3"]
+
+
+@pytest.mark.parametrize("name", SB3_REFS + SEED_REFS)
 def test_a_reference_checkpoint_has_its_command_and_fits_its_env(name):
     command = (REF / name / "COMMAND").read_text()
     assert "python -m train" in command
@@ -44,4 +60,4 @@ def test_a_reference_lane_keeper_drives_a_held_out_lap(name):
     env, policy = _env_and_policy(name)
     (row,) = run_episodes(env, policy, [1000], name, progress=False)
     assert row["lap_completed"] == 1.0 and row["lane_departures"] == 0
-    assert row["cte_mean_abs_m"] < 0.15  # docs/ppo.md, seeds 1000-1019: 0.037 m (camera), 0.087 m (localized)
+    assert row["cte_mean_abs_m"] < 0.15  # docs/agents.md, seeds 1000-1019: 0.037 m (camera), 0.087 m (localized)

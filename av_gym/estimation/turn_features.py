@@ -158,7 +158,7 @@ class TurnIntent(SensorWrapper):
     - ``acc``: the object's longitudinal acceleration / 5 m/s², from its own short history: its velocity now
       against its velocity ``history`` seconds ago (the object then is the one nearest to where it is now, moved
       back at its current velocity, within ``gate`` m; 0 when none). Braking (< 0) is how a driver who yields to
-      the ego shows it (docs/ppo.md: the other drivers slow down for the ego, which constant-velocity features miss).
+      the ego shows it (docs/agents.md: the other drivers slow down for the ego, which constant-velocity features miss).
       From the simulator's vehicles with ``turn_features.source=truth``, from the Kalman tracks with ``tracks``.
     - ``signal``: the direction indicator the turn-signal sensor (``obs["signals"]``,
       :class:`av_gym.sensors.turn_signal.TurnSignals`) reads on the vehicle at the object's position (within

@@ -488,7 +488,7 @@ def render_views(env: gym.Env, cameras: Mapping[str, CameraSpec], pose: np.ndarr
     ``pose``: ego ``[x, y, heading]`` (m, m, rad); default the true ego pose (pass a displaced pose to render
     what the car would see there, e.g. for behaviour-cloning recovery data). ``ground``: ``"texture"`` (sample the
     top-down ground texture) or ``"raster"`` (project every road polygon: the original, ~10x slower renderer,
-    kept as the reference for ``docs/cameras/compare_renderers.py`` and the tests). Returns name → (H, W, 3)
+    kept as the reference for the renderer comparison (docs/sensors.md) and the tests). Returns name → (H, W, 3)
     uint8 RGB."""
     if ground not in ("texture", "raster"):
         raise ValueError(f"ground must be 'texture' or 'raster', got {ground!r}")

@@ -4,7 +4,7 @@ ground's palette looked up (:func:`palette_lookup`), a handful of numba calls pe
 
 Why hand-written: OpenCV fills one polygon per Python call (``cv2.fillConvexPoly``, ~1-2 us each plus the numpy
 bookkeeping that prepares its arguments); a rig shows 50-90 small quads per camera, so the calls and the per-rig
-numpy passes, not the pixels, were most of a frame (docs/cameras.md, "Second pass"). No library rasterises a
+numpy passes, not the pixels, were most of a frame (docs/sensors.md, "Second pass"). No library rasterises a
 batch of painter-ordered polygons into a numpy image; these kernels loop over the quads of a whole camera in one
 call.
 

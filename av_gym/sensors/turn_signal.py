@@ -2,14 +2,14 @@
 
 Why: at an unprotected left turn the other drivers' intent decides the gap. A car coming from the right that will
 turn right never crosses the ego's path; one that will go straight does. Constant-velocity prediction cannot tell
-the two apart until the car is already turning (docs/ppo.md: 12 % of the lookahead oracle's choices are not
+the two apart until the car is already turning (docs/agents.md: 12 % of the lookahead oracle's choices are not
 predictable from the motion features, and those decide collisions). A real car reads the indicator.
 
 The indicator a driver *intends* comes from the vehicle's route in the simulator (highway-env's intersection:
 approach ``o{i}→ir{i}``, then ``ir{i}→il{j}``, then the exit ``il{j}→o{j}``): left while it approaches or crosses the
 intersection towards ``o{(i+1) % 4}``, right towards ``o{(i-1) % 4}``, none when going straight or once on the exit.
 What the ego's sensor reports passes through a noisy channel (defaults are suggestions; no source paper measures
-this, see docs/ppo.md):
+this, see docs/agents.md):
 
 - ``no_signal_rate`` 0.25 per vehicle: the driver does not indicate at all. Chosen pessimistic on purpose:
   unsignalled turns are common in traffic, and a policy must not learn to trust the indicator blindly.

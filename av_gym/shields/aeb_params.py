@@ -39,7 +39,7 @@ class BrakeParams(Params):
 SHIELD_DETECTOR = DetectorParams(miss_rate=0.3, burst_length=5.0, max_range=150.0)
 """The shield's own detector: :class:`DetectorParams` defaults except a miss rate of 30 % of frames per vehicle in
 bursts of 5 frames (0.5 s) on average (Gilbert-Elliott chain) and a long (radar-class) range of 150 m: a 60 km/h
-target 1.5 s behind a 10 km/h ego is ~110 m away when the ego must decide (docs/aeb.md; 100 m gives 4/99
+target 1.5 s behind a 10 km/h ego is ~110 m away when the ego must decide (docs/shield.md; 100 m gives 4/99
 collisions)."""
 
 
@@ -164,7 +164,7 @@ class ImprovedParams(TurnParams):
                                     "own indicator channel (signal_channel), each driver's readings accumulated in a "
                                     "Bayes filter over its turn (av_gym.shields.intent). Default since issue 17's "
                                     "fourth pass: always_proceed+aeb on seeds 1000-1499, fewer collisions, more "
-                                    "arrivals and fewer unneeded brakes than without (docs/aeb.md)")
+                                    "arrivals and fewer unneeded brakes than without (docs/shield.md)")
     signal_channel: TurnSignalsParams = param(
         TurnSignalsParams(), doc="signals: the shield's indicator channel (av_gym.sensors.turn_signal's model and "
                                  "defaults: 25 % of drivers never indicate, 5 % the wrong side, 10 % of readings "

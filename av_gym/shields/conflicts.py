@@ -105,7 +105,7 @@ class ConflictModel:
     and, where the driver's indicator has been read, weighted by what its readings say about each turn
     (:class:`av_gym.shields.intent.DriverIntent`); hypotheses below ``min_p`` are dropped. Along each path the vehicle
     keeps its along-path acceleration for ``accel_time`` s (a braking car stops, it does not reverse), then its
-    speed (``accel_time`` 0, the default: constant speed; measured, docs/aeb.md: 1.5 s parked the ego in the box
+    speed (``accel_time`` 0, the default: constant speed; measured, docs/shield.md: 1.5 s parked the ego in the box
     more often), on the path highway-env's route-following controller actually drives (:meth:`driven`). An
     object off the map (farther than ``on_lane`` m from its lane, or heading more than 30° off it) or standing
     still gets the constant-velocity hypothesis instead.

@@ -45,7 +45,7 @@ class DriverIntent:
     ``log P(T, D | n) = log P(T, D) + Σ_r n_r log P(r | T, D) + const``, evaluated for every driver of a decision
     in one matrix product (in log space: a driver read 200 times would underflow the product). Why not one
     filterpy call per reading: the shield reads up to ~20 drivers per 0.1 s decision inside a 1 ms budget, and
-    ~12 small numpy calls per driver cost more than the rest of the indicator path (docs/aeb.md);
+    ~12 small numpy calls per driver cost more than the rest of the indicator path (docs/shield.md);
     ``tests/test_conflicts.py`` checks the result against filterpy's update reading by reading."""
 
     def __init__(self, channel: TurnSignalsParams, floor: float = 0.02) -> None:

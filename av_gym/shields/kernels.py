@@ -2,7 +2,7 @@
 
 :meth:`av_gym.shields.predict.DrivenPath.poses` places one path hypothesis on its driven path: about twenty small
 numpy calls (interpolations, masks, a blend of two speed bins), ~0.18 ms, and the conflict model makes ~40 such
-look-ups per decision at 20 road users, most of the shield's cost (docs/aeb.md, issue 17's second pass).
+look-ups per decision at 20 road users, most of the shield's cost (docs/shield.md, issue 17's second pass).
 :func:`driven_poses` does the look-ups of every hypothesis of a decision in one call, on the tables of every driven
 path packed into one growing float array (:class:`Store`).
 

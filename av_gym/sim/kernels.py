@@ -4,7 +4,7 @@ Why compiled code here: highway-env has no batched version of these models, and 
 formulation of the pairwise parts (leader search, IDM gap, collisions, the regulation's conflict test, the closest
 lane, the ego's TTC) builds (B, N, N), (B, N, N, T) or (vehicles, lanes) arrays, gathers the candidates with
 ``nonzero`` and evaluates them in many small array calls; at B = 256 that bookkeeping, not the arithmetic, was
-most of their cost (docs/sim_speed.md, "Numba kernels"). A loop over the candidates skips the masks and stops at
+most of their cost (docs/performance.md, "Numba kernels"). A loop over the candidates skips the masks and stops at
 the first hit.
 
 What stays identical: each kernel evaluates the numpy code's formulas in the same order of operations (no
