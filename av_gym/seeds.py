@@ -62,7 +62,7 @@ def seeds(split: str, n: int, first: int | None = None, field: str = "seed") -> 
         raise ValueError(f"the number of episodes must be >= 0, got {n}")
     if start not in r or start + n > r.stop:
         raise ValueError(f"{field}={start} with {n} episodes leaves split {split!r} (seeds {r.start}..{r.stop - 1}); "
-                         f"give a {field} in that range, or leave it out to start at {r.start}")
+                         f"give {field} in that range, or leave it out to start at {r.start}")
     return range(start, start + n)
 
 

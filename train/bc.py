@@ -21,8 +21,8 @@ Expert (slip-compensated pure pursuit for highway-env's kinematic bicycle)
     (max 1.5 / 1.7), against 4.9 / 6.1 for the paper PID (2 seeds each).
 
 Demonstrations (digest 001 §8.5 step 2)
-    Laps of the training layout on training seeds (``demo_seed`` + i; evaluation uses 1000+ and the brief
-    evaluation after training 100000+). The executed steering is the expert's command plus an Ornstein–Uhlenbeck
+    Laps of the training layout on train-split seeds (``demo_seed`` + i, av_gym/seeds.py; others are refused);
+    evaluations use the validation and test splits. The executed steering is the expert's command plus an Ornstein–Uhlenbeck
     perturbation (σ ``perturb_std``, correlation time ``perturb_tau``), so the car drifts off the centre and the
     data contains recoveries; the *label* is always the clean expert command. All three cameras are recorded every
     step, rendered without sensor noise (noise is re-created by augmentation, fresh every epoch; clean renders
@@ -552,6 +552,14 @@ def validate(cfg: DictConfig) -> list[str]:
                             f"preset with cameras (e.g. cameras)")
     except ValueError as exc:
         problems.append(f"agent.sensors: {exc}")
+    from av_gym.seeds import seeds
+
+    agent = cfg.agent
+    try:  # expert laps and the closed-loop laps it is checked on: train seeds only (av_gym/seeds.py)
+        seeds("train", int(agent.demo_laps) + int(agent.get("closed_loop_laps", 0)), int(agent.demo_seed),
+              field="agent.demo_seed")
+    except ValueError as exc:
+        problems.append(str(exc))
     return problems
 
 
