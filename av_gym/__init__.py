@@ -20,6 +20,7 @@ SCENARIO_ENTRIES = {  # env.name → (Gymnasium id, class); av_gym.registry.SCEN
 }
 ENV_IDS = {name: gym_id for name, (gym_id, _) in SCENARIO_ENTRIES.items()}
 
-for _gym_id, _entry_point in SCENARIO_ENTRIES.values():
+for _name, (_gym_id, _) in SCENARIO_ENTRIES.items():
     if _gym_id not in registry:  # defaults: the task the harness trains and reports (each env's Params)
-        register(id=_gym_id, entry_point=_entry_point)
+        # av_gym.api checks config/render_mode and adds the harness's sensors, shield or a checkpoint's wrappers
+        register(id=_gym_id, entry_point=f"av_gym.api:{_name}")

@@ -89,9 +89,36 @@ def make_env(env_cfg: Mapping, sensors_cfg: Mapping | None = None, shield_cfg: M
         env = gym.make(env_id, config=config, render_mode=render_mode)
     except ValueError as exc:  # the envs validate their own config and name the field
         raise ConfigError(str(exc)) from None
+    return wrap_env(env, sensors_cfg, shield_cfg, record_metrics=record_metrics)
+
+
+def wrap_env(env: gym.Env, sensors_cfg: Mapping | None = None, shield_cfg: Mapping | None = None, *,
+             record_metrics: bool = True) -> gym.Env:
+    """Sensors → shield → :class:`EpisodeMetrics` around a scenario env (what :func:`make_env` and the registered
+    ids' keywords, :mod:`av_gym.api`, both build)."""
     env = add_sensors(env, sensors_cfg)
     env = add_shield(env, shield_cfg)
     return EpisodeMetrics(env) if record_metrics else env
+
+
+def make_training_env(env_cfg: Mapping, sensors_cfg: Mapping | None, shield_cfg: Mapping | None,
+                      intervention_cost: float = 0.0, action_repeat: int = 1, actions: str = "env",
+                      render_mode: str | None = None, timeout_is_terminal: bool = False) -> gym.Env:
+    """The stack a PPO agent trains and is validated on: :func:`make_env`, then the agent-side wrappers its
+    ``agent`` config asks for (time limit as termination, intervention cost, go/yield actions, action repeat) and
+    the flat observation SB3 takes. ``python -m train`` and ``gym.make(id, checkpoint=...)`` both build it here."""
+    from av_gym.wrappers import ActionRepeat, FlatDictObservation, GoYieldActions, InterventionCost, TimeLimitIsTerminal
+
+    env = make_env(env_cfg, sensors_cfg, shield_cfg, render_mode=render_mode)
+    if timeout_is_terminal:
+        env = TimeLimitIsTerminal(env)
+    if intervention_cost > 0:
+        env = InterventionCost(env, intervention_cost)
+    if actions == "go_yield":
+        env = GoYieldActions(env)
+    if action_repeat > 1:
+        env = ActionRepeat(env, action_repeat)
+    return FlatDictObservation(env)
 
 
 def add_shield(env: gym.Env, shield_cfg: Mapping | None) -> gym.Env:
@@ -105,8 +132,10 @@ def add_shield(env: gym.Env, shield_cfg: Mapping | None) -> gym.Env:
         return env
     if kind not in SHIELDS:
         raise ConfigError(f"shield.kind must be one of {['none', *SHIELDS]}, got {kind!r}")
+    from av_gym.wrappers import CheckedActions
+
     try:  # the shield class reads its own fields (name and kind aside) and names them under `shield`
-        return SHIELDS.get(kind).from_config(env, c, where="shield")
+        return CheckedActions(SHIELDS.get(kind).from_config(env, c, where="shield"))
     except ParamError as exc:
         raise ConfigError(str(exc)) from None
     except (TypeError, ValueError) as exc:

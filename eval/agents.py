@@ -8,7 +8,6 @@ this env under ``checkpoints/``; or a path to a checkpoint folder or ``.zip``. `
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +18,7 @@ from agents.checkpoint import check_sb3_zip, describe_space, read_config_yaml, s
 from agents.configs import KIND_DEFAULT, available_agents, kind_default, shipped_agent
 from agents.registry import AGENT_KINDS, agent_params, trained_kinds
 from av_gym.errors import ConfigError
+from conf.presets import compose_group  # noqa: F401 - used here and imported from here by tests and tools
 
 __all__ = ["AgentPlan", "available_agents", "check_plan", "compose_group", "find_checkpoint", "load_agent_config",
            "plan_agent", "resolve_agent", "sensor_overrides", "sensors_summary"]
@@ -205,27 +205,6 @@ class AgentPlan:
     shield: dict
     trained_sensors: dict | None = None
     sensor_overrides: dict = field(default_factory=dict)
-
-
-def compose_group(group: str, name: str) -> dict:
-    """The composed config of option ``name`` of Hydra group ``group`` (e.g. ``shield/aeb``)."""
-    from hydra import compose, initialize_config_module
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra.errors import HydraException
-    from omegaconf import OmegaConf
-
-    options = sorted(p.name[:-5] for p in (resources.files("conf") / group).iterdir() if p.name.endswith(".yaml"))
-    if name not in options:
-        raise ConfigError(f"{group} {name!r} is not in conf/{group}/; available: {options}")
-    try:
-        if GlobalHydra.instance().is_initialized():
-            cfg = compose(config_name="eval", overrides=[f"{group}={name}"])
-        else:
-            with initialize_config_module("conf", version_base="1.3"):
-                cfg = compose(config_name="eval", overrides=[f"{group}={name}"])
-    except HydraException as exc:  # pragma: no cover - a broken yaml in conf/
-        raise ConfigError(f"{group}={name}: {exc}") from None
-    return OmegaConf.to_container(cfg[group], resolve=True)
 
 
 def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:

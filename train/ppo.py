@@ -16,19 +16,10 @@ from av_gym.seeds import DEMONSTRATIONS, config_seeds, train_seed
 def _env_factory(env_cfg: dict, sensors_cfg: dict, shield_cfg: dict, intervention_cost: float = 0.0,
                  action_repeat: int = 1, actions: str = "env", render_mode: str | None = None,
                  timeout_is_terminal: bool = False):
-    from av_gym.make import make_env
-    from av_gym.wrappers import ActionRepeat, FlatDictObservation, GoYieldActions, InterventionCost, TimeLimitIsTerminal
+    from av_gym.make import make_training_env  # the same stack gym.make(id, checkpoint=...) builds
 
-    env = make_env(env_cfg, sensors_cfg, shield_cfg, render_mode=render_mode)
-    if timeout_is_terminal:
-        env = TimeLimitIsTerminal(env)
-    if intervention_cost > 0:
-        env = InterventionCost(env, intervention_cost)
-    if actions == "go_yield":
-        env = GoYieldActions(env)
-    if action_repeat > 1:
-        env = ActionRepeat(env, action_repeat)
-    return FlatDictObservation(env)
+    return make_training_env(env_cfg, sensors_cfg, shield_cfg, intervention_cost, action_repeat, actions,
+                             render_mode=render_mode, timeout_is_terminal=timeout_is_terminal)
 
 
 def make_teacher(name: str, actions: str, scenario: str | None = None, action_repeat: int = 1):

@@ -4,9 +4,12 @@ everything outside the simulator (sensor noise, the roadside world)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable
 
+import numpy as np
+from gymnasium import error, spaces
 
+from av_gym.errors import ConfigError
 from av_gym.params import RATE_MAX_HZ, Params, param
 
 KMH = 1 / 3.6  # m/s per km/h: scenario configs take km/h at the edge, the envs m/s
@@ -38,6 +41,47 @@ class ScenarioParams(Params):
                 "fast": self.fast}
 
 
+class InvalidAction(ConfigError, error.InvalidAction):
+    """An action outside the env's ``action_space`` (a ``ValueError`` and Gymnasium's ``InvalidAction``)."""
+
+
+def check_action(space: spaces.Space, action: Any) -> None:
+    """Raise :class:`InvalidAction` (one line: the action, the space, what is wrong) unless ``action`` is in
+    ``space``. Checked before anything acts on it: a NaN acceleration reached the shield's numba predictor and
+    crashed the process, a discrete 3 became a bare ``KeyError`` (issue 31 rows 1, 14). Only checked, never
+    converted: the env receives the action as given, so trajectories stay bit-identical."""
+    problem = _action_problem(space, action)
+    if problem:
+        text = repr(action) if not isinstance(action, np.ndarray) else np.array2string(action, threshold=8)
+        raise InvalidAction(f"action {text[:80]} is not in the action space {space}: {problem}")
+
+
+def _action_problem(space: spaces.Space, action: Any) -> str | None:
+    if isinstance(space, spaces.Discrete):
+        if isinstance(action, np.ndarray) and action.shape == () and np.issubdtype(action.dtype, np.integer):
+            action = action.item()
+        if isinstance(action, (bool, np.bool_)) or not isinstance(action, (int, np.integer)):
+            return f"expected an integer in [{space.start}, {space.start + space.n - 1}], got {type(action).__name__}"
+        if not space.start <= int(action) < space.start + space.n:
+            return f"expected an integer in [{space.start}, {space.start + space.n - 1}]"
+        return None
+    if isinstance(space, spaces.Box):
+        if action is None or isinstance(action, (str, bytes, dict)):
+            return f"expected an array of shape {space.shape}, got {type(action).__name__}"
+        try:
+            values = np.asarray(action, dtype=np.float64)
+        except (TypeError, ValueError):
+            return f"expected an array of shape {space.shape}, got {type(action).__name__}"
+        if values.shape != space.shape:
+            return f"expected shape {space.shape}, got {values.shape}"
+        if not np.all(np.isfinite(values)):
+            return "not finite (NaN or inf)"
+        if np.any(values < space.low) or np.any(values > space.high):
+            return "out of bounds"
+        return None
+    return None if space.contains(action) else "not contained"  # pragma: no cover - the scenarios use Discrete/Box
+
+
 class ScenarioMixin:
     """Mix in before ``AbstractEnv``.
 
@@ -48,6 +92,25 @@ class ScenarioMixin:
     """
 
     scenario: str = ""
+
+    def reset(self, *args, **kwargs):
+        self._episode_over = False
+        return super().reset(*args, **kwargs)
+
+    def step(self, action):
+        """highway-env's step, once the action is checked against ``action_space`` and the episode is running:
+        after ``terminated`` or ``truncated`` the simulation would go on and pay rewards for an episode that has
+        ended (issue 31 row 16), so that is refused until ``reset()``."""
+        if getattr(self, "_episode_over", False):
+            raise error.ResetNeeded("step() after the episode ended (terminated or truncated): call reset() first")
+        check_action(self.action_space, action)
+        result = self._step(action)
+        self._episode_over = bool(result[2] or result[3])
+        return result
+
+    def _step(self, action):
+        """The scenario's own step, once the action is checked (highway-env's by default)."""
+        return super().step(action)
 
     def _init_scenario_state(self) -> None:
         if not hasattr(self, "tick_listeners"):

@@ -261,7 +261,7 @@ class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
         with self._traffic_class():
             return super()._spawn_vehicle(*args, **kwargs)
 
-    def step(self, action):
+    def _step(self, action):
         if self.config["mode"] == "traffic" and self.steps > 0:
             # Stock highway-env clears and spawns traffic right *after* computing the observation, so wrappers
             # reading the road later would see another scene than the observation and info["truth"]. Doing it
