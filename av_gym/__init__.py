@@ -23,4 +23,5 @@ ENV_IDS = {name: gym_id for name, (gym_id, _) in SCENARIO_ENTRIES.items()}
 for _name, (_gym_id, _) in SCENARIO_ENTRIES.items():
     if _gym_id not in registry:  # defaults: the task the harness trains and reports (each env's Params)
         # av_gym.api checks config/render_mode and adds the harness's sensors, shield or a checkpoint's wrappers
-        register(id=_gym_id, entry_point=f"av_gym.api:{_name}")
+        register(id=_gym_id, entry_point=f"av_gym.api:{_name}",
+                 vector_entry_point="av_gym.api:left_turn_vector" if _name == "left_turn" else None)

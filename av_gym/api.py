@@ -73,6 +73,34 @@ def left_turn(**kwargs: Any) -> gym.Env:
     return make("left_turn", **kwargs)
 
 
+def left_turn_vector(num_envs: int, *, env: Mapping | None = None, sensors: Any = None, shield: Any = None,
+                     config: Mapping | None = None, render_mode: str | None = None, actions: str = "env",
+                     action_repeat: int = 1) -> gym.vector.VectorEnv:
+    """``vector_entry_point`` of ``av_gym/UnprotectedLeftTurn-v0``: the batched engine (all envs in one numpy
+    batch, :mod:`av_gym.envs.batched_vec`), what ``gymnasium.make_vec(id, n)`` gives when no
+    ``vectorization_mode`` is named. It runs the ``turn_truth`` sensors without a shield; anything else is refused
+    in one line (``vectorization_mode="sync"`` or ``"async"`` runs every stack)."""
+    from av_gym.envs.batched_vec import BatchedLeftTurnVectorEnv, check_batchable
+
+    other = 'use gymnasium.make_vec(..., vectorization_mode="sync" or "async") for it'
+    if config is not None:
+        raise ConfigError(f"config= is not available with the batched engine (give env={{...}}); {other}")
+    if render_mode is not None:
+        raise ConfigError(f"render_mode is not available with the batched engine; {other}")
+    if sensors is None:
+        raise ConfigError(f"the batched engine needs sensors=\"turn_truth\" (it computes the turn features, not "
+                          f"the privileged state); {other}")
+    env_cfg = _deep_merge(preset("env", "left_turn"), _mapping(env or {}, "env"))
+    sensors_cfg, shield_cfg = _section("sensors", sensors, "truth"), _section("shield", shield, "none")
+    try:
+        check_batchable(env_cfg, sensors_cfg, shield_cfg)
+    except ConfigError as exc:
+        what = str(exc).split("; use ")[0].replace("agent.vec_env=batched", "the batched engine")
+        raise ConfigError(f"{what}; {other}") from None
+    return BatchedLeftTurnVectorEnv(env_cfg, sensors_cfg, int(num_envs), actions=actions,
+                                    action_repeat=int(action_repeat))
+
+
 def make(scenario: str, config: Mapping | None = None, *, env: Mapping | None = None, sensors: Any = None,
          shield: Any = None, checkpoint: str | Path | None = None, render_mode: str | None = None,
          record_metrics: bool | None = None) -> gym.Env:

@@ -3,6 +3,7 @@ everything outside the simulator (sensor noise, the roadside world)."""
 
 from __future__ import annotations
 
+from collections import UserDict
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -39,6 +40,14 @@ class ScenarioParams(Params):
         """The env's config dict (SI units), what ``gym.make(id, config=...)`` takes."""
         return {"simulation_frequency": self.simulation_frequency, "policy_frequency": self.policy_frequency,
                 "fast": self.fast}
+
+
+class Truth(UserDict):
+    """``info["truth"]``: a mapping of ground-truth fields, deliberately not a ``dict``. Gymnasium's vector envs
+    stack a ``dict`` in ``info`` field by field across envs, which fails on fields whose shape or type changes
+    from env to env (``others``: one row per vehicle; ``arrived_time``: None until arrival): ``make_vec`` crashed
+    at reset (issue 33). Any other object they keep per env in an object array, so in a vector env
+    ``info["truth"][i]`` is env ``i``'s truth, as in a single env."""
 
 
 class InvalidAction(ConfigError, error.InvalidAction):
@@ -141,5 +150,6 @@ class ScenarioMixin:
 
     def _info(self, obs, action=None) -> dict:
         info = super()._info(obs, action)
-        info["truth"] = self.truth()
+        info["truth"] = truth = Truth()
+        truth.data = self.truth()  # the dict itself, not copied key by key
         return info

@@ -1,0 +1,100 @@
+"""Issue 33: Gymnasium's vector API and SB3's SubprocVecEnv on both registered ids, with sensor stacks."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import av_gym  # noqa: F401 - registers the ids
+from av_gym.errors import ConfigError
+
+TURN, LANE = "av_gym/UnprotectedLeftTurn-v0", "av_gym/LaneKeepingLap-v0"
+# short episodes so that every env ends (and autoresets) within the test
+SHORT = {TURN: {"duration": 1.0}, LANE: {"time_limit": 1.0}}
+
+
+def _drive(venv, steps: int = 14) -> dict:
+    obs, info = venv.reset(seed=0)
+    ended = 0
+    for _ in range(steps):
+        obs, _, terminated, truncated, info = venv.step(venv.action_space.sample())
+        assert venv.observation_space.contains(obs)
+        ended += int(np.sum(terminated | truncated))
+    assert ended >= venv.num_envs  # every env ended an episode and went on
+    return info
+
+
+@pytest.mark.parametrize("mode", ["sync", "async"])
+@pytest.mark.parametrize("env_id,sensors,shield", [(TURN, None, None), (TURN, "turn_truth", None),
+                                                   (LANE, None, None), (LANE, "gnss_imu", None)])
+def test_make_vec(mode, env_id, sensors, shield) -> None:
+    """make_vec crashed at reset on the left turn (info["truth"]["others"] changes length from env to env)."""
+    kwargs = {"sensors": sensors, "shield": shield, "env": SHORT[env_id]} if sensors else {"config": SHORT[env_id]}
+    venv = gym.make_vec(env_id, num_envs=2, vectorization_mode=mode, **kwargs)
+    try:
+        info = _drive(venv)
+        truth = info["truth"]  # object-typed: each env's own truth
+        assert truth.dtype == object and truth[0]["others"].shape[1] == 7
+    finally:
+        venv.close()
+
+
+@pytest.mark.slow  # 2-20 s each on a loaded 2-core machine
+@pytest.mark.parametrize("mode", ["sync", "async"])
+@pytest.mark.parametrize("env_id,sensors,shield", [(TURN, "turn_perceived", "aeb"), (TURN, "localized", "aeb")] + [
+    (env_id, p, None) for env_id, p in [(LANE, p) for p in ("gnss_raw", "lidar", "camera_centre", "cameras",
+                                                                 "detector", "full", "localized", "lane_localized")]
+                         + [(TURN, p) for p in ("truth", "turn_perceived", "localized")]])
+def test_make_vec_every_preset(mode, env_id, sensors, shield) -> None:
+    venv = gym.make_vec(env_id, num_envs=2, vectorization_mode=mode, sensors=sensors, shield=shield,
+                        env=SHORT[env_id])
+    try:
+        _drive(venv)
+    finally:
+        venv.close()
+
+
+@pytest.mark.slow  # ~10 s: the batch's numba kernels compile on first use
+def test_vector_entry_point_is_the_batched_engine() -> None:
+    from av_gym.envs.batched_vec import BatchedLeftTurnVectorEnv
+
+    venv = gym.make_vec(TURN, num_envs=4, sensors="turn_truth", env=SHORT[TURN])
+    assert isinstance(venv, BatchedLeftTurnVectorEnv)
+    obs, _ = venv.reset(seed=0)
+    assert obs["turn"].shape == (4, venv.single_observation_space["turn"].shape[0])
+    for _ in range(12):
+        venv.step(venv.action_space.sample())
+
+
+@pytest.mark.parametrize("kwargs,says", [
+    ({}, 'the batched engine needs sensors="turn_truth"'),
+    ({"sensors": "turn_perceived"}, "sensors.detector is not available with the batched engine"),
+    ({"sensors": "turn_truth", "shield": "aeb"}, "shield=aeb is not available with the batched engine"),
+    ({"sensors": "turn_truth", "render_mode": "rgb_array"}, "render_mode is not available"),
+])
+def test_vector_entry_point_refuses_in_one_line(kwargs, says) -> None:
+    with pytest.raises(ConfigError) as err:
+        gym.make_vec(TURN, num_envs=2, **kwargs)
+    assert says in str(err.value) and 'vectorization_mode="sync"' in str(err.value) and "\n" not in str(err.value)
+
+
+@pytest.mark.slow  # ~35 s: each worker is a fresh interpreter importing SB3, torch and av_gym
+@pytest.mark.parametrize("env_id,kwargs", [(TURN, {"sensors": "turn_truth"}), (LANE, {"sensors": "gnss_imu"})])
+def test_sb3_subproc_vec_env(env_id, kwargs) -> None:
+    """SB3's make_vec_env with SubprocVecEnv: fresh worker processes (forkserver) import av_gym through the
+    "av_gym:" module prefix of the id (Gymnasium 1.x has no plugin entry points)."""
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import SubprocVecEnv
+
+    venv = make_vec_env(f"av_gym:{env_id}", n_envs=2, seed=0, vec_env_cls=SubprocVecEnv,
+                        env_kwargs={**kwargs, "env": SHORT[env_id]})
+    try:
+        venv.reset()
+        dones = 0
+        for _ in range(12):
+            _, _, done, infos = venv.step(np.array([venv.action_space.sample() for _ in range(2)]))
+            dones += int(done.sum())
+        assert dones >= 2 and "truth" in infos[0]
+    finally:
+        venv.close()
