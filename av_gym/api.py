@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import copy
 import difflib
-import importlib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -77,10 +76,10 @@ def left_turn_vector(num_envs: int, *, env: Mapping | None = None, sensors: Any 
                      config: Mapping | None = None, render_mode: str | None = None, actions: str = "env",
                      action_repeat: int = 1) -> gym.vector.VectorEnv:
     """``vector_entry_point`` of ``av_gym/UnprotectedLeftTurn-v0``: the batched engine (all envs in one numpy
-    batch, :mod:`av_gym.envs.batched_vec`), what ``gymnasium.make_vec(id, n)`` gives when no
+    batch, :mod:`av_gym.batched.vec_env`), what ``gymnasium.make_vec(id, n)`` gives when no
     ``vectorization_mode`` is named. It runs the ``turn_truth`` sensors without a shield; anything else is refused
     in one line (``vectorization_mode="sync"`` or ``"async"`` runs every stack)."""
-    from av_gym.envs.batched_vec import BatchedLeftTurnVectorEnv, check_batchable
+    from av_gym.batched.vec_env import BatchedLeftTurnVectorEnv, check_batchable
 
     other = 'use gymnasium.make_vec(..., vectorization_mode="sync" or "async") for it'
     if config is not None:
@@ -226,10 +225,10 @@ def _problems(cls: type, scenario: str, key: str, value: Any, default: Any, chec
 
 # ----------------------------------------------------------------------------------------------- presets
 def preset(group: str, name: str) -> dict:
-    """A shipped preset of conf/<group>/ composed as the command line composes it. The presets are Hydra configs
-    of the ``conf`` package, which itself builds on av_gym: so it is imported here, by name, only when a preset is
-    asked for (av_gym imports nothing of conf; tests/test_imports.py)."""
-    return importlib.import_module("conf.presets").compose_group(group, name)
+    """A shipped preset of conf/<group>/ composed as the command line composes it (:data:`PRESETS`)."""
+    from av_gym.registry import PRESETS
+
+    return PRESETS.get("compose")(group, name)
 
 
 def _section(group: str, value: Any, default: str) -> dict:
@@ -239,7 +238,9 @@ def _section(group: str, value: Any, default: str) -> dict:
         return preset(group, value)
     value = _mapping(value, group)
     name = value.get("name")
-    shipped = importlib.import_module("conf.presets").preset_names(group)
+    from av_gym.registry import PRESETS
+
+    shipped = PRESETS.get("names")(group)
     return _deep_merge(preset(group, name), value) if name in shipped else value
 
 

@@ -69,18 +69,6 @@ class SelectKeys(gym.ObservationWrapper):
         return {k: observation[k] for k in self.keys}
 
 
-class CheckedActions(gym.Wrapper):
-    """Checks every action against ``action_space`` (:func:`av_gym.envs.base.check_action`) before the wrapped
-    stack sees it. The scenario envs check their own actions; this goes outside what acts on an action first, a
-    safety shield: a NaN reached the shield's numba predictor and crashed the process (issue 31 row 1)."""
-
-    def step(self, action):
-        from av_gym.envs.base import check_action
-
-        check_action(self.action_space, action)
-        return self.env.step(action)
-
-
 # ----------------------------------------------------------------------------------------------- rewards, time limit
 class InterventionCost(gym.Wrapper):
     """Training-time reward term: ``-cost`` per second during which a safety shield overrides the agent

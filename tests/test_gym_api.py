@@ -61,14 +61,15 @@ def test_good_actions_of_every_usual_type_are_taken() -> None:
 @pytest.mark.parametrize("kwargs,says", [
     ({"config": {"spawn_prob": 0.3}}, "config.spawn_prob is not a setting of left_turn (did you mean "
                                       "'spawn_probability'?)"),
-    ({"config": {"duration": -5}}, "config.duration must be a number > 0, got -5"),
-    ({"config": {"duration": "long"}}, "config.duration must be a number > 0, got 'long'"),
-    ({"config": {"policy_frequency": 0}}, "config.policy_frequency must be an integer >= 10, got 0"),
-    ({"config": {"simulation_frequency": 0}}, "config.simulation_frequency must be an integer >= 1, got 0"),
+    ({"config": {"duration": -5}}, "config.duration must be a number in (0, 600], got -5"),
+    ({"config": {"duration": "long"}}, "config.duration must be a number in (0, 600], got 'long'"),
+    ({"config": {"policy_frequency": 0}}, "config.policy_frequency must be an integer in [10, 1000], got 0"),
+    ({"config": {"simulation_frequency": 0}}, "config.simulation_frequency must be an integer in [1, 1000], got 0"),
     ({"config": {"action": {"type": "bogus"}}}, "config.action.type must be one of ['discrete', 'continuous']"),
     ({"config": {"fast": 1}}, "config.fast must be true or false, got 1"),
     ({"render_mode": "hologram"}, "render_mode must be one of ['human', 'rgb_array'] or None, got 'hologram'"),
-    ({"env": {"duration": 0}}, "env.duration must be a number > 0, got 0"),
+    ({"env": {"duration": 0}}, "env.duration must be a number in (0, 600], got 0"),
+    ({"config": {"duration": 1e9}}, "config.duration must be a number in (0, 600], got 1000000000.0"),
     ({"sensors": "nope"}, "sensors 'nope' is not in conf/sensors/"),
     ({"shield": {"name": "aeb", "ttc_brak": 1.0}}, "shield.ttc_brak is not a parameter"),
 ])

@@ -23,10 +23,11 @@ FLOORS = {
     "av_gym.envs": 5, "av_gym.shields": 5, "av_gym.wrappers": 5,  # scenarios; shields; action/observation wrappers
     "av_gym.make": 6,                                           # config → env + sensors + shield
     "av_gym.batched": 7,                                        # the batched left turn (reuses all of the above)
-    "agents": 8,
-    "conf": 9,
-    "eval": 10,
-    "train": 11,                                                # train evaluates (eval); eval never trains
+    "av_gym.api": 8,                                            # the registered ids' entry points (gym.make/make_vec)
+    "agents": 9,
+    "conf": 10,
+    "eval": 11,
+    "train": 12,                                                # train evaluates (eval); eval never trains
 }
 # third-party libraries that only the upper floors may use: the RL stack stays out of the simulator/sensor layers
 RL_LIBRARIES = ("stable_baselines3", "torch")

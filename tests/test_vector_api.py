@@ -57,7 +57,7 @@ def test_make_vec_every_preset(mode, env_id, sensors, shield) -> None:
 
 @pytest.mark.slow  # ~10 s: the batch's numba kernels compile on first use
 def test_vector_entry_point_is_the_batched_engine() -> None:
-    from av_gym.envs.batched_vec import BatchedLeftTurnVectorEnv
+    from av_gym.batched.vec_env import BatchedLeftTurnVectorEnv
 
     venv = gym.make_vec(TURN, num_envs=4, sensors="turn_truth", env=SHORT[TURN])
     assert isinstance(venv, BatchedLeftTurnVectorEnv)
