@@ -49,6 +49,13 @@ class Truth(UserDict):
     at reset (issue 33). Any other object they keep per env in an object array, so in a vector env
     ``info["truth"][i]`` is env ``i``'s truth, as in a single env."""
 
+    def __eq__(self, other: object) -> bool:  # field by field, arrays whole (Gymnasium's determinism check asks)
+        from gymnasium.utils.env_checker import data_equivalence
+
+        if not isinstance(other, (Truth, dict)):
+            return NotImplemented
+        return data_equivalence(self.data, other.data if isinstance(other, Truth) else other)
+
 
 class InvalidAction(ConfigError, error.InvalidAction):
     """An action outside the env's ``action_space`` (a ``ValueError`` and Gymnasium's ``InvalidAction``)."""
