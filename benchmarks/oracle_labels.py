@@ -1,6 +1,7 @@
 """Oracle labels per second, per-env vs batched, and their agreement on the same states (issue 32).
 
     python benchmarks/oracle_labels.py [--episodes 120] [--batch 64] [--quick]
+    python benchmarks/oracle_labels.py --drive 1000 --split test     # the oracle's own outcomes, on the batch
 
 The states: ``--episodes`` left-turn episodes (seeds from ``--seed``; the default 7,000,000+ is used nowhere else)
 driven on the per-env training stack (``agent=ppo_turn``'s: GO/YIELD, action repeat 5, ``turn_truth``) by the
@@ -99,6 +100,27 @@ def batched(plain, recorded: dict, B: int, margin: float = 0.0) -> tuple[dict, f
     return labels, wall, cpu, n
 
 
+def drive(plain, split: str, n: int, B: int) -> tuple[float, float, float]:
+    """The look-ahead oracle driving ``n`` episodes of ``split`` on the batched engine (its labels executed, as
+    train/dagger.py's round 0): (collision, success, wall s). The same decisions as ``python -m eval
+    agents=[lookahead]`` on the per-env stack (the agreement above), at the batch's cost."""
+    from agents.batched_oracle import oracle_labels  # noqa: F401 - the labeller below uses it
+    from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
+    from av_gym.seeds import seeds as split_seeds
+    from train.dagger import BatchedLabels, drive_batched
+
+    class _Never:  # the teacher drives: the student's choice is recorded, never executed
+        @staticmethod
+        def predict(obs, deterministic=True):
+            return np.zeros(len(next(iter(obs.values())))), None
+
+    venv = BatchedLeftTurnVecEnv(*plain, B, action_repeat=5, actions="go_yield", timeout_is_terminal=True, pool=0)
+    t0 = time.perf_counter()
+    out = drive_batched(venv, _Never, BatchedLabels(venv, None, True, 0.0), split_seeds(split, n), True, 0.95)
+    coll, succ = np.mean(out.outcomes, axis=0)
+    return float(coll), float(succ), time.perf_counter() - t0
+
+
 def agreement(recorded: dict, labels: dict) -> tuple[int, int, int, int]:
     """(decisions compared, agreeing, per-env GO count, episodes whose lengths differ)."""
     n = agree = go = differ = 0
@@ -117,7 +139,13 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=64, help="envs labelled together on the batch")
     parser.add_argument("--flip", type=float, default=0.25, help="probability of flipping the rule's choice")
     parser.add_argument("--quick", action="store_true", help="12 episodes, batch 12 (a smoke run, ~1 min)")
+    parser.add_argument("--drive", type=int, default=0, help="instead: the oracle drives this many episodes of --split")
+    parser.add_argument("--split", default="test", choices=["train", "validation", "test"])
     args = parser.parse_args()
+    if args.drive > 0:
+        coll, succ, wall = drive(stacks(), args.split, args.drive, args.batch)
+        print(f"| lookahead (batched oracle) | {args.split} | {args.drive} | {coll:.3f} | {succ:.3f} | {wall:.0f} s |")
+        return
     if args.episodes < 1 or args.batch < 1 or not 0 <= args.flip <= 1:
         parser.error("--episodes and --batch must be >= 1 and --flip in [0, 1]")
     if args.quick:

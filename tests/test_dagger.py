@@ -169,3 +169,25 @@ def test_student_agreement_with_its_teacher_rises_over_rounds():
         fit(model, data, 60, 16, 3e-3, k)
         seen.append(agreement())
     assert seen[-1] > seen[0] + 0.1 and seen[-1] >= 0.9, seen
+
+
+def test_go_threshold_moves_the_decision_boundary():
+    """train/operating_point.py: after shift_go(τ) the student GOes exactly where its unshifted P(GO) >= τ."""
+    import torch as th
+
+    from agents.ppo import make_ppo
+    from train.operating_point import shift_go
+
+    cfg = _cfg("agent=dagger_turn", "agent.extractor=mlp")
+    venv = BatchedLeftTurnVecEnv(*_plain(cfg), 16, action_repeat=5, actions="go_yield", pool=0)
+    model = make_ppo(venv, OmegaConf.to_container(cfg.agent, resolve=True), seed=0, tensorboard_log=None)
+    with th.no_grad():  # spread the untrained logits so that P(GO) covers (0, 1)
+        model.policy.action_net.weight.mul_(40.0)
+    obs = venv.reset()
+    with th.no_grad():
+        p_go = model.policy.get_distribution(model.policy.obs_to_tensor(obs)[0]).distribution.probs[:, GO].numpy()
+    tau = float(np.mean(np.sort(p_go)[7:9]))  # between two students' P(GO): no tie at the boundary
+    shift_go(model, tau)
+    choice = model.predict(obs, deterministic=True)[0]
+    assert 0 < (choice == GO).sum() < len(choice)
+    assert np.array_equal(choice == GO, p_go >= tau)
