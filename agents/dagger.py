@@ -31,6 +31,9 @@ class DaggerParams(PPOParams):
     label_margin: float = param(0.0, "m", ge=0, doc="batched look-ahead labels: GO only where the GO future also "
                                                     "keeps this centre distance from every vehicle (a more cautious "
                                                     "operating point); 0: the oracle's own choice")
+    go_threshold: float = param(0.5, gt=0, lt=1, doc="go/yield students: GO where the student's P(GO) is at least "
+                                                     "this (the checkpoints and validations are at it; the fit is "
+                                                     "not); 0.5 = its argmax. train/operating_point.py sweeps it")
     labeller: Literal["auto", "batched", "per_env"] = param(
         "auto", doc="batched: the look-ahead oracle on the batched engine (agents/batched_oracle.py, needs "
                     "vec_env=batched and teacher kind lookahead) | per_env: the teacher on the per-env stack, one "

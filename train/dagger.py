@@ -289,6 +289,14 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
         drive = lambda seeds, by_teacher: drive_batched(env, model, labels, seeds, by_teacher,  # noqa: E731
                                                         float(params.gamma))
     validation = _validation(cfg, plain, repeat, actions, how != "per_env")
+    tau = float(params.go_threshold)
+
+    def shift(m, on: bool) -> None:
+        """Move the GO boundary to go_threshold (on) or back to the fit's 0.5 (off); go/yield students only."""
+        if tau != 0.5 and actions == "go_yield":
+            from train.operating_point import shift_go
+
+            shift_go(m, tau if on else 1.0 - tau)
     writer = SummaryWriter(str(run_dir / "tb" / str(params.name)))
     rows: list[dict] = []
     data, best = Round(), -np.inf
@@ -312,6 +320,7 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
                    "label_s": round(new.label_s, 1), "agreement": float(np.mean(new.agree)),
                    "drive_success": float(succ), "drive_collision": float(coll), "fit_accuracy": accuracy,
                    "val_success": np.nan, "val_collision": np.nan}
+            shift(model, True)  # validated and saved at the operating point
             if validation is not None:
                 row["val_collision"], row["val_success"] = validation(model)
             rows.append(row)
@@ -320,6 +329,7 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
             if validation is not None and score > best:
                 best = score
                 save_model_atomic(model, ckpt_dir / "best.zip")
+            shift(model, False)
             _log(writer, row, len(new.labels) / max(new.label_s, 1e-9))
             write_text_atomic(ckpt_dir / "rounds.csv", _csv(rows))
             print(f"[train] round {k}: {row['driver']} drove {row['episodes']} episodes (success "
@@ -336,6 +346,7 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
         writer.close()
         env.close()
     write_text_atomic(run_dir / "rounds.csv", _csv(rows))
+    shift(model, True)
     path = save_model_atomic(model, ckpt_dir / "model.zip")
     print(f"[train] DAgger: {len(data.labels)} labels in {time.time() - t_start:.0f} s")
     return path

@@ -1,0 +1,59 @@
+"""DAgger students' curves: success and collision on the validation seeds after each round, against the labels
+the oracle gave and against wall-clock, one line per run (issue 32).
+
+    python docs/make_dagger_figure.py docs/dagger/rounds_s1.csv [more rounds.csv ...] [--out docs/dagger.png]
+
+Each ``rounds.csv`` is what ``python -m train agent=dagger_turn`` writes beside its checkpoints (train/dagger.py);
+the files are copied into docs/dagger/ with the run they come from in their name.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from conf.cli import ToolParser  # noqa: E402
+
+
+def read(path: Path) -> dict[str, list[float]]:
+    with open(path) as f:
+        rows = list(csv.DictReader(f))
+    return {k: [float(r[k]) for r in rows] for k in ("labels", "wall_s", "val_success", "val_collision",
+                                                     "drive_success", "drive_collision")}
+
+
+def main() -> None:
+    parser = ToolParser(prog="docs/make_dagger_figure.py", description=__doc__.splitlines()[0])
+    parser.add_argument("rounds", nargs="+", help="rounds.csv files (one per run)")
+    parser.add_argument("--out", default="runs/dagger.png", help="the figure (docs/dagger.png for the docs)")
+    args = parser.parse_args()
+    missing = [p for p in args.rounds if not Path(p).is_file()]
+    if missing:
+        parser.error(f"no such rounds.csv: {missing[0]}")
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
+    for k, path in enumerate(args.rounds):
+        d = read(Path(path))
+        name = Path(path).stem.replace("rounds_", "")
+        for ax, x in zip(axes, ("labels", "wall_s")):
+            ax.plot(d[x], d["val_success"], "o-", color=f"C{k}", label=f"{name} success")
+            ax.plot(d[x], d["val_collision"], "s--", color=f"C{k}", label=f"{name} collision")
+    axes[0].set_xlabel("oracle labels (aggregate)")
+    axes[1].set_xlabel("wall-clock (s, 2 shared cores)")
+    axes[0].set_ylabel("share of validation episodes")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    axes[1].legend(fontsize=7, loc="center right")
+    fig.suptitle("DAgger student (turn_truth) after each round, validation episodes")
+    fig.tight_layout()
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.out, dpi=110)
+    print(f"plot: {args.out}")
+
+
+if __name__ == "__main__":
+    main()
