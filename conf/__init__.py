@@ -30,4 +30,14 @@ def register_configs() -> None:
     register_agent_kinds(store)  # agent_kind/<kind>
 
 
+def register_resolvers() -> None:
+    """``${av_gym_groups:train}``: the groups a command lets a user choose, for --help (conf/hydra/help/av_gym.yaml)."""
+    from omegaconf import OmegaConf
+
+    from conf.commands import help_groups
+
+    OmegaConf.register_new_resolver("av_gym_groups", help_groups, replace=True)
+
+
 register_configs()
+register_resolvers()

@@ -90,7 +90,8 @@ class EvalCommand(Params):
     out_dir: str = param("runs/eval", doc="results.csv and results.md (eval.yaml: Hydra's run folder)")
     progress_bar: bool = param(True)
     plots: bool = param(True, doc="lane keeping: CTE along the lap (PNG) per agent, on the first seed")
-    videos: bool = param(False, doc="lane keeping: one lap per agent from the centre camera (MP4)")
+    videos: bool = param(False, doc="lane keeping: one lap per agent from the centre camera (lap_<agent>.mp4); "
+                                    "left turn: each agent's first episode top-down (turn_<agent>.mp4)")
     overwrite: bool = param(False, doc="an out_dir that already holds results.csv or results.md is refused (a "
                                        "finished evaluation is not replaced by accident); true replaces them")
 
@@ -103,3 +104,19 @@ class EvalCommand(Params):
 
 COMMANDS: dict[str, type[Params]] = {"train": TrainCommand, "eval": EvalCommand}
 SECTIONS = {"train": ("env", "sensors", "agent", "shield"), "eval": ("env", "sensors", "shield")}
+
+
+def help_groups(command: str) -> str:
+    """The config groups ``command`` lets a user choose (:data:`SECTIONS`), one line each with its options (the
+    yaml files of ``conf/<group>/``), for ``--help`` (conf/hydra/help/av_gym.yaml). Hydra's own listing would also
+    show the groups conf/__init__.py stores from the Params (``aeb``, ``agent_kind``, ``command``, ``scenario``,
+    ``sensor``): they fill the chosen groups' defaults and are refused on the command line."""
+    from importlib import resources
+
+    root = resources.files("conf")
+    lines = []
+    for group in sorted(SECTIONS[command]):
+        options = sorted(f.name.removesuffix(".yaml") for f in root.joinpath(group).iterdir()
+                         if f.name.endswith(".yaml"))
+        lines.append(f"{group}: {', '.join(options)}")
+    return "\n".join(lines)

@@ -104,6 +104,11 @@ def evaluate(cfg: DictConfig) -> list[dict]:
 
         paths = lane_keeping_figures(cfg, plans, cfg.out_dir, bool(cfg.get("plots")), bool(cfg.get("videos")))
         print(f"[eval] figures (seed {seeds.start}): {', '.join(p.name for p in paths)}")
+    if env_name == "left_turn" and cfg.get("videos"):
+        from eval.plots import turn_videos
+
+        paths = turn_videos(cfg, plans, cfg.out_dir)
+        print(f"[eval] videos (seed {seeds.start}): {', '.join(p.name for p in paths)}")
     return rows
 
 

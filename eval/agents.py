@@ -85,13 +85,13 @@ def find_checkpoint(kind: str, env_name: str, root: str | Path, name: str | None
             return model
         return None
 
-    what = name or kind
+    what, reference = name or kind, reference_folder(root)
     if name is not None and not latest:
-        own = Path(root) / "reference" / name / "config.yaml"
+        own = reference / name / "config.yaml"
         if own.is_file() and matches(own) is not None:
             return matches(own)
         raise ConfigError(f"no shipped reference checkpoint for {name!r} on env {env_name!r} "
-                          f"({Path(root) / 'reference' / name}/); for your newest run say {name}{LATEST}, or pass a "
+                          f"({reference / name}/); for your newest run say {name}{LATEST}, or pass a "
                           f"checkpoint path")
     runs = [m for m in map(matches, Path(root).glob("*/config.yaml")) if m is not None]
     if runs:  # your own training runs: the newest
@@ -99,11 +99,23 @@ def find_checkpoint(kind: str, env_name: str, root: str | Path, name: str | None
     if latest:
         raise ConfigError(f"{what}{LATEST}: you have no {what} run for env {env_name!r} under {root}/; train one with "
                           f"`python -m train env={env_name} agent={what}`, or say {what} for its shipped reference")
-    found = sorted(m for m in map(matches, Path(root).glob("reference/*/config.yaml")) if m is not None)
+    found = sorted(m for m in map(matches, reference.glob("*/config.yaml")) if m is not None)
     if found:
         return found[0]
     raise ConfigError(f"no {what} checkpoint for env {env_name!r} under {root}/; train one with "
                       f"`python -m train env={env_name} agent={what}` or pass a checkpoint path")
+
+
+REFERENCE = Path(__file__).resolve().parents[1] / "checkpoints" / "reference"
+"""The shipped reference checkpoints of the checkout this package runs from (``pip install -e .``)."""
+
+
+def reference_folder(root: str | Path) -> Path:
+    """Where the shipped reference agents are: ``<root>/reference`` when the working folder has one (``root`` is
+    ``paths.checkpoints``, relative to it), else the package's own :data:`REFERENCE`, so that a named agent
+    (``ppo_turn``) resolves from any folder (``av-gym-eval`` in a project of yours), not only the repository's."""
+    local = Path(root) / "reference"
+    return local if local.is_dir() else REFERENCE
 
 
 def _check_scenario(label: str, cfg: dict, env_name: str) -> None:

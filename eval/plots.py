@@ -1,5 +1,6 @@
 """Lane-keeping figures for ``python -m eval env=lane_keeping``: CTE along the lap (PNG) for each agent and, with
-``videos=true``, one lap per agent seen from the centre camera (MP4, or GIF if no MP4 encoder is available).
+``videos=true``, one lap per agent seen from the centre camera (MP4, or GIF if no MP4 encoder is available). On the
+left turn ``videos=true`` renders each agent's first episode top-down (:func:`turn_videos`).
 
 Each agent drives the first evaluation seed once more with the same sensors and shield as in the
 table, so the figure shows one of the laps that were scored (policies are deterministic and sensors are seeded).
@@ -113,7 +114,6 @@ def write_video(trace: dict, label: str, path: str | Path, policy_hz: float = 10
     """The lap's centre-camera frames as MP4 (``mp4v``) at ``VIDEO_SPEEDUP``× real time; GIF if MP4 fails."""
     import cv2
 
-    path = Path(path)
     frames = trace["frames"]
     if not frames:
         raise ValueError("no frames recorded (record_lap(..., video=True))")
@@ -128,18 +128,27 @@ def write_video(trace: dict, label: str, path: str | Path, policy_hz: float = 10
         cv2.putText(img, text, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 3, cv2.LINE_AA)
         cv2.putText(img, text, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
         out.append(img)
-    fps = policy_hz * VIDEO_SPEEDUP / VIDEO_FRAME_STEP
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, size)
+    return write_frames(out, path, policy_hz * VIDEO_SPEEDUP / VIDEO_FRAME_STEP)
+
+
+def write_frames(frames: list[np.ndarray], path: str | Path, fps: float) -> Path:
+    """RGB frames (H, W, 3 uint8, all the same size) as MP4 (``mp4v``) at ``fps``; a GIF beside it (every other
+    frame) if OpenCV has no MP4 encoder here. Returns the file written."""
+    import cv2
+
+    path = Path(path)
+    h, w = frames[0].shape[:2]
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
     if writer.isOpened():
-        for img in out:
+        for img in frames:
             writer.write(cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
         writer.release()
         return path
-    from PIL import Image  # pillow comes with matplotlib
+    from PIL import Image
 
     gif = path.with_suffix(".gif")
     step = 2  # every other written frame again keeps the GIF small
-    images = [Image.fromarray(img) for img in out[::step]]
+    images = [Image.fromarray(img) for img in frames[::step]]
     images[0].save(gif, save_all=True, append_images=images[1:], duration=int(1000 * step / fps), loop=0)
     return gif
 
@@ -168,4 +177,37 @@ def lane_keeping_figures(cfg, plans, out_dir: str | Path, plots: bool = True, vi
     return paths
 
 
-__all__ = ["record_lap", "plot_cte", "write_video", "lane_keeping_figures"]
+def turn_videos(cfg, plans, out_dir: str | Path) -> list[Path]:
+    """For ``python -m eval env=left_turn videos=true``: each agent plan drives the first evaluation seed once more
+    with its sensors and shield, rendered top-down by highway-env (the view training's periodic GIFs show), at
+    half resolution and real time: ``turn_<agent>.mp4``."""
+    import cv2
+
+    from av_gym.make import make_env
+    from eval.__main__ import episode_seeds
+    from eval.agents import resolve_agent
+
+    first, paths = episode_seeds(cfg).start, []
+    for plan in plans:
+        env = make_env(cfg.env, plan.sensors, plan.shield, render_mode="rgb_array")
+        _, policy = resolve_agent(plan.spec, env, cfg.env.name, cfg.paths.checkpoints)
+        obs, _ = env.reset(seed=int(first))
+        policy.reset()
+        frames, done, t = [], False, 0.0
+        dt = 1.0 / float(env.unwrapped.config["policy_frequency"])
+        while True:
+            img = np.ascontiguousarray(env.render()[::2, ::2])
+            text = f"{plan.label}  t {t:4.1f} s"
+            cv2.putText(img, text, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 3, cv2.LINE_AA)
+            cv2.putText(img, text, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+            frames.append(img)
+            if done:
+                break
+            obs, _, terminated, truncated, _ = env.step(policy.act(obs))
+            done, t = terminated or truncated, t + dt
+        env.close()
+        paths.append(write_frames(frames, Path(out_dir) / f"turn_{_slug(plan.label)}.mp4", 1.0 / dt))
+    return paths
+
+
+__all__ = ["record_lap", "plot_cte", "write_video", "write_frames", "lane_keeping_figures", "turn_videos"]

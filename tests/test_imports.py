@@ -28,6 +28,7 @@ FLOORS = {
     "conf": 10,
     "eval": 11,
     "train": 12,                                                # train evaluates (eval); eval never trains
+    "av_gym.cli": 13,                                           # the console scripts: they start the commands
 }
 # third-party libraries that only the upper floors may use: the RL stack stays out of the simulator/sensor layers
 RL_LIBRARIES = ("stable_baselines3", "torch")
