@@ -99,7 +99,8 @@ def find_checkpoint(kind: str, env_name: str, root: str | Path, name: str | None
     if latest:
         raise ConfigError(f"{what}{LATEST}: you have no {what} run for env {env_name!r} under {root}/; train one with "
                           f"`python -m train env={env_name} agent={what}`, or say {what} for its shipped reference")
-    found = sorted(m for m in map(matches, reference.glob("*/config.yaml")) if m is not None)
+    # a bare kind: references under paths.checkpoints only (a named agent's is the package's from any folder)
+    found = sorted(m for m in map(matches, Path(root).glob("reference/*/config.yaml")) if m is not None)
     if found:
         return found[0]
     raise ConfigError(f"no {what} checkpoint for env {env_name!r} under {root}/; train one with "
