@@ -11,7 +11,7 @@ from typing import Any
 import gymnasium as gym
 
 from av_gym import ENV_IDS
-from av_gym.envs.base import ScenarioParams, check_action
+from av_gym.envs.base import ScenarioParams
 from av_gym.errors import ConfigError
 from av_gym.metrics.recorder import EpisodeMetrics
 from av_gym.registry import SCENARIOS
@@ -133,19 +133,9 @@ def add_shield(env: gym.Env, shield_cfg: Mapping | None) -> gym.Env:
     if kind not in SHIELDS:
         raise ConfigError(f"shield.kind must be one of {['none', *SHIELDS]}, got {kind!r}")
     try:  # the shield class reads its own fields (name and kind aside) and names them under `shield`
-        return CheckedActions(SHIELDS.get(kind).from_config(env, c, where="shield"))
+        return SHIELDS.get(kind).from_config(env, c, where="shield")
     except ParamError as exc:
         raise ConfigError(str(exc)) from None
     except (TypeError, ValueError) as exc:
         msg = str(exc)
         raise ConfigError(msg if msg.startswith("shield.") else f"shield: {msg}") from None
-
-
-class CheckedActions(gym.Wrapper):
-    """Checks every action against ``action_space`` (:func:`av_gym.envs.base.check_action`) before the wrapped
-    stack sees it. The scenario envs check their own actions; this goes outside what acts on an action first, a
-    safety shield: a NaN reached the shield's numba predictor and crashed the process (issue 31 row 1)."""
-
-    def step(self, action):
-        check_action(self.action_space, action)
-        return self.env.step(action)

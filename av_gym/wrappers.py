@@ -15,6 +15,8 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from av_gym.actions import check_action
+
 
 # ----------------------------------------------------------------------------------------------- flat observations
 def flat_space(space: gym.Space) -> gym.Space:
@@ -177,6 +179,7 @@ class GoYieldActions(gym.Wrapper):
         return obs, info
 
     def step(self, action):
+        check_action(self.action_space, action)  # int(nan) would be a bare "cannot convert float NaN"
         obs, reward, terminated, truncated, info = self.env.step(meta_action(int(action), self._turn))
         self._turn = obs["turn"]
         return obs, reward, terminated, truncated, info

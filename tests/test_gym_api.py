@@ -9,7 +9,7 @@ import pytest
 from gymnasium.error import ResetNeeded
 
 import av_gym  # noqa: F401 - registers the ids
-from av_gym.envs.base import InvalidAction
+from av_gym.actions import InvalidAction
 from av_gym.errors import ConfigError
 from av_gym.make import make_env, make_training_env
 from tests.conftest import conf
@@ -44,6 +44,14 @@ def test_bad_action_is_one_line_before_the_simulation(env_id, config, shield, ac
     assert isinstance(err.value, ValueError)
     assert env.unwrapped.time == time  # nothing simulated
     env.step(env.action_space.sample())  # and the env goes on
+
+
+def test_go_yield_actions_are_checked_too() -> None:
+    env = gym.make(TURN, checkpoint="checkpoints/reference/ppo_turn")  # go/yield on top of the turn's actions
+    env.reset(seed=0)
+    for bad in (np.nan, 2, None):
+        with pytest.raises(InvalidAction, match=r"Discrete\(2\)"):
+            env.step(bad)
 
 
 def test_good_actions_of_every_usual_type_are_taken() -> None:

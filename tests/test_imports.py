@@ -17,6 +17,7 @@ PACKAGES = ("av_gym", "agents", "conf", "train", "eval")
 FLOORS = {
     "av_gym": 0, "av_gym.errors": 0, "av_gym.geometry": 0,      # no av_gym imports but errors
     "av_gym.params": 1, "av_gym.registry": 1, "av_gym.metrics": 1, "av_gym.atomic": 1, "av_gym.seeds": 1,
+    "av_gym.actions": 1,                                        # what an action must be (envs, shields, wrappers)
     "av_gym.sim": 2,                                            # the simulator (highway-env fast paths, batched traffic)
     "av_gym.sensors": 3,                                        # sensor models, wrappers over any env
     "av_gym.estimation": 4,                                     # EKF, tracker, features from sensor readings

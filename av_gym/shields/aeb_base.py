@@ -11,6 +11,7 @@ from typing import Any, ClassVar
 import gymnasium as gym
 import numpy as np
 
+from av_gym.actions import check_action
 from av_gym.estimation.tracker import TrackerParams
 from av_gym.geometry import wrap_angle
 from av_gym.params import ParamError, Params
@@ -193,6 +194,7 @@ class AEBShield(gym.Wrapper):
         vehicle.act = _ActuatedAct(vehicle.act, vehicle, self)
 
     def step(self, action):
+        check_action(self.action_space, action)  # before _decide: a NaN crashed its numba predictor (issue 31)
         if self.bypass:  # a counterfactual replay (eval/interventions.py): the agent's action, no shield
             obs, reward, terminated, truncated, info = self.env.step(action)
             self._info = self._make_info(MONITOR, float("inf"), 0.0, -1, False, False, action)
