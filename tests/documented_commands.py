@@ -99,6 +99,10 @@ KNOWN: dict[str, str] = {
     "python3 -m venv .venv && . .venv/bin/activate && pip install torch==2.13.0 && pip install -e .[test] && "
     "python -m pytest -q -n auto -m not slow": "ci",
     "python -m pytest -q -n auto -m slow": "ci",
+    "av-gym-train --help": "covered:tests/test_console_scripts.py::test_help_from_any_folder_lists_only_the_groups_a_user_sets",
+    "av-gym-eval env=left_turn agents=[always_proceed,ppo_turn] episodes=2":
+        "covered:tests/test_console_scripts.py::"
+        "test_eval_from_a_folder_with_its_own_conf_and_agents_finds_the_reference_checkpoints",
     "python -m eval.results_page --readme README.md":
         "covered:tests/test_results_page.py::test_check_fails_when_a_result_or_the_readme_changes",
     "tensorboard --logdir runs/": "run",
