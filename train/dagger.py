@@ -54,7 +54,7 @@ def labeller_of(cfg: DictConfig) -> str:
 def validate(cfg: DictConfig) -> list[str]:
     """What DAgger needs beyond :class:`agents.dagger.DaggerParams`, one line each (before any folder)."""
     from av_gym.errors import ConfigError
-    from train.ppo import make_teacher, validate as ppo_validate
+    from train.ppo import make_teacher
 
     agent = cfg.agent
     try:
@@ -71,9 +71,12 @@ def validate(cfg: DictConfig) -> list[str]:
         if kind not in ("lookahead", "gap_acceptance"):
             return [f"agent.teacher={agent.teacher} (kind {kind}) cannot label on agent.vec_env=batched (lookahead "
                     f"or gap_acceptance can); use agent.vec_env=subproc"]
-        problems = ppo_validate(cfg)
-        if problems:
-            return problems
+        from av_gym.batched.vec_env import check_batchable
+
+        try:
+            check_batchable(*[OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)])
+        except ConfigError as exc:
+            return [str(exc)]
     if float(agent.label_margin) > 0 and not (batched and _teacher_kind(cfg) == "lookahead"):
         return ["agent.label_margin > 0 needs the batched oracle (agent.vec_env=batched, agent.teacher of kind "
                 "lookahead): the per-env teachers give no margin"]
