@@ -119,3 +119,29 @@ def test_pilotnet_checks_its_device_like_ppo():
     assert [p.split(" (")[0] for p in validate(cfg)] == ["agent.device=cuda but torch.cuda.is_available() is False"]
     cfg.agent.device = "auto"
     assert validate(cfg) == []
+
+
+def test_dagger_rounds_fit_on_the_policys_device():
+    """train/dagger.py refits its student with the cloning's fit: the same placement, the same result."""
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from agents.ppo import make_ppo
+    from eval.agents import compose_group
+    from train.dagger import Round, fit
+    from train.ppo import _env_factory
+
+    sensors = compose_group("sensors", "turn_truth")
+    make = lambda: _env_factory(conf("env", "left_turn"), sensors, {"kind": "none"}, 0.0, 5, "go_yield")  # noqa: E731
+    space = make().observation_space
+    space.seed(3)
+    rng = np.random.default_rng(1)
+    data = Round(obs=[space.sample() for _ in range(40)], labels=[int(v) for v in rng.integers(0, 2, 40)],
+                 returns=[float(v) for v in rng.normal(size=40)])
+    results = []
+    for default_device in ("meta", "cpu"):
+        model = make_ppo(DummyVecEnv([make]), {"policy": "MultiInputPolicy", "net_arch": [16], "n_steps": 64,
+                                               "batch_size": 64}, seed=0, tensorboard_log=None)
+        with torch.device(default_device):
+            accuracy = fit(model, data, 2, 16, 3e-3, 1)
+        results.append((accuracy, _digest(model.policy)))
+    assert results[0] == results[1]

@@ -205,45 +205,16 @@ def drive_per_env(env, model, teacher, seeds, teacher_drives: bool, gamma: float
 # ------------------------------------------------------------------------------------------------------ the fit
 def fit(model, data: Round, epochs: int, batch_size: int, lr: float, seed: int) -> float:
     """Actor to the labels (negative log-likelihood), critic to the returns (MSE scaled by their variance, so the
-    shared extractor is not driven by the returns' scale), Adam at ``lr``. Returns the accuracy on all labels."""
-    import torch as th
+    shared extractor is not driven by the returns' scale), Adam at ``lr``, every tensor on the policy's device
+    (agent.device): train/ppo.py's :func:`~train.ppo.fit_policy`, the fit its cloning step uses. Returns the
+    accuracy on all labels."""
     from gymnasium import spaces
 
-    policy = model.policy
-    discrete = isinstance(model.action_space, spaces.Discrete)
-    for group in policy.optimizer.param_groups:
-        group["lr"] = float(lr)
-    x = {k: np.stack([o[k] for o in data.obs]) for k in data.obs[0]}
-    y = th.as_tensor(np.array(data.labels), dtype=th.long if discrete else th.float32)
-    g = th.as_tensor(np.array(data.returns), dtype=th.float32)
-    g_var = max(float(g.var()), 1.0) if len(g) > 1 else 1.0
+    from train.ppo import Demonstrations, fit_policy
 
-    def batch(idx):
-        return policy.obs_to_tensor({k: v[idx.numpy()] for k, v in x.items()})[0]
-
-    log_std = getattr(policy, "log_std", None)  # continuous: the std stays (as train/ppo.py's cloning, same reason)
-    if log_std is not None:
-        log_std.requires_grad_(False)
-    policy.set_training_mode(True)
-    gen = th.Generator().manual_seed(int(seed))
-    for _ in range(epochs):
-        for idx in th.randperm(len(y), generator=gen).split(batch_size):
-            values, log_prob, _ = policy.evaluate_actions(batch(idx), y[idx])
-            loss = -log_prob.mean() + th.nn.functional.mse_loss(values.flatten(), g[idx]) / g_var
-            policy.optimizer.zero_grad()
-            loss.backward()
-            th.nn.utils.clip_grad_norm_(policy.parameters(), 0.5)
-            policy.optimizer.step()
-    policy.set_training_mode(False)
-    if log_std is not None:
-        log_std.requires_grad_(True)
-    with th.no_grad():
-        scores = []
-        for idx in th.arange(len(y)).split(2048):
-            dist = policy.get_distribution(batch(idx)).distribution
-            scores.append((dist.probs.argmax(1) == y[idx]).float() if discrete
-                          else 1.0 - (dist.mean - y[idx]).abs().mean(1))
-    return float(th.cat(scores).mean())
+    demos = Demonstrations(0.0, data.obs, data.labels, data.returns)  # returns already discounted per round
+    return fit_policy(model.policy, demos, isinstance(model.action_space, spaces.Discrete), epochs, batch_size,
+                      lr, seed=seed)
 
 
 def aggregate(total: Round, new: Round) -> None:

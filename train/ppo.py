@@ -126,10 +126,11 @@ def _drive_batch(env, teacher, seeds, demos: Demonstrations) -> list[tuple[float
 
 
 def fit_policy(policy, demos: Demonstrations, discrete: bool, epochs: int, batch_size: int,
-               lr: float | None = None) -> float:
+               lr: float | None = None, seed: int = 0) -> float:
     """Fit ``policy`` (an SB3 ActorCriticPolicy, with its own optimizer) to ``demos``: the actor by negative
     log-likelihood of the labels, the critic by the returns' MSE. Every tensor goes to the policy's device; the
-    minibatch order comes from a CPU generator seeded 0, so it is the same on every device. Returns the accuracy:
+    minibatch order comes from a CPU generator seeded ``seed``, so it is the same on every device (the cloning
+    here and DAgger's rounds, train/dagger.py, both fit with it). Returns the accuracy:
     the share of matching choices (``discrete``), or 1 - mean |error| for continuous actions."""
     import numpy as np
     import torch as th
@@ -153,7 +154,7 @@ def fit_policy(policy, demos: Demonstrations, discrete: bool, epochs: int, batch
     if log_std is not None:
         log_std.requires_grad_(False)
     policy.set_training_mode(True)
-    gen = th.Generator().manual_seed(0)
+    gen = th.Generator().manual_seed(int(seed))
     for _ in range(epochs):
         for idx in th.randperm(len(y), generator=gen, device="cpu").split(batch_size):
             on = idx.to(device)
