@@ -142,6 +142,8 @@ class PilotNetPolicy:
 def load_checkpoint(path: str | Path) -> dict:
     """The checkpoint dict written by ``train.bc`` (tensors and plain values only: ``weights_only=True``, so
     loading it cannot run code, unlike a pickle)."""
+    if Path(path).is_file() and Path(path).stat().st_size == 0:  # torch says only "EOFError"
+        raise ValueError(f"{path} is empty (0 bytes): a copy or download that did not finish? Re-copy it or retrain")
     try:
         ckpt = torch.load(str(path), map_location="cpu", weights_only=True)
     except pickle.UnpicklingError:
@@ -152,9 +154,27 @@ def load_checkpoint(path: str | Path) -> dict:
     return ckpt
 
 
+def _check_shapes(saved: dict, expected: dict, path: str | Path) -> None:
+    """One line naming the first tensor that is missing, unexpected or of another shape (torch lists them all over
+    many lines, which a one-line error cuts after its header)."""
+    for key, tensor in expected.items():
+        if key not in saved:
+            raise ValueError(f"{path} is not this PilotNet's weights: it lacks {key!r} (shape "
+                             f"{list(tensor.shape)})")
+        got = getattr(saved[key], "shape", None)
+        if got is None or tuple(got) != tuple(tensor.shape):
+            raise ValueError(f"{path} holds weights of another network: {key!r} has shape "
+                             f"{list(got) if got is not None else type(saved[key]).__name__}, PilotNet expects "
+                             f"{list(tensor.shape)}")
+    extra = sorted(set(saved) - set(expected))
+    if extra:
+        raise ValueError(f"{path} holds weights of another network: unexpected {extra[:3]}")
+
+
 def load_policy(path: str | Path) -> PilotNetPolicy:
     ckpt = load_checkpoint(path)
     model = PilotNet()
+    _check_shapes(ckpt["state_dict"], model.state_dict(), path)
     model.load_state_dict(ckpt["state_dict"])
     return PilotNetPolicy(model, crop_top=int(ckpt["preprocess"]["crop_top"]))
 

@@ -10,25 +10,110 @@ class ConfigError(ValueError):
     """A user-facing configuration or input error; its message names the field and the allowed values."""
 
 
+SWEEP_FAILURES = "AV_GYM_SWEEP_FAILURES"  # env var: the file where a sweep's jobs record how they failed
+
+
 def run_cli(fn, *args, hydra_run_dir: bool = False) -> None:
     """Run a command-line entry point: a :class:`ConfigError` becomes one line on stderr and exit status 2;
     Ctrl-C / SIGTERM exit with 130 (SIGTERM is raised as KeyboardInterrupt: whatever needed saving was saved by the
     code that was interrupted).
 
     ``hydra_run_dir``: ``fn`` runs as a Hydra job, whose folder Hydra made before ``fn`` could check anything; on a
-    ConfigError it is removed again when it holds nothing but what Hydra wrote (see :func:`discard_hydra_run_dir`)."""
+    ConfigError it is removed again when it holds nothing but what Hydra wrote (see :func:`discard_hydra_run_dir`).
+    In a sweep (``-m``, run through :func:`run_hydra`), a job that fails records one line and returns, so that
+    the sweep runs its other jobs (issue 31: one bad cell used to end the sweep); the line is reported at the end."""
     import sys
 
     interrupt_on_sigterm()
+    in_sweep = hydra_run_dir and _sweep_job() is not None
     try:
         fn(*args)
     except ConfigError as exc:
         if hydra_run_dir:
             discard_hydra_run_dir()
-        print("error: " + " ".join(str(exc).split()), file=sys.stderr)  # one line, whatever the message holds
+        line = " ".join(str(exc).split())  # one line, whatever the message holds
+        if in_sweep:
+            _record_failure(line)
+            return
+        print("error: " + line, file=sys.stderr)
         sys.exit(2)
     except KeyboardInterrupt:
         sys.exit(130)
+    except Exception as exc:  # a sweep's job: its traceback into its folder, one line for the report
+        if not in_sweep:
+            raise
+        _record_failure(f"{type(exc).__name__}: {' '.join(str(exc).split())[:300]} ({_save_traceback()})")
+
+
+def _sweep_job() -> tuple[int, str] | None:
+    """(job number, its overrides) when this is a job of a sweep that :func:`run_hydra` started, else None."""
+    import os
+
+    if not os.environ.get(SWEEP_FAILURES):
+        return None
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        hc = HydraConfig.get()
+        if hc.mode != RunMode.MULTIRUN:
+            return None
+        return int(hc.job.num), " ".join(hc.overrides.task)
+    except Exception:  # not a Hydra job
+        return None
+
+
+def _record_failure(line: str) -> None:
+    import os
+
+    num, overrides = _sweep_job()
+    text = f"sweep job {num} ({overrides}): {line}\n"
+    fd = os.open(os.environ[SWEEP_FAILURES], os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    try:  # one short write in append mode: jobs in parallel processes do not interleave
+        os.write(fd, text.encode())
+    finally:
+        os.close(fd)
+
+
+def _save_traceback() -> str:
+    """The current exception's traceback in the job's folder (``error.txt``); where it went."""
+    import traceback
+
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        path = Path(HydraConfig.get().runtime.output_dir) / "error.txt"
+        path.write_text(traceback.format_exc())
+        return f"traceback in {path}"
+    except Exception:
+        return "no traceback saved"
+
+
+def run_hydra(hydra_main) -> None:
+    """Call a ``@hydra.main`` function; with ``-m``, its jobs' failures are collected (:func:`run_cli`) and
+    reported once every job has run: one line each, then exit status 1 (0 when all succeeded)."""
+    import os
+    import sys
+    import tempfile
+
+    if not any(a in ("-m", "--multirun") for a in sys.argv[1:]):
+        hydra_main()
+        return
+    fd, path = tempfile.mkstemp(prefix="av-gym-sweep-", suffix=".txt")
+    os.close(fd)
+    os.environ[SWEEP_FAILURES] = path  # inherited by the launcher's worker processes
+    try:
+        hydra_main()
+        failures = [line for line in Path(path).read_text().splitlines() if line.strip()]
+    finally:
+        os.environ.pop(SWEEP_FAILURES, None)
+        os.unlink(path)
+    if failures:
+        for line in failures:
+            print(f"error: {line}", file=sys.stderr)
+        print(f"error: {len(failures)} sweep job(s) failed (listed above); the other jobs finished and wrote their "
+              f"results", file=sys.stderr)
+        sys.exit(1)
 
 
 def interrupt_on_sigterm() -> None:

@@ -58,9 +58,42 @@ def items(kind: Callable[[str], Any] = str, *, low: float | None = None, high: f
     return parse
 
 
+def number(kind: Callable[[str], Any] = int, *, low: float | None = None,
+           high: float | None = None) -> Callable[[str], Any]:
+    """An argparse ``type`` for one number, checked against ``low``/``high`` (inclusive)."""
+    parse_list = items(kind, low=low, high=high)
+
+    def parse(text: str) -> Any:
+        if "," in text or text.strip().startswith("["):
+            raise argparse.ArgumentTypeError(f"expected one value, got {text!r}")
+        return parse_list(text)[0]
+
+    parse.__name__ = {int: "integer", float: "number"}.get(kind, "value")
+    return parse
+
+
 class Extend(argparse.Action):
     """For ``nargs="+"`` with an :func:`items` type: ``--seeds 1 2``, ``--seeds [1,2]`` and ``--seeds 1,2`` give the
     same flat list."""
 
     def __call__(self, parser, namespace, values, option_string=None):
         setattr(namespace, self.dest, [v for group in values for v in group])
+
+
+def out_folder_problem(path: str, flag: str) -> str | None:
+    """Why folder ``path`` (given to ``flag``) cannot be made and written, in one line (``--out README.md/x``: a
+    file where a folder must be), or None; checked before the tool runs (:func:`av_gym.errors.folder_problem`)."""
+    from av_gym.errors import folder_problem
+
+    return folder_problem(path, flag)
+
+
+def out_file_problem(path: str, flag: str) -> str | None:
+    """Why file ``path`` cannot be written: its folder cannot be made, or it is a folder itself; or None."""
+    from pathlib import Path
+
+    if Path(path).is_dir():
+        return f"{flag}={path}: is a folder, not a file"
+    parent = str(Path(path).parent)
+    problem = out_folder_problem(parent, flag)
+    return problem.replace(f"{flag}={parent}:", f"{flag}={path}:", 1) if problem else None

@@ -73,7 +73,7 @@ class EvalCommand(Params):
     agents: tuple[str, ...] = param((), min_items=1, doc="names from conf/agent/ (rule-based, or trained: the newest checkpoint "
                                             "of that config), a trained kind, or a checkpoint path; eval.yaml: the "
                                             "env's compare list")
-    episodes: int = param(20, ge=1, le=EPISODES_MAX, doc="episodes per agent")
+    episodes: int = param(20, ge=1, doc="episodes per agent (bounded by the split's seed range, av_gym/seeds.py)")
     split: Literal["train", "validation", "test"] = param(
         "validation", doc="which seed range the episodes come from (av_gym/seeds.py): validation for looking and "
                           "deciding, test only for reported tables (docs/results.md), train is what learning saw")

@@ -8,7 +8,7 @@ import sys
 import hydra
 from omegaconf import DictConfig
 
-from av_gym.errors import ConfigError, check_folder, folder_problem, run_cli
+from av_gym.errors import ConfigError, check_folder, folder_problem, run_cli, run_hydra
 
 
 def _plans(cfg: DictConfig) -> list:
@@ -56,6 +56,9 @@ def evaluate(cfg: DictConfig) -> list[dict]:
     plans = _plans(cfg)
     if int(cfg.episodes) < 1:
         raise ConfigError(f"episodes must be >= 1, got {cfg.episodes}")
+    problem = results_problem(cfg)  # before anything runs: another evaluation's results are not replaced
+    if problem:
+        raise ConfigError(problem)
     check_folder(cfg.out_dir, "out_dir", create=True)  # before the first episode: results must have somewhere to go
     seeds = episode_seeds(cfg)
     title = (f"{cfg.env.name} ({cfg.env.get('mode', '')}), {cfg.episodes} episodes of the {cfg.split} split "
@@ -112,13 +115,25 @@ def evaluate(cfg: DictConfig) -> list[dict]:
     return rows
 
 
+def results_problem(cfg: DictConfig) -> str | None:
+    """An ``out_dir`` that holds an evaluation's results is not written over unless ``overwrite=true``: a finished
+    evaluation used to be replaced without a word (issue 31). The default out_dir, Hydra's run folder, is new."""
+    from pathlib import Path
+
+    held = [name for name in ("results.csv", "results.md") if (Path(cfg.out_dir) / name).exists()]
+    if held and not cfg.get("overwrite", False):
+        return (f"out_dir={cfg.out_dir} already holds {' and '.join(held)} of an evaluation; pick another out_dir "
+                f"(or leave it out: a new folder under runs/eval/), or replace them with overwrite=true")
+    return None
+
+
 def _check_command_line() -> None:
     from conf.check import _PLACEHOLDER, check_command_line
 
     for cfg in check_command_line("eval", sys.argv[1:]):
         _plans(cfg)
         if cfg.out_dir != _PLACEHOLDER:  # the default, Hydra's run folder, was checked with hydra.run.dir
-            problem = folder_problem(cfg.out_dir, "out_dir")
+            problem = folder_problem(cfg.out_dir, "out_dir") or results_problem(cfg)
             if problem:
                 raise ConfigError(problem)
 
@@ -131,7 +146,7 @@ def _hydra_main(cfg: DictConfig) -> None:
 def main() -> None:
     """Check the command line before Hydra makes a run folder (one line and exit 2 on bad input), then run."""
     run_cli(_check_command_line)
-    _hydra_main()
+    run_hydra(_hydra_main)  # a sweep runs every job, then reports the failed ones
 
 
 if __name__ == "__main__":

@@ -96,6 +96,10 @@ def find_checkpoint(kind: str, env_name: str, root: str | Path, name: str | None
     runs = [m for m in map(matches, Path(root).glob("*/config.yaml")) if m is not None]
     if runs:  # your own training runs: the newest
         return max(runs, key=lambda p: p.stat().st_mtime)
+    drives = _scenarios_of(what, kind)
+    if env_name not in drives:  # no train command to suggest: train refuses it too (issue 31)
+        raise ConfigError(f"{what} drives {list(drives)}, not env={env_name}: there is no {what} checkpoint for it; "
+                          f"pick an agent for env={env_name} or pass a checkpoint path")
     if latest:
         raise ConfigError(f"{what}{LATEST}: you have no {what} run for env {env_name!r} under {root}/; train one with "
                           f"`python -m train env={env_name} agent={what}`, or say {what} for its shipped reference")
@@ -117,6 +121,13 @@ def reference_folder(root: str | Path) -> Path:
     (``ppo_turn``) resolves from any folder (``av-gym-eval`` in a project of yours), not only the repository's."""
     local = Path(root) / "reference"
     return local if local.is_dir() else REFERENCE
+
+
+def _scenarios_of(what: str, kind: str) -> tuple[str, ...]:
+    """The scenarios agent config (or kind) ``what`` can drive: its ``scenarios``, else its kind's default."""
+    if what in available_agents():
+        return tuple(load_agent_config(what).get("scenarios") or ())
+    return tuple(AGENT_KINDS.get(kind).Params().scenarios) if kind in AGENT_KINDS else ()
 
 
 def _check_scenario(label: str, cfg: dict, env_name: str) -> None:

@@ -56,7 +56,9 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from conf.cli import ToolParser, items
+from av_gym.params import SEED_MAX
+from conf.cli import ToolParser, items, number, out_folder_problem
+from conf.commands import PROCESSES_MAX
 
 EGO_KMH = (10.0, 15.0, 20.0)
 TARGET_KMH = (30.0, 45.0, 60.0)
@@ -378,6 +380,17 @@ def plan_agents(specs: list[str], checkpoints: str, action: str, case: tuple) ->
     return plans
 
 
+def _ccftap_bounds() -> dict[str, dict]:
+    """``{field: {"low": ge, "high": le}}`` of :class:`~av_gym.envs.left_turn.CCFtapParams`: the grid flags take
+    what ``env.ccftap.*`` takes."""
+    import dataclasses
+
+    from av_gym.envs.left_turn import CCFtapParams
+
+    return {f.name: {"low": f.metadata.get("ge"), "high": f.metadata.get("le")}
+            for f in dataclasses.fields(CCFtapParams)}
+
+
 def main(argv: list[str] | None = None) -> int:
     p = ToolParser(prog="python -m eval.ccftap", description=__doc__.split("\n\n")[0])
     p.add_argument("--agents", default=[DEFAULT_AGENT], type=items(str),
@@ -386,21 +399,26 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--checkpoints", default="checkpoints", help="where named trained agents' checkpoints are found")
     p.add_argument("--variants", default=list(VARIANTS), type=items(str, choices=list(VARIANTS)))
     p.add_argument("--modes", default=list(MODES), type=items(str, choices=list(MODES)))
-    p.add_argument("--ego", default=list(EGO_KMH), type=items(float, low=0), help="ego speeds, km/h, [10,15,20]")
-    p.add_argument("--target", default=list(TARGET_KMH), type=items(float, low=0), help="target speeds, km/h")
-    p.add_argument("--dts", default=list(DTS), type=items(float), help="timing offsets, s")
+    bounds = _ccftap_bounds()  # the bounds env.ccftap.* declares (CCFtapParams): 1e9 s used to hang
+    p.add_argument("--ego", default=list(EGO_KMH), type=items(float, **bounds["ego_speed_kmh"]),
+                   help="ego speeds, km/h, [10,15,20]")
+    p.add_argument("--target", default=list(TARGET_KMH), type=items(float, **bounds["target_speed_kmh"]),
+                   help="target speeds, km/h")
+    p.add_argument("--dts", default=list(DTS), type=items(float, **bounds["dt"]), help="timing offsets, s")
     p.add_argument("--miss-rate", type=float, default=None, help="perceived mode: detector miss rate (yaml: 0.3)")
     p.add_argument("--burst-length", type=float, default=None, help="perceived mode: mean miss run, frames (yaml: 5)")
     p.add_argument("--detector-range", type=float, default=None, help="perceived mode: detector range, m")
     p.add_argument("--set", action="append", default=[], metavar="VARIANT.KEY=VALUE",
                    help="override a shield parameter, e.g. paper.standstill_hold=null or paper.brake.delay=0")
     p.add_argument("--action", default="discrete", choices=["discrete", "continuous"])
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--seed", type=number(int, low=0, high=SEED_MAX), default=0)
+    p.add_argument("--workers", type=number(int, low=1, high=PROCESSES_MAX), default=2)
     p.add_argument("--plot-case", default=[15.0, 45.0, 0.0], type=items(float),
                    help="ego km/h, target km/h, dt for timeline.png: [15,45,0]")
     p.add_argument("--out", default=None, help="output folder (default runs/ccftap/<time>)")
     a = p.parse_args(argv)
+    if a.out is not None and out_folder_problem(a.out, "--out"):  # before any run: results need somewhere to go
+        p.error(f"argument {out_folder_problem(a.out, '--out')}")
     variants, modes, egos, targets, dts = a.variants, a.modes, a.ego, a.target, a.dts
     if len(a.plot_case) != 3:
         p.error(f"argument --plot-case: expected [ego km/h, target km/h, dt], got {a.plot_case}")

@@ -8,7 +8,7 @@ One panel per scalar tag, one line per run (labelled by the run folder), x = env
 from __future__ import annotations
 
 from pathlib import Path
-from conf.cli import Extend, ToolParser, items
+from conf.cli import Extend, ToolParser, items, out_file_problem
 
 DEFAULT_TAGS = ("eval/success", "eval/collision", "eval/interventions", "episode/success", "episode/collision",
                 "eval/time_to_exit_s")
@@ -60,14 +60,17 @@ def plot_curves(runs: dict[str, dict[str, list[tuple[int, float]]]], tags: list[
 
 
 def main() -> None:
-    parser = ToolParser(description=__doc__.splitlines()[0])
+    parser = ToolParser(prog="python -m eval.curves", description=__doc__.splitlines()[0])
     parser.add_argument("tb_dirs", nargs="+", help="TensorBoard folders (runs/<run>/tb)")
     parser.add_argument("--out", default="curves.png")
     parser.add_argument("--tags", nargs="+", default=list(DEFAULT_TAGS))
     args = parser.parse_args()
     missing = [d for d in args.tb_dirs if not Path(d).is_dir()]
     if missing:
-        raise SystemExit(f"error: tb_dirs: {missing[0]} is not a folder")
+        parser.error(f"argument tb_dirs: {missing[0]} is not a folder")
+    problem = out_file_problem(args.out, "--out")
+    if problem:  # before reading any event file
+        parser.error(f"argument {problem}")
     runs = {Path(d).parent.name if Path(d).name == "tb" else Path(d).name: read_scalars(d) for d in args.tb_dirs}
     print(f"[curves] {plot_curves(runs, args.tags, args.out)}")
 

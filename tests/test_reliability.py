@@ -42,7 +42,7 @@ def one_error_line(proc: subprocess.CompletedProcess) -> str:
     ("train", ["train.eval_seed=4294967296"], "train.eval_seed must be an integer in [0, 2147483647]"),
     ("eval", ["seed=4294967296"], "seed must be an integer in [0, 2147483647]"),
     ("eval", ["-m", "seed=1,99999999999"], "seed must be an integer in [0, 2147483647]"),
-    ("eval", ["episodes=100000000000"], "episodes must be an integer in [1, 10000000]"),
+    ("eval", ["episodes=100000000000"], "with 100000000000 episodes leaves split 'validation'"),
     # row 7: values that hung (a catch-up loop or a Poisson draw per unit, or an episode of ~forever)
     ("eval", ["sensors=gnss_imu", "sensors.gnss.rate_hz=1e9"], "sensors.gnss.rate_hz must be a number in (0, 1000]"),
     ("eval", ["sensors=cameras", "sensors.cameras.rate_hz=1e9"], "sensors.cameras.rate_hz must be a number in (0, 1000]"),
@@ -461,3 +461,109 @@ def test_ctrl_c_during_trains_brief_evaluation_is_one_line_and_keeps_its_rows(tm
     assert len(err.splitlines()) == 1 and "interrupted during the brief evaluation" in err, err
     assert len((tmp_path / "runs" / "R" / "results.csv").read_text().splitlines()) > 4
     assert not alive(run_.workers) and not (tmp_path / "checkpoints" / "R" / ".lock").exists()
+
+
+# ----------------------------------------------------------------------- row 18: a sweep finishes the cells it can
+@pytest.mark.slow  # a 2-job eval sweep, ~30-100 s on 2 busy cores
+def test_a_sweep_runs_every_cell_and_reports_the_failed_ones(tmp_path):
+    """Row 18: a job-time failure in the first cell used to abort the sweep; the good cell never ran. Here the
+    checkpoint passes every check made before the sweep (a zip with SB3's members and good CRCs) and fails only
+    when the job loads it."""
+    import shutil
+    import zipfile
+
+    from agents.checkpoint import SB3_MEMBERS
+    from tests.test_bad_input import REFERENCE
+
+    shutil.copytree(REFERENCE, tmp_path / "bad")
+    with zipfile.ZipFile(tmp_path / "bad" / "model.zip", "w") as z:
+        for member in SB3_MEMBERS:
+            z.writestr(member, b"{not what SB3 wrote")
+    res = run(["-m", "eval", "-m", "agents=[bad],[always_proceed]", "episodes=2", "progress_bar=false"], tmp_path,
+              timeout=400)
+    errors = [line for line in res.stderr.splitlines() if line.startswith("error: ")]
+    assert res.returncode == 1 and "Traceback" not in res.stderr, res.stderr[-3000:]
+    assert len(errors) == 2 and errors[0].startswith("error: sweep job 0 (agents=[bad]") and \
+        "cannot be loaded" in errors[0] and "1 sweep job(s) failed" in errors[1], errors
+    (good,) = (tmp_path / "runs" / "multirun").glob("*/1/results.csv")  # the good cell ran and wrote its rows
+    assert "always_proceed" in good.read_text()
+
+
+# ------------------------------------------------------------------------------------ row 13: the side tools' flags
+@pytest.mark.parametrize("argv, needle", [
+    (["-m", "eval.ccftap", "--ego", "abc"], "argument --ego: expected a list of numbers like [1,2], got 'abc'"),
+    (["-m", "eval.ccftap", "--out", "README.md/x"], "argument --out=README.md/x: 'README.md' (part of 'README.md/x') "
+                                                    "is a file, not a folder"),
+    (["-m", "eval.ccftap", "--dts", "1e9"], "argument --dts: each value must be in [-30, 30], got '1e9'"),
+    (["-m", "eval.ccftap", "--ego", "[0,15]"], "argument --ego: each value must be in [1, 100], got '0'"),
+    (["-m", "eval.ccftap", "--workers", "0"], "argument --workers: each value must be in [1, 64], got '0'"),
+    (["-m", "eval.ccftap", "--seed", "4294967296"], "argument --seed: each value must be in [0, 2147483647]"),
+    (["-m", "eval.curves", "docs", "--out", "README.md/c.png"], "argument --out=README.md/c.png: 'README.md' is a "
+                                                                "file, not a folder"),
+    (["-m", "eval.curves", "README.md"], "argument tb_dirs: README.md is not a folder"),
+    (["benchmarks/batched_speed.py", "--sizes", "0"], "argument --sizes: each value must be in [1, 4096], got '0'"),
+])
+def test_side_tools_refuse_bad_flags_in_one_line(argv, needle, tmp_path):
+    """Row 13: these gave tracebacks. Run from the checkout (README.md is a file there), as a user would."""
+    line = one_error_line(run(argv, ROOT, timeout=120))
+    assert needle in line, line
+
+
+# ------------------------------------------------------------------------------------------------ row 19: messages
+def test_an_empty_or_foreign_pilotnet_file_is_one_line_naming_it(tmp_path):
+    import torch
+
+    from agents.pilotnet import FORMAT, PilotNet, load_policy
+
+    empty = tmp_path / "model.pt"
+    empty.write_bytes(b"")
+    with pytest.raises(ValueError) as err:
+        load_policy(empty)
+    assert str(err.value) == f"{empty} is empty (0 bytes): a copy or download that did not finish? Re-copy it or " \
+                             f"retrain"
+    state = PilotNet().state_dict()
+    key = next(iter(state))
+    state[key] = torch.zeros(7, *state[key].shape[1:])
+    other = tmp_path / "other.pt"
+    torch.save({"format": FORMAT, "state_dict": state, "preprocess": {"crop_top": 0}}, other)
+    with pytest.raises(ValueError) as err:
+        load_policy(other)
+    expected = list(PilotNet().state_dict()[key].shape)
+    assert str(err.value) == f"{other} holds weights of another network: {key!r} has shape {[7, *expected[1:]]}, " \
+                             f"PilotNet expects {expected}"
+
+
+def test_no_train_command_is_suggested_that_train_refuses(tmp_path, monkeypatch, capsys):
+    """Row 19: ``agents=[pilotnet] env=left_turn`` suggested ``python -m train env=left_turn agent=pilotnet``."""
+    monkeypatch.chdir(tmp_path)
+    line = check_line("eval", ["agents=[pilotnet]", "env=left_turn"], monkeypatch, capsys)
+    assert "pilotnet drives ['lane_keeping'], not env=left_turn" in line and "python -m train" not in line, line
+
+
+def test_ctrl_c_during_behaviour_cloning_says_what_is_kept(tmp_path, monkeypatch, capsys):
+    """Row 19: it exited 130 without a word."""
+    import train.bc
+    from agents.bc import PilotNetParams
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(train.bc, "collect_demos", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        train.bc.train(PilotNetParams(), {}, {}, tmp_path / "run", tmp_path / "ckpt", log=lambda *_: None)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["[bc] interrupted while collecting demonstrations: no model was saved yet"], err
+
+
+def test_eval_does_not_write_over_an_evaluation(tmp_path, monkeypatch, capsys):
+    """Row 19: eval silently replaced results.csv/results.md in an existing out_dir; now refused unless
+    ``overwrite=true`` (the default out_dir is a new folder per run)."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "results.csv").write_text("agent,seed\n")
+    line = check_line("eval", ["out_dir=out", "agents=[always_proceed]"], monkeypatch, capsys)
+    assert "out_dir=out already holds results.csv of an evaluation" in line and "overwrite=true" in line, line
+    from conf.check import check_command_line
+
+    assert check_command_line("eval", ["out_dir=out", "agents=[always_proceed]", "overwrite=true"])
+    assert (tmp_path / "out" / "results.csv").read_text() == "agent,seed\n"

@@ -14,7 +14,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from av_gym.errors import ConfigError, check_folder, folder_problem, run_cli
+from av_gym.errors import ConfigError, check_folder, folder_problem, run_cli, run_hydra
 
 # What the brief evaluation after training compares the trained agent with (train.baseline: auto): on the left turn
 # the do-nothing-clever driver and the two-parameter rule a learned driver must beat.
@@ -181,7 +181,7 @@ def _hydra_main(cfg: DictConfig) -> None:
 def main() -> None:
     """Check the command line before Hydra makes a run folder (one line and exit 2 on bad input), then run."""
     run_cli(_check_command_line)
-    _hydra_main()
+    run_hydra(_hydra_main)  # a sweep runs every job, then reports the failed ones
 
 
 if __name__ == "__main__":

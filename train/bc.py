@@ -61,6 +61,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -421,6 +422,8 @@ def train(args: PilotNetParams, env_cfg: dict, sensors_cfg: dict, run_dir: str |
     threads = torch.get_num_threads()
     torch.set_num_threads(args.torch_threads)
     writer = SummaryWriter(str(run_dir / "tb"))
+    best, best_epoch, best_path = float("inf"), -1, ckpt_dir / "model.pt"
+    stage = "collecting demonstrations"
     try:
         # ---- demonstrations: collect (and store under the run folder) or reuse
         if args.demos:
@@ -463,10 +466,10 @@ def train(args: PilotNetParams, env_cfg: dict, sensors_cfg: dict, run_dir: str |
         opt = torch.optim.Adam(model.parameters(), lr=args.learning_rate)
         log(f"[bc] PilotNet: {count_parameters(model):,} parameters on {device}; Adam lr {args.learning_rate}, "
             f"batch {args.batch_size}, up to {args.epochs} epochs, patience {args.patience}")
-        best, best_epoch, bad = float("inf"), -1, 0
-        best_path = ckpt_dir / "model.pt"
+        bad = 0
         n = len(x_train)
         for epoch in range(args.epochs):
+            stage = f"training epoch {epoch + 1}/{args.epochs}"
             t0 = time.time()
             model.train()
             perm = torch.randperm(n, generator=gen, device="cpu").numpy()
@@ -520,6 +523,11 @@ def train(args: PilotNetParams, env_cfg: dict, sensors_cfg: dict, run_dir: str |
         log(f"[bc] best epoch {best_epoch + 1} (val MSE {best:.4f}); demos {t_demos:.0f} s, total "
             f"{time.time() - t_start:.0f} s")
         return best_path
+    except KeyboardInterrupt:  # Ctrl-C / SIGTERM: say what is kept (it used to exit 130 without a word)
+        kept = (f"{best_path} holds epoch {best_epoch + 1}, the best so far (val MSE {best:.4f})" if best_epoch >= 0
+                else "no model was saved yet")
+        print(f"[bc] interrupted while {stage}: {kept}", file=sys.stderr)
+        raise
     finally:
         writer.close()
         torch.set_num_threads(threads)
