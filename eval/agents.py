@@ -90,9 +90,10 @@ def find_checkpoint(kind: str, env_name: str, root: str | Path, name: str | None
         own = reference / name / "config.yaml"
         if own.is_file() and matches(own) is not None:
             return matches(own)
-        raise ConfigError(f"no shipped reference checkpoint for {name!r} on env {env_name!r} "
-                          f"({reference / name}/); for your newest run say {name}{LATEST}, or pass a "
-                          f"checkpoint path")
+        where = f"{reference / name}/" if reference.is_dir() else \
+            f"{reference}/ is not in this install: `pip install -e <checkout>` keeps the shipped ones"
+        raise ConfigError(f"no shipped reference checkpoint for {name!r} on env {env_name!r} ({where}); for your "
+                          f"newest run say {name}{LATEST}, or pass a checkpoint path")
     runs = [m for m in map(matches, Path(root).glob("*/config.yaml")) if m is not None]
     if runs:  # your own training runs: the newest
         return max(runs, key=lambda p: p.stat().st_mtime)

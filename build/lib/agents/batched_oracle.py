@@ -1,0 +1,108 @@
+"""The look-ahead oracle (:class:`agents.go_yield.Lookahead`) for a whole batch of left turns at once (issue 32).
+
+The per-env oracle deep-copies one env and plays its GO future to the end (~0.1 s per decision). Here the states of
+every env of a :class:`~av_gym.batched.left_turn.BatchedLeftTurn` that needs a label are copied as arrays
+(traffic rows, clocks, and each env's random generator, so the future spawns are the real ones) into one future
+batch, which is stepped with GO in all rows together until each row's episode ends. A row's label is the oracle's:
+GO is safe now iff its GO future ends without a collision. The future also gives the *margin* of that decision: the
+smallest centre distance between the ego and any other vehicle along it (m), and when it arrives (s): a label
+richer than the argmax, from which a student can learn calibrated risk and a user can pick an operating point
+(``margin``: GO only where the future also keeps that distance).
+
+benchmarks/oracle_labels.py measures its agreement with the per-env oracle on the same states and the labels per
+second of both; tests/test_dagger.py checks the agreement on a few hundred decisions.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+
+import numpy as np
+
+from av_gym.batched.vec_env import meta_actions
+from av_gym.batched.left_turn import BatchedLeftTurn
+from av_gym.wrappers import GO, YIELD
+
+__all__ = ["GoFutures", "future_rows", "go_futures", "oracle_labels"]
+
+# The engine's per-env arrays (B,) a future copies (besides the traffic and the generators).
+_ROW_ARRAYS = ("time", "ticks", "route_k", "progress_s", "progress_total", "arrived_time", "episode_seed", "cmd")
+
+
+@dataclass
+class GoFutures:
+    """What the GO futures of a set of rows gave, one entry per row."""
+
+    safe: np.ndarray
+    """bool: the GO future ends without a collision (the oracle's choice: GO)"""
+    min_gap: np.ndarray
+    """m: the smallest centre distance between the ego and another vehicle along the future (inf: none seen)"""
+    end_time: np.ndarray
+    """s: the episode time at which the future ended (arrival, collision or the time limit)"""
+    arrived: np.ndarray
+    """bool: the future ended with the ego's arrival"""
+
+    def labels(self, margin: float = 0.0) -> np.ndarray:
+        """GO (1) where GO is safe and keeps at least ``margin`` metres from everyone, else YIELD (0)."""
+        return np.where(self.safe & (self.min_gap >= float(margin)), GO, YIELD).astype(np.int64)
+
+
+def future_rows(engine: BatchedLeftTurn, rows: np.ndarray) -> BatchedLeftTurn:
+    """A new engine holding copies of ``rows`` of ``engine`` (its traffic, clocks, progress and each row's
+    generator, deep-copied so that the future draws the spawns the real episode will draw), without the episode
+    pool or queue. Stepping it leaves ``engine`` as it is."""
+    rows = np.asarray(rows, dtype=int)
+    future = copy.copy(engine)  # shares the read-only tables, config and path geometry
+    future.B = len(rows)
+    future.traffic = engine.traffic.subset(rows)
+    future.rngs = [copy.deepcopy(engine.rngs[r]) for r in rows]
+    for name in _ROW_ARRAYS:
+        setattr(future, name, getattr(engine, name)[rows].copy())
+    future._new, future._pending, future._ready, future._ready_rngs, future._ready_seeds = [], [], None, [], []
+    future.pool_size = 0
+    return future
+
+
+def go_futures(engine: BatchedLeftTurn, rows: np.ndarray | None = None) -> GoFutures:
+    """Play the GO future of each env ``rows`` of ``engine`` (default: all) to its episode's end, all together:
+    GO at every env step (its meta-action from the features, as :class:`~av_gym.wrappers.GoYieldActions`) in a
+    copy (:func:`future_rows`); the rows whose episode ended are no longer stepped."""
+    rows = np.arange(engine.B) if rows is None else np.asarray(rows, dtype=int)
+    n = len(rows)
+    out = GoFutures(np.ones(n, bool), np.full(n, np.inf), np.zeros(n), np.zeros(n, bool))
+    if n == 0:
+        return out
+    f = future_rows(engine, rows)
+    active = np.ones(n, bool)
+    go = np.full(n, GO)
+    turn = f.observe()
+    while active.any():
+        _, terminated, truncated = f.step(meta_actions(go, turn), active)
+        turn = f.observe()
+        live = np.nonzero(active)[0]
+        out.min_gap[live] = np.minimum(out.min_gap[live], _nearest(f, live))
+        ended = (terminated | truncated) & active
+        if ended.any():
+            e = np.nonzero(ended)[0]
+            slots = f.ego_slot(e)
+            out.safe[e] = ~f.traffic.crashed[e, slots]
+            out.arrived[e] = f.has_arrived(e, slots)
+            out.end_time[e] = f.time[e]
+            active &= ~ended
+    return out
+
+
+def _nearest(f: BatchedLeftTurn, rows: np.ndarray) -> np.ndarray:
+    """Centre distance from each row's ego to its nearest other vehicle (m; inf if alone)."""
+    t = f.traffic
+    e = f.ego_slot(rows)
+    d = np.hypot(t.x[rows] - t.x[rows, e][:, None], t.y[rows] - t.y[rows, e][:, None])
+    d = np.where(t.alive[rows] & ~t.ego[rows], d, np.inf)
+    return d.min(axis=1)
+
+
+def oracle_labels(engine: BatchedLeftTurn, rows: np.ndarray, margin: float = 0.0) -> tuple[np.ndarray, GoFutures]:
+    """The oracle's GO/YIELD labels for the envs ``rows`` (see :meth:`GoFutures.labels`) and their futures."""
+    futures = go_futures(engine, rows)
+    return futures.labels(margin), futures

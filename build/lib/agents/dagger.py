@@ -1,0 +1,58 @@
+"""DAgger students as an agent kind (issue 32): an SB3 PPO policy network trained by on-policy imitation of a
+teacher (:func:`train.dagger.train_dagger`), so its checkpoint is a PPO zip that ``python -m eval`` loads as any PPO
+checkpoint and PPO can fine-tune. Its Params are PPO's (the network, the env stack) plus the DAgger rounds."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from agents.ppo import PPOAgent, PPOParams, teacher_agents
+from av_gym.params import param
+
+
+@dataclass(frozen=True)
+class DaggerParams(PPOParams):
+    """On-policy imitation (DAgger, Ross et al. 2011) of ``teacher`` by a PPO policy network (conf/agent/dagger_turn.yaml).
+    PPO's own fields set the network (``extractor``, ``net_arch``), the env stack (``actions``, ``action_repeat``,
+    ``vec_env``, ``n_envs``, ``timeout_is_terminal``) and the critic's discount (``gamma``); ``total_timesteps`` and
+    the other PPO update fields are unused (no PPO here)."""
+
+    kind: Literal["dagger"] = param("dagger")
+    name: str = param("dagger")
+    teacher: str = param("lookahead", doc="the agent config that labels the student's states (a kind in "
+                                          "agents/registry.py TEACHERS)")
+    rounds: int = param(8, ge=1, doc="DAgger rounds: the teacher drives the first, the student the others; the "
+                                     "student is refitted on everything labelled so far after each")
+    round_episodes: int = param(128, "episodes", ge=1, doc="episodes driven (and labelled) per round")
+    fit_epochs: int = param(8, ge=1, doc="passes over the aggregated labels after each round")
+    fit_lr: float = param(1.0e-3, gt=0, doc="Adam step of the supervised fit")
+    fit_batch: int = param(256, ge=2, doc="minibatch of the supervised fit")
+    label_margin: float = param(0.0, "m", ge=0, doc="batched look-ahead labels: GO only where the GO future also "
+                                                    "keeps this centre distance from every vehicle (a more cautious "
+                                                    "operating point); 0: the oracle's own choice")
+    go_threshold: float = param(0.5, gt=0, lt=1, doc="go/yield students: GO where the student's P(GO) is at least "
+                                                     "this (the checkpoints and validations are at it; the fit is "
+                                                     "not); 0.5 = its argmax. train/operating_point.py sweeps it")
+    labeller: Literal["auto", "batched", "per_env"] = param(
+        "auto", doc="batched: the look-ahead oracle on the batched engine (agents/batched_oracle.py, needs "
+                    "vec_env=batched and teacher kind lookahead) | per_env: the teacher on the per-env stack, one "
+                    "state at a time | auto: batched where possible")
+    train_seed: int = param(600_000, ge=0, doc="first seed of the episodes the rounds drive, in the train split "
+                                               "(av_gym/seeds.py; + 50,000 x seed, folded into the split): away from "
+                                               "the demonstrations (500,000+) and PPO's streams (seed + steps)")
+
+    def relations(self) -> list[str]:
+        found = super().relations()
+        allowed = teacher_agents()
+        if self.teacher not in allowed:
+            found.append(f"@teacher must be one of {allowed}, got {self.teacher!r}")
+        return found
+
+
+class DaggerAgent(PPOAgent):
+    """Trained by :func:`train.dagger.train_dagger`; ``model.zip`` is an SB3 PPO zip, loaded as PPO's."""
+
+    Params = DaggerParams
+    trainer = "train.dagger:train_dagger"
+    train_checks = "train.dagger:validate"

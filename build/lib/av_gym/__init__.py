@@ -1,0 +1,27 @@
+"""av-gym: Gymnasium scenarios, sensor-noise wrappers and metrics for autonomous-driving research."""
+
+import os
+
+from gymnasium.envs.registration import register, registry
+
+# highway-env renders (videos, camera frames, plots) through pygame, which initialises SDL's video subsystem. With no
+# display SDL first tries X11/Wayland, prints "error: XDG_RUNTIME_DIR is invalid or not set in the environment." to
+# stderr, then falls back to its off-screen driver: the same frames, after a line that reads like a failure. Ask for
+# the off-screen driver directly when there is no display, unless the user chose a driver. Not "dummy": highway-env
+# disables its viewer under that driver, and every rendered frame comes out black.
+if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+    os.environ.setdefault("SDL_VIDEODRIVER", "offscreen")
+
+__version__ = "0.1.0"
+
+SCENARIO_ENTRIES = {  # env.name → (Gymnasium id, class); av_gym.registry.SCENARIOS is built from this table
+    "lane_keeping": ("av_gym/LaneKeepingLap-v0", "av_gym.envs.lane_keeping:LaneKeepingLapEnv"),
+    "left_turn": ("av_gym/UnprotectedLeftTurn-v0", "av_gym.envs.left_turn:UnprotectedLeftTurnEnv"),
+}
+ENV_IDS = {name: gym_id for name, (gym_id, _) in SCENARIO_ENTRIES.items()}
+
+for _name, (_gym_id, _) in SCENARIO_ENTRIES.items():
+    if _gym_id not in registry:  # defaults: the task the harness trains and reports (each env's Params)
+        # av_gym.api checks config/render_mode and adds the harness's sensors, shield or a checkpoint's wrappers
+        register(id=_gym_id, entry_point=f"av_gym.api:{_name}",
+                 vector_entry_point="av_gym.api:left_turn_vector" if _name == "left_turn" else None)

@@ -1,0 +1,52 @@
+"""What an action must be: :func:`check_action`, called by everything that acts on an action before the
+simulation does (the scenario envs, the AEB shield, :class:`~av_gym.wrappers.GoYieldActions`)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from gymnasium import error, spaces
+
+from av_gym.errors import ConfigError
+
+
+class InvalidAction(ConfigError, error.InvalidAction):
+    """An action outside the env's ``action_space`` (a ``ValueError`` and Gymnasium's ``InvalidAction``)."""
+
+
+def check_action(space: spaces.Space, action: Any) -> None:
+    """Raise :class:`InvalidAction` (one line: the action, the space, what is wrong) unless ``action`` is in
+    ``space``. Checked before anything acts on it: a NaN acceleration reached the shield's numba predictor and
+    crashed the process, a discrete 3 became a bare ``KeyError`` (issue 31 rows 1, 14). Only checked, never
+    converted: the env receives the action as given, so trajectories stay bit-identical."""
+    problem = _action_problem(space, action)
+    if problem:
+        text = repr(action) if not isinstance(action, np.ndarray) else np.array2string(action, threshold=8)
+        raise InvalidAction(f"action {text[:80]} is not in the action space {space}: {problem}")
+
+
+def _action_problem(space: spaces.Space, action: Any) -> str | None:
+    if isinstance(space, spaces.Discrete):
+        if isinstance(action, np.ndarray) and action.shape == () and np.issubdtype(action.dtype, np.integer):
+            action = action.item()
+        if isinstance(action, (bool, np.bool_)) or not isinstance(action, (int, np.integer)):
+            return f"expected an integer in [{space.start}, {space.start + space.n - 1}], got {type(action).__name__}"
+        if not space.start <= int(action) < space.start + space.n:
+            return f"expected an integer in [{space.start}, {space.start + space.n - 1}]"
+        return None
+    if isinstance(space, spaces.Box):
+        if action is None or isinstance(action, (str, bytes, dict)):
+            return f"expected an array of shape {space.shape}, got {type(action).__name__}"
+        try:
+            values = np.asarray(action, dtype=np.float64)
+        except (TypeError, ValueError):
+            return f"expected an array of shape {space.shape}, got {type(action).__name__}"
+        if values.shape != space.shape:
+            return f"expected shape {space.shape}, got {values.shape}"
+        if not np.all(np.isfinite(values)):
+            return "not finite (NaN or inf)"
+        if np.any(values < space.low) or np.any(values > space.high):
+            return "out of bounds"
+        return None
+    return None if space.contains(action) else "not contained"  # pragma: no cover - the scenarios use Discrete/Box

@@ -1,0 +1,264 @@
+"""What ``gym.make("av_gym/...")`` and ``gymnasium.make_vec`` build: the registered ids' entry points.
+
+``gym.make(id)`` alone gives the bare scenario (its privileged ``state`` observation), as before; the keywords
+give the harness's stack in one call, built by the same code ``python -m train`` uses (:mod:`av_gym.make`):
+
+    gym.make("av_gym/UnprotectedLeftTurn-v0", sensors="turn_perceived", shield="aeb",
+             env={"spawn_probability": 0.3})                  # a conf/env section's fields (km/h, degrees)
+    gym.make("av_gym/UnprotectedLeftTurn-v0", sensors={"name": "turn_perceived", "detector": {"miss_rate": 0.2}})
+    gym.make("av_gym/UnprotectedLeftTurn-v0", checkpoint="checkpoints/reference/ppo_turn")  # the env it drove
+
+- ``config``: highway-env's own config dict (SI units, the env's ``default_config()`` keys), checked before the
+  env is built: unknown keys (with the closest known one), types and the bounds of the scenario's ``Params``
+  (issue 31 row 15); a partial ``action`` dict is completed from the defaults.
+- ``env``: the scenario's ``Params`` fields (conf/env/<scenario>.yaml, edge units), over the shipped defaults.
+- ``sensors`` / ``shield``: a preset name of conf/sensors, conf/shield, or a mapping whose ``name`` is one with
+  fields to change (deep-merged, as ``sensors.detector.miss_rate=0.2`` on the command line).
+- ``checkpoint``: a run folder (``config.yaml`` + ``model.zip``): its env, sensors, shield and the agent-side
+  wrappers it was trained with (go/yield actions, action repeat, flat observation), so that SB3's
+  ``PPO.load(<folder>/model.zip).predict(obs)`` drives it.
+
+Every stack with sensors, a shield or a checkpoint records :class:`~av_gym.metrics.recorder.EpisodeMetrics`
+(``info["episode_metrics"]`` at the end of an episode), as the harness does.
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from av_gym.errors import ConfigError
+
+KMH = 1 / 3.6
+
+# highway-env config key (SI) -> (the scenario Params field it comes from, SI units per Params unit). A key named
+# like its field maps to itself with factor 1. Bounds are scaled by the factor; types come from the field.
+ALIASES: dict[str, dict[str, tuple[str, float]]] = {
+    "left_turn": {
+        "action.type": ("action", 1.0),
+        "action.target_speeds": ("target_speeds_kmh", KMH),
+        "action.acceleration_range": ("acceleration_range", 1.0),
+        "ccftap_ego_speed": ("ccftap.ego_speed_kmh", KMH),
+        "ccftap_target_speed": ("ccftap.target_speed_kmh", KMH),
+        "ccftap_dt": ("ccftap.dt", 1.0),
+        "collision_reward": ("rewards.collision", 1.0),
+        "arrived_reward": ("rewards.arrived", 1.0),
+        "high_speed_reward": ("rewards.high_speed", 1.0),
+        "progress_reward": ("rewards.progress", 1.0),
+        "comfort_reward": ("rewards.comfort", 1.0),
+    },
+    "lane_keeping": {
+        "target_speed": ("target_speed_kmh", KMH),
+        "max_steering": ("max_steering_deg", float(np.radians(1.0))),
+        "initial_heading_std": ("initial_heading_std_deg", float(np.radians(1.0))),
+    },
+}
+
+
+# ----------------------------------------------------------------------------------------------- entry points
+def lane_keeping(**kwargs: Any) -> gym.Env:
+    """Entry point of ``av_gym/LaneKeepingLap-v0`` (see the module docstring for the keywords)."""
+    return make("lane_keeping", **kwargs)
+
+
+def left_turn(**kwargs: Any) -> gym.Env:
+    """Entry point of ``av_gym/UnprotectedLeftTurn-v0`` (see the module docstring for the keywords)."""
+    return make("left_turn", **kwargs)
+
+
+def left_turn_vector(num_envs: int, *, env: Mapping | None = None, sensors: Any = None, shield: Any = None,
+                     config: Mapping | None = None, render_mode: str | None = None, actions: str = "env",
+                     action_repeat: int = 1) -> gym.vector.VectorEnv:
+    """``vector_entry_point`` of ``av_gym/UnprotectedLeftTurn-v0``: the batched engine (all envs in one numpy
+    batch, :mod:`av_gym.batched.vec_env`), what ``gymnasium.make_vec(id, n)`` gives when no
+    ``vectorization_mode`` is named. It runs the ``turn_truth`` sensors without a shield; anything else is refused
+    in one line (``vectorization_mode="sync"`` or ``"async"`` runs every stack)."""
+    from av_gym.batched.vec_env import BatchedLeftTurnVectorEnv, check_batchable
+
+    other = 'use gymnasium.make_vec(..., vectorization_mode="sync" or "async") for it'
+    if config is not None:
+        raise ConfigError(f"config= is not available with the batched engine (give env={{...}}); {other}")
+    if render_mode is not None:
+        raise ConfigError(f"render_mode is not available with the batched engine; {other}")
+    if sensors is None:
+        raise ConfigError(f"the batched engine needs sensors=\"turn_truth\" (it computes the turn features, not "
+                          f"the privileged state); {other}")
+    env_cfg = _deep_merge(preset("env", "left_turn"), _mapping(env or {}, "env"))
+    sensors_cfg, shield_cfg = _section("sensors", sensors, "truth"), _section("shield", shield, "none")
+    try:
+        check_batchable(env_cfg, sensors_cfg, shield_cfg)
+    except ConfigError as exc:
+        what = str(exc).split("; use ")[0].replace("agent.vec_env=batched", "the batched engine")
+        raise ConfigError(f"{what}; {other}") from None
+    return BatchedLeftTurnVectorEnv(env_cfg, sensors_cfg, int(num_envs), actions=actions,
+                                    action_repeat=int(action_repeat))
+
+
+def make(scenario: str, config: Mapping | None = None, *, env: Mapping | None = None, sensors: Any = None,
+         shield: Any = None, checkpoint: str | Path | None = None, render_mode: str | None = None,
+         record_metrics: bool | None = None) -> gym.Env:
+    """The scenario env (``config``: SI, ``env``: edge units), with ``sensors``, ``shield`` and a ``checkpoint``'s
+    agent wrappers; one :class:`ConfigError` line naming the field on bad input, before anything is built."""
+    from av_gym.make import scenario_params, wrap_env
+    from av_gym.registry import SCENARIOS
+
+    cls = SCENARIOS.get(scenario, where="env.name")
+    check_render_mode(cls, render_mode)
+    if checkpoint is not None:
+        if any(x is not None for x in (config, env, sensors, shield)):
+            raise ConfigError("checkpoint= builds the env the checkpoint was trained on; give no config, env, "
+                              "sensors or shield with it")
+        return checkpoint_env(scenario, checkpoint, render_mode)
+    if config is not None and env is not None:
+        raise ConfigError("give the scenario's settings as env={...} (conf/env fields: km/h, degrees) or "
+                          "config={...} (highway-env's keys, SI units), not both")
+    if env is not None:
+        section = _deep_merge(preset("env", scenario), _mapping(env, "env"))
+        section["name"] = scenario
+        config = scenario_params(section).env_config()
+    full = checked_config(scenario, config)
+    try:
+        base = cls(config=full, render_mode=render_mode)
+    except ValueError as exc:  # the envs check their relations (frequencies, ranges) and name the field
+        raise ConfigError(str(exc)) from None
+    if sensors is None and shield is None and env is None:
+        return base if not record_metrics else wrap_env(base, None, None)
+    sensors_cfg = _section("sensors", sensors, default="truth")
+    shield_cfg = _section("shield", shield, default="none")
+    return wrap_env(base, sensors_cfg, shield_cfg, record_metrics=record_metrics is not False)
+
+
+def check_render_mode(cls: type, render_mode: Any) -> None:
+    allowed = list(cls.metadata.get("render_modes", []))
+    if render_mode is not None and render_mode not in allowed:
+        raise ConfigError(f"render_mode must be one of {allowed} or None, got {render_mode!r}")
+
+
+def checkpoint_env(scenario: str, folder: str | Path, render_mode: str | None = None) -> gym.Env:
+    """The env a trained run (``folder``/config.yaml) was trained on, with its agent-side wrappers (what the
+    harness's validation drives it in: no time-limit-as-termination, no intervention cost)."""
+    import yaml
+
+    from av_gym.make import make_training_env
+
+    path = Path(folder) / "config.yaml"
+    if not path.is_file():
+        raise ConfigError(f"checkpoint={folder}: no config.yaml there (a run folder under checkpoints/ has one)")
+    cfg = yaml.safe_load(path.read_text()) or {}
+    if (cfg.get("env") or {}).get("name") != scenario:
+        raise ConfigError(f"checkpoint={folder} was trained on env={(cfg.get('env') or {}).get('name')}, not "
+                          f"{scenario}")
+    agent = cfg.get("agent") or {}
+    return make_training_env(cfg["env"], cfg.get("sensors"), cfg.get("shield"), 0.0,
+                             int(agent.get("action_repeat", 1)), str(agent.get("actions", "env")),
+                             render_mode=render_mode)
+
+
+# ----------------------------------------------------------------------------------------------- config checks
+def checked_config(scenario: str, config: Mapping | None) -> dict:
+    """``config`` over the scenario's defaults, refused in one line (``config.<key> ...``) for an unknown key, a
+    wrong type or a value outside the scenario Params' bounds. Nested dicts (``action``) are merged, so
+    ``{"action": {"type": "continuous"}}`` keeps the default acceleration range."""
+    from av_gym.params import _check_value, _hints
+    from av_gym.registry import SCENARIOS
+
+    cls = SCENARIOS.get(scenario, where="env.name")
+    defaults = cls.default_config()
+    if config is None:
+        return defaults
+    config = _mapping(config, "config")
+    problems: list[str] = []
+    for key, value in config.items():
+        if key not in defaults:
+            close = difflib.get_close_matches(str(key), list(defaults), n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else f"; allowed: {sorted(defaults)}"
+            raise ConfigError(f"config.{key} is not a setting of {scenario}{hint}")
+        if isinstance(defaults[key], dict) and key != "observation":
+            if not isinstance(value, Mapping):
+                raise ConfigError(f"config.{key} must be a mapping, got {value!r}")
+            for sub, v in value.items():
+                if sub not in defaults[key]:
+                    raise ConfigError(f"config.{key}.{sub} is not a setting of {scenario}; allowed: "
+                                      f"{sorted(defaults[key])}")
+                problems += _problems(cls, scenario, f"{key}.{sub}", v, defaults[key][sub], _check_value, _hints)
+        else:
+            problems += _problems(cls, scenario, key, value, defaults[key], _check_value, _hints)
+        if problems:
+            raise ConfigError(problems[0])
+    merged = copy.deepcopy(defaults)
+    for key, value in config.items():
+        if isinstance(defaults[key], dict) and key != "observation":
+            merged[key] = {**defaults[key], **value}
+        else:
+            merged[key] = value
+    return merged
+
+
+def _problems(cls: type, scenario: str, key: str, value: Any, default: Any, check_value, hints) -> list[str]:
+    """The problems of one config value: checked as its Params field (type and bounds, scaled to SI) when the
+    key comes from one, else against the type of its default."""
+    field, factor = ALIASES.get(scenario, {}).get(key, (key, 1.0))
+    params, name = cls.Params, field
+    while "." in name:  # a nested section (ccftap.dt, rewards.collision)
+        head, name = name.split(".", 1)
+        params = hints(params).get(head)
+    found = {f.name: f for f in __import__("dataclasses").fields(params)} if params else {}
+    if name in found and name != "name":
+        meta = {k: (v * factor if k in ("ge", "gt", "le", "lt") and v is not None else v)
+                for k, v in found[name].metadata.items()}
+        return check_value(value, hints(params)[name], meta, f"config.{key}")
+    if isinstance(default, bool):
+        return [] if isinstance(value, bool) else [f"config.{key} must be true or false, got {value!r}"]
+    if isinstance(default, (int, float)):
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+        return [] if ok else [f"config.{key} must be a finite number, got {value!r}"]
+    if isinstance(default, str):
+        return [] if isinstance(value, str) else [f"config.{key} must be a string, got {value!r}"]
+    return []
+
+
+# ----------------------------------------------------------------------------------------------- presets
+def preset(group: str, name: str) -> dict:
+    """A shipped preset of conf/<group>/ composed as the command line composes it (:data:`PRESETS`)."""
+    from av_gym.registry import PRESETS
+
+    return PRESETS.get("compose")(group, name)
+
+
+def _section(group: str, value: Any, default: str) -> dict:
+    if value is None:
+        value = default
+    if isinstance(value, str):
+        return preset(group, value)
+    value = _mapping(value, group)
+    name = value.get("name")
+    from av_gym.registry import PRESETS
+
+    shipped = PRESETS.get("names")(group)
+    return _deep_merge(preset(group, name), value) if name in shipped else value
+
+
+def _mapping(value: Any, what: str) -> dict:
+    if hasattr(value, "_metadata"):  # an OmegaConf node
+        from omegaconf import OmegaConf
+
+        value = OmegaConf.to_container(value, resolve=True)
+    if not isinstance(value, Mapping):
+        raise ConfigError(f"{what} must be a mapping or a preset name, got {value!r}")
+    return dict(value)
+
+
+def _deep_merge(base: dict, over: Mapping) -> dict:
+    out = copy.deepcopy(base)
+    for key, value in over.items():
+        if isinstance(value, Mapping) and isinstance(out.get(key), dict):
+            out[key] = _deep_merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out

@@ -1,0 +1,91 @@
+"""Atomic file writes: a temporary file beside the target, flushed to disk, then renamed over it (``os.replace``,
+atomic on POSIX within a file system). A crash or a full disk at any point leaves the old complete file or the new
+complete file, never a torn one, and no temporary file behind (issue 31: a full disk left ``results.csv`` cut at
+row 10 and ``.latest.<pid>.tmp`` files).
+
+A write that fails (``OSError``: no space, quota, permissions) raises :class:`WriteFailed`, a
+:class:`~av_gym.errors.ConfigError`: one line at the command line naming the file, what the system said and that
+the previous version is intact."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+from av_gym.errors import ConfigError
+
+
+class WriteFailed(ConfigError):
+    """A file could not be written; the previous version (if any) is intact and no temporary file is left."""
+
+
+def temporary_name(path: Path) -> Path:
+    """``.<name>.<pid>.tmp`` beside ``path``: hidden, per process (two writers never share one)."""
+    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path, field: str = "") -> Iterator[Path]:
+    """Yield a temporary path to write; on leaving, flush it to disk and rename it over ``path``. On any error the
+    temporary file is removed and ``path`` is untouched; an ``OSError`` becomes :class:`WriteFailed`."""
+    path = Path(path)
+    tmp = temporary_name(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        yield tmp
+        with open(tmp, "rb") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError as exc:
+        _remove(tmp)
+        reason = os.strerror(exc.errno) if exc.errno else str(exc)
+        kept = "the previous version is intact" if path.exists() else "nothing was written"
+        raise WriteFailed(f"{field + ': ' if field else ''}cannot write {path}: {reason} ({kept})") from None
+    except BaseException:
+        _remove(tmp)
+        raise
+
+
+def _remove(tmp: Path) -> None:
+    with contextlib.suppress(OSError):
+        tmp.unlink()
+
+
+def write_text_atomic(path: str | Path, text: str, field: str = "") -> Path:
+    """``path``'s text, atomically (see :func:`atomic_path`)."""
+    with atomic_path(path, field) as tmp:
+        with open(tmp, "w") as f:
+            f.write(text)
+    return Path(path)
+
+
+def write_texts_atomic(texts: dict[str | Path, str], field: str = "") -> None:
+    """Several files, all replaced or none: every temporary file is written and flushed first, then they are
+    renamed in order. A failure while writing (a full disk) leaves every target as it was; the renames do not
+    allocate, so once they start they finish."""
+    done: list[tuple[Path, Path]] = []
+    current = None
+    try:
+        for path, text in texts.items():
+            current = Path(path)
+            tmp = temporary_name(current)
+            current.parent.mkdir(parents=True, exist_ok=True)
+            done.append((tmp, current))
+            with open(tmp, "w") as f:
+                f.write(text)
+                f.flush()
+                os.fsync(f.fileno())
+    except OSError as exc:
+        for tmp, _ in done:
+            _remove(tmp)
+        reason = os.strerror(exc.errno) if exc.errno else str(exc)
+        kept = "the previous versions are intact" if any(p.exists() for _, p in done) else "nothing was written"
+        raise WriteFailed(f"{field + ': ' if field else ''}cannot write {current}: {reason} ({kept})") from None
+    except BaseException:
+        for tmp, _ in done:
+            _remove(tmp)
+        raise
+    for tmp, path in done:
+        os.replace(tmp, path)

@@ -1,0 +1,721 @@
+"""The unprotected left turn (``av_gym.envs.left_turn``, both modes, both action types) for B environments at
+once, on the batched traffic of :mod:`av_gym.sim.batched` (issue 16).
+
+:class:`BatchedLeftTurn` is the env layer: per-environment seeded generators drawing the traffic exactly as
+``UnprotectedLeftTurnEnv.reset(seed=s)`` / ``step`` do, the reward terms, termination, ``info["truth"]``'s fields
+and the ``obs["turn"]`` turn features (``TurnFeatures(source=truth)``) for the whole batch as arrays. The RL
+interfaces (SB3 ``VecEnv``, Gymnasium ``VectorEnv``) are in :mod:`av_gym.batched.vec_env`.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+from gymnasium.utils import seeding
+from highway_env import utils
+
+from av_gym.envs.left_turn import ACTIONS, CONFLICT_POINT, MODES, ONCOMING_NEAR_EDGE_X, ROUTE, UnprotectedLeftTurnEnv
+from av_gym.estimation.turn_features import (ACC_SCALE, EGO_FEATURES, OBJECT_FEATURES, PATH_STEP, T_MAX,
+                                            TurnIntentParams, acceleration, path_conflict, signals_at)
+from av_gym.sensors.turn_signal import (TurnSignalsParams, draws_needed, node_index, read_channel, route_origin,
+                                       turn_signal)
+from av_gym.sim import batched, kernels
+from av_gym.sim.batched import LENGTH, WIDTH, LaneTable, Traffic
+
+SPAWN_CLEAR = 15.0  # m, IntersectionEnv._spawn_vehicle: no spawn this close to another vehicle
+EGO_CLEAR = 20.0  # m, _make_vehicles: vehicles this close to the ego are removed ("prevent early collisions")
+
+_TABLES = None
+
+
+def tables() -> tuple[LaneTable, object]:
+    """The intersection's lanes (IntersectionEnv._make_road), built once."""
+    global _TABLES
+    if _TABLES is None:
+        env = UnprotectedLeftTurnEnv(config={"fast": False})
+        env._make_road()
+        _TABLES = (LaneTable(env.road.network), env.road.network)
+    return _TABLES
+
+
+def full_config(config: dict | None) -> dict:
+    cfg = UnprotectedLeftTurnEnv.default_config()
+    for k, v in (config or {}).items():
+        cfg[k] = {**cfg[k], **v} if isinstance(v, dict) and isinstance(cfg.get(k), dict) else v
+    return cfg
+
+
+class BatchedLeftTurn:
+    """B left-turn episodes stepped together. ``reset(seeds)`` / ``reset_envs(rows, seeds)``; ``step(actions)``
+    with the env's actions (discrete meta-actions (B,), or continuous (B,) / (B, 1) in [-1, 1]) returns reward,
+    terminated, truncated; :meth:`observe` gives obs["turn"] (B, F) and the truth arrays (:meth:`truth`).
+
+    ``mode: ccftap``: every episode is the Euro NCAP test case of the config (the ego and one plain ``Vehicle``
+    target, no traffic); an episode's only draw is its episode seed, as on the per-env stack."""
+
+    def __init__(self, n_envs: int, config: dict | None = None, max_objects: int = 8, max_range: float = 80.0,
+                 time_scale: float = 20.0, pool: int = 0) -> None:
+        self.config = c = full_config(config)
+        if c["mode"] not in MODES:
+            raise ValueError(f"env.mode must be one of {list(MODES)}, got {c['mode']!r}")
+        if c["action"]["type"] not in ACTIONS:
+            raise ValueError(f"env.action.type must be one of {list(ACTIONS)}, got {c['action']['type']!r}")
+        self.ccftap, self.continuous = c["mode"] == "ccftap", c["action"]["type"] == "continuous"
+        # the MDPVehicle's set-points (UnprotectedLeftTurnEnv.define_spaces: ccftap has [0, test speed])
+        self.speeds = np.array([0.0, float(c["ccftap_ego_speed"])] if self.ccftap else c["action"]["target_speeds"],
+                               dtype=float)
+        self.acceleration_range = [float(a) for a in c["action"]["acceleration_range"]]
+        self.B = int(n_envs)
+        self.cmd = np.zeros(self.B)  # RouteFollowingVehicle.commanded_acceleration (continuous actions), m/s²
+        self._case = self._ccftap_case() if self.ccftap else None
+        self.time_limit = self._case["time_limit"] if self.ccftap else float(c["duration"])
+        self.T, network = tables()
+        self.dt = 1.0 / c["simulation_frequency"]
+        self.frames = int(c["simulation_frequency"] // c["policy_frequency"])
+        self.traffic = Traffic(self.T, self.B)
+        self.rngs = [seeding.np_random(None)[0] for _ in range(self.B)]
+        T = self.T
+        self.route = np.array([T.id[i] for i in ROUTE])
+        self.route_starts = np.concatenate([[0.0], np.cumsum(T.length[self.route])[:-1]])
+        turn = network.get_lane(ROUTE[1])
+        self.conflict_s = self.route_starts[1] + turn.local_coordinates(CONFLICT_POINT)[0]
+        # obs["turn"]
+        self.max_objects, self.max_range, self.time_scale = int(max_objects), float(max_range), float(time_scale)
+        exit_lane = network.get_lane(ROUTE[2])
+        s_turn = np.arange(0.0, turn.length, PATH_STEP)
+        s_exit = np.arange(0.0, 10.0 + 1e-9, PATH_STEP)
+        self.path = np.array([turn.position(s, 0.0) for s in s_turn] + [exit_lane.position(s, 0.0) for s in s_exit])
+        self.path_s = np.concatenate([s_turn, turn.length + s_exit])
+        self.n_features = len(EGO_FEATURES) + len(OBJECT_FEATURES) * self.max_objects
+        B = self.B
+        self.time, self.ticks = np.zeros(B), np.zeros(B, dtype=int)
+        self.route_k, self.progress_s, self.progress_total = np.zeros(B, dtype=int), np.zeros(B), np.ones(B)
+        self.arrived_time = np.full(B, np.nan)
+        self.episode_seed = np.zeros(B, dtype=np.int64)
+        self._new: list[tuple[int, int]] = []  # (env, slot) of vehicles added since the last settle
+        self.pool_size = int(pool)
+        self._pending: list = []  # generators whose next episode is not made yet
+        self._ready, self._ready_rngs, self._ready_seeds = None, [], []
+
+    # ------------------------------------------------------------------------------------------- traffic draws
+    def _spawn(self, t: Traffic, b: int, rng, longitudinal: float = 0.0, position_deviation: float = 1.0,
+               speed_deviation: float = 1.0, spawn_probability: float = 0.6, go_straight: bool = False,
+               u: float | None = None) -> None:
+        """IntersectionEnv._spawn_vehicle: the same draws in the same order on env b's generator (``u``: its first
+        draw, when the caller made it)."""
+        if (rng.uniform() if u is None else u) > spawn_probability:
+            return
+        route = rng.choice(range(4), size=2, replace=False)
+        route[1] = (route[0] + 2) % 4 if go_straight else route[1]
+        T = self.T
+        lane = T.id[(f"o{route[0]}", f"ir{route[0]}", 0)]
+        s = longitudinal + 5.0 + rng.normal() * position_deviation
+        speed = 8.0 + rng.normal() * speed_deviation
+        x, y = T.position(lane, s, 0.0)
+        a = t.alive[b]
+        if (np.hypot(t.x[b, a] - x, t.y[b, a] - y) < SPAWN_CLEAR).any():
+            return
+        dest = route[1]
+        plan = [lane, T.id[(f"ir{route[0]}", f"il{dest}", 0)], T.id[(f"il{dest}", f"o{dest}", 0)]]
+        delta = rng.uniform(low=3.5, high=4.5)  # IDMVehicle.randomize_behavior
+        self._new.append((b, t.add(b, lane, s, speed, plan, delta=delta)))  # plan[0]: settled to the closest lane
+
+    def _settle(self, t: Traffic) -> None:
+        if self._new:
+            b, slots = np.array(self._new).T
+            t.settle(b, slots)
+        self._new = []
+
+    def _ccftap_case(self) -> dict:
+        """The CCFtap case's initial ego and target and its time limit, from the per-env env's own set-up
+        (UnprotectedLeftTurnEnv._make_ccftap, which draws nothing): one source for the test's geometry and timing,
+        whose floats the batch then starts from."""
+        env = UnprotectedLeftTurnEnv(config={k: v for k, v in self.config.items() if k != "observation"})
+        env.reset(seed=0)
+        ego, target = env.vehicle, env.ccftap_target
+        state = lambda v: (float(v.position[0]), float(v.position[1]), float(v.heading), float(v.speed))  # noqa: E731
+        case = {"ego": state(ego), "ego_target": float(getattr(ego, "target_speed", ego.speed)),
+                "target": state(target), "time_limit": float(env._ccftap_time_limit)}
+        env.close()
+        return case
+
+    def _make_ccftap(self, rngs: list) -> tuple[Traffic, list[int]]:
+        """UnprotectedLeftTurnEnv._make_ccftap + ScenarioMixin._finish_reset for one episode per generator: the ego
+        and the target in road order, then the episode seed (the episode's only draw)."""
+        t, T, case = Traffic(self.T, len(rngs), N=4), self.T, self._case
+        ego_lane = T.id[ROUTE[0]]
+        for b in range(len(rngs)):
+            for key, ego in (("ego", True), ("target", False)):
+                x, y, h, v = case[key]
+                slot = t.add(b, ego_lane, 0.0, v, [ego_lane, *self.route[1:]] if ego else [-1], ego=ego,
+                             target=case["ego_target"] if ego else v, plain=not ego, mdp=ego and not self.continuous)
+                t.x[b, slot], t.y[b, slot], t.h[b, slot] = x, y, h
+                if not ego:
+                    t.route[b, slot] = -1
+                self._new.append((b, slot))
+        self._settle(t)
+        t.route[t.plain] = -1  # settle() wrote the closest lane as the route's first step: a plain Vehicle has none
+        return t, [int(rng.integers(2**63 - 1)) for rng in rngs]
+
+    def _make_vehicles(self, rngs: list) -> tuple[Traffic, list[int]]:
+        """IntersectionEnv._make_vehicles(initial_vehicle_count) + ScenarioMixin._finish_reset for one new episode
+        per generator in ``rngs``, as a sub-batch: initial traffic, 3 s of simulation (batched), the challenger,
+        the ego, no vehicle within 20 m of the ego, then the episode seed. Returns the traffic and episode seeds.
+        CCFtap: :meth:`_make_ccftap`."""
+        if self.ccftap:
+            return self._make_ccftap(rngs)
+        n_vehicles = int(self.config["initial_vehicle_count"])
+        t = Traffic(self.T, len(rngs), N=max(16, n_vehicles + 4))
+        for b, rng in enumerate(rngs):
+            for k in range(n_vehicles - 1):
+                self._spawn(t, b, rng, np.linspace(0, 80, n_vehicles)[k])
+        self._settle(t)
+        for _ in range(3 * int(self.config["simulation_frequency"])):
+            t.act()
+            t.step(self.dt)
+        T = self.T
+        ego_lane = T.id[ROUTE[0]]
+        for b, rng in enumerate(rngs):
+            self._spawn(t, b, rng, 60, spawn_probability=1.0, go_straight=True, position_deviation=0.1,
+                        speed_deviation=0.0)
+            s = 60.0 + 5.0 * rng.normal(1.0)
+            slot = t.add(b, ego_lane, s, T.speed_limit[ego_lane], [ego_lane, *self.route[1:]], ego=True,
+                         target=self._ego_target(T.speed_limit[ego_lane]), mdp=not self.continuous)
+            t.h[b, slot] = T.heading_at(ego_lane, 60.0)
+            self._new.append((b, slot))
+        self._settle(t)
+        seeds = []
+        for b, rng in enumerate(rngs):
+            slot = int(np.argmax(t.ego[b]))
+            near = t.alive[b] & ~t.ego[b] & (np.hypot(t.x[b] - t.x[b, slot], t.y[b] - t.y[b, slot]) < EGO_CLEAR)
+            t.alive[b] &= ~near
+            seeds.append(int(rng.integers(2**63 - 1)))  # ScenarioMixin._finish_reset
+        t.compact()
+        t.trim()
+        return t, seeds
+
+    def _ego_target(self, speed: float) -> float:
+        """The new ego's target speed: MDPVehicle.__init__'s speed_to_index / index_to_speed of its speed
+        (discrete: 10 m/s → 9 m/s), or ControlledVehicle's (the speed itself) for the continuous action's
+        RouteFollowingVehicle."""
+        if self.continuous:
+            return float(speed)
+        ts = self.speeds
+        x = (speed - ts[0]) / (ts[-1] - ts[0])
+        return float(ts[int(np.clip(np.round(x * (ts.size - 1)), 0, ts.size - 1))])
+
+    # ------------------------------------------------------------------------------------------- episodes
+    def reset(self, seeds=None):
+        return self.reset_envs(np.arange(self.B), seeds)
+
+    def reset_envs(self, rows, seeds=None):
+        """Reset the envs ``rows`` (seeded with ``seeds`` where given, else their generators go on)."""
+        rows = np.asarray(rows, dtype=int)
+        if seeds is not None:
+            for row, seed in zip(rows, seeds):
+                if seed is not None:
+                    self.rngs[row] = seeding.np_random(int(seed))[0]
+        traffic, episode_seeds = self._make_vehicles([self.rngs[r] for r in rows])
+        self._start(rows, traffic, episode_seeds)
+        if self.pool_size and len(rows) == self.B:  # spare streams, seeded from the batch's seeds
+            given = [int(s) for s in seeds if s is not None] if seeds is not None else []
+            self._fill_pool(np.random.SeedSequence(given or None))
+        return self.observe(rows)
+
+    def _start(self, rows, traffic: Traffic, episode_seeds) -> None:
+        self.traffic.put(rows, traffic)
+        self.episode_seed[rows] = episode_seeds
+        self.time[rows], self.ticks[rows], self.route_k[rows] = 0.0, 0, 0
+        self.arrived_time[rows] = np.nan
+        self.cmd[rows] = 0.0
+        s = self._route_s(rows)
+        self.progress_s[rows] = s
+        self.progress_total[rows] = np.maximum(1.0, self.route_starts[2] + 25.0 - s)
+
+    # ------------------------------------------------------------------------------------------- auto-reset
+    # A reset costs 3 s of warm-up simulation (60 ticks): alone, a numpy tick costs about as much for 1 env as
+    # for 30. So episodes for auto-reset come from a pool of ready episodes, made ~pool at a time. Each
+    # generator ("stream") plays exactly the episodes the per-env stack plays with it (reset(seed) then resets
+    # without a seed); only which slot a stream's next episode runs in changes.
+    def _fill_pool(self, seed_seq: np.random.SeedSequence | None = None) -> None:
+        """Make ready episodes from the streams waiting for one (or ``pool`` new streams from ``seed_seq``)."""
+        if seed_seq is not None:
+            self._pending = [np.random.Generator(np.random.PCG64(s)) for s in seed_seq.spawn(self.pool_size)]
+            self._ready = None
+        if not self._pending:
+            return
+        traffic, seeds = self._make_vehicles(self._pending)
+        if self._ready is None:
+            self._ready, self._ready_rngs, self._ready_seeds = traffic, list(self._pending), seeds
+        else:
+            self._ready = Traffic.concat(self._ready, traffic)
+            self._ready_rngs += self._pending
+            self._ready_seeds += seeds
+        self._pending = []
+
+    def step_autoreset(self, actions: np.ndarray):
+        """``step`` for every env; the envs whose episode ended start their next one (from the pool).
+        Returns obs (B, F) (the new episode's first for the ended ones), reward, terminated, truncated, and
+        for the ended envs: their rows, final obs and final truth."""
+        reward, terminated, truncated = self.step(actions)
+        done = np.nonzero(terminated | truncated)[0]
+        final_obs = final_truth = None
+        if len(done):
+            final_obs, final_truth = self.observe(done), self.last_truth
+            self.start_from_pool(done)
+        return self.observe(), reward, terminated, truncated, (done, final_obs, final_truth)
+
+    def start_from_pool(self, done) -> None:
+        """The envs ``done`` (whose episodes ended) start the next episode of a ready stream; their own streams
+        wait for their next episode, made with the next batch of them."""
+        self._pending += [self.rngs[r] for r in done]
+        n_ready = 0 if self._ready is None else self._ready.B
+        if n_ready < len(done):
+            self._fill_pool()
+        k = len(done)
+        self._start(done, self._ready.subset(np.arange(k)), self._ready_seeds[:k])
+        for r, rng in zip(done, self._ready_rngs[:k]):
+            self.rngs[r] = rng
+        rest = np.arange(k, self._ready.B)
+        self._ready = self._ready.subset(rest) if len(rest) else None
+        self._ready_rngs, self._ready_seeds = self._ready_rngs[k:], self._ready_seeds[k:]
+
+    # ------------------------------------------------------------------------------------------- seeded queue
+    # Evaluation plays given seeds: episode k of the queue is the one ``reset(seed=seeds[k])`` gives (a fresh
+    # generator seeded with it, as reset_envs), made ``chunk`` at a time in one batched warm-up.
+    def queue(self, seeds, chunk: int) -> None:
+        """Episodes for :meth:`start_queued`, one per seed of ``seeds`` (any iterable of ints, drawn lazily)."""
+        self._q_iter, self._q_chunk = iter(seeds), max(1, int(chunk))
+        self._q, self._q_rngs, self._q_eps, self._q_seeds = None, [], [], []
+
+    def start_queued(self, rows) -> list:
+        """Start the envs ``rows`` on the next queued episodes, in order. Returns each row's seed, None where the
+        queue ran out (that env is left as it is)."""
+        rows = [int(r) for r in rows]
+        if len(self._q_seeds) < len(rows):
+            want = max(self._q_chunk, len(rows) - len(self._q_seeds))
+            new = [int(s) for s in itertools.islice(self._q_iter, want)]
+            if new:
+                rngs = [seeding.np_random(s)[0] for s in new]
+                traffic, eps = self._make_vehicles(rngs)
+                self._q = traffic if self._q is None else Traffic.concat(self._q, traffic)
+                self._q_rngs, self._q_eps, self._q_seeds = self._q_rngs + rngs, self._q_eps + eps, self._q_seeds + new
+        k = min(len(rows), len(self._q_seeds))
+        seeds = self._q_seeds[:k] + [None] * (len(rows) - k)
+        if k:
+            self._start(np.array(rows[:k]), self._q.subset(np.arange(k)), self._q_eps[:k])
+            for r, rng in zip(rows[:k], self._q_rngs[:k]):
+                self.rngs[r] = rng
+            rest = np.arange(k, self._q.B)
+            self._q = self._q.subset(rest) if len(rest) else None
+            self._q_rngs, self._q_eps, self._q_seeds = self._q_rngs[k:], self._q_eps[k:], self._q_seeds[k:]
+        return seeds
+
+    def state_bytes(self) -> int:
+        pool = 0 if self._ready is None else self._ready.state_bytes()
+        return self.traffic.state_bytes() + pool + sum(a.nbytes for a in (
+            self.time, self.ticks, self.route_k, self.progress_s, self.progress_total, self.arrived_time))
+
+    def ego_slot(self, rows=None) -> np.ndarray:
+        rows = np.arange(self.B) if rows is None else rows
+        return np.argmax(self.traffic.ego[rows], axis=1)
+
+    def _route_s(self, rows: np.ndarray) -> np.ndarray:
+        """LanePath.locate from the hint ``route_k`` + path_s, for the ego of each env in ``rows``."""
+        t, T = self.traffic, self.T
+        e = self.ego_slot(rows)
+        x, y = t.x[rows, e], t.y[rows, e]
+        k = self.route_k[rows].copy()
+        s, lat = T.local(self.route[k], x, y)
+        step = np.where(s > T.length[self.route[k]], 1, np.where(s < 0, -1, 0))
+        for _ in range(len(self.route)):
+            nxt = k + step
+            go = (step != 0) & (nxt >= 0) & (nxt < len(self.route))
+            if not go.any():
+                break
+            k = np.where(go, nxt, k)
+            s2, lat2 = T.local(self.route[k], x, y)
+            s, lat = np.where(go, s2, s), np.where(go, lat2, lat)
+            done = ((step > 0) & (s <= T.length[self.route[k]])) | ((step < 0) & (s >= 0))
+            step = np.where(go & ~done, step, 0)
+        self.route_k[rows] = k
+        self._lat = lat
+        return self.route_starts[k] + s
+
+    def has_arrived(self, rows, slots, exit_distance: float = 25.0) -> np.ndarray:
+        """IntersectionEnv.has_arrived: on an "il"→"o" lane, ≥ 25 m along it."""
+        t, T = self.traffic, self.T
+        lane = t.lane[rows, slots]
+        s, _ = T.local(lane, t.x[rows, slots], t.y[rows, slots])
+        return T.exit[lane] & (s >= exit_distance)
+
+    def _clear_and_spawn(self, rows: np.ndarray) -> None:
+        """The left turn's step prologue: IntersectionEnv._clear_vehicles, then one spawn try at
+        spawn_probability / policy_frequency."""
+        t, T = self.traffic, self.T
+        s, _ = T.local(t.lane, t.x, t.y)
+        leaving = T.exit[t.lane] & (s >= T.length[t.lane] - 4 * LENGTH)
+        gone = np.zeros_like(t.alive)
+        gone[rows] = (t.alive & ~t.ego & leaving)[rows]
+        if gone.any():
+            t.alive &= ~gone
+            t.compact()
+        p = self.config["spawn_probability"] / self.config["policy_frequency"]
+        u = [self.rngs[b].uniform() for b in rows]  # the spawn try's first draw; most tries stop there
+        for b, u_b in zip(rows, u):
+            if u_b <= p:
+                self._spawn(t, int(b), self.rngs[b], spawn_probability=p, u=u_b)
+        self._settle(t)
+
+    def step(self, actions: np.ndarray, active: np.ndarray | None = None):
+        """One policy step of every env (``active``: the envs to step; the others are left as they are).
+        ``actions``: discrete meta-actions (B,) {0: SLOWER, 1: IDLE, 2: FASTER}, or continuous (B,) / (B, 1) in
+        [-1, 1] mapped onto ``acceleration_range`` (LongitudinalAction.act)."""
+        c, t = self.config, self.traffic
+        active = np.ones(self.B, bool) if active is None else np.asarray(active, bool)
+        rows = np.nonzero(active)[0]
+        if not self.ccftap:
+            self._clear_and_spawn(rows[self.ticks[rows] > 0])
+        self.time[rows] += 1.0 / c["policy_frequency"]
+        idle = ~active
+        frozen = {name: getattr(t, name)[idle].copy() for name in Traffic.FIELDS} if idle.any() else None
+        steps_frozen = t.road_steps[idle].copy()
+        meta = None
+        if self.continuous:  # LongitudinalAction.act: clip to [-1, 1], then utils.lmap onto the range
+            a = np.clip(np.asarray(actions, dtype=float).reshape(self.B, -1)[:, 0], -1.0, 1.0)
+            lo, hi = self.acceleration_range
+            self.cmd[rows] = (lo + (a - -1) * (hi - lo) / (1 - -1))[rows]
+        else:
+            meta = np.where(active, np.asarray(actions).reshape(self.B), 1)
+        for frame in range(self.frames):
+            t.act(meta if frame == 0 else None, self.speeds, self.cmd if self.continuous else None)
+            t.step(self.dt)
+            self.ticks[rows] += 1
+            e = self.ego_slot(rows)
+            arrived = self.has_arrived(rows, e) & np.isnan(self.arrived_time[rows])
+            self.arrived_time[rows[arrived]] = self.time[rows[arrived]]
+        if frozen is not None:  # envs already done wait for their reset unchanged
+            for name, value in frozen.items():
+                getattr(t, name)[idle] = value
+            t.road_steps[idle] = steps_frozen
+        t.trim()
+        reward = np.zeros(self.B)
+        reward[rows], terminated, truncated = self._reward(rows), np.zeros(self.B, bool), np.zeros(self.B, bool)
+        e = self.ego_slot(rows)
+        crashed, arrived = t.crashed[rows, e], self.has_arrived(rows, e)
+        if self.ccftap:  # the episode runs on until the target has passed, so an ego parked in its path is hit
+            terminated[rows] = crashed | (arrived & self.target_passed(rows))
+        else:
+            terminated[rows] = crashed | arrived
+        truncated[rows] = self.time[rows] >= self.time_limit
+        return reward, terminated, truncated
+
+    def target_passed(self, rows) -> np.ndarray:
+        """UnprotectedLeftTurnEnv._target_passed: the CCFtap target's rear beyond y = 12 m."""
+        t = self.traffic
+        j = np.argmax(t.plain[rows], axis=1)
+        return t.y[rows, j] - LENGTH / 2 > 12.0
+
+    def _reward(self, rows: np.ndarray) -> np.ndarray:
+        """UnprotectedLeftTurnEnv._reward for the envs ``rows``."""
+        c, t = self.config, self.traffic
+        e = self.ego_slot(rows)
+        dt = 1.0 / c["policy_frequency"]
+        v = t.v[rows, e]
+        lo, hi = c["reward_speed_range"]
+        reward = c["high_speed_reward"] * np.clip((v - lo) / (hi - lo), 0, 1) * dt
+        if c["progress_reward"]:
+            s = self._route_s(rows)
+            reward = reward + c["progress_reward"] * np.maximum(0.0, s - self.progress_s[rows]) \
+                / self.progress_total[rows]
+            self.progress_s[rows] = np.maximum(s, self.progress_s[rows])
+        if c["comfort_reward"]:
+            reward = reward - c["comfort_reward"] * (t.acc[rows, e] / 3.0) ** 2 * dt
+        crashed = t.crashed[rows, e]
+        arrived = self.has_arrived(rows, e)
+        return reward + np.where(crashed, c["collision_reward"], np.where(arrived, c["arrived_reward"], 0.0))
+
+    # ------------------------------------------------------------------------------------------- truth, obs
+    def truth(self, rows=None) -> dict:
+        """``info["truth"]``'s scalar fields as arrays over ``rows`` (SI units; see UnprotectedLeftTurnEnv.truth).
+        ``others`` is not built per env here: :meth:`others` gives (rows, N, 7) with a mask."""
+        rows = np.arange(self.B) if rows is None else np.asarray(rows)
+        t = self.traffic
+        e = self.ego_slot(rows)
+        route_s = self._route_s(rows)
+        x, y, h, v = t.x[rows, e], t.y[rows, e], t.h[rows, e], t.v[rows, e]
+        steer, acc = t.steer[rows, e], t.acc[rows, e]
+        beta = np.arctan(0.5 * np.tan(steer))
+        c, s = np.cos(h), np.sin(h)
+        corner_x = x[:, None] + np.array([-1, -1, 1, 1]) * LENGTH / 2 * c[:, None] \
+            - np.array([-1, 1, 1, -1]) * WIDTH / 2 * s[:, None]
+        return {"time": self.time[rows].copy(), "x": x, "y": y, "heading": h, "speed": v,
+                "yaw_rate": v * np.sin(beta) / (LENGTH / 2), "acceleration": acc, "steering": steer,
+                "route_s": route_s, "cte": self._lat, "stop_line_offset": route_s + LENGTH / 2 - self.route_starts[1],
+                "distance_to_conflict": self.conflict_s - route_s,
+                "oncoming_gap": corner_x.min(axis=1) - ONCOMING_NEAR_EDGE_X,
+                "collision": t.crashed[rows, e].copy(), "arrived": self.has_arrived(rows, e),
+                "arrived_time": self.arrived_time[rows].copy(), "set_point": t.target[rows, e].copy()}
+
+    def ttc(self, rows=None) -> np.ndarray:
+        """``info["truth"]["ttc"]`` for the envs ``rows``: av_gym.geometry.constant_velocity_ttc (the first time on
+        its 0.05 s grid up to ``ttc_horizon`` at which the ego's box and another's overlap when both keep their
+        velocity and heading; +inf if none) for all of them at once.
+
+        Two boxes moving at constant velocity and fixed heading overlap during one time interval [t_in, t_out]:
+        on each of the four separating axes (the two boxes' edge normals) the projected centre distance is linear
+        in t and must stay within the summed half-extents. That interval is solved for every (env, vehicle) pair,
+        and only the grid times around t_in (t_in's grid step, one before, two after) get the per-env test itself
+        (box_corners / boxes_overlap at ``t``, the same arithmetic), so rounding at the interval's ends decides as
+        it does there; a pair whose interval is longer than those times and none overlapped (an end fixed by a
+        near-zero relative speed, where t_in is poorly conditioned) gets all its grid times tested."""
+        from av_gym.geometry import box_corners, boxes_overlap
+
+        rows = np.arange(self.B) if rows is None else np.asarray(rows)
+        t, n = self.traffic, len(rows)
+        horizon, dt = float(self.config["ttc_horizon"]), 0.05
+        grid = np.arange(0.0, horizon + 1e-9, dt)
+        K = len(grid)
+        out = np.full(n, np.inf)
+        e = self.ego_slot(rows)
+        if "ttc" in batched.KERNELS:  # the same intervals and box tests, pair by pair (av_gym/sim/kernels.py)
+            rx, ry, rh, rv = (np.ascontiguousarray(a[rows]) for a in (t.x, t.y, t.h, t.v))
+            return kernels.ttc(rx, ry, rh, rv, np.ascontiguousarray(t.alive[rows] & ~t.ego[rows]), e, grid, horizon,
+                               dt, LENGTH, WIDTH)
+        ex, ey, eh, ev = t.x[rows, e], t.y[rows, e], t.h[rows, e], t.v[rows, e]
+        evx, evy = ev * np.cos(eh), ev * np.sin(eh)
+        other = t.alive[rows] & ~t.ego[rows]
+        oh = t.h[rows]
+        ovx, ovy = t.v[rows] * np.cos(oh), t.v[rows] * np.sin(oh)
+        px, py = t.x[rows] - ex[:, None], t.y[rows] - ey[:, None]
+        wx, wy = ovx - evx[:, None], ovy - evy[:, None]
+        t_in, t_out = np.full(px.shape, -np.inf), np.full(px.shape, np.inf)
+        eh2 = np.broadcast_to(eh[:, None], px.shape)
+        for theta in (eh2, eh2 + np.pi / 2, oh, oh + np.pi / 2):
+            ux, uy = np.cos(theta), np.sin(theta)
+            half = LENGTH / 2 * (np.abs(np.cos(eh2 - theta)) + np.abs(np.cos(oh - theta))) \
+                + WIDTH / 2 * (np.abs(np.sin(eh2 - theta)) + np.abs(np.sin(oh - theta)))
+            q, r = ux * px + uy * py, ux * wx + uy * wy
+            moving = r != 0.0
+            rr = np.where(moving, r, 1.0)
+            ta, tb = (-half - q) / rr, (half - q) / rr
+            lo = np.where(moving, np.minimum(ta, tb), np.where(np.abs(q) <= half, -np.inf, np.inf))
+            hi = np.where(moving, np.maximum(ta, tb), np.where(np.abs(q) <= half, np.inf, -np.inf))
+            t_in, t_out = np.maximum(t_in, lo), np.minimum(t_out, hi)
+        cand = other & (t_in <= t_out + dt) & (t_out >= -dt) & (t_in <= horizon + dt)
+        if not cand.any():
+            return out
+        m, j = np.nonzero(cand)
+        first = np.clip(np.floor(np.maximum(t_in[m, j], 0.0) / dt).astype(int) - 1, 0, K - 1)
+        last = np.clip(np.ceil(np.minimum(t_out[m, j], horizon) / dt).astype(int) + 1, 0, K - 1)
+
+        def test(pair, k):
+            mm, jj, tk = m[pair], j[pair], grid[k]
+            r = rows[mm]
+            ego_c = np.stack([ex[mm], ey[mm]], -1) + tk[:, None] * np.stack([evx[mm], evy[mm]], -1)
+            oth_c = np.stack([t.x[r, jj], t.y[r, jj]], -1) + tk[:, None] * np.stack([ovx[mm, jj], ovy[mm, jj]], -1)
+            hit = boxes_overlap(box_corners(ego_c, eh[mm], LENGTH, WIDTH),
+                                box_corners(oth_c, oh[mm, jj], LENGTH, WIDTH))
+            np.minimum.at(out, mm[hit], tk[hit])
+            found = np.zeros(len(m), bool)
+            found[pair[hit]] = True
+            return found
+
+        pair = np.repeat(np.arange(len(m)), 4)
+        k = first[pair] + np.tile(np.arange(4), len(m))
+        ok = k <= last[pair]
+        found = test(pair[ok], k[ok])
+        rest = np.nonzero(~found & (last > first + 3))[0]
+        if len(rest):
+            count = last[rest] - first[rest] - 3
+            pair = np.repeat(rest, count)
+            k = first[pair] + 4 + np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+            test(pair, k)
+        return out
+
+    def observe(self, rows=None) -> np.ndarray:
+        """TurnFeatures.features (source=truth) for the envs ``rows``: (len(rows), 5 + 12·max_objects) float32."""
+        rows = np.arange(self.B) if rows is None else np.asarray(rows)
+        t, tr = self.traffic, self.truth(rows)
+        self.last_truth = tr
+        n = len(rows)
+        ego = np.stack([tr["speed"] / 10.0, tr["set_point"] / 10.0, -tr["stop_line_offset"] / 30.0,
+                        tr["distance_to_conflict"] / 30.0, tr["time"] / self.time_scale], axis=1)
+        px, py, h, v = t.x[rows], t.y[rows], t.h[rows], t.v[rows]
+        vx, vy = v * np.cos(h), v * np.sin(h)
+        other = t.alive[rows] & ~t.ego[rows]
+        d = np.where(other, np.hypot(px - tr["x"][:, None], py - tr["y"][:, None]), np.inf)
+        M = self.max_objects
+        order = np.argsort(d, axis=1, kind="stable")[:, :M]
+        dn = np.take_along_axis(d, order, 1)
+        present = dn <= self.max_range
+        g = lambda a: np.take_along_axis(a, order, 1)  # noqa: E731
+        ox, oy, ovx, ovy = g(px), g(py), g(vx), g(vy)
+        psi = tr["heading"][:, None]
+        c, s = np.cos(psi), np.sin(psi)
+        ex, ey = tr["x"][:, None], tr["y"][:, None]
+        evx, evy = tr["speed"][:, None] * c, tr["speed"][:, None] * s
+        rx, ry = ox - ex, oy - ey
+        rvx, rvy = ovx - evx, ovy - evy
+        t_star, miss, path_s = self._path_conflict(ox, oy, ovx, ovy)
+        obj = np.stack([np.ones_like(ox), (rx * c + ry * s) / 50.0, (rx * -s + ry * c) / 50.0,
+                        (rvx * c + rvy * s) / 20.0, (rvx * -s + rvy * c) / 20.0,
+                        (ox - CONFLICT_POINT[0]) / 50.0, (oy - CONFLICT_POINT[1]) / 50.0, ovx / 15.0, ovy / 15.0,
+                        t_star / T_MAX, miss / 10.0, path_s / 30.0], axis=2)
+        obj = np.where(present[..., None], obj, 0.0)
+        if obj.shape[1] < M:
+            obj = np.concatenate([obj, np.zeros((n, M - obj.shape[1], obj.shape[2]))], axis=1)
+        self.described = (order, present)
+        out = np.concatenate([ego, obj.reshape(n, -1)], axis=1)
+        return np.clip(np.nan_to_num(out, nan=0.0), -1.0, 1.0).astype(np.float32)
+
+    def others_described(self, rows) -> tuple[list, list]:
+        """Per env of ``rows`` (after :meth:`observe` on them): the others ``(k, 4) [x, y, vx, vy]`` in road order
+        (``info["truth"]["others"][:, :4]``) and the indices into it that ``obs["turn"]`` describes, nearest
+        first (TurnFeatures.others / .described)."""
+        t = self.traffic
+        order, present = self.described
+        others, described = [], []
+        for n, r in enumerate(rows):
+            keep = t.alive[r] & ~t.ego[r]
+            v = t.v[r, keep]
+            others.append(np.stack([t.x[r, keep], t.y[r, keep], v * np.cos(t.h[r, keep]), v * np.sin(t.h[r, keep])],
+                                   axis=1))
+            slot_to_other = np.cumsum(keep) - 1
+            described.append(slot_to_other[order[n][present[n]]])
+        return others, described
+
+    def _path_conflict(self, x, y, vx, vy):
+        """TurnFeatures._path_conflict (the same function) for (n, M) objects."""
+        return path_conflict(np.stack([x, y], axis=-1), np.stack([vx, vy], axis=-1), self.path, self.path_s)
+
+
+class BatchedIntent:
+    """``obs["signals"]`` (TurnSignals) and ``obs["intent"]`` (TurnIntent) for a :class:`BatchedLeftTurn`, the
+    same readings as the per-env sensors: each env's signal channel draws from its own
+    ``sensor_rng(episode_seed, "signals")`` in the same order (per new vehicle: indicates?, wrong?; per reading:
+    seen?), and the acceleration compares each described object with the nearest vehicle of the oldest kept past
+    (``history`` s)."""
+
+    def __init__(self, engine: BatchedLeftTurn, signals: dict | None, intent: dict) -> None:
+        import zlib
+
+        self.e = engine
+        # the sensors' own Params (defaults and checks), as the per-env wrappers build them
+        self.sig = None if signals is None else TurnSignalsParams.from_mapping(signals, "sensors.turn_signals")
+        p = TurnIntentParams.from_mapping(intent or {}, "sensors.turn_intent")
+        self.history, self.gate, self.signal_gate = float(p.history), float(p.gate), float(p.signal_gate)
+        self._crc = zlib.crc32(b"signals")
+        B = engine.B
+        self.rngs = [None] * B
+        # TurnSignals._channel, by vehicle id: seen before, indicates, indicates the wrong way
+        self.known, self.indicates, self.wrong = (np.zeros(1024, bool) for _ in range(3))
+        # per env, the past as TurnIntent._past: up to H snapshots (times ht, nan = empty) of the slot arrays
+        self.H = int(np.ceil(self.history * engine.config["policy_frequency"])) + 2
+        self.ht = np.full((B, self.H), np.nan)
+        self.hist = self.hmask = None
+        T = engine.T
+        # intended_signal's route origin and destination of every lane (the rule is in av_gym.sensors.turn_signal)
+        self.origin = np.array([route_origin(f, t) for f, t, _ in T.index])
+        self.dest = np.array([node_index(t, "o") for _, t, _ in T.index])
+
+    def reset(self, rows) -> None:
+        from av_gym.sensors.base import sensor_rng  # noqa: F401  (the same seeding, below)
+
+        for r in rows:
+            self.rngs[r] = np.random.default_rng(np.random.SeedSequence([int(self.e.episode_seed[r]), self._crc]))
+        self.ht[np.asarray(rows, dtype=int)] = np.nan
+
+    def _grow(self, n: int) -> None:
+        if n > len(self.known):
+            size = max(n, 2 * len(self.known))
+            for name in ("known", "indicates", "wrong"):
+                a = np.zeros(size, bool)
+                a[: len(getattr(self, name))] = getattr(self, name)
+                setattr(self, name, a)
+
+    def signals(self, rows) -> np.ndarray:
+        """TurnSignals.measure for the envs ``rows``: (n, max_objects, 4) float32.
+
+        The sensor draws, per reading, in road order: on a vehicle's first sighting ``indicates?`` and ``wrong?``,
+        then ``seen?``. One ``Generator.uniform(size=k)`` per env gives the same k numbers as k scalar calls
+        (the same bit generator and transform, element by element), so each env draws its step's numbers at once
+        and they are handed out in that order. The channel's per-driver choices are kept by vehicle id (unique in
+        the process, so a table by id is the per-episode channel of the sensor)."""
+        e, t, sig = self.e, self.e.traffic, self.sig
+        M = int(sig.max_objects)
+        n = len(rows)
+        eslot = e.ego_slot(rows)
+        last = t.route[rows][..., 2]  # -1: no route (a plain Vehicle): intended_signal is 0
+        intended = turn_signal(self.origin[t.lane[rows]], np.where(last >= 0, self.dest[last], -1))
+        ex, ey = t.x[rows, eslot], t.y[rows, eslot]
+        d = np.hypot(t.x[rows] - ex[:, None], t.y[rows] - ey[:, None])
+        seen_mask = t.alive[rows] & ~t.ego[rows] & (d <= sig.max_range)
+        vids = t.vid[rows]
+        self._grow(int(vids.max()) + 1)
+        new = seen_mask & ~self.known[vids]
+        counts = draws_needed(seen_mask, new).sum(axis=1)  # this step's uniforms, env after env
+        draws = [self.rngs[r].uniform(size=int(c)) for r, c in zip(rows, counts) if c]
+        u = np.concatenate(draws) if draws else np.zeros(0)
+        value, indicates, wrong = read_channel(u, seen_mask, new, intended, self.indicates[vids], self.wrong[vids],
+                                               sig)
+        self.known[vids[new]] = True
+        self.indicates[vids[new]], self.wrong[vids[new]] = indicates[new], wrong[new]
+        # nearest first; ties in road order (the sensor's stable sort)
+        order = np.argsort(np.where(seen_mask, d, np.inf), axis=1, kind="stable")[:, :M]
+        g = lambda a: np.take_along_axis(a, order, 1)  # noqa: E731
+        present = g(seen_mask)
+        out = np.zeros((n, M, 4), dtype=np.float32)
+        m = order.shape[1]
+        out[:, :m] = np.where(present[..., None], np.stack([np.ones((n, m)), g(t.x[rows]), g(t.y[rows]), g(value)],
+                                                             axis=-1), 0.0)
+        return out
+
+    def intent(self, rows, signals) -> np.ndarray:
+        """TurnIntent.observation for the envs ``rows`` (after the engine's :meth:`BatchedLeftTurn.observe` on
+        them), for all of them at once. The past is kept per env as snapshots of the slot arrays (road order), at
+        most ``history`` s old, as TurnIntent._past."""
+        e, t = self.e, self.e.traffic
+        rows = np.asarray(rows)
+        n, M, N = len(rows), e.max_objects, t.N
+        now = e.ticks[rows] / e.config["simulation_frequency"]
+        keep = t.alive[rows] & ~t.ego[rows]
+        v = t.v[rows]
+        snap = np.stack([t.x[rows], t.y[rows], v * np.cos(t.h[rows]), v * np.sin(t.h[rows])], axis=-1)  # (n, N, 4)
+        order, present = e.described
+        objects = np.take_along_axis(snap, order[..., None], axis=1)  # (n, M', 4), nearest first
+        described = np.zeros((n, M), bool)
+        described[:, : present.shape[1]] = present
+        if objects.shape[1] < M:
+            objects = np.concatenate([objects, np.zeros((n, M - objects.shape[1], 4))], axis=1)
+        out = np.zeros((n, M, 2))
+        if self.hist is None or self.hist.shape[2] < N:  # (B, H, K, 4) snapshots, their masks and times
+            K = N if self.hist is None else N
+            hist = np.full((e.B, self.H, K, 4), np.nan)
+            hmask = np.zeros((e.B, self.H, K), bool)
+            if self.hist is not None:
+                hist[:, :, : self.hist.shape[2]], hmask[:, :, : self.hist.shape[2]] = self.hist, self.hmask
+            self.hist, self.hmask = hist, hmask
+        K = self.hist.shape[2]
+        ht = self.ht[rows]  # (n, H), nan = empty
+        oldest = np.argmin(np.where(np.isfinite(ht), ht, np.inf), axis=1)
+        t_then = ht[np.arange(n), oldest]
+        then, tmask = self.hist[rows, oldest], self.hmask[rows, oldest]  # (n, K, 4), (n, K)
+        dt = now - t_then
+        usable = np.isfinite(t_then) & tmask.any(axis=1) & (dt > 0)
+        if usable.any():  # TurnIntent._acceleration (the same function) for every env at once
+            acc = acceleration(objects, then, tmask & usable[:, None], np.where(usable, dt, 1.0), self.gate)
+            out[..., 0] = np.where(usable[:, None] & described, acc, 0.0) / ACC_SCALE
+        if signals is not None:  # TurnIntent's signals_at, likewise
+            out[..., 1] = np.where(described, signals_at(objects, signals, self.signal_gate), 0.0)
+        # keep what is younger than `history`, add now (TurnIntent: [(t, o) for ... if now - t < history - 1e-9])
+        ht = np.where(np.isfinite(ht) & (now[:, None] - ht < self.history - 1e-9), ht, np.nan)
+        slot = np.argmax(~np.isfinite(ht), axis=1)  # a free slot (H > history / policy period)
+        ht[np.arange(n), slot] = now
+        self.ht[rows] = ht
+        self.hist[rows, slot] = np.nan
+        self.hist[rows, slot, :N] = snap
+        self.hmask[rows, slot] = False
+        self.hmask[rows, slot, :N] = keep
+        return np.clip(np.nan_to_num(out), -1.0, 1.0).astype(np.float32)

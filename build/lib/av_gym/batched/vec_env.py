@@ -1,0 +1,297 @@
+"""The batched left turn (:mod:`av_gym.batched.left_turn`) as an SB3 ``VecEnv`` and a Gymnasium
+``VectorEnv`` (issue 16): ``python -m train agent=ppo_turn agent.vec_env=batched agent.n_envs=64``.
+
+What the batch gives: ``env=left_turn`` in both modes (traffic, CCFtap) with discrete or continuous actions, and the
+sensors of the ``turn_truth`` preset (``turn_features`` with ``source: truth``, ``turn_signals``, ``turn_intent``,
+``observe``); agent options ``actions`` (``env`` | ``go_yield``, the latter with discrete actions only, as
+``GoYieldActions``), ``action_repeat``, ``timeout_is_terminal``. Anything else (another sensor, a shield) is refused
+with one line naming it; it runs on the per-env stack.
+
+Auto-reset: an env whose episode ended starts its next one at once (SB3's convention: the step returns the new
+episode's first observation, the last one is ``info["terminal_observation"]``), taken from a pool of ready
+episodes (see :meth:`BatchedLeftTurn.step_autoreset`).
+"""
+
+from __future__ import annotations
+
+import time
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from stable_baselines3.common.vec_env.base_vec_env import VecEnv
+
+from av_gym.batched.left_turn import BatchedIntent, BatchedLeftTurn
+from av_gym.errors import ConfigError
+
+SENSORS = ("name", "turn_features", "turn_signals", "turn_intent", "observe", "keep_state")
+SET_POINTS = np.array([0.0, 4.5, 9.0])  # av_gym.wrappers.SET_POINTS
+
+
+def meta_actions(choice: np.ndarray, turn: np.ndarray) -> np.ndarray:
+    """av_gym.wrappers.meta_action for a batch: choices (B,) GO/YIELD and turn features (B, F) → meta-actions."""
+    from av_gym.wrappers import DECEL, FASTER, GO, IDLE, MARGIN, SLOWER
+
+    set_point, d_stop = 10.0 * turn[:, 1].astype(float), 30.0 * turn[:, 2].astype(float)
+    v_ok = np.sqrt(2.0 * DECEL * np.maximum(d_stop - MARGIN, 0.0))
+    yield_speed = np.max(np.where(SET_POINTS[None, :] <= v_ok[:, None] + 1e-6, SET_POINTS[None, :], -np.inf), axis=1)
+    wanted = np.where(np.asarray(choice) == GO, SET_POINTS[-1], yield_speed)
+    return np.where(wanted > set_point + 1e-3, FASTER, np.where(wanted < set_point - 1e-3, SLOWER, IDLE))
+
+
+def check_batchable(env_cfg: dict, sensors_cfg: dict | None, shield_cfg: dict | None) -> None:
+    """One-line ConfigError for what the batch cannot run."""
+    if env_cfg.get("name") != "left_turn":
+        raise ConfigError(f"agent.vec_env=batched runs env=left_turn only, got env={env_cfg.get('name')}")
+    s = dict(sensors_cfg or {})
+    for key in s:
+        if key not in SENSORS:
+            raise ConfigError(f"sensors.{key} is not available with agent.vec_env=batched (the batch gives "
+                              f"turn_features, turn_signals, turn_intent); use agent.vec_env=subproc")
+    if (s.get("turn_features") or {}).get("source", "truth") != "truth":
+        raise ConfigError("sensors.turn_features.source=tracks is not available with agent.vec_env=batched (no "
+                          "tracker on the batch); use agent.vec_env=subproc")
+    if "turn_features" not in s:
+        raise ConfigError(f"agent.vec_env=batched needs sensors with turn_features (sensors=turn_truth), got "
+                          f"sensors={s.get('name', 'truth')}")
+    kind = (shield_cfg or {}).get("kind", (shield_cfg or {}).get("name", "none"))
+    if kind not in (None, "none"):
+        raise ConfigError(f"shield={kind} is not available with agent.vec_env=batched; use agent.vec_env=subproc")
+
+
+class BatchedLeftTurnVecEnv(VecEnv):
+    """SB3 VecEnv over :class:`BatchedLeftTurn`, with the training wrappers of ``train/ppo.py``'s per-env stack
+    (GoYieldActions, ActionRepeat, TimeLimitIsTerminal, FlatDictObservation) done on the batch."""
+
+    def __init__(self, env_cfg: dict, sensors_cfg: dict, shield_cfg: dict | None, n_envs: int, *,
+                 action_repeat: int = 1, actions: str = "env", timeout_is_terminal: bool = False,
+                 pool: int | None = None) -> None:
+        from av_gym.make import highway_config
+
+        check_batchable(env_cfg, sensors_cfg, shield_cfg)
+        _, config = highway_config(env_cfg)
+        s = dict(sensors_cfg)
+        tf = {k: v for k, v in (s.get("turn_features") or {}).items() if k != "source"}
+        self.engine = BatchedLeftTurn(n_envs, config, pool=max(8, n_envs // 4) if pool is None else pool, **tf)
+        self.keys = list(s.get("observe") or ["turn", *(["signals"] if "turn_signals" in s else []),
+                                              *(["intent"] if "turn_intent" in s else [])])
+        need_intent = "intent" in self.keys or "signals" in self.keys
+        self.intent = BatchedIntent(self.engine, s.get("turn_signals") if "turn_signals" in s else None,
+                                    s.get("turn_intent") or {}) if need_intent else None
+        M = self.engine.max_objects
+        all_spaces = {"turn": spaces.Box(-1.0, 1.0, (self.engine.n_features,), np.float32),
+                      "intent": spaces.Box(-1.0, 1.0, (M, 2), np.float32)}
+        if self.intent is not None and self.intent.sig is not None:
+            all_spaces["signals"] = spaces.Box(-1e4, 1e4, (int(self.intent.sig.max_objects), 4), np.float32)
+        missing = [k for k in self.keys if k not in all_spaces]
+        if missing:
+            raise ConfigError(f"sensors.observe lists {missing[0]!r}, which agent.vec_env=batched does not provide; "
+                              f"allowed: {sorted(all_spaces)}")
+        obs_space = spaces.Dict({k: all_spaces[k] for k in self.keys})
+        self.repeat, self.actions, self.timeout_is_terminal = int(action_repeat), actions, bool(timeout_is_terminal)
+        if actions == "go_yield" and self.engine.continuous:
+            raise ConfigError("agent.actions=go_yield needs env.action=discrete (GO/YIELD become meta-actions), got "
+                              "env.action=continuous")
+        if self.engine.continuous:  # LongitudinalAction.space
+            action_space = spaces.Box(-1.0, 1.0, shape=(1,), dtype=np.float32)
+        else:
+            action_space = spaces.Discrete(2) if actions == "go_yield" else spaces.Discrete(3)
+        super().__init__(n_envs, obs_space, action_space)
+        self._seeds: list | None = None
+        self._actions = None
+        self._obs: dict | None = None
+        self._ep_return = np.zeros(n_envs)
+        self._env_return = np.zeros(n_envs)  # EpisodeMetrics' return: summed per env step, in the same order
+        self._ep_len = np.zeros(n_envs, dtype=int)
+        self._ep_start = np.full(n_envs, time.time())
+        self._traces: list[list] = [[] for _ in range(n_envs)]
+        self._idle = np.zeros(n_envs, bool)  # no episode to play (play(): its seeds ran out)
+        self._queued = False
+        self.row_seed: list = [None] * n_envs  # play(): the seed of the episode each env is playing
+
+    # ---------------------------------------------------------------------------------------------- observe
+    def _observe(self, rows: np.ndarray, new_episode: np.ndarray | None = None, trace: bool = True) -> dict:
+        e = self.engine
+        turn = e.observe(rows)
+        out = {"turn": turn}
+        if self.intent is not None:
+            if new_episode is not None and new_episode.any():
+                self.intent.reset(rows[new_episode])
+            signals = self.intent.signals(rows) if self.intent.sig is not None else None
+            out["intent"] = self.intent.intent(rows, signals)
+            if signals is not None:
+                out["signals"] = signals
+        tr = e.last_truth
+        ttc = e.ttc(rows) if trace else None
+        for n, r in enumerate(rows if trace else ()):  # EpisodeMetrics records the truth of every step
+            self._traces[r].append((tr["time"][n], tr["speed"][n], tr["collision"][n], tr["arrived"][n],
+                                    tr["stop_line_offset"][n], tr["oncoming_gap"][n], ttc[n]))
+        return {k: out[k] for k in self.keys}
+
+    def _store(self, rows, obs: dict) -> None:
+        for k in self.keys:
+            self._obs[k][rows] = obs[k]
+
+    # ---------------------------------------------------------------------------------------------- VecEnv API
+    def reset(self):
+        e = self.engine
+        seeds = self._seeds if self._seeds is not None else [None] * self.num_envs
+        self._seeds = None
+        self._queued, self._idle[:] = False, False
+        e.reset(seeds)
+        rows = np.arange(self.num_envs)
+        self._traces = [[] for _ in rows]
+        obs = self._observe(rows, np.ones(self.num_envs, bool), trace=False)
+        self._obs = {k: v.copy() for k, v in obs.items()}
+        self._ep_return[:], self._env_return[:], self._ep_len[:] = 0.0, 0.0, 0
+        self._ep_start[:] = time.time()
+        return {k: v.copy() for k, v in self._obs.items()}
+
+    def play(self, seeds, chunk: int | None = None) -> dict:
+        """Evaluation: from now on the envs play the episodes of ``seeds`` (any iterable of ints), each the episode
+        ``reset(seed=s)`` of the per-env stack gives, in order as envs become free (made ``chunk`` at a time,
+        default ``num_envs``); an env left without one goes idle (``idle``) and is no longer stepped. The seed each
+        env plays is ``row_seed``; a finished episode's is ``info["seed"]``. Returns the first observations."""
+        e = self.engine
+        e.queue(seeds, self.num_envs if chunk is None else chunk)
+        self._queued = True
+        rows = np.arange(self.num_envs)
+        self.row_seed = e.start_queued(rows)
+        self._idle = np.array([s is None for s in self.row_seed])
+        self._traces = [[] for _ in rows]
+        live = rows[~self._idle]
+        obs = self._observe(live, np.ones(len(live), bool), trace=False)
+        self._obs = {k: np.zeros((self.num_envs, *self.observation_space[k].shape), np.float32) for k in self.keys}
+        self._store(live, obs)
+        self._ep_return[:], self._env_return[:], self._ep_len[:] = 0.0, 0.0, 0
+        self._ep_start[:] = time.time()
+        return {k: v.copy() for k, v in self._obs.items()}
+
+    @property
+    def idle(self) -> np.ndarray:
+        return self._idle.copy()
+
+    def _restart(self, rows: np.ndarray) -> np.ndarray:
+        """Start the next episodes of the envs ``rows`` (whose episodes ended); the rows that got one."""
+        if not self._queued:
+            self.engine.start_from_pool(rows)
+            return rows
+        seeds = self.engine.start_queued(rows)
+        for r, s in zip(rows, seeds):
+            self.row_seed[r] = s
+        started = np.array([s is not None for s in seeds], bool)
+        self._idle[rows[~started]] = True
+        return rows[started]
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self._actions = np.asarray(actions).reshape(self.num_envs, -1)[:, 0]
+
+    def step_wait(self):
+        e, B = self.engine, self.num_envs
+        active = ~self._idle
+        total = np.zeros(B)
+        term_all, trunc_all = np.zeros(B, bool), np.zeros(B, bool)
+        for _ in range(self.repeat if active.any() else 0):
+            meta = meta_actions(self._actions, self._obs["turn"]) if self.actions == "go_yield" else self._actions
+            reward, term, trunc = e.step(meta, active)
+            rows = np.nonzero(active)[0]
+            self._store(rows, self._observe(rows))
+            total += np.where(active, reward, 0.0)
+            self._env_return += np.where(active, reward, 0.0)
+            term_all |= term & active
+            trunc_all |= trunc & active
+            active &= ~(term | trunc)
+            if not active.any():
+                break
+        self._ep_return += total
+        self._ep_len += 1
+        done = term_all | trunc_all
+        infos = [{} for _ in range(B)]
+        rows = np.nonzero(done)[0]
+        if len(rows):
+            for r in rows:
+                infos[r]["terminal_observation"] = {k: self._obs[k][r].copy() for k in self.keys}
+                infos[r]["TimeLimit.truncated"] = bool(trunc_all[r] and not term_all[r] and
+                                                       not self.timeout_is_terminal)
+                infos[r]["episode"] = {"r": float(self._ep_return[r]), "l": int(self._ep_len[r]),
+                                       "t": round(time.time() - self._ep_start[r], 6)}
+                # EpisodeMetrics' `truncated` is the env's flag as it is, also when the episode ends both ways (the
+                # ego arrives on the time limit's step); SB3's TimeLimit.truncated above is not
+                infos[r]["episode_metrics"] = self._metrics(r, bool(trunc_all[r]))
+                if self._queued:
+                    infos[r]["seed"] = self.row_seed[r]
+            self._traces_reset(rows)
+            rows = self._restart(rows)
+            if len(rows):
+                self._store(rows, self._observe(rows, np.ones(len(rows), bool), trace=False))
+            self._ep_return[rows], self._env_return[rows], self._ep_len[rows] = 0.0, 0.0, 0
+            self._ep_start[rows] = time.time()
+        if self.timeout_is_terminal:
+            term_all, trunc_all = term_all | trunc_all, np.zeros(B, bool)
+        return {k: v.copy() for k, v in self._obs.items()}, total.astype(np.float32), done, infos
+
+    def _traces_reset(self, rows) -> None:
+        for r in rows:
+            self._traces[r] = []
+
+    def _metrics(self, r: int, truncated: bool) -> dict:
+        """EpisodeMetrics' row from the ego's per-step truth: the left-turn summary (min TTC from
+        :meth:`BatchedLeftTurn.ttc`), return, length, truncated, and the shield's columns (no shield on the batch:
+        no override, ``first_override_s`` NaN)."""
+        from av_gym.metrics.left_turn import left_turn_summary
+
+        tr = np.array(self._traces[r], dtype=float)
+        row = left_turn_summary(tr[:, 0], tr[:, 1], tr[:, 2].astype(bool), tr[:, 3].astype(bool),
+                                tr[:, 6], tr[:, 4], tr[:, 5])
+        row.update({"return": float(self._env_return[r]), "length": float(len(tr)),
+                    "truncated": float(truncated), "override_fraction": 0.0, "intervention": 0.0,
+                    "interventions": 0.0, "first_override_s": float("nan")})
+        return row
+
+    def close(self) -> None:
+        pass
+
+    def seed(self, seed: int | None = None):
+        """Seeds for the next reset: env i gets ``seed + i`` (as SB3's make_vec_env seeds per-env stacks)."""
+        self._seeds = [None if seed is None else seed + i for i in range(self.num_envs)]
+        return self._seeds
+
+    def get_attr(self, attr_name, indices=None):
+        return [getattr(self, attr_name, None) for _ in self._get_indices(indices)]
+
+    def set_attr(self, attr_name, value, indices=None) -> None:
+        setattr(self, attr_name, value)
+
+    def env_method(self, method_name, *args, indices=None, **kwargs):
+        raise AttributeError(f"the batched left turn has no per-env {method_name!r}")
+
+    def env_is_wrapped(self, wrapper_class, indices=None):
+        return [False for _ in self._get_indices(indices)]
+
+
+class BatchedLeftTurnVectorEnv(gym.vector.VectorEnv):
+    """Gymnasium ``VectorEnv`` over the same batch: meta-actions (or GO/YIELD), ``obs`` as a dict of batched
+    arrays, autoreset in the same step (``info["final_obs"]`` / ``info["_final_obs"]``)."""
+
+    def __init__(self, env_cfg: dict, sensors_cfg: dict, n_envs: int, **kwargs) -> None:
+        self.venv = BatchedLeftTurnVecEnv(env_cfg, sensors_cfg, None, n_envs, **kwargs)
+        self.num_envs = n_envs
+        self.single_observation_space = self.venv.observation_space
+        self.single_action_space = self.venv.action_space
+        self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, n_envs)
+        self.action_space = gym.vector.utils.batch_space(self.single_action_space, n_envs)
+        self.metadata = {"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP}
+
+    def reset(self, *, seed=None, options=None):
+        if seed is not None:
+            self.venv.seed(seed) if isinstance(seed, int) else setattr(self.venv, "_seeds", list(seed))
+        return self.venv.reset(), {}
+
+    def step(self, actions):
+        obs, reward, done, infos = self.venv.step(np.asarray(actions))
+        truncated = np.array([i.get("TimeLimit.truncated", False) for i in infos])
+        terminated = done & ~truncated
+        final = np.array([i.get("terminal_observation") for i in infos], dtype=object)
+        info = {"final_obs": final, "_final_obs": done.copy(),
+                "episode_metrics": [i.get("episode_metrics") for i in infos]}
+        return obs, reward, terminated, truncated, info

@@ -1,0 +1,120 @@
+"""What both scenarios share on top of highway-env's ``AbstractEnv``: a per-tick hook and an episode seed for
+everything outside the simulator (sensor noise, the roadside world)."""
+
+from __future__ import annotations
+
+from collections import UserDict
+from dataclasses import dataclass
+from typing import Any, Callable
+
+from gymnasium import error
+
+from av_gym.actions import InvalidAction, check_action  # noqa: F401 - InvalidAction: re-exported
+from av_gym.params import RATE_MAX_HZ, Params, param
+
+KMH = 1 / 3.6  # m/s per km/h: scenario configs take km/h at the edge, the envs m/s
+
+
+@dataclass(frozen=True)
+class ScenarioParams(Params):
+    """What every scenario's ``env`` section holds (edge units: km/h, degrees); :meth:`env_config` gives the
+    env's own (highway-env) config in SI units. The registered Gymnasium ids default to these values."""
+
+    name: str = param("", doc="the scenario: a key of av_gym.registry.SCENARIOS")
+    policy_frequency: int = param(10, "Hz", ge=10, le=RATE_MAX_HZ, doc="decisions per second; >= 10 so a shield can decide every "
+                                                        "0.1 s (digest 003 §9.2)")
+    simulation_frequency: int = param(20, "Hz", ge=1, le=RATE_MAX_HZ, doc="simulation ticks per second, a multiple of "
+                                                           "policy_frequency")
+    fast: bool = param(True, doc="av_gym.sim fast paths, the same trajectories as highway-env's code (false = "
+                                 "stock highway-env)")
+    compare: tuple[str, ...] = param((), doc="python -m eval with no agents=: the agents compared on this scenario")
+
+    def relations(self) -> list[str]:
+        if self.simulation_frequency % self.policy_frequency:
+            return [f"@simulation_frequency ({self.simulation_frequency}) must be a multiple of @policy_frequency "
+                    f"({self.policy_frequency})"]
+        return []
+
+    def env_config(self) -> dict:
+        """The env's config dict (SI units), what ``gym.make(id, config=...)`` takes."""
+        return {"simulation_frequency": self.simulation_frequency, "policy_frequency": self.policy_frequency,
+                "fast": self.fast}
+
+
+class Truth(UserDict):
+    """``info["truth"]``: a mapping of ground-truth fields, deliberately not a ``dict``. Gymnasium's vector envs
+    stack a ``dict`` in ``info`` field by field across envs, which fails on fields whose shape or type changes
+    from env to env (``others``: one row per vehicle; ``arrived_time``: None until arrival): ``make_vec`` crashed
+    at reset (issue 33). Any other object they keep per env in an object array, so in a vector env
+    ``info["truth"][i]`` is env ``i``'s truth, as in a single env."""
+
+    def __eq__(self, other: object) -> bool:  # field by field, arrays whole (Gymnasium's determinism check asks)
+        from gymnasium.utils.env_checker import data_equivalence
+
+        if not isinstance(other, (Truth, dict)):
+            return NotImplemented
+        return data_equivalence(self.data, other.data if isinstance(other, Truth) else other)
+
+
+class ScenarioMixin:
+    """Mix in before ``AbstractEnv``.
+
+    - ``tick_listeners``: callables ``f(env)`` run after every simulation tick (sensors that sample faster than
+      the policy, e.g. the IMU, record there; highway-env only exposes the state at policy steps).
+    - ``episode_seed``: drawn from the env's own generator at the end of every reset, so all sensor noise and the
+      roadside world follow from ``reset(seed=...)`` and are independent of the wrapper order.
+    """
+
+    scenario: str = ""
+
+    def reset(self, *args, **kwargs):
+        self._episode_over = False
+        return super().reset(*args, **kwargs)
+
+    def step(self, action):
+        """highway-env's step, once the action is checked against ``action_space`` and the episode is running:
+        after ``terminated`` or ``truncated`` the simulation would go on and pay rewards for an episode that has
+        ended (issue 31 row 16), so that is refused until ``reset()``."""
+        if getattr(self, "_episode_over", False):
+            raise error.ResetNeeded("step() after the episode ended (terminated or truncated): call reset() first")
+        check_action(self.action_space, action)
+        result = self._step(action)
+        self._episode_over = bool(result[2] or result[3])
+        return result
+
+    def _step(self, action):
+        """The scenario's own step, once the action is checked (highway-env's by default)."""
+        return super().step(action)
+
+    def _init_scenario_state(self) -> None:
+        if not hasattr(self, "tick_listeners"):
+            self.tick_listeners: list[Callable] = []
+
+    def _finish_reset(self) -> None:
+        self._init_scenario_state()
+        self.episode_seed = int(self.np_random.integers(2**63 - 1))
+
+    def _simulate(self, action=None) -> None:
+        self._init_scenario_state()
+        frames = int(self.config["simulation_frequency"] // self.config["policy_frequency"])
+        for frame in range(frames):
+            if action is not None and frame == 0 and not self.config["manual_control"]:
+                self.action_type.act(action)
+            self.road.act()
+            self.road.step(1 / self.config["simulation_frequency"])
+            self.steps += 1
+            self._on_tick()
+            for listener in self.tick_listeners:
+                listener(self)
+            if frame < frames - 1:
+                self._automatic_rendering()
+        self.enable_auto_render = False
+
+    def _on_tick(self) -> None:
+        """Scenario bookkeeping after each tick (lap progress, arrival time)."""
+
+    def _info(self, obs, action=None) -> dict:
+        info = super()._info(obs, action)
+        info["truth"] = truth = Truth()
+        truth.data = self.truth()  # the dict itself, not copied key by key
+        return info

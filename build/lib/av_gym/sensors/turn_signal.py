@@ -1,0 +1,204 @@
+"""``TurnSignals``: each nearby vehicle's direction indicator, as a camera-based indicator classifier reports it.
+
+Why: at an unprotected left turn the other drivers' intent decides the gap. A car coming from the right that will
+turn right never crosses the ego's path; one that will go straight does. Constant-velocity prediction cannot tell
+the two apart until the car is already turning (docs/agents.md: 12 % of the lookahead oracle's choices are not
+predictable from the motion features, and those decide collisions). A real car reads the indicator.
+
+The indicator a driver *intends* comes from the vehicle's route in the simulator (highway-env's intersection:
+approach ``o{i}→ir{i}``, then ``ir{i}→il{j}``, then the exit ``il{j}→o{j}``): left while it approaches or crosses the
+intersection towards ``o{(i+1) % 4}``, right towards ``o{(i-1) % 4}``, none when going straight or once on the exit.
+What the ego's sensor reports passes through a noisy channel (defaults are suggestions; no source paper measures
+this, see docs/agents.md):
+
+- ``no_signal_rate`` 0.25 per vehicle: the driver does not indicate at all. Chosen pessimistic on purpose:
+  unsignalled turns are common in traffic, and a policy must not learn to trust the indicator blindly.
+- ``wrong_rate`` 0.05 per vehicle: a turning driver's indicator shows the other direction (a mistaken one).
+- ``miss_rate`` 0.1 per reading: the classifier misses an indicator that is on (occlusion, blink phase).
+- ``max_range`` 60 m: beyond it no indicator is read (a few pixels per lamp for a 66-200 px wide camera).
+
+The per-vehicle draws (does this driver indicate, and correctly?) are made once, when the vehicle is first seen,
+from the sensor's seeded generator; the per-reading misses at every step, in the road's vehicle order.
+
+``obs["signals"]``: ``Box(max_objects, 4)`` rows ``[present, x, y, signal]``, nearest first, zero rows unused;
+``x, y`` (m, world) locate the vehicle the reading belongs to (so an estimator can attach it to an object or a
+track), ``signal`` is +1 left, -1 right, 0 none seen.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from av_gym.params import ROWS_MAX, Params, param
+from av_gym.sensors.base import SensorWrapper, ego_pose
+
+LEFT, NONE, RIGHT = 1.0, 0.0, -1.0
+FIELDS = ("present", "x", "y", "signal")
+BOUND = 1e4
+
+
+def node_index(node: str, prefix: str) -> int:
+    """``"o3", "o"`` → 3: the index of an intersection node with that prefix, -1 for any other node."""
+    node = str(node)
+    return int(node[len(prefix):]) if node.startswith(prefix) and node[len(prefix):].isdigit() else -1
+
+
+def route_origin(start: str, end: str) -> int:
+    """The approach ``i`` of a lane ``start → end`` on the way in (``o{i}→ir{i}``) or across (``ir{i}→il{j}``);
+    -1 on the exit road or a road this rule does not know."""
+    start, end = str(start), str(end)
+    if start.startswith("o") and end.startswith("ir"):
+        return node_index(end, "ir")
+    if start.startswith("ir") and end.startswith("il"):
+        return node_index(start, "ir")
+    return -1
+
+
+def turn_signal(origin, destination) -> np.ndarray:
+    """The indicator for a drive from approach ``origin`` to exit ``destination`` (ints or arrays of them, -1 =
+    unknown): +1 left towards ``o{(i+1) % 4}``, -1 right towards ``o{(i-1) % 4}``, 0 straight or unknown. The one
+    rule the per-env sensor, the batched stack and the shield use."""
+    origin, destination = np.asarray(origin), np.asarray(destination)
+    turn = (destination - origin) % 4
+    known = (origin >= 0) & (destination >= 0)
+    return np.where(known, np.where(turn == 1, LEFT, np.where(turn == 3, RIGHT, NONE)), NONE)
+
+
+def intended_signal(vehicle) -> float:
+    """The indicator ``vehicle`` should show on highway-env's four-way intersection, from its route: +1 left, -1
+    right, 0 straight, on the exit road, or off the intersection's roads (no route, e.g. a CCFtap target)."""
+    lane = getattr(vehicle, "lane_index", None)
+    route = getattr(vehicle, "route", None)
+    if not lane or not route:
+        return NONE
+    return float(turn_signal(route_origin(lane[0], lane[1]), node_index(route[-1][1], "o")))
+
+
+# The channel (module docstring) as vectorised functions of uniform draws, one implementation for the per-env
+# sensor (a batch of one), the batched stack (av_gym/batched/left_turn.py: BatchedIntent) and the shield's own
+# channel (av_gym/shields/aeb_improved.py), whose Bayes filter (av_gym/shields/intent.py) reads the same model's likelihood
+# below. A new rate is a TurnSignalsParams field and these functions (tests/test_one_model.py).
+DRIVER_DRAWS = 2  # uniforms per driver at its first sighting: does it indicate?, the wrong side?
+
+
+def first_sighting(u: np.ndarray, p: "TurnSignalsParams") -> tuple[np.ndarray, np.ndarray]:
+    """Per driver, from ``u`` (..., DRIVER_DRAWS) uniforms: (indicates, indicates the wrong side)."""
+    u = np.asarray(u)
+    return u[..., 0] >= p.no_signal_rate, u[..., 1] < p.wrong_rate
+
+
+def reported(intended, indicates, wrong, u_seen, p: "TurnSignalsParams") -> np.ndarray:
+    """What one reading reports (+1 / -1 / 0) for drivers with ``intended`` signals and their per-driver draws,
+    ``u_seen`` a uniform per reading (seen unless below ``miss_rate``)."""
+    seen = np.asarray(u_seen) >= p.miss_rate
+    return np.where(np.asarray(indicates) & seen, np.asarray(intended) * np.where(wrong, -1.0, 1.0), NONE)
+
+
+def read_channel(u: np.ndarray, in_range: np.ndarray, new: np.ndarray, intended: np.ndarray,
+                 indicates: np.ndarray, wrong: np.ndarray, p: "TurnSignalsParams"):
+    """One reading of (n envs, N vehicles in road order) with the sensor's draw order: env after env, per vehicle
+    in range ``DRIVER_DRAWS`` uniforms if ``new`` (first sighting), then one for ``seen?``; ``u`` holds them all
+    (:func:`draws_needed` of them). ``indicates``/``wrong`` hold the earlier drivers' draws (ignored where new).
+    Returns (signal (n, N), indicates (n, N), wrong (n, N)) with the new drivers' draws filled in."""
+    width = draws_needed(in_range, new)
+    end = np.cumsum(width.ravel()).reshape(width.shape)  # one past each reading's last draw in u
+    indicates, wrong = np.array(indicates, dtype=bool), np.array(wrong, dtype=bool)
+    if new.any():
+        first = end[new] - 1 - DRIVER_DRAWS
+        indicates[new], wrong[new] = first_sighting(u[first[:, None] + np.arange(DRIVER_DRAWS)], p)
+    u_seen = np.full(in_range.shape, -np.inf)  # out of range: never seen
+    u_seen[in_range] = u[end[in_range] - 1]
+    return reported(intended, indicates, wrong, u_seen, p), indicates, wrong
+
+
+def draws_needed(in_range: np.ndarray, new: np.ndarray) -> np.ndarray:
+    """Uniforms each reading takes (:func:`read_channel`)."""
+    return np.where(in_range, 1 + DRIVER_DRAWS * new, 0)
+
+
+def channel_likelihood(reading: float, miss_rate: float) -> np.ndarray:
+    """``P(reading | turn, driver kind)`` (3 turns right/straight/left × 3 kinds right side/wrong side/never) of
+    this channel: the inverse view of :func:`first_sighting` and :func:`reported`, what a Bayes filter over a
+    driver's readings uses (av_gym/shields/intent.py)."""
+    lik = np.zeros((3, 3))
+    for i, turn in enumerate((RIGHT, NONE, LEFT)):
+        for j, shows in enumerate((turn, -turn, NONE)):  # indicates the right side, the wrong side, never
+            if shows == NONE:  # going straight shows nothing, whatever the driver
+                lik[i, j] = 1.0 if reading == NONE else 0.0
+            else:
+                lik[i, j] = (1.0 - miss_rate) if reading == shows else miss_rate if reading == NONE else 0.0
+    return lik
+
+
+def driver_kinds(p: "TurnSignalsParams") -> np.ndarray:
+    """Prior of the driver kinds (right side, wrong side, never), from the per-driver rates."""
+    return np.array([(1.0 - p.no_signal_rate) * (1.0 - p.wrong_rate), (1.0 - p.no_signal_rate) * p.wrong_rate,
+                     p.no_signal_rate])
+
+
+@dataclass(frozen=True)
+class TurnSignalsParams(Params):
+    """The indicator channel (module docstring). No source paper measures it: the values are our suggestions."""
+
+    max_range: float = param(60.0, "m", gt=0, doc="no indicator read farther out (a few pixels per lamp on a 66x200 "
+                                                  "camera)")
+    no_signal_rate: float = param(0.25, ge=0, le=1, doc="per vehicle: the driver does not indicate (pessimistic on "
+                                                        "purpose: the policy must not trust it blindly)")
+    wrong_rate: float = param(0.05, ge=0, le=1, doc="per vehicle: the indicator shows the other direction")
+    miss_rate: float = param(0.1, ge=0, le=1, doc="per reading: an indicator that is on is not seen (occlusion, "
+                                                  "blink phase)")
+    max_objects: int = param(16, ge=1, le=ROWS_MAX, doc="rows in the observation")
+
+
+class TurnSignals(SensorWrapper):
+    """Adds ``obs["signals"]`` (see the module docstring); parameters: :class:`TurnSignalsParams`."""
+
+    key = "signals"
+    Params = TurnSignalsParams
+
+    def __init__(self, env: gym.Env, params: TurnSignalsParams | None = None, **overrides) -> None:
+        p = self.params = TurnSignalsParams.build(params, **overrides)
+        self.max_range, self.max_objects = float(p.max_range), int(p.max_objects)
+        self.no_signal_rate, self.wrong_rate, self.miss_rate = float(p.no_signal_rate), float(p.wrong_rate), \
+            float(p.miss_rate)
+        super().__init__(env)
+        # Per-vehicle channel, keyed by the vehicle object (not id(): a deep copy of the stack, as the lookahead
+        # oracle makes, keeps each vehicle's draw through copy's memo).
+        self._channel: dict = {}
+        self.last = np.zeros((self.max_objects, len(FIELDS)), dtype=np.float32)  # the latest reading
+
+    def sensor_space(self) -> spaces.Box:
+        return spaces.Box(-BOUND, BOUND, shape=(self.max_objects, len(FIELDS)), dtype=np.float32)
+
+    def on_reset(self) -> None:
+        self._channel = {}
+
+    def measure(self) -> np.ndarray:
+        unwrapped = self.env.unwrapped
+        ego = unwrapped.vehicle
+        x, y = ego_pose(self.env)[:2]
+        out = np.zeros((self.max_objects, len(FIELDS)), dtype=np.float32)
+        vehicles = [v for v in unwrapped.road.vehicles if v is not ego]
+        if vehicles:
+            pos = np.array([v.position for v in vehicles], dtype=float)
+            d = np.hypot(pos[:, 0] - x, pos[:, 1] - y)
+            in_range = d <= self.max_range
+            new = in_range & np.array([v not in self._channel for v in vehicles])
+            known = [self._channel.get(v, (False, False)) for v in vehicles]
+            intended = np.array([intended_signal(v) if r else NONE for v, r in zip(vehicles, in_range)])
+            n_draws = int(draws_needed(in_range, new).sum())
+            u = self.rng.uniform(size=n_draws) if n_draws else np.zeros(0)
+            signal, indicates, wrong = read_channel(u, in_range[None], new[None], intended[None],
+                                                    np.array([[k[0] for k in known]]),
+                                                    np.array([[k[1] for k in known]]), self.params)
+            for k in np.flatnonzero(new):  # the driver's draws, kept for the episode
+                self._channel[vehicles[k]] = (bool(indicates[0, k]), bool(wrong[0, k]))
+            near = np.flatnonzero(in_range)
+            near = near[np.argsort(d[near], kind="stable")][: self.max_objects]  # nearest first, road order on ties
+            out[: len(near)] = np.column_stack([np.ones(len(near)), pos[near], signal[0, near]])
+        self.last = out
+        return out

@@ -1,0 +1,88 @@
+"""The brake actuator the AEB shield drives the ego with (:class:`BrakeActuator`: delay, jerk-limited build-up,
+full deceleration) and the wrapper around the ego's ``act`` that applies it every simulation tick."""
+
+from __future__ import annotations
+
+
+import numpy as np
+
+from av_gym.params import Params
+from av_gym.shields.aeb_params import BrakeParams
+
+
+# ----------------------------------------------------------------------------------------------- actuator
+class BrakeActuator:
+    """Brake actuator (:class:`BrakeParams`): after a command, nothing happens for ``delay`` s, then the
+    deceleration ramps up at ``jerk`` m/s³ (0 = a step) to ``decel`` m/s² and is held, never reversing the car;
+    applied every simulation tick."""
+
+    Params = BrakeParams
+
+    def __init__(self, params: BrakeParams | None = None, **overrides) -> None:
+        p = self.params = BrakeParams.build(params, **overrides)
+        self.decel, self.delay, self.jerk = p.decel, p.delay, p.jerk
+        self.engaged_at: float | None = None
+
+    def engage(self, t: float) -> None:
+        if self.engaged_at is None:
+            self.engaged_at = float(t)
+
+    def release(self) -> None:
+        self.engaged_at = None
+
+    def deceleration(self, elapsed: float, dt: float) -> float | None:
+        """Deceleration (m/s², > 0) during the tick that starts ``elapsed`` s after the command; None in the
+        delay (the vehicle's own control acts)."""
+        if elapsed < self.delay - 1e-9:
+            return None
+        return self.decel if self.jerk <= 0 else min(self.decel, self.jerk * (elapsed - self.delay + dt))
+
+    def command(self, t: float, speed: float, dt: float) -> float | None:
+        """Acceleration (m/s²) to apply in the tick starting at ``t``, or None when not braking."""
+        if self.engaged_at is None:
+            return None
+        d = self.deceleration(t - self.engaged_at, dt)
+        return None if d is None else max(-d, -max(speed, 0.0) / dt)
+
+    def profile(self, v0: float, a_before: float, duration: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """Distance (m) and speed (m/s) after each tick of ``dt`` s over ``duration`` s when the brake is commanded
+        now at speed ``v0`` and the vehicle keeps ``a_before`` (m/s²) during the delay; integrated like
+        highway-env's ``Vehicle.step`` (position with the speed before the update)."""
+        n = int(np.ceil(duration / dt - 1e-9))
+        x, v = 0.0, max(float(v0), 0.0)
+        xs, vs = np.empty(n), np.empty(n)
+        for i in range(n):
+            d = self.deceleration(i * dt, dt)
+            a = a_before if d is None else max(-d, -v / dt)
+            x += v * dt
+            v = max(v + a * dt, 0.0)
+            xs[i], vs[i] = x, v
+        return xs, vs
+
+    def stopping_distance(self, v0: float, a_before: float, dt: float) -> tuple[float, float]:
+        """Distance (m) and time (s) to standstill when braking is commanded now."""
+        if v0 <= 0:
+            return 0.0, 0.0
+        a_before = max(a_before, 0.0)
+        t_max = self.delay + 1.0 / max(self.jerk, 1e-6) * self.decel + (v0 + a_before * self.delay) / self.decel + 1.0
+        xs, vs = self.profile(v0, a_before, t_max, dt)
+        i = int(np.argmax(vs <= 0.0)) if (vs <= 0.0).any() else len(vs) - 1
+        return float(xs[i]), float((i + 1) * dt)
+
+
+class _ActuatedAct:
+    """The ego's ``act`` followed by the shield's brake actuator (:meth:`AEBShield._install_actuator`). An object,
+    not a closure: ``copy.deepcopy`` of the env stack (the lookahead oracle plays futures on copies) copies its
+    references, so the copied ego runs its own controller and the copied shield's actuator; a closure would be
+    shared and drive the original vehicle."""
+
+    def __init__(self, original, vehicle, shield: "AEBShield") -> None:
+        self.original, self.vehicle, self.shield = original, vehicle, shield
+
+    def __call__(self, action=None) -> None:
+        self.original(action)
+        u, shield = self.shield.env.unwrapped, self.shield
+        t = u.steps / float(u.config["simulation_frequency"])
+        a = shield.actuator.command(t, self.vehicle.speed, shield.sim_dt)
+        if a is not None:
+            self.vehicle.action["acceleration"] = a

@@ -1,0 +1,44 @@
+"""The ``paper`` AEB variant: digest 003 §4.1-4.8 as written (see :mod:`av_gym.shields.aeb`)."""
+
+from __future__ import annotations
+
+
+import gymnasium as gym
+import numpy as np
+
+from av_gym.params import Params
+from av_gym.shields.predict import paper_horizon, paper_ttc
+from av_gym.shields.aeb_base import AEB_VARIANTS, AEBShield, _wrap
+from av_gym.shields.aeb_params import BRAKE, MONITOR, WARN, PaperParams
+
+
+@AEB_VARIANTS.register("paper")
+class PaperAEB(AEBShield):
+    """``paper``: the predictive AEB of digest 003 §4.1-4.8 (module docstring); parameters :class:`PaperParams`."""
+
+    Params = PaperParams
+    variant = "paper"
+
+    def __init__(self, env: gym.Env, params: PaperParams | None = None, **overrides) -> None:
+        super().__init__(env, params, **overrides)
+        p = self.params
+        self.T, self.activation_distance, self.accel_alpha = p.step, p.activation_distance, p.accel_alpha
+        self.half_accel_term, self.limits, self.standstill_hold = p.half_accel_term, p.limits, p.standstill_hold
+
+    def _decide_variant(self, ego, others, a_ego, a_others, t, active):
+        horizon = paper_horizon(ego["speed"])
+        ttc, target = float("inf"), -1
+        if len(others):
+            c, s = np.cos(self.approach_heading), np.sin(self.approach_heading)
+            rot = np.array([[c, s], [-s, c]])  # world → approach frame (x along the approach)
+            rel = (others[:, 0:2] - ego["xy"]) @ rot.T
+            phi0 = -_wrap(ego["heading"] - self.approach_heading)  # + = turning left (heading decreases here)
+            ttc, target = paper_ttc(rel, rot @ ego["velocity"], rot @ a_ego, others[:, 2:4] @ rot.T,
+                                    a_others @ rot.T, others[:, 5:7], ego["size"], phi0, -ego["yaw_rate"],
+                                    horizon, self.T, self.half_accel_term, self.limits)
+        if self._latched and self._latched_until_standstill(ego["speed"], t):
+            return BRAKE, ttc, horizon, target, False
+        if ttc <= self.ttc_brake:
+            self._latch(t)
+            return BRAKE, ttc, horizon, target, False
+        return (WARN if ttc <= horizon else MONITOR), ttc, horizon, target, False

@@ -1,0 +1,42 @@
+"""The ``standard`` AEB variant: the TTC = Δx/Δv baseline of paper 003 §2 (see :mod:`av_gym.shields.aeb`)."""
+
+from __future__ import annotations
+
+
+import gymnasium as gym
+import numpy as np
+
+from av_gym.params import Params
+from av_gym.shields.predict import standard_ttc
+from av_gym.shields.aeb_base import AEB_VARIANTS, AEBShield
+from av_gym.shields.aeb_params import BRAKE, MONITOR, WARN, StandardParams
+
+
+@AEB_VARIANTS.register("standard")
+class StandardAEB(AEBShield):
+    """``standard``: the standard AEB of paper 003 §2 (``TTC = Δx/Δv`` on targets ahead in the ego's corridor),
+    always active; parameters :class:`StandardParams`."""
+
+    Params = StandardParams
+    variant = "standard"
+
+    def __init__(self, env: gym.Env, params: StandardParams | None = None, **overrides) -> None:
+        super().__init__(env, params, **overrides)
+        p = self.params
+        self.warn_ttc, self.lateral_margin, self.standstill_hold = p.warn_ttc, p.lateral_margin, p.standstill_hold
+        self.steering_inhibit = None if p.steering_inhibit_deg is None else np.radians(p.steering_inhibit_deg)
+
+    def _is_active(self, ego: dict) -> bool:
+        return True
+
+    def _decide_variant(self, ego, others, a_ego, a_others, t, active):
+        ttc, target = standard_ttc(ego["xy"], ego["heading"], ego["speed"], ego["size"], others,
+                                   self.lateral_margin)
+        if self.steering_inhibit is not None and abs(ego["steering"]) > self.steering_inhibit:
+            ttc, target = float("inf"), -1
+        if self._latched and self._latched_until_standstill(ego["speed"], t):
+            return BRAKE, ttc, self.warn_ttc, target, False
+        if ttc <= self.ttc_brake:
+            self._latch(t)
+            return BRAKE, ttc, self.warn_ttc, target, False
+        return (WARN if ttc <= self.warn_ttc else MONITOR), ttc, self.warn_ttc, target, False

@@ -1,0 +1,272 @@
+"""How another road user's possible paths relate to the ego's planned path on highway-env's four-way intersection
+(issue 17), read from the road network, never from the vehicle's motion.
+
+Partner types (:func:`partner_type`), in this order of precedence:
+
+- ``ahead`` / ``behind``: on a lane of the ego's route, in front of / behind the ego along it;
+- ``merging``: its planned lanes join the ego's route further on (e.g. an oncoming car turning right into the
+  ego's exit, or a car from the east going straight to the ego's exit);
+- ``oncoming``: it comes from the approach opposite the ego's (straight across the ego's turn, or turning);
+- ``crossing``: any other road user (from the left or the right approach, or leaving on another exit).
+
+Node names are highway-env's intersection's: approach ``o{i}→ir{i}``, through the box ``ir{i}→il{j}``, exit
+``il{j}→o{j}``.
+"""
+
+from __future__ import annotations
+
+import weakref
+
+import numpy as np
+
+PARTNER_TYPES = ("oncoming", "crossing", "merging", "ahead", "behind", "unknown")
+
+
+def approach_of(lane_index) -> int | None:
+    """The approach (0-3) a vehicle on ``lane_index`` came from, or None on an exit lane / an unknown road."""
+    if not lane_index:
+        return None
+    a, b = str(lane_index[0]), str(lane_index[1])
+    if a.startswith("o") and b.startswith("ir"):
+        tag = b[2:]
+    elif a.startswith("ir") and b.startswith("il"):
+        tag = a[2:]
+    else:
+        return None
+    return int(tag) if tag.isdigit() else None
+
+
+def planned_lanes(vehicle) -> list[tuple]:
+    """The lanes ``vehicle`` is on and plans to drive (its current lane, then the rest of its route)."""
+    lane = getattr(vehicle, "lane_index", None)
+    if lane is None:
+        return []
+    route = list(getattr(vehicle, "route", None) or [])
+    key = lambda li: (li[0], li[1])  # noqa: E731 -- lane ids in a route may carry another lane number
+    keys = [key(li) for li in route]
+    rest = route[keys.index(key(lane)) + 1:] if key(lane) in keys else []
+    return [tuple(lane), *[tuple(li) for li in rest]]
+
+
+def route_position(network, route: list[tuple], starts: np.ndarray, lane_index, position) -> float | None:
+    """Distance (m) along the ego's ``route`` (lane ``k`` begins at ``starts[k]``) of a point on one of its lanes;
+    None when ``lane_index`` is not on the route."""
+    keys = [(li[0], li[1]) for li in route]
+    if lane_index is None or (lane_index[0], lane_index[1]) not in keys:
+        return None
+    k = keys.index((lane_index[0], lane_index[1]))
+    s, _ = network.get_lane(route[k]).local_coordinates(np.asarray(position, dtype=float))
+    return float(starts[k] + s)
+
+
+def partner_type(vehicle, network, ego_route: list[tuple], ego_starts: np.ndarray, ego_s: float) -> str:
+    """The partner type (module docstring) of ``vehicle`` relative to an ego at ``ego_s`` m along ``ego_route``."""
+    lane = getattr(vehicle, "lane_index", None)
+    if lane is None:
+        return "unknown"
+    s = route_position(network, ego_route, ego_starts, lane, vehicle.position)
+    if s is not None:
+        return "ahead" if s > ego_s else "behind"
+    keys = {(li[0], li[1]) for li in ego_route}
+    if any((li[0], li[1]) in keys for li in planned_lanes(vehicle)[1:]):
+        return "merging"
+    ego_approach = approach_of(ego_route[0])
+    origin = approach_of(lane)
+    if ego_approach is not None and origin is not None and origin == (ego_approach + 2) % 4:
+        return "oncoming"
+    return "crossing"
+
+
+# ----------------------------------------------------------------------------------------------- conflict model
+def path_turn(seq: tuple) -> float:
+    """The indicator a driver on lane sequence ``seq`` would show: +1 left, -1 right, 0 straight or unknown (the
+    rule of :func:`av_gym.sensors.turn_signal.intended_signal`, applied to a hypothesis instead of a route)."""
+    origin = approach_of(seq[0])
+    end = str(seq[-1][1])
+    if origin is None or not (end.startswith("o") and end[1:].isdigit()):
+        dest = [str(li[1]) for li in seq if str(li[1]).startswith("il")]
+        if origin is None or not dest or not dest[0][2:].isdigit():
+            return 0.0
+        end = "o" + dest[0][2:]
+    turn = (int(end[1:]) - origin) % 4
+    return 1.0 if turn == 1 else -1.0 if turn == 3 else 0.0
+
+
+_DRIVEN: dict = {}  # lane sequence geometry -> DrivenPath, shared by every shield in the process
+# network -> {lane sequence -> DrivenPath}: the look-up without the geometry key, per road network (a reset builds a
+# new one); module-level and weak so that deep copies of the stack (the lookahead oracle) neither copy nor keep it
+_BY_NETWORK: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+class ConflictModel:
+    """Every road user's possible paths across the ego's (issue 17): one hypothesis per way the road network lets
+    it continue from the lane it is on (:class:`av_gym.shields.predict.LaneHypotheses`: straight, left, right at
+    the intersection, any lane the graph continues to), each with a probability, uniform over the continuations
+    and, where the driver's indicator has been read, weighted by what its readings say about each turn
+    (:class:`av_gym.shields.intent.DriverIntent`); hypotheses below ``min_p`` are dropped. Along each path the vehicle
+    keeps its along-path acceleration for ``accel_time`` s (a braking car stops, it does not reverse), then its
+    speed (``accel_time`` 0, the default: constant speed; measured, docs/shield.md: 1.5 s parked the ego in the box
+    more often), on the path highway-env's route-following controller actually drives (:meth:`driven`). An
+    object off the map (farther than ``on_lane`` m from its lane, or heading more than 30° off it) or standing
+    still gets the constant-velocity hypothesis instead.
+
+    Compared with constant velocity (the improved shield's old default) it sees the car that turns across or into
+    the ego's path; compared with the ``map`` model it drops the straight-line hypothesis of a car that follows a
+    curved lane (a phantom conflict for every car already turning in the box), uses the car's braking (one that
+    slows to yield is not predicted through the ego), and lets a turn signal rule out going straight."""
+
+    def __init__(self, network, min_p: float = 0.1, accel_time: float = 0.0, on_lane: float = 2.0,
+                 depth: int = 3, min_length: float = 60.0) -> None:
+        from av_gym.shields.predict import LaneHypotheses
+
+        self.lanes = LaneHypotheses(network, depth, min_length)
+        self.min_p, self.accel_time, self.on_lane = min_p, accel_time, on_lane
+        self._seqs: dict[tuple, list[tuple[tuple, float]]] = {}
+
+    def driven(self, seq: tuple):
+        """Where a car following lane sequence ``seq`` actually drives: highway-env's traffic uses the same
+        route-following controller as the ego, which cuts a turn by up to ~1 m, so the ego's
+        :class:`~av_gym.shields.predict.DrivenPath` replays it along the hypothesis (cached by geometry: a
+        centreline prediction missed cars from the east turning left by ~1 m, seeds 1025 and 1088)."""
+        from av_gym.shields.predict import DrivenPath
+
+        by_seq = _BY_NETWORK.setdefault(self.network, {})
+        if seq in by_seq:  # the geometry key below costs ~60 µs per call, ~40 calls per decision
+            return by_seq[seq]
+        table = self.lanes.table(seq)
+        key = (seq, round(table.length, 4), *np.round(table.xy[0], 4))
+        if key not in _DRIVEN:
+            turns = [k for k, li in enumerate(seq) if str(li[0]).startswith("ir")]
+            k = turns[0] if turns else 0
+            s_to = table.starts[k + 1] if k + 1 < len(table.starts) else table.length
+            _DRIVEN[key] = DrivenPath(table, float(table.starts[k]), float(s_to))
+        by_seq[seq] = _DRIVEN[key]
+        return _DRIVEN[key]
+
+    @property
+    def network(self):
+        return self.lanes.network
+
+    @network.setter
+    def network(self, net) -> None:
+        self.lanes.network = net
+
+    def hypotheses(self, lane_index: tuple) -> list[tuple[tuple, float]]:
+        """``(lane sequence, turn)`` for every continuation of ``lane_index`` (cached)."""
+        key = tuple(lane_index)
+        if key not in self._seqs:
+            self._seqs[key] = [(seq, path_turn(seq)) for seq in self.lanes.sequences(key)]
+        return self._seqs[key]
+
+    def along(self, v: float, a: float, t: np.ndarray) -> np.ndarray:
+        """Distance (m) along a path at times ``t`` from speed ``v`` with acceleration ``a`` for ``accel_time`` s,
+        never reversing."""
+        ta = np.minimum(t, self.accel_time)
+        if a < 0:
+            ta = np.minimum(ta, v / -a)
+        s = v * ta + 0.5 * a * ta**2
+        return s + (v + a * ta) * (t - ta)
+
+    def along_many(self, v: np.ndarray, a: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """:meth:`along` for speeds ``v`` and accelerations ``a`` (M,) at once: (M, K), row m equal to
+        ``along(v[m], a[m], t)`` bit for bit (the same operations, element by element)."""
+        v, a = np.asarray(v, dtype=float)[:, None], np.asarray(a, dtype=float)[:, None]
+        ta = np.minimum(t, self.accel_time)[None, :].repeat(len(v), 0)
+        neg = a[:, 0] < 0
+        if neg.any():
+            ta[neg] = np.minimum(ta[neg], v[neg] / -a[neg])
+        s = v * ta + 0.5 * a * ta**2
+        return s + (v + a * ta) * (t - ta)
+
+    def _driven_all(self, lane_index: tuple, by_seq: dict | None = None) -> list:
+        """:meth:`driven` of every hypothesis of ``lane_index``, in :meth:`hypotheses`' order (cached per road
+        network, beside the paths themselves; ``by_seq``: that network's cache, if the caller has it)."""
+        if by_seq is None:
+            by_seq = _BY_NETWORK.setdefault(self.network, {})
+        key = ("hypotheses", tuple(lane_index))
+        if key not in by_seq:
+            by_seq[key] = [self.driven(seq) for seq, _ in self.hypotheses(lane_index)]
+        return by_seq[key]
+
+    def predict(self, others: np.ndarray, lane_indices: list, accels: np.ndarray, t: np.ndarray,
+                intent: np.ndarray | None = None):
+        """Positions (K, M', 2), headings (K, M'), owner (M',), whether each is a map hypothesis (M',) and its
+        probability (M',) over the hypotheses of ``others`` (M, 7) on ``lane_indices`` (None = off the map),
+        ``accels`` (M, 2) m/s² world frame; ``intent`` (M, 3) the weight of each turn (right, straight, left:
+        :data:`av_gym.shields.intent.TURNS`) from the object's indicator readings, a NaN row where there are none.
+
+        Every map hypothesis is placed on its driven path in one compiled call
+        (:func:`av_gym.shields.predict.driven_poses`; ``DrivenPath.kernel = False``: one numpy look-up at a time,
+        the reference), the distance and speed profiles of all objects computed at once (issue 17, cost)."""
+        from av_gym.shields.predict import DrivenPath, driven_poses, object_predict, profile_speeds
+
+        t = np.asarray(t, dtype=float)
+        xs, hs, owner, is_map, prob = [], [], [], [], []
+        cv = []
+        max_dh = np.radians(30)
+        speeds_all = np.hypot(others[:, 2], others[:, 3]) if len(others) else np.zeros(0)
+        on_map, v_on, a_on = [], [], []  # objects with map hypotheses: row, speed, along-path acceleration
+        paths, starts, rows = [], [], []  # per map hypothesis: its driven path, start, object's row in on_map
+        net = self.network
+        by_seq = _BY_NETWORK.setdefault(net, {}) if len(lane_indices) else None
+        read = None if intent is None else np.isfinite(intent).all(axis=1)  # objects whose indicator was read
+        for m, lane_index in enumerate(lane_indices):
+            speed = float(speeds_all[m])
+            lane = net.get_lane(lane_index) if lane_index is not None else None
+            if lane is not None and speed >= 0.5:
+                s0, lat = lane.local_coordinates(others[m, 0:2])
+                s0, lat = float(s0), float(lat)
+                dh = abs((float(lane.heading_at(s0)) - others[m, 4] + np.pi) % (2 * np.pi) - np.pi)
+                if abs(lat) <= self.on_lane and dh <= max_dh:
+                    a_along = float(accels[m] @ others[m, 2:4]) / speed
+                    hyps = self.hypotheses(lane_index)
+                    n_h = len(hyps)
+                    if read is not None and read[m]:
+                        w = intent[m]
+                        p = np.array([w[int(turn) + 1] for _, turn in hyps]) / n_h  # TURNS: right, straight, left
+                        p = (p / p.sum()).tolist()
+                    else:
+                        p = [1.0 / n_h] * n_h
+                    row = len(on_map)
+                    on_map.append(m), v_on.append(speed), a_on.append(a_along)
+                    driven = self._driven_all(lane_index, by_seq)
+                    if min(p) < self.min_p:
+                        driven, p = zip(*[(path, pk) for path, pk in zip(driven, p) if not pk < self.min_p])
+                    n_k = len(p)
+                    paths += driven
+                    prob += p
+                    starts += [s0] * n_k
+                    rows += [row] * n_k
+                    owner += [m] * n_k
+                    is_map += [True] * n_k
+                    continue
+            cv.append(m)
+        if paths:
+            dist = self.along_many(np.array(v_on), np.array(a_on), t)  # (objects, K)
+            zero = np.zeros((len(dist), 1))
+            # profile_speeds, row by row the same
+            v_path = np.maximum(np.diff(np.concatenate([zero, dist], 1), axis=1)
+                                / np.maximum(np.diff(np.concatenate([[0.0], t])), 1e-9), 0.0)
+            rows = np.asarray(rows)
+            if DrivenPath.kernel:  # every hypothesis on its driven path in one compiled call
+                xy, h = driven_poses(paths, np.array(starts), dist[rows], v_path[rows])
+                xs.append(xy.transpose(1, 0, 2))
+                hs.append(h.T)
+            else:  # the numpy reference, one look-up at a time, with the per-object profiles of before
+                for path, s0, r in zip(paths, starts, rows):
+                    ds = self.along(v_on[r], a_on[r], t)
+                    xy, h = path.poses_numpy(s0, ds, profile_speeds(ds, t, v_on[r]))
+                    xs.append(xy[:, None, :])
+                    hs.append(h[:, None])
+        if cv:
+            cv_xy, cv_h = object_predict(others[cv], t)
+            xs.append(cv_xy)
+            hs.append(cv_h)
+            owner += cv
+            is_map += [False] * len(cv)
+            prob += [1.0] * len(cv)
+        if not xs:
+            return np.zeros((len(t), 0, 2)), np.zeros((len(t), 0)), np.zeros(0, int), np.zeros(0, bool), \
+                np.zeros(0)
+        return (np.concatenate(xs, 1), np.concatenate(hs, 1), np.asarray(owner, dtype=int),
+                np.asarray(is_map, dtype=bool), np.asarray(prob, dtype=float))

@@ -1,0 +1,253 @@
+"""Numba kernel for the AEB shield's driven-path look-up (issue 17: < 1 ms per decision at 20 road users).
+
+:meth:`av_gym.shields.predict.DrivenPath.poses` places one path hypothesis on its driven path: about twenty small
+numpy calls (interpolations, masks, a blend of two speed bins), ~0.18 ms, and the conflict model makes ~40 such
+look-ups per decision at 20 road users, most of the shield's cost (docs/shield.md, issue 17's second pass).
+:func:`driven_poses` does the look-ups of every hypothesis of a decision in one call, on the tables of every driven
+path packed into one growing float array (:class:`Store`).
+
+What stays identical (the project's kernel rule, av_gym/sim/kernels.py): the numpy reference
+(:meth:`DrivenPath.poses_numpy`) is kept; the kernel evaluates its formulas in the same order of operations (no
+``fastmath``: no reassociation, no fused multiply-adds), ``np.interp`` exactly as numpy's C code does (the last
+table index ``j`` with ``xp[j] <= x``, the end values outside, ``fp[j]`` on an exact knot, the slope
+``(fp[j+1] - fp[j]) / (xp[j+1] - xp[j])``), and the speed-bin blend as the reference accumulates it. numba's
+``math.cos``/``sin`` are the C library's, as numpy's float64 ufuncs are on this project's (AVX2) machines, so the
+results are the reference's bit for bit (tests/test_aeb.py checks it on random look-ups and whole episodes).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+
+class Store:
+    """Every driven path's tables in one growing float64 array, and each path's place in it, so that one kernel
+    call can read the tables of any number of paths (module-level: shared by every shield of the process, as the
+    paths themselves are, and left out of deep copies of a shield).
+
+    A registered path (:meth:`register`, on the speed bins ``grid``) has an id: row ``id`` of ``route`` (offset
+    and length of its route table: columns s, x, y, heading), ``limits`` (its table's start distance ``s_start``
+    and the route's length) and ``bins`` (offset and length of each speed bin's driven table: columns distance,
+    x, y, heading, route position; length 0 until the bin is simulated)."""
+
+    def __init__(self, grid: np.ndarray, capacity: int = 1 << 16, paths: int = 64) -> None:
+        self.grid = np.asarray(grid, dtype=float)
+        self.grid_table = np.concatenate([self.grid, np.arange(len(self.grid), dtype=float)])  # xp, then fp
+        self.data = np.zeros(capacity)
+        self.n = 0
+        self.route = np.zeros((paths, 2), dtype=np.int64)
+        self.limits = np.zeros((paths, 2))
+        self.bins = np.zeros((paths, len(self.grid), 2), dtype=np.int64)
+        self.paths = 0
+
+    def add(self, *columns: np.ndarray) -> int:
+        """Append equal-length columns one after the other; the offset of the first."""
+        need = sum(len(c) for c in columns)
+        if self.n + need > len(self.data):
+            grown = np.zeros(max(2 * len(self.data), self.n + need))
+            grown[: self.n] = self.data[: self.n]
+            self.data = grown
+        off = self.n
+        for c in columns:
+            self.data[self.n: self.n + len(c)] = np.asarray(c, dtype=float)
+            self.n += len(c)
+        return off
+
+    def register(self, route_columns: tuple, s_start: float, route_length: float) -> int:
+        """A new path (its route table's columns s, x, y, heading); its id."""
+        if self.paths == len(self.route):
+            self.route = np.concatenate([self.route, np.zeros_like(self.route)])
+            self.limits = np.concatenate([self.limits, np.zeros_like(self.limits)])
+            self.bins = np.concatenate([self.bins, np.zeros_like(self.bins)])
+        i = self.paths
+        self.route[i] = (self.add(*route_columns), len(route_columns[0]))
+        self.limits[i] = (s_start, route_length)
+        self.paths += 1
+        return i
+
+    def add_bin(self, path_id: int, i: int, columns: tuple) -> None:
+        """Speed bin ``i`` of path ``path_id``, just simulated (columns distance, x, y, heading, route position)."""
+        self.bins[path_id, i] = (self.add(*columns), len(columns[0]))
+
+
+LIKELY_IN_CACHE_SIZE = 8  # numpy's binary_search_with_guess
+
+
+@numba.njit(cache=True, inline="always")
+def _search(key, data, xo, n, guess):
+    """numpy's ``binary_search_with_guess`` (numpy/_core/src/multiarray/compiled_base.c), step for step: on a
+    sorted table the last j with ``xp[j] <= key``, and on one that is not sorted (a driven table's route positions
+    step back where the simulated car switches lanes) the same j as numpy's."""
+    if key > data[xo + n - 1]:
+        return n
+    if key < data[xo]:
+        return -1
+    if n <= 4:  # linear_search(key, arr, len, 1)
+        i = 1
+        while i < n and key >= data[xo + i]:
+            i += 1
+        return i - 1
+    imin, imax = 0, n
+    if guess > n - 3:
+        guess = n - 3
+    if guess < 1:
+        guess = 1
+    if key < data[xo + guess]:
+        if key < data[xo + guess - 1]:
+            imax = guess - 1
+            if guess > LIKELY_IN_CACHE_SIZE and key >= data[xo + guess - LIKELY_IN_CACHE_SIZE]:
+                imin = guess - LIKELY_IN_CACHE_SIZE
+        else:
+            return guess - 1
+    else:
+        if key < data[xo + guess + 1]:
+            return guess
+        if key < data[xo + guess + 2]:
+            return guess + 1
+        imin = guess + 2
+        if guess < n - LIKELY_IN_CACHE_SIZE - 1 and key < data[xo + guess + LIKELY_IN_CACHE_SIZE]:
+            imax = guess + LIKELY_IN_CACHE_SIZE
+    while imin < imax:
+        imid = imin + ((imax - imin) >> 1)
+        if key >= data[xo + imid]:
+            imin = imid + 1
+        else:
+            imax = imid
+    return imin - 1
+
+
+@numba.njit(cache=True, inline="always")
+def _at(x, j, data, xo, fo, n):
+    """``np.interp``'s value for one ``x`` whose search gave ``j`` (:func:`_search`), as numpy's C code computes it
+    (the end values outside the table, ``fp[j]`` on an exact knot or at the last one, else the slope
+    ``(fp[j+1] - fp[j]) / (xp[j+1] - xp[j])``, and its NaN fall-backs)."""
+    if x != x:  # NaN
+        return x
+    if n == 1:
+        return data[fo]
+    if j == -1:
+        return data[fo]
+    if j >= n - 1:
+        return data[fo + n - 1]
+    xj = data[xo + j]
+    if xj == x:
+        return data[fo + j]
+    x1, f0, f1 = data[xo + j + 1], data[fo + j], data[fo + j + 1]
+    slope = (f1 - f0) / (x1 - xj)
+    r = slope * (x - xj) + f0
+    if r != r:
+        r = slope * (x - x1) + f1
+        if r != r and f0 == f1:
+            r = f0
+    return r
+
+
+@numba.njit(cache=True, inline="always")
+def _route_pose(data, ro, rn, r_len, s, guess):
+    """RouteTable.poses for one arc length: (x, y, heading, the search's index for the next guess). The route's
+    arc lengths are sorted, so the index (one search for the three columns) does not depend on the guess."""
+    sc = min(max(s, 0.0), r_len)
+    j = _search(sc, data, ro, rn, guess) if sc == sc and rn > 1 else 0
+    x = _at(sc, j, data, ro, ro + rn, rn)
+    y = _at(sc, j, data, ro, ro + 2 * rn, rn)
+    h = _at(sc, j, data, ro, ro + 3 * rn, rn)
+    extra = s - sc
+    return x + extra * math.cos(h), y + extra * math.sin(h), h, max(j, 0)
+
+
+@numba.njit(cache=True, inline="always")
+def _bin_index(v, grid_table, B):
+    """``np.clip(np.interp(v, grid, np.arange(B)), 0, B - 1)`` for one speed (``grid_table``: the sorted grid, then
+    0..B-1)."""
+    return min(max(_at(v, _search(v, grid_table, 0, B, 0), grid_table, 0, B, B), 0.0), B - 1.0)
+
+
+@numba.njit(cache=True)
+def driven_poses(data, route, limits, bins, grid_table, ids, s0, ds, speeds, xy, hh, need):
+    """DrivenPath.poses for H look-ups at once, into ``xy`` (H, K, 2) and ``hh`` (H, K): look-up m on the path
+    ``ids[m]`` of the :class:`Store` (``data``, ``route``, ``limits``, ``bins``) from route position ``s0[m]``,
+    distances ``ds[m]`` and speeds ``speeds[m]``; ``grid_table`` the store's speed bins then their indices.
+
+    First every speed bin a look-up will read is checked: where one is not simulated yet, ``need[m, i]`` is set,
+    nothing is computed, and the number of such bins is returned (the caller simulates them and calls again, so
+    bins are simulated lazily, the same ones as the reference's); 0 when done.
+
+    The fractional bin ``np.clip(np.interp(speed, grid, arange(B)), 0, B - 1)`` as numpy computes it. Per bin,
+    the start distance ``d0`` (the reference's scalar ``np.interp`` on the bin's route positions, which are not
+    sorted where the simulated car switches lanes: numpy's search from guess 0 exactly) is computed once; the
+    distance and route-position searches carry their guess from slice to slice (both tables are sorted, so the
+    index found is the same from any guess)."""
+    H, K = ds.shape
+    B = bins.shape[1]
+    f = np.empty((H, K))
+    missing = 0
+    for m in range(H):
+        p = ids[m]
+        if s0[m] + (ds[m, K - 1] if K else 0.0) < limits[p, 0]:
+            continue
+        for k in range(K):
+            f[m, k] = _bin_index(speeds[m, k], grid_table, B)
+            lo = int(math.floor(f[m, k]))
+            hi = min(lo + 1, B - 1)
+            if bins[p, lo, 1] == 0 and not need[m, lo]:
+                need[m, lo] = True
+                missing += 1
+            if bins[p, hi, 1] == 0 and not need[m, hi]:
+                need[m, hi] = True
+                missing += 1
+    if missing:
+        return missing
+    d0s = np.empty(B)
+    have = np.zeros(B, dtype=np.bool_)
+    guess = np.zeros(B, dtype=np.int64)
+    for m in range(H):
+        p = ids[m]
+        ro, rn, sm = route[p, 0], route[p, 1], s0[m]
+        s_start, r_len = limits[p, 0], limits[p, 1]
+        rg = 0
+        if sm + (ds[m, K - 1] if K else 0.0) < s_start:  # the whole prediction before the table
+            for k in range(K):
+                x, y, h, rg = _route_pose(data, ro, rn, r_len, sm + ds[m, k], rg)
+                xy[m, k, 0], xy[m, k, 1], hh[m, k] = x, y, h
+            continue
+        have[:] = False
+        guess[:] = 0
+        for k in range(K):
+            lo = int(math.floor(f[m, k]))
+            hi = min(lo + 1, B - 1)
+            w = f[m, k] - lo
+            ax, ay, ah = 0.0, 0.0, 0.0
+            for r in range(2):
+                i = lo if r == 0 else hi
+                if r == 1 and hi == lo:
+                    break
+                bo, bn = bins[p, i, 0], bins[p, i, 1]
+                d_last = data[bo + bn - 1]
+                if not have[i]:
+                    if sm <= s_start:
+                        d0s[i] = sm
+                    else:
+                        past = sm - data[bo + 5 * bn - 1]
+                        j0 = _search(sm, data, bo + 4 * bn, bn, 0) if sm == sm and bn > 1 else 0
+                        d0s[i] = _at(sm, j0, data, bo + 4 * bn, bo, bn) + (past if not (0.0 > past) else 0.0)
+                    have[i] = True
+                d = d0s[i] + ds[m, k]
+                if d >= s_start and d <= d_last:  # on the driven table
+                    j = _search(d, data, bo, bn, guess[i]) if bn > 1 else 0
+                    guess[i] = max(j, 0)
+                    x = _at(d, j, data, bo, bo + bn, bn)
+                    y = _at(d, j, data, bo, bo + 2 * bn, bn)
+                    h = _at(d, j, data, bo, bo + 3 * bn, bn)
+                else:  # the centreline before it, shifted one for one after it
+                    arg = d if d < s_start else d - d_last + data[bo + 5 * bn - 1]
+                    x, y, h, rg = _route_pose(data, ro, rn, r_len, arg, rg)
+                # the reference's weight of bin i: where(lo == i, 1 - w, 0) + where(hi == i, w, 0)
+                wi = ((1.0 - w) if lo == i else 0.0) + (w if hi == i else 0.0)
+                ax += wi * x
+                ay += wi * y
+                ah += wi * h
+            xy[m, k, 0], xy[m, k, 1], hh[m, k] = ax, ay, ah
+    return 0

@@ -1,0 +1,342 @@
+"""Numba kernels for the batched left turn's pairwise parts (issue 16).
+
+Why compiled code here: highway-env has no batched version of these models, and av_gym/sim/batched.py's numpy
+formulation of the pairwise parts (leader search, IDM gap, collisions, the regulation's conflict test, the closest
+lane, the ego's TTC) builds (B, N, N), (B, N, N, T) or (vehicles, lanes) arrays, gathers the candidates with
+``nonzero`` and evaluates them in many small array calls; at B = 256 that bookkeeping, not the arithmetic, was
+most of their cost (docs/performance.md, "Numba kernels"). A loop over the candidates skips the masks and stops at
+the first hit.
+
+What stays identical: each kernel evaluates the numpy code's formulas in the same order of operations (no
+``fastmath``, so no reassociation or fused multiply-adds), on the same inputs, and makes every decision with the
+same comparisons (``<=`` / ``<``, first or last on ties as there). numba's ``math`` calls the C library, and so
+do numpy's float64 ufuncs on this project's (AVX2) machines, so the kernels reproduce the numpy path bit for bit:
+tests/test_kernels.py checks each kernel against the numpy code on random inputs with ties and exact contacts, and
+whole batch runs with and without kernels (where a numpy build uses its own SIMD maths, e.g. AVX-512, floats may
+differ in the last bit, as the numpy path's own results already do between batch layouts). ``cache=True``: compiled once per
+checkout into ``__pycache__`` (cold: ~5-9 s for all of them), so later processes only load them.
+
+The lane table is passed as one (L, 15) float array (:func:`lane_array`); column indices below.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+OX, OY, DX, DY, CIRC, PHASE0, RADIUS, CDIR, WIDTH, LENGTH, BX0, BY0, BX1, BY1, HEAD = range(15)
+
+
+def lane_array(T) -> np.ndarray:
+    """A LaneTable's lanes as one C-contiguous (L, 15) float array for the kernels."""
+    return np.ascontiguousarray(np.column_stack([
+        T.ox, T.oy, T.dx, T.dy, T.circular.astype(float), T.phase0, T.radius, T.cdir, T.width, T.length, T.box,
+        T.h]))
+
+
+@numba.njit(cache=True, inline="always")
+def _local(lt, k, x, y):
+    """LaneTable.local for one lane ``k`` and one point: (Straight|Circular)Lane.local_coordinates."""
+    ex, ey = x - lt[k, OX], y - lt[k, OY]
+    if lt[k, CIRC] != 0.0:
+        p0, R, cd = lt[k, PHASE0], lt[k, RADIUS], lt[k, CDIR]
+        phi = p0 + ((math.atan2(ey, ex) - p0 + math.pi) % (2 * math.pi) - math.pi)  # wrap_to_pi
+        return cd * (phi - p0) * R, cd * (R - math.hypot(ex, ey))
+    dx, dy = lt[k, DX], lt[k, DY]
+    return ex * dx + ey * dy, ex * -dy + ey * dx
+
+
+@numba.njit(cache=True, inline="always")
+def _distance_with_heading(lt, k, x, y, h):
+    """LaneTable.distance_with_heading for one lane and one vehicle (heading_at: the arc's tangent, or the line's
+    heading)."""
+    s, r = _local(lt, k, x, y)
+    if lt[k, CIRC] != 0.0:
+        heading = lt[k, CDIR] * s / lt[k, RADIUS] + lt[k, PHASE0] + math.pi / 2 * lt[k, CDIR]
+    else:
+        heading = lt[k, HEAD]
+    angle = abs((h - heading + math.pi) % (2 * math.pi) - math.pi)
+    return abs(r) + max(s - lt[k, LENGTH], 0.0) + max(0.0 - s, 0.0) + angle
+
+
+@numba.njit(cache=True)
+def closest(lt, x, y, h):
+    """LaneTable.closest for 1-d arrays of vehicles: the first lane of least distance_with_heading among the lanes
+    whose centreline box is no farther than the nearest box's lane's distance (the same pruning, the same
+    comparisons: first on ties)."""
+    L = lt.shape[0]
+    out = np.zeros(x.shape[0], dtype=np.int64)
+    lb = np.empty(L)
+    for m in range(x.shape[0]):
+        xm, ym = x[m], y[m]
+        k0 = 0
+        for k in range(L):
+            bx = max(max(lt[k, BX0] - xm, xm - lt[k, BX1]), 0.0)
+            by = max(max(lt[k, BY0] - ym, ym - lt[k, BY1]), 0.0)
+            lb[k] = math.hypot(bx, by)
+            if lb[k] < lb[k0]:
+                k0 = k
+        best = _distance_with_heading(lt, k0, xm, ym, h[m])
+        dmin, kmin = np.inf, 0
+        for k in range(L):
+            if lb[k] <= best:
+                d = _distance_with_heading(lt, k, xm, ym, h[m])
+                if d < dmin:
+                    dmin, kmin = d, k
+        out[m] = kmin
+    return out
+
+
+@numba.njit(cache=True)
+def front(lt, lanes, x, y, alive, vehicle_length):
+    """Traffic._front: per vehicle i, among the other live vehicles j within 6 m of lane(i)'s centreline box and on
+    it (|r| <= width/2 + 1, -L <= s < length + L) with s_j >= s_i, the one with the smallest s_j, the last in
+    slot order on ties (``<=`` while scanning j upwards, as the reversed argmin); -1 if none."""
+    B, N = x.shape
+    out = np.full((B, N), -1, dtype=np.int64)
+    for b in range(B):
+        for i in range(N):
+            if not alive[b, i]:
+                continue
+            k = lanes[b, i]
+            x0, y0 = lt[k, BX0] + -6.0, lt[k, BY0] + -6.0
+            x1, y1 = lt[k, BX1] + 6.0, lt[k, BY1] + 6.0
+            s_self = _local(lt, k, x[b, i], y[b, i])[0]
+            half, end = lt[k, WIDTH] / 2 + 1, lt[k, LENGTH] + vehicle_length
+            best, jbest = np.inf, -1
+            for j in range(N):
+                if j == i or not alive[b, j]:
+                    continue
+                xj, yj = x[b, j], y[b, j]
+                if not (x0 <= xj and xj <= x1 and y0 <= yj and yj <= y1):
+                    continue
+                s, r = _local(lt, k, xj, yj)
+                if abs(r) <= half and -vehicle_length <= s and s < end and s_self <= s and s <= best:
+                    best, jbest = s, j
+            out[b, i] = jbest
+    return out
+
+
+@numba.njit(cache=True)
+def collisions(x, y, h, v, alive, dt, length, width, crashed, has_impact, impact_x, impact_y):
+    """Traffic._collisions in place: for every pair i < j in slot order, the spherical pre-check
+    (hypot <= diagonal + v_i dt), then utils.are_polygons_intersecting as batched._polygons_intersecting computes
+    it; a pair that will intersect sets both impacts (a later pair overwrites), one that intersects both crash
+    flags."""
+    B, N = x.shape
+    diagonal = math.sqrt(length**2 + width**2)
+    lx = np.array([-length / 2, -length / 2, length / 2, length / 2, -length / 2])
+    ly = np.array([-width / 2, width / 2, width / 2, -width / 2, -width / 2])
+    pa, pb = np.empty((5, 2)), np.empty((5, 2))
+    nrm = np.empty((8, 2))
+    dist = np.empty(8)
+    for b in range(B):
+        for i in range(N):
+            if not alive[b, i]:
+                continue
+            reach = diagonal + v[b, i] * dt
+            for j in range(i + 1, N):
+                if not alive[b, j] or not math.hypot(x[b, j] - x[b, i], y[b, j] - y[b, i]) <= reach:
+                    continue
+                ci, si, cj, sj = math.cos(h[b, i]), math.sin(h[b, i]), math.cos(h[b, j]), math.sin(h[b, j])
+                for p in range(5):  # RoadObject.polygon
+                    pa[p, 0] = ci * lx[p] - si * ly[p] + x[b, i]
+                    pa[p, 1] = si * lx[p] + ci * ly[p] + y[b, i]
+                    pb[p, 0] = cj * lx[p] - sj * ly[p] + x[b, j]
+                    pb[p, 1] = sj * lx[p] + cj * ly[p] + y[b, j]
+                dax, day = ci * (v[b, i] * dt), si * (v[b, i] * dt)
+                dbx, dby = cj * (v[b, j] * dt), sj * (v[b, j] * dt)
+                for e in range(8):  # edge normals, a's edges then b's
+                    q = pa if e < 4 else pb
+                    m = e % 4
+                    ex, ey = q[m + 1, 0] - q[m, 0], q[m + 1, 1] - q[m, 1]
+                    nx, ny = -ey, ex
+                    norm = math.sqrt(nx * nx + ny * ny)
+                    nrm[e, 0], nrm[e, 1] = nx / norm, ny / norm
+                inter, will = True, True
+                for e in range(8):
+                    nx, ny = nrm[e, 0], nrm[e, 1]
+                    min_a = max_a = nx * pa[0, 0] + ny * pa[0, 1]
+                    min_b = max_b = nx * pb[0, 0] + ny * pb[0, 1]
+                    for p in range(1, 5):
+                        qa = nx * pa[p, 0] + ny * pa[p, 1]
+                        qb = nx * pb[p, 0] + ny * pb[p, 1]
+                        min_a, max_a = min(min_a, qa), max(max_a, qa)
+                        min_b, max_b = min(min_b, qb), max(max_b, qb)
+                    if (min_b - max_a if min_a < min_b else min_a - max_b) > 0:
+                        inter = False
+                    vp = nx * (dax - dbx) + ny * (day - dby)
+                    if vp < 0:
+                        min_a = min_a + vp
+                    else:
+                        max_a = max_a + vp
+                    dist[e] = min_b - max_a if min_a < min_b else min_a - max_b
+                    if dist[e] > 0:
+                        will = False
+                if not (inter or will):
+                    continue
+                kk = 0
+                for e in range(1, 8):  # argmin |distance|, first on ties
+                    if abs(dist[e]) < abs(dist[kk]):
+                        kk = e
+                dx = (pa[0, 0] + pa[1, 0] + pa[2, 0] + pa[3, 0]) / 4 - (pb[0, 0] + pb[1, 0] + pb[2, 0] + pb[3, 0]) / 4
+                dy = (pa[0, 1] + pa[1, 1] + pa[2, 1] + pa[3, 1]) / 4 - (pb[0, 1] + pb[1, 1] + pb[2, 1] + pb[3, 1]) / 4
+                ax, ay = nrm[kk, 0], nrm[kk, 1]
+                if not dx * ax + dy * ay > 0:
+                    ax, ay = -ax, -ay
+                tx, ty = abs(dist[kk]) * ax, abs(dist[kk]) * ay
+                if will:
+                    impact_x[b, i], impact_y[b, i] = tx / 2, ty / 2
+                    impact_x[b, j], impact_y[b, j] = -tx / 2, -ty / 2
+                    has_impact[b, i] = has_impact[b, j] = True
+                if inter:
+                    crashed[b, i] = crashed[b, j] = True
+
+
+@numba.njit(cache=True)
+def conflicts(px, py, ph, alive, length, width):
+    """The regulation's pairwise test (Traffic._enforce_road_rules): pair i < j of live vehicles conflicts if at
+    some prediction time both centres are within ``length`` (np.hypot) and utils.rotated_rectangles_intersect of
+    their (1.5 length, 0.9 width) boxes (9 corner / mid / centre points of each inside the other), as batched.
+    _rects_intersect computes it. (b, N, N) bool, upper triangle."""
+    b_, N, T = px.shape
+    L, W = 1.5 * length, 0.9 * width
+    hl, hw = L / 2, W / 2
+    lx = np.array([-hl, -hl, hl, hl, 0.0, -hl, hl, 0.0, 0.0])
+    ly = np.array([-hw, hw, hw, -hw, 0.0, 0.0, 0.0, -hw, hw])
+    out = np.zeros((b_, N, N), dtype=np.bool_)
+    for b in range(b_):
+        for i in range(N):
+            if not alive[b, i]:
+                continue
+            for j in range(i + 1, N):
+                if not alive[b, j]:
+                    continue
+                for t in range(T):
+                    x1, y1, x2, y2 = px[b, i, t], py[b, i, t], px[b, j, t], py[b, j, t]
+                    if not math.hypot(x2 - x1, y2 - y1) <= length:
+                        continue
+                    c1, s1, c2, s2 = math.cos(ph[b, i, t]), math.sin(ph[b, i, t]), math.cos(ph[b, j, t]), \
+                        math.sin(ph[b, j, t])
+                    if _any_inside(c1, s1, x1, y1, c2, s2, x2, y2, lx, ly, hl, hw) or \
+                            _any_inside(c2, s2, x2, y2, c1, s1, x1, y1, lx, ly, hl, hw):
+                        out[b, i, j] = True
+                        break
+    return out
+
+
+@numba.njit(cache=True, inline="always")
+def _any_inside(c1, s1, x1, y1, c2, s2, x2, y2, lx, ly, hl, hw):
+    """batched._inside(_rect_points(box 1), box 2): any of box 1's 9 points in box 2 (rotation by +angle, as
+    utils.point_in_rotated_rectangle)."""
+    for p in range(9):
+        qx = c1 * lx[p] - s1 * ly[p] + x1
+        qy = s1 * lx[p] + c1 * ly[p] + y1
+        dx, dy = qx - x2, qy - y2
+        ux, uy = c2 * dx - s2 * dy, s2 * dx + c2 * dy
+        if -hl <= ux and ux <= hl and -hw <= uy and uy <= hw:
+            return True
+    return False
+
+
+@numba.njit(cache=True)
+def ttc(x, y, h, v, other, e, grid, horizon, dt, length, width):
+    """BatchedLeftTurn.ttc for (n, N) rows with the ego in slot ``e`` (n,): per pair, the constant-velocity
+    overlap interval [t_in, t_out] from the four separating axes, then the per-env box test (geometry.box_corners /
+    boxes_overlap arithmetic) at the grid times first..last around it, in ascending order: the first hit is the
+    pair's time (the numpy code tests first..first+3, then the rest if none hit: the same times, the same minimum)."""
+    n, N = x.shape
+    K = grid.shape[0]
+    out = np.full(n, np.inf)
+    hl, hw = 0.5 * length, 0.5 * width
+    lx = np.array([hl, hl, -hl, -hl])
+    ly = np.array([hw, -hw, -hw, hw])
+    ca, cb = np.empty((4, 2)), np.empty((4, 2))
+    for m in range(n):
+        ex, ey, eh, ev = x[m, e[m]], y[m, e[m]], h[m, e[m]], v[m, e[m]]
+        evx, evy = ev * math.cos(eh), ev * math.sin(eh)
+        ce, se = math.cos(eh), math.sin(eh)
+        for j in range(N):
+            if not other[m, j]:
+                continue
+            oh = h[m, j]
+            ovx, ovy = v[m, j] * math.cos(oh), v[m, j] * math.sin(oh)
+            px, py = x[m, j] - ex, y[m, j] - ey
+            wx, wy = ovx - evx, ovy - evy
+            t_in, t_out = -np.inf, np.inf
+            for a in range(4):
+                theta = eh if a == 0 else eh + math.pi / 2 if a == 1 else oh if a == 2 else oh + math.pi / 2
+                ux, uy = math.cos(theta), math.sin(theta)
+                half = length / 2 * (abs(math.cos(eh - theta)) + abs(math.cos(oh - theta))) \
+                    + width / 2 * (abs(math.sin(eh - theta)) + abs(math.sin(oh - theta)))
+                q, r = ux * px + uy * py, ux * wx + uy * wy
+                if r != 0.0:
+                    ta, tb = (-half - q) / r, (half - q) / r
+                    lo, hi = min(ta, tb), max(ta, tb)
+                elif abs(q) <= half:
+                    lo, hi = -np.inf, np.inf
+                else:
+                    lo, hi = np.inf, -np.inf
+                t_in, t_out = max(t_in, lo), min(t_out, hi)
+            if not (t_in <= t_out + dt and t_out >= -dt and t_in <= horizon + dt):
+                continue
+            first = min(max(int(math.floor(max(t_in, 0.0) / dt)) - 1, 0), K - 1)
+            last = min(max(int(math.ceil(min(t_out, horizon) / dt)) + 1, 0), K - 1)
+            co, so = math.cos(oh), math.sin(oh)
+            for k in range(first, last + 1):
+                tk = grid[k]
+                if tk >= out[m]:
+                    break
+                ax, ay = ex + tk * evx, ey + tk * evy
+                bx, by = x[m, j] + tk * ovx, y[m, j] + tk * ovy
+                for p in range(4):  # box_corners: centre + rot @ local
+                    ca[p, 0], ca[p, 1] = ax + (ce * lx[p] + -se * ly[p]), ay + (se * lx[p] + ce * ly[p])
+                    cb[p, 0], cb[p, 1] = bx + (co * lx[p] + -so * ly[p]), by + (so * lx[p] + co * ly[p])
+                if _boxes_overlap(ca, cb):
+                    out[m] = tk
+                    break
+    return out
+
+
+@numba.njit(cache=True, inline="always")
+def _boxes_overlap(a, b):
+    """geometry.boxes_overlap for one pair of (4, 2) corner arrays: two edge normals of each box, touching counts."""
+    for poly in range(2):
+        c = a if poly == 0 else b
+        for i in range(2):
+            nx, ny = -(c[i + 1, 1] - c[i, 1]), c[i + 1, 0] - c[i, 0]
+            amin = amax = a[0, 0] * nx + a[0, 1] * ny
+            bmin = bmax = b[0, 0] * nx + b[0, 1] * ny
+            for p in range(1, 4):
+                qa, qb = a[p, 0] * nx + a[p, 1] * ny, b[p, 0] * nx + b[p, 1] * ny
+                amin, amax, bmin, bmax = min(amin, qa), max(amax, qa), min(bmin, qb), max(bmax, qb)
+            if not (amax >= bmin and bmax >= amin):
+                return False
+    return True
+
+
+@numba.njit(cache=True)
+def idm(lt, x, y, h, v, target, delta, lane, front, speed_limit, acc_max, acc_min, distance_wanted, time_wanted):
+    """Traffic._idm_acc: IDMVehicle.acceleration with the leader ``front`` (-1: none), the gap measured along the
+    current lane (lane_distance_to), utils.not_zero as there; every slot, as the numpy code."""
+    B, N = x.shape
+    out = np.empty((B, N))
+    ab = -acc_max * acc_min
+    for b in range(B):
+        for i in range(N):
+            k = lane[b, i]
+            tg = min(max(target[b, i], 0.0), speed_limit[k])
+            tg = tg if abs(tg) > 1e-2 else (1e-2 if tg >= 0 else -1e-2)
+            acc = acc_max * (1 - (max(v[b, i], 0.0) / abs(tg)) ** delta[b, i])
+            f = front[b, i]
+            if f >= 0:
+                d = _local(lt, k, x[b, f], y[b, f])[0] - _local(lt, k, x[b, i], y[b, i])[0]
+                d = d if abs(d) > 1e-2 else (1e-2 if d >= 0 else -1e-2)
+                c, sn = math.cos(h[b, i]), math.sin(h[b, i])
+                dv = (v[b, i] * c - v[b, f] * math.cos(h[b, f])) * c + (v[b, i] * sn - v[b, f] * math.sin(h[b, f])) * sn
+                d_star = distance_wanted + v[b, i] * time_wanted + v[b, i] * dv / (2 * math.sqrt(ab))
+                acc = acc - acc_max * (d_star / d) ** 2.0
+            out[b, i] = acc
+    return out

@@ -1,0 +1,185 @@
+"""Env wrappers the training stack puts around a scenario (they change its actions, rewards or observation layout,
+not what it simulates): flat observations for SB3, an action held for several steps, go/yield choices mapped onto
+the left turn's meta-actions, a reward term per second of shield override, and the time limit as a termination.
+
+They live in ``av_gym`` (not ``agents`` or ``train``) because they are env wrappers: the trainers build them
+(:func:`train.ppo._env_factory`), the batched engine mirrors them (:mod:`av_gym.batched.vec_env`), and the
+evaluation maps a trained policy's actions the same way (:class:`agents.ppo.SB3Policy`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from av_gym.actions import check_action
+
+
+# ----------------------------------------------------------------------------------------------- flat observations
+def flat_space(space: gym.Space) -> gym.Space:
+    """SB3's ``MultiInputPolicy`` takes one level of ``Dict``; sensors such as the cameras nest one more
+    (``cameras: {left, centre, right}``). Nested keys become ``cameras_left`` etc."""
+    if not isinstance(space, spaces.Dict):
+        return space
+    flat = {}
+    for key, sub in space.spaces.items():
+        if isinstance(sub, spaces.Dict):
+            flat.update({f"{key}_{k}": v for k, v in flat_space(sub).spaces.items()})
+        else:
+            flat[key] = sub
+    return spaces.Dict(flat)
+
+
+def flatten_obs(obs: Any) -> Any:
+    """The observation matching :func:`flat_space`."""
+    if not isinstance(obs, dict):
+        return obs
+    flat = {}
+    for key, value in obs.items():
+        if isinstance(value, dict):
+            flat.update({f"{key}_{k}": v for k, v in flatten_obs(value).items()})
+        else:
+            flat[key] = value
+    return flat
+
+
+class FlatDictObservation(gym.ObservationWrapper):
+    """Applies :func:`flatten_obs` so SB3 can train on nested sensor observations."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        self.observation_space = flat_space(env.observation_space)
+
+    def observation(self, observation: Any) -> Any:
+        return flatten_obs(observation)
+
+
+class SelectKeys(gym.ObservationWrapper):
+    """Keep only ``keys`` of a ``Dict`` observation (a sensors preset's ``observe``, or dropping the privileged
+    ``state``). Gymnasium's ``FilterObservation`` does the same through a lambda, which cannot be pickled: every
+    sensor stack then failed to pickle, and async vector envs and multiprocessing with it (issue 31 row 17)."""
+
+    def __init__(self, env: gym.Env, keys: list[str]) -> None:
+        super().__init__(env)
+        self.keys = list(keys)
+        self.observation_space = spaces.Dict({k: env.observation_space[k] for k in self.keys})
+
+    def observation(self, observation: dict) -> dict:
+        return {k: observation[k] for k in self.keys}
+
+
+# ----------------------------------------------------------------------------------------------- rewards, time limit
+class InterventionCost(gym.Wrapper):
+    """Training-time reward term: ``-cost`` per second during which a safety shield overrides the agent
+    (``info["shield_override"]``), so a policy trained with the shield in the loop learns not to need it."""
+
+    def __init__(self, env: gym.Env, cost: float) -> None:
+        super().__init__(env)
+        self.per_step = float(cost) / env.unwrapped.config["policy_frequency"]
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        if info.get("shield_override", False):
+            reward -= self.per_step
+        return obs, reward, terminated, truncated, info
+
+
+class TimeLimitIsTerminal(gym.Wrapper):
+    """Training-time: the episode's time limit ends it as a *termination* (no value bootstrapped after it). Why: SB3
+    bootstraps truncated episodes with the critic's value of the last state, as if the episode went on; on the left
+    turn, where not arriving in time is a failure and elapsed time is in the observation, that made waiting at the
+    line until the limit look as good as turning, and PPO drifted to never turning (measured, issue 7)."""
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        return obs, reward, terminated or truncated, False, info
+
+
+class ActionRepeat(gym.Wrapper):
+    """The agent decides every ``repeat`` env steps; its action is applied ``repeat`` times and the rewards summed
+    (the episode ends early if the env does). Why: on the left turn the decision that matters (wait or go) spans
+    seconds; at 10 Hz PPO must assign credit over ~150 steps, at 2 Hz over ~30, and learns several times faster
+    per simulated second. A safety shield inside still decides every env step (0.1 s)."""
+
+    def __init__(self, env: gym.Env, repeat: int) -> None:
+        super().__init__(env)
+        if int(repeat) < 1:
+            raise ValueError(f"action_repeat must be >= 1, got {repeat}")
+        self.repeat = int(repeat)
+
+    def step(self, action):
+        total = 0.0
+        for _ in range(self.repeat):
+            obs, reward, terminated, truncated, info = self.env.step(action)
+            total += float(reward)
+            if terminated or truncated:
+                break
+        return obs, total, terminated, truncated, info
+
+
+# ----------------------------------------------------------------------------------------------- go / yield
+# Go / yield: a two-choice action for learned left-turn policies, on top of highway-env's speed set-points.
+#
+# Why: with highway-env's meta-actions {SLOWER, IDLE, FASTER} a stop is "SLOWER, wherever the car is", and PPO must
+# also learn *where* to brake (measured, issue 7: after 50k env steps its policy stopped 20-25 m short of the line
+# and never set off again, because IDLE holds a zero set-point). A driver's decision at an unprotected left turn is
+# "go" or "yield at the stop line"; the stopping itself is routine. So the agent picks one of
+#
+# - GO (1): cruise at the highest set-point (9 m/s);
+# - YIELD (0): approach and stop at the stop line: the highest set-point not above the comfortable approach speed
+#   v = sqrt(2 b (d - d0)) (b = DECEL, d = distance of the front bumper to the line, d0 = MARGIN); past the line
+#   that is 0, i.e. stop where it is,
+#
+# and meta_action turns the choice into the meta-action that moves the set-point towards it. It reads only the
+# agent's own observation (obs["turn"]: speed, set-point, distance to the stop line; see
+# av_gym.estimation.turn_features), so the same code runs in training (GoYieldActions) and in evaluation
+# (agents.ppo.SB3Policy with actions: go_yield).
+YIELD, GO = 0, 1
+SLOWER, IDLE, FASTER = 0, 1, 2  # highway-env's longitudinal DiscreteMetaAction indices
+SET_POINTS = (0.0, 4.5, 9.0)  # m/s, the left turn's traffic-mode set-points (conf/env/left_turn.yaml)
+DECEL = 3.0  # m/s², comfortable approach deceleration b
+MARGIN = 0.5  # m, d0
+
+
+def meta_action(choice: int, turn: np.ndarray) -> int:
+    """The meta-action for ``choice`` (GO or YIELD) given the turn features ``turn`` (speed / 10 at [0],
+    set-point / 10 at [1], distance to the stop line / 30 at [2])."""
+    set_point, d_stop = 10.0 * float(turn[1]), 30.0 * float(turn[2])
+    if int(choice) == GO:
+        wanted = SET_POINTS[-1]
+    else:
+        v_ok = np.sqrt(2.0 * DECEL * max(d_stop - MARGIN, 0.0))
+        wanted = max(v for v in SET_POINTS if v <= v_ok + 1e-6)
+    if wanted > set_point + 1e-3:
+        return FASTER
+    if wanted < set_point - 1e-3:
+        return SLOWER
+    return IDLE
+
+
+class GoYieldActions(gym.Wrapper):
+    """``Discrete(2)`` {YIELD, GO} in place of the left turn's meta-actions; needs ``obs["turn"]`` (the
+    ``turn_truth`` / ``turn_perceived`` sensors presets) and ``env.action=discrete``."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        if "turn" not in getattr(env.observation_space, "spaces", {}):
+            raise ValueError("agent.actions=go_yield needs obs['turn'] (sensors=turn_truth or turn_perceived)")
+        if env.action_space != spaces.Discrete(3):
+            raise ValueError(f"agent.actions=go_yield needs env.action=discrete, got {env.action_space}")
+        self.action_space = spaces.Discrete(2)
+        self._turn = None
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        self._turn = obs["turn"]
+        return obs, info
+
+    def step(self, action):
+        check_action(self.action_space, action)  # int(nan) would be a bare "cannot convert float NaN"
+        obs, reward, terminated, truncated, info = self.env.step(meta_action(int(action), self._turn))
+        self._turn = obs["turn"]
+        return obs, reward, terminated, truncated, info

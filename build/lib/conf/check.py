@@ -1,0 +1,324 @@
+"""Every field of ``python -m train`` / ``python -m eval`` checked before anything runs or is written, one line
+naming the field and what is allowed (exit 2 at the command line).
+
+Nothing here describes a field: each section is checked against the typed Params of the kind it names, found in
+that family's registry (``env.name`` → :data:`av_gym.registry.SCENARIOS`, each ``sensors.<key>`` →
+:data:`~av_gym.registry.SENSORS`, ``shield.kind`` → :data:`~av_gym.registry.SHIELDS`, ``agent.kind`` →
+:data:`agents.registry.AGENT_KINDS`), and the commands' own settings against :mod:`conf.commands`. A new kind
+registered in its family is checked here with nothing else to edit. This module adds the config path to the
+library's field-relative messages (``sigma ...`` → ``sensors.gnss.sigma ...``) and composes the command line the
+way Hydra will, so that a typo gives one line and no run folder.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from importlib import resources
+from typing import Any
+
+from av_gym.errors import ConfigError
+from av_gym.params import check
+
+
+def options(group: str) -> list[str]:
+    """The options of a Hydra group shipped in conf/ (``sensors`` → ``['cameras', 'detector', ...]``)."""
+    return sorted(p.name[:-5] for p in (resources.files("conf") / group).iterdir() if p.name.endswith(".yaml"))
+
+
+def _mapping(value: Any, where: str) -> list[str]:
+    return [] if isinstance(value, Mapping) else [f"{where} must be a mapping, got {value!r}"]
+
+
+# ------------------------------------------------------------------------------------------------ sections
+def env_problems(value: Any, where: str = "env") -> list[str]:
+    from av_gym.registry import SCENARIOS
+
+    if _mapping(value, where):
+        return _mapping(value, where)
+    name = value.get("name")
+    if name not in SCENARIOS:
+        return [f"{where}.name must be one of {SCENARIOS.names()}, got {name!r}"]
+    return check(SCENARIOS.get(name).Params, value, where, what=f"a field of env={name}")
+
+
+PRESET_FIELDS = ("name", "keep_state", "observe")
+
+
+def sensors_problems(value: Any, where: str = "sensors") -> list[str]:
+    """A sensor preset: its name, ``keep_state``, ``observe`` and one section per sensor or estimator (each
+    against its class's Params)."""
+    from av_gym.registry import SENSORS
+
+    if _mapping(value, where):
+        return _mapping(value, where)
+    found = []
+    allowed = sorted([*PRESET_FIELDS, *SENSORS])
+    for key, section in value.items():
+        path = f"{where}.{key}"
+        if key == "name":
+            if section not in options("sensors") and section is not None:
+                found.append(f"{path} must be one of {options('sensors')}, got {section!r}")
+        elif key == "keep_state":
+            if not isinstance(section, bool):
+                found.append(f"{path} must be true or false, got {section!r}")
+        elif key == "observe":
+            if not (isinstance(section, (list, tuple)) and section and all(isinstance(k, str) and k for k in section)):
+                found.append(f"{path} must be a list of observation keys with at least one item, got {section!r}")
+        elif key in SENSORS:
+            cls = SENSORS.get(key)
+            if not isinstance(section, Mapping):
+                found.append(f"{path} must be a mapping of {cls.__name__} parameters, got {section!r}")
+            else:
+                found += check(cls.Params, section, path, what=f"a parameter of {cls.__name__}")
+        else:
+            found.append(f"{path} is not a sensor preset field or a sensor; allowed: {allowed}")
+    if "name" not in value:
+        found.append(f"{where}.name is missing")
+    return found
+
+
+def shield_problems(value: Any, where: str = "shield") -> list[str]:
+    """``kind: none`` (no shield), or a kind of :data:`av_gym.registry.SHIELDS`, whose class checks the rest
+    (``config_problems(section)``: e.g. the AEB's variant picks its Params)."""
+    from av_gym.registry import SHIELDS
+
+    if _mapping(value, where):
+        return _mapping(value, where)
+    kind = value.get("kind", value.get("name", "none"))
+    found = [] if isinstance(value.get("name", "x"), str) and value.get("name", "x") else \
+        [f"{where}.name must be a non-empty string, got {value.get('name')!r}"]
+    if kind == "none":
+        extra = sorted(set(value) - {"name", "kind"})
+        return found + ([f"{where}.{extra[0]} is not a field of shield=none; allowed: ['kind', 'name']"] if extra
+                        else [])
+    if kind not in SHIELDS:
+        return [f"{where}.kind must be one of {['none', *SHIELDS.names()]}, got {kind!r}"]
+    return found + SHIELDS.get(kind).config_problems(value, where)
+
+
+def agent_problems(value: Any, where: str = "agent") -> list[str]:
+    from agents.registry import agent_problems as problems_of_agent
+
+    if _mapping(value, where):
+        return _mapping(value, where)
+    found = problems_of_agent(value, where)
+    sensors = value.get("sensors")
+    if not found and sensors is not None and sensors not in options("sensors"):
+        found.append(f"{where}.sensors must be one of {[*options('sensors'), None]}, got {sensors!r}")
+    return found
+
+
+SECTION_CHECKS = {"env": env_problems, "sensors": sensors_problems, "shield": shield_problems,
+                  "agent": agent_problems}
+
+
+def section_problems(group: str, value: Any, where: str | None = None) -> list[str]:
+    """Problems of one group's section (``env``, ``sensors``, ``agent``, ``shield``) on its own."""
+    return SECTION_CHECKS[group](value, where or group)
+
+
+# ------------------------------------------------------------------------------------------------ commands
+def problems(cfg: Mapping, command: str) -> list[str]:
+    """Every problem of a composed, resolved ``train`` or ``eval`` config, one line each (empty if none)."""
+    from conf.commands import COMMANDS, SECTIONS
+
+    settings_cls, sections = COMMANDS[command], SECTIONS[command]
+    what = f"{'an' if command[0] in 'aeiou' else 'a'} {command} setting"
+    found = []
+    for group in sections:
+        if group not in cfg:
+            found.append(f"{group} is missing")
+        else:
+            found += section_problems(group, cfg[group])
+    settings = {k: v for k, v in cfg.items() if k not in sections}
+    allowed = sorted([*sections, *settings_cls.field_names()])
+    unknown = [k for k in settings if k not in settings_cls.field_names()]
+    found += [f"{k} is not {what}; allowed: {allowed}" for k in unknown]
+    found += check(settings_cls, {k: v for k, v in settings.items() if k not in unknown}, "", what=what)
+    if not found and command == "train":
+        found += _agent_sensor_problems(cfg.get("agent"), cfg.get("sensors"))
+    return found
+
+
+def _agent_sensor_problems(agent: Any, sensors: Any) -> list[str]:
+    """What an agent's settings need from the sensors preset, checked before a run folder exists (the wrappers
+    check it again when the env is built, too late to keep the folders clean)."""
+    if not isinstance(agent, Mapping) or not isinstance(sensors, Mapping) or "turn_features" in sensors:
+        return []
+    wants = [f"agent.{key}={agent.get(key)}" for key, value in (("actions", "go_yield"), ("extractor", "attention"))
+             if agent.get(key) == value]
+    presets = [name for name in options("sensors") if name.startswith("turn_")]
+    return [f"{want} needs obs['turn'] (sensors={' or '.join(presets)}), got sensors={sensors.get('name')}"
+            for want in wants[:1]]
+
+
+def validate_config(cfg: Any, command: str) -> None:
+    """Raise :class:`ConfigError` with the first problem of ``cfg`` (an OmegaConf node or a plain mapping)."""
+    if hasattr(cfg, "_metadata"):
+        from omegaconf import OmegaConf
+
+        cfg = OmegaConf.to_container(cfg, resolve=True)
+    found = problems(cfg, command)
+    if found:
+        raise ConfigError(found[0])
+
+
+# ------------------------------------------------------------------------------------------------ command line
+_PLACEHOLDER = "hydra-runtime-value"  # a valid folder name, so run_name=${hydra:...} passes
+
+
+def check_command_line(command: str, argv: list[str]) -> list:
+    """Compose the config the way Hydra will for ``python -m <command> <argv>`` and check it, *before* Hydra runs:
+    so a typo gives one line (not Hydra's multi-line report) and no run folder is created. Returns the composed
+    configs (one per swept value with ``-m``; ``hydra:`` interpolations replaced by a placeholder) for the
+    command's own checks. Hydra's own options (``--help``, ``--cfg``, ``-c`` ...) are left to Hydra.
+
+    A sweep is checked value by value (each swept value once, the other sweeps at their first value): linear in
+    the number of values, and every value a job will see has been checked."""
+    flags = [a for a in argv if a.startswith("-")]
+    if any(a not in ("-m", "--multirun") for a in flags):
+        return []
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    texts = [a for a in argv if not a.startswith("-")]
+    try:
+        parsed = OverridesParser.create().parse_overrides(texts)
+    except HydraException as exc:
+        raise ConfigError(f"cannot parse the command line: {_one_line(exc)}") from None
+    if not flags and any(o.is_sweep_override() for o in parsed):
+        sweep = next(o.input_line for o in parsed if o.is_sweep_override())
+        raise ConfigError(f"{sweep!r} lists several values: add -m to sweep over them, or write key=[a,b] for a list")
+    combos = _linear_combos(parsed)
+    groups = _groups(command)
+    composed = []
+    if GlobalHydra.instance().is_initialized():
+        GlobalHydra.instance().clear()
+    with initialize_config_module("conf", version_base="1.3"):
+        for combo in combos:
+            try:
+                composed.append(_compose_checked(command, combo, groups, compose, multirun=bool(flags)))
+            except (HydraException, OmegaConfBaseException) as exc:
+                raise ConfigError(_one_line(exc)) from None
+    return composed
+
+
+def _one_line(exc: BaseException) -> str:
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    text = "; ".join(lines) if lines else type(exc).__name__
+    return text if len(text) <= 400 else text[:397] + "..."
+
+
+def _linear_combos(parsed: list) -> list[list[str]]:
+    """Override lists: each swept value once, every other sweep at its first value."""
+    values = []
+    for o in parsed:
+        if o.is_sweep_override():
+            key = o.get_key_element()
+            values.append([f"{key}={v}" for v in o.sweep_string_iterator()])
+        else:
+            values.append([o.input_line])
+    first = [v[0] for v in values]
+    combos = [first]
+    for i, vs in enumerate(values):
+        for v in vs[1:]:
+            combos.append(first[:i] + [v] + first[i + 1:])
+    return combos
+
+
+def _compose_checked(command: str, overrides: list[str], groups: list[str], compose, multirun: bool = False) -> Any:
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    from av_gym.errors import folder_problem
+
+    parsed = OverridesParser.create().parse_overrides(overrides)
+    group_overrides, value_overrides = [], []
+    for o, text in zip(parsed, overrides):
+        key = o.key_or_group
+        if key.startswith("hydra") or "/" in key or "@" in key or key in groups:
+            group_overrides.append((o, text))
+        else:
+            value_overrides.append((o, text))
+    for o, _ in group_overrides:
+        if o.key_or_group in groups and not o.is_delete():
+            allowed = options(o.key_or_group)
+            value = o.value()
+            if value not in allowed:
+                raise ConfigError(f"{o.key_or_group}={value}: {o.key_or_group} must be one of {allowed}")
+    base = compose(config_name=command, overrides=[t for _, t in group_overrides])
+    for o, _ in value_overrides:
+        if o.is_add() or o.is_force_add() or o.is_delete():
+            continue  # a new key: the section's Params refuse it below unless it is one of their fields
+        _check_path(base, o.key_or_group, command)
+    # With Hydra's own section, to check the folder Hydra will make for the job (hydra.run.dir, or hydra.sweep.dir
+    # with -m) before it makes it: one line for a path it cannot create, not Hydra's traceback.
+    cfg = compose(config_name=command, overrides=overrides, return_hydra_config=True)
+
+    def hydra_values(node: Any, path: str = ""):  # ${hydra:...} values are filled by Hydra only once a job runs
+        if isinstance(node, dict):
+            for k, v in node.items():
+                yield from hydra_values(v, f"{path}.{k}" if path else str(k))
+        elif isinstance(node, str) and "${hydra:" in node:
+            yield path
+
+    for path in list(hydra_values(OmegaConf.to_container(cfg, resolve=False))):
+        OmegaConf.update(cfg, path, _PLACEHOLDER)
+    key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
+    try:
+        raw = OmegaConf.to_container(cfg.hydra, resolve=False)[key.split(".")[1]]["dir"]  # as written, to explain
+        job_dir = OmegaConf.select(cfg, key)
+    except OmegaConfBaseException:  # it names a value only the running job has: Hydra will report it
+        job_dir = None
+    OmegaConf.set_struct(cfg, False)
+    del cfg["hydra"]
+    OmegaConf.set_struct(cfg, True)
+    validate_config(cfg, command)
+    if isinstance(job_dir, str):
+        problem = folder_problem(job_dir, key)
+        if problem:
+            given = any(o.key_or_group == key for o in parsed)
+            raise ConfigError(problem if given or raw == job_dir else f"{problem} ({key} is {raw})")
+    return cfg
+
+
+def _groups(command: str) -> list[str]:
+    """The config groups the command's defaults list picks (``env``, ``sensors`` ...)."""
+    import yaml
+
+    shipped = yaml.safe_load((resources.files("conf") / f"{command}.yaml").read_text())
+    return [next(iter(d)) for d in shipped.get("defaults", []) if isinstance(d, dict) and
+            not next(iter(d)).startswith(("override", "/"))]
+
+
+def _check_path(cfg: Any, key: str, command: str) -> None:
+    """``key`` (dotted) must name an existing field; else one line naming the nearest section's fields."""
+    from omegaconf import DictConfig
+
+    node, done = cfg, []
+    for part in key.split("."):
+        if not isinstance(node, DictConfig) or part not in node:
+            where = ".".join(done)
+            section = _option_of(cfg, where) if where else f"{'an' if command[0] in 'aeiou' else 'a'} {command} setting"
+            allowed = sorted(node.keys()) if isinstance(node, DictConfig) else []
+            name = ".".join([*done, part])
+            if isinstance(node, DictConfig) and not allowed:  # an empty section, e.g. localizer.noise: {}
+                raise ConfigError(f"{name} is not set in {section}; add a key with +{key}=<value>")
+            if isinstance(node, DictConfig):
+                raise ConfigError(f"{name} is not a field of {section}; allowed: {allowed}"
+                                  if where else f"{name} is not {section}; allowed: {allowed}")
+            raise ConfigError(f"{where} is a value, not a section: cannot set {key}")
+        node = node._get_node(part)  # not node[part]: that would resolve an interpolation (${hydra:...})
+        done.append(part)
+
+
+def _option_of(cfg: Any, where: str) -> str:
+    top = where.split(".")[0]
+    name = cfg[top].get("name") if hasattr(cfg[top], "get") else None
+    if not name or top not in ("env", "agent", "sensors", "shield"):
+        return where
+    return f"{top}={name}" if where == top else f"{where} (in {top}={name})"

@@ -1,0 +1,66 @@
+"""The side tools' command line (``python -m eval.ccftap``, ``eval.tracking``, ``eval.sweep``, ``train.export``,
+``benchmarks/*.py`` ...): argparse flags, written the way ``python -m train`` / ``python -m eval`` write values.
+
+Why argparse and not Hydra for them: a side tool takes a few flags of its own (a CCFtap grid, a miss-rate list, a
+folder to read) and composes no config groups; Hydra would add a run folder, ``.hydra/`` and its override grammar
+for nothing. What the two share is the user's side of it:
+
+- a list is written as Hydra writes one, ``--agents '[always_proceed,ppo_turn]'`` (the bare ``a,b`` is accepted
+  too, and so are space-separated values where a flag takes several);
+- a bad value is one line, ``error: <tool>: argument --ego: ...``, exit status 2, before anything is written;
+- numbers are checked against the same bounds the Params declare where the tool passes them on.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from typing import Any
+
+
+class ToolParser(argparse.ArgumentParser):
+    """argparse with the main commands' error convention: one ``error:`` line (no usage block), exit status 2."""
+
+    def error(self, message: str):  # noqa: D102 - argparse's hook
+        self.exit(2, f"error: {self.prog}: {message}\n")
+
+
+def items(kind: Callable[[str], Any] = str, *, low: float | None = None, high: float | None = None,
+          choices: list | None = None) -> Callable[[str], list]:
+    """An argparse ``type`` for a list: ``[a,b]`` (Hydra's syntax) or ``a,b``; each item converted by ``kind`` and
+    checked against ``low``/``high`` (inclusive) or ``choices``."""
+    name = {int: "integer", float: "number", str: "name"}.get(kind, getattr(kind, "__name__", "value"))
+
+    def parse(text: str) -> list:
+        body = text.strip()
+        if body.startswith("[") and body.endswith("]"):
+            body = body[1:-1]
+        parts = [p.strip().strip("'\"") for p in body.split(",") if p.strip()]
+        if not parts:
+            raise argparse.ArgumentTypeError(f"expected a list like [a,b], got {text!r}")
+        out = []
+        for part in parts:
+            try:
+                value = kind(part)
+            except ValueError:
+                raise argparse.ArgumentTypeError(f"expected a list of {name}s like [1,2], got {part!r} in {text!r}") \
+                    from None
+            if isinstance(value, float) and value != value:
+                raise argparse.ArgumentTypeError(f"{part!r} is not a number")
+            if (low is not None and value < low) or (high is not None and value > high):
+                raise argparse.ArgumentTypeError(f"each value must be in [{low}, {high}], got {part!r}")
+            if choices is not None and value not in choices:
+                raise argparse.ArgumentTypeError(f"each value must be one of {choices}, got {part!r}")
+            out.append(value)
+        return out
+
+    parse.__name__ = f"list of {name}s"
+    return parse
+
+
+class Extend(argparse.Action):
+    """For ``nargs="+"`` with an :func:`items` type: ``--seeds 1 2``, ``--seeds [1,2]`` and ``--seeds 1,2`` give the
+    same flat list."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, [v for group in values for v in group])

@@ -1,0 +1,1 @@
+"""``python -m eval``: compare policies on seeded episodes of one scenario."""

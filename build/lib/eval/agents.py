@@ -1,0 +1,347 @@
+"""Turn an agent spec from the command line into a :class:`agents.Policy` for a given env.
+
+A spec is one of: a rule-based agent named in ``conf/agent/`` (``pid_paper``, ``always_proceed``); a trained agent
+named in ``conf/agent/`` (``ppo_turn``), meaning its shipped reference ``checkpoints/reference/<name>/``, or with
+``:latest`` (``ppo_turn:latest``) your newest run of it; a trained kind (``ppo``) meaning the newest checkpoint for
+this env under ``checkpoints/``; or a path to a checkpoint folder or ``.zip``. ``@preset`` and ``+shield`` go after. Checkpoints are pickles (SB3 zips): load only those you trust."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+
+from agents import Policy
+from agents.checkpoint import check_sb3_zip, describe_space, read_config_yaml, saved_config
+from agents.configs import KIND_DEFAULT, available_agents, kind_default, shipped_agent
+from agents.registry import AGENT_KINDS, agent_params, trained_kinds
+from av_gym.errors import ConfigError
+from conf.presets import compose_group  # noqa: F401 - used here and imported from here by tests and tools
+
+__all__ = ["AgentPlan", "available_agents", "check_plan", "compose_group", "find_checkpoint", "load_agent_config",
+           "plan_agent", "resolve_agent", "sensor_overrides", "sensors_summary"]
+
+
+def load_agent_config(name: str) -> dict[str, Any]:
+    """``conf/agent/<name>.yaml`` composed as Hydra composes ``agent=<name>``: its kind's defaults (the kind's
+    Params) with the file's values on top; a ``# @package _global_`` variant (it picks its sensors/shield too) is
+    composed by Hydra."""
+    raw = shipped_agent(name)
+    kind = kind_default(raw)
+    if "agent" not in raw and kind is not None and all(
+            entry in (f"{KIND_DEFAULT}{kind}@_here_", "_self_") for entry in raw.get("defaults", [])):
+        values = {k: v for k, v in raw.items() if k != "defaults"}
+        return {**AGENT_KINDS.get(kind).Params().as_dict(), **values}
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+    from omegaconf import OmegaConf
+
+    if GlobalHydra.instance().is_initialized():
+        composed = compose(config_name="train", overrides=[f"agent={name}"])
+    else:
+        with initialize_config_module("conf", version_base="1.3"):
+            composed = compose(config_name="train", overrides=[f"agent={name}"])
+    return OmegaConf.to_container(composed.agent, resolve=True)
+
+
+def _checkpoint_name(kind: str) -> str:
+    """The model file a trained kind's trainer writes in ``checkpoints/<run>/`` (its AgentKind's ``checkpoint``)."""
+    return AGENT_KINDS.get(kind).checkpoint
+
+
+LATEST = ":latest"  # `ppo_turn:latest`: your newest run of that agent config, not its shipped reference
+
+
+def split_latest(spec: str) -> tuple[str, bool]:
+    """``("ppo_turn", True)`` for ``ppo_turn:latest``, ``("ppo_turn", False)`` for ``ppo_turn``."""
+    spec = str(spec)
+    return (spec[: -len(LATEST)], True) if spec.endswith(LATEST) else (spec, False)
+
+
+def find_checkpoint(kind: str, env_name: str, root: str | Path, name: str | None = None,
+                    latest: bool = False) -> Path:
+    """The checkpoint an agent spec means, the same on every day and in every clone:
+
+    - a named agent (``name``, e.g. ``ppo_turn``) is its shipped reference, ``checkpoints/reference/<name>/``,
+      whatever you trained since (a name that meant "the newest run" evaluated a 4-minute run under the row label
+      of the reference);
+    - ``latest=True`` (the spec ``ppo_turn:latest``) is your newest ``checkpoints/<run>/`` whose saved config
+      trained that agent config (or, without a name, that ``kind``) on ``env_name``; none is an error, never a
+      silent fall-back to the reference;
+    - a bare trained kind (``ppo``, no name) has no reference of its own: your newest run of that kind, else the
+      first reference folder of that kind by name.
+
+    Reference folders are never ordered by modification time: in a fresh clone that is the order git happened to
+    write them in. Extra training seeds of a reference live under ``reference/seeds/<name>/s<seed>/`` (their configs
+    say ``name: ppo_turn`` too), out of the ``reference/*/`` a bare kind searches: a name means one folder."""
+    def matches(cfg_path: Path) -> Path | None:
+        cfg = read_config_yaml(cfg_path)
+        model = cfg_path.parent / _checkpoint_name(kind)
+        agent = cfg.get("agent", {})
+        if model.is_file() and cfg.get("env", {}).get("name") == env_name and agent.get("kind") == kind \
+                and (name is None or agent.get("name") == name):
+            return model
+        return None
+
+    what, reference = name or kind, reference_folder(root)
+    if name is not None and not latest:
+        own = reference / name / "config.yaml"
+        if own.is_file() and matches(own) is not None:
+            return matches(own)
+        where = f"{reference / name}/" if reference.is_dir() else \
+            f"{reference}/ is not in this install: `pip install -e <checkout>` keeps the shipped ones"
+        raise ConfigError(f"no shipped reference checkpoint for {name!r} on env {env_name!r} ({where}); for your "
+                          f"newest run say {name}{LATEST}, or pass a checkpoint path")
+    runs = [m for m in map(matches, Path(root).glob("*/config.yaml")) if m is not None]
+    if runs:  # your own training runs: the newest
+        return max(runs, key=lambda p: p.stat().st_mtime)
+    if latest:
+        raise ConfigError(f"{what}{LATEST}: you have no {what} run for env {env_name!r} under {root}/; train one with "
+                          f"`python -m train env={env_name} agent={what}`, or say {what} for its shipped reference")
+    # a bare kind: references under paths.checkpoints only (a named agent's is the package's from any folder)
+    found = sorted(m for m in map(matches, Path(root).glob("reference/*/config.yaml")) if m is not None)
+    if found:
+        return found[0]
+    raise ConfigError(f"no {what} checkpoint for env {env_name!r} under {root}/; train one with "
+                      f"`python -m train env={env_name} agent={what}` or pass a checkpoint path")
+
+
+REFERENCE = Path(__file__).resolve().parents[1] / "checkpoints" / "reference"
+"""The shipped reference checkpoints of the checkout this package runs from (``pip install -e .``)."""
+
+
+def reference_folder(root: str | Path) -> Path:
+    """Where the shipped reference agents are: ``<root>/reference`` when the working folder has one (``root`` is
+    ``paths.checkpoints``, relative to it), else the package's own :data:`REFERENCE`, so that a named agent
+    (``ppo_turn``) resolves from any folder (``av-gym-eval`` in a project of yours), not only the repository's."""
+    local = Path(root) / "reference"
+    return local if local.is_dir() else REFERENCE
+
+
+def _check_scenario(label: str, cfg: dict, env_name: str) -> None:
+    if env_name not in cfg.get("scenarios", [env_name]):
+        raise ConfigError(f"agent {label!r} drives scenarios {cfg['scenarios']}, not {env_name!r}")
+
+
+def _checkpoint_file(path: Path, env_name: str) -> tuple[str, Path]:
+    """(kind, model file) of a checkpoint folder (its config.yaml says the kind) or a model file (its suffix
+    does), checked without loading it: the file exists and was trained on ``env_name``."""
+    loadable = trained_kinds()
+    if not path.exists():
+        raise ConfigError(f"checkpoint {str(path)!r}: no such file or folder")
+    if path.is_dir():
+        cfg_path = path / "config.yaml"
+        kind = read_config_yaml(cfg_path).get("agent", {}).get("kind") if cfg_path.is_file() else "ppo"
+        if kind not in loadable:
+            raise ConfigError(f"checkpoint folder {str(path)!r} holds agent kind {kind!r}; loadable: {loadable}")
+        model_path = path / _checkpoint_name(kind)
+    else:
+        model_path = path
+        kind = next((k for k in loadable if Path(_checkpoint_name(k)).suffix == path.suffix), None)
+        if kind is None:
+            raise ConfigError(f"checkpoint {str(path)!r}: unknown file type; expected one of "
+                              f"{[_checkpoint_name(k) for k in loadable]}")
+    if not model_path.is_file():
+        raise ConfigError(f"checkpoint {str(model_path)!r} does not exist")
+    if model_path.suffix == ".zip":  # empty, truncated or corrupt: one line now, not a traceback from SB3 later
+        check_sb3_zip(model_path)
+    cfg_path = model_path.parent / "config.yaml"
+    if cfg_path.is_file():
+        saved_env = read_config_yaml(cfg_path).get("env", {}).get("name")
+        if saved_env != env_name:
+            raise ConfigError(f"checkpoint {str(model_path)!r} was trained on env {saved_env!r}, not {env_name!r}")
+    return kind, model_path
+
+
+def _load_trained(path: Path, env: gym.Env, env_name: str) -> Policy:
+    kind, model_path = _checkpoint_file(path, env_name)
+    return AGENT_KINDS.get(kind).load(model_path, env)
+
+
+def _is_path(spec: str) -> bool:
+    return bool(Path(spec).suffix) or "/" in spec or Path(spec).is_dir()
+
+
+def check_plan(plan: "AgentPlan", env_name: str) -> None:
+    """Everything about a plan that can be checked without building its env: the checkpoint file (exists, same
+    env) and the sensors and shield it will run with (a checkpoint's saved ones included)."""
+    from conf.check import section_problems
+
+    if _is_path(plan.spec):
+        _checkpoint_file(Path(plan.spec), env_name)
+    for group, section in (("sensors", plan.sensors), ("shield", plan.shield)):
+        problems = section_problems(group, section)
+        if problems:
+            raise ConfigError(f"agent {plan.label!r}: {problems[0]}")
+
+
+def resolve_agent(spec: str, env: gym.Env, env_name: str, checkpoints: str | Path) -> tuple[str, Policy]:
+    """``(label, policy)`` for one agent spec on ``env`` (the env instance the policy will drive): a trained kind
+    (newest checkpoint), a checkpoint path, or an agent config of ``conf/agent/`` (a rule-based kind builds its
+    policy, a trained one loads the newest checkpoint trained with that config)."""
+    spec = str(spec)
+    name, latest = split_latest(spec)
+    if name in trained_kinds():
+        path = find_checkpoint(name, env_name, checkpoints, latest=latest)
+        print(f"[eval] {spec}: using {path}")
+        return spec, _load_trained(path, env, env_name)
+    if _is_path(spec):
+        path = Path(spec)
+        label = path.parent.name if path.suffix else path.name
+        return label, _load_trained(path, env, env_name)
+    cfg = load_agent_config(name)
+    _check_scenario(name, cfg, env_name)
+    params = agent_params(cfg, where=f"agent {name!r}: agent")
+    kind = AGENT_KINDS.get(params.kind)
+    if latest and not kind.trained():
+        raise ConfigError(f"agent {spec!r}: {name!r} is rule-based, it has no runs; say {name}")
+    if kind.trained():  # a named trained agent: its shipped reference (name:latest: your newest run of it)
+        path = find_checkpoint(params.kind, env_name, checkpoints, name=None if name == params.kind else name,
+                               latest=latest)
+        print(f"[eval] {spec}: using {path}")
+        return spec, _load_trained(path, env, env_name)
+    return spec, kind.build(params, env, spec)
+
+
+# ----------------------------------------------------------------------------------------------- per-agent stacks
+@dataclass
+class AgentPlan:
+    """What one agent spec needs: the label in tables, the sensors and shield configs its env is built with, and
+    the spec to hand to :func:`resolve_agent` once that env exists. For a trained agent, ``trained_sensors`` are
+    the sensors it was trained on (its checkpoint's, or the ``@preset``) and ``sensor_overrides`` the command
+    line's ``sensors.*`` changes applied on top of them to give ``sensors`` (dotted path → value)."""
+
+    label: str
+    spec: str
+    sensors: dict
+    shield: dict
+    trained_sensors: dict | None = None
+    sensor_overrides: dict = field(default_factory=dict)
+
+
+def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:
+    """Nested mapping → ``{"a.b.c": leaf}`` (lists are leaves)."""
+    if not isinstance(d, dict):
+        return {prefix: d}
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        out.update(_flatten(v, f"{prefix}.{k}" if prefix else str(k)))
+    return out
+
+
+def sensor_overrides(sensors: dict | None) -> dict[str, Any]:
+    """The command line's ``sensors.*`` changes: every field of the composed ``sensors`` that differs from (or is
+    not in) the shipped preset it names, as ``{"cameras.night": True}``. Works for sweeps too (each job composes
+    its own ``sensors``), and needs no access to the raw command line."""
+    if not sensors or not sensors.get("name"):
+        return {}
+    try:
+        shipped = _flatten(compose_group("sensors", str(sensors["name"])))
+    except ConfigError:  # a preset that is not shipped (a hand-made dict): nothing to compare with
+        return {}
+    return {k: v for k, v in _flatten(sensors).items() if k != "name" and (k not in shipped or shipped[k] != v)}
+
+
+def _with_overrides(label: str, base: dict, overrides: dict[str, Any]) -> dict:
+    """``base`` sensors (a trained agent's) with the command line's ``overrides`` applied. An override of a sensor
+    the agent's stack does not have would add an observation key, so it is refused."""
+    import copy
+
+    out = copy.deepcopy(base)
+    for path, value in overrides.items():
+        keys = path.split(".")
+        if len(keys) > 1 and not isinstance(out.get(keys[0]), dict):
+            have = [k for k, v in out.items() if isinstance(v, dict)]
+            raise ConfigError(f"sensors.{path}={value!r}: agent {label!r} runs on the sensors it was trained with "
+                              f"({base.get('name')!r}: {have}), which have no {keys[0]!r}; that would change its "
+                              f"observation space")
+        node = out
+        for k in keys[:-1]:
+            if not isinstance(node.get(k), dict):
+                node[k] = {}
+            node = node[k]
+        node[keys[-1]] = copy.deepcopy(value)
+    return out
+
+
+def check_sensor_overrides(plan: AgentPlan, env_cfg: Any) -> None:
+    """Refuse (one line naming the field) command-line sensor overrides that change the observation space a
+    trained agent was trained on: its env is built with and without them and the spaces compared."""
+    if plan.trained_sensors is None or not plan.sensor_overrides:
+        return
+    from av_gym.make import make_env
+
+    def space(sensors: dict) -> gym.Space:
+        env = make_env(env_cfg, sensors, None)
+        try:
+            return env.observation_space
+        finally:
+            env.close()
+
+    trained = space(plan.trained_sensors)
+    if space(plan.sensors) == trained:
+        return
+    for path, value in plan.sensor_overrides.items():  # name the first override that changes it on its own
+        alone = space(_with_overrides(plan.label, plan.trained_sensors, {path: value}))
+        if alone != trained:
+            raise ConfigError(f"sensors.{path}={value!r} changes the observation space of agent {plan.label!r} "
+                              f"from {describe_space(trained)} to {describe_space(alone)}; a trained agent can only run with "
+                              f"settings that keep it")
+    raise ConfigError(f"sensors overrides {sorted(plan.sensor_overrides)} together change the observation space of "
+                      f"agent {plan.label!r}; a trained agent can only run with settings that keep it")
+
+
+def plan_agent(spec: str, env_name: str, sensors: dict, shield: dict, checkpoints: str | Path) -> AgentPlan:
+    """Decide how agent ``spec`` runs. ``agent+shield`` (e.g. ``always_proceed+aeb``) wraps it in
+    ``conf/shield/<shield>.yaml``. An agent runs with its own sensors when it has them (a rule-based agent's
+    ``sensors:`` field; a checkpoint's training config), else with the ``sensors`` given; the privileged
+    ``truth`` state is what PID on the paper's simulator CTE needs, images are what PilotNet needs.
+
+    A trained agent's sensors are the base and the command line's ``sensors.*`` overrides (the fields of
+    ``sensors`` that differ from its shipped preset, :func:`sensor_overrides`) are applied on top, so
+    ``sensors.cameras.night=true`` reaches PilotNet; an override of a sensor its stack lacks is refused here, one
+    that changes its observation space by :func:`check_sensor_overrides` (which needs the env config).
+
+    ``agent@preset`` runs the agent on another sensors preset than its own (``ppo_turn@turn_perceived``: a policy
+    trained on privileged objects, driven from tracked detections); the observation spaces must match."""
+    base, _, shield_name = str(spec).partition("+")
+    base, _, preset = base.partition("@")
+    base, latest = split_latest(base)
+    if shield_name:
+        shield = compose_group("shield", shield_name)
+    forced = compose_group("sensors", preset) if preset else None
+    overrides = sensor_overrides(sensors)  # before `sensors` is replaced by an agent's own preset below
+
+    def trained_plan(run_spec: str, path: Path) -> AgentPlan:
+        own = forced or saved_config(path).get("sensors")
+        if own is None:  # a checkpoint without its config: it runs on the sensors given
+            return AgentPlan(str(spec), run_spec, sensors, shield)
+        return AgentPlan(str(spec), run_spec, _with_overrides(str(spec), own, overrides), shield, own, overrides)
+
+    if base in trained_kinds() or _is_path(base):
+        path = find_checkpoint(base, env_name, checkpoints, latest=latest) if base in trained_kinds() else Path(base)
+        return trained_plan(str(path) if base in trained_kinds() else base, path)
+    cfg = load_agent_config(base)
+    if latest and cfg.get("kind") not in trained_kinds():
+        raise ConfigError(f"agent {spec!r}: {base!r} is rule-based, it has no runs; say {base}")
+    if cfg.get("sensors") and (sensors or {}).get("name") != cfg["sensors"]:
+        # the agent's own preset, unless the one given is that preset (then with the command line's overrides,
+        # e.g. a sweep over sensors.gnss.sigma for pid_gnss)
+        sensors = compose_group("sensors", cfg["sensors"])
+    if cfg.get("kind") in trained_kinds():
+        path = find_checkpoint(cfg["kind"], env_name, checkpoints, name=None if base == cfg["kind"] else base,
+                               latest=latest)
+        return trained_plan(str(path), path)
+    return AgentPlan(str(spec), base, forced or sensors, shield)
+
+
+def sensors_summary(sensors: dict | None) -> str:
+    """One line: the preset name and every field that differs from the shipped preset (``cameras: night=True``)."""
+    if not sensors:
+        return "none"
+    name = sensors.get("name", "?")
+    changed = sensor_overrides(sensors)
+    return f"{name}" + (f" with {', '.join(f'{k}={v!r}' for k, v in changed.items())}" if changed else
+                        " (as shipped)")

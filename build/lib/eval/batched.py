@@ -1,0 +1,169 @@
+"""``python -m eval env=left_turn vec_env=batched n_envs=64 ...``: the left turn's evaluation episodes on the
+batched engine (:mod:`av_gym.batched.vec_env`, issue 16), ``n_envs`` episodes stepped together in this process.
+
+Episode ``seed`` is the episode ``reset(seed=seed)`` of the per-env stack gives (the engine draws it from a
+generator seeded with it), the policy decides as it does there (every env step at 10 Hz; a trained go/yield
+checkpoint asked every ``action_repeat`` steps, its held choice mapped to a meta-action at every step), and the row
+is ``EpisodeMetrics``' row: rows equal to ``vec_env=subproc``'s within the engine's equivalence (tests and
+docs/performance.md). Rows come back in seed order.
+
+What runs: ``env=left_turn`` in either mode (traffic; ``env.mode=ccftap`` with its ``env.ccftap.*`` case) and with
+either action type, no shield, and the agents ``always_proceed`` (it reads no observation: it runs on the batch
+whatever the sensors), ``gap_acceptance`` and PPO checkpoints trained on the batch's sensors (``turn_truth``: turn
+features from truth, turn signals, intent). Anything else (``lookahead``, which simulates a copy of its env; a
+shield; ``turn_perceived``) is refused in one line before any episode runs, and runs with ``vec_env=subproc``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import numpy as np
+from tqdm import tqdm
+
+from av_gym.errors import ConfigError
+
+KINDS = ("always_proceed", "gap_acceptance", "ppo", "dagger")
+NO_OBS_SENSORS = {"name": "turn_truth", "turn_features": {"source": "truth"}, "observe": ["turn"]}
+
+
+def plan_kind(plan) -> str:
+    """The agent kind of an :class:`eval.agents.AgentPlan` (a trained plan's spec is its checkpoint path)."""
+    from agents.registry import trained_kinds
+    from eval.agents import _checkpoint_file, _is_path, load_agent_config
+
+    spec = str(plan.spec)
+    if spec in trained_kinds():
+        return spec
+    if _is_path(spec):
+        from pathlib import Path
+
+        return _checkpoint_file(Path(spec), "left_turn")[0]
+    return str(load_agent_config(spec).get("kind"))
+
+
+def check_batched_plan(plan, env_cfg: dict) -> None:
+    """One-line ConfigError for an agent the batched engine cannot evaluate (checked before any folder is made)."""
+    from av_gym.batched.vec_env import check_batchable
+
+    if env_cfg.get("name") != "left_turn":
+        raise ConfigError(f"vec_env=batched runs env=left_turn only, got env={env_cfg.get('name')}")
+    kind = plan_kind(plan)
+    if kind not in KINDS:
+        raise ConfigError(f"agent {plan.label!r} (kind {kind}) cannot run with vec_env=batched (it runs: "
+                          f"{', '.join(KINDS)}); use vec_env=subproc")
+    sensors = NO_OBS_SENSORS if kind == "always_proceed" else plan.sensors
+    try:
+        check_batchable(env_cfg, sensors, plan.shield)
+    except ConfigError as exc:
+        msg = str(exc).replace("agent.vec_env=batched", "vec_env=batched").replace("agent.vec_env=subproc",
+                                                                                    "vec_env=subproc")
+        raise ConfigError(f"agent {plan.label!r}: {msg}") from None
+
+
+class _Decider:
+    """The agents' decisions for a batch: per env as :class:`agents.Policy.act` would decide for it."""
+
+    def __init__(self, policy, n: int, continuous: bool = False) -> None:
+        from agents import AlwaysProceed
+        from agents.go_yield import GapAcceptance
+        from agents.ppo import SB3Policy
+
+        self.policy, self.n = policy, n
+        # the env's actions: meta-action ints, or the continuous action's one float (what each agent hands the
+        # per-env env, which LongitudinalAction.act reads as its first float)
+        self.dtype = float if continuous else int
+        if isinstance(policy, SB3Policy):
+            self.kind = "ppo"
+            self.k = np.zeros(n, dtype=int)  # SB3Policy._k: env steps since the episode started
+            self.held = np.zeros(n, dtype=self.dtype)  # SB3Policy._action (its first entry)
+        elif isinstance(policy, AlwaysProceed):
+            self.kind = "always_proceed"
+        elif isinstance(policy, GapAcceptance):
+            self.kind = "gap_acceptance"
+        else:
+            raise ConfigError(f"policy {type(policy).__name__} cannot run with vec_env=batched; use vec_env=subproc")
+
+    def reset(self, rows) -> None:
+        if self.kind == "ppo":
+            self.k[rows], self.held[rows] = 0, 0
+
+    def act(self, obs: dict, live: np.ndarray) -> np.ndarray:
+        """Meta-actions (n,) for the envs ``live`` (the others get IDLE, unused)."""
+        from av_gym.batched.vec_env import meta_actions
+
+        out = np.ones(self.n, dtype=self.dtype)
+        rows = np.nonzero(live)[0]
+        if self.kind == "always_proceed":
+            out[rows] = np.asarray(self.policy.act(None), dtype=self.dtype).reshape(-1)[0]
+        elif self.kind == "gap_acceptance":
+            for r in rows:
+                out[r] = self.policy.act({"turn": obs["turn"][r]})
+        else:
+            p = self.policy
+            ask = rows[self.k[rows] % p.repeat == 0]
+            if len(ask):
+                from agents.ppo import flatten_obs
+
+                action, _ = p.model.predict(flatten_obs({k: v[ask] for k, v in obs.items()}), deterministic=True)
+                self.held[ask] = np.asarray(action).reshape(len(ask), -1)[:, 0]
+            self.k[rows] += 1
+            if p.actions == "go_yield":
+                out[rows] = meta_actions(self.held[rows], obs["turn"][rows])
+            else:
+                out[rows] = self.held[rows]
+        return out
+
+
+def run_episodes_batched(env_cfg: dict, plan, policy, seeds: Iterable[int], n_envs: int, label: str,
+                         progress: bool = True, out: list | None = None) -> list[dict]:
+    """:func:`eval.runner.run_episodes` on the batched engine: one row per seed, ``{"agent", "episode", "seed",
+    **episode_metrics}``, in the order of ``seeds`` (each appended to ``out``, if given, once every earlier seed's
+    row is in)."""
+    from eval.runner import _single_threaded_torch
+
+    check_batched_plan(plan, env_cfg)
+    _single_threaded_torch()
+    sensors = NO_OBS_SENSORS if plan_kind(plan) == "always_proceed" else plan.sensors
+    return play_batched(env_cfg, sensors, plan.shield, policy, seeds, n_envs, label, progress, out)
+
+
+def play_batched(env_cfg: dict, sensors: dict, shield: dict, policy, seeds: Iterable[int], n_envs: int, label: str,
+                 progress: bool = True, out: list | None = None) -> list[dict]:
+    """The episodes ``seeds`` of ``policy`` on the batched engine (``n_envs`` at a time), rows in seed order; the
+    caller has checked that the engine can run this env, sensors, shield and policy (:func:`check_batched_plan`,
+    or ``train/ppo.py``'s own check for the stack it trains on)."""
+    from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
+
+    total = len(seeds) if hasattr(seeds, "__len__") else None
+    B = max(1, min(int(n_envs), total if total is not None else int(n_envs)))
+    venv = BatchedLeftTurnVecEnv(env_cfg, sensors, shield, B, action_repeat=1, actions="env", pool=0)
+    decide = _Decider(policy, B, continuous=venv.engine.continuous)
+    order = iter(seeds)
+    wanted: list[int] = []  # seeds handed to the engine, in order
+
+    def feed():
+        for s in order:
+            wanted.append(int(s))
+            yield int(s)
+
+    obs = venv.play(feed())
+    decide.reset(np.arange(B))
+    done: dict[int, dict] = {}
+    rows: list[dict] = []
+    with tqdm(total=total, desc=f"eval {label} (batched)", unit="ep", disable=not progress, leave=False) as bar:
+        while not venv.idle.all():
+            live = ~venv.idle
+            obs, _, ended, infos = venv.step(decide.act(obs, live))
+            restarted = []
+            for r in np.nonzero(ended)[0]:
+                done[infos[r]["seed"]] = infos[r]["episode_metrics"]
+                restarted.append(r)
+            decide.reset(np.array(restarted, dtype=int))
+            while len(rows) < len(wanted) and wanted[len(rows)] in done:  # seed order
+                seed = wanted[len(rows)]
+                rows.append({"agent": label, "episode": len(rows), "seed": seed, **done.pop(seed)})
+                if out is not None:
+                    out.append(rows[-1])
+                bar.update()
+    return rows

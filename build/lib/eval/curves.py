@@ -1,0 +1,76 @@
+"""Training curves from TensorBoard event files as one PNG (for notes and papers, where TensorBoard is not at hand).
+
+    python -m eval.curves runs/<run>/tb [more runs/.../tb ...] --out curves.png [--tags eval/success eval/collision]
+
+One panel per scalar tag, one line per run (labelled by the run folder), x = environment steps.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from conf.cli import Extend, ToolParser, items
+
+DEFAULT_TAGS = ("eval/success", "eval/collision", "eval/interventions", "episode/success", "episode/collision",
+                "eval/time_to_exit_s")
+
+
+def read_scalars(tb_dir: str | Path) -> dict[str, list[tuple[int, float]]]:
+    """``tag -> [(step, value), ...]`` from every event file under ``tb_dir`` (later files win on equal steps)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    out: dict[str, dict[int, float]] = {}
+    for events in sorted(Path(tb_dir).rglob("events.out.tfevents.*")):
+        acc = EventAccumulator(str(events), size_guidance={"scalars": 0})
+        acc.Reload()
+        for tag in acc.Tags()["scalars"]:
+            out.setdefault(tag, {}).update({e.step: e.value for e in acc.Scalars(tag)})
+    return {tag: sorted(points.items()) for tag, points in out.items()}
+
+
+def plot_curves(runs: dict[str, dict[str, list[tuple[int, float]]]], tags: list[str], out: str | Path) -> Path:
+    """One panel per tag present in any run; returns the PNG path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tags = [t for t in tags if any(t in scalars for scalars in runs.values())]
+    if not tags:
+        raise SystemExit(f"none of the tags {tags} is in the event files given")
+    cols = min(3, len(tags))
+    rows = (len(tags) + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.0 * rows), squeeze=False)
+    for ax, tag in zip(axes.ravel(), tags):
+        for label, scalars in runs.items():
+            if tag in scalars:
+                steps, values = zip(*scalars[tag])
+                ax.plot(steps, values, label=label, lw=1.4)
+        ax.set_title(tag)
+        ax.set_xlabel("steps (decisions if action_repeat > 1)")
+        ax.grid(alpha=0.3)
+    for ax in axes.ravel()[len(tags):]:
+        ax.axis("off")
+    axes[0, 0].legend(fontsize=7)
+    fig.tight_layout()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
+def main() -> None:
+    parser = ToolParser(description=__doc__.splitlines()[0])
+    parser.add_argument("tb_dirs", nargs="+", help="TensorBoard folders (runs/<run>/tb)")
+    parser.add_argument("--out", default="curves.png")
+    parser.add_argument("--tags", nargs="+", default=list(DEFAULT_TAGS))
+    args = parser.parse_args()
+    missing = [d for d in args.tb_dirs if not Path(d).is_dir()]
+    if missing:
+        raise SystemExit(f"error: tb_dirs: {missing[0]} is not a folder")
+    runs = {Path(d).parent.name if Path(d).name == "tb" else Path(d).name: read_scalars(d) for d in args.tb_dirs}
+    print(f"[curves] {plot_curves(runs, args.tags, args.out)}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,82 @@
+"""Tables of evaluation results: per-episode CSV, aggregated Markdown with 95% confidence intervals."""
+
+from __future__ import annotations
+
+import csv
+import io
+from collections.abc import Mapping
+from pathlib import Path
+
+from av_gym.atomic import write_texts_atomic
+from av_gym.metrics import aggregate, format_ci, kind_of, markdown_table
+
+HEADLINE = {
+    "left_turn": ["collision", "success", "time_to_exit_s", "min_ttc_s", "stopped", "mean_speed_mps",
+                  "intervention", "interventions", "override_fraction", "return"],
+    "lane_keeping": ["lap_completed", "cte_mean_abs_m", "cte_max_abs_m", "cte_mean_abs_units", "cte_std_units",
+                     "cte_max_abs_units", "lane_departures", "steering_sign_changes_per_100m", "return"],
+}
+
+
+def summary_table(rows: list[dict], scenario: str) -> str:
+    """Markdown table: one line per agent, each headline metric as ``mean [95% CI]``, the interval its declared
+    kind calls for (av_gym/metrics/kinds.py)."""
+    agg = aggregate(rows, group_key="agent")
+    metrics = [m for m in HEADLINE[scenario] if m in rows[0]]
+    table = []
+    for g in agg:
+        line = {"agent": g["agent"], "n": g["n"]}
+        for m in metrics:
+            line[m] = format_ci(g[m], g[m + "_lo"], g[m + "_hi"], kind_of(m) == "rate")
+        table.append(line)
+    return markdown_table(table, ["agent", "n", *metrics])
+
+
+def sensors_section(sensors: Mapping[str, dict]) -> str:
+    """Markdown: per agent, the sensors preset it ran with, the fields that differ from the shipped preset, and
+    the full settings (YAML, folded)."""
+    import yaml
+
+    from eval.agents import sensors_summary
+
+    lines = ["## Sensors each agent ran with", ""]
+    for label, cfg in sensors.items():
+        lines.append(f"- `{label}`: {sensors_summary(cfg)}")
+    lines += ["", "<details><summary>full sensor settings per agent</summary>", ""]
+    for label, cfg in sensors.items():
+        lines += [f"`{label}`:", "", "```yaml", yaml.safe_dump(cfg or {}, sort_keys=False).rstrip(), "```", ""]
+    lines.append("</details>")
+    return "\n".join(lines) + "\n"
+
+
+def checkpoints_section(checkpoints: Mapping[str, str]) -> str:
+    """Markdown: the checkpoint each trained agent ran (a name like ``ppo_turn`` resolves to the newest local run
+    of that config, so the table alone does not say which policy it measured)."""
+    return "\n".join(["## Checkpoint each trained agent ran", ""]
+                     + [f"- `{label}`: `{path}`" for label, path in checkpoints.items()]) + "\n"
+
+
+def write_results(rows: list[dict], out_dir: str | Path, scenario: str, title: str,
+                  sensors: Mapping[str, dict] | None = None, checkpoints: Mapping[str, str] | None = None,
+                  split: str | None = None) -> str:
+    """Write ``results.csv`` (every episode, every metric) and ``results.md`` (with, given ``sensors`` = agent
+    label → the sensors config it ran with and ``checkpoints`` = label → the checkpoint a trained agent loaded,
+    sections stating them); returns the Markdown table."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if split is not None:  # every row says which seed split it came from (av_gym/seeds.py)
+        rows = [{**r, "split": split} for r in rows]
+    columns = list(dict.fromkeys(k for r in rows for k in r))
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, fieldnames=columns)
+    writer.writeheader()
+    writer.writerows(rows)
+    table = summary_table(rows, scenario)
+    summary = (f"# {title}\n\nMean with 95% confidence interval over episodes, by each metric's declared kind "
+               f"(av_gym/metrics/kinds.py): Wilson for rates, a seeded bootstrap for counts, durations and other "
+               f"non-negative quantities, Student t for signed ones.\n\n{table}\n"
+               + (f"\n{checkpoints_section(checkpoints)}" if checkpoints else "")
+               + (f"\n{sensors_section(sensors)}" if sensors else ""))
+    # both files replaced together or neither (a full disk used to leave results.csv torn, results.md stale)
+    write_texts_atomic({out / "results.csv": text.getvalue(), out / "results.md": summary}, field="out_dir")
+    return table

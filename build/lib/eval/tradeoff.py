@@ -1,0 +1,152 @@
+"""Collision vs success of left-turn drivers, one point per agent, from evaluation rows.
+
+    python -m eval.tradeoff runs/eval/a/results.csv runs/eval/b/results.csv --out tradeoff.png \
+        [--point "lookahead (oracle)=0.01,0.92"] [--rule-sweep 2,3,4,6,8 --episodes 300 --seed 1000000]
+
+Each ``results.csv`` is what ``python -m eval`` writes (one row per episode); every agent label in them becomes a
+point with 95 % Wilson intervals on both axes. ``--point`` adds a point measured elsewhere (label=collision,success).
+``--rule-sweep`` first evaluates the gap-acceptance rule (``conf/agent/gap_acceptance.yaml``'s miss distance) at each
+``t_gap`` (s) on ``--episodes`` seeds from ``--seed`` and adds the rule's curve; its rows go beside the PNG
+(``<out>.rule_sweep.csv``; given back as a results file, those rows draw the curve without re-running it). ``--relabel
+agent=label`` renames an agent of the rows. The sweep plays on the batched engine (``--n-envs`` episodes at a time; the per-env rows
+within the engine's equivalence, docs/performance.md), so 500 episodes per threshold cost about a minute. Labels with the same name before ``#`` (``ppo_turn#s1``) are drawn in one colour, their
+mean as a larger marker.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from av_gym.metrics.stats import wilson_ci
+from av_gym.seeds import SPLITS
+from conf.cli import Extend, ToolParser, items
+
+
+def read_rows(paths: list[str]) -> list[dict]:
+    rows = []
+    for path in paths:
+        if not Path(path).is_file():
+            raise SystemExit(f"error: {path} does not exist (python -m eval writes results.csv in its out_dir)")
+        with open(path, newline="") as f:
+            rows += list(csv.DictReader(f))
+    return rows
+
+
+def rule_sweep(t_gaps: list[float], episodes: int, seed: int, n_envs: int = 250) -> list[dict]:
+    """The gap-acceptance rule at each ``t_gap`` on the left turn's traffic, the same seeds for every threshold,
+    ``n_envs`` episodes at a time on the batched engine."""
+    from agents.go_yield import GapAcceptance
+    from eval.agents import compose_group, load_agent_config
+    from eval.batched import play_batched
+
+    miss = float(load_agent_config("gap_acceptance")["miss"])
+    stack = [compose_group("env", "left_turn"), compose_group("sensors", "turn_truth"), compose_group("shield", "none")]
+    rows = []
+    for t_gap in t_gaps:
+        rows += play_batched(*stack, GapAcceptance(t_gap=t_gap, miss=miss), range(seed, seed + episodes), n_envs,
+                             f"gap_acceptance t_gap={t_gap:g}s")
+    return rows
+
+
+def points(rows: list[dict]) -> dict[str, tuple]:
+    """label → (collision, success, (c_lo, c_hi), (s_lo, s_hi), n)."""
+    out = {}
+    for label in dict.fromkeys(r["agent"] for r in rows):
+        mine = [r for r in rows if r["agent"] == label]
+        n = len(mine)
+        c = sum(float(r["collision"]) for r in mine)
+        s = sum(float(r["success"]) for r in mine)
+        c_mean, c_lo, c_hi = wilson_ci(int(round(c)), n)
+        s_mean, s_lo, s_hi = wilson_ci(int(round(s)), n)
+        out[label] = (c_mean, s_mean, (c_lo, c_hi), (s_lo, s_hi), n)
+    return out
+
+
+def plot(pts: dict[str, tuple], rule: list[str], out: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 6))
+    if rule:  # the rule's trade-off as a line, thresholds in order
+        xs, ys = [pts[k][0] for k in rule], [pts[k][1] for k in rule]
+        ax.plot(xs, ys, "-", color="0.6", zorder=1, label="gap_acceptance, t_gap swept")
+    groups: dict[str, list[str]] = {}
+    for label in pts:
+        groups.setdefault(label.split("#")[0], []).append(label)
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    if len(groups) > len(colours):  # the default cycle repeats after 10: two agents would share a colour
+        colours = [plt.get_cmap("tab20")(i) for i in range(20)]
+    for k, (group, labels) in enumerate(groups.items()):
+        colour = "0.4" if labels[0] in rule else colours[k % len(colours)]
+        for label in labels:
+            c, s, (c_lo, c_hi), (s_lo, s_hi), _ = pts[label]
+            ax.errorbar(c, s, xerr=[[c - c_lo], [c_hi - c]], yerr=[[s - s_lo], [s_hi - s]], fmt="o", ms=4,
+                        color=colour, alpha=0.6 if len(labels) > 1 else 1.0, capsize=2, zorder=2)
+        cs, ss = np.mean([pts[x][0] for x in labels]), np.mean([pts[x][1] for x in labels])
+        ax.plot(cs, ss, "D" if len(labels) > 1 else "o", ms=9 if len(labels) > 1 else 5, color=colour, zorder=3,
+                label=group if labels[0] not in rule else None)
+        name = group.replace("gap_acceptance t_gap=", "t_gap ") if labels[0] in rule else group
+        ax.annotate(name, (cs, ss), textcoords="offset points", xytext=(6, 4), fontsize=8)
+    ax.set_xlabel("collision rate (95 % Wilson interval)")
+    ax.set_ylabel("success rate (arrived within the time limit)")
+    ax.set_xlim(left=-0.01)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+    ax.set_title(title, fontsize=10)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = ToolParser(description=__doc__.splitlines()[0])
+    parser.add_argument("results", nargs="*", help="results.csv files of python -m eval")
+    parser.add_argument("--out", required=True, type=Path)
+    parser.add_argument("--point", action="append", default=[], help='"label=collision,success"')
+    parser.add_argument("--rule-sweep", default=[], type=items(float, low=0), help="t_gap values (s), [2,4,8]")
+    parser.add_argument("--episodes", type=int, default=300)
+    parser.add_argument("--seed", type=int, default=SPLITS["validation"].start,
+                        help="first seed of the rule sweep (default: the validation split's first, av_gym/seeds.py)")
+    parser.add_argument("--n-envs", type=int, default=250, help="episodes stepped together in the rule sweep")
+    parser.add_argument("--relabel", action="append", default=[],
+                        help='"agent in results.csv=label" (repeatable): e.g. seeds of one run as "ppo_turn#s1"')
+    parser.add_argument("--title", default="Left turn in traffic: safety vs progress")
+    args = parser.parse_args(argv)
+    rows = read_rows(args.results)
+    relabel = dict(r.split("=", 1) for r in args.relabel)
+    for r in rows:
+        r["agent"] = relabel.get(r["agent"], r["agent"])
+    # a sweep's rows read back (<out>.rule_sweep.csv of an earlier run) draw the rule's curve too
+    rule = sorted(dict.fromkeys(r["agent"] for r in rows if r["agent"].startswith("gap_acceptance t_gap=")),
+                  key=lambda k: float(k.split("=")[1].rstrip("s")))
+    if args.rule_sweep:
+        swept = rule_sweep(args.rule_sweep, args.episodes, args.seed,
+                           args.n_envs)
+        sweep_csv = args.out.with_suffix(".rule_sweep.csv")
+        sweep_csv.parent.mkdir(parents=True, exist_ok=True)
+        with open(sweep_csv, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(swept[0]))
+            writer.writeheader()
+            writer.writerows(swept)
+        rule = list(dict.fromkeys(r["agent"] for r in swept))  # the new sweep replaces any rule rows read back
+        rows = [r for r in rows if not r["agent"].startswith("gap_acceptance t_gap=")]
+        rows += [{k: str(v) for k, v in r.items()} for r in swept]
+    pts = points(rows)
+    for extra in args.point:
+        label, _, values = extra.partition("=")
+        c, s = (float(v) for v in values.split(","))
+        pts[label] = (c, s, (c, c), (s, s), 0)
+    for label, (c, s, _, _, n) in pts.items():
+        print(f"{label:40s} n={n:4d}  collision {c:.3f}  success {s:.3f}")
+    plot(pts, rule, args.out, args.title)
+    print(f"[tradeoff] {args.out}")
+
+
+if __name__ == "__main__":
+    main()

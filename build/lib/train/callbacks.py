@@ -1,0 +1,392 @@
+"""SB3 callbacks: episode metrics to TensorBoard, periodic evaluation on fixed seeds (best checkpoint, videos),
+hyperparameters and a custom-scalars layout, periodic atomic checkpoints."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+from stable_baselines3.common.callbacks import BaseCallback
+
+LOGGED = {
+    "left_turn": ("collision", "success", "time_to_exit_s", "min_ttc_s", "stopped", "mean_speed_mps",
+                  "intervention", "interventions", "override_fraction"),
+    "lane_keeping": ("lap_completed", "cte_mean_abs_m", "cte_max_abs_m", "lane_departures",
+                     "steering_sign_changes_per_100m"),
+}
+
+
+class EpisodeMetricsCallback(BaseCallback):
+    """Logs the ground-truth episode metrics (``info["episode_metrics"]``) as ``episode/<name>`` scalars, averaged
+    over the episodes that ended since the last dump (one point per PPO rollout), e.g. collision rate."""
+
+    def __init__(self, scenario: str) -> None:
+        super().__init__()
+        self.keys = LOGGED[scenario]
+
+    def _on_step(self) -> bool:
+        for info in self.locals.get("infos", []):
+            metrics = info.get("episode_metrics")
+            if metrics:
+                for key in self.keys:
+                    if key in metrics and metrics[key] == metrics[key]:  # skip NaN (e.g. never exited)
+                        self.logger.record_mean(f"episode/{key}", metrics[key])
+        return True
+
+
+class AtomicCheckpointCallback(BaseCallback):
+    """Checkpoints at rollout boundaries, at least ``every`` env steps apart: ``latest.zip`` (policy, optimizer,
+    step counter, and inside it the RNG states and the logger values not yet written to TensorBoard), atomically. At a boundary the parameters, the step counter and the pending log values are consistent, so a
+    resumed run repeats no update and loses no TensorBoard point.
+
+    :meth:`save` may also be called mid-rollout (on SIGINT/SIGTERM): parameters do not change while a rollout is
+    collected, so it saves the state of the last boundary and the half-collected rollout is simply redone."""
+
+    def __init__(self, folder: Path, every: int) -> None:
+        super().__init__()
+        self.folder, self.every = Path(folder), int(every)
+        self._boundary = 0
+        self._pending: dict = {}
+        self._last_save = None
+
+    def _on_training_start(self) -> None:
+        self._boundary = self._last_save = self.num_timesteps
+
+    def _on_rollout_start(self) -> None:
+        self._boundary = self.num_timesteps
+        self._pending = {"name_to_value": dict(self.logger.name_to_value),
+                         "name_to_count": dict(self.logger.name_to_count),
+                         "name_to_excluded": dict(self.logger.name_to_excluded)}
+        if self.every > 0 and self.num_timesteps - self._last_save >= self.every:
+            self.save()
+
+    def _on_step(self) -> bool:
+        return True
+
+    def save(self) -> None:
+        from train.checkpoint import save_model_atomic
+
+        steps = self.model.num_timesteps
+        self.model.num_timesteps = self._boundary
+        try:  # the RNG states inside latest.zip: one file, replaced at once (a pair of files could tear)
+            save_model_atomic(self.model, self.folder / "latest.zip", rng_extra={"logger": self._pending})
+            stale = self.folder / "latest.rng"  # an older run's: the zip's own states win, and it would mislead
+            if stale.exists():
+                stale.unlink()
+        finally:
+            self.model.num_timesteps = steps
+        self._last_save = self._boundary
+
+
+class FiniteGuard(BaseCallback):
+    """Stops training with :class:`av_gym.errors.TrainingDiverged` (one line) when a loss or a parameter is NaN or
+    infinite, before the next rollout, and so before :class:`AtomicCheckpointCallback` could overwrite the last good
+    ``latest.zip`` with it (this callback must come first in the list). Checked once per rollout (after each update),
+    a few microseconds per parameter tensor.
+
+    ``learning_rate``: the configured one, named in the message when it is the likely cause; ``init_lr``: the
+    behaviour-cloning one (``agent.init_lr``), when cloning ran with its own."""
+
+    def __init__(self, learning_rate: float, checkpoint: Path | None = None, init_lr: float | None = None) -> None:
+        super().__init__()
+        self.learning_rate, self.checkpoint = float(learning_rate), checkpoint
+        self.init_lr = None if init_lr is None else float(init_lr)
+
+    def _on_training_start(self) -> None:
+        if self.init_lr is None:
+            self.check("the initial (cloned) policy")
+        else:
+            self.check("the initial (cloned) policy", ("agent.init_lr", self.init_lr))
+
+    def _on_rollout_start(self) -> None:
+        self.check("the last PPO update")
+
+    def _on_step(self) -> bool:
+        return True
+
+    def problem(self) -> str | None:
+        """What is not finite: a logged training loss, or a parameter (by name); None if all is finite."""
+        import math
+
+        for key, value in self.logger.name_to_value.items():
+            if key.startswith("train/") and isinstance(value, float) and not math.isfinite(value):
+                return f"{key} = {value}"
+        return nonfinite_parameter(self.model.policy)
+
+    def check(self, after: str, lr: tuple[str, float] | None = None) -> None:
+        found = self.problem()
+        if found:
+            raise self.diverged(found, after, lr)
+
+    def diverged(self, found: str, after: str, lr: tuple[str, float] | None = None):
+        name, value = lr or ("agent.learning_rate", self.learning_rate)
+        return diverged_error(found, after, name, value, self.checkpoint, self.num_timesteps)
+
+
+def diverged_error(found: str, after: str, lr_name: str, lr: float, checkpoint: Path | None = None,
+                   steps: int | None = None):
+    """The one-line :class:`av_gym.errors.TrainingDiverged` for ``found`` (what is not finite), naming the likely
+    cause (the learning rate ``lr_name`` when it is large) and whether ``checkpoint`` (the last good one) exists."""
+    from av_gym.errors import TrainingDiverged
+
+    if lr > 1e-2:  # Adam on these networks: 1e-4..1e-3 (conf/agent/); 1e-2 is already aggressive
+        cause = f"{lr_name}={lr:g} is far above PPO's usual 1e-4..1e-3: lower it"
+    else:
+        cause = (f"a reward or observation that is not finite, or steps too large for this problem: lower "
+                 f"{lr_name} ({lr:g}) or agent.max_grad_norm")
+    kept = (f"the last good checkpoint, {checkpoint}, is kept" if checkpoint and Path(checkpoint).is_file()
+            else "no checkpoint had been written yet")
+    at = f" at {steps} steps" if steps is not None else ""
+    return TrainingDiverged(f"training diverged{at}: {found} after {after}; likely cause: {cause}; {kept}")
+
+
+def raise_if_diverged(exc: BaseException, policy, after: str, lr_name: str, lr: float) -> None:
+    """Called with an exception from torch (a distribution refusing NaN logits, say): if ``policy`` has a
+    non-finite parameter, that is what happened; raise the one-line :class:`TrainingDiverged` instead."""
+    from av_gym.errors import ConfigError
+
+    found = None if isinstance(exc, ConfigError) else nonfinite_parameter(policy)
+    if found:
+        raise diverged_error(found, after, lr_name, lr) from None
+
+
+def nonfinite_parameter(policy) -> str | None:
+    """``"<name> has NaN/inf values"`` for the first policy parameter that is not finite, else None."""
+    import torch
+
+    for name, param in policy.named_parameters():
+        if not bool(torch.isfinite(param).all()):
+            return f"parameter {name} has NaN/inf values"
+    return None
+
+
+def score(scenario: str, metrics: dict) -> float:
+    """One number per evaluation, higher is better, for keeping the best checkpoint: success rate minus collision
+    rate on the left turn (a collision costs as much as a success earns); laps completed minus mean |CTE| (m) on
+    lane keeping."""
+    if scenario == "left_turn":
+        return float(metrics["success"] - metrics["collision"])
+    return float(metrics["lap_completed"] - metrics["cte_mean_abs_m"])
+
+
+def dump_prefix(logger, prefix: str, step: int) -> None:
+    """Write the logger's pending values whose names start with ``prefix`` at ``step`` and keep the others
+    pending. SB3's EvalCallback dumps everything at an evaluation; here that would write PPO's ``train/*`` values
+    a rollout early and twice at the last step, so the others wait for SB3's own dump as before."""
+    stores = (logger.name_to_value, logger.name_to_count, logger.name_to_excluded)
+    held = [{k: v for k, v in store.items() if not k.startswith(prefix)} for store in stores]
+    for store, keep in zip(stores, held):
+        for k in keep:
+            del store[k]
+    logger.dump(step)  # writes the prefix's values and clears every store
+    for store, keep in zip(stores, held):
+        store.update(keep)
+
+
+def tensorboard_writer(logger):
+    """The ``SummaryWriter`` behind an SB3 logger's TensorBoard output (None without one)."""
+    from stable_baselines3.common.logger import TensorBoardOutputFormat
+
+    for fmt in logger.output_formats:
+        if isinstance(fmt, TensorBoardOutputFormat):
+            return fmt.writer
+    return None
+
+
+def gif_bytes(frames: Sequence[np.ndarray], fps: float) -> bytes:
+    """Frames (H, W, 3) uint8 as an animated GIF."""
+    from PIL import Image
+
+    images = [Image.fromarray(f) for f in frames]
+    buf = io.BytesIO()
+    images[0].save(buf, format="GIF", save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
+    return buf.getvalue()
+
+
+def add_gif(writer, tag: str, gif: bytes, shape: tuple[int, int], step: int) -> None:
+    """An animated GIF as a TensorBoard image summary (TensorBoard plays it in the Images tab). Written by hand
+    because ``SummaryWriter.add_video`` needs moviepy and ffmpeg, which this project does not otherwise need."""
+    from tensorboard.compat.proto.summary_pb2 import Summary
+
+    image = Summary.Image(height=shape[0], width=shape[1], colorspace=3, encoded_image_string=gif)
+    writer.file_writer.add_summary(Summary(value=[Summary.Value(tag=tag, image=image)]), step)
+    writer.flush()
+
+
+class PeriodicEval(BaseCallback):
+    """SB3 ``EvalCallback`` for our metrics: at rollout starts, at least ``every`` env steps apart, and at the end of
+    training, runs the deterministic policy on the fixed ``seeds`` (disjoint from training) and
+
+    - logs ``eval/<metric>`` (collision, success, interventions, ... from ground truth) and ``eval/score``;
+    - keeps ``best.zip`` (atomic) when :func:`score` improves, with ``best.json`` (score, step) beside it;
+    - appends a row to ``eval.csv`` (``steps``: SB3's ``num_timesteps``, i.e. agent decisions, which are env steps
+      unless ``agent.action_repeat`` > 1; wall-clock seconds since the run started; metrics): the data for "steps
+      and time to reach 90 % success";
+    - every ``video_every`` env steps renders the first seed's episode into ``videos/step_<n>.gif`` and TensorBoard.
+
+    ``make_env(render_mode)`` builds the evaluation stack (the training one: same sensors and shield). ``play``, if
+    given, plays the episodes instead (``play(policy, seeds) -> rows``: the batched engine, issue 15/16, where a
+    few hundred validation episodes cost seconds); videos still come from ``make_env``.
+
+    Evaluating at a rollout's *start* (not its end, as before) means each row describes the model after every update
+    of the steps it counts, and the last row, at the end of training, is ``model.zip`` itself.
+
+    TensorBoard's ``eval/*`` equal ``eval.csv`` row for row: each evaluation writes its scalars at its own step
+    (:func:`dump_prefix`; recorded without a dump they appeared one rollout late, and the final one never), and a
+    resumed run drops the rows of evaluations after its checkpoint from ``eval.csv``, as TensorBoard purges them."""
+
+    def __init__(self, make_env: Callable[[str | None], gym.Env], scenario: str, seeds: Sequence[int], every: int,
+                 ckpt_dir: Path, run_dir: Path, video_every: int = 0, wall_offset: float = 0.0,
+                 play: Callable[[object, list[int]], list[dict]] | None = None) -> None:
+        super().__init__()
+        self.make_env, self.scenario, self.seeds = make_env, scenario, [int(s) for s in seeds]
+        self.play = play
+        self.every, self.video_every = int(every), int(video_every)
+        self.ckpt_dir, self.run_dir = Path(ckpt_dir), Path(run_dir)
+        self.t0 = time.time() - wall_offset
+        self._env = None
+        self._last_eval = self._last_video = 0
+        best = self.ckpt_dir / "best.json"
+        self.best = json.loads(best.read_text())["score"] if best.is_file() else -np.inf
+
+    def _on_training_start(self) -> None:
+        self._last_eval = self._last_video = self.num_timesteps
+        if self.num_timesteps > 0:  # a resume: evaluations after the checkpoint are of a model that is gone
+            self._trim_csv(self.num_timesteps)
+        if self.every > 0 and self.num_timesteps == 0:  # the starting point (e.g. a cloned policy) on the curve
+            self.evaluate()
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _trim_csv(self, last_step: int) -> None:
+        """Keep the ``eval.csv`` rows at steps <= ``last_step`` (TensorBoard purges the later ones on resume)."""
+        from train.checkpoint import write_text_atomic
+
+        path = self.run_dir / "eval.csv"
+        if not path.is_file():
+            return
+        lines = path.read_text().splitlines(keepends=True)
+        kept = lines[:1] + [ln for ln in lines[1:] if int(float(ln.split(",", 1)[0])) <= last_step]
+        if len(kept) != len(lines):
+            write_text_atomic(path, "".join(kept))
+
+    def _on_rollout_start(self) -> None:
+        if self.every > 0 and self.num_timesteps - self._last_eval >= self.every:
+            self.evaluate()
+
+    def _on_training_end(self) -> None:
+        if self.every > 0 and self.num_timesteps > self._last_eval:
+            self.evaluate()
+
+    def evaluate(self) -> dict:
+        from agents.ppo import SB3Policy
+        from av_gym.metrics import aggregate
+        from eval.runner import run_episodes
+        from train.checkpoint import save_model_atomic, write_text_atomic
+
+        self._last_eval = step = self.num_timesteps
+        if self.play is not None:
+            rows = self.play(SB3Policy(self.model), self.seeds)
+        else:
+            if self._env is None:
+                self._env = self.make_env(None)
+            rows = run_episodes(self._env, SB3Policy(self.model), self.seeds, "eval", progress=False)
+        means = {k: v for k, v in aggregate(rows, group_key="agent")[0].items()
+                 if k in LOGGED[self.scenario] or k in ("lap_completed", "cte_mean_abs_m")}
+        means["score"] = score(self.scenario, means)
+        for key, value in means.items():
+            if value == value:
+                self.logger.record(f"eval/{key}", value)
+        wall = time.time() - self.t0
+        self.logger.record("eval/wall_clock_s", wall)
+        dump_prefix(self.logger, "eval/", step)  # now, at this evaluation's step: TensorBoard = eval.csv
+        new_file = not (self.run_dir / "eval.csv").is_file()
+        with open(self.run_dir / "eval.csv", "a", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=["steps", "wall_clock_s", *means])
+            if new_file:
+                writer.writeheader()
+            writer.writerow({"steps": step, "wall_clock_s": round(wall, 1), **means})
+        if means["score"] > self.best:
+            self.best = means["score"]
+            save_model_atomic(self.model, self.ckpt_dir / "best.zip")
+            write_text_atomic(self.ckpt_dir / "best.json", json.dumps({"score": self.best, "steps": step,
+                                                                       **means}, indent=1))
+        if self.video_every > 0 and (step - self._last_video >= self.video_every or step == 0):
+            self._last_video = step
+            self.video(step)
+        return means
+
+    def video(self, step: int) -> Path:
+        """Render the first evaluation seed's episode: a GIF file and a TensorBoard image (animated)."""
+        from agents.ppo import SB3Policy
+
+        env = self.make_env("rgb_array")
+        policy = SB3Policy(self.model)
+        obs, _ = env.reset(seed=self.seeds[0])
+        frames, done = [env.render()], False
+        while not done:
+            obs, _, terminated, truncated, _ = env.step(policy.act(obs))
+            frames.append(env.render())
+            done = terminated or truncated
+        try:  # an ActionRepeat env renders one frame per decision
+            repeat = env.get_wrapper_attr("repeat")
+        except AttributeError:
+            repeat = 1
+        fps = env.unwrapped.config["policy_frequency"] / repeat
+        env.close()
+        frames = [f[::2, ::2] for f in frames]  # half resolution keeps the event file small
+        gif = gif_bytes(frames, fps)
+        path = self.run_dir / "videos" / f"step_{step:08d}.gif"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(gif)
+        writer = tensorboard_writer(self.logger)
+        if writer is not None:
+            add_gif(writer, "eval/episode", gif, frames[0].shape[:2], step)
+        return path
+
+
+CUSTOM_SCALARS = {
+    "left_turn": {
+        "safety": {"collision rate": ["Multiline", ["episode/collision", "eval/collision"]],
+                   "shield interventions per episode": ["Multiline", ["episode/interventions", "eval/interventions"]],
+                   "min TTC (s)": ["Multiline", ["episode/min_ttc_s", "eval/min_ttc_s"]]},
+        "progress": {"success rate": ["Multiline", ["episode/success", "eval/success"]],
+                     "time to exit (s)": ["Multiline", ["episode/time_to_exit_s", "eval/time_to_exit_s"]],
+                     "mean speed (m/s)": ["Multiline", ["episode/mean_speed_mps", "eval/mean_speed_mps"]]},
+    },
+    "lane_keeping": {
+        "safety": {"lane departures": ["Multiline", ["episode/lane_departures"]],
+                   "max |CTE| (m)": ["Multiline", ["episode/cte_max_abs_m", "eval/cte_max_abs_m"]]},
+        "progress": {"laps completed": ["Multiline", ["episode/lap_completed", "eval/lap_completed"]],
+                     "mean |CTE| (m)": ["Multiline", ["episode/cte_mean_abs_m", "eval/cte_mean_abs_m"]]},
+    },
+}
+
+
+class HParamsCallback(BaseCallback):
+    """At the start of a (non-resumed) run: the hyperparameters in TensorBoard's HParams tab, against the final
+    evaluation metrics, and the custom-scalars layout that groups safety against progress curves."""
+
+    def __init__(self, hparams: dict, scenario: str) -> None:
+        super().__init__()
+        self.hparams, self.scenario = hparams, scenario
+
+    def _on_training_start(self) -> None:
+        from stable_baselines3.common.logger import HParam
+
+        metrics = {"eval/score": 0.0, **{f"eval/{k}": 0.0 for k in LOGGED[self.scenario][:2]}}
+        values = {k: v if isinstance(v, (int, float, str, bool)) else str(v) for k, v in self.hparams.items()}
+        self.logger.record("hparams", HParam(values, metrics), exclude=("stdout", "log", "json", "csv"))
+        writer = tensorboard_writer(self.logger)
+        if writer is not None:
+            writer.add_custom_scalars(CUSTOM_SCALARS[self.scenario])
+
+    def _on_step(self) -> bool:
+        return True

@@ -1,0 +1,376 @@
+"""DAgger (Ross et al. 2011) top to bottom: a PPO policy network learns from a teacher on its own states (issue 32).
+
+Round 0: the teacher drives ``agent.round_episodes`` episodes, labelling every decision; the student is fitted to
+the labels. Round k ≥ 1: the student drives, the teacher labels the states the student visits, the labels join
+the aggregate, the student is refitted on all of it. Why: a clone fitted once to its teacher's own episodes meets
+states its teacher never visited (waiting at the line after a wrong yield, a late GO) and has no label for them.
+
+The student is SB3's PPO policy (``agents.ppo.make_ppo`` with the agent's extractor and net_arch): the actor is
+fitted to the labels (cross-entropy for GO/YIELD, Gaussian NLL for steering), the critic to the discounted returns
+of the driven episodes, so that ``model.zip`` loads in ``python -m eval`` as any PPO checkpoint and PPO can
+fine-tune it. The teacher is any agent of a TEACHERS kind (``agent.teacher``). Two stacks:
+
+- ``agent.vec_env=batched`` (``turn_truth``): ``agent.n_envs`` episodes stepped together on the batched engine;
+  the look-ahead oracle labels every env's decision at once (:mod:`agents.batched_oracle`), a rule from the
+  observation row by row;
+- otherwise (any sensors, e.g. ``turn_perceived``; any scenario): one per-env training stack
+  (``train/ppo.py``'s wrappers), the teacher labelling one state at a time.
+
+Per round: a progress line, TensorBoard scalars (``run_dir/tb/<name>``), ``rounds.csv`` (labels, wall-clock, the
+student's agreement with the teacher on its own states, its success/collision while driving and on the validation
+seeds) and an atomic ``latest.zip``; ``best.zip`` holds the best validation (success - collision); ``model.zip``
+the last round.
+"""
+
+from __future__ import annotations
+
+import csv
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+ROUND_FIELDS = ("round", "driver", "episodes", "labels", "wall_s", "label_s", "agreement", "drive_success",
+                "drive_collision", "fit_accuracy", "val_success", "val_collision")
+
+
+# ------------------------------------------------------------------------------------------------------ checks
+def _teacher_kind(cfg: DictConfig) -> str | None:
+    from eval.agents import load_agent_config
+
+    return load_agent_config(str(cfg.agent.teacher)).get("kind")
+
+
+def labeller_of(cfg: DictConfig) -> str:
+    """``batched`` (the oracle on the batched engine), ``rule`` (a teacher of the observation alone, row by row on
+    the batch) or ``per_env`` (the teacher on the per-env stack)."""
+    if cfg.agent.vec_env != "batched":
+        return "per_env"
+    return "batched" if _teacher_kind(cfg) == "lookahead" else "rule"
+
+
+def validate(cfg: DictConfig) -> list[str]:
+    """What DAgger needs beyond :class:`agents.dagger.DaggerParams`, one line each (before any folder)."""
+    from av_gym.errors import ConfigError
+    from train.ppo import make_teacher
+
+    agent = cfg.agent
+    try:
+        make_teacher(str(agent.teacher), str(agent.actions), str(cfg.env.name), int(agent.action_repeat))
+    except ConfigError as exc:
+        return [str(exc).replace("agent.init", "agent.teacher")]
+    batched = agent.vec_env == "batched"
+    if agent.labeller == "batched" and not batched:
+        return ["agent.labeller=batched needs agent.vec_env=batched (the oracle runs on the batched engine)"]
+    if agent.labeller == "per_env" and batched:
+        return ["agent.labeller=per_env needs agent.vec_env=subproc or dummy (the per-env stack)"]
+    if batched:
+        kind = _teacher_kind(cfg)
+        if kind not in ("lookahead", "gap_acceptance"):
+            return [f"agent.teacher={agent.teacher} (kind {kind}) cannot label on agent.vec_env=batched (lookahead "
+                    f"or gap_acceptance can); use agent.vec_env=subproc"]
+        from av_gym.batched.vec_env import check_batchable
+
+        try:
+            check_batchable(*[OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)])
+        except ConfigError as exc:
+            return [str(exc)]
+    if float(agent.label_margin) > 0 and not (batched and _teacher_kind(cfg) == "lookahead"):
+        return ["agent.label_margin > 0 needs the batched oracle (agent.vec_env=batched, agent.teacher of kind "
+                "lookahead): the per-env teachers give no margin"]
+    return []
+
+
+# ------------------------------------------------------------------------------------------------------ one round
+@dataclass
+class Round:
+    """What one round drove and labelled."""
+
+    obs: list = field(default_factory=list)  # one dict of arrays per decision
+    labels: list = field(default_factory=list)
+    returns: list = field(default_factory=list)
+    agree: list = field(default_factory=list)  # the student's own choice equals the label (or 1 - |error|)
+    outcomes: list = field(default_factory=list)  # (collision, success) per episode
+    label_s: float = 0.0  # wall seconds spent labelling
+
+
+def discounted(rewards: list[float], gamma: float) -> list[float]:
+    """Each decision's discounted return to its episode's end (the critic's target)."""
+    g, out = 0.0, []
+    for r in reversed(rewards):
+        g = r + gamma * g
+        out.append(g)
+    return out[::-1]
+
+
+def outcome(info: dict) -> tuple[float, float]:
+    m = info["episode_metrics"]
+    return float(m.get("collision", 0.0)), float(m["success"] if "success" in m else m["lap_completed"])
+
+
+class BatchedLabels:
+    """Labels for the live rows of a :class:`~av_gym.batched.vec_env.BatchedLeftTurnVecEnv`: the look-ahead
+    oracle's futures for all of them at once, or a rule of the observation row by row. Exact shortcut (as the
+    per-env teacher's): a row labelled GO that then went GO is on its GO future, which stays collision-free (the
+    engine is deterministic, the future used the row's own generator), so it keeps its label without a new future."""
+
+    def __init__(self, venv, teacher, oracle: bool, margin: float) -> None:
+        self.venv, self.teacher, self.oracle, self.margin = venv, teacher, oracle, float(margin)
+        self.on_go_future = np.zeros(venv.num_envs, bool)
+
+    def __call__(self, rows: np.ndarray, obs: dict) -> np.ndarray:
+        from agents.batched_oracle import oracle_labels
+        from av_gym.wrappers import GO
+
+        labels = np.zeros(len(rows), dtype=np.int64)
+        if not self.oracle:
+            for n, r in enumerate(rows):
+                labels[n] = self.teacher(None, {k: v[r] for k, v in obs.items()}, None)
+            return labels
+        known = self.on_go_future[rows]
+        labels[known] = GO
+        ask = rows[~known]
+        if len(ask):
+            labels[~known] = oracle_labels(self.venv.engine, ask, self.margin)[0]
+        return labels
+
+    def executed(self, rows: np.ndarray, labels: np.ndarray, actions: np.ndarray, done: np.ndarray) -> None:
+        from av_gym.wrappers import GO
+
+        self.on_go_future[rows] = (labels == GO) & (actions[rows] == GO) & ~done[rows]
+
+
+def drive_batched(venv, model, labeller: BatchedLabels, seeds, teacher_drives: bool, gamma: float) -> Round:
+    """The episodes ``seeds`` on the batch, the teacher's labels at every decision, driven by the teacher (its
+    labels executed) or by the student (its deterministic choice)."""
+    out, B = Round(), venv.num_envs
+    obs = venv.play(iter(seeds))
+    labeller.on_go_future[:] = False
+    episode: list[list] = [[] for _ in range(B)]  # per row: [obs, label, agree, reward] of the open episode
+    while not venv.idle.all():
+        rows = np.nonzero(~venv.idle)[0]
+        t0 = time.perf_counter()
+        labels = labeller(rows, obs)
+        out.label_s += time.perf_counter() - t0
+        student = np.asarray(model.predict(obs, deterministic=True)[0]).reshape(B)
+        actions = student.copy()
+        if teacher_drives:
+            actions[rows] = labels
+        for n, r in enumerate(rows):
+            episode[r].append([{k: v[r].copy() for k, v in obs.items()}, int(labels[n]),
+                               float(student[r] == labels[n])])
+        obs, rewards, done, infos = venv.step(actions)
+        labeller.executed(rows, labels, actions, done)
+        for r in rows:
+            episode[r][-1].append(float(rewards[r]))
+            if done[r]:
+                steps = episode[r]
+                out.obs += [s[0] for s in steps]
+                out.labels += [s[1] for s in steps]
+                out.agree += [s[2] for s in steps]
+                out.returns += discounted([s[3] for s in steps], gamma)
+                out.outcomes.append(outcome(infos[r]))
+                episode[r] = []
+    return out
+
+
+def drive_per_env(env, model, teacher, seeds, teacher_drives: bool, gamma: float) -> Round:
+    """The episodes ``seeds`` on one per-env training stack, ``teacher(env, obs, info)`` labelling each state."""
+    from gymnasium import spaces
+
+    out = Round()
+    discrete = isinstance(env.action_space, spaces.Discrete)
+    for seed in seeds:
+        obs, info = env.reset(seed=int(seed))
+        rewards, done = [], False
+        while not done:
+            t0 = time.perf_counter()
+            label = teacher(env, obs, info)
+            out.label_s += time.perf_counter() - t0
+            student = model.predict(obs, deterministic=True)[0]
+            out.obs.append({k: np.array(v, copy=True) for k, v in obs.items()})
+            out.labels.append(label)
+            out.agree.append(float(int(student) == int(label)) if discrete else
+                             1.0 - float(np.mean(np.abs(np.asarray(student) - np.asarray(label)))))
+            obs, r, terminated, truncated, info = env.step(label if teacher_drives else student)
+            rewards.append(float(r))
+            done = terminated or truncated
+        out.returns += discounted(rewards, gamma)
+        out.outcomes.append(outcome(info))
+    return out
+
+
+# ------------------------------------------------------------------------------------------------------ the fit
+def fit(model, data: Round, epochs: int, batch_size: int, lr: float, seed: int) -> float:
+    """Actor to the labels (negative log-likelihood), critic to the returns (MSE scaled by their variance, so the
+    shared extractor is not driven by the returns' scale), Adam at ``lr``, every tensor on the policy's device
+    (agent.device): train/ppo.py's :func:`~train.ppo.fit_policy`, the fit its cloning step uses. Returns the
+    accuracy on all labels."""
+    from gymnasium import spaces
+
+    from train.ppo import Demonstrations, fit_policy
+
+    demos = Demonstrations(0.0, data.obs, data.labels, data.returns)  # returns already discounted per round
+    return fit_policy(model.policy, demos, isinstance(model.action_space, spaces.Discrete), epochs, batch_size,
+                      lr, seed=seed)
+
+
+def aggregate(total: Round, new: Round) -> None:
+    total.obs += new.obs
+    total.labels += new.labels
+    total.returns += new.returns
+
+
+# ------------------------------------------------------------------------------------------------------ the run
+def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
+    """Train the student as ``cfg.agent`` says; returns ``ckpt_dir/model.zip``. SIGINT / SIGTERM save
+    ``latest.zip`` (the last finished round's student) before exiting."""
+    import signal
+
+    from torch.utils.tensorboard import SummaryWriter
+    from tqdm import tqdm
+
+    from agents.dagger import DaggerParams
+    from av_gym.seeds import train_seed
+    from agents.ppo import make_ppo
+    from train.checkpoint import save_model_atomic, write_text_atomic
+    from train.ppo import _env_factory, make_teacher
+
+    agent, t_start = cfg.agent, time.time()
+    params = DaggerParams.from_mapping(OmegaConf.to_container(agent, resolve=True), where="agent")
+    for stale in ckpt_dir.glob(".*.tmp"):  # a save killed half-way; the previous file is intact
+        stale.unlink()
+    plain = [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
+    repeat, actions = int(params.action_repeat), str(params.actions)
+    teacher = make_teacher(params.teacher, actions, str(cfg.env.name), repeat)
+    how = labeller_of(cfg)
+    if how == "per_env":
+        env = _env_factory(*plain, 0.0, repeat, actions, timeout_is_terminal=params.timeout_is_terminal)
+        model = make_ppo(env, OmegaConf.to_container(agent, resolve=True), seed=int(cfg.seed), tensorboard_log=None,
+                         device=agent.device)
+        drive = lambda seeds, by_teacher: drive_per_env(env, model, teacher, seeds, by_teacher,  # noqa: E731
+                                                        float(params.gamma))
+    else:
+        from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
+
+        env = BatchedLeftTurnVecEnv(*plain, int(params.n_envs), action_repeat=repeat, actions=actions,
+                                    timeout_is_terminal=params.timeout_is_terminal, pool=0)
+        model = make_ppo(env, OmegaConf.to_container(agent, resolve=True), seed=int(cfg.seed), tensorboard_log=None,
+                         device=agent.device)
+        labels = BatchedLabels(env, teacher, how == "batched", params.label_margin)
+        drive = lambda seeds, by_teacher: drive_batched(env, model, labels, seeds, by_teacher,  # noqa: E731
+                                                        float(params.gamma))
+    validation = _validation(cfg, plain, repeat, actions, how != "per_env")
+    tau = float(params.go_threshold)
+
+    def shift(m, on: bool) -> None:
+        """Move the GO boundary to go_threshold (on) or back to the fit's 0.5 (off); go/yield students only."""
+        if tau != 0.5 and actions == "go_yield":
+            from train.operating_point import shift_go
+
+            shift_go(m, tau if on else 1.0 - tau)
+    writer = SummaryWriter(str(run_dir / "tb" / str(params.name)))
+    rows: list[dict] = []
+    data, best = Round(), -np.inf
+    # each training seed drives its own episodes, train_seed + 50,000 x seed + the round's offset, all in the
+    # train split (av_gym/seeds.py: folded into it)
+    first = int(params.train_seed) + 50_000 * int(cfg.seed)
+    print(f"[train] DAgger: {params.rounds} rounds x {params.round_episodes} episodes, teacher {params.teacher} "
+          f"({how} labels), student {params.extractor} on {cfg.sensors.name}; episode seeds {first}+")
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM behaves like Ctrl-C
+    bar = tqdm(range(int(params.rounds)), desc="DAgger rounds", disable=not bool(cfg.train.progress_bar))
+    try:
+        for k in bar:
+            seeds = [train_seed(first, k * int(params.round_episodes) + i) for i in range(int(params.round_episodes))]
+            new = drive(seeds, k == 0)
+            aggregate(data, new)
+            accuracy = fit(model, data, int(params.fit_epochs), int(params.fit_batch), float(params.fit_lr),
+                           int(cfg.seed) * 1000 + k)
+            coll, succ = np.mean(new.outcomes, axis=0)
+            row = {"round": k, "driver": "teacher" if k == 0 else "student", "episodes": len(new.outcomes),
+                   "labels": len(data.labels), "wall_s": round(time.time() - t_start, 1),
+                   "label_s": round(new.label_s, 1), "agreement": float(np.mean(new.agree)),
+                   "drive_success": float(succ), "drive_collision": float(coll), "fit_accuracy": accuracy,
+                   "val_success": np.nan, "val_collision": np.nan}
+            shift(model, True)  # validated and saved at the operating point
+            if validation is not None:
+                row["val_collision"], row["val_success"] = validation(model)
+            rows.append(row)
+            save_model_atomic(model, ckpt_dir / "latest.zip")
+            score = row["val_success"] - row["val_collision"]
+            if validation is not None and score > best:
+                best = score
+                save_model_atomic(model, ckpt_dir / "best.zip")
+            shift(model, False)
+            _log(writer, row, len(new.labels) / max(new.label_s, 1e-9))
+            write_text_atomic(ckpt_dir / "rounds.csv", _csv(rows))
+            print(f"[train] round {k}: {row['driver']} drove {row['episodes']} episodes (success "
+                  f"{succ:.3f}, collision {coll:.3f}); the student agreed with the teacher on {row['agreement']:.3f} "
+                  f"of its states; {row['labels']} labels ({len(new.labels) / max(new.label_s, 1e-9):.0f}/s), fit "
+                  f"accuracy {accuracy:.3f}" + (f"; validation success {row['val_success']:.3f}, collision "
+                                                f"{row['val_collision']:.3f}" if validation is not None else "")
+                  + f" [{row['wall_s']:.0f} s]", flush=True)
+    except KeyboardInterrupt:
+        print(f"[train] interrupted; the last finished round's student is {ckpt_dir / 'latest.zip'}")
+        raise
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        writer.close()
+        env.close()
+    write_text_atomic(run_dir / "rounds.csv", _csv(rows))
+    shift(model, True)
+    path = save_model_atomic(model, ckpt_dir / "model.zip")
+    print(f"[train] DAgger: {len(data.labels)} labels in {time.time() - t_start:.0f} s")
+    return path
+
+
+def _validation(cfg: DictConfig, plain: list, repeat: int, actions: str, batched: bool):
+    """``model -> (collision, success)`` on ``train.eval_n`` episodes of the validation split from ``train.eval_seed`` (None if 0)."""
+    from av_gym.seeds import config_seeds
+
+    n = int(cfg.train.eval_n)
+    if n <= 0:
+        return None
+    seeds = config_seeds("validation", n, cfg.train.get("eval_seed"), "train.eval_seed")
+
+    def run(model):
+        from agents.ppo import SB3Policy
+
+        policy = SB3Policy(model, repeat, actions)
+        if batched:
+            from eval.batched import play_batched
+
+            rows = play_batched(*plain, policy, seeds, min(n, 128), "val", progress=False)
+        else:
+            from av_gym.make import make_env
+            from eval.runner import run_episodes
+
+            env = make_env(*plain)
+            rows = run_episodes(env, policy, seeds, "val", progress=False)
+            env.close()
+        return (float(np.mean([r["collision"] for r in rows])),
+                float(np.mean([r["success"] if "success" in r else r["lap_completed"] for r in rows])))
+    return run
+
+
+def _log(writer, row: dict, label_rate: float) -> None:
+    step = int(row["labels"])
+    for key in ("agreement", "drive_success", "drive_collision", "fit_accuracy", "val_success", "val_collision"):
+        if row[key] == row[key]:  # not NaN
+            writer.add_scalar(f"dagger/{key}", row[key], step)
+    writer.add_scalar("dagger/wall_s", row["wall_s"], step)
+    writer.add_scalar("dagger/labels_per_s", label_rate, step)
+    writer.flush()
+
+
+def _csv(rows: list[dict]) -> str:
+    import io
+
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=ROUND_FIELDS)
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: (f"{v:.4f}" if isinstance(v, float) else v) for k, v in r.items()})
+    return buf.getvalue()

@@ -1,0 +1,215 @@
+"""A training run owns its folders (issue 31, rows 2-4 and 12).
+
+``checkpoints/<run_name>/`` and ``runs/<run_name>/`` belong to one run:
+
+- a ``run_name`` whose folders already hold a run is refused, unless ``train.resume=true`` (continue it) or
+  ``train.overwrite=true`` (delete it and start afresh): a second ``python -m train run_name=R`` used to replace the
+  first run's model.zip and config.yaml and write both runs' curves into one TensorBoard folder;
+- ``train.resume=true`` needs the run's ``latest.zip``, and this command's env/sensors/shield/agent sections must be
+  the run's own (its ``config.yaml``): both checked before anything is written, so a refused resume leaves the run
+  as it was (it used to overwrite config.yaml first) and a resume of a run that does not exist writes nothing;
+- while a process trains a run it holds an exclusive ``flock`` on ``checkpoints/<run_name>/.lock``; a second process
+  on the same run is refused in one line. The kernel drops the lock when the holder exits however it exits
+  (kill -9 included), so a crashed run can be resumed at once.
+
+``.``/``..`` and path separators in ``run_name`` are refused by its Params (``name_like``).
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import shutil
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from av_gym.errors import ConfigError
+
+LOCK = ".lock"
+SECTIONS = ("env", "sensors", "shield", "agent")
+# What may differ on resume: how long to train and where, not what is trained.
+RESUME_MAY_CHANGE = ("agent.total_timesteps", "agent.device")
+
+_held: dict[Path, int] = {}  # checkpoint folder (resolved) → the lock file's descriptor, for this process
+
+
+def _contents(folder: Path, ignore: tuple[str, ...] = (LOCK,)) -> list[str]:
+    """Names in ``folder`` (none if it does not exist), without ``ignore``."""
+    try:
+        return sorted(p.name for p in folder.iterdir() if p.name not in ignore)
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+
+
+def _flat(node: Any, prefix: str) -> dict[str, Any]:
+    if isinstance(node, Mapping):
+        out = {}
+        for key, value in node.items():
+            out.update(_flat(value, f"{prefix}.{key}"))
+        return out or {prefix: {}}
+    return {prefix: list(node) if isinstance(node, (list, tuple)) else node}
+
+
+def resume_problem(saved: Mapping, cfg: Mapping, config_path: Path) -> str | None:
+    """The first setting of the sections a resumed run must keep that differs from the run's ``config.yaml``."""
+    for section in SECTIONS:
+        old, new = _flat(saved.get(section, {}), section), _flat(cfg.get(section, {}), section)
+        first = (f"{section}.name", f"{section}.kind")  # a different scenario or kind says it all
+        for key in sorted(set(old) | set(new), key=lambda k: (k not in first, k)):
+            if key in RESUME_MAY_CHANGE or old.get(key, "<unset>") == new.get(key, "<unset>"):
+                continue
+            return (f"train.resume=true: {key} is {new.get(key, '<unset>')!r} here but {old.get(key, '<unset>')!r} "
+                    f"in {config_path}; resume with the run's own settings, or train a new run_name")
+    return None
+
+
+def ownership_problem(ckpt_dir: Path, runs_dir: Path | None, resume: bool, overwrite: bool,
+                      cfg: Mapping | None = None) -> str | None:
+    """Why this command may not write ``ckpt_dir`` (and ``runs_dir``, the run's log folder), or None."""
+    name = ckpt_dir.name
+    if resume:
+        latest = ckpt_dir / "latest.zip"
+        if not latest.is_file():
+            return (f"train.resume=true but {latest} does not exist (resume needs the run_name of a run that wrote "
+                    f"a checkpoint)")
+        config_path = ckpt_dir / "config.yaml"
+        if cfg is not None and config_path.is_file():
+            import yaml
+
+            try:
+                saved = yaml.safe_load(config_path.read_text()) or {}
+            except (yaml.YAMLError, OSError) as exc:
+                return f"train.resume=true: cannot read {config_path}: {' '.join(str(exc).split())[:200]}"
+            if isinstance(saved, Mapping):
+                return resume_problem(saved, cfg, config_path)
+        return None
+    if overwrite:
+        return None
+    held = _contents(ckpt_dir)
+    if held:
+        return (f"run_name={name}: {ckpt_dir} already holds a run ({', '.join(held[:3])}"
+                f"{' ...' if len(held) > 3 else ''}); pick another run_name, continue it with train.resume=true, "
+                f"or replace it with train.overwrite=true")
+    logs = _contents(runs_dir, ignore=()) if runs_dir is not None else []
+    if logs:
+        return (f"run_name={name}: {runs_dir} already holds a run's logs ({', '.join(logs[:3])}"
+                f"{' ...' if len(logs) > 3 else ''}); pick another run_name, or replace it with train.overwrite=true")
+    return None
+
+
+def claim(ckpt_dir: str | Path, runs_dir: str | Path | None, resume: bool, overwrite: bool,
+          cfg: Mapping | None = None) -> Path:
+    """Check that this command may write the run (:func:`ownership_problem`), then take its lock for the life of
+    this process (or until :func:`release`). Raises :class:`ConfigError` with one line; a refused claim leaves
+    nothing behind. Claiming a folder this process already holds returns at once."""
+    ckpt_dir = Path(ckpt_dir)
+    key = ckpt_dir.resolve()
+    if key in _held:
+        return ckpt_dir
+    runs_dir = Path(runs_dir) if runs_dir is not None else None
+    problem = ownership_problem(ckpt_dir, runs_dir, resume, overwrite, cfg)
+    if problem:
+        raise ConfigError(problem)
+    created = not ckpt_dir.exists()
+    try:
+        ckpt_dir.mkdir(parents=True, exist_ok=True)
+        fd = _lock(ckpt_dir / LOCK)
+    except BlockingIOError:
+        pid = _holder(ckpt_dir / LOCK)
+        raise ConfigError(f"run_name={ckpt_dir.name}: another process{f' (pid {pid})' if pid else ''} is training "
+                          f"this run ({ckpt_dir / LOCK} is locked); wait for it, or pick another run_name") from None
+    except OSError as exc:
+        if created:
+            _remove_if_empty(ckpt_dir)
+        raise ConfigError(f"paths.checkpoints: cannot write {ckpt_dir}: {os.strerror(exc.errno or errno.EIO)}") \
+            from None
+    if not _held:
+        import atexit
+
+        atexit.register(release_all)  # however the command ends: no .lock (and no empty folder) left behind
+    _held[key] = fd
+    # Checked again under the lock: two commands started together both passed the check above.
+    problem = ownership_problem(ckpt_dir, runs_dir, resume, overwrite, cfg)
+    if problem:
+        release(ckpt_dir)
+        raise ConfigError(problem)
+    return ckpt_dir
+
+
+def _lock(path: Path) -> int:
+    """An exclusive, non-blocking ``flock`` on ``path`` (created), with this process's id written in it. Retried
+    when the file was unlinked by a releasing holder between our open and our lock (the lock would then be on a
+    file no one else can see)."""
+    import fcntl
+
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise
+        try:
+            same = os.fstat(fd).st_ino == os.stat(path).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            os.ftruncate(fd, 0)
+            os.write(fd, f"{os.getpid()}\n".encode())
+            return fd
+        os.close(fd)
+
+
+def _holder(path: Path) -> int | None:
+    try:
+        return int(path.read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _remove_if_empty(folder: Path) -> None:
+    try:
+        folder.rmdir()
+    except OSError:
+        pass
+
+
+def release(ckpt_dir: str | Path) -> None:
+    """Drop the lock on ``ckpt_dir`` (the lock file is removed, and the folder if nothing else is in it)."""
+    ckpt_dir = Path(ckpt_dir)
+    fd = _held.pop(ckpt_dir.resolve(), None)
+    if fd is None:
+        return
+    try:
+        (ckpt_dir / LOCK).unlink()
+    except FileNotFoundError:
+        pass
+    os.close(fd)
+    _remove_if_empty(ckpt_dir)
+
+
+def release_all(keep: str | Path | None = None) -> None:
+    """Release every run this process holds but ``keep`` (the command-line check claims ``run_name`` as it
+    composes it; a ``${now:...}`` in it may resolve a second later in the job)."""
+    keep_key = Path(keep).resolve() if keep is not None else None
+    for key in [k for k in _held if k != keep_key]:
+        release(key)
+
+
+def clear_for_overwrite(ckpt_dir: Path, run_dir: Path | None) -> list[str]:
+    """``train.overwrite=true``: delete the previous run's files (checkpoints; logs and TensorBoard except the
+    ``.hydra/`` and log Hydra just wrote for this job). Only under the run's lock. Returns what was removed."""
+    if ckpt_dir.resolve() not in _held:
+        raise RuntimeError(f"clear_for_overwrite({ckpt_dir}) without holding its lock")
+    removed = []
+    for folder, keep in ((ckpt_dir, (LOCK,)), (run_dir, (".hydra",))):
+        if folder is None:
+            continue
+        for name in _contents(folder, ignore=keep):
+            path = folder / name
+            if folder == run_dir and path.suffix == ".log":
+                continue
+            shutil.rmtree(path) if path.is_dir() and not path.is_symlink() else path.unlink()
+            removed.append(str(path))
+    return removed
