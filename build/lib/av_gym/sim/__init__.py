@@ -1,1 +1,0 @@
-"""Faster drop-in replacements for hot spots of highway-env's simulation, with identical results."""

@@ -1,1 +1,0 @@
-"""``python -m eval``: compare policies on seeded episodes of one scenario."""
