@@ -14,6 +14,14 @@ from eval.results_page import BEGIN, END, load_all, main, page, quoted_block
 ROOT = Path(__file__).resolve().parent.parent
 
 
+def test_the_page_and_the_readme_block_are_what_the_result_files_give():
+    """Fails when a result folder changed and the page was not regenerated, or README's numbers were typed."""
+    text = page(load_all(ROOT / "docs" / "results"))
+    assert (ROOT / "docs" / "results.md").read_text() == text, "run python -m eval.results_page --readme README.md"
+    assert quoted_block((ROOT / "README.md").read_text(), "README.md") == quoted_block(text, "the page")
+    assert "| test |" in quoted_block(text, "the page")  # the headline reports the test split
+
+
 def _folder(root: Path, name: str, seeds, collisions, agent="always_proceed") -> Path:
     d = root / name
     d.mkdir(parents=True)
