@@ -175,6 +175,196 @@ def soak(episodes: int, agent: str, shield_mode: str, seed: int, sample_every: i
     return r
 
 
+# ------------------------------------------------------------------------------------------ the mixed soak (--mix)
+# Issue 31: after the command line and fault fixes, many configurations and agents in one process, short
+# episodes. Each entry: (env, sensors, shield, agent, extra overrides); built once, lazily, and reused (a leak shows
+# as growth over the reuse), one of them closed and rebuilt every REBUILD_EVERY episodes (building and closing
+# must not leak either).
+MIX = [
+    ("left_turn", "truth", "none", "random", []),
+    ("left_turn", "truth", "none", "always_proceed", ["env.action=continuous"]),
+    ("left_turn", "turn_truth", "none", "gap_acceptance", []),
+    ("left_turn", "turn_truth", "none", "ppo_turn", []),
+    ("left_turn", "turn_perceived", "none", "random", []),
+    ("left_turn", "gnss_imu", "none", "random", ["env.policy_frequency=20", "env.simulation_frequency=40"]),
+    ("left_turn", "detector", "aeb", "random", []),
+    ("left_turn", "lidar", "none", "random", ["sensors.lidar.beams=180"]),
+    ("left_turn", "localized", "none", "always_proceed", []),
+    ("left_turn", "full", "aeb", "random", ["shield.mode=perceived"]),
+    ("left_turn", "truth", "aeb", "random", ["env.mode=ccftap", "env.ccftap.dt=0.5"]),
+    ("left_turn", "truth", "none", "random", ["env.action=continuous", "shield=aeb"]),
+    ("lane_keeping", "truth", "none", "pid_paper", []),
+    ("lane_keeping", "gnss_imu", "none", "random", []),
+    ("lane_keeping", "camera_centre", "none", "random", []),
+    ("lane_keeping", "lane_localized", "none", "random", []),
+]
+SHORT = {"left_turn": ["env.duration=4"], "lane_keeping": ["env.time_limit=4"]}  # s: many short episodes
+REBUILD_EVERY = 50
+
+
+def _finite(value) -> bool:
+    """Every number in ``value`` (nested dicts/lists/arrays) is finite."""
+    if isinstance(value, dict):
+        return all(_finite(v) for v in value.values())
+    if isinstance(value, (list, tuple)):
+        return all(_finite(v) for v in value)
+    if isinstance(value, np.ndarray):
+        return not np.issubdtype(value.dtype, np.floating) or bool(np.isfinite(value).all())
+    if isinstance(value, (float, np.floating)):
+        return bool(np.isfinite(value))
+    return True
+
+
+ALWAYS_DEFINED = ("return", "length", "duration_s", "mean_speed_mps")  # NaN in these is a bug, not "did not happen"
+
+
+def _bad_metrics(metrics: dict) -> dict:
+    """Episode metrics out of their declared kind's range (av_gym/metrics/kinds.py): infinite anywhere; NaN in a
+    rate, a count or a quantity every episode has (elsewhere NaN means "did not happen", e.g. time_to_exit_s of
+    an episode that never exited); a rate not 0/1; a negative count, duration or non-negative quantity."""
+    from av_gym.metrics.kinds import kind_of
+
+    bad = {}
+    for name, value in metrics.items():
+        if not isinstance(value, (int, float, np.integer, np.floating)) or isinstance(value, bool):
+            continue
+        kind, v = kind_of(name), float(value)
+        if np.isinf(v) or (np.isnan(v) and (kind in ("rate", "count") or name in ALWAYS_DEFINED)) or \
+                (kind == "rate" and not np.isnan(v) and v not in (0.0, 1.0)) or \
+                (kind in ("count", "duration", "nonnegative") and v < 0):
+            bad[name] = v
+    return bad
+
+
+def _mix_entry(entry: tuple, seed: int):
+    """(env, act, label) for one MIX entry: rule-based and shipped agents through eval's own resolver."""
+    env_name, sensors, shield, agent, extra = entry
+    overrides = [f"env={env_name}", f"sensors={sensors}", f"shield={shield}", *SHORT[env_name], *extra]
+    env, _ = build(overrides)
+    label = " ".join([env_name, f"sensors={sensors}", f"shield={shield}", f"agent={agent}", *extra])
+    if agent == "random":
+        space = env.action_space
+        space.seed(seed)
+        return env, (lambda obs: space.sample()), (lambda: None), label
+    import contextlib
+    import io
+
+    from eval.agents import resolve_agent
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        _, policy = resolve_agent(agent, env, env_name, "checkpoints")
+    return env, policy.act, policy.reset, label
+
+
+def mix_soak(episodes: int, seed: int, sample_every: int, progress: bool) -> dict:
+    """``episodes`` short episodes, each of a MIX entry drawn with a seeded generator; every exception, every
+    non-finite reward or metric, and the memory growth after warm-up are recorded."""
+    rng = np.random.default_rng(seed)
+    built: dict[int, tuple] = {}
+    st = {"errors": [], "nonfinite": [], "steps": 0, "per_entry": [0] * len(MIX), "rebuilds": 0,
+          "obs_nonfinite": {}}
+    warm = min(WARM_EPISODE, max(episodes // 2, 0))
+    gc.collect()
+    rss0, source = rss_mb()
+    samples, times = [(0, rss0)], [(0, 0.0)]
+    t0 = time.perf_counter()
+    done = 0
+    old = signal.signal(signal.SIGTERM, _on_sigterm)
+    try:
+        for i in range(episodes):
+            k = int(rng.integers(len(MIX)))
+            ep_seed = seed + i
+            try:
+                if k not in built:
+                    built[k] = _mix_entry(MIX[k], seed + k)
+                env, act, reset, label = built[k]
+                obs, _ = env.reset(seed=ep_seed)
+                reset()
+                finished = False
+                while not finished:
+                    obs, reward, terminated, truncated, info = env.step(act(obs))
+                    st["steps"] += 1
+                    finished = terminated or truncated
+                    if not _finite(reward):
+                        raise FloatingPointError(f"reward {reward!r}")
+                    if not _finite(obs):  # reported, not fatal: a sensor may mark a missing value so
+                        st["obs_nonfinite"][label] = st["obs_nonfinite"].get(label, 0) + 1
+                bad = _bad_metrics(info.get("episode_metrics", {}))
+                if bad:
+                    st["nonfinite"].append({"episode": i, "seed": ep_seed, "config": label, "metrics": bad})
+                st["per_entry"][k] += 1
+            except Exception as exc:  # noqa: BLE001 - a soak records every failure and keeps going
+                st["errors"].append({"episode": i, "seed": ep_seed, "config": MIX[k],
+                                     "error": f"{type(exc).__name__}: {exc}",
+                                     "where": traceback.format_exc().strip().splitlines()[-3:]})
+                if k in built:
+                    built.pop(k)[0].close()
+            done = i + 1
+            if done % REBUILD_EVERY == 0 and built:  # close and rebuild one stack: its memory must come back
+                j = sorted(built)[int(rng.integers(len(built)))]
+                built.pop(j)[0].close()
+                st["rebuilds"] += 1
+            if done % sample_every == 0 or done == warm or done == episodes:
+                gc.collect()
+                samples.append((done, rss_mb()[0]))
+                times.append((done, time.perf_counter() - t0))
+                if progress and done % max(sample_every, episodes // 20 or 1) == 0:
+                    print(f"[soak] {done}/{episodes} episodes, {time.perf_counter() - t0:.0f} s, RSS "
+                          f"{samples[-1][1]:.1f} MB, {len(st['errors'])} errors, {len(st['nonfinite'])} non-finite",
+                          flush=True)
+    except (KeyboardInterrupt, _Stop):
+        print(f"[soak] stopped after {done} episodes", flush=True)
+    finally:
+        signal.signal(signal.SIGTERM, old)
+        for env, *_ in built.values():
+            env.close()
+    elapsed = time.perf_counter() - t0
+    w = warm if done >= warm else 0
+    rss_warm = next((r for n, r in samples if n == w), rss0)
+    late = np.array([(n, r) for n, r in samples if n >= w], dtype=float)
+    slope = float(np.polyfit(late[:, 0], late[:, 1], 1)[0]) * 1000 if len(late) >= 3 else float("nan")
+    return {"mix": True, "episodes": episodes, "done": done, "seed": seed, "steps": st["steps"],
+            "elapsed_s": elapsed, "eps_per_s": done / max(elapsed, 1e-9), "rss_start_mb": rss0,
+            "rss_warm_mb": rss_warm, "rss_end_mb": samples[-1][1], "rss_peak_mb": max(r for _, r in samples),
+            "growth_mb": samples[-1][1] - rss_warm, "warm_episode": w, "slope_mb_per_1000": slope,
+            "rss_source": source, "errors": st["errors"], "nonfinite": st["nonfinite"],
+            "per_entry": st["per_entry"], "rebuilds": st["rebuilds"], "obs_nonfinite": st["obs_nonfinite"],
+            "samples": samples, "times": times, "final": True}
+
+
+def mix_report(r: dict) -> str:
+    ok_mem, ok_err, ok_nan = r["growth_mb"] < TARGET_GROWTH_MB, not r["errors"], not r["nonfinite"]
+    rows = [
+        ("episodes done", f"{r['done']} of {r['episodes']} (seeds {r['seed']}..{r['seed'] + r['done'] - 1})", ""),
+        ("configurations", f"{len(MIX)} (env x sensors x shield x agent), drawn per episode; "
+                           f"{r['rebuilds']} stacks closed and rebuilt", ""),
+        ("policy steps", f"{r['steps']}", ""),
+        ("wall time", f"{r['elapsed_s']:.0f} s ({r['eps_per_s']:.2f} episodes/s)", ""),
+        (f"RSS at start / episode {r['warm_episode']} / end",
+         f"{r['rss_start_mb']:.1f} / {r['rss_warm_mb']:.1f} / {r['rss_end_mb']:.1f} MB", ""),
+        (f"RSS growth, episode {r['warm_episode']} to end", f"{r['growth_mb']:+.1f} MB "
+         f"(slope {r['slope_mb_per_1000']:+.2f} MB per 1000 episodes)",
+         f"{'PASS' if ok_mem else 'FAIL'} (< {TARGET_GROWTH_MB:.0f} MB)"),
+        ("exceptions", f"{len(r['errors'])}", f"{'PASS' if ok_err else 'FAIL'} (none)"),
+        ("non-finite rewards, metrics out of their kind's range", f"{len(r['nonfinite'])}",
+         f"{'PASS' if ok_nan else 'FAIL'} (none)"),
+    ]
+    lines = ["| quantity | value | target |", "| --- | --- | --- |"] + [f"| {a} | {b} | {c} |" for a, b, c in rows]
+    lines += ["", "| configuration | episodes |", "| --- | --- |"]
+    lines += [f"| {' '.join([e[0], 'sensors=' + e[1], 'shield=' + e[2], 'agent=' + e[3], *e[4]])} | {n} |"
+              for e, n in zip(MIX, r["per_entry"])]
+    if r["obs_nonfinite"]:
+        lines.append("\nSteps whose observation held a non-finite value (reported, not a failure): "
+                     + ", ".join(f"{k}: {v}" for k, v in r["obs_nonfinite"].items()))
+    for e in r["errors"][:20]:
+        lines.append(f"\n- episode {e['episode']} (seed {e['seed']}, {e['config']}): {e['error']}")
+    for e in r["nonfinite"][:20]:
+        lines.append(f"\n- episode {e['episode']} (seed {e['seed']}, {e['config']}): out of range {e['metrics']}")
+    lines.append(f"\nRSS from {r['rss_source']}, sampled after gc.collect(); Python {platform.python_version()}, "
+                 f"{platform.machine()}, {os.cpu_count()} CPUs.")
+    return "\n".join(lines)
+
+
 def report(r: dict) -> str:
     ok_mem = r["growth_mb"] < TARGET_GROWTH_MB
     ok_err = not r["errors"]
@@ -246,10 +436,27 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", help="also write the report as Markdown here (e.g. runs/soak.md; the committed report is in docs/performance.md)")
     parser.add_argument("--tracemalloc", action="store_true", help="list the allocations that grew (slow)")
     parser.add_argument("--quiet", action="store_true")
+    parser.add_argument("--mix", action="store_true", help="many configurations and agents, short episodes "
+                                                            "(issue 31): exceptions, non-finite values, memory")
+    parser.add_argument("--quick", action="store_true", help="--mix on 48 episodes (a test's size)")
     args = parser.parse_args(argv)
+    if args.quick:
+        args.mix, args.episodes, args.sample_every = True, 48, 8
     if args.episodes < 1:
         parser.error("--episodes must be >= 1")
     cmd = "python benchmarks/soak.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    if args.mix:
+        r = mix_soak(args.episodes, args.seed, max(args.sample_every, 1), not args.quiet)
+        text = mix_report(r)
+        print("\n" + text)
+        if args.out:
+            Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+            tmp = Path(args.out).with_suffix(".tmp")
+            tmp.write_text(f"# Mixed soak (issue 31)\n\n`{cmd}`\n\n{text}\n")
+            tmp.replace(args.out)
+        # the quick run is too short for a memory figure after warm-up: it checks exceptions and values only
+        memory_ok = args.quick or r["growth_mb"] < TARGET_GROWTH_MB
+        return 0 if memory_ok and not r["errors"] and not r["nonfinite"] and r["done"] == r["episodes"] else 1
 
     def write(r: dict) -> None:
         if not args.out:

@@ -581,3 +581,16 @@ def test_eval_does_not_write_over_an_evaluation(tmp_path, monkeypatch, capsys):
 
     assert check_command_line("eval", ["out_dir=out", "agents=[always_proceed]", "overwrite=true"])
     assert (tmp_path / "out" / "results.csv").read_text() == "agent,seed\n"
+
+
+# ---------------------------------------------------------------------------------------- the mixed soak, quick form
+@pytest.mark.slow  # 48 episodes over 16 configurations, each stack built once: ~1.5 CPU-minutes
+def test_the_quick_mixed_soak_is_clean(tmp_path, monkeypatch, capsys):
+    """benchmarks/soak.py --quick: no exception, no non-finite reward, no metric outside its kind's range."""
+    import runpy
+
+    monkeypatch.chdir(tmp_path)
+    soak = runpy.run_path(str(ROOT / "benchmarks" / "soak.py"))
+    assert soak["main"](["--quick", "--quiet", "--out", str(tmp_path / "soak.md")]) == 0, capsys.readouterr().out
+    text = (tmp_path / "soak.md").read_text()
+    assert "| exceptions | 0 | PASS (none) |" in text and "48 of 48" in text
