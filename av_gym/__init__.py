@@ -25,3 +25,19 @@ for _name, (_gym_id, _) in SCENARIO_ENTRIES.items():
         # av_gym.api checks config/render_mode and adds the harness's sensors, shield or a checkpoint's wrappers
         register(id=_gym_id, entry_point=f"av_gym.api:{_name}",
                  vector_entry_point="av_gym.api:left_turn_vector" if _name == "left_turn" else None)
+
+
+def _preload_in_forkserver() -> None:
+    """Worker processes started by a forkserver (SB3's ``SubprocVecEnv`` default on Linux) import ``av_gym`` first,
+    so the plain ids resolve there too: Gymnasium 1.x loads no plugins, and ``make_vec_env("av_gym/...",
+    vec_env_cls=SubprocVecEnv)`` failed in every worker with "Namespace av_gym not found" (issue 33). Added to the
+    modules already asked for; ``spawn`` workers still need the id written ``"av_gym:av_gym/..."``."""
+    import multiprocessing.forkserver as forkserver
+
+    server = getattr(forkserver, "_forkserver", None)
+    modules = list(getattr(server, "_preload_modules", None) or ["__main__"])
+    if server is not None and "av_gym" not in modules:
+        server.set_forkserver_preload([*modules, "av_gym"])
+
+
+_preload_in_forkserver()

@@ -98,3 +98,18 @@ def test_sb3_subproc_vec_env(env_id, kwargs) -> None:
         assert dones >= 2 and "truth" in infos[0]
     finally:
         venv.close()
+
+
+@pytest.mark.slow  # ~35 s, as above
+def test_sb3_subproc_vec_env_plain_id() -> None:
+    """The plain id in forkserver workers: av_gym asks the forkserver to preload it (issue 33: "Namespace av_gym not
+    found" in every worker)."""
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import SubprocVecEnv
+
+    venv = make_vec_env(TURN, n_envs=2, seed=0, vec_env_cls=SubprocVecEnv, env_kwargs={"sensors": "turn_truth"},
+                        vec_env_kwargs={"start_method": "forkserver"})
+    try:
+        assert venv.reset()["turn"].shape[0] == 2
+    finally:
+        venv.close()
