@@ -44,9 +44,7 @@ def _action_problem(space: spaces.Space, action: Any) -> str | None:
             return f"expected an array of shape {space.shape}, got {type(action).__name__}"
         if values.shape != space.shape:
             return f"expected shape {space.shape}, got {values.shape}"
-        if not np.all(np.isfinite(values)):
-            return "not finite (NaN or inf)"
-        if np.any(values < space.low) or np.any(values > space.high):
-            return "out of bounds"
-        return None
+        if ((values >= space.low) & (values <= space.high)).all():  # one pass: NaN fails both comparisons
+            return None
+        return "not finite (NaN or inf)" if not np.isfinite(values).all() else "out of bounds"
     return None if space.contains(action) else "not contained"  # pragma: no cover - the scenarios use Discrete/Box
