@@ -48,12 +48,15 @@ class GoFutures:
         return np.where(self.safe & (self.min_gap >= float(margin)), GO, YIELD).astype(np.int64)
 
 
-def future_rows(engine: BatchedLeftTurn, rows: np.ndarray) -> BatchedLeftTurn:
+def future_rows(engine: BatchedLeftTurn, rows: np.ndarray, spawns: bool = True) -> BatchedLeftTurn:
     """A new engine holding copies of ``rows`` of ``engine`` (its traffic, clocks, progress and each row's
     generator, deep-copied so that the future draws the spawns the real episode will draw), without the episode
-    pool or queue. Stepping it leaves ``engine`` as it is."""
+    pool or queue. Stepping it leaves ``engine`` as it is. ``spawns=False``: no vehicle enters the future (only
+    those on the map now drive on): what the oracle would know without the traffic still to come."""
     rows = np.asarray(rows, dtype=int)
     future = copy.copy(engine)  # shares the read-only tables, config and path geometry
+    if not spawns:
+        future.config = {**engine.config, "spawn_probability": 0.0}
     future.B = len(rows)
     future.traffic = engine.traffic.subset(rows)
     future.rngs = [copy.deepcopy(engine.rngs[r]) for r in rows]
@@ -64,7 +67,7 @@ def future_rows(engine: BatchedLeftTurn, rows: np.ndarray) -> BatchedLeftTurn:
     return future
 
 
-def go_futures(engine: BatchedLeftTurn, rows: np.ndarray | None = None) -> GoFutures:
+def go_futures(engine: BatchedLeftTurn, rows: np.ndarray | None = None, spawns: bool = True) -> GoFutures:
     """Play the GO future of each env ``rows`` of ``engine`` (default: all) to its episode's end, all together:
     GO at every env step (its meta-action from the features, as :class:`~av_gym.wrappers.GoYieldActions`) in a
     copy (:func:`future_rows`); the rows whose episode ended are no longer stepped."""
@@ -73,7 +76,7 @@ def go_futures(engine: BatchedLeftTurn, rows: np.ndarray | None = None) -> GoFut
     out = GoFutures(np.ones(n, bool), np.full(n, np.inf), np.zeros(n), np.zeros(n, bool))
     if n == 0:
         return out
-    f = future_rows(engine, rows)
+    f = future_rows(engine, rows, spawns)
     active = np.ones(n, bool)
     go = np.full(n, GO)
     turn = f.observe()

@@ -12,6 +12,9 @@ engine replays the same episodes with the same choices and :func:`agents.batched
 env's decision at once; the labels are compared decision by decision (a decision counts while both stacks are still
 in the same episode step).
 
+Also: how many labels depend on traffic not yet on the map (the same futures without new spawns), a part of the
+oracle's edge that no sensor can give a student.
+
 Throughput: labels per second of wall clock and per CPU-second of this process, per-env (as training uses it,
 with its exact "still on the safe path" shortcut, and without it: one future per decision) vs batched (``--batch``
 envs at a time, all futures rolled together). Prints a markdown table and the load average.
@@ -25,6 +28,8 @@ import time
 import numpy as np
 
 from conf.cli import ToolParser
+
+SPAWN_FLIPS = [0, 0]  # batched(): labels that change without the vehicles still to spawn, labels compared
 
 
 def load() -> str:
@@ -75,7 +80,7 @@ def per_env(plain, seeds, flip: float, shortcut: bool) -> tuple[dict, float, flo
 def batched(plain, recorded: dict, B: int, margin: float = 0.0) -> tuple[dict, float, float, int]:
     """Replay the recorded choices on the batched engine, ``B`` envs at a time; label every decision with the
     batched oracle. Returns {seed: [label, ...]}, wall s and CPU s spent in the oracle, number of labels."""
-    from agents.batched_oracle import oracle_labels
+    from agents.batched_oracle import go_futures, oracle_labels
     from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
     from av_gym.wrappers import YIELD
 
@@ -84,11 +89,15 @@ def batched(plain, recorded: dict, B: int, margin: float = 0.0) -> tuple[dict, f
     labels = {s: [] for s in recorded}
     wall = cpu = 0.0
     n = 0
+    SPAWN_FLIPS[:] = [0, 0]
     while not venv.idle.all():
         rows = np.nonzero(~venv.idle)[0]
         w0, c0 = time.perf_counter(), time.process_time()
         y, _ = oracle_labels(venv.engine, rows, margin)
         wall, cpu, n = wall + time.perf_counter() - w0, cpu + time.process_time() - c0, n + len(rows)
+        known = go_futures(venv.engine, rows, spawns=False).labels(margin)
+        SPAWN_FLIPS[0] += int((known != y).sum())
+        SPAWN_FLIPS[1] += len(rows)
         actions = np.full(B, YIELD)
         for r, label in zip(rows, y):
             seed = venv.row_seed[r]
@@ -167,6 +176,9 @@ def main() -> None:
     print(f"| per-env, one future per decision | {n_raw} | {n_raw / w_raw:.1f} | {n_raw / c_raw:.1f} |")
     print(f"| per-env, safe-path shortcut (as training) | {n_pe} | {n_pe / w_pe:.1f} | {n_pe / c_pe:.1f} |")
     print(f"| batched, {args.batch} envs | {n_b} | {n_b / w_b:.1f} | {n_b / c_b:.1f} |")
+    flips, total = SPAWN_FLIPS
+    print(f"\nlabels that change when no vehicle still to spawn enters the GO future (information no sensor "
+          f"carries): {flips}/{total} = {flips / max(total, 1):.4f}")
 
 
 if __name__ == "__main__":
