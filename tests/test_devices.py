@@ -111,11 +111,12 @@ def test_cuda_without_a_gpu_is_refused_in_one_line_before_any_folder(tmp_path):
 def test_pilotnet_checks_its_device_like_ppo():
     from omegaconf import OmegaConf
 
+    from agents.bc import PilotNetParams
     from eval.agents import compose_group
     from train.bc import validate
 
     cfg = OmegaConf.create({"env": {"name": "lane_keeping"}, "sensors": compose_group("sensors", "cameras"),
-                            "agent": {"device": "cuda", "sensors": "cameras"}})
+                            "agent": PilotNetParams(device="cuda").as_dict()})
     assert [p.split(" (")[0] for p in validate(cfg)] == ["agent.device=cuda but torch.cuda.is_available() is False"]
     cfg.agent.device = "auto"
     assert validate(cfg) == []
