@@ -92,13 +92,13 @@ def test_train_the_camera_lane_keeper_with_a_narrow_cnn(tmp_path):
 @pytest.mark.parametrize("module, overrides, needle", [
     ("train", ["env.mode=rush_hour"], "env.mode must be one of ['traffic', 'ccftap']"),
     ("train", ["env=lane_keeping", "agent=always_proceed"], "drives scenarios ['left_turn']"),
-    ("train", ["agent.n_envs=0"], "agent.n_envs must be an integer >= 1, got 0"),
+    ("train", ["agent.n_envs=0"], "agent.n_envs must be an integer in [1, 4096], got 0"),
     # Hydra's own errors (unknown key, unknown option), caught before Hydra reports them over several lines
     ("train", ["agent.epoch=3"], "agent.epoch is not a field of agent=ppo_turn; allowed: ['action_repeat', 'actions',"),
     ("train", ["env=foo"], "env=foo: env must be one of ['lane_keeping', 'left_turn']"),
     ("train", ["+foo=1"], "foo is not a train setting; allowed: ['agent', 'env',"),
     ("train", ["seed=0,1"], "add -m to sweep over them"),
-    ("train", ["env.duration=abc"], "env.duration must be a number > 0, got 'abc'"),
+    ("train", ["env.duration=abc"], "env.duration must be a number in (0, 600], got 'abc'"),
     ("train", ["env.spawn_probability=1.5"], "env.spawn_probability must be a number in [0, 1], got 1.5"),
     ("train", ["-m", "sensors=gnss_imu", "sensors.gnss.sigma=0.5,-1"], "sensors.gnss.sigma must be a number >= 0"),
     ("eval", ["agents=[no_such_agent]"], "agent 'no_such_agent' is not in conf/agent/"),
@@ -107,7 +107,7 @@ def test_train_the_camera_lane_keeper_with_a_narrow_cnn(tmp_path):
      "sensors.gnss.sigma must be a number >= 0, got -2"),
     ("eval", ["agents=[missing/model.zip]"], "does not exist"),
     ("eval", ["env=lane_keeping", "agents=[ppo]", "paths.checkpoints=nowhere"], "no ppo checkpoint"),
-    ("eval", ["n_envs=0"], "n_envs must be an integer >= 1, got 0"),
+    ("eval", ["n_envs=0"], "n_envs must be an integer in [1, 1024], got 0"),
     ("eval", ["shield=aeb", "+shield.detector.sigma_vel=-1"], "shield.detector.sigma_vel must be a number >= 0"),
 ])
 def test_bad_input_gives_one_line_and_exit_code_2(tmp_path, module, overrides, needle):
