@@ -189,6 +189,12 @@ KNOWN: dict[str, str] = {
     "python -m eval.sweep runs/multirun/aeb_reference --out docs/robustness/aeb_reference "
     "--metrics collision,success,time_to_exit_s,min_ttc_s,intervention,override_fraction": "run",
     "python -m eval.sweep runs/multirun/<stamp> --x sensors.gnss.sigma --metric cte_mean_abs_m": "run",
+    # docs/dagger.md (issue 32)
+    "python -m train agent=dagger_turn": "run",
+    "python benchmarks/oracle_labels.py --quick": "run",
+    "python -m train.operating_point checkpoints/<run_name> --thresholds [0.5,0.7,0.8,0.9,0.95] --episodes 300": "run",
+    "python docs/make_dagger_figure.py docs/dagger/rounds_s1.csv docs/dagger/rounds_s2.csv --out docs/dagger.png":
+        "run",
 }
 
 # A command that reads what another documented command writes, documented in a block of its own: the tiny form
@@ -215,6 +221,7 @@ PPO_BATCHED = ["agent.total_timesteps=64", "agent.n_envs=8", "agent.n_steps=8", 
 PPO_PER_ENV = ["agent.total_timesteps=64", "agent.n_steps=32", "agent.batch_size=32", "agent.n_epochs=1",
                "agent.init_episodes=2", "agent.init_epochs=1"]
 PILOTNET = ["agent.demo_laps=1", "agent.demo_max_steps=30", "agent.epochs=1"]
+DAGGER = ["agent.rounds=2", "agent.round_episodes=2", "agent.n_envs=2", "agent.fit_epochs=1", "agent.extractor=mlp"]
 # agents whose config trains per-env (a tracker, a shield, an image): their tiny form keeps n_envs at 1
 PER_ENV_AGENTS = ("ppo", "ppo_turn_shielded", "ppo_turn_perceived", "ppo_lane_localized", "ppo_lane_camera")
 
@@ -292,6 +299,9 @@ def _tiny_train(args: list[str], chain: Chain) -> list[str]:
             args = _set(args, *option.split("=", 1))
         if per_env and not any(a.startswith("agent.n_envs=") for a in args):
             args = _set(args, "agent.n_envs", "1")
+    elif agent.startswith("dagger"):
+        for option in DAGGER:
+            args = _set(args, *option.split("=", 1))
     elif agent == "pilotnet":
         for option in PILOTNET:
             args = _set(args, *option.split("=", 1))
@@ -359,11 +369,13 @@ TOOL_ARGS = {
     "eval.localization": [("--lap-seeds", ["100"]), ("--turn-seeds", ["100"]), ("--pid-seeds", ["100"])],
     "eval.tradeoff": [("--episodes", ["4"]), ("--n-envs", ["4"])],
     "train.pid_search": [("--grid", ["quick"]), ("--refine", ["0"]), ("--seeds", ["0"])],
+    "train.operating_point": [("--episodes", ["2"]), ("--thresholds", ["[0.5,0.9]"])],
 }
 SCRIPT_ARGS = {
     "benchmarks/odometry.py": ["--scans", "20", "--repeats", "1"],
     "benchmarks/pilotnet_inference.py": ["--frames", "20"],
     "benchmarks/sim_speed.py": ["--quick"],
+    "docs/make_dagger_figure.py": ["--out", "runs/documented/dagger.png"],
 }
 
 

@@ -191,3 +191,18 @@ def test_go_threshold_moves_the_decision_boundary():
     choice = model.predict(obs, deterministic=True)[0]
     assert 0 < (choice == GO).sum() < len(choice)
     assert np.array_equal(choice == GO, p_go >= tau)
+
+
+@pytest.mark.slow
+def test_dagger_on_perceived_features_runs_on_the_per_env_stack(tmp_path):
+    """Any student observation: turn_perceived (detector + tracker) needs the per-env stack, where the per-env oracle
+    labels one state at a time; the student's observation space is the tracker's features."""
+    from train.dagger import labeller_of, train_dagger
+
+    cfg = _cfg("agent=dagger_turn", "sensors=turn_perceived", "agent.vec_env=dummy", "agent.rounds=2",
+               "agent.round_episodes=1", "agent.extractor=mlp", "agent.fit_epochs=1", "train.eval_n=1",
+               "train.progress_bar=false")
+    assert labeller_of(cfg) == "per_env"
+    path = train_dagger(cfg, tmp_path / "ckpt", tmp_path / "run")
+    rows = (tmp_path / "ckpt" / "rounds.csv").read_text().splitlines()
+    assert path.is_file() and len(rows) == 3

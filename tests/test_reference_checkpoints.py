@@ -16,8 +16,8 @@ REF = resources.files("conf").parent / "checkpoints" / "reference"
 SB3_REFS = sorted(p.name for p in REF.iterdir() if (p / "model.zip").is_file())
 # extra training seeds a multi-seed row needs: reference/seeds/<name>/s<seed>/ (seed 1 is the reference itself)
 SEED_REFS = sorted(str(p.relative_to(REF)) for p in REF.glob("seeds/*/s*") if (p / "model.zip").is_file())
-NAMED = ("pilotnet_lane_keeping", "ppo_lane_camera", "ppo_lane_localized", "ppo_turn", "ppo_turn_perceived",
-         "ppo_turn_shielded")
+NAMED = ("dagger_turn", "pilotnet_lane_keeping", "ppo_lane_camera", "ppo_lane_localized", "ppo_turn",
+         "ppo_turn_perceived", "ppo_turn_shielded")
 
 
 def _env_and_policy(name: str):
