@@ -193,8 +193,8 @@ KNOWN: dict[str, str] = {
     "python -m train agent=dagger_turn": "run",
     "python benchmarks/oracle_labels.py --quick": "run",
     "python -m train.operating_point checkpoints/<run_name> --thresholds [0.5,0.7,0.8,0.9,0.95] --episodes 300": "run",
-    "python docs/make_dagger_figure.py docs/dagger/rounds_s1.csv docs/dagger/rounds_s2.csv --out docs/dagger.png":
-        "run",
+    "python docs/make_dagger_figure.py docs/dagger/rounds_s1.csv docs/dagger/rounds_s2.csv docs/dagger/rounds_s3.csv "
+    "--out docs/dagger.png": "run",
 }
 
 # A command that reads what another documented command writes, documented in a block of its own: the tiny form
