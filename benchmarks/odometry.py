@@ -35,6 +35,10 @@ def _conf(group: str, name: str) -> dict:
         from av_gym.registry import SENSORS
 
         return SENSORS.get(name).Params().as_dict()
+    if group == "env":  # conf/env/*.yaml are defaults lists over the scenario Params: composed by Hydra
+        from conf.presets import compose_group
+
+        return compose_group("env", name)
     return yaml.safe_load(path.read_text())
 
 

@@ -40,7 +40,9 @@ def main(argv=None) -> dict:
     frames = []
     for k in range(200):  # 200 distinct frames along the first 20 s of the lap, driven straight-ish
         frames.append(render_view(env, CameraSpec()))
-        env.step(np.array([0.0 if k < 110 else -0.45], np.float32))
+        _, _, terminated, truncated, _ = env.step(np.array([0.0 if k < 110 else -0.45], np.float32))
+        if terminated or truncated:  # off the road: the frames go on from a new start
+            env.reset(seed=k)
     env.close()
 
     def timed(fn, n):

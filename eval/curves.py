@@ -34,9 +34,10 @@ def plot_curves(runs: dict[str, dict[str, list[tuple[int, float]]]], tags: list[
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    tags = [t for t in tags if any(t in scalars for scalars in runs.values())]
+    present = sorted({t for scalars in runs.values() for t in scalars})
+    wanted, tags = tags, [t for t in tags if t in present]
     if not tags:
-        raise SystemExit(f"none of the tags {tags} is in the event files given")
+        raise SystemExit(f"error: none of the tags {list(wanted)} is in the event files given; they hold {present}")
     cols = min(3, len(tags))
     rows = (len(tags) + cols - 1) // cols
     fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.0 * rows), squeeze=False)
@@ -63,7 +64,9 @@ def main() -> None:
     parser = ToolParser(prog="python -m eval.curves", description=__doc__.splitlines()[0])
     parser.add_argument("tb_dirs", nargs="+", help="TensorBoard folders (runs/<run>/tb)")
     parser.add_argument("--out", default="curves.png")
-    parser.add_argument("--tags", nargs="+", default=list(DEFAULT_TAGS))
+    parser.add_argument("--tags", nargs="+", default=None,
+                        help=f"scalars to plot (default: those of {list(DEFAULT_TAGS)} the runs hold, else the "
+                             "rollout/* returns SB3 writes from the first rollout on)")
     args = parser.parse_args()
     missing = [d for d in args.tb_dirs if not Path(d).is_dir()]
     if missing:
@@ -72,7 +75,12 @@ def main() -> None:
     if problem:  # before reading any event file
         parser.error(f"argument {problem}")
     runs = {Path(d).parent.name if Path(d).name == "tb" else Path(d).name: read_scalars(d) for d in args.tb_dirs}
-    print(f"[curves] {plot_curves(runs, args.tags, args.out)}")
+    tags = args.tags
+    if tags is None:  # a short run may have no episode or evaluation yet: show what SB3 logged instead
+        present = {t for scalars in runs.values() for t in scalars}
+        tags = [t for t in DEFAULT_TAGS if t in present] or sorted(t for t in present if t.startswith("rollout/"))
+        tags = tags or list(DEFAULT_TAGS)
+    print(f"[curves] {plot_curves(runs, tags, args.out)}")
 
 
 if __name__ == "__main__":

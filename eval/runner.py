@@ -94,13 +94,18 @@ def guard_worker() -> None:
     if sys.platform.startswith("linux"):
         import ctypes
 
+        # The OS parent is not always multiprocessing's parent: a forkserver worker (SB3's SubprocVecEnv default)
+        # is the forkserver's child, and the forkserver exits when its last client does, so the signal still
+        # follows the process that asked for the worker. The race check therefore compares the OS parent before
+        # and after the call (a worker orphaned in between has been re-parented, to init or a subreaper).
+        os_parent = os.getppid()
         try:
             libc = ctypes.CDLL(None, use_errno=True)
             PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
             libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
         except (OSError, AttributeError):  # no libc symbol: the parent's clean-up is all there is
             return
-        if os.getppid() != parent.pid:  # the parent died before prctl took effect
+        if os.getppid() != os_parent:  # the parent died before prctl took effect
             os._exit(1)
 
 
