@@ -21,8 +21,9 @@ MUTATIONS = [
      ["tests/test_kernels.py::test_collision_kernel_is_the_numpy_separating_axes"]),
     ("av_gym/sim/batched.py", "COMFORT_ACC_MAX, COMFORT_ACC_MIN, ACC_MAX = 6.0, -3.0, 6.0",
      "COMFORT_ACC_MAX, COMFORT_ACC_MIN, ACC_MAX = 6.1, -3.0, 6.0", "a changed IDM constant in the batched engine",
+     # (the outcome test is not listed: a 0.1 m/s² change moves trajectories, which the two 5-s identity tests
+     # see, but it does not move whole-episode outcomes at 24 seeds; that test is for the mutation below)
      ["tests/test_batched_sim.py::test_batched_matches_per_env_stack_for_5_s",
-      "tests/test_batched_sim.py::test_batched_episodes_end_as_on_the_per_env_stack",
       "tests/test_batched_sim.py::test_batched_continuous_actions_match_per_env_stack_for_5_s"]),
     ("av_gym/batched/left_turn.py", "            terminated[rows] = crashed | arrived\n",
      "            terminated[rows] = crashed\n", "arrival no longer ends a batched episode",
