@@ -162,17 +162,18 @@ def test_seeds_are_drawn_lazily_and_rows_handed_back_as_episodes_end(turn_cfg):
     assert [r["seed"] for r in rows] == [5, 6] and all("collision" in r for r in rows)
 
 
-def test_an_interrupted_evaluation_of_10_to_the_12_episodes_keeps_what_it_measured(tmp_path):
-    """No MemoryError: the episodes run; Ctrl-C after a few writes them (and says where) and exits 130."""
+def test_an_interrupted_evaluation_of_a_whole_split_keeps_what_it_measured(tmp_path):
+    """No MemoryError: a million episodes (the whole validation split, the most a split holds) run; Ctrl-C after a
+    few writes them (and says where) and exits 130."""
     proc = subprocess.Popen([sys.executable, "-m", "eval", "agents=[always_proceed,gap_acceptance]",
-                             "episodes=1000000000000", "out_dir=out"], cwd=tmp_path, stdout=subprocess.PIPE,
+                             "episodes=1000000", "out_dir=out"], cwd=tmp_path, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     err = bytearray()  # the progress bar (stderr) says how many episodes ended
     reader = threading.Thread(target=lambda: [err.extend(c) for c in iter(lambda: os.read(proc.stderr.fileno(),
                                                                                          4096), b"")], daemon=True)
     reader.start()
     deadline = time.time() + 240
-    while not re.search(rb"\| *[2-9]/1000000000000", bytes(err)) and time.time() < deadline:
+    while not re.search(rb"\| *[2-9]/1000000", bytes(err)) and time.time() < deadline:
         assert proc.poll() is None, bytes(err)[-2000:]
         time.sleep(0.2)
     proc.send_signal(signal.SIGINT)

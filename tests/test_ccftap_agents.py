@@ -79,7 +79,7 @@ def test_agents_column_and_always_proceed_rows_unchanged(tmp_path, tiny_ppo):
 
 @pytest.mark.parametrize("agents, message", [
     ("no_such_agent", "agent 'no_such_agent' is not in conf/agent/"),
-    ("ppo_turn", "no ppo_turn checkpoint for env 'left_turn'"),
+    ("ppo_turn:latest", "you have no ppo_turn run for env 'left_turn'"),  # plain ppo_turn: the shipped reference
     ("always_proceed+aeb", "the shield comes from --variants"),
     ("always_proceed,always_proceed", "is given twice"),
 ])
