@@ -251,6 +251,7 @@ class Chain:
     multirun: Path | None = None
     run: str | None = None
     runs: int = 0
+    evals: int = 0  # each eval writes its own folder (eval refuses to write over an evaluation)
     named: dict | None = None  # a documented hydra.sweep.dir (``<folder>``, runs/multirun/x) -> where it went
 
 
@@ -325,7 +326,8 @@ def _tiny_eval(args: list[str], chain: Chain) -> list[str]:
     args = _set(args, "progress_bar", "false")
     if "-m" in args:
         return _set(_sweep_dir(args, chain), "hydra.launcher.n_jobs", "1")
-    return _set(args, "out_dir", str(chain.tmp / f"eval{chain.runs}"))
+    chain.evals += 1
+    return _set(args, "out_dir", str(chain.tmp / f"eval{chain.evals}"))
 
 
 def _flag(args: list[str], flag: str, *values: str) -> list[str]:
