@@ -57,13 +57,15 @@ class FlatDictObservation(gym.ObservationWrapper):
         return flatten_obs(observation)
 
 
-class SelectKeys(gym.ObservationWrapper):
+class SelectKeys(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
     """Keep only ``keys`` of a ``Dict`` observation (a sensors preset's ``observe``, or dropping the privileged
     ``state``). Gymnasium's ``FilterObservation`` does the same through a lambda, which cannot be pickled: every
     sensor stack then failed to pickle, and async vector envs and multiprocessing with it (issue 31 row 17)."""
 
     def __init__(self, env: gym.Env, keys: list[str]) -> None:
-        super().__init__(env)
+        # recorded so that gymnasium can rebuild the stack from its spec (check_env's determinism check does)
+        gym.utils.RecordConstructorArgs.__init__(self, keys=list(keys))
+        gym.ObservationWrapper.__init__(self, env)
         self.keys = list(keys)
         self.observation_space = spaces.Dict({k: env.observation_space[k] for k in self.keys})
 
