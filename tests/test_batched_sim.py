@@ -459,7 +459,7 @@ def test_training_on_the_batch_validates_on_the_batch_and_its_last_row_is_model_
     with open(tmp_path / "runs" / "b" / "eval.csv") as f:
         rows = list(csv.DictReader(f))
     assert [int(r["steps"]) for r in rows] == [0, 64, 128]
-    res = run("eval", "env=left_turn", "agents=[checkpoints/b/model.zip]", "episodes=6", "split=train", "seed=100000",
+    res = run("eval", "env=left_turn", "agents=[checkpoints/b/model.zip]", "episodes=6", "split=validation",  # train.eval_seed: the split's start
               "vec_env=batched", "n_envs=8", "out_dir=ev", "progress_bar=false", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     with open(tmp_path / "ev" / "results.csv") as f:

@@ -95,9 +95,11 @@ def test_perceived_intent_is_read_off_tracks():
     env = _env("turn_perceived", no_signal_rate=0.0, wrong_rate=0.0, miss_rate=0.0)
     obs, _ = env.reset(seed=4)
     signals = []
-    for _ in range(60):
-        obs, *_ = env.step(1)
+    for k in range(60):
+        obs, _, terminated, truncated, _ = env.step(1)
         signals.append(obs["intent"][:, 1].copy())
+        if terminated or truncated:  # a step after the end is refused (ResetNeeded): go on with a new episode
+            obs, _ = env.reset(seed=100 + k)
         assert np.isfinite(obs["intent"]).all() and np.abs(obs["intent"]).max() <= 1.0
     assert np.abs(np.array(signals)).sum() > 0  # indicators reach tracked objects
 
