@@ -171,6 +171,7 @@ def _outcomes(seeds: list[int], policy: str) -> tuple[list[tuple[str, int]], lis
     return per_env, batched
 
 
+@pytest.mark.slow  # 48 whole episodes on both stacks, ~40 CPU-s each: the 5-s identity tests stay in the fast suite
 @pytest.mark.parametrize("policy", ["idle", "random"])
 def test_batched_episodes_end_as_on_the_per_env_stack(policy):
     """Whole episodes (24 seeds): the same outcome at the same step in >= 22 of 24, and both outcomes occur. A last-bit split late

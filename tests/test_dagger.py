@@ -112,6 +112,7 @@ def test_batched_oracle_agrees_with_per_env_oracle_on_200_decisions():
     assert n >= 200 and agree == n
 
 
+@pytest.mark.slow  # trains (a subprocess / several rounds): over the README test budget
 def test_dagger_runs_end_to_end_into_an_evaluable_checkpoint(tmp_path):
     """A tiny DAgger run (2 rounds of 2 episodes, the batched oracle): rounds.csv, TensorBoard events, an atomic
     latest.zip, best.zip (validation ran), and model.zip that the evaluation's loader drives."""
@@ -145,6 +146,7 @@ def _after_3s(env, obs, info) -> int:
     return GO if 20.0 * float(obs["turn"][4]) >= 3.0 else YIELD
 
 
+@pytest.mark.slow  # trains (a subprocess / several rounds): over the README test budget
 def test_student_agreement_with_its_teacher_rises_over_rounds():
     """DAgger's loop (drive, label the driven states, aggregate, refit) with a toy teacher: on 4 fixed seeds the
     student drives and the teacher labels its states, before the rounds and after each; the agreement rises from
