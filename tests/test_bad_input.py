@@ -186,6 +186,7 @@ def test_an_interrupted_evaluation_of_a_whole_split_keeps_what_it_measured(tmp_p
     assert "(interrupted after" in (tmp_path / "out" / "results.md").read_text()
 
 
+@pytest.mark.slow  # 15-35 CPU-s (trains or runs whole evaluations): over the README test budget
 def test_a_learning_rate_that_makes_training_diverge_is_one_line_naming_it(tmp_path):
     res = subprocess.run([sys.executable, "-m", "train", "agent=ppo", "agent.learning_rate=1e308",
                           "agent.total_timesteps=256", "agent.n_steps=64", "agent.batch_size=32", "agent.n_epochs=1",

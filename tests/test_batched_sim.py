@@ -376,6 +376,7 @@ def _eval_rows(specs: list[str], seeds: list[int], batched: bool, env: dict | No
     return rows
 
 
+@pytest.mark.slow  # 15-35 CPU-s (trains or runs whole evaluations): over the README test budget
 def test_eval_on_the_batched_engine_gives_the_per_env_rows():
     """``python -m eval vec_env=batched``'s rows (4 envs stepped together, 7 episodes: envs restart on the next seed)
     against the per-env rows for the same seeds, for a rule and the reference PPO checkpoint (go/yield, action
@@ -441,6 +442,7 @@ def test_eval_batched_refuses_what_the_batch_cannot_run_in_one_line(tmp_path, ag
     assert not any(tmp_path.iterdir())
 
 
+@pytest.mark.slow  # 15-35 CPU-s (trains or runs whole evaluations): over the README test budget
 def test_training_on_the_batch_validates_on_the_batch_and_its_last_row_is_model_zip(tmp_path):
     """``agent.vec_env=batched`` runs its periodic validation (``train.eval_n`` episodes) on the batched engine too,
     at rollout starts, so ``eval.csv`` has a row at every ``train.eval_every`` decisions and the last one describes

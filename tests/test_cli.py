@@ -22,6 +22,7 @@ def test_train_writes_checkpoint_config_tensorboard_and_prints_where(trained):
     assert not list(ckpt.glob("*.tmp")), "no temporary files left behind"
 
 
+@pytest.mark.slow  # 15-35 CPU-s (trains or runs whole evaluations): over the README test budget
 def test_eval_compares_checkpoint_with_baseline_on_the_same_seeds(trained):
     cwd, _ = trained
     res = run("eval", "agents=[always_proceed,ppo]", "episodes=3", "split=train", "seed=7", "out_dir=out", "progress_bar=false",
@@ -45,6 +46,7 @@ def test_eval_lane_keeping_pid(tmp_path):
     assert all(0 < float(r["cte_mean_abs_m"]) < 1.0 for r in rows)
 
 
+@pytest.mark.slow  # 15-35 CPU-s (trains or runs whole evaluations): over the README test budget
 def test_train_ppo_on_lane_keeping_override(tmp_path):
     res = run("train", "env=lane_keeping", "agent=ppo", *FAST_PPO, "seed=4", "run_name=lk", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
@@ -122,6 +124,7 @@ def test_bad_input_gives_one_line_and_exit_code_2(tmp_path, module, overrides, n
     assert not any(tmp_path.iterdir()), f"nothing written, found {sorted(tmp_path.rglob('*'))}"
 
 
+@pytest.mark.slow  # 15-35 CPU-s (trains or runs whole evaluations): over the README test budget
 def test_checkpoint_that_does_not_fit_the_env_is_refused_and_its_run_folder_removed(trained, tmp_path):
     """Found only once the job runs (the model must be loaded): Hydra's run folder is removed again."""
     cwd, _ = trained

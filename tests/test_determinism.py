@@ -3,6 +3,8 @@ this process) and 2 (episodes spread over worker processes and put back in seed 
 
 from __future__ import annotations
 
+import pytest
+
 from av_gym.make import make_env
 from eval.agents import plan_agent, resolve_agent
 from eval.runner import EpisodeJob, run_episodes, run_episodes_parallel
@@ -36,6 +38,7 @@ def same_bits(a: list[dict], b: list[dict]) -> bool:
     return [{k: key(v) for k, v in r.items()} for r in a] == [{k: key(v) for k, v in r.items()} for r in b]
 
 
+@pytest.mark.slow  # 15-35 CPU-s (trains or runs whole evaluations): over the README test budget
 def test_eval_rows_are_bit_identical_across_runs_and_n_envs():
     p = plan()
     one = in_process(p)

@@ -192,6 +192,7 @@ def test_a_held_go_yield_choice_gives_the_same_episode_in_training_and_evaluatio
     np.testing.assert_equal(info["episode_metrics"], metrics_a)  # NaN == NaN here
 
 
+@pytest.mark.slow  # 15-35 CPU-s (trains or runs whole evaluations): over the README test budget
 def test_cloning_the_gap_acceptance_teacher_beats_its_majority_choice():
     from stable_baselines3.common.vec_env import DummyVecEnv
 
@@ -261,6 +262,7 @@ def test_a_deep_copy_of_the_stack_plays_the_real_future_and_leaves_the_original_
         assert start + real == _go_yield_future(fresh, obs, go_from=10)[0], f"seed {seed}: copying disturbed the env"
 
 
+@pytest.mark.slow  # 15-35 CPU-s (trains or runs whole evaluations): over the README test budget
 def test_the_lookahead_oracle_avoids_the_collisions_of_always_proceed():
     """On seeds where driving on collides, waiting for the gap the oracle finds must not."""
     from agents.go_yield import GO, Lookahead, meta_action

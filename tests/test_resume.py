@@ -65,6 +65,7 @@ def test_resume_without_a_checkpoint_is_a_clear_error(tmp_path):
     assert res.returncode == 2 and "train.resume=true but" in res.stderr and "Traceback" not in res.stderr
 
 
+@pytest.mark.slow  # 15-35 CPU-s (trains or runs whole evaluations): over the README test budget
 def test_sigterm_saves_a_checkpoint(tmp_path):
     ckpt = tmp_path / "checkpoints" / "crash"
     proc = subprocess.Popen([sys.executable, "-m", "train", *ARGS, "train.checkpoint_every=100000"], cwd=tmp_path,
