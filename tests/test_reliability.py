@@ -427,17 +427,22 @@ def test_workers_die_with_a_killed_parent(tmp_path):
 
 
 @pytest.mark.slow  # an evaluation with 2 worker processes, ~15-20 s
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="process groups and /proc: Linux")
-def test_ctrl_c_to_the_process_group_is_one_line_not_worker_tracebacks(tmp_path):
-    """Row 11: Ctrl-C reaches every process of the terminal's group; each worker printed its own traceback."""
+def ctrl_c_to_the_group(run_) -> None:
+    """What a terminal's Ctrl-C does: SIGINT to the whole foreground group (the command and its workers)."""
     import signal
 
-    run_ = Eval(tmp_path)
-    for pid in {run_.proc.pid, *run_.workers}:  # what a terminal's Ctrl-C does: SIGINT to the whole foreground group
+    for pid in {run_.proc.pid, *run_.workers}:
         try:
             os.kill(pid, signal.SIGINT)
         except ProcessLookupError:
             pass
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="process groups and /proc: Linux")
+def test_ctrl_c_to_the_process_group_is_one_line_not_worker_tracebacks(tmp_path):
+    """Row 11: Ctrl-C reaches every process of the terminal's group; each worker printed its own traceback."""
+    run_ = Eval(tmp_path)
+    ctrl_c_to_the_group(run_)
     rc, err = run_.wait(), run_.err()
     assert rc == 130 and "Traceback" not in err and "KeyboardInterrupt" not in err, err[-3000:]
     assert len(err.splitlines()) == 1 and "interrupted: the" in err, err
@@ -448,15 +453,9 @@ def test_ctrl_c_to_the_process_group_is_one_line_not_worker_tracebacks(tmp_path)
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="process groups and /proc: Linux")
 def test_ctrl_c_during_trains_brief_evaluation_is_one_line_and_keeps_its_rows(tmp_path):
     """Row 11: 74 stderr lines of worker tracebacks, and the brief evaluation's rows were not written."""
-    import signal
-
     run_ = Eval(tmp_path, argv=["-m", "train", "agent=always_proceed", "train.eval_episodes=1000",
                                 "train.eval_n_envs=2", "run_name=R"], total=1000)
-    for pid in {run_.proc.pid, *run_.workers}:
-        try:
-            os.kill(pid, signal.SIGINT)
-        except ProcessLookupError:
-            pass
+    ctrl_c_to_the_group(run_)
     rc, err = run_.wait(), run_.err()
     assert rc == 130 and "Traceback" not in err and "KeyboardInterrupt" not in err, err[-3000:]
     assert len(err.splitlines()) == 1 and "interrupted during the brief evaluation" in err, err
