@@ -72,7 +72,8 @@ def blocks(path: Path) -> list[list[Command]]:
                 continue
             if not argv or argv[0] not in PROGRAMS:
                 continue
-            normal = " ".join(argv)
+            # a word with a space keeps its quotes, so the tiny form splits as the shell would
+            normal = " ".join(shlex.quote(a) if re.search(r"\s", a) else a for a in argv)
             for key, value in env.items():
                 normal = normal.replace(f"${key}", value)
             expected = []
@@ -97,7 +98,7 @@ KNOWN: dict[str, str] = {
     "python3 -m venv .venv && . .venv/bin/activate && pip install torch==2.13.0 && pip install -e . && python -m train":
         "covered:tests/test_cli.py::test_train_writes_checkpoint_config_tensorboard_and_prints_where",
     "python3 -m venv .venv && . .venv/bin/activate && pip install torch==2.13.0 && pip install -e .[test] && "
-    "python -m pytest -q -n auto -m not slow": "ci",
+    "python -m pytest -q -n auto -m 'not slow'": "ci",
     "python -m pytest -q -n auto -m slow": "ci",
     "av-gym-train --help": "covered:tests/test_console_scripts.py::test_help_from_any_folder_lists_only_the_groups_a_user_sets",
     "av-gym-eval env=left_turn agents=[always_proceed,ppo_turn] episodes=2":
@@ -134,7 +135,7 @@ KNOWN: dict[str, str] = {
     "python -m train agent=ppo_lane_localized env=lane_keeping": "run",
     "python -m train agent=ppo_lane_camera env=lane_keeping": "run",
     "python -m eval.curves runs/<run>/tb --out curves.png": "run",
-    "python -m train.export checkpoints/<run> checkpoints/reference/<agent> --command python -m train ...": "run",
+    "python -m train.export checkpoints/<run> checkpoints/reference/<agent> --command 'python -m train ...'": "run",
     "python -m eval env=left_turn episodes=500 n_envs=2": "run",
     "python -m eval env=lane_keeping episodes=20": "run",
     "python -m eval.ccftap --agents [always_proceed,ppo_turn,ppo_turn_shielded] --variants [none,improved] "
