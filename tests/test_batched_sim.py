@@ -403,6 +403,7 @@ def test_eval_on_the_batched_engine_gives_the_per_env_rows():
         assert len({f.split(":")[0] for f in found}) <= 1, f"{agent}: {found}"
 
 
+@pytest.mark.slow  # 7-15 CPU-s: keeps the README's fast command under 5 min on 2 cores
 def test_eval_ccftap_on_the_batched_engine_gives_the_per_env_rows():
     """``python -m eval env.mode=ccftap env.ccftap.* vec_env=batched``: the CCFtap case's rows for a rule that never
     yields (a collision), gap acceptance and the reference PPO checkpoint (go/yield over the ccftap set-points, its

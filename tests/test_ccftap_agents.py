@@ -47,6 +47,7 @@ def tiny_ppo(tmp_path):
     return folder
 
 
+@pytest.mark.slow  # 7-15 CPU-s: keeps the README's fast command under 5 min on 2 cores
 def test_agents_column_and_always_proceed_rows_unchanged(tmp_path, tiny_ppo):
     import eval.ccftap as ccftap
 

@@ -314,6 +314,7 @@ def test_dagger_rounds_let_the_student_drive_and_the_teacher_label_its_states():
     assert stats["decisions"] > teacher_only["decisions"]  # the student's states were labelled and added
 
 
+@pytest.mark.slow  # 7-15 CPU-s: keeps the README's fast command under 5 min on 2 cores
 def test_cloning_the_pid_teacher_steers_like_it():
     """The privileged PID teacher (CTE from info["truth"]) for continuous steering: the cloned Gaussian mean keeps
     the car in its lane for 15 s, where a straight wheel leaves the road within ~14 s (seeds 10, 11)."""
@@ -342,6 +343,7 @@ def test_cloning_the_pid_teacher_steers_like_it():
             assert (m["lane_departures"] == 0) == cloned, (seed, cloned, m["lane_departures"])
 
 
+@pytest.mark.slow  # 7-15 CPU-s: keeps the README's fast command under 5 min on 2 cores
 def test_the_lookahead_teachers_shortcut_gives_the_labels_of_a_full_simulation(monkeypatch):
     """The teacher skips re-simulating while the ego stays on the last collision-free GO future; on a trajectory a
     wavering student drives (GO, YIELD, GO ...), its labels must equal a fresh simulation's at every decision."""

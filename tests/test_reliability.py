@@ -438,6 +438,7 @@ def ctrl_c_to_the_group(run_) -> None:
             pass
 
 
+@pytest.mark.slow  # 7-15 CPU-s: keeps the README's fast command under 5 min on 2 cores
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="process groups and /proc: Linux")
 def test_ctrl_c_to_the_process_group_is_one_line_not_worker_tracebacks(tmp_path):
     """Row 11: Ctrl-C reaches every process of the terminal's group; each worker printed its own traceback."""

@@ -81,6 +81,7 @@ def test_cli_refuses_a_space_changing_override_in_one_line(tmp_path):
     assert not any(tmp_path.iterdir())
 
 
+@pytest.mark.slow  # 7-15 CPU-s: keeps the README's fast command under 5 min on 2 cores
 def test_results_md_states_the_sensors_each_agent_ran_with(tmp_path):
     res = run_eval("sensors.cameras.night=true", "episodes=1", "env.time_limit=5", f"out_dir={tmp_path}/out",
                    cwd=tmp_path)
