@@ -9,9 +9,11 @@ docs/performance.md). Rows come back in seed order.
 
 What runs: ``env=left_turn`` in either mode (traffic; ``env.mode=ccftap`` with its ``env.ccftap.*`` case) and with
 either action type, no shield, and the agents ``always_proceed`` (it reads no observation: it runs on the batch
-whatever the sensors), ``gap_acceptance`` and PPO checkpoints trained on the batch's sensors (``turn_truth``: turn
-features from truth, turn signals, intent). Anything else (``lookahead``, which simulates a copy of its env; a
-shield; ``turn_perceived``) is refused in one line before any episode runs, and runs with ``vec_env=subproc``.
+whatever the sensors), ``gap_acceptance``, the ``lookahead`` oracle (its GO futures played for every env that
+decides, all at once, by :mod:`agents.batched_oracle`: the per-env oracle's decisions, ~20x its labels per second)
+and PPO / DAgger checkpoints trained on the batch's sensors (``turn_truth``: turn features from truth, turn signals,
+intent). Anything else (a shield; ``turn_perceived``) is refused in one line before any episode runs, and runs with
+``vec_env=subproc``.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from tqdm import tqdm
 
 from av_gym.errors import ConfigError
 
-KINDS = ("always_proceed", "gap_acceptance", "ppo", "dagger")
+KINDS = ("always_proceed", "gap_acceptance", "lookahead", "ppo", "dagger")
 NO_OBS_SENSORS = {"name": "turn_truth", "turn_features": {"source": "truth"}, "observe": ["turn"]}
 
 
@@ -66,8 +68,9 @@ class _Decider:
 
     def __init__(self, policy, n: int, continuous: bool = False) -> None:
         from agents import AlwaysProceed
-        from agents.go_yield import GapAcceptance
+        from agents.go_yield import GapAcceptance, Lookahead
         from agents.ppo import SB3Policy
+        from av_gym.wrappers import YIELD
 
         self.policy, self.n = policy, n
         # the env's actions: meta-action ints, or the continuous action's one float (what each agent hands the
@@ -81,12 +84,24 @@ class _Decider:
             self.kind = "always_proceed"
         elif isinstance(policy, GapAcceptance):
             self.kind = "gap_acceptance"
+        elif isinstance(policy, Lookahead):
+            if policy.plan_with_shield:
+                raise ConfigError("agent.plan_with_shield=true plans with the shield, which vec_env=batched does "
+                                  "not run; use vec_env=subproc")
+            self.kind = "lookahead"
+            self.k = np.zeros(n, dtype=int)  # Lookahead._t
+            self.choice = np.full(n, YIELD)  # Lookahead._choice
+            self.engine = None  # the batch's engine, whose envs the oracle copies (set by play_batched)
         else:
             raise ConfigError(f"policy {type(policy).__name__} cannot run with vec_env=batched; use vec_env=subproc")
 
     def reset(self, rows) -> None:
+        from av_gym.wrappers import YIELD
+
         if self.kind == "ppo":
             self.k[rows], self.held[rows] = 0, 0
+        elif self.kind == "lookahead":
+            self.k[rows], self.choice[rows] = 0, YIELD
 
     def act(self, obs: dict, live: np.ndarray) -> np.ndarray:
         """Meta-actions (n,) for the envs ``live`` (the others get IDLE, unused)."""
@@ -99,6 +114,15 @@ class _Decider:
         elif self.kind == "gap_acceptance":
             for r in rows:
                 out[r] = self.policy.act({"turn": obs["turn"][r]})
+        elif self.kind == "lookahead":  # Lookahead.act for every row at once: GO is final once its future is safe
+            from agents.batched_oracle import oracle_labels
+            from av_gym.wrappers import GO
+
+            ask = rows[(self.choice[rows] != GO) & (self.k[rows] % self.policy.repeat == 0)]
+            if len(ask):
+                self.choice[ask] = oracle_labels(self.engine, ask)[0]
+            self.k[rows] += 1
+            out[rows] = meta_actions(self.choice[rows], obs["turn"][rows])
         else:
             p = self.policy
             ask = rows[self.k[rows] % p.repeat == 0]
@@ -139,6 +163,8 @@ def play_batched(env_cfg: dict, sensors: dict, shield: dict, policy, seeds: Iter
     B = max(1, min(int(n_envs), total if total is not None else int(n_envs)))
     venv = BatchedLeftTurnVecEnv(env_cfg, sensors, shield, B, action_repeat=1, actions="env", pool=0)
     decide = _Decider(policy, B, continuous=venv.engine.continuous)
+    if decide.kind == "lookahead":
+        decide.engine = venv.engine
     order = iter(seeds)
     wanted: list[int] = []  # seeds handed to the engine, in order
 

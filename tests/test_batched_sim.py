@@ -376,6 +376,22 @@ def _eval_rows(specs: list[str], seeds: list[int], batched: bool, env: dict | No
     return rows
 
 
+@pytest.mark.slow  # ~30 CPU-s: the per-env oracle simulates a future per decision
+def test_the_lookahead_oracle_on_the_batch_drives_as_the_per_env_oracle():
+    """``python -m eval agents=[lookahead] vec_env=batched``: the batched oracle (every deciding env's GO future at
+    once, agents/batched_oracle.py) against :class:`agents.go_yield.Lookahead` on the per-env stack, 8 validation
+    seeds: the same outcome and episode length in at least 7 (portable: a future that ends by a hair's breadth may
+    flip on another machine's floats; measured here: 8 of 8). A mutation that labels one step late (the oracle asked
+    after ``k`` is incremented) or GO-final dropped changes lengths in most rows."""
+    seeds = list(range(1_000_500, 1_000_508))
+    ref, bat = _eval_rows(["lookahead"], seeds, False), _eval_rows(["lookahead"], seeds, True)
+    assert [r["seed"] for r in bat] == seeds
+    same = [a["seed"] for a, b in zip(ref, bat)
+            if (a["collision"], a["success"], a["length"]) == (b["collision"], b["success"], b["length"])]
+    assert len(same) >= 7, (same, [(r["seed"], r["success"], r["length"]) for r in ref],
+                            [(r["seed"], r["success"], r["length"]) for r in bat])
+
+
 @pytest.mark.slow  # 15-35 CPU-s (trains or runs whole evaluations): over the README test budget
 def test_eval_on_the_batched_engine_gives_the_per_env_rows():
     """``python -m eval vec_env=batched``'s rows (4 envs stepped together, 7 episodes: envs restart on the next seed)
@@ -432,7 +448,8 @@ def conf_env_ccftap() -> dict:
 
 @pytest.mark.parametrize("agents, needle", [
     ("[always_proceed+aeb]", "agent 'always_proceed+aeb': shield=aeb is not available with vec_env=batched"),
-    ("[lookahead]", "agent 'lookahead' (kind lookahead) cannot run with vec_env=batched"),
+    ("[ppo_turn_perceived]", "agent 'ppo_turn_perceived': sensors.detector is not available with vec_env=batched"),
+    ("[pid_tuned]", "agent 'pid_tuned' (kind pid) cannot run with vec_env=batched"),
 ])
 def test_eval_batched_refuses_what_the_batch_cannot_run_in_one_line(tmp_path, agents, needle):
     from tests.conftest import cli
