@@ -85,12 +85,18 @@ class PPOParams(AgentParams):
                                                     "(continuous actions; the label stays clean)")
     init_lr: float | None = param(None, gt=0, doc="Adam step while cloning; null: learning_rate")
     init_dagger_rounds: int = param(0, ge=0, doc="DAgger rounds after the teacher's episodes (Ross et al. 2011)")
+    init_from: str | None = param(None, doc="start from this checkpoint's network instead (a run or reference "
+                                            "folder, or its model.zip; same observation and action spaces): PPO "
+                                            "fine-tuning of a DAgger student or an earlier run; null: fresh")
 
     def relations(self) -> list[str]:
         found = super().relations()
         if self.vec_env != "batched" and self.n_envs > PROCESSES_MAX:
             found.append(f"@n_envs must be at most {PROCESSES_MAX} with @vec_env={self.vec_env} (one env stack, and "
                          f"with subproc one process, each), got {self.n_envs}; vec_env=batched takes more")
+        if self.init is not None and self.init_from is not None:
+            found.append(f"@init and @init_from both set ({self.init!r}, {self.init_from!r}): clone a teacher or start "
+                         f"from a checkpoint, not both")
         if self.init is not None:
             allowed = teacher_agents()
             if self.init not in allowed:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import importlib.util
 from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 import pytest
 from omegaconf import OmegaConf
@@ -208,3 +209,38 @@ def test_dagger_on_perceived_features_runs_on_the_per_env_stack(tmp_path):
     path = train_dagger(cfg, tmp_path / "ckpt", tmp_path / "run")
     rows = (tmp_path / "ckpt" / "rounds.csv").read_text().splitlines()
     assert path.is_file() and len(rows) == 3
+
+
+class _Spaces(gym.Env):
+    """An env with a checkpoint's spaces, enough for SB3 to build a PPO on them (never stepped)."""
+
+    def __init__(self, observation_space, action_space) -> None:
+        self.observation_space, self.action_space = observation_space, action_space
+
+
+def test_init_from_starts_ppo_from_the_students_network_and_refuses_a_misfit():
+    """``agent.init_from=checkpoints/reference/dagger_turn``: a fresh PPO of ppo_turn's config acts as the DAgger
+    student on its own decisions (PPO fine-tuning starts where DAgger ended); a checkpoint of other spaces (the lane
+    keeper) and ``init`` + ``init_from`` together are one-line errors naming the field."""
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from agents.ppo import PPOParams, make_ppo
+    from av_gym.errors import ConfigError
+    from eval.agents import load_agent_config
+    from train.ppo import load_weights
+
+    student = PPO.load("checkpoints/reference/dagger_turn/model.zip", device="cpu")
+    venv = DummyVecEnv([lambda: _Spaces(student.observation_space, student.action_space)])
+    model = make_ppo(venv, load_agent_config("ppo_turn"), seed=0, tensorboard_log=None)
+    rng = np.random.default_rng(3)
+    obs = {k: rng.uniform(-1, 1, (64, *space.shape)).astype(space.dtype)
+           for k, space in student.observation_space.spaces.items()}
+    before = model.predict(obs, deterministic=True)[0]
+    load_weights(model, "checkpoints/reference/dagger_turn", "left_turn")
+    after, wanted = model.predict(obs, deterministic=True)[0], student.predict(obs, deterministic=True)[0]
+    assert (after == wanted).all() and not (before == wanted).all()
+    with pytest.raises(ConfigError, match="agent.init_from="):
+        load_weights(model, "checkpoints/reference/ppo_lane_localized", "left_turn")
+    with pytest.raises(ValueError, match="init and init_from both set"):
+        PPOParams(init="gap_acceptance", init_from="checkpoints/reference/dagger_turn")

@@ -402,7 +402,35 @@ def initialise_model(venv, stack: _Stack, seed: int, scenario: str):
     model = make_ppo(venv, p.as_dict(), seed=seed, tensorboard_log=None, device=p.device)
     if p.init:
         clone_teacher(model, stack, scenario)
+    if p.init_from:
+        load_weights(model, p.init_from, scenario)
     return model
+
+
+def load_weights(model, spec: str, scenario: str) -> None:
+    """``agent.init_from``: copy a checkpoint's policy (actor, critic and extractor) into the fresh ``model``; the
+    optimiser and PPO's counters start fresh, as after cloning. One line if the networks do not fit."""
+    from stable_baselines3 import PPO
+
+    from av_gym.errors import ConfigError
+    from eval.agents import _checkpoint_file
+
+    try:
+        kind, path = _checkpoint_file(Path(spec), scenario)
+    except ConfigError as exc:
+        raise ConfigError(f"agent.init_from={spec!r}: {exc}") from None
+    if kind not in ("ppo", "dagger"):
+        raise ConfigError(f"agent.init_from={spec!r} holds agent kind {kind!r}; a PPO or DAgger checkpoint is needed")
+    source = PPO.load(str(path), device=model.device)
+    if source.observation_space != model.observation_space or source.action_space != model.action_space:
+        raise ConfigError(f"agent.init_from={spec!r} was trained on other observation/action spaces than this "
+                          f"run's sensors and agent.actions ({source.observation_space} vs {model.observation_space})")
+    try:
+        model.policy.load_state_dict(source.policy.state_dict())
+    except RuntimeError as exc:  # torch lists every mismatched tensor; the first line says enough
+        raise ConfigError(f"agent.init_from={spec!r}: its network does not fit agent.net_arch/extractor of this run "
+                          f"({str(exc).splitlines()[0]})") from None
+    print(f"[train] starting from {path}'s network")
 
 
 def _callbacks(cfg: DictConfig, stack: _Stack, ckpt_dir: Path, run_dir: Path, resume: bool):
