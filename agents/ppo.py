@@ -96,7 +96,7 @@ class PPOParams(AgentParams):
                          f"with subproc one process, each), got {self.n_envs}; vec_env=batched takes more")
         if self.init is not None and self.init_from is not None:
             found.append(f"@init and @init_from both set ({self.init!r}, {self.init_from!r}): clone a teacher or start "
-                         f"from a checkpoint, not both")
+                         f"from a checkpoint, not both (@init=null starts from the checkpoint)")
         if self.init is not None:
             allowed = teacher_agents()
             if self.init not in allowed:
