@@ -196,6 +196,9 @@ KNOWN: dict[str, str] = {
     "python -m train.operating_point checkpoints/<run_name> --thresholds [0.5,0.7,0.8,0.9,0.95] --episodes 300": "run",
     "python docs/make_dagger_figure.py docs/dagger/rounds_s1.csv docs/dagger/rounds_s2.csv docs/dagger/rounds_s3.csv "
     "--out docs/dagger.png": "run",
+    "python -m train agent=ppo_turn agent.init=null agent.init_from=checkpoints/reference/dagger_turn seed=1 "
+    "agent.total_timesteps=30720 train.eval_every=3072 train.eval_n=300 train.eval_episodes=0 run_name=dagger_ppo_s1":
+        "run",
 }
 
 # A command that reads what another documented command writes, documented in a block of its own: the tiny form
