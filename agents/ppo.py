@@ -94,9 +94,15 @@ class PPOParams(AgentParams):
         if self.vec_env != "batched" and self.n_envs > PROCESSES_MAX:
             found.append(f"@n_envs must be at most {PROCESSES_MAX} with @vec_env={self.vec_env} (one env stack, and "
                          f"with subproc one process, each), got {self.n_envs}; vec_env=batched takes more")
-        if self.init is not None and self.init_from is not None:
-            found.append(f"@init and @init_from both set ({self.init!r}, {self.init_from!r}): clone a teacher or start "
-                         f"from a checkpoint, not both (@init=null starts from the checkpoint)")
+        if self.init_from is not None:
+            from pathlib import Path
+
+            if not Path(self.init_from).exists():
+                found.append(f"@init_from must be a checkpoint folder or model.zip, got {self.init_from!r}: no such "
+                             f"file or folder")
+            if self.init is not None:
+                found.append(f"@init_from and @init both set ({self.init_from!r}, {self.init!r}): start from a "
+                             f"checkpoint or clone a teacher, not both (@init=null starts from the checkpoint)")
         if self.init is not None:
             allowed = teacher_agents()
             if self.init not in allowed:

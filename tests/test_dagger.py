@@ -242,5 +242,5 @@ def test_init_from_starts_ppo_from_the_students_network_and_refuses_a_misfit():
     assert (after == wanted).all() and not (before == wanted).all()
     with pytest.raises(ConfigError, match="agent.init_from="):
         load_weights(model, "checkpoints/reference/ppo_lane_localized", "left_turn")
-    with pytest.raises(ValueError, match="init and init_from both set"):
+    with pytest.raises(ValueError, match="init_from and init both set"):
         PPOParams(init="gap_acceptance", init_from="checkpoints/reference/dagger_turn")
