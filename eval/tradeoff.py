@@ -96,7 +96,7 @@ def plot(pts: dict[str, tuple], rule: list[str], out: Path, title: str) -> None:
     ax.set_ylabel("success rate (arrived within the time limit)")
     ax.set_xlim(left=-0.01)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="lower right")
+    ax.legend(fontsize=8, loc="best")  # the empty corner: points move with what is plotted
     ax.set_title(title, fontsize=10)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
