@@ -262,6 +262,10 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
         labels = BatchedLabels(env, teacher, how == "batched", params.label_margin)
         drive = lambda seeds, by_teacher: drive_batched(env, model, labels, seeds, by_teacher,  # noqa: E731
                                                         float(params.gamma))
+    if params.init_from:  # a student to go on from (an earlier DAgger run or a PPO policy of the same spaces)
+        from train.ppo import load_weights
+
+        load_weights(model, params.init_from, str(cfg.env.name))
     validation = _validation(cfg, plain, repeat, actions, how != "per_env")
     tau = float(params.go_threshold)
 
