@@ -95,8 +95,6 @@ class PPOParams(AgentParams):
             found.append(f"@n_envs must be at most {PROCESSES_MAX} with @vec_env={self.vec_env} (one env stack, and "
                          f"with subproc one process, each), got {self.n_envs}; vec_env=batched takes more")
         if self.init_from is not None:
-            from pathlib import Path
-
             if not Path(self.init_from).exists():
                 found.append(f"@init_from must be a checkpoint folder or model.zip, got {self.init_from!r}: no such "
                              f"file or folder")

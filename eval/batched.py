@@ -66,13 +66,15 @@ def check_batched_plan(plan, env_cfg: dict) -> None:
 class _Decider:
     """The agents' decisions for a batch: per env as :class:`agents.Policy.act` would decide for it."""
 
-    def __init__(self, policy, n: int, continuous: bool = False) -> None:
+    def __init__(self, policy, engine) -> None:
         from agents import AlwaysProceed
         from agents.go_yield import GapAcceptance, Lookahead
         from agents.ppo import SB3Policy
         from av_gym.wrappers import YIELD
 
-        self.policy, self.n = policy, n
+        # the batch's engine: its size, its action type, and the envs the lookahead oracle copies
+        self.policy, self.engine, self.n = policy, engine, engine.B
+        n, continuous = self.n, engine.continuous
         # the env's actions: meta-action ints, or the continuous action's one float (what each agent hands the
         # per-env env, which LongitudinalAction.act reads as its first float)
         self.dtype = float if continuous else int
@@ -84,14 +86,10 @@ class _Decider:
             self.kind = "always_proceed"
         elif isinstance(policy, GapAcceptance):
             self.kind = "gap_acceptance"
-        elif isinstance(policy, Lookahead):
-            if policy.plan_with_shield:
-                raise ConfigError("agent.plan_with_shield=true plans with the shield, which vec_env=batched does "
-                                  "not run; use vec_env=subproc")
+        elif isinstance(policy, Lookahead):  # no shield on the batch, so plan_with_shield changes nothing here
             self.kind = "lookahead"
             self.k = np.zeros(n, dtype=int)  # Lookahead._t
             self.choice = np.full(n, YIELD)  # Lookahead._choice
-            self.engine = None  # the batch's engine, whose envs the oracle copies (set by play_batched)
         else:
             raise ConfigError(f"policy {type(policy).__name__} cannot run with vec_env=batched; use vec_env=subproc")
 
@@ -162,9 +160,7 @@ def play_batched(env_cfg: dict, sensors: dict, shield: dict, policy, seeds: Iter
     total = len(seeds) if hasattr(seeds, "__len__") else None
     B = max(1, min(int(n_envs), total if total is not None else int(n_envs)))
     venv = BatchedLeftTurnVecEnv(env_cfg, sensors, shield, B, action_repeat=1, actions="env", pool=0)
-    decide = _Decider(policy, B, continuous=venv.engine.continuous)
-    if decide.kind == "lookahead":
-        decide.engine = venv.engine
+    decide = _Decider(policy, venv.engine)
     order = iter(seeds)
     wanted: list[int] = []  # seeds handed to the engine, in order
 

@@ -426,7 +426,6 @@ def test_workers_die_with_a_killed_parent(tmp_path):
     assert not alive(run_.workers)
 
 
-@pytest.mark.slow  # an evaluation with 2 worker processes, ~15-20 s
 def ctrl_c_to_the_group(run_) -> None:
     """What a terminal's Ctrl-C does: SIGINT to the whole foreground group (the command and its workers)."""
     import signal
@@ -438,7 +437,7 @@ def ctrl_c_to_the_group(run_) -> None:
             pass
 
 
-@pytest.mark.slow  # 7-15 CPU-s: keeps the README's fast command under 5 min on 2 cores
+@pytest.mark.slow  # an evaluation with 2 worker processes, ~15-20 s
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="process groups and /proc: Linux")
 def test_ctrl_c_to_the_process_group_is_one_line_not_worker_tracebacks(tmp_path):
     """Row 11: Ctrl-C reaches every process of the terminal's group; each worker printed its own traceback."""
