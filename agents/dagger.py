@@ -22,8 +22,9 @@ class DaggerParams(PPOParams):
     name: str = param("dagger")
     teacher: str = param("lookahead", doc="the agent config that labels the student's states (a kind in "
                                           "agents/registry.py TEACHERS)")
-    rounds: int = param(8, ge=1, doc="DAgger rounds: the teacher drives the first, the student the others; the "
-                                     "student is refitted on everything labelled so far after each")
+    rounds: int = param(8, ge=1, doc="DAgger rounds: the teacher drives the first (the student, when it starts "
+                                     "from init_from), the student the others; the student is refitted on "
+                                     "everything labelled so far after each")
     round_episodes: int = param(128, "episodes", ge=1, doc="episodes driven (and labelled) per round")
     fit_epochs: int = param(8, ge=1, doc="passes over the aggregated labels after each round")
     fit_lr: float = param(1.0e-3, gt=0, doc="Adam step of the supervised fit")
@@ -34,10 +35,12 @@ class DaggerParams(PPOParams):
     go_threshold: float = param(0.5, gt=0, lt=1, doc="go/yield students: GO where the student's P(GO) is at least "
                                                      "this (the checkpoints and validations are at it; the fit is "
                                                      "not); 0.5 = its argmax. train/operating_point.py sweeps it")
-    labeller: Literal["auto", "batched", "per_env"] = param(
+    labeller: Literal["auto", "batched", "replica", "per_env"] = param(
         "auto", doc="batched: the look-ahead oracle on the batched engine (agents/batched_oracle.py, needs "
-                    "vec_env=batched and teacher kind lookahead) | per_env: the teacher on the per-env stack, one "
-                    "state at a time | auto: batched where possible")
+                    "vec_env=batched and teacher kind lookahead) | replica: the student on the per-env stack (any "
+                    "sensors, e.g. turn_perceived), the oracle on a batched replica of the same episodes (left turn, "
+                    "teacher kind lookahead) | per_env: the teacher on the per-env stack, one state at a time | "
+                    "auto: batched on the batch, replica on the per-env left turn with the oracle, else per_env")
     train_seed: int = param(600_000, ge=0, doc="first seed of the episodes the rounds drive, in the train split "
                                                "(av_gym/seeds.py; + 50,000 x seed, folded into the split): away from "
                                                "the demonstrations (500,000+) and PPO's streams (seed + steps)")

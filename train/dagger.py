@@ -45,10 +45,14 @@ def _teacher_kind(cfg: DictConfig) -> str | None:
 
 def labeller_of(cfg: DictConfig) -> str:
     """``batched`` (the oracle on the batched engine), ``rule`` (a teacher of the observation alone, row by row on
-    the batch) or ``per_env`` (the teacher on the per-env stack)."""
-    if cfg.agent.vec_env != "batched":
+    the batch), ``replica`` (the student on the per-env stack, the oracle on a batched replica of its episodes) or
+    ``per_env`` (the teacher on the per-env stack, one state at a time)."""
+    oracle = _teacher_kind(cfg) == "lookahead"
+    if cfg.agent.vec_env == "batched":
+        return "batched" if oracle else "rule"
+    if cfg.agent.labeller == "per_env" or not oracle or cfg.env.name != "left_turn":
         return "per_env"
-    return "batched" if _teacher_kind(cfg) == "lookahead" else "rule"
+    return "replica"
 
 
 def validate(cfg: DictConfig) -> list[str]:
@@ -66,6 +70,17 @@ def validate(cfg: DictConfig) -> list[str]:
         return ["agent.labeller=batched needs agent.vec_env=batched (the oracle runs on the batched engine)"]
     if agent.labeller == "per_env" and batched:
         return ["agent.labeller=per_env needs agent.vec_env=subproc or dummy (the per-env stack)"]
+    if agent.labeller == "replica" and (batched or _teacher_kind(cfg) != "lookahead" or cfg.env.name != "left_turn"):
+        return ["agent.labeller=replica needs agent.vec_env=subproc or dummy, env=left_turn and agent.teacher of kind "
+                "lookahead (the oracle on a batched replica of the per-env episodes)"]
+    if labeller_of(cfg) == "replica":
+        from av_gym.batched.vec_env import check_batchable
+
+        try:
+            check_batchable(OmegaConf.to_container(cfg.env, resolve=True), replica_sensors(cfg.sensors),
+                            OmegaConf.to_container(cfg.shield, resolve=True))
+        except ConfigError as exc:
+            return [f"agent.labeller=replica: {exc}"]
     if batched:
         kind = _teacher_kind(cfg)
         if kind not in ("lookahead", "gap_acceptance"):
@@ -77,10 +92,20 @@ def validate(cfg: DictConfig) -> list[str]:
             check_batchable(*[OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)])
         except ConfigError as exc:
             return [str(exc)]
-    if float(agent.label_margin) > 0 and not (batched and _teacher_kind(cfg) == "lookahead"):
-        return ["agent.label_margin > 0 needs the batched oracle (agent.vec_env=batched, agent.teacher of kind "
-                "lookahead): the per-env teachers give no margin"]
+    if float(agent.label_margin) > 0 and labeller_of(cfg) not in ("batched", "replica"):
+        return ["agent.label_margin > 0 needs the batched oracle (agent.teacher of kind lookahead on env=left_turn, "
+                "agent.labeller auto, batched or replica): the per-env teachers give no margin"]
     return []
+
+
+def replica_sensors(sensors: DictConfig) -> dict:
+    """The sensors of the replica that the oracle labels: the student's turn signals and intent (their draws come
+    from the episode's own generators, so they are kept), the features from the simulator's vehicles, no detector
+    or tracker (the student's per-env stack has them; the oracle reads the truth)."""
+    s = OmegaConf.to_container(sensors, resolve=True)
+    out = {k: s[k] for k in ("turn_signals", "turn_intent") if k in s}
+    out["turn_features"] = {**(s.get("turn_features") or {}), "source": "truth"}
+    return {"name": f"{s.get('name', 'sensors')}_replica", **out, "observe": ["turn"]}
 
 
 # ------------------------------------------------------------------------------------------------------ one round
@@ -202,6 +227,59 @@ def drive_per_env(env, model, teacher, seeds, teacher_drives: bool, gamma: float
     return out
 
 
+def drive_replica(envs: list, replica, model, labeller: BatchedLabels, seeds, teacher_drives: bool,
+                  gamma: float) -> Round:
+    """The episodes ``seeds`` on the per-env stacks ``envs`` (what the student sees: any sensors, e.g. the detector
+    and tracker of ``turn_perceived``), labelled by the batched oracle on ``replica``: a batched engine of
+    ``len(envs)`` rows playing the same episodes in lockstep (the same seed per row, the same choices). Why a
+    replica: the per-env oracle deep-copies the env and simulates one future per decision (~3 labels/s with the
+    tracker); the replica's rows are the same traffic as the per-env episodes (the batched engine draws exactly as
+    the per-env env, and the sensors draw from their own generators), so all rows' futures roll out at once. A
+    replica that leaves its per-env episode (an episode ending on one and not the other, or another outcome) is a
+    RuntimeError, never a silently wrong label."""
+    from av_gym.wrappers import GO
+
+    out, B = Round(), len(envs)
+    replica.play(iter(seeds))
+    labeller.on_go_future[:] = False
+    obs: list = [None] * B
+    for r in np.nonzero(~replica.idle)[0]:
+        obs[r] = envs[r].reset(seed=int(replica.row_seed[r]))[0]
+    episode: list[list] = [[] for _ in range(B)]  # per row: [obs, label, agree, reward] of the open episode
+    while not replica.idle.all():
+        rows = np.nonzero(~replica.idle)[0]
+        t0 = time.perf_counter()
+        labels = labeller(rows, None)  # the oracle reads the replica's state, not an observation
+        out.label_s += time.perf_counter() - t0
+        batch = {k: np.stack([obs[r][k] for r in rows]) for k in obs[rows[0]]}
+        student = np.asarray(model.predict(batch, deterministic=True)[0]).reshape(len(rows))
+        actions = np.full(B, GO)
+        actions[rows] = labels if teacher_drives else student
+        for n, r in enumerate(rows):
+            episode[r].append([obs[r], int(labels[n]), float(student[n] == labels[n])])
+        _, _, done, infos = replica.step(actions)
+        labeller.executed(rows, labels, actions, done)
+        for r in rows:
+            obs[r], reward, terminated, truncated, info = envs[r].step(int(actions[r]))
+            episode[r][-1].append(float(reward))
+            ended = terminated or truncated
+            if ended != bool(done[r]) or (ended and outcome(info) != outcome(infos[r])):
+                raise RuntimeError(f"the oracle's replica left the per-env episode of seed {replica.row_seed[r]} "
+                                   f"(ended {ended} vs {bool(done[r])}): the batched engine no longer draws as the "
+                                   f"per-env env; use agent.labeller=per_env")
+            if ended:
+                steps = episode[r]
+                out.obs += [s[0] for s in steps]
+                out.labels += [s[1] for s in steps]
+                out.agree += [s[2] for s in steps]
+                out.returns += discounted([s[3] for s in steps], gamma)
+                out.outcomes.append(outcome(info))
+                episode[r] = []
+                if not replica.idle[r]:
+                    obs[r] = envs[r].reset(seed=int(replica.row_seed[r]))[0]
+    return out
+
+
 # ------------------------------------------------------------------------------------------------------ the fit
 def fit(model, data: Round, epochs: int, batch_size: int, lr: float, seed: int) -> float:
     """Actor to the labels (negative log-likelihood), critic to the returns (MSE scaled by their variance, so the
@@ -246,7 +324,21 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     repeat, actions = int(params.action_repeat), str(params.actions)
     teacher = make_teacher(params.teacher, actions, str(cfg.env.name), repeat)
     how = labeller_of(cfg)
-    if how == "per_env":
+    if how == "replica":
+        from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
+
+        envs = [_env_factory(*plain, 0.0, repeat, actions, timeout_is_terminal=params.timeout_is_terminal)
+                for _ in range(int(params.n_envs))]
+        replica = BatchedLeftTurnVecEnv(plain[0], replica_sensors(cfg.sensors), plain[2], int(params.n_envs),
+                                        action_repeat=repeat, actions=actions,
+                                        timeout_is_terminal=params.timeout_is_terminal, pool=0)
+        env = envs[0]
+        model = make_ppo(env, OmegaConf.to_container(agent, resolve=True), seed=int(cfg.seed), tensorboard_log=None,
+                         device=agent.device)
+        labels = BatchedLabels(replica, teacher, True, params.label_margin)
+        drive = lambda seeds, by_teacher: drive_replica(envs, replica, model, labels, seeds,  # noqa: E731
+                                                        by_teacher, float(params.gamma))
+    elif how == "per_env":
         env = _env_factory(*plain, 0.0, repeat, actions, timeout_is_terminal=params.timeout_is_terminal)
         model = make_ppo(env, OmegaConf.to_container(agent, resolve=True), seed=int(cfg.seed), tensorboard_log=None,
                          device=agent.device)
@@ -266,7 +358,7 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
         from train.ppo import load_weights
 
         load_weights(model, params.init_from, str(cfg.env.name))
-    validation = _validation(cfg, plain, repeat, actions, how != "per_env")
+    validation = _validation(cfg, plain, repeat, actions, how in ("batched", "rule"))
     tau = float(params.go_threshold)
 
     def shift(m, on: bool) -> None:
@@ -282,18 +374,20 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     # train split (av_gym/seeds.py: folded into it)
     first = int(params.train_seed) + 50_000 * int(cfg.seed)
     print(f"[train] DAgger: {params.rounds} rounds x {params.round_episodes} episodes, teacher {params.teacher} "
-          f"({how} labels), student {params.extractor} on {cfg.sensors.name}; episode seeds {first}+")
+          f"({how} labels), student {params.extractor} on {cfg.sensors.name}"
+          f"{' from ' + str(params.init_from) if params.init_from else ''}; episode seeds {first}+")
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM behaves like Ctrl-C
     bar = tqdm(range(int(params.rounds)), desc="DAgger rounds", disable=not bool(cfg.train.progress_bar))
     try:
         for k in bar:
             seeds = [train_seed(first, k * int(params.round_episodes) + i) for i in range(int(params.round_episodes))]
-            new = drive(seeds, k == 0)
+            by_teacher = k == 0 and not params.init_from  # a student to go on from drives from the start
+            new = drive(seeds, by_teacher)
             aggregate(data, new)
             accuracy = fit(model, data, int(params.fit_epochs), int(params.fit_batch), float(params.fit_lr),
                            int(cfg.seed) * 1000 + k)
             coll, succ = np.mean(new.outcomes, axis=0)
-            row = {"round": k, "driver": "teacher" if k == 0 else "student", "episodes": len(new.outcomes),
+            row = {"round": k, "driver": "teacher" if by_teacher else "student", "episodes": len(new.outcomes),
                    "labels": len(data.labels), "wall_s": round(time.time() - t_start, 1),
                    "label_s": round(new.label_s, 1), "agreement": float(np.mean(new.agree)),
                    "drive_success": float(succ), "drive_collision": float(coll), "fit_accuracy": accuracy,
@@ -322,7 +416,8 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     finally:
         signal.signal(signal.SIGTERM, previous)
         writer.close()
-        env.close()
+        for e in envs if how == "replica" else [env]:
+            e.close()
     write_text_atomic(run_dir / "rounds.csv", _csv(rows))
     shift(model, True)
     path = save_model_atomic(model, ckpt_dir / "model.zip")
