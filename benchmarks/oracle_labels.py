@@ -2,6 +2,7 @@
 
     python benchmarks/oracle_labels.py [--episodes 120] [--batch 64] [--quick]
     python benchmarks/oracle_labels.py --drive 1000 --split test     # the oracle's own outcomes, on the batch
+    python benchmarks/oracle_labels.py --perceived 100 --batch 32    # the replica labeller on turn_perceived
 
 The states: ``--episodes`` left-turn episodes (seeds from ``--seed``; the default 7,000,000+ is used nowhere else)
 driven on the per-env training stack (``agent=ppo_turn``'s: GO/YIELD, action repeat 5, ``turn_truth``) by the
@@ -130,6 +131,58 @@ def drive(plain, split: str, n: int, B: int) -> tuple[float, float, float]:
     return float(coll), float(succ), time.perf_counter() - t0
 
 
+def perceived(episodes: int, B: int, seed: int) -> tuple[int, int, int, float, float, float]:
+    """The replica labeller of train/dagger.py on ``agent=dagger_turn_perceived``'s per-env stack (detector +
+    tracker), a seeded coin (GO with probability 0.6) driving: each decision labelled by the batched oracle on the
+    replica and by the per-env oracle on the per-env env itself. Returns (decisions, agreeing, per-env GO count,
+    per-env oracle s, replica oracle s, whole drive s)."""
+    from hydra import compose, initialize_config_module
+    from omegaconf import OmegaConf
+
+    from agents.go_yield import go_is_safe
+    from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
+    from av_gym.wrappers import GO, YIELD
+    from train.dagger import BatchedLabels, drive_replica, replica_sensors
+    from train.ppo import _env_factory
+
+    with initialize_config_module("conf", version_base="1.3"):
+        cfg = compose("train", overrides=["agent=dagger_turn_perceived"])
+    plain = [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
+    envs = [_env_factory(*plain, 0.0, 5, "go_yield", timeout_is_terminal=True) for _ in range(B)]
+    replica = BatchedLeftTurnVecEnv(plain[0], replica_sensors(cfg.sensors), plain[2], B, action_repeat=5,
+                                    actions="go_yield", timeout_is_terminal=True, pool=0)
+    inner = BatchedLabels(replica, None, True, 0.0)
+    pairs, clock = [], [0.0, 0.0]
+
+    class Checked:  # the replica's labels, each checked against the per-env oracle on the same env
+        on_go_future = inner.on_go_future
+
+        def __call__(self, rows, obs):
+            t0 = time.perf_counter()
+            labels = inner(rows, obs)
+            t1 = time.perf_counter()
+            pairs.extend((int(y), GO if go_is_safe(envs[r], None, lambda _o: GO) else YIELD)
+                         for r, y in zip(rows, labels))
+            clock[0] += time.perf_counter() - t1
+            clock[1] += t1 - t0
+            return labels
+
+        def executed(self, *args):
+            inner.executed(*args)
+
+    class Coin:
+        rng = np.random.default_rng(seed)
+
+        def predict(self, obs, deterministic=True):
+            return (self.rng.uniform(size=len(next(iter(obs.values())))) < 0.6).astype(np.int64), None
+
+    t0 = time.perf_counter()
+    drive_replica(envs, replica, Coin(), Checked(), range(seed, seed + episodes), False, 0.95)
+    wall = time.perf_counter() - t0 - clock[0]
+    mine, ref = np.array(pairs).T
+    return len(pairs), int((mine == ref).sum()), int(ref.sum()), clock[0], clock[1], wall
+
+
 def agreement(recorded: dict, labels: dict) -> tuple[int, int, int, int]:
     """(decisions compared, agreeing, per-env GO count, episodes whose lengths differ)."""
     n = agree = go = differ = 0
@@ -150,7 +203,20 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="12 episodes, batch 12 (a smoke run, ~1 min)")
     parser.add_argument("--drive", type=int, default=0, help="instead: the oracle drives this many episodes of --split")
     parser.add_argument("--split", default="test", choices=["train", "validation", "test"])
+    parser.add_argument("--perceived", type=int, default=0, help="instead: this many episodes of the replica "
+                        "labeller on turn_perceived (detector + tracker), checked against the per-env oracle")
     args = parser.parse_args()
+    if args.perceived > 0:
+        print(f"load average before: {load()}", flush=True)
+        n, agree, go, t_pe, t_rep, wall = perceived(args.perceived, args.batch, args.seed)
+        print(f"load average after: {load()}\n\nreplica vs per-env oracle on turn_perceived states: {agree}/{n} "
+              f"decisions agree = {agree / max(n, 1):.4f} (per-env GO on {go})\n")
+        print("| oracle on turn_perceived | labels | labels/s (wall) |\n|---|---:|---:|")
+        print(f"| per-env, one future per decision (deep copy of the tracker stack) | {n} | {n / t_pe:.1f} |")
+        print(f"| replica, {args.batch} envs: the oracle alone | {n} | {n / t_rep:.1f} |")
+        print(f"| replica, {args.batch} envs: driving the per-env stack + labelling (DAgger's rate) | {n} | "
+              f"{n / wall:.1f} |")
+        return
     if args.drive > 0:
         coll, succ, wall = drive(stacks(), args.split, args.drive, args.batch)
         print(f"| lookahead (batched oracle) | {args.split} | {args.drive} | {coll:.3f} | {succ:.3f} | {wall:.0f} s |")

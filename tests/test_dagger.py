@@ -199,16 +199,24 @@ def test_go_threshold_moves_the_decision_boundary():
 @pytest.mark.slow
 def test_dagger_on_perceived_features_runs_on_the_per_env_stack(tmp_path):
     """Any student observation: turn_perceived (detector + tracker) needs the per-env stack, where the per-env oracle
-    labels one state at a time; the student's observation space is the tracker's features."""
+    labels one state at a time (labeller per_env) or the batched oracle a replica of the episodes (replica, what
+    auto picks); the student's observation space is the tracker's features."""
     from train.dagger import labeller_of, train_dagger
 
     cfg = _cfg("agent=dagger_turn", "sensors=turn_perceived", "agent.vec_env=dummy", "agent.rounds=2",
                "agent.round_episodes=1", "agent.extractor=mlp", "agent.fit_epochs=1", "train.eval_n=1",
-               "train.progress_bar=false")
+               "train.progress_bar=false", "agent.labeller=per_env")
     assert labeller_of(cfg) == "per_env"
+    assert labeller_of(_cfg("agent=dagger_turn_perceived")) == "replica"
     path = train_dagger(cfg, tmp_path / "ckpt", tmp_path / "run")
     rows = (tmp_path / "ckpt" / "rounds.csv").read_text().splitlines()
     assert path.is_file() and len(rows) == 3
+    # the replica labeller, from the truth student (init_from): the student drives from round 0
+    cfg = _cfg("agent=dagger_turn_perceived", "agent.rounds=2", "agent.round_episodes=2", "agent.n_envs=2",
+               "agent.fit_epochs=1", "train.eval_n=0", "train.progress_bar=false")
+    path = train_dagger(cfg, tmp_path / "ckpt2", tmp_path / "run2")
+    rows = (tmp_path / "ckpt2" / "rounds.csv").read_text().splitlines()
+    assert path.is_file() and [r.split(",")[1] for r in rows[1:]] == ["student", "student"]
 
 
 class _Spaces(gym.Env):
@@ -244,3 +252,74 @@ def test_init_from_starts_ppo_from_the_students_network_and_refuses_a_misfit():
         load_weights(model, "checkpoints/reference/ppo_lane_localized", "left_turn")
     with pytest.raises(ValueError, match="init_from and init both set"):
         PPOParams(init="gap_acceptance", init_from="checkpoints/reference/dagger_turn")
+
+
+class _Coin:
+    """A stand-in student: GO with probability 0.6 from a seeded generator, so that the episodes visit yielding,
+    waiting and going states."""
+
+    def __init__(self, seed: int) -> None:
+        self.rng = np.random.default_rng(seed)
+
+    def predict(self, obs: dict, deterministic: bool = True):
+        n = len(next(iter(obs.values())))
+        return (self.rng.uniform(size=n) < 0.6).astype(np.int64), None
+
+
+def _replica(cfg, n: int, duration: float | None = None):
+    """``n`` per-env stacks of ``cfg`` (the student's sensors) and the oracle's batched replica of them."""
+    from train.dagger import BatchedLabels, replica_sensors
+    from train.ppo import _env_factory
+
+    plain = _plain(cfg)
+    envs = [_env_factory(*plain, 0.0, 5, "go_yield", timeout_is_terminal=True) for _ in range(n)]
+    env_cfg = plain[0] if duration is None else {**plain[0], "duration": duration}
+    replica = BatchedLeftTurnVecEnv(env_cfg, replica_sensors(cfg.sensors), plain[2], n, action_repeat=5,
+                                    actions="go_yield", timeout_is_terminal=True, pool=0)
+    return envs, replica, BatchedLabels(replica, None, True, 0.0)
+
+
+@pytest.mark.slow  # ~30 s: the per-env oracle it is checked against deep-copies the tracker stack per decision
+def test_replica_labels_are_the_per_env_oracles_on_perceived_states():
+    """``labeller=replica``: the student drives the per-env stack with the detector and tracker; the batched oracle
+    labels a replica of its episodes. Every label equals the per-env oracle's (a deep copy of that very per-env env
+    played with GO to the end), and the episodes' outcomes are the per-env stack's."""
+    from agents.go_yield import go_is_safe
+    from train.dagger import drive_replica
+
+    cfg = _cfg("agent=dagger_turn_perceived")
+    envs, replica, labeller = _replica(cfg, 2)
+    pairs: list[tuple[int, int]] = []  # (replica's label, per-env oracle's label) per decision
+
+    def checked(rows, obs):  # the per-env oracle on each row's own env, before the step
+        labels = labeller(rows, obs)
+        pairs.extend((int(y), GO if go_is_safe(envs[r], None, lambda _o: GO) else YIELD) for r, y in zip(rows, labels))
+        return labels
+    out = drive_replica(envs, replica, _Coin(0), _Labels(checked, labeller), [3_300_000, 3_300_002], False, 0.95)
+    replica_labels, per_env = np.array(pairs).T
+    assert len(out.outcomes) == 2 and len(out.labels) == len(pairs) >= 12
+    assert np.array_equal(replica_labels, per_env) and 0 < per_env.sum() < len(per_env)  # both labels occur
+
+
+class _Labels:
+    """A labeller calling ``label`` and passing ``executed`` on to ``inner`` (BatchedLabels)."""
+
+    def __init__(self, label, inner) -> None:
+        self.label, self.inner, self.on_go_future = label, inner, inner.on_go_future
+
+    def __call__(self, rows, obs):
+        return self.label(rows, obs)
+
+    def executed(self, *args) -> None:
+        self.inner.executed(*args)
+
+
+def test_a_replica_that_leaves_the_per_env_episode_is_an_error():
+    """A replica that is not the per-env episodes (here: a shorter time limit) would label other states: it is
+    caught at the first episode that ends differently, not trained on."""
+    from train.dagger import drive_replica
+
+    cfg = _cfg("agent=dagger_turn_perceived", "sensors=turn_truth")
+    envs, replica, labeller = _replica(cfg, 2, duration=4.0)
+    with pytest.raises(RuntimeError, match="replica left the per-env episode"):
+        drive_replica(envs, replica, _Coin(1), labeller, list(range(3_300_010, 3_300_016)), True, 0.95)
