@@ -323,3 +323,20 @@ def test_a_replica_that_leaves_the_per_env_episode_is_an_error():
     envs, replica, labeller = _replica(cfg, 2, duration=4.0)
     with pytest.raises(RuntimeError, match="replica left the per-env episode"):
         drive_replica(envs, replica, _Coin(1), labeller, list(range(3_300_010, 3_300_016)), True, 0.95)
+
+
+def test_operating_point_thresholds_are_absolute_for_a_student_saved_at_its_own(tmp_path):
+    """checkpoints/reference/dagger_turn was saved at P(GO) >= 0.9 (its config's agent.go_threshold): writing it at
+    0.9 gives it back unchanged, at 0.5 moves the GO bias by log(0.9 / 0.1), not by 0 (thresholds stack otherwise)."""
+    import math
+
+    from agents.checkpoint import load_sb3
+    from train.operating_point import write
+
+    ref = Path("checkpoints/reference/dagger_turn")
+    bias = lambda p: float(load_sb3(p, device="cpu").policy.action_net.bias[GO])  # noqa: E731
+    same = write(ref, tmp_path / "t0.9", 0.9)
+    half = write(ref, tmp_path / "t0.5", 0.5)
+    assert bias(same) == pytest.approx(bias(ref / "model.zip"), abs=1e-6)
+    assert bias(half) - bias(ref / "model.zip") == pytest.approx(math.log(9.0), abs=1e-5)
+    assert "go_threshold: 0.5" in (tmp_path / "t0.5" / "config.yaml").read_text()

@@ -5,9 +5,10 @@ A student fitted to the oracle's labels by cross-entropy (``train/dagger.py``) o
 sees); its deterministic choice GOes where that is above 0.5. Going only above a threshold τ is the same network
 with ``log(τ / (1 - τ))`` taken off the GO logit's bias, so the result is still a plain PPO zip that
 ``python -m eval`` loads (issue 32: "a user can pick its operating point"). This tool evaluates thresholds on the
-validation split (the batched engine; the same episodes for each threshold) and prints success and collision per
-threshold; ``--write τ`` saves the student at τ into ``--dest`` (model.zip + config.yaml, ``agent.go_threshold``
-recorded).
+validation split (the same episodes for each threshold) and prints success and collision per
+threshold (the per-env stack where the run's sensors need it, e.g. turn_perceived's tracker); ``--write τ`` saves
+the student at τ into ``--dest`` (model.zip + config.yaml, ``agent.go_threshold`` recorded). Thresholds are absolute:
+a run saved at its own ``agent.go_threshold`` is moved back to 0.5 first.
 """
 
 from __future__ import annotations
@@ -50,13 +51,39 @@ def evaluate(run_dir: Path, thresholds: list[float], episodes: int, first: int |
     seeds = config_seeds("validation", episodes, first, "--seed")
     out = []
     for tau in thresholds:
-        model = load_sb3(run_dir / zip_name, device="cpu")
-        shift_go(model, tau)
+        model = _at(load_sb3(run_dir / zip_name, device="cpu"), cfg, tau)
         policy = SB3Policy(model, int(agent.get("action_repeat", 1)), agent.get("actions", "env"))
-        rows = play_batched(*plain, policy, seeds, min(episodes, n_envs), f"t{tau}", progress=False)
+        if _batchable(plain):
+            rows = play_batched(*plain, policy, seeds, min(episodes, n_envs), f"t{tau}", progress=False)
+        else:  # a tracker (turn_perceived) or a shield: the per-env stack, as python -m eval runs it
+            from av_gym.make import make_env
+            from eval.runner import run_episodes
+
+            env = make_env(*plain)
+            rows = run_episodes(env, policy, seeds, f"t{tau}", progress=False)
+            env.close()
         out.append((tau, float(np.mean([r["collision"] for r in rows])), float(np.mean([r["success"] for r in rows]))))
         print(f"| {tau:.2f} | {out[-1][1]:.3f} | {out[-1][2]:.3f} |", flush=True)
     return out
+
+
+def _at(model, cfg: dict, tau: float):
+    """``model`` (saved at its run's ``agent.go_threshold``, 0.5 if none) moved to the threshold ``tau``."""
+    saved = float(cfg["agent"].get("go_threshold", 0.5))
+    if saved != 0.5:
+        shift_go(model, 1.0 - saved)  # back to the fit's own boundary: thresholds are absolute P(GO)
+    shift_go(model, tau)
+    return model
+
+
+def _batchable(plain: list) -> bool:
+    from av_gym.batched.vec_env import check_batchable
+
+    try:
+        check_batchable(*plain)
+    except ConfigError:
+        return False
+    return True
 
 
 def write(run_dir: Path, dest: Path, tau: float, zip_name: str = "model.zip") -> Path:
@@ -66,9 +93,8 @@ def write(run_dir: Path, dest: Path, tau: float, zip_name: str = "model.zip") ->
     from agents.checkpoint import load_sb3, read_config_yaml
     from train.checkpoint import save_model_atomic, write_text_atomic
 
-    model = load_sb3(run_dir / zip_name, device="cpu")
-    shift_go(model, tau)
     cfg = read_config_yaml(run_dir / "config.yaml")
+    model = _at(load_sb3(run_dir / zip_name, device="cpu"), cfg, tau)
     cfg["agent"]["go_threshold"] = float(tau)
     out = save_model_atomic(model, dest / "model.zip")
     write_text_atomic(dest / "config.yaml", yaml.safe_dump(cfg, sort_keys=False))
