@@ -340,3 +340,17 @@ def test_operating_point_thresholds_are_absolute_for_a_student_saved_at_its_own(
     assert bias(same) == pytest.approx(bias(ref / "model.zip"), abs=1e-6)
     assert bias(half) - bias(ref / "model.zip") == pytest.approx(math.log(9.0), abs=1e-5)
     assert "go_threshold: 0.5" in (tmp_path / "t0.5" / "config.yaml").read_text()
+
+
+def test_auto_labeller_picks_the_replica_only_where_it_can_play_the_episodes():
+    """``agent.labeller=auto``: the batched oracle on the batch, its replica for the per-env left turn, the per-env
+    teacher where a replica would leave the episode (a shield overrides the per-env car only); asking for the
+    replica there is a one-line error naming the field and the reason."""
+    from train.dagger import labeller_of, validate
+
+    assert labeller_of(_cfg("agent=dagger_turn")) == "batched"
+    assert labeller_of(_cfg("agent=dagger_turn_perceived")) == "replica"
+    assert labeller_of(_cfg("agent=dagger_turn_perceived", "shield=aeb")) == "per_env"
+    assert labeller_of(_cfg("agent=dagger_turn_perceived", "agent.teacher=gap_acceptance")) == "per_env"
+    (problem,) = validate(_cfg("agent=dagger_turn_perceived", "shield=aeb", "agent.labeller=replica"))
+    assert problem.startswith("agent.labeller=replica needs") and "shield=aeb" in problem

@@ -50,9 +50,22 @@ def labeller_of(cfg: DictConfig) -> str:
     oracle = _teacher_kind(cfg) == "lookahead"
     if cfg.agent.vec_env == "batched":
         return "batched" if oracle else "rule"
-    if cfg.agent.labeller == "per_env" or not oracle or cfg.env.name != "left_turn":
+    if cfg.agent.labeller == "per_env" or not oracle or _replica_refusal(cfg):
         return "per_env"
     return "replica"
+
+
+def _replica_refusal(cfg: DictConfig) -> str | None:
+    """Why the oracle's batched replica cannot play the per-env episodes of ``cfg`` (None: it can)."""
+    from av_gym.batched.vec_env import check_batchable
+    from av_gym.errors import ConfigError
+
+    try:  # the left turn only, and no shield: its overrides would change the per-env episode, not the replica's
+        check_batchable(OmegaConf.to_container(cfg.env, resolve=True), replica_sensors(cfg.sensors),
+                        OmegaConf.to_container(cfg.shield, resolve=True))
+    except ConfigError as exc:
+        return str(exc).split(" is not available")[0].split(" runs ")[0]
+    return None
 
 
 def validate(cfg: DictConfig) -> list[str]:
@@ -70,17 +83,11 @@ def validate(cfg: DictConfig) -> list[str]:
         return ["agent.labeller=batched needs agent.vec_env=batched (the oracle runs on the batched engine)"]
     if agent.labeller == "per_env" and batched:
         return ["agent.labeller=per_env needs agent.vec_env=subproc or dummy (the per-env stack)"]
-    if agent.labeller == "replica" and (batched or _teacher_kind(cfg) != "lookahead" or cfg.env.name != "left_turn"):
-        return ["agent.labeller=replica needs agent.vec_env=subproc or dummy, env=left_turn and agent.teacher of kind "
-                "lookahead (the oracle on a batched replica of the per-env episodes)"]
-    if labeller_of(cfg) == "replica":
-        from av_gym.batched.vec_env import check_batchable
-
-        try:
-            check_batchable(OmegaConf.to_container(cfg.env, resolve=True), replica_sensors(cfg.sensors),
-                            OmegaConf.to_container(cfg.shield, resolve=True))
-        except ConfigError as exc:
-            return [f"agent.labeller=replica: {exc}"]
+    if agent.labeller == "replica" and (batched or _teacher_kind(cfg) != "lookahead" or _replica_refusal(cfg)):
+        return [f"agent.labeller=replica needs agent.vec_env=subproc or dummy, env=left_turn, shield=none and "
+                f"agent.teacher of kind lookahead (the oracle on a batched replica of the per-env episodes); got "
+                f"agent.vec_env={agent.vec_env}, agent.teacher={agent.teacher}"
+                + (f", {_replica_refusal(cfg)}" if _replica_refusal(cfg) else "")]
     if batched:
         kind = _teacher_kind(cfg)
         if kind not in ("lookahead", "gap_acceptance"):
