@@ -200,12 +200,15 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=7_000_000, help="first seed (7,000,000+: used nowhere else)")
     parser.add_argument("--batch", type=int, default=64, help="envs labelled together on the batch")
     parser.add_argument("--flip", type=float, default=0.25, help="probability of flipping the rule's choice")
-    parser.add_argument("--quick", action="store_true", help="12 episodes, batch 12 (a smoke run, ~1 min)")
+    parser.add_argument("--quick", action="store_true", help="12 episodes, batch 12 (a smoke run, ~1 min); with "
+                        "--perceived: 2 episodes, batch 2")
     parser.add_argument("--drive", type=int, default=0, help="instead: the oracle drives this many episodes of --split")
     parser.add_argument("--split", default="test", choices=["train", "validation", "test"])
     parser.add_argument("--perceived", type=int, default=0, help="instead: this many episodes of the replica "
                         "labeller on turn_perceived (detector + tracker), checked against the per-env oracle")
     args = parser.parse_args()
+    if args.quick and args.perceived > 0:  # the smoke form of --perceived: two episodes side by side
+        args.perceived, args.batch = 2, 2
     if args.perceived > 0:
         print(f"load average before: {load()}", flush=True)
         n, agree, go, t_pe, t_rep, wall = perceived(args.perceived, args.batch, args.seed)

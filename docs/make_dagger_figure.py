@@ -31,6 +31,7 @@ def main() -> None:
     parser = ToolParser(prog="docs/make_dagger_figure.py", description=__doc__.splitlines()[0])
     parser.add_argument("rounds", nargs="+", help="rounds.csv files (one per run)")
     parser.add_argument("--out", default="runs/dagger.png", help="the figure (docs/dagger.png for the docs)")
+    parser.add_argument("--sensors", default="turn_truth", help="what the students see, for the title")
     args = parser.parse_args()
     missing = [p for p in args.rounds if not Path(p).is_file()]
     if missing:
@@ -48,7 +49,7 @@ def main() -> None:
     for ax in axes:
         ax.grid(alpha=0.3)
     axes[1].legend(fontsize=7, loc="center right")
-    fig.suptitle("DAgger student (turn_truth) after each round, validation episodes")
+    fig.suptitle(f"DAgger student ({args.sensors}) after each round, validation episodes")
     fig.tight_layout()
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=110)

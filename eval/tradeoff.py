@@ -65,39 +65,60 @@ def points(rows: list[dict]) -> dict[str, tuple]:
     return out
 
 
+ZOOM = (0.12, 0.6)  # the zoom panel: collision <= 0.12 and success >= 0.6, where the learned drivers crowd
+
+
 def plot(pts: dict[str, tuple], rule: list[str], out: Path, title: str) -> None:
+    """The whole plane on the left; on the right the crowded corner of low collision and high success (ZOOM), each
+    agent's name written where it can be read (in the left panel only the points outside that corner are named)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
 
-    fig, ax = plt.subplots(figsize=(7.5, 6))
-    if rule:  # the rule's trade-off as a line, thresholds in order
-        xs, ys = [pts[k][0] for k in rule], [pts[k][1] for k in rule]
-        ax.plot(xs, ys, "-", color="0.6", zorder=1, label="gap_acceptance, t_gap swept")
     groups: dict[str, list[str]] = {}
     for label in pts:
         groups.setdefault(label.split("#")[0], []).append(label)
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     if len(groups) > len(colours):  # the default cycle repeats after 10: two agents would share a colour
         colours = [plt.get_cmap("tab20")(i) for i in range(20)]
-    for k, (group, labels) in enumerate(groups.items()):
-        colour = "0.4" if labels[0] in rule else colours[k % len(colours)]
-        for label in labels:
-            c, s, (c_lo, c_hi), (s_lo, s_hi), _ = pts[label]
-            ax.errorbar(c, s, xerr=[[c - c_lo], [c_hi - c]], yerr=[[s - s_lo], [s_hi - s]], fmt="o", ms=4,
-                        color=colour, alpha=0.6 if len(labels) > 1 else 1.0, capsize=2, zorder=2)
-        cs, ss = np.mean([pts[x][0] for x in labels]), np.mean([pts[x][1] for x in labels])
-        ax.plot(cs, ss, "D" if len(labels) > 1 else "o", ms=9 if len(labels) > 1 else 5, color=colour, zorder=3,
-                label=group if labels[0] not in rule else None)
-        name = group.replace("gap_acceptance t_gap=", "t_gap ") if labels[0] in rule else group
-        ax.annotate(name, (cs, ss), textcoords="offset points", xytext=(6, 4), fontsize=8)
-    ax.set_xlabel("collision rate (95 % Wilson interval)")
-    ax.set_ylabel("success rate (arrived within the time limit)")
-    ax.set_xlim(left=-0.01)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="best")  # the empty corner: points move with what is plotted
-    ax.set_title(title, fontsize=10)
+    centre = {g: (np.mean([pts[x][0] for x in ls]), np.mean([pts[x][1] for x in ls])) for g, ls in groups.items()}
+    inside = {g for g, (c, s) in centre.items() if c <= ZOOM[0] and s >= ZOOM[1]}
+    fig, axes = plt.subplots(1, 2 if inside else 1, figsize=(14, 6) if inside else (7.5, 6), squeeze=False)
+    for panel, ax in enumerate(axes[0]):
+        zoom = panel == 1
+        if rule:  # the rule's trade-off as a line, thresholds in order
+            xs, ys = [pts[k][0] for k in rule], [pts[k][1] for k in rule]
+            ax.plot(xs, ys, "-", color="0.6", zorder=1, label=None if zoom else "gap_acceptance, t_gap swept")
+        for k, (group, labels) in enumerate(groups.items()):
+            colour = "0.4" if labels[0] in rule else colours[k % len(colours)]
+            for label in labels:
+                c, s, (c_lo, c_hi), (s_lo, s_hi), _ = pts[label]
+                ax.errorbar(c, s, xerr=[[c - c_lo], [c_hi - c]], yerr=[[s - s_lo], [s_hi - s]], fmt="o", ms=4,
+                            color=colour, alpha=0.6 if len(labels) > 1 else 1.0, capsize=2, zorder=2)
+            cs, ss = centre[group]
+            ax.plot(cs, ss, "D" if len(labels) > 1 else "o", ms=9 if len(labels) > 1 else 5, color=colour,
+                    zorder=3, label=group if labels[0] not in rule and not zoom else None)
+            if zoom == (group in inside):
+                name = group.replace("gap_acceptance t_gap=", "t_gap ") if labels[0] in rule else group
+                ax.annotate(name, (cs, ss), textcoords="offset points", xytext=(6, 4), fontsize=8, color=colour)
+        ax.set_xlabel("collision rate (95 % Wilson interval)")
+        ax.grid(alpha=0.3)
+        if zoom:
+            cs = [centre[g][0] for g in inside]
+            ss = [centre[g][1] for g in inside]
+            ax.set_xlim(-0.005, max(cs) + 0.03)
+            ax.set_ylim(min(ss) - 0.04, max(ss) + 0.03)
+            ax.set_title("zoom: the low-collision, high-success corner", fontsize=10)
+        else:
+            ax.set_ylabel("success rate (arrived within the time limit)")
+            ax.set_xlim(left=-0.01)
+            ax.legend(fontsize=8, loc="best")  # the empty corner: points move with what is plotted
+            ax.set_title(title, fontsize=10)
+            if inside:
+                ax.add_patch(Rectangle((-0.005, ZOOM[1]), ZOOM[0] + 0.005, 1.0 - ZOOM[1], fill=False, ls="--",
+                                       color="0.5", lw=0.8))
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=110)

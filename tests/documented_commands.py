@@ -193,6 +193,13 @@ KNOWN: dict[str, str] = {
     # docs/dagger.md (issue 32)
     "python -m train agent=dagger_turn": "run",
     "python benchmarks/oracle_labels.py --quick": "run",
+    "python -m train agent=dagger_turn_perceived": "run",
+    "python -m train agent=dagger_turn_perceived seed=1 agent.rounds=6 agent.round_episodes=128 train.eval_n=100 "
+    "train.eval_episodes=0 train.torch_threads=1 run_name=dagger_perceived_s1": "run",
+    "python benchmarks/oracle_labels.py --perceived 100 --batch 32": "run",
+    "python docs/make_dagger_figure.py docs/dagger/rounds_perceived_s1.csv docs/dagger/rounds_perceived_s2.csv "
+    "docs/dagger/rounds_perceived_s3.csv --sensors turn_perceived --out docs/dagger_perceived.png": "run",
+    "python -m train.operating_point checkpoints/reference/dagger_turn_perceived --thresholds [0.7,0.8] --episodes 100": "run",
     "python -m train.operating_point checkpoints/<run_name> --thresholds [0.5,0.7,0.8,0.9,0.95] --episodes 300": "run",
     "python docs/make_dagger_figure.py docs/dagger/rounds_s1.csv docs/dagger/rounds_s2.csv docs/dagger/rounds_s3.csv "
     "--out docs/dagger.png": "run",
@@ -306,6 +313,8 @@ def _tiny_train(args: list[str], chain: Chain) -> list[str]:
             args = _set(args, "agent.n_envs", "1")
     elif agent.startswith("dagger"):
         for option in DAGGER:
+            if agent == "dagger_turn_perceived" and option.startswith("agent.extractor="):
+                continue  # it starts from dagger_turn's network (init_from): the extractor must stay that one
             args = _set(args, *option.split("=", 1))
     elif agent == "pilotnet":
         for option in PILOTNET:
@@ -382,6 +391,7 @@ SCRIPT_ARGS = {
     "benchmarks/pilotnet_inference.py": ["--frames", "20"],
     "benchmarks/sim_speed.py": ["--quick"],
     "docs/make_dagger_figure.py": ["--out", "runs/documented/dagger.png"],
+    "benchmarks/oracle_labels.py": ["--quick"],
 }
 
 
