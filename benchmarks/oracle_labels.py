@@ -2,7 +2,7 @@
 
     python benchmarks/oracle_labels.py [--episodes 120] [--batch 64] [--quick]
     python benchmarks/oracle_labels.py --drive 1000 --split test     # the oracle's own outcomes, on the batch
-    python benchmarks/oracle_labels.py --perceived 100 --batch 32    # the replica labeller on turn_perceived
+    python benchmarks/oracle_labels.py --perceived 64 --batch 32    # the replica labeller on turn_perceived
 
 The states: ``--episodes`` left-turn episodes (seeds from ``--seed``; the default 7,000,000+ is used nowhere else)
 driven on the per-env training stack (``agent=ppo_turn``'s: GO/YIELD, action repeat 5, ``turn_truth``) by the

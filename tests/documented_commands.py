@@ -196,7 +196,7 @@ KNOWN: dict[str, str] = {
     "python -m train agent=dagger_turn_perceived": "run",
     "python -m train agent=dagger_turn_perceived seed=1 agent.rounds=6 agent.round_episodes=128 train.eval_n=100 "
     "train.eval_episodes=0 train.torch_threads=1 run_name=dagger_perceived_s1": "run",
-    "python benchmarks/oracle_labels.py --perceived 100 --batch 32": "run",
+    "python benchmarks/oracle_labels.py --perceived 64 --batch 32": "run",
     "python docs/make_dagger_figure.py docs/dagger/rounds_perceived_s1.csv docs/dagger/rounds_perceived_s2.csv "
     "docs/dagger/rounds_perceived_s3.csv --sensors turn_perceived --out docs/dagger_perceived.png": "run",
     "python -m train.operating_point checkpoints/reference/dagger_turn_perceived --thresholds [0.7,0.8] --episodes 100": "run",
