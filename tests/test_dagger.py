@@ -283,35 +283,9 @@ def _replica(cfg, n: int, duration: float | None = None):
 def test_replica_labels_are_the_per_env_oracles_on_perceived_states():
     """``labeller=replica``: the student drives the per-env stack with the detector and tracker; the batched oracle
     labels a replica of its episodes. Every label equals the per-env oracle's (a deep copy of that very per-env env
-    played with GO to the end), and the episodes' outcomes are the per-env stack's."""
-    from agents.go_yield import go_is_safe
-    from train.dagger import drive_replica
-
-    cfg = _cfg("agent=dagger_turn_perceived")
-    envs, replica, labeller = _replica(cfg, 2)
-    pairs: list[tuple[int, int]] = []  # (replica's label, per-env oracle's label) per decision
-
-    def checked(rows, obs):  # the per-env oracle on each row's own env, before the step
-        labels = labeller(rows, obs)
-        pairs.extend((int(y), GO if go_is_safe(envs[r], None, lambda _o: GO) else YIELD) for r, y in zip(rows, labels))
-        return labels
-    out = drive_replica(envs, replica, _Coin(0), _Labels(checked, labeller), [3_300_000, 3_300_002], False, 0.95)
-    replica_labels, per_env = np.array(pairs).T
-    assert len(out.outcomes) == 2 and len(out.labels) == len(pairs) >= 12
-    assert np.array_equal(replica_labels, per_env) and 0 < per_env.sum() < len(per_env)  # both labels occur
-
-
-class _Labels:
-    """A labeller calling ``label`` and passing ``executed`` on to ``inner`` (BatchedLabels)."""
-
-    def __init__(self, label, inner) -> None:
-        self.label, self.inner, self.on_go_future = label, inner, inner.on_go_future
-
-    def __call__(self, rows, obs):
-        return self.label(rows, obs)
-
-    def executed(self, *args) -> None:
-        self.inner.executed(*args)
+    played with GO to the end): benchmarks/oracle_labels.py --perceived on three episodes."""
+    n, agree, go, *_ = _benchmark().perceived(3, 3, 3_300_000)
+    assert n >= 30 and agree == n and 0 < go < n  # both labels occur: the check can tell them apart
 
 
 def test_a_replica_that_leaves_the_per_env_episode_is_an_error():
