@@ -224,6 +224,7 @@ def test_driven_path_predictions_start_where_the_ego_is_all_along_the_route(make
         assert np.max(np.hypot(*(xy - centre).T)) < tol, s0
 
 
+@pytest.mark.slow  # 7-11 CPU-s on a clean clone: kept out of the README's 5-minute test command
 def test_driven_path_kernel_equals_the_numpy_reference(make, turn_cfg):
     """The compiled driven-path look-up (av_gym/shields/kernels.py, issue 17: < 1 ms per decision) against
     DrivenPath.poses_numpy, the code it replaces, on random batches over every path hypothesis of the

@@ -162,6 +162,7 @@ def test_seeds_are_drawn_lazily_and_rows_handed_back_as_episodes_end(turn_cfg):
     assert [r["seed"] for r in rows] == [5, 6] and all("collision" in r for r in rows)
 
 
+@pytest.mark.slow  # 7-11 CPU-s on a clean clone: kept out of the README's 5-minute test command
 def test_an_interrupted_evaluation_of_a_whole_split_keeps_what_it_measured(tmp_path):
     """No MemoryError: a million episodes (the whole validation split, the most a split holds) run; Ctrl-C after a
     few writes them (and says where) and exits 130."""

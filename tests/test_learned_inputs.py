@@ -279,6 +279,7 @@ def test_the_lookahead_oracle_avoids_the_collisions_of_always_proceed():
     assert sum(s for _, _, s in outcomes.values()) >= 6, outcomes
 
 
+@pytest.mark.slow  # 7-11 CPU-s on a clean clone: kept out of the README's 5-minute test command
 def test_the_lookahead_oracle_plans_without_the_shield_unless_asked():
     """lookahead+aeb on the paper's CCFtap case (the target would hit an ego that drives on; the shield stops it):
     the oracle's own futures (the default) show the collision, so it waits for the target and the shield never

@@ -56,6 +56,7 @@ def test_a_reference_checkpoint_has_its_command_and_fits_its_env(name):
     assert env.action_space.contains(policy.act(obs))
 
 
+@pytest.mark.slow  # 7-11 CPU-s on a clean clone: kept out of the README's 5-minute test command
 @pytest.mark.parametrize("name", ["ppo_lane_camera", "ppo_lane_localized"])
 def test_a_reference_lane_keeper_drives_a_held_out_lap(name):
     env, policy = _env_and_policy(name)
