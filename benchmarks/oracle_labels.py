@@ -131,27 +131,47 @@ def drive(plain, split: str, n: int, B: int) -> tuple[float, float, float]:
     return float(coll), float(succ), time.perf_counter() - t0
 
 
-def perceived(episodes: int, B: int, seed: int) -> tuple[int, int, int, float, float, float]:
-    """The replica labeller of train/dagger.py on ``agent=dagger_turn_perceived``'s per-env stack (detector +
-    tracker), a seeded coin (GO with probability 0.6) driving: each decision labelled by the batched oracle on the
-    replica and by the per-env oracle on the per-env env itself. Returns (decisions, agreeing, per-env GO count,
-    per-env oracle s, replica oracle s, whole drive s)."""
+class Coin:
+    """A stand-in student: GO with probability 0.6 from a seeded generator, so that the episodes visit yielding,
+    waiting and going states."""
+
+    def __init__(self, seed: int) -> None:
+        self.rng = np.random.default_rng(seed)
+
+    def predict(self, obs: dict, deterministic: bool = True):
+        return (self.rng.uniform(size=len(next(iter(obs.values())))) < 0.6).astype(np.int64), None
+
+
+def replica_stack(B: int, overrides: tuple[str, ...] = (), replica_env: dict | None = None):
+    """``B`` per-env stacks of ``agent=dagger_turn_perceived`` (+ Hydra ``overrides``), the oracle's batched replica
+    of them (its env config updated with ``replica_env``: a replica that is *not* the episodes, for the test that
+    it is caught) and its labeller, as train/dagger.py builds them."""
     from hydra import compose, initialize_config_module
     from omegaconf import OmegaConf
 
-    from agents.go_yield import go_is_safe
     from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
-    from av_gym.wrappers import GO, YIELD
-    from train.dagger import BatchedLabels, drive_replica, replica_sensors
+    from train.dagger import BatchedLabels, replica_sensors
     from train.ppo import _env_factory
 
     with initialize_config_module("conf", version_base="1.3"):
-        cfg = compose("train", overrides=["agent=dagger_turn_perceived"])
+        cfg = compose("train", overrides=["agent=dagger_turn_perceived", *overrides])
     plain = [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
     envs = [_env_factory(*plain, 0.0, 5, "go_yield", timeout_is_terminal=True) for _ in range(B)]
-    replica = BatchedLeftTurnVecEnv(plain[0], replica_sensors(cfg.sensors), plain[2], B, action_repeat=5,
-                                    actions="go_yield", timeout_is_terminal=True, pool=0)
-    inner = BatchedLabels(replica, None, True, 0.0)
+    replica = BatchedLeftTurnVecEnv({**plain[0], **(replica_env or {})}, replica_sensors(cfg.sensors), plain[2], B,
+                                    action_repeat=5, actions="go_yield", timeout_is_terminal=True, pool=0)
+    return envs, replica, BatchedLabels(replica, None, True, 0.0)
+
+
+def perceived(episodes: int, B: int, seed: int) -> tuple[int, int, int, float, float, float]:
+    """The replica labeller of train/dagger.py on ``agent=dagger_turn_perceived``'s per-env stack (detector +
+    tracker), a seeded :class:`Coin` driving: each decision labelled by the batched oracle on the replica and by the
+    per-env oracle on the per-env env itself. Returns (decisions, agreeing, per-env GO count, per-env oracle s,
+    replica oracle s, whole drive s)."""
+    from agents.go_yield import go_is_safe
+    from av_gym.wrappers import GO, YIELD
+    from train.dagger import drive_replica
+
+    envs, replica, inner = replica_stack(B)
     pairs, clock = [], [0.0, 0.0]
 
     class Checked:  # the replica's labels, each checked against the per-env oracle on the same env
@@ -170,14 +190,8 @@ def perceived(episodes: int, B: int, seed: int) -> tuple[int, int, int, float, f
         def executed(self, *args):
             inner.executed(*args)
 
-    class Coin:
-        rng = np.random.default_rng(seed)
-
-        def predict(self, obs, deterministic=True):
-            return (self.rng.uniform(size=len(next(iter(obs.values())))) < 0.6).astype(np.int64), None
-
     t0 = time.perf_counter()
-    drive_replica(envs, replica, Coin(), Checked(), range(seed, seed + episodes), False, 0.95)
+    drive_replica(envs, replica, Coin(seed), Checked(), range(seed, seed + episodes), False, 0.95)
     wall = time.perf_counter() - t0 - clock[0]
     mine, ref = np.array(pairs).T
     return len(pairs), int((mine == ref).sum()), int(ref.sum()), clock[0], clock[1], wall

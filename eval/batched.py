@@ -150,6 +150,23 @@ def run_episodes_batched(env_cfg: dict, plan, policy, seeds: Iterable[int], n_en
     return play_batched(env_cfg, sensors, plan.shield, policy, seeds, n_envs, label, progress, out)
 
 
+def play_on(env_cfg: dict, sensors: dict, shield: dict, policy, seeds: Iterable[int], n_envs: int, label: str,
+            batched: bool) -> list[dict]:
+    """The episodes ``seeds`` of ``policy``, no progress bar: on the batched engine (:func:`play_batched`, ``n_envs``
+    at a time; the caller has checked it can run the stack) or on one per-env env (:func:`eval.runner.run_episodes`:
+    a tracker, a shield, the lane keeper). The same episodes either way, the batch's cost where it can."""
+    if batched:
+        return play_batched(env_cfg, sensors, shield, policy, seeds, n_envs, label, progress=False)
+    from av_gym.make import make_env
+    from eval.runner import run_episodes
+
+    env = make_env(env_cfg, sensors, shield)
+    try:
+        return run_episodes(env, policy, seeds, label, progress=False)
+    finally:
+        env.close()
+
+
 def play_batched(env_cfg: dict, sensors: dict, shield: dict, policy, seeds: Iterable[int], n_envs: int, label: str,
                  progress: bool = True, out: list | None = None) -> list[dict]:
     """The episodes ``seeds`` of ``policy`` on the batched engine (``n_envs`` at a time), rows in seed order; the

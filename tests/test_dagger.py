@@ -254,31 +254,6 @@ def test_init_from_starts_ppo_from_the_students_network_and_refuses_a_misfit():
         PPOParams(init="gap_acceptance", init_from="checkpoints/reference/dagger_turn")
 
 
-class _Coin:
-    """A stand-in student: GO with probability 0.6 from a seeded generator, so that the episodes visit yielding,
-    waiting and going states."""
-
-    def __init__(self, seed: int) -> None:
-        self.rng = np.random.default_rng(seed)
-
-    def predict(self, obs: dict, deterministic: bool = True):
-        n = len(next(iter(obs.values())))
-        return (self.rng.uniform(size=n) < 0.6).astype(np.int64), None
-
-
-def _replica(cfg, n: int, duration: float | None = None):
-    """``n`` per-env stacks of ``cfg`` (the student's sensors) and the oracle's batched replica of them."""
-    from train.dagger import BatchedLabels, replica_sensors
-    from train.ppo import _env_factory
-
-    plain = _plain(cfg)
-    envs = [_env_factory(*plain, 0.0, 5, "go_yield", timeout_is_terminal=True) for _ in range(n)]
-    env_cfg = plain[0] if duration is None else {**plain[0], "duration": duration}
-    replica = BatchedLeftTurnVecEnv(env_cfg, replica_sensors(cfg.sensors), plain[2], n, action_repeat=5,
-                                    actions="go_yield", timeout_is_terminal=True, pool=0)
-    return envs, replica, BatchedLabels(replica, None, True, 0.0)
-
-
 @pytest.mark.slow  # ~30 s: the per-env oracle it is checked against deep-copies the tracker stack per decision
 def test_replica_labels_are_the_per_env_oracles_on_perceived_states():
     """``labeller=replica``: the student drives the per-env stack with the detector and tracker; the batched oracle
@@ -293,10 +268,10 @@ def test_a_replica_that_leaves_the_per_env_episode_is_an_error():
     caught at the first episode that ends differently, not trained on."""
     from train.dagger import drive_replica
 
-    cfg = _cfg("agent=dagger_turn_perceived", "sensors=turn_truth")
-    envs, replica, labeller = _replica(cfg, 2, duration=4.0)
+    bench = _benchmark()
+    envs, replica, labeller = bench.replica_stack(2, ("sensors=turn_truth",), replica_env={"duration": 4.0})
     with pytest.raises(RuntimeError, match="replica left the per-env episode"):
-        drive_replica(envs, replica, _Coin(1), labeller, list(range(3_300_010, 3_300_016)), True, 0.95)
+        drive_replica(envs, replica, bench.Coin(1), labeller, list(range(3_300_010, 3_300_016)), True, 0.95)
 
 
 def test_operating_point_thresholds_are_absolute_for_a_student_saved_at_its_own(tmp_path):

@@ -13,8 +13,10 @@ fine-tune it. The teacher is any agent of a TEACHERS kind (``agent.teacher``). T
 - ``agent.vec_env=batched`` (``turn_truth``): ``agent.n_envs`` episodes stepped together on the batched engine;
   the look-ahead oracle labels every env's decision at once (:mod:`agents.batched_oracle`), a rule from the
   observation row by row;
-- otherwise (any sensors, e.g. ``turn_perceived``; any scenario): one per-env training stack
-  (``train/ppo.py``'s wrappers), the teacher labelling one state at a time.
+- otherwise (any sensors, e.g. ``turn_perceived``; any scenario): the per-env training stack (``train/ppo.py``'s
+  wrappers). On the left turn with the oracle as teacher, ``agent.n_envs`` of them drive in lockstep with a batched
+  replica of their episodes, which the oracle labels all at once (:func:`drive_replica`); else one stack, the
+  teacher labelling one state at a time.
 
 Per round: a progress line, TensorBoard scalars (``run_dir/tb/<name>``), ``rounds.csv`` (labels, wall-clock, the
 student's agreement with the teacher on its own states, its success/collision while driving and on the validation
@@ -83,11 +85,11 @@ def validate(cfg: DictConfig) -> list[str]:
         return ["agent.labeller=batched needs agent.vec_env=batched (the oracle runs on the batched engine)"]
     if agent.labeller == "per_env" and batched:
         return ["agent.labeller=per_env needs agent.vec_env=subproc or dummy (the per-env stack)"]
-    if agent.labeller == "replica" and (batched or _teacher_kind(cfg) != "lookahead" or _replica_refusal(cfg)):
+    refusal = _replica_refusal(cfg) if agent.labeller == "replica" else None
+    if agent.labeller == "replica" and (batched or _teacher_kind(cfg) != "lookahead" or refusal):
         return [f"agent.labeller=replica needs agent.vec_env=subproc or dummy, env=left_turn, shield=none and "
                 f"agent.teacher of kind lookahead (the oracle on a batched replica of the per-env episodes); got "
-                f"agent.vec_env={agent.vec_env}, agent.teacher={agent.teacher}"
-                + (f", {_replica_refusal(cfg)}" if _replica_refusal(cfg) else "")]
+                f"agent.vec_env={agent.vec_env}, agent.teacher={agent.teacher}" + (f", {refusal}" if refusal else "")]
     if batched:
         kind = _teacher_kind(cfg)
         if kind not in ("lookahead", "gap_acceptance"):
@@ -126,6 +128,14 @@ class Round:
     agree: list = field(default_factory=list)  # the student's own choice equals the label (or 1 - |error|)
     outcomes: list = field(default_factory=list)  # (collision, success) per episode
     label_s: float = 0.0  # wall seconds spent labelling
+
+    def close(self, steps: list[list], info: dict, gamma: float) -> None:
+        """Add one finished episode: ``steps`` as [obs, label, agree, reward] per decision, ``info`` its last."""
+        self.obs += [s[0] for s in steps]
+        self.labels += [s[1] for s in steps]
+        self.agree += [s[2] for s in steps]
+        self.returns += discounted([s[3] for s in steps], gamma)
+        self.outcomes.append(outcome(info))
 
 
 def discounted(rewards: list[float], gamma: float) -> list[float]:
@@ -198,12 +208,7 @@ def drive_batched(venv, model, labeller: BatchedLabels, seeds, teacher_drives: b
         for r in rows:
             episode[r][-1].append(float(rewards[r]))
             if done[r]:
-                steps = episode[r]
-                out.obs += [s[0] for s in steps]
-                out.labels += [s[1] for s in steps]
-                out.agree += [s[2] for s in steps]
-                out.returns += discounted([s[3] for s in steps], gamma)
-                out.outcomes.append(outcome(infos[r]))
+                out.close(episode[r], infos[r], gamma)
                 episode[r] = []
     return out
 
@@ -275,12 +280,7 @@ def drive_replica(envs: list, replica, model, labeller: BatchedLabels, seeds, te
                                    f"(ended {ended} vs {bool(done[r])}): the batched engine no longer draws as the "
                                    f"per-env env; use agent.labeller=per_env")
             if ended:
-                steps = episode[r]
-                out.obs += [s[0] for s in steps]
-                out.labels += [s[1] for s in steps]
-                out.agree += [s[2] for s in steps]
-                out.returns += discounted([s[3] for s in steps], gamma)
-                out.outcomes.append(outcome(info))
+                out.close(episode[r], info, gamma)
                 episode[r] = []
                 if not replica.idle[r]:
                     obs[r] = envs[r].reset(seed=int(replica.row_seed[r]))[0]
@@ -331,36 +331,34 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     repeat, actions = int(params.action_repeat), str(params.actions)
     teacher = make_teacher(params.teacher, actions, str(cfg.env.name), repeat)
     how = labeller_of(cfg)
+    gamma, n_envs = float(params.gamma), int(params.n_envs)
+    if how in ("batched", "rule"):
+        from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
+
+        stacks = [BatchedLeftTurnVecEnv(*plain, n_envs, action_repeat=repeat, actions=actions,
+                                        timeout_is_terminal=params.timeout_is_terminal, pool=0)]
+    else:  # the per-env training stack: one for the per-env teacher, n_envs in lockstep with the replica
+        stacks = [_env_factory(*plain, 0.0, repeat, actions, timeout_is_terminal=params.timeout_is_terminal)
+                  for _ in range(n_envs if how == "replica" else 1)]
+    env = stacks[0]
+    model = make_ppo(env, OmegaConf.to_container(agent, resolve=True), seed=int(cfg.seed), tensorboard_log=None,
+                     device=agent.device)
     if how == "replica":
         from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
 
-        envs = [_env_factory(*plain, 0.0, repeat, actions, timeout_is_terminal=params.timeout_is_terminal)
-                for _ in range(int(params.n_envs))]
-        replica = BatchedLeftTurnVecEnv(plain[0], replica_sensors(cfg.sensors), plain[2], int(params.n_envs),
+        replica = BatchedLeftTurnVecEnv(plain[0], replica_sensors(cfg.sensors), plain[2], n_envs,
                                         action_repeat=repeat, actions=actions,
                                         timeout_is_terminal=params.timeout_is_terminal, pool=0)
-        env = envs[0]
-        model = make_ppo(env, OmegaConf.to_container(agent, resolve=True), seed=int(cfg.seed), tensorboard_log=None,
-                         device=agent.device)
         labels = BatchedLabels(replica, teacher, True, params.label_margin)
-        drive = lambda seeds, by_teacher: drive_replica(envs, replica, model, labels, seeds,  # noqa: E731
-                                                        by_teacher, float(params.gamma))
+        drive = lambda seeds, by_teacher: drive_replica(stacks, replica, model, labels, seeds,  # noqa: E731
+                                                        by_teacher, gamma)
     elif how == "per_env":
-        env = _env_factory(*plain, 0.0, repeat, actions, timeout_is_terminal=params.timeout_is_terminal)
-        model = make_ppo(env, OmegaConf.to_container(agent, resolve=True), seed=int(cfg.seed), tensorboard_log=None,
-                         device=agent.device)
         drive = lambda seeds, by_teacher: drive_per_env(env, model, teacher, seeds, by_teacher,  # noqa: E731
-                                                        float(params.gamma))
+                                                        gamma)
     else:
-        from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
-
-        env = BatchedLeftTurnVecEnv(*plain, int(params.n_envs), action_repeat=repeat, actions=actions,
-                                    timeout_is_terminal=params.timeout_is_terminal, pool=0)
-        model = make_ppo(env, OmegaConf.to_container(agent, resolve=True), seed=int(cfg.seed), tensorboard_log=None,
-                         device=agent.device)
         labels = BatchedLabels(env, teacher, how == "batched", params.label_margin)
         drive = lambda seeds, by_teacher: drive_batched(env, model, labels, seeds, by_teacher,  # noqa: E731
-                                                        float(params.gamma))
+                                                        gamma)
     if params.init_from:  # a student to go on from (an earlier DAgger run or a PPO policy of the same spaces)
         from train.ppo import load_weights
 
@@ -423,7 +421,7 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     finally:
         signal.signal(signal.SIGTERM, previous)
         writer.close()
-        for e in envs if how == "replica" else [env]:
+        for e in stacks:
             e.close()
     write_text_atomic(run_dir / "rounds.csv", _csv(rows))
     shift(model, True)
@@ -444,18 +442,9 @@ def _validation(cfg: DictConfig, plain: list, repeat: int, actions: str, batched
     def run(model):
         from agents.ppo import SB3Policy
 
-        policy = SB3Policy(model, repeat, actions)
-        if batched:
-            from eval.batched import play_batched
+        from eval.batched import play_on
 
-            rows = play_batched(*plain, policy, seeds, min(n, 128), "val", progress=False)
-        else:
-            from av_gym.make import make_env
-            from eval.runner import run_episodes
-
-            env = make_env(*plain)
-            rows = run_episodes(env, policy, seeds, "val", progress=False)
-            env.close()
+        rows = play_on(*plain, SB3Policy(model, repeat, actions), seeds, min(n, 128), "val", batched)
         return (float(np.mean([r["collision"] for r in rows])),
                 float(np.mean([r["success"] if "success" in r else r["lap_completed"] for r in rows])))
     return run

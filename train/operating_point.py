@@ -43,25 +43,18 @@ def evaluate(run_dir: Path, thresholds: list[float], episodes: int, first: int |
     from agents.checkpoint import load_sb3, read_config_yaml
     from agents.ppo import SB3Policy
     from av_gym.seeds import config_seeds
-    from eval.batched import play_batched
+    from eval.batched import play_on
 
     cfg = read_config_yaml(run_dir / "config.yaml")
     plain = [cfg["env"], cfg["sensors"], cfg["shield"]]
     agent = cfg["agent"]
     seeds = config_seeds("validation", episodes, first, "--seed")
-    out = []
+    out, batched = [], _batchable(plain)
     for tau in thresholds:
         model = _at(load_sb3(run_dir / zip_name, device="cpu"), cfg, tau)
         policy = SB3Policy(model, int(agent.get("action_repeat", 1)), agent.get("actions", "env"))
-        if _batchable(plain):
-            rows = play_batched(*plain, policy, seeds, min(episodes, n_envs), f"t{tau}", progress=False)
-        else:  # a tracker (turn_perceived) or a shield: the per-env stack, as python -m eval runs it
-            from av_gym.make import make_env
-            from eval.runner import run_episodes
-
-            env = make_env(*plain)
-            rows = run_episodes(env, policy, seeds, f"t{tau}", progress=False)
-            env.close()
+        # a tracker (turn_perceived) or a shield: the per-env stack, as python -m eval runs it
+        rows = play_on(*plain, policy, seeds, min(episodes, n_envs), f"t{tau}", batched)
         out.append((tau, float(np.mean([r["collision"] for r in rows])), float(np.mean([r["success"] for r in rows]))))
         print(f"| {tau:.2f} | {out[-1][1]:.3f} | {out[-1][2]:.3f} |", flush=True)
     return out
