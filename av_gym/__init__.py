@@ -41,3 +41,5 @@ def _preload_in_forkserver() -> None:
 
 
 _preload_in_forkserver()
+
+from av_gym.references import reference, reference_names  # noqa: E402  (the shipped agents by name)

@@ -15,7 +15,9 @@ PACKAGES = ("av_gym", "agents", "conf", "train", "eval")
 # unit → floor. A unit is a top-level package, or ``av_gym.<module or subpackage>``; ``av_gym`` itself is the
 # package's __init__ (the Gymnasium ids). Units on one floor do not import each other.
 FLOORS = {
-    "av_gym": 0, "av_gym.errors": 0, "av_gym.geometry": 0,      # no av_gym imports but errors
+    "av_gym.errors": 0, "av_gym.geometry": 0,                   # no av_gym imports but errors
+    "av_gym.references": 0.5,                                   # where the shipped presets and agents lie
+    "av_gym": 0.7,                                              # the package: ids, reference()
     "av_gym.params": 1, "av_gym.registry": 1, "av_gym.metrics": 1, "av_gym.atomic": 1, "av_gym.seeds": 1,
     "av_gym.actions": 1,                                        # what an action must be (envs, shields, wrappers)
     "av_gym.sim": 2,                                            # the simulator (highway-env fast paths, batched traffic)

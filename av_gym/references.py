@@ -1,0 +1,58 @@
+"""The reference agents shipped with av_gym, by name: ``av_gym.reference("ppo_turn")`` is the folder holding its
+``config.yaml``, ``model.zip`` and ``COMMAND``; ``gym.make(id, checkpoint="ppo_turn")`` takes the name too.
+
+Where they are: in a checkout (and an editable install) ``checkpoints/reference/`` beside ``av_gym/``; in a wheel
+``av_gym/_shipped/reference/`` (setup.py copies them there), so that a non-editable install carries them and no
+folder of the user's can stand in for them. Only the folder is located here: loading a model needs SB3 or torch,
+which this library layer does not import (the harness's ``agents.checkpoint`` does)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from av_gym.errors import ConfigError
+
+PACKAGE = Path(__file__).resolve().parent
+SHIPPED = PACKAGE / "_shipped"
+"""The data a built wheel carries inside the package (``conf/`` presets, ``reference/`` agents)."""
+
+
+def shipped_root() -> Path:
+    """The folder holding ``conf/`` and ``reference/`` of this install: ``av_gym/_shipped`` in a wheel, the
+    checkout's root (``conf/``, ``checkpoints/reference/``) otherwise."""
+    return SHIPPED if SHIPPED.is_dir() else PACKAGE.parent
+
+
+def reference_root() -> Path:
+    """The folder of the shipped reference agents (one sub-folder per name)."""
+    return SHIPPED / "reference" if SHIPPED.is_dir() else PACKAGE.parent / "checkpoints" / "reference"
+
+
+def conf_root() -> Path:
+    """The folder of the shipped presets (``env/``, ``sensors/``, ``shield/``, ``agent/`` yaml files)."""
+    return shipped_root() / "conf"
+
+
+def reference_names() -> list[str]:
+    """The names of the shipped reference agents (``seeds/`` holds extra training seeds, not a name)."""
+    root = reference_root()
+    if not root.is_dir():
+        return []
+    return sorted(p.parent.name for p in root.glob("*/config.yaml"))
+
+
+def reference(name: str) -> Path:
+    """The folder of shipped reference agent ``name``; a :class:`ConfigError` naming the allowed names otherwise."""
+    names = reference_names()
+    if not isinstance(name, str) or name not in names:
+        raise ConfigError(f"reference agent must be one of {names}, got {name!r}")
+    return reference_root() / name
+
+
+def is_shipped(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is inside the shipped reference folder (tools must not write there unasked)."""
+    try:
+        return Path(path).resolve().is_relative_to(reference_root().resolve())
+    except OSError:
+        return False
