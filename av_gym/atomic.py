@@ -89,3 +89,79 @@ def write_texts_atomic(texts: dict[str | Path, str], field: str = "") -> None:
         raise
     for tmp, path in done:
         os.replace(tmp, path)
+
+
+def save_figure_atomic(fig, path: str | Path, field: str = "", **kwargs) -> Path:
+    """``fig.savefig(path)`` (matplotlib), atomically: a failed or interrupted save leaves the previous image whole
+    and no empty or half-written png (issue 39: a full disk left an empty ``grid.png`` and three tracebacks). The
+    format comes from ``path``'s suffix, not from the temporary name's."""
+    path = Path(path)
+    kwargs.setdefault("format", path.suffix.lstrip(".") or "png")
+    with atomic_path(path, field) as tmp:
+        fig.savefig(tmp, **kwargs)
+    return path
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap the folders ``a`` and ``b`` in one step (Linux ``renameat2(RENAME_EXCHANGE)``); False where the system
+    or the file system cannot (the caller falls back to two renames)."""
+    import ctypes
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):  # glibc < 2.28, musl
+        return False
+    at_fdcwd, rename_exchange = -100, 2
+    renameat2.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    if renameat2(at_fdcwd, os.fsencode(str(a)), at_fdcwd, os.fsencode(str(b)), rename_exchange) == 0:
+        return True
+    err = ctypes.get_errno()
+    import errno
+
+    if err in (errno.ENOSYS, errno.EINVAL, errno.ENOTSUP, errno.EOPNOTSUPP):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
+def replace_folder_atomic(folder: str | Path, fill, field: str = "") -> Path:
+    """Replace every file of ``folder`` at once: ``fill(tmp)`` writes the new contents into a hidden sibling folder,
+    which is then swapped with ``folder`` in one rename (``renameat2`` exchange on Linux), so a reader finds the
+    old folder whole or the new one whole, never a model of one and a config or COMMAND of the other (issue 39: a
+    reference's model and config were replaced one file at a time and its COMMAND left stale). A failure while
+    writing (a full disk) leaves ``folder`` as it was and no temporary folder; an ``OSError`` becomes
+    :class:`WriteFailed`. Without the exchange (another system) the old folder is renamed aside first, so for an
+    instant ``folder`` is missing, never mixed."""
+    import shutil
+
+    folder = Path(folder)
+    tmp = folder.with_name(f".{folder.name}.{os.getpid()}.tmp")
+    try:
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        fill(tmp)
+        for p in tmp.iterdir():
+            if p.is_file():
+                with open(p, "rb") as f:
+                    os.fsync(f.fileno())
+        if not folder.exists():
+            os.rename(tmp, folder)
+        elif _exchange(tmp, folder):
+            shutil.rmtree(tmp, ignore_errors=True)  # now the old contents
+        else:
+            old = folder.with_name(f".{folder.name}.{os.getpid()}.old")
+            os.rename(folder, old)
+            os.rename(tmp, folder)
+            shutil.rmtree(old, ignore_errors=True)
+    except OSError as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        reason = os.strerror(exc.errno) if exc.errno else str(exc)
+        kept = "the previous version is intact" if folder.exists() else "nothing was written"
+        raise WriteFailed(f"{field + ': ' if field else ''}cannot write {folder}: {reason} ({kept})") from None
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return folder

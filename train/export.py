@@ -1,25 +1,103 @@
 """Export a trained PPO run as a reference checkpoint: ``python -m train.export checkpoints/<run>
-checkpoints/reference/<name> [--best] [--command "python -m train ..."]``.
+checkpoints/reference/<name> [--best] [--command "python -m train ..."] [--overwrite-reference]``.
 
 Writes ``<dest>/model.zip`` (the run's ``model.zip``, or ``best.zip`` with ``--best``) without the optimizer's
 state, the run's ``config.yaml`` beside it, and ``COMMAND`` (the command that trained it; every reference folder
 has one, ``tests/test_reference_checkpoints.py``). Why drop the optimizer: Adam keeps two moments per weight, two
 thirds of an SB3 zip; a reference checkpoint is for ``python -m eval``, which never steps an optimizer (resuming
-training reads the run's own folder). The policy's weights, and so its actions, are unchanged."""
+training reads the run's own folder). The policy's weights, and so its actions, are unchanged.
+
+The shipped reference agents (``checkpoints/reference/``, :func:`av_gym.references.reference_root`) are read-only
+to the tools (issue 39: an export of a lane keeper replaced the shipped ``ppo_turn``): a destination there is
+refused unless ``--overwrite-reference`` is given, and then only for a checkpoint of the same scenario, actions,
+kind and sensors as the reference it replaces, with ``--command``; the folder's model, config and COMMAND are
+replaced in one step (:func:`av_gym.atomic.replace_folder_atomic`)."""
 
 from __future__ import annotations
 
+import shutil
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 from av_gym.errors import ConfigError, run_cli
-from conf.cli import Extend, ToolParser, items
+from conf.cli import ToolParser
+
+# What a reference's name promises: ``eval agents=[ppo_turn]`` runs whatever ``reference/ppo_turn`` holds, on the
+# scenario, actions and sensors its config.yaml says. A replacement must keep them, or the name (and every table
+# labelled with it) would silently mean another agent.
+SAME_AS_REFERENCE = ("env.name", "env.action", "agent.kind", "agent.actions", "sensors.name")
+FLAG = "--overwrite-reference"
 
 
-def export_reference(run_dir: str | Path, dest: str | Path, best: bool = False, command: str | None = None) -> Path:
+def _get(cfg: Mapping, dotted: str):
+    node = cfg
+    for part in dotted.split("."):
+        node = node.get(part) if isinstance(node, Mapping) else None
+    if dotted == "agent.actions" and node is None:
+        return "env"  # PPOParams' default: the env's own action space
+    return node
+
+
+def reference_problem(dest: Path, new_cfg: Mapping, overwrite_reference: bool, has_command: bool,
+                      tool: str) -> str | None:
+    """Why ``tool`` may not write a checkpoint with config ``new_cfg`` into ``dest``, or None. Only a folder under
+    the shipped references is guarded; there, the flag, a checkpoint like the one it replaces and its command."""
+    from av_gym.references import is_shipped, reference_root
+
+    if not is_shipped(dest):
+        return None
+    root = reference_root()
+    if dest.resolve() == root.resolve():
+        return (f"{tool}: {dest} is the folder of every shipped reference agent; give one agent's folder "
+                f"({dest}/<name>)")
+    name = dest.resolve().relative_to(root.resolve())
+    if not overwrite_reference:
+        return (f"{tool}: {dest} is the shipped reference agent {str(name)!r} (checkpoints/reference/ is read-only "
+                f"to the tools); write elsewhere (e.g. checkpoints/<name>), or pass {FLAG} to replace it with a "
+                f"checkpoint of the same scenario, actions and sensors")
+    from agents.checkpoint import read_config_yaml
+
+    old = read_config_yaml(dest / "config.yaml")
+    if old:
+        for key in SAME_AS_REFERENCE:
+            if _get(old, key) != _get(new_cfg, key):
+                return (f"{tool} {FLAG}: {dest} holds {str(name)!r} with {key}={_get(old, key)}, this checkpoint "
+                        f"has {key}={_get(new_cfg, key)}; a reference is replaced only by a checkpoint with the same "
+                        f"{', '.join(SAME_AS_REFERENCE)}")
+    if not has_command:
+        return (f"{tool} {FLAG}: give the command that made the new checkpoint (--command \"python -m train ...\"): "
+                f"{dest}/COMMAND must say how its model was made, not how the one it replaces was")
+    return None
+
+
+def write_checkpoint_folder(dest: Path, files: dict[str, Callable[[Path], object] | str],
+                            keep_others: bool = True) -> Path:
+    """Write ``files`` (name → text, or a function writing that file's path) into ``dest``, all of them replacing
+    the folder's at once: built in a hidden sibling, then swapped in (a crash or a full disk leaves the old folder
+    whole). Files of ``dest`` not in ``files`` are carried over (``keep_others``): nothing of the old folder is
+    lost but what is replaced."""
+    from av_gym.atomic import replace_folder_atomic
+
+    def fill(tmp: Path) -> None:
+        if keep_others and dest.is_dir():
+            for p in dest.iterdir():
+                if p.name not in files and p.name != ".lock":
+                    (shutil.copytree if p.is_dir() else shutil.copy2)(p, tmp / p.name)
+        for name, content in files.items():
+            if isinstance(content, str):
+                (tmp / name).write_text(content)
+            else:
+                content(tmp / name)
+
+    return replace_folder_atomic(dest, fill, "dest")
+
+
+def export_reference(run_dir: str | Path, dest: str | Path, best: bool = False, command: str | None = None,
+                     overwrite_reference: bool = False) -> Path:
     """Copy run ``run_dir``'s policy (``model.zip`` or ``best.zip``) and ``config.yaml`` to ``dest``, and write
-    ``command`` to ``dest/COMMAND`` if given; returns the written zip. Every file is written atomically."""
-    from agents.checkpoint import load_sb3
-    from train.checkpoint import save_model_atomic, write_text_atomic
+    ``command`` to ``dest/COMMAND`` if given; returns the written zip. The folder's files are replaced at once;
+    a shipped reference only as :func:`reference_problem` allows."""
+    from agents.checkpoint import load_sb3, read_config_yaml
 
     run_dir, dest = Path(run_dir), Path(dest)
     src = run_dir / ("best.zip" if best else "model.zip")
@@ -27,26 +105,34 @@ def export_reference(run_dir: str | Path, dest: str | Path, best: bool = False, 
         if not path.is_file():
             raise ConfigError(f"{path} does not exist: run_dir must be a training run's checkpoint folder "
                               f"(checkpoints/<run_name>/ with model.zip{', best.zip' if best else ''} and config.yaml)")
+    problem = reference_problem(dest, read_config_yaml(run_dir / "config.yaml"), overwrite_reference,
+                                bool(command), "python -m train.export")
+    if problem:
+        raise ConfigError(problem)
     model = load_sb3(src, device="cpu")  # one line for an empty, truncated or corrupt zip
     policy = model.policy
     policy.optimizer = policy.optimizer_class(policy.parameters(), lr=model.lr_schedule(1.0),
                                               **policy.optimizer_kwargs)  # fresh: no moments
-    dest.mkdir(parents=True, exist_ok=True)
-    out = save_model_atomic(model, dest / "model.zip")
-    write_text_atomic(dest / "config.yaml", (run_dir / "config.yaml").read_text())
+    files: dict = {"model.zip": lambda p: model.save(str(p)), "config.yaml": (run_dir / "config.yaml").read_text()}
     if command:
-        write_text_atomic(dest / "COMMAND", command.rstrip("\n") + "\n")
-    return out
+        files["COMMAND"] = command.rstrip("\n") + "\n"
+    write_checkpoint_folder(dest, files)
+    return dest / "model.zip"
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = ToolParser(prog="python -m train.export", description=__doc__.split("\n\n")[0])
     parser.add_argument("run_dir", help="checkpoints/<run_name>/ of a PPO training run")
-    parser.add_argument("dest", help="folder to write, e.g. checkpoints/reference/<agent>")
+    parser.add_argument("dest", help="folder to write, e.g. checkpoints/<name> (checkpoints/reference/<agent>: "
+                                     f"only with {FLAG})")
     parser.add_argument("--best", action="store_true", help="export best.zip (the best periodic evaluation)")
     parser.add_argument("--command", help="the command that trained the run, written to DEST/COMMAND")
+    parser.add_argument(FLAG, action="store_true",
+                        help="allow DEST to be a shipped reference agent's folder: replaced (model, config and "
+                             "COMMAND at once) by a checkpoint of the same scenario, actions, kind and sensors; "
+                             "needs --command")
     args = parser.parse_args(argv)
-    out = export_reference(args.run_dir, args.dest, args.best, args.command)
+    out = export_reference(args.run_dir, args.dest, args.best, args.command, args.overwrite_reference)
     print(f"[export] {out} ({out.stat().st_size / 1e6:.1f} MB) and config.yaml")
     if not (out.parent / "COMMAND").is_file():
         print(f"[export] {out.parent}/COMMAND is missing: write the command that trained the run there "

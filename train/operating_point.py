@@ -7,13 +7,17 @@ with ``log(τ / (1 - τ))`` taken off the GO logit's bias, so the result is stil
 ``python -m eval`` loads (issue 32: "a user can pick its operating point"). This tool evaluates thresholds on the
 validation split (the same episodes for each threshold) and prints success and collision per
 threshold (the per-env stack where the run's sensors need it, e.g. turn_perceived's tracker); ``--write τ`` saves
-the student at τ into ``--dest`` (model.zip + config.yaml, ``agent.go_threshold`` recorded). Thresholds are absolute:
-a run saved at its own ``agent.go_threshold`` is moved back to 0.5 first.
+the student at τ into ``--dest`` (model.zip + config.yaml, ``agent.go_threshold`` recorded, and COMMAND: the run's
+own followed by this command). Thresholds are absolute: a run saved at its own ``agent.go_threshold`` is moved back
+to 0.5 first. The student must choose GO or YIELD (``agent.actions=go_yield``); a shipped reference's folder is
+written only with ``--overwrite-reference`` (train/export.py: same scenario, actions, kind and sensors; the
+folder's files replaced at once).
 """
 
 from __future__ import annotations
 
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +35,10 @@ def shift_go(model, threshold: float) -> float:
 
     if not 0.0 < threshold < 1.0:
         raise ConfigError(f"threshold must be in (0, 1), got {threshold}")
+    n = getattr(getattr(model.policy, "action_net", None), "out_features", None)
+    if n != 2:  # a steering or meta-action policy has no GO logit (it was an IndexError, issue 39)
+        raise ConfigError(f"the operating point is a GO/YIELD student's (agent.actions=go_yield: two logits); this "
+                          f"policy has {n if n is not None else 'no discrete'} action outputs")
     delta = math.log(threshold / (1.0 - threshold))
     with th.no_grad():
         model.policy.action_net.bias[GO] -= delta
@@ -79,19 +87,45 @@ def _batchable(plain: list) -> bool:
     return True
 
 
-def write(run_dir: Path, dest: Path, tau: float, zip_name: str = "model.zip") -> Path:
-    """The student of ``run_dir`` at threshold ``tau`` into ``dest`` (model.zip, config.yaml)."""
+def go_yield_problem(run_dir: Path, cfg: dict) -> str | None:
+    """Why ``run_dir`` (config ``cfg``) has no operating point to choose, or None: only a GO/YIELD student does."""
+    agent = cfg.get("agent") or {}
+    actions = agent.get("actions", "env")
+    if actions != "go_yield":
+        env = (cfg.get("env") or {}).get("name", "?")
+        return (f"run_dir={run_dir}: its agent chooses agent.actions={actions} on env={env}; the operating point is "
+                f"a threshold on P(GO) of a GO/YIELD student (agent.actions=go_yield, e.g. dagger_turn, ppo_turn)")
+    return None
+
+
+def write(run_dir: Path, dest: Path, tau: float, zip_name: str = "model.zip", overwrite_reference: bool = False,
+          command: str | None = None) -> Path:
+    """The student of ``run_dir`` at threshold ``tau`` into ``dest`` (model.zip, config.yaml and COMMAND: the
+    run's own followed by ``command``), the folder's files replaced at once; a shipped reference's folder only with
+    ``overwrite_reference`` (:func:`train.export.reference_problem`)."""
     import yaml
 
     from agents.checkpoint import load_sb3, read_config_yaml
-    from train.checkpoint import save_model_atomic, write_text_atomic
+    from train.export import reference_problem, write_checkpoint_folder
 
     cfg = read_config_yaml(run_dir / "config.yaml")
+    problem = go_yield_problem(run_dir, cfg)
+    if problem:
+        raise ConfigError(problem)
+    command = command or (f"python -m train.operating_point {run_dir} --model {zip_name} --write {tau} --dest {dest}"
+                          + (" --overwrite-reference" if overwrite_reference else ""))
+    problem = reference_problem(dest, cfg, overwrite_reference, True, "python -m train.operating_point")
+    if problem:
+        raise ConfigError(problem)
     model = _at(load_sb3(run_dir / zip_name, device="cpu"), cfg, tau)
     cfg["agent"]["go_threshold"] = float(tau)
-    out = save_model_atomic(model, dest / "model.zip")
-    write_text_atomic(dest / "config.yaml", yaml.safe_dump(cfg, sort_keys=False))
-    return out
+    source = (run_dir / "COMMAND").read_text() if (run_dir / "COMMAND").is_file() else ""
+    provenance = (source.rstrip("\n") + "\n" if source.strip() else
+                  f"# {run_dir}: no COMMAND (its config.yaml has the training settings)\n")
+    provenance += f"# then, P(GO) >= {tau} from {run_dir / zip_name}:\n{command}\n"
+    write_checkpoint_folder(dest, {"model.zip": lambda p: model.save(str(p)),
+                                   "config.yaml": yaml.safe_dump(cfg, sort_keys=False), "COMMAND": provenance})
+    return dest / "model.zip"
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -107,16 +141,30 @@ def main(argv: list[str] | None = None) -> None:
                         help="which of the run's zips")
     parser.add_argument("--seed", type=int, default=None, help="first validation seed (default: the split's start)")
     parser.add_argument("--write", type=float, default=None, help="save the student at this threshold to --dest")
-    parser.add_argument("--dest", default=None, help="folder for --write")
+    parser.add_argument("--dest", default=None, help="folder for --write (a shipped reference's: only with "
+                                                     "--overwrite-reference)")
+    parser.add_argument("--overwrite-reference", action="store_true",
+                        help="allow --dest to be a shipped reference agent's folder: replaced (model, config and "
+                             "COMMAND at once) by a student of the same scenario, actions, kind and sensors")
     args = parser.parse_args(argv)
     run_dir = Path(args.run_dir)
     for path in (run_dir / args.model, run_dir / "config.yaml"):
         if not path.is_file():
             raise ConfigError(f"{path} does not exist: run_dir must be a training run's checkpoint folder")
+    from agents.checkpoint import read_config_yaml
+
+    problem = go_yield_problem(run_dir, read_config_yaml(run_dir / "config.yaml"))
+    if problem:  # before any episode (a lane keeper has no GO logit: it was an IndexError)
+        raise ConfigError(problem)
     if args.write is not None:
         if not args.dest or not 0 < args.write < 1:
             parser.error("--write needs a threshold in (0, 1) and --dest")
-        print(f"[operating_point] {write(run_dir, Path(args.dest), args.write, args.model)}")
+        import shlex
+
+        command = "python -m train.operating_point " + " ".join(shlex.quote(a) for a in (
+            argv if argv is not None else sys.argv[1:]))
+        out = write(run_dir, Path(args.dest), args.write, args.model, args.overwrite_reference, command)
+        print(f"[operating_point] {out}, with config.yaml and COMMAND")
         return
     if args.episodes < 1:
         parser.error("--episodes must be >= 1")

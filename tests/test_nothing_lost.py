@@ -1,0 +1,159 @@
+"""Issue 39, nothing shipped or measured can be lost: the shipped references are read-only to the tools, an
+evaluation owns its out_dir, every generated file is written atomically, resuming never replaces work, every count
+has an upper bound. Each row of the issue's table is a test here (or names the test that checks it)."""
+
+from __future__ import annotations
+
+import errno
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+REF = ROOT / "checkpoints" / "reference"
+
+
+def snapshot(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def no_space(*_args, **_kw):
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+def one_line(capsys, code: int, exit_: pytest.ExceptionInfo) -> str:
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert exit_.value.code == code and len(err) == 1 and err[0].startswith("error: "), (exit_.value.code, err)
+    return err[0]
+
+
+def cli(main, argv: list[str], capsys) -> str:
+    """``main(argv)`` as its command line runs it (:func:`av_gym.errors.run_cli`): its one error line, exit 2."""
+    from av_gym.errors import run_cli
+
+    with pytest.raises(SystemExit) as exit_:
+        run_cli(main, argv)
+    return one_line(capsys, 2, exit_)
+
+
+# --------------------------------------------------------------------------- rows 1, 2: the shipped references
+@pytest.fixture
+def shipped(tmp_path, monkeypatch):
+    """A stand-in for checkpoints/reference/ (copies of ppo_turn and dagger_turn), which the tools take for the
+    shipped folder; and a lane-keeping run beside it."""
+    import av_gym.references
+
+    root = tmp_path / "reference"
+    for name in ("ppo_turn", "dagger_turn"):
+        shutil.copytree(REF / name, root / name)
+    monkeypatch.setattr(av_gym.references, "reference_root", lambda: root)
+    lane = tmp_path / "checkpoints" / "lane"
+    shutil.copytree(REF / "ppo_lane_localized", lane)
+    return root
+
+
+@pytest.mark.parametrize("argv, needle", [
+    # row 1: a lane keeper exported over ppo_turn
+    (["{lane}", "{ref}/ppo_turn", "--command", "x"], "is the shipped reference agent 'ppo_turn'"),
+    (["{lane}", "{ref}/ppo_turn", "--command", "x", "--overwrite-reference"],
+     "holds 'ppo_turn' with env.name=left_turn, this checkpoint has env.name=lane_keeping"),
+    (["{ref}/dagger_turn", "{ref}/ppo_turn", "--command", "x", "--overwrite-reference"],
+     "holds 'ppo_turn' with agent.kind=ppo, this checkpoint has agent.kind=dagger"),
+    (["{ref}/ppo_turn", "{ref}/ppo_turn", "--overwrite-reference"], "give the command that made the new checkpoint"),
+    (["{lane}", "{ref}", "--command", "x", "--overwrite-reference"], "is the folder of every shipped reference"),
+])
+def test_export_does_not_write_over_a_shipped_reference(argv, needle, shipped, tmp_path, capsys):
+    from train.export import main
+
+    lane = tmp_path / "checkpoints" / "lane"
+    before = snapshot(shipped)
+    line = cli(main, [a.format(lane=lane, ref=shipped) for a in argv], capsys)
+    assert needle in line, line
+    assert snapshot(shipped) == before
+
+
+@pytest.mark.parametrize("argv, needle", [
+    # row 2: the operating point of dagger_turn written over ppo_turn
+    (["{ref}/dagger_turn", "--write", "0.8", "--dest", "{ref}/ppo_turn"], "is the shipped reference agent 'ppo_turn'"),
+    (["{ref}/dagger_turn", "--write", "0.8", "--dest", "{ref}/ppo_turn", "--overwrite-reference"],
+     "this checkpoint has agent.kind=dagger"),
+    (["{ref}/dagger_turn", "--write", "0.8", "--dest", "{ref}/dagger_turn"], "is the shipped reference agent"),
+    # row 10: a lane keeper has no GO logit (an IndexError in shift_go)
+    (["{lane}"], "its agent chooses agent.actions=env on env=lane_keeping; the operating point is a threshold on "
+                 "P(GO) of a GO/YIELD student"),
+    (["{lane}", "--write", "0.8", "--dest", "{tmp}/out"], "agent.actions=env on env=lane_keeping"),
+])
+def test_the_operating_point_writes_no_shipped_reference_and_needs_a_go_yield_student(argv, needle, shipped, tmp_path,
+                                                                                     capsys):
+    from train.operating_point import main
+
+    before = snapshot(shipped)
+    line = cli(main, [a.format(lane=tmp_path / "checkpoints" / "lane", ref=shipped, tmp=tmp_path) for a in argv],
+               capsys)
+    assert needle in line, line
+    assert snapshot(shipped) == before and not (tmp_path / "out").exists()
+
+
+def test_shift_go_refuses_a_policy_without_a_go_logit():
+    from agents.checkpoint import load_sb3
+    from av_gym.errors import ConfigError
+    from train.operating_point import shift_go
+
+    with pytest.raises(ConfigError, match="GO/YIELD student's .* this policy has"):
+        shift_go(load_sb3(REF / "ppo_lane_localized" / "model.zip", device="cpu"), 0.8)
+
+
+def test_a_reference_is_replaced_whole_when_asked(shipped, tmp_path, capsys):
+    """With --overwrite-reference, a checkpoint like the reference replaces model, config and COMMAND together
+    (the operating point's COMMAND: the source's own, then its command); nothing hidden is left beside it."""
+    from train.operating_point import main
+
+    main([str(shipped / "dagger_turn"), "--write", "0.8", "--dest", str(shipped / "dagger_turn"),
+          "--overwrite-reference"])
+    command = (shipped / "dagger_turn" / "COMMAND").read_text()
+    assert command.startswith((REF / "dagger_turn" / "COMMAND").read_text().rstrip("\n"))
+    assert "--write 0.8 --dest" in command and "--overwrite-reference" in command.splitlines()[-1]
+    assert "go_threshold: 0.8" in (shipped / "dagger_turn" / "config.yaml").read_text()
+    assert sorted(p.name for p in shipped.iterdir()) == ["dagger_turn", "ppo_turn"]
+
+
+def test_export_into_a_reference_with_the_flag_rewrites_its_command(shipped, tmp_path):
+    from train.export import export_reference
+
+    run = tmp_path / "checkpoints" / "turn"
+    shutil.copytree(REF / "ppo_turn", run)
+    (run / "COMMAND").unlink()
+    export_reference(run, shipped / "ppo_turn", command="python -m train seed=7", overwrite_reference=True)
+    assert (shipped / "ppo_turn" / "COMMAND").read_text() == "python -m train seed=7\n"
+    assert sorted(p.name for p in (shipped / "ppo_turn").iterdir()) == ["COMMAND", "config.yaml", "model.zip"]
+    assert sorted(p.name for p in shipped.iterdir()) == ["dagger_turn", "ppo_turn"]
+
+
+@pytest.mark.parametrize("exchange", [True, False])
+def test_a_folder_replaced_on_a_full_disk_stays_whole(exchange, shipped, tmp_path, monkeypatch):
+    """The folder swap: a write that fails half-way (the model saved, the disk full at COMMAND) leaves the old
+    folder byte for byte and no hidden folder; with or without the kernel's exchange."""
+    import av_gym.atomic
+    from av_gym.atomic import WriteFailed
+    from train.export import write_checkpoint_folder
+
+    if not exchange:
+        monkeypatch.setattr(av_gym.atomic, "_exchange", lambda a, b: False)
+    dest = shipped / "ppo_turn"
+    before = snapshot(dest)
+
+    def half(path: Path) -> None:
+        path.write_text("half")
+        no_space()
+
+    with pytest.raises(WriteFailed, match=r"dest: cannot write .*ppo_turn: No space left on device \(the previous "
+                                          r"version is intact\)"):
+        write_checkpoint_folder(dest, {"model.zip": "new", "config.yaml": "new", "COMMAND": half})
+    assert snapshot(dest) == before and sorted(p.name for p in shipped.iterdir()) == ["dagger_turn", "ppo_turn"]
+    write_checkpoint_folder(dest, {"COMMAND": "new\n"})  # the others carried over
+    assert snapshot(dest) == {**before, "COMMAND": b"new\n"}
+    assert sorted(p.name for p in shipped.iterdir()) == ["dagger_turn", "ppo_turn"]
