@@ -1,6 +1,6 @@
 """PilotNet inference time per frame on one CPU core (issue 4; a benchmark, not a test).
 
-    python benchmarks/pilotnet_inference.py [--checkpoint checkpoints/reference/pilotnet_lane_keeping/model.pt]
+    python benchmarks/pilotnet_inference.py [--checkpoint checkpoints/reference/pilotnet/model.pt]
                                             [--frames 2000] [--threads 1]
 
 Times, per camera frame, (a) the network alone on a preprocessed (1, 3, 66, 200) tensor and (b) the whole
@@ -21,7 +21,7 @@ import torch
 
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser()
-    p.add_argument("--checkpoint", default="checkpoints/reference/pilotnet_lane_keeping/model.pt")
+    p.add_argument("--checkpoint", default="checkpoints/reference/pilotnet/model.pt")
     p.add_argument("--frames", type=int, default=2000)
     p.add_argument("--threads", type=int, default=1)
     a = p.parse_args(argv)

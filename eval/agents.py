@@ -1,9 +1,10 @@
 """Turn an agent spec from the command line into a :class:`agents.Policy` for a given env.
 
 A spec is one of: a rule-based agent named in ``conf/agent/`` (``pid_paper``, ``always_proceed``); a trained agent
-named in ``conf/agent/`` (``ppo_turn``), meaning its shipped reference ``checkpoints/reference/<name>/``, or with
-``:latest`` (``ppo_turn:latest``) your newest run of it; a trained kind (``ppo``) meaning the newest checkpoint for
-this env under ``checkpoints/``; or a path to a checkpoint folder or ``.zip``. ``@preset`` and ``+shield`` go after. Checkpoints are pickles (SB3 zips): load only those you trust."""
+named in ``conf/agent/`` (``ppo_turn``, ``pilotnet``), meaning its shipped reference ``checkpoints/reference/<name>/``,
+or with ``:latest`` (``ppo_turn:latest``) your newest run of it; a bare trained kind with no reference of its name
+(``ppo``) meaning your newest run of that kind for this env under ``checkpoints/`` (none: an error naming the
+references of that kind); or a path to a checkpoint folder or ``.zip``. ``@preset`` and ``+shield`` go after. Checkpoints are pickles (SB3 zips): load only those you trust."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from agents.checkpoint import check_sb3_zip, describe_space, read_config_yaml, s
 from agents.configs import KIND_DEFAULT, available_agents, kind_default, shipped_agent
 from agents.registry import AGENT_KINDS, agent_params, trained_kinds
 from av_gym.errors import ConfigError
+from av_gym.references import reference_root
 from conf.presets import compose_group  # noqa: F401 - used here and imported from here by tests and tools
 
 __all__ = ["AgentPlan", "available_agents", "check_plan", "compose_group", "find_checkpoint", "load_agent_config",
@@ -70,12 +72,14 @@ def find_checkpoint(kind: str, env_name: str, root: str | Path, name: str | None
     - ``latest=True`` (the spec ``ppo_turn:latest``) is your newest ``checkpoints/<run>/`` whose saved config
       trained that agent config (or, without a name, that ``kind``) on ``env_name``; none is an error, never a
       silent fall-back to the reference;
-    - a bare trained kind (``ppo``, no name) has no reference of its own: your newest run of that kind, else the
-      first reference folder of that kind by name.
+    - a trained kind that has a reference folder of its own name (``pilotnet``) is that named agent;
+    - a bare trained kind with none (``ppo``, ``dagger``) is your newest run of that kind trained on ``env_name``;
+      with no run of your own it is an error naming the references of that kind for ``env_name`` (several
+      references share a kind: none of them is "the" ``ppo``).
 
-    Reference folders are never ordered by modification time: in a fresh clone that is the order git happened to
-    write them in. Extra training seeds of a reference live under ``reference/seeds/<name>/s<seed>/`` (their configs
-    say ``name: ppo_turn`` too), out of the ``reference/*/`` a bare kind searches: a name means one folder."""
+    Reference folders are never searched or ordered by modification time: a name means one folder, and extra
+    training seeds of a reference (``reference/seeds/<name>/s<seed>/``, whose configs say ``name: ppo_turn`` too)
+    are reached by their path only."""
     def matches(cfg_path: Path) -> Path | None:
         cfg = read_config_yaml(cfg_path)
         model = cfg_path.parent / _checkpoint_name(kind)
@@ -85,35 +89,41 @@ def find_checkpoint(kind: str, env_name: str, root: str | Path, name: str | None
             return model
         return None
 
-    what, reference = name or kind, reference_folder(root)
+    reference = reference_folder(root)
+    if name is None and (reference / kind / "config.yaml").is_file():
+        name = kind  # `pilotnet`: a kind whose reference folder bears its name is that named agent
+    what = name or kind
     if name is not None and not latest:
         own = reference / name / "config.yaml"
         if own.is_file() and matches(own) is not None:
             return matches(own)
+        drives = _scenarios_of(what, kind)
+        if env_name not in drives:  # no train command to suggest: train refuses it too
+            raise ConfigError(f"{what} drives {list(drives)}, not env={env_name}: there is no {what} checkpoint for "
+                              f"it; pick an agent for env={env_name} or pass a checkpoint path")
         where = f"{reference / name}/" if reference.is_dir() else \
-            f"{reference}/ is not in this install: `pip install -e <checkout>` keeps the shipped ones"
+            f"{reference}/ does not exist: this install lost its shipped agents; reinstall av-gym"
         raise ConfigError(f"no shipped reference checkpoint for {name!r} on env {env_name!r} ({where}); for your "
                           f"newest run say {name}{LATEST}, or pass a checkpoint path")
     runs = [m for m in map(matches, Path(root).glob("*/config.yaml")) if m is not None]
     if runs:  # your own training runs: the newest
         return max(runs, key=lambda p: p.stat().st_mtime)
     drives = _scenarios_of(what, kind)
-    if env_name not in drives:  # no train command to suggest: train refuses it too (issue 31)
+    if env_name not in drives:  # no train command to suggest: train refuses it too
         raise ConfigError(f"{what} drives {list(drives)}, not env={env_name}: there is no {what} checkpoint for it; "
                           f"pick an agent for env={env_name} or pass a checkpoint path")
     if latest:
         raise ConfigError(f"{what}{LATEST}: you have no {what} run for env {env_name!r} under {root}/; train one with "
                           f"`python -m train env={env_name} agent={what}`, or say {what} for its shipped reference")
-    # a bare kind: references under paths.checkpoints only (a named agent's is the package's from any folder)
-    found = sorted(m for m in map(matches, Path(root).glob("reference/*/config.yaml")) if m is not None)
-    if found:
-        return found[0]
-    raise ConfigError(f"no {what} checkpoint for env {env_name!r} under {root}/; train one with "
-                      f"`python -m train env={env_name} agent={what}` or pass a checkpoint path")
+    named = sorted(p.parent.name for p in reference.glob("*/config.yaml") if matches(p) is not None)
+    hint = f"name a reference of kind {kind} for it ({', '.join(named)}), " if named else ""
+    raise ConfigError(f"no {what} checkpoint of your own for env {env_name!r} under {root}/ ({what} is a kind, "
+                      f"not a named agent): {hint}train one with `python -m train env={env_name} agent={what}`, or "
+                      f"pass a checkpoint path")
 
 
-REFERENCE = Path(__file__).resolve().parents[1] / "checkpoints" / "reference"
-"""The shipped reference checkpoints of the checkout this package runs from (``pip install -e .``)."""
+REFERENCE = reference_root()
+"""The shipped reference checkpoints: the checkout's ``checkpoints/reference/``, or the wheel's copy."""
 
 
 def reference_folder(root: str | Path) -> Path:
@@ -190,8 +200,8 @@ def check_plan(plan: "AgentPlan", env_name: str) -> None:
 
 def resolve_agent(spec: str, env: gym.Env, env_name: str, checkpoints: str | Path) -> tuple[str, Policy]:
     """``(label, policy)`` for one agent spec on ``env`` (the env instance the policy will drive): a trained kind
-    (newest checkpoint), a checkpoint path, or an agent config of ``conf/agent/`` (a rule-based kind builds its
-    policy, a trained one loads the newest checkpoint trained with that config)."""
+    (:func:`find_checkpoint`), a checkpoint path, or an agent config of ``conf/agent/`` (a rule-based kind builds
+    its policy, a trained one loads its shipped reference, or with ``:latest`` your newest run of it)."""
     spec = str(spec)
     name, latest = split_latest(spec)
     if name in trained_kinds():

@@ -153,21 +153,21 @@ KNOWN: dict[str, str] = {
     "python -m eval env=left_turn env.mode=ccftap agents=[always_proceed+aeb_paper] episodes=1": "run",
     "python -m eval.tracking --episodes 20 --out docs/tracking": "run",
     # docs/sensors.md
-    "python -m eval env=lane_keeping env.track=A agents=[checkpoints/reference/pilotnet_lane_keeping] sensors=cameras "
+    "python -m eval env=lane_keeping env.track=A agents=[checkpoints/reference/pilotnet] sensors=cameras "
     "episodes=20 n_envs=2": "run",
-    "python -m eval env=lane_keeping env.track=A agents=[checkpoints/reference/pilotnet_lane_keeping] sensors=cameras "
+    "python -m eval env=lane_keeping env.track=A agents=[checkpoints/reference/pilotnet] sensors=cameras "
     "sensors.cameras.fog_visibility=80 episodes=20 n_envs=2": "run",
-    "python -m eval env=lane_keeping env.track=A agents=[checkpoints/reference/pilotnet_lane_keeping] sensors=cameras "
+    "python -m eval env=lane_keeping env.track=A agents=[checkpoints/reference/pilotnet] sensors=cameras "
     "sensors.cameras.night=true episodes=20 n_envs=2": "run",
-    "python -m eval env=lane_keeping env.track=A agents=[checkpoints/reference/pilotnet_lane_keeping] sensors=cameras "
+    "python -m eval env=lane_keeping env.track=A agents=[checkpoints/reference/pilotnet] sensors=cameras "
     "sensors.cameras.noise.pixel_std=8 sensors.cameras.noise.blur_sigma=0.8 sensors.cameras.noise.brightness=25 "
     "episodes=20 n_envs=2": "run",
-    "python -m eval -m env=lane_keeping env.track=B agents=[checkpoints/reference/pilotnet_lane_keeping] "
+    "python -m eval -m env=lane_keeping env.track=B agents=[checkpoints/reference/pilotnet] "
     "sensors=cameras sensors.cameras.noise.pixel_std=0,8,16,24,32 episodes=5 plots=false hydra.sweep.dir=<folder>":
         "run",
     "python -m eval.sweep <folder> --x sensors.cameras.noise.pixel_std --metric cte_mean_abs_units "
     "--out docs/cameras/sweep_pixel_noise": "run",
-    "python -m eval -m env=lane_keeping env.track=B agents=[checkpoints/reference/pilotnet_lane_keeping] "
+    "python -m eval -m env=lane_keeping env.track=B agents=[checkpoints/reference/pilotnet] "
     "sensors=cameras sensors.cameras.fog_visibility=40,80,150,300,1000 sensors.cameras.night=false,true episodes=5 "
     "plots=false hydra.sweep.dir=<folder>": "run",
     "python -m eval.sweep <folder> --x sensors.cameras.fog_visibility --metric cte_mean_abs_units "
@@ -337,6 +337,8 @@ def _tiny_eval(args: list[str], chain: Chain) -> list[str]:
     n_envs = next((a.split("=", 1)[1] for a in args if a.startswith("n_envs=")), "1")
     args = _set(args, "episodes", n_envs if n_envs.isdigit() and int(n_envs) <= 2 else "2")
     args = _set(args, "progress_bar", "false")
+    # a bare kind (`ppo`) is your newest run of it: the block's own runs, never what this checkout happens to hold
+    args = _set(args, "paths.checkpoints", str(chain.tmp / "checkpoints"))
     if "-m" in args:
         return _set(_sweep_dir(args, chain), "hydra.launcher.n_jobs", "1")
     chain.evals += 1

@@ -127,6 +127,45 @@ def test_a_named_agent_resolves_to_its_own_reference_folder_whatever_the_file_ti
         find_checkpoint("ppo", "left_turn", tmp_path, name="ppo_turn_v9")
 
 
+def test_a_bare_kind_is_your_newest_run_else_an_error_naming_the_references_of_that_kind(tmp_path):
+    """``pilotnet`` (a kind with a reference folder of its name) is that folder whatever you trained; ``ppo`` (a
+    kind several references share) is your newest run of it on the env, never one reference picked by its name."""
+    import os
+
+    from eval.agents import find_checkpoint
+
+    def folder(path: str, kind: str, name: str, env: str = "left_turn", mtime: float = 1_000.0):
+        d = tmp_path / path
+        d.mkdir(parents=True)
+        (d / "config.yaml").write_text(f"env: {{name: {env}}}\nagent: {{kind: {kind}, name: {name}}}\n")
+        model = d / ("model.pt" if kind == "pilotnet" else "model.zip")
+        model.write_bytes(b"")
+        os.utime(model, (mtime, mtime))
+        return model
+
+    pilotnet = folder("reference/pilotnet", "pilotnet", "pilotnet", env="lane_keeping")
+    for name in ("ppo_turn_shielded", "ppo_turn", "ppo_turn_perceived"):
+        folder(f"reference/{name}", "ppo", name)
+    folder("reference/ppo_lane_camera", "ppo", "ppo_lane_camera", env="lane_keeping")
+    with pytest.raises(ConfigError, match=r"no ppo checkpoint of your own for env 'left_turn'.*a kind, not a named "
+                                          r"agent.*\(ppo_turn, ppo_turn_perceived, ppo_turn_shielded\)"):
+        find_checkpoint("ppo", "left_turn", tmp_path)
+    mine = folder("my_run", "ppo", "ppo", mtime=2_000.0)
+    folder("older_run", "ppo", "ppo_turn", mtime=1_500.0)
+    folder("my_lap", "pilotnet", "pilotnet", env="lane_keeping", mtime=3_000.0)
+    assert find_checkpoint("ppo", "left_turn", tmp_path) == mine
+    assert find_checkpoint("pilotnet", "lane_keeping", tmp_path) == pilotnet
+    assert find_checkpoint("pilotnet", "lane_keeping", tmp_path, latest=True) == tmp_path / "my_lap" / "model.pt"
+    with pytest.raises(ConfigError, match=r"pilotnet drives \['lane_keeping'\], not env=left_turn"):
+        find_checkpoint("pilotnet", "left_turn", tmp_path)
+
+
+def test_the_shipped_pilotnet_is_the_folder_of_its_name():
+    from eval.agents import REFERENCE, find_checkpoint
+
+    assert find_checkpoint("pilotnet", "lane_keeping", "no_such_folder") == REFERENCE / "pilotnet" / "model.pt"
+
+
 def test_latest_spec_plans_the_newest_run_and_labels_its_row(tmp_path):
     """`ppo_turn` and `ppo_turn:latest` are two rows with two labels: the reference and your newest run."""
     import shutil

@@ -274,14 +274,16 @@ def test_tiny_train_then_eval_loads_the_checkpoint(tmp_path):
     assert torch.load(ckpt / "model.pt", weights_only=True)["format"] == FORMAT
     assert not list(ckpt.glob(".*tmp*"))
 
-    res = _run("eval", "env=lane_keeping", "agents=[pid_paper,pilotnet]", "episodes=1", "env.time_limit=3",
+    # pilotnet:latest is that run (plain pilotnet is the shipped reference, checkpoints/reference/pilotnet/)
+    res = _run("eval", "env=lane_keeping", "agents=[pid_paper,pilotnet:latest]", "episodes=1", "env.time_limit=3",
                "out_dir=out", "progress_bar=false", "plots=true", "videos=true", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
+    assert "pilotnet:latest: checkpoints/tiny/model.pt" in res.stdout, res.stdout[-2000:]
     rows = list(csv.DictReader(open(tmp_path / "out" / "results.csv")))
-    assert [r["agent"] for r in rows] == ["pid_paper", "pilotnet"]
-    for name in ("cte_pid_paper.png", "cte_pilotnet.png", "cte_all.png"):
+    assert [r["agent"] for r in rows] == ["pid_paper", "pilotnet:latest"]
+    for name in ("cte_pid_paper.png", "cte_pilotnet_latest.png", "cte_all.png"):
         assert (tmp_path / "out" / name).stat().st_size > 1000
-    assert list((tmp_path / "out").glob("lap_pilotnet.*"))
+    assert list((tmp_path / "out").glob("lap_pilotnet_latest.*"))
 
 
 def test_bad_pilotnet_input_is_one_line_naming_the_field(tmp_path):

@@ -16,7 +16,7 @@ REF = resources.files("conf").parent / "checkpoints" / "reference"
 SB3_REFS = sorted(p.name for p in REF.iterdir() if (p / "model.zip").is_file())
 # extra training seeds a multi-seed row needs: reference/seeds/<name>/s<seed>/ (seed 1 is the reference itself)
 SEED_REFS = sorted(str(p.relative_to(REF)) for p in REF.glob("seeds/*/s*") if (p / "model.zip").is_file())
-NAMED = ("dagger_turn", "dagger_turn_perceived", "pilotnet_lane_keeping", "ppo_lane_camera", "ppo_lane_localized", "ppo_turn",
+NAMED = ("dagger_turn", "dagger_turn_perceived", "pilotnet", "ppo_lane_camera", "ppo_lane_localized", "ppo_turn",
          "ppo_turn_perceived", "ppo_turn_shielded")
 
 
@@ -35,10 +35,11 @@ def test_every_reference_checkpoint_is_listed():
 
 
 def test_reference_holds_the_named_agents_and_a_name_means_one_folder():
-    """checkpoints/reference/ = the named agents plus seeds/ (issue 34: 14 folders, 8 saying name: ppo_turn)."""
+    """checkpoints/reference/ = the named agents plus seeds/, each folder the agent its config names (the name an
+    eval spec says: ``pilotnet`` is ``reference/pilotnet/``)."""
     assert sorted(p.name for p in REF.iterdir() if p.is_dir()) == sorted([*NAMED, "seeds"])
-    names = [yaml.safe_load((REF / n / "config.yaml").read_text())["agent"]["name"] for n in SB3_REFS]
-    assert len(names) == len(set(names)) and all(n == folder for n, folder in zip(names, SB3_REFS))
+    names = [yaml.safe_load((REF / n / "config.yaml").read_text())["agent"]["name"] for n in NAMED]
+    assert names == list(NAMED)
     for seed in SEED_REFS:  # each extra seed belongs to a named agent and says which seed it is
         name, s = seed.split("/")[1:]
         saved = yaml.safe_load((REF / seed / "config.yaml").read_text())

@@ -17,7 +17,7 @@ from av_gym.sensors.camera import Cameras
 from eval.agents import check_sensor_overrides, compose_group, plan_agent
 
 ROOT = Path(__file__).resolve().parents[1]
-PILOTNET = ROOT / "checkpoints" / "reference" / "pilotnet_lane_keeping"
+PILOTNET = ROOT / "checkpoints" / "reference" / "pilotnet"
 NO_SHIELD = {"name": "none", "kind": "none"}
 
 
@@ -36,7 +36,7 @@ def camera_wrapper(env) -> Cameras:
 def test_night_on_the_command_line_reaches_a_trained_agents_env():
     saved = yaml.safe_load((PILOTNET / "config.yaml").read_text())
     assert saved["sensors"]["cameras"]["night"] is False  # trained by day
-    for spec in (str(PILOTNET), "pilotnet"):  # a path, and the named agent (newest or reference checkpoint)
+    for spec in (str(PILOTNET), "pilotnet"):  # a path, and the named agent (its reference folder)
         plan = plan_agent(spec, "lane_keeping", cameras_with(night=True, fog_visibility=80.0), NO_SHIELD,
                           ROOT / "checkpoints")
         assert plan.sensor_overrides == {"cameras.night": True, "cameras.fog_visibility": 80.0}

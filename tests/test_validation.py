@@ -153,7 +153,7 @@ def test_pilotnet_weights_load_without_unpickling_code(monkeypatch):
         return real(*args, **kwargs)
 
     monkeypatch.setattr(torch, "load", spy)
-    pilotnet.load_policy(resources.files("conf").parent / "checkpoints" / "reference" / "pilotnet_lane_keeping"
+    pilotnet.load_policy(resources.files("conf").parent / "checkpoints" / "reference" / "pilotnet"
                          / "model.pt")
     assert seen.get("weights_only") is True
 
