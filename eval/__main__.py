@@ -1,14 +1,24 @@
 """``python -m eval env=left_turn agents='[always_proceed,ppo]' episodes=100 [split=validation|test|train]
-[seed=...] [n_envs=2] [vec_env=batched]``"""
+[seed=...] [n_envs=2] [vec_env=batched]``
+
+An evaluation owns its ``out_dir`` while it runs, as a training run owns its checkpoints (:mod:`av_gym.locks`: an
+exclusive ``flock`` on ``out_dir/.lock``): a second ``python -m eval ... out_dir=X`` is refused in one line (issue
+39: two at once both exited 0 and X held only the second's rows). With an ``out_dir`` of its own, the run folder
+Hydra made under ``runs/eval/`` is removed again when it holds only Hydra's files."""
 
 from __future__ import annotations
 
+import os
 import sys
+from pathlib import Path
 
 import hydra
 from omegaconf import DictConfig
 
-from av_gym.errors import ConfigError, check_folder, folder_problem, run_cli, run_hydra
+from av_gym.errors import ConfigError, check_folder, discard_hydra_run_dir, folder_problem, run_cli, run_hydra
+from av_gym.locks import LOCK, OwnedFolders, lock_holder
+
+OUT_DIRS = OwnedFolders()  # the out_dirs this process is writing
 
 
 def _plans(cfg: DictConfig) -> list:
@@ -45,7 +55,49 @@ def episode_seeds(cfg: DictConfig) -> range:
     return config_seeds(str(cfg.split), int(cfg.episodes), cfg.seed, "seed")
 
 
+def claim_out_dir(cfg: DictConfig) -> None:
+    """``out_dir`` for this process alone (a lock held until the evaluation ends), then checked again under the
+    lock: two evaluations started together both passed the check made before it. One line if another holds it."""
+    out_dir = cfg.out_dir
+    try:
+        OUT_DIRS.take(out_dir)
+    except BlockingIOError:
+        pid = lock_holder(Path(out_dir) / LOCK)
+        raise ConfigError(f"out_dir={out_dir}: another evaluation{f' (pid {pid})' if pid else ''} is writing it "
+                          f"({Path(out_dir) / LOCK} is locked); wait for it, or pick another out_dir") from None
+    except OSError as exc:
+        raise ConfigError(f"out_dir={out_dir}: cannot be written: {os.strerror(exc.errno) if exc.errno else exc}") \
+            from None
+    problem = results_problem(cfg)
+    if problem:
+        OUT_DIRS.release(out_dir)
+        raise ConfigError(problem)
+
+
 def evaluate(cfg: DictConfig) -> list[dict]:
+    """The evaluation ``cfg`` describes, in ``cfg.out_dir`` (held for this process while it runs); returns its rows."""
+    try:
+        return _evaluate(cfg)
+    finally:
+        OUT_DIRS.release(cfg.out_dir)
+        _discard_unused_run_dir(cfg)
+
+
+def _discard_unused_run_dir(cfg: DictConfig) -> None:
+    """With an out_dir of its own, Hydra's run folder (``runs/eval/<env>-<time>/``) is left with only Hydra's files:
+    removed, so that ``out_dir=X`` writes X alone (issue 39 row 15). A folder with anything else is kept."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        run_dir = Path(HydraConfig.get().runtime.output_dir).resolve()
+    except Exception:  # called from Python, not as a Hydra job
+        return
+    out = Path(cfg.out_dir).resolve()
+    if out != run_dir and run_dir not in out.parents:
+        discard_hydra_run_dir()
+
+
+def _evaluate(cfg: DictConfig) -> list[dict]:
     from omegaconf import OmegaConf
 
     from av_gym.make import make_env
@@ -60,6 +112,7 @@ def evaluate(cfg: DictConfig) -> list[dict]:
     if problem:
         raise ConfigError(problem)
     check_folder(cfg.out_dir, "out_dir", create=True)  # before the first episode: results must have somewhere to go
+    claim_out_dir(cfg)  # ours alone until the evaluation ends
     seeds = episode_seeds(cfg)
     title = (f"{cfg.env.name} ({cfg.env.get('mode', '')}), {cfg.episodes} episodes of the {cfg.split} split "
              f"(seeds {seeds.start}..{seeds.stop - 1})")
@@ -130,12 +183,18 @@ def results_problem(cfg: DictConfig) -> str | None:
 def _check_command_line() -> None:
     from conf.check import _PLACEHOLDER, check_command_line
 
-    for cfg in check_command_line("eval", sys.argv[1:]):
+    configs = check_command_line("eval", sys.argv[1:])
+    for cfg in configs:
         _plans(cfg)
         if cfg.out_dir != _PLACEHOLDER:  # the default, Hydra's run folder, was checked with hydra.run.dir
             problem = folder_problem(cfg.out_dir, "out_dir") or results_problem(cfg)
             if problem:
                 raise ConfigError(problem)
+    sweep = len(configs) != 1 or any(a in ("-m", "--multirun") for a in sys.argv[1:])
+    if not sweep and configs[0].out_dir != _PLACEHOLDER:
+        # before Hydra makes its run folder: an out_dir another evaluation is writing is refused with nothing
+        # written; the lock is held by this process until the evaluation ends (a sweep's jobs each lock their own)
+        claim_out_dir(configs[0])
 
 
 @hydra.main(config_path="pkg://conf", config_name="eval", version_base="1.3")

@@ -157,3 +157,152 @@ def test_a_folder_replaced_on_a_full_disk_stays_whole(exchange, shipped, tmp_pat
     write_checkpoint_folder(dest, {"COMMAND": "new\n"})  # the others carried over
     assert snapshot(dest) == {**before, "COMMAND": b"new\n"}
     assert sorted(p.name for p in shipped.iterdir()) == ["dagger_turn", "ppo_turn"]
+
+
+# ------------------------------------------------------------------------- rows 3, 15: an evaluation owns out_dir
+def run(argv: list[str], cwd: Path, timeout: float = 120) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    return subprocess.run([sys.executable, *argv], cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.fixture
+def released():
+    """What a test's command-line check locked is released afterwards (the check holds it for the life of the
+    process, which here is pytest's)."""
+    from eval.__main__ import OUT_DIRS
+    from train.run_folder import release_all
+
+    yield
+    OUT_DIRS.release_all()
+    release_all()
+
+
+def test_a_second_evaluation_into_the_same_out_dir_is_refused(tmp_path, monkeypatch, capsys, released):
+    """Row 3: two ``python -m eval ... out_dir=X`` at once both exited 0; X held the second's rows only. Another
+    process's lock (an flock on a separate open file description, which flock treats as another owner) refuses the
+    second in one line, before Hydra writes anything."""
+    import fcntl
+
+    from tests.test_bad_input import check_line
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "X").mkdir()
+    fd = os.open(tmp_path / "X" / ".lock", os.O_RDWR | os.O_CREAT)
+    os.write(fd, b"4242\n")
+    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    try:
+        line = check_line("eval", ["out_dir=X", "agents=[always_proceed]", "episodes=5"], monkeypatch, capsys)
+        assert "out_dir=X: another evaluation (pid 4242) is writing it (X/.lock is locked)" in line, line
+    finally:
+        os.close(fd)
+    assert sorted(p.name for p in tmp_path.rglob("*")) == [".lock", "X"]  # the holder's lock, nothing else
+
+
+def test_an_evaluation_holds_its_out_dir_then_leaves_no_lock(tmp_path, monkeypatch, released):
+    from eval import __main__ as eval_main
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["eval", "out_dir=X", "agents=[always_proceed]"])
+    eval_main._check_command_line()
+    assert (tmp_path / "X" / ".lock").read_text().strip() == str(os.getpid())
+    eval_main.OUT_DIRS.release_all()
+    assert not (tmp_path / "X").exists()  # made for the lock, empty: removed with it
+
+
+def test_eval_with_an_out_dir_leaves_no_hydra_folder(tmp_path):
+    """Row 15: ``python -m eval out_dir=X`` left an empty Hydra folder runs/eval/<env>-<time>/ beside X."""
+    res = run(["-m", "eval", "agents=[always_proceed]", "episodes=1", "out_dir=X", "progress_bar=false"], tmp_path)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*")) == ["X", "X/results.csv",
+                                                                                 "X/results.md"]
+
+
+# ------------------------------------------------------------------ rows 5, 8: resume and refusals lose nothing
+def a_run(tmp_path: Path, name: str = "R", finished: bool = True) -> Path:
+    from tests.test_reliability import LANE, a_run as run_of
+
+    ckpt = run_of(tmp_path, name, LANE)
+    if not finished:
+        (ckpt / "model.zip").unlink()
+    return ckpt
+
+
+@pytest.mark.parametrize("agent", [[], ["agent=dagger_turn", "env=left_turn", "sensors=turn_truth"]])
+def test_resuming_a_finished_run_is_refused_with_nothing_touched(agent, tmp_path, monkeypatch, capsys, released):
+    """Row 5: ``train.resume=true`` on a finished run retrained from latest.zip and replaced model.zip. A finished
+    run (its model.zip, written by every trainer only at its end) is refused in one line; its files stay."""
+    from tests.test_bad_input import check_line
+    from tests.test_reliability import LANE, a_run as run_of
+
+    monkeypatch.chdir(tmp_path)
+    argv = [*LANE, *agent] if not agent else agent
+    run_of(tmp_path, "R", argv)
+    before = snapshot(tmp_path)
+    line = check_line("train", [*argv, "run_name=R", "train.resume=true"], monkeypatch, capsys)
+    assert "train.resume=true: run_name=R finished (checkpoints/R/model.zip is its final model), nothing to " \
+           "resume; to train on from it, start a new run_name with agent.init_from=checkpoints/R" in line, line
+    assert snapshot(tmp_path) == before
+
+
+def test_a_config_refused_by_the_trainer_leaves_no_run_folder(tmp_path, monkeypatch):
+    """Row 8: an agent.init_from that does not fit, found once the job runs, was one line but left
+    checkpoints/<run>/config.yaml, and the run_name was then refused as taken. Here the trainer refuses."""
+    from types import SimpleNamespace
+
+    import agents.registry
+    from av_gym.errors import ConfigError
+    from conf.check import check_command_line
+    from tests.test_reliability import LANE
+    from train import __main__ as train_main
+    from train.run_folder import release_all
+
+    monkeypatch.chdir(tmp_path)
+    (cfg,) = check_command_line("train", [*LANE, "run_name=R", "train.eval_episodes=0"])
+    hydra = SimpleNamespace(runtime=SimpleNamespace(output_dir=str(tmp_path / "runs" / "R")), mode=None)
+    monkeypatch.setattr(train_main.HydraConfig, "get", staticmethod(lambda: hydra))
+
+    def refuses(cfg, ckpt_dir, run_dir):
+        assert (ckpt_dir / "config.yaml").is_file()
+        raise ConfigError("agent.init_from='x': checkpoint 'x' was trained on env 'lane_keeping', not 'left_turn'")
+
+    real = agents.registry.resolve
+    monkeypatch.setattr(agents.registry, "resolve", lambda target: refuses if target.endswith(":train_ppo")
+                        else real(target))
+    try:
+        with pytest.raises(ConfigError, match="was trained on env"):
+            train_main.train(cfg)
+    finally:
+        release_all()
+    assert not (tmp_path / "checkpoints").exists()
+
+
+# ---------------------------------------------------------------------------- row 13: Ctrl-C during cloning
+def test_ctrl_c_while_cloning_says_what_was_kept(monkeypatch, capsys):
+    """Row 13: Ctrl-C during ppo_turn's cloning step exited 130 without a word."""
+    from omegaconf import OmegaConf
+
+    import train.ppo
+    from agents.ppo import PPOParams
+    from conf.check import check_command_line
+
+    (cfg,) = check_command_line("train", ["agent=ppo_turn", "agent.init_episodes=4"])
+    params = PPOParams.from_mapping(OmegaConf.to_container(cfg.agent, resolve=True), where="agent")
+    stack = train.ppo._Stack(*[OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)],
+                             params)
+    closed = []
+
+    class Env:
+        def close(self):
+            closed.append(True)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(train.ppo._Stack, "batched", lambda self: Env())
+    monkeypatch.setattr(train.ppo, "pretrain_from_teacher", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        train.ppo.clone_teacher(None, stack, "left_turn")
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith("[train] interrupted while cloning gap_acceptance (") and "nothing was kept" in line \
+        and "no latest.zip to resume" in line, line
+    assert closed == [True]  # the demonstration env is closed on the way out

@@ -165,6 +165,7 @@ def test_resume_and_overwrite_are_allowed_and_hold_the_lock(tmp_path, monkeypatc
 
     monkeypatch.chdir(tmp_path)
     ckpt = a_run(tmp_path)
+    (ckpt / "model.zip").unlink()  # an interrupted run (a finished one is not resumed: tests/test_nothing_lost.py)
     for extra in (["train.resume=true"], ["train.overwrite=true"], ["train.resume=true", "agent.total_timesteps=99"]):
         monkeypatch.setattr(sys, "argv", ["train", *LANE, "run_name=R", *extra])
         train_main._check_command_line()
@@ -180,6 +181,7 @@ def test_a_second_process_on_the_same_run_is_refused(tmp_path, monkeypatch, caps
 
     monkeypatch.chdir(tmp_path)
     ckpt = a_run(tmp_path)
+    (ckpt / "model.zip").unlink()  # still training: no final model yet
     fd = os.open(ckpt / ".lock", os.O_RDWR | os.O_CREAT)
     os.write(fd, b"4242\n")
     fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)

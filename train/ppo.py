@@ -388,7 +388,16 @@ def clone_teacher(model, stack: _Stack, scenario: str) -> None:
         lr = ("agent.init_lr", p.init_lr) if p.init_lr else ("agent.learning_rate", p.learning_rate)
         raise_if_diverged(exc, model.policy, "behaviour cloning", lr[0], float(lr[1]))
         raise
-    demo_env.close()
+    except KeyboardInterrupt:  # it used to exit 130 without a word (issue 39 row 13)
+        import sys
+
+        print(f"[train] interrupted while cloning {p.init} ({time.time() - t_bc:.0f} s in): nothing was kept; the "
+              f"clone lives in memory until PPO's first checkpoint (train.checkpoint_every), so there is no "
+              f"latest.zip to resume; start the run again (train.overwrite=true to reuse its run_name)",
+              file=sys.stderr)
+        raise
+    finally:
+        demo_env.close()
     print(f"[train] cloned {p.init} from {stats['episodes']} episodes ({stats['decisions']} decisions, "
           f"teacher collision {stats['teacher_collision']:.2f}, success {stats['teacher_success']:.2f}): "
           f"accuracy {stats['accuracy']:.3f} in {time.time() - t_bc:.0f} s")

@@ -10,7 +10,12 @@
   as it was (it used to overwrite config.yaml first) and a resume of a run that does not exist writes nothing;
 - while a process trains a run it holds an exclusive ``flock`` on ``checkpoints/<run_name>/.lock``; a second process
   on the same run is refused in one line. The kernel drops the lock when the holder exits however it exits
-  (kill -9 included), so a crashed run can be resumed at once.
+  (kill -9 included), so a crashed run can be resumed at once (:mod:`av_gym.locks`, which ``python -m eval`` takes
+  its out_dir with too);
+- a finished run (its ``model.zip``, written by every trainer only once it is done) is not resumed: resuming it
+  retrained from ``latest.zip`` and replaced ``model.zip`` with another model (issue 39). Every trainer is treated
+  alike: ``latest.zip`` is what a resume continues (PPO: at a rollout, DAgger: at a round), ``model.zip`` what ends
+  a run; a kind that writes neither (PilotNet, a rule) has nothing to resume.
 
 ``.``/``..`` and path separators in ``run_name`` are refused by its Params (``name_like``).
 """
@@ -25,13 +30,14 @@ from pathlib import Path
 from typing import Any
 
 from av_gym.errors import ConfigError
+from av_gym.locks import LOCK, OwnedFolders, lock_holder
 
-LOCK = ".lock"
 SECTIONS = ("env", "sensors", "shield", "agent")
-# What may differ on resume: how long to train and where, not what is trained.
-RESUME_MAY_CHANGE = ("agent.total_timesteps", "agent.device")
+# What may differ on resume: how long to train (PPO's steps, DAgger's rounds) and where, not what is trained.
+RESUME_MAY_CHANGE = ("agent.total_timesteps", "agent.rounds", "agent.device")
+LATEST, FINAL = "latest.zip", "model.zip"  # what a resume continues; what a finished run leaves (every trainer)
 
-_held: dict[Path, int] = {}  # checkpoint folder (resolved) → the lock file's descriptor, for this process
+_held = OwnedFolders()  # the checkpoint folders this process trains
 
 
 def _contents(folder: Path, ignore: tuple[str, ...] = (LOCK,)) -> list[str]:
@@ -69,7 +75,7 @@ def ownership_problem(ckpt_dir: Path, runs_dir: Path | None, resume: bool, overw
     """Why this command may not write ``ckpt_dir`` (and ``runs_dir``, the run's log folder), or None."""
     name = ckpt_dir.name
     if resume:
-        latest = ckpt_dir / "latest.zip"
+        latest = ckpt_dir / LATEST
         if not latest.is_file():
             return (f"train.resume=true but {latest} does not exist (resume needs the run_name of a run that wrote "
                     f"a checkpoint)")
@@ -82,8 +88,10 @@ def ownership_problem(ckpt_dir: Path, runs_dir: Path | None, resume: bool, overw
             except (yaml.YAMLError, OSError) as exc:
                 return f"train.resume=true: cannot read {config_path}: {' '.join(str(exc).split())[:200]}"
             if isinstance(saved, Mapping):
-                return resume_problem(saved, cfg, config_path)
-        return None
+                problem = resume_problem(saved, cfg, config_path)
+                if problem:
+                    return problem
+        return finished_problem(ckpt_dir)
     if overwrite:
         return None
     held = _contents(ckpt_dir)
@@ -98,37 +106,37 @@ def ownership_problem(ckpt_dir: Path, runs_dir: Path | None, resume: bool, overw
     return None
 
 
+def finished_problem(ckpt_dir: Path) -> str | None:
+    """``train.resume=true`` of a run that finished (its ``model.zip`` exists): refused, so that its model and
+    results are never replaced by a second training from ``latest.zip``."""
+    final = ckpt_dir / FINAL
+    if final.is_file():
+        return (f"train.resume=true: run_name={ckpt_dir.name} finished ({final} is its final model), nothing to "
+                f"resume; to train on from it, start a new run_name with agent.init_from={ckpt_dir}")
+    return None
+
+
 def claim(ckpt_dir: str | Path, runs_dir: str | Path | None, resume: bool, overwrite: bool,
           cfg: Mapping | None = None) -> Path:
     """Check that this command may write the run (:func:`ownership_problem`), then take its lock for the life of
     this process (or until :func:`release`). Raises :class:`ConfigError` with one line; a refused claim leaves
     nothing behind. Claiming a folder this process already holds returns at once."""
     ckpt_dir = Path(ckpt_dir)
-    key = ckpt_dir.resolve()
-    if key in _held:
+    if ckpt_dir in _held:
         return ckpt_dir
     runs_dir = Path(runs_dir) if runs_dir is not None else None
     problem = ownership_problem(ckpt_dir, runs_dir, resume, overwrite, cfg)
     if problem:
         raise ConfigError(problem)
-    created = not ckpt_dir.exists()
     try:
-        ckpt_dir.mkdir(parents=True, exist_ok=True)
-        fd = _lock(ckpt_dir / LOCK)
+        _held.take(ckpt_dir)
     except BlockingIOError:
-        pid = _holder(ckpt_dir / LOCK)
+        pid = lock_holder(ckpt_dir / LOCK)
         raise ConfigError(f"run_name={ckpt_dir.name}: another process{f' (pid {pid})' if pid else ''} is training "
                           f"this run ({ckpt_dir / LOCK} is locked); wait for it, or pick another run_name") from None
     except OSError as exc:
-        if created:
-            _remove_if_empty(ckpt_dir)
         raise ConfigError(f"paths.checkpoints: cannot write {ckpt_dir}: {os.strerror(exc.errno or errno.EIO)}") \
             from None
-    if not _held:
-        import atexit
-
-        atexit.register(release_all)  # however the command ends: no .lock (and no empty folder) left behind
-    _held[key] = fd
     # Checked again under the lock: two commands started together both passed the check above.
     problem = ownership_problem(ckpt_dir, runs_dir, resume, overwrite, cfg)
     if problem:
@@ -137,70 +145,31 @@ def claim(ckpt_dir: str | Path, runs_dir: str | Path | None, resume: bool, overw
     return ckpt_dir
 
 
-def _lock(path: Path) -> int:
-    """An exclusive, non-blocking ``flock`` on ``path`` (created), with this process's id written in it. Retried
-    when the file was unlinked by a releasing holder between our open and our lock (the lock would then be on a
-    file no one else can see)."""
-    import fcntl
-
-    while True:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            os.close(fd)
-            raise
-        try:
-            same = os.fstat(fd).st_ino == os.stat(path).st_ino
-        except FileNotFoundError:
-            same = False
-        if same:
-            os.ftruncate(fd, 0)
-            os.write(fd, f"{os.getpid()}\n".encode())
-            return fd
-        os.close(fd)
-
-
-def _holder(path: Path) -> int | None:
-    try:
-        return int(path.read_text().split()[0])
-    except (OSError, ValueError, IndexError):
-        return None
-
-
-def _remove_if_empty(folder: Path) -> None:
-    try:
-        folder.rmdir()
-    except OSError:
-        pass
-
-
 def release(ckpt_dir: str | Path) -> None:
     """Drop the lock on ``ckpt_dir`` (the lock file is removed, and the folder if nothing else is in it)."""
-    ckpt_dir = Path(ckpt_dir)
-    fd = _held.pop(ckpt_dir.resolve(), None)
-    if fd is None:
-        return
-    try:
-        (ckpt_dir / LOCK).unlink()
-    except FileNotFoundError:
-        pass
-    os.close(fd)
-    _remove_if_empty(ckpt_dir)
+    _held.release(ckpt_dir)
 
 
 def release_all(keep: str | Path | None = None) -> None:
     """Release every run this process holds but ``keep`` (the command-line check claims ``run_name`` as it
     composes it; a ``${now:...}`` in it may resolve a second later in the job)."""
-    keep_key = Path(keep).resolve() if keep is not None else None
-    for key in [k for k in _held if k != keep_key]:
-        release(key)
+    _held.release_all(keep)
+
+
+def discard_if_unstarted(ckpt_dir: Path) -> bool:
+    """A fresh run refused once its job had started (an ``agent.init_from`` that does not fit, found by the
+    trainer): remove the ``config.yaml`` this command wrote when it is all the folder holds, so that the refused
+    run leaves nothing behind and its run_name stays free (issue 39 row 8). Returns whether it was removed."""
+    if _contents(ckpt_dir) != ["config.yaml"]:
+        return False
+    (ckpt_dir / "config.yaml").unlink()
+    return True
 
 
 def clear_for_overwrite(ckpt_dir: Path, run_dir: Path | None) -> list[str]:
     """``train.overwrite=true``: delete the previous run's files (checkpoints; logs and TensorBoard except the
     ``.hydra/`` and log Hydra just wrote for this job). Only under the run's lock. Returns what was removed."""
-    if ckpt_dir.resolve() not in _held:
+    if ckpt_dir not in _held:
         raise RuntimeError(f"clear_for_overwrite({ckpt_dir}) without holding its lock")
     removed = []
     for folder, keep in ((ckpt_dir, (LOCK,)), (run_dir, (".hydra",))):
