@@ -1,10 +1,11 @@
 """DAgger students' curves: success and collision on the validation seeds after each round, against the labels
-the oracle gave and against wall-clock, one line per run (issue 32).
+the oracle gave and against wall-clock, one line per run.
 
-    python docs/make_dagger_figure.py docs/dagger/rounds_s1.csv [more rounds.csv ...] [--out docs/dagger.png]
+    python docs/make_dagger_figure.py docs/dagger/rounds.csv [more rounds.csv ...] [--out docs/dagger.png]
 
-Each ``rounds.csv`` is what ``python -m train agent=dagger_turn`` writes beside its checkpoints (train/dagger.py);
-the files are copied into docs/dagger/ with the run they come from in their name.
+A ``rounds.csv`` is what ``python -m train agent=dagger_turn`` writes beside its checkpoints (train/dagger.py), one
+run per file (named by the file); docs/dagger/rounds.csv and rounds_perceived.csv hold several runs, each row
+prefixed by its ``run`` column (``s1``, ``perceived_s1``, ...).
 """
 
 from __future__ import annotations
@@ -20,11 +21,16 @@ import matplotlib.pyplot as plt  # noqa: E402
 from conf.cli import ToolParser  # noqa: E402
 
 
-def read(path: Path) -> dict[str, list[float]]:
+def read(path: Path) -> dict[str, dict[str, list[float]]]:
+    """Run name -> column -> values: the ``run`` column's runs, or the file's one run named by the file."""
     with open(path) as f:
         rows = list(csv.DictReader(f))
-    return {k: [float(r[k]) for r in rows] for k in ("labels", "wall_s", "val_success", "val_collision",
-                                                     "drive_success", "drive_collision")}
+    runs: dict[str, list[dict]] = {}
+    for r in rows:
+        runs.setdefault(r.get("run") or path.stem.replace("rounds_", ""), []).append(r)
+    return {name: {k: [float(r[k]) for r in got] for k in ("labels", "wall_s", "val_success", "val_collision",
+                                                            "drive_success", "drive_collision")}
+            for name, got in runs.items()}
 
 
 def main() -> None:
@@ -37,9 +43,8 @@ def main() -> None:
     if missing:
         parser.error(f"no such rounds.csv: {missing[0]}")
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
-    for k, path in enumerate(args.rounds):
-        d = read(Path(path))
-        name = Path(path).stem.replace("rounds_", "")
+    runs = [(name, d) for path in args.rounds for name, d in read(Path(path)).items()]
+    for k, (name, d) in enumerate(runs):
         for ax, x in zip(axes, ("labels", "wall_s")):
             ax.plot(d[x], d["val_success"], "o-", color=f"C{k}", label=f"{name} success")
             ax.plot(d[x], d["val_collision"], "s--", color=f"C{k}", label=f"{name} collision")

@@ -190,19 +190,18 @@ KNOWN: dict[str, str] = {
     "python -m eval.sweep runs/multirun/aeb_reference --out docs/robustness/aeb_reference "
     "--metrics collision,success,time_to_exit_s,min_ttc_s,intervention,override_fraction": "run",
     "python -m eval.sweep runs/multirun/<stamp> --x sensors.gnss.sigma --metric cte_mean_abs_m": "run",
-    # docs/dagger.md (issue 32)
+    # docs/dagger.md
     "python -m train agent=dagger_turn": "run",
     "python benchmarks/oracle_labels.py --quick": "run",
     "python -m train agent=dagger_turn_perceived": "run",
     "python -m train agent=dagger_turn_perceived seed=1 agent.rounds=6 agent.round_episodes=128 train.eval_n=100 "
     "train.eval_episodes=0 train.torch_threads=1 run_name=dagger_perceived_s1": "run",
     "python benchmarks/oracle_labels.py --perceived 64 --batch 32": "run",
-    "python docs/make_dagger_figure.py docs/dagger/rounds_perceived_s1.csv docs/dagger/rounds_perceived_s2.csv "
-    "docs/dagger/rounds_perceived_s3.csv --sensors turn_perceived --out docs/dagger_perceived.png": "run",
+    "python docs/make_dagger_figure.py docs/dagger/rounds_perceived.csv --sensors turn_perceived "
+    "--out docs/dagger_perceived.png": "run",
     "python -m train.operating_point checkpoints/reference/dagger_turn_perceived --thresholds [0.7,0.8] --episodes 100": "run",
     "python -m train.operating_point checkpoints/<run_name> --thresholds [0.5,0.7,0.8,0.9,0.95] --episodes 300": "run",
-    "python docs/make_dagger_figure.py docs/dagger/rounds_s1.csv docs/dagger/rounds_s2.csv docs/dagger/rounds_s3.csv "
-    "--out docs/dagger.png": "run",
+    "python docs/make_dagger_figure.py docs/dagger/rounds.csv --out docs/dagger.png": "run",
     "python -m train agent=ppo_turn agent.init=null agent.init_from=checkpoints/reference/dagger_turn seed=1 "
     "agent.total_timesteps=30720 train.eval_every=3072 train.eval_n=300 train.eval_episodes=0 run_name=dagger_ppo_s1":
         "run",
