@@ -6,7 +6,7 @@ give the harness's stack in one call, built by the same code ``python -m train``
     gym.make("av_gym/UnprotectedLeftTurn-v0", sensors="turn_perceived", shield="aeb",
              env={"spawn_probability": 0.3})                  # a conf/env section's fields (km/h, degrees)
     gym.make("av_gym/UnprotectedLeftTurn-v0", sensors={"name": "turn_perceived", "detector": {"miss_rate": 0.2}})
-    gym.make("av_gym/UnprotectedLeftTurn-v0", checkpoint="checkpoints/reference/ppo_turn")  # the env it drove
+    gym.make("av_gym/UnprotectedLeftTurn-v0", checkpoint="ppo_turn")  # a shipped agent's env (or a run folder)
 
 - ``config``: highway-env's own config dict (SI units, the env's ``default_config()`` keys), checked before the
   env is built: unknown keys (with the closest known one), types and the bounds of the scenario's ``Params``
@@ -14,7 +14,8 @@ give the harness's stack in one call, built by the same code ``python -m train``
 - ``env``: the scenario's ``Params`` fields (conf/env/<scenario>.yaml, edge units), over the shipped defaults.
 - ``sensors`` / ``shield``: a preset name of conf/sensors, conf/shield, or a mapping whose ``name`` is one with
   fields to change (deep-merged, as ``sensors.detector.miss_rate=0.2`` on the command line).
-- ``checkpoint``: a run folder (``config.yaml`` + ``model.zip``): its env, sensors, shield and the agent-side
+- ``checkpoint``: a shipped reference agent's name (:func:`av_gym.reference`) or a run folder (``config.yaml`` +
+  ``model.zip``): its env, sensors, shield and the agent-side
   wrappers it was trained with (go/yield actions, action repeat, flat observation), so that SB3's
   ``PPO.load(<folder>/model.zip).predict(obs)`` drives it.
 
@@ -34,6 +35,7 @@ import gymnasium as gym
 import numpy as np
 
 from av_gym.errors import ConfigError
+from av_gym.presets import as_section, compose_group, deep_merge
 
 KMH = 1 / 3.6
 
@@ -147,7 +149,8 @@ def checkpoint_env(scenario: str, folder: str | Path, render_mode: str | None = 
 
     from av_gym.make import make_training_env
 
-    path = Path(folder) / "config.yaml"
+    folder = checkpoint_folder(folder)
+    path = folder / "config.yaml"
     if not path.is_file():
         raise ConfigError(f"checkpoint={folder}: no config.yaml there (a run folder under checkpoints/ has one)")
     cfg = yaml.safe_load(path.read_text()) or {}
@@ -158,6 +161,24 @@ def checkpoint_env(scenario: str, folder: str | Path, render_mode: str | None = 
     return make_training_env(cfg["env"], cfg.get("sensors"), cfg.get("shield"), 0.0,
                              int(agent.get("action_repeat", 1)), str(agent.get("actions", "env")),
                              render_mode=render_mode)
+
+
+def checkpoint_folder(checkpoint: str | Path) -> Path:
+    """A ``checkpoint=`` value as a folder: the name of a shipped reference agent (``"ppo_turn"``, see
+    :func:`av_gym.reference`) or a path to a run folder. A bare name means the shipped agent even where the working
+    folder holds a folder of that name: a path says ``./ppo_turn``."""
+    from av_gym.references import reference, reference_names
+
+    if isinstance(checkpoint, str) and "/" not in checkpoint and "\\" not in checkpoint:
+        if checkpoint in reference_names():
+            return reference(checkpoint)
+        if not Path(checkpoint).is_dir():
+            raise ConfigError(f"checkpoint must be a run folder or one of the shipped agents {reference_names()}, "
+                              f"got {checkpoint!r}")
+    if not isinstance(checkpoint, (str, Path)):
+        raise ConfigError(f"checkpoint must be a run folder (str or Path) or a shipped agent's name, got "
+                          f"{checkpoint!r}")
+    return Path(checkpoint)
 
 
 # ----------------------------------------------------------------------------------------------- config checks
@@ -225,23 +246,12 @@ def _problems(cls: type, scenario: str, key: str, value: Any, default: Any, chec
 
 # ----------------------------------------------------------------------------------------------- presets
 def preset(group: str, name: str) -> dict:
-    """A shipped preset of conf/<group>/ composed as the command line composes it (:data:`PRESETS`)."""
-    from av_gym.registry import PRESETS
-
-    return PRESETS.get("compose")(group, name)
+    """A shipped preset of conf/<group>/, composed as the command line composes it (:mod:`av_gym.presets`)."""
+    return compose_group(group, name)
 
 
-def _section(group: str, value: Any, default: str) -> dict:
-    if value is None:
-        value = default
-    if isinstance(value, str):
-        return preset(group, value)
-    value = _mapping(value, group)
-    name = value.get("name")
-    from av_gym.registry import PRESETS
-
-    shipped = PRESETS.get("names")(group)
-    return _deep_merge(preset(group, name), value) if name in shipped else value
+_section = as_section
+_deep_merge = deep_merge
 
 
 def _mapping(value: Any, what: str) -> dict:
@@ -252,13 +262,3 @@ def _mapping(value: Any, what: str) -> dict:
     if not isinstance(value, Mapping):
         raise ConfigError(f"{what} must be a mapping or a preset name, got {value!r}")
     return dict(value)
-
-
-def _deep_merge(base: dict, over: Mapping) -> dict:
-    out = copy.deepcopy(base)
-    for key, value in over.items():
-        if isinstance(value, Mapping) and isinstance(out.get(key), dict):
-            out[key] = _deep_merge(out[key], value)
-        else:
-            out[key] = copy.deepcopy(value)
-    return out

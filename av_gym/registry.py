@@ -90,11 +90,3 @@ SHIELDS = Registry("shield.kind", {
     "aeb": "av_gym.shields.aeb:AEBShield",
 })
 """``shield.kind`` → the safety-shield wrapper; ``none`` (no shield) is not a kind."""
-
-PRESETS = Registry("preset", {
-    "compose": "conf.presets:compose_group",
-    "names": "conf.presets:preset_names",
-})
-"""How ``gym.make(id, sensors="turn_perceived", shield="aeb")`` (:mod:`av_gym.api`) finds the shipped presets: they
-are Hydra configs of the ``conf`` package, which builds on av_gym, so they are named here as strings (like the
-kinds above) and imported only when a preset is asked for by name."""

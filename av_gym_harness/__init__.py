@@ -1,45 +1,53 @@
 """The console scripts ``av-gym-train`` and ``av-gym-eval`` (pyproject ``[project.scripts]``): ``python -m train``
-and ``python -m eval`` from any folder.
+and ``python -m eval`` from any folder, with the harness this distribution ships.
 
-Why not simply ``train.__main__:main``: this distribution installs the top-level packages ``conf``, ``agents``,
-``train`` and ``eval``, names a user's own project may hold too (``conf/`` is Hydra's usual layout). When the
-working folder is on ``sys.path`` (``python -m``, ``python -c``, ``PYTHONPATH=.``) its folders shadow ours: Hydra
-then finds no ``conf`` module ("Primary config module 'conf' not found") and ``agents`` lacks ``Policy``. The entry
-points here drop the working folder from ``sys.path`` (unless it is this checkout itself) and forget any module of
-those names imported from elsewhere, before importing the command. This module sits above every other floor
-(tests/test_imports.py): it imports the commands."""
+Where the harness is: the repository keeps ``conf/``, ``agents/``, ``train/`` and ``eval/`` at its top (the
+project's layout; ``python -m train`` in a checkout). An install does not put those four names on ``sys.path``:
+they are the commonest names in ML projects, and a user's ``train.py`` or ``conf/`` would shadow them or be
+shadowed by them. A wheel carries them inside this package (``av_gym_harness/conf``, ... copied by setup.py), an
+editable install finds them in the checkout beside ``av_gym/``. Only the console scripts' own process puts that
+folder first on ``sys.path``, drops the working folder (whose same-named folders would otherwise be found first)
+and forgets any module of those names imported from elsewhere; the library (``import av_gym``) never imports
+them. This package sits above every other floor (tests/test_imports.py): it starts the commands."""
 
 from __future__ import annotations
 
 import sys
 from pathlib import Path
 
-# the top-level packages this distribution installs besides av_gym
 PACKAGES = ("conf", "agents", "train", "eval")
-ROOT = Path(__file__).resolve().parents[1]
-"""The folder holding av_gym/ and its sibling packages: the source checkout (editable install) or site-packages."""
+"""The harness's top-level packages."""
+
+HERE = Path(__file__).resolve().parent
 
 
-def _ours(module) -> bool:
-    """Whether an imported module comes from this distribution (a namespace package has no ``__file__``)."""
-    where = getattr(module, "__file__", None) or next(iter(getattr(module, "__path__", [])), None)
-    return where is not None and Path(where).resolve().is_relative_to(ROOT)
+def harness_root() -> Path:
+    """The folder holding the harness packages: this package's own folder in a wheel, else the checkout's root
+    (the folder holding ``av_gym/`` and ``av_gym_harness/``)."""
+    return HERE if (HERE / "train" / "__main__.py").is_file() else HERE.parent
 
 
-def prefer_installed_packages() -> None:
-    """Make ``import conf`` / ``agents`` / ``train`` / ``eval`` find this distribution's packages, not same-named
-    folders of the working folder."""
+def _ours(module, root: Path) -> bool:
+    """Whether an imported module comes from ``root`` (a namespace package has no ``__file__``)."""
+    where = getattr(module, "__file__", None) or next(iter(getattr(module, "__path__", None) or []), None)
+    return where is not None and Path(where).resolve().is_relative_to(root)
+
+
+def use_harness() -> Path:
+    """Make ``import conf`` / ``agents`` / ``train`` / ``eval`` find this distribution's harness in this process,
+    not same-named folders of the working folder; returns the harness root."""
+    root = harness_root()
     cwd = Path.cwd().resolve()
-    if cwd != ROOT:
-        sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != cwd]
+    sys.path[:] = [str(root)] + [p for p in sys.path if Path(p or ".").resolve() not in (cwd, root)]
     for name in list(sys.modules):
-        if name.split(".")[0] in PACKAGES and not _ours(sys.modules[name]):
+        if name.split(".")[0] in PACKAGES and not _ours(sys.modules[name], root):
             del sys.modules[name]
+    return root
 
 
 def train() -> None:
     """``av-gym-train [overrides]``: ``python -m train`` from any folder."""
-    prefer_installed_packages()
+    use_harness()
     from train.__main__ import main
 
     main()
@@ -47,7 +55,7 @@ def train() -> None:
 
 def evaluate() -> None:
     """``av-gym-eval [overrides]``: ``python -m eval`` from any folder."""
-    prefer_installed_packages()
+    use_harness()
     from eval.__main__ import main
 
     main()

@@ -14,6 +14,12 @@ rate does not depend on how many are stepped one after the other). Memory per en
 
 from __future__ import annotations
 
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+# a script in the checkout: the harness packages (conf, agents, train, eval) are the checkout's, beside this folder
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 import os
 import time
 
@@ -76,7 +82,7 @@ def ppo_rate(batched: bool, decisions: int) -> tuple[float, float]:
     from stable_baselines3.common.vec_env import SubprocVecEnv
 
     from agents.ppo import make_ppo
-    from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
+    from agents.batched_vec_env import BatchedLeftTurnVecEnv
     from train.ppo import _env_factory
 
     import torch

@@ -23,6 +23,12 @@ envs at a time, all futures rolled together). Prints a markdown table and the lo
 
 from __future__ import annotations
 
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+# a script in the checkout: the harness packages (conf, agents, train, eval) are the checkout's, beside this folder
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 import os
 import time
 
@@ -82,7 +88,7 @@ def batched(plain, recorded: dict, B: int, margin: float = 0.0) -> tuple[dict, f
     """Replay the recorded choices on the batched engine, ``B`` envs at a time; label every decision with the
     batched oracle. Returns {seed: [label, ...]}, wall s and CPU s spent in the oracle, number of labels."""
     from agents.batched_oracle import go_futures, oracle_labels
-    from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
+    from agents.batched_vec_env import BatchedLeftTurnVecEnv
     from av_gym.wrappers import YIELD
 
     venv = BatchedLeftTurnVecEnv(*plain, B, action_repeat=5, actions="go_yield")
@@ -115,7 +121,7 @@ def drive(plain, split: str, n: int, B: int) -> tuple[float, float, float]:
     train/dagger.py's round 0): (collision, success, wall s). The same decisions as ``python -m eval
     agents=[lookahead]`` on the per-env stack (the agreement above), at the batch's cost."""
     from agents.batched_oracle import oracle_labels  # noqa: F401 - the labeller below uses it
-    from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
+    from agents.batched_vec_env import BatchedLeftTurnVecEnv
     from av_gym.seeds import seeds as split_seeds
     from train.dagger import BatchedLabels, drive_batched
 
@@ -149,7 +155,7 @@ def replica_stack(B: int, overrides: tuple[str, ...] = (), replica_env: dict | N
     from hydra import compose, initialize_config_module
     from omegaconf import OmegaConf
 
-    from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
+    from agents.batched_vec_env import BatchedLeftTurnVecEnv
     from train.dagger import BatchedLabels, replica_sensors
     from train.ppo import _env_factory
 

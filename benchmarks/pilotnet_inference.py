@@ -11,6 +11,12 @@ frames after a warm-up. Without a checkpoint the weights are random (timing does
 
 from __future__ import annotations
 
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+# a script in the checkout: the harness packages (conf, agents, train, eval) are the checkout's, beside this folder
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 import argparse
 import platform
 import time

@@ -17,6 +17,12 @@ poses. Target (issue 18): <= 0.3 ms per frame.
 
 from __future__ import annotations
 
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+# a script in the checkout: the harness packages (conf, agents, train, eval) are the checkout's, beside this folder
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 import argparse
 import time
 

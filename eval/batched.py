@@ -172,7 +172,7 @@ def play_batched(env_cfg: dict, sensors: dict, shield: dict, policy, seeds: Iter
     """The episodes ``seeds`` of ``policy`` on the batched engine (``n_envs`` at a time), rows in seed order; the
     caller has checked that the engine can run this env, sensors, shield and policy (:func:`check_batched_plan`,
     or ``train/ppo.py``'s own check for the stack it trains on)."""
-    from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
+    from agents.batched_vec_env import BatchedLeftTurnVecEnv
 
     total = len(seeds) if hasattr(seeds, "__len__") else None
     B = max(1, min(int(n_envs), total if total is not None else int(n_envs)))

@@ -165,9 +165,9 @@ def run_case(task: dict) -> dict:
     row = {"agent": task.get("agent", DEFAULT_AGENT), "variant": task["variant"], "mode": task["mode"],
            "ego_kmh": task["ego_kmh"], "target_kmh": task["target_kmh"], "dt": task["dt"],
            "collision": int(m["collision"]), "intervention": int(intervention),
-           "stop_line_offset_m": float(info.get("aeb_stop_position", math.nan)) if intervention else math.nan,
+           "stop_line_offset_m": _number(info.get("aeb_stop_position")) if intervention else math.nan,
            "min_oncoming_gap_m": min_gap, "time_to_exit_s": m["time_to_exit_s"],
-           "brake_time_s": float(info.get("aeb_brake_time", math.nan)), "warn_time_s": t_warn,
+           "brake_time_s": _number(info.get("aeb_brake_time")), "warn_time_s": t_warn,
            "min_pred_ttc_s": min_ttc, "override_fraction": m["override_fraction"], "duration_s": m["duration_s"]}
     if task.get("trace"):
         row["trace"] = trace
@@ -527,6 +527,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"[ccftap] {time.time() - t0:.0f} s; wrote {out}/results.csv, results.md, grid.png"
           + (", timeline.png" if traces else ""))
     return 0
+
+
+def _number(value: float | None) -> float:
+    """An info value that is ``None`` until it happens, as a float (NaN: it did not happen)."""
+    return math.nan if value is None else float(value)
 
 
 if __name__ == "__main__":

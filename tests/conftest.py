@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from importlib import resources
@@ -10,6 +11,11 @@ import pytest
 import yaml
 
 from av_gym.make import make_env
+
+# `python -m train` / `python -m eval` in a subprocess started from another folder (tmp_path): an install puts only
+# av_gym on sys.path, the harness packages are the checkout's (pyproject's pythonpath does this for pytest itself)
+os.environ["PYTHONPATH"] = os.pathsep.join(
+    [str(Path(__file__).resolve().parents[1]), *filter(None, [os.environ.get("PYTHONPATH")])])
 
 
 def conf(group: str, name: str) -> dict:

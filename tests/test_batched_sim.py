@@ -276,7 +276,7 @@ def test_vec_env_matches_the_training_stack():
     Why not all, always: positions agree to ~1e-14, not bit for bit, and obs["turn"]'s closest approach to the
     ego's path has exact ties (an object driving along the path's exit segment is equally far from each exit
     point), which float noise breaks either way."""
-    from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
+    from agents.batched_vec_env import BatchedLeftTurnVecEnv
     from train.ppo import _env_factory
 
     plain = _ppo_turn_config()
@@ -323,7 +323,7 @@ def test_vec_env_matches_the_training_stack():
 
 
 def test_vec_env_refuses_what_the_batch_cannot_give():
-    from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
+    from agents.batched_vec_env import BatchedLeftTurnVecEnv
     from av_gym.errors import ConfigError
 
     env, sensors, shield = _ppo_turn_config()
@@ -496,7 +496,7 @@ def test_cloning_on_the_batch_gives_the_per_env_demonstrations():
     the per-env stack gives for the same seeds (the rule reads only the observation, which the engine reproduces)."""
     from stable_baselines3 import PPO
 
-    from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
+    from agents.batched_vec_env import BatchedLeftTurnVecEnv
     from train.ppo import _env_factory, make_teacher, pretrain_from_teacher
 
     plain, seeds = _ppo_turn_config(), range(500000, 500006)

@@ -1,5 +1,5 @@
-"""``av-gym-train`` / ``av-gym-eval`` (pyproject ``[project.scripts]``, av_gym/cli.py) from a folder of the user's
-own that has ``conf/``, ``agents/``, ``train/`` and ``eval/`` folders (Hydra's usual layout; issue 33), and
+"""``av-gym-train`` / ``av-gym-eval`` (pyproject ``[project.scripts]``, av_gym_harness) from a folder of the user's
+own that has ``conf/``, ``agents/``, ``train/`` and ``eval/`` folders (Hydra's usual layout), and
 ``--help`` listing only what a user can set.
 
 The scripts are run as ``python -c "<the entry point pyproject names>"``: the same function the installed script
@@ -80,8 +80,8 @@ def test_eval_from_a_folder_with_its_own_conf_and_agents_finds_the_reference_che
 
 
 def test_the_entry_points_are_the_functions_pyproject_names():
-    import av_gym.cli
+    import av_gym_harness
 
     scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
-    assert scripts == {"av-gym-train": "av_gym.cli:train", "av-gym-eval": "av_gym.cli:evaluate"}
-    assert callable(av_gym.cli.train) and callable(av_gym.cli.evaluate)
+    assert scripts == {"av-gym-train": "av_gym_harness:train", "av-gym-eval": "av_gym_harness:evaluate"}
+    assert callable(av_gym_harness.train) and callable(av_gym_harness.evaluate)

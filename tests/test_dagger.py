@@ -17,7 +17,8 @@ import pytest
 from omegaconf import OmegaConf
 
 from agents.batched_oracle import go_futures
-from av_gym.batched.vec_env import BatchedLeftTurnVecEnv, meta_actions
+from agents.batched_vec_env import BatchedLeftTurnVecEnv
+from av_gym.batched.vec_env import meta_actions
 from av_gym.batched.left_turn import BatchedLeftTurn
 from av_gym.make import highway_config
 from av_gym.sim.batched import LENGTH, WIDTH

@@ -10,7 +10,7 @@ import functools
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("av_gym", "agents", "conf", "train", "eval")
+PACKAGES = ("av_gym", "agents", "conf", "train", "eval", "av_gym_harness")
 
 # unit → floor. A unit is a top-level package, or ``av_gym.<module or subpackage>``; ``av_gym`` itself is the
 # package's __init__ (the Gymnasium ids). Units on one floor do not import each other.
@@ -24,18 +24,19 @@ FLOORS = {
     "av_gym.sensors": 3,                                        # sensor models, wrappers over any env
     "av_gym.estimation": 4,                                     # EKF, tracker, features from sensor readings
     "av_gym.envs": 5, "av_gym.shields": 5, "av_gym.wrappers": 5,  # scenarios; shields; action/observation wrappers
-    "av_gym.make": 6,                                           # config → env + sensors + shield
+    "av_gym.make": 6, "av_gym.presets": 6,                      # config → env + sensors + shield; shipped presets
     "av_gym.batched": 7,                                        # the batched left turn (reuses all of the above)
     "av_gym.api": 8,                                            # the registered ids' entry points (gym.make/make_vec)
     "agents": 9,
     "conf": 10,
     "eval": 11,
     "train": 12,                                                # train evaluates (eval); eval never trains
-    "av_gym.cli": 13,                                           # the console scripts: they start the commands
+    "av_gym_harness": 13,                                       # the console scripts: they start the commands
 }
-# third-party libraries that only the upper floors may use: the RL stack stays out of the simulator/sensor layers
+# third-party libraries that only the harness may use: the library (every av_gym unit) stays free of the RL stack,
+# so that gym.make / gymnasium.make_vec load neither
 RL_LIBRARIES = ("stable_baselines3", "torch")
-RL_FLOOR = FLOORS["av_gym.batched"]
+RL_FLOOR = FLOORS["agents"]
 
 
 def unit_of(module: str) -> str:
@@ -99,7 +100,7 @@ def test_imports_only_go_down():
 def test_rl_libraries_stay_above_the_simulator():
     wrong = {f"{s} → {d}": sorted(files) for (s, d), files in edges().items()
              if d in RL_LIBRARIES and FLOORS.get(s, 99) < RL_FLOOR}
-    assert wrong == {}, f"stable_baselines3/torch below av_gym.batched: {wrong}"
+    assert wrong == {}, f"stable_baselines3/torch imported by the library (av_gym): {wrong}"
 
 
 def test_the_checker_sees_lazy_and_upward_imports(tmp_path):
@@ -114,6 +115,30 @@ def test_the_checker_sees_lazy_and_upward_imports(tmp_path):
     assert found[("av_gym.m", "agents")] == {"av_gym/m.py"}
     assert found[("av_gym.estimation", "av_gym.envs")] == {"av_gym/estimation/f.py"}
     assert FLOORS["av_gym.envs"] > FLOORS["av_gym.estimation"]
+
+
+def test_the_library_loads_no_harness_and_no_rl_stack(tmp_path):
+    """In a fresh interpreter, from a folder holding packages named like the harness's: ``gym.make`` with a
+    sensors preset and a shield, a shipped agent's env by name and ``gymnasium.make_vec`` on the batch import
+    none of conf/agents/train/eval, stable_baselines3 or torch."""
+    import subprocess
+    import sys
+
+    for name in ("conf", "agents", "train", "eval"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "__init__.py").write_text(f"raise ImportError('the user folder\\'s {name} was imported')\n")
+    (tmp_path / "conf" / "sensors").mkdir()
+    code = (
+        "import sys, gymnasium as gym, av_gym\n"
+        "gym.make('av_gym/UnprotectedLeftTurn-v0', sensors='turn_perceived', shield='aeb').reset(seed=0)\n"
+        "gym.make('av_gym/UnprotectedLeftTurn-v0', checkpoint='ppo_turn').reset(seed=0)\n"
+        "gym.make_vec('av_gym/UnprotectedLeftTurn-v0', 2, sensors='turn_truth').reset(seed=0)\n"
+        "bad = sorted(m for m in sys.modules if m.split('.')[0] in "
+        "('conf', 'agents', 'train', 'eval', 'stable_baselines3', 'torch'))\n"
+        "print('loaded:', bad)\n")
+    res = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "loaded: []" in res.stdout, res.stdout
 
 
 if __name__ == "__main__":

@@ -22,11 +22,19 @@ Per round: a progress line, TensorBoard scalars (``run_dir/tb/<name>``), ``round
 student's agreement with the teacher on its own states, its success/collision while driving and on the validation
 seeds) and an atomic ``latest.zip``; ``best.zip`` holds the best validation (success - collision); ``model.zip``
 the last round.
+
+Resumable at round granularity (issue 39: a stopped run restarted at round 0 and overwrote its files):
+``latest.zip`` is the whole state at the end of the last finished round, in one file replaced at once: the
+student with its optimizer, the aggregate of labelled states (member ``av_gym_dagger.npz``), the rounds' rows, the
+best validation score and the RNG states. ``train.resume=true`` continues at the next round, so a kill -9 costs at
+most the round in progress, and (the rounds' seeds and fits being fixed by the run's seed) the resumed run ends with
+the same student as an uninterrupted one.
 """
 
 from __future__ import annotations
 
 import csv
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +44,7 @@ from omegaconf import DictConfig, OmegaConf
 
 ROUND_FIELDS = ("round", "driver", "episodes", "labels", "wall_s", "label_s", "agreement", "drive_success",
                 "drive_collision", "fit_accuracy", "val_success", "val_collision")
+STATE_MEMBER = "av_gym_dagger.npz"  # the aggregate's labelled states, inside latest.zip
 
 
 # ------------------------------------------------------------------------------------------------------ checks
@@ -309,9 +318,67 @@ def aggregate(total: Round, new: Round) -> None:
 
 
 # ------------------------------------------------------------------------------------------------------ the run
+def pack_rounds(data: Round) -> bytes:
+    """The aggregate's labelled states (observations per key, labels, discounted returns) as an ``.npz``."""
+    import io
+
+    arrays = {f"obs:{k}": np.stack([o[k] for o in data.obs]) for k in (data.obs[0] if data.obs else {})}
+    arrays["labels"], arrays["returns"] = np.asarray(data.labels), np.asarray(data.returns, dtype=np.float64)
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def unpack_rounds(raw: bytes) -> Round:
+    import io
+
+    npz = np.load(io.BytesIO(raw))
+    keys = [k[len("obs:"):] for k in npz.files if k.startswith("obs:")]
+    stacked = {k: npz[f"obs:{k}"] for k in keys}
+    labels = npz["labels"]
+    return Round(obs=[{k: stacked[k][i] for k in keys} for i in range(len(labels))], labels=list(labels),
+                 returns=list(npz["returns"]))
+
+
+def save_round(model, path: Path, data: Round, state: dict) -> Path:
+    """``latest.zip``: the student (and optimizer), the aggregate and ``state`` (rows, best, the next round, the
+    GO bias before the operating point's shift) with the RNG states, one file replaced at once."""
+    from train.checkpoint import save_model_atomic
+
+    return save_model_atomic(model, path, rng_extra={"dagger": state}, members={STATE_MEMBER: pack_rounds(data)})
+
+
+def load_round(model, path: Path) -> tuple[Round, dict]:
+    """The state :func:`save_round` wrote into ``path``, loaded into ``model`` (its policy and optimizer, and the
+    global RNG states); one line for a checkpoint that is damaged or was written before DAgger saved its rounds."""
+    import zipfile
+
+    from agents.checkpoint import check_sb3_zip
+    from av_gym.errors import ConfigError
+    from train.checkpoint import load_rng_state
+
+    check_sb3_zip(path)
+    with zipfile.ZipFile(path) as z:
+        if STATE_MEMBER not in z.namelist():
+            raise ConfigError(f"train.resume=true: {path} holds no DAgger rounds (written before DAgger saved its "
+                              f"labels with the student): it cannot be resumed; start a new run_name with "
+                              f"agent.init_from={path} to go on from its student")
+        raw = z.read(STATE_MEMBER)
+    try:
+        model.set_parameters(str(path), exact_match=True, device=model.device)
+    except (ValueError, RuntimeError, KeyError) as exc:  # another network than this config builds
+        raise ConfigError(f"train.resume=true: {path} does not fit this run's student "
+                          f"({' '.join(str(exc).split())[:200]})") from None
+    state = load_rng_state(path).get("dagger")
+    if not isinstance(state, dict):
+        raise ConfigError(f"train.resume=true: {path} holds no DAgger round state; start a new run_name")
+    return unpack_rounds(raw), state
+
+
 def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
-    """Train the student as ``cfg.agent`` says; returns ``ckpt_dir/model.zip``. SIGINT / SIGTERM save
-    ``latest.zip`` (the last finished round's student) before exiting."""
+    """Train the student as ``cfg.agent`` says; returns ``ckpt_dir/model.zip``. Every finished round is saved in
+    ``latest.zip`` (:func:`save_round`), which ``train.resume=true`` continues from the next round; SIGINT /
+    SIGTERM end the round in progress."""
     import signal
 
     from torch.utils.tensorboard import SummaryWriter
@@ -324,6 +391,7 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     from train.ppo import _env_factory, make_teacher
 
     agent, t_start = cfg.agent, time.time()
+    resume, latest = bool(cfg.train.get("resume", False)), ckpt_dir / "latest.zip"
     params = DaggerParams.from_mapping(OmegaConf.to_container(agent, resolve=True), where="agent")
     for stale in ckpt_dir.glob(".*.tmp"):  # a save killed half-way; the previous file is intact
         stale.unlink()
@@ -333,7 +401,7 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     how = labeller_of(cfg)
     gamma, n_envs = float(params.gamma), int(params.n_envs)
     if how in ("batched", "rule"):
-        from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
+        from agents.batched_vec_env import BatchedLeftTurnVecEnv
 
         stacks = [BatchedLeftTurnVecEnv(*plain, n_envs, action_repeat=repeat, actions=actions,
                                         timeout_is_terminal=params.timeout_is_terminal, pool=0)]
@@ -344,7 +412,7 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     model = make_ppo(env, OmegaConf.to_container(agent, resolve=True), seed=int(cfg.seed), tensorboard_log=None,
                      device=agent.device)
     if how == "replica":
-        from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
+        from agents.batched_vec_env import BatchedLeftTurnVecEnv
 
         replica = BatchedLeftTurnVecEnv(plain[0], replica_sensors(cfg.sensors), plain[2], n_envs,
                                         action_repeat=repeat, actions=actions,
@@ -359,7 +427,7 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
         labels = BatchedLabels(env, teacher, how == "batched", params.label_margin)
         drive = lambda seeds, by_teacher: drive_batched(env, model, labels, seeds, by_teacher,  # noqa: E731
                                                         gamma)
-    if params.init_from:  # a student to go on from (an earlier DAgger run or a PPO policy of the same spaces)
+    if params.init_from and not resume:  # a student to go on from (a DAgger run or a PPO policy of the same spaces)
         from train.ppo import load_weights
 
         load_weights(model, params.init_from, str(cfg.env.name))
@@ -372,9 +440,27 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
             from train.operating_point import shift_go
 
             shift_go(m, tau if on else 1.0 - tau)
-    writer = SummaryWriter(str(run_dir / "tb" / str(params.name)))
+
+    def go_bias(m):
+        """The GO logit's bias as fitted (restored exactly on resume: shifting back and forth could round it)."""
+        return m.policy.action_net.bias.detach().clone() if tau != 0.5 and actions == "go_yield" else None
     rows: list[dict] = []
-    data, best = Round(), -np.inf
+    data, best, start = Round(), -np.inf, 0
+    if resume:  # the state at the end of the last finished round: go on with the next
+        data, state = load_round(model, latest)
+        rows, best, start = list(state["rows"]), float(state["best"]), int(state["next_round"])
+        if state.get("go_bias") is not None:
+            import torch as th
+
+            with th.no_grad():
+                model.policy.action_net.bias.copy_(state["go_bias"])
+        t_start -= float(rows[-1]["wall_s"]) if rows else 0.0  # wall-clock of the run, not of this process
+        write_text_atomic(ckpt_dir / "rounds.csv", _csv(rows))  # without a row of the round that was cut short
+        print(f"[train] resuming {latest}: rounds 0..{start - 1} done, {len(data.labels)} labels; next round {start} "
+              f"of {params.rounds}")
+    # resumed: TensorBoard drops what the cut-short round logged after the saved state (steps are label counts)
+    writer = SummaryWriter(str(run_dir / "tb" / str(params.name)),
+                           purge_step=int(rows[-1]["labels"]) + 1 if resume and rows else None)
     # each training seed drives its own episodes, train_seed + 50,000 x seed + the round's offset, all in the
     # train split (av_gym/seeds.py: folded into it)
     first = int(params.train_seed) + 50_000 * int(cfg.seed)
@@ -382,7 +468,9 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
           f"({how} labels), student {params.extractor} on {cfg.sensors.name}"
           f"{' from ' + str(params.init_from) if params.init_from else ''}; episode seeds {first}+")
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM behaves like Ctrl-C
-    bar = tqdm(range(int(params.rounds)), desc="DAgger rounds", disable=not bool(cfg.train.progress_bar))
+    bar = tqdm(range(start, int(params.rounds)), desc="DAgger rounds", initial=start, total=int(params.rounds),
+               disable=not bool(cfg.train.progress_bar))
+    done = start  # rounds saved in latest.zip
     try:
         for k in bar:
             seeds = [train_seed(first, k * int(params.round_episodes) + i) for i in range(int(params.round_episodes))]
@@ -397,26 +485,35 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
                    "label_s": round(new.label_s, 1), "agreement": float(np.mean(new.agree)),
                    "drive_success": float(succ), "drive_collision": float(coll), "fit_accuracy": accuracy,
                    "val_success": np.nan, "val_collision": np.nan}
+            fitted = go_bias(model)
             shift(model, True)  # validated and saved at the operating point
             if validation is not None:
                 row["val_collision"], row["val_success"] = validation(model)
             rows.append(row)
-            save_model_atomic(model, ckpt_dir / "latest.zip")
             score = row["val_success"] - row["val_collision"]
             if validation is not None and score > best:
                 best = score
                 save_model_atomic(model, ckpt_dir / "best.zip")
-            shift(model, False)
             _log(writer, row, len(new.labels) / max(new.label_s, 1e-9))
             write_text_atomic(ckpt_dir / "rounds.csv", _csv(rows))
+            # last: the round counts as done once latest.zip holds it (a kill before redoes it, with the same
+            # seeds, fit and so the same best.zip and rows)
+            save_round(model, latest, data, {"next_round": k + 1, "rows": rows, "best": best, "go_bias": fitted})
+            done = k + 1
+            shift(model, False)
             print(f"[train] round {k}: {row['driver']} drove {row['episodes']} episodes (success "
                   f"{succ:.3f}, collision {coll:.3f}); the student agreed with the teacher on {row['agreement']:.3f} "
                   f"of its states; {row['labels']} labels ({len(new.labels) / max(new.label_s, 1e-9):.0f}/s), fit "
                   f"accuracy {accuracy:.3f}" + (f"; validation success {row['val_success']:.3f}, collision "
                                                 f"{row['val_collision']:.3f}" if validation is not None else "")
                   + f" [{row['wall_s']:.0f} s]", flush=True)
-    except KeyboardInterrupt:
-        print(f"[train] interrupted; the last finished round's student is {ckpt_dir / 'latest.zip'}")
+    except KeyboardInterrupt:  # name only what exists (it named a latest.zip that may not)
+        if done > 0 and latest.is_file():
+            print(f"[train] interrupted in round {done}: rounds 0..{done - 1} are kept in {latest} (student, labels, "
+                  f"rounds.csv); continue with run_name={cfg.run_name} train.resume=true", file=sys.stderr)
+        else:
+            print(f"[train] interrupted in round 0, before any round finished: nothing was kept (no latest.zip); "
+                  f"start the run again (train.overwrite=true to reuse run_name={cfg.run_name})", file=sys.stderr)
         raise
     finally:
         signal.signal(signal.SIGTERM, previous)

@@ -294,7 +294,7 @@ class _Stack:
 
     def batched(self):
         """The left turn's batched engine with the agent's action repeat, actions and time limit (issue 16)."""
-        from av_gym.batched.vec_env import BatchedLeftTurnVecEnv
+        from agents.batched_vec_env import BatchedLeftTurnVecEnv
 
         p = self.params
         return BatchedLeftTurnVecEnv(*self.plain, p.n_envs, action_repeat=p.action_repeat, actions=p.actions,

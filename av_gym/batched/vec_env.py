@@ -1,5 +1,8 @@
-"""The batched left turn (:mod:`av_gym.batched.left_turn`) as an SB3 ``VecEnv`` and a Gymnasium
-``VectorEnv`` (issue 16): ``python -m train agent=ppo_turn agent.vec_env=batched agent.n_envs=64``.
+"""The batched left turn (:mod:`av_gym.batched.left_turn`) with the training wrappers done on the batch
+(:class:`BatchedLeftTurnBatch`, SB3's ``VecEnv`` interface without importing SB3) and as a Gymnasium ``VectorEnv``
+(:class:`BatchedLeftTurnVectorEnv`, what ``gymnasium.make_vec`` gives). The SB3 ``VecEnv`` that ``python -m train
+agent=ppo_turn agent.vec_env=batched`` trains on is the harness's :mod:`agents.batched_vec_env`: the library
+does not import SB3 or torch.
 
 What the batch gives: ``env=left_turn`` in both modes (traffic, CCFtap) with discrete or continuous actions, and the
 sensors of the ``turn_truth`` preset (``turn_features`` with ``source: truth``, ``turn_signals``, ``turn_intent``,
@@ -19,7 +22,6 @@ import time
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
-from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
 from av_gym.batched.left_turn import BatchedIntent, BatchedLeftTurn
 from av_gym.errors import ConfigError
@@ -59,9 +61,11 @@ def check_batchable(env_cfg: dict, sensors_cfg: dict | None, shield_cfg: dict | 
         raise ConfigError(f"shield={kind} is not available with agent.vec_env=batched; use agent.vec_env=subproc")
 
 
-class BatchedLeftTurnVecEnv(VecEnv):
-    """SB3 VecEnv over :class:`BatchedLeftTurn`, with the training wrappers of ``train/ppo.py``'s per-env stack
-    (GoYieldActions, ActionRepeat, TimeLimitIsTerminal, FlatDictObservation) done on the batch."""
+class BatchedLeftTurnBatch:
+    """:class:`BatchedLeftTurn` with the training wrappers of the per-env stack (GoYieldActions, ActionRepeat,
+    TimeLimitIsTerminal, FlatDictObservation) done on the batch, behind SB3's ``VecEnv`` methods (``reset``,
+    ``step_async``/``step_wait``, ``seed``, ``get_attr`` ...), so that SB3's adapter is only the base class
+    (:class:`agents.batched_vec_env.BatchedLeftTurnVecEnv`)."""
 
     def __init__(self, env_cfg: dict, sensors_cfg: dict, shield_cfg: dict | None, n_envs: int, *,
                  action_repeat: int = 1, actions: str = "env", timeout_is_terminal: bool = False,
@@ -96,7 +100,7 @@ class BatchedLeftTurnVecEnv(VecEnv):
             action_space = spaces.Box(-1.0, 1.0, shape=(1,), dtype=np.float32)
         else:
             action_space = spaces.Discrete(2) if actions == "go_yield" else spaces.Discrete(3)
-        super().__init__(n_envs, obs_space, action_space)
+        self.num_envs, self.observation_space, self.action_space = int(n_envs), obs_space, action_space
         self._seeds: list | None = None
         self._actions = None
         self._obs: dict | None = None
@@ -183,6 +187,10 @@ class BatchedLeftTurnVecEnv(VecEnv):
         self._idle[rows[~started]] = True
         return rows[started]
 
+    def step(self, actions: np.ndarray):
+        self.step_async(actions)
+        return self.step_wait()
+
     def step_async(self, actions: np.ndarray) -> None:
         self._actions = np.asarray(actions).reshape(self.num_envs, -1)[:, 0]
 
@@ -268,13 +276,18 @@ class BatchedLeftTurnVecEnv(VecEnv):
     def env_is_wrapped(self, wrapper_class, indices=None):
         return [False for _ in self._get_indices(indices)]
 
+    def _get_indices(self, indices) -> list[int]:
+        if indices is None:
+            return list(range(self.num_envs))
+        return [int(indices)] if isinstance(indices, (int, np.integer)) else list(indices)
+
 
 class BatchedLeftTurnVectorEnv(gym.vector.VectorEnv):
     """Gymnasium ``VectorEnv`` over the same batch: meta-actions (or GO/YIELD), ``obs`` as a dict of batched
     arrays, autoreset in the same step (``info["final_obs"]`` / ``info["_final_obs"]``)."""
 
     def __init__(self, env_cfg: dict, sensors_cfg: dict, n_envs: int, **kwargs) -> None:
-        self.venv = BatchedLeftTurnVecEnv(env_cfg, sensors_cfg, None, n_envs, **kwargs)
+        self.venv = BatchedLeftTurnBatch(env_cfg, sensors_cfg, None, n_envs, **kwargs)
         self.num_envs = n_envs
         self.single_observation_space = self.venv.observation_space
         self.single_action_space = self.venv.action_space

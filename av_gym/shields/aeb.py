@@ -74,8 +74,9 @@ RouteFollowingVehicle's commanded acceleration alike). The agent's set-point is 
 ``info`` each step: ``aeb_stage`` (0/1/2), ``aeb_ttc`` (s, inf when none), ``aeb_horizon`` (s), ``aeb_override``
 and ``shield_override`` (bool: the action was overridden by braking), ``aeb_target_id`` (index in the simulator's
 vehicle list minus the ego, or track id; -1), ``aeb_active``, ``aeb_infeasible`` (a conflict was predicted but
-braking would park the ego in the target's path), ``aeb_brake_time`` (s, first brake command this episode, NaN),
-``aeb_stop_position`` (m, front bumper past the stop line at the first standstill under braking, NaN before),
+braking would park the ego in the target's path), ``aeb_brake_time`` (s, first brake command this episode; None
+before), ``aeb_stop_position`` (m, front bumper past the stop line at the first standstill under braking; None
+before),
 ``aeb_action`` (the action passed on to the env).
 
 The code, by seam: the parameters (:mod:`av_gym.shields.aeb_params`), the brake actuator

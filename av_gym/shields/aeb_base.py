@@ -225,7 +225,9 @@ class AEBShield(gym.Wrapper):
         return {"aeb_stage": int(stage), "aeb_ttc": float(ttc), "aeb_horizon": float(horizon),
                 "aeb_override": bool(stage == BRAKE), "shield_override": bool(stage == BRAKE),
                 "aeb_target_id": int(target), "aeb_active": bool(active), "aeb_infeasible": bool(infeasible),
-                "aeb_brake_time": self._brake_time, "aeb_stop_position": self._stop_position,
+                # None, not NaN, until it happens: info values must compare equal across identical runs
+                # (Gymnasium's check_env; NaN != NaN)
+                "aeb_brake_time": _or_none(self._brake_time), "aeb_stop_position": _or_none(self._stop_position),
                 "aeb_action": None if applied is None else (np.asarray(applied).tolist())}
 
     def _throttle_cut(self, action):
@@ -362,3 +364,8 @@ class AEBShield(gym.Wrapper):
             return True
         self._release()
         return False
+
+
+def _or_none(value: float) -> float | None:
+    """``value`` as a float, ``None`` where it is NaN (not yet happened)."""
+    return None if np.isnan(value) else float(value)
