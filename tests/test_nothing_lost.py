@@ -306,3 +306,105 @@ def test_ctrl_c_while_cloning_says_what_was_kept(monkeypatch, capsys):
     assert line.startswith("[train] interrupted while cloning gap_acceptance (") and "nothing was kept" in line \
         and "no latest.zip to resume" in line, line
     assert closed == [True]  # the demonstration env is closed on the way out
+
+
+# ----------------------------------------------------------------------- row 6: DAgger resumes at a round
+def dagger_cfg(*extra: str):
+    from hydra import compose, initialize_config_module
+
+    with initialize_config_module("conf", version_base="1.3"):
+        return compose("train", overrides=["agent=dagger_turn", "agent.rounds=3", "agent.round_episodes=2",
+                                           "agent.n_envs=2", "agent.extractor=mlp", "agent.fit_epochs=1",
+                                           "agent.go_threshold=0.8", "train.eval_n=2", "train.progress_bar=false",
+                                           "run_name=D", *extra])
+
+
+def dagger_run(tmp_path: Path, name: str, *extra: str, stop_at: int | None = None, monkeypatch=None):
+    """A tiny DAgger run into ``tmp_path/name``; with ``stop_at``, Ctrl-C in that round's fit."""
+    import torch
+    from omegaconf import OmegaConf
+
+    import train.dagger
+
+    cfg = dagger_cfg(*extra)
+    ckpt, run_dir = tmp_path / name / "ckpt", tmp_path / name / "run"
+    ckpt.mkdir(parents=True, exist_ok=True)
+    (ckpt / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    if stop_at is not None:
+        fit, calls = train.dagger.fit, []
+
+        def interrupted(model, data, *a, **k):
+            calls.append(1)
+            if len(calls) > stop_at:
+                raise KeyboardInterrupt
+            return fit(model, data, *a, **k)
+        monkeypatch.setattr(train.dagger, "fit", interrupted)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return train.dagger.train_dagger(cfg, ckpt, run_dir)
+    finally:
+        torch.set_num_threads(threads)
+        if monkeypatch is not None:
+            monkeypatch.undo()
+
+
+def test_the_aggregate_round_trips_exactly():
+    import numpy as np
+
+    from train.dagger import Round, pack_rounds, unpack_rounds
+
+    rng = np.random.default_rng(0)
+    data = Round(obs=[{"turn": rng.normal(size=6).astype(np.float32), "intent": rng.normal(size=(2, 3))}
+                      for _ in range(5)], labels=[0, 1, 1, 0, 1], returns=list(rng.normal(size=5)))
+    back = unpack_rounds(pack_rounds(data))
+    assert list(back.obs[0]) == ["turn", "intent"] and len(back.obs) == 5
+    for a, b in zip(data.obs, back.obs):
+        assert all(np.array_equal(a[k], b[k]) and a[k].dtype == b[k].dtype for k in a)
+    assert np.array_equal(np.array(back.labels), np.array(data.labels)) and back.returns == data.returns
+
+
+@pytest.mark.slow  # three tiny DAgger runs (~20 CPU-s)
+def test_dagger_stopped_then_resumed_ends_with_the_uninterrupted_student(tmp_path, monkeypatch, capsys):
+    """Row 6: a stopped DAgger run restarted at round 0, overwriting best.zip, latest.zip and rounds.csv, and its
+    message named a latest.zip that might not exist. Now each finished round is in latest.zip; resumed, the run
+    redoes only the round that was cut short and ends with the same student, bit for bit, and the same rows."""
+    import csv
+
+    import torch
+
+    from agents.checkpoint import load_sb3
+
+    whole = dagger_run(tmp_path, "whole")
+    with pytest.raises(KeyboardInterrupt):
+        dagger_run(tmp_path, "cut", stop_at=0, monkeypatch=monkeypatch)  # in round 0: nothing kept, and said so
+    assert "before any round finished: nothing was kept (no latest.zip)" in capsys.readouterr().err
+    assert not (tmp_path / "cut" / "ckpt" / "latest.zip").exists()
+    with pytest.raises(KeyboardInterrupt):
+        dagger_run(tmp_path, "cut", "train.overwrite=true", stop_at=2, monkeypatch=monkeypatch)
+    err = capsys.readouterr().err
+    assert "interrupted in round 2: rounds 0..1 are kept in" in err and "train.resume=true" in err, err
+    cut = tmp_path / "cut" / "ckpt"
+    best = (cut / "best.zip").read_bytes()
+    resumed = dagger_run(tmp_path, "cut", "train.resume=true")
+    assert "resuming" in capsys.readouterr().out
+    a, b = (load_sb3(p, device="cpu").policy.state_dict() for p in (whole, resumed))
+    assert all(torch.equal(a[k], b[k]) for k in a), "the same student"
+
+    def rows(path):
+        with open(path) as f:
+            return [{k: v for k, v in r.items() if k not in ("wall_s", "label_s")} for r in csv.DictReader(f)]
+    assert rows(cut / "rounds.csv") == rows(tmp_path / "whole" / "ckpt" / "rounds.csv")
+    assert len(rows(cut / "rounds.csv")) == 3
+    assert best != b"" and (cut / "best.zip").is_file()
+
+
+def test_a_dagger_checkpoint_without_rounds_is_not_resumed(tmp_path):
+    """A latest.zip written before DAgger saved its rounds (or any PPO zip) is refused in one line."""
+    from av_gym.errors import ConfigError
+
+    ckpt = tmp_path / "old" / "ckpt"
+    ckpt.mkdir(parents=True)
+    shutil.copy(REF / "dagger_turn" / "model.zip", ckpt / "latest.zip")
+    with pytest.raises(ConfigError, match=r"latest.zip holds no DAgger rounds .* agent.init_from="):
+        dagger_run(tmp_path, "old", "train.resume=true")

@@ -32,18 +32,23 @@ def rng_state(extra: dict | None = None) -> dict:
             **(extra or {})}
 
 
-def save_model_atomic(model: Any, path: str | Path, rng_extra: dict | None = None, with_rng: bool = False) -> Path:
+def save_model_atomic(model: Any, path: str | Path, rng_extra: dict | None = None, with_rng: bool = False,
+                      members: dict[str, bytes] | None = None) -> Path:
     """``model.save`` (SB3) to ``path`` (a .zip) atomically; with ``with_rng`` (or ``rng_extra``), the RNG states
-    (and ``rng_extra``) inside the same zip, so that both are replaced at once."""
+    (and ``rng_extra``) inside the same zip, and ``members`` (name → bytes, e.g. DAgger's labelled states) too, so
+    that all are replaced at once. SB3's loader reads only its own members."""
     import pickle
     import zipfile
 
     path = Path(path)
     with atomic_path(path, FIELD) as tmp:
         model.save(str(tmp))
-        if with_rng or rng_extra is not None:
+        if with_rng or rng_extra is not None or members:
             with zipfile.ZipFile(tmp, "a") as z:
-                z.writestr(RNG_MEMBER, pickle.dumps(rng_state(rng_extra)))
+                if with_rng or rng_extra is not None:
+                    z.writestr(RNG_MEMBER, pickle.dumps(rng_state(rng_extra)))
+                for name, data in (members or {}).items():
+                    z.writestr(name, data)
     return path
 
 

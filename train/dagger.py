@@ -341,8 +341,8 @@ def unpack_rounds(raw: bytes) -> Round:
 
 
 def save_round(model, path: Path, data: Round, state: dict) -> Path:
-    """``latest.zip``: the student (and optimizer), the aggregate and ``state`` (rows, best, the next round, the
-    GO bias before the operating point's shift) with the RNG states, one file replaced at once."""
+    """``latest.zip``: the student at its operating point (and optimizer), the aggregate and ``state`` (rows, best,
+    the next round) with the RNG states, one file replaced at once."""
     from train.checkpoint import save_model_atomic
 
     return save_model_atomic(model, path, rng_extra={"dagger": state}, members={STATE_MEMBER: pack_rounds(data)})
@@ -440,20 +440,12 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
             from train.operating_point import shift_go
 
             shift_go(m, tau if on else 1.0 - tau)
-
-    def go_bias(m):
-        """The GO logit's bias as fitted (restored exactly on resume: shifting back and forth could round it)."""
-        return m.policy.action_net.bias.detach().clone() if tau != 0.5 and actions == "go_yield" else None
     rows: list[dict] = []
     data, best, start = Round(), -np.inf, 0
     if resume:  # the state at the end of the last finished round: go on with the next
         data, state = load_round(model, latest)
         rows, best, start = list(state["rows"]), float(state["best"]), int(state["next_round"])
-        if state.get("go_bias") is not None:
-            import torch as th
-
-            with th.no_grad():
-                model.policy.action_net.bias.copy_(state["go_bias"])
+        shift(model, False)  # saved at the operating point; back as the uninterrupted run shifts it, bit for bit
         t_start -= float(rows[-1]["wall_s"]) if rows else 0.0  # wall-clock of the run, not of this process
         write_text_atomic(ckpt_dir / "rounds.csv", _csv(rows))  # without a row of the round that was cut short
         print(f"[train] resuming {latest}: rounds 0..{start - 1} done, {len(data.labels)} labels; next round {start} "
@@ -485,7 +477,6 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
                    "label_s": round(new.label_s, 1), "agreement": float(np.mean(new.agree)),
                    "drive_success": float(succ), "drive_collision": float(coll), "fit_accuracy": accuracy,
                    "val_success": np.nan, "val_collision": np.nan}
-            fitted = go_bias(model)
             shift(model, True)  # validated and saved at the operating point
             if validation is not None:
                 row["val_collision"], row["val_success"] = validation(model)
@@ -498,7 +489,7 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
             write_text_atomic(ckpt_dir / "rounds.csv", _csv(rows))
             # last: the round counts as done once latest.zip holds it (a kill before redoes it, with the same
             # seeds, fit and so the same best.zip and rows)
-            save_round(model, latest, data, {"next_round": k + 1, "rows": rows, "best": best, "go_bias": fitted})
+            save_round(model, latest, data, {"next_round": k + 1, "rows": rows, "best": best})
             done = k + 1
             shift(model, False)
             print(f"[train] round {k}: {row['driver']} drove {row['episodes']} episodes (success "
