@@ -2,15 +2,17 @@
 
     .venv/bin/python docs/make_camera_frames.py
 
-writes PNGs under ``docs/cameras/``: each is a montage of the left, centre and right 66×200 images, upscaled ×3
-with nearest-neighbour so the pixels the network sees stay visible, with a caption strip. Scenes: the lap's
-straight, the approach to layout A's left hairpin and layout B's right hairpin, inside the left hairpin, the
-intersection with oncoming traffic and the CCFtap target, the camera noise at its defaults, fog and night; plus
-``contact_sheet.png`` with all of them (×2) and ``centre_hires.png`` (the same camera at 264×800, for detail).
+writes ``docs/cameras/contact_sheet.png`` (docs/sensors.md shows it): one row per scene, each a montage of the
+left, centre and right 66×200 images, upscaled ×2 with nearest-neighbour so the pixels the network sees stay
+visible, with a caption strip. Scenes: the lap's straight, the approach to layout A's left hairpin and layout B's
+right hairpin, inside the left hairpin, the intersection with oncoming traffic and the CCFtap target, the camera
+noise at its defaults and heavy, fog and night. ``--each`` also writes each scene's montage (×3) and
+``centre_hires.png`` (the centre camera at 264×800, for detail) beside it.
 """
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import cv2
@@ -75,14 +77,15 @@ def ccftap(seconds: float) -> gym.Env:
     return env
 
 
-def main() -> None:
+def main(each: bool = False) -> None:
     OUT.mkdir(parents=True, exist_ok=True)
     rig = camera_rig()
     shots: list[tuple[str, str, dict[str, np.ndarray]]] = []
 
     def shot(name: str, caption: str, frames: dict[str, np.ndarray]) -> None:
         shots.append((name, caption, frames))
-        save(name, montage(frames, caption))
+        if each:
+            save(name, montage(frames, caption))
 
     shot("lane_keeping_A_straight", "lane keeping, layout A: start of the 120 m straight",
          render_views(lap("A", 0.0), rig))
@@ -115,9 +118,10 @@ def main() -> None:
          render_views(lap("A", 110.0), rig, weather=Weather(night=True)))
 
     save("contact_sheet", np.concatenate([montage(f, c, scale=2) for _, c, f in shots], 0))
-    hires = CameraSpec(height=264, width=800)
-    save("centre_hires", np.concatenate([render_view(lap("A", 110.0), hires), render_view(env, hires)], 0))
+    if each:
+        hires = CameraSpec(height=264, width=800)
+        save("centre_hires", np.concatenate([render_view(lap("A", 110.0), hires), render_view(env, hires)], 0))
 
 
 if __name__ == "__main__":
-    main()
+    main(each="--each" in sys.argv[1:])

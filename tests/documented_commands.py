@@ -165,20 +165,18 @@ KNOWN: dict[str, str] = {
     "python -m eval -m env=lane_keeping env.track=B agents=[checkpoints/reference/pilotnet] "
     "sensors=cameras sensors.cameras.noise.pixel_std=0,8,16,24,32 episodes=5 plots=false hydra.sweep.dir=<folder>":
         "run",
-    "python -m eval.sweep <folder> --x sensors.cameras.noise.pixel_std --metric cte_mean_abs_units "
-    "--out docs/cameras/sweep_pixel_noise": "run",
+    "python -m eval.sweep <folder> --x sensors.cameras.noise.pixel_std --metric cte_mean_abs_units": "run",
     "python -m eval -m env=lane_keeping env.track=B agents=[checkpoints/reference/pilotnet] "
     "sensors=cameras sensors.cameras.fog_visibility=40,80,150,300,1000 sensors.cameras.night=false,true episodes=5 "
     "plots=false hydra.sweep.dir=<folder>": "run",
-    "python -m eval.sweep <folder> --x sensors.cameras.fog_visibility --metric cte_mean_abs_units "
-    "--out docs/cameras/sweep_fog_night": "run",
+    "python -m eval.sweep <folder> --x sensors.cameras.fog_visibility --metric cte_mean_abs_units": "run",
     # docs/agents.md (PilotNet)
     "python -m train.pid_search": "run",
     "python -m train agent=pilotnet env=lane_keeping": "run",
     "python -m eval env=lane_keeping agents=[pid_paper,pid_tuned,pilotnet] episodes=20 videos=true": "run",
     "python -m eval env=lane_keeping env.track=B agents=[pid_paper,pid_tuned,pilotnet] episodes=20 videos=true": "run",
     "python benchmarks/pilotnet_inference.py": "run",
-    # docs/robustness/README.md
+    # docs/shield.md (robustness to detector misses)
     "nice -n 10 python -m train -m agent=always_proceed shield=aeb shield.mode=perceived "
     "shield.detector.miss_rate=0.0,0.3,0.6,0.8 train.eval_seed=1000000,1100000,1200000 train.eval_episodes=20 "
     "train.progress_bar=false paths.checkpoints=/tmp/sweep_ckpt hydra.sweep.dir=runs/multirun/aeb_miss_rate": "run",
@@ -187,9 +185,8 @@ KNOWN: dict[str, str] = {
     "hydra.sweep.dir=runs/multirun/aeb_reference": "run",
     "python -m eval.sweep runs/multirun/aeb_miss_rate --out docs/robustness/aeb_miss_rate "
     "--metrics collision,success,time_to_exit_s,min_ttc_s,intervention,override_fraction": "run",
-    "python -m eval.sweep runs/multirun/aeb_reference --out docs/robustness/aeb_reference "
+    "python -m eval.sweep runs/multirun/aeb_reference "
     "--metrics collision,success,time_to_exit_s,min_ttc_s,intervention,override_fraction": "run",
-    "python -m eval.sweep runs/multirun/<stamp> --x sensors.gnss.sigma --metric cte_mean_abs_m": "run",
     # docs/dagger.md
     "python -m train agent=dagger_turn": "run",
     "python benchmarks/oracle_labels.py --quick": "run",
