@@ -165,3 +165,17 @@ def replace_folder_atomic(folder: str | Path, fill, field: str = "") -> Path:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return folder
+
+
+def csv_text(rows: list[dict], columns: list[str] | None = None) -> str:
+    """``rows`` as CSV text (header: ``columns``, default every key in order of appearance), for
+    :func:`write_text_atomic`: a table is formatted in memory, then written whole."""
+    import csv
+    import io
+
+    columns = columns or list(dict.fromkeys(k for r in rows for k in r))
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=columns)
+    writer.writeheader()
+    writer.writerows(rows)
+    return buf.getvalue()

@@ -45,6 +45,7 @@ TTC and stage over time for one case).
 from __future__ import annotations
 
 import csv
+import io
 import itertools
 import math
 import sys
@@ -56,6 +57,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from av_gym.atomic import WriteFailed, save_figure_atomic, write_texts_atomic
 from av_gym.params import SEED_MAX
 from conf.cli import ToolParser, items, number, out_folder_problem
 from conf.commands import PROCESSES_MAX
@@ -311,8 +313,10 @@ def grid_figure(rows: list[dict], path: Path) -> None:
     fig.legend(handles=[Patch(color=OUTCOMES[c][1], label=OUTCOMES[c][0]) for c in codes] +
                [Patch(color="white", label="u = unnecessary intervention")], loc="lower center", ncol=3, fontsize=8)
     fig.tight_layout(rect=(0, 0.08, 1, 1))
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    try:  # whole or not at all: a full disk left an empty grid.png (issue 39)
+        save_figure_atomic(fig, path, "--out", dpi=120)
+    finally:
+        plt.close(fig)
 
 
 def timeline_figure(traces: dict, case: tuple, path: Path) -> None:
@@ -345,8 +349,10 @@ def timeline_figure(traces: dict, case: tuple, path: Path) -> None:
     for ax in axes:
         ax.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    try:
+        save_figure_atomic(fig, path, "--out", dpi=120)
+    finally:
+        plt.close(fig)
 
 
 def plan_agents(specs: list[str], checkpoints: str, action: str, case: tuple) -> list:
@@ -436,7 +442,11 @@ def main(argv: list[str] | None = None) -> int:
         print("error: " + " ".join(str(exc).split()), file=sys.stderr)
         return 2
     out = Path(a.out or f"runs/ccftap/{time.strftime('%Y%m%d-%H%M%S')}")
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        print(f"error: --out={out}: cannot be made: {exc.strerror or exc}", file=sys.stderr)
+        return 2
 
     configs = [("none", "-")]  # the no-shield baseline is always run: it defines unnecessary interventions
     configs += [(v, m) for v in variants if v != "none" for m in modes]
@@ -512,15 +522,19 @@ def main(argv: list[str] | None = None) -> int:
             f"detector (miss_rate {pert.get('miss_rate')}, burst_length {pert.get('burst_length')} frames, "
             f"max_range {pert.get('max_range')} m) + Kalman tracker. Wall time {time.time() - t0:.0f} s.")
     columns = [k for k in rows[0]]
-    with open(out / "results.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=columns)
-        w.writeheader()
-        w.writerows(rows)
+    table = io.StringIO()
+    w = csv.DictWriter(table, fieldnames=columns)
+    w.writeheader()
+    w.writerows(rows)
     md = markdown(rows, agg, meta)
-    (out / "results.md").write_text(md)
-    grid_figure(rows, out / "grid.png")
-    if traces:
-        timeline_figure(traces, plot_case, out / "timeline.png")
+    try:  # each file whole or as it was (a full disk): one line, no traceback, no empty png
+        write_texts_atomic({out / "results.csv": table.getvalue(), out / "results.md": md}, field="--out")
+        grid_figure(rows, out / "grid.png")
+        if traces:
+            timeline_figure(traces, plot_case, out / "timeline.png")
+    except WriteFailed as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     from av_gym.metrics import markdown_table
 
     print(markdown_table(agg, list(agg[0])))

@@ -8,6 +8,8 @@ One panel per scalar tag, one line per run (labelled by the run folder), x = env
 from __future__ import annotations
 
 from pathlib import Path
+
+from av_gym.atomic import save_figure_atomic
 from conf.cli import Extend, ToolParser, items, out_file_problem
 
 DEFAULT_TAGS = ("eval/success", "eval/collision", "eval/interventions", "episode/success", "episode/collision",
@@ -55,7 +57,7 @@ def plot_curves(runs: dict[str, dict[str, list[tuple[int, float]]]], tags: list[
     fig.tight_layout()
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
+    save_figure_atomic(fig, out, "--out", dpi=110)  # whole or as it was
     plt.close(fig)
     return out
 
@@ -84,4 +86,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from av_gym.errors import run_cli
+
+    run_cli(main)  # a write that fails (a full disk): one line, exit 2

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import contextlib
 import copy
-import csv
 import io
 import sys
 import time
@@ -39,6 +38,7 @@ import numpy as np
 import yaml
 
 from av_gym.seeds import SPLITS
+from av_gym.atomic import csv_text, write_text_atomic
 from av_gym.shields.aeb import find_shield
 from av_gym.shields.conflicts import PARTNER_TYPES, partner_type
 from eval.runner import play_episode
@@ -155,11 +155,8 @@ def write_outputs(episodes: list[dict], rows: list[dict], out: Path, meta: str) 
 
     out.mkdir(parents=True, exist_ok=True)
     for name, data in (("episodes.csv", episodes), ("interventions.csv", rows)):
-        with open(out / name, "w", newline="") as f:
-            cols = list(dict.fromkeys(k for r in data for k in r)) or ["agent"]
-            w = csv.DictWriter(f, fieldnames=cols)
-            w.writeheader()
-            w.writerows(data)
+        write_text_atomic(out / name, csv_text(data, list(dict.fromkeys(k for r in data for k in r)) or ["agent"]),
+                          "--out")
     cf_partners = [{"agent": a, "cf_partner": p,
                     "needed": sum(1 for r in rows if r["agent"] == a and r["needed"] and r["cf_partner"] == p)}
                    for a in dict.fromkeys(r["agent"] for r in rows) for p in PARTNER_TYPES]
@@ -169,7 +166,7 @@ def write_outputs(episodes: list[dict], rows: list[dict], out: Path, meta: str) 
             f"{_md(partner_table(rows), ['agent', 'partner', 'interventions', 'needed', 'unneeded', 'unneeded_share'])}"
             f"\n\n## Needed interventions by the counterfactual's collision partner\n\n"
             f"{_md(cf_partners, ['agent', 'cf_partner', 'needed'])}\n")
-    (out / "interventions.md").write_text(text)
+    write_text_atomic(out / "interventions.md", text, "--out")
     return text
 
 
@@ -281,4 +278,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from av_gym.errors import run_cli
+
+    run_cli(lambda: sys.exit(main()))  # a write that fails (a full disk): one line, exit 2

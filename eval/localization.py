@@ -23,7 +23,6 @@ evaluate on 100+.
 
 from __future__ import annotations
 
-import csv
 import time
 from pathlib import Path
 
@@ -31,6 +30,7 @@ import numpy as np
 
 from agents.pid import PIDSteering
 from av_gym.estimation.localization import FIELDS, LocalizationPipeline
+from av_gym.atomic import csv_text, save_figure_atomic, write_text_atomic
 from av_gym.make import make_env
 from av_gym.metrics.localization import localization_summary, runtime_stats
 from av_gym.metrics.stats import markdown_table
@@ -291,7 +291,7 @@ def plot(runs: dict, out_dir: Path) -> list[Path]:
                  "(lap) or at the end (turn)")
     fig.tight_layout(rect=(0, 0.08, 1, 1))
     p = out_dir / "localization_trajectories.png"
-    fig.savefig(p, dpi=110)
+    save_figure_atomic(fig, p, "--out-dir", dpi=110)  # whole or as it was
     plt.close(fig)
     paths.append(p)
 
@@ -313,7 +313,7 @@ def plot(runs: dict, out_dir: Path) -> list[Path]:
     axes[0].legend(loc="upper right", fontsize=8, ncol=2)
     fig.tight_layout()
     p = out_dir / "localization_errors.png"
-    fig.savefig(p, dpi=110)
+    save_figure_atomic(fig, p, "--out-dir", dpi=110)
     plt.close(fig)
     paths.append(p)
     return paths
@@ -353,17 +353,10 @@ def main(argv: list[str] | None = None) -> None:
                     plot_runs[scenario] = {**run, "seed": seed}
                 print(f"[localization] {scenario} seed {seed} outage={outage}: "
                       + ", ".join(f"{r['mode']} {r['rmse_m']:.2f}" for r in rows[-len(MODES) - 1:]), flush=True)
-    with open(csv_dir / "open_loop.csv", "w", newline="") as f:
-        cols = list(dict.fromkeys(k for r in rows for k in r))
-        writer = csv.DictWriter(f, fieldnames=cols)
-        writer.writeheader()
-        writer.writerows(rows)
+    write_text_atomic(csv_dir / "open_loop.csv", csv_text(rows), "--out-dir")
     table = open_loop_table(rows)
     closed = run_closed_loop(args.pid_seeds)
-    with open(csv_dir / "closed_loop.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(closed[0]))
-        writer.writeheader()
-        writer.writerows(closed)
+    write_text_atomic(csv_dir / "closed_loop.csv", csv_text(closed), "--out-dir")
     ctable = closed_loop_table(closed)
     rtable = runtime_table(runtimes)
     pngs = plot(plot_runs, out_dir)
@@ -377,11 +370,13 @@ def main(argv: list[str] | None = None) -> None:
             "sees); drift: KITTI segments (kiss-icp's 100-800 m on the lap, 10-50 m at the turn); RPE over 1 s."
             f"\n\n{table}\n\n## Closed loop: PID (paper gains) steering on each estimate, lane-keeping lap\n\n"
             f"{ctable}\n\n## Runtime per scan (this machine, shared 2 cores)\n\n{rtable}\n")
-    (out_dir / "localization_results.md").write_text(text)
+    write_text_atomic(out_dir / "localization_results.md", text, "--out-dir")
     print(text)
     print(f"[localization] wrote {out_dir / 'localization_results.md'}, {', '.join(map(str, pngs))}, "
           f"{csv_dir}/open_loop.csv, {csv_dir}/closed_loop.csv")
 
 
 if __name__ == "__main__":
-    main()
+    from av_gym.errors import run_cli
+
+    run_cli(main)  # a write that fails (a full disk): one line, exit 2

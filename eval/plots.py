@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from av_gym.atomic import save_figure_atomic
+
 LANE_UNITS = 100.0  # paper 001: the lane is 100 units wide
 VIDEO_SCALE, VIDEO_SPEEDUP, VIDEO_FRAME_STEP = 2, 2, 2  # ×2 size, 2× real time, every other frame (small files)
 
@@ -89,7 +91,7 @@ def plot_cte(traces: dict[str, dict], out_dir: str | Path, title: str) -> list[P
                      f"max {np.abs(u).max():.1f}{'' if tr['lap_completed'] else ', LAP NOT COMPLETED'}", fontsize=9)
         fig.tight_layout()
         paths.append(out_dir / f"cte_{_slug(label)}.png")
-        fig.savefig(paths[-1], dpi=110)
+        save_figure_atomic(fig, paths[-1], "out_dir", dpi=110)  # whole or as it was
         plt.close(fig)
     fig, ax = plt.subplots(figsize=(9, 3.6))
     first = next(iter(traces.values()))
@@ -105,7 +107,7 @@ def plot_cte(traces: dict[str, dict], out_dir: str | Path, title: str) -> list[P
                  f"line)", fontsize=9)
     fig.tight_layout()
     paths.append(out_dir / "cte_all.png")
-    fig.savefig(paths[-1], dpi=110)
+    save_figure_atomic(fig, paths[-1], "out_dir", dpi=110)
     plt.close(fig)
     return paths
 

@@ -29,18 +29,33 @@ COLUMNS = {
 HEADLINE = {"left_turn": ["collision", "success"], "lane_keeping": ["lap_completed", "cte_mean_abs_m"]}
 
 
-def _number(v: str) -> float | str:
+def _number(v: str | None) -> float | str | None:
     try:
         return float(v)
-    except ValueError:
+    except (TypeError, ValueError):  # text (an agent's label); None is caught by load_folder's torn-row check
         return v
 
 
 def load_folder(folder: Path) -> dict:
     """One result folder: its rows (numbers as floats), meta.json, scenario and split (from the seeds)."""
-    meta = json.loads((folder / "meta.json").read_text())
+    try:
+        meta = json.loads((folder / "meta.json").read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{folder / 'meta.json'} is not valid JSON ({exc.msg} at line {exc.lineno})") from None
     with open(folder / "results.csv", newline="") as f:
-        rows = [{k: _number(v) if k not in ("agent", "split") else v for k, v in r.items()} for r in csv.DictReader(f)]
+        reader = csv.DictReader(f)
+        raw = list(reader)
+    for n, r in enumerate(raw, start=2):  # a row cut short (a torn write) has None for its missing fields
+        if None in r.values() or None in r:
+            raise ValueError(f"{folder / 'results.csv'} line {n} has {len([v for v in r.values() if v is not None])}"
+                             f" of {len(reader.fieldnames or [])} fields: torn or edited by hand? Re-run its "
+                             f"command (meta.json) to write it again")
+    if not raw:
+        raise ValueError(f"{folder / 'results.csv'} has no episodes")
+    rows = [{k: _number(v) if k not in ("agent", "split") else v for k, v in r.items()} for r in raw]
+    bad = next((r for r in rows if not isinstance(r.get("seed"), float)), None)
+    if bad is not None:
+        raise ValueError(f"{folder / 'results.csv'}: seed {bad.get('seed')!r} is not a number")
     splits = {split_of(int(r["seed"])) for r in rows}
     if len(splits) != 1 or None in splits:
         raise ValueError(f"{folder}: episodes from splits {sorted(map(str, splits))}; a table reports one split")
@@ -153,6 +168,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--readme", default=None, help="also rewrite this file's results block (README.md)")
     p.add_argument("--check", action="store_true", help="write nothing; exit 1 if the page or README block is stale")
     a = p.parse_args(argv)
+    from conf.cli import out_file_problem
+
+    for flag, path in (("--out", a.out), ("--readme", a.readme)):  # before anything is read: where it goes
+        problem = path and not a.check and out_file_problem(path, flag)
+        if problem:
+            print(f"error: python -m eval.results_page: {problem}", file=sys.stderr)
+            return 2
     try:
         text = page(load_all(Path(a.results)))
         block = quoted_block(text, "the page")
@@ -168,9 +190,13 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{f} differs from what {a.results} gives: run python -m eval.results_page"
                   + (f" --readme {a.readme}" if a.readme else ""), file=sys.stderr)
         return 1 if stale else 0
-    Path(a.out).write_text(text)
-    if a.readme:
-        Path(a.readme).write_text(new_readme)
+    from av_gym.atomic import WriteFailed, write_texts_atomic
+
+    try:  # the page and the README's block together, each whole: a full disk leaves both as they were
+        write_texts_atomic({a.out: text, **({a.readme: new_readme} if a.readme else {})}, field="--out")
+    except WriteFailed as exc:
+        print(f"error: python -m eval.results_page: {exc}", file=sys.stderr)
+        return 2
     print(f"[results_page] {a.out}" + (f" and the block in {a.readme}" if a.readme else ""))
     return 0
 

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+
+from av_gym.atomic import save_figure_atomic
 from conf.cli import Extend, ToolParser, items
 
 
@@ -85,7 +87,7 @@ def plot(frames: list[pd.DataFrame], out: Path, label: str, repeat: int, names: 
     fig.suptitle(f"{label}: periodic evaluation on fixed held-out seeds")
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
+    save_figure_atomic(fig, out, "--out", dpi=110)  # whole or as it was
     plt.close(fig)
 
 
@@ -107,4 +109,6 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from av_gym.errors import run_cli
+
+    run_cli(main)  # a write that fails (a full disk): one line, exit 2

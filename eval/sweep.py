@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from av_gym.atomic import csv_text, save_figure_atomic, write_text_atomic
 from av_gym.metrics import aggregate, format_ci, interval, kind_of, markdown_table, mean_ci, wilson_ci
 from conf.cli import Extend, ToolParser, items
 
@@ -240,17 +241,13 @@ def plot_curve(summary: list[dict], x: str, metric: str, group_keys: list[str], 
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure_atomic(fig, path, "--out", dpi=120)  # whole or as it was
     plt.close(fig)
     return path
 
 
 def _write_csv(summary: list[dict], path: Path) -> None:
-    columns = list(dict.fromkeys(k for line in summary for k in line))
-    with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=columns)
-        writer.writeheader()
-        writer.writerows(summary)
+    write_text_atomic(path, csv_text(summary), "--out")
 
 
 def sweep_report(root: str | Path, x: str | None = None, metric: str | None = None,
@@ -314,7 +311,7 @@ def sweep_report(root: str | Path, x: str | None = None, metric: str | None = No
                  f"{'; ' + ' '.join(fixed) if fixed else ''}").strip()
         plot_curve(summary, x, metric, group_keys, png, title, f"{metric} (rate)" if binary[metric] else metric)
         text += f"\n![{metric} vs {x}]({png.name})\n"
-    (out_dir / "sweep.md").write_text(text)
+    write_text_atomic(out_dir / "sweep.md", text, "--out")
     return {"summary": summary, "table": table, "warnings": warnings, "missing": missing, "markdown": text,
             "csv": out_dir / "sweep.csv", "md": out_dir / "sweep.md", "png": png, "x": x, "metric": metric}
 
@@ -340,4 +337,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from av_gym.errors import run_cli
+
+    run_cli(lambda: sys.exit(main()))  # a write that fails (a full disk): one line, exit 2

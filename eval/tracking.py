@@ -13,12 +13,13 @@ TrackingScore`: Hungarian matching, 2 m gate): recall, precision, F1, position R
 
 from __future__ import annotations
 
-import csv
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+from av_gym.atomic import csv_text, write_text_atomic
 from conf.cli import Extend, ToolParser, items
 
 
@@ -102,20 +103,19 @@ def main(argv: list[str] | None = None) -> int:
             "recovered_miss_rate", "objects (tp+fn)"]
     table = markdown_table(rows, cols)
     cmd = "python -m eval.tracking " + " ".join(argv if argv is not None else sys.argv[1:])
-    (out / "tracking.md").write_text(
+    write_text_atomic(out / "tracking.md",
         f"# Tracking before/after the Kalman tracker\n\n`{cmd}`: {a.episodes} traffic episodes from seed {a.seed} "
         f"(always-proceed ego, detector defaults (DetectorParams): 60 m range, σ = 0.3 m + 0.01·r, "
         f"clutter 0.2/frame, occlusion on), misses bursty with mean run {a.burst_length:g} frames; tracker as in "
         f"conf/shield/aeb.yaml. Scored every 0.1 s against the true vehicles within range, Hungarian matching, "
-        f"2 m gate. Wall time {time.time() - t_start:.0f} s.\n\n{table}\n")
-    with open(out / "tracking.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=cols)
-        w.writeheader()
-        w.writerows([{k: r[k] for k in cols} for r in rows])
+        f"2 m gate. Wall time {time.time() - t_start:.0f} s.\n\n{table}\n", "--out")
+    write_text_atomic(out / "tracking.csv", csv_text([{k: r[k] for k in cols} for r in rows], cols), "--out")
     print(table)
     print(f"[tracking] wrote {out}/tracking.md, tracking.csv")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from av_gym.errors import run_cli
+
+    run_cli(lambda: sys.exit(main()))  # a write that fails (a full disk): one line, exit 2

@@ -22,6 +22,7 @@ import numpy as np
 
 from av_gym.metrics.stats import wilson_ci
 from av_gym.seeds import SPLITS
+from av_gym.atomic import csv_text, save_figure_atomic, write_text_atomic
 from conf.cli import Extend, ToolParser, items
 
 
@@ -121,7 +122,7 @@ def plot(pts: dict[str, tuple], rule: list[str], out: Path, title: str) -> None:
                                        color="0.5", lw=0.8))
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
+    save_figure_atomic(fig, out, "--out", dpi=110)  # whole or as it was
     plt.close(fig)
 
 
@@ -151,10 +152,7 @@ def main(argv: list[str] | None = None) -> None:
                            args.n_envs)
         sweep_csv = args.out.with_suffix(".rule_sweep.csv")
         sweep_csv.parent.mkdir(parents=True, exist_ok=True)
-        with open(sweep_csv, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(swept[0]))
-            writer.writeheader()
-            writer.writerows(swept)
+        write_text_atomic(sweep_csv, csv_text(swept), "--out")
         rule = list(dict.fromkeys(r["agent"] for r in swept))  # the new sweep replaces any rule rows read back
         rows = [r for r in rows if not r["agent"].startswith("gap_acceptance t_gap=")]
         rows += [{k: str(v) for k, v in r.items()} for r in swept]
@@ -170,4 +168,6 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from av_gym.errors import run_cli
+
+    run_cli(main)  # a write that fails (a full disk): one line, exit 2

@@ -408,3 +408,96 @@ def test_a_dagger_checkpoint_without_rounds_is_not_resumed(tmp_path):
     shutil.copy(REF / "dagger_turn" / "model.zip", ckpt / "latest.zip")
     with pytest.raises(ConfigError, match=r"latest.zip holds no DAgger rounds .* agent.init_from="):
         dagger_run(tmp_path, "old", "train.resume=true")
+
+
+# --------------------------------------------------------------- rows 4, 11, 12: generated files written whole
+@pytest.fixture
+def results_copy(tmp_path):
+    """Two result folders of docs/results (one per scenario) and a README quoting the block."""
+    root = tmp_path / "results"
+    for name in ("left_turn_dagger_turn_aeb", "lane_keeping_A_pid"):
+        shutil.copytree(ROOT / "docs" / "results" / name, root / name)
+    from eval.results_page import BEGIN, END
+
+    (tmp_path / "README.md").write_text("# title\n\n" + BEGIN + "\nold\n" + END + "\n\nthe rest\n" * 2000)
+    (tmp_path / "page.md").write_text("old page\n")
+    return root
+
+
+def results_page(argv: list[str], capsys) -> tuple[int, list[str]]:
+    from eval.results_page import main
+
+    code = main(argv)
+    return code, [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+
+
+@pytest.mark.parametrize("how", ["fsync", "write"])
+def test_the_results_page_and_readme_on_a_full_disk_stay_whole(how, results_copy, tmp_path, monkeypatch, capsys):
+    """Row 4: under a file-size limit README.md was cut to 16,384 of 43,299 bytes, with a traceback. The page and
+    the README's block are written together, each whole, or neither."""
+    from tests.test_reliability import fill_the_disk
+
+    before = snapshot(tmp_path)
+    fill_the_disk(monkeypatch, how)
+    code, err = results_page(["--results", str(results_copy), "--out", str(tmp_path / "page.md"), "--readme",
+                              str(tmp_path / "README.md")], capsys)
+    assert code == 2 and len(err) == 1 and "No space left on device (the previous versions are intact)" in err[0], err
+    assert snapshot(tmp_path) == before
+    monkeypatch.undo()
+    code, err = results_page(["--results", str(results_copy), "--out", str(tmp_path / "page.md"), "--readme",
+                              str(tmp_path / "README.md")], capsys)
+    assert code == 0 and "left_turn_dagger_turn_aeb" in (tmp_path / "README.md").read_text()
+    assert (tmp_path / "README.md").read_text().endswith("the rest\n")
+
+
+@pytest.mark.parametrize("damage, needle", [
+    # row 12: a torn results.csv was a TypeError in _number
+    (lambda f: f.write_text(f.read_text()[:3000]), "has 11 of 21 fields: torn or edited by hand?"),
+    (lambda f: f.write_text(f.read_text().splitlines()[0] + "\n"), "has no episodes"),
+    (lambda f: (f.parent / "meta.json").write_text("{not json"), "meta.json is not valid JSON"),
+])
+@pytest.mark.parametrize("check", [True, False])
+def test_a_torn_results_file_is_one_line(damage, needle, check, results_copy, tmp_path, capsys):
+    damage(results_copy / "left_turn_dagger_turn_aeb" / "results.csv")
+    before = snapshot(tmp_path)
+    code, err = results_page(["--results", str(results_copy), "--out", str(tmp_path / "page.md"),
+                              *(["--check"] if check else [])], capsys)
+    assert code == 2 and len(err) == 1 and needle in err[0], err
+    assert snapshot(tmp_path) == before
+
+
+@pytest.mark.parametrize("flag", ["--out", "--readme"])
+def test_a_results_page_path_under_a_file_is_one_line(flag, results_copy, tmp_path, capsys):
+    """Row 12: ``--out README.md/x`` was a NotADirectoryError traceback."""
+    target = tmp_path / "README.md" / "x"
+    code, err = results_page(["--results", str(results_copy), flag, str(target)], capsys)
+    assert code == 2 and len(err) == 1 and f"{flag}={target}: " in err[0] and "is a file, not a folder" in err[0], err
+
+
+@pytest.mark.parametrize("how", ["fsync", "savefig"])
+def test_ccftap_on_a_full_disk_is_one_line_and_no_empty_png(how, tmp_path, monkeypatch, capsys):
+    """Row 11: ``python -m eval.ccftap --out <a full disk>`` gave 3 tracebacks (53 lines) and an empty grid.png.
+    A previous grid.png stays whole; a new one is never left empty or half-written."""
+    import matplotlib.figure
+
+    import av_gym.atomic
+    from eval.ccftap import main
+
+    out = tmp_path / "cc"
+    out.mkdir()
+    (out / "grid.png").write_bytes(b"the previous grid")
+    if how == "fsync":
+        monkeypatch.setattr(av_gym.atomic.os, "fsync", no_space)
+    else:
+        def half(self, path, *a, **k):
+            Path(path).write_bytes(b"\x89PNG half")
+            no_space()
+        monkeypatch.setattr(matplotlib.figure.Figure, "savefig", half)
+    code = main(["--ego", "[20]", "--target", "[60]", "--dts", "[0]", "--workers", "1", "--variants", "[none]",
+                 "--plot-case", "[20,60,0]", "--out", str(out)])
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert code == 2 and len(err) == 1 and err[0].startswith("error: --out: cannot write ") and \
+        "No space left on device" in err[0], err
+    assert (out / "grid.png").read_bytes() == b"the previous grid"
+    assert sorted(p.name for p in out.iterdir()) == (["grid.png"] if how == "fsync" else
+                                                     ["grid.png", "results.csv", "results.md"])
