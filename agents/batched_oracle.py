@@ -1,4 +1,4 @@
-"""The look-ahead oracle (:class:`agents.go_yield.Lookahead`) for a whole batch of left turns at once (issue 32).
+"""The look-ahead oracle (:class:`agents.go_yield.Lookahead`) for a whole batch of left turns at once.
 
 The per-env oracle deep-copies one env and plays its GO future to the end (~0.1 s per decision). Here the states of
 every env of a :class:`~av_gym.batched.left_turn.BatchedLeftTurn` that needs a label are copied as arrays

@@ -60,7 +60,7 @@ class PilotNetParams(AgentParams):
     gain: float = param(0.15, ge=0, le=0.99, doc="per-image gain, uniform 1 +- this")
     pixel_noise: float = param(10.0, "8-bit", ge=0, doc="Gaussian pixel noise sigma, uniform in [0, this] per "
                                                         "image (camera: 3 by day; 'heavy' 8)")
-    # conditions the cameras model (issue 18), recreated on the clean demonstrations with the camera's equations
+    # conditions the cameras model, recreated on the clean demonstrations with the camera's equations
     night_p: float = param(0.25, ge=0, le=1, doc="share of images made night (ambient 0.3-0.5, headlight pools, "
                                                  "gamma 1.5-2.2)")
     night_pixel_noise: float = param(16.0, "8-bit", ge=0, doc="their pixel noise sigma up to this (camera: 12 at "

@@ -1,4 +1,4 @@
-"""DAgger students as an agent kind (issue 32): an SB3 PPO policy network trained by on-policy imitation of a
+"""DAgger students as an agent kind: an SB3 PPO policy network trained by on-policy imitation of a
 teacher (:func:`train.dagger.train_dagger`), so its checkpoint is a PPO zip that ``python -m eval`` loads as any PPO
 checkpoint and PPO can fine-tune. Its Params are PPO's (the network, the env stack) plus the DAgger rounds."""
 

@@ -108,7 +108,7 @@ class LookaheadParams(AgentParams):
     plan_with_shield: bool = param(False, doc="agent+aeb: simulate the futures with the shield in them (the oracle "
                                               "then goes whenever the shield would save it, i.e. defers to the "
                                               "shield: 0.89 success, as always_proceed+aeb) | false: the driver's "
-                                              "own futures, the shield a backup (issue 17: what the shield costs a "
+                                              "own futures, the shield a backup (what the shield costs a "
                                               "perfect driver)")
 
 

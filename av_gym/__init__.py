@@ -30,7 +30,7 @@ for _name, (_gym_id, _) in SCENARIO_ENTRIES.items():
 def _preload_in_forkserver() -> None:
     """Worker processes started by a forkserver (SB3's ``SubprocVecEnv`` default on Linux) import ``av_gym`` first,
     so the plain ids resolve there too: Gymnasium 1.x loads no plugins, and ``make_vec_env("av_gym/...",
-    vec_env_cls=SubprocVecEnv)`` failed in every worker with "Namespace av_gym not found" (issue 33). Added to the
+    vec_env_cls=SubprocVecEnv)`` failed in every worker with "Namespace av_gym not found". Added to the
     modules already asked for; ``spawn`` workers still need the id written ``"av_gym:av_gym/..."``."""
     import multiprocessing.forkserver as forkserver
 

@@ -18,7 +18,7 @@ class InvalidAction(ConfigError, error.InvalidAction):
 def check_action(space: spaces.Space, action: Any) -> None:
     """Raise :class:`InvalidAction` (one line: the action, the space, what is wrong) unless ``action`` is in
     ``space``. Checked before anything acts on it: a NaN acceleration reached the shield's numba predictor and
-    crashed the process, a discrete 3 became a bare ``KeyError`` (issue 31 rows 1, 14). Only checked, never
+    crashed the process, a discrete 3 became a bare ``KeyError``. Only checked, never
     converted: the env receives the action as given, so trajectories stay bit-identical."""
     problem = _action_problem(space, action)
     if problem:

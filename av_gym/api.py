@@ -9,8 +9,8 @@ give the harness's stack in one call, built by the same code ``python -m train``
     gym.make("av_gym/UnprotectedLeftTurn-v0", checkpoint="ppo_turn")  # a shipped agent's env (or a run folder)
 
 - ``config``: highway-env's own config dict (SI units, the env's ``default_config()`` keys), checked before the
-  env is built: unknown keys (with the closest known one), types and the bounds of the scenario's ``Params``
-  (issue 31 row 15); a partial ``action`` dict is completed from the defaults.
+  env is built: unknown keys (with the closest known one), types and the bounds of the scenario's ``Params``;
+  a partial ``action`` dict is completed from the defaults.
 - ``env``: the scenario's ``Params`` fields (conf/env/<scenario>.yaml, edge units), over the shipped defaults.
 - ``sensors`` / ``shield``: a preset name of conf/sensors, conf/shield, or a mapping whose ``name`` is one with
   fields to change (deep-merged, as ``sensors.detector.miss_rate=0.2`` on the command line).

@@ -1,6 +1,6 @@
 """Atomic file writes: a temporary file beside the target, flushed to disk, then renamed over it (``os.replace``,
 atomic on POSIX within a file system). A crash or a full disk at any point leaves the old complete file or the new
-complete file, never a torn one, and no temporary file behind (issue 31: a full disk left ``results.csv`` cut at
+complete file, never a torn one, and no temporary file behind (a full disk left ``results.csv`` cut at
 row 10 and ``.latest.<pid>.tmp`` files).
 
 A write that fails (``OSError``: no space, quota, permissions) raises :class:`WriteFailed`, a
@@ -93,7 +93,7 @@ def write_texts_atomic(texts: dict[str | Path, str], field: str = "") -> None:
 
 def save_figure_atomic(fig, path: str | Path, field: str = "", **kwargs) -> Path:
     """``fig.savefig(path)`` (matplotlib), atomically: a failed or interrupted save leaves the previous image whole
-    and no empty or half-written png (issue 39: a full disk left an empty ``grid.png`` and three tracebacks). The
+    and no empty or half-written png (a full disk left an empty ``grid.png`` and three tracebacks). The
     format comes from ``path``'s suffix, not from the temporary name's."""
     path = Path(path)
     kwargs.setdefault("format", path.suffix.lstrip(".") or "png")
@@ -130,7 +130,7 @@ def _exchange(a: Path, b: Path) -> bool:
 def replace_folder_atomic(folder: str | Path, fill, field: str = "") -> Path:
     """Replace every file of ``folder`` at once: ``fill(tmp)`` writes the new contents into a hidden sibling folder,
     which is then swapped with ``folder`` in one rename (``renameat2`` exchange on Linux), so a reader finds the
-    old folder whole or the new one whole, never a model of one and a config or COMMAND of the other (issue 39: a
+    old folder whole or the new one whole, never a model of one and a config or COMMAND of the other (a
     reference's model and config were replaced one file at a time and its COMMAND left stale). A failure while
     writing (a full disk) leaves ``folder`` as it was and no temporary folder; an ``OSError`` becomes
     :class:`WriteFailed`. Without the exchange (another system) the old folder is renamed aside first, so for an

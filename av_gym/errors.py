@@ -21,7 +21,7 @@ def run_cli(fn, *args, hydra_run_dir: bool = False) -> None:
     ``hydra_run_dir``: ``fn`` runs as a Hydra job, whose folder Hydra made before ``fn`` could check anything; on a
     ConfigError it is removed again when it holds nothing but what Hydra wrote (see :func:`discard_hydra_run_dir`).
     In a sweep (``-m``, run through :func:`run_hydra`), a job that fails records one line and returns, so that
-    the sweep runs its other jobs (issue 31: one bad cell used to end the sweep); the line is reported at the end."""
+    the sweep runs its other jobs (one bad cell used to end the sweep); the line is reported at the end."""
     import sys
 
     interrupt_on_sigterm()

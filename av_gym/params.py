@@ -221,7 +221,7 @@ SEED_MAX = 2**31 - 1
 EPISODES_MAX = 10_000_000
 # Rates (sensor Hz, simulation and policy frequency): above the simulation's own ceiling a sensor samples at every
 # observation anyway, and 1000 Hz over a 20 s episode is 20,000 ticks (~50x the default's cost); a larger value only
-# makes the catch-up loops run for hours (issue 31: 1e9 Hz hung).
+# makes the catch-up loops run for hours (1e9 Hz hung).
 RATE_MAX_HZ = 1000
 # Rows of an object list in an observation (detections, tracks, turn signals, turn features): every row is
 # allocated per step, per env; 256 is 16x the defaults and more vehicles than the intersection ever holds.

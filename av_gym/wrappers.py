@@ -60,7 +60,7 @@ class FlatDictObservation(gym.ObservationWrapper):
 class SelectKeys(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
     """Keep only ``keys`` of a ``Dict`` observation (a sensors preset's ``observe``, or dropping the privileged
     ``state``). Gymnasium's ``FilterObservation`` does the same through a lambda, which cannot be pickled: every
-    sensor stack then failed to pickle, and async vector envs and multiprocessing with it (issue 31 row 17)."""
+    sensor stack then failed to pickle, and async vector envs and multiprocessing with it."""
 
     def __init__(self, env: gym.Env, keys: list[str]) -> None:
         # recorded so that gymnasium can rebuild the stack from its spec (check_env's determinism check does)
@@ -93,7 +93,7 @@ class TimeLimitIsTerminal(gym.Wrapper):
     """Training-time: the episode's time limit ends it as a *termination* (no value bootstrapped after it). Why: SB3
     bootstraps truncated episodes with the critic's value of the last state, as if the episode went on; on the left
     turn, where not arriving in time is a failure and elapsed time is in the observation, that made waiting at the
-    line until the limit look as good as turning, and PPO drifted to never turning (measured, issue 7)."""
+    line until the limit look as good as turning, and PPO drifted to never turning (measured)."""
 
     def step(self, action):
         obs, reward, terminated, truncated, info = self.env.step(action)
@@ -126,7 +126,7 @@ class ActionRepeat(gym.Wrapper):
 # Go / yield: a two-choice action for learned left-turn policies, on top of highway-env's speed set-points.
 #
 # Why: with highway-env's meta-actions {SLOWER, IDLE, FASTER} a stop is "SLOWER, wherever the car is", and PPO must
-# also learn *where* to brake (measured, issue 7: after 50k env steps its policy stopped 20-25 m short of the line
+# also learn *where* to brake (measured: after 50k env steps its policy stopped 20-25 m short of the line
 # and never set off again, because IDLE holds a zero set-point). A driver's decision at an unprotected left turn is
 # "go" or "yield at the stop line"; the stopping itself is routine. So the agent picks one of
 #

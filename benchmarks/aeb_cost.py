@@ -1,4 +1,4 @@
-"""AEB shield cost per decision (issue 17 target: < 1 ms at 20 road users).
+"""AEB shield cost per decision (target: < 1 ms at 20 road users).
 
 A traffic episode is run until ``--vehicles`` other road users are on the map (extra traffic is spawned with the
 env's own spawner, so every vehicle is on a lane with a route, as in an evaluation); then the shield's decision

@@ -1,4 +1,4 @@
-"""Distribution check of the batched left turn (issue 16): the same agents on the same seeds through ``python -m
+"""Distribution check of the batched left turn: the same agents on the same seeds through ``python -m
 eval`` on the per-env stack and on the batched engine; collision rate, success rate and mean time to exit (and min
 TTC), with the 95 % confidence interval of the difference (normal approximation, unpaired, so it does not lean on
 the episodes being the same ones), and how many episodes have the identical row.

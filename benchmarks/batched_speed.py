@@ -1,4 +1,4 @@
-"""Batched left turn vs the per-env fast stack, side by side in one run (issue 16).
+"""Batched left turn vs the per-env fast stack, side by side in one run.
 
     python benchmarks/batched_speed.py [--sizes 1 4 16 64 256 1024] [--seconds 4] [--out docs/batched_speed.png]
 

@@ -1,4 +1,4 @@
-"""Runtime per LiDAR scan of the localization stages (issue 6), on recorded scans of a lap and a left turn.
+"""Runtime per LiDAR scan of the localization stages, on recorded scans of a lap and a left turn.
 
     python benchmarks/odometry.py [--repeats 3] [--scans 300]
 

@@ -1,4 +1,4 @@
-"""Oracle labels per second, per-env vs batched, and their agreement on the same states (issue 32).
+"""Oracle labels per second, per-env vs batched, and their agreement on the same states.
 
     python benchmarks/oracle_labels.py [--episodes 120] [--batch 64] [--quick]
     python benchmarks/oracle_labels.py --drive 1000 --split test     # the oracle's own outcomes, on the batch

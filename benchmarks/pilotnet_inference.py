@@ -1,4 +1,4 @@
-"""PilotNet inference time per frame on one CPU core (issue 4; a benchmark, not a test).
+"""PilotNet inference time per frame on one CPU core (a benchmark, not a test).
 
     python benchmarks/pilotnet_inference.py [--checkpoint checkpoints/reference/pilotnet/model.pt]
                                             [--frames 2000] [--threads 1]

@@ -5,14 +5,14 @@
 For each scenario, the same seeded episodes are driven with the same actions (PID on the true CTE for the lap,
 IDLE for the left turn) by the bare env, the env with one sensor, and the env with the `full` preset. The table
 reports milliseconds per policy step, wall and CPU time of this process (best of ``--repeats`` runs, to suppress
-scheduler noise), and their ratios to the bare env. Target (issue 3): env+full / env <= 2.0. On a shared machine
+scheduler noise), and their ratios to the bare env. Target: env+full / env <= 2.0. On a shared machine
 the CPU-time ratio is the steadier one: other processes' load stretches wall time, not this process's CPU time.
 
 A second table times one 66x200 camera frame on one core (OpenCV limited to one thread), for the texture
 renderer (the default) and the original raster renderer (``ground="raster"``) on the same poses: CPU time per
 frame (best of ``--repeats``), so load from other processes on a shared machine inflates it less than wall time;
 plus the whole sensor frame of the default `Cameras` wrapper (texture render + exposure + pixel noise) on the same
-poses. Target (issue 18): <= 0.3 ms per frame.
+poses. Target: <= 0.3 ms per frame.
 """
 
 from __future__ import annotations

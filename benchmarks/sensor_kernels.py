@@ -1,5 +1,5 @@
 """CPU time of one LiDAR scan and one detector frame, with the numba kernels (av_gym/sensors/kernels.py) and with the
-numpy reference code they replace (issue 18).
+numpy reference code they replace.
 
     python benchmarks/sensor_kernels.py [--steps 200] [--repeats 3]
 

@@ -182,7 +182,7 @@ def soak(episodes: int, agent: str, shield_mode: str, seed: int, sample_every: i
 
 
 # ------------------------------------------------------------------------------------------ the mixed soak (--mix)
-# Issue 31: after the command line and fault fixes, many configurations and agents in one process, short
+# Many configurations and agents in one process, short
 # episodes. Each entry: (env, sensors, shield, agent, extra overrides); built once, lazily, and reused (a leak shows
 # as growth over the reuse), one of them closed and rebuilt every REBUILD_EVERY episodes (building and closing
 # must not leak either).
@@ -442,8 +442,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", help="also write the report as Markdown here (e.g. runs/soak.md; the committed report is in docs/performance.md)")
     parser.add_argument("--tracemalloc", action="store_true", help="list the allocations that grew (slow)")
     parser.add_argument("--quiet", action="store_true")
-    parser.add_argument("--mix", action="store_true", help="many configurations and agents, short episodes "
-                                                            "(issue 31): exceptions, non-finite values, memory")
+    parser.add_argument("--mix", action="store_true", help="many configurations and agents, short episodes: "
+                                                            "exceptions, non-finite values, memory")
     parser.add_argument("--quick", action="store_true", help="--mix on 48 episodes (a test's size)")
     args = parser.parse_args(argv)
     if args.quick:
@@ -458,7 +458,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.out:
             Path(args.out).parent.mkdir(parents=True, exist_ok=True)
             tmp = Path(args.out).with_suffix(".tmp")
-            tmp.write_text(f"# Mixed soak (issue 31)\n\n`{cmd}`\n\n{text}\n")
+            tmp.write_text(f"# Mixed soak\n\n`{cmd}`\n\n{text}\n")
             tmp.replace(args.out)
         # the quick run is too short for a memory figure after warm-up: it checks exceptions and values only
         memory_ok = args.quick or r["growth_mb"] < TARGET_GROWTH_MB

@@ -85,7 +85,7 @@ def evaluate(cfg: DictConfig) -> list[dict]:
 
 def _discard_unused_run_dir(cfg: DictConfig) -> None:
     """With an out_dir of its own, Hydra's run folder (``runs/eval/<env>-<time>/``) is left with only Hydra's files:
-    removed, so that ``out_dir=X`` writes X alone (issue 39 row 15). A folder with anything else is kept."""
+    removed, so that ``out_dir=X`` writes X alone. A folder with anything else is kept."""
     try:
         from hydra.core.hydra_config import HydraConfig
 
@@ -128,7 +128,7 @@ def _evaluate(cfg: DictConfig) -> list[dict]:
         env = make_env(env_cfg, plan.sensors, plan.shield)
         _, policy = resolve_agent(plan.spec, env, env_name, cfg.paths.checkpoints)
         try:  # rows are appended episode by episode: Ctrl-C keeps (and writes) every finished episode
-            if cfg.get("vec_env", "subproc") == "batched":  # issue 16: n_envs episodes stepped together
+            if cfg.get("vec_env", "subproc") == "batched":  # n_envs episodes stepped together
                 from eval.batched import run_episodes_batched
 
                 env.close()
@@ -170,7 +170,7 @@ def _evaluate(cfg: DictConfig) -> list[dict]:
 
 def results_problem(cfg: DictConfig) -> str | None:
     """An ``out_dir`` that holds an evaluation's results is not written over unless ``overwrite=true``: a finished
-    evaluation used to be replaced without a word (issue 31). The default out_dir, Hydra's run folder, is new."""
+    evaluation used to be replaced without a word. The default out_dir, Hydra's run folder, is new."""
     from pathlib import Path
 
     held = [name for name in ("results.csv", "results.md") if (Path(cfg.out_dir) / name).exists()]

@@ -1,5 +1,5 @@
 """``python -m eval env=left_turn vec_env=batched n_envs=64 ...``: the left turn's evaluation episodes on the
-batched engine (:mod:`av_gym.batched.vec_env`, issue 16), ``n_envs`` episodes stepped together in this process.
+batched engine (:mod:`av_gym.batched.vec_env`), ``n_envs`` episodes stepped together in this process.
 
 Episode ``seed`` is the episode ``reset(seed=seed)`` of the per-env stack gives (the engine draws it from a
 generator seeded with it), the policy decides as it does there (every env step at 10 Hz; a trained go/yield

@@ -1,4 +1,4 @@
-"""``python -m eval.ccftap``: the Euro NCAP CCFtap grid for the AEB shield variants (issue 5) and any agent (issue 7).
+"""``python -m eval.ccftap``: the Euro NCAP CCFtap grid for the AEB shield variants and any agent.
 
 3 ego speeds × 3 target speeds × 11 timing offsets Δt = 99 cases (digest 003 §3.3), each run with every agent in
 ``--agents`` (default: the always-proceed driver, which never yields: every conflict is the shield's to solve), for
@@ -128,7 +128,7 @@ def _policy(task: dict, env):
 
 def run_case(task: dict) -> dict:
     """One CCFtap case with one agent and one shield config; returns the per-case row (and traces when asked).
-    Without ``agent_spec`` in ``task`` the always-proceed driver on the default sensors (issue 5's grid)."""
+    Without ``agent_spec`` in ``task`` the always-proceed driver on the default sensors (the shield variants' grid)."""
     from agents import AlwaysProceed
     from av_gym.make import make_env
 
@@ -270,7 +270,7 @@ def grid_figure(rows: list[dict], path: Path) -> None:
     agents = list(dict.fromkeys(agent for (agent, _, _), _ in groups))
     codes = list(OUTCOMES)
     cmap = ListedColormap([OUTCOMES[c][1] for c in codes])
-    if len(agents) == 1:  # issue 5's layout: the variant × mode panels two by two
+    if len(agents) == 1:  # one agent: the variant × mode panels two by two
         ncol = 2 if len(groups) > 1 else 1
         nrow = math.ceil(len(groups) / ncol)
         fig, axes = plt.subplots(nrow, ncol, figsize=(7.2 * ncol, 3.6 * nrow + 1.0), squeeze=False)
@@ -313,7 +313,7 @@ def grid_figure(rows: list[dict], path: Path) -> None:
     fig.legend(handles=[Patch(color=OUTCOMES[c][1], label=OUTCOMES[c][0]) for c in codes] +
                [Patch(color="white", label="u = unnecessary intervention")], loc="lower center", ncol=3, fontsize=8)
     fig.tight_layout(rect=(0, 0.08, 1, 1))
-    try:  # whole or not at all: a full disk left an empty grid.png (issue 39)
+    try:  # whole or not at all: a full disk left an empty grid.png
         save_figure_atomic(fig, path, "--out", dpi=120)
     finally:
         plt.close(fig)

@@ -1,5 +1,4 @@
-"""``python -m eval.interventions``: label every AEB intervention needed or unneeded by a counterfactual replay
-(issue 17).
+"""``python -m eval.interventions``: label every AEB intervention needed or unneeded by a counterfactual replay.
 
 For every intervention (the shield starts to brake), the whole env stack and the agent are deep-copied at that
 moment, before the step is simulated (random generators included, as the lookahead oracle does), the copy's

@@ -1,4 +1,4 @@
-"""``python -m eval.tracking``: object-list quality before and after the Kalman tracker (issue 5, digest 004).
+"""``python -m eval.tracking``: object-list quality before and after the Kalman tracker (digest 004).
 
 On seeded ``traffic`` episodes of the left turn (always-proceed ego), a :class:`av_gym.sensors.detector.Detector`
 with bursty misses (``--miss-rates``, mean miss run ``--burst-length`` frames) feeds

@@ -1,4 +1,4 @@
-"""Every command README.md and docs/ invite a reader to type, and how the tests run each (issue 29).
+"""Every command README.md and docs/ invite a reader to type, and how the tests run each.
 
 This is the one list: a fenced ``bash``/``sh``/``console`` block (or one with no language) in README.md or
 docs/**/*.md is read line by line; each command line (``python``, ``python3``, ``tensorboard``, ``nice`` ...; a

@@ -1,4 +1,4 @@
-"""Issue 29: each equivalence test relaxed from bit identity to a portable tolerance must still fail on a real
+"""Each equivalence test relaxed from bit identity to a portable tolerance must still fail on a real
 change. This script applies one small mutation at a time to the code under test, runs the tests that guard it, and
 reports whether they failed (as they must), then restores the file. Not collected by pytest (no ``test_`` prefix);
 run it by hand: ``python tests/mutations.py`` (a few minutes: each mutation recompiles its numba kernels)."""

@@ -226,7 +226,7 @@ def test_driven_path_predictions_start_where_the_ego_is_all_along_the_route(make
 
 @pytest.mark.slow  # 7-11 CPU-s on a clean clone: kept out of the README's 5-minute test command
 def test_driven_path_kernel_equals_the_numpy_reference(make, turn_cfg):
-    """The compiled driven-path look-up (av_gym/shields/kernels.py, issue 17: < 1 ms per decision) against
+    """The compiled driven-path look-up (av_gym/shields/kernels.py: < 1 ms per decision) against
     DrivenPath.poses_numpy, the code it replaces, on random batches over every path hypothesis of the
     intersection and the ego's route: starts before, inside (exactly at the table's start too) and past the
     tables, constant and changing speeds across the speed bins and beyond them. Floats to tests/_numerics.py's
@@ -291,7 +291,7 @@ def test_a_car_braking_ahead_on_the_exit_road_is_braked_for(make, turn_cfg):
     """Traffic seed 1019: down the exit road the always-proceeding ego closes on a car that then brakes at 6 m/s².
     The improved shield brakes in time; it used to hold off, its feasibility check finding a car merging into the
     exit lane predicted through the standing ego 5.9 s later (the check now looks at the object braked for).
-    Without indicators (``signals: false``, the default before issue 17's fourth pass): reading them, the shield no
+    Without indicators (``signals: false``): reading them, the shield no
     longer stops the ego at the line for that merging car's other paths, the ego reaches the exit road earlier and
     the car ahead never brakes in front of it."""
     env = make(turn_cfg, None, shield(signals=False))
@@ -302,7 +302,7 @@ def test_a_car_braking_ahead_on_the_exit_road_is_braked_for(make, turn_cfg):
 
 
 def test_a_crossing_car_braking_hard_in_front_is_braked_for_in_time(make, turn_cfg):
-    """Traffic seed 1399 (issue 17, third pass): released behind the line, the always-proceeding ego enters the box
+    """Traffic seed 1399: released behind the line, the always-proceeding ego enters the box
     at 7 m/s as a crossing car ahead brakes at 6 m/s². At constant speed that car's footprint only grazes the ego's
     grown one, so the emergency brake (unmargined footprints) came 0.3 s late and the ego hit it at 5 m/s; the
     emergency test now also predicts a braking road user keeping its deceleration (``emergency_accel_time``), and
@@ -315,7 +315,7 @@ def test_a_crossing_car_braking_hard_in_front_is_braked_for_in_time(make, turn_c
 
 
 def test_a_car_that_may_set_off_in_the_box_holds_the_ego_at_the_line(make, turn_cfg):
-    """Traffic seed 1215 (issue 17, third pass): an oncoming car going straight stands in the box, creeping, as
+    """Traffic seed 1215: an oncoming car going straight stands in the box, creeping, as
     the unbraked always-proceeding ego comes up to the line at 9 m/s; it sets off just as the ego enters, and the
     emergency brake parks the ego in its path. Predicting a car that stands in the box after moving as possibly
     setting off (``setoff_speed``) stops the ego at the line, and it arrives; without (0) the same episode
@@ -328,7 +328,7 @@ def test_a_car_that_may_set_off_in_the_box_holds_the_ego_at_the_line(make, turn_
 
 
 def test_the_ego_braked_in_the_box_sets_off_past_a_car_standing_there(make, turn_cfg):
-    """Traffic seed 1300 (issue 17, third pass): braked to a standstill in the box, the ego waited for two cars
+    """Traffic seed 1300: braked to a standstill in the box, the ego waited for two cars
     that had collided with each other there and were sliding to a stop at ~0.5 m/s (their path hypotheses at that
     speed crossed the ego's), until the episode timed out; the release test now predicts road users slower than
     ``release_standing`` standing where they are, and the ego clears the box and arrives. With the old release (0)

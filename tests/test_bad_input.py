@@ -1,4 +1,4 @@
-"""Bad input found by trying to break the commands (issue 19): damaged checkpoints, folders that cannot be written,
+"""Bad input found by trying to break the commands: damaged checkpoints, folders that cannot be written,
 names too long, settings whose relation is wrong, a run of 10^12 episodes, a learning rate that makes training
 diverge. Each gives one line naming the field and exit status 2, with nothing written and nothing measured lost.
 

@@ -1,9 +1,9 @@
 """The batched left turn (av_gym/sim/batched.py, av_gym/batched/left_turn.py) against the per-env stack
 (``fast: true``, itself equal to stock highway-env, tests/test_fast_sim.py): same seeds, same action sequences,
 every vehicle's position, heading and speed within 1e-6 for the first 5 s, and the same rewards, terminations
-and obs["turn"] (issue 16).
+and obs["turn"].
 
-Portable bounds (issue 29): the two stacks compute the same maths in another order (numpy over a batch, numba
+Portable bounds: the two stacks compute the same maths in another order (numpy over a batch, numba
 kernels, highway-env per vehicle), so positions agree to ~1e-14, not bit for bit, and a knife-edge decision (an
 obs["turn"] closest-approach tie, a spawn or yield test at its threshold) can go either way depending on the last
 bit, which differs between CPUs, compilers and numpy/numba builds. So each test states (1) a run is identical until
@@ -464,7 +464,7 @@ def test_eval_batched_refuses_what_the_batch_cannot_run_in_one_line(tmp_path, ag
 def test_training_on_the_batch_validates_on_the_batch_and_its_last_row_is_model_zip(tmp_path):
     """``agent.vec_env=batched`` runs its periodic validation (``train.eval_n`` episodes) on the batched engine too,
     at rollout starts, so ``eval.csv`` has a row at every ``train.eval_every`` decisions and the last one describes
-    the ``model.zip`` written at the end (before issue 15's round 3 the last row was taken before the final PPO
+    the ``model.zip`` written at the end (not a row taken before the final PPO
     update). Checked against ``python -m eval vec_env=batched`` of that ``model.zip`` on the same seeds (the same
     engine and batch: a policy this barely trained sits near its GO/YIELD tie, where the engines' 1e-15 differences
     can flip a decision; batched against per-env rows: ``test_eval_on_the_batched_engine_gives_the_per_env_rows``)."""

@@ -315,7 +315,7 @@ def test_texture_covers_the_road_and_its_markings():
     assert texel(30.0, w / 2 + 0.5) == 0 and texel(30.0, -w / 2 - 0.5) == 0  # grass
 
 
-# ------------------------------------------------------------------------------------------------ fast paths (issue 18)
+# ------------------------------------------------------------------------------------------------ fast paths
 @pytest.mark.parametrize("env_id", [LANE_ID, TURN_ID])
 def test_painting_only_the_band_the_quads_cover_gives_the_same_pixels(env_id):
     # The band shortcut must be exact: nearest enlargement and 2x2 area averaging work block by block.

@@ -1,4 +1,4 @@
-"""`python -m eval.ccftap --agents ...`: the CCFtap grid for any agent (issue 7), on a two-case grid."""
+"""`python -m eval.ccftap --agents ...`: the CCFtap grid for any agent, on a two-case grid."""
 
 from __future__ import annotations
 

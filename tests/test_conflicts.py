@@ -1,4 +1,4 @@
-"""The AEB shield's conflict model (av_gym/shields/conflicts.py, target_model conflict; issue 17)."""
+"""The AEB shield's conflict model (av_gym/shields/conflicts.py, target_model conflict)."""
 
 from __future__ import annotations
 

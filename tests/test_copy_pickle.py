@@ -1,4 +1,4 @@
-"""Issue 31 row 17: every shipped sensor stack deep-copies and pickles, and a copy goes on exactly as the original
+"""Every shipped sensor stack deep-copies and pickles, and a copy goes on exactly as the original
 (async vector envs pickle, the lookahead teacher deep-copies envs)."""
 
 from __future__ import annotations

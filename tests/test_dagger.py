@@ -1,4 +1,4 @@
-"""Issue 32: the batched look-ahead oracle (agents/batched_oracle.py) and DAgger (train/dagger.py).
+"""The batched look-ahead oracle (agents/batched_oracle.py) and DAgger (train/dagger.py).
 
 The oracle's promise is that a row's GO future *is* what happens when that env goes: checked by labelling, then
 driving GO on the real engine. Agreement with the per-env oracle on the same states is checked on a few decisions

@@ -1,4 +1,4 @@
-"""The install declares what the code imports (issue 33: omegaconf and PIL were imported but undeclared), and the
+"""The install declares what the code imports (omegaconf and PIL were imported but undeclared), and the
 declared ranges hold the versions installed here (the ones the suite ran with)."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""``agent.device`` for every trained kind, tested without a GPU (issue 33).
+"""``agent.device`` for every trained kind, tested without a GPU.
 
 What broke on a GPU (``python -m train agent.device=cuda``: "index is on cpu, different from other tensors on
 cuda:0" in the cloning step) was a tensor created without ``device=``, so on torch's default device while the policy

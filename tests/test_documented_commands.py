@@ -1,4 +1,4 @@
-"""Every command README.md and docs/ invite a reader to run is run here, in a tiny form (issue 29). The list, and
+"""Every command README.md and docs/ invite a reader to run is run here, in a tiny form. The list, and
 how each command's tiny form is made, is tests/documented_commands.py."""
 
 from __future__ import annotations

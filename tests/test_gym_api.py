@@ -1,5 +1,5 @@
-"""The Python API validates like the command line (issue 31 rows 1, 14, 15, 16) and the registered ids build the
-harness's stacks in one call (issue 33)."""
+"""The Python API validates like the command line and the registered ids build the
+harness's stacks in one call."""
 
 from __future__ import annotations
 
@@ -110,7 +110,7 @@ def test_step_after_the_end_needs_reset(env_id) -> None:
     env.step(env.action_space.sample())
 
 
-# ----------------------------------------------------------------------------------------------- issue 33: stacks
+# ----------------------------------------------------------------------------------------------------- stacks
 def _run(env, seed: int, steps: int, actions) -> list:
     out = [env.reset(seed=seed)[0]]
     for a in actions[:steps]:

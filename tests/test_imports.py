@@ -1,5 +1,5 @@
 """Dependencies run one way, floor by floor (docs/design.md, "Layers"): a module imports only from its own unit or
-from units on a lower floor, so no import runs back up (issue 34: ``envs/batched_vec.py`` → ``make.py`` → ``envs``
+from units on a lower floor, so no import runs back up (``envs/batched_vec.py`` → ``make.py`` → ``envs``
 and ``estimation/*_features.py`` → ``envs`` were two that did). Read from the source (every import statement, also
 those inside functions), so a lazy import cannot hide an arrow."""
 

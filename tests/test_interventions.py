@@ -1,5 +1,5 @@
 """Counterfactual intervention labels (eval/interventions.py) and the road-network partner types
-(av_gym/shields/conflicts.py), issue 17."""
+(av_gym/shields/conflicts.py)."""
 
 from __future__ import annotations
 

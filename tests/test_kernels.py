@@ -1,4 +1,4 @@
-"""The numba kernels (av_gym/sim/kernels.py) against the numpy code they replace in av_gym/sim/batched.py (issue 16):
+"""The numba kernels (av_gym/sim/kernels.py) against the numpy code they replace in av_gym/sim/batched.py:
 on random inputs with ties and boundary cases (duplicate vehicles, boxes exactly touching, centres exactly 5 m
 apart), every decision must be the same and every float the same to tests/_numerics.py's portable tolerance (1e-12
 relative: numba's libm calls and numpy's own SIMD maths may differ in the last bits, and do on AVX-512 machines);

@@ -1,4 +1,4 @@
-"""Localization (issue 6): the EKF on synthetic motion (exact tracking, GNSS-only convergence, gating, wrapping,
+"""Localization: the EKF on synthetic motion (exact tracking, GNSS-only convergence, gating, wrapping,
 Jacobians, shapes), the kiss-icp guards (a crash case is a Python error, not a dead process), odometry and map
 matching on synthetic scenes, the metrics, and the Localizer in the lap (outage bound, no NaN, determinism,
 re-initialisation, presets and agents)."""

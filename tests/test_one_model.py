@@ -1,4 +1,4 @@
-"""Each model once (issue 34): the turn-signal channel, the intent features (acceleration, the signal read on an
+"""Each model once: the turn-signal channel, the intent features (acceleration, the signal read on an
 object) and the turn features' closest approach have one implementation, vectorised over a leading batch axis,
 that the per-env wrappers call with a batch of one and the batched left turn with every env at once. Here: the
 callers use those functions (not copies), a batch gives row for row what a batch of one gives on >= 10,000 random

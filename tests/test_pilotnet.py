@@ -98,7 +98,7 @@ def test_shift_is_read_as_a_yaw_and_corrects_the_label():
 
 
 def test_night_and_fog_follow_the_camera_model_and_keep_the_label():
-    """Augmented night/fog on clean frames look like the camera's own night/fog renders of the same pose (issue 18):
+    """Augmented night/fog on clean frames look like the camera's own night/fog renders of the same pose:
     darker / hazier by about as much, labels untouched."""
     import gymnasium as gym
 

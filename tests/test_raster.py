@@ -1,4 +1,4 @@
-"""The compiled camera painter (av_gym/sensors/raster.py) sets the pixels OpenCV would (issue 18, third pass)."""
+"""The compiled camera painter (av_gym/sensors/raster.py) sets the pixels OpenCV would."""
 
 import cv2
 import numpy as np

@@ -1,4 +1,4 @@
-"""Issue 31, the command line and faults: what a 150-case probe broke, each row a test. Bounds on every value that
+"""The command line and faults: what a 150-case probe broke, one test each. Bounds on every value that
 sets a loop count, an allocation or a time limit; seeds numpy can take; run folders owned by one run; writes that
 stay consistent on a full disk; signals; side tools; a sweep that finishes what it can.
 
@@ -33,9 +33,9 @@ def one_error_line(proc: subprocess.CompletedProcess) -> str:
     return lines[0]
 
 
-# --------------------------------------------------------------------------------------- rows 5, 7, 8: bounds
+# ----------------------------------------------------------------------------------------------------- bounds
 @pytest.mark.parametrize("module, argv, needle", [
-    # row 5: seeds numpy's legacy RandomState (SB3's set_random_seed) can take, also inside a -m sweep
+    # seeds numpy's legacy RandomState (SB3's set_random_seed) can take, also inside a -m sweep
     ("train", ["agent=ppo", "env=lane_keeping", "sensors=gnss_imu", "seed=4294967296"], "seed must be an integer in [0, 2147483647]"),
     ("train", ["agent=ppo", "env=lane_keeping", "sensors=gnss_imu", "seed=2**70"], "seed must be an integer"),
     ("train", ["-m", "agent=ppo", "env=lane_keeping", "sensors=gnss_imu", "seed=0,4294967296"], "seed must be an integer in [0, 2147483647]"),
@@ -43,7 +43,7 @@ def one_error_line(proc: subprocess.CompletedProcess) -> str:
     ("eval", ["seed=4294967296"], "seed must be an integer in [0, 2147483647]"),
     ("eval", ["-m", "seed=1,99999999999"], "seed must be an integer in [0, 2147483647]"),
     ("eval", ["episodes=100000000000"], "with 100000000000 episodes leaves split 'validation'"),
-    # row 7: values that hung (a catch-up loop or a Poisson draw per unit, or an episode of ~forever)
+    # values that hung (a catch-up loop or a Poisson draw per unit, or an episode of ~forever)
     ("eval", ["sensors=gnss_imu", "sensors.gnss.rate_hz=1e9"], "sensors.gnss.rate_hz must be a number in (0, 1000]"),
     ("eval", ["sensors=cameras", "sensors.cameras.rate_hz=1e9"], "sensors.cameras.rate_hz must be a number in (0, 1000]"),
     ("eval", ["sensors=lidar", "sensors.lidar.rate_hz=1e9"], "sensors.lidar.rate_hz must be a number in (0, 1000]"),
@@ -56,7 +56,7 @@ def one_error_line(proc: subprocess.CompletedProcess) -> str:
     ("eval", ["env.duration=1e9"], "env.duration must be a number in (0, 600]"),
     ("eval", ["env=lane_keeping", "env.time_limit=1e9"], "env.time_limit must be a number in (0, 3600]"),
     ("eval", ["env=lane_keeping", "env.target_speed_kmh=1e-9"], "env.target_speed_kmh must be a number in [1, 200]"),
-    # row 8: allocations of GiBs
+    # allocations of GiBs
     ("eval", ["sensors=cameras", "sensors.cameras.height=10000", "sensors.cameras.width=10000"], "sensors.cameras.height must be an integer in [2, 2160]"),
     ("eval", ["sensors=cameras", "sensors.cameras.height=2000", "sensors.cameras.width=3000"], "rendered pixels per camera"),
     ("eval", ["sensors=lidar", "sensors.lidar.beams=1e8"], "sensors.lidar.beams must be an integer"),
@@ -92,14 +92,14 @@ def test_the_bounds_admit_every_shipped_config(monkeypatch, capsys, tmp_path):
 @pytest.mark.parametrize("name", [".", "..", "...", "a/b", "../up"])
 @pytest.mark.parametrize("module", ["train"])
 def test_run_name_cannot_leave_its_folder(module, name, monkeypatch, capsys, tmp_path):
-    """Row 4: ``run_name=..`` wrote .hydra/, logs and config.yaml into the repo root."""
+    """``run_name=..`` wrote .hydra/, logs and config.yaml into the repo root."""
     monkeypatch.chdir(tmp_path)
     line = check_line(module, [f"run_name={name}"], monkeypatch, capsys)
     assert "run_name must be a folder name" in line, line
     assert not any(tmp_path.iterdir())
 
 
-# ------------------------------------------------------------------------------ rows 2, 3, 12: run folders owned
+# --------------------------------------------------------------------------------------------- run folders owned
 LANE = ["agent=ppo", "env=lane_keeping", "sensors=gnss_imu"]
 
 
@@ -151,7 +151,7 @@ def test_a_run_that_is_not_ours_is_refused_with_nothing_written(argv, needle, tm
 
 
 def test_runs_folder_of_another_run_is_refused(tmp_path, monkeypatch, capsys, released):
-    """Row 3: its TensorBoard curves would go into the same folder as the first run's."""
+    """Its TensorBoard curves would go into the same folder as the first run's."""
     monkeypatch.chdir(tmp_path)
     (tmp_path / "runs" / "R" / "tb").mkdir(parents=True)
     line = check_line("train", [*LANE, "run_name=R"], monkeypatch, capsys)
@@ -175,7 +175,7 @@ def test_resume_and_overwrite_are_allowed_and_hold_the_lock(tmp_path, monkeypatc
 
 
 def test_a_second_process_on_the_same_run_is_refused(tmp_path, monkeypatch, capsys, released):
-    """Rows 3: two at once with the same run_name. Another process's flock (taken here on a separate open file
+    """Two at once with the same run_name. Another process's flock (taken here on a separate open file
     description, which flock treats as another owner) refuses the second, resume or not."""
     import fcntl
 
@@ -207,7 +207,7 @@ def test_train_twice_refuses_then_overwrite_replaces(tmp_path):
     assert not list((tmp_path / "checkpoints").rglob(".lock"))
 
 
-# ------------------------------------------------------------------------------- rows 9, 10: a full disk tears nothing
+# ------------------------------------------------------------------------------------------- a full disk tears nothing
 def no_space(*_args, **_kw):
     import errno
 
@@ -254,7 +254,7 @@ def rows(n: int, value: float = 0.0) -> list[dict]:
 
 @pytest.mark.parametrize("how", ["fsync", "write"])
 def test_results_on_a_full_disk_stay_whole(how, tmp_path, monkeypatch, capsys):
-    """Row 10: results.csv was torn at row 10 of 20 and results.md stale; now both stay as they were, no temporary
+    """``results.csv`` was torn at row 10 of 20 and results.md stale; now both stay as they were, no temporary
     file is left, and the command says so in one line."""
     from av_gym.errors import run_cli
     from eval.report import write_results
@@ -282,7 +282,7 @@ def tiny_ppo():
 
 @pytest.mark.parametrize("how", ["fsync", "write", "save"])
 def test_a_checkpoint_on_a_full_disk_keeps_the_last_pair(how, tiny_ppo, tmp_path, monkeypatch):
-    """Row 9: latest.rng was replaced while latest.zip was not. The RNG states now live inside latest.zip (one
+    """``latest.rng`` was replaced while latest.zip was not. The RNG states now live inside latest.zip (one
     file, one rename); a failed save leaves the previous zip, with its own states, and no temporary file."""
     import pickle
     import zipfile
@@ -318,7 +318,7 @@ def test_a_checkpoint_on_a_full_disk_keeps_the_last_pair(how, tiny_ppo, tmp_path
     assert load_rng_state(tmp_path / "latest.zip")["numpy"][1].tolist() == state["numpy"][1].tolist()
 
 
-# ---------------------------------------------------------------------------- rows 6, 11: signals and worker processes
+# ---------------------------------------------------------------------------------------- signals and worker processes
 def children(pid: int) -> set[int]:
     """Every descendant process of ``pid`` (Linux /proc)."""
     found, todo = set(), [pid]
@@ -398,7 +398,7 @@ class Eval:
 @pytest.mark.slow  # an evaluation with 2 worker processes, ~15-20 s
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc and PR_SET_PDEATHSIG: Linux")
 def test_sigterm_keeps_the_episodes_and_ends_the_workers(tmp_path):
-    """Row 6: SIGTERM (kill, timeout) used to end eval at once, rc 143, out_dir empty, workers orphaned."""
+    """SIGTERM (kill, timeout) used to end eval at once, rc 143, out_dir empty, workers orphaned."""
     import signal
 
     run_ = Eval(tmp_path)
@@ -414,7 +414,7 @@ def test_sigterm_keeps_the_episodes_and_ends_the_workers(tmp_path):
 @pytest.mark.slow  # an evaluation with 2 worker processes, ~15-20 s
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc and PR_SET_PDEATHSIG: Linux")
 def test_workers_die_with_a_killed_parent(tmp_path):
-    """Row 6: after kill -9 of eval, its workers and the resource tracker lived on (~180 MB each)."""
+    """After kill -9 of eval, its workers and the resource tracker lived on (~180 MB each)."""
     import signal
     import time
 
@@ -442,7 +442,7 @@ def ctrl_c_to_the_group(run_) -> None:
 @pytest.mark.slow  # an evaluation with 2 worker processes, ~15-20 s
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="process groups and /proc: Linux")
 def test_ctrl_c_to_the_process_group_is_one_line_not_worker_tracebacks(tmp_path):
-    """Row 11: Ctrl-C reaches every process of the terminal's group; each worker printed its own traceback."""
+    """Ctrl-C reaches every process of the terminal's group; each worker printed its own traceback."""
     run_ = Eval(tmp_path)
     ctrl_c_to_the_group(run_)
     rc, err = run_.wait(), run_.err()
@@ -454,7 +454,7 @@ def test_ctrl_c_to_the_process_group_is_one_line_not_worker_tracebacks(tmp_path)
 @pytest.mark.slow  # python -m train of a rule-based agent, its brief evaluation on 2 worker processes, ~20 s
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="process groups and /proc: Linux")
 def test_ctrl_c_during_trains_brief_evaluation_is_one_line_and_keeps_its_rows(tmp_path):
-    """Row 11: 74 stderr lines of worker tracebacks, and the brief evaluation's rows were not written."""
+    """74 stderr lines of worker tracebacks, and the brief evaluation's rows were not written."""
     run_ = Eval(tmp_path, argv=["-m", "train", "agent=always_proceed", "train.eval_episodes=1000",
                                 "train.eval_n_envs=2", "run_name=R"], total=1000)
     ctrl_c_to_the_group(run_)
@@ -465,10 +465,10 @@ def test_ctrl_c_during_trains_brief_evaluation_is_one_line_and_keeps_its_rows(tm
     assert not alive(run_.workers) and not (tmp_path / "checkpoints" / "R" / ".lock").exists()
 
 
-# ----------------------------------------------------------------------- row 18: a sweep finishes the cells it can
+# ------------------------------------------------------------------------------- a sweep finishes the cells it can
 @pytest.mark.slow  # a 2-job eval sweep, ~30-100 s on 2 busy cores
 def test_a_sweep_runs_every_cell_and_reports_the_failed_ones(tmp_path):
-    """Row 18: a job-time failure in the first cell used to abort the sweep; the good cell never ran. Here the
+    """A job-time failure in the first cell used to abort the sweep; the good cell never ran. Here the
     checkpoint passes every check made before the sweep (a zip with SB3's members and good CRCs) and fails only
     when the job loads it."""
     import shutil
@@ -491,7 +491,7 @@ def test_a_sweep_runs_every_cell_and_reports_the_failed_ones(tmp_path):
     assert "always_proceed" in good.read_text()
 
 
-# ------------------------------------------------------------------------------------ row 13: the side tools' flags
+# -------------------------------------------------------------------------------------------- the side tools' flags
 @pytest.mark.parametrize("argv, needle", [
     (["-m", "eval.ccftap", "--ego", "abc"], "argument --ego: expected a list of numbers like [1,2], got 'abc'"),
     (["-m", "eval.ccftap", "--out", "README.md/x"], "argument --out=README.md/x: 'README.md' (part of 'README.md/x') "
@@ -506,7 +506,7 @@ def test_a_sweep_runs_every_cell_and_reports_the_failed_ones(tmp_path):
     (["benchmarks/batched_speed.py", "--sizes", "0"], "argument --sizes: each value must be in [1, 4096], got '0'"),
 ])
 def test_side_tools_refuse_bad_flags_in_one_line(argv, needle, monkeypatch, capsys):
-    """Row 13: these gave tracebacks. Run in this process from the checkout (README.md is a file there), as
+    """These gave tracebacks. Run in this process from the checkout (README.md is a file there), as
     ``python <argv>`` would run them."""
     import runpy
 
@@ -524,7 +524,7 @@ def test_side_tools_refuse_bad_flags_in_one_line(argv, needle, monkeypatch, caps
     assert needle in err[0], err
 
 
-# ------------------------------------------------------------------------------------------------ row 19: messages
+# -------------------------------------------------------------------------------------------------------- messages
 def test_an_empty_or_foreign_pilotnet_file_is_one_line_naming_it(tmp_path):
     import torch
 
@@ -549,14 +549,14 @@ def test_an_empty_or_foreign_pilotnet_file_is_one_line_naming_it(tmp_path):
 
 
 def test_no_train_command_is_suggested_that_train_refuses(tmp_path, monkeypatch, capsys):
-    """Row 19: ``agents=[pilotnet] env=left_turn`` suggested ``python -m train env=left_turn agent=pilotnet``."""
+    """``agents=[pilotnet] env=left_turn`` suggested ``python -m train env=left_turn agent=pilotnet``."""
     monkeypatch.chdir(tmp_path)
     line = check_line("eval", ["agents=[pilotnet]", "env=left_turn"], monkeypatch, capsys)
     assert "pilotnet drives ['lane_keeping'], not env=left_turn" in line and "python -m train" not in line, line
 
 
 def test_ctrl_c_during_behaviour_cloning_says_what_is_kept(tmp_path, monkeypatch, capsys):
-    """Row 19: it exited 130 without a word."""
+    """It exited 130 without a word."""
     import train.bc
     from agents.bc import PilotNetParams
 
@@ -571,7 +571,7 @@ def test_ctrl_c_during_behaviour_cloning_says_what_is_kept(tmp_path, monkeypatch
 
 
 def test_eval_does_not_write_over_an_evaluation(tmp_path, monkeypatch, capsys):
-    """Row 19: eval silently replaced results.csv/results.md in an existing out_dir; now refused unless
+    """Eval silently replaced results.csv/results.md in an existing out_dir; now refused unless
     ``overwrite=true`` (the default out_dir is a new folder per run)."""
     monkeypatch.chdir(tmp_path)
     (tmp_path / "out").mkdir()

@@ -1,4 +1,4 @@
-"""The results page and the README's headline block are what the committed result files give (issue 30)."""
+"""The results page and the README's headline block are what the committed result files give."""
 
 from __future__ import annotations
 

@@ -79,5 +79,5 @@ def test_sigterm_saves_a_checkpoint(tmp_path):
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, err[-2000:]
     assert "interrupted at" in out and (ckpt / "latest.zip").is_file()
-    with zipfile.ZipFile(ckpt / "latest.zip") as z:  # the RNG states travel inside the checkpoint (issue 31)
+    with zipfile.ZipFile(ckpt / "latest.zip") as z:  # the RNG states travel inside the checkpoint
         assert "av_gym_rng.pkl" in z.namelist()

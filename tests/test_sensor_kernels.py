@@ -1,4 +1,4 @@
-"""The sensor kernels (av_gym/sensors/kernels.py) against the numpy code they replace (issue 18): the LiDAR's ray
+"""The sensor kernels (av_gym/sensors/kernels.py) against the numpy code they replace: the LiDAR's ray
 cast and point cloud (av_gym/sensors/lidar.py) and the detector's occlusion test (av_gym/sensors/detector.py).
 
 On random scenes with exact ties and boundary cases (a vehicle face coincident with a wall, beams exactly along box

@@ -1,4 +1,4 @@
-"""Command-line ``sensors.*`` overrides reach trained agents (issue 18): the checkpoint's sensors are the base, the
+"""Command-line ``sensors.*`` overrides reach trained agents: the checkpoint's sensors are the base, the
 overrides go on top, those that would change the observation space are refused, and results.md says what each
 agent ran with."""
 

@@ -1,5 +1,5 @@
 """TensorBoard's eval/* scalars equal eval.csv, row for row: every evaluation (the first, the last) and after a
-resume (issue 30: they appeared one rollout late, the final one never, and a resumed run lost one)."""
+resume (they appeared one rollout late, the final one never, and a resumed run lost one)."""
 
 from __future__ import annotations
 

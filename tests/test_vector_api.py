@@ -1,4 +1,4 @@
-"""Issue 33: Gymnasium's vector API and SB3's SubprocVecEnv on both registered ids, with sensor stacks."""
+"""Gymnasium's vector API and SB3's SubprocVecEnv on both registered ids, with sensor stacks."""
 
 from __future__ import annotations
 
@@ -102,7 +102,7 @@ def test_sb3_subproc_vec_env(env_id, kwargs) -> None:
 
 @pytest.mark.slow  # ~35 s, as above
 def test_sb3_subproc_vec_env_plain_id() -> None:
-    """The plain id in forkserver workers: av_gym asks the forkserver to preload it (issue 33: "Namespace av_gym not
+    """The plain id in forkserver workers: av_gym asks the forkserver to preload it ("Namespace av_gym not
     found" in every worker)."""
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import SubprocVecEnv

@@ -1,4 +1,4 @@
-"""``videos=true`` on the left turn (issue 33: it silently wrote nothing): each agent's first episode, top-down,
+"""``videos=true`` on the left turn (it silently wrote nothing): each agent's first episode, top-down,
 as ``turn_<agent>.mp4`` beside results.csv, as the lane keeper gets ``lap_<agent>.mp4``."""
 
 from __future__ import annotations

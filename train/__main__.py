@@ -91,7 +91,7 @@ def train(cfg: DictConfig) -> dict:
             model_path = resolve(_kind(cfg).trainer)(cfg, ckpt_dir, run_dir)
         except ConfigError:
             # refused by the trainer before it wrote anything (an agent.init_from that does not fit): the fresh
-            # run's config.yaml goes too, or the run_name would be refused as taken (issue 39 row 8)
+            # run's config.yaml goes too, or the run_name would be refused as taken
             if not bool(cfg.train.resume):
                 discard_if_unstarted(ckpt_dir)
             raise

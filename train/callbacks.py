@@ -231,7 +231,7 @@ class PeriodicEval(BaseCallback):
     - every ``video_every`` env steps renders the first seed's episode into ``videos/step_<n>.gif`` and TensorBoard.
 
     ``make_env(render_mode)`` builds the evaluation stack (the training one: same sensors and shield). ``play``, if
-    given, plays the episodes instead (``play(policy, seeds) -> rows``: the batched engine, issue 15/16, where a
+    given, plays the episodes instead (``play(policy, seeds) -> rows``: the batched engine, where a
     few hundred validation episodes cost seconds); videos still come from ``make_env``.
 
     Evaluating at a rollout's *start* (not its end, as before) means each row describes the model after every update

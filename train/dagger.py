@@ -1,4 +1,4 @@
-"""DAgger (Ross et al. 2011) top to bottom: a PPO policy network learns from a teacher on its own states (issue 32).
+"""DAgger (Ross et al. 2011) top to bottom: a PPO policy network learns from a teacher on its own states.
 
 Round 0: the teacher drives ``agent.round_episodes`` episodes, labelling every decision; the student is fitted to
 the labels. Round k ≥ 1: the student drives, the teacher labels the states the student visits, the labels join
@@ -23,7 +23,7 @@ student's agreement with the teacher on its own states, its success/collision wh
 seeds) and an atomic ``latest.zip``; ``best.zip`` holds the best validation (success - collision); ``model.zip``
 the last round.
 
-Resumable at round granularity (issue 39: a stopped run restarted at round 0 and overwrote its files):
+Resumable at round granularity (a stopped run restarted at round 0 and overwrote its files):
 ``latest.zip`` is the whole state at the end of the last finished round, in one file replaced at once: the
 student with its optimizer, the aggregate of labelled states (member ``av_gym_dagger.npz``), the rounds' rows, the
 best validation score and the RNG states. ``train.resume=true`` continues at the next round, so a kill -9 costs at

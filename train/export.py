@@ -8,7 +8,7 @@ thirds of an SB3 zip; a reference checkpoint is for ``python -m eval``, which ne
 training reads the run's own folder). The policy's weights, and so its actions, are unchanged.
 
 The shipped reference agents (``checkpoints/reference/``, :func:`av_gym.references.reference_root`) are read-only
-to the tools (issue 39: an export of a lane keeper replaced the shipped ``ppo_turn``): a destination there is
+to the tools (an export of a lane keeper replaced the shipped ``ppo_turn``): a destination there is
 refused unless ``--overwrite-reference`` is given, and then only for a checkpoint of the same scenario, actions,
 kind and sensors as the reference it replaces, with ``--command``; the folder's model, config and COMMAND are
 replaced in one step (:func:`av_gym.atomic.replace_folder_atomic`)."""

@@ -4,7 +4,7 @@
 A student fitted to the oracle's labels by cross-entropy (``train/dagger.py``) outputs P(GO is safe | what it
 sees); its deterministic choice GOes where that is above 0.5. Going only above a threshold τ is the same network
 with ``log(τ / (1 - τ))`` taken off the GO logit's bias, so the result is still a plain PPO zip that
-``python -m eval`` loads (issue 32: "a user can pick its operating point"). This tool evaluates thresholds on the
+``python -m eval`` loads ("a user can pick its operating point"). This tool evaluates thresholds on the
 validation split (the same episodes for each threshold) and prints success and collision per
 threshold (the per-env stack where the run's sensors need it, e.g. turn_perceived's tracker); ``--write τ`` saves
 the student at τ into ``--dest`` (model.zip + config.yaml, ``agent.go_threshold`` recorded, and COMMAND: the run's
@@ -36,7 +36,7 @@ def shift_go(model, threshold: float) -> float:
     if not 0.0 < threshold < 1.0:
         raise ConfigError(f"threshold must be in (0, 1), got {threshold}")
     n = getattr(getattr(model.policy, "action_net", None), "out_features", None)
-    if n != 2:  # a steering or meta-action policy has no GO logit (it was an IndexError, issue 39)
+    if n != 2:  # a steering or meta-action policy has no GO logit (it was an IndexError)
         raise ConfigError(f"the operating point is a GO/YIELD student's (agent.actions=go_yield: two logits); this "
                           f"policy has {n if n is not None else 'no discrete'} action outputs")
     delta = math.log(threshold / (1.0 - threshold))

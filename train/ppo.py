@@ -97,7 +97,7 @@ def _drive(env, model, teacher, seed: int, student: bool, demos: Demonstrations,
 
 
 def _drive_batch(env, teacher, seeds, demos: Demonstrations) -> list[tuple[float, float]]:
-    """The teacher's episodes of ``seeds`` on a batched VecEnv (issue 16), all rows stepped together: the same
+    """The teacher's episodes of ``seeds`` on a batched VecEnv, all rows stepped together: the same
     (observation, label, return) triples as :func:`_drive` gives per env, episode by episode in seed order."""
     import numpy as np
 
@@ -293,7 +293,7 @@ class _Stack:
                             else timeout_is_terminal)
 
     def batched(self):
-        """The left turn's batched engine with the agent's action repeat, actions and time limit (issue 16)."""
+        """The left turn's batched engine with the agent's action repeat, actions and time limit."""
         from agents.batched_vec_env import BatchedLeftTurnVecEnv
 
         p = self.params
@@ -310,7 +310,7 @@ def build_envs(stack: _Stack, seed: int):
     from av_gym.errors import ConfigError
 
     p = stack.params
-    if p.vec_env == "batched":  # issue 16: all envs in one numpy batch (av_gym/batched/vec_env.py)
+    if p.vec_env == "batched":  # all envs in one numpy batch (av_gym/batched/vec_env.py)
         if p.intervention_cost > 0:
             raise ConfigError("agent.intervention_cost needs a shield: not available with agent.vec_env=batched")
         venv = stack.batched()
@@ -319,7 +319,7 @@ def build_envs(stack: _Stack, seed: int):
     vec_cls = SubprocVecEnv if (p.vec_env == "subproc" and p.n_envs > 1) else DummyVecEnv
     factory = functools.partial(_env_factory, *stack.plain, float(p.intervention_cost), int(p.action_repeat),
                                 str(p.actions), timeout_is_terminal=p.timeout_is_terminal)
-    if vec_cls is SubprocVecEnv:  # its workers end with this process and leave Ctrl-C to it (issue 31)
+    if vec_cls is SubprocVecEnv:  # its workers end with this process and leave Ctrl-C to it
         factory = functools.partial(_in_worker, factory)
     return make_vec_env(factory, n_envs=p.n_envs, seed=seed, vec_env_cls=vec_cls)
 
@@ -388,7 +388,7 @@ def clone_teacher(model, stack: _Stack, scenario: str) -> None:
         lr = ("agent.init_lr", p.init_lr) if p.init_lr else ("agent.learning_rate", p.learning_rate)
         raise_if_diverged(exc, model.policy, "behaviour cloning", lr[0], float(lr[1]))
         raise
-    except KeyboardInterrupt:  # it used to exit 130 without a word (issue 39 row 13)
+    except KeyboardInterrupt:  # it used to exit 130 without a word
         import sys
 
         print(f"[train] interrupted while cloning {p.init} ({time.time() - t_bc:.0f} s in): nothing was kept; the "

@@ -1,4 +1,4 @@
-"""A training run owns its folders (issue 31, rows 2-4 and 12).
+"""A training run owns its folders.
 
 ``checkpoints/<run_name>/`` and ``runs/<run_name>/`` belong to one run:
 
@@ -13,7 +13,7 @@
   (kill -9 included), so a crashed run can be resumed at once (:mod:`av_gym.locks`, which ``python -m eval`` takes
   its out_dir with too);
 - a finished run (its ``model.zip``, written by every trainer only once it is done) is not resumed: resuming it
-  retrained from ``latest.zip`` and replaced ``model.zip`` with another model (issue 39). Every trainer is treated
+  retrained from ``latest.zip`` and replaced ``model.zip`` with another model. Every trainer is treated
   alike: ``latest.zip`` is what a resume continues (PPO: at a rollout, DAgger: at a round), ``model.zip`` what ends
   a run; a kind that writes neither (PilotNet, a rule) has nothing to resume.
 
@@ -159,7 +159,7 @@ def release_all(keep: str | Path | None = None) -> None:
 def discard_if_unstarted(ckpt_dir: Path) -> bool:
     """A fresh run refused once its job had started (an ``agent.init_from`` that does not fit, found by the
     trainer): remove the ``config.yaml`` this command wrote when it is all the folder holds, so that the refused
-    run leaves nothing behind and its run_name stays free (issue 39 row 8). Returns whether it was removed."""
+    run leaves nothing behind and its run_name stays free. Returns whether it was removed."""
     if _contents(ckpt_dir) != ["config.yaml"]:
         return False
     (ckpt_dir / "config.yaml").unlink()

@@ -1,5 +1,5 @@
 """The unprotected left turn (``av_gym.envs.left_turn``, both modes, both action types) for B environments at
-once, on the batched traffic of :mod:`av_gym.sim.batched` (issue 16).
+once, on the batched traffic of :mod:`av_gym.sim.batched`.
 
 :class:`BatchedLeftTurn` is the env layer: per-environment seeded generators drawing the traffic exactly as
 ``UnprotectedLeftTurnEnv.reset(seed=s)`` / ``step`` do, the reward terms, termination, ``info["truth"]``'s fields

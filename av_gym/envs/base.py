@@ -45,7 +45,7 @@ class Truth(UserDict):
     """``info["truth"]``: a mapping of ground-truth fields, deliberately not a ``dict``. Gymnasium's vector envs
     stack a ``dict`` in ``info`` field by field across envs, which fails on fields whose shape or type changes
     from env to env (``others``: one row per vehicle; ``arrived_time``: None until arrival): ``make_vec`` crashed
-    at reset (issue 33). Any other object they keep per env in an object array, so in a vector env
+    at reset. Any other object they keep per env in an object array, so in a vector env
     ``info["truth"][i]`` is env ``i``'s truth, as in a single env."""
 
     def __eq__(self, other: object) -> bool:  # field by field, arrays whole (Gymnasium's determinism check asks)
@@ -74,7 +74,7 @@ class ScenarioMixin:
     def step(self, action):
         """highway-env's step, once the action is checked against ``action_space`` and the episode is running:
         after ``terminated`` or ``truncated`` the simulation would go on and pay rewards for an episode that has
-        ended (issue 31 row 16), so that is refused until ``reset()``."""
+        ended, so that is refused until ``reset()``."""
         if getattr(self, "_episode_over", False):
             raise error.ResetNeeded("step() after the episode ended (terminated or truncated): call reset() first")
         check_action(self.action_space, action)

@@ -95,7 +95,7 @@ class LaneKeepingLapEnv(ScenarioMixin, AbstractEnv):
             "centering_position": [0.5, 0.5],
             "scaling": 4.0,
         })
-        config.update(LaneKeepingParams().env_config())  # the harness's task (issue 20)
+        config.update(LaneKeepingParams().env_config())  # the harness's task
         return config
 
     # ----------------------------------------------------------------------------------------------- spaces

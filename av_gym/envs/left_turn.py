@@ -54,10 +54,10 @@ class LeftTurnRewards(Params):
     collision: float = param(-5.0, doc="once, on collision (stock)")
     arrived: float = param(3.0, doc="once, on reaching the exit (stock: 1). At 1, waiting at the line until the time "
                                     "limit (~1.2 of progress) was worth about as much as a gap-acceptance driver's mix "
-                                    "of arrivals and collisions, and PPO drifted to never turning (measured, issue 7)")
+                                    "of arrivals and collisions, and PPO drifted to never turning (measured)")
     high_speed: float = param(0.0, "1/s", doc="per second spent at 7-9 m/s (stock: 1.0 per 1 Hz step). Off: at 1/s an "
                                               "always-proceed driver earns ~6 from speed and loses ~2.6 (0.52 x 5) to "
-                                              "collisions, so PPO learnt never to yield (measured, issue 7); at 0.1/s "
+                                              "collisions, so PPO learnt never to yield (measured); at 0.1/s "
                                               "and no progress term it learnt to wait forever")
     progress: float = param(2.0, ge=0, doc="in total over the route to the arrival point: dense, rate-free, zero "
                                            "when waiting")
@@ -104,7 +104,7 @@ class LeftTurnParams(ScenarioParams):
     compare: tuple[str, ...] = param(
         ("always_proceed", "always_proceed+aeb", "gap_acceptance", "gap_acceptance+aeb", "ppo_turn", "ppo_turn+aeb",
          "ppo_turn_shielded", "ppo_turn_shielded+aeb", "ppo_turn_perceived", "ppo_turn_perceived+aeb"),
-        doc="python -m eval env=left_turn with no agents=: the headline comparison (issue 7), each agent with and "
+        doc="python -m eval env=left_turn with no agents=: the headline comparison, each agent with and "
             "without the AEB shield")
 
     def relations(self) -> list[str]:
@@ -153,7 +153,7 @@ class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
             "ttc_horizon": 5.0,  # s, horizon of the constant-velocity TTC reported in truth
             "ccftap_lead_time": 5.0,  # s, the ego starts this long (at its speed) before the stop line, >= 25 m
         })
-        config.update(LeftTurnParams().env_config())  # the harness's task (issue 20); STOCK_CONFIG = highway-env's
+        config.update(LeftTurnParams().env_config())  # the harness's task; STOCK_CONFIG = highway-env's
         return config
 
     # ----------------------------------------------------------------------------------------------- spaces

@@ -172,7 +172,7 @@ class LidarOdometry:
         self.restarts = 0
 
     # kiss-icp's pipeline holds native (pybind11) objects that neither pickle nor deep-copy, which made every stack
-    # with a localizer impossible to copy (issue 31 row 17; async vector envs pickle their envs' results, lookahead
+    # with a localizer impossible to copy (async vector envs pickle their envs' results, lookahead
     # copies envs). Its whole state is public or can be rebuilt: the last pose and delta, the local map's points,
     # and the adaptive threshold, which is a function of the model deviations it was fed (replayed in order).
     def __getstate__(self) -> dict:

@@ -87,7 +87,7 @@ def _noise_bank() -> np.ndarray:
 
 # Pixels rendered per camera and frame (height x width x supersample²): the renderer holds a few float arrays of this
 # size per camera; 2**23 (e.g. 1024 x 2048 at supersample 2) is ~0.2 GB per camera, where 10000 x 10000 asked for
-# 8.9 GiB (issue 31). PilotNet's input is 66 x 200.
+# 8.9 GiB. PilotNet's input is 66 x 200.
 RENDER_PIXELS_MAX = 2**23
 
 
@@ -136,7 +136,7 @@ class Cameras(SensorWrapper):
 
     Building one sets OpenCV to one thread for the process (``cv2.setNumThreads(1)``): its thread pool splits each
     66×200 remap and colour conversion across cores, which bought 0.05 ms of a 3.2 ms left-turn `full` step for
-    0.8 ms more CPU on 2 idle cores (session 27; ``python benchmarks/sensor_cost.py``), and an RL run steps one
+    0.8 ms more CPU on 2 idle cores (``python benchmarks/sensor_cost.py``), and an RL run steps one
     environment per core anyway."""
 
     key = "cameras"

@@ -344,7 +344,7 @@ def _render_rig(scene: StaticScene, others: np.ndarray, pose: np.ndarray, camera
     handful of calls instead of ~30 numpy passes and one OpenCV call per quad. ``whole_image`` repaints the whole
     internal image instead of the band the quads cover (the reference the band is tested against).
 
-    Measured and not taken (second pass, OpenCV painter): merging runs of neighbouring wall pieces into one quad
+    Measured and not taken (with OpenCV's painter): merging runs of neighbouring wall pieces into one quad
     where no quad in between overlaps them removed only ~12 of 55-65 wall quads per camera, since the roadside
     walls are chains of short straight segments, and its overlap test cost more than the fills saved."""
     x, y, psi = float(pose[0]), float(pose[1]), float(pose[2])

@@ -1,4 +1,4 @@
-"""Numba kernels for the LiDAR's ray cast and the detector's occlusion test (issue 18).
+"""Numba kernels for the LiDAR's ray cast and the detector's occlusion test.
 
 Why compiled code here: the numpy ray cast (:func:`av_gym.sensors.lidar._cast`) builds the (object, beam)
 candidate pairs with ``repeat``/``searchsorted``, gathers the shapes, solves each kind in a dozen small array calls

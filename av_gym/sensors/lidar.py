@@ -280,7 +280,7 @@ def cast_rays(origin_xy: np.ndarray, angles: np.ndarray, elevations: np.ndarray,
 
 
 # Rays per scan: every ray is cast against every box and kept per point (several float arrays of this length per
-# scan). An Ouster OS-128 at 2048 columns gives 262,144 = 2**18; 1e8 beams asked for GiBs (issue 31).
+# scan). An Ouster OS-128 at 2048 columns gives 262,144 = 2**18; 1e8 beams asked for GiBs.
 RAYS_MAX = 2**18
 BEAMS_MAX = 2**15  # one channel: 0.011° steps, finer than any spinning LiDAR's azimuth resolution
 

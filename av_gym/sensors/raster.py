@@ -1,10 +1,10 @@
 """Compiled painter for the cameras: the rig's vertical quads built and sorted (:func:`rig_quads`), projected,
 culled and clipped per camera (:func:`project_rig`) and filled (:func:`paint_band`, :func:`paint_depth`), and the
-ground's palette looked up (:func:`palette_lookup`), a handful of numba calls per rig (issue 18, third pass).
+ground's palette looked up (:func:`palette_lookup`), a handful of numba calls per rig.
 
 Why hand-written: OpenCV fills one polygon per Python call (``cv2.fillConvexPoly``, ~1-2 us each plus the numpy
 bookkeeping that prepares its arguments); a rig shows 50-90 small quads per camera, so the calls and the per-rig
-numpy passes, not the pixels, were most of a frame (docs/sensors.md, "Second pass"). No library rasterises a
+numpy passes, not the pixels, were most of a frame (docs/sensors.md, "Cost"). No library rasterises a
 batch of painter-ordered polygons into a numpy image; these kernels loop over the quads of a whole camera in one
 call.
 

@@ -1,4 +1,4 @@
-"""Predictive automatic emergency braking (AEB) shield for the unprotected left turn (issue 5; digest 003).
+"""Predictive automatic emergency braking (AEB) shield for the unprotected left turn (digest 003).
 
 :class:`AEBShield` is a ``gymnasium.Wrapper`` that sits between any agent and the left-turn env (it wraps the
 sensed env, see :func:`av_gym.make.add_shield`). It never needs the agent's cooperation: every policy step (10 Hz,
@@ -27,14 +27,13 @@ config section ``shield`` (``kind: aeb``, ``variant: ...``) builds one through :
   * the ego predicted **along its planned route**, where it will actually drive: highway-env's route-following
     controller cuts the turn by up to 0.6 m and lags 10° in heading, so :class:`av_gym.shields.predict.DrivenPath`
     replays that controller (tabulated per speed) instead of assuming the lane centreline; longitudinally under
-    the action the agent proposes for this step, held (``check_action``, issue 17: a safety filter checks the
+    the action the agent proposes for this step, held (``check_action``: a safety filter checks the
     action it is given, so an agent that has just chosen to stop is not braked): highway-env's cruise-control
     response through the set-points FASTER/SLOWER step to (discrete actions), or the commanded acceleration
     for 1 s (continuous);
   * the others on every way the road network lets them continue, each hypothesis with its probability, at
-    constant speed on the path highway-env's controller drives (``target_model: conflict``, the default since
-    issue 17: :class:`av_gym.shields.conflicts.ConflictModel`), or constant-velocity (``cv``, the default
-    before), constant-acceleration (``ca``), CV along each lane continuation plus the plain CV hypothesis
+    constant speed on the path highway-env's controller drives (``target_model: conflict``, the default:
+    :class:`av_gym.shields.conflicts.ConflictModel`), or constant-velocity (``cv``), constant-acceleration (``ca``), CV along each lane continuation plus the plain CV hypothesis
     (``map``);
   * footprints as oriented boxes, the ego's grown by ``margin`` m, overlap by the separating-axis test, over a
     **geometry horizon**: the time to clear the turn, clipped to [``horizon_min``, ``horizon_max``];
@@ -49,7 +48,7 @@ config section ``shield`` (``kind: aeb``, ``variant: ...``) builds one through :
   * a **release rule**: once latched, the brake lets go when the ego setting off again (or carrying on, for a
     continuous agent both) is predicted conflict-free with the larger ``release_margin`` for ``release_hold`` s;
     standing in the box, road users slower than ``release_standing`` count as standing where they are;
-  * issue 17's third pass (``target_model: conflict``): the emergency test also predicts a braking road user
+  * with ``target_model: conflict``, the emergency test also predicts a braking road user
     keeping its deceleration (``emergency_accel_time``), and before the line a road user that stands in the box
     after moving may set off (``setoff_speed``: for the stop-line trigger and the release test).
   * Vehicles following the ego in its lane are ignored (they are responsible for their own gap).

@@ -139,7 +139,7 @@ class PaperParams(TurnParams):
 
 @dataclass(frozen=True)
 class ImprovedParams(TurnParams):
-    """The ``improved`` variant, our design (issue 5): the ego predicted along its planned route, others
+    """The ``improved`` variant, our design: the ego predicted along its planned route, others
     constant-velocity, oriented-box overlap with a margin, a stop-line-aware brake trigger, a brake-feasibility
     check and a release rule."""
 
@@ -155,15 +155,15 @@ class ImprovedParams(TurnParams):
                         "CV along every lane continuation the road network allows, plus CV | conflict: every lane "
                         "continuation with its probability (turn signals when `signals`), at constant speed on the "
                         "path highway-env's controller drives, CV only off the map "
-                        "(av_gym.shields.conflicts.ConflictModel). Default since issue 17: always_proceed+aeb on "
+                        "(av_gym.shields.conflicts.ConflictModel). The default: always_proceed+aeb on "
                         "seeds 1000-1099, 4 collisions / 87 arrivals against cv's 8 / 81 and map's 4 / 81")
     hypothesis_min_p: float = param(0.1, ge=0, le=1, doc="target_model conflict: a path hypothesis less likely than "
                                                          "this is dropped (uniform over the continuations: 1/3 "
                                                          "each at the intersection, so only a turn signal prunes)")
     signals: bool = param(True, doc="target_model conflict: read the other drivers' indicators through the shield's "
                                     "own indicator channel (signal_channel), each driver's readings accumulated in a "
-                                    "Bayes filter over its turn (av_gym.shields.intent). Default since issue 17's "
-                                    "fourth pass: always_proceed+aeb on seeds 1000-1499, fewer collisions, more "
+                                    "Bayes filter over its turn (av_gym.shields.intent). The default: "
+                                    "always_proceed+aeb on seeds 1000-1499, fewer collisions, more "
                                     "arrivals and fewer unneeded brakes than without (docs/shield.md)")
     signal_channel: TurnSignalsParams = param(
         TurnSignalsParams(), doc="signals: the shield's indicator channel (av_gym.sensors.turn_signal's model and "
@@ -174,21 +174,21 @@ class ImprovedParams(TurnParams):
     emergency_accel_time: float = param(
         1.5, "s", ge=0, doc="the emergency test (past the stop-line trigger point) also predicts every road user that "
                             "is braking keeping its measured deceleration this long along each path hypothesis (a "
-                            "braking car stops, it never reverses), beside the constant-speed prediction (issue 17, "
-                            "third pass: a crossing car braking hard in front of the ego, or two cars colliding there, "
+                            "braking car stops, it never reverses), beside the constant-speed prediction ("
+                            "a crossing car braking hard in front of the ego, or two cars colliding there, "
                             "were braked for 0.2-0.3 s late, when the constant-speed footprints first touched); 0 = "
                             "constant speed only (the rule before)")
     release_accel_time: float = param(
         0.0, "s", ge=0, doc="the release test also predicts every road user that is speeding up keeping its "
                             "measured acceleration this long along each path hypothesis, beside the constant-speed "
                             "prediction, so a car setting off again after slowing holds the brake; 0 = constant "
-                            "speed only, the default: measured with 1.5 s (issue 17, third pass, always_proceed+aeb "
+                            "speed only, the default: measured with 1.5 s (always_proceed+aeb "
                             "on seeds 1000-1499) it prevented one collision (seed 1298) and added two (1185, 1231)")
     setoff_speed: float = param(
         2.0, "m/s", ge=0, doc="before the stop line, a road user slower than this in the box (on a lane through "
                               "it) that was faster within setoff_recent s is also predicted setting off along each "
                               "path hypothesis (from 0.5 m/s at setoff_accel), for the stop-line trigger and the "
-                              "release test (issue 17, third pass: seed 1215, an oncoming car standing in the box set "
+                              "release test (seed 1215, an oncoming car standing in the box set "
                               "off as the unbraked ego entered it at 9 m/s); 0 = off (the rule before)")
     setoff_accel: float = param(3.0, "m/s²", gt=0, doc="see setoff_speed")
     setoff_recent: float = param(3.0, "s", gt=0, doc="only a road user that was faster than setoff_speed within "
@@ -197,7 +197,7 @@ class ImprovedParams(TurnParams):
     setoff_horizon: float = param(3.0, "s", gt=0, doc="only a conflict with a setting-off car within this many "
                                                       "seconds counts (see setoff_speed)")
     release_standing: float = param(
-        1.0, "m/s", ge=0, doc="gridlock release (issue 17, third pass): with the ego braked to a standstill in the "
+        1.0, "m/s", ge=0, doc="gridlock release: with the ego braked to a standstill in the "
                               "box (front past the stop line, turn not cleared), the release test predicts every road "
                               "user slower than this standing where it is, not along its path hypotheses, so the ego "
                               "clears the box when what it braked for stands or yields to it; 0 = off (the rule "
@@ -209,8 +209,8 @@ class ImprovedParams(TurnParams):
     warn_ttc: float = param(2.5, "s", gt=0, doc="outside the turn window: forward-collision warning at TTC <= this")
     check_action: bool = param(True, doc="predict the ego under the action the agent proposes for this step (its new "
                                          "set-point, or its commanded acceleration), as a safety filter checks the "
-                                         "action it is given; false: under the set-point before it (the default "
-                                         "before issue 17's second pass), which brakes an agent that has just "
+                                         "action it is given; false: under the set-point before it, "
+                                         "which brakes an agent that has just "
                                          "chosen to stop at the line")
     ignore_rear: bool = param(False, doc="never count a hit from behind (a vehicle running into the ego)")
 

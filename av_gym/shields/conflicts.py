@@ -1,5 +1,5 @@
-"""How another road user's possible paths relate to the ego's planned path on highway-env's four-way intersection
-(issue 17), read from the road network, never from the vehicle's motion.
+"""How another road user's possible paths relate to the ego's planned path on highway-env's four-way intersection,
+read from the road network, never from the vehicle's motion.
 
 Partner types (:func:`partner_type`), in this order of precedence:
 
@@ -99,7 +99,7 @@ _BY_NETWORK: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 
 class ConflictModel:
-    """Every road user's possible paths across the ego's (issue 17): one hypothesis per way the road network lets
+    """Every road user's possible paths across the ego's: one hypothesis per way the road network lets
     it continue from the lane it is on (:class:`av_gym.shields.predict.LaneHypotheses`: straight, left, right at
     the intersection, any lane the graph continues to), each with a probability, uniform over the continuations
     and, where the driver's indicator has been read, weighted by what its readings say about each turn
@@ -197,7 +197,7 @@ class ConflictModel:
 
         Every map hypothesis is placed on its driven path in one compiled call
         (:func:`av_gym.shields.predict.driven_poses`; ``DrivenPath.kernel = False``: one numpy look-up at a time,
-        the reference), the distance and speed profiles of all objects computed at once (issue 17, cost)."""
+        the reference), the distance and speed profiles of all objects computed at once (the shield's cost)."""
         from av_gym.shields.predict import DrivenPath, driven_poses, object_predict, profile_speeds
 
         t = np.asarray(t, dtype=float)

@@ -1,5 +1,4 @@
-"""What other drivers' indicators say about where they will go, accumulated over every reading of each (issue 17,
-fourth pass).
+"""What other drivers' indicators say about where they will go, accumulated over every reading of each.
 
 The shield's indicator channel (:mod:`av_gym.sensors.turn_signal`'s model) has two kinds of noise: per *driver*
 (25 % never indicate, 5 % indicate the wrong side) and per *reading* (10 % of readings miss an indicator that is

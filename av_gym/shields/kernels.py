@@ -1,8 +1,8 @@
-"""Numba kernel for the AEB shield's driven-path look-up (issue 17: < 1 ms per decision at 20 road users).
+"""Numba kernel for the AEB shield's driven-path look-up (< 1 ms per decision at 20 road users).
 
 :meth:`av_gym.shields.predict.DrivenPath.poses` places one path hypothesis on its driven path: about twenty small
 numpy calls (interpolations, masks, a blend of two speed bins), ~0.18 ms, and the conflict model makes ~40 such
-look-ups per decision at 20 road users, most of the shield's cost (docs/shield.md, issue 17's second pass).
+look-ups per decision at 20 road users, most of the shield's cost (docs/shield.md).
 :func:`driven_poses` does the look-ups of every hypothesis of a decision in one call, on the tables of every driven
 path packed into one growing float array (:class:`Store`).
 

@@ -221,7 +221,7 @@ class DrivenPath:
         return xy[0], h[0]
 
     def poses_numpy(self, s0: float, ds: np.ndarray, speeds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The numpy reference of :meth:`poses` (the code before the kernel, issue 17's third pass)."""
+        """The numpy reference of :meth:`poses` (the code before the kernel)."""
         ds, speeds = np.asarray(ds, dtype=float), np.asarray(speeds, dtype=float)
         if s0 + (ds[-1] if len(ds) else 0.0) < self.s_start:
             return self.route.poses(s0 + ds)

@@ -1,4 +1,4 @@
-"""Batched left-turn traffic: B intersections stepped together, vehicle state as (B, N) arrays (issue 16).
+"""Batched left-turn traffic: B intersections stepped together, vehicle state as (B, N) arrays.
 
 The same models as highway-env's ``IntersectionEnv`` as ``av_gym.envs.left_turn`` uses it, as array maths over
 every vehicle of every environment at once instead of one Python object per vehicle:

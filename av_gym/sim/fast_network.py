@@ -2,7 +2,7 @@
 lane, an order of magnitude faster.
 
 Every vehicle calls ``get_closest_lane_index`` on every tick, and the stock version evaluates
-``lane.distance_with_heading`` for *every* lane of the map in Python (about 37 % of an intersection tick, issue 8),
+``lane.distance_with_heading`` for *every* lane of the map in Python (about 37 % of an intersection tick),
 although only the few lanes near the vehicle can win. Here the lanes that can win are found first, and only they
 are evaluated, with the stock ``distance_with_heading``:
 

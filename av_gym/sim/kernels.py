@@ -1,4 +1,4 @@
-"""Numba kernels for the batched left turn's pairwise parts (issue 16).
+"""Numba kernels for the batched left turn's pairwise parts.
 
 Why compiled code here: highway-env has no batched version of these models, and av_gym/sim/batched.py's numpy
 formulation of the pairwise parts (leader search, IDM gap, collisions, the regulation's conflict test, the closest
