@@ -54,8 +54,20 @@ def load_sb3(path: str | Path, **kwargs: Any):
     except ConfigError:
         raise
     except Exception as exc:  # noqa: BLE001 - whatever unpickling a damaged file raises
-        raise ConfigError(f"checkpoint {str(path)!r} cannot be loaded: {type(exc).__name__}: {_one_line(exc)}") \
-            from None
+        raise unloadable(path, exc) from None
+
+
+def unloadable(path: str | Path, exc: BaseException) -> ConfigError:
+    """One line for a zip of SB3's shape that SB3 or torch still cannot read. torch's own message for a tensor
+    file it refuses (several sentences, cut mid-sentence once made one line) advises loading with
+    ``weights_only=False``, which would run whatever the file holds: it is not passed on."""
+    text = str(exc)
+    if type(exc).__name__ == "UnpicklingError" or "weights_only" in text:
+        why = ("a tensor member (policy.pth: the weights) is not one torch reads as plain tensors: damaged, or not "
+               "written by SB3")
+    else:
+        why = f"{type(exc).__name__}: {_one_line(exc)}"
+    return ConfigError(f"checkpoint {str(path)!r} cannot be loaded ({why}); re-copy it or retrain")
 
 
 def read_config_yaml(path: str | Path) -> dict:
@@ -102,5 +114,10 @@ def describe_space(space: gym.Space) -> str:
 
 
 def _one_line(exc: BaseException) -> str:
+    """The exception's text on one line; a long one ends at its last whole sentence within 200 characters."""
     text = " ".join(str(exc).split()) or type(exc).__name__
-    return text if len(text) <= 200 else text[:197] + "..."
+    if len(text) <= 200:
+        return text
+    cut = text[:200]
+    end = cut.rfind(". ")
+    return cut[: end + 1] if end > 40 else cut[: cut.rfind(" ")] + " ..."

@@ -11,6 +11,16 @@ from agents.ppo import PPOAgent, PPOParams, teacher_agents
 from av_gym.params import param
 
 
+# Why DAgger's counts are bounded (an unbounded agent.rounds runs without end, its label set growing):
+# - each round refits the student on the whole aggregate, so the work grows with the square of the rounds, and
+#   DAgger's gain flattens within a few rounds (the references use 6-8, docs/dagger.md): 100 is far past any use;
+# - the aggregate is held in memory and saved in latest.zip after every round (resumable): about 20 kB per episode
+#   on the turn features (~40 decisions of ~470 bytes, plus Python's per-state overhead), so 100,000 episodes in
+#   all (rounds x round_episodes) is ~2 GB; the references label 512-1,152.
+ROUNDS_MAX = 100
+AGGREGATE_EPISODES_MAX = 100_000
+
+
 @dataclass(frozen=True)
 class DaggerParams(PPOParams):
     """On-policy imitation (DAgger, Ross et al. 2011) of ``teacher`` by a PPO policy network (conf/agent/dagger_turn.yaml).
@@ -22,10 +32,11 @@ class DaggerParams(PPOParams):
     name: str = param("dagger")
     teacher: str = param("lookahead", doc="the agent config that labels the student's states (a kind in "
                                           "agents/registry.py TEACHERS)")
-    rounds: int = param(8, ge=1, doc="DAgger rounds: the teacher drives the first (the student, when it starts "
-                                     "from init_from), the student the others; the student is refitted on "
-                                     "everything labelled so far after each")
-    round_episodes: int = param(128, "episodes", ge=1, doc="episodes driven (and labelled) per round")
+    rounds: int = param(8, ge=1, le=ROUNDS_MAX, doc="DAgger rounds: the teacher drives the first (the student, "
+                                                    "when it starts from init_from), the student the others; the "
+                                                    "student is refitted on everything labelled so far after each")
+    round_episodes: int = param(128, "episodes", ge=1, le=AGGREGATE_EPISODES_MAX,
+                                doc="episodes driven (and labelled) per round")
     fit_epochs: int = param(8, ge=1, doc="passes over the aggregated labels after each round")
     fit_lr: float = param(1.0e-3, gt=0, doc="Adam step of the supervised fit")
     fit_batch: int = param(256, ge=2, doc="minibatch of the supervised fit")
@@ -47,6 +58,10 @@ class DaggerParams(PPOParams):
 
     def relations(self) -> list[str]:
         found = super().relations()
+        if self.rounds * self.round_episodes > AGGREGATE_EPISODES_MAX:
+            found.append(f"@rounds x @round_episodes must be at most {AGGREGATE_EPISODES_MAX:,} episodes (the labelled "
+                         f"states are held in memory and saved each round, ~20 kB an episode), got {self.rounds} x "
+                         f"{self.round_episodes} = {self.rounds * self.round_episodes:,}")
         allowed = teacher_agents()
         if self.teacher not in allowed:
             found.append(f"@teacher must be one of {allowed}, got {self.teacher!r}")

@@ -198,20 +198,23 @@ class PPOAgent(AgentKind):
 
     @classmethod
     def load(cls, model_path: Path, env: gym.Env) -> SB3Policy:
-        from agents.checkpoint import check_sb3_zip, describe_space, saved_config
+        from agents.checkpoint import check_sb3_zip, describe_space, saved_config, unloadable
 
         check_sb3_zip(model_path)  # again: the file may have changed since the command-line check
         try:
             policy = SB3Policy.load(model_path)
         except Exception as exc:  # noqa: BLE001 - a zip of the right shape that SB3 still cannot unpickle
-            raise ConfigError(f"checkpoint {str(model_path)!r} cannot be loaded: {type(exc).__name__}: "
-                              f"{' '.join(str(exc).split())[:200]}") from None
-        trained = saved_config(model_path).get("agent", {})
+            raise unloadable(model_path, exc) from None
+        saved = saved_config(model_path)
+        trained = saved.get("agent", {})
         if policy.model.observation_space != sb3_space(env.observation_space):
+            config = Path(model_path).parent / "config.yaml"
+            how = ("same sensors preset and env settings as in its training, see its config.yaml" if saved else
+                   f"it has no {config.name} beside it saying which sensors preset and env settings it was trained "
+                   f"with: copy its run's config.yaml to {config}, or give them on the command line")
             raise ConfigError(f"checkpoint {str(model_path)!r} expects observations "
                               f"{describe_space(policy.model.observation_space)}, this env gives "
-                              f"{describe_space(sb3_space(env.observation_space))} (same sensors preset and env "
-                              f"settings as in its training, see its config.yaml)")
+                              f"{describe_space(sb3_space(env.observation_space))} ({how})")
         # A go/yield policy's two choices become the env's three meta-actions (av_gym/wrappers.py): it needs those.
         needs = spaces.Discrete(3) if trained.get("actions") == "go_yield" else policy.model.action_space
         if needs != env.action_space:

@@ -33,6 +33,9 @@ def add_sensors(env: gym.Env, sensors_cfg: Mapping | None) -> gym.Env:
     for key in SENSORS:
         if c.get(key) is None:
             continue
+        if not isinstance(c[key], Mapping):  # a preset name or a level where the sensor's parameters go
+            raise ConfigError(f"sensors.{key} must be a mapping of the {key} sensor's parameters ({{}} for its "
+                              f"defaults), got {c[key]!r}")
         cls = SENSORS.get(key)  # imported only when used: a truth-only env does not load OpenCV
         try:
             params = cls.Params.from_mapping(c[key], where=f"sensors.{key}", what=f"a parameter of {cls.__name__}")
@@ -47,8 +50,16 @@ def add_sensors(env: gym.Env, sensors_cfg: Mapping | None) -> gym.Env:
         return SelectKeys(env, list(c["observe"]))
     if not c.get("keep_state", name == "truth"):
         keys = [k for k in env.observation_space.spaces if k != "state"]
-        if not keys:
-            raise ConfigError(f"sensors={name} removes the privileged state and adds no sensor")
+        if not keys:  # the agent would observe nothing
+            from av_gym.references import conf_root  # the shipped presets (av_gym.presets is this floor's)
+
+            presets = sorted(f.stem for f in (conf_root() / "sensors").glob("*.yaml"))
+            if name not in presets:
+                raise ConfigError(f"sensors.name={name!r} is not a sensors preset and the section names no sensor; "
+                                  f"give a preset ({presets}) or sensor sections ({sorted(SENSORS)})")
+            raise ConfigError(f"sensors={name} names no sensor and drops the simulator's state (keep_state: "
+                              f"false): the agent would observe nothing; add a sensor ({sorted(SENSORS)}) or "
+                              f"keep_state: true")
         env = SelectKeys(env, keys)
     return env
 

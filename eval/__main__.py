@@ -1,10 +1,11 @@
 """``python -m eval env=left_turn agents='[always_proceed,ppo]' episodes=100 [split=validation|test|train]
 [seed=...] [n_envs=2] [vec_env=batched]``
 
-An evaluation owns its ``out_dir`` while it runs, as a training run owns its checkpoints (:mod:`av_gym.locks`: an
-exclusive ``flock`` on ``out_dir/.lock``): a second ``python -m eval ... out_dir=X`` is refused in one line (issue
-39: two at once both exited 0 and X held only the second's rows). With an ``out_dir`` of its own, the run folder
-Hydra made under ``runs/eval/`` is removed again when it holds only Hydra's files."""
+An evaluation owns its ``out_dir`` while it runs, as a training run owns its checkpoints
+(:class:`av_gym.atomic.OwnedFolders`: an exclusive ``flock`` on ``out_dir/.lock``): a second ``python -m eval ...
+out_dir=X`` is refused in one line, rather than both writing X and the second's rows replacing the first's. With an
+``out_dir`` of its own, the run folder Hydra made under ``runs/eval/`` is removed again when it holds only Hydra's
+files."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ import hydra
 from omegaconf import DictConfig
 
 from av_gym.errors import ConfigError, check_folder, discard_hydra_run_dir, folder_problem, run_cli, run_hydra
-from av_gym.locks import LOCK, OwnedFolders, lock_holder
+from av_gym.atomic import LOCK, OwnedFolders, lock_holder
 
 OUT_DIRS = OwnedFolders()  # the out_dirs this process is writing
 

@@ -1,6 +1,7 @@
-"""Issue 39, nothing shipped or measured can be lost: the shipped references are read-only to the tools, an
-evaluation owns its out_dir, every generated file is written atomically, resuming never replaces work, every count
-has an upper bound. Each row of the issue's table is a test here (or names the test that checks it)."""
+"""Nothing shipped or measured can be lost: the shipped references are read-only to the tools, an evaluation owns
+its out_dir, every generated file is written whole or not at all, resuming never replaces work (DAgger resumes at a
+round), every count has an upper bound, and what is refused or interrupted says so in one line and leaves nothing
+behind."""
 
 from __future__ import annotations
 
@@ -40,7 +41,7 @@ def cli(main, argv: list[str], capsys) -> str:
     return one_line(capsys, 2, exit_)
 
 
-# --------------------------------------------------------------------------- rows 1, 2: the shipped references
+# ----------------------------------------------------------------------------------------------- the shipped references
 @pytest.fixture
 def shipped(tmp_path, monkeypatch):
     """A stand-in for checkpoints/reference/ (copies of ppo_turn and dagger_turn), which the tools take for the
@@ -57,7 +58,7 @@ def shipped(tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize("argv, needle", [
-    # row 1: a lane keeper exported over ppo_turn
+    # a lane keeper exported over ppo_turn
     (["{lane}", "{ref}/ppo_turn", "--command", "x"], "is the shipped reference agent 'ppo_turn'"),
     (["{lane}", "{ref}/ppo_turn", "--command", "x", "--overwrite-reference"],
      "holds 'ppo_turn' with env.name=left_turn, this checkpoint has env.name=lane_keeping"),
@@ -77,12 +78,12 @@ def test_export_does_not_write_over_a_shipped_reference(argv, needle, shipped, t
 
 
 @pytest.mark.parametrize("argv, needle", [
-    # row 2: the operating point of dagger_turn written over ppo_turn
+    # the operating point of dagger_turn written over ppo_turn
     (["{ref}/dagger_turn", "--write", "0.8", "--dest", "{ref}/ppo_turn"], "is the shipped reference agent 'ppo_turn'"),
     (["{ref}/dagger_turn", "--write", "0.8", "--dest", "{ref}/ppo_turn", "--overwrite-reference"],
      "this checkpoint has agent.kind=dagger"),
     (["{ref}/dagger_turn", "--write", "0.8", "--dest", "{ref}/dagger_turn"], "is the shipped reference agent"),
-    # row 10: a lane keeper has no GO logit (an IndexError in shift_go)
+    # a lane keeper has no GO logit (an IndexError in shift_go)
     (["{lane}"], "its agent chooses agent.actions=env on env=lane_keeping; the operating point is a threshold on "
                  "P(GO) of a GO/YIELD student"),
     (["{lane}", "--write", "0.8", "--dest", "{tmp}/out"], "agent.actions=env on env=lane_keeping"),
@@ -159,7 +160,7 @@ def test_a_folder_replaced_on_a_full_disk_stays_whole(exchange, shipped, tmp_pat
     assert sorted(p.name for p in shipped.iterdir()) == ["dagger_turn", "ppo_turn"]
 
 
-# ------------------------------------------------------------------------- rows 3, 15: an evaluation owns out_dir
+# ------------------------------------------------------------------------------------------- an evaluation owns out_dir
 def run(argv: list[str], cwd: Path, timeout: float = 120) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
     return subprocess.run([sys.executable, *argv], cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
@@ -178,7 +179,7 @@ def released():
 
 
 def test_a_second_evaluation_into_the_same_out_dir_is_refused(tmp_path, monkeypatch, capsys, released):
-    """Row 3: two ``python -m eval ... out_dir=X`` at once both exited 0; X held the second's rows only. Another
+    """two ``python -m eval ... out_dir=X`` at once both exited 0; X held the second's rows only. Another
     process's lock (an flock on a separate open file description, which flock treats as another owner) refuses the
     second in one line, before Hydra writes anything."""
     import fcntl
@@ -210,14 +211,14 @@ def test_an_evaluation_holds_its_out_dir_then_leaves_no_lock(tmp_path, monkeypat
 
 
 def test_eval_with_an_out_dir_leaves_no_hydra_folder(tmp_path):
-    """Row 15: ``python -m eval out_dir=X`` left an empty Hydra folder runs/eval/<env>-<time>/ beside X."""
+    """``python -m eval out_dir=X`` left an empty Hydra folder runs/eval/<env>-<time>/ beside X."""
     res = run(["-m", "eval", "agents=[always_proceed]", "episodes=1", "out_dir=X", "progress_bar=false"], tmp_path)
     assert res.returncode == 0, res.stderr[-2000:]
     assert sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*")) == ["X", "X/results.csv",
                                                                                  "X/results.md"]
 
 
-# ------------------------------------------------------------------ rows 5, 8: resume and refusals lose nothing
+# ------------------------------------------------------------------------------------- resume and refusals lose nothing
 def a_run(tmp_path: Path, name: str = "R", finished: bool = True) -> Path:
     from tests.test_reliability import LANE, a_run as run_of
 
@@ -229,7 +230,7 @@ def a_run(tmp_path: Path, name: str = "R", finished: bool = True) -> Path:
 
 @pytest.mark.parametrize("agent", [[], ["agent=dagger_turn", "env=left_turn", "sensors=turn_truth"]])
 def test_resuming_a_finished_run_is_refused_with_nothing_touched(agent, tmp_path, monkeypatch, capsys, released):
-    """Row 5: ``train.resume=true`` on a finished run retrained from latest.zip and replaced model.zip. A finished
+    """``train.resume=true`` on a finished run retrained from latest.zip and replaced model.zip. A finished
     run (its model.zip, written by every trainer only at its end) is refused in one line; its files stay."""
     from tests.test_bad_input import check_line
     from tests.test_reliability import LANE, a_run as run_of
@@ -245,7 +246,7 @@ def test_resuming_a_finished_run_is_refused_with_nothing_touched(agent, tmp_path
 
 
 def test_a_config_refused_by_the_trainer_leaves_no_run_folder(tmp_path, monkeypatch):
-    """Row 8: an agent.init_from that does not fit, found once the job runs, was one line but left
+    """an agent.init_from that does not fit, found once the job runs, was one line but left
     checkpoints/<run>/config.yaml, and the run_name was then refused as taken. Here the trainer refuses."""
     from types import SimpleNamespace
 
@@ -276,9 +277,9 @@ def test_a_config_refused_by_the_trainer_leaves_no_run_folder(tmp_path, monkeypa
     assert not (tmp_path / "checkpoints").exists()
 
 
-# ---------------------------------------------------------------------------- row 13: Ctrl-C during cloning
+# ------------------------------------------------------------------------------------------------ Ctrl-C during cloning
 def test_ctrl_c_while_cloning_says_what_was_kept(monkeypatch, capsys):
-    """Row 13: Ctrl-C during ppo_turn's cloning step exited 130 without a word."""
+    """Ctrl-C during ppo_turn's cloning step exited 130 without a word."""
     from omegaconf import OmegaConf
 
     import train.ppo
@@ -308,7 +309,7 @@ def test_ctrl_c_while_cloning_says_what_was_kept(monkeypatch, capsys):
     assert closed == [True]  # the demonstration env is closed on the way out
 
 
-# ----------------------------------------------------------------------- row 6: DAgger resumes at a round
+# -------------------------------------------------------------------------------------------- DAgger resumes at a round
 def dagger_cfg(*extra: str):
     from hydra import compose, initialize_config_module
 
@@ -366,7 +367,7 @@ def test_the_aggregate_round_trips_exactly():
 
 @pytest.mark.slow  # three tiny DAgger runs (~20 CPU-s)
 def test_dagger_stopped_then_resumed_ends_with_the_uninterrupted_student(tmp_path, monkeypatch, capsys):
-    """Row 6: a stopped DAgger run restarted at round 0, overwriting best.zip, latest.zip and rounds.csv, and its
+    """a stopped DAgger run restarted at round 0, overwriting best.zip, latest.zip and rounds.csv, and its
     message named a latest.zip that might not exist. Now each finished round is in latest.zip; resumed, the run
     redoes only the round that was cut short and ends with the same student, bit for bit, and the same rows."""
     import csv
@@ -410,7 +411,7 @@ def test_a_dagger_checkpoint_without_rounds_is_not_resumed(tmp_path):
         dagger_run(tmp_path, "old", "train.resume=true")
 
 
-# --------------------------------------------------------------- rows 4, 11, 12: generated files written whole
+# ---------------------------------------------------------------------------------------- generated files written whole
 @pytest.fixture
 def results_copy(tmp_path):
     """Two result folders of docs/results (one per scenario) and a README quoting the block."""
@@ -433,7 +434,7 @@ def results_page(argv: list[str], capsys) -> tuple[int, list[str]]:
 
 @pytest.mark.parametrize("how", ["fsync", "write"])
 def test_the_results_page_and_readme_on_a_full_disk_stay_whole(how, results_copy, tmp_path, monkeypatch, capsys):
-    """Row 4: under a file-size limit README.md was cut to 16,384 of 43,299 bytes, with a traceback. The page and
+    """under a file-size limit README.md was cut to 16,384 of 43,299 bytes, with a traceback. The page and
     the README's block are written together, each whole, or neither."""
     from tests.test_reliability import fill_the_disk
 
@@ -451,7 +452,7 @@ def test_the_results_page_and_readme_on_a_full_disk_stay_whole(how, results_copy
 
 
 @pytest.mark.parametrize("damage, needle", [
-    # row 12: a torn results.csv was a TypeError in _number
+    # a torn results.csv was a TypeError in _number
     (lambda f: f.write_text(f.read_text()[:3000]), "has 11 of 21 fields: torn or edited by hand?"),
     (lambda f: f.write_text(f.read_text().splitlines()[0] + "\n"), "has no episodes"),
     (lambda f: (f.parent / "meta.json").write_text("{not json"), "meta.json is not valid JSON"),
@@ -468,7 +469,7 @@ def test_a_torn_results_file_is_one_line(damage, needle, check, results_copy, tm
 
 @pytest.mark.parametrize("flag", ["--out", "--readme"])
 def test_a_results_page_path_under_a_file_is_one_line(flag, results_copy, tmp_path, capsys):
-    """Row 12: ``--out README.md/x`` was a NotADirectoryError traceback."""
+    """``--out README.md/x`` was a NotADirectoryError traceback."""
     target = tmp_path / "README.md" / "x"
     code, err = results_page(["--results", str(results_copy), flag, str(target)], capsys)
     assert code == 2 and len(err) == 1 and f"{flag}={target}: " in err[0] and "is a file, not a folder" in err[0], err
@@ -476,7 +477,7 @@ def test_a_results_page_path_under_a_file_is_one_line(flag, results_copy, tmp_pa
 
 @pytest.mark.parametrize("how", ["fsync", "savefig"])
 def test_ccftap_on_a_full_disk_is_one_line_and_no_empty_png(how, tmp_path, monkeypatch, capsys):
-    """Row 11: ``python -m eval.ccftap --out <a full disk>`` gave 3 tracebacks (53 lines) and an empty grid.png.
+    """``python -m eval.ccftap --out <a full disk>`` gave 3 tracebacks (53 lines) and an empty grid.png.
     A previous grid.png stays whole; a new one is never left empty or half-written."""
     import matplotlib.figure
 
@@ -501,3 +502,94 @@ def test_ccftap_on_a_full_disk_is_one_line_and_no_empty_png(how, tmp_path, monke
     assert (out / "grid.png").read_bytes() == b"the previous grid"
     assert sorted(p.name for p in out.iterdir()) == (["grid.png"] if how == "fsync" else
                                                      ["grid.png", "results.csv", "results.md"])
+
+
+# ---------------------------------------------------------------------------------------------- DAgger's counts bounded
+@pytest.mark.parametrize("argv, needle", [
+    (["agent.rounds=1000000000"], "agent.rounds must be an integer in [1, 100], got 1000000000"),
+    (["agent.round_episodes=1e9"], "agent.round_episodes must be an integer in [1, 100000]"),
+    (["agent.rounds=100", "agent.round_episodes=5000"], "agent.rounds x agent.round_episodes must be at most "
+                                                         "100,000 episodes"),
+])
+def test_dagger_counts_have_upper_bounds(argv, needle, tmp_path, monkeypatch, capsys):
+    """``agent.rounds=1000000000`` was accepted and ran without end, its label set growing."""
+    from tests.test_bad_input import check_line
+
+    monkeypatch.chdir(tmp_path)
+    line = check_line("train", ["agent=dagger_turn", *argv], monkeypatch, capsys)
+    assert needle in line, line
+    assert not any(tmp_path.iterdir())
+
+
+def test_the_dagger_bounds_admit_the_shipped_students():
+    from conf.check import check_command_line
+
+    for agent in ("dagger_turn", "dagger_turn_perceived"):
+        assert check_command_line("train", [f"agent={agent}", "agent.rounds=8", "agent.round_episodes=192"])
+
+
+# ------------------------------------------------------------------------------------------------------------- messages
+@pytest.mark.parametrize("sensors, needle", [
+    ({"name": "nosuch"}, "sensors.name='nosuch' is not a sensors preset and the section names no sensor; give a "
+                         "preset (["),
+    ({"detector": "high"}, "sensors.detector must be a mapping of the detector sensor's parameters ({} for its "
+                           "defaults), got 'high'"),
+    ({"name": "truth", "keep_state": False}, "sensors=truth names no sensor and drops the simulator's state"),
+])
+def test_sensor_sections_that_give_nothing_say_why(sensors, needle):
+    """``sensors={"name": "nosuch"}`` said the stack "removes the privileged state"; ``detector="high"``
+    raised TypeError, not ValueError."""
+    import gymnasium as gym
+
+    import av_gym  # noqa: F401 - registers the ids
+
+    with pytest.raises(ValueError) as err:
+        gym.make("av_gym/UnprotectedLeftTurn-v0", sensors=sensors)
+    assert needle in str(err.value), str(err.value)
+
+
+def test_a_checkpoint_without_config_yaml_is_not_told_to_see_it(tmp_path):
+    """a checkpoint folder without config.yaml was told to "see its config.yaml"."""
+    from agents.ppo import PPOAgent
+    from av_gym.errors import ConfigError
+    from av_gym.make import make_env
+
+    (tmp_path / "bare").mkdir()
+    shutil.copy(REF / "ppo_turn" / "model.zip", tmp_path / "bare" / "model.zip")
+    env = make_env({"name": "left_turn"}, {"name": "truth"}, None)
+    try:
+        with pytest.raises(ConfigError) as err:
+            PPOAgent.load(tmp_path / "bare" / "model.zip", env)
+    finally:
+        env.close()
+    assert "see its config.yaml" not in str(err.value)
+    assert "it has no config.yaml beside it saying which sensors preset and env settings it was trained with" in \
+        str(err.value)
+
+
+def test_a_zip_with_a_garbage_policy_is_one_whole_line_without_torch_advice(tmp_path):
+    """a zip with a garbage policy.pth got torch's message cut mid-sentence, suggesting weights_only=False
+    (which would run whatever the file holds)."""
+    import zipfile
+
+    from agents.checkpoint import load_sb3
+    from agents.ppo import PPOAgent
+    from av_gym.errors import ConfigError
+
+    bad = tmp_path / "model.zip"
+    with zipfile.ZipFile(REF / "ppo_turn" / "model.zip") as z, zipfile.ZipFile(bad, "w") as out:
+        for name in z.namelist():
+            out.writestr(name, os.urandom(500) if name == "policy.pth" else z.read(name))
+    for load in (lambda: load_sb3(bad, device="cpu"), lambda: PPOAgent.load(bad, None)):
+        with pytest.raises(ConfigError) as err:
+            load()
+        text = str(err.value)
+        assert "weights_only" not in text and "\n" not in text and text.endswith("re-copy it or retrain"), text
+        assert "a tensor member (policy.pth: the weights) is not one torch reads as plain tensors" in text, text
+
+
+def test_a_long_message_ends_at_a_whole_sentence():
+    from agents.checkpoint import _one_line
+
+    text = _one_line(ValueError("First sentence here. " * 5 + "x" * 300))
+    assert text.endswith("here.") and len(text) <= 200

@@ -10,8 +10,8 @@
   as it was (it used to overwrite config.yaml first) and a resume of a run that does not exist writes nothing;
 - while a process trains a run it holds an exclusive ``flock`` on ``checkpoints/<run_name>/.lock``; a second process
   on the same run is refused in one line. The kernel drops the lock when the holder exits however it exits
-  (kill -9 included), so a crashed run can be resumed at once (:mod:`av_gym.locks`, which ``python -m eval`` takes
-  its out_dir with too);
+  (kill -9 included), so a crashed run can be resumed at once (:class:`av_gym.atomic.OwnedFolders`, which
+  ``python -m eval`` takes its out_dir with too);
 - a finished run (its ``model.zip``, written by every trainer only once it is done) is not resumed: resuming it
   retrained from ``latest.zip`` and replaced ``model.zip`` with another model. Every trainer is treated
   alike: ``latest.zip`` is what a resume continues (PPO: at a rollout, DAgger: at a round), ``model.zip`` what ends
@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from av_gym.errors import ConfigError
-from av_gym.locks import LOCK, OwnedFolders, lock_holder
+from av_gym.atomic import LOCK, OwnedFolders, lock_holder
 
 SECTIONS = ("env", "sensors", "shield", "agent")
 # What may differ on resume: how long to train (PPO's steps, DAgger's rounds) and where, not what is trained.
