@@ -149,7 +149,7 @@ def make_ppo(env: VecEnv, hyper: dict[str, Any], *, seed: int, tensorboard_log: 
         key = "features_dim" if hyper.get("policy") == "CnnPolicy" else "cnn_output_dim"
         policy_kwargs["features_extractor_kwargs"] = {key: int(hyper["cnn_output_dim"])}
     if hyper.get("extractor", "mlp") == "attention":  # the left turn's road users through ego-attention
-        from agents.attention import EgoAttention
+        from av_gym_sb3.attention import EgoAttention
 
         policy_kwargs["features_extractor_class"] = EgoAttention
         policy_kwargs["features_extractor_kwargs"] = {"embed_dim": int(hyper.get("attention_dim", 64)),

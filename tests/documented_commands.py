@@ -97,6 +97,11 @@ KNOWN: dict[str, str] = {
     # README.md
     "python3 -m venv .venv && . .venv/bin/activate && pip install torch==2.13.0 && pip install -e . && python -m train":
         "covered:tests/test_cli.py::test_train_writes_checkpoint_config_tensorboard_and_prints_where",
+    # the same with torch from PyTorch's CPU index (stock PyPI on a CPU-only machine): what follows the torch pin is
+    # the command above, which that test runs; this machine's index serves the CPU build under the plain pin
+    "python3 -m venv .venv && . .venv/bin/activate && pip install torch==2.13.0 --index-url "
+    "https://download.pytorch.org/whl/cpu && pip install -e . && python -m train":
+        "covered:tests/test_cli.py::test_train_writes_checkpoint_config_tensorboard_and_prints_where",
     "python3 -m venv .venv && . .venv/bin/activate && pip install torch==2.13.0 && pip install -e .[test] && "
     "python -m pytest -q -n auto -m 'not slow'": "ci",
     "python -m pytest -q -n auto -m slow": "ci",

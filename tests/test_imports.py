@@ -10,7 +10,7 @@ import functools
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("av_gym", "agents", "conf", "train", "eval", "av_gym_harness")
+PACKAGES = ("av_gym", "av_gym_sb3", "agents", "conf", "train", "eval", "av_gym_harness")
 
 # unit → floor. A unit is a top-level package, or ``av_gym.<module or subpackage>``; ``av_gym`` itself is the
 # package's __init__ (the Gymnasium ids). Units on one floor do not import each other.
@@ -24,9 +24,11 @@ FLOORS = {
     "av_gym.sensors": 3,                                        # sensor models, wrappers over any env
     "av_gym.estimation": 4,                                     # EKF, tracker, features from sensor readings
     "av_gym.envs": 5, "av_gym.shields": 5, "av_gym.wrappers": 5,  # scenarios; shields; action/observation wrappers
-    "av_gym.make": 6, "av_gym.presets": 6,                      # config → env + sensors + shield; shipped presets
+    "av_gym.presets": 5.5,                                      # the shipped presets, composed from their Params
+    "av_gym.make": 6,                                           # config → env + sensors + shield
     "av_gym.batched": 7,                                        # the batched left turn (reuses all of the above)
     "av_gym.api": 8,                                            # the registered ids' entry points (gym.make/make_vec)
+    "av_gym_sb3": 8.5,                                          # torch classes that saved models name (RL stack)
     "agents": 9,
     "conf": 10,
     "eval": 11,
@@ -36,7 +38,7 @@ FLOORS = {
 # third-party libraries that only the harness may use: the library (every av_gym unit) stays free of the RL stack,
 # so that gym.make / gymnasium.make_vec load neither
 RL_LIBRARIES = ("stable_baselines3", "torch")
-RL_FLOOR = FLOORS["agents"]
+RL_FLOOR = FLOORS["av_gym_sb3"]
 
 
 def unit_of(module: str) -> str:

@@ -126,7 +126,7 @@ def _extractor_inputs(n_present: int, seed: int = 0):
 
 
 def test_ego_attention_ignores_the_order_of_road_users_and_absent_rows():
-    from agents.attention import EgoAttention
+    from av_gym_sb3.attention import EgoAttention
 
     space, turn, intent = _extractor_inputs(n_present=5)
     th.manual_seed(0)
