@@ -81,8 +81,14 @@ def left_turn_vector(num_envs: int, *, env: Mapping | None = None, sensors: Any 
     batch, :mod:`av_gym.batched.vec_env`), what ``gymnasium.make_vec(id, n)`` gives when no
     ``vectorization_mode`` is named. It runs the ``turn_truth`` sensors without a shield; anything else is refused
     in one line (``vectorization_mode="sync"`` or ``"async"`` runs every stack)."""
+    import numbers
+
     from av_gym.batched.vec_env import BatchedLeftTurnVectorEnv, check_batchable
 
+    # the batch's rows are allocated at once: 0 or -1 failed deep in numpy, 1e9 asked for 179 GiB, 2.5 passed; the
+    # bound is the one agent.n_envs has for the same engine (its speed is flat well before it)
+    if isinstance(num_envs, bool) or not isinstance(num_envs, numbers.Integral) or not 1 <= num_envs <= 4096:
+        raise ConfigError(f"num_envs must be an integer in [1, 4096] (the batched engine's rows), got {num_envs!r}")
     other = 'use gymnasium.make_vec(..., vectorization_mode="sync" or "async") for it'
     if config is not None:
         raise ConfigError(f"config= is not available with the batched engine (give env={{...}}); {other}")

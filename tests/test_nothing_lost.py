@@ -593,3 +593,17 @@ def test_a_long_message_ends_at_a_whole_sentence():
 
     text = _one_line(ValueError("First sentence here. " * 5 + "x" * 300))
     assert text.endswith("here.") and len(text) <= 200
+
+
+# ------------------------------------------------------------------------------------------ make_vec's num_envs
+@pytest.mark.parametrize("num_envs", [0, -1, 10**9, 2.5, True])
+def test_make_vec_takes_an_integer_number_of_envs_in_its_bounds(num_envs):
+    """0 and -1 failed deep in numpy, 1e9 asked for 179 GiB, 2.5 passed: one ValueError naming the field. (With
+    ``vectorization_mode="sync"`` or ``"async"`` Gymnasium's own classes take num_envs before any av_gym code runs.)"""
+    import gymnasium as gym
+
+    import av_gym  # noqa: F401 - registers the ids
+
+    with pytest.raises(ValueError, match=r"num_envs must be an integer in \[1, 4096\] \(the batched engine's rows\), "
+                                         rf"got {num_envs!r}"):
+        gym.make_vec("av_gym/UnprotectedLeftTurn-v0", num_envs=num_envs, sensors="turn_truth")
