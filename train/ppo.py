@@ -508,8 +508,13 @@ def learn(model, venv, params, callbacks: list, guard, checkpoint, progress_bar:
     except KeyboardInterrupt:
         if checkpoint.model is not None:  # learning had started
             checkpoint.save()
-        print(f"[train] interrupted at {model.num_timesteps} env steps; checkpoint {checkpoint.folder / 'latest.zip'} "
-              f"(continue with run_name={run_name} train.resume=true)")
+        latest = checkpoint.folder / "latest.zip"
+        if latest.is_file():  # name only what exists
+            print(f"[train] interrupted at {model.num_timesteps} env steps; checkpoint {latest} (continue with "
+                  f"run_name={run_name} train.resume=true)")
+        else:
+            print(f"[train] interrupted before PPO's first rollout: nothing was kept (no latest.zip); start the run "
+                  f"again (train.overwrite=true to reuse run_name={run_name})")
         raise
     finally:
         signal.signal(signal.SIGTERM, previous)
