@@ -16,8 +16,8 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from av_gym.errors import ConfigError, check_folder, discard_hydra_run_dir, folder_problem, run_cli, run_hydra
 from av_gym.atomic import LOCK, OwnedFolders, lock_holder
+from av_gym.errors import ConfigError, check_folder, discard_hydra_run_dir, folder_problem, run_cli, run_hydra
 
 OUT_DIRS = OwnedFolders()  # the out_dirs this process is writing
 

@@ -199,6 +199,34 @@ def test_a_second_evaluation_into_the_same_out_dir_is_refused(tmp_path, monkeypa
     assert sorted(p.name for p in tmp_path.rglob("*")) == [".lock", "X"]  # the holder's lock, nothing else
 
 
+@pytest.mark.slow  # a real evaluation left running while a second one starts (~15 s)
+def test_two_evaluations_into_one_out_dir_the_second_is_refused_and_the_first_keeps_its_rows(tmp_path):
+    import signal
+    import time
+
+    env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    first = subprocess.Popen([sys.executable, "-m", "eval", "agents=[always_proceed]", "episodes=100000",
+                              "out_dir=X", "progress_bar=false"], cwd=tmp_path, env=env, stdout=subprocess.DEVNULL,
+                             stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.time() + 120
+        while not (tmp_path / "X" / ".lock").is_file() and time.time() < deadline:
+            assert first.poll() is None, first.stderr.read()[-2000:]
+            time.sleep(0.2)
+        second = run(["-m", "eval", "agents=[always_proceed]", "episodes=5", "out_dir=X", "progress_bar=false"],
+                     tmp_path)
+        err = [line for line in second.stderr.splitlines() if line.strip()]
+        assert second.returncode == 2 and len(err) == 1 and f"another evaluation (pid {first.pid}) is writing it" \
+            in err[0], second.stderr[-2000:]
+        time.sleep(2)
+    finally:
+        first.send_signal(signal.SIGTERM)  # keeps the episodes it measured
+        first.wait(60)
+    rows = (tmp_path / "X" / "results.csv").read_text().splitlines()
+    assert len(rows) > 1 and "(interrupted after" in (tmp_path / "X" / "results.md").read_text()
+    assert not (tmp_path / "X" / ".lock").exists() and not (tmp_path / "runs").exists()
+
+
 def test_an_evaluation_holds_its_out_dir_then_leaves_no_lock(tmp_path, monkeypatch, released):
     from eval import __main__ as eval_main
 

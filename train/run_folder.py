@@ -29,8 +29,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from av_gym.errors import ConfigError
 from av_gym.atomic import LOCK, OwnedFolders, lock_holder
+from av_gym.errors import ConfigError
 
 SECTIONS = ("env", "sensors", "shield", "agent")
 # What may differ on resume: how long to train (PPO's steps, DAgger's rounds) and where, not what is trained.
