@@ -122,6 +122,12 @@ def cli(module: str, *overrides: str, cwd: Path) -> subprocess.CompletedProcess:
     finally:
         sys.argv = argv
         os.chdir(here)
+        # a passing check locks the run or out_dir for its process, here pytest's: the command's own check takes it
+        from eval.__main__ import OUT_DIRS
+        from train.run_folder import release_all
+
+        release_all()
+        OUT_DIRS.release_all()
     return run(module, *overrides, cwd=cwd)
 
 

@@ -635,3 +635,13 @@ def test_make_vec_takes_an_integer_number_of_envs_in_its_bounds(num_envs):
     with pytest.raises(ValueError, match=r"num_envs must be an integer in \[1, 4096\] \(the batched engine's rows\), "
                                          rf"got {num_envs!r}"):
         gym.make_vec("av_gym/UnprotectedLeftTurn-v0", num_envs=num_envs, sensors="turn_truth")
+
+
+def test_a_command_line_that_passes_the_check_in_the_test_process_still_runs(tmp_path):
+    """``tests/conftest.py: cli`` runs the check in pytest's process first; the out_dir lock it took is released,
+    so the command itself is not refused as "another evaluation"."""
+    from tests.conftest import cli
+
+    res = cli("eval", "agents=[always_proceed]", "episodes=1", "out_dir=X", "progress_bar=false", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert sorted(p.name for p in (tmp_path / "X").iterdir()) == ["results.csv", "results.md"]
