@@ -19,8 +19,9 @@ class TrainOptions(Params):
     """``train.*``: checkpoints, the evaluations during and after training, progress."""
 
     checkpoint_every: int = param(8000, "env steps", ge=1, doc="between atomic checkpoints (latest.zip, RNG states inside)")
-    resume: bool = param(False, doc="continue checkpoints/<run_name>/latest.zip to the same total steps (the "
-                                    "run's config.yaml must match this one)")
+    resume: bool = param(False, doc="continue an interrupted run from checkpoints/<run_name>/latest.zip (PPO: to "
+                                    "the same total steps; DAgger: from the next round); the run's config.yaml "
+                                    "must match this one, and a finished run (its model.zip) is refused")
     overwrite: bool = param(False, doc="a run_name whose checkpoints/ or runs/ folder exists is refused unless "
                                        "resuming; true deletes that run's folders first and starts afresh")
     eval_episodes: int = param(100, "episodes", ge=0, le=EPISODES_MAX, doc="brief evaluation after training, seeds eval_seed.. "
