@@ -89,6 +89,7 @@ AGENT_KINDS = Registry("agent.kind", {
     "always_proceed": "agents.rules:AlwaysProceedAgent",
     "gap_acceptance": "agents.go_yield:GapAcceptanceAgent",
     "lookahead": "agents.go_yield:LookaheadAgent",
+    "belief_lookahead": "agents.belief:BeliefLookaheadAgent",
 })
 """``agent.kind`` → its :class:`AgentKind`."""
 

@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from av_gym.errors import ConfigError
 
-KINDS = ("always_proceed", "gap_acceptance", "lookahead", "ppo", "dagger")
+KINDS = ("always_proceed", "gap_acceptance", "lookahead", "belief_lookahead", "ppo", "dagger")
 NO_OBS_SENSORS = {"name": "turn_truth", "turn_features": {"source": "truth"}, "observe": ["turn"]}
 
 
@@ -68,6 +68,7 @@ class _Decider:
 
     def __init__(self, policy, engine) -> None:
         from agents import AlwaysProceed
+        from agents.belief import BeliefLookahead, BeliefPlanner
         from agents.go_yield import GapAcceptance, Lookahead
         from agents.ppo import SB3Policy
         from av_gym.wrappers import YIELD
@@ -86,6 +87,11 @@ class _Decider:
             self.kind = "always_proceed"
         elif isinstance(policy, GapAcceptance):
             self.kind = "gap_acceptance"
+        elif isinstance(policy, BeliefLookahead):  # its planner for every row: beliefs per row, K futures each
+            self.kind = "belief_lookahead"
+            self.planner = BeliefPlanner(policy.params, n_rows=n)
+            self.k = np.zeros(n, dtype=int)
+            self.choice = np.full(n, YIELD)
         elif isinstance(policy, Lookahead):  # no shield on the batch, so plan_with_shield changes nothing here
             self.kind = "lookahead"
             self.k = np.zeros(n, dtype=int)  # Lookahead._t
@@ -100,6 +106,9 @@ class _Decider:
             self.k[rows], self.held[rows] = 0, 0
         elif self.kind == "lookahead":
             self.k[rows], self.choice[rows] = 0, YIELD
+        elif self.kind == "belief_lookahead":
+            self.k[rows], self.choice[rows] = 0, YIELD
+            self.planner.reset(rows)
 
     def act(self, obs: dict, live: np.ndarray) -> np.ndarray:
         """Meta-actions (n,) for the envs ``live`` (the others get IDLE, unused)."""
@@ -119,6 +128,15 @@ class _Decider:
             ask = rows[(self.choice[rows] != GO) & (self.k[rows] % self.policy.repeat == 0)]
             if len(ask):
                 self.choice[ask] = oracle_labels(self.engine, ask)[0]
+            self.k[rows] += 1
+            out[rows] = meta_actions(self.choice[rows], obs["turn"][rows])
+        elif self.kind == "belief_lookahead":  # BeliefLookahead.act for every row: every reading, then the decisions
+            from av_gym.wrappers import GO
+
+            self.planner.read(self.engine, rows, obs["intent"][rows])
+            ask = rows[(self.choice[rows] != GO) & (self.k[rows] % self.policy.repeat == 0)]
+            if len(ask):
+                self.choice[ask] = self.planner.labels(self.engine, ask)
             self.k[rows] += 1
             out[rows] = meta_actions(self.choice[rows], obs["turn"][rows])
         else:

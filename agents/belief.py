@@ -1,0 +1,360 @@
+"""``belief_lookahead``: the look-ahead planner that knows only what the car can know.
+
+The oracle (:mod:`agents.batched_oracle`) plays the real GO future of an episode: the other drivers' routes, their
+IDM draws and the traffic still to spawn are the simulator's own. This planner plays K futures per decision, each
+consistent with what the car observes and nothing else, and goes when the share of them that end in a collision is
+at most ``threshold``. The gap between the two is the value of the information no sensor has; the gap between this
+planner and a student is learning still to do (docs/dagger.md, "Information vs learning").
+
+What a future keeps (observable): every road user's position, heading, speed, its current lane (the closest lane,
+a function of the pose), whether it has crashed, the ego's whole state, the clock. What a future redraws (hidden,
+the engine's draws in :meth:`av_gym.batched.left_turn.BatchedLeftTurn._spawn`):
+
+- each driver's destination, from its route belief: the shield's Bayes filter over (turn, driver kind)
+  (:class:`av_gym.shields.intent.DriverIntent`) fed with every indicator reading the car got of that driver
+  (``obs["intent"][..., 1]``, the turn-signal channel), times the geometry: a driver already inside the
+  intersection can only be on a crossing lane whose centreline its pose still fits (``gate``); on the exit road
+  the destination is known;
+- its IDM exponent ``delta`` ~ U(3.5, 4.5) and its cruise set-point ~ 8 + N(0, 1) m/s, the spawn draws, and no
+  regulation yield carried over (the regulation re-decides within 0.5 s on the drawn routes);
+- future spawns: the spawn process on a fresh generator per future, never the row's own generator (that one
+  holds the real future).
+
+Every draw comes from ``SeedSequence([seed, episode_seed, tick])``: the same episode and decision time give the same
+decision whatever the batch, and no draw depends on the hidden state (tests/test_belief.py re-randomises it).
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import gymnasium as gym
+import numpy as np
+
+from agents.batched_oracle import future_rows
+from agents.registry import AgentKind, AgentParams
+from av_gym.params import param
+from av_gym.sensors.turn_signal import TurnSignalsParams, node_index
+from av_gym.shields.intent import DriverIntent
+from av_gym.wrappers import GO, YIELD, meta_action
+
+__all__ = ["BeliefLookahead", "BeliefLookaheadAgent", "BeliefLookaheadParams", "BeliefPlanner"]
+
+SPAWN_SPEED, SPAWN_SPEED_SD = 8.0, 1.0  # IntersectionEnv._spawn_vehicle: speed = 8 + N(0, 1) (also the set-point)
+DELTA_RANGE = (3.5, 4.5)  # IDMVehicle.randomize_behavior
+SPEED_LIMIT = 10.0  # every lane's: a driver the regulation releases takes it as its set-point
+P_RELEASED, P_HELD = 0.02, 0.02  # prior shares of drivers released / held by the regulation (validation states)
+ACC_SIGMA = 0.3  # m/s², the spread of an observed acceleration about the IDM command of the right behaviour
+PARTICLES = 64  # behaviour particles per driver before the resampling
+
+
+@dataclass(frozen=True)
+class BeliefLookaheadParams(AgentParams):
+    """The belief-space look-ahead planner (conf/agent/belief_lookahead.yaml)."""
+
+    kind: Literal["belief_lookahead"] = param("belief_lookahead")
+    name: str = param("belief_lookahead")
+    scenarios: tuple[str, ...] = param(("left_turn",))
+    repeat: int = param(5, "env steps", ge=1, doc="env steps between decisions (2 Hz, as the oracle)")
+    samples: int = param(8, ge=1, le=256, doc="futures drawn per decision (K); chosen on validation seeds "
+                                              "(docs/dagger.md, Information vs learning)")
+    threshold: float = param(0.1, ge=0, le=1, doc="GO when at most this share of the GO futures collide; chosen "
+                                                  "on validation seeds")
+    seed: int = param(0, ge=0, doc="the planner's own seed (with the episode and the decision time)")
+    gate: float = param(0.5, "m + rad", gt=0, doc="a crossing lane is still possible for a driver inside the "
+                                                  "intersection while its distance_with_heading is within this of "
+                                                  "the closest lane's")
+    floor: float = param(0.02, gt=0, lt=1, doc="the Bayes filter's likelihood floor (the shield's DriverIntent)")
+
+
+def _lane_kinds(T) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per lane id: kind (0 approach o→ir, 1 crossing ir→il, 2 exit il→o), origin approach, destination exit (-1
+    where the lane does not say)."""
+    kind, origin, dest = [], [], []
+    for f, t, _ in T.index:
+        if f.startswith("o") and t.startswith("ir"):
+            kind.append(0), origin.append(node_index(t, "ir")), dest.append(-1)
+        elif f.startswith("ir"):
+            kind.append(1), origin.append(node_index(f, "ir")), dest.append(node_index(t, "il"))
+        else:
+            kind.append(2), origin.append(-1), dest.append(node_index(t, "o"))
+    return np.array(kind), np.array(origin), np.array(dest)
+
+
+class BeliefPlanner:
+    """The planner for the rows of a :class:`~av_gym.batched.left_turn.BatchedLeftTurn` (traffic mode): the route
+    belief of each row's drivers (:meth:`read`, at every env step) and the collision probability of GO now
+    (:meth:`go_collision`)."""
+
+    def __init__(self, params: BeliefLookaheadParams | None = None, signals: TurnSignalsParams | None = None,
+                 n_rows: int = 0) -> None:
+        self.params = p = params or BeliefLookaheadParams()
+        self.signals = signals or TurnSignalsParams()
+        self.K, self.threshold, self.seed, self.gate = int(p.samples), float(p.threshold), int(p.seed), float(p.gate)
+        self.filter = DriverIntent(self.signals, floor=float(p.floor))
+        self.counts: list[dict[int, np.ndarray]] = [{} for _ in range(n_rows)]
+        self._tables = None
+        self.particles = PARTICLES
+
+    # ------------------------------------------------------------------------------------------- the belief
+    def reset(self, rows) -> None:
+        """Forget the drivers of the rows ``rows`` (their new episodes)."""
+        for r in np.asarray(rows, dtype=int):
+            while r >= len(self.counts):
+                self.counts.append({})
+            self.counts[r] = {}
+
+    def read(self, engine, rows, intent: np.ndarray) -> None:
+        """One indicator reading per driver the car sees: ``intent`` (len(rows), M, 2) is ``obs["intent"]`` of
+        ``rows`` (its column 1: the reading attached to each described object), the engine as it was observed.
+        A driver beyond the indicator sensor's range gives no reading (its 0 there is not a "none seen")."""
+        rows = np.asarray(rows, dtype=int)
+        self.reset([r for r in rows if r >= len(self.counts)])
+        slots, present, d = described(engine, rows)
+        vid = np.take_along_axis(engine.traffic.vid[rows], slots, 1)
+        read = present & (d <= float(self.signals.max_range))
+        sig = np.asarray(intent)[:, : slots.shape[1], 1]
+        col = np.where(sig < 0, 0, np.where(sig > 0, 2, 1))  # counts of (-1, 0, +1) readings
+        for n, m in zip(*np.nonzero(read)):
+            c = self.counts[rows[n]].setdefault(int(vid[n, m]), np.zeros(3, dtype=int))
+            c[col[n, m]] += 1
+
+    def turn_probabilities(self, rows, vids: np.ndarray) -> np.ndarray:
+        """P(turn | readings) (right, straight, left) for vehicles ``vids`` (n, N) of ``rows``: the posterior's
+        turn marginal (uniform for a driver never read)."""
+        n, N = vids.shape
+        counts = np.zeros((n, N, 3))
+        for i, r in enumerate(rows):
+            known = self.counts[r]
+            if known:
+                for j, v in enumerate(vids[i]):
+                    c = known.get(int(v))
+                    if c is not None:
+                        counts[i, j] = c
+        post = self.filter.posterior(counts.reshape(-1, 3)).reshape(n, N, 3, 3).sum(axis=3)
+        return post
+
+    # ------------------------------------------------------------------------------------------- the futures
+    def go_collision(self, engine, rows) -> np.ndarray:
+        """The estimated probability that GO now ends in a collision, for each of ``rows``: the share of K
+        futures (drawn as the module docstring says) whose GO play collides."""
+        rows = np.asarray(rows, dtype=int)
+        if len(rows) == 0:
+            return np.zeros(0)
+        f = self.futures(engine, rows)
+        safe = play_go_fast(f)
+        return 1.0 - safe.reshape(len(rows), self.K).mean(axis=1)
+
+    def labels(self, engine, rows) -> np.ndarray:
+        """GO where the estimated collision probability of GO is at most ``threshold``, else YIELD."""
+        p = self.go_collision(engine, rows)
+        return np.where(p <= self.threshold + 1e-12, GO, YIELD).astype(np.int64)
+
+    def futures(self, engine, rows: np.ndarray):
+        """A future engine of len(rows)·K rows: each row repeated K times, its hidden draws replaced."""
+        K = self.K
+        blind = copy.copy(engine)  # the rows' own generators hold the real future: the futures never get them
+        blind.rngs = [None] * engine.B
+        f = future_rows(blind, np.repeat(rows, K))
+        t, T = f.traffic, engine.T
+        if self._tables is not T:
+            self._tables = T
+            self._kind, self._origin, self._dest = _lane_kinds(T)
+            self._cross = {(int(o), int(d)): k for k, (kd, o, d) in
+                           enumerate(zip(self._kind, self._origin, self._dest)) if kd == 1}
+            self._approach = {int(o): k for k, (kd, o) in enumerate(zip(self._kind, self._origin)) if kd == 0}
+            self._exit = {int(d): k for k, (kd, d) in enumerate(zip(self._kind, self._dest)) if kd == 2}
+        n, N = len(rows), t.N
+        drivers = engine.traffic.alive[rows] & ~engine.traffic.ego[rows] & ~engine.traffic.plain[rows]  # (n, N)
+        # every draw of a decision from its own stream: the planner's seed, the episode, the decision's tick
+        P = self.particles
+        u, u_b = np.zeros((n, K, N)), np.zeros((n, K, N))
+        delta, target, hold = np.zeros((n, N, P)), np.zeros((n, N, P)), np.zeros((n, N, P), bool)
+        spawn_rngs = []
+        for i, r in enumerate(rows):
+            ss = np.random.SeedSequence([self.seed, int(engine.episode_seed[r]) % 2**63, int(engine.ticks[r])])
+            child, spawn = ss.spawn(2)
+            g = np.random.default_rng(child)
+            u[i], u_b[i] = g.random((K, N)), g.random((K, N))
+            delta[i], target[i], hold[i] = self._behaviour_prior(g, (N, P))
+            spawn_rngs += [np.random.Generator(np.random.PCG64(s)) for s in spawn.spawn(K)]
+        f.rngs = spawn_rngs
+        delta, target, hold = self._behaviour_posterior(engine, rows, delta, target, hold, u_b)  # (n, K, N)
+        dest = self._destinations(engine, rows, u)  # (n, K, N)
+        # the route a spawn gives (o_i → ir_i, ir_i → il_d, il_d → o_d) and where along it the driver is now: the
+        # step of its current lane; follow_road moves it on at the next tick when it is already past a lane's end
+        src = engine.traffic
+        lane = src.lane[rows]
+        kind, origin = self._kind[lane], self._origin[lane]
+        origin = np.where(kind == 2, (self._dest[lane] + 2) % 4, origin)  # on the exit road the origin is unused
+        o = np.broadcast_to(origin[:, None, :], dest.shape)
+        appr = np.vectorize(lambda a: self._approach.get(int(a), -1))(o)
+        cross = np.vectorize(lambda a, b: self._cross.get((int(a), int(b)), -1))(o, dest)
+        exit_ = np.vectorize(lambda b: self._exit.get(int(b), -1))(dest)
+        route = np.stack([appr, cross, exit_], axis=-1).reshape(n * K, N, 3)
+        rpos = np.broadcast_to(kind[:, None, :], dest.shape).reshape(n * K, N)
+        m = np.repeat(drivers, K, axis=0)  # (n·K, N)
+        t.route = np.where(m[..., None], route, t.route)
+        t.rpos = np.where(m, rpos, t.rpos)
+        t.tlane = np.where(m, np.take_along_axis(t.route, np.clip(t.rpos, 0, 2)[..., None], 2)[..., 0], t.tlane)
+        t.delta = np.where(m, delta.reshape(n * K, N), t.delta)
+        t.target = np.where(m, target.reshape(n * K, N), t.target)
+        t.yielding = np.where(m, hold.reshape(n * K, N), t.yielding)
+        return f
+
+    def _behaviour_prior(self, g: np.random.Generator, shape: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Particles of a driver's behaviour (IDM exponent, set-point, held by the regulation now) from the
+        traffic's own prior: a spawn's delta ~ U(3.5, 4.5) and set-point = its spawn speed 8 + N(0, 1); a driver
+        the regulation released cruises at the lane's limit instead, one it holds has set-point 0 (each with
+        ``P_RELEASED`` / ``P_HELD``, the shares measured on validation states, tests/test_belief.py)."""
+        delta = g.uniform(*DELTA_RANGE, size=shape)
+        kind = g.random(shape)
+        target = np.where(kind < P_RELEASED, SPEED_LIMIT, SPAWN_SPEED + SPAWN_SPEED_SD * g.standard_normal(shape))
+        hold = kind > 1.0 - P_HELD
+        return delta, np.where(hold, 0.0, target), hold
+
+    def _behaviour_posterior(self, engine, rows, delta, target, hold, u):
+        """Resample the behaviour particles (n, N, P) by the likelihood of each driver's observed acceleration
+        (its last command, ``traffic.acc``) under IDM with that particle: ``a = clip(a_max (1 - (v / v0)^delta) -
+        a_int)``, the interaction term ``a_int`` computed from the observed leader (it does not depend on the
+        driver's own draws), Gaussian noise ``ACC_SIGMA``; then K draws per driver (n, K, N) by inverse CDF."""
+        from av_gym.sim.batched import ACC_MAX, COMFORT_ACC_MAX, not_zero
+
+        src = engine.traffic
+        sub = src.subset(rows)
+        v, lane = sub.v, sub.lane
+        limit = engine.T.speed_limit[lane]
+        # the leader's term: IDM with the set-point at the speed (free term 0 there), minus that free term
+        sub.target = np.maximum(v, 0.0)
+        free0 = COMFORT_ACC_MAX * (1 - np.power(np.maximum(v, 0) / np.abs(not_zero(np.clip(sub.target, 0, limit))),
+                                                sub.delta))
+        a_int = free0 - sub._idm_acc(sub._front(lane))  # (n, N), >= 0
+        v0 = np.abs(not_zero(np.clip(target, 0, limit[..., None])))
+        a = COMFORT_ACC_MAX * (1 - np.power(np.maximum(v, 0)[..., None] / v0, delta)) - a_int[..., None]
+        a = np.clip(a, -ACC_MAX, ACC_MAX)
+        logw = -0.5 * ((a - src.acc[rows][..., None]) / ACC_SIGMA) ** 2
+        ok = ~(src.crashed[rows] | src.ego[rows] | ~src.alive[rows])
+        logw = np.where(ok[..., None], logw, 0.0)
+        w = np.exp(logw - logw.max(axis=-1, keepdims=True))
+        cdf = np.cumsum(w, axis=-1)
+        cdf /= cdf[..., -1:]
+        k = (u[..., None] >= np.swapaxes(cdf, 0, 0)[:, None]).sum(axis=-1)  # (n, K, N)
+        k = np.minimum(k, w.shape[-1] - 1)
+        pick = lambda a_: np.take_along_axis(np.broadcast_to(a_[:, None], (*u.shape, a_.shape[-1])),  # noqa: E731
+                                             k[..., None], -1)[..., 0]
+        return pick(delta), pick(target), pick(hold)
+
+    def _destinations(self, engine, rows: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Each driver's destination per future (n, K, N), drawn by inverse CDF from the uniforms ``u``:
+        P(turn | readings) on the approach; that times the crossing lanes its pose still fits inside the
+        intersection; the exit it is on after it."""
+        src, T = engine.traffic, engine.T
+        lane = src.lane[rows]  # (n, N): the closest lane, a function of the pose
+        kind, origin = self._kind[lane], self._origin[lane]
+        p_turn = self.turn_probabilities(rows, src.vid[rows])  # (n, N, 3): right, straight, left
+        # destinations in the same order: right (o-1), straight (o+2), left (o+1)
+        cand = (origin[..., None] + np.array([-1, 2, 1])) % 4  # (n, N, 3)
+        p = p_turn.copy()
+        inside = kind == 1
+        if inside.any():
+            b, j = np.nonzero(inside)
+            x, y, h = src.x[rows][b, j], src.y[rows][b, j], src.h[rows][b, j]
+            lanes = np.vectorize(lambda a, c: self._cross.get((int(a), int(c)), -1))(origin[b, j][:, None],
+                                                                                       cand[b, j])
+            d = np.stack([T.distance_with_heading(lanes[:, k], x, y, h) for k in range(3)], axis=1)
+            fits = d <= d.min(axis=1, keepdims=True) + self.gate
+            q = p[b, j] * fits
+            q = np.where(q.sum(axis=1, keepdims=True) > 0, q, fits.astype(float))
+            p[b, j] = q
+        p = p / p.sum(axis=-1, keepdims=True)
+        cdf = np.cumsum(p, axis=-1)  # (n, N, 3)
+        k = (u[..., None] >= cdf[:, None, :, :2]).sum(axis=-1)  # (n, K, N) in {0, 1, 2}
+        dest = np.take_along_axis(np.broadcast_to(cand[:, None], (*u.shape, 3)), k[..., None], -1)[..., 0]
+        on_exit = np.broadcast_to((kind == 2)[:, None, :], dest.shape)
+        return np.where(on_exit, np.broadcast_to(self._dest[lane][:, None, :], dest.shape), dest)
+
+
+def play_go_fast(f) -> np.ndarray:
+    """Whether each row of the future engine ``f`` ends without a collision when the ego goes (GO at every env
+    step, to the episode's end): :func:`agents.batched_oracle.play_go` without its features and margins. GO's
+    meta-action needs only the ego's set-point (GO asks for the top one; meta_action: FASTER below it, SLOWER
+    above, IDLE at it), so no feature is computed."""
+    from av_gym.sim.batched import FASTER, IDLE, SLOWER
+
+    safe = np.ones(f.B, bool)
+    idx = np.arange(f.B)  # the rows of the original future that ``f`` still holds
+    top = float(f.speeds[-1])
+    while len(idx):
+        n = f.B
+        sp = f.traffic.target[np.arange(n), f.ego_slot()]
+        meta = np.where(top > sp + 1e-3, FASTER, np.where(top < sp - 1e-3, SLOWER, IDLE))
+        _, terminated, truncated = f.step(meta)
+        ended = terminated | truncated
+        if ended.any():
+            e = np.nonzero(ended)[0]
+            safe[idx[e]] = ~f.traffic.crashed[e, f.ego_slot(e)]
+            keep = np.nonzero(~ended)[0]
+            idx = idx[keep]
+            if len(idx):  # the engine steps every row it holds: drop the ended ones (their generators go on)
+                f = future_rows(f, keep)
+    return safe
+
+
+def described(engine, rows) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The slots ``obs["turn"]`` describes for ``rows``, nearest first (BatchedLeftTurn.observe's order: a stable
+    sort of the others' distances, the first ``max_objects``), whether each is within ``max_range``, and its
+    distance (m)."""
+    t = engine.traffic
+    rows = np.asarray(rows, dtype=int)
+    e = engine.ego_slot(rows)
+    ex, ey = t.x[rows, e], t.y[rows, e]
+    other = t.alive[rows] & ~t.ego[rows]
+    d = np.where(other, np.hypot(t.x[rows] - ex[:, None], t.y[rows] - ey[:, None]), np.inf)
+    order = np.argsort(d, axis=1, kind="stable")[:, : engine.max_objects]
+    dn = np.take_along_axis(d, order, 1)
+    max_range = getattr(engine, "max_range", None)  # the engine's own, or its TurnFeaturesParams'
+    max_range = float(engine.features.max_range if max_range is None else max_range)
+    return order, dn <= max_range, dn
+
+
+class BeliefLookahead:
+    """``belief_lookahead`` as an agent: YIELD until the planner finds GO safe enough, then GO to the end (as the
+    oracle :class:`agents.go_yield.Lookahead`, whose protocol it keeps so that only the information differs).
+    On the batch (``vec_env=batched``) :mod:`eval.batched` drives :class:`BeliefPlanner` for every row at once; on
+    the per-env stack each decision builds a one-row engine from the env's observable state
+    (:func:`engine_from_env`)."""
+
+    def __init__(self, env: gym.Env | None, params: BeliefLookaheadParams | None = None, **overrides: Any) -> None:
+        p = self.params = BeliefLookaheadParams.build(params, **overrides)
+        self.env, self.repeat = env, int(p.repeat)
+        self.planner = BeliefPlanner(p, n_rows=1)
+        self.reset()
+
+    def reset(self) -> None:
+        self._t, self._choice = 0, YIELD
+        self.planner.reset([0])
+
+    def act(self, obs) -> int:
+        from av_gym.batched.replica import engine_from_env
+
+        engine = engine_from_env(self.env, obs)
+        self.planner.read(engine, [0], obs["intent"][None])
+        if self._choice != GO and self._t % self.repeat == 0:
+            self._choice = int(self.planner.labels(engine, [0])[0])
+        self._t += 1
+        return meta_action(self._choice, obs["turn"])
+
+
+class BeliefLookaheadAgent(AgentKind):
+    Params = BeliefLookaheadParams
+
+    @classmethod
+    def build(cls, params: BeliefLookaheadParams, env: gym.Env, label: str) -> BeliefLookahead:
+        from av_gym.errors import ConfigError
+
+        for key in ("turn", "intent"):
+            if key not in env.observation_space.spaces:
+                raise ConfigError(f"agent {label!r} reads obs[{key!r}]; use sensors=turn_truth or turn_perceived")
+        return BeliefLookahead(env, params)
