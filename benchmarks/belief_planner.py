@@ -1,0 +1,92 @@
+"""``belief_lookahead`` on the batch: success, collisions and the planner's labels per second for a grid of K
+(futures per decision) and GO thresholds, on seeds of one split (the validation split to choose them).
+
+    python benchmarks/belief_planner.py --split validation --episodes 300 --samples 8 16 --thresholds 0.02 0.05 0.1 0.2
+
+Each (K, threshold) plays the same episodes (``python -m eval``'s batched loop, :func:`eval.batched.play_batched`);
+one csv row per point (``--out``), with 95 % Wilson intervals and the labels/s of the planner alone (wall-clock of
+its futures) and of the whole run."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def stacks():
+    """The env / sensors / shield configs of ``agent=belief_lookahead`` through Hydra, as ``python -m eval``."""
+    from hydra import compose, initialize_config_module
+    from omegaconf import OmegaConf
+
+    with initialize_config_module("conf", version_base="1.3"):
+        cfg = compose("train", overrides=["agent=ppo_turn"])  # the same env and sensors preset (turn_truth)
+    return [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--split", default="validation", choices=["validation", "test"])
+    ap.add_argument("--first", type=int, default=None, help="first seed (default: the split's first)")
+    ap.add_argument("--episodes", type=int, default=300)
+    ap.add_argument("--samples", type=int, nargs="+", default=[8, 16])
+    ap.add_argument("--thresholds", type=float, nargs="+", default=[0.02, 0.05, 0.1, 0.2])
+    ap.add_argument("--n-envs", type=int, default=100)
+    ap.add_argument("--out", default=None, help="csv of the points (appended)")
+    args = ap.parse_args()
+
+    import numpy as np
+
+    from agents.belief import BeliefLookahead, BeliefLookaheadParams
+    from av_gym.metrics.stats import wilson_ci
+    from av_gym.seeds import seeds as split_seeds
+    from eval.batched import _Decider, play_batched
+
+    env, sensors, shield = stacks()
+    seeds = list(split_seeds(args.split, args.episodes, args.first))
+    for K in args.samples:
+        for thr in args.thresholds:
+            policy = BeliefLookahead(None, BeliefLookaheadParams(samples=K, threshold=thr))
+            made = []
+            init = _Decider.__init__
+
+            def spy(self, p, engine, _init=init):  # keep the decider to read its planner's counters
+                _init(self, p, engine)
+                made.append(self)
+            _Decider.__init__ = spy
+            start = time.perf_counter()
+            try:
+                rows = play_batched(env, sensors, shield, policy, seeds, args.n_envs, "belief_lookahead",
+                                    progress=False)
+            finally:
+                _Decider.__init__ = init
+            wall = time.perf_counter() - start
+            planner = made[0].planner
+            n = len(rows)
+            col = np.array([r["collision"] for r in rows], float)
+            suc = np.array([r["success"] for r in rows], float)
+            _, cl, ch = wilson_ci(int(col.sum()), n)
+            _, sl, sh = wilson_ci(int(suc.sum()), n)
+            point = {"split": args.split, "first_seed": seeds[0], "episodes": n, "samples": K, "threshold": thr,
+                     "collision": round(col.mean(), 4), "collision_lo": round(cl, 4), "collision_hi": round(ch, 4),
+                     "success": round(suc.mean(), 4), "success_lo": round(sl, 4), "success_hi": round(sh, 4),
+                     "labels": planner.labelled, "planner_labels_per_s": round(planner.labelled / planner.seconds, 1),
+                     "run_labels_per_s": round(planner.labelled / wall, 1), "wall_s": round(wall, 1),
+                     "load": " ".join(f"{x:.2f}" for x in os.getloadavg())}
+            print(point, flush=True)
+            if args.out:
+                new = not Path(args.out).exists()
+                with open(args.out, "a", newline="") as fh:
+                    w = csv.DictWriter(fh, fieldnames=list(point))
+                    if new:
+                        w.writeheader()
+                    w.writerow(point)
+
+
+if __name__ == "__main__":
+    main()
