@@ -48,6 +48,7 @@ SPEED_LIMIT = 10.0  # every lane's: a driver the regulation releases takes it as
 P_RELEASED, P_HELD = 0.02, 0.02  # prior shares of drivers released / held by the regulation (validation states)
 ACC_SIGMA = 0.3  # m/s², the spread of an observed acceleration about the IDM command of the right behaviour
 PARTICLES = 64  # behaviour particles per driver before the resampling
+SLOTS = 64  # drivers per row whose draws are fixed by their place in the road order alone
 
 
 @dataclass(frozen=True)
@@ -67,6 +68,12 @@ class BeliefLookaheadParams(AgentParams):
                                                   "intersection while its distance_with_heading is within this of "
                                                   "the closest lane's")
     floor: float = param(0.02, gt=0, lt=1, doc="the Bayes filter's likelihood floor (the shield's DriverIntent)")
+    commit: Literal["stop", "go"] = param("stop", doc="stop: a GO is taken back (YIELD) at a later decision only "
+                                                      "while the ego can still stop before the line at the "
+                                                      "approach's comfortable deceleration, and past the line it "
+                                                      "goes (the planner learns while it approaches, but braking "
+                                                      "into the conflict zone is worse than either choice) | go: "
+                                                      "GO is final, as the oracle's (whose futures are exact)")
 
 
 def _lane_kinds(T) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -158,6 +165,38 @@ class BeliefPlanner:
         p = self.go_collision(engine, rows)
         return np.where(p <= self.threshold + 1e-12, GO, YIELD).astype(np.int64)
 
+    def decide(self, engine, rows, choice: np.ndarray, step: np.ndarray) -> np.ndarray:
+        """The held choices (GO / YIELD) of ``rows`` after this env step (``choice``, ``step``: the rows' held
+        choices and env steps since their episode began): every ``repeat`` steps the rows whose choice is not
+        final decide (``commit``: final once GO, or once past the stop line, where the choice becomes GO)."""
+        rows, choice = np.asarray(rows, dtype=int), np.array(choice, copy=True)
+        due = np.asarray(step) % int(self.params.repeat) == 0
+        if self.params.commit == "go":
+            due &= choice != GO
+        elif due.any():
+            final = np.zeros(len(rows), bool)
+            final[due] = self.committed(engine, rows[due], choice[due])
+            choice[final] = GO
+            due &= ~final
+        if due.any():
+            choice[due] = self.labels(engine, rows[due])
+        return choice
+
+    @staticmethod
+    def committed(engine, rows, choice) -> np.ndarray:
+        """The choice is GO for good: the ego is over 1 m past the stop line (GapAcceptance's commitment: stopping
+        inside the intersection puts the car in the crossing traffic's way), or it holds GO and is too fast to stop
+        before the line at the approach's comfortable deceleration (the YIELD set-point av_gym.wrappers.meta_action
+        would ask for could no longer be met)."""
+        from av_gym.wrappers import DECEL, MARGIN
+
+        if len(rows) == 0:
+            return np.zeros(0, bool)
+        tr = engine.truth(np.asarray(rows))
+        offset = tr["stop_line_offset"]
+        v_ok = np.sqrt(2.0 * DECEL * np.maximum(-offset - MARGIN, 0.0))
+        return (offset > 1.0) | ((np.asarray(choice) == GO) & (tr["speed"] > v_ok))
+
     def futures(self, engine, rows: np.ndarray):
         """A future engine of len(rows)·K rows: each row repeated K times, its hidden draws replaced."""
         K = self.K
@@ -178,16 +217,20 @@ class BeliefPlanner:
         P = self.particles
         u, u_b = np.zeros((n, K, N)), np.zeros((n, K, N))
         delta, target, hold = np.zeros((n, N, P)), np.zeros((n, N, P)), np.zeros((n, N, P), bool)
+        logq = np.zeros((n, N, P))
         spawn_rngs = []
         for i, r in enumerate(rows):
             ss = np.random.SeedSequence([self.seed, int(engine.episode_seed[r]) % 2**63, int(engine.ticks[r])])
             child, spawn = ss.spawn(2)
             g = np.random.default_rng(child)
-            u[i], u_b[i] = g.random((K, N)), g.random((K, N))
-            delta[i], target[i], hold[i] = self._behaviour_prior(g, (N, P))
+            # a fixed width of draws per stream, so that a driver's draws depend on its place in the road order
+            # only, not on how many slots this batch happens to hold (the batch and a one-row view agree)
+            W = max(N, SLOTS)
+            u[i], u_b[i] = g.random((K, W))[:, :N], g.random((K, W))[:, :N]
+            delta[i], target[i], hold[i], logq[i] = (a[:N] for a in self._behaviour_prior(g, (W, P)))
             spawn_rngs += [np.random.Generator(np.random.PCG64(s)) for s in spawn.spawn(K)]
         f.rngs = spawn_rngs
-        delta, target, hold = self._behaviour_posterior(engine, rows, delta, target, hold, u_b)  # (n, K, N)
+        delta, target, hold = self._behaviour_posterior(engine, rows, delta, target, hold, logq, u_b)  # (n, K, N)
         dest = self._destinations(engine, rows, u)  # (n, K, N)
         # the route a spawn gives (o_i → ir_i, ir_i → il_d, il_d → o_d) and where along it the driver is now: the
         # step of its current lane; follow_road moves it on at the next tick when it is already past a lane's end
@@ -210,18 +253,27 @@ class BeliefPlanner:
         t.yielding = np.where(m, hold.reshape(n * K, N), t.yielding)
         return f
 
-    def _behaviour_prior(self, g: np.random.Generator, shape: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _behaviour_prior(self, g: np.random.Generator, shape: tuple) -> tuple:
         """Particles of a driver's behaviour (IDM exponent, set-point, held by the regulation now) from the
         traffic's own prior: a spawn's delta ~ U(3.5, 4.5) and set-point = its spawn speed 8 + N(0, 1); a driver
         the regulation released cruises at the lane's limit instead, one it holds has set-point 0 (each with
-        ``P_RELEASED`` / ``P_HELD``, the shares measured on validation states, tests/test_belief.py)."""
+        ``P_RELEASED`` / ``P_HELD``, about the shares on validation states). Returns them and their log importance
+        weights (prior over proposal)."""
         delta = g.uniform(*DELTA_RANGE, size=shape)
-        kind = g.random(shape)
-        target = np.where(kind < P_RELEASED, SPEED_LIMIT, SPAWN_SPEED + SPAWN_SPEED_SD * g.standard_normal(shape))
-        hold = kind > 1.0 - P_HELD
-        return delta, np.where(hold, 0.0, target), hold
+        # stratified: a fixed share of the particles per kind (spawn set-point, released, held), each weighed
+        # by its prior over its share, so that the rare kinds are always there for the observation to pick
+        P = shape[-1]
+        n_rare = max(1, P // 8)
+        kind = np.zeros(P, dtype=int)
+        kind[P - 2 * n_rare: P - n_rare], kind[P - n_rare:] = 1, 2
+        kind = np.broadcast_to(kind, shape)
+        target = np.where(kind == 1, SPEED_LIMIT, SPAWN_SPEED + SPAWN_SPEED_SD * g.standard_normal(shape))
+        hold = kind == 2
+        share = np.array([(P - 2 * n_rare) / P, n_rare / P, n_rare / P])
+        prior = np.array([1.0 - P_RELEASED - P_HELD, P_RELEASED, P_HELD])
+        return delta, np.where(hold, 0.0, target), hold, np.log(prior / share)[kind]
 
-    def _behaviour_posterior(self, engine, rows, delta, target, hold, u):
+    def _behaviour_posterior(self, engine, rows, delta, target, hold, logq, u):
         """Resample the behaviour particles (n, N, P) by the likelihood of each driver's observed acceleration
         (its last command, ``traffic.acc``) under IDM with that particle: ``a = clip(a_max (1 - (v / v0)^delta) -
         a_int)``, the interaction term ``a_int`` computed from the observed leader (it does not depend on the
@@ -234,6 +286,7 @@ class BeliefPlanner:
         limit = engine.T.speed_limit[lane]
         # the leader's term: IDM with the set-point at the speed (free term 0 there), minus that free term
         sub.target = np.maximum(v, 0.0)
+        sub.delta = np.full_like(sub.delta, 4.0)  # the free term is 0 at the set-point whatever delta: no hidden draw
         free0 = COMFORT_ACC_MAX * (1 - np.power(np.maximum(v, 0) / np.abs(not_zero(np.clip(sub.target, 0, limit))),
                                                 sub.delta))
         a_int = free0 - sub._idm_acc(sub._front(lane))  # (n, N), >= 0
@@ -242,7 +295,7 @@ class BeliefPlanner:
         a = np.clip(a, -ACC_MAX, ACC_MAX)
         logw = -0.5 * ((a - src.acc[rows][..., None]) / ACC_SIGMA) ** 2
         ok = ~(src.crashed[rows] | src.ego[rows] | ~src.alive[rows])
-        logw = np.where(ok[..., None], logw, 0.0)
+        logw = np.where(ok[..., None], logw, 0.0) + logq
         w = np.exp(logw - logw.max(axis=-1, keepdims=True))
         cdf = np.cumsum(w, axis=-1)
         cdf /= cdf[..., -1:]
@@ -337,8 +390,8 @@ def described(engine, rows) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 class BeliefLookahead:
-    """``belief_lookahead`` as an agent: YIELD until the planner finds GO safe enough, then GO to the end (as the
-    oracle :class:`agents.go_yield.Lookahead`, whose protocol it keeps so that only the information differs).
+    """``belief_lookahead`` as an agent: GO when the planner finds GO safe enough, decided every ``repeat`` env
+    steps until the choice is final (``commit``).
     On the batch (``vec_env=batched``) :mod:`eval.batched` drives :class:`BeliefPlanner` for every row at once; on
     the per-env stack each decision builds a one-row engine from the env's observable state
     (:func:`engine_from_env`)."""
@@ -352,14 +405,14 @@ class BeliefLookahead:
     def reset(self) -> None:
         self._t, self._choice = 0, YIELD
         self.planner.reset([0])
+        if getattr(self, "view", None) is None:
+            self.view = EnvView()
+        self.view.reset()
 
     def act(self, obs) -> int:
-        from av_gym.batched.replica import engine_from_env
-
-        engine = engine_from_env(self.env, obs)
+        engine = self.view.engine(self.env, obs)
         self.planner.read(engine, [0], obs["intent"][None])
-        if self._choice != GO and self._t % self.repeat == 0:
-            self._choice = int(self.planner.labels(engine, [0])[0])
+        self._choice = int(self.planner.decide(engine, [0], np.array([self._choice]), np.array([self._t]))[0])
         self._t += 1
         return meta_action(self._choice, obs["turn"])
 
@@ -375,3 +428,101 @@ class BeliefLookaheadAgent(AgentKind):
             if key not in env.observation_space.spaces:
                 raise ConfigError(f"agent {label!r} reads obs[{key!r}]; use sensors=turn_truth or turn_perceived")
         return BeliefLookahead(env, params)
+
+
+class EnvView:
+    """A one-row :class:`~av_gym.batched.left_turn.BatchedLeftTurn` holding what the car observes of a per-env
+    left turn: the ego's own state, and the other road users as the turn features describe them: the simulator's
+    vehicles (``turn_features.source: truth``) or the tracker's tracks (``tracks``: their position, velocity and
+    heading; the closest lane from that pose; the acceleration the intent features measure; no crash flag). The
+    hidden fields are left at neutral values: :meth:`BeliefPlanner.futures` redraws them all. Identities (the
+    belief's keys) are the vehicle objects on truth, the tracker's track ids on tracks."""
+
+    def __init__(self) -> None:
+        self._engine, self._ids, self._next = None, {}, 1
+
+    def reset(self) -> None:
+        self._ids, self._next = {}, 1
+
+    def _id(self, key) -> int:
+        if key not in self._ids:
+            self._ids[key], self._next = self._next, self._next + 1
+        return self._ids[key]
+
+    def engine(self, env: gym.Env, obs) -> Any:
+        from av_gym.batched.left_turn import BatchedLeftTurn
+        from av_gym.estimation.turn_features import TurnFeatures
+        from av_gym.sensors.base import find_wrapper
+        from av_gym.sim.batched import Traffic
+
+        u = env.unwrapped
+        if self._engine is None:
+            self._engine = BatchedLeftTurn(1, {k: v for k, v in u.config.items() if k != "observation"})
+        e = self._engine
+        T = e.T
+        features = find_wrapper(env, TurnFeatures)
+        ego = u.vehicle
+        others = self._others(env, u, features, obs)  # (n, 7): x, y, h, v, acc, crashed, id
+        t = Traffic(T, 1, N=len(others) + 3)
+        t.road_steps[:] = int(u.road.steps)
+        slot_of_ego = self._ego_slot(u)
+        rows = list(others)
+        rows.insert(min(slot_of_ego, len(rows)), None)
+        for j, o in enumerate(rows):
+            if o is None:  # the ego, as it knows itself
+                lane = T.id[tuple(ego.lane_index[:2]) + (0,)]
+                route = [int(k) for k in e.route]  # the ego's route is its own: the engine's
+                tl = T.id[tuple(ego.target_lane_index[:2]) + (0,)]
+                t.alive[0, j], t.ego[0, j], t.mdp[0, j] = True, True, not e.continuous
+                t.x[0, j], t.y[0, j] = ego.position
+                t.h[0, j], t.v[0, j], t.target[0, j] = ego.heading, ego.speed, getattr(ego, "target_speed", ego.speed)
+                t.lane[0, j], t.tlane[0, j], t.route[0, j] = lane, tl, route
+                t.rpos[0, j] = route.index(tl) if tl in route else 0
+                t.crashed[0, j] = ego.crashed
+                t.steer[0, j], t.acc[0, j] = ego.action.get("steering", 0.0), ego.action.get("acceleration", 0.0)
+                t.vid[0, j] = 0
+            else:
+                x, y, h, v, acc, crashed, key = o
+                t.alive[0, j] = True
+                t.x[0, j], t.y[0, j], t.h[0, j], t.v[0, j], t.target[0, j] = x, y, h, v, v
+                t.lane[0, j] = t.tlane[0, j] = t.route[0, j, 0] = T.closest(np.array([x]), np.array([y]),
+                                                                            np.array([h]))[0]
+                t.acc[0, j], t.crashed[0, j], t.vid[0, j] = acc, bool(crashed), int(key)
+        e.traffic = t
+        e.time[0], e.ticks[0] = float(u.time), int(u.steps)
+        e.episode_seed[0] = int(u.episode_seed)
+        e.route_k[0], e.arrived_time[0], e.cmd[0] = 0, np.nan, 0.0
+        e.progress_s[0] = e._route_s(np.array([0]))[0]
+        e.progress_total[0] = max(1.0, e.route_starts[2] + 25.0 - e.progress_s[0])
+        return e
+
+    @staticmethod
+    def _ego_slot(u) -> int:
+        return next(i for i, v in enumerate(u.road.vehicles) if v is u.vehicle)
+
+    def _others(self, env, u, features, obs) -> list:
+        """The road users the features describe from, in their order: (x, y, heading, speed, acceleration,
+        crashed, identity)."""
+        from av_gym.estimation.object_tracking import ObjectTracker
+        from av_gym.estimation.turn_features import ACC_SCALE
+        from av_gym.sensors.base import find_wrapper
+
+        if features.source == "truth":
+            return [(*v.position, v.heading, v.speed, v.action.get("acceleration", 0.0), v.crashed, self._id(v))
+                    for v in u.road.vehicles if v is not u.vehicle]
+        tracker = find_wrapper(env, ObjectTracker)
+        rows = tracker._last[tracker._last[:, 0] > 0]
+        internal = tracker.tracker.tracks()
+        ids = tracker.tracker.track_ids()
+        acc = np.zeros(len(rows))
+        described = features.described  # rows of features.others (= rows here) in obs["intent"]'s order
+        acc[described] = np.asarray(obs["intent"])[: len(described), 0] * ACC_SCALE
+        out = []
+        for k, r in enumerate(rows):
+            key = -1
+            if len(internal):
+                m = int(np.argmin(np.hypot(internal[:, 0] - r[1], internal[:, 1] - r[2])))
+                key = ("track", int(ids[m]))
+            out.append((float(r[1]), float(r[2]), float(r[5]), float(np.hypot(r[3], r[4])), float(acc[k]), False,
+                        self._id(key)))
+        return out

@@ -131,12 +131,8 @@ class _Decider:
             self.k[rows] += 1
             out[rows] = meta_actions(self.choice[rows], obs["turn"][rows])
         elif self.kind == "belief_lookahead":  # BeliefLookahead.act for every row: every reading, then the decisions
-            from av_gym.wrappers import GO
-
             self.planner.read(self.engine, rows, obs["intent"][rows])
-            ask = rows[(self.choice[rows] != GO) & (self.k[rows] % self.policy.repeat == 0)]
-            if len(ask):
-                self.choice[ask] = self.planner.labels(self.engine, ask)
+            self.choice[rows] = self.planner.decide(self.engine, rows, self.choice[rows], self.k[rows])
             self.k[rows] += 1
             out[rows] = meta_actions(self.choice[rows], obs["turn"][rows])
         else:
