@@ -17,6 +17,7 @@ import numpy as np
 
 from agents.registry import AgentKind, AgentParams
 from av_gym.errors import ConfigError
+from av_gym.estimation.turn_features import TURN
 from av_gym.params import param
 from av_gym.wrappers import GO, YIELD, meta_action
 
@@ -47,24 +48,18 @@ class GapAcceptance:
     ``act(obs)`` returns the env's meta-action (as any agent); :meth:`choice` the GO/YIELD decision."""
 
     def __init__(self, params: GapAcceptanceParams | None = None, **overrides: Any) -> None:
-        from av_gym.estimation.turn_features import OBJECT_FEATURES, T_MAX
-
         p = self.params = GapAcceptanceParams.build(params, **overrides)
         self.t_gap, self.miss = float(p.t_gap), float(p.miss)
-        self._n = len(OBJECT_FEATURES)
-        self._cols = (OBJECT_FEATURES.index("present"), OBJECT_FEATURES.index("t_star"),
-                      OBJECT_FEATURES.index("miss"))
-        self._t_max = T_MAX
 
     def reset(self) -> None:
         pass
 
     def choice(self, turn: np.ndarray) -> int:
-        objs = np.asarray(turn[5:]).reshape(-1, self._n)
-        present, t_star, miss = objs[:, self._cols[0]] > 0, objs[:, self._cols[1]] * self._t_max, \
-            objs[:, self._cols[2]] * 10.0
+        turn = np.asarray(turn)
+        present, t_star, miss = TURN.decode(turn, "present") > 0, TURN.decode(turn, "t_star"), \
+            TURN.decode(turn, "miss")
         threat = present & (t_star > 0) & (t_star < self.t_gap) & (miss < self.miss)
-        past_line = 30.0 * float(turn[2]) < -1.0  # front bumper over 1 m past the stop line
+        past_line = TURN.decode(turn.astype(float), "to_stop_line") < -1.0  # front bumper over 1 m past the line
         return YIELD if threat.any() and not past_line else GO
 
     def act(self, obs) -> int:

@@ -15,7 +15,7 @@ from gymnasium import spaces
 from agents.registry import TEACHERS, AgentKind, AgentParams
 from av_gym.errors import ConfigError
 from av_gym.params import param
-from av_gym.wrappers import flat_space, flatten_obs
+from av_gym.wrappers import ACTION_SET_NAMES, ACTION_SETS, action_set, flat_space, flatten_obs
 
 if TYPE_CHECKING:
     from stable_baselines3 import PPO
@@ -67,9 +67,8 @@ class PPOParams(AgentParams):
     cnn_output_dim: int | None = param(None, ge=1, doc="image inputs: width of the NatureCNN's output layer; null: "
                                                        "SB3's 256")
     device: Literal["cpu", "cuda", "auto"] = param("cpu", doc="torch device")
-    actions: Literal["env", "go_yield"] = param(
-        "env", doc="env: the env's own action space | go_yield: two choices, GO or YIELD at the stop line "
-                   "(av_gym/wrappers.py GoYieldActions), mapped onto the left turn's meta-actions every env step")
+    actions: Literal[ACTION_SET_NAMES] = param(
+        "env", doc=" | ".join(f"{name}: {a.doc}" for name, a in ACTION_SETS.items()))
     action_repeat: int = param(1, "env steps", ge=1, doc="env steps each decision is held for "
                                                          "(av_gym/wrappers.py ActionRepeat)")
     intervention_cost: float = param(0.0, "reward/s", ge=0, doc="reward per second of shield override "
@@ -181,11 +180,8 @@ class SB3Policy:
             action, _ = self.model.predict(flatten_obs(obs), deterministic=True)
             self._action = int(action) if np.ndim(action) == 0 else action
         self._k += 1
-        if self.actions == "go_yield":  # the held choice becomes a meta-action at every env step, as in training
-            from av_gym.wrappers import meta_action
-
-            return meta_action(self._action, obs["turn"])
-        return self._action
+        # the held choice becomes the env's action at every env step, as in training (go_yield: a meta-action)
+        return action_set(self.actions).act_one(self._action, obs)
 
 
 class PPOAgent(AgentKind):
@@ -215,8 +211,8 @@ class PPOAgent(AgentKind):
             raise ConfigError(f"checkpoint {str(model_path)!r} expects observations "
                               f"{describe_space(policy.model.observation_space)}, this env gives "
                               f"{describe_space(sb3_space(env.observation_space))} ({how})")
-        # A go/yield policy's two choices become the env's three meta-actions (av_gym/wrappers.py): it needs those.
-        needs = spaces.Discrete(3) if trained.get("actions") == "go_yield" else policy.model.action_space
+        # A policy's actions become the env's by its action set (av_gym/wrappers.py): it needs that env space.
+        needs = action_set(trained.get("actions") or "env").env_space(policy.model.action_space)
         if needs != env.action_space:
             raise ConfigError(f"checkpoint {str(model_path)!r} acts in {needs}, this env expects "
                               f"{env.action_space} (env.action must be as in its training)")

@@ -118,15 +118,14 @@ def make_training_env(env_cfg: Mapping, sensors_cfg: Mapping | None, shield_cfg:
     """The stack a PPO agent trains and is validated on: :func:`make_env`, then the agent-side wrappers its
     ``agent`` config asks for (time limit as termination, intervention cost, go/yield actions, action repeat) and
     the flat observation SB3 takes. ``python -m train`` and ``gym.make(id, checkpoint=...)`` both build it here."""
-    from av_gym.wrappers import ActionRepeat, FlatDictObservation, GoYieldActions, InterventionCost, TimeLimitIsTerminal
+    from av_gym.wrappers import ActionRepeat, FlatDictObservation, InterventionCost, TimeLimitIsTerminal, action_set
 
     env = make_env(env_cfg, sensors_cfg, shield_cfg, render_mode=render_mode)
     if timeout_is_terminal:
         env = TimeLimitIsTerminal(env)
     if intervention_cost > 0:
         env = InterventionCost(env, intervention_cost)
-    if actions == "go_yield":
-        env = GoYieldActions(env)
+    env = action_set(actions).wrap(env)
     if action_repeat > 1:
         env = ActionRepeat(env, action_repeat)
     return FlatDictObservation(env)

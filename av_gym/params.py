@@ -232,8 +232,9 @@ NAME_LENGTH = 240  # name_like fields (run_name): 255 bytes a folder name (ext4,
 def _hints(cls: type) -> dict[str, Any]:
     cached = cls.__dict__.get("_hints_cache")
     if cached is None:
-        module = __import__(cls.__module__, fromlist=["_"])
-        cached = typing.get_type_hints(cls, globalns=vars(module))
+        # each class's annotations in its own module (a subclass elsewhere inherits fields whose types name
+        # what the base's module imports)
+        cached = typing.get_type_hints(cls)
         cached = {f.name: cached[f.name] for f in dataclasses.fields(cls)}
         type.__setattr__(cls, "_hints_cache", cached)
     return cached

@@ -9,6 +9,8 @@ evaluation maps a trained policy's actions the same way (:class:`agents.ppo.SB3P
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import gymnasium as gym
@@ -16,6 +18,8 @@ import numpy as np
 from gymnasium import spaces
 
 from av_gym.actions import check_action
+from av_gym.errors import ConfigError
+from av_gym.estimation.turn_features import TURN
 
 
 # ----------------------------------------------------------------------------------------------- flat observations
@@ -135,10 +139,10 @@ class ActionRepeat(gym.Wrapper):
 #   v = sqrt(2 b (d - d0)) (b = DECEL, d = distance of the front bumper to the line, d0 = MARGIN); past the line
 #   that is 0, i.e. stop where it is,
 #
-# and meta_action turns the choice into the meta-action that moves the set-point towards it. It reads only the
-# agent's own observation (obs["turn"]: speed, set-point, distance to the stop line; see
-# av_gym.estimation.turn_features), so the same code runs in training (GoYieldActions) and in evaluation
-# (agents.ppo.SB3Policy with actions: go_yield).
+# and meta_actions turns the choices into the meta-actions that move the set-point towards them. It reads only the
+# agent's own observation (obs["turn"]: set-point and distance to the stop line, decoded by
+# av_gym.estimation.turn_features.TurnEncoding), so the same code runs in training (per env and batched) and in
+# evaluation (agents.ppo.SB3Policy with actions: go_yield).
 YIELD, GO = 0, 1
 SLOWER, IDLE, FASTER = 0, 1, 2  # highway-env's longitudinal DiscreteMetaAction indices
 SET_POINTS = (0.0, 4.5, 9.0)  # m/s, the left turn's traffic-mode set-points (conf/env/left_turn.yaml)
@@ -146,42 +150,117 @@ DECEL = 3.0  # m/s², comfortable approach deceleration b
 MARGIN = 0.5  # m, d0
 
 
+def meta_actions(choice: np.ndarray, turn: np.ndarray) -> np.ndarray:
+    """The meta-actions (n,) for GO/YIELD choices (n,) given the turn features ``turn`` (n, F)."""
+    turn = np.asarray(turn, dtype=float)
+    set_point, d_stop = TURN.decode(turn, "set_point"), TURN.decode(turn, "to_stop_line")
+    points = np.asarray(SET_POINTS)
+    v_ok = np.sqrt(2.0 * DECEL * np.maximum(d_stop - MARGIN, 0.0))
+    yield_speed = np.max(np.where(points <= v_ok[..., None] + 1e-6, points, -np.inf), axis=-1)
+    wanted = np.where(np.asarray(choice) == GO, points[-1], yield_speed)
+    return np.where(wanted > set_point + 1e-3, FASTER, np.where(wanted < set_point - 1e-3, SLOWER, IDLE))
+
+
 def meta_action(choice: int, turn: np.ndarray) -> int:
-    """The meta-action for ``choice`` (GO or YIELD) given the turn features ``turn`` (speed / 10 at [0],
-    set-point / 10 at [1], distance to the stop line / 30 at [2])."""
-    set_point, d_stop = 10.0 * float(turn[1]), 30.0 * float(turn[2])
-    if int(choice) == GO:
-        wanted = SET_POINTS[-1]
-    else:
-        v_ok = np.sqrt(2.0 * DECEL * max(d_stop - MARGIN, 0.0))
-        wanted = max(v for v in SET_POINTS if v <= v_ok + 1e-6)
-    if wanted > set_point + 1e-3:
-        return FASTER
-    if wanted < set_point - 1e-3:
-        return SLOWER
-    return IDLE
+    """:func:`meta_actions` for one env: the meta-action for ``choice`` (GO or YIELD) given its ``turn``."""
+    return int(meta_actions(np.array([int(choice)]), np.asarray(turn)[None])[0])
 
 
-class GoYieldActions(gym.Wrapper):
-    """``Discrete(2)`` {YIELD, GO} in place of the left turn's meta-actions; needs ``obs["turn"]`` (the
-    ``turn_truth`` / ``turn_perceived`` sensors presets) and ``env.action=discrete``."""
+# ----------------------------------------------------------------------------------------------- action sets
+@dataclass(frozen=True)
+class ActionSet:
+    """An agent's actions on top of the env's (``agent.actions``): its space, and how its actions become the env's,
+    vectorised over envs so that the per-env wrapper (a batch of one), the batched engine and the evaluation of a
+    trained policy map them with the same function. A new set is one entry of :data:`ACTION_SETS`."""
 
-    def __init__(self, env: gym.Env) -> None:
+    name: str
+    doc: str
+    choices: int | None = None  # the agent picks one of this many (Discrete); None: the env's own action space
+    env_actions: int | None = None  # ... which become the env's Discrete(env_actions) meta-actions (None: any)
+    reads: tuple[str, ...] = ()  # observation keys ``to_env`` reads
+    to_env: Callable[[np.ndarray, dict], np.ndarray] | None = None  # (actions (n,), obs {key: (n, ...)}) → (n,)
+
+    def space(self, env_space: gym.Space) -> gym.Space:
+        """The agent's action space on an env acting in ``env_space``."""
+        return env_space if self.choices is None else spaces.Discrete(self.choices)
+
+    def env_space(self, agent_space: gym.Space) -> gym.Space:
+        """The env action space an agent acting in ``agent_space`` needs."""
+        return agent_space if self.env_actions is None else spaces.Discrete(self.env_actions)
+
+    def problem(self, env_space: gym.Space, obs_keys, got: str | None = None) -> str | None:
+        """Why this set cannot drive an env with ``env_space`` and observation keys ``obs_keys`` (None: it can)."""
+        missing = [k for k in self.reads if k not in obs_keys]
+        if missing:
+            return f"agent.actions={self.name} needs obs[{missing[0]!r}] (sensors=turn_truth or turn_perceived)"
+        if self.env_actions is not None and env_space != spaces.Discrete(self.env_actions):
+            return (f"agent.actions={self.name} needs env.action=discrete (its choices become meta-actions), got "
+                    f"{got or env_space}")
+        return None
+
+    def act(self, actions: np.ndarray, obs: dict) -> np.ndarray:
+        """The env's actions for the agent's ``actions`` (n,) given the observations ``obs`` (each (n, ...))."""
+        return actions if self.to_env is None else self.to_env(actions, obs)
+
+    def act_one(self, action: Any, obs: dict) -> Any:
+        """:meth:`act` for one env (``obs`` its observation)."""
+        if self.to_env is None:
+            return action
+        return int(self.to_env(np.array([action]), {k: np.asarray(obs[k])[None] for k in self.reads})[0])
+
+    def wrap(self, env: gym.Env) -> gym.Env:
+        """``env`` acting in this set (unchanged for the env's own actions)."""
+        return env if self.to_env is None else ChosenActions(env, self)
+
+
+def _go_yield(choice: np.ndarray, obs: dict) -> np.ndarray:  # a module function: wrapped envs pickle
+    return meta_actions(choice, obs["turn"])
+
+
+ACTION_SETS = {
+    "env": ActionSet("env", "the env's own action space"),
+    "go_yield": ActionSet("go_yield", "two choices, GO or YIELD at the stop line (av_gym/wrappers.py), mapped onto "
+                          "the left turn's meta-actions every env step", choices=2, env_actions=3, reads=("turn",),
+                          to_env=_go_yield),
+}
+ACTION_SET_NAMES = tuple(ACTION_SETS)
+
+
+def action_set(name: str) -> ActionSet:
+    """The action set ``agent.actions=name``; a ConfigError line naming the others for an unknown one."""
+    if name not in ACTION_SETS:
+        raise ConfigError(f"agent.actions must be one of {list(ACTION_SETS)}, got {name!r}")
+    return ACTION_SETS[name]
+
+
+class ChosenActions(gym.Wrapper):
+    """The env acting in an :class:`ActionSet` (its ``choices`` in place of the env's actions, mapped at every
+    step from the latest observation)."""
+
+    def __init__(self, env: gym.Env, actions: ActionSet | str) -> None:
         super().__init__(env)
-        if "turn" not in getattr(env.observation_space, "spaces", {}):
-            raise ValueError("agent.actions=go_yield needs obs['turn'] (sensors=turn_truth or turn_perceived)")
-        if env.action_space != spaces.Discrete(3):
-            raise ValueError(f"agent.actions=go_yield needs env.action=discrete, got {env.action_space}")
-        self.action_space = spaces.Discrete(2)
-        self._turn = None
+        self.action_set = action_set(actions) if isinstance(actions, str) else actions
+        problem = self.action_set.problem(env.action_space, getattr(env.observation_space, "spaces", {}))
+        if problem:
+            raise ValueError(problem)
+        self.action_space = self.action_set.space(env.action_space)
+        self._obs = None
 
     def reset(self, **kwargs):
         obs, info = self.env.reset(**kwargs)
-        self._turn = obs["turn"]
+        self._obs = obs
         return obs, info
 
     def step(self, action):
         check_action(self.action_space, action)  # int(nan) would be a bare "cannot convert float NaN"
-        obs, reward, terminated, truncated, info = self.env.step(meta_action(int(action), self._turn))
-        self._turn = obs["turn"]
+        obs, reward, terminated, truncated, info = self.env.step(self.action_set.act_one(int(action), self._obs))
+        self._obs = obs
         return obs, reward, terminated, truncated, info
+
+
+class GoYieldActions(ChosenActions):
+    """``Discrete(2)`` {YIELD, GO} in place of the left turn's meta-actions; needs ``obs["turn"]`` (the
+    ``turn_truth`` / ``turn_perceived`` sensors presets) and ``env.action=discrete``."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env, "go_yield")

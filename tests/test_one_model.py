@@ -26,27 +26,124 @@ N = 10_000  # random inputs per model
 
 def _calls(function, name: str) -> bool:
     """``function``'s code calls ``name`` (a global of its module)."""
+    function = inspect.unwrap(function)  # a sensor's __init__ is wrapped to record its arguments
     return name in inspect.getsource(function) and name in function.__code__.co_names
 
 
 def test_the_stacks_call_the_one_implementation():
-    # the per-env sensor, the batched stack and the shield draw the indicator channel through the same functions
-    assert batched.read_channel is turn_signal.read_channel and _calls(batched.BatchedIntent.signals, "read_channel")
-    assert _calls(turn_signal.TurnSignals.measure, "read_channel")
+    # the per-env sensor, the batched stack and the shield read the indicator channel through the same functions,
+    # and keep its per-driver draws in the same table
+    assert batched.read_signals is turn_signal.read_signals and _calls(batched.BatchedIntent.signals, "read_signals")
+    assert _calls(turn_signal.TurnSignals.measure, "read_signals") and _calls(turn_signal.read_signals, "read_channel")
     assert aeb.first_sighting is turn_signal.first_sighting and aeb.reported is turn_signal.reported
     assert _calls(aeb.ImprovedAEB._intent, "first_sighting") and _calls(aeb.ImprovedAEB._intent, "reported")
+    assert batched.DriverDraws is aeb.DriverDraws is turn_signal.DriverDraws
     assert batched.turn_signal is turn_signal.turn_signal and _calls(turn_signal.intended_signal, "turn_signal")
     # the shield's belief: the channel's own likelihood and driver-kind prior
     assert _calls(intent.reading_likelihood, "channel_likelihood") and _calls(intent.DriverIntent.__init__,
                                                                               "driver_kinds")
-    # intent features and the closest approach: TurnIntent / TurnFeatures and the batch call the same functions
-    for name in ("acceleration", "signals_at", "path_conflict"):
-        assert getattr(batched, name) is getattr(turn_features, name)
-    assert _calls(turn_features.TurnIntent._acceleration, "acceleration")
-    assert _calls(turn_features.TurnIntent.observation, "signals_at")
-    assert _calls(turn_features.TurnFeatures._path_conflict, "path_conflict")
-    assert _calls(batched.BatchedIntent.intent, "acceleration") and _calls(batched.BatchedIntent.intent, "signals_at")
-    assert _calls(batched.BatchedLeftTurn._path_conflict, "path_conflict")
+    # the turn features (encoding included) and the intent features with their history: TurnFeatures /
+    # TurnIntent and the batch call the same function and class
+    assert batched.turn_features is turn_features.turn_features
+    assert _calls(turn_features.TurnFeatures.features, "turn_features") and _calls(batched.BatchedLeftTurn.observe,
+                                                                                   "turn_features")
+    assert _calls(turn_features.turn_features, "path_conflict") and _calls(turn_features.turn_features, "TurnEncoding")
+    assert batched.IntentHistory is turn_features.IntentHistory
+    assert _calls(turn_features.TurnIntent.__init__, "IntentHistory") and _calls(batched.BatchedIntent.__init__,
+                                                                                "IntentHistory")
+    assert _calls(turn_features.IntentHistory.observe, "acceleration") and \
+        _calls(turn_features.IntentHistory.observe, "signals_at")
+    # no scale of the encoding written anywhere else: the readers decode (meta-actions, the gap-acceptance rule)
+    from agents import go_yield
+    from av_gym import wrappers
+    from av_gym.batched import vec_env
+
+    assert vec_env.meta_actions is wrappers.meta_actions and _calls(wrappers.meta_action, "meta_actions")
+    assert _calls(wrappers.meta_actions, "TURN") and _calls(go_yield.GapAcceptance.choice, "TURN")
+    for module in (batched, vec_env, wrappers, go_yield):
+        source = inspect.getsource(module)
+        assert not any(f"{c} / {k}" in source or f"{k} * " in source for c in ("x", "]") for k in ("10.0", "30.0"))
+        assert "SET_POINTS = " not in source or module is wrappers
+
+
+def test_encoding_decodes_what_it_encodes():
+    """TurnEncoding.decode inverts encode for every feature inside [-1, 1] (both layouts, float32 rounding)."""
+    rng = np.random.default_rng(3)
+    for enc in (turn_features.TURN, turn_features.TurnEncoding(max_objects=3, time_scale=7.0)):
+        scales = np.concatenate([enc.ego_scales(), np.tile(list(turn_features.OBJECT_SCALES.values()),
+                                                            enc.max_objects)])
+        raw = rng.uniform(-0.99, 0.99, size=(50, enc.width)) * scales
+        m, k = enc.max_objects, len(turn_features.EGO_FEATURES)
+        turn = enc.encode(raw[:, :k], raw[:, k:].reshape(50, m, -1))
+        assert turn.shape == (50, enc.width) and turn.dtype == np.float32
+        for j, name in enumerate(turn_features.EGO_FEATURES):
+            assert np.allclose(enc.decode(turn.astype(float), name), raw[:, j], rtol=1e-6, atol=1e-6 * scales[j])
+        for j, name in enumerate(turn_features.OBJECT_FEATURES):
+            col = raw[:, k + j::len(turn_features.OBJECT_FEATURES)]
+            assert np.allclose(enc.decode(turn.astype(float), name), col, rtol=1e-6, atol=1e-4)
+
+
+def test_meta_action_is_meta_actions_on_a_batch_of_one():
+    from av_gym.wrappers import ACTION_SETS, GO, YIELD, meta_action, meta_actions
+
+    rng = np.random.default_rng(4)
+    turn = rng.uniform(-1.0, 1.0, size=(2000, turn_features.TURN.width)).astype(np.float32)
+    turn[:, 1] = rng.choice([0.0, 0.45, 0.9], size=2000)  # set-points on and off the grid
+    choice = rng.choice([YIELD, GO], size=2000)
+    batch = meta_actions(choice, turn)
+    assert set(np.unique(batch)) == {0, 1, 2}
+    assert [meta_action(c, t) for c, t in zip(choice, turn)] == batch.tolist()
+    go_yield = ACTION_SETS["go_yield"]
+    assert np.array_equal(go_yield.act(choice, {"turn": turn}), batch)
+    assert go_yield.act_one(int(choice[0]), {"turn": turn[0]}) == batch[0]
+
+
+def test_intent_history_batch_equals_batches_of_one():
+    """IntentHistory over 20 envs = 20 histories of one, step by step, envs reset at different times."""
+    rng = np.random.default_rng(5)
+    p = turn_features.TurnIntentParams()
+    n, m, k = 20, 4, 6
+    many = turn_features.IntentHistory(n, p)
+    ones = [turn_features.IntentHistory(1, p) for _ in range(n)]
+    now = np.zeros(n)
+    snap = rng.normal(0.0, 20.0, size=(n, k, 4))
+    for step in range(30):
+        reset = rng.uniform(size=n) < 0.05
+        many.clear(np.flatnonzero(reset))
+        now = np.where(reset, 0.0, now + 0.1)
+        snap[..., :2] += 0.1 * snap[..., 2:4]
+        snap[..., 2:4] += rng.normal(0.0, 0.5, size=(n, k, 2))
+        valid = rng.uniform(size=(n, k)) < 0.9
+        order = np.argsort(rng.uniform(size=(n, k)), axis=1)[:, :m]
+        objects = np.take_along_axis(snap, order[..., None], axis=1)
+        described = rng.uniform(size=(n, m)) < 0.8
+        signals = np.concatenate([np.ones((n, 3, 1)), snap[:, :3, :2], rng.choice([-1.0, 0.0, 1.0], size=(n, 3, 1))],
+                                 axis=2)
+        out = many.observe(np.arange(n), now, objects, described, snap, valid, signals)
+        for r in range(n):
+            if reset[r]:
+                ones[r].clear([0])
+            one = ones[r].observe([0], now[r:r + 1], objects[r:r + 1], described[r:r + 1], snap[r:r + 1],
+                                  valid[r:r + 1], signals[r:r + 1])
+            assert np.array_equal(one[0], out[r])
+        assert (out[..., 0] != 0).mean() > 0.2 or step < 2
+
+
+def test_driver_draws_by_key_and_by_row_are_one_table():
+    from av_gym.sensors.turn_signal import DriverDraws
+
+    draws = DriverDraws()
+    keys = [object() for _ in range(5)]
+    rows = draws.rows(keys)
+    assert rows.tolist() == [0, 1, 2, 3, 4] and draws.rows(keys[::-1]).tolist() == [4, 3, 2, 1, 0]
+    known, _, _ = draws.get(rows)
+    assert not known.any()
+    draws.keep(rows[:2], np.array([True, False]), np.array([False, True]))
+    known, indicates, wrong = draws.get(np.array([1, 0, 700]))  # a batch's vehicle id beyond the table grows it
+    assert known.tolist() == [True, True, False] and indicates.tolist() == [False, True, False]
+    assert wrong.tolist() == [True, False, False]
+    draws.clear()
+    assert not draws.get(rows)[0].any() and draws.rows(keys[2:3]).tolist() == [0]
 
 
 def test_indicator_channel_batch_equals_batches_of_one():
@@ -121,8 +218,14 @@ def test_intent_and_turn_features_batch_equals_batches_of_one():
 
 
 def test_batched_intent_reads_the_sensor_params():
-    """BatchedIntent's defaults are the sensors' Params (not a constructor signature), checked the same way."""
+    """BatchedIntent's and the engine's defaults are the sensors' Params (not a constructor signature), checked the
+    same way."""
     engine = batched.BatchedLeftTurn(1, {"duration": 5})
+    assert engine.features == turn_features.TurnFeaturesParams()
+    assert engine.n_features == turn_features.TurnEncoding.of(engine.features).width
+    assert batched.BatchedLeftTurn(1, {"duration": 5}, max_objects=3).n_features == 5 + 12 * 3
+    with pytest.raises(ParamError, match="max_objects"):
+        batched.BatchedLeftTurn(1, {"duration": 5}, max_objects=0)
     bi = batched.BatchedIntent(engine, {}, {})
     assert bi.sig == TurnSignalsParams()
     assert (bi.history, bi.gate, bi.signal_gate) == (turn_features.TurnIntentParams().history,

@@ -16,9 +16,10 @@ from gymnasium.utils import seeding
 from highway_env import utils
 
 from av_gym.envs.left_turn import ACTIONS, CONFLICT_POINT, MODES, ONCOMING_NEAR_EDGE_X, ROUTE, UnprotectedLeftTurnEnv
-from av_gym.estimation.turn_features import (ACC_SCALE, EGO_FEATURES, OBJECT_FEATURES, PATH_STEP, T_MAX,
-                                            TurnIntentParams, acceleration, path_conflict, signals_at)
-from av_gym.sensors.turn_signal import (TurnSignalsParams, draws_needed, node_index, read_channel, route_origin,
+from av_gym.estimation.turn_features import (IntentHistory, TurnEncoding, TurnFeaturesParams, TurnIntentParams,
+                                            turn_features, turn_path)
+from av_gym.sensors.base import episode_rng
+from av_gym.sensors.turn_signal import (DriverDraws, TurnSignalsParams, node_index, read_signals, route_origin,
                                        turn_signal)
 from av_gym.sim import batched, kernels
 from av_gym.sim.batched import LENGTH, WIDTH, LaneTable, Traffic
@@ -54,8 +55,8 @@ class BatchedLeftTurn:
     ``mode: ccftap``: every episode is the Euro NCAP test case of the config (the ego and one plain ``Vehicle``
     target, no traffic); an episode's only draw is its episode seed, as on the per-env stack."""
 
-    def __init__(self, n_envs: int, config: dict | None = None, max_objects: int = 8, max_range: float = 80.0,
-                 time_scale: float = 20.0, pool: int = 0) -> None:
+    def __init__(self, n_envs: int, config: dict | None = None, features: TurnFeaturesParams | dict | None = None,
+                 pool: int = 0, **feature_overrides) -> None:
         self.config = c = full_config(config)
         if c["mode"] not in MODES:
             raise ValueError(f"env.mode must be one of {list(MODES)}, got {c['mode']!r}")
@@ -80,14 +81,11 @@ class BatchedLeftTurn:
         self.route_starts = np.concatenate([[0.0], np.cumsum(T.length[self.route])[:-1]])
         turn = network.get_lane(ROUTE[1])
         self.conflict_s = self.route_starts[1] + turn.local_coordinates(CONFLICT_POINT)[0]
-        # obs["turn"]
-        self.max_objects, self.max_range, self.time_scale = int(max_objects), float(max_range), float(time_scale)
-        exit_lane = network.get_lane(ROUTE[2])
-        s_turn = np.arange(0.0, turn.length, PATH_STEP)
-        s_exit = np.arange(0.0, 10.0 + 1e-9, PATH_STEP)
-        self.path = np.array([turn.position(s, 0.0) for s in s_turn] + [exit_lane.position(s, 0.0) for s in s_exit])
-        self.path_s = np.concatenate([s_turn, turn.length + s_exit])
-        self.n_features = len(EGO_FEATURES) + len(OBJECT_FEATURES) * self.max_objects
+        # obs["turn"]: TurnFeatures(source=truth) with these parameters (its defaults and checks)
+        self.features = TurnFeaturesParams.build(features, **feature_overrides)
+        self.max_objects = int(self.features.max_objects)
+        self.path, self.path_s = turn_path(turn, network.get_lane(ROUTE[2]))
+        self.n_features = TurnEncoding.of(self.features).width
         B = self.B
         self.time, self.ticks = np.zeros(B), np.zeros(B, dtype=int)
         self.route_k, self.progress_s, self.progress_total = np.zeros(B, dtype=int), np.zeros(B), np.ones(B)
@@ -535,40 +533,17 @@ class BatchedLeftTurn:
         return out
 
     def observe(self, rows=None) -> np.ndarray:
-        """TurnFeatures.features (source=truth) for the envs ``rows``: (len(rows), 5 + 12·max_objects) float32."""
+        """TurnFeatures.features (source=truth) for the envs ``rows``: (len(rows), width) float32, by the same
+        function (:func:`av_gym.estimation.turn_features.turn_features`) for all of them at once."""
         rows = np.arange(self.B) if rows is None else np.asarray(rows)
         t, tr = self.traffic, self.truth(rows)
         self.last_truth = tr
-        n = len(rows)
-        ego = np.stack([tr["speed"] / 10.0, tr["set_point"] / 10.0, -tr["stop_line_offset"] / 30.0,
-                        tr["distance_to_conflict"] / 30.0, tr["time"] / self.time_scale], axis=1)
-        px, py, h, v = t.x[rows], t.y[rows], t.h[rows], t.v[rows]
-        vx, vy = v * np.cos(h), v * np.sin(h)
-        other = t.alive[rows] & ~t.ego[rows]
-        d = np.where(other, np.hypot(px - tr["x"][:, None], py - tr["y"][:, None]), np.inf)
-        M = self.max_objects
-        order = np.argsort(d, axis=1, kind="stable")[:, :M]
-        dn = np.take_along_axis(d, order, 1)
-        present = dn <= self.max_range
-        g = lambda a: np.take_along_axis(a, order, 1)  # noqa: E731
-        ox, oy, ovx, ovy = g(px), g(py), g(vx), g(vy)
-        psi = tr["heading"][:, None]
-        c, s = np.cos(psi), np.sin(psi)
-        ex, ey = tr["x"][:, None], tr["y"][:, None]
-        evx, evy = tr["speed"][:, None] * c, tr["speed"][:, None] * s
-        rx, ry = ox - ex, oy - ey
-        rvx, rvy = ovx - evx, ovy - evy
-        t_star, miss, path_s = self._path_conflict(ox, oy, ovx, ovy)
-        obj = np.stack([np.ones_like(ox), (rx * c + ry * s) / 50.0, (rx * -s + ry * c) / 50.0,
-                        (rvx * c + rvy * s) / 20.0, (rvx * -s + rvy * c) / 20.0,
-                        (ox - CONFLICT_POINT[0]) / 50.0, (oy - CONFLICT_POINT[1]) / 50.0, ovx / 15.0, ovy / 15.0,
-                        t_star / T_MAX, miss / 10.0, path_s / 30.0], axis=2)
-        obj = np.where(present[..., None], obj, 0.0)
-        if obj.shape[1] < M:
-            obj = np.concatenate([obj, np.zeros((n, M - obj.shape[1], obj.shape[2]))], axis=1)
+        v, h = t.v[rows], t.h[rows]
+        others = np.stack([t.x[rows], t.y[rows], v * np.cos(h), v * np.sin(h)], axis=-1)
+        out, order, present = turn_features(tr, others, t.alive[rows] & ~t.ego[rows], self.path, self.path_s,
+                                            CONFLICT_POINT, self.features)
         self.described = (order, present)
-        out = np.concatenate([ego, obj.reshape(n, -1)], axis=1)
-        return np.clip(np.nan_to_num(out, nan=0.0), -1.0, 1.0).astype(np.float32)
+        return out
 
     def others_described(self, rows) -> tuple[list, list]:
         """Per env of ``rows`` (after :meth:`observe` on them): the others ``(k, 4) [x, y, vx, vy]`` in road order
@@ -586,10 +561,6 @@ class BatchedLeftTurn:
             described.append(slot_to_other[order[n][present[n]]])
         return others, described
 
-    def _path_conflict(self, x, y, vx, vy):
-        """TurnFeatures._path_conflict (the same function) for (n, M) objects."""
-        return path_conflict(np.stack([x, y], axis=-1), np.stack([vx, vy], axis=-1), self.path, self.path_s)
-
 
 class BatchedIntent:
     """``obs["signals"]`` (TurnSignals) and ``obs["intent"]`` (TurnIntent) for a :class:`BatchedLeftTurn`, the
@@ -599,123 +570,50 @@ class BatchedIntent:
     (``history`` s)."""
 
     def __init__(self, engine: BatchedLeftTurn, signals: dict | None, intent: dict) -> None:
-        import zlib
-
         self.e = engine
         # the sensors' own Params (defaults and checks), as the per-env wrappers build them
         self.sig = None if signals is None else TurnSignalsParams.from_mapping(signals, "sensors.turn_signals")
         p = TurnIntentParams.from_mapping(intent or {}, "sensors.turn_intent")
         self.history, self.gate, self.signal_gate = float(p.history), float(p.gate), float(p.signal_gate)
-        self._crc = zlib.crc32(b"signals")
-        B = engine.B
-        self.rngs = [None] * B
-        # TurnSignals._channel, by vehicle id: seen before, indicates, indicates the wrong way
-        self.known, self.indicates, self.wrong = (np.zeros(1024, bool) for _ in range(3))
-        # per env, the past as TurnIntent._past: up to H snapshots (times ht, nan = empty) of the slot arrays
-        self.H = int(np.ceil(self.history * engine.config["policy_frequency"])) + 2
-        self.ht = np.full((B, self.H), np.nan)
-        self.hist = self.hmask = None
+        self.past = IntentHistory(engine.B, p)
+        self.rngs = [None] * engine.B
+        self.draws = DriverDraws()  # the per-driver channel (TurnSignals.draws), by vehicle id
         T = engine.T
         # intended_signal's route origin and destination of every lane (the rule is in av_gym.sensors.turn_signal)
         self.origin = np.array([route_origin(f, t) for f, t, _ in T.index])
         self.dest = np.array([node_index(t, "o") for _, t, _ in T.index])
 
     def reset(self, rows) -> None:
-        from av_gym.sensors.base import sensor_rng  # noqa: F401  (the same seeding, below)
-
         for r in rows:
-            self.rngs[r] = np.random.default_rng(np.random.SeedSequence([int(self.e.episode_seed[r]), self._crc]))
-        self.ht[np.asarray(rows, dtype=int)] = np.nan
-
-    def _grow(self, n: int) -> None:
-        if n > len(self.known):
-            size = max(n, 2 * len(self.known))
-            for name in ("known", "indicates", "wrong"):
-                a = np.zeros(size, bool)
-                a[: len(getattr(self, name))] = getattr(self, name)
-                setattr(self, name, a)
+            self.rngs[r] = episode_rng(self.e.episode_seed[r], "signals")
+        self.past.clear(rows)
 
     def signals(self, rows) -> np.ndarray:
-        """TurnSignals.measure for the envs ``rows``: (n, max_objects, 4) float32.
-
-        The sensor draws, per reading, in road order: on a vehicle's first sighting ``indicates?`` and ``wrong?``,
-        then ``seen?``. One ``Generator.uniform(size=k)`` per env gives the same k numbers as k scalar calls
-        (the same bit generator and transform, element by element), so each env draws its step's numbers at once
-        and they are handed out in that order. The channel's per-driver choices are kept by vehicle id (unique in
-        the process, so a table by id is the per-episode channel of the sensor)."""
-        e, t, sig = self.e, self.e.traffic, self.sig
-        M = int(sig.max_objects)
-        n = len(rows)
-        eslot = e.ego_slot(rows)
+        """TurnSignals.measure for the envs ``rows``: (n, max_objects, 4) float32, by the same function
+        (:func:`~av_gym.sensors.turn_signal.read_signals`) for all of them at once. The per-driver draws are kept
+        by vehicle id (unique in the process, so one table by id is every env's per-episode channel)."""
+        e, t = self.e, self.e.traffic
         last = t.route[rows][..., 2]  # -1: no route (a plain Vehicle): intended_signal is 0
         intended = turn_signal(self.origin[t.lane[rows]], np.where(last >= 0, self.dest[last], -1))
-        ex, ey = t.x[rows, eslot], t.y[rows, eslot]
-        d = np.hypot(t.x[rows] - ex[:, None], t.y[rows] - ey[:, None])
-        seen_mask = t.alive[rows] & ~t.ego[rows] & (d <= sig.max_range)
-        vids = t.vid[rows]
-        self._grow(int(vids.max()) + 1)
-        new = seen_mask & ~self.known[vids]
-        counts = draws_needed(seen_mask, new).sum(axis=1)  # this step's uniforms, env after env
-        draws = [self.rngs[r].uniform(size=int(c)) for r, c in zip(rows, counts) if c]
-        u = np.concatenate(draws) if draws else np.zeros(0)
-        value, indicates, wrong = read_channel(u, seen_mask, new, intended, self.indicates[vids], self.wrong[vids],
-                                               sig)
-        self.known[vids[new]] = True
-        self.indicates[vids[new]], self.wrong[vids[new]] = indicates[new], wrong[new]
-        # nearest first; ties in road order (the sensor's stable sort)
-        order = np.argsort(np.where(seen_mask, d, np.inf), axis=1, kind="stable")[:, :M]
-        g = lambda a: np.take_along_axis(a, order, 1)  # noqa: E731
-        present = g(seen_mask)
-        out = np.zeros((n, M, 4), dtype=np.float32)
-        m = order.shape[1]
-        out[:, :m] = np.where(present[..., None], np.stack([np.ones((n, m)), g(t.x[rows]), g(t.y[rows]), g(value)],
-                                                             axis=-1), 0.0)
-        return out
+        eslot = e.ego_slot(rows)
+        x, y = t.x[rows], t.y[rows]
+        d = np.hypot(x - t.x[rows, eslot][:, None], y - t.y[rows, eslot][:, None])
+        return read_signals(x, y, d, t.alive[rows] & ~t.ego[rows], intended, t.vid[rows], self.draws,
+                            [self.rngs[r] for r in rows], self.sig)
 
     def intent(self, rows, signals) -> np.ndarray:
         """TurnIntent.observation for the envs ``rows`` (after the engine's :meth:`BatchedLeftTurn.observe` on
-        them), for all of them at once. The past is kept per env as snapshots of the slot arrays (road order), at
-        most ``history`` s old, as TurnIntent._past."""
+        them), for all of them at once: the same :class:`~av_gym.estimation.turn_features.IntentHistory`, whose
+        snapshots here are the slot arrays (road order)."""
         e, t = self.e, self.e.traffic
         rows = np.asarray(rows)
-        n, M, N = len(rows), e.max_objects, t.N
+        n, M = len(rows), e.max_objects
         now = e.ticks[rows] / e.config["simulation_frequency"]
-        keep = t.alive[rows] & ~t.ego[rows]
         v = t.v[rows]
         snap = np.stack([t.x[rows], t.y[rows], v * np.cos(t.h[rows]), v * np.sin(t.h[rows])], axis=-1)  # (n, N, 4)
         order, present = e.described
-        objects = np.take_along_axis(snap, order[..., None], axis=1)  # (n, M', 4), nearest first
+        objects = np.zeros((n, M, 4))
+        objects[:, : order.shape[1]] = np.take_along_axis(snap, order[..., None], axis=1)  # nearest first
         described = np.zeros((n, M), bool)
         described[:, : present.shape[1]] = present
-        if objects.shape[1] < M:
-            objects = np.concatenate([objects, np.zeros((n, M - objects.shape[1], 4))], axis=1)
-        out = np.zeros((n, M, 2))
-        if self.hist is None or self.hist.shape[2] < N:  # (B, H, K, 4) snapshots, their masks and times
-            K = N if self.hist is None else N
-            hist = np.full((e.B, self.H, K, 4), np.nan)
-            hmask = np.zeros((e.B, self.H, K), bool)
-            if self.hist is not None:
-                hist[:, :, : self.hist.shape[2]], hmask[:, :, : self.hist.shape[2]] = self.hist, self.hmask
-            self.hist, self.hmask = hist, hmask
-        K = self.hist.shape[2]
-        ht = self.ht[rows]  # (n, H), nan = empty
-        oldest = np.argmin(np.where(np.isfinite(ht), ht, np.inf), axis=1)
-        t_then = ht[np.arange(n), oldest]
-        then, tmask = self.hist[rows, oldest], self.hmask[rows, oldest]  # (n, K, 4), (n, K)
-        dt = now - t_then
-        usable = np.isfinite(t_then) & tmask.any(axis=1) & (dt > 0)
-        if usable.any():  # TurnIntent._acceleration (the same function) for every env at once
-            acc = acceleration(objects, then, tmask & usable[:, None], np.where(usable, dt, 1.0), self.gate)
-            out[..., 0] = np.where(usable[:, None] & described, acc, 0.0) / ACC_SCALE
-        if signals is not None:  # TurnIntent's signals_at, likewise
-            out[..., 1] = np.where(described, signals_at(objects, signals, self.signal_gate), 0.0)
-        # keep what is younger than `history`, add now (TurnIntent: [(t, o) for ... if now - t < history - 1e-9])
-        ht = np.where(np.isfinite(ht) & (now[:, None] - ht < self.history - 1e-9), ht, np.nan)
-        slot = np.argmax(~np.isfinite(ht), axis=1)  # a free slot (H > history / policy period)
-        ht[np.arange(n), slot] = now
-        self.ht[rows] = ht
-        self.hist[rows, slot] = np.nan
-        self.hist[rows, slot, :N] = snap
-        self.hmask[rows, slot] = False
-        self.hmask[rows, slot, :N] = keep
-        return np.clip(np.nan_to_num(out), -1.0, 1.0).astype(np.float32)
+        return self.past.observe(rows, now, objects, described, snap, t.alive[rows] & ~t.ego[rows], signals)

@@ -6,8 +6,8 @@ does not import SB3 or torch.
 
 What the batch gives: ``env=left_turn`` in both modes (traffic, CCFtap) with discrete or continuous actions, and the
 sensors of the ``turn_truth`` preset (``turn_features`` with ``source: truth``, ``turn_signals``, ``turn_intent``,
-``observe``); agent options ``actions`` (``env`` | ``go_yield``, the latter with discrete actions only, as
-``GoYieldActions``), ``action_repeat``, ``timeout_is_terminal``. Anything else (another sensor, a shield) is refused
+``observe``); agent options ``actions`` (an action set of :data:`av_gym.wrappers.ACTION_SETS`, mapped by its own
+function), ``action_repeat``, ``timeout_is_terminal``. Anything else (another sensor, a shield) is refused
 with one line naming it; it runs on the per-env stack.
 
 Auto-reset: an env whose episode ended starts its next one at once (SB3's convention: the step returns the new
@@ -25,20 +25,10 @@ from gymnasium import spaces
 
 from av_gym.batched.left_turn import BatchedIntent, BatchedLeftTurn
 from av_gym.errors import ConfigError
+from av_gym.estimation.turn_features import TurnFeaturesParams
+from av_gym.wrappers import action_set, meta_actions  # noqa: F401 - meta_actions: imported from here too
 
 SENSORS = ("name", "turn_features", "turn_signals", "turn_intent", "observe", "keep_state")
-SET_POINTS = np.array([0.0, 4.5, 9.0])  # av_gym.wrappers.SET_POINTS
-
-
-def meta_actions(choice: np.ndarray, turn: np.ndarray) -> np.ndarray:
-    """av_gym.wrappers.meta_action for a batch: choices (B,) GO/YIELD and turn features (B, F) → meta-actions."""
-    from av_gym.wrappers import DECEL, FASTER, GO, IDLE, MARGIN, SLOWER
-
-    set_point, d_stop = 10.0 * turn[:, 1].astype(float), 30.0 * turn[:, 2].astype(float)
-    v_ok = np.sqrt(2.0 * DECEL * np.maximum(d_stop - MARGIN, 0.0))
-    yield_speed = np.max(np.where(SET_POINTS[None, :] <= v_ok[:, None] + 1e-6, SET_POINTS[None, :], -np.inf), axis=1)
-    wanted = np.where(np.asarray(choice) == GO, SET_POINTS[-1], yield_speed)
-    return np.where(wanted > set_point + 1e-3, FASTER, np.where(wanted < set_point - 1e-3, SLOWER, IDLE))
 
 
 def check_batchable(env_cfg: dict, sensors_cfg: dict | None, shield_cfg: dict | None) -> None:
@@ -62,8 +52,8 @@ def check_batchable(env_cfg: dict, sensors_cfg: dict | None, shield_cfg: dict | 
 
 
 class BatchedLeftTurnBatch:
-    """:class:`BatchedLeftTurn` with the training wrappers of the per-env stack (GoYieldActions, ActionRepeat,
-    TimeLimitIsTerminal, FlatDictObservation) done on the batch, behind SB3's ``VecEnv`` methods (``reset``,
+    """:class:`BatchedLeftTurn` with the training wrappers of the per-env stack (the action set's mapping,
+    ActionRepeat, TimeLimitIsTerminal, FlatDictObservation) done on the batch, behind SB3's ``VecEnv`` methods (``reset``,
     ``step_async``/``step_wait``, ``seed``, ``get_attr`` ...), so that SB3's adapter is only the base class
     (:class:`agents.batched_vec_env.BatchedLeftTurnVecEnv`)."""
 
@@ -75,8 +65,8 @@ class BatchedLeftTurnBatch:
         check_batchable(env_cfg, sensors_cfg, shield_cfg)
         _, config = highway_config(env_cfg)
         s = dict(sensors_cfg)
-        tf = {k: v for k, v in (s.get("turn_features") or {}).items() if k != "source"}
-        self.engine = BatchedLeftTurn(n_envs, config, pool=max(8, n_envs // 4) if pool is None else pool, **tf)
+        features = TurnFeaturesParams.from_mapping(s.get("turn_features") or {}, "sensors.turn_features")
+        self.engine = BatchedLeftTurn(n_envs, config, features, pool=max(8, n_envs // 4) if pool is None else pool)
         self.keys = list(s.get("observe") or ["turn", *(["signals"] if "turn_signals" in s else []),
                                               *(["intent"] if "turn_intent" in s else [])])
         need_intent = "intent" in self.keys or "signals" in self.keys
@@ -93,13 +83,15 @@ class BatchedLeftTurnBatch:
                               f"allowed: {sorted(all_spaces)}")
         obs_space = spaces.Dict({k: all_spaces[k] for k in self.keys})
         self.repeat, self.actions, self.timeout_is_terminal = int(action_repeat), actions, bool(timeout_is_terminal)
-        if actions == "go_yield" and self.engine.continuous:
-            raise ConfigError("agent.actions=go_yield needs env.action=discrete (GO/YIELD become meta-actions), got "
-                              "env.action=continuous")
-        if self.engine.continuous:  # LongitudinalAction.space
-            action_space = spaces.Box(-1.0, 1.0, shape=(1,), dtype=np.float32)
-        else:
-            action_space = spaces.Discrete(2) if actions == "go_yield" else spaces.Discrete(3)
+        self.action_set = action_set(actions)
+        # the env's own actions: LongitudinalAction.space, or the three meta-actions
+        env_space = spaces.Box(-1.0, 1.0, shape=(1,), dtype=np.float32) if self.engine.continuous else \
+            spaces.Discrete(3)
+        problem = self.action_set.problem(env_space, self.keys, "env.action=continuous" if self.engine.continuous
+                                          else None)
+        if problem:
+            raise ConfigError(problem)
+        action_space = self.action_set.space(env_space)
         self.num_envs, self.observation_space, self.action_space = int(n_envs), obs_space, action_space
         self._seeds: list | None = None
         self._actions = None
@@ -200,7 +192,7 @@ class BatchedLeftTurnBatch:
         total = np.zeros(B)
         term_all, trunc_all = np.zeros(B, bool), np.zeros(B, bool)
         for _ in range(self.repeat if active.any() else 0):
-            meta = meta_actions(self._actions, self._obs["turn"]) if self.actions == "go_yield" else self._actions
+            meta = self.action_set.act(self._actions, self._obs)
             reward, term, trunc = e.step(meta, active)
             rows = np.nonzero(active)[0]
             self._store(rows, self._observe(rows))

@@ -37,11 +37,17 @@ from av_gym.errors import ConfigError
 from av_gym.params import ROWS_MAX, Params, param
 from av_gym.sensors.base import SensorWrapper, find_wrapper, sim_time
 
-EGO_FEATURES = ("speed", "set_point", "to_stop_line", "to_conflict", "time")
-OBJECT_FEATURES = ("present", "fwd", "left", "dv_fwd", "dv_left", "cx", "cy", "vx", "vy", "t_star", "miss",
-                   "path_s")
 PATH_STEP = 2.0  # m between the points of the ego's path through the intersection that conflicts are checked at
 T_MAX = 10.0  # s, horizon of the closest-approach time
+
+# The encoding of obs["turn"]: each feature's name and the scale its value is divided by (then clipped to [-1, 1]).
+# The one table of it: both stacks encode with it (:func:`turn_features`) and every reader decodes with it
+# (:meth:`TurnEncoding.decode`). ``time``'s scale is the ``time_scale`` parameter.
+EGO_SCALES = {"speed": 10.0, "set_point": 10.0, "to_stop_line": 30.0, "to_conflict": 30.0, "time": None}
+OBJECT_SCALES = {"present": 1.0, "fwd": 50.0, "left": 50.0, "dv_fwd": 20.0, "dv_left": 20.0, "cx": 50.0, "cy": 50.0,
+                 "vx": 15.0, "vy": 15.0, "t_star": T_MAX, "miss": 10.0, "path_s": 30.0}
+EGO_FEATURES = tuple(EGO_SCALES)
+OBJECT_FEATURES = tuple(OBJECT_SCALES)
 
 
 @dataclass(frozen=True)
@@ -53,6 +59,58 @@ class TurnFeaturesParams(Params):
     max_range: float = param(80.0, "m", gt=0, doc="objects farther from the ego are left out (a 60 km/h car 5 s "
                                                   "away is ~80 m out)")
     time_scale: float = param(20.0, "s", gt=0, doc="elapsed time is divided by this (the traffic episode length)")
+
+
+@dataclass(frozen=True)
+class TurnEncoding:
+    """``obs["turn"]``'s layout and scales (:data:`EGO_SCALES`, :data:`OBJECT_SCALES`): ``encode`` for the stacks
+    that compute the features, ``decode`` for whoever reads them back (meta-actions, rule-based agents), both
+    vectorised over any leading axes. Defaults: :class:`TurnFeaturesParams`'."""
+
+    max_objects: int = TurnFeaturesParams().max_objects
+    time_scale: float = TurnFeaturesParams().time_scale
+
+    @classmethod
+    def of(cls, params: TurnFeaturesParams) -> "TurnEncoding":
+        return cls(int(params.max_objects), float(params.time_scale))
+
+    @property
+    def width(self) -> int:
+        return len(EGO_FEATURES) + len(OBJECT_FEATURES) * self.max_objects
+
+    def ego_scales(self) -> np.ndarray:
+        return np.array([self.time_scale if v is None else v for v in EGO_SCALES.values()])
+
+    def encode(self, ego: np.ndarray, objects: np.ndarray) -> np.ndarray:
+        """Raw ``ego`` (..., len(EGO_FEATURES)) and ``objects`` (..., max_objects, len(OBJECT_FEATURES)) values
+        (SI units, zero rows for no object) → the feature vectors (..., width) float32 in [-1, 1] (NaN → 0)."""
+        obj = objects / np.array(list(OBJECT_SCALES.values()))
+        out = np.concatenate([ego / self.ego_scales(), obj.reshape(*obj.shape[:-2], -1)], axis=-1)
+        return np.clip(np.nan_to_num(out, nan=0.0), -1.0, 1.0).astype(np.float32)
+
+    def decode(self, turn: np.ndarray, name: str) -> np.ndarray:
+        """Feature ``name`` of ``turn`` (..., width) in SI units: an ego feature (...), an object feature
+        (..., objects) (the number of objects from the width). In ``turn``'s precision (a float32 vector decodes
+        in float32; pass ``turn.astype(float)`` for doubles)."""
+        turn = np.asarray(turn)
+        if name in EGO_SCALES:
+            scale = EGO_SCALES[name]
+            return turn[..., EGO_FEATURES.index(name)] * float(self.time_scale if scale is None else scale)
+        objects = turn[..., len(EGO_FEATURES):].reshape(*turn.shape[:-1], -1, len(OBJECT_FEATURES))
+        return objects[..., OBJECT_FEATURES.index(name)] * float(OBJECT_SCALES[name])
+
+
+TURN = TurnEncoding()  # the default layout; decode("time") of a non-default time_scale needs its own TurnEncoding
+
+
+def turn_path(turn_lane, exit_lane) -> tuple[np.ndarray, np.ndarray]:
+    """The ego's path through the intersection, from the stop line along ``turn_lane`` and 10 m into ``exit_lane``
+    (highway-env lanes), a point every ``PATH_STEP`` m: where crossing, oncoming and merging traffic can meet it.
+    Returns the points (P, 2) and their distance past the stop line (P,)."""
+    s_turn = np.arange(0.0, turn_lane.length, PATH_STEP)
+    s_exit = np.arange(0.0, 10.0 + 1e-9, PATH_STEP)
+    path = np.array([turn_lane.position(s, 0.0) for s in s_turn] + [exit_lane.position(s, 0.0) for s in s_exit])
+    return path, np.concatenate([s_turn, turn_lane.length + s_exit])
 
 
 class TurnFeatures(SensorWrapper):
@@ -72,21 +130,14 @@ class TurnFeatures(SensorWrapper):
         self.max_range, self.time_scale = float(p.max_range), float(p.time_scale)
         super().__init__(env)
         self.conflict = env.unwrapped.CONFLICT_POINT
-        # The ego's path through the intersection, from the stop line along the turn and 10 m into the exit: where
-        # crossing, oncoming and merging traffic can meet it (the road is fixed, so computed once).
-        turn, exit_lane = env.unwrapped.road.network.get_lane(("ir0", "il1", 0)), \
-            env.unwrapped.road.network.get_lane(("il1", "o1", 0))
-        s_turn = np.arange(0.0, turn.length, PATH_STEP)
-        s_exit = np.arange(0.0, 10.0 + 1e-9, PATH_STEP)
-        self.path = np.array([turn.position(s, 0.0) for s in s_turn] + [exit_lane.position(s, 0.0) for s in s_exit])
-        self.path_s = np.concatenate([s_turn, turn.length + s_exit])  # m past the stop line
+        network = env.unwrapped.road.network  # the road is fixed: the path is computed once
+        self.path, self.path_s = turn_path(network.get_lane(("ir0", "il1", 0)), network.get_lane(("il1", "o1", 0)))
         self._last = np.zeros(self.sensor_space().shape, dtype=np.float32)
         self.others = np.zeros((0, 4))  # the objects of the last call, (N, 4) [x, y, vx, vy] (world, m, m/s)
         self.described = np.zeros(0, dtype=int)  # rows of ``others`` described, in feature order (nearest first)
 
     def sensor_space(self) -> spaces.Box:
-        n = len(EGO_FEATURES) + len(OBJECT_FEATURES) * self.max_objects
-        return spaces.Box(-1.0, 1.0, shape=(n,), dtype=np.float32)
+        return spaces.Box(-1.0, 1.0, shape=(TurnEncoding.of(self.params).width,), dtype=np.float32)
 
     # The ego part reads info["truth"] (the ego's own state), so this wrapper hooks reset/step, not observation().
     def reset(self, *, seed=None, options=None):
@@ -105,32 +156,15 @@ class TurnFeatures(SensorWrapper):
         return {**obs, self.key: self._last}
 
     def features(self, truth: dict, others: np.ndarray) -> np.ndarray:
-        """The feature vector for the ego in ``truth`` and ``others`` (N, ≥4) ``[x, y, vx, vy]`` (world, m, m/s)."""
-        ego = np.array([truth["speed"] / 10.0, self._set_point() / 10.0, -truth["stop_line_offset"] / 30.0,
-                        truth["distance_to_conflict"] / 30.0, truth["time"] / self.time_scale])
-        obj = np.zeros((self.max_objects, len(OBJECT_FEATURES)))
-        p_ego = np.array([truth["x"], truth["y"]])
-        psi = truth["heading"]
-        v_ego = truth["speed"] * np.array([np.cos(psi), np.sin(psi)])
-        others = others[np.isfinite(others).all(axis=1)] if len(others) else np.zeros((0, 4))
-        d = np.hypot(*(others[:, :2] - p_ego).T) if len(others) else np.zeros(0)
-        near = np.argsort(d)[: self.max_objects]
-        near = near[d[near] <= self.max_range]
-        self.others, self.described = others, near
-        if len(near):
-            p, v = others[near, :2], others[near, 2:4]
-            c, s = np.cos(psi), np.sin(psi)
-            to_ego = np.array([[c, s], [-s, c]])  # world → ego frame (x forward, y left)
-            rel_p, rel_v = (p - p_ego) @ to_ego.T, (v - v_ego) @ to_ego.T
-            pc = p - self.conflict
-            t_star, miss, path_s = self._path_conflict(p, v)
-            obj[: len(near)] = np.column_stack([np.ones(len(near)), rel_p / 50.0, rel_v / 20.0, pc / 50.0,
-                                                v / 15.0, t_star / T_MAX, miss / 10.0, path_s / 30.0])
-        out = np.concatenate([ego, obj.ravel()])
-        return np.clip(np.nan_to_num(out, nan=0.0), -1.0, 1.0).astype(np.float32)
-
-    def _path_conflict(self, p: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return path_conflict(p, v, self.path, self.path_s)
+        """The feature vector for the ego in ``truth`` and ``others`` (N, ≥4) ``[x, y, vx, vy]`` (world, m, m/s):
+        :func:`turn_features` on a batch of one."""
+        others = others[np.isfinite(others).all(axis=1), :4] if len(others) else np.zeros((0, 4))
+        ego = {k: np.array([float(truth[k])]) for k in EGO_INPUTS if k != "set_point"}
+        ego["set_point"] = np.array([self._set_point()])
+        out, order, present = turn_features(ego, others[None], np.ones((1, len(others)), bool), self.path,
+                                            self.path_s, self.conflict, self.params)
+        self.others, self.described = others, order[0][present[0]]
+        return out[0]
 
     def _set_point(self) -> float:
         ego = self.env.unwrapped.vehicle
@@ -177,7 +211,7 @@ class TurnIntent(SensorWrapper):
                               "preset)")
         self.history, self.gate, self.signal_gate = float(p.history), float(p.gate), float(p.signal_gate)
         super().__init__(env)
-        self._past: list[tuple[float, np.ndarray]] = []  # (time s, objects (N, 4)) of the last `history` seconds
+        self.past = IntentHistory(1, p)  # the objects of the last `history` seconds: a batch of one env
         self._last = np.zeros(self.sensor_space().shape, dtype=np.float32)
 
     def sensor_space(self) -> spaces.Box:
@@ -185,30 +219,18 @@ class TurnIntent(SensorWrapper):
                           dtype=np.float32)
 
     def on_reset(self) -> None:
-        self._past = []
+        self.past.clear([0])
 
     def observation(self, observation: dict) -> dict:
-        now = sim_time(self.env)
         turn = self.features_wrapper
-        objects = turn.others[turn.described]
-        out = np.zeros(self.sensor_space().shape)
-        if len(objects):
-            out[: len(objects), 0] = self._acceleration(objects, now) / ACC_SCALE
-            if "signals" in observation:
-                out[: len(objects), 1] = signals_at(objects, observation["signals"], self.signal_gate)
-        self._past = [(t, o) for t, o in self._past if now - t < self.history - 1e-9] + [(now, turn.others)]
-        self._last = np.clip(np.nan_to_num(out), -1.0, 1.0).astype(np.float32)
+        M, k = turn.max_objects, len(turn.described)
+        objects = np.zeros((1, M, 4))
+        objects[0, :k] = turn.others[turn.described]
+        described = np.arange(M)[None] < k
+        signals = observation["signals"][None] if "signals" in observation else None
+        self._last = self.past.observe([0], np.array([sim_time(self.env)]), objects, described, turn.others[None],
+                                       np.ones((1, len(turn.others)), bool), signals)[0]
         return {**observation, self.key: self._guarded(self._last)}
-
-    def _acceleration(self, objects: np.ndarray, now: float) -> np.ndarray:
-        """Longitudinal acceleration (m/s²) of each row of ``objects`` (N, 4), from the oldest kept past."""
-        if not self._past or not len(self._past[0][1]):
-            return np.zeros(len(objects))
-        t_then, then = self._past[0]
-        dt = now - t_then
-        if dt <= 0:
-            return np.zeros(len(objects))
-        return acceleration(objects, then, np.ones(len(then), dtype=bool), np.asarray(dt), self.gate)
 
     def measure(self) -> np.ndarray:
         return self._last.copy()
@@ -216,6 +238,109 @@ class TurnIntent(SensorWrapper):
 
 # The models both stacks run: the per-env wrappers above call them with one env's arrays, the batched left turn
 # (av_gym/batched/left_turn.py) with a leading batch axis (tests/test_one_model.py).
+EGO_INPUTS = ("x", "y", "heading", "speed", "set_point", "stop_line_offset", "distance_to_conflict", "time")
+
+
+def turn_features(ego: dict, others: np.ndarray, valid: np.ndarray, path: np.ndarray, path_s: np.ndarray,
+                  conflict: np.ndarray, params: TurnFeaturesParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``obs["turn"]`` (the module docstring) for n egos at once. ``ego``: arrays (n,) of :data:`EGO_INPUTS`
+    (``info["truth"]``'s fields, SI; ``set_point`` the ego's cruise set-point); ``others`` (n, N, ≥4)
+    ``[x, y, vx, vy]`` (world) with ``valid`` (n, N) marking the rows that are road users; the ego's ``path``
+    through the intersection (:func:`turn_path`) and the oncoming-lane ``conflict`` point.
+
+    Returns the features (n, width) float32, and which rows of ``others`` they describe: ``order`` (n,
+    min(max_objects, N)) indices, nearest first (ties in row order), and ``present`` (n, same): that row is a road
+    user within ``max_range`` (a described object)."""
+    enc = TurnEncoding.of(params)
+    M, n = enc.max_objects, len(others)
+    ex, ey = ego["x"][:, None], ego["y"][:, None]
+    px, py, vx, vy = others[..., 0], others[..., 1], others[..., 2], others[..., 3]
+    d = np.where(valid, np.hypot(px - ex, py - ey), np.inf)
+    order = np.argsort(d, axis=1, kind="stable")[:, :M]
+    present = np.take_along_axis(d, order, 1) <= params.max_range
+    g = lambda a: np.take_along_axis(a, order, 1)  # noqa: E731
+    ox, oy, ovx, ovy = g(px), g(py), g(vx), g(vy)
+    psi = ego["heading"][:, None]
+    c, s = np.cos(psi), np.sin(psi)
+    rx, ry = ox - ex, oy - ey  # relative position and velocity, turned into the ego frame (x forward, y left)
+    rvx, rvy = ovx - ego["speed"][:, None] * c, ovy - ego["speed"][:, None] * s
+    t_star, miss, on_path = path_conflict(np.stack([ox, oy], axis=-1), np.stack([ovx, ovy], axis=-1), path, path_s)
+    objects = np.stack([np.ones_like(ox), rx * c + ry * s, rx * -s + ry * c, rvx * c + rvy * s, rvx * -s + rvy * c,
+                        ox - conflict[0], oy - conflict[1], ovx, ovy, t_star, miss, on_path], axis=2)
+    objects = np.where(present[..., None], objects, 0.0)
+    if objects.shape[1] < M:
+        objects = np.concatenate([objects, np.zeros((n, M - objects.shape[1], objects.shape[2]))], axis=1)
+    raw_ego = np.stack([ego["speed"], ego["set_point"], -ego["stop_line_offset"], ego["distance_to_conflict"],
+                        ego["time"]], axis=1)
+    return enc.encode(raw_ego, objects), order, present
+
+
+class IntentHistory:
+    """``obs["intent"]`` (:class:`TurnIntent`) for n envs at once, with each env's past: up to H snapshots of its
+    objects (times ``t`` (n, H), NaN = empty; ``objects`` (n, H, K, 4) ``[x, y, vx, vy]`` with ``valid`` (n, H, K)),
+    kept while younger than ``history`` s. The per-env wrapper holds one of one env, the batched left turn one of
+    all its envs."""
+
+    def __init__(self, n: int, params: TurnIntentParams) -> None:
+        self.params = params
+        self.t = np.full((n, 2), np.nan)
+        self.objects = np.full((n, 2, 0, 4), np.nan)
+        self.valid = np.zeros((n, 2, 0), bool)
+
+    def clear(self, rows) -> None:
+        """Forget the past of the envs ``rows`` (a new episode)."""
+        self.t[np.asarray(rows, dtype=int)] = np.nan
+
+    def observe(self, rows, now: np.ndarray, objects: np.ndarray, described: np.ndarray, snapshot: np.ndarray,
+                snapshot_valid: np.ndarray, signals: np.ndarray | None) -> np.ndarray:
+        """The intent rows (len(rows), M, 2) float32 of the described ``objects`` (n, M, 4) (``described`` (n, M)
+        marks the rows that are objects) of the envs ``rows`` at times ``now`` (n,): each object's acceleration
+        against the oldest kept snapshot, and the turn signal of ``signals`` (n, S, 4) (``obs["signals"]``; None:
+        no turn-signal sensor) read on it. Then keeps ``snapshot`` (n, N, 4) (every object now, ``snapshot_valid``
+        (n, N)) as the envs' newest past."""
+        p, rows = self.params, np.asarray(rows, dtype=int)
+        n, M = len(rows), objects.shape[1]
+        t = self.t[rows]
+        oldest = np.argmin(np.where(np.isfinite(t), t, np.inf), axis=1)
+        t_then = t[np.arange(n), oldest]
+        then, then_valid = self.objects[rows, oldest], self.valid[rows, oldest]  # (n, K, 4), (n, K)
+        dt = now - t_then
+        usable = np.isfinite(t_then) & then_valid.any(axis=1) & (dt > 0)
+        out = np.zeros((n, M, len(INTENT_FEATURES)))
+        if usable.any():
+            acc = acceleration(objects, then, then_valid & usable[:, None], np.where(usable, dt, 1.0), p.gate)
+            out[..., 0] = np.where(usable[:, None] & described, acc, 0.0) / ACC_SCALE
+        if signals is not None:
+            out[..., 1] = np.where(described, signals_at(objects, signals, p.signal_gate), 0.0)
+        self._keep(rows, now, snapshot, snapshot_valid)
+        return np.clip(np.nan_to_num(out), -1.0, 1.0).astype(np.float32)
+
+    def _keep(self, rows: np.ndarray, now: np.ndarray, snapshot: np.ndarray, valid: np.ndarray) -> None:
+        """Drop what is no longer younger than ``history`` (TurnIntent's rule: ``now - t < history``), add now."""
+        n, N = len(rows), snapshot.shape[1]
+        t = self.t[rows]
+        t = np.where(np.isfinite(t) & (now[:, None] - t < self.params.history - 1e-9), t, np.nan)
+        free = ~np.isfinite(t)
+        if not free.any(axis=1).all() or N > self.objects.shape[2]:  # room for one more snapshot of N objects
+            H = self.t.shape[1] + (not free.any(axis=1).all())
+            K = max(N, self.objects.shape[2])
+            grown = np.full((len(self.t), H, K, 4), np.nan)
+            grown_valid = np.zeros((len(self.t), H, K), bool)
+            h, k = self.objects.shape[1:3]
+            grown[:, :h, :k], grown_valid[:, :h, :k] = self.objects, self.valid
+            self.t = np.concatenate([self.t, np.full((len(self.t), H - h), np.nan)], axis=1)
+            self.objects, self.valid = grown, grown_valid
+            t = np.concatenate([t, np.full((n, H - h), np.nan)], axis=1)
+            free = ~np.isfinite(t)
+        slot = np.argmax(free, axis=1)
+        t[np.arange(n), slot] = now
+        self.t[rows] = t
+        self.objects[rows, slot] = np.nan
+        self.objects[rows, slot, :N] = snapshot
+        self.valid[rows, slot] = False
+        self.valid[rows, slot, :N] = valid
+
+
 def path_conflict(p: np.ndarray, v: np.ndarray, path: np.ndarray,
                   path_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per object (positions ``p``, velocities ``v``, (..., N, 2)): the constant-velocity closest approach to the

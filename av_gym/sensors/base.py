@@ -22,8 +22,12 @@ from av_gym.geometry import NO_OTHERS
 
 def sensor_rng(env: gym.Env, key: str) -> np.random.Generator:
     """The generator for sensor ``key`` in the current episode of ``env``."""
-    unwrapped = env.unwrapped
-    return np.random.default_rng(np.random.SeedSequence([unwrapped.episode_seed, zlib.crc32(key.encode())]))
+    return episode_rng(env.unwrapped.episode_seed, key)
+
+
+def episode_rng(episode_seed: int, key: str) -> np.random.Generator:
+    """The generator for sensor ``key`` in the episode of ``episode_seed`` (the batched stack's envs too)."""
+    return np.random.default_rng(np.random.SeedSequence([int(episode_seed), zlib.crc32(key.encode())]))
 
 
 def ego_pose(env: gym.Env) -> np.ndarray:

@@ -120,6 +120,69 @@ def draws_needed(in_range: np.ndarray, new: np.ndarray) -> np.ndarray:
     return np.where(in_range, 1 + DRIVER_DRAWS * new, 0)
 
 
+class DriverDraws:
+    """The channel's per-driver draws (does the driver indicate? the wrong side?), made at a driver's first reading
+    and kept for the episode: arrays by driver row, one representation for the per-env sensor, the batched stack
+    and the shield's own channel. A driver is an integer row (the batch's vehicle ids, unique in the process) or,
+    through :meth:`rows`, any hashable key (a vehicle object: a deep copy of the stack keeps each vehicle's draws
+    through copy's memo)."""
+
+    def __init__(self) -> None:
+        self.clear()
+
+    def clear(self) -> None:
+        """Forget every driver (a new episode)."""
+        self.known, self.indicates, self.wrong = (np.zeros(0, bool) for _ in range(3))
+        self._row: dict = {}
+
+    def rows(self, keys) -> np.ndarray:
+        """The rows of hashable ``keys`` (new keys get the next free rows)."""
+        row = self._row
+        for k in keys:
+            if k not in row:
+                row[k] = len(row)
+        return np.array([row[k] for k in keys], dtype=int)
+
+    def get(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(drawn already, indicates, indicates the wrong side) of the drivers ``rows`` (any shape)."""
+        rows = np.asarray(rows, dtype=int)
+        if rows.size and rows.max() >= len(self.known):
+            size = max(int(rows.max()) + 1, 2 * len(self.known), 64)
+            for name in ("known", "indicates", "wrong"):
+                grown = np.zeros(size, bool)
+                grown[: len(getattr(self, name))] = getattr(self, name)
+                setattr(self, name, grown)
+        return self.known[rows], self.indicates[rows], self.wrong[rows]
+
+    def keep(self, rows: np.ndarray, indicates: np.ndarray, wrong: np.ndarray) -> None:
+        """The first-sighting draws of the drivers ``rows`` (after :meth:`get` on them)."""
+        self.known[rows], self.indicates[rows], self.wrong[rows] = True, indicates, wrong
+
+
+def read_signals(x: np.ndarray, y: np.ndarray, d: np.ndarray, candidates: np.ndarray, intended: np.ndarray,
+                 drivers: np.ndarray, draws: DriverDraws, rngs, p: "TurnSignalsParams") -> np.ndarray:
+    """``obs["signals"]`` for n egos at once: (n, max_objects, 4) float32 rows ``[present, x, y, signal]``, nearest
+    first (ties in road order), of the vehicles ``candidates`` (n, N) within ``max_range`` (``d`` (n, N) m from the
+    ego; positions ``x``, ``y``; ``intended`` signals; ``drivers`` their rows in ``draws``). Each env draws its
+    step's uniforms from its generator of ``rngs`` at once (one ``uniform(size=k)`` gives the numbers of k scalar
+    calls), in the sensor's order (:func:`read_channel`)."""
+    in_range = candidates & (d <= p.max_range)
+    known, indicates, wrong = draws.get(drivers)
+    new = in_range & ~known
+    counts = draws_needed(in_range, new).sum(axis=1)
+    parts = [rng.uniform(size=int(c)) for rng, c in zip(rngs, counts) if c]
+    u = np.concatenate(parts) if parts else np.zeros(0)
+    signal, indicates, wrong = read_channel(u, in_range, new, intended, indicates, wrong, p)
+    draws.keep(drivers[new], indicates[new], wrong[new])
+    M, n = int(p.max_objects), len(d)
+    order = np.argsort(np.where(in_range, d, np.inf), axis=1, kind="stable")[:, :M]
+    g = lambda a: np.take_along_axis(a, order, 1)  # noqa: E731
+    out = np.zeros((n, M, len(FIELDS)), dtype=np.float32)
+    m = order.shape[1]
+    out[:, :m] = np.where(g(in_range)[..., None], np.stack([np.ones((n, m)), g(x), g(y), g(signal)], axis=-1), 0.0)
+    return out
+
+
 def channel_likelihood(reading: float, miss_rate: float) -> np.ndarray:
     """``P(reading | turn, driver kind)`` (3 turns right/straight/left × 3 kinds right side/wrong side/never) of
     this channel: the inverse view of :func:`first_sighting` and :func:`reported`, what a Bayes filter over a
@@ -166,16 +229,14 @@ class TurnSignals(SensorWrapper):
         self.no_signal_rate, self.wrong_rate, self.miss_rate = float(p.no_signal_rate), float(p.wrong_rate), \
             float(p.miss_rate)
         super().__init__(env)
-        # Per-vehicle channel, keyed by the vehicle object (not id(): a deep copy of the stack, as the lookahead
-        # oracle makes, keeps each vehicle's draw through copy's memo).
-        self._channel: dict = {}
+        self.draws = DriverDraws()  # the per-driver channel, keyed by the vehicle object
         self.last = np.zeros((self.max_objects, len(FIELDS)), dtype=np.float32)  # the latest reading
 
     def sensor_space(self) -> spaces.Box:
         return spaces.Box(-BOUND, BOUND, shape=(self.max_objects, len(FIELDS)), dtype=np.float32)
 
     def on_reset(self) -> None:
-        self._channel = {}
+        self.draws.clear()
 
     def measure(self) -> np.ndarray:
         unwrapped = self.env.unwrapped
@@ -183,22 +244,12 @@ class TurnSignals(SensorWrapper):
         x, y = ego_pose(self.env)[:2]
         out = np.zeros((self.max_objects, len(FIELDS)), dtype=np.float32)
         vehicles = [v for v in unwrapped.road.vehicles if v is not ego]
-        if vehicles:
+        if vehicles:  # read_signals on a batch of one
             pos = np.array([v.position for v in vehicles], dtype=float)
             d = np.hypot(pos[:, 0] - x, pos[:, 1] - y)
-            in_range = d <= self.max_range
-            new = in_range & np.array([v not in self._channel for v in vehicles])
-            known = [self._channel.get(v, (False, False)) for v in vehicles]
-            intended = np.array([intended_signal(v) if r else NONE for v, r in zip(vehicles, in_range)])
-            n_draws = int(draws_needed(in_range, new).sum())
-            u = self.rng.uniform(size=n_draws) if n_draws else np.zeros(0)
-            signal, indicates, wrong = read_channel(u, in_range[None], new[None], intended[None],
-                                                    np.array([[k[0] for k in known]]),
-                                                    np.array([[k[1] for k in known]]), self.params)
-            for k in np.flatnonzero(new):  # the driver's draws, kept for the episode
-                self._channel[vehicles[k]] = (bool(indicates[0, k]), bool(wrong[0, k]))
-            near = np.flatnonzero(in_range)
-            near = near[np.argsort(d[near], kind="stable")][: self.max_objects]  # nearest first, road order on ties
-            out[: len(near)] = np.column_stack([np.ones(len(near)), pos[near], signal[0, near]])
+            intended = np.array([intended_signal(v) if r else NONE for v, r in zip(vehicles, d <= self.max_range)])
+            out = read_signals(pos[None, :, 0], pos[None, :, 1], d[None], np.ones((1, len(vehicles)), bool),
+                               intended[None], self.draws.rows(vehicles)[None], self.draws, [self.rng],
+                               self.params)[0]
         self.last = out
         return out

@@ -10,7 +10,7 @@ import numpy as np
 
 from av_gym.params import Params
 from av_gym.sensors.base import sensor_rng
-from av_gym.sensors.turn_signal import DRIVER_DRAWS, first_sighting, intended_signal, reported
+from av_gym.sensors.turn_signal import DRIVER_DRAWS, DriverDraws, first_sighting, intended_signal, reported
 from av_gym.shields.conflicts import ConflictModel
 from av_gym.shields.intent import DriverIntent
 from av_gym.shields.predict import (LaneHypotheses, cruise_profile, footprint_ttc, go_profile, object_predict,
@@ -45,7 +45,7 @@ class ImprovedAEB(AEBShield):
         self._conflicts: ConflictModel | None = None
         self.hypothesis_min_p, self.signals = p.hypothesis_min_p, p.signals
         self._signal_params = p.signal_channel
-        self._signal_channel: dict = {}
+        self._drivers = DriverDraws()  # the shield's own channel's per-driver draws, keyed by the vehicle
         self._intended_at: dict = {}  # vehicle -> (lane index, the indicator its route asks for there)
         self._beliefs = DriverIntent(p.signal_channel)
 
@@ -58,7 +58,8 @@ class ImprovedAEB(AEBShield):
             if self._conflicts is None:
                 self._conflicts = ConflictModel(u.road.network, min_p=self.hypothesis_min_p)
             self._conflicts.network = u.road.network
-            self._signal_channel, self._intended_at = {}, {}
+            self._drivers.clear()
+            self._intended_at = {}
             self._beliefs.clear()
             self._signal_rng = sensor_rng(self.env, "aeb_signals")
         self._moved_at = {}
@@ -87,12 +88,15 @@ class ImprovedAEB(AEBShield):
         in_range = (np.square(others[:, 0:2] - u.vehicle.position).sum(axis=1) <= sp.max_range**2).tolist()
         read = [v for v, r in zip(drivers, in_range) if r and v is not None]
         if read:
-            for v in read:
-                if v not in self._signal_channel:  # first reading: does this driver indicate, and on which side?
-                    self._signal_channel[v] = first_sighting(self._signal_rng.uniform(size=DRIVER_DRAWS), sp)
+            rows = self._drivers.rows(read)
+            first = np.sort(np.unique(rows, return_index=True)[1])  # a driver read twice (two tracks) draws once
+            fresh = rows[first][~self._drivers.get(rows[first])[0]]
+            if len(fresh):  # first reading: does this driver indicate, and on which side? (in reading order)
+                self._drivers.keep(fresh, *first_sighting(self._signal_rng.uniform(size=(len(fresh), DRIVER_DRAWS)),
+                                                          sp))
             u_seen = self._signal_rng.uniform(size=len(read))
-            channel = np.array([self._signal_channel[v] for v in read], dtype=bool).reshape(-1, 2)
-            readings = reported([self._intended(v) for v in read], channel[:, 0], channel[:, 1], u_seen, sp)
+            _, indicates, wrong = self._drivers.get(rows)
+            readings = reported([self._intended(v) for v in read], indicates, wrong, u_seen, sp)
             self._beliefs.update(read, readings.tolist())
         return self._beliefs.turn_weights(drivers)
 
