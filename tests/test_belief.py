@@ -94,3 +94,36 @@ def test_belief_follows_indicators(scene):
     del planner.counts[0][-1], planner.counts[0][-2]
     assert np.allclose(p[0].sum(axis=-1), 1.0)
     assert q[0, 0, 2] > 0.6 and q[0, 1, 0] > 0.6
+
+
+def test_per_env_view_decides_as_the_batch():
+    """The per-env agent's one-row view of its env (EnvView) gives the batch's probabilities for the same
+    episodes and the same readings, decision by decision."""
+    from agents.belief import BeliefLookahead
+    from av_gym.make import make_env
+    from av_gym.wrappers import meta_action
+
+    seeds = [400_100, 400_101, 400_102]
+    venv = BatchedLeftTurnBatch({"name": "left_turn"}, SENSORS, None, len(seeds), pool=0)
+    bobs = venv.play(iter(seeds))
+    batch = BeliefPlanner(BeliefLookaheadParams(samples=4), n_rows=len(seeds))
+    envs = [make_env({"name": "left_turn"}, SENSORS, None) for _ in seeds]
+    obs = [e.reset(seed=s)[0] for e, s in zip(envs, seeds)]
+    agents = [BeliefLookahead(e, BeliefLookaheadParams(samples=4)) for e in envs]
+    rows = np.arange(len(seeds))
+    compared = 0
+    for k in range(11):
+        batch.read(venv.engine, rows, bobs["intent"])
+        views = [a.view.engine(e, o) for a, e, o in zip(agents, envs, obs)]
+        for a, v, o in zip(agents, views, obs):
+            a.planner.read(v, [0], o["intent"][None])
+        if k % 5 == 0:
+            per_env = [a.planner.go_collision(v, [0])[0] for a, v in zip(agents, views)]
+            np.testing.assert_array_equal(batch.go_collision(venv.engine, rows), per_env)
+            compared += len(seeds)
+        bobs, _, done, _ = venv.step(meta_actions(np.full(len(seeds), YIELD), bobs["turn"]))
+        obs = [e.step(meta_action(YIELD, o["turn"]))[0] for e, o in zip(envs, obs)]
+        assert not done.any()
+    for e in envs:
+        e.close()
+    assert compared == 9
