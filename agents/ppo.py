@@ -217,5 +217,5 @@ class PPOAgent(AgentKind):
             raise ConfigError(f"checkpoint {str(model_path)!r} acts in {needs}, this env expects "
                               f"{env.action_space} (env.action must be as in its training)")
         policy.repeat = int(trained.get("action_repeat", 1) or 1)  # decides every `repeat` env steps, as in training
-        policy.actions = trained.get("actions", "env")  # go_yield: its two choices mapped to meta-actions
+        policy.actions = trained.get("actions") or "env"  # go_yield: its two choices mapped to meta-actions
         return policy

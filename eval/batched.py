@@ -112,7 +112,7 @@ class _Decider:
 
     def act(self, obs: dict, live: np.ndarray) -> np.ndarray:
         """Meta-actions (n,) for the envs ``live`` (the others get IDLE, unused)."""
-        from av_gym.batched.vec_env import meta_actions
+        from av_gym.wrappers import action_set, meta_actions
 
         out = np.ones(self.n, dtype=self.dtype)
         rows = np.nonzero(live)[0]
@@ -144,10 +144,8 @@ class _Decider:
                 action, _ = p.model.predict(flatten_obs({k: v[ask] for k, v in obs.items()}), deterministic=True)
                 self.held[ask] = np.asarray(action).reshape(len(ask), -1)[:, 0]
             self.k[rows] += 1
-            if p.actions == "go_yield":
-                out[rows] = meta_actions(self.held[rows], obs["turn"][rows])
-            else:
-                out[rows] = self.held[rows]
+            # the held choices become the env's actions by the policy's action set, as SB3Policy.act does per env
+            out[rows] = action_set(p.actions).act(self.held[rows], {k: v[rows] for k, v in obs.items()})
         return out
 
 
