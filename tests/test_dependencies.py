@@ -13,7 +13,7 @@ from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("av_gym", "agents", "conf", "train", "eval")  # what pyproject installs
+PACKAGES = ("av_gym", "av_gym_sb3", "av_gym_harness", "agents", "conf", "train", "eval")  # this repository's own
 PROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
 
 
