@@ -140,7 +140,8 @@ KNOWN: dict[str, str] = {
     "python -m train agent=ppo_lane_localized env=lane_keeping": "run",
     "python -m train agent=ppo_lane_camera env=lane_keeping": "run",
     "python -m eval.curves runs/<run>/tb --out curves.png": "run",
-    "python -m train.export checkpoints/<run> checkpoints/reference/<agent> --command 'python -m train ...'": "run",
+    "python -m train.export checkpoints/<run> checkpoints/reference/<agent> --command 'python -m train ...' "
+    "--overwrite-reference": "run",
     "python -m eval env=left_turn episodes=500 n_envs=2": "run",
     "python -m eval env=lane_keeping episodes=20": "run",
     "python -m eval.ccftap --agents [always_proceed,ppo_turn,ppo_turn_shielded] --variants [none,improved] "

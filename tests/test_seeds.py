@@ -78,7 +78,7 @@ def test_demonstrations_and_pid_search_draw_from_train(monkeypatch):
     params = SimpleNamespace(init="gap_acceptance", actions="go_yield", action_repeat=5, vec_env="subproc",
                              init_episodes=40, gamma=0.99, init_epochs=1, batch_size=8, init_action_noise=0.0,
                              init_dagger_rounds=0, init_lr=None, learning_rate=1e-3)
-    stack = SimpleNamespace(params=params, one=lambda **_: None)
+    stack = SimpleNamespace(params=params, one=lambda **_: SimpleNamespace(close=lambda: None))  # the demo env
     with pytest.raises(Drawn):
         ppo.clone_teacher(None, stack, "left_turn")
     assert len(drawn) == 40 and {split_of(s) for s in drawn} == {"train"}
