@@ -57,7 +57,9 @@ def find_shield(env: gym.Env) -> "AEBShield | None":
 
 
 AEB_VARIANTS = Registry("variant")
-"""``shield.variant`` → the AEB wrapper class with that decision logic; its ``Params`` is the section's fields."""
+"""``shield.variant`` → the AEB wrapper class with that decision logic; its ``Params`` is the section's fields.
+Each variant's module registers its class here; importing :mod:`av_gym.shields.aeb` (as the shield registry does)
+imports every variant. This module never imports them back: the base knows no variant."""
 
 
 class AEBShield(gym.Wrapper):
@@ -82,9 +84,8 @@ class AEBShield(gym.Wrapper):
     # ------------------------------------------------------------------------------------------- config
     @classmethod
     def variant_class(cls, variant: str, where: str = "") -> type["AEBShield"]:
-        """The wrapper class of ``variant`` (a :class:`ParamError` naming the allowed ones otherwise)."""
-        from av_gym.shields import aeb  # noqa: F401  (imports every variant module, so each is registered)
-
+        """The wrapper class of ``variant`` (a :class:`ParamError` naming the allowed ones otherwise): the
+        variants registered so far, each by its own module; :mod:`av_gym.shields.aeb` imports them all."""
         if variant not in AEB_VARIANTS:
             raise ParamError(f"{_join(where, 'variant')} must be one of {AEB_VARIANTS.names()}, got {variant!r}")
         return AEB_VARIANTS.get(variant)
