@@ -159,12 +159,13 @@ def _evaluate(cfg: DictConfig) -> list[dict]:
     if env_name == "lane_keeping" and (cfg.get("plots") or cfg.get("videos")):
         from eval.plots import lane_keeping_figures
 
-        paths = lane_keeping_figures(cfg, plans, cfg.out_dir, bool(cfg.get("plots")), bool(cfg.get("videos")))
+        paths = lane_keeping_figures(env_cfg, plans, cfg.out_dir, seeds.start, cfg.paths.checkpoints, str(cfg.split),
+                                     bool(cfg.get("plots")), bool(cfg.get("videos")))
         print(f"[eval] figures (seed {seeds.start}): {', '.join(p.name for p in paths)}")
     if env_name == "left_turn" and cfg.get("videos"):
         from eval.plots import turn_videos
 
-        paths = turn_videos(cfg, plans, cfg.out_dir)
+        paths = turn_videos(env_cfg, plans, cfg.out_dir, seeds.start, cfg.paths.checkpoints)
         print(f"[eval] videos (seed {seeds.start}): {', '.join(p.name for p in paths)}")
     return rows
 

@@ -155,45 +155,43 @@ def write_frames(frames: list[np.ndarray], path: str | Path, fps: float) -> Path
     return gif
 
 
-def lane_keeping_figures(cfg, plans, out_dir: str | Path, plots: bool = True, videos: bool = False) -> list[Path]:
-    """For ``python -m eval``: one more lap per agent plan on the first evaluation seed; PNGs and optional videos."""
-    from eval.__main__ import episode_seeds
-
-    first = episode_seeds(cfg).start
+def lane_keeping_figures(env_cfg, plans, out_dir: str | Path, first_seed: int, checkpoints: str, split: str,
+                         plots: bool = True, videos: bool = False) -> list[Path]:
+    """For ``python -m eval``: one more lap per agent plan on ``first_seed`` (the evaluation's first); PNGs and
+    optional videos."""
     from av_gym.make import make_env
     from eval.agents import resolve_agent
 
     traces, paths = {}, []
     for plan in plans:
-        env = make_env(cfg.env, plan.sensors, plan.shield)
-        _, policy = resolve_agent(plan.spec, env, cfg.env.name, cfg.paths.checkpoints)
-        traces[plan.label] = record_lap(env, policy, first, video=videos)
+        env = make_env(env_cfg, plan.sensors, plan.shield)
+        _, policy = resolve_agent(plan.spec, env, env_cfg["name"], checkpoints)
+        traces[plan.label] = record_lap(env, policy, first_seed, video=videos)
         policy_hz = float(env.unwrapped.config["policy_frequency"])
         env.close()
         if videos:
             paths.append(write_video(traces[plan.label], plan.label, Path(out_dir) / f"lap_{_slug(plan.label)}.mp4",
                                      policy_hz))
     if plots:
-        title = f"layout {cfg.env.get('track', '?')}, seed {first} ({cfg.split})"
+        title = f"layout {env_cfg.get('track', '?')}, seed {first_seed} ({split})"
         paths += plot_cte(traces, out_dir, title)
     return paths
 
 
-def turn_videos(cfg, plans, out_dir: str | Path) -> list[Path]:
-    """For ``python -m eval env=left_turn videos=true``: each agent plan drives the first evaluation seed once more
-    with its sensors and shield, rendered top-down by highway-env (the view training's periodic GIFs show), at
-    half resolution and real time: ``turn_<agent>.mp4``."""
+def turn_videos(env_cfg, plans, out_dir: str | Path, first_seed: int, checkpoints: str) -> list[Path]:
+    """For ``python -m eval env=left_turn videos=true``: each agent plan drives ``first_seed`` (the evaluation's
+    first) once more with its sensors and shield, rendered top-down by highway-env (the view training's periodic
+    GIFs show), at half resolution and real time: ``turn_<agent>.mp4``."""
     import cv2
 
     from av_gym.make import make_env
-    from eval.__main__ import episode_seeds
     from eval.agents import resolve_agent
 
-    first, paths = episode_seeds(cfg).start, []
+    paths = []
     for plan in plans:
-        env = make_env(cfg.env, plan.sensors, plan.shield, render_mode="rgb_array")
-        _, policy = resolve_agent(plan.spec, env, cfg.env.name, cfg.paths.checkpoints)
-        obs, _ = env.reset(seed=int(first))
+        env = make_env(env_cfg, plan.sensors, plan.shield, render_mode="rgb_array")
+        _, policy = resolve_agent(plan.spec, env, env_cfg["name"], checkpoints)
+        obs, _ = env.reset(seed=int(first_seed))
         policy.reset()
         frames, done, t = [], False, 0.0
         dt = 1.0 / float(env.unwrapped.config["policy_frequency"])

@@ -5,21 +5,20 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from omegaconf import OmegaConf
 
 from conftest import conf
 
 
 def test_videos_on_the_left_turn_show_each_agents_first_episode(tmp_path):
+    from av_gym.seeds import config_seeds
     from eval.agents import plan_agent
     from eval.plots import turn_videos
 
     env = {**conf("env", "left_turn"), "duration": 2.0}  # 20 decisions: a short clip
-    cfg = OmegaConf.create({"env": env, "paths": {"checkpoints": "checkpoints"}, "split": "validation",
-                            "episodes": 1, "seed": None})
     plans = [plan_agent(name, "left_turn", conf("sensors", "truth"), {"kind": "none"}, "checkpoints")
              for name in ("always_proceed", "gap_acceptance")]
-    paths = turn_videos(cfg, plans, tmp_path)
+    first = config_seeds("validation", 1, None, "seed").start
+    paths = turn_videos(env, plans, tmp_path, first, "checkpoints")
     assert [p.name for p in paths] == ["turn_always_proceed.mp4", "turn_gap_acceptance.mp4"]
     clips = []
     for path in paths:
