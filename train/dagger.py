@@ -82,7 +82,7 @@ def _replica_refusal(cfg: DictConfig) -> str | None:
 def validate(cfg: DictConfig) -> list[str]:
     """What DAgger needs beyond :class:`agents.dagger.DaggerParams`, one line each (before any folder)."""
     from av_gym.errors import ConfigError
-    from train.ppo import make_teacher
+    from train.imitation import make_teacher
 
     agent = cfg.agent
     try:
@@ -300,11 +300,11 @@ def drive_replica(envs: list, replica, model, labeller: BatchedLabels, seeds, te
 def fit(model, data: Round, epochs: int, batch_size: int, lr: float, seed: int) -> float:
     """Actor to the labels (negative log-likelihood), critic to the returns (MSE scaled by their variance, so the
     shared extractor is not driven by the returns' scale), Adam at ``lr``, every tensor on the policy's device
-    (agent.device): train/ppo.py's :func:`~train.ppo.fit_policy`, the fit its cloning step uses. Returns the
+    (agent.device): train/imitation.py's :func:`~train.imitation.fit_policy`, the fit its cloning step uses. Returns the
     accuracy on all labels."""
     from gymnasium import spaces
 
-    from train.ppo import Demonstrations, fit_policy
+    from train.imitation import Demonstrations, fit_policy
 
     demos = Demonstrations(0.0, data.obs, data.labels, data.returns)  # returns already discounted per round
     return fit_policy(model.policy, demos, isinstance(model.action_space, spaces.Discrete), epochs, batch_size,
@@ -388,7 +388,8 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     from av_gym.seeds import train_seed
     from agents.ppo import make_ppo
     from train.checkpoint import save_model_atomic, write_text_atomic
-    from train.ppo import _env_factory, make_teacher
+    from av_gym.make import make_training_env
+    from train.imitation import make_teacher
 
     agent, t_start = cfg.agent, time.time()
     resume, latest = bool(cfg.train.get("resume", False)), ckpt_dir / "latest.zip"
@@ -406,7 +407,7 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
         stacks = [BatchedLeftTurnVecEnv(*plain, n_envs, action_repeat=repeat, actions=actions,
                                         timeout_is_terminal=params.timeout_is_terminal, pool=0)]
     else:  # the per-env training stack: one for the per-env teacher, n_envs in lockstep with the replica
-        stacks = [_env_factory(*plain, 0.0, repeat, actions, timeout_is_terminal=params.timeout_is_terminal)
+        stacks = [make_training_env(*plain, 0.0, repeat, actions, timeout_is_terminal=params.timeout_is_terminal)
                   for _ in range(n_envs if how == "replica" else 1)]
     env = stacks[0]
     model = make_ppo(env, OmegaConf.to_container(agent, resolve=True), seed=int(cfg.seed), tensorboard_log=None,
@@ -428,7 +429,7 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
         drive = lambda seeds, by_teacher: drive_batched(env, model, labels, seeds, by_teacher,  # noqa: E731
                                                         gamma)
     if params.init_from and not resume:  # a student to go on from (a DAgger run or a PPO policy of the same spaces)
-        from train.ppo import load_weights
+        from train.imitation import load_weights
 
         load_weights(model, params.init_from, str(cfg.env.name))
     validation = _validation(cfg, plain, repeat, actions, how in ("batched", "rule"))
