@@ -143,5 +143,89 @@ def test_the_library_loads_no_harness_and_no_rl_stack(tmp_path):
     assert "loaded: []" in res.stdout, res.stdout
 
 
+# ------------------------------------------------------------------------------------------------ within a unit
+def module_of(rel: Path) -> str:
+    """``av_gym/shields/aeb.py`` → ``av_gym.shields.aeb``; a package's ``__init__.py`` is the package."""
+    return ".".join(rel.with_suffix("").parts).removesuffix(".__init__")
+
+
+def module_graph(root: Path | None = None) -> dict[str, set[str]]:
+    """module → the modules of its own unit it imports (every import statement, those inside functions too). A
+    ``from package import name`` points at the submodule when ``name`` is one, else at the package."""
+    root = root or ROOT
+    graph: dict[str, set[str]] = {}
+    for package in PACKAGES:
+        for path in sorted((root / package).rglob("*.py")):
+            src = module_of(path.relative_to(root))
+            graph.setdefault(src, set())
+            for node in ast.walk(ast.parse(path.read_text(), str(path))):
+                if isinstance(node, ast.Import):
+                    names = [alias.name for alias in node.names]
+                elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                    names = [f"{node.module}.{alias.name}" if _is_module(root, f"{node.module}.{alias.name}")
+                             else node.module for alias in node.names]
+                else:
+                    continue
+                graph[src] |= {n for n in names if n != src and n.split(".")[0] in PACKAGES and
+                               unit_of(n) == unit_of(src)}
+    return graph
+
+
+def _is_module(root: Path, name: str) -> bool:
+    path = root / Path(*name.split("."))
+    return path.is_dir() or path.with_suffix(".py").exists()
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan): each holds at least one circle."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def test_no_import_circle_inside_a_unit():
+    """Two modules of one unit that import each other (even lazily) are one module in two files, or a registry
+    filled from the wrong side: whoever reads one must read both."""
+    assert import_cycles(module_graph()) == []
+
+
+def test_the_circle_check_finds_a_planted_circle(tmp_path):
+    for package in PACKAGES:
+        (tmp_path / package).mkdir()
+    (tmp_path / "eval" / "a.py").write_text("from eval.b import f\n")
+    (tmp_path / "eval" / "b.py").write_text("def f():\n    from eval import c\n")
+    (tmp_path / "eval" / "c.py").write_text("def g():\n    import eval.a\n")
+    (tmp_path / "eval" / "d.py").write_text("from eval.a import f\n")  # into the circle, not part of it
+    (tmp_path / "av_gym" / "shields").mkdir()
+    (tmp_path / "av_gym" / "shields" / "x.py").write_text("from av_gym.shields.y import Y\n")
+    (tmp_path / "av_gym" / "shields" / "y.py").write_text("Y = 1\n")
+    assert import_cycles(module_graph(tmp_path)) == [["eval.a", "eval.b", "eval.c"]]
+
+
 if __name__ == "__main__":
     print("\n".join(import_picture()))
