@@ -19,7 +19,7 @@ from gymnasium import spaces
 
 from av_gym.actions import check_action
 from av_gym.errors import ConfigError
-from av_gym.estimation.turn_features import TURN
+from av_gym.estimation.turn_features import EGO_FEATURES, TURN
 
 
 # ----------------------------------------------------------------------------------------------- flat observations
@@ -148,17 +148,19 @@ SLOWER, IDLE, FASTER = 0, 1, 2  # highway-env's longitudinal DiscreteMetaAction 
 SET_POINTS = (0.0, 4.5, 9.0)  # m/s, the left turn's traffic-mode set-points (conf/env/left_turn.yaml)
 DECEL = 3.0  # m/s², comfortable approach deceleration b
 MARGIN = 0.5  # m, d0
+_SET_POINTS = np.array(SET_POINTS)
 
 
 def meta_actions(choice: np.ndarray, turn: np.ndarray) -> np.ndarray:
     """The meta-actions (n,) for GO/YIELD choices (n,) given the turn features ``turn`` (n, F)."""
-    turn = np.asarray(turn, dtype=float)
-    set_point, d_stop = TURN.decode(turn, "set_point"), TURN.decode(turn, "to_stop_line")
-    points = np.asarray(SET_POINTS)
+    turn = np.asarray(turn)
+    set_point = TURN.decode(turn[..., :len(EGO_FEATURES)].astype(float), "set_point")
+    d_stop = TURN.decode(turn[..., :len(EGO_FEATURES)].astype(float), "to_stop_line")
     v_ok = np.sqrt(2.0 * DECEL * np.maximum(d_stop - MARGIN, 0.0))
-    yield_speed = np.max(np.where(points <= v_ok[..., None] + 1e-6, points, -np.inf), axis=-1)
-    wanted = np.where(np.asarray(choice) == GO, points[-1], yield_speed)
-    return np.where(wanted > set_point + 1e-3, FASTER, np.where(wanted < set_point - 1e-3, SLOWER, IDLE))
+    # YIELD: the highest set-point not above v_ok (SET_POINTS ascends from 0, so there is one)
+    yield_speed = _SET_POINTS[np.searchsorted(_SET_POINTS, v_ok + 1e-6, side="right") - 1]
+    wanted = np.where(np.asarray(choice) == GO, _SET_POINTS[-1], yield_speed)
+    return IDLE + (wanted > set_point + 1e-3).astype(int) - (wanted < set_point - 1e-3)  # FASTER, IDLE, SLOWER
 
 
 def meta_action(choice: int, turn: np.ndarray) -> int:

@@ -70,7 +70,7 @@ def test_encoding_decodes_what_it_encodes():
     """TurnEncoding.decode inverts encode for every feature inside [-1, 1] (both layouts, float32 rounding)."""
     rng = np.random.default_rng(3)
     for enc in (turn_features.TURN, turn_features.TurnEncoding(max_objects=3, time_scale=7.0)):
-        scales = np.concatenate([enc.ego_scales(), np.tile(list(turn_features.OBJECT_SCALES.values()),
+        scales = np.concatenate([enc.ego_scales, np.tile(list(turn_features.OBJECT_SCALES.values()),
                                                             enc.max_objects)])
         raw = rng.uniform(-0.99, 0.99, size=(50, enc.width)) * scales
         m, k = enc.max_objects, len(turn_features.EGO_FEATURES)

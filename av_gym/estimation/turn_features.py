@@ -26,6 +26,7 @@ observation normalisation is needed) and clipped:
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Literal
 
@@ -72,21 +73,28 @@ class TurnEncoding:
 
     @classmethod
     def of(cls, params: TurnFeaturesParams) -> "TurnEncoding":
-        return cls(int(params.max_objects), float(params.time_scale))
+        return _encoding(int(params.max_objects), float(params.time_scale))
 
     @property
     def width(self) -> int:
         return len(EGO_FEATURES) + len(OBJECT_FEATURES) * self.max_objects
 
+    @functools.cached_property
     def ego_scales(self) -> np.ndarray:
         return np.array([self.time_scale if v is None else v for v in EGO_SCALES.values()])
+
+    @functools.cached_property
+    def object_scales(self) -> np.ndarray:
+        return np.array(list(OBJECT_SCALES.values()))
 
     def encode(self, ego: np.ndarray, objects: np.ndarray) -> np.ndarray:
         """Raw ``ego`` (..., len(EGO_FEATURES)) and ``objects`` (..., max_objects, len(OBJECT_FEATURES)) values
         (SI units, zero rows for no object) → the feature vectors (..., width) float32 in [-1, 1] (NaN → 0)."""
-        obj = objects / np.array(list(OBJECT_SCALES.values()))
-        out = np.concatenate([ego / self.ego_scales(), obj.reshape(*obj.shape[:-2], -1)], axis=-1)
-        return np.clip(np.nan_to_num(out, nan=0.0), -1.0, 1.0).astype(np.float32)
+        obj = objects / self.object_scales
+        out = np.concatenate([ego / self.ego_scales, obj.reshape(*obj.shape[:-2], -1)], axis=-1)
+        np.clip(out, -1.0, 1.0, out=out)  # ±inf → ±1, as nan_to_num then clip
+        out[np.isnan(out)] = 0.0
+        return out.astype(np.float32)
 
     def decode(self, turn: np.ndarray, name: str) -> np.ndarray:
         """Feature ``name`` of ``turn`` (..., width) in SI units: an ego feature (...), an object feature
@@ -98,6 +106,11 @@ class TurnEncoding:
             return turn[..., EGO_FEATURES.index(name)] * float(self.time_scale if scale is None else scale)
         objects = turn[..., len(EGO_FEATURES):].reshape(*turn.shape[:-1], -1, len(OBJECT_FEATURES))
         return objects[..., OBJECT_FEATURES.index(name)] * float(OBJECT_SCALES[name])
+
+
+@functools.lru_cache(maxsize=None)
+def _encoding(max_objects: int, time_scale: float) -> TurnEncoding:  # one per layout: its scale arrays made once
+    return TurnEncoding(max_objects, time_scale)
 
 
 TURN = TurnEncoding()  # the default layout; decode("time") of a non-default time_scale needs its own TurnEncoding
@@ -159,8 +172,8 @@ class TurnFeatures(SensorWrapper):
         """The feature vector for the ego in ``truth`` and ``others`` (N, ≥4) ``[x, y, vx, vy]`` (world, m, m/s):
         :func:`turn_features` on a batch of one."""
         others = others[np.isfinite(others).all(axis=1), :4] if len(others) else np.zeros((0, 4))
-        ego = {k: np.array([float(truth[k])]) for k in EGO_INPUTS if k != "set_point"}
-        ego["set_point"] = np.array([self._set_point()])
+        values = np.array([[self._set_point() if k == "set_point" else truth[k] for k in EGO_INPUTS]], dtype=float)
+        ego = dict(zip(EGO_INPUTS, values.T))
         out, order, present = turn_features(ego, others[None], np.ones((1, len(others)), bool), self.path,
                                             self.path_s, self.conflict, self.params)
         self.others, self.described = others, order[0][present[0]]
@@ -254,22 +267,26 @@ def turn_features(ego: dict, others: np.ndarray, valid: np.ndarray, path: np.nda
     enc = TurnEncoding.of(params)
     M, n = enc.max_objects, len(others)
     ex, ey = ego["x"][:, None], ego["y"][:, None]
-    px, py, vx, vy = others[..., 0], others[..., 1], others[..., 2], others[..., 3]
-    d = np.where(valid, np.hypot(px - ex, py - ey), np.inf)
+    d = np.where(valid, np.hypot(others[..., 0] - ex, others[..., 1] - ey), np.inf)
     order = np.argsort(d, axis=1, kind="stable")[:, :M]
-    present = np.take_along_axis(d, order, 1) <= params.max_range
-    g = lambda a: np.take_along_axis(a, order, 1)  # noqa: E731
-    ox, oy, ovx, ovy = g(px), g(py), g(vx), g(vy)
+    env = np.arange(n)[:, None]
+    present = d[env, order] <= params.max_range
+    near = others[env, order, :4]  # (n, m, 4), nearest first
+    ox, oy, ovx, ovy = near[..., 0], near[..., 1], near[..., 2], near[..., 3]
     psi = ego["heading"][:, None]
     c, s = np.cos(psi), np.sin(psi)
     rx, ry = ox - ex, oy - ey  # relative position and velocity, turned into the ego frame (x forward, y left)
     rvx, rvy = ovx - ego["speed"][:, None] * c, ovy - ego["speed"][:, None] * s
-    t_star, miss, on_path = path_conflict(np.stack([ox, oy], axis=-1), np.stack([ovx, ovy], axis=-1), path, path_s)
-    objects = np.stack([np.ones_like(ox), rx * c + ry * s, rx * -s + ry * c, rvx * c + rvy * s, rvx * -s + rvy * c,
-                        ox - conflict[0], oy - conflict[1], ovx, ovy, t_star, miss, on_path], axis=2)
-    objects = np.where(present[..., None], objects, 0.0)
-    if objects.shape[1] < M:
-        objects = np.concatenate([objects, np.zeros((n, M - objects.shape[1], objects.shape[2]))], axis=1)
+    objects = np.zeros((n, M, len(OBJECT_FEATURES)))
+    m = order.shape[1]
+    rows = objects[:, :m]
+    rows[..., 0] = 1.0
+    rows[..., 1], rows[..., 2] = rx * c + ry * s, rx * -s + ry * c
+    rows[..., 3], rows[..., 4] = rvx * c + rvy * s, rvx * -s + rvy * c
+    rows[..., 5], rows[..., 6] = ox - conflict[0], oy - conflict[1]
+    rows[..., 7:9] = near[..., 2:4]
+    rows[..., 9], rows[..., 10], rows[..., 11] = path_conflict(near[..., :2], near[..., 2:4], path, path_s)
+    rows[~present] = 0.0
     raw_ego = np.stack([ego["speed"], ego["set_point"], -ego["stop_line_offset"], ego["distance_to_conflict"],
                         ego["time"]], axis=1)
     return enc.encode(raw_ego, objects), order, present
@@ -301,11 +318,11 @@ class IntentHistory:
         p, rows = self.params, np.asarray(rows, dtype=int)
         n, M = len(rows), objects.shape[1]
         t = self.t[rows]
-        oldest = np.argmin(np.where(np.isfinite(t), t, np.inf), axis=1)
+        oldest = np.where(np.isnan(t), np.inf, t).argmin(axis=1)
         t_then = t[np.arange(n), oldest]
         then, then_valid = self.objects[rows, oldest], self.valid[rows, oldest]  # (n, K, 4), (n, K)
         dt = now - t_then
-        usable = np.isfinite(t_then) & then_valid.any(axis=1) & (dt > 0)
+        usable = (dt > 0) & then_valid.any(axis=1)  # false for an empty past (NaN)
         out = np.zeros((n, M, len(INTENT_FEATURES)))
         if usable.any():
             acc = acceleration(objects, then, then_valid & usable[:, None], np.where(usable, dt, 1.0), p.gate)
@@ -313,25 +330,27 @@ class IntentHistory:
         if signals is not None:
             out[..., 1] = np.where(described, signals_at(objects, signals, p.signal_gate), 0.0)
         self._keep(rows, now, snapshot, snapshot_valid)
-        return np.clip(np.nan_to_num(out), -1.0, 1.0).astype(np.float32)
+        np.clip(out, -1.0, 1.0, out=out)  # ±inf → ±1, NaN → 0, as nan_to_num then clip
+        out[np.isnan(out)] = 0.0
+        return out.astype(np.float32)
 
     def _keep(self, rows: np.ndarray, now: np.ndarray, snapshot: np.ndarray, valid: np.ndarray) -> None:
         """Drop what is no longer younger than ``history`` (TurnIntent's rule: ``now - t < history``), add now."""
         n, N = len(rows), snapshot.shape[1]
         t = self.t[rows]
-        t = np.where(np.isfinite(t) & (now[:, None] - t < self.params.history - 1e-9), t, np.nan)
-        free = ~np.isfinite(t)
-        if not free.any(axis=1).all() or N > self.objects.shape[2]:  # room for one more snapshot of N objects
-            H = self.t.shape[1] + (not free.any(axis=1).all())
-            K = max(N, self.objects.shape[2])
+        t[~(now[:, None] - t < self.params.history - 1e-9)] = np.nan  # (NaN compares false: stays empty)
+        free = np.isnan(t)
+        full = not free.any(axis=1).all()
+        if full or N > self.objects.shape[2]:  # room for one more snapshot of N objects
+            h, k = self.objects.shape[1:3]
+            H, K = h + full, max(N, k)
             grown = np.full((len(self.t), H, K, 4), np.nan)
             grown_valid = np.zeros((len(self.t), H, K), bool)
-            h, k = self.objects.shape[1:3]
             grown[:, :h, :k], grown_valid[:, :h, :k] = self.objects, self.valid
             self.t = np.concatenate([self.t, np.full((len(self.t), H - h), np.nan)], axis=1)
             self.objects, self.valid = grown, grown_valid
             t = np.concatenate([t, np.full((n, H - h), np.nan)], axis=1)
-            free = ~np.isfinite(t)
+            free = np.isnan(t)
         slot = np.argmax(free, axis=1)
         t[np.arange(n), slot] = now
         self.t[rows] = t

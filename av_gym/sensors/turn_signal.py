@@ -138,10 +138,7 @@ class DriverDraws:
     def rows(self, keys) -> np.ndarray:
         """The rows of hashable ``keys`` (new keys get the next free rows)."""
         row = self._row
-        for k in keys:
-            if k not in row:
-                row[k] = len(row)
-        return np.array([row[k] for k in keys], dtype=int)
+        return np.array([row.setdefault(k, len(row)) for k in keys], dtype=int)
 
     def get(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(drawn already, indicates, indicates the wrong side) of the drivers ``rows`` (any shape)."""
@@ -176,10 +173,12 @@ def read_signals(x: np.ndarray, y: np.ndarray, d: np.ndarray, candidates: np.nda
     draws.keep(drivers[new], indicates[new], wrong[new])
     M, n = int(p.max_objects), len(d)
     order = np.argsort(np.where(in_range, d, np.inf), axis=1, kind="stable")[:, :M]
-    g = lambda a: np.take_along_axis(a, order, 1)  # noqa: E731
+    env = np.arange(n)[:, None]
+    seen = in_range[env, order]
     out = np.zeros((n, M, len(FIELDS)), dtype=np.float32)
-    m = order.shape[1]
-    out[:, :m] = np.where(g(in_range)[..., None], np.stack([np.ones((n, m)), g(x), g(y), g(signal)], axis=-1), 0.0)
+    rows = out[:, : order.shape[1]]
+    rows[..., 0], rows[..., 1], rows[..., 2], rows[..., 3] = 1.0, x[env, order], y[env, order], signal[env, order]
+    rows[~seen] = 0.0
     return out
 
 
