@@ -12,7 +12,7 @@ way Hydra will, so that a typo gives one line and no run folder.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from importlib import resources
 from typing import Any
 
@@ -167,11 +167,16 @@ def validate_config(cfg: Any, command: str) -> None:
 _PLACEHOLDER = "hydra-runtime-value"  # a valid folder name, so run_name=${hydra:...} passes
 
 
-def check_command_line(command: str, argv: list[str]) -> list:
+def check_command_line(command: str, argv: list[str], check: Callable[[Any], Any] | None = None) -> list:
     """Compose the config the way Hydra will for ``python -m <command> <argv>`` and check it, *before* Hydra runs:
     so a typo gives one line (not Hydra's multi-line report) and no run folder is created. Returns the composed
     configs (one per swept value with ``-m``; ``hydra:`` interpolations replaced by a placeholder) for the
     command's own checks. Hydra's own options (``--help``, ``--cfg``, ``-c`` ...) are left to Hydra.
+
+    Each composed config is checked once here: its fields (:func:`validate_config`), then ``check(cfg)``, what the
+    command needs beyond them (seed ranges, a trainer's needs, the agents' checkpoints ...). Each config that
+    passed is remembered (:func:`was_checked`), so that the job Hydra runs from the same command line in this
+    process is not checked again.
 
     A sweep is checked value by value (each swept value once, the other sweeps at their first value): linear in
     the number of values, and every value a job will see has been checked."""
@@ -203,6 +208,10 @@ def check_command_line(command: str, argv: list[str]) -> list:
                 composed.append(_compose_checked(command, combo, groups, compose, multirun=bool(flags)))
             except (HydraException, OmegaConfBaseException) as exc:
                 raise ConfigError(_one_line(exc)) from None
+    for cfg in composed:  # every config's fields first, then what the command needs of each
+        if check is not None:
+            check(cfg)
+        _CHECKED.add(_fingerprint(cfg))
     return composed
 
 
@@ -230,43 +239,27 @@ def _linear_combos(parsed: list) -> list[list[str]]:
 
 
 def _compose_checked(command: str, overrides: list[str], groups: list[str], compose, multirun: bool = False) -> Any:
+    """One combination of overrides composed (once, with Hydra's own section: the job's folder is checked before
+    Hydra makes it) and checked; on a composition Hydra refuses, the override that caused it in one line."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
     from av_gym.errors import folder_problem
 
     parsed = OverridesParser.create().parse_overrides(overrides)
-    group_overrides, value_overrides = [], []
-    for o, text in zip(parsed, overrides):
-        key = o.key_or_group
-        if key.startswith("hydra") or "/" in key or "@" in key or key in groups:
-            group_overrides.append((o, text))
-        else:
-            value_overrides.append((o, text))
-    for o, _ in group_overrides:
+    for o in parsed:
         if o.key_or_group in groups and not o.is_delete():
             allowed = options(o.key_or_group)
-            value = o.value()
-            if value not in allowed:
-                raise ConfigError(f"{o.key_or_group}={value}: {o.key_or_group} must be one of {allowed}")
-    base = compose(config_name=command, overrides=[t for _, t in group_overrides])
-    for o, _ in value_overrides:
-        if o.is_add() or o.is_force_add() or o.is_delete():
-            continue  # a new key: the section's Params refuse it below unless it is one of their fields
-        _check_path(base, o.key_or_group, command)
-    # With Hydra's own section, to check the folder Hydra will make for the job (hydra.run.dir, or hydra.sweep.dir
-    # with -m) before it makes it: one line for a path it cannot create, not Hydra's traceback.
-    cfg = compose(config_name=command, overrides=overrides, return_hydra_config=True)
-
-    def hydra_values(node: Any, path: str = ""):  # ${hydra:...} values are filled by Hydra only once a job runs
-        if isinstance(node, dict):
-            for k, v in node.items():
-                yield from hydra_values(v, f"{path}.{k}" if path else str(k))
-        elif isinstance(node, str) and "${hydra:" in node:
-            yield path
-
-    for path in list(hydra_values(OmegaConf.to_container(cfg, resolve=False))):
+            if o.value() not in allowed:
+                raise ConfigError(f"{o.key_or_group}={o.value()}: {o.key_or_group} must be one of {allowed}")
+    try:
+        cfg = compose(config_name=command, overrides=overrides, return_hydra_config=True)
+    except (HydraException, OmegaConfBaseException):
+        _explain_refused_override(command, parsed, overrides, groups, compose)
+        raise
+    for path in list(_hydra_values(OmegaConf.to_container(cfg, resolve=False))):
         OmegaConf.update(cfg, path, _PLACEHOLDER)
     key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
     try:
@@ -284,6 +277,56 @@ def _compose_checked(command: str, overrides: list[str], groups: list[str], comp
             given = any(o.key_or_group == key for o in parsed)
             raise ConfigError(problem if given or raw == job_dir else f"{problem} ({key} is {raw})")
     return cfg
+
+
+def _explain_refused_override(command: str, parsed: list, overrides: list[str], groups: list[str], compose) -> None:
+    """A value override Hydra refused to compose names a field that does not exist: one line naming the nearest
+    section's fields, from the config composed with the group choices alone."""
+    group_overrides = [text for o, text in zip(parsed, overrides)
+                       if o.key_or_group.startswith("hydra") or "/" in o.key_or_group or "@" in o.key_or_group
+                       or o.key_or_group in groups]
+    base = compose(config_name=command, overrides=group_overrides)
+    for o in parsed:
+        key = o.key_or_group
+        if key.startswith("hydra") or "/" in key or "@" in key or key in groups:
+            continue
+        if o.is_add() or o.is_force_add() or o.is_delete():
+            continue  # a new key: the section's Params refuse it unless it is one of their fields
+        _check_path(base, key, command)
+
+
+def _hydra_values(node: Any, path: str = ""):
+    """Paths of the values only a running job has (``${hydra:...}``, filled by Hydra once the job runs)."""
+    if isinstance(node, dict):
+        for k, v in node.items():
+            yield from _hydra_values(v, f"{path}.{k}" if path else str(k))
+    elif isinstance(node, str) and "${hydra:" in node:
+        yield path
+
+
+# The command lines this process checked, by their unresolved config: the job Hydra composes from one of them is
+# the same config, checked already (a sweep's jobs in other processes, and callers from Python, check their own).
+_CHECKED: set[str] = set()
+
+
+def _fingerprint(cfg: Any) -> str:
+    import json
+
+    from omegaconf import OmegaConf
+
+    plain = OmegaConf.to_container(cfg, resolve=False)
+    for path in list(_hydra_values(plain)):
+        node = plain
+        *parents, last = path.split(".")
+        for part in parents:
+            node = node[part]
+        node[last] = _PLACEHOLDER
+    return json.dumps(plain, sort_keys=True, default=str)
+
+
+def was_checked(cfg: Any) -> bool:
+    """Whether :func:`check_command_line` checked this very config in this process (the job of a plain run)."""
+    return _fingerprint(cfg) in _CHECKED
 
 
 def _groups(command: str) -> list[str]:

@@ -5,13 +5,31 @@ hold only the defaults list, interpolations and Hydra's own settings."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 from av_gym.params import EPISODES_MAX, SEED_MAX, Params, param
 
 # Worker processes (each a full env stack, ~180 MB): 64 already oversubscribes any workstation's cores.
 PROCESSES_MAX = 64
+
+
+@dataclass(frozen=True)
+class Command(Params):
+    """A command's own settings, typed: built once where the command starts (:meth:`of`) and passed down, so that
+    nothing below reads the composed config's settings raw."""
+
+    @classmethod
+    def of(cls, cfg: Mapping | Any):
+        """This command's settings in a composed config (an OmegaConf node or a plain mapping; the sections
+        ``env``, ``agent`` ... aside; a missing setting takes its default). The config's problems are said by
+        :func:`conf.check.validate_config`, with the command line's paths; here a bad value raises ParamError."""
+        if hasattr(cfg, "_metadata"):
+            from omegaconf import OmegaConf
+
+            cfg = OmegaConf.to_container(cfg, resolve=True)
+        return cls.from_mapping({k: v for k, v in cfg.items() if k in cls.field_names()})
 
 
 @dataclass(frozen=True)
@@ -52,7 +70,7 @@ class TrainPaths(Params):
 
 
 @dataclass(frozen=True)
-class TrainCommand(Params):
+class TrainCommand(Command):
     """``python -m train``'s own settings."""
 
     seed: int = param(0, ge=0, le=SEED_MAX, doc="seeds the env stream, the policy's initialisation and PPO's sampling")
@@ -68,7 +86,7 @@ class EvalPaths(Params):
 
 
 @dataclass(frozen=True)
-class EvalCommand(Params):
+class EvalCommand(Command):
     """``python -m eval``'s own settings."""
 
     agents: tuple[str, ...] = param((), min_items=1, doc="names from conf/agent/ (rule-based, or trained: the newest checkpoint "
@@ -103,7 +121,7 @@ class EvalCommand(Params):
         return []
 
 
-COMMANDS: dict[str, type[Params]] = {"train": TrainCommand, "eval": EvalCommand}
+COMMANDS: dict[str, type[Command]] = {"train": TrainCommand, "eval": EvalCommand}
 SECTIONS = {"train": ("env", "sensors", "agent", "shield"), "eval": ("env", "sensors", "shield")}
 
 

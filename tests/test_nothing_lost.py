@@ -290,7 +290,7 @@ def test_a_config_refused_by_the_trainer_leaves_no_run_folder(tmp_path, monkeypa
     hydra = SimpleNamespace(runtime=SimpleNamespace(output_dir=str(tmp_path / "runs" / "R")), mode=None)
     monkeypatch.setattr(train_main.HydraConfig, "get", staticmethod(lambda: hydra))
 
-    def refuses(cfg, ckpt_dir, run_dir):
+    def refuses(cfg, ckpt_dir, run_dir, **_):
         assert (ckpt_dir / "config.yaml").is_file()
         raise ConfigError("agent.init_from='x': checkpoint 'x' was trained on env 'lane_keeping', not 'left_turn'")
 

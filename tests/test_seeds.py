@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import pytest
-from omegaconf import OmegaConf
 
 from av_gym.errors import ConfigError
 from av_gym.seeds import SPLITS, config_seeds, seeds, split_of, train_seed
@@ -37,27 +36,30 @@ def test_training_streams_stay_in_the_train_split(base, offset):
     assert split_of(train_seed(base, offset)) == "train"
 
 
-def _train_cfg(**train):
-    return OmegaConf.create({"train": {"eval_seed": None, "eval_episodes": 100, "eval_n": 30, **train}})
+def _train_options(**train):
+    from conf.commands import TrainOptions
+
+    return TrainOptions(**{"eval_seed": None, "eval_episodes": 100, "eval_n": 30, **train})
 
 
 def test_training_evaluations_draw_from_validation():
     """The periodic evaluation (best.zip) and the brief one after training: validation, never test."""
     from train.__main__ import validation_seeds
 
-    assert split_of(validation_seeds(_train_cfg(), 100).start) == "validation"
-    assert split_of(validation_seeds(_train_cfg(), 100)[-1]) == "validation"
+    assert split_of(validation_seeds(_train_options(), 100).start) == "validation"
+    assert split_of(validation_seeds(_train_options(), 100)[-1]) == "validation"
     with pytest.raises(ConfigError, match="train.eval_seed"):
-        validation_seeds(_train_cfg(eval_seed=SPLITS["test"].start), 30)
+        validation_seeds(_train_options(eval_seed=SPLITS["test"].start), 30)
 
 
 def test_eval_defaults_to_validation_and_reports_the_split():
     from eval.__main__ import episode_seeds
 
-    cfg = OmegaConf.create({"split": "validation", "seed": None, "episodes": 20})
-    assert episode_seeds(cfg) == seeds("validation", 20)
+    from conf.commands import EvalCommand
+
+    assert episode_seeds(EvalCommand(split="validation", seed=None, episodes=20)) == seeds("validation", 20)
     with pytest.raises(ConfigError, match="leaves split 'validation'"):
-        episode_seeds(OmegaConf.create({"split": "validation", "seed": 1000, "episodes": 20}))  # the old default
+        episode_seeds(EvalCommand(split="validation", seed=1000, episodes=20))  # the old default
 
 
 def test_demonstrations_and_pid_search_draw_from_train(monkeypatch):

@@ -7,6 +7,7 @@ resolved config beside them, then evaluates the result briefly against the scena
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import hydra
@@ -15,6 +16,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from av_gym.errors import ConfigError, check_folder, folder_problem, run_cli, run_hydra
+from conf.commands import TrainCommand, TrainOptions
 
 # What the brief evaluation after training compares the trained agent with (train.baseline: auto): on the left turn
 # the do-nothing-clever driver and the two-parameter rule a learned driver must beat.
@@ -28,21 +30,30 @@ def _kind(cfg: DictConfig):
     return AGENT_KINDS.get(cfg.agent.get("kind"))
 
 
-def validation_seeds(cfg: DictConfig, n: int) -> range:
+def validation_seeds(options: TrainOptions, n: int) -> range:
     """``n`` seeds of the validation split from ``train.eval_seed`` (default: the split's start): the evaluations
     during training pick ``best.zip`` and the one after it is looked at, so they may never be test seeds."""
     from av_gym.seeds import config_seeds
 
-    return config_seeds("validation", n, cfg.train.get("eval_seed"), "train.eval_seed")
+    return config_seeds("validation", n, options.eval_seed, "train.eval_seed")
 
 
 def _validate(cfg: DictConfig) -> None:
-    """Every field against the schema (the agent section: its kind's Params), then what its trainer needs."""
-    from agents.registry import resolve
+    """Every field against the schema (the agent section: its kind's Params), then what its trainer needs: the
+    whole check of a training config (the env's, sensors' and shield's sections included: no env is built)."""
     from conf.check import validate_config
 
     validate_config(cfg, "train")
-    validation_seeds(cfg, max(int(cfg.train.eval_episodes), int(cfg.train.eval_n)))
+    _check_needs(cfg)
+
+
+def _check_needs(cfg: DictConfig) -> None:
+    """What a config whose fields are valid still needs: validation seeds in their split, an agent that drives
+    this env, what its trainer checks (agents/registry.py ``train_checks``)."""
+    from agents.registry import resolve
+
+    options = TrainCommand.of(cfg).train
+    validation_seeds(options, max(options.eval_episodes, options.eval_n))
     agent = cfg.agent
     if cfg.env.name not in agent.scenarios:
         raise ConfigError(f"agent {agent.name!r} drives scenarios {list(agent.scenarios)}, not env={cfg.env.name}")
@@ -53,132 +64,175 @@ def _validate(cfg: DictConfig) -> None:
             raise ConfigError(problems[0])
 
 
+@dataclass(frozen=True)
+class Folders:
+    """Where one run writes: Hydra's run folder (logs, results), its TensorBoard folder and its checkpoints."""
+
+    run_dir: Path
+    ckpt_dir: Path
+
+    @property
+    def tb_dir(self) -> Path:
+        return self.run_dir / "tb"
+
+
 def train(cfg: DictConfig) -> dict:
     """Train and briefly evaluate; returns where things went (``run_dir``, ``tensorboard``, ``checkpoint``)."""
     import torch
 
-    from av_gym.make import make_env
-    from eval.agents import plan_agent, resolve_agent
-    from eval.report import write_results
-    from eval.runner import EpisodeJob, run_episodes, run_episodes_parallel
+    from conf.check import was_checked
+
+    if not was_checked(cfg):  # the command line's check ran in this process for a plain run, not for Python's
+        _validate(cfg)
+    command = TrainCommand.of(cfg)
+    torch.set_num_threads(command.train.torch_threads)
+    folders = _claim_folders(cfg, command)
+    model_path = _train_agent(cfg, command, folders)
+    if command.train.eval_episodes > 0:
+        _brief_evaluation(cfg, command, folders, model_path)
+    return _report(folders, model_path)
+
+
+def _claim_folders(cfg: DictConfig, command: TrainCommand) -> Folders:
+    """The run's folders, ours alone (a lock), resumable, or refused; cleared first with train.overwrite; the
+    resolved config.yaml beside the checkpoints."""
     from train.checkpoint import write_text_atomic
     from train.run_folder import clear_for_overwrite, release_all
 
-    _validate(cfg)
-    make_env(cfg.env, cfg.sensors, cfg.shield).close()  # fail fast on a bad env/sensors/shield config
-    torch.set_num_threads(int(cfg.train.torch_threads))
     run_dir = Path(HydraConfig.get().runtime.output_dir)
-    ckpt_dir = Path(cfg.paths.checkpoints) / cfg.run_name
+    ckpt_dir = Path(command.paths.checkpoints) / command.run_name
     if HydraConfig.get().mode == RunMode.MULTIRUN:  # jobs of a sweep started in the same second share run_name
         ckpt_dir = ckpt_dir.with_name(f"{ckpt_dir.name}-j{HydraConfig.get().job.num}")
-    tb_dir = run_dir / "tb"
     check_folder(ckpt_dir, "paths.checkpoints")  # one line, not a traceback, if it cannot be
-    claim_run(cfg, ckpt_dir, None)  # ours alone (a lock), resumable, or refused: before config.yaml is written
+    claim_run(cfg, command, ckpt_dir, None)  # before config.yaml is written
     release_all(keep=ckpt_dir)
-    if bool(cfg.train.overwrite) and not bool(cfg.train.resume):
+    if command.train.overwrite and not command.train.resume:
         removed = clear_for_overwrite(ckpt_dir, run_dir)
         if removed:
             print(f"[train] train.overwrite=true: removed the previous run's {len(removed)} files and folders")
     write_text_atomic(ckpt_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
+    return Folders(run_dir, ckpt_dir)
 
-    agent, env_name = cfg.agent, cfg.env.name
-    model_path = None
-    if _kind(cfg).trained():
-        from agents.registry import resolve
-        from train.run_folder import discard_if_unstarted
 
-        try:
-            model_path = resolve(_kind(cfg).trainer)(cfg, ckpt_dir, run_dir)
-        except ConfigError:
-            # refused by the trainer before it wrote anything (an agent.init_from that does not fit): the fresh
-            # run's config.yaml goes too, or the run_name would be refused as taken
-            if not bool(cfg.train.resume):
-                discard_if_unstarted(ckpt_dir)
-            raise
+def _train_agent(cfg: DictConfig, command: TrainCommand, folders: Folders) -> Path | None:
+    """The agent kind's trainer (none for a rule-based agent); returns the final checkpoint."""
+    from agents.registry import resolve
+    from train.run_folder import discard_if_unstarted
+
+    kind = _kind(cfg)
+    if not kind.trained():
+        print(f"[train] agent {cfg.agent.name!r} is rule-based: nothing to train")
+        return None
+    try:
+        return resolve(kind.trainer)(cfg, folders.ckpt_dir, folders.run_dir, command=command)
+    except ConfigError:
+        # refused by the trainer before it wrote anything (an agent.init_from that does not fit): the fresh run's
+        # config.yaml goes too, or the run_name would be refused as taken
+        if not command.train.resume:
+            discard_if_unstarted(folders.ckpt_dir)
+        raise
+
+
+def _brief_evaluation(cfg: DictConfig, command: TrainCommand, folders: Folders, model_path: Path | None) -> None:
+    """The trained agent (or the rule-based one) and the baselines on ``train.eval_episodes`` validation seeds,
+    into results.csv and results.md in the run folder; Ctrl-C keeps (and writes) every finished episode."""
+    from eval.report import write_results
+
+    options, env_name, run_dir = command.train, str(cfg.env.name), folders.run_dir
+    n = options.eval_episodes
+    seeds = validation_seeds(options, n)
+    baselines = list(BASELINES[env_name]) if options.baseline == "auto" else [options.baseline]
+    specs = [str(folders.ckpt_dir), *baselines] if model_path else [str(cfg.agent.name)]
+    rows, ran_with = [], {}  # ran_with: label → the sensors it ran with, stated in results.md
+    title = f"{command.run_name}: brief evaluation, {n} episodes of the validation split (seeds {seeds.start}.." \
+            f"{seeds.stop - 1})"
+    try:  # rows are appended episode by episode
+        for spec in specs:
+            _evaluate_spec(cfg, command, folders, spec, seeds, rows, ran_with)
+    except KeyboardInterrupt:
+        if rows:
+            write_results(rows, run_dir, env_name, f"{title} (interrupted after {len(rows)} episodes)",
+                          sensors=ran_with, split="validation")
+        print(f"[train] interrupted during the brief evaluation: {len(rows)} episodes measured"
+              + (f", in {run_dir}/results.csv" if rows else ""), file=sys.stderr)
+        raise
+    table = write_results(rows, run_dir, env_name, title, sensors=ran_with, split="validation")
+    print(f"\n[train] brief evaluation on {n} validation seeds ({seeds.start}..{seeds.stop - 1}):\n\n{table}\n")
+
+
+def _evaluate_spec(cfg: DictConfig, command: TrainCommand, folders: Folders, spec: str, seeds: range, rows: list,
+                   ran_with: dict) -> None:
+    """One agent of the brief evaluation: on the batch when it trained there, else in worker processes (from ~10
+    episodes each: a worker costs a few seconds to start) or in this one; appends its rows to ``rows``."""
+    from av_gym.make import make_env
+    from eval.agents import plan_agent, resolve_agent
+    from eval.runner import EpisodeJob, run_episodes, run_episodes_parallel
+
+    options, env_name, checkpoints = command.train, str(cfg.env.name), command.paths.checkpoints
+    n, progress = options.eval_episodes, options.progress_bar
+    sensors, shield, env_cfg = (OmegaConf.to_container(c, resolve=True) for c in (cfg.sensors, cfg.shield, cfg.env))
+    plan = plan_agent(spec, env_name, sensors, shield, checkpoints)
+    label = str(cfg.agent.name) if spec == str(folders.ckpt_dir) else plan.label
+    ran_with[label] = plan.sensors
+    n_envs = min(options.eval_n_envs, n // 10)
+    if cfg.agent.get("vec_env") == "batched":  # trained on the batch: evaluated there too, all at once
+        from eval.batched import run_episodes_batched
+
+        env = make_env(env_cfg, plan.sensors, plan.shield)
+        _, policy = resolve_agent(plan.spec, env, env_name, checkpoints)
+        env.close()
+        run_episodes_batched(env_cfg, plan, policy, seeds, min(n, 256), label, progress=progress, out=rows)
+    elif n_envs > 1:  # each episode depends on its seed only: the same rows as in-process, sooner
+        job = EpisodeJob(env_cfg, plan.sensors, plan.shield, plan.spec, env_name, str(checkpoints), label)
+        run_episodes_parallel(job, seeds, n_envs, progress=progress, out=rows)
     else:
-        print(f"[train] agent {agent.name!r} is rule-based: nothing to train")
+        env = make_env(env_cfg, plan.sensors, plan.shield)
+        _, policy = resolve_agent(plan.spec, env, env_name, checkpoints)
+        run_episodes(env, policy, seeds, label, progress=progress, out=rows)
+        env.close()
 
-    rows = []
-    n = int(cfg.train.eval_episodes)
-    if n > 0:
-        seeds = validation_seeds(cfg, n)
-        baselines = list(BASELINES[env_name]) if cfg.train.baseline == "auto" else [cfg.train.baseline]
-        specs = [str(ckpt_dir), *baselines] if model_path else [agent.name]
-        sensors, shield = (OmegaConf.to_container(c, resolve=True) for c in (cfg.sensors, cfg.shield))
-        env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
-        # A worker process costs a few seconds to start (imports, env, policy): worth it from ~10 episodes each.
-        n_envs, progress = min(int(cfg.train.eval_n_envs), n // 10), bool(cfg.train.progress_bar)
-        ran_with = {}  # label → the sensors it ran with, stated in results.md
-        batched = agent.get("vec_env") == "batched"  # trained on the batch: evaluated there too, all at once
-        title = f"{cfg.run_name}: brief evaluation, {n} episodes of the validation split (seeds {seeds.start}.." \
-                f"{seeds.stop - 1})"
-        try:  # rows are appended episode by episode: Ctrl-C/SIGTERM keeps (and writes) every finished one
-            for spec in specs:
-                plan = plan_agent(spec, env_name, sensors, shield, cfg.paths.checkpoints)
-                label = agent.name if spec == str(ckpt_dir) else plan.label
-                ran_with[label] = plan.sensors
-                if batched:
-                    from eval.batched import run_episodes_batched
 
-                    env = make_env(env_cfg, plan.sensors, plan.shield)
-                    _, policy = resolve_agent(plan.spec, env, env_name, cfg.paths.checkpoints)
-                    env.close()
-                    run_episodes_batched(env_cfg, plan, policy, seeds, min(n, 256), label, progress=progress,
-                                         out=rows)
-                    continue
-                if n_envs > 1:  # each episode depends on its seed only: the same rows as in-process, sooner
-                    job = EpisodeJob(env_cfg, plan.sensors, plan.shield, plan.spec, env_name,
-                                     str(cfg.paths.checkpoints), label)
-                    run_episodes_parallel(job, seeds, n_envs, progress=progress, out=rows)
-                    continue
-                env = make_env(env_cfg, plan.sensors, plan.shield)
-                _, policy = resolve_agent(plan.spec, env, env_name, cfg.paths.checkpoints)
-                run_episodes(env, policy, seeds, label, progress=progress, out=rows)
-                env.close()
-        except KeyboardInterrupt:
-            if rows:
-                write_results(rows, run_dir, env_name, f"{title} (interrupted after {len(rows)} episodes)",
-                              sensors=ran_with, split="validation")
-            print(f"[train] interrupted during the brief evaluation: {len(rows)} episodes measured"
-                  + (f", in {run_dir}/results.csv" if rows else ""), file=sys.stderr)
-            raise
-        table = write_results(rows, run_dir, env_name, title, sensors=ran_with, split="validation")
-        print(f"\n[train] brief evaluation on {n} validation seeds ({seeds.start}..{seeds.stop - 1}):\n\n{table}\n")
-
-    where = {"run_dir": str(run_dir), "tensorboard": str(tb_dir),
-             "checkpoint": str(model_path) if model_path else None, "config": str(ckpt_dir / "config.yaml")}
-    print(f"[train] logs:        {run_dir}")
+def _report(folders: Folders, model_path: Path | None) -> dict:
+    where = {"run_dir": str(folders.run_dir), "tensorboard": str(folders.tb_dir),
+             "checkpoint": str(model_path) if model_path else None, "config": str(folders.ckpt_dir / "config.yaml")}
+    print(f"[train] logs:        {folders.run_dir}")
     if model_path:
-        print(f"[train] tensorboard: tensorboard --logdir {tb_dir}")
+        print(f"[train] tensorboard: tensorboard --logdir {folders.tb_dir}")
         print(f"[train] checkpoint:  {model_path.resolve()}  (config beside it: config.yaml)")
     return where
 
 
-def claim_run(cfg: DictConfig, ckpt_dir: Path, runs_dir: Path | None) -> None:
+def claim_run(cfg: DictConfig, command: TrainCommand, ckpt_dir: Path, runs_dir: Path | None) -> None:
     """The run's folders for this process alone (train/run_folder.py): refused if they hold another run (unless
     resuming or overwriting), if a resume does not match the run's config.yaml, or if another process trains it."""
     from train.run_folder import claim
 
-    claim(ckpt_dir, runs_dir, bool(cfg.train.resume), bool(cfg.train.overwrite),
+    claim(ckpt_dir, runs_dir, command.train.resume, command.train.overwrite,
           {k: OmegaConf.to_container(cfg[k], resolve=True) for k in ("env", "sensors", "shield", "agent")})
 
 
 def _check_command_line() -> None:
+    """The command line composed and checked once per config (conf/check.py), where the checkpoints go, and for a
+    plain run the run's folders claimed: all before Hydra makes a folder."""
     from conf.check import check_command_line
 
-    configs = check_command_line("train", sys.argv[1:])
-    for cfg in configs:
-        _validate(cfg)
+    def check(cfg: DictConfig) -> None:  # its fields were checked by check_command_line
+        _check_needs(cfg)
         # where the checkpoints go, before Hydra makes the run folder (a sweep's -j<n> suffix fits: run_name is
         # bounded in the schema)
-        problem = folder_problem(Path(cfg.paths.checkpoints) / str(cfg.run_name), "paths.checkpoints")
+        command = TrainCommand.of(cfg)
+        problem = folder_problem(Path(command.paths.checkpoints) / command.run_name, "paths.checkpoints")
         if problem:
             raise ConfigError(problem)
+
+    configs = check_command_line("train", sys.argv[1:], check)
     if len(configs) == 1 and not any(a in ("-m", "--multirun") for a in sys.argv[1:]):
         # before Hydra writes runs/<run_name>/.hydra: a run that is not ours is refused with nothing written; the
         # lock is held by this process until it exits (a sweep's jobs each claim their own -j<n> folder)
         cfg = configs[0]
-        claim_run(cfg, Path(cfg.paths.checkpoints) / str(cfg.run_name), Path(cfg.paths.runs) / str(cfg.run_name))
+        command = TrainCommand.of(cfg)
+        claim_run(cfg, command, Path(command.paths.checkpoints) / command.run_name,
+                  Path(command.paths.runs) / command.run_name)
 
 
 @hydra.main(config_path="pkg://conf", config_name="train", version_base="1.3")

@@ -78,6 +78,7 @@ from agents.pilotnet import (FORMAT, INPUT_HEIGHT, INPUT_WIDTH, PilotNet, count_
                              to_network_input)
 from agents.registry import AgentParams
 from av_gym.geometry import wrap_angle
+from conf.commands import TrainCommand
 from train.device import device_problems, resolve_device
 
 CAMERAS = ("left", "centre", "right")
@@ -408,6 +409,19 @@ def drive_laps(model: PilotNet, crop_top: int, env_cfg: dict, sensors_cfg: dict,
     return rows
 
 
+@dataclass
+class _Samples:
+    """The demonstrations split and preprocessed once (cropped, resized): training side balanced."""
+
+    x_train: np.ndarray
+    y_train: np.ndarray
+    s_train: np.ndarray  # d steering / d yaw of each training sample (the augmentation's label shift)
+    x_val: np.ndarray
+    y_val: np.ndarray
+    focal: float
+    weather: Any
+
+
 def train(args: PilotNetParams, env_cfg: dict, sensors_cfg: dict, run_dir: str | Path, ckpt_dir: str | Path,
           log: Callable[[str], None] = print) -> Path:
     """The whole pipeline; returns the path of the best checkpoint (``ckpt_dir/model.pt``)."""
@@ -425,40 +439,11 @@ def train(args: PilotNetParams, env_cfg: dict, sensors_cfg: dict, run_dir: str |
     best, best_epoch, best_path = float("inf"), -1, ckpt_dir / "model.pt"
     stage = "collecting demonstrations"
     try:
-        # ---- demonstrations: collect (and store under the run folder) or reuse
-        if args.demos:
-            demos = load_demos(args.demos)
-            log(f"[bc] reusing {len(demos['steering'])} samples from {args.demos}")
-        else:
-            demos = collect_demos(env_cfg, sensors_cfg, args, log)
-            path = save_demos(demos, run_dir / "demos.npz")
-            log(f"[bc] {len(demos['steering'])} samples ({len(demos['steering']) // 3} frames × 3 cameras) -> {path} "
-                f"({path.stat().st_size / 1e6:.1f} MB); reuse with agent.demos={path}")
-        meta = demos["meta"]
+        demos = _demonstrations(args, env_cfg, sensors_cfg, run_dir, log)
         t_demos = time.time() - t_start
-        writer.add_histogram("data/steering_all", demos["steering"], 0)
-
-        # ---- split (by chunks of driving), balance the training side, preprocess once (crop/resize)
-        chunk_steps = max(1, int(round(args.val_chunk_s * meta["policy_frequency"])))
-        val = split_by_chunks(demos["frame"], demos["lap"], chunk_steps, args.val_fraction, rng)
-        train_idx = np.flatnonzero(~val)
-        kept, cap = balance(demos["steering"][train_idx], args.bins, args.bin_cap, args.cap_factor, rng)
-        train_idx = train_idx[kept]
-        val_idx = np.flatnonzero(val)
-        writer.add_histogram("data/steering_balanced", demos["steering"][train_idx], 0)
-        log(f"[bc] split: {len(train_idx)} training samples after balancing (cap {cap} per bin of {args.bins}), "
-            f"{len(val_idx)} validation samples")
-        x_train = crop_resize(demos["images"][train_idx], args.crop_top)
-        y_train = demos["steering"][train_idx].astype(np.float32)
-        s_train = demos["dsteer_dyaw"][train_idx].astype(np.float32)
-        x_val = crop_resize(demos["images"][val_idx], args.crop_top)
-        y_val = demos["steering"][val_idx].astype(np.float32)
-        focal = float(meta["focal_px"])
-        weather = WeatherMaps.for_camera(sensors_cfg["cameras"], args.crop_top) \
-            if (args.fog_p > 0 or args.night_p > 0) else None
+        data = _samples(demos, args, sensors_cfg, rng, writer, log)
         del demos
-
-        # ---- model, optimiser: initialised on the CPU (the same weights on every device), then moved
+        # model, optimiser: initialised on the CPU (the same weights on every device), then moved
         device = resolve_device(args.device)
         with torch.device("cpu"):
             model = PilotNet(dropout=args.dropout)
@@ -467,49 +452,19 @@ def train(args: PilotNetParams, env_cfg: dict, sensors_cfg: dict, run_dir: str |
         log(f"[bc] PilotNet: {count_parameters(model):,} parameters on {device}; Adam lr {args.learning_rate}, "
             f"batch {args.batch_size}, up to {args.epochs} epochs, patience {args.patience}")
         bad = 0
-        n = len(x_train)
         for epoch in range(args.epochs):
             stage = f"training epoch {epoch + 1}/{args.epochs}"
             t0 = time.time()
-            model.train()
-            perm = torch.randperm(n, generator=gen, device="cpu").numpy()
-            total = 0.0
-            for i in range(0, n, args.batch_size):
-                idx = np.sort(perm[i:i + args.batch_size])
-                rgb, y = augment(_as_batch(x_train[idx]), torch.from_numpy(y_train[idx]),
-                                 torch.from_numpy(s_train[idx]), args, focal, gen, weather)
-                if epoch == 0 and i == 0:
-                    writer.add_images("samples/augmented_rgb", rgb[:16] / 255.0, 0)
-                    writer.add_text("samples/augmented_labels", " ".join(f"{v:+.2f}" for v in y[:16].tolist()), 0)
-                # augmented on the CPU (its generator's stream), learned on the device
-                loss = F.mse_loss(model(to_network_input(rgb.to(device))), y.to(device))
-                opt.zero_grad()
-                loss.backward()
-                opt.step()
-                total += loss.item() * len(idx)
-            train_loss = total / n
-            val_loss = _evaluate(model, x_val, y_val) if len(x_val) else train_loss
+            train_loss = _epoch(model, opt, data, args, gen, device, writer, epoch)
+            val_loss = _evaluate(model, data.x_val, data.y_val) if len(data.x_val) else train_loss
             writer.add_scalar("loss/train", train_loss, epoch)
             writer.add_scalar("loss/val", val_loss, epoch)
             writer.add_scalar("time/epoch_s", time.time() - t0, epoch)
-            closed = ""
-            if args.closed_loop_laps:
-                seeds = range(args.demo_seed + args.demo_laps, args.demo_seed + args.demo_laps + args.closed_loop_laps)
-                rows = drive_laps(model, args.crop_top, env_cfg, sensors_cfg, seeds)
-                for key in ("lap_completed", "cte_mean_abs_units", "cte_max_abs_units",
-                            "steering_sign_changes_per_100m"):
-                    writer.add_scalar(f"closed_loop/{key}", float(np.mean([r[key] for r in rows])), epoch)
-                closed = (f"  lap {np.mean([r['lap_completed'] for r in rows]):.0%} "
-                          f"|CTE| {np.mean([r['cte_mean_abs_units'] for r in rows]):.2f} units")
+            closed = _closed_loop(model, args, env_cfg, sensors_cfg, writer, epoch) if args.closed_loop_laps else ""
             improved = val_loss < best
             if improved:
                 best, best_epoch, bad = val_loss, epoch, 0
-                _save_atomic({"format": FORMAT, "state_dict": _cpu_state(model),
-                              "preprocess": {"crop_top": int(args.crop_top), "colour": "yuv_bt601",
-                                             "normalise": "x/127.5-1", "input": [3, 66, 200]},
-                              "epoch": epoch, "val_loss": float(val_loss), "train_loss": float(train_loss),
-                              "args": {k: v for k, v in args.as_dict().items()
-                                       if v is not None and k not in AgentParams.field_names()}}, best_path)
+                _save_best(model, args, epoch, val_loss, train_loss, best_path)
             else:
                 bad += 1
             log(f"[bc] epoch {epoch + 1:2d}/{args.epochs}: train MSE {train_loss:.4f}  val MSE {val_loss:.4f}"
@@ -517,8 +472,9 @@ def train(args: PilotNetParams, env_cfg: dict, sensors_cfg: dict, run_dir: str |
             if bad >= args.patience:
                 log(f"[bc] early stop: no better validation loss for {args.patience} epochs")
                 break
-        if len(x_val):
-            writer.add_images("samples/validation_rgb", _as_batch(x_val[:: max(1, len(x_val) // 16)][:16]) / 255.0, 0)
+        if len(data.x_val):
+            writer.add_images("samples/validation_rgb",
+                              _as_batch(data.x_val[:: max(1, len(data.x_val) // 16)][:16]) / 255.0, 0)
         writer.add_scalar("loss/best_val", best, best_epoch)
         log(f"[bc] best epoch {best_epoch + 1} (val MSE {best:.4f}); demos {t_demos:.0f} s, total "
             f"{time.time() - t_start:.0f} s")
@@ -531,6 +487,85 @@ def train(args: PilotNetParams, env_cfg: dict, sensors_cfg: dict, run_dir: str |
     finally:
         writer.close()
         torch.set_num_threads(threads)
+
+
+def _demonstrations(args: PilotNetParams, env_cfg: dict, sensors_cfg: dict, run_dir: Path, log) -> dict:
+    """Collected (and stored under the run folder), or reused from ``agent.demos``."""
+    if args.demos:
+        demos = load_demos(args.demos)
+        log(f"[bc] reusing {len(demos['steering'])} samples from {args.demos}")
+        return demos
+    demos = collect_demos(env_cfg, sensors_cfg, args, log)
+    path = save_demos(demos, run_dir / "demos.npz")
+    log(f"[bc] {len(demos['steering'])} samples ({len(demos['steering']) // 3} frames × 3 cameras) -> {path} "
+        f"({path.stat().st_size / 1e6:.1f} MB); reuse with agent.demos={path}")
+    return demos
+
+
+def _samples(demos: dict, args: PilotNetParams, sensors_cfg: dict, rng, writer, log) -> _Samples:
+    """Split by chunks of driving, balance the training side, preprocess once (crop/resize)."""
+    meta = demos["meta"]
+    writer.add_histogram("data/steering_all", demos["steering"], 0)
+    chunk_steps = max(1, int(round(args.val_chunk_s * meta["policy_frequency"])))
+    val = split_by_chunks(demos["frame"], demos["lap"], chunk_steps, args.val_fraction, rng)
+    train_idx = np.flatnonzero(~val)
+    kept, cap = balance(demos["steering"][train_idx], args.bins, args.bin_cap, args.cap_factor, rng)
+    train_idx = train_idx[kept]
+    val_idx = np.flatnonzero(val)
+    writer.add_histogram("data/steering_balanced", demos["steering"][train_idx], 0)
+    log(f"[bc] split: {len(train_idx)} training samples after balancing (cap {cap} per bin of {args.bins}), "
+        f"{len(val_idx)} validation samples")
+    weather = WeatherMaps.for_camera(sensors_cfg["cameras"], args.crop_top) \
+        if (args.fog_p > 0 or args.night_p > 0) else None
+    return _Samples(crop_resize(demos["images"][train_idx], args.crop_top),
+                    demos["steering"][train_idx].astype(np.float32),
+                    demos["dsteer_dyaw"][train_idx].astype(np.float32),
+                    crop_resize(demos["images"][val_idx], args.crop_top),
+                    demos["steering"][val_idx].astype(np.float32), float(meta["focal_px"]), weather)
+
+
+def _epoch(model: PilotNet, opt, data: _Samples, args: PilotNetParams, gen: torch.Generator, device, writer,
+           epoch: int) -> float:
+    """One pass over the training samples in a random order, augmented; returns the mean training MSE."""
+    model.train()
+    n = len(data.x_train)
+    perm = torch.randperm(n, generator=gen, device="cpu").numpy()
+    total = 0.0
+    for i in range(0, n, args.batch_size):
+        idx = np.sort(perm[i:i + args.batch_size])
+        rgb, y = augment(_as_batch(data.x_train[idx]), torch.from_numpy(data.y_train[idx]),
+                         torch.from_numpy(data.s_train[idx]), args, data.focal, gen, data.weather)
+        if epoch == 0 and i == 0:
+            writer.add_images("samples/augmented_rgb", rgb[:16] / 255.0, 0)
+            writer.add_text("samples/augmented_labels", " ".join(f"{v:+.2f}" for v in y[:16].tolist()), 0)
+        # augmented on the CPU (its generator's stream), learned on the device
+        loss = F.mse_loss(model(to_network_input(rgb.to(device))), y.to(device))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        total += loss.item() * len(idx)
+    return total / n
+
+
+def _closed_loop(model: PilotNet, args: PilotNetParams, env_cfg: dict, sensors_cfg: dict, writer, epoch: int) -> str:
+    """``agent.closed_loop_laps`` laps driven by the model after the demonstration seeds; TensorBoard scalars and
+    the epoch line's summary."""
+    seeds = range(args.demo_seed + args.demo_laps, args.demo_seed + args.demo_laps + args.closed_loop_laps)
+    rows = drive_laps(model, args.crop_top, env_cfg, sensors_cfg, seeds)
+    for key in ("lap_completed", "cte_mean_abs_units", "cte_max_abs_units", "steering_sign_changes_per_100m"):
+        writer.add_scalar(f"closed_loop/{key}", float(np.mean([r[key] for r in rows])), epoch)
+    return (f"  lap {np.mean([r['lap_completed'] for r in rows]):.0%} "
+            f"|CTE| {np.mean([r['cte_mean_abs_units'] for r in rows]):.2f} units")
+
+
+def _save_best(model: PilotNet, args: PilotNetParams, epoch: int, val_loss: float, train_loss: float,
+               path: Path) -> None:
+    _save_atomic({"format": FORMAT, "state_dict": _cpu_state(model),
+                  "preprocess": {"crop_top": int(args.crop_top), "colour": "yuv_bt601",
+                                 "normalise": "x/127.5-1", "input": [3, 66, 200]},
+                  "epoch": epoch, "val_loss": float(val_loss), "train_loss": float(train_loss),
+                  "args": {k: v for k, v in args.as_dict().items()
+                           if v is not None and k not in AgentParams.field_names()}}, path)
 
 
 def _seed(args: PilotNetParams) -> int:
@@ -571,11 +606,13 @@ def validate(cfg: DictConfig) -> list[str]:
     return problems
 
 
-def train_pilotnet(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
+def train_pilotnet(cfg: DictConfig, ckpt_dir: Path, run_dir: Path, command: TrainCommand | None = None) -> Path:
     """Collect demonstrations, train, write ``ckpt_dir/model.pt`` (best validation loss) and ``config.yaml``
-    (with the camera sensors preset); returns the model path."""
+    (with the camera sensors preset); returns the model path. ``command``: the run's settings (default: read from
+    ``cfg``)."""
     from train.checkpoint import write_text_atomic
 
+    command = command or TrainCommand.of(cfg)
     sensors = _sensors(cfg)
     resolved = OmegaConf.to_container(cfg, resolve=True)
     resolved["sensors"] = sensors
@@ -583,7 +620,7 @@ def train_pilotnet(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
     env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
     params = PilotNetParams.from_mapping(OmegaConf.to_container(cfg.agent, resolve=True), where="agent")
     if params.seed is None:  # the run's seed
-        params = replace(params, seed=int(cfg.seed))
+        params = replace(params, seed=command.seed)
     return train(params, env_cfg, sensors, run_dir, ckpt_dir)
 
 

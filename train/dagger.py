@@ -36,11 +36,15 @@ from __future__ import annotations
 import csv
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
+
+from conf.commands import TrainCommand, TrainOptions
 
 ROUND_FIELDS = ("round", "driver", "episodes", "labels", "wall_s", "label_s", "agreement", "drive_success",
                 "drive_collision", "fit_accuracy", "val_success", "val_collision")
@@ -375,27 +379,93 @@ def load_round(model, path: Path) -> tuple[Round, dict]:
     return unpack_rounds(raw), state
 
 
-def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
+@dataclass
+class _Run:
+    """What a DAgger run drives with: the student, its stacks, and how one round's episodes are driven."""
+
+    model: Any
+    stacks: list
+    drive: Callable[[list, bool], Round]  # (seeds, teacher drives) → the round's labelled states
+    how: str  # the labeller (labeller_of)
+    validation: Callable | None  # model → (collision, success) on the validation seeds; None without
+
+
+def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path, command: TrainCommand | None = None) -> Path:
     """Train the student as ``cfg.agent`` says; returns ``ckpt_dir/model.zip``. Every finished round is saved in
     ``latest.zip`` (:func:`save_round`), which ``train.resume=true`` continues from the next round; SIGINT /
-    SIGTERM end the round in progress."""
+    SIGTERM end the round in progress. ``command``: the run's settings (default: read from ``cfg``)."""
     import signal
 
     from torch.utils.tensorboard import SummaryWriter
     from tqdm import tqdm
 
     from agents.dagger import DaggerParams
-    from av_gym.seeds import train_seed
-    from agents.ppo import make_ppo
     from train.checkpoint import save_model_atomic, write_text_atomic
+
+    command = command or TrainCommand.of(cfg)
+    t_start, latest = time.time(), ckpt_dir / "latest.zip"
+    resume = command.train.resume
+    params = DaggerParams.from_mapping(OmegaConf.to_container(cfg.agent, resolve=True), where="agent")
+    for stale in ckpt_dir.glob(".*.tmp"):  # a save killed half-way; the previous file is intact
+        stale.unlink()
+    run = _build(cfg, command, params, resume)
+    shift = _operating_point(params)
+    rows: list[dict] = []
+    data, best, start = Round(), -np.inf, 0
+    if resume:  # the state at the end of the last finished round: go on with the next
+        data, rows, best, start = _resume(run.model, latest, ckpt_dir, params, shift)
+        t_start -= float(rows[-1]["wall_s"]) if rows else 0.0  # wall-clock of the run, not of this process
+    # resumed: TensorBoard drops what the cut-short round logged after the saved state (steps are label counts)
+    writer = SummaryWriter(str(run_dir / "tb" / str(params.name)),
+                           purge_step=int(rows[-1]["labels"]) + 1 if resume and rows else None)
+    # each training seed drives its own episodes, train_seed + 50,000 x seed + the round's offset, all in the
+    # train split (av_gym/seeds.py: folded into it)
+    first = int(params.train_seed) + 50_000 * command.seed
+    print(f"[train] DAgger: {params.rounds} rounds x {params.round_episodes} episodes, teacher {params.teacher} "
+          f"({run.how} labels), student {params.extractor} on {cfg.sensors.name}"
+          f"{' from ' + str(params.init_from) if params.init_from else ''}; episode seeds {first}+")
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM behaves like Ctrl-C
+    bar = tqdm(range(start, int(params.rounds)), desc="DAgger rounds", initial=start, total=int(params.rounds),
+               disable=not command.train.progress_bar)
+    done = start  # rounds saved in latest.zip
+    try:
+        for k in bar:
+            row, new = _round(run, params, data, k, first, command.seed, t_start, shift)
+            rows.append(row)
+            score = row["val_success"] - row["val_collision"]
+            if run.validation is not None and score > best:
+                best = score
+                save_model_atomic(run.model, ckpt_dir / "best.zip")
+            _log(writer, row, len(new.labels) / max(new.label_s, 1e-9))
+            write_text_atomic(ckpt_dir / "rounds.csv", _csv(rows))
+            # last: the round counts as done once latest.zip holds it (a kill before redoes it, with the same
+            # seeds, fit and so the same best.zip and rows)
+            save_round(run.model, latest, data, {"next_round": k + 1, "rows": rows, "best": best})
+            done = k + 1
+            shift(run.model, False)
+            _print_round(row, new, run.validation is not None)
+    except KeyboardInterrupt:
+        _say_interrupted(done, latest, command.run_name)
+        raise
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        writer.close()
+        for e in run.stacks:
+            e.close()
+    write_text_atomic(run_dir / "rounds.csv", _csv(rows))
+    shift(run.model, True)
+    path = save_model_atomic(run.model, ckpt_dir / "model.zip")
+    print(f"[train] DAgger: {len(data.labels)} labels in {time.time() - t_start:.0f} s")
+    return path
+
+
+def _build(cfg: DictConfig, command: TrainCommand, params, resume: bool) -> _Run:
+    """The teacher, the stacks the labeller needs (the batch, one per-env stack, or n_envs of them beside a
+    batched replica), the student (from ``agent.init_from`` on a fresh run) and the validation."""
+    from agents.ppo import make_ppo
     from av_gym.make import make_training_env
     from train.imitation import make_teacher
 
-    agent, t_start = cfg.agent, time.time()
-    resume, latest = bool(cfg.train.get("resume", False)), ckpt_dir / "latest.zip"
-    params = DaggerParams.from_mapping(OmegaConf.to_container(agent, resolve=True), where="agent")
-    for stale in ckpt_dir.glob(".*.tmp"):  # a save killed half-way; the previous file is intact
-        stale.unlink()
     plain = [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
     repeat, actions = int(params.action_repeat), str(params.actions)
     teacher = make_teacher(params.teacher, actions, str(cfg.env.name), repeat)
@@ -410,8 +480,8 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
         stacks = [make_training_env(*plain, 0.0, repeat, actions, timeout_is_terminal=params.timeout_is_terminal)
                   for _ in range(n_envs if how == "replica" else 1)]
     env = stacks[0]
-    model = make_ppo(env, OmegaConf.to_container(agent, resolve=True), seed=int(cfg.seed), tensorboard_log=None,
-                     device=agent.device)
+    model = make_ppo(env, OmegaConf.to_container(cfg.agent, resolve=True), seed=command.seed, tensorboard_log=None,
+                     device=cfg.agent.device)
     if how == "replica":
         from agents.batched_vec_env import BatchedLeftTurnVecEnv
 
@@ -432,101 +502,86 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
         from train.imitation import load_weights
 
         load_weights(model, params.init_from, str(cfg.env.name))
-    validation = _validation(cfg, plain, repeat, actions, how in ("batched", "rule"))
+    validation = _validation(command.train, plain, repeat, actions, how in ("batched", "rule"))
+    return _Run(model, stacks, drive, how, validation)
+
+
+def _operating_point(params) -> Callable[[Any, bool], None]:
+    """``shift(model, on)``: move the GO boundary to go_threshold (on) or back to the fit's 0.5 (off); go/yield
+    students only (the others: nothing to move)."""
     tau = float(params.go_threshold)
 
     def shift(m, on: bool) -> None:
-        """Move the GO boundary to go_threshold (on) or back to the fit's 0.5 (off); go/yield students only."""
-        if tau != 0.5 and actions == "go_yield":
+        if tau != 0.5 and str(params.actions) == "go_yield":
             from train.operating_point import shift_go
 
             shift_go(m, tau if on else 1.0 - tau)
-    rows: list[dict] = []
-    data, best, start = Round(), -np.inf, 0
-    if resume:  # the state at the end of the last finished round: go on with the next
-        data, state = load_round(model, latest)
-        rows, best, start = list(state["rows"]), float(state["best"]), int(state["next_round"])
-        shift(model, False)  # saved at the operating point; back as the uninterrupted run shifts it, bit for bit
-        t_start -= float(rows[-1]["wall_s"]) if rows else 0.0  # wall-clock of the run, not of this process
-        write_text_atomic(ckpt_dir / "rounds.csv", _csv(rows))  # without a row of the round that was cut short
-        print(f"[train] resuming {latest}: rounds 0..{start - 1} done, {len(data.labels)} labels; next round {start} "
-              f"of {params.rounds}")
-    # resumed: TensorBoard drops what the cut-short round logged after the saved state (steps are label counts)
-    writer = SummaryWriter(str(run_dir / "tb" / str(params.name)),
-                           purge_step=int(rows[-1]["labels"]) + 1 if resume and rows else None)
-    # each training seed drives its own episodes, train_seed + 50,000 x seed + the round's offset, all in the
-    # train split (av_gym/seeds.py: folded into it)
-    first = int(params.train_seed) + 50_000 * int(cfg.seed)
-    print(f"[train] DAgger: {params.rounds} rounds x {params.round_episodes} episodes, teacher {params.teacher} "
-          f"({how} labels), student {params.extractor} on {cfg.sensors.name}"
-          f"{' from ' + str(params.init_from) if params.init_from else ''}; episode seeds {first}+")
-    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM behaves like Ctrl-C
-    bar = tqdm(range(start, int(params.rounds)), desc="DAgger rounds", initial=start, total=int(params.rounds),
-               disable=not bool(cfg.train.progress_bar))
-    done = start  # rounds saved in latest.zip
-    try:
-        for k in bar:
-            seeds = [train_seed(first, k * int(params.round_episodes) + i) for i in range(int(params.round_episodes))]
-            by_teacher = k == 0 and not params.init_from  # a student to go on from drives from the start
-            new = drive(seeds, by_teacher)
-            aggregate(data, new)
-            accuracy = fit(model, data, int(params.fit_epochs), int(params.fit_batch), float(params.fit_lr),
-                           int(cfg.seed) * 1000 + k)
-            coll, succ = np.mean(new.outcomes, axis=0)
-            row = {"round": k, "driver": "teacher" if by_teacher else "student", "episodes": len(new.outcomes),
-                   "labels": len(data.labels), "wall_s": round(time.time() - t_start, 1),
-                   "label_s": round(new.label_s, 1), "agreement": float(np.mean(new.agree)),
-                   "drive_success": float(succ), "drive_collision": float(coll), "fit_accuracy": accuracy,
-                   "val_success": np.nan, "val_collision": np.nan}
-            shift(model, True)  # validated and saved at the operating point
-            if validation is not None:
-                row["val_collision"], row["val_success"] = validation(model)
-            rows.append(row)
-            score = row["val_success"] - row["val_collision"]
-            if validation is not None and score > best:
-                best = score
-                save_model_atomic(model, ckpt_dir / "best.zip")
-            _log(writer, row, len(new.labels) / max(new.label_s, 1e-9))
-            write_text_atomic(ckpt_dir / "rounds.csv", _csv(rows))
-            # last: the round counts as done once latest.zip holds it (a kill before redoes it, with the same
-            # seeds, fit and so the same best.zip and rows)
-            save_round(model, latest, data, {"next_round": k + 1, "rows": rows, "best": best})
-            done = k + 1
-            shift(model, False)
-            print(f"[train] round {k}: {row['driver']} drove {row['episodes']} episodes (success "
-                  f"{succ:.3f}, collision {coll:.3f}); the student agreed with the teacher on {row['agreement']:.3f} "
-                  f"of its states; {row['labels']} labels ({len(new.labels) / max(new.label_s, 1e-9):.0f}/s), fit "
-                  f"accuracy {accuracy:.3f}" + (f"; validation success {row['val_success']:.3f}, collision "
-                                                f"{row['val_collision']:.3f}" if validation is not None else "")
-                  + f" [{row['wall_s']:.0f} s]", flush=True)
-    except KeyboardInterrupt:  # name only what exists (it named a latest.zip that may not)
-        if done > 0 and latest.is_file():
-            print(f"[train] interrupted in round {done}: rounds 0..{done - 1} are kept in {latest} (student, labels, "
-                  f"rounds.csv); continue with run_name={cfg.run_name} train.resume=true", file=sys.stderr)
-        else:
-            print(f"[train] interrupted in round 0, before any round finished: nothing was kept (no latest.zip); "
-                  f"start the run again (train.overwrite=true to reuse run_name={cfg.run_name})", file=sys.stderr)
-        raise
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-        writer.close()
-        for e in stacks:
-            e.close()
-    write_text_atomic(run_dir / "rounds.csv", _csv(rows))
-    shift(model, True)
-    path = save_model_atomic(model, ckpt_dir / "model.zip")
-    print(f"[train] DAgger: {len(data.labels)} labels in {time.time() - t_start:.0f} s")
-    return path
+    return shift
 
 
-def _validation(cfg: DictConfig, plain: list, repeat: int, actions: str, batched: bool):
+def _resume(model, latest: Path, ckpt_dir: Path, params, shift) -> tuple[Round, list[dict], float, int]:
+    """The aggregate, rows, best score and next round saved in ``latest.zip``; the student as it was then."""
+    from train.checkpoint import write_text_atomic
+
+    data, state = load_round(model, latest)
+    rows, best, start = list(state["rows"]), float(state["best"]), int(state["next_round"])
+    shift(model, False)  # saved at the operating point; back as the uninterrupted run shifts it, bit for bit
+    write_text_atomic(ckpt_dir / "rounds.csv", _csv(rows))  # without a row of the round that was cut short
+    print(f"[train] resuming {latest}: rounds 0..{start - 1} done, {len(data.labels)} labels; next round {start} "
+          f"of {params.rounds}")
+    return data, rows, best, start
+
+
+def _round(run: _Run, params, data: Round, k: int, first: int, seed: int, t_start: float, shift) -> tuple[dict, Round]:
+    """Round ``k``: its episodes driven (by the teacher in round 0 of a fresh student) and labelled, the aggregate
+    grown, the student refitted, shifted to its operating point and validated; returns its row and new labels."""
+    from av_gym.seeds import train_seed
+
+    seeds = [train_seed(first, k * int(params.round_episodes) + i) for i in range(int(params.round_episodes))]
+    by_teacher = k == 0 and not params.init_from  # a student to go on from drives from the start
+    new = run.drive(seeds, by_teacher)
+    aggregate(data, new)
+    accuracy = fit(run.model, data, int(params.fit_epochs), int(params.fit_batch), float(params.fit_lr),
+                   seed * 1000 + k)
+    coll, succ = np.mean(new.outcomes, axis=0)
+    row = {"round": k, "driver": "teacher" if by_teacher else "student", "episodes": len(new.outcomes),
+           "labels": len(data.labels), "wall_s": round(time.time() - t_start, 1),
+           "label_s": round(new.label_s, 1), "agreement": float(np.mean(new.agree)),
+           "drive_success": float(succ), "drive_collision": float(coll), "fit_accuracy": accuracy,
+           "val_success": np.nan, "val_collision": np.nan}
+    shift(run.model, True)  # validated and saved at the operating point
+    if run.validation is not None:
+        row["val_collision"], row["val_success"] = run.validation(run.model)
+    return row, new
+
+
+def _print_round(row: dict, new: Round, validated: bool) -> None:
+    print(f"[train] round {row['round']}: {row['driver']} drove {row['episodes']} episodes (success "
+          f"{row['drive_success']:.3f}, collision {row['drive_collision']:.3f}); the student agreed with the teacher "
+          f"on {row['agreement']:.3f} of its states; {row['labels']} labels "
+          f"({len(new.labels) / max(new.label_s, 1e-9):.0f}/s), fit accuracy {row['fit_accuracy']:.3f}"
+          + (f"; validation success {row['val_success']:.3f}, collision {row['val_collision']:.3f}" if validated
+             else "") + f" [{row['wall_s']:.0f} s]", flush=True)
+
+
+def _say_interrupted(done: int, latest: Path, run_name: str) -> None:
+    """What an interrupted run kept, naming only what exists (it named a latest.zip that may not)."""
+    if done > 0 and latest.is_file():
+        print(f"[train] interrupted in round {done}: rounds 0..{done - 1} are kept in {latest} (student, labels, "
+              f"rounds.csv); continue with run_name={run_name} train.resume=true", file=sys.stderr)
+    else:
+        print(f"[train] interrupted in round 0, before any round finished: nothing was kept (no latest.zip); "
+              f"start the run again (train.overwrite=true to reuse run_name={run_name})", file=sys.stderr)
+
+
+def _validation(options: TrainOptions, plain: list, repeat: int, actions: str, batched: bool):
     """``model -> (collision, success)`` on ``train.eval_n`` episodes of the validation split from ``train.eval_seed`` (None if 0)."""
     from av_gym.seeds import config_seeds
 
-    n = int(cfg.train.eval_n)
+    n = options.eval_n
     if n <= 0:
         return None
-    seeds = config_seeds("validation", n, cfg.train.get("eval_seed"), "train.eval_seed")
+    seeds = config_seeds("validation", n, options.eval_seed, "train.eval_seed")
 
     def run(model):
         from agents.ppo import SB3Policy

@@ -11,6 +11,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from av_gym.seeds import DEMONSTRATIONS, config_seeds, train_seed
+from conf.commands import TrainCommand
 from train.imitation import load_weights, make_teacher, pretrain_from_teacher
 
 
@@ -208,28 +209,28 @@ def initialise_model(venv, stack: _Stack, seed: int, scenario: str):
     return model
 
 
-def _callbacks(cfg: DictConfig, stack: _Stack, ckpt_dir: Path, run_dir: Path, resume: bool):
+def _callbacks(cfg: DictConfig, command: TrainCommand, stack: _Stack, ckpt_dir: Path, run_dir: Path):
     """The guard against divergence (first: a diverged update never reaches a checkpoint), episode metrics,
     checkpoints, the hyperparameters (fresh runs) and the periodic evaluation on fixed seeds."""
     from agents.ppo import SB3Policy
     from train.callbacks import (AtomicCheckpointCallback, EpisodeMetricsCallback, FiniteGuard, HParamsCallback,
                                  PeriodicEval)
 
-    p, scenario = stack.params, str(cfg.env.name)
-    checkpoint = AtomicCheckpointCallback(ckpt_dir, int(cfg.train.checkpoint_every))
+    p, scenario, options = stack.params, str(cfg.env.name), command.train
+    resume = options.resume
+    checkpoint = AtomicCheckpointCallback(ckpt_dir, options.checkpoint_every)
     guard = FiniteGuard(float(p.learning_rate), ckpt_dir / "latest.zip",
                         p.init_lr if p.init and not resume else None)
     callbacks = [guard, EpisodeMetricsCallback(scenario), checkpoint]
     if not resume:
-        first = config_seeds("validation", max(1, int(cfg.train.eval_n)), cfg.train.get("eval_seed"),
-                             "train.eval_seed").start
+        first = config_seeds("validation", max(1, options.eval_n), options.eval_seed, "train.eval_seed").start
         # the run says which split its evaluations (and so best.zip) came from (av_gym/seeds.py)
         callbacks.append(HParamsCallback({**p.as_dict(), "env": scenario, "sensors": cfg.sensors.name,
-                                          "shield": cfg.shield.name, "seed": int(cfg.seed),
+                                          "shield": cfg.shield.name, "seed": command.seed,
                                           "eval_split": "validation", "eval_seed": first}, scenario))
-    if int(cfg.train.eval_n) > 0:
+    if options.eval_n > 0:
         # they pick best.zip: validation, never test
-        eval_seeds = config_seeds("validation", int(cfg.train.eval_n), cfg.train.get("eval_seed"), "train.eval_seed")
+        eval_seeds = config_seeds("validation", options.eval_n, options.eval_seed, "train.eval_seed")
         play = None
         if p.vec_env == "batched":  # the stack it trains on, checked by validate(): validation on the batch too
             from eval.batched import play_batched
@@ -238,8 +239,8 @@ def _callbacks(cfg: DictConfig, stack: _Stack, ckpt_dir: Path, run_dir: Path, re
                 held = SB3Policy(policy.model, p.action_repeat, p.actions)
                 return play_batched(*stack.plain, held, seeds, p.n_envs, "eval", progress=False)
         callbacks.append(PeriodicEval(lambda mode: stack.one(0.0, render_mode=mode, timeout_is_terminal=False),
-                                      scenario, eval_seeds, int(cfg.train.eval_every), ckpt_dir, run_dir,
-                                      int(cfg.train.video_every), play=play))
+                                      scenario, eval_seeds, options.eval_every, ckpt_dir, run_dir,
+                                      options.video_every, play=play))
     return callbacks, guard, checkpoint
 
 
@@ -290,37 +291,39 @@ def learn(model, venv, params, callbacks: list, guard, checkpoint, progress_bar:
             pass
 
 
-def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path) -> Path:
+def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path, command: TrainCommand | None = None) -> Path:
     """Train PPO as ``cfg.agent`` (:class:`agents.ppo.PPOParams`) says: build the envs, resume or initialise the
     model (cloning ``agent.init``'s teacher), learn; TensorBoard under ``run_dir/tb``; returns the final checkpoint.
 
     ``train.resume=true`` continues ``checkpoints/<run_name>/latest.zip`` (policy, optimizer, step counter, RNG
-    states) to the same ``total_timesteps``. SIGINT and SIGTERM save a checkpoint before exiting."""
+    states) to the same ``total_timesteps``. SIGINT and SIGTERM save a checkpoint before exiting. ``command``: the
+    run's settings (default: read from ``cfg``)."""
     from stable_baselines3 import PPO
 
     from agents.ppo import PPOParams
     from train.checkpoint import save_model_atomic
 
     t0 = time.time()
+    command = command or TrainCommand.of(cfg)
     params = PPOParams.from_mapping(OmegaConf.to_container(cfg.agent, resolve=True), where="agent")
     stack = _Stack(*[OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)], params)
-    resume = bool(cfg.train.get("resume", False))
+    resume = command.train.resume
     latest = _check_resume(ckpt_dir, resume)
     # A resumed run's episodes come from fresh seeds (the env streams of the killed run cannot be restored); every
     # stream's seed is folded into the train split (av_gym/seeds.py), whatever the seed and the steps done.
     done_steps = int(PPO.load(str(latest), device=params.device).num_timesteps) if resume else 0
-    venv = build_envs(stack, train_seed(int(cfg.seed), done_steps))
+    venv = build_envs(stack, train_seed(command.seed, done_steps))
     if resume:
         model, saved = resume_model(latest, venv, params)
     else:
-        model = initialise_model(venv, stack, int(cfg.seed), str(cfg.env.name))
+        model = initialise_model(venv, stack, command.seed, str(cfg.env.name))
     # The checkpoint's own dump (at its step) is complete, so TensorBoard keeps it and drops only what came after.
     model.set_logger(_tensorboard_logger(run_dir / "tb" / params.name, model.num_timesteps + 1 if resume else None))
     if resume:  # values recorded by the last update but not yet written when the run was killed
         for key, store in saved.get("logger", {}).items():
             getattr(model.logger, key).update(store)
-    callbacks, guard, checkpoint = _callbacks(cfg, stack, ckpt_dir, run_dir, resume)
-    learn(model, venv, params, callbacks, guard, checkpoint, bool(cfg.train.progress_bar), str(cfg.run_name))
+    callbacks, guard, checkpoint = _callbacks(cfg, command, stack, ckpt_dir, run_dir)
+    learn(model, venv, params, callbacks, guard, checkpoint, command.train.progress_bar, command.run_name)
     guard.check("the last PPO update")  # model.zip only from finite parameters
     path = save_model_atomic(model, ckpt_dir / "model.zip")
     env_steps = f" ({model.num_timesteps * params.action_repeat} env steps)" if params.action_repeat > 1 else ""
