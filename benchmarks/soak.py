@@ -88,6 +88,26 @@ def _on_sigterm(signum, frame):  # noqa: ARG001
     raise _Stop
 
 
+def _episode(env, act, seed: int, st: dict) -> None:
+    """One episode on ``seed``, its steps, collision and intervention counted in ``st``."""
+    obs, _ = env.reset(seed=seed)
+    done = False
+    while not done:
+        obs, _, terminated, truncated, info = env.step(act(obs))
+        st["steps"] += 1
+        done = terminated or truncated
+    m = info.get("episode_metrics", {})
+    st["collisions"] += int(m.get("collision", 0) or 0)
+    st["interventions"] += int(m.get("intervention", 0) or 0)
+
+
+def _sample(st: dict, n: int, t0: float) -> None:
+    """The resident memory after ``n`` episodes (after a collection) and the time they took."""
+    gc.collect()
+    st["samples"].append((n, rss_mb()[0]))
+    st["times"].append((n, time.perf_counter() - t0))
+
+
 def soak(episodes: int, agent: str, shield_mode: str, seed: int, sample_every: int, use_tracemalloc: bool,
          progress: bool, on_report=None, report_every: int = 100) -> dict:
     """Run the soak; ``on_report(result)`` is called every ``report_every`` episodes and at the end, so a run
@@ -135,15 +155,7 @@ def soak(episodes: int, agent: str, shield_mode: str, seed: int, sample_every: i
         for i in range(episodes):
             ep_seed = seed + i
             try:
-                obs, _ = env.reset(seed=ep_seed)
-                done = False
-                while not done:
-                    obs, _, terminated, truncated, info = env.step(act(obs))
-                    st["steps"] += 1
-                    done = terminated or truncated
-                m = info.get("episode_metrics", {})
-                st["collisions"] += int(m.get("collision", 0) or 0)
-                st["interventions"] += int(m.get("intervention", 0) or 0)
+                _episode(env, act, ep_seed, st)
             except Exception as exc:  # noqa: BLE001 - a soak test records every failure and keeps going
                 st["errors"].append({"episode": i, "seed": ep_seed, "error": f"{type(exc).__name__}: {exc}",
                                      "where": traceback.format_exc().strip().splitlines()[-3:]})
@@ -154,9 +166,7 @@ def soak(episodes: int, agent: str, shield_mode: str, seed: int, sample_every: i
             if n == warm and use_tracemalloc:
                 st["snap_warm"] = tracemalloc.take_snapshot()
             if n % sample_every == 0 or n == warm or n == episodes:
-                gc.collect()
-                st["samples"].append((n, rss_mb()[0]))
-                st["times"].append((n, time.perf_counter() - t0))
+                _sample(st, n, t0)
                 if progress and n % max(sample_every, episodes // 20 or 1) == 0:
                     print(f"[soak] {n}/{episodes} episodes, {time.perf_counter() - t0:.0f} s, "
                           f"RSS {st['samples'][-1][1]:.1f} MB, {len(st['errors'])} errors", flush=True)
@@ -165,9 +175,7 @@ def soak(episodes: int, agent: str, shield_mode: str, seed: int, sample_every: i
     except (KeyboardInterrupt, _Stop):
         print(f"[soak] stopped after {st['done']} episodes", flush=True)
         if st["samples"][-1][0] != st["done"]:
-            gc.collect()
-            st["samples"].append((st["done"], rss_mb()[0]))
-            st["times"].append((st["done"], time.perf_counter() - t0))
+            _sample(st, st["done"], t0)
     finally:
         signal.signal(signal.SIGTERM, old)
     env.close()

@@ -397,7 +397,26 @@ def _ccftap_bounds() -> dict[str, dict]:
             for f in dataclasses.fields(CCFtapParams)}
 
 
+class _Refused(Exception):
+    """A bad flag found once the arguments are parsed: ``error: <message>``, exit status 2."""
+
+
 def main(argv: list[str] | None = None) -> int:
+    p = _parser()
+    a = p.parse_args(argv)
+    if a.out is not None and out_folder_problem(a.out, "--out"):  # before any run: results need somewhere to go
+        p.error(f"argument {out_folder_problem(a.out, '--out')}")
+    if len(a.plot_case) != 3:
+        p.error(f"argument --plot-case: expected [ego km/h, target km/h, dt], got {a.plot_case}")
+    try:
+        _ccftap(a, argv)
+    except _Refused as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def _parser() -> ToolParser:
     p = ToolParser(prog="python -m eval.ccftap", description=__doc__.split("\n\n")[0])
     p.add_argument("--agents", default=[DEFAULT_AGENT], type=items(str),
                    help="list of agent specs, [a,b] as for `python -m eval` (conf/agent/ name, ppo, checkpoint path, "
@@ -422,60 +441,28 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--plot-case", default=[15.0, 45.0, 0.0], type=items(float),
                    help="ego km/h, target km/h, dt for timeline.png: [15,45,0]")
     p.add_argument("--out", default=None, help="output folder (default runs/ccftap/<time>)")
-    a = p.parse_args(argv)
-    if a.out is not None and out_folder_problem(a.out, "--out"):  # before any run: results need somewhere to go
-        p.error(f"argument {out_folder_problem(a.out, '--out')}")
-    variants, modes, egos, targets, dts = a.variants, a.modes, a.ego, a.target, a.dts
-    if len(a.plot_case) != 3:
-        p.error(f"argument --plot-case: expected [ego km/h, target km/h, dt], got {a.plot_case}")
-    plot_case = tuple(a.plot_case)
-    from av_gym.errors import ConfigError
-    from av_gym.make import make_env
+    return p
 
-    specs = a.agents
-    if not specs:
-        print("error: --agents: give at least one agent", file=sys.stderr)
-        return 2
+
+def _ccftap(a, argv: list[str] | None) -> None:
+    """The grid: every agent × shield config × case, run (in worker processes), then the tables and figures."""
+    from av_gym.errors import ConfigError
+
+    egos, targets, dts, plot_case = a.ego, a.target, a.dts, tuple(a.plot_case)
+    if not a.agents:
+        raise _Refused("--agents: give at least one agent")
     try:
-        plans = plan_agents(specs, a.checkpoints, a.action, (egos[0], targets[0], dts[0]))
+        plans = plan_agents(a.agents, a.checkpoints, a.action, (egos[0], targets[0], dts[0]))
     except ConfigError as exc:
-        print("error: " + " ".join(str(exc).split()), file=sys.stderr)
-        return 2
+        raise _Refused(" ".join(str(exc).split())) from None
     out = Path(a.out or f"runs/ccftap/{time.strftime('%Y%m%d-%H%M%S')}")
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        print(f"error: --out={out}: cannot be made: {exc.strerror or exc}", file=sys.stderr)
-        return 2
-
+        raise _Refused(f"--out={out}: cannot be made: {exc.strerror or exc}") from None
     configs = [("none", "-")]  # the no-shield baseline is always run: it defines unnecessary interventions
-    configs += [(v, m) for v in variants if v != "none" for m in modes]
-    overrides = []
-    for item in a.set:
-        key, sep, value = item.partition("=")
-        variant_key, _, path = key.partition(".")
-        if not sep or variant_key not in VARIANTS or not path:
-            print(f"error: --set {item!r}: expected VARIANT.KEY=VALUE with VARIANT in {list(VARIANTS)}",
-                  file=sys.stderr)
-            return 2
-        overrides.append((variant_key, path.split("."), yaml.safe_load(value)))
-    shields = []
-    for variant, mode in configs:
-        shield = shield_config(variant, mode if mode != "-" else "ground_truth", a.miss_rate, a.burst_length,
-                               a.detector_range)
-        for v, path, value in overrides:
-            if v == variant:
-                node = shield
-                for part in path[:-1]:
-                    node = node.setdefault(part, {})
-                node[path[-1]] = value
-        shields.append(shield)
-    for shield in shields:  # fail fast on a bad shield config, before any run
-        try:
-            make_env(env_config(egos[0], targets[0], dts[0], a.action), None, shield).close()
-        except ConfigError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
+    configs += [(v, m) for v in a.variants if v != "none" for m in a.modes]
+    shields = _shields(a, configs)
     tasks = []
     for plan in plans:  # agent-major, then config, then case: the order the tables group by
         agent = {} if plan.spec == DEFAULT_AGENT and plan.sensors is None and len(plans) == 1 else \
@@ -489,17 +476,9 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.time()
     print(f"[ccftap] {len(tasks)} runs ({len(plans)} agents × {len(configs)} configs × {n_cases} cases), "
           f"{a.workers} workers → {out}", flush=True)
-    if a.workers > 1:
-        import multiprocessing
-
-        # a trained policy was loaded here (torch): workers start fresh rather than fork this process
-        ctx = multiprocessing.get_context("spawn") if any("agent_spec" in t for t in tasks) else None
-        with ProcessPoolExecutor(a.workers, mp_context=ctx) as pool:
-            rows = list(pool.map(run_case, tasks, chunksize=4))
-    else:
-        rows = [run_case(t) for t in tasks]
+    rows = _run_tasks(tasks, a.workers)
     add_unnecessary(rows)
-    if "none" not in variants:
+    if "none" not in a.variants:
         rows = [r for r in rows if r["variant"] != "none"]
     several = len(plans) > 1
     traces = {f"{r['agent']} / {r['variant']}" if several else r["variant"]:
@@ -507,9 +486,58 @@ def main(argv: list[str] | None = None) -> int:
               for r in rows if "trace" in r}
     for r in rows:
         r.pop("trace", None)
-    agg = aggregate(rows)
+    _write(a, argv, plans, rows, traces, out, t0)
+
+
+def _shields(a, configs: list[tuple[str, str]]) -> list[dict]:
+    """Each (variant, mode)'s shield section with the ``--set`` overrides of its variant; each built once on the
+    first case before any run, so a bad one fails fast in one line."""
+    from av_gym.errors import ConfigError
+    from av_gym.make import make_env
+
+    overrides = []
+    for item in a.set:
+        key, sep, value = item.partition("=")
+        variant_key, _, path = key.partition(".")
+        if not sep or variant_key not in VARIANTS or not path:
+            raise _Refused(f"--set {item!r}: expected VARIANT.KEY=VALUE with VARIANT in {list(VARIANTS)}")
+        overrides.append((variant_key, path.split("."), yaml.safe_load(value)))
+    shields = []
+    for variant, mode in configs:
+        shield = shield_config(variant, mode if mode != "-" else "ground_truth", a.miss_rate, a.burst_length,
+                               a.detector_range)
+        for v, path, value in overrides:
+            if v == variant:
+                node = shield
+                for part in path[:-1]:
+                    node = node.setdefault(part, {})
+                node[path[-1]] = value
+        shields.append(shield)
+    for shield in shields:
+        try:
+            make_env(env_config(a.ego[0], a.target[0], a.dts[0], a.action), None, shield).close()
+        except ConfigError as exc:
+            raise _Refused(str(exc)) from None
+    return shields
+
+
+def _run_tasks(tasks: list[dict], workers: int) -> list[dict]:
+    if workers <= 1:
+        return [run_case(t) for t in tasks]
+    import multiprocessing
+
+    # a trained policy was loaded here (torch): workers start fresh rather than fork this process
+    ctx = multiprocessing.get_context("spawn") if any("agent_spec" in t for t in tasks) else None
+    with ProcessPoolExecutor(workers, mp_context=ctx) as pool:
+        return list(pool.map(run_case, tasks, chunksize=4))
+
+
+def _write(a, argv: list[str] | None, plans: list, rows: list[dict], traces: dict, out: Path, t0: float) -> None:
+    """results.csv, results.md (with how it was run), grid.png and timeline.png, each whole or as it was."""
+    from av_gym.metrics import markdown_table
     from av_gym.shields.aeb import ImprovedParams
 
+    agg = aggregate(rows)
     # the yaml names only what differs from the Params defaults (the shield completes the section the same way)
     pert = {**ImprovedParams().detector.as_dict(),
             **shield_config("improved", "perceived", a.miss_rate, a.burst_length, a.detector_range)["detector"]}
@@ -518,12 +546,11 @@ def main(argv: list[str] | None = None) -> int:
                               for q in plans)
     meta = (f"`python -m eval.ccftap {' '.join(argv if argv is not None else sys.argv[1:])}`; {driver}, "
             f"{a.action} actions, seed {a.seed}; {len(rows) // max(1, len(agg))} cases per row "
-            f"({len(egos)} ego × {len(targets)} target speeds × {len(dts)} Δt). Perceived mode: the shield's own "
+            f"({len(a.ego)} ego × {len(a.target)} target speeds × {len(a.dts)} Δt). Perceived mode: the shield's own "
             f"detector (miss_rate {pert.get('miss_rate')}, burst_length {pert.get('burst_length')} frames, "
             f"max_range {pert.get('max_range')} m) + Kalman tracker. Wall time {time.time() - t0:.0f} s.")
-    columns = [k for k in rows[0]]
     table = io.StringIO()
-    w = csv.DictWriter(table, fieldnames=columns)
+    w = csv.DictWriter(table, fieldnames=list(rows[0]))
     w.writeheader()
     w.writerows(rows)
     md = markdown(rows, agg, meta)
@@ -531,16 +558,12 @@ def main(argv: list[str] | None = None) -> int:
         write_texts_atomic({out / "results.csv": table.getvalue(), out / "results.md": md}, field="--out")
         grid_figure(rows, out / "grid.png")
         if traces:
-            timeline_figure(traces, plot_case, out / "timeline.png")
+            timeline_figure(traces, tuple(a.plot_case), out / "timeline.png")
     except WriteFailed as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    from av_gym.metrics import markdown_table
-
+        raise _Refused(str(exc)) from None
     print(markdown_table(agg, list(agg[0])))
     print(f"[ccftap] {time.time() - t0:.0f} s; wrote {out}/results.csv, results.md, grid.png"
           + (", timeline.png" if traces else ""))
-    return 0
 
 
 def _number(value: float | None) -> float:

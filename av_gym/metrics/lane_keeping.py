@@ -59,6 +59,17 @@ def count_departures(out: np.ndarray) -> int:
     return int(out[0]) + int(np.count_nonzero(out[1:] & ~out[:-1]))
 
 
+def _same_length(**series: np.ndarray) -> list[np.ndarray]:
+    """Each series as a finite 1-D float array (ValueError naming it otherwise), all of one length."""
+    arrays = [_as_1d_finite(name, values) for name, values in series.items()]
+    if len({a.size for a in arrays}) > 1:
+        raise ValueError(
+            f"{', '.join(list(series)[:-1])} and {list(series)[-1]} must have the same length, got "
+            f"{', '.join(str(a.size) for a in arrays)}"
+        )
+    return arrays
+
+
 def lane_keeping_summary(
     cte: np.ndarray,
     steering: np.ndarray,
@@ -86,14 +97,7 @@ def lane_keeping_summary(
     Returns:
         A dict of floats (booleans as 0.0/1.0); see the module docs for keys.
     """
-    cte_a = _as_1d_finite("cte", cte)
-    steer_a = _as_1d_finite("steering", steering)
-    prog_a = _as_1d_finite("progress", progress)
-    if not (cte_a.size == steer_a.size == prog_a.size):
-        raise ValueError(
-            "cte, steering and progress must have the same length, got "
-            f"{cte_a.size}, {steer_a.size}, {prog_a.size}"
-        )
+    cte_a, steer_a, prog_a = _same_length(cte=cte, steering=steering, progress=progress)
     lane_width = _positive("lane_width", lane_width)
     lap_length = _positive("lap_length", lap_length)
     vehicle_width = float(vehicle_width)

@@ -98,6 +98,17 @@ _DRIVEN: dict = {}  # lane sequence geometry -> DrivenPath, shared by every shie
 _BY_NETWORK: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 
+
+def _turn_weights(hyps: list, intent_row: np.ndarray | None) -> list[float]:
+    """Each lane continuation's probability: weighted by the turn its indicator reading gives (``intent_row``:
+    right, straight, left, :data:`av_gym.shields.intent.TURNS`), normalised; uniform without a reading."""
+    n_h = len(hyps)
+    if intent_row is None:
+        return [1.0 / n_h] * n_h
+    p = np.array([intent_row[int(turn) + 1] for _, turn in hyps]) / n_h
+    return (p / p.sum()).tolist()
+
+
 class ConflictModel:
     """Every road user's possible paths across the ego's: one hypothesis per way the road network lets
     it continue from the lane it is on (:class:`av_gym.shields.predict.LaneHypotheses`: straight, left, right at
@@ -219,14 +230,8 @@ class ConflictModel:
                 dh = abs((float(lane.heading_at(s0)) - others[m, 4] + np.pi) % (2 * np.pi) - np.pi)
                 if abs(lat) <= self.on_lane and dh <= max_dh:
                     a_along = float(accels[m] @ others[m, 2:4]) / speed
-                    hyps = self.hypotheses(lane_index)
-                    n_h = len(hyps)
-                    if read is not None and read[m]:
-                        w = intent[m]
-                        p = np.array([w[int(turn) + 1] for _, turn in hyps]) / n_h  # TURNS: right, straight, left
-                        p = (p / p.sum()).tolist()
-                    else:
-                        p = [1.0 / n_h] * n_h
+                    p = _turn_weights(self.hypotheses(lane_index),
+                                      intent[m] if read is not None and read[m] else None)
                     row = len(on_map)
                     on_map.append(m), v_on.append(speed), a_on.append(a_along)
                     driven = self._driven_all(lane_index, by_seq)
