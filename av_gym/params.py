@@ -73,7 +73,7 @@ class Params:
         found = check(cls, merged, where, what)
         if found:
             raise ParamError(found[0])
-        return cls(**{k: _convert(hint, merged[k]) for k, hint in _hints(cls).items() if k in merged})
+        return _assemble(cls, merged)  # checked just now, relations included: not again by __post_init__
 
     @classmethod
     def build(cls, params: "Params | Mapping | None" = None, **overrides: Any):
@@ -123,13 +123,21 @@ def check(cls: type[Params], values: Any, where: str = "", what: str | None = No
     if found:
         return found
     try:
-        instance = cls.__new__(cls)
-        for name in fields:  # a frozen instance without __post_init__'s own check, to ask its relations
-            value = _convert(hints[name], values[name]) if name in values else _default(fields[name])
-            object.__setattr__(instance, name, value)
+        instance = _assemble(cls, values)  # without __post_init__'s own check, to ask its relations
         return [_REF.sub(lambda m: _join(where, m.group(1)), p) for p in instance.relations()]
     except (TypeError, ValueError) as exc:  # pragma: no cover - a relation that assumed more than was checked
         return [f"{where or cls.__name__}: {exc}"]
+
+
+def _assemble(cls: type[Params], values: Mapping) -> Params:
+    """A frozen instance of checked ``values`` (converted to the fields' types; defaults for the missing ones),
+    built without :meth:`Params.__post_init__`'s check: the caller has just made it."""
+    hints = _hints(cls)
+    instance = cls.__new__(cls)
+    for f in dataclasses.fields(cls):
+        value = _convert(hints[f.name], values[f.name]) if f.name in values else _default(f)
+        object.__setattr__(instance, f.name, value)
+    return instance
 
 
 def _check_value(value: Any, hint: Any, meta: Mapping, where: str) -> list[str]:
