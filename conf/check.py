@@ -180,6 +180,7 @@ def check_command_line(command: str, argv: list[str], check: Callable[[Any], Any
 
     A sweep is checked value by value (each swept value once, the other sweeps at their first value): linear in
     the number of values, and every value a job will see has been checked."""
+    _CHECKED.clear()  # only the configs of this command line: the jobs Hydra is about to run from it
     flags = [a for a in argv if a.startswith("-")]
     if any(a not in ("-m", "--multirun") for a in flags):
         return []
@@ -304,8 +305,8 @@ def _hydra_values(node: Any, path: str = ""):
         yield path
 
 
-# The command lines this process checked, by their unresolved config: the job Hydra composes from one of them is
-# the same config, checked already (a sweep's jobs in other processes, and callers from Python, check their own).
+# The configs of the last command line this process checked, unresolved: the job Hydra composes from it is the
+# same config, checked already (a sweep's jobs in other processes, and callers from Python, check their own).
 _CHECKED: set[str] = set()
 
 

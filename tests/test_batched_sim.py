@@ -492,7 +492,7 @@ def test_training_on_the_batch_validates_on_the_batch_and_its_last_row_is_model_
 
 def test_cloning_on_the_batch_gives_the_per_env_demonstrations():
     """``agent.vec_env=batched`` clones the gap-acceptance rule from episodes on the batched engine
-    (train/ppo.py pretrain_from_teacher): the same labelled decisions, discounted returns and teacher outcomes as
+    (train/imitation.py pretrain_from_teacher): the same labelled decisions, discounted returns and teacher outcomes as
     the per-env stack gives for the same seeds (the rule reads only the observation, which the engine reproduces)."""
     from stable_baselines3 import PPO
 

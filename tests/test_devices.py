@@ -130,7 +130,7 @@ def test_pilotnet_checks_its_device_like_ppo():
 
 
 def test_dagger_rounds_fit_on_the_policys_device():
-    """train/dagger.py refits its student with the cloning's fit (train/ppo.py fit_policy, where the GPU run
+    """train/dagger.py refits its student with the cloning's fit (train/imitation.py fit_policy, where the GPU run
     crashed): the same placement, the same result."""
     from stable_baselines3.common.vec_env import DummyVecEnv
 

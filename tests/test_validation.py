@@ -169,3 +169,56 @@ def test_numbers_are_finite():
 
     assert check(GNSSParams, {"sigma": float("inf")}) and check(GNSSParams, {"latency": float("nan")})
     assert not check(GNSSParams, {"sigma": 1})
+
+
+def test_a_command_line_is_composed_once_and_checked_once(tmp_path, monkeypatch):
+    """``python -m eval``: the check before Hydra composes the command line once and checks the config once; the
+    job Hydra then runs from it is not checked again, and no env is built before the episodes'."""
+    import sys
+
+    import hydra
+
+    import av_gym.make
+    import conf.check
+    from eval import __main__ as eval_main
+
+    calls = {"compose": 0, "problems": 0, "make_env": 0}
+
+    def counted(name, real):
+        def call(*args, **kwargs):
+            calls[name] += 1
+            return real(*args, **kwargs)
+        return call
+
+    monkeypatch.setattr(hydra, "compose", counted("compose", hydra.compose))
+    monkeypatch.setattr(conf.check, "problems", counted("problems", conf.check.problems))
+    checked = {}
+
+    def first_env(*args, **kwargs):  # the first env built: by then every check has run
+        checked.setdefault("problems", calls["problems"])
+        return real_make_env(*args, **kwargs)
+
+    real_make_env = av_gym.make.make_env
+    monkeypatch.setattr(av_gym.make, "make_env", first_env)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["eval", "agents=[always_proceed]", "episodes=1", "out_dir=out",
+                                      "progress_bar=false", "hydra.run.dir=hydra_run"])
+    eval_main.main()
+    assert (tmp_path / "out" / "results.csv").is_file()
+    assert calls["compose"] == 1 and calls["problems"] == 1 and checked == {"problems": 1}
+
+
+def test_checking_a_training_config_builds_no_env(monkeypatch):
+    """The whole check of ``python -m train``'s config reads the config: no env stack is built to validate it."""
+    import av_gym.make
+    from train.__main__ import _validate
+
+    (cfg,) = check_command_line("train", ["env=left_turn", "shield=aeb", "env.spawn_probability=0.3",
+                                          "agent.vec_env=subproc", "agent.n_envs=2", "agent.n_steps=256"])
+
+    def no_env(*args, **kwargs):
+        raise AssertionError("an env was built to check a config")
+
+    monkeypatch.setattr(av_gym.make, "make_env", no_env)
+    monkeypatch.setattr(av_gym.make, "make_training_env", no_env)
+    _validate(cfg)
