@@ -224,19 +224,23 @@ def _check_command_line() -> None:
     the out_dir claimed: all before Hydra makes a folder."""
     from conf.check import _PLACEHOLDER, check_command_line
 
+    commands = []
+
     def check(cfg: DictConfig) -> None:  # its fields were checked by check_command_line
         command = _check_needs(cfg)
         if command.out_dir != _PLACEHOLDER:  # the default, Hydra's run folder, was checked with hydra.run.dir
             problem = folder_problem(command.out_dir, "out_dir") or results_problem(command)
             if problem:
                 raise ConfigError(problem)
+        commands.append(command)
 
     configs = check_command_line("eval", sys.argv[1:], check)
     sweep = len(configs) != 1 or any(a in ("-m", "--multirun") for a in sys.argv[1:])
-    if not sweep and configs[0].out_dir != _PLACEHOLDER:
+    command = None if sweep else commands[0]
+    if command is not None and command.out_dir != _PLACEHOLDER:
         # before Hydra makes its run folder: an out_dir another evaluation is writing is refused with nothing
         # written; the lock is held by this process until the evaluation ends (a sweep's jobs each lock their own)
-        claim_out_dir(EvalCommand.of(configs[0]))
+        claim_out_dir(command)
 
 
 @hydra.main(config_path="pkg://conf", config_name="eval", version_base="1.3")

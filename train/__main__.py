@@ -38,21 +38,23 @@ def validation_seeds(options: TrainOptions, n: int) -> range:
     return config_seeds("validation", n, options.eval_seed, "train.eval_seed")
 
 
-def _validate(cfg: DictConfig) -> None:
+def _validate(cfg: DictConfig) -> TrainCommand:
     """Every field against the schema (the agent section: its kind's Params), then what its trainer needs: the
-    whole check of a training config (the env's, sensors' and shield's sections included: no env is built)."""
+    whole check of a training config (the env's, sensors' and shield's sections included: no env is built).
+    Returns the command's settings."""
     from conf.check import validate_config
 
     validate_config(cfg, "train")
-    _check_needs(cfg)
+    return _check_needs(cfg)
 
 
-def _check_needs(cfg: DictConfig) -> None:
+def _check_needs(cfg: DictConfig) -> TrainCommand:
     """What a config whose fields are valid still needs: validation seeds in their split, an agent that drives
-    this env, what its trainer checks (agents/registry.py ``train_checks``)."""
+    this env, what its trainer checks (agents/registry.py ``train_checks``). Returns the command's settings."""
     from agents.registry import resolve
 
-    options = TrainCommand.of(cfg).train
+    command = TrainCommand.of(cfg)
+    options = command.train
     validation_seeds(options, max(options.eval_episodes, options.eval_n))
     agent = cfg.agent
     if cfg.env.name not in agent.scenarios:
@@ -62,6 +64,7 @@ def _check_needs(cfg: DictConfig) -> None:
         problems = resolve(kind.train_checks)(cfg)
         if problems:
             raise ConfigError(problems[0])
+    return command
 
 
 @dataclass(frozen=True)
@@ -82,9 +85,8 @@ def train(cfg: DictConfig) -> dict:
 
     from conf.check import was_checked
 
-    if not was_checked(cfg):  # the command line's check ran in this process for a plain run, not for Python's
-        _validate(cfg)
-    command = TrainCommand.of(cfg)
+    # the command line's check ran in this process for a plain run; not for a sweep's job or a caller from Python
+    command = TrainCommand.of(cfg) if was_checked(cfg) else _validate(cfg)
     torch.set_num_threads(command.train.torch_threads)
     folders = _claim_folders(cfg, command)
     model_path = _train_agent(cfg, command, folders)
@@ -216,21 +218,22 @@ def _check_command_line() -> None:
     plain run the run's folders claimed: all before Hydra makes a folder."""
     from conf.check import check_command_line
 
+    commands = []
+
     def check(cfg: DictConfig) -> None:  # its fields were checked by check_command_line
-        _check_needs(cfg)
+        command = _check_needs(cfg)
         # where the checkpoints go, before Hydra makes the run folder (a sweep's -j<n> suffix fits: run_name is
         # bounded in the schema)
-        command = TrainCommand.of(cfg)
         problem = folder_problem(Path(command.paths.checkpoints) / command.run_name, "paths.checkpoints")
         if problem:
             raise ConfigError(problem)
+        commands.append(command)
 
     configs = check_command_line("train", sys.argv[1:], check)
     if len(configs) == 1 and not any(a in ("-m", "--multirun") for a in sys.argv[1:]):
         # before Hydra writes runs/<run_name>/.hydra: a run that is not ours is refused with nothing written; the
         # lock is held by this process until it exits (a sweep's jobs each claim their own -j<n> folder)
-        cfg = configs[0]
-        command = TrainCommand.of(cfg)
+        cfg, command = configs[0], commands[0]
         claim_run(cfg, command, Path(command.paths.checkpoints) / command.run_name,
                   Path(command.paths.runs) / command.run_name)
 
