@@ -153,9 +153,8 @@ _SET_POINTS = np.array(SET_POINTS)
 
 def meta_actions(choice: np.ndarray, turn: np.ndarray) -> np.ndarray:
     """The meta-actions (n,) for GO/YIELD choices (n,) given the turn features ``turn`` (n, F)."""
-    turn = np.asarray(turn)
-    set_point = TURN.decode(turn[..., :len(EGO_FEATURES)].astype(float), "set_point")
-    d_stop = TURN.decode(turn[..., :len(EGO_FEATURES)].astype(float), "to_stop_line")
+    ego = np.asarray(turn)[..., :len(EGO_FEATURES)].astype(float)  # decoded in doubles
+    set_point, d_stop = TURN.decode(ego, "set_point"), TURN.decode(ego, "to_stop_line")
     v_ok = np.sqrt(2.0 * DECEL * np.maximum(d_stop - MARGIN, 0.0))
     # YIELD: the highest set-point not above v_ok (SET_POINTS ascends from 0, so there is one)
     yield_speed = _SET_POINTS[np.searchsorted(_SET_POINTS, v_ok + 1e-6, side="right") - 1]
