@@ -40,7 +40,8 @@ from av_gym.sensors.turn_signal import TurnSignalsParams, node_index
 from av_gym.shields.intent import DriverIntent
 from av_gym.wrappers import GO, YIELD, meta_action
 
-__all__ = ["BeliefLookahead", "BeliefLookaheadAgent", "BeliefLookaheadParams", "BeliefPlanner"]
+__all__ = ["BeliefLookahead", "BeliefLookaheadAgent", "BeliefLookaheadParams", "BeliefPlanner", "EnvView",
+           "belief_lookahead_teacher"]
 
 SPAWN_SPEED, SPAWN_SPEED_SD = 8.0, 1.0  # IntersectionEnv._spawn_vehicle: speed = 8 + N(0, 1) (also the set-point)
 DELTA_RANGE = (3.5, 4.5)  # IDMVehicle.randomize_behavior
@@ -418,6 +419,33 @@ class BeliefLookahead:
         self._choice = int(self.planner.decide(engine, [0], np.array([self._choice]), np.array([self._t]))[0])
         self._t += 1
         return meta_action(self._choice, obs["turn"])
+
+
+def belief_lookahead_teacher(params: BeliefLookaheadParams, actions: str, scenario: str | None = None,
+                             action_repeat: int = 1) -> Any:
+    """A teacher whose labels depend only on what the student could know (see :data:`agents.registry.TEACHERS`):
+    GO when none (at most ``threshold``) of its K futures collide. Per state on a per-env training env (its belief
+    from the readings at the states it is asked about, a one-row :class:`EnvView` of the env); on the batch
+    ``train/dagger.py``'s BatchedLabels runs a :class:`BeliefPlanner` for every row (``label.belief``)."""
+    from agents.go_yield import _go_yield_only
+
+    _go_yield_only(params, actions)
+    planner, view = BeliefPlanner(params, n_rows=1), EnvView()
+    episode: list = [None]
+
+    def label(env, obs, info) -> int:
+        u = env.unwrapped
+        key = (int(u.episode_seed), id(u))
+        if key != episode[0] or float(u.time) == 0.0:  # a new episode: forget its drivers
+            planner.reset([0])
+            view.reset()
+            episode[0] = key
+        engine = view.engine(env, obs)
+        planner.read(engine, [0], obs["intent"][None])
+        return int(planner.labels(engine, [0])[0])
+
+    label.belief = params
+    return label
 
 
 class BeliefLookaheadAgent(AgentKind):

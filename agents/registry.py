@@ -96,6 +96,7 @@ AGENT_KINDS = Registry("agent.kind", {
 TEACHERS = Registry("agent.init", {
     "gap_acceptance": "agents.go_yield:gap_acceptance_teacher",
     "lookahead": "agents.go_yield:lookahead_teacher",
+    "belief_lookahead": "agents.belief:belief_lookahead_teacher",
     "pid": "agents.pid:pid_teacher",
 })
 """Agent kind → ``teacher(params, actions, scenario, action_repeat) -> label(env, obs, info)``: how an agent of that

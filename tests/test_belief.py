@@ -127,3 +127,22 @@ def test_per_env_view_decides_as_the_batch():
     for e in envs:
         e.close()
     assert compared == 9
+
+
+def test_dagger_teacher_on_the_batch():
+    """As DAgger's teacher on the batch (train/dagger.py BatchedLabels) it labels with the same planner, its
+    belief from the readings at the decisions it is asked about."""
+    from agents.belief import belief_lookahead_teacher
+    from train.dagger import BatchedLabels
+
+    params = BeliefLookaheadParams(samples=4)
+    venv = BatchedLeftTurnBatch({"name": "left_turn"}, SENSORS, None, 4, pool=0)
+    obs = venv.play(iter(range(400_200, 400_204)))
+    labeller = BatchedLabels(venv, belief_lookahead_teacher(params, "go_yield"), True, 0.0)
+    planner = BeliefPlanner(params, n_rows=4)
+    rows = np.arange(4)
+    for _ in range(3):
+        planner.read(venv.engine, rows, obs["intent"])
+        np.testing.assert_array_equal(labeller(rows, obs), planner.labels(venv.engine, rows))
+        for _ in range(5):
+            obs, _, _, _ = venv.step(meta_actions(np.full(4, YIELD), obs["turn"]))

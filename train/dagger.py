@@ -63,8 +63,8 @@ def labeller_of(cfg: DictConfig) -> str:
     the batch), ``replica`` (the student on the per-env stack, the oracle on a batched replica of its episodes) or
     ``per_env`` (the teacher on the per-env stack, one state at a time)."""
     oracle = _teacher_kind(cfg) == "lookahead"
-    if cfg.agent.vec_env == "batched":
-        return "batched" if oracle else "rule"
+    if cfg.agent.vec_env == "batched":  # the belief planner plays its futures on the batch too
+        return "batched" if oracle or _teacher_kind(cfg) == "belief_lookahead" else "rule"
     if cfg.agent.labeller == "per_env" or not oracle or _replica_refusal(cfg):
         return "per_env"
     return "replica"
@@ -105,16 +105,17 @@ def validate(cfg: DictConfig) -> list[str]:
                 f"agent.vec_env={agent.vec_env}, agent.teacher={agent.teacher}" + (f", {refusal}" if refusal else "")]
     if batched:
         kind = _teacher_kind(cfg)
-        if kind not in ("lookahead", "gap_acceptance"):
-            return [f"agent.teacher={agent.teacher} (kind {kind}) cannot label on agent.vec_env=batched (lookahead "
-                    f"or gap_acceptance can); use agent.vec_env=subproc"]
+        if kind not in ("lookahead", "belief_lookahead", "gap_acceptance"):
+            return [f"agent.teacher={agent.teacher} (kind {kind}) cannot label on agent.vec_env=batched (lookahead, "
+                    f"belief_lookahead or gap_acceptance can); use agent.vec_env=subproc"]
         from av_gym.batched.vec_env import check_batchable
 
         try:
             check_batchable(*[OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)])
         except ConfigError as exc:
             return [str(exc)]
-    if float(agent.label_margin) > 0 and labeller_of(cfg) not in ("batched", "replica"):
+    if float(agent.label_margin) > 0 and (labeller_of(cfg) not in ("batched", "replica")
+                                          or _teacher_kind(cfg) != "lookahead"):
         return ["agent.label_margin > 0 needs the batched oracle (agent.teacher of kind lookahead on env=left_turn, "
                 "agent.labeller auto, batched or replica): the per-env teachers give no margin"]
     return []
@@ -174,11 +175,24 @@ class BatchedLabels:
     def __init__(self, venv, teacher, oracle: bool, margin: float) -> None:
         self.venv, self.teacher, self.oracle, self.margin = venv, teacher, oracle, float(margin)
         self.on_go_future = np.zeros(venv.num_envs, bool)
+        self.belief = None  # belief_lookahead: its planner over the batch, the episode each row's belief is of
+        if getattr(teacher, "belief", None) is not None:
+            from agents.belief import BeliefPlanner
+
+            self.belief = BeliefPlanner(teacher.belief, n_rows=venv.num_envs)
+            self.episode = np.full(venv.num_envs, -1, dtype=np.int64)
 
     def __call__(self, rows: np.ndarray, obs: dict) -> np.ndarray:
         from agents.batched_oracle import oracle_labels
         from av_gym.wrappers import GO
 
+        if self.belief is not None:  # its futures are samples, not the row's own: no GO-future shortcut
+            engine = self.venv.engine
+            new = rows[engine.episode_seed[rows] != self.episode[rows]]
+            self.belief.reset(new)
+            self.episode[new] = engine.episode_seed[new]
+            self.belief.read(engine, rows, obs["intent"][rows])
+            return self.belief.labels(engine, rows)
         labels = np.zeros(len(rows), dtype=np.int64)
         if not self.oracle:
             for n, r in enumerate(rows):
