@@ -145,7 +145,7 @@ def test_a_registered_teacher_labels_for_behaviour_cloning(toy_kinds):
             raise ConfigError(f"agent.init={params.name} teaches go/yield choices")
         return lambda env, obs, info: params.action % 2
 
-    with pytest.raises(ConfigError, match=r"agent.init must name an agent of kind gap_acceptance or lookahead or pid"):
+    with pytest.raises(ConfigError, match=r"agent.init must name an agent of kind gap_acceptance or lookahead or belief_lookahead or pid"):
         make_teacher("toy", "go_yield")
     TEACHERS.register("toy", toy_teacher)
     try:
