@@ -240,7 +240,7 @@ def test_batched_continuous_actions_match_per_env_stack_for_5_s(mode):
     ControlledVehicle, so the regulation may set its unused target speed, which obs["turn"]'s set-point reads):
     vehicle states identical for 5 s in every episode for seeded random accelerations in [-1, 1] and cruising
     (0 m/s², the always-proceed action), and rewards, ends, obs["turn"] and TTC too in most: obs["turn"]'s
-    closest-approach ties (docs/performance.md, the known TurnFeatures._path_conflict tie) split 2 of these 12 traffic
+    closest-approach ties (docs/performance.md, the known tie of path_conflict) split 2 of these 12 traffic
     episodes on path_s (measured on seeds 20000-20099: states 100/100, everything 95/100, as with meta-actions)."""
     seeds = list(range(7000, 7012)) if mode == "traffic" else [1, 2, 3, 4]
     rng = np.random.default_rng(3)
