@@ -91,7 +91,7 @@ from av_gym.shields.aeb_base import AEB_VARIANTS, AEBShield, _route_tables, find
 from av_gym.shields.aeb_params import (BRAKE, CONFIG_SECTION_KEYS, MONITOR, SHIELD_DETECTOR, STOP_SPEED,
                                       TRACKER_FOLLOWS_DETECTOR, WARN, AEBParams, BrakeParams, ImprovedParams,
                                       PaperParams, StandardParams, TurnParams)
-# the variants register in this order (AEB_VARIANTS.names(): error messages, the config store)
+# the variants, re-exported here (AEB_VARIANTS names them in its own order)
 from av_gym.shields.aeb_paper import PaperAEB  # isort: skip
 from av_gym.shields.aeb_improved import ImprovedAEB  # isort: skip
 from av_gym.shields.aeb_standard import StandardAEB  # isort: skip

@@ -56,10 +56,15 @@ def find_shield(env: gym.Env) -> "AEBShield | None":
     return None
 
 
-AEB_VARIANTS = Registry("variant")
+AEB_VARIANTS = Registry("variant", {
+    "paper": "av_gym.shields.aeb_paper:PaperAEB",
+    "improved": "av_gym.shields.aeb_improved:ImprovedAEB",
+    "standard": "av_gym.shields.aeb_standard:StandardAEB",
+})
 """``shield.variant`` → the AEB wrapper class with that decision logic; its ``Params`` is the section's fields.
-Each variant's module registers its class here; importing :mod:`av_gym.shields.aeb` (as the shield registry does)
-imports every variant. This module never imports them back: the base knows no variant."""
+Named as ``"module:Class"`` strings (as the sensor registry names its kinds): the base imports no variant (the
+variants import the base), the order of the names is this table's whatever was imported first, and a variant's
+module is loaded when the variant is first asked for."""
 
 
 class AEBShield(gym.Wrapper):

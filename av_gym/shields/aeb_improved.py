@@ -15,11 +15,10 @@ from av_gym.shields.conflicts import ConflictModel
 from av_gym.shields.intent import DriverIntent
 from av_gym.shields.predict import (LaneHypotheses, cruise_profile, footprint_ttc, go_profile, object_predict,
                                     profile_speeds, setpoint_profile)
-from av_gym.shields.aeb_base import AEB_VARIANTS, AEBShield
+from av_gym.shields.aeb_base import AEBShield
 from av_gym.shields.aeb_params import BRAKE, MONITOR, STOP_SPEED, WARN, ImprovedParams
 
 
-@AEB_VARIANTS.register("improved")
 class ImprovedAEB(AEBShield):
     """``improved``: our design (module docstring); parameters :class:`ImprovedParams`."""
 

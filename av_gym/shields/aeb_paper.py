@@ -8,11 +8,10 @@ import numpy as np
 
 from av_gym.params import Params
 from av_gym.shields.predict import paper_horizon, paper_ttc
-from av_gym.shields.aeb_base import AEB_VARIANTS, AEBShield, _wrap
+from av_gym.shields.aeb_base import AEBShield, _wrap
 from av_gym.shields.aeb_params import BRAKE, MONITOR, WARN, PaperParams
 
 
-@AEB_VARIANTS.register("paper")
 class PaperAEB(AEBShield):
     """``paper``: the predictive AEB of digest 003 §4.1-4.8 (module docstring); parameters :class:`PaperParams`."""
 

@@ -8,11 +8,10 @@ import numpy as np
 
 from av_gym.params import Params
 from av_gym.shields.predict import standard_ttc
-from av_gym.shields.aeb_base import AEB_VARIANTS, AEBShield
+from av_gym.shields.aeb_base import AEBShield
 from av_gym.shields.aeb_params import BRAKE, MONITOR, WARN, StandardParams
 
 
-@AEB_VARIANTS.register("standard")
 class StandardAEB(AEBShield):
     """``standard``: the standard AEB of paper 003 §2 (``TTC = Δx/Δv`` on targets ahead in the ego's corridor),
     always active; parameters :class:`StandardParams`."""
