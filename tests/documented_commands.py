@@ -196,6 +196,10 @@ KNOWN: dict[str, str] = {
     # docs/dagger.md
     "python -m train agent=dagger_turn": "run",
     "python benchmarks/oracle_labels.py --quick": "run",
+    "python -m eval env=left_turn agents=[lookahead,belief_lookahead,dagger_turn,ppo_turn] split=test seed=2800000 "
+    "episodes=1000 vec_env=batched n_envs=250": "run",
+    "python benchmarks/partition.py docs/results/left_turn_partition/results.csv --students dagger_turn ppo_turn":
+        "covered:tests/test_partition.py::test_the_partition_adds_up_to_the_oracles_edge",
     "python -m train agent=dagger_turn_perceived": "run",
     "python -m train agent=dagger_turn_perceived seed=1 agent.rounds=6 agent.round_episodes=128 train.eval_n=100 "
     "train.eval_episodes=0 train.torch_threads=1 run_name=dagger_perceived_s1": "run",
