@@ -54,6 +54,9 @@ def test_tensorboard_eval_scalars_equal_eval_csv_also_after_a_resume(tmp_path):
     run = tmp_path / "runs" / "tb"
     train("agent.total_timesteps=256")
     assert _assert_same(run) == [0, 64, 128, 192, 256]  # the start, each rollout, and the final model
-    # latest.zip is at 128: the resumed run drops the evaluations after it (TensorBoard purges them too) and goes on
+    # a finished run is not resumed; without its final model.zip the folder is what a kill after the last
+    # checkpoint leaves. latest.zip is at 128: the resumed run drops the evaluations after it (TensorBoard purges
+    # them too) and goes on
+    (tmp_path / "checkpoints" / "tb" / "model.zip").unlink()
     train("agent.total_timesteps=384", "train.resume=true")
     assert _assert_same(run) == [0, 64, 128, 192, 256, 320, 384]
