@@ -5,7 +5,7 @@ kinds they name.
 Why not Hydra's ``compose`` here: it finds the configs through an importable module called ``conf``, and a user's
 project that holds its own ``conf/`` (Hydra's usual layout) shadows it, or is shadowed by it; inside a user's own
 Hydra app the global Hydra instance is theirs. The presets use one small part of Hydra's defaults list, written out
-below; ``tests/test_presets.py`` checks that this composition equals Hydra's for every shipped preset.
+below; ``tests/test_ecosystem.py`` checks that this composition equals Hydra's for every shipped preset.
 
 A preset file holds a ``defaults`` list of
 
@@ -27,10 +27,6 @@ import yaml
 
 from av_gym.errors import ConfigError
 from av_gym.references import conf_root
-
-GROUPS = ("env", "sensors", "shield")
-"""The groups a user of the library composes (``gym.make(id, env=..., sensors=..., shield=...)``)."""
-
 
 def preset_names(group: str) -> list[str]:
     """The presets shipped for ``group`` (``sensors`` → ``['camera_centre', 'cameras', ...]``)."""
