@@ -35,7 +35,7 @@ import gymnasium as gym
 import numpy as np
 
 from av_gym.errors import ConfigError
-from av_gym.presets import as_section, compose_group, deep_merge
+from av_gym.presets import as_section, compose_group, deep_merge, plain
 
 KMH = 1 / 3.6
 
@@ -97,8 +97,8 @@ def left_turn_vector(num_envs: int, *, env: Mapping | None = None, sensors: Any 
     if sensors is None:
         raise ConfigError(f"the batched engine needs sensors=\"turn_truth\" (it computes the turn features, not "
                           f"the privileged state); {other}")
-    env_cfg = _deep_merge(preset("env", "left_turn"), _mapping(env or {}, "env"))
-    sensors_cfg, shield_cfg = _section("sensors", sensors, "truth"), _section("shield", shield, "none")
+    env_cfg = deep_merge(preset("env", "left_turn"), _mapping(env or {}, "env"))
+    sensors_cfg, shield_cfg = as_section("sensors", sensors, "truth"), as_section("shield", shield, "none")
     try:
         check_batchable(env_cfg, sensors_cfg, shield_cfg)
     except ConfigError as exc:
@@ -127,7 +127,7 @@ def make(scenario: str, config: Mapping | None = None, *, env: Mapping | None = 
         raise ConfigError("give the scenario's settings as env={...} (conf/env fields: km/h, degrees) or "
                           "config={...} (highway-env's keys, SI units), not both")
     if env is not None:
-        section = _deep_merge(preset("env", scenario), _mapping(env, "env"))
+        section = deep_merge(preset("env", scenario), _mapping(env, "env"))
         section["name"] = scenario
         config = scenario_params(section).env_config()
     full = checked_config(scenario, config)
@@ -137,8 +137,8 @@ def make(scenario: str, config: Mapping | None = None, *, env: Mapping | None = 
         raise ConfigError(str(exc)) from None
     if sensors is None and shield is None and env is None:
         return base if not record_metrics else wrap_env(base, None, None)
-    sensors_cfg = _section("sensors", sensors, default="truth")
-    shield_cfg = _section("shield", shield, default="none")
+    sensors_cfg = as_section("sensors", sensors, default="truth")
+    shield_cfg = as_section("shield", shield, default="none")
     return wrap_env(base, sensors_cfg, shield_cfg, record_metrics=record_metrics is not False)
 
 
@@ -256,15 +256,8 @@ def preset(group: str, name: str) -> dict:
     return compose_group(group, name)
 
 
-_section = as_section
-_deep_merge = deep_merge
-
-
 def _mapping(value: Any, what: str) -> dict:
-    if hasattr(value, "_metadata"):  # an OmegaConf node
-        from omegaconf import OmegaConf
-
-        value = OmegaConf.to_container(value, resolve=True)
+    value = plain(value)
     if not isinstance(value, Mapping):
         raise ConfigError(f"{what} must be a mapping or a preset name, got {value!r}")
     return dict(value)

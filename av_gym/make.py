@@ -51,9 +51,9 @@ def add_sensors(env: gym.Env, sensors_cfg: Mapping | None) -> gym.Env:
     if not c.get("keep_state", name == "truth"):
         keys = [k for k in env.observation_space.spaces if k != "state"]
         if not keys:  # the agent would observe nothing
-            from av_gym.references import conf_root  # the shipped presets (av_gym.presets is this floor's)
+            from av_gym.presets import preset_names
 
-            presets = sorted(f.stem for f in (conf_root() / "sensors").glob("*.yaml"))
+            presets = preset_names("sensors")
             if name not in presets:
                 raise ConfigError(f"sensors.name={name!r} is not a sensors preset and the section names no sensor; "
                                   f"give a preset ({presets}) or sensor sections ({sorted(SENSORS)})")

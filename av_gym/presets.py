@@ -88,6 +88,15 @@ def deep_merge(base: Mapping, over: Mapping) -> dict:
     return out
 
 
+def plain(value: Any) -> Any:
+    """``value`` with an OmegaConf node turned into plain dicts and lists (callers may hold either)."""
+    if hasattr(value, "_metadata"):
+        from omegaconf import OmegaConf
+
+        return OmegaConf.to_container(value, resolve=True)
+    return value
+
+
 def as_section(group: str, value: Any, default: str) -> dict:
     """What a ``sensors=`` / ``shield=`` / ``env=`` keyword means: a preset name, a mapping naming a preset with
     fields to change (deep-merged over it), or a hand-made mapping; ``None`` is ``default``."""
@@ -95,10 +104,7 @@ def as_section(group: str, value: Any, default: str) -> dict:
         value = default
     if isinstance(value, str):
         return compose_group(group, value)
-    if hasattr(value, "_metadata"):  # an OmegaConf node
-        from omegaconf import OmegaConf
-
-        value = OmegaConf.to_container(value, resolve=True)
+    value = plain(value)
     if not isinstance(value, Mapping):
         raise ConfigError(f"{group} must be a mapping or one of {preset_names(group)}, got {value!r}")
     name = value.get("name")

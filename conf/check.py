@@ -18,11 +18,12 @@ from typing import Any
 
 from av_gym.errors import ConfigError
 from av_gym.params import check
+from av_gym.presets import preset_names
 
 
 def options(group: str) -> list[str]:
     """The options of a Hydra group shipped in conf/ (``sensors`` → ``['cameras', 'detector', ...]``)."""
-    return sorted(p.name[:-5] for p in (resources.files("conf") / group).iterdir() if p.name.endswith(".yaml"))
+    return preset_names(group)
 
 
 def _mapping(value: Any, where: str) -> list[str]:

@@ -60,7 +60,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import sys
 import time
 from dataclasses import dataclass, replace
@@ -77,6 +76,7 @@ from agents.bc import PilotNetParams
 from agents.pilotnet import (FORMAT, INPUT_HEIGHT, INPUT_WIDTH, PilotNet, count_parameters, crop_resize,
                              to_network_input)
 from agents.registry import AgentParams
+from av_gym.atomic import atomic_path
 from av_gym.geometry import wrap_angle
 from conf.commands import TrainCommand
 from train.device import device_problems, resolve_device
@@ -212,13 +212,10 @@ def collect_demos(env_cfg: dict, sensors_cfg: dict, args: PilotNetParams, log: C
 def save_demos(demos: dict, path: str | Path) -> Path:
     """``np.savez_compressed``: uint8 images (N, H, W, 3), float32 labels, int indices, and ``meta`` as JSON text
     (no pickles, so loading needs ``allow_pickle=False`` only)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     arrays = {k: v for k, v in demos.items() if k != "meta"}
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz")
-    np.savez_compressed(tmp, meta=np.array(json.dumps(demos["meta"])), **arrays)
-    os.replace(tmp, path)
-    return path
+    with atomic_path(path, "agent.demos") as tmp, open(tmp, "wb") as f:  # a file object: savez adds no suffix
+        np.savez_compressed(f, meta=np.array(json.dumps(demos["meta"])), **arrays)
+    return Path(path)
 
 
 def load_demos(path: str | Path) -> dict:
@@ -354,12 +351,9 @@ def augment(rgb: torch.Tensor, y: torch.Tensor, dy_dyaw: torch.Tensor, args: Pil
 
 # ================================================================================================ 6. training
 def _save_atomic(obj: Any, path: Path) -> Path:
-    """``torch.save`` to a temporary file beside ``path``, fsync, rename (a crash never leaves a torn file)."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    torch.save(obj, tmp)
-    with open(tmp, "rb") as f:
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    """``torch.save`` through :func:`av_gym.atomic.atomic_path` (a crash never leaves a torn file)."""
+    with atomic_path(path, "paths.checkpoints") as tmp:
+        torch.save(obj, tmp)
     return path
 
 
