@@ -11,7 +11,7 @@ a function of the pose), whether it has crashed, the ego's whole state, the cloc
 the engine's draws in :meth:`av_gym.batched.left_turn.BatchedLeftTurn._spawn`):
 
 - each driver's destination, from its route belief: the shield's Bayes filter over (turn, driver kind)
-  (:class:`av_gym.shields.intent.DriverIntent`) fed with every indicator reading the car got of that driver
+  (:class:`av_gym.estimation.driver_intent.DriverIntent`) fed with every indicator reading the car got of that driver
   (``obs["intent"][..., 1]``, the turn-signal channel), times the geometry: a driver already inside the
   intersection can only be on a crossing lane whose centreline its pose still fits (``gate``); on the exit road
   the destination is known;
@@ -37,7 +37,7 @@ from agents.batched_oracle import _ROW_ARRAYS, future_rows
 from agents.registry import AgentKind, AgentParams
 from av_gym.params import param
 from av_gym.sensors.turn_signal import TurnSignalsParams, node_index
-from av_gym.shields.intent import DriverIntent
+from av_gym.estimation.driver_intent import DriverIntent
 from av_gym.wrappers import GO, YIELD, meta_action
 
 __all__ = ["BeliefLookahead", "BeliefLookaheadAgent", "BeliefLookaheadParams", "BeliefPlanner", "EnvView",

@@ -8,7 +8,7 @@ import pytest
 from agents import AlwaysProceed
 from av_gym.shields.conflicts import ConflictModel, path_turn
 from av_gym.sensors.turn_signal import TurnSignalsParams
-from av_gym.shields.intent import DriverIntent, reading_likelihood
+from av_gym.estimation.driver_intent import DriverIntent, reading_likelihood
 
 CHANNEL = TurnSignalsParams(no_signal_rate=0.25, wrong_rate=0.05, miss_rate=0.1)
 from conftest import conf

@@ -19,7 +19,7 @@ from av_gym.sensors import turn_signal
 from av_gym.sensors.turn_signal import (DRIVER_DRAWS, LEFT, NONE, RIGHT, TurnSignalsParams, channel_likelihood,
                                         draws_needed, driver_kinds, first_sighting, read_channel, reported)
 from av_gym.shields import aeb_improved as aeb
-from av_gym.shields import intent
+from av_gym.estimation import driver_intent as intent
 
 N = 10_000  # random inputs per model
 

@@ -575,7 +575,7 @@ class BatchedIntent:
         self.sig = None if signals is None else TurnSignalsParams.from_mapping(signals, "sensors.turn_signals")
         p = TurnIntentParams.from_mapping(intent or {}, "sensors.turn_intent")
         self.history, self.gate, self.signal_gate = float(p.history), float(p.gate), float(p.signal_gate)
-        self.past = IntentHistory(engine.B, p)
+        self.past = IntentHistory(engine.B, p, self.sig)
         self.rngs = [None] * engine.B
         self.draws = DriverDraws()  # the per-driver channel (TurnSignals.draws), by vehicle id
         T = engine.T

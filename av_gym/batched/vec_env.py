@@ -74,7 +74,7 @@ class BatchedLeftTurnBatch:
                                     s.get("turn_intent") or {}) if need_intent else None
         M = self.engine.max_objects
         all_spaces = {"turn": spaces.Box(-1.0, 1.0, (self.engine.n_features,), np.float32),
-                      "intent": spaces.Box(-1.0, 1.0, (M, 2), np.float32)}
+                      "intent": spaces.Box(-1.0, 1.0, (M, self.intent.past.width if self.intent else 2), np.float32)}
         if self.intent is not None and self.intent.sig is not None:
             all_spaces["signals"] = spaces.Box(-1e4, 1e4, (int(self.intent.sig.max_objects), 4), np.float32)
         missing = [k for k in self.keys if k not in all_spaces]

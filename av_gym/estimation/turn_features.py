@@ -35,8 +35,10 @@ import numpy as np
 from gymnasium import spaces
 
 from av_gym.errors import ConfigError
+from av_gym.estimation.driver_intent import DriverIntent
 from av_gym.params import ROWS_MAX, Params, param
 from av_gym.sensors.base import SensorWrapper, find_wrapper, sim_time
+from av_gym.sensors.turn_signal import TurnSignals, TurnSignalsParams
 
 PATH_STEP = 2.0  # m between the points of the ego's path through the intersection that conflicts are checked at
 T_MAX = 10.0  # s, horizon of the closest-approach time
@@ -188,6 +190,7 @@ class TurnFeatures(SensorWrapper):
 
 
 INTENT_FEATURES = ("acc", "signal")
+MEMORY_FEATURES = ("p_right", "p_straight", "p_left")  # TurnIntentParams.memory: the turn belief, in [0, 1]
 ACC_SCALE = 5.0  # m/s², a firm brake; IDM drivers here brake at up to ~5 m/s² and accelerate at up to 3 m/s²
 
 
@@ -196,10 +199,21 @@ class TurnIntentParams(Params):
     history: float = param(0.5, "s", gt=0, doc="the object's velocity now against its velocity this long ago")
     gate: float = param(2.0, "m", gt=0, doc="the object then is the one within this of where it is now, moved back")
     signal_gate: float = param(3.0, "m", gt=0, doc="a turn-signal reading belongs to the object this close to it")
+    memory: bool = param(False, doc="add each object's turn belief P(right, straight, left) from every indicator "
+                                    "reading on it so far (3 columns, IntentHistory): what the shield's and "
+                                    "belief_lookahead's Bayes filter knows, which one frame's reading does not")
+    read_period: float = param(0.5, "s", gt=0, doc="memory: at most one reading counted per this long, so the "
+                                                   "per-env stack (observed every 0.1 s) counts the readings the "
+                                                   "batch (observed at each 0.5 s decision) does")
+
+
+def intent_features(params: TurnIntentParams) -> tuple[str, ...]:
+    """The columns of ``obs["intent"]`` under ``params``."""
+    return INTENT_FEATURES + (MEMORY_FEATURES if params.memory else ())
 
 
 class TurnIntent(SensorWrapper):
-    """Adds ``obs["intent"]``: ``Box(-1, 1, (max_objects, 2))``, one row per object of ``obs["turn"]`` in the same
+    """Adds ``obs["intent"]``: ``Box(-1, 1, (max_objects, 2))`` (5 columns with ``memory``), one row per object of ``obs["turn"]`` in the same
     order (zero rows where ``obs["turn"]`` has none): what the other drivers are about to do, from sensors a car has.
 
     - ``acc``: the object's longitudinal acceleration / 5 m/s², from its own short history: its velocity now
@@ -210,6 +224,9 @@ class TurnIntent(SensorWrapper):
     - ``signal``: the direction indicator the turn-signal sensor (``obs["signals"]``,
       :class:`av_gym.sensors.turn_signal.TurnSignals`) reads on the vehicle at the object's position (within
       ``signal_gate`` m): +1 left, -1 right, 0 none (or no reading, or no turn-signal sensor in the stack).
+    - with ``memory``: ``p_right``, ``p_straight``, ``p_left``, the object's turn belief after every reading on it so
+      far (at most one per ``read_period``), carried along the object from observation to observation
+      (:class:`IntentHistory`); 1/3 each before its first reading.
 
     Stack it after ``turn_features`` (config ``sensors.turn_intent``); parameters: :class:`TurnIntentParams`."""
 
@@ -224,11 +241,13 @@ class TurnIntent(SensorWrapper):
                               "preset)")
         self.history, self.gate, self.signal_gate = float(p.history), float(p.gate), float(p.signal_gate)
         super().__init__(env)
-        self.past = IntentHistory(1, p)  # the objects of the last `history` seconds: a batch of one env
+        signals = find_wrapper(env, TurnSignals)
+        # the objects of the last `history` seconds: a batch of one env
+        self.past = IntentHistory(1, p, signals.params if signals is not None else None)
         self._last = np.zeros(self.sensor_space().shape, dtype=np.float32)
 
     def sensor_space(self) -> spaces.Box:
-        return spaces.Box(-1.0, 1.0, shape=(self.features_wrapper.max_objects, len(INTENT_FEATURES)),
+        return spaces.Box(-1.0, 1.0, shape=(self.features_wrapper.max_objects, len(intent_features(self.params))),
                           dtype=np.float32)
 
     def on_reset(self) -> None:
@@ -296,25 +315,41 @@ class IntentHistory:
     """``obs["intent"]`` (:class:`TurnIntent`) for n envs at once, with each env's past: up to H snapshots of its
     objects (times ``t`` (n, H), NaN = empty; ``objects`` (n, H, K, 4) ``[x, y, vx, vy]`` with ``valid`` (n, H, K)),
     kept while younger than ``history`` s. The per-env wrapper holds one of one env, the batched left turn one of
-    all its envs."""
+    all its envs.
 
-    def __init__(self, n: int, params: TurnIntentParams) -> None:
+    With ``memory``, also each object's indicator readings so far: counts of (-1, 0, +1) readings per object of the
+    last observation (``counts`` (n, K, 3)), carried to the object of this observation that was there had it kept
+    its velocity (within ``gate`` m, the acceleration's association), plus this observation's reading when
+    ``read_period`` s have passed since the last one counted. Counts are what the Bayes filter over (turn, driver
+    kind) needs (:class:`~av_gym.estimation.driver_intent.DriverIntent`: the readings of one driver are independent
+    given its hidden state), so a stacked history of readings would carry nothing more; their posterior's turn
+    marginal is the feature. Why by hand: the association must run on the batch's arrays and on one env's alike,
+    with no track ids on the truth stack."""
+
+    def __init__(self, n: int, params: TurnIntentParams, channel: TurnSignalsParams | None = None) -> None:
         self.params = params
         self.t = np.full((n, 2), np.nan)
         self.objects = np.full((n, 2, 0, 4), np.nan)
         self.valid = np.zeros((n, 2, 0), bool)
+        self.width = len(intent_features(params))
+        self.filter = DriverIntent(channel or TurnSignalsParams()) if params.memory else None
+        self.last_t, self.read_t = np.full(n, np.nan), np.full(n, np.nan)  # last observation, last reading counted
+        self.last = np.full((n, 0, 4), np.nan)  # the objects of the last observation and their counts
+        self.counts = np.zeros((n, 0, 3))
 
     def clear(self, rows) -> None:
         """Forget the past of the envs ``rows`` (a new episode)."""
-        self.t[np.asarray(rows, dtype=int)] = np.nan
+        rows = np.asarray(rows, dtype=int)
+        self.t[rows] = np.nan
+        self.last_t[rows], self.read_t[rows] = np.nan, np.nan
 
     def observe(self, rows, now: np.ndarray, objects: np.ndarray, described: np.ndarray, snapshot: np.ndarray,
                 snapshot_valid: np.ndarray, signals: np.ndarray | None) -> np.ndarray:
-        """The intent rows (len(rows), M, 2) float32 of the described ``objects`` (n, M, 4) (``described`` (n, M)
+        """The intent rows (len(rows), M, 2 or 5) float32 of the described ``objects`` (n, M, 4) (``described`` (n, M)
         marks the rows that are objects) of the envs ``rows`` at times ``now`` (n,): each object's acceleration
-        against the oldest kept snapshot, and the turn signal of ``signals`` (n, S, 4) (``obs["signals"]``; None:
-        no turn-signal sensor) read on it. Then keeps ``snapshot`` (n, N, 4) (every object now, ``snapshot_valid``
-        (n, N)) as the envs' newest past."""
+        against the oldest kept snapshot, the turn signal of ``signals`` (n, S, 4) (``obs["signals"]``; None:
+        no turn-signal sensor) read on it and, with ``memory``, its turn belief. Then keeps ``snapshot`` (n, N, 4)
+        (every object now, ``snapshot_valid`` (n, N)) as the envs' newest past."""
         p, rows = self.params, np.asarray(rows, dtype=int)
         n, M = len(rows), objects.shape[1]
         t = self.t[rows]
@@ -323,16 +358,64 @@ class IntentHistory:
         then, then_valid = self.objects[rows, oldest], self.valid[rows, oldest]  # (n, K, 4), (n, K)
         dt = now - t_then
         usable = (dt > 0) & then_valid.any(axis=1)  # false for an empty past (NaN)
-        out = np.zeros((n, M, len(INTENT_FEATURES)))
+        out = np.zeros((n, M, self.width))
         if usable.any():
             acc = acceleration(objects, then, then_valid & usable[:, None], np.where(usable, dt, 1.0), p.gate)
             out[..., 0] = np.where(usable[:, None] & described, acc, 0.0) / ACC_SCALE
         if signals is not None:
             out[..., 1] = np.where(described, signals_at(objects, signals, p.signal_gate), 0.0)
+        if self.filter is not None:
+            out[..., 2:] = self._belief(rows, now, objects, described, snapshot, snapshot_valid, signals)
         self._keep(rows, now, snapshot, snapshot_valid)
         np.clip(out, -1.0, 1.0, out=out)  # ±inf → ±1, NaN → 0, as nan_to_num then clip
         out[np.isnan(out)] = 0.0
         return out.astype(np.float32)
+
+    def _belief(self, rows: np.ndarray, now: np.ndarray, objects: np.ndarray, described: np.ndarray,
+                snapshot: np.ndarray, valid: np.ndarray, signals: np.ndarray | None) -> np.ndarray:
+        """P(right, straight, left) (n, M, 3) of the described ``objects`` after their readings so far; carries the
+        counts from the last observation's objects to ``snapshot``'s and keeps those as the last."""
+        n, N = len(rows), snapshot.shape[1]
+        last, last_valid = self.last[rows], ~np.isnan(self.last[rows, :, 0])
+        counts = np.zeros((n, N, 3))
+        if last.shape[1]:
+            dt = now - self.last_t[rows]
+            seen = np.isfinite(dt) & (dt > 0)
+            j, matched = associate(snapshot, last, last_valid & seen[:, None], np.where(seen, dt, 1.0),
+                                   self.params.gate)
+            carried = np.take_along_axis(self.counts[rows], j[..., None], axis=1)
+            counts = np.where((matched & valid)[..., None], carried, 0.0)
+        due = ~(now - self.read_t[rows] < self.params.read_period - 1e-9)  # NaN (no reading yet) compares false
+        if signals is not None and due.any():
+            reading, near = signal_readings(snapshot, signals, self.params.signal_gate)
+            col = np.where(reading < 0, 0, np.where(reading > 0, 2, 1))
+            add = (near & valid & due[:, None])[..., None] & (col[..., None] == np.arange(3))
+            counts = counts + add
+            self.read_t[rows[due]] = now[due]
+        self._keep_counts(rows, now, np.where(valid[..., None], snapshot, np.nan), counts)
+        # the described objects are rows of the snapshot: find each one's by its position
+        d = np.hypot(objects[..., :, None, 0] - snapshot[..., None, :, 0],
+                     objects[..., :, None, 1] - snapshot[..., None, :, 1])
+        d = np.where(valid[:, None, :], d, np.inf)
+        own = np.take_along_axis(counts, np.argmin(d, axis=-1)[..., None] if N else np.zeros((n, 0, 1), int), 1)
+        M = objects.shape[1]
+        post = self.filter.posterior(own.reshape(-1, 3)).reshape(n, M, 3, 3).sum(axis=3) if N else np.zeros((n, M, 3))
+        return np.where(described[..., None], post, 0.0)
+
+    def _keep_counts(self, rows: np.ndarray, now: np.ndarray, snapshot: np.ndarray, counts: np.ndarray) -> None:
+        N = snapshot.shape[1]
+        if N > self.last.shape[1]:
+            k = self.last.shape[1]
+            grown = np.full((len(self.last), N, 4), np.nan)
+            grown[:, :k] = self.last
+            grown_counts = np.zeros((len(self.last), N, 3))
+            grown_counts[:, :k] = self.counts
+            self.last, self.counts = grown, grown_counts
+        self.last[rows] = np.nan
+        self.last[rows, :N] = snapshot
+        self.counts[rows] = 0.0
+        self.counts[rows, :N] = counts
+        self.last_t[rows] = now
 
     def _keep(self, rows: np.ndarray, now: np.ndarray, snapshot: np.ndarray, valid: np.ndarray) -> None:
         """Drop what is no longer younger than ``history`` (TurnIntent's rule: ``now - t < history``), add now."""
@@ -375,34 +458,49 @@ def path_conflict(p: np.ndarray, v: np.ndarray, path: np.ndarray,
     return np.take_along_axis(t, j, -1)[..., 0], np.take_along_axis(miss, j, -1)[..., 0], path_s[j[..., 0]]
 
 
+def associate(objects: np.ndarray, then: np.ndarray, then_valid: np.ndarray, dt: np.ndarray,
+              gate: float) -> tuple[np.ndarray, np.ndarray]:
+    """For each of ``objects`` (..., N, 4) ``[x, y, vx, vy]``: the index (..., N) of the nearest of the objects
+    ``then`` (..., K, ≥2) (``then_valid`` (..., K)) ``dt`` (...) s ago to where it was had it kept its velocity, and
+    whether that one is within ``gate`` m."""
+    dt = np.asarray(dt, dtype=float)
+    back = objects[..., :2] - objects[..., 2:4] * dt[..., None, None]
+    d = np.hypot(back[..., :, None, 0] - then[..., None, :, 0], back[..., :, None, 1] - then[..., None, :, 1])
+    d = np.where(then_valid[..., None, :], d, np.inf)  # (..., N, K)
+    j = np.argmin(d, axis=-1)
+    return j, np.take_along_axis(d, j[..., None], -1)[..., 0] <= gate
+
+
 def acceleration(objects: np.ndarray, then: np.ndarray, then_valid: np.ndarray, dt: np.ndarray,
                  gate: float) -> np.ndarray:
     """Longitudinal acceleration (m/s²) of ``objects`` (..., N, 4) ``[x, y, vx, vy]`` against the objects ``then``
     (..., K, 4) (``then_valid`` (..., K)) ``dt`` (...) s ago: the one nearest to where each object was had it kept
     its velocity, within ``gate`` m; 0 when none."""
     dt = np.asarray(dt, dtype=float)
-    back = objects[..., :2] - objects[..., 2:4] * dt[..., None, None]
-    d = np.hypot(back[..., :, None, 0] - then[..., None, :, 0], back[..., :, None, 1] - then[..., None, :, 1])
-    d = np.where(then_valid[..., None, :], d, np.inf)  # (..., N, K)
-    j = np.argmin(d, axis=-1)[..., None]
-    matched = np.take_along_axis(d, j, -1)[..., 0] <= gate
+    j, matched = associate(objects, then, then_valid, dt, gate)
     speed = np.hypot(objects[..., 2], objects[..., 3])
     heading = objects[..., 2:4] / np.maximum(speed, 1e-6)[..., None]
-    v_then = np.take_along_axis(then[..., 2:4], j, -2)
+    v_then = np.take_along_axis(then[..., 2:4], j[..., None], -2)
     acc = ((objects[..., 2:4] - v_then) * heading).sum(axis=-1) / dt[..., None]
     return np.where(matched, acc, 0.0)
 
 
-def signals_at(objects: np.ndarray, signals: np.ndarray, gate: float) -> np.ndarray:
+def signal_readings(objects: np.ndarray, signals: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray]:
     """The turn signal read on each of ``objects`` (..., N, ≥2) ``[x, y, ...]``: that of the nearest reading of
-    ``signals`` (..., S, 4) (``obs["signals"]`` rows ``[present, x, y, signal]``) within ``gate`` m, else 0."""
+    ``signals`` (..., S, 4) (``obs["signals"]`` rows ``[present, x, y, signal]``) within ``gate`` m (else 0), and
+    whether there was one (a 0 reading is "no indicator seen"; no reading is no information)."""
     valid = signals[..., 0] > 0
     d = np.hypot(objects[..., :, None, 0] - signals[..., None, :, 1],
                  objects[..., :, None, 1] - signals[..., None, :, 2])
     d = np.where(valid[..., None, :], d, np.inf)  # (..., N, S): the nearest seen reading, first on ties
     if d.shape[-1] == 0:
-        return np.zeros(d.shape[:-1])
+        return np.zeros(d.shape[:-1]), np.zeros(d.shape[:-1], bool)
     j = np.argmin(d, axis=-1)[..., None]
     near = np.take_along_axis(d, j, -1)[..., 0] <= gate
     read = np.take_along_axis(np.broadcast_to(signals[..., None, :, 3], d.shape), j, -1)[..., 0]
-    return np.where(near, read, 0.0)
+    return np.where(near, read, 0.0), near
+
+
+def signals_at(objects: np.ndarray, signals: np.ndarray, gate: float) -> np.ndarray:
+    """The turn signal read on each of ``objects`` (:func:`signal_readings`'s reading, 0 where there is none)."""
+    return signal_readings(objects, signals, gate)[0]

@@ -80,7 +80,7 @@ def intended_signal(vehicle) -> float:
 
 # The channel (module docstring) as vectorised functions of uniform draws, one implementation for the per-env
 # sensor (a batch of one), the batched stack (av_gym/batched/left_turn.py: BatchedIntent) and the shield's own
-# channel (av_gym/shields/aeb_improved.py), whose Bayes filter (av_gym/shields/intent.py) reads the same model's likelihood
+# channel (av_gym/shields/aeb_improved.py), whose Bayes filter (av_gym/estimation/driver_intent.py) reads the same model's likelihood
 # below. A new rate is a TurnSignalsParams field and these functions (tests/test_one_model.py).
 DRIVER_DRAWS = 2  # uniforms per driver at its first sighting: does it indicate?, the wrong side?
 
@@ -185,7 +185,7 @@ def read_signals(x: np.ndarray, y: np.ndarray, d: np.ndarray, candidates: np.nda
 def channel_likelihood(reading: float, miss_rate: float) -> np.ndarray:
     """``P(reading | turn, driver kind)`` (3 turns right/straight/left × 3 kinds right side/wrong side/never) of
     this channel: the inverse view of :func:`first_sighting` and :func:`reported`, what a Bayes filter over a
-    driver's readings uses (av_gym/shields/intent.py)."""
+    driver's readings uses (av_gym/estimation/driver_intent.py)."""
     lik = np.zeros((3, 3))
     for i, turn in enumerate((RIGHT, NONE, LEFT)):
         for j, shows in enumerate((turn, -turn, NONE)):  # indicates the right side, the wrong side, never

@@ -12,7 +12,7 @@ from av_gym.params import Params
 from av_gym.sensors.base import sensor_rng
 from av_gym.sensors.turn_signal import DRIVER_DRAWS, DriverDraws, first_sighting, intended_signal, reported
 from av_gym.shields.conflicts import ConflictModel
-from av_gym.shields.intent import DriverIntent
+from av_gym.estimation.driver_intent import DriverIntent
 from av_gym.shields.predict import (LaneHypotheses, cruise_profile, footprint_ttc, go_profile, object_predict,
                                     profile_speeds, setpoint_profile)
 from av_gym.shields.aeb_base import AEBShield
@@ -65,7 +65,7 @@ class ImprovedAEB(AEBShield):
 
     def _intent(self, others: np.ndarray, keys: list) -> np.ndarray | None:
         """The weight of each turn (right, straight, left) of each object from every indicator reading of its
-        driver so far (:class:`av_gym.shields.intent.DriverIntent`); a NaN row for a driver never read.
+        driver so far (:class:`av_gym.estimation.driver_intent.DriverIntent`); a NaN row for a driver never read.
 
         A reading comes through the shield's own indicator channel (``signal_channel``; its own random stream:
         per driver when first read, does it indicate and on which side; per reading, is it missed) and belongs to

@@ -162,7 +162,7 @@ class ImprovedParams(TurnParams):
                                                          "each at the intersection, so only a turn signal prunes)")
     signals: bool = param(True, doc="target_model conflict: read the other drivers' indicators through the shield's "
                                     "own indicator channel (signal_channel), each driver's readings accumulated in a "
-                                    "Bayes filter over its turn (av_gym.shields.intent). The default: "
+                                    "Bayes filter over its turn (av_gym.estimation.driver_intent). The default: "
                                     "always_proceed+aeb on seeds 1000-1499, fewer collisions, more "
                                     "arrivals and fewer unneeded brakes than without (docs/shield.md)")
     signal_channel: TurnSignalsParams = param(
