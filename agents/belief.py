@@ -72,12 +72,12 @@ class BeliefLookaheadParams(AgentParams):
                                                   "intersection while its distance_with_heading is within this of "
                                                   "the closest lane's")
     floor: float = param(0.02, gt=0, lt=1, doc="the Bayes filter's likelihood floor (the shield's DriverIntent)")
-    commit: Literal["stop", "go"] = param("stop", doc="stop: a GO is taken back (YIELD) at a later decision only "
-                                                      "while the ego can still stop before the line at the "
-                                                      "approach's comfortable deceleration, and past the line it "
-                                                      "goes (the planner learns while it approaches, but braking "
-                                                      "into the conflict zone is worse than either choice) | go: "
-                                                      "GO is final, as the oracle's (whose futures are exact)")
+    commit: Literal["never", "stop", "go"] = param(
+        "never", doc="never: every decision is made afresh, a GO taken back (YIELD) whenever the futures of the "
+                     "moment say so, as a DAgger teacher labels and its students choose | stop: GO taken back only "
+                     "while the ego can still stop before the line at the approach's comfortable deceleration | "
+                     "go: GO is final, as the oracle's (whose futures are exact). Chosen on the 300 validation "
+                     "episodes at K 16: never 0.010 / 0.857 (collision / success), stop 0.053 / 0.830")
 
 
 def _lane_kinds(T) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -171,13 +171,13 @@ class BeliefPlanner:
 
     def decide(self, engine, rows, choice: np.ndarray, step: np.ndarray) -> np.ndarray:
         """The held choices (GO / YIELD) of ``rows`` after this env step (``choice``, ``step``: the rows' held
-        choices and env steps since their episode began): every ``repeat`` steps the rows whose choice is not
-        final decide (``commit``: final once GO, or once past the stop line, where the choice becomes GO)."""
+        choices and env steps since their episode began): every ``repeat`` steps the rows decide again unless their
+        choice is final (``commit``: never; once GO; or once past the stop line or too fast to stop before it)."""
         rows, choice = np.asarray(rows, dtype=int), np.array(choice, copy=True)
         due = np.asarray(step) % int(self.params.repeat) == 0
         if self.params.commit == "go":
             due &= choice != GO
-        elif due.any():
+        elif self.params.commit == "stop" and due.any():
             final = np.zeros(len(rows), bool)
             final[due] = self.committed(engine, rows[due], choice[due])
             choice[final] = GO

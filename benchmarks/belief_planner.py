@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import itertools
 import os
 import sys
 import time
@@ -36,6 +37,7 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=300)
     ap.add_argument("--samples", type=int, nargs="+", default=[8, 16])
     ap.add_argument("--thresholds", type=float, nargs="+", default=[0.02, 0.05, 0.1, 0.2])
+    ap.add_argument("--commit", nargs="+", default=["stop"], choices=["stop", "go", "never"])
     ap.add_argument("--n-envs", type=int, default=100)
     ap.add_argument("--out", default=None, help="csv of the points (appended)")
     args = ap.parse_args()
@@ -49,43 +51,43 @@ def main() -> None:
 
     env, sensors, shield = stacks()
     seeds = list(split_seeds(args.split, args.episodes, args.first))
-    for K in args.samples:
-        for thr in args.thresholds:
-            policy = BeliefLookahead(None, BeliefLookaheadParams(samples=K, threshold=thr))
-            made = []
-            init = _Decider.__init__
+    for K, thr, commit in itertools.product(args.samples, args.thresholds, args.commit):
+        policy = BeliefLookahead(None, BeliefLookaheadParams(samples=K, threshold=thr, commit=commit))
+        made = []
+        init = _Decider.__init__
 
-            def spy(self, p, engine, _init=init):  # keep the decider to read its planner's counters
-                _init(self, p, engine)
-                made.append(self)
-            _Decider.__init__ = spy
-            start = time.perf_counter()
-            try:
-                rows = play_batched(env, sensors, shield, policy, seeds, args.n_envs, "belief_lookahead",
-                                    progress=False)
-            finally:
-                _Decider.__init__ = init
-            wall = time.perf_counter() - start
-            planner = made[0].planner
-            n = len(rows)
-            col = np.array([r["collision"] for r in rows], float)
-            suc = np.array([r["success"] for r in rows], float)
-            _, cl, ch = wilson_ci(int(col.sum()), n)
-            _, sl, sh = wilson_ci(int(suc.sum()), n)
-            point = {"split": args.split, "first_seed": seeds[0], "episodes": n, "samples": K, "threshold": thr,
-                     "collision": round(col.mean(), 4), "collision_lo": round(cl, 4), "collision_hi": round(ch, 4),
-                     "success": round(suc.mean(), 4), "success_lo": round(sl, 4), "success_hi": round(sh, 4),
-                     "labels": planner.labelled, "planner_labels_per_s": round(planner.labelled / planner.seconds, 1),
-                     "run_labels_per_s": round(planner.labelled / wall, 1), "wall_s": round(wall, 1),
-                     "load": " ".join(f"{x:.2f}" for x in os.getloadavg())}
-            print(point, flush=True)
-            if args.out:
-                new = not Path(args.out).exists()
-                with open(args.out, "a", newline="") as fh:
-                    w = csv.DictWriter(fh, fieldnames=list(point))
-                    if new:
-                        w.writeheader()
-                    w.writerow(point)
+        def spy(self, p, engine, _init=init):  # keep the decider to read its planner's counters
+            _init(self, p, engine)
+            made.append(self)
+        _Decider.__init__ = spy
+        start = time.perf_counter()
+        try:
+            rows = play_batched(env, sensors, shield, policy, seeds, args.n_envs, "belief_lookahead",
+                                progress=False)
+        finally:
+            _Decider.__init__ = init
+        wall = time.perf_counter() - start
+        planner = made[0].planner
+        n = len(rows)
+        col = np.array([r["collision"] for r in rows], float)
+        suc = np.array([r["success"] for r in rows], float)
+        _, cl, ch = wilson_ci(int(col.sum()), n)
+        _, sl, sh = wilson_ci(int(suc.sum()), n)
+        point = {"split": args.split, "first_seed": seeds[0], "episodes": n, "samples": K, "threshold": thr,
+                 "commit": commit,
+                 "collision": round(col.mean(), 4), "collision_lo": round(cl, 4), "collision_hi": round(ch, 4),
+                 "success": round(suc.mean(), 4), "success_lo": round(sl, 4), "success_hi": round(sh, 4),
+                 "labels": planner.labelled, "planner_labels_per_s": round(planner.labelled / planner.seconds, 1),
+                 "run_labels_per_s": round(planner.labelled / wall, 1), "wall_s": round(wall, 1),
+                 "load": " ".join(f"{x:.2f}" for x in os.getloadavg())}
+        print(point, flush=True)
+        if args.out:
+            new = not Path(args.out).exists()
+            with open(args.out, "a", newline="") as fh:
+                w = csv.DictWriter(fh, fieldnames=list(point))
+                if new:
+                    w.writeheader()
+                w.writerow(point)
 
 
 if __name__ == "__main__":

@@ -267,11 +267,12 @@ def _ppo_turn_config(*overrides):
     return [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
 
 
-def test_vec_env_matches_the_training_stack():
+@pytest.mark.parametrize("sensors", ["turn_truth", "turn_truth_memory"])
+def test_vec_env_matches_the_training_stack(sensors):
     """BatchedLeftTurnVecEnv against train/ppo.py's per-env stack for agent=ppo_turn (GO/YIELD at 2 Hz, action
-    repeat 5, obs turn + intent with the noisy turn signals), same seeds and choices: the same observations,
-    rewards and ends for the first 5 s of all but at most one of 8 envs (the split named), and over whole episodes
-    where nothing split, the same terminal observation and episode metrics.
+    repeat 5, obs turn + intent with the noisy turn signals; with memory, the turn beliefs), same seeds and choices:
+    the same observations, rewards and ends for the first 5 s of all but at most one of 8 envs (the split named), and
+    over whole episodes where nothing split, the same terminal observation and episode metrics.
 
     Why not all, always: positions agree to ~1e-14, not bit for bit, and obs["turn"]'s closest approach to the
     ego's path has exact ties (an object driving along the path's exit segment is equally far from each exit
@@ -279,7 +280,7 @@ def test_vec_env_matches_the_training_stack():
     from agents.batched_vec_env import BatchedLeftTurnVecEnv
     from train.ppo import _env_factory
 
-    plain = _ppo_turn_config()
+    plain = _ppo_turn_config(f"sensors={sensors}")
     n, seed = 8, 300
     venv = BatchedLeftTurnVecEnv(*plain, n, action_repeat=5, actions="go_yield", timeout_is_terminal=True)
     venv.seed(seed)

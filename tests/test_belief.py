@@ -11,7 +11,7 @@ import pytest
 from agents.batched_oracle import oracle_labels
 from agents.belief import BeliefLookaheadParams, BeliefPlanner
 from av_gym.batched.vec_env import BatchedLeftTurnBatch, meta_actions
-from av_gym.wrappers import YIELD
+from av_gym.wrappers import GO, YIELD
 
 SENSORS = {"name": "turn_truth", "turn_signals": {}, "turn_features": {"source": "truth"}, "turn_intent": {},
            "observe": ["turn", "intent"]}
@@ -146,3 +146,21 @@ def test_dagger_teacher_on_the_batch():
         np.testing.assert_array_equal(labeller(rows, obs), planner.labels(venv.engine, rows))
         for _ in range(5):
             obs, _, _, _ = venv.step(meta_actions(np.full(4, YIELD), obs["turn"]))
+
+
+@pytest.mark.parametrize("commit", ["stop", "go", "never"])
+def test_commit_says_which_choices_are_asked_again(scene, commit):
+    """At a decision, ``never`` asks the planner for every row (as a DAgger teacher labels), ``go`` only the rows
+    not holding GO, ``stop`` also keeps GO where the ego is past the line or too fast to stop before it."""
+    engine, _, rows = scene
+    planner = BeliefPlanner(BeliefLookaheadParams(samples=4, commit=commit), n_rows=B)
+    asked = []
+    planner.labels = lambda engine, r: asked.append(np.asarray(r).copy()) or np.full(len(r), YIELD)
+    choice = np.where(np.arange(len(rows)) % 2 == 0, GO, YIELD)
+    after = planner.decide(engine, rows, choice, np.zeros(len(rows), int))
+    held = rows[choice == GO]
+    kept = planner.committed(engine, rows, choice)
+    expected = {"never": rows, "go": rows[choice != GO], "stop": rows[~kept]}[commit]
+    assert np.array_equal(asked[0] if asked else np.zeros(0, int), expected)
+    assert (after[np.isin(rows, expected)] == YIELD).all() and len(held)
+    assert planner.decide(engine, rows, choice, np.ones(len(rows), int)).tolist() == choice.tolist()  # not due

@@ -18,8 +18,8 @@ from av_gym.params import ParamError
 from av_gym.sensors import turn_signal
 from av_gym.sensors.turn_signal import (DRIVER_DRAWS, LEFT, NONE, RIGHT, TurnSignalsParams, channel_likelihood,
                                         draws_needed, driver_kinds, first_sighting, read_channel, reported)
-from av_gym.shields import aeb_improved as aeb
 from av_gym.estimation import driver_intent as intent
+from av_gym.shields import aeb_improved as aeb
 
 N = 10_000  # random inputs per model
 
@@ -98,10 +98,12 @@ def test_meta_action_is_meta_actions_on_a_batch_of_one():
     assert go_yield.act_one(int(choice[0]), {"turn": turn[0]}) == batch[0]
 
 
-def test_intent_history_batch_equals_batches_of_one():
-    """IntentHistory over 20 envs = 20 histories of one, step by step, envs reset at different times."""
+@pytest.mark.parametrize("memory", [False, True])
+def test_intent_history_batch_equals_batches_of_one(memory):
+    """IntentHistory over 20 envs = 20 histories of one, step by step, envs reset at different times (with memory:
+    the turn beliefs too)."""
     rng = np.random.default_rng(5)
-    p = turn_features.TurnIntentParams()
+    p = turn_features.TurnIntentParams(memory=memory)
     n, m, k = 20, 4, 6
     many = turn_features.IntentHistory(n, p)
     ones = [turn_features.IntentHistory(1, p) for _ in range(n)]
@@ -127,6 +129,9 @@ def test_intent_history_batch_equals_batches_of_one():
                                   valid[r:r + 1], signals[r:r + 1])
             assert np.array_equal(one[0], out[r])
         assert (out[..., 0] != 0).mean() > 0.2 or step < 2
+    if memory:  # the beliefs moved off the prior for some objects and left the others
+        read = np.abs(out[..., 2:] - 1 / 3).max(axis=-1) > 0.05
+        assert 0.1 < read.mean() < 0.9
 
 
 def test_driver_draws_by_key_and_by_row_are_one_table():

@@ -213,8 +213,9 @@ def intent_features(params: TurnIntentParams) -> tuple[str, ...]:
 
 
 class TurnIntent(SensorWrapper):
-    """Adds ``obs["intent"]``: ``Box(-1, 1, (max_objects, 2))`` (5 columns with ``memory``), one row per object of ``obs["turn"]`` in the same
-    order (zero rows where ``obs["turn"]`` has none): what the other drivers are about to do, from sensors a car has.
+    """Adds ``obs["intent"]``: ``Box(-1, 1, (max_objects, 2))`` (5 columns with ``memory``), one row per object of
+    ``obs["turn"]`` in the same order (zero rows where ``obs["turn"]`` has none): what the other drivers are about to
+    do, from sensors a car has.
 
     - ``acc``: the object's longitudinal acceleration / 5 m/s², from its own short history: its velocity now
       against its velocity ``history`` seconds ago (the object then is the one nearest to where it is now, moved

@@ -80,8 +80,8 @@ def intended_signal(vehicle) -> float:
 
 # The channel (module docstring) as vectorised functions of uniform draws, one implementation for the per-env
 # sensor (a batch of one), the batched stack (av_gym/batched/left_turn.py: BatchedIntent) and the shield's own
-# channel (av_gym/shields/aeb_improved.py), whose Bayes filter (av_gym/estimation/driver_intent.py) reads the same model's likelihood
-# below. A new rate is a TurnSignalsParams field and these functions (tests/test_one_model.py).
+# channel (av_gym/shields/aeb_improved.py), whose Bayes filter (av_gym/estimation/driver_intent.py) reads the same
+# model's likelihood below. A new rate is a TurnSignalsParams field and these functions (tests/test_one_model.py).
 DRIVER_DRAWS = 2  # uniforms per driver at its first sighting: does it indicate?, the wrong side?
 
 

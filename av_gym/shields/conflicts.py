@@ -114,10 +114,10 @@ class ConflictModel:
     it continue from the lane it is on (:class:`av_gym.shields.predict.LaneHypotheses`: straight, left, right at
     the intersection, any lane the graph continues to), each with a probability, uniform over the continuations
     and, where the driver's indicator has been read, weighted by what its readings say about each turn
-    (:class:`av_gym.estimation.driver_intent.DriverIntent`); hypotheses below ``min_p`` are dropped. Along each path the vehicle
-    keeps its along-path acceleration for ``accel_time`` s (a braking car stops, it does not reverse), then its
-    speed (``accel_time`` 0, the default: constant speed; measured, docs/shield.md: 1.5 s parked the ego in the box
-    more often), on the path highway-env's route-following controller actually drives (:meth:`driven`). An
+    (:class:`av_gym.estimation.driver_intent.DriverIntent`); hypotheses below ``min_p`` are dropped. Along each path
+    the vehicle keeps its along-path acceleration for ``accel_time`` s (a braking car stops, it does not reverse),
+    then its speed (``accel_time`` 0, the default: constant speed; measured, docs/shield.md: 1.5 s parked the ego in
+    the box more often), on the path highway-env's route-following controller actually drives (:meth:`driven`). An
     object off the map (farther than ``on_lane`` m from its lane, or heading more than 30° off it) or standing
     still gets the constant-velocity hypothesis instead.
 
@@ -204,7 +204,8 @@ class ConflictModel:
         """Positions (K, M', 2), headings (K, M'), owner (M',), whether each is a map hypothesis (M',) and its
         probability (M',) over the hypotheses of ``others`` (M, 7) on ``lane_indices`` (None = off the map),
         ``accels`` (M, 2) m/s² world frame; ``intent`` (M, 3) the weight of each turn (right, straight, left:
-        :data:`av_gym.estimation.driver_intent.TURNS`) from the object's indicator readings, a NaN row where there are none.
+        :data:`av_gym.estimation.driver_intent.TURNS`) from the object's indicator readings, a NaN row where there are
+        none.
 
         Every map hypothesis is placed on its driven path in one compiled call
         (:func:`av_gym.shields.predict.driven_poses`; ``DrivenPath.kernel = False``: one numpy look-up at a time,
