@@ -7,7 +7,8 @@ States: ``--episodes`` validation episodes driven ``--steps`` env steps under YI
 line, the planner reading every indicator). For each state: the oracle's label (the real GO future), and the
 planner's (GO when at most ``--threshold`` of its K futures collide) with its futures as drawn, and with the true
 routes, the true behaviour (IDM exponent, set-point, regulation hold), both, and both plus the real generators (the
-future spawns). Prints the share of states where each agrees with the oracle."""
+future spawns). Prints the share of states where each agrees with the oracle, and where the planner agrees with
+itself on another seed (its K futures drawn again): the agreement no student of its labels can beat."""
 
 from __future__ import annotations
 
@@ -55,6 +56,10 @@ def main() -> None:
     oracle = oracle_labels(e, rows)[0]
     true = e.traffic.subset(np.repeat(rows, K))
     print(f"{len(rows)} states, oracle GO on {np.mean(oracle == GO):.2f}; planner K={K}, threshold {args.threshold}")
+    again = BeliefPlanner(BeliefLookaheadParams(samples=K, threshold=args.threshold, seed=1), n_rows=B)
+    again.counts = planner.counts  # the same readings, other futures
+    same = np.mean(again.labels(e, rows) == planner.labels(e, rows))
+    print(f"  {'the planner on another seed':28s} agrees with the planner on {same:.3f}")
     for label, names in GROUPS.items():
         f = planner.futures(e, rows)
         for name in names:

@@ -48,13 +48,13 @@ def main() -> None:
         for ax, x in zip(axes, ("labels", "wall_s")):
             ax.plot(d[x], d["val_success"], "o-", color=f"C{k}", label=f"{name} success")
             ax.plot(d[x], d["val_collision"], "s--", color=f"C{k}", label=f"{name} collision")
-    axes[0].set_xlabel("oracle labels (aggregate)")
+    axes[0].set_xlabel("teacher labels (aggregate)")
     axes[1].set_xlabel("wall-clock (s, 2 shared cores)")
     axes[0].set_ylabel("share of validation episodes")
     for ax in axes:
         ax.grid(alpha=0.3)
     axes[1].legend(fontsize=7, loc="center right")
-    fig.suptitle(f"DAgger student ({args.sensors}) after each round, validation episodes")
+    fig.suptitle(f"DAgger students ({args.sensors}) after each round, validation episodes")
     fig.tight_layout()
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=110)

@@ -196,8 +196,12 @@ KNOWN: dict[str, str] = {
     # docs/dagger.md
     "python -m train agent=dagger_turn": "run",
     "python benchmarks/oracle_labels.py --quick": "run",
-    "python -m eval env=left_turn agents=[lookahead,belief_lookahead,dagger_turn,ppo_turn] split=test seed=2800000 "
-    "episodes=1000 vec_env=batched n_envs=250": "run",
+    "python -m eval env=left_turn agents=[lookahead,belief_lookahead,dagger_turn,ppo_turn,dagger_turn_memory,"
+    "checkpoints/reference/seeds/dagger_turn_memory/s1,checkpoints/reference/seeds/dagger_turn_memory/s3] split=test "
+    "seed=2800000 episodes=1000 vec_env=batched n_envs=250": "run",
+    "python -m train agent=dagger_turn_memory seed=2 agent.rounds=8 agent.round_episodes=192 agent.n_envs=64 "
+    "train.eval_n=200 train.eval_episodes=0 train.progress_bar=false train.torch_threads=1 run_name=dagger_memory_s2":
+        "run",
     "python benchmarks/partition.py docs/results/left_turn_partition/results.csv --students dagger_turn ppo_turn":
         "covered:tests/test_partition.py::test_the_partition_adds_up_to_the_oracles_edge",
     "python -m train agent=dagger_turn_perceived": "run",
@@ -208,7 +212,8 @@ KNOWN: dict[str, str] = {
     "--out docs/dagger_perceived.png": "run",
     "python -m train.operating_point checkpoints/reference/dagger_turn_perceived --thresholds [0.7,0.8] --episodes 100": "run",
     "python -m train.operating_point checkpoints/<run_name> --thresholds [0.5,0.7,0.8,0.9,0.95] --episodes 300": "run",
-    "python docs/make_dagger_figure.py docs/dagger/rounds.csv --out docs/dagger.png": "run",
+    "python docs/make_dagger_figure.py docs/dagger/rounds.csv --sensors 'turn_truth; memory_s*: turn_truth_memory' "
+    "--out docs/dagger.png": "run",
     "python -m train agent=ppo_turn agent.init=null agent.init_from=checkpoints/reference/dagger_turn seed=1 "
     "agent.total_timesteps=30720 train.eval_every=3072 train.eval_n=300 train.eval_episodes=0 run_name=dagger_ppo_s1":
         "run",
