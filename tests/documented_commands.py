@@ -199,6 +199,10 @@ KNOWN: dict[str, str] = {
     "python -m eval env=left_turn agents=[lookahead,belief_lookahead,dagger_turn,ppo_turn,dagger_turn_memory,"
     "checkpoints/reference/seeds/dagger_turn_memory/s1,checkpoints/reference/seeds/dagger_turn_memory/s3] split=test "
     "seed=2800000 episodes=1000 vec_env=batched n_envs=250": "run",
+    "python -m eval.interventions --agents [dagger_turn+aeb] --episodes 1000 --seed 2800000 "
+    "--out runs/interventions_dagger": "run",
+    "python -m eval.interventions --agents [dagger_turn_memory+aeb] --episodes 1000 --seed 2800000 "
+    "--out runs/interventions_memory": "run",
     "python -m train agent=dagger_turn_memory seed=2 agent.rounds=8 agent.round_episodes=192 agent.n_envs=64 "
     "train.eval_n=200 train.eval_episodes=0 train.progress_bar=false train.torch_threads=1 run_name=dagger_memory_s2":
         "run",

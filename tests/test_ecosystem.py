@@ -18,7 +18,8 @@ from av_gym.wrappers import FlatDictObservation
 
 TURN, LANE = "av_gym/UnprotectedLeftTurn-v0", "av_gym/LaneKeepingLap-v0"
 SHORT = {TURN: {"duration": 2.0}, LANE: {"time_limit": 2.0}}
-SCENARIO_ONLY = {"turn_truth": TURN, "turn_perceived": TURN, "lane_localized": LANE}  # the rest run on both
+SCENARIO_ONLY = {"turn_truth": TURN, "turn_perceived": TURN, "turn_truth_memory": TURN, "turn_perceived_memory": TURN,
+                 "lane_localized": LANE}  # the rest run on both
 
 
 def stacks() -> list[tuple[str, str, str]]:
