@@ -35,9 +35,9 @@ import numpy as np
 
 from agents.batched_oracle import _ROW_ARRAYS, future_rows
 from agents.registry import AgentKind, AgentParams
+from av_gym.estimation.driver_intent import DriverIntent
 from av_gym.params import param
 from av_gym.sensors.turn_signal import TurnSignalsParams, node_index
-from av_gym.estimation.driver_intent import DriverIntent
 from av_gym.wrappers import GO, YIELD, meta_action
 
 __all__ = ["BeliefLookahead", "BeliefLookaheadAgent", "BeliefLookaheadParams", "BeliefPlanner", "EnvView",

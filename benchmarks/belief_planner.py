@@ -1,9 +1,10 @@
 """``belief_lookahead`` on the batch: success, collisions and the planner's labels per second for a grid of K
-(futures per decision) and GO thresholds, on seeds of one split (the validation split to choose them).
+(futures per decision), GO thresholds and commitments, on seeds of one split (the validation split to choose them).
 
     python benchmarks/belief_planner.py --split validation --episodes 300 --samples 8 16 --thresholds 0.02 0.05 0.1 0.2
+    python benchmarks/belief_planner.py --split validation --episodes 300 --samples 16 --commit never stop
 
-Each (K, threshold) plays the same episodes (``python -m eval``'s batched loop, :func:`eval.batched.play_batched`);
+Each (K, threshold, commit) plays the same episodes (``python -m eval``'s batched loop, :func:`eval.batched.play_batched`);
 one csv row per point (``--out``), with 95 % Wilson intervals and the labels/s of the planner alone (wall-clock of
 its futures) and of the whole run."""
 
@@ -37,7 +38,8 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=300)
     ap.add_argument("--samples", type=int, nargs="+", default=[8, 16])
     ap.add_argument("--thresholds", type=float, nargs="+", default=[0.02, 0.05, 0.1, 0.2])
-    ap.add_argument("--commit", nargs="+", default=["stop"], choices=["stop", "go", "never"])
+    ap.add_argument("--commit", nargs="+", default=["never"], choices=["never", "stop", "go"],
+                    help="when a GO is final (BeliefLookaheadParams.commit; its default: never)")
     ap.add_argument("--n-envs", type=int, default=100)
     ap.add_argument("--out", default=None, help="csv of the points (appended)")
     args = ap.parse_args()
