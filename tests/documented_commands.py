@@ -206,7 +206,8 @@ KNOWN: dict[str, str] = {
     "python -m train agent=dagger_turn_memory seed=2 agent.rounds=8 agent.round_episodes=192 agent.n_envs=64 "
     "train.eval_n=200 train.eval_episodes=0 train.progress_bar=false train.torch_threads=1 run_name=dagger_memory_s2":
         "run",
-    "python benchmarks/partition.py docs/results/left_turn_partition/results.csv --students dagger_turn ppo_turn":
+    "python benchmarks/partition.py docs/results/left_turn_partition/results.csv --students dagger_turn "
+    "dagger_turn_memory ppo_turn":
         "covered:tests/test_partition.py::test_the_partition_adds_up_to_the_oracles_edge",
     "python -m train agent=dagger_turn_perceived": "run",
     "python -m train agent=dagger_turn_perceived seed=1 agent.rounds=6 agent.round_episodes=128 train.eval_n=100 "
