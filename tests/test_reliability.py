@@ -346,6 +346,12 @@ def alive(pids: set[int]) -> set[int]:
     return out
 
 
+def _default_sigint() -> None:
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 class Eval:
     """``python -m eval`` with 2 worker processes on a run that does not end, started and waited for until its
     progress bar shows ``episodes`` measured; its stderr is read as it comes (``err()``: without the bar)."""
@@ -359,8 +365,10 @@ class Eval:
 
         env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
         self.total = total
+        # SIGINT as in a terminal: a test run started in the background (nohup ... &, without job control) hands
+        # its children SIGINT ignored, and a Ctrl-C test would then wait for an evaluation that never ends
         self.proc = subprocess.Popen([sys.executable, *argv], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, text=True)
+                                     stderr=subprocess.PIPE, text=True, preexec_fn=_default_sigint)
         self.chunks: list[str] = []
         reader = threading.Thread(target=self._read, daemon=True)
         reader.start()
