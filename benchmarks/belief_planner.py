@@ -4,8 +4,8 @@
     python benchmarks/belief_planner.py --split validation --episodes 300 --samples 8 16 --thresholds 0.02 0.05 0.1 0.2
     python benchmarks/belief_planner.py --split validation --episodes 300 --samples 16 --commit never stop
 
-Each (K, threshold, commit) plays the same episodes (``python -m eval``'s batched loop, :func:`eval.batched.play_batched`);
-one csv row per point (``--out``), with 95 % Wilson intervals and the labels/s of the planner alone (wall-clock of
+Each (K, threshold, commit) plays the same episodes (``python -m eval``'s batched loop,
+:func:`eval.batched.play_batched`); one csv row per point (``--out``), with 95 % Wilson intervals and the labels/s of the planner alone (wall-clock of
 its futures) and of the whole run."""
 
 from __future__ import annotations

@@ -376,7 +376,7 @@ class IntentHistory:
                 snapshot: np.ndarray, valid: np.ndarray, signals: np.ndarray | None) -> np.ndarray:
         """P(right, straight, left) (n, M, 3) of the described ``objects`` after their readings so far; carries the
         counts from the last observation's objects to ``snapshot``'s and keeps those as the last."""
-        n, N = len(rows), snapshot.shape[1]
+        n, N, M = len(rows), snapshot.shape[1], objects.shape[1]
         last, last_valid = self.last[rows], ~np.isnan(self.last[rows, :, 0])
         counts = np.zeros((n, N, 3))
         if last.shape[1]:
@@ -394,13 +394,14 @@ class IntentHistory:
             counts = counts + add
             self.read_t[rows[due]] = now[due]
         self._keep_counts(rows, now, np.where(valid[..., None], snapshot, np.nan), counts)
+        if N == 0:  # no road user at all: nothing described either
+            return np.zeros((n, M, 3))
         # the described objects are rows of the snapshot: find each one's by its position
         d = np.hypot(objects[..., :, None, 0] - snapshot[..., None, :, 0],
                      objects[..., :, None, 1] - snapshot[..., None, :, 1])
         d = np.where(valid[:, None, :], d, np.inf)
-        own = np.take_along_axis(counts, np.argmin(d, axis=-1)[..., None] if N else np.zeros((n, 0, 1), int), 1)
-        M = objects.shape[1]
-        post = self.filter.posterior(own.reshape(-1, 3)).reshape(n, M, 3, 3).sum(axis=3) if N else np.zeros((n, M, 3))
+        own = np.take_along_axis(counts, np.argmin(d, axis=-1)[..., None], 1)
+        post = self.filter.posterior(own.reshape(-1, 3)).reshape(n, M, 3, 3).sum(axis=3)
         return np.where(described[..., None], post, 0.0)
 
     def _keep_counts(self, rows: np.ndarray, now: np.ndarray, snapshot: np.ndarray, counts: np.ndarray) -> None:
