@@ -127,7 +127,10 @@ def test_intent_history_batch_equals_batches_of_one(memory):
                 ones[r].clear([0])
             one = ones[r].observe([0], now[r:r + 1], objects[r:r + 1], described[r:r + 1], snap[r:r + 1],
                                   valid[r:r + 1], signals[r:r + 1])
-            assert np.array_equal(one[0], out[r])
+            assert np.array_equal(one[0, :, :2], out[r, :, :2])
+            # the beliefs come out of a matrix product (the Bayes filter in log space), whose BLAS kernel may sum
+            # a batch of rows and a single row in another order: equal to float32 rounding, not to the last bit
+            np.testing.assert_allclose(one[0, :, 2:], out[r, :, 2:], rtol=0, atol=1e-6)
         assert (out[..., 0] != 0).mean() > 0.2 or step < 2
     if memory:  # the beliefs moved off the prior for some objects and left the others
         read = np.abs(out[..., 2:] - 1 / 3).max(axis=-1) > 0.05
