@@ -13,6 +13,9 @@ from av_gym.errors import ConfigError
 
 # What SB3's ``save`` always writes into its zip (``policy.optimizer.pth`` is optional: reference checkpoints drop it).
 SB3_MEMBERS = ("data", "policy.pth")
+# What each tensor member holds, for the message that names a damaged one.
+TENSOR_MEMBERS = {"policy.pth": "policy.pth: the weights",
+                  "policy.optimizer.pth": "policy.optimizer.pth: the optimiser state"}
 
 
 def check_sb3_zip(path: str | Path) -> Path:
@@ -58,16 +61,37 @@ def load_sb3(path: str | Path, **kwargs: Any):
 
 
 def unloadable(path: str | Path, exc: BaseException) -> ConfigError:
-    """One line for a zip of SB3's shape that SB3 or torch still cannot read. torch's own message for a tensor
-    file it refuses (several sentences, cut mid-sentence once made one line) advises loading with
-    ``weights_only=False``, which would run whatever the file holds: it is not passed on."""
-    text = str(exc)
-    if type(exc).__name__ == "UnpicklingError" or "weights_only" in text:
-        why = ("a tensor member (policy.pth: the weights) is not one torch reads as plain tensors: damaged, or not "
-               "written by SB3")
+    """One line for a zip of SB3's shape that SB3 or torch still cannot read. Which tensor member is damaged is
+    found by reading each ``*.pth`` member alone (only here, after the load failed): garbage bytes make torch raise
+    whatever its unpickler trips on (UnpicklingError, IndexError, ...), so the exception's type does not say. torch's
+    own message for a tensor file it refuses (several sentences, cut mid-sentence once made one line) advises
+    loading with ``weights_only=False``, which would run whatever the file holds: it is not passed on."""
+    member = _unreadable_tensor_member(path)
+    if member is not None or "weights_only" in str(exc):
+        what = TENSOR_MEMBERS.get(member or "policy.pth", member)
+        why = f"a tensor member ({what}) is not one torch reads as plain tensors: damaged, or not written by SB3"
     else:
         why = f"{type(exc).__name__}: {_one_line(exc)}"
     return ConfigError(f"checkpoint {str(path)!r} cannot be loaded ({why}); re-copy it or retrain")
+
+
+def _unreadable_tensor_member(path: str | Path) -> str | None:
+    """The first ``*.pth`` member of an SB3 zip that ``torch.load(weights_only=True)`` refuses, or None."""
+    import io
+    import zipfile
+
+    import torch
+
+    try:
+        with zipfile.ZipFile(path) as z:
+            for name in sorted(n for n in z.namelist() if n.endswith(".pth")):
+                try:
+                    torch.load(io.BytesIO(z.read(name)), map_location="cpu", weights_only=True)
+                except Exception:  # noqa: BLE001 - any failure to read the member is the answer
+                    return name
+    except (zipfile.BadZipFile, OSError):
+        return None
+    return None
 
 
 def read_config_yaml(path: str | Path) -> dict:

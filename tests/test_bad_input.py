@@ -18,6 +18,7 @@ import time
 from importlib import resources
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from av_gym.errors import run_cli
@@ -45,7 +46,7 @@ def damaged(folder: Path, how: str) -> Path:
     shutil.copy(REFERENCE / "config.yaml", folder / "config.yaml")
     data = (REFERENCE / "model.zip").read_bytes()
     if how == "garbage":
-        data = os.urandom(3000)
+        data = np.random.default_rng(0).bytes(3000)
     elif how == "truncated":
         data = data[: len(data) // 2]
     elif how == "empty":
