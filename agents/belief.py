@@ -41,7 +41,7 @@ from av_gym.sensors.turn_signal import TurnSignalsParams, node_index
 from av_gym.wrappers import GO, YIELD, meta_action
 
 __all__ = ["BeliefLookahead", "BeliefLookaheadAgent", "BeliefLookaheadParams", "BeliefPlanner", "EnvView",
-           "belief_lookahead_teacher"]
+           "PlannerOpinion", "belief_lookahead_teacher"]
 
 SPAWN_SPEED, SPAWN_SPEED_SD = 8.0, 1.0  # IntersectionEnv._spawn_vehicle: speed = 8 + N(0, 1) (also the set-point)
 DELTA_RANGE = (3.5, 4.5)  # IDMVehicle.randomize_behavior
@@ -446,6 +446,39 @@ def belief_lookahead_teacher(params: BeliefLookaheadParams, actions: str, scenar
 
     label.belief = params
     return label
+
+
+class PlannerOpinion:
+    """The planner as the AEB shield's second opinion (:attr:`av_gym.shields.aeb.AEBShield.opinion`): before a
+    brake at the stop line, the shield asks whether going on is safe, and the planner answers with its K futures of
+    GO from the car's information (GO's estimated collision probability at most ``threshold``). Emergency brakes
+    are never asked about. It reads the indicators at every observation, as the agent does; the shield's env must
+    carry the turn features (``obs["intent"]``: sensors turn_truth or turn_perceived)."""
+
+    def __init__(self, params: BeliefLookaheadParams | None = None) -> None:
+        self.params = params or BeliefLookaheadParams()
+        self.planner, self.view = BeliefPlanner(self.params, n_rows=1), EnvView()
+        self._engine = None
+        self.asked = 0  # questions answered this episode
+
+    def reset(self) -> None:
+        self.planner.reset([0])
+        self.view.reset()
+        self._engine, self.asked = None, 0
+
+    def observe(self, env: gym.Env, obs) -> None:
+        if not isinstance(obs, dict) or "intent" not in obs:
+            from av_gym.errors import ConfigError
+
+            raise ConfigError("shield.second_opinion belief_lookahead reads obs['intent']; run the agent with "
+                              "sensors turn_truth or turn_perceived (or their _memory presets)")
+        self._engine = self.view.engine(env, obs)
+        self.planner.read(self._engine, [0], obs["intent"][None])
+
+    def go_is_safe(self, env: gym.Env) -> bool:
+        # the engine observe() built from the state the shield now decides on (nothing moved since)
+        self.asked += 1
+        return bool(self.planner.go_collision(self._engine, [0])[0] <= self.planner.threshold + 1e-12)
 
 
 class BeliefLookaheadAgent(AgentKind):

@@ -171,12 +171,11 @@ def _evaluate(cfg: DictConfig, command: EvalCommand) -> list[dict]:
 def _run_agent(plan, command: EvalCommand, env_cfg: dict, seeds: range, rows: list) -> None:
     """One agent's episodes, appended to ``rows``: stepped together on the batch (vec_env=batched), shared by
     ``n_envs`` worker processes, or in this process."""
-    from av_gym.make import make_env
-    from eval.agents import resolve_agent
+    from eval.agents import make_eval_env, resolve_agent
     from eval.runner import EpisodeJob, run_episodes, run_episodes_parallel
 
     env_name, checkpoints, progress = env_cfg["name"], command.paths.checkpoints, command.progress_bar
-    env = make_env(env_cfg, plan.sensors, plan.shield)
+    env = make_eval_env(env_cfg, plan.sensors, plan.shield)
     _, policy = resolve_agent(plan.spec, env, env_name, checkpoints)
     if command.vec_env == "batched":  # n_envs episodes stepped together
         from eval.batched import run_episodes_batched

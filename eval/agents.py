@@ -23,7 +23,7 @@ from av_gym.references import reference_root
 from conf.presets import compose_group  # noqa: F401 - used here and imported from here by tests and tools
 
 __all__ = ["AgentPlan", "available_agents", "check_plan", "compose_group", "find_checkpoint", "load_agent_config",
-           "plan_agent", "resolve_agent", "sensor_overrides", "sensors_summary"]
+           "make_eval_env", "plan_agent", "resolve_agent", "sensor_overrides", "sensors_summary"]
 
 
 def load_agent_config(name: str) -> dict[str, Any]:
@@ -224,6 +224,22 @@ def resolve_agent(spec: str, env: gym.Env, env_name: str, checkpoints: str | Pat
         print(f"[eval] {spec}: using {path}")
         return spec, _load_trained(path, env, env_name)
     return spec, kind.build(params, env, spec)
+
+
+def make_eval_env(env_cfg: dict, sensors: dict | None, shield: dict | None, **kwargs: Any) -> gym.Env:
+    """:func:`av_gym.make.make_env`, and the AEB shield's second opinion installed when its config names one
+    (``shield.second_opinion``: the library has no planner of its own; :class:`agents.belief.PlannerOpinion`)."""
+    from av_gym.make import make_env
+    from av_gym.shields.aeb import find_shield
+
+    env = make_env(env_cfg, sensors, shield, **kwargs)
+    aeb = find_shield(env)
+    name = getattr(getattr(aeb, "params", None), "second_opinion", "none")
+    if aeb is not None and name != "none" and aeb.opinion is None:
+        from agents.belief import PlannerOpinion
+
+        aeb.opinion = PlannerOpinion(agent_params(load_agent_config(name), where=f"shield.second_opinion {name!r}"))
+    return env
 
 
 # ----------------------------------------------------------------------------------------------- per-agent stacks

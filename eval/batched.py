@@ -169,10 +169,10 @@ def play_on(env_cfg: dict, sensors: dict, shield: dict, policy, seeds: Iterable[
     a tracker, a shield, the lane keeper). The same episodes either way, the batch's cost where it can."""
     if batched:
         return play_batched(env_cfg, sensors, shield, policy, seeds, n_envs, label, progress=False)
-    from av_gym.make import make_env
+    from eval.agents import make_eval_env
     from eval.runner import run_episodes
 
-    env = make_env(env_cfg, sensors, shield)
+    env = make_eval_env(env_cfg, sensors, shield)
     try:
         return run_episodes(env, policy, seeds, label, progress=False)
     finally:

@@ -159,12 +159,11 @@ def lane_keeping_figures(env_cfg, plans, out_dir: str | Path, first_seed: int, c
                          plots: bool = True, videos: bool = False) -> list[Path]:
     """For ``python -m eval``: one more lap per agent plan on ``first_seed`` (the evaluation's first); PNGs and
     optional videos."""
-    from av_gym.make import make_env
-    from eval.agents import resolve_agent
+    from eval.agents import make_eval_env, resolve_agent
 
     traces, paths = {}, []
     for plan in plans:
-        env = make_env(env_cfg, plan.sensors, plan.shield)
+        env = make_eval_env(env_cfg, plan.sensors, plan.shield)
         _, policy = resolve_agent(plan.spec, env, env_cfg["name"], checkpoints)
         traces[plan.label] = record_lap(env, policy, first_seed, video=videos)
         policy_hz = float(env.unwrapped.config["policy_frequency"])
@@ -184,12 +183,11 @@ def turn_videos(env_cfg, plans, out_dir: str | Path, first_seed: int, checkpoint
     GIFs show), at half resolution and real time: ``turn_<agent>.mp4``."""
     import cv2
 
-    from av_gym.make import make_env
-    from eval.agents import resolve_agent
+    from eval.agents import make_eval_env, resolve_agent
 
     paths = []
     for plan in plans:
-        env = make_env(env_cfg, plan.sensors, plan.shield, render_mode="rgb_array")
+        env = make_eval_env(env_cfg, plan.sensors, plan.shield, render_mode="rgb_array")
         _, policy = resolve_agent(plan.spec, env, env_cfg["name"], checkpoints)
         obs, _ = env.reset(seed=int(first_seed))
         policy.reset()

@@ -110,12 +110,10 @@ def guard_worker() -> None:
 
 
 def _init_worker(job: EpisodeJob) -> None:
-    from av_gym.make import make_env
-
     guard_worker()
-    from eval.agents import resolve_agent
+    from eval.agents import make_eval_env, resolve_agent
 
-    env = make_env(job.env, job.sensors, job.shield)
+    env = make_eval_env(job.env, job.sensors, job.shield)
     with contextlib.redirect_stdout(io.StringIO()):  # the parent already said which checkpoint it uses
         _, policy = resolve_agent(job.spec, env, job.env_name, job.checkpoints)
     _single_threaded_torch()

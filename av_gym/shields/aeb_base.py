@@ -84,6 +84,12 @@ class AEBShield(gym.Wrapper):
     on_intervention: Any = None  # called as on_intervention(shield, action) when a brake starts, before the step
     bypass: bool = False  # True: pass the agent's action through untouched and decide nothing
     target_xy: np.ndarray | None = None  # position of the object the last decision named (NaN when none)
+    # A second opinion before a brake at the stop line (never before an emergency brake): an object with
+    # ``reset()``, ``observe(env, obs)`` (each observation of the sensed env) and ``go_is_safe(env) -> bool``;
+    # True withholds the brake. Installed by its owner (the harness's ``second_opinion``, eval/opinions.py): the
+    # library has no planner of its own.
+    opinion: Any = None
+    withheld: int = 0  # stop-line brakes the opinion withheld this episode
     _proposed: Any = None  # the agent's action for the step being decided (the improved variant's check_action)
 
     # ------------------------------------------------------------------------------------------- config
@@ -186,6 +192,10 @@ class AEBShield(gym.Wrapper):
             self.detector.rng = sensor_rng(self.env, "aeb_detector")
             self.detector.on_reset()
             self.tracker.reset()
+        self.withheld = 0
+        if self.opinion is not None:
+            self.opinion.reset()
+            self.opinion.observe(self.env, obs)
         self._info = self._make_info(MONITOR, float("inf"), 0.0, -1, False, False, None)
         info.update(self._info)
         return obs, info
@@ -214,6 +224,8 @@ class AEBShield(gym.Wrapper):
             self.on_intervention(self, action)
         applied = self._throttle_cut(action) if override else action
         obs, reward, terminated, truncated, info = self.env.step(applied)
+        if self.opinion is not None:
+            self.opinion.observe(self.env, obs)
         ego = self.env.unwrapped.vehicle
         if override and np.isnan(self._stop_position) and ego.speed < STOP_SPEED:
             self._stop_position = self._front_past_line()
@@ -234,7 +246,15 @@ class AEBShield(gym.Wrapper):
                 # None, not NaN, until it happens: info values must compare equal across identical runs
                 # (Gymnasium's check_env; NaN != NaN)
                 "aeb_brake_time": _or_none(self._brake_time), "aeb_stop_position": _or_none(self._stop_position),
-                "aeb_action": None if applied is None else (np.asarray(applied).tolist())}
+                "aeb_action": None if applied is None else (np.asarray(applied).tolist()),
+                "aeb_withheld": int(self.withheld)}
+
+    def _second_opinion_withholds(self) -> bool:
+        """Whether the second opinion (if any) finds going on safe, so that a stop-line brake is withheld."""
+        if self.opinion is None or not self.opinion.go_is_safe(self.env):
+            return False
+        self.withheld += 1
+        return True
 
     def _throttle_cut(self, action):
         """While braking the agent may not accelerate: FASTER becomes IDLE (its set-point is kept for after the

@@ -37,6 +37,7 @@ class ImprovedAEB(AEBShield):
         self.release_accel_time = p.release_accel_time
         self.setoff_speed, self.setoff_accel, self.setoff_horizon = p.setoff_speed, p.setoff_accel, p.setoff_horizon
         self.setoff_recent = p.setoff_recent
+        self.second_opinion = p.second_opinion
         self._moved_at: dict = {}
         self.warn_ttc, self.ignore_rear, self.check_action = p.warn_ttc, p.ignore_rear, p.check_action
         self.needs_lanes = self.target_model in ("map", "conflict")
@@ -49,6 +50,12 @@ class ImprovedAEB(AEBShield):
         self._beliefs = DriverIntent(p.signal_channel)
 
     def _on_reset(self, u) -> None:
+        if self.second_opinion != "none" and self.opinion is None:
+            from av_gym.errors import ConfigError
+
+            raise ConfigError(f"shield.second_opinion={self.second_opinion!r} is the harness's planner and none is "
+                              f"installed: python -m eval installs it; from your own code set the shield's opinion "
+                              f"(agents.belief.PlannerOpinion), or shield.second_opinion=none")
         if self.target_model == "map":
             if self._hypotheses is None:
                 self._hypotheses = LaneHypotheses(u.road.network)
@@ -261,7 +268,7 @@ class ImprovedAEB(AEBShield):
         """A standing car that may set off: a reason to stop at the line, never an emergency."""
         n_set = min(sc.n, int(round(self.setoff_horizon / self.T)))
         ttc_set, k = self._ttc_of(sc, sc.ds_cruise, n_set, self.margin, *setoff[:2], *setoff[3:])
-        if not np.isfinite(ttc_set):
+        if not np.isfinite(ttc_set) or self._second_opinion_withholds():
             return None
         self._latch(t)
         return BRAKE, ttc_set, sc.horizon, int(np.flatnonzero(sc.keep)[setoff[2][k]]), False
@@ -278,7 +285,7 @@ class ImprovedAEB(AEBShield):
             if not emergency and self.emergency_accel_time > 0 and self.target_model == "conflict":
                 emergency = self._braking_ttc(sc.ego, sc.ds_cruise, sc.n, sc.others, sc.lanes, sc.a_others,
                                               sc.t_long, sc.intent) <= self.ttc_brake
-        if not (stop_line_trigger or emergency):
+        if not (stop_line_trigger or emergency) or (not emergency and self._second_opinion_withholds()):
             return (WARN if sc.in_turn or ttc <= self.warn_ttc else MONITOR), ttc, sc.horizon, sc.target_out, False
         # Feasibility against the object braked for (any of its path hypotheses) only: another road user that
         # would reach the standing ego seconds later is a later conflict (it can brake, the ego can set off),
