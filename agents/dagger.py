@@ -43,6 +43,11 @@ class DaggerParams(PPOParams):
     label_margin: float = param(0.0, "m", ge=0, doc="batched look-ahead labels: GO only where the GO future also "
                                                     "keeps this centre distance from every vehicle (a more cautious "
                                                     "operating point); 0: the oracle's own choice")
+    targets: Literal["labels", "go_safe"] = param(
+        "labels", doc="what P(GO) is fitted to | labels: the teacher's GO/YIELD labels | go_safe: the share of the "
+                      "belief planner's K GO futures that stay collision-free (teacher of kind belief_lookahead on "
+                      "vec_env=batched): its label keeps one bit of that K-sample estimate, the share keeps the "
+                      "rest. The labels still drive round 0, and the fit accuracy and agreement are against them")
     go_threshold: float = param(0.5, gt=0, lt=1, doc="go/yield students: GO where the student's P(GO) is at least "
                                                      "this (the checkpoints and validations are at it; the fit is "
                                                      "not); 0.5 = its argmax. train/operating_point.py sweeps it")

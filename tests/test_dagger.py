@@ -304,3 +304,42 @@ def test_auto_labeller_picks_the_replica_only_where_it_can_play_the_episodes():
     assert labeller_of(_cfg("agent=dagger_turn_perceived", "agent.teacher=gap_acceptance")) == "per_env"
     (problem,) = validate(_cfg("agent=dagger_turn_perceived", "shield=aeb", "agent.labeller=replica"))
     assert problem.startswith("agent.labeller=replica needs") and "shield=aeb" in problem
+
+
+def test_go_safe_targets_fit_the_probability_not_the_label():
+    """agent.targets=go_safe: P(GO) is fitted to the share of the planner's safe futures (cross-entropy to a
+    probability), so a state whose futures are safe 70 % of the time ends near 0.7, where its labels alone (GO
+    every time) push it to 1."""
+    import torch
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from agents.ppo import make_ppo
+    from eval.agents import compose_group
+    from train.dagger import Round, fit
+    from train.ppo import _env_factory
+
+    sensors = compose_group("sensors", "turn_truth")
+    make = lambda: _env_factory(conf("env", "left_turn"), sensors, {"kind": "none"}, 0.0, 5, "go_yield")  # noqa: E731
+    space = make().observation_space
+    space.seed(3)
+    state = space.sample()
+    p_go = {}
+    for targets in ([], [0.7] * 64):
+        model = make_ppo(DummyVecEnv([make]), {"policy": "MultiInputPolicy", "net_arch": [16], "n_steps": 64,
+                                               "batch_size": 64}, seed=0, tensorboard_log=None)
+        data = Round(obs=[state] * 64, labels=[GO] * 64, returns=[0.0] * 64, targets=targets)
+        accuracy = fit(model, data, 40, 16, 3e-3, 1)
+        with torch.no_grad():
+            probs = model.policy.get_distribution(model.policy.obs_to_tensor(state)[0]).distribution.probs
+        p_go[bool(targets)] = float(probs[0, GO])
+        assert accuracy == 1.0  # against the labels either way: P(GO) > 0.5
+    assert p_go[False] > 0.95 and abs(p_go[True] - 0.7) < 0.05, p_go
+
+
+def test_go_safe_targets_need_the_belief_planner_on_the_batch():
+    from train.dagger import validate
+
+    assert validate(_cfg("agent=dagger_turn_memory", "agent.targets=go_safe")) == []
+    (problem,) = validate(_cfg("agent=dagger_turn", "agent.targets=go_safe"))
+    assert problem.startswith("agent.targets=go_safe needs agent.teacher of kind belief_lookahead") and \
+        "kind lookahead" in problem

@@ -48,6 +48,21 @@ def test_the_library_composes_each_preset_as_hydra_does(group):
 @pytest.mark.parametrize("env_id,sensors,shield", stacks(), ids=lambda v: v.split("/")[-1])
 def test_check_env_passes(env_id, sensors, shield):
     env = gym.make(env_id, sensors=sensors, shield=shield, env=SHORT[env_id])
+    if compose_group("shield", shield).get("second_opinion", "none") != "none":
+        # the library has no planner: a shield asking for one says so until its owner installs one (the harness's
+        # eval.agents.make_eval_env, or a user's own code as here)
+        with pytest.raises(ConfigError, match="is the harness's planner and none is installed"):
+            env.reset(seed=0)
+        env.close()
+        env = gym.make(env_id, sensors=sensors, shield=shield, env=SHORT[env_id])
+        from agents.belief import PlannerOpinion
+        from av_gym.shields.aeb import find_shield
+
+        find_shield(env).opinion = PlannerOpinion()
+        if "intent" not in env.observation_space.spaces:
+            with pytest.raises(ConfigError, match=r"reads obs\['intent'\]"):
+                env.reset(seed=0)
+            return
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # its advice (float32 bounds, render modes) is not a failure
         check_env(env, skip_render_check=True)

@@ -392,6 +392,9 @@ def test_the_aggregate_round_trips_exactly():
     for a, b in zip(data.obs, back.obs):
         assert all(np.array_equal(a[k], b[k]) and a[k].dtype == b[k].dtype for k in a)
     assert np.array_equal(np.array(back.labels), np.array(data.labels)) and back.returns == data.returns
+    assert back.targets == []  # no P(GO) targets (agent.targets=labels)
+    data.targets = list(rng.uniform(size=5))  # agent.targets=go_safe keeps them beside the labels
+    assert unpack_rounds(pack_rounds(data)).targets == data.targets
 
 
 @pytest.mark.slow  # three tiny DAgger runs (~20 CPU-s)

@@ -114,6 +114,10 @@ def validate(cfg: DictConfig) -> list[str]:
             check_batchable(*[OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)])
         except ConfigError as exc:
             return [str(exc)]
+    if agent.targets == "go_safe" and (not batched or _teacher_kind(cfg) != "belief_lookahead"):
+        return [f"agent.targets=go_safe needs agent.teacher of kind belief_lookahead on agent.vec_env=batched (the "
+                f"share of its GO futures without a collision); got agent.teacher={agent.teacher} (kind "
+                f"{_teacher_kind(cfg)}), agent.vec_env={agent.vec_env}"]
     if float(agent.label_margin) > 0 and (labeller_of(cfg) not in ("batched", "replica")
                                           or _teacher_kind(cfg) != "lookahead"):
         return ["agent.label_margin > 0 needs the batched oracle (agent.teacher of kind lookahead on env=left_turn, "
@@ -140,12 +144,15 @@ class Round:
     labels: list = field(default_factory=list)
     returns: list = field(default_factory=list)
     agree: list = field(default_factory=list)  # the student's own choice equals the label (or 1 - |error|)
+    targets: list = field(default_factory=list)  # agent.targets=go_safe: the P(GO) fitted, per decision (else empty)
     outcomes: list = field(default_factory=list)  # (collision, success) per episode
     label_s: float = 0.0  # wall seconds spent labelling
 
-    def close(self, steps: list[list], info: dict, gamma: float) -> None:
-        """Add one finished episode: ``steps`` as [obs, label, agree, reward] per decision, ``info`` its last."""
+    def close(self, steps: list[list], info: dict, gamma: float, targets: list | None = None) -> None:
+        """Add one finished episode: ``steps`` as [obs, label, agree, reward] per decision, ``info`` its last,
+        ``targets`` the P(GO) to fit at each decision (agent.targets=go_safe)."""
         self.obs += [s[0] for s in steps]
+        self.targets += targets or []
         self.labels += [s[1] for s in steps]
         self.agree += [s[2] for s in steps]
         self.returns += discounted([s[3] for s in steps], gamma)
@@ -174,6 +181,7 @@ class BatchedLabels:
 
     def __init__(self, venv, teacher, oracle: bool, margin: float) -> None:
         self.venv, self.teacher, self.oracle, self.margin = venv, teacher, oracle, float(margin)
+        self.go_safe = None  # belief_lookahead: the share of GO futures without a collision, per row of the last call
         self.on_go_future = np.zeros(venv.num_envs, bool)
         self.belief = None  # belief_lookahead: its planner over the batch, the episode each row's belief is of
         if getattr(teacher, "belief", None) is not None:
@@ -184,7 +192,7 @@ class BatchedLabels:
 
     def __call__(self, rows: np.ndarray, obs: dict) -> np.ndarray:
         from agents.batched_oracle import oracle_labels
-        from av_gym.wrappers import GO
+        from av_gym.wrappers import GO, YIELD
 
         if self.belief is not None:  # its futures are samples, not the row's own: no GO-future shortcut
             engine = self.venv.engine
@@ -192,7 +200,9 @@ class BatchedLabels:
             self.belief.reset(new)
             self.episode[new] = engine.episode_seed[new]
             self.belief.read(engine, rows, obs["intent"][rows])
-            return self.belief.labels(engine, rows)
+            p = self.belief.go_collision(engine, rows)
+            self.go_safe = 1.0 - p
+            return np.where(p <= self.belief.threshold + 1e-12, GO, YIELD).astype(np.int64)
         labels = np.zeros(len(rows), dtype=np.int64)
         if not self.oracle:
             for n, r in enumerate(rows):
@@ -211,13 +221,16 @@ class BatchedLabels:
         self.on_go_future[rows] = (labels == GO) & (actions[rows] == GO) & ~done[rows]
 
 
-def drive_batched(venv, model, labeller: BatchedLabels, seeds, teacher_drives: bool, gamma: float) -> Round:
+def drive_batched(venv, model, labeller: BatchedLabels, seeds, teacher_drives: bool, gamma: float,
+                  soft: bool = False) -> Round:
     """The episodes ``seeds`` on the batch, the teacher's labels at every decision, driven by the teacher (its
-    labels executed) or by the student (its deterministic choice)."""
+    labels executed) or by the student (its deterministic choice); ``soft``: the belief planner's share of safe GO
+    futures kept beside each label (agent.targets=go_safe)."""
     out, B = Round(), venv.num_envs
     obs = venv.play(iter(seeds))
     labeller.on_go_future[:] = False
     episode: list[list] = [[] for _ in range(B)]  # per row: [obs, label, agree, reward] of the open episode
+    targets: list[list] = [[] for _ in range(B)]  # per row: the P(GO) targets of the open episode (soft)
     while not venv.idle.all():
         rows = np.nonzero(~venv.idle)[0]
         t0 = time.perf_counter()
@@ -230,13 +243,15 @@ def drive_batched(venv, model, labeller: BatchedLabels, seeds, teacher_drives: b
         for n, r in enumerate(rows):
             episode[r].append([{k: v[r].copy() for k, v in obs.items()}, int(labels[n]),
                                float(student[r] == labels[n])])
+            if soft:
+                targets[r].append(float(labeller.go_safe[n]))
         obs, rewards, done, infos = venv.step(actions)
         labeller.executed(rows, labels, actions, done)
         for r in rows:
             episode[r][-1].append(float(rewards[r]))
             if done[r]:
-                out.close(episode[r], infos[r], gamma)
-                episode[r] = []
+                out.close(episode[r], infos[r], gamma, targets[r] if soft else None)
+                episode[r], targets[r] = [], []
     return out
 
 
@@ -324,7 +339,8 @@ def fit(model, data: Round, epochs: int, batch_size: int, lr: float, seed: int) 
 
     from train.imitation import Demonstrations, fit_policy
 
-    demos = Demonstrations(0.0, data.obs, data.labels, data.returns)  # returns already discounted per round
+    demos = Demonstrations(0.0, data.obs, data.labels, data.returns,  # returns already discounted per round
+                           targets=data.targets)
     return fit_policy(model.policy, demos, isinstance(model.action_space, spaces.Discrete), epochs, batch_size,
                       lr, seed=seed)
 
@@ -333,6 +349,7 @@ def aggregate(total: Round, new: Round) -> None:
     total.obs += new.obs
     total.labels += new.labels
     total.returns += new.returns
+    total.targets += new.targets
 
 
 # ------------------------------------------------------------------------------------------------------ the run
@@ -342,6 +359,8 @@ def pack_rounds(data: Round) -> bytes:
 
     arrays = {f"obs:{k}": np.stack([o[k] for o in data.obs]) for k in (data.obs[0] if data.obs else {})}
     arrays["labels"], arrays["returns"] = np.asarray(data.labels), np.asarray(data.returns, dtype=np.float64)
+    if data.targets:
+        arrays["targets"] = np.asarray(data.targets, dtype=np.float64)
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     return buf.getvalue()
@@ -355,7 +374,7 @@ def unpack_rounds(raw: bytes) -> Round:
     stacked = {k: npz[f"obs:{k}"] for k in keys}
     labels = npz["labels"]
     return Round(obs=[{k: stacked[k][i] for k in keys} for i in range(len(labels))], labels=list(labels),
-                 returns=list(npz["returns"]))
+                 returns=list(npz["returns"]), targets=list(npz["targets"]) if "targets" in npz.files else [])
 
 
 def save_round(model, path: Path, data: Round, state: dict) -> Path:
@@ -510,8 +529,9 @@ def _build(cfg: DictConfig, command: TrainCommand, params, resume: bool) -> _Run
                                                         gamma)
     else:
         labels = BatchedLabels(env, teacher, how == "batched", params.label_margin)
+        soft = params.targets == "go_safe"
         drive = lambda seeds, by_teacher: drive_batched(env, model, labels, seeds, by_teacher,  # noqa: E731
-                                                        gamma)
+                                                        gamma, soft)
     if params.init_from and not resume:  # a student to go on from (a DAgger run or a PPO policy of the same spaces)
         from train.imitation import load_weights
 

@@ -36,6 +36,7 @@ class Demonstrations:
     observations: list[dict] = field(default_factory=list)
     labels: list = field(default_factory=list)
     returns: list[float] = field(default_factory=list)
+    targets: list[float] = field(default_factory=list)  # P(GO) to fit instead of the labels (GO/YIELD students)
 
     def add_episode(self, observations: list[dict], labels: list, rewards: list[float]) -> None:
         self.observations.extend(observations)
@@ -117,7 +118,11 @@ def fit_policy(policy, demos: Demonstrations, discrete: bool, epochs: int, batch
     log-likelihood of the labels, the critic by the returns' MSE. Every tensor goes to the policy's device; the
     minibatch order comes from a CPU generator seeded ``seed``, so it is the same on every device (the cloning
     here and DAgger's rounds, train/dagger.py, both fit with it). Returns the accuracy:
-    the share of matching choices (``discrete``), or 1 - mean |error| for continuous actions."""
+    the share of matching choices (``discrete``), or 1 - mean |error| for continuous actions.
+
+    With ``demos.targets`` (a GO/YIELD student, DAgger's agent.targets=go_safe) the actor is fitted by the
+    cross-entropy to those probabilities of GO, -[q log π(GO) + (1 - q) log π(YIELD)], instead of the labels' NLL;
+    the accuracy is still against the labels."""
     import numpy as np
     import torch as th
 
@@ -128,6 +133,10 @@ def fit_policy(policy, demos: Demonstrations, discrete: bool, epochs: int, batch
     x = {k: np.stack([o[k] for o in demos.observations]) for k in demos.observations[0]}
     y = th.as_tensor(np.array(demos.labels), dtype=th.long if discrete else th.float32, device=device)
     g = th.as_tensor(np.array(demos.returns), dtype=th.float32, device=device)
+    q = th.as_tensor(np.array(demos.targets), dtype=th.float32, device=device) if demos.targets else None
+    if q is not None and (not discrete or len(q) != len(y)):
+        raise ValueError(f"targets: {len(q)} P(GO) values for {len(y)} labels of a "
+                         f"{'discrete' if discrete else 'continuous'} policy; one per label of a GO/YIELD student")
     g_var = max(float(g.var()), 1.0) if len(g) > 1 else 1.0
 
     def batch(idx):  # obs_to_tensor transposes images to the policy's channel-first layout, as VecTransposeImage
@@ -144,11 +153,19 @@ def fit_policy(policy, demos: Demonstrations, discrete: bool, epochs: int, batch
     for _ in range(epochs):
         for idx in th.randperm(len(y), generator=gen, device="cpu").split(batch_size):
             on = idx.to(device)
-            values, log_prob, _ = policy.evaluate_actions(batch(idx), y[on])
+            if q is None:
+                values, log_prob, _ = policy.evaluate_actions(batch(idx), y[on])
+                actor = -log_prob.mean()
+            else:  # log π(GO) from one pass; log π(YIELD) = log(1 - π(GO)) (two actions)
+                from av_gym.wrappers import GO
+
+                values, log_go, _ = policy.evaluate_actions(batch(idx), th.full_like(y[on], GO))
+                log_other = th.log1p(-log_go.exp().clamp(max=1.0 - 1e-6))
+                actor = -(q[on] * log_go + (1.0 - q[on]) * log_other).mean()
             # The value error is scaled by the returns' variance: the actor and critic share the feature extractor
             # (a CNN on images), and raw squared returns (a lap is worth ~50) would drown the actor's gradient
             # (measured: the camera clone reached only 0.82 with them).
-            loss = -log_prob.mean() + th.nn.functional.mse_loss(values.flatten(), g[on]) / g_var
+            loss = actor + th.nn.functional.mse_loss(values.flatten(), g[on]) / g_var
             policy.optimizer.zero_grad()
             loss.backward()
             th.nn.utils.clip_grad_norm_(policy.parameters(), 0.5)
