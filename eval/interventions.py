@@ -222,15 +222,18 @@ def run(spec: str, seeds, env_set=(), shield_set=(), window: float = WINDOW, wor
     import multiprocessing
 
     args = (spec, list(env_set), list(shield_set), window)
-    if workers > 1:
-        ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init, initargs=args) as pool:
-            results = list(pool.map(_one, seeds, chunksize=4))
-    else:
-        _init(*args)
+    seeds = list(seeds)
+    with contextlib.ExitStack() as stack:
+        if workers > 1:
+            ctx = multiprocessing.get_context("spawn")
+            pool = stack.enter_context(ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init, initargs=args))
+            done = pool.map(_one, seeds, chunksize=4)
+        else:
+            _init(*args)
+            done = map(_one, seeds)
         results = []
-        for i, seed in enumerate(seeds):
-            results.append(_one(seed))
+        for i, result in enumerate(done):
+            results.append(result)
             if progress and (i + 1) % 25 == 0:
                 print(f"[interventions] {spec}: {i + 1}/{len(seeds)}", file=sys.stderr, flush=True)
     episodes, rows = [], []

@@ -66,6 +66,20 @@ def rollout(env, policy, seed: int, max_steps: int = 100_000):
     raise AssertionError("episode did not end")
 
 
+def proceed_infos(env, seed: int = 0) -> list[dict]:
+    """AlwaysProceed at the env's cruise set-point to the end of one episode; the info of every step."""
+    from agents import AlwaysProceed
+
+    policy = AlwaysProceed(env.unwrapped.cruise_action())
+    obs, _ = env.reset(seed=seed)
+    infos = []
+    while True:
+        obs, _, terminated, truncated, info = env.step(policy.act(obs))
+        infos.append(info)
+        if terminated or truncated:
+            return infos
+
+
 class Scripted:
     """A policy from a function of (step, obs)."""
 

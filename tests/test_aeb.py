@@ -13,7 +13,7 @@ from av_gym.shields.predict import (aabb_limits, ca_predict, footprint_ttc, obje
 from av_gym.envs.left_turn import CONFLICT_POINT
 from av_gym.errors import ConfigError
 from _numerics import assert_same
-from conftest import Scripted, ccftap_cfg, conf, rollout
+from conftest import Scripted, ccftap_cfg, conf, proceed_infos, rollout
 
 KMH = 1 / 3.6
 
@@ -26,14 +26,7 @@ def shield(name: str = "aeb", **overrides) -> dict:
 
 def run_case(make, ego_kmh, target_kmh, dt, shield_cfg=None, action="discrete", seed=0):
     env = make(ccftap_cfg(ego_kmh, target_kmh, dt, action=action), None, shield_cfg)
-    policy = AlwaysProceed(env.unwrapped.cruise_action())
-    obs, info = env.reset(seed=seed)
-    infos = []
-    while True:
-        obs, _, terminated, truncated, info = env.step(policy.act(obs))
-        infos.append(info)
-        if terminated or truncated:
-            return env, infos
+    return env, proceed_infos(env, seed)
 
 
 # ----------------------------------------------------------------------------------------------- paper maths

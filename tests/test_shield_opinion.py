@@ -6,11 +6,10 @@ from __future__ import annotations
 
 import pytest
 
-from agents import AlwaysProceed
 from agents.belief import PlannerOpinion
 from av_gym.errors import ConfigError
 from av_gym.shields.aeb import find_shield
-from conftest import ccftap_cfg, conf
+from conftest import ccftap_cfg, conf, proceed_infos
 from eval.agents import compose_group, make_eval_env
 
 
@@ -31,18 +30,6 @@ class Fixed:
         return self.safe
 
 
-def drive(env, seed: int = 0) -> list[dict]:
-    """AlwaysProceed at its cruise set-point to the end of the episode; the infos of every step."""
-    policy = AlwaysProceed(env.unwrapped.cruise_action())
-    obs, _ = env.reset(seed=seed)
-    infos = []
-    while True:
-        obs, _, terminated, truncated, info = env.step(policy.act(obs))
-        infos.append(info)
-        if terminated or truncated:
-            return infos
-
-
 def shielded(opinion=None, sensors=None, shield="aeb"):
     """The paper's case (ego 15 km/h, oncoming 45 km/h, meeting in the middle), where the plain shield stops the
     ego behind the line and no shield collides (tests/test_aeb.py)."""
@@ -54,9 +41,9 @@ def shielded(opinion=None, sensors=None, shield="aeb"):
 
 
 def test_an_opinion_that_never_finds_going_on_safe_changes_nothing():
-    plain = drive(shielded())
+    plain = proceed_infos(shielded())
     asked = Fixed(safe=False)
-    infos = drive(shielded(asked))
+    infos = proceed_infos(shielded(asked))
     assert [i["aeb_stage"] for i in infos] == [i["aeb_stage"] for i in plain]
     assert asked.resets == 1 and asked.observed == len(infos) + 1  # the reset's observation and every step's
     assert asked.asked >= 1 and infos[-1]["aeb_withheld"] == 0
@@ -66,11 +53,11 @@ def test_an_opinion_that_never_finds_going_on_safe_changes_nothing():
 def test_a_withheld_stop_line_brake_leaves_only_the_emergency_brake():
     """With every stop-line brake withheld the ego enters the box; what brakes it there, if anything, is the
     emergency test, never a brake before the line."""
-    plain = drive(shielded())
+    plain = proceed_infos(shielded())
     first_plain = next(i for i in plain if i["aeb_stage"] == 2)
     assert first_plain["truth"]["stop_line_offset"] <= 0.0  # the plain shield brakes before the line
     yes = Fixed(safe=True)
-    infos = drive(shielded(yes))
+    infos = proceed_infos(shielded(yes))
     assert yes.asked >= 1 and infos[-1]["aeb_withheld"] == yes.asked
     braked = [i for i in infos if i["aeb_stage"] == 2]
     assert all(i["truth"]["stop_line_offset"] > 0.0 for i in braked[:1])  # the first brake: inside the box
@@ -83,7 +70,7 @@ def test_the_planner_keeps_a_needed_brake():
     env = make_eval_env(ccftap_cfg(15, 45, 0.0), compose_group("sensors", "turn_truth"), conf("shield", "aeb_belief"))
     opinion = find_shield(env).opinion
     assert isinstance(opinion, PlannerOpinion)
-    infos = drive(env)
+    infos = proceed_infos(env)
     m = infos[-1]["episode_metrics"]
     assert opinion.asked >= 1 and infos[-1]["aeb_withheld"] == 0
     assert not m["collision"] and m["intervention"] == 1.0 and -1.0 < infos[-1]["aeb_stop_position"] <= 0.0
