@@ -122,6 +122,7 @@ def labelled_episode(env, policy, seed: int, window: float = WINDOW) -> tuple[di
         shield.on_intervention = None
     u = env.unwrapped
     metrics["collision_partner"] = _classify(u, _collision_partner(u)) if u.vehicle.crashed else ""
+    metrics["withheld"] = shield.withheld  # stop-line brake decisions a second opinion withheld (aeb_belief)
     return metrics, rows
 
 

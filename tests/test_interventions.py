@@ -54,6 +54,7 @@ def test_labelling_leaves_the_real_episode_unchanged(make, turn_cfg):
         obs, _, term, trunc, info = env.step(policy.act(obs))
         done = term or trunc
     assert (labelled.pop("collision_partner") != "") == bool(labelled["collision"])
+    assert labelled.pop("withheld") == 0  # no second opinion on the plain shield
     np.testing.assert_equal(info["episode_metrics"], labelled)  # NaN == NaN here
     assert len(rows) == labelled["interventions"]
 
