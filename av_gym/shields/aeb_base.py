@@ -86,8 +86,8 @@ class AEBShield(gym.Wrapper):
     target_xy: np.ndarray | None = None  # position of the object the last decision named (NaN when none)
     # A second opinion before a brake at the stop line (never before an emergency brake): an object with
     # ``reset()``, ``observe(env, obs)`` (each observation of the sensed env) and ``go_is_safe(env) -> bool``;
-    # True withholds the brake. Installed by its owner (the harness's ``second_opinion``, eval/opinions.py): the
-    # library has no planner of its own.
+    # True withholds the brake. Installed by its owner (the harness's eval.agents.make_eval_env, for
+    # ``second_opinion``): the library has no planner of its own.
     opinion: Any = None
     withheld: int = 0  # stop-line brakes the opinion withheld this episode
     _proposed: Any = None  # the agent's action for the step being decided (the improved variant's check_action)
