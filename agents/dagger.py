@@ -47,7 +47,8 @@ class DaggerParams(PPOParams):
         "labels", doc="what P(GO) is fitted to | labels: the teacher's GO/YIELD labels | go_safe: the share of the "
                       "belief planner's K GO futures that stay collision-free (teacher of kind belief_lookahead on "
                       "vec_env=batched): its label keeps one bit of that K-sample estimate, the share keeps the "
-                      "rest. The labels still drive round 0, and the fit accuracy and agreement are against them")
+                      "rest. The labels still drive round 0, and the fit accuracy and agreement are against them; "
+                      "the student drives its rounds at go_threshold (not at its argmax)")
     go_threshold: float = param(0.5, gt=0, lt=1, doc="go/yield students: GO where the student's P(GO) is at least "
                                                      "this (the checkpoints and validations are at it; the fit is "
                                                      "not); 0.5 = its argmax. train/operating_point.py sweeps it")

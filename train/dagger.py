@@ -573,7 +573,14 @@ def _round(run: _Run, params, data: Round, k: int, first: int, seed: int, t_star
 
     seeds = [train_seed(first, k * int(params.round_episodes) + i) for i in range(int(params.round_episodes))]
     by_teacher = k == 0 and not params.init_from  # a student to go on from drives from the start
+    # A student fitted to probabilities (targets go_safe) drives at its operating point: its argmax (P(GO) 0.5)
+    # would go where at most half the planner's futures collide, states the student at go_threshold never meets.
+    at_tau = params.targets == "go_safe" and not by_teacher
+    if at_tau:
+        shift(run.model, True)
     new = run.drive(seeds, by_teacher)
+    if at_tau:
+        shift(run.model, False)
     aggregate(data, new)
     accuracy = fit(run.model, data, int(params.fit_epochs), int(params.fit_batch), float(params.fit_lr),
                    seed * 1000 + k)
