@@ -16,8 +16,8 @@ REF = resources.files("conf").parent / "checkpoints" / "reference"
 SB3_REFS = sorted(p.name for p in REF.iterdir() if (p / "model.zip").is_file())
 # extra training seeds a multi-seed row needs: reference/seeds/<name>/s<seed>/ (the reference itself is the other seed)
 SEED_REFS = sorted(str(p.relative_to(REF)) for p in REF.glob("seeds/*/s*") if (p / "model.zip").is_file())
-NAMED = ("dagger_turn", "dagger_turn_memory", "dagger_turn_perceived", "pilotnet", "ppo_lane_camera",
-         "ppo_lane_localized", "ppo_turn", "ppo_turn_perceived", "ppo_turn_shielded")
+NAMED = ("dagger_turn", "dagger_turn_memory", "dagger_turn_perceived", "dagger_turn_soft", "pilotnet",
+         "ppo_lane_camera", "ppo_lane_localized", "ppo_turn", "ppo_turn_perceived", "ppo_turn_shielded")
 
 
 def _env_and_policy(name: str):
@@ -45,7 +45,8 @@ def test_reference_holds_the_named_agents_and_a_name_means_one_folder():
         saved = yaml.safe_load((REF / seed / "config.yaml").read_text())
         assert saved["agent"]["name"] == name and f"s{saved['seed']}" == s
     assert SEED_REFS == ["seeds/dagger_turn_memory/s1", "seeds/dagger_turn_memory/s3", "seeds/dagger_turn_perceived/s2",
-                         "seeds/dagger_turn_perceived/s3", "seeds/ppo_turn/s2", "seeds/ppo_turn/s3"]
+                         "seeds/dagger_turn_perceived/s3", "seeds/dagger_turn_soft/s1", "seeds/dagger_turn_soft/s3",
+                         "seeds/ppo_turn/s2", "seeds/ppo_turn/s3"]
 
 
 @pytest.mark.parametrize("name", SB3_REFS + SEED_REFS)
