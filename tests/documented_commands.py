@@ -206,6 +206,18 @@ KNOWN: dict[str, str] = {
     "python -m train agent=dagger_turn_memory seed=2 agent.rounds=8 agent.round_episodes=192 agent.n_envs=64 "
     "train.eval_n=200 train.eval_episodes=0 train.progress_bar=false train.torch_threads=1 run_name=dagger_memory_s2":
         "run",
+    "python -m train agent=dagger_turn_soft seed=2 agent.rounds=8 agent.round_episodes=192 agent.n_envs=64 "
+    "train.eval_n=200 train.eval_episodes=0 train.progress_bar=false train.torch_threads=1 run_name=dagger_soft_s2":
+        "run",
+    "python -m train.operating_point checkpoints/<run_name> --thresholds [0.5,0.7,0.8,0.9,0.95,0.97,0.99] "
+    "--episodes 300": "run",
+    "python -m eval env=left_turn agents=[dagger_turn_soft,checkpoints/reference/seeds/dagger_turn_soft/s1,"
+    "checkpoints/reference/seeds/dagger_turn_soft/s3] split=test seed=2800000 episodes=1000 vec_env=batched "
+    "n_envs=250": "run",
+    "python -m eval.interventions --agents [dagger_turn_memory+aeb_belief] --episodes 1000 --seed 2800000 "
+    "--out runs/interventions_memory_belief": "run",
+    "python -m eval.interventions --agents [dagger_turn+aeb_belief] --episodes 1000 --seed 2800000 "
+    "--out runs/interventions_dagger_belief": "run",
     "python benchmarks/partition.py docs/results/left_turn_partition/results.csv --students dagger_turn "
     "dagger_turn_memory ppo_turn":
         "covered:tests/test_partition.py::test_the_partition_adds_up_to_the_oracles_edge",
