@@ -57,11 +57,12 @@ def test_a_withheld_stop_line_brake_leaves_only_the_emergency_brake():
     first_plain = next(i for i in plain if i["aeb_stage"] == 2)
     assert first_plain["truth"]["stop_line_offset"] <= 0.0  # the plain shield brakes before the line
     yes = Fixed(safe=True)
-    infos = proceed_infos(shielded(yes))
+    env = shielded(yes)
+    infos = proceed_infos(env)
     assert yes.asked >= 1 and infos[-1]["aeb_withheld"] == yes.asked
     braked = [i for i in infos if i["aeb_stage"] == 2]
     assert all(i["truth"]["stop_line_offset"] > 0.0 for i in braked[:1])  # the first brake: inside the box
-    assert braked == [] or braked[0]["aeb_ttc"] <= find_shield(shielded()).ttc_brake + 1e-9
+    assert braked == [] or braked[0]["aeb_ttc"] <= find_shield(env).ttc_brake + 1e-9  # an emergency brake
 
 
 def test_the_planner_keeps_a_needed_brake():
