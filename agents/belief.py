@@ -166,8 +166,12 @@ class BeliefPlanner:
 
     def labels(self, engine, rows) -> np.ndarray:
         """GO where the estimated collision probability of GO is at most ``threshold``, else YIELD."""
-        p = self.go_collision(engine, rows)
-        return np.where(p <= self.threshold + 1e-12, GO, YIELD).astype(np.int64)
+        return self.label_of(self.go_collision(engine, rows))
+
+    def label_of(self, p: np.ndarray) -> np.ndarray:
+        """The planner's choice for GO collision probabilities ``p`` (:meth:`go_collision`): GO where at most
+        ``threshold``, else YIELD."""
+        return np.where(np.asarray(p) <= self.threshold + 1e-12, GO, YIELD).astype(np.int64)
 
     def decide(self, engine, rows, choice: np.ndarray, step: np.ndarray) -> np.ndarray:
         """The held choices (GO / YIELD) of ``rows`` after this env step (``choice``, ``step``: the rows' held
@@ -478,7 +482,7 @@ class PlannerOpinion:
     def go_is_safe(self, env: gym.Env) -> bool:
         # the engine observe() built from the state the shield now decides on (nothing moved since)
         self.asked += 1
-        return bool(self.planner.go_collision(self._engine, [0])[0] <= self.planner.threshold + 1e-12)
+        return bool(self.planner.labels(self._engine, [0])[0] == GO)
 
 
 class BeliefLookaheadAgent(AgentKind):

@@ -192,7 +192,7 @@ class BatchedLabels:
 
     def __call__(self, rows: np.ndarray, obs: dict) -> np.ndarray:
         from agents.batched_oracle import oracle_labels
-        from av_gym.wrappers import GO, YIELD
+        from av_gym.wrappers import GO
 
         if self.belief is not None:  # its futures are samples, not the row's own: no GO-future shortcut
             engine = self.venv.engine
@@ -202,7 +202,7 @@ class BatchedLabels:
             self.belief.read(engine, rows, obs["intent"][rows])
             p = self.belief.go_collision(engine, rows)
             self.go_safe = 1.0 - p
-            return np.where(p <= self.belief.threshold + 1e-12, GO, YIELD).astype(np.int64)
+            return self.belief.label_of(p)
         labels = np.zeros(len(rows), dtype=np.int64)
         if not self.oracle:
             for n, r in enumerate(rows):

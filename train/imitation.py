@@ -138,6 +138,8 @@ def fit_policy(policy, demos: Demonstrations, discrete: bool, epochs: int, batch
         raise ValueError(f"targets: {len(q)} P(GO) values for {len(y)} labels of a "
                          f"{'discrete' if discrete else 'continuous'} policy; one per label of a GO/YIELD student")
     g_var = max(float(g.var()), 1.0) if len(g) > 1 else 1.0
+    if q is not None:
+        from av_gym.wrappers import GO
 
     def batch(idx):  # obs_to_tensor transposes images to the policy's channel-first layout, as VecTransposeImage
         return policy.obs_to_tensor({k: v[idx.numpy()] for k, v in x.items()})[0]
@@ -157,8 +159,6 @@ def fit_policy(policy, demos: Demonstrations, discrete: bool, epochs: int, batch
                 values, log_prob, _ = policy.evaluate_actions(batch(idx), y[on])
                 actor = -log_prob.mean()
             else:  # log π(GO) from one pass; log π(YIELD) = log(1 - π(GO)) (two actions)
-                from av_gym.wrappers import GO
-
                 values, log_go, _ = policy.evaluate_actions(batch(idx), th.full_like(y[on], GO))
                 log_other = th.log1p(-log_go.exp().clamp(max=1.0 - 1e-6))
                 actor = -(q[on] * log_go + (1.0 - q[on]) * log_other).mean()
