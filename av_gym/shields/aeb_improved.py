@@ -55,7 +55,8 @@ class ImprovedAEB(AEBShield):
 
             raise ConfigError(f"shield.second_opinion={self.second_opinion!r} is the harness's planner and none is "
                               f"installed: python -m eval installs it; from your own code set the shield's opinion "
-                              f"(agents.belief.PlannerOpinion), or shield.second_opinion=none")
+                              f"(agents.belief.PlannerOpinion; from an installed wheel after "
+                              f"av_gym_harness.use_harness()), or shield.second_opinion=none")
         if self.target_model == "map":
             if self._hypotheses is None:
                 self._hypotheses = LaneHypotheses(u.road.network)
