@@ -1,6 +1,9 @@
 """av-gym: Gymnasium scenarios, sensor-noise wrappers and metrics for autonomous-driving research."""
 
+import importlib
+import importlib.util
 import os
+from types import ModuleType
 
 from gymnasium.envs.registration import register, registry
 
@@ -43,3 +46,12 @@ def _preload_in_forkserver() -> None:
 _preload_in_forkserver()
 
 from av_gym.references import reference, reference_names  # noqa: E402  (the shipped agents by name)
+
+
+def __getattr__(name: str) -> ModuleType:
+    """A submodule named as an attribute (``av_gym.presets.preset_names("sensors")`` right after ``import av_gym``)
+    is imported then (PEP 562). Why not imported here: this package sits below every submodule (each imports its
+    ids and errors from it), and ``import av_gym`` stays as light as Gymnasium's registration needs."""
+    if name.startswith("_") or importlib.util.find_spec(f"{__name__}.{name}") is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return importlib.import_module(f"{__name__}.{name}")

@@ -1,0 +1,25 @@
+"""What ``import av_gym`` gives a user's own Python: its documented submodules reachable as attributes."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+
+def test_presets_are_reachable_right_after_import_av_gym(tmp_path):
+    """README: ``av_gym.presets.preset_names("sensors")`` after a bare ``import av_gym``, in a fresh process (this
+    one has imported ``av_gym.presets`` through other tests already), from a folder that is not the checkout."""
+    code = "import av_gym; print(av_gym.presets.preset_names('sensors'))"
+    res = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "'turn_perceived'" in res.stdout and "'cameras'" in res.stdout
+
+
+def test_a_name_that_is_no_submodule_is_an_attribute_error():
+    import av_gym
+
+    with pytest.raises(AttributeError, match="no attribute 'not_a_module'"):
+        av_gym.not_a_module  # noqa: B018
+    assert not hasattr(av_gym, "_private")
