@@ -56,3 +56,29 @@ def is_shipped(path: str | os.PathLike) -> bool:
         return Path(path).resolve().is_relative_to(reference_root().resolve())
     except OSError:
         return False
+
+
+
+def holds_shipped(path: str | os.PathLike) -> bool:
+    """Whether folder ``path`` holds the shipped reference folder (``checkpoints/``, or the checkout): clearing it
+    would take the references along."""
+    try:
+        return reference_root().resolve().is_relative_to(Path(path).resolve())
+    except OSError:
+        return False
+
+
+def shipped_problem(path: str | os.PathLike, field: str, cleared: bool = False) -> str | None:
+    """Why no tool may write folder ``path`` (the value of setting ``field``), whatever its flags: it is inside the
+    shipped reference agents, which are read-only to every tool, or (``cleared``: a folder the tool may empty, as
+    ``train.overwrite=true`` does) it holds them; or None. The line names no flag, as none writes there (replacing
+    one reference by a like checkpoint is ``python -m train.export --overwrite-reference``'s alone)."""
+    root = reference_root()
+    if is_shipped(path):
+        where = "is" if Path(path).resolve() == root.resolve() else "is inside"
+    elif cleared and holds_shipped(path):
+        where = "holds"
+    else:
+        return None
+    return (f"{field}={path}: {where} the shipped reference agents' folder ({root}), read-only to every tool; "
+            f"write elsewhere (e.g. checkpoints/<name>)")

@@ -38,6 +38,9 @@ RESUME_MAY_CHANGE = ("agent.total_timesteps", "agent.rounds", "agent.device")
 LATEST, FINAL = "latest.zip", "model.zip"  # what a resume continues; what a finished run leaves (every trainer)
 
 _held = OwnedFolders()  # the checkpoint folders this process trains
+# What works for a run stopped before its first checkpoint: nothing of it is worth keeping, so it is cleared.
+RESTART = ("start it again with train.overwrite=true (its config.yaml and logs are removed), or pick another "
+           "run_name")
 
 
 def _contents(folder: Path, ignore: tuple[str, ...] = (LOCK,)) -> list[str]:
@@ -72,11 +75,18 @@ def resume_problem(saved: Mapping, cfg: Mapping, config_path: Path) -> str | Non
 
 def ownership_problem(ckpt_dir: Path, runs_dir: Path | None, resume: bool, overwrite: bool,
                       cfg: Mapping | None = None) -> str | None:
-    """Why this command may not write ``ckpt_dir`` (and ``runs_dir``, the run's log folder), or None."""
+    """Why this command may not write ``ckpt_dir`` (and ``runs_dir``, the run's log folder), or None. The shipped
+    references are refused first, whatever the flags (``train.overwrite=true`` would clear them)."""
+    problem = shipped_problem_of(ckpt_dir, runs_dir)
+    if problem:
+        return problem
     name = ckpt_dir.name
     if resume:
         latest = ckpt_dir / LATEST
         if not latest.is_file():
+            if dead_start(ckpt_dir):
+                return (f"train.resume=true but run_name={name} stopped before its first checkpoint ({latest} does "
+                        f"not exist, {ckpt_dir} holds only config.yaml): nothing to resume; {RESTART}")
             return (f"train.resume=true but {latest} does not exist (resume needs the run_name of a run that wrote "
                     f"a checkpoint)")
         config_path = ckpt_dir / "config.yaml"
@@ -95,15 +105,49 @@ def ownership_problem(ckpt_dir: Path, runs_dir: Path | None, resume: bool, overw
     if overwrite:
         return None
     held = _contents(ckpt_dir)
+    if dead_start(ckpt_dir):
+        return f"run_name={name}: {ckpt_dir} holds a run that stopped before its first checkpoint (only " \
+               f"config.yaml; train.resume=true has nothing to continue); {RESTART}"
     if held:
+        # only the advice that works: a finished run (or one that writes no latest.zip) has nothing to resume
+        resumable = (ckpt_dir / LATEST).is_file() and not (ckpt_dir / FINAL).is_file()
         return (f"run_name={name}: {ckpt_dir} already holds a run ({', '.join(held[:3])}"
-                f"{' ...' if len(held) > 3 else ''}); pick another run_name, continue it with train.resume=true, "
-                f"or replace it with train.overwrite=true")
+                f"{' ...' if len(held) > 3 else ''}); pick another run_name, "
+                f"{'continue it with train.resume=true, ' if resumable else ''}or replace it with "
+                f"train.overwrite=true")
     logs = _contents(runs_dir, ignore=()) if runs_dir is not None else []
     if logs:
         return (f"run_name={name}: {runs_dir} already holds a run's logs ({', '.join(logs[:3])}"
                 f"{' ...' if len(logs) > 3 else ''}); pick another run_name, or replace it with train.overwrite=true")
     return None
+
+
+def shipped_problem_of(ckpt_dir: Path, runs_dir: Path | None) -> str | None:
+    """The run's folders may neither be nor hold the shipped references (:func:`av_gym.references.shipped_problem`):
+    ``run_name=reference`` or ``paths.checkpoints=checkpoints/reference`` would write, and with
+    ``train.overwrite=true`` clear, the shipped agents."""
+    from av_gym.references import shipped_problem
+
+    return shipped_problem(ckpt_dir, "paths.checkpoints/run_name", cleared=True) or \
+        (shipped_problem(runs_dir, "paths.runs/run_name", cleared=True) if runs_dir is not None else None)
+
+
+def dead_start(ckpt_dir: Path) -> bool:
+    """A run of a trained kind stopped before its first checkpoint: its folder holds the ``config.yaml`` the command
+    wrote and nothing else (no ``latest.zip`` to resume, no model to keep). A rule-based agent's finished run holds
+    only its config.yaml too, and is not one."""
+    if _contents(ckpt_dir) != ["config.yaml"]:
+        return False
+    import yaml
+
+    from agents.registry import trained_kinds
+
+    try:
+        saved = yaml.safe_load((ckpt_dir / "config.yaml").read_text())
+    except (yaml.YAMLError, OSError):
+        return False
+    agent = saved.get("agent") if isinstance(saved, Mapping) else None
+    return isinstance(agent, Mapping) and agent.get("kind") in trained_kinds()
 
 
 def finished_problem(ckpt_dir: Path) -> str | None:
@@ -171,6 +215,9 @@ def clear_for_overwrite(ckpt_dir: Path, run_dir: Path | None) -> list[str]:
     ``.hydra/`` and log Hydra just wrote for this job). Only under the run's lock. Returns what was removed."""
     if ckpt_dir not in _held:
         raise RuntimeError(f"clear_for_overwrite({ckpt_dir}) without holding its lock")
+    problem = shipped_problem_of(ckpt_dir, run_dir)  # Hydra's run folder too (hydra.run.dir is the user's)
+    if problem:
+        raise ConfigError(problem)
     removed = []
     for folder, keep in ((ckpt_dir, (LOCK,)), (run_dir, (".hydra",))):
         if folder is None:
