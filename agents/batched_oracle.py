@@ -15,7 +15,6 @@ second of both; tests/test_dagger.py checks the agreement on a few hundred decis
 
 from __future__ import annotations
 
-import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,10 +23,7 @@ from av_gym.batched.vec_env import meta_actions
 from av_gym.batched.left_turn import BatchedLeftTurn
 from av_gym.wrappers import GO, YIELD
 
-__all__ = ["GoFutures", "future_rows", "go_futures", "oracle_labels"]
-
-# The engine's per-env arrays (B,) a future copies (besides the traffic and the generators).
-_ROW_ARRAYS = ("time", "ticks", "route_k", "progress_s", "progress_total", "arrived_time", "episode_seed", "cmd")
+__all__ = ["GoFutures", "go_futures", "oracle_labels"]
 
 
 @dataclass
@@ -48,35 +44,18 @@ class GoFutures:
         return np.where(self.safe & (self.min_gap >= float(margin)), GO, YIELD).astype(np.int64)
 
 
-def future_rows(engine: BatchedLeftTurn, rows: np.ndarray, spawns: bool = True) -> BatchedLeftTurn:
-    """A new engine holding copies of ``rows`` of ``engine`` (its traffic, clocks, progress and each row's
-    generator, deep-copied so that the future draws the spawns the real episode will draw), without the episode
-    pool or queue. Stepping it leaves ``engine`` as it is. ``spawns=False``: no vehicle enters the future (only
-    those on the map now drive on): what the oracle would know without the traffic still to come."""
-    rows = np.asarray(rows, dtype=int)
-    future = copy.copy(engine)  # shares the read-only tables, config and path geometry
-    if not spawns:
-        future.config = {**engine.config, "spawn_probability": 0.0}
-    future.B = len(rows)
-    future.traffic = engine.traffic.subset(rows)
-    future.rngs = [copy.deepcopy(engine.rngs[r]) for r in rows]
-    for name in _ROW_ARRAYS:
-        setattr(future, name, getattr(engine, name)[rows].copy())
-    future._new, future._pending, future._ready, future._ready_rngs, future._ready_seeds = [], [], None, [], []
-    future.pool_size = 0
-    return future
-
-
 def go_futures(engine: BatchedLeftTurn, rows: np.ndarray | None = None, spawns: bool = True) -> GoFutures:
     """Play the GO future of each env ``rows`` of ``engine`` (default: all) to its episode's end, all together:
     GO at every env step (its meta-action from the features, as :class:`~av_gym.wrappers.GoYieldActions`) in a
-    copy (:func:`future_rows`); the rows whose episode ended are no longer stepped."""
+    fork of the engine (:meth:`~av_gym.batched.left_turn.BatchedLeftTurn.fork`: each row's generator deep-copied,
+    so the future draws the spawns the real episode will draw; ``spawns=False``: no vehicle enters it); the rows
+    whose episode ended are no longer stepped."""
     rows = np.arange(engine.B) if rows is None else np.asarray(rows, dtype=int)
     n = len(rows)
     out = GoFutures(np.ones(n, bool), np.full(n, np.inf), np.zeros(n), np.zeros(n, bool))
     if n == 0:
         return out
-    f = future_rows(engine, rows, spawns)
+    f = engine.fork(rows, spawns=spawns)
     active = np.ones(n, bool)
     go = np.full(n, GO)
     turn = f.observe()

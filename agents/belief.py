@@ -33,18 +33,16 @@ from typing import Any, Literal
 import gymnasium as gym
 import numpy as np
 
-from agents.batched_oracle import _ROW_ARRAYS, future_rows
 from agents.registry import AgentKind, AgentParams
 from av_gym.estimation.driver_intent import DriverIntent
 from av_gym.params import param
 from av_gym.sensors.turn_signal import TurnSignalsParams, node_index
+from av_gym.sim.batched import SpawnPrior
 from av_gym.wrappers import GO, YIELD, meta_action
 
 __all__ = ["BeliefLookahead", "BeliefLookaheadAgent", "BeliefLookaheadParams", "BeliefPlanner", "EnvView",
            "PlannerOpinion", "belief_lookahead_teacher"]
 
-SPAWN_SPEED, SPAWN_SPEED_SD = 8.0, 1.0  # IntersectionEnv._spawn_vehicle: speed = 8 + N(0, 1) (also the set-point)
-DELTA_RANGE = (3.5, 4.5)  # IDMVehicle.randomize_behavior
 SPEED_LIMIT = 10.0  # every lane's: a driver the regulation releases takes it as its set-point
 P_RELEASED, P_HELD = 0.02, 0.02  # prior shares of drivers released / held by the regulation (validation states)
 ACC_SIGMA = 0.3  # m/s², the spread of an observed acceleration about the IDM command of the right behaviour
@@ -208,10 +206,7 @@ class BeliefPlanner:
     def futures(self, engine, rows: np.ndarray):
         """A future engine of len(rows)·K rows: each row repeated K times, its hidden draws replaced."""
         K = self.K
-        blind = copy.copy(engine)  # the rows' own generators hold the real future: the futures never get them
-        blind.rngs = [None] * engine.B
-        f = future_rows(blind, np.repeat(rows, K))
-        t, T = f.traffic, engine.T
+        T = engine.T
         if self._tables is not T:
             self._tables = T
             self._kind, self._origin, self._dest = _lane_kinds(T)
@@ -219,7 +214,7 @@ class BeliefPlanner:
                            enumerate(zip(self._kind, self._origin, self._dest)) if kd == 1}
             self._approach = {int(o): k for k, (kd, o) in enumerate(zip(self._kind, self._origin)) if kd == 0}
             self._exit = {int(d): k for k, (kd, d) in enumerate(zip(self._kind, self._dest)) if kd == 2}
-        n, N = len(rows), t.N
+        n, N = len(rows), engine.traffic.N  # a fork keeps the slot count
         drivers = engine.traffic.alive[rows] & ~engine.traffic.ego[rows] & ~engine.traffic.plain[rows]  # (n, N)
         # every draw of a decision from its own stream: the planner's seed, the episode, the decision's tick
         P = self.particles
@@ -235,9 +230,11 @@ class BeliefPlanner:
             # only, not on how many slots this batch happens to hold (the batch and a one-row view agree)
             W = max(N, SLOTS)
             u[i], u_b[i] = g.random((K, W))[:, :N], g.random((K, W))[:, :N]
-            delta[i], target[i], hold[i], logq[i] = (a[:N] for a in self._behaviour_prior(g, (W, P)))
+            delta[i], target[i], hold[i], logq[i] = (a[:N] for a in self._behaviour_prior(engine.prior, g, (W, P)))
             spawn_rngs += [np.random.Generator(np.random.PCG64(s)) for s in spawn.spawn(K)]
-        f.rngs = spawn_rngs
+        # the rows' own generators hold the real future: the futures never get them, only fresh spawn streams
+        f = engine.fork(rows, K, rngs=spawn_rngs)
+        t = f.traffic
         delta, target, hold = self._behaviour_posterior(engine, rows, delta, target, hold, logq, u_b)  # (n, K, N)
         dest = self._destinations(engine, rows, u)  # (n, K, N)
         # the route a spawn gives (o_i → ir_i, ir_i → il_d, il_d → o_d) and where along it the driver is now: the
@@ -261,13 +258,14 @@ class BeliefPlanner:
         t.yielding = np.where(m, hold.reshape(n * K, N), t.yielding)
         return f
 
-    def _behaviour_prior(self, g: np.random.Generator, shape: tuple) -> tuple:
+    def _behaviour_prior(self, spawn: SpawnPrior, g: np.random.Generator, shape: tuple) -> tuple:
         """Particles of a driver's behaviour (IDM exponent, set-point, held by the regulation now) from the
-        traffic's own prior: a spawn's delta ~ U(3.5, 4.5) and set-point = its spawn speed 8 + N(0, 1); a driver
+        traffic's own prior (``spawn``, the engine's): a spawn's delta ~ U(3.5, 4.5) and set-point = its spawn
+        speed 8 + N(0, 1) m/s; a driver
         the regulation released cruises at the lane's limit instead, one it holds has set-point 0 (each with
         ``P_RELEASED`` / ``P_HELD``, about the shares on validation states). Returns them and their log importance
         weights (prior over proposal)."""
-        delta = g.uniform(*DELTA_RANGE, size=shape)
+        delta = spawn.deltas(g, shape)
         # stratified: a fixed share of the particles per kind (spawn set-point, released, held), each weighed
         # by its prior over its share, so that the rare kinds are always there for the observation to pick
         P = shape[-1]
@@ -275,7 +273,7 @@ class BeliefPlanner:
         kind = np.zeros(P, dtype=int)
         kind[P - 2 * n_rare: P - n_rare], kind[P - n_rare:] = 1, 2
         kind = np.broadcast_to(kind, shape)
-        target = np.where(kind == 1, SPEED_LIMIT, SPAWN_SPEED + SPAWN_SPEED_SD * g.standard_normal(shape))
+        target = np.where(kind == 1, SPEED_LIMIT, spawn.speeds(g, shape))
         hold = kind == 2
         share = np.array([(P - 2 * n_rare) / P, n_rare / P, n_rare / P])
         prior = np.array([1.0 - P_RELEASED - P_HELD, P_RELEASED, P_HELD])
@@ -297,7 +295,7 @@ class BeliefPlanner:
         sub.delta = np.full_like(sub.delta, 4.0)  # the free term is 0 at the set-point whatever delta: no hidden draw
         free0 = COMFORT_ACC_MAX * (1 - np.power(np.maximum(v, 0) / np.abs(not_zero(np.clip(sub.target, 0, limit))),
                                                 sub.delta))
-        a_int = free0 - sub._idm_acc(sub._front(lane))  # (n, N), >= 0
+        a_int = free0 - sub.leader_idm()  # (n, N), >= 0
         v0 = np.abs(not_zero(np.clip(target, 0, limit[..., None])))
         a = COMFORT_ACC_MAX * (1 - np.power(np.maximum(v, 0)[..., None] / v0, delta)) - a_int[..., None]
         a = np.clip(a, -ACC_MAX, ACC_MAX)
@@ -365,19 +363,8 @@ def play_go_fast(f) -> np.ndarray:
             keep = np.nonzero(~ended)[0]
             idx = idx[keep]
             if len(idx):  # the engine steps every row it holds: drop the ended ones
-                f = _keep_rows(f, keep)
+                f = f.keep(keep)
     return safe
-
-
-def _keep_rows(f, keep: np.ndarray):
-    """The future engine ``f`` with only the rows ``keep``; their generators move over as they are (each is
-    this future's own, so nothing else draws from it)."""
-    g = copy.copy(f)
-    g.B, g.traffic = len(keep), f.traffic.subset(keep)
-    g.rngs = [f.rngs[i] for i in keep]
-    for name in _ROW_ARRAYS:
-        setattr(g, name, getattr(f, name)[keep].copy())
-    return g
 
 
 def described(engine, rows) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -556,13 +543,7 @@ class EnvView:
                 t.lane[0, j] = t.tlane[0, j] = t.route[0, j, 0] = T.closest(np.array([x]), np.array([y]),
                                                                             np.array([h]))[0]
                 t.acc[0, j], t.crashed[0, j], t.vid[0, j] = acc, bool(crashed), int(key)
-        e.traffic = t
-        e.time[0], e.ticks[0] = float(u.time), int(u.steps)
-        e.episode_seed[0] = int(u.episode_seed)
-        e.route_k[0], e.arrived_time[0], e.cmd[0] = 0, np.nan, 0.0
-        e.progress_s[0] = e._route_s(np.array([0]))[0]
-        e.progress_total[0] = max(1.0, e.route_starts[2] + 25.0 - e.progress_s[0])
-        return e
+        return e.observed(t, [float(u.time)], [int(u.steps)], [int(u.episode_seed)])
 
     @staticmethod
     def _ego_slot(u) -> int:

@@ -512,3 +512,109 @@ def test_cloning_on_the_batch_gives_the_per_env_demonstrations():
     assert got["decisions"] == ref["decisions"] > 6 * 5  # each episode lasts seconds: several decisions each
     for key in ("teacher_collision", "teacher_success", "accuracy"):
         assert got[key] == pytest.approx(ref[key], abs=1e-6), key
+
+
+# ------------------------------------------------------------------------------------------- the engine owns its state
+def _private_names(path: str, classes: set) -> set:
+    """The private names (``_x``, not dunders) the classes ``classes`` of the file ``path`` define: methods,
+    class attributes and ``self._x`` fields."""
+    import ast
+    from pathlib import Path
+
+    names = set()
+    for cls in ast.parse(Path(path).read_text()).body:
+        if not (isinstance(cls, ast.ClassDef) and cls.name in classes):
+            continue
+        for node in ast.walk(cls):
+            if isinstance(node, ast.FunctionDef):
+                names.add(node.name)
+            elif isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "self":
+                names.add(node.attr)
+            elif isinstance(node, ast.Assign):
+                names.update(t.id for t in node.targets if isinstance(t, ast.Name))
+    return {n for n in names if n.startswith("_") and not n.endswith("__")}
+
+
+def _private_uses(root, names: set) -> list:
+    """``file:line expression`` for every read or write of an attribute named in ``names`` on anything but
+    ``self`` / ``cls`` in the .py files under agents/, train/ and eval/ of ``root``."""
+    import ast
+
+    uses = []
+    for folder in ("agents", "train", "eval"):
+        for path in sorted((root / folder).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.Attribute) and node.attr in names \
+                        and not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls")):
+                    uses.append(f"{path.relative_to(root)}:{node.lineno} {ast.unparse(node)}")
+    return uses
+
+
+def test_agents_and_harness_touch_no_private_field_of_the_engine():
+    """Futures, views and the planner's IDM reading go through the engine's own methods (fork, keep, observed,
+    Traffic.leader_idm): nothing in agents/, train/ or eval/ reads or writes a private field or method of
+    BatchedLeftTurn or Traffic (the engine may change its bookkeeping without breaking them)."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    names = _private_names(str(root / "av_gym/batched/left_turn.py"), {"BatchedLeftTurn"}) \
+        | _private_names(str(root / "av_gym/sim/batched.py"), {"Traffic"})
+    assert {"_new", "_pending", "_route_s", "_route_k", "_ROW_ARRAYS", "_front", "_idm_acc"} <= names
+    assert _private_uses(root, names) == []
+
+
+def test_private_field_scan_finds_a_use(tmp_path):
+    """The scan above is not blind: a file that forks by hand, as agents/ did, is reported line by line."""
+    (tmp_path / "agents").mkdir()
+    (tmp_path / "agents" / "x.py").write_text("def f(engine):\n    engine._new = []\n    return engine._route_s([0])\n")
+    assert _private_uses(tmp_path, {"_new", "_route_s"}) == ["agents/x.py:2 engine._new",
+                                                             "agents/x.py:3 engine._route_s"]
+
+
+def test_fork_plays_the_rows_own_future_and_leaves_the_engine():
+    """fork(rows, k): k copies of each row, generators deep-copied, so each copy steps exactly as the row itself
+    would with the same actions (spawns included); the engine is not moved. keep(rows) moves the generators."""
+    _, config = _config()
+    bt = BatchedLeftTurn(4, config)
+    bt.reset([21, 22, 23, 24])
+    for _ in range(15):
+        bt.step(np.array([2, 1, 0, 2]))
+    before = {n: getattr(bt.traffic, n).copy() for n in bt.traffic.FIELDS}
+    f = bt.fork([1, 3], 2)
+    assert f.B == 4 and f.rngs[0] is not bt.rngs[1] and f.rngs[0] is not f.rngs[1]
+    h = bt.fork([3, 1])
+    g = h.keep([1])  # h's row 1 (row 1 of bt), with h's generator itself
+    assert g.B == 1 and g.rngs[0] is h.rngs[1]
+    for k in range(40):
+        bt.step(np.array([1, k % 3, 1, 2]))
+        f.step(np.array([k % 3, k % 3, 2, 2]))
+        g.step(np.array([k % 3]))
+    for row, copy_ in ((1, 0), (1, 1), (3, 2), (3, 3)):
+        np.testing.assert_array_equal(_batched_state(f, copy_), _batched_state(bt, row))
+    np.testing.assert_array_equal(_batched_state(g, 0), _batched_state(bt, 1))
+    np.testing.assert_array_equal(f.traffic.crashed[2][f.traffic.alive[2]], bt.traffic.crashed[3][bt.traffic.alive[3]])
+    assert (bt.traffic.alive.sum(axis=1) != before["alive"].sum(axis=1)).any()  # spawns and clears happened
+    with pytest.raises(ValueError, match="one generator per new row"):
+        bt.fork([0, 1], 2, rngs=[None])
+
+
+def test_one_spawn_prior_for_the_engine_and_the_planner():
+    """The engine's spawns and the belief planner's behaviour particles both draw from the engine's SpawnPrior:
+    a different prior moves both (and the default one is highway-env's, 8 + N(0, 1) m/s, U(3.5, 4.5))."""
+    import dataclasses
+
+    from agents.belief import BeliefPlanner
+    from av_gym.sim.batched import SPAWN_PRIOR, SpawnPrior
+
+    assert (SPAWN_PRIOR.speed, SPAWN_PRIOR.speed_sd, SPAWN_PRIOR.delta) == (8.0, 1.0, (3.5, 4.5))
+    _, config = _config()
+    a, b = BatchedLeftTurn(2, config), BatchedLeftTurn(2, config)
+    b.prior = dataclasses.replace(SPAWN_PRIOR, speed=6.0, delta=(2.0, 2.5))
+    a.reset([3, 4]), b.reset([3, 4])
+    drivers = a.traffic.alive & ~a.traffic.ego
+    assert drivers.any() and (a.traffic.delta[drivers] >= 3.5).all() and (b.traffic.delta[b.traffic.alive
+                                                                                             & ~b.traffic.ego] < 2.5).all()
+    g = lambda: np.random.default_rng(0)  # noqa: E731
+    p, q = BeliefPlanner()._behaviour_prior(SPAWN_PRIOR, g(), (3, 64)), BeliefPlanner()._behaviour_prior(b.prior, g(), (3, 64))
+    assert (p[0] >= 3.5).all() and (q[0] < 2.5).all() and (q[1][p[1] == 10.0] == 10.0).all()
+    assert isinstance(b.prior, SpawnPrior)

@@ -9,6 +9,7 @@ interfaces (SB3 ``VecEnv``, Gymnasium ``VectorEnv``) are in :mod:`av_gym.batched
 
 from __future__ import annotations
 
+import copy
 import itertools
 
 import numpy as np
@@ -22,7 +23,7 @@ from av_gym.sensors.base import episode_rng
 from av_gym.sensors.turn_signal import (DriverDraws, TurnSignalsParams, node_index, read_signals, route_origin,
                                        turn_signal)
 from av_gym.sim import batched, kernels
-from av_gym.sim.batched import LENGTH, WIDTH, LaneTable, Traffic
+from av_gym.sim.batched import LENGTH, SPAWN_PRIOR, WIDTH, LaneTable, SpawnPrior, Traffic
 
 SPAWN_CLEAR = 15.0  # m, IntersectionEnv._spawn_vehicle: no spawn this close to another vehicle
 EGO_CLEAR = 20.0  # m, _make_vehicles: vehicles this close to the ego are removed ("prevent early collisions")
@@ -54,6 +55,10 @@ class BatchedLeftTurn:
 
     ``mode: ccftap``: every episode is the Euro NCAP test case of the config (the ego and one plain ``Vehicle``
     target, no traffic); an episode's only draw is its episode seed, as on the per-env stack."""
+
+    # the per-env (B,) arrays of the episode clocks and progress (besides the traffic and the generators): what a
+    # fork copies row by row
+    _ROW_ARRAYS = ("time", "ticks", "_route_k", "progress_s", "progress_total", "arrived_time", "episode_seed", "cmd")
 
     def __init__(self, n_envs: int, config: dict | None = None, features: TurnFeaturesParams | dict | None = None,
                  pool: int = 0, **feature_overrides) -> None:
@@ -88,7 +93,8 @@ class BatchedLeftTurn:
         self.n_features = TurnEncoding.of(self.features).width
         B = self.B
         self.time, self.ticks = np.zeros(B), np.zeros(B, dtype=int)
-        self.route_k, self.progress_s, self.progress_total = np.zeros(B, dtype=int), np.zeros(B), np.ones(B)
+        self._route_k, self.progress_s, self.progress_total = np.zeros(B, dtype=int), np.zeros(B), np.ones(B)
+        self.prior: SpawnPrior = SPAWN_PRIOR  # the spawns' speed and IDM draws (the belief planner reads it too)
         self.arrived_time = np.full(B, np.nan)
         self.episode_seed = np.zeros(B, dtype=np.int64)
         self._new: list[tuple[int, int]] = []  # (env, slot) of vehicles added since the last settle
@@ -109,14 +115,14 @@ class BatchedLeftTurn:
         T = self.T
         lane = T.id[(f"o{route[0]}", f"ir{route[0]}", 0)]
         s = longitudinal + 5.0 + rng.normal() * position_deviation
-        speed = 8.0 + rng.normal() * speed_deviation
+        speed = self.prior.draw_speed(rng, speed_deviation)
         x, y = T.position(lane, s, 0.0)
         a = t.alive[b]
         if (np.hypot(t.x[b, a] - x, t.y[b, a] - y) < SPAWN_CLEAR).any():
             return
         dest = route[1]
         plan = [lane, T.id[(f"ir{route[0]}", f"il{dest}", 0)], T.id[(f"il{dest}", f"o{dest}", 0)]]
-        delta = rng.uniform(low=3.5, high=4.5)  # IDMVehicle.randomize_behavior
+        delta = self.prior.draw_delta(rng)  # IDMVehicle.randomize_behavior
         self._new.append((b, t.add(b, lane, s, speed, plan, delta=delta)))  # plan[0]: settled to the closest lane
 
     def _settle(self, t: Traffic) -> None:
@@ -224,7 +230,7 @@ class BatchedLeftTurn:
     def _start(self, rows, traffic: Traffic, episode_seeds) -> None:
         self.traffic.put(rows, traffic)
         self.episode_seed[rows] = episode_seeds
-        self.time[rows], self.ticks[rows], self.route_k[rows] = 0.0, 0, 0
+        self.time[rows], self.ticks[rows], self._route_k[rows] = 0.0, 0, 0
         self.arrived_time[rows] = np.nan
         self.cmd[rows] = 0.0
         s = self._route_s(rows)
@@ -310,21 +316,65 @@ class BatchedLeftTurn:
             self._q_rngs, self._q_eps, self._q_seeds = self._q_rngs[k:], self._q_eps[k:], self._q_seeds[k:]
         return seeds
 
+    # ------------------------------------------------------------------------------------------- futures, views
+    def fork(self, rows, k: int = 1, spawns: bool = True, rngs: list | None = None) -> "BatchedLeftTurn":
+        """A new engine of len(rows)·k rows: each row of ``rows`` repeated ``k`` times (row-major: row 0's k copies
+        first), its traffic, clocks and progress copied, without the episode pool or queue; stepping it leaves this
+        engine as it is. ``rngs``: the new rows' generators (used as given, not copied); by default a deep copy of
+        each row's own, so that the fork draws the spawns its episode will draw. ``spawns=False``: no vehicle
+        enters the fork (only those on the map now drive on)."""
+        rows = np.repeat(np.asarray(rows, dtype=int), int(k))
+        if rngs is not None and len(rngs) != len(rows):
+            raise ValueError(f"fork: rngs must give one generator per new row ({len(rows)}), got {len(rngs)}")
+        f = copy.copy(self)  # shares the read-only tables, config, prior and path geometry
+        if not spawns:
+            f.config = {**self.config, "spawn_probability": 0.0}
+        f.B, f.traffic = len(rows), self.traffic.subset(rows)
+        f.rngs = [copy.deepcopy(self.rngs[r]) for r in rows] if rngs is None else list(rngs)
+        for name in self._ROW_ARRAYS:
+            setattr(f, name, getattr(self, name)[rows].copy())
+        f._new, f._pending, f._ready, f._ready_rngs, f._ready_seeds = [], [], None, [], []
+        f.pool_size = 0
+        return f
+
+    def keep(self, rows) -> "BatchedLeftTurn":
+        """This engine with only the rows ``rows`` (a future whose other rows ended): their generators move over
+        as they are, not copied, so each stream goes on where it was."""
+        rows = np.asarray(rows, dtype=int)
+        return self.fork(rows, rngs=[self.rngs[r] for r in rows])
+
+    def observed(self, traffic: Traffic, time: np.ndarray, ticks: np.ndarray, episode_seed: np.ndarray) \
+            -> "BatchedLeftTurn":
+        """A new engine (this one's config and tables) holding ``traffic`` as it was observed mid-episode: the
+        episode clocks ``time`` (s) and ``ticks``, the episode seeds, the progress reward measured from the ego's
+        place now, no arrival yet, no commanded acceleration, no generators (the caller gives a fork its own).
+        The belief planner's view of a per-env env (agents/belief.py, EnvView)."""
+        B = traffic.B
+        e = self.fork(np.zeros(0, dtype=int), rngs=[])
+        e.B, e.traffic, e.rngs = B, traffic, [None] * B
+        e.time, e.ticks = np.array(time, dtype=float).reshape(B), np.array(ticks, dtype=int).reshape(B)
+        e.episode_seed = np.array(episode_seed, dtype=np.int64).reshape(B)
+        e._route_k, e.arrived_time, e.cmd = np.zeros(B, dtype=int), np.full(B, np.nan), np.zeros(B)
+        rows = np.arange(B)
+        e.progress_s = e._route_s(rows)
+        e.progress_total = np.maximum(1.0, e.route_starts[2] + 25.0 - e.progress_s)
+        return e
+
     def state_bytes(self) -> int:
         pool = 0 if self._ready is None else self._ready.state_bytes()
         return self.traffic.state_bytes() + pool + sum(a.nbytes for a in (
-            self.time, self.ticks, self.route_k, self.progress_s, self.progress_total, self.arrived_time))
+            self.time, self.ticks, self._route_k, self.progress_s, self.progress_total, self.arrived_time))
 
     def ego_slot(self, rows=None) -> np.ndarray:
         rows = np.arange(self.B) if rows is None else rows
         return np.argmax(self.traffic.ego[rows], axis=1)
 
     def _route_s(self, rows: np.ndarray) -> np.ndarray:
-        """LanePath.locate from the hint ``route_k`` + path_s, for the ego of each env in ``rows``."""
+        """LanePath.locate from the hint ``_route_k`` + path_s, for the ego of each env in ``rows``."""
         t, T = self.traffic, self.T
         e = self.ego_slot(rows)
         x, y = t.x[rows, e], t.y[rows, e]
-        k = self.route_k[rows].copy()
+        k = self._route_k[rows].copy()
         s, lat = T.local(self.route[k], x, y)
         step = np.where(s > T.length[self.route[k]], 1, np.where(s < 0, -1, 0))
         for _ in range(len(self.route)):
@@ -337,7 +387,7 @@ class BatchedLeftTurn:
             s, lat = np.where(go, s2, s), np.where(go, lat2, lat)
             done = ((step > 0) & (s <= T.length[self.route[k]])) | ((step < 0) & (s >= 0))
             step = np.where(go & ~done, step, 0)
-        self.route_k[rows] = k
+        self._route_k[rows] = k
         self._lat = lat
         return self.route_starts[k] + s
 

@@ -45,13 +45,47 @@ DIAGONAL = float(np.sqrt(LENGTH**2 + WIDTH**2))
 VEHICLE_LENGTH = 5.0  # AbstractLane.VEHICLE_LENGTH
 COMFORT_ACC_MAX, COMFORT_ACC_MIN, ACC_MAX = 6.0, -3.0, 6.0
 DISTANCE_WANTED, TIME_WANTED = 7.0, 1.5
-DELTA_RANGE = (3.5, 4.5)
 TAU_PURSUIT, KP_LATERAL, KP_HEADING, KP_A = 0.1, 1 / 0.6, 1 / 0.2, 1 / 0.6
 MAX_STEERING = np.pi / 3
 REG_TIMES = np.arange(0.25, 3, 0.25)  # RegulatedRoad.is_conflict_possible(horizon=3, step=0.25)
 EGO_TARGET_SPEEDS = np.array([0.0, 4.5, 9.0])
 SLOWER, IDLE, FASTER = 0, 1, 2
 _VEHICLE_IDS = itertools.count(1)  # unique over all batches of the process (episodes move between them)
+
+
+@dataclass(frozen=True)
+class SpawnPrior:
+    """The traffic's draws per spawned driver (IntersectionEnv._spawn_vehicle, IDMVehicle.randomize_behavior):
+    its speed, which is also its cruise set-point, ``speed`` + N(0, 1)·deviation (m/s), and its IDM exponent
+    ~ U(``delta``). One instance (:data:`SPAWN_PRIOR`) is read by the engine that draws spawns and by the belief
+    planner that redraws what the car cannot observe, so the two cannot drift apart."""
+
+    speed: float = 8.0
+    """m/s, the mean spawn speed"""
+    speed_sd: float = 1.0
+    """m/s, the spawn speed's standard deviation (the spawn's ``speed_deviation`` scales it)"""
+    delta: tuple[float, float] = (3.5, 4.5)
+    """the IDM exponent's uniform range"""
+
+    def draw_speed(self, rng: np.random.Generator, deviation: float = 1.0) -> float:
+        """One spawn speed (m/s), one ``normal()`` draw as highway-env makes it: speed + normal · sd · deviation
+        (``deviation`` 0: the challenger's exact speed)."""
+        return self.speed + rng.normal() * (self.speed_sd * deviation)
+
+    def draw_delta(self, rng: np.random.Generator) -> float:
+        """One IDM exponent, one ``uniform`` draw as IDMVehicle.randomize_behavior makes it."""
+        return rng.uniform(low=self.delta[0], high=self.delta[1])
+
+    def speeds(self, rng: np.random.Generator, shape: tuple) -> np.ndarray:
+        """Spawn speeds (m/s) of the given shape from standard normals: speed + speed_sd · N(0, 1)."""
+        return self.speed + self.speed_sd * rng.standard_normal(shape)
+
+    def deltas(self, rng: np.random.Generator, shape: tuple) -> np.ndarray:
+        """IDM exponents of the given shape, U(delta)."""
+        return rng.uniform(*self.delta, size=shape)
+
+
+SPAWN_PRIOR = SpawnPrior()
 
 
 def not_zero(x: np.ndarray, eps: float = 1e-2) -> np.ndarray:
@@ -367,6 +401,11 @@ class Traffic:
         key[b[ok], i[ok], j[ok]] = s[ok]
         j_front = N - 1 - np.argmin(key[:, :, ::-1], axis=2)  # reversed: the last of equal minima
         return np.where(np.isfinite(key).any(axis=2), j_front, -1)
+
+    def leader_idm(self) -> np.ndarray:
+        """IDMVehicle.acceleration (m/s², unclipped) of every slot with its leader on its current lane, from the
+        set-points and IDM exponents the arrays hold now: what a driver's acceleration says of its hidden draws."""
+        return self._idm_acc(self._front(self.lane))
 
     def _idm(self) -> np.ndarray:
         """IDMVehicle.act's acceleration: IDM on the current lane's leader, and the min with the target lane's
