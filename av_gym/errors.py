@@ -3,11 +3,19 @@ its message as a single line and exit with status 2."""
 
 from __future__ import annotations
 
+import difflib
 from pathlib import Path
 
 
 class ConfigError(ValueError):
     """A user-facing configuration or input error; its message names the field and the allowed values."""
+
+
+def closest_hint(name: str, allowed: list[str]) -> str:
+    """``"; did you mean 'mode'?"`` for a mistyped key (difflib's closest of ``allowed``), ``""`` when none is
+    close: appended to a refusal that lists every allowed key, so the likely fix is named without reading the list."""
+    close = difflib.get_close_matches(str(name), [str(a) for a in allowed], n=1)
+    return f"; did you mean {close[0]!r}?" if close else ""
 
 
 SWEEP_FAILURES = "AV_GYM_SWEEP_FAILURES"  # env var: the file where a sweep's jobs record how they failed

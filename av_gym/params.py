@@ -32,7 +32,7 @@ from collections.abc import Mapping
 from dataclasses import MISSING, dataclass
 from typing import Any, Literal, Union, get_args, get_origin
 
-from av_gym.errors import ConfigError
+from av_gym.errors import ConfigError, closest_hint
 
 
 class ParamError(ConfigError):
@@ -113,7 +113,8 @@ def check(cls: type[Params], values: Any, where: str = "", what: str | None = No
     what = what or f"a parameter of {cls.__name__.removesuffix('Params') or cls.__name__}"
     fields = {f.name: f for f in dataclasses.fields(cls)}
     hints = _hints(cls)
-    found = [f"{_join(where, k)} is not {what}; allowed: {sorted(fields)}" for k in values if k not in fields]
+    found = [f"{_join(where, k)} is not {what}; allowed: {sorted(fields)}{closest_hint(k, list(fields))}"
+             for k in values if k not in fields]
     for name, f in fields.items():
         if name in values:
             meta = {**f.metadata, "min_items": 0} if construction else f.metadata

@@ -16,7 +16,7 @@ from collections.abc import Callable, Mapping
 from importlib import resources
 from typing import Any
 
-from av_gym.errors import ConfigError
+from av_gym.errors import ConfigError, closest_hint
 from av_gym.params import check
 from av_gym.presets import preset_names
 
@@ -354,8 +354,9 @@ def _check_path(cfg: Any, key: str, command: str) -> None:
             if isinstance(node, DictConfig) and not allowed:  # an empty section, e.g. localizer.noise: {}
                 raise ConfigError(f"{name} is not set in {section}; add a key with +{key}=<value>")
             if isinstance(node, DictConfig):
-                raise ConfigError(f"{name} is not a field of {section}; allowed: {allowed}"
-                                  if where else f"{name} is not {section}; allowed: {allowed}")
+                hint = closest_hint(part, allowed)
+                raise ConfigError(f"{name} is not a field of {section}; allowed: {allowed}{hint}"
+                                  if where else f"{name} is not {section}; allowed: {allowed}{hint}")
             raise ConfigError(f"{where} is a value, not a section: cannot set {key}")
         node = node._get_node(part)  # not node[part]: that would resolve an interpolation (${hydra:...})
         done.append(part)

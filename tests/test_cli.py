@@ -97,6 +97,9 @@ def test_train_the_camera_lane_keeper_with_a_narrow_cnn(tmp_path):
     ("train", ["agent.n_envs=0"], "agent.n_envs must be an integer in [1, 4096], got 0"),
     # Hydra's own errors (unknown key, unknown option), caught before Hydra reports them over several lines
     ("train", ["agent.epoch=3"], "agent.epoch is not a field of agent=ppo_turn; allowed: ['action_repeat', 'actions',"),
+    ("train", ["env.mod=ccftap"], "env.mod is not a field of env=left_turn; allowed: ['acceleration_range', "),
+    ("train", ["env.mod=ccftap"], "'target_speeds_kmh']; did you mean 'mode'?"),  # the closest key, last
+    ("eval", ["sensors=turn_perceived", "sensors.detector.mis_rate=0.2"], "; did you mean 'miss_rate'?"),
     ("train", ["env=foo"], "env=foo: env must be one of ['lane_keeping', 'left_turn']"),
     ("train", ["+foo=1"], "foo is not a train setting; allowed: ['agent', 'env',"),
     ("train", ["seed=0,1"], "add -m to sweep over them"),

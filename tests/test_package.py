@@ -23,3 +23,18 @@ def test_a_name_that_is_no_submodule_is_an_attribute_error():
     with pytest.raises(AttributeError, match="no attribute 'not_a_module'"):
         av_gym.not_a_module  # noqa: B018
     assert not hasattr(av_gym, "_private")
+
+
+def test_a_mistyped_env_key_names_the_closest_one():
+    """README: ``env=`` is checked before anything is built, an unknown key refused with the closest known one."""
+    import gymnasium as gym
+
+    import av_gym
+    from av_gym.errors import ConfigError
+
+    with pytest.raises(ConfigError) as info:
+        gym.make(av_gym.ENV_IDS["left_turn"], env={"spawn_probabilty": 0.3})
+    assert str(info.value).startswith("env.spawn_probabilty is not a field of env=left_turn; allowed: [")
+    assert str(info.value).endswith("; did you mean 'spawn_probability'?")
+    with pytest.raises(ConfigError, match=r"allowed: \['dt', 'ego_speed_kmh', 'target_speed_kmh'\]$"):
+        gym.make(av_gym.ENV_IDS["left_turn"], env={"ccftap": {"zzz": 1}})  # nothing close: the list alone
