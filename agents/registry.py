@@ -105,6 +105,21 @@ The label is an action of the training env; a teacher refuses (:class:`ConfigErr
 cannot label."""
 
 
+OPINIONS = Registry("shield.second_opinion", {
+    "belief_lookahead": "agents.belief:PlannerOpinion",
+})
+"""``shield.second_opinion`` → the class of the :class:`av_gym.shields.Opinion` the harness installs on the AEB
+shield (:func:`eval.agents.install_opinion`), built from the agent config of that name (its Params): the library's
+shield takes an object and knows none of these names."""
+
+
+def opinion_problems(name: object, where: str = "shield.second_opinion") -> list[str]:
+    """One line if ``name`` (a shield's ``second_opinion``) is neither ``none`` nor one of :data:`OPINIONS`."""
+    if name == "none" or (isinstance(name, str) and name in OPINIONS):
+        return []
+    return [f"{where} must be one of {['none', *OPINIONS.names()]}, got {name!r}"]
+
+
 def trained_kinds() -> list[str]:
     return [name for name, cls in AGENT_KINDS.items() if cls.trained()]
 

@@ -17,13 +17,13 @@ import gymnasium as gym
 from agents import Policy
 from agents.checkpoint import check_sb3_zip, describe_space, read_config_yaml, saved_config
 from agents.configs import KIND_DEFAULT, available_agents, kind_default, shipped_agent
-from agents.registry import AGENT_KINDS, agent_params, trained_kinds
+from agents.registry import AGENT_KINDS, OPINIONS, agent_params, opinion_problems, trained_kinds
 from av_gym.errors import ConfigError
 from av_gym.references import reference_root
 from conf.presets import compose_group  # noqa: F401 - used here and imported from here by tests and tools
 
-__all__ = ["AgentPlan", "available_agents", "check_plan", "compose_group", "find_checkpoint", "load_agent_config",
-           "make_eval_env", "plan_agent", "resolve_agent", "sensor_overrides", "sensors_summary"]
+__all__ = ["AgentPlan", "available_agents", "check_plan", "compose_group", "find_checkpoint", "install_opinion",
+           "load_agent_config", "make_eval_env", "plan_agent", "resolve_agent", "sensor_overrides", "sensors_summary"]
 
 
 def load_agent_config(name: str) -> dict[str, Any]:
@@ -194,6 +194,8 @@ def check_plan(plan: "AgentPlan", env_name: str) -> None:
         _checkpoint_file(Path(plan.spec), env_name)
     for group, section in (("sensors", plan.sensors), ("shield", plan.shield)):
         problems = section_problems(group, section)
+        if group == "shield" and isinstance(section, dict):  # the opinion it names is the harness's to install
+            problems += opinion_problems(section.get("second_opinion", "none"))
         if problems:
             raise ConfigError(f"agent {plan.label!r}: {problems[0]}")
 
@@ -227,19 +229,28 @@ def resolve_agent(spec: str, env: gym.Env, env_name: str, checkpoints: str | Pat
 
 
 def make_eval_env(env_cfg: dict, sensors: dict | None, shield: dict | None, **kwargs: Any) -> gym.Env:
-    """:func:`av_gym.make.make_env`, and the AEB shield's second opinion installed when its config names one
-    (``shield.second_opinion``: the library has no planner of its own; :class:`agents.belief.PlannerOpinion`)."""
+    """:func:`av_gym.make.make_env`, with the AEB shield's second opinion installed (:func:`install_opinion`)."""
     from av_gym.make import make_env
-    from av_gym.shields.aeb import find_shield
 
     env = make_env(env_cfg, sensors, shield, **kwargs)
-    aeb = find_shield(env)
-    name = getattr(getattr(aeb, "params", None), "second_opinion", "none")
-    if aeb is not None and name != "none" and aeb.opinion is None:
-        from agents.belief import PlannerOpinion
-
-        aeb.opinion = PlannerOpinion(agent_params(load_agent_config(name), where=f"shield.second_opinion {name!r}"))
+    install_opinion(env)
     return env
+
+
+def install_opinion(env: gym.Env) -> None:
+    """The second opinion the AEB shield's config names (``shield.second_opinion``), resolved here by
+    :data:`agents.registry.OPINIONS` and built from the agent config of that name: the library's shield takes an
+    object (:class:`av_gym.shields.Opinion`), it knows no harness names. An opinion already installed is kept."""
+    from av_gym.shields import find_shield
+
+    aeb = find_shield(env)
+    name = getattr(getattr(aeb, "p", None), "second_opinion", "none")
+    if aeb is None or name == "none" or aeb.opinion is not None:
+        return
+    problems = opinion_problems(name)
+    if problems:
+        raise ConfigError(problems[0])
+    aeb.opinion = OPINIONS.get(name)(agent_params(load_agent_config(name), where=f"shield.second_opinion {name!r}"))
 
 
 # ----------------------------------------------------------------------------------------------- per-agent stacks

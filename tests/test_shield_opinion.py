@@ -90,7 +90,6 @@ def test_the_planner_needs_the_turn_features():
 
 
 def test_a_bad_second_opinion_is_one_line_naming_the_field():
-    from av_gym.make import make_env
-
+    # the names are the harness's (agents.registry.OPINIONS): it refuses one it cannot install
     with pytest.raises(ConfigError, match=r"second_opinion.*'none'.*'belief_lookahead'"):
-        make_env(ccftap_cfg(15, 45, 0.0), None, {**conf("shield", "aeb"), "second_opinion": "oracle"})
+        make_eval_env(ccftap_cfg(15, 45, 0.0), None, {**conf("shield", "aeb"), "second_opinion": "oracle"})

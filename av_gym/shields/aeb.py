@@ -77,7 +77,7 @@ braking would park the ego in the target's path), ``aeb_brake_time`` (s, first b
 before), ``aeb_stop_position`` (m, front bumper past the stop line at the first standstill under braking; None
 before),
 ``aeb_action`` (the action passed on to the env), ``aeb_withheld`` (stop-line brake decisions a second opinion
-withheld this episode: :attr:`AEBShield.opinion`, installed by the harness's ``shield.second_opinion``).
+withheld this episode: :attr:`AEBShield.opinion`, an :class:`~av_gym.shields.opinion.Opinion` its owner installs).
 
 The code, by seam: the parameters (:mod:`av_gym.shields.aeb_params`), the brake actuator
 (:mod:`av_gym.shields.actuator`), the shared base and the variant registry (:mod:`av_gym.shields.aeb_base`), and

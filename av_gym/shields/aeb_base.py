@@ -21,6 +21,7 @@ from av_gym.sensors.detector import DetectorParams
 from av_gym.shields.predict import DrivenPath, RouteTable
 from av_gym.shields.actuator import BrakeActuator, _ActuatedAct
 from av_gym.shields.aeb_params import _NO_ACCEL, BRAKE, CONFIG_SECTION_KEYS, MONITOR, STOP_SPEED, AEBParams
+from av_gym.shields.opinion import Opinion, check_opinion
 
 
 # ----------------------------------------------------------------------------------------------- shield
@@ -78,17 +79,12 @@ class AEBShield(gym.Wrapper):
     Params: ClassVar[type[AEBParams]] = AEBParams
     variant: ClassVar[str] = ""
     decides_outside_window: ClassVar[bool] = False  # improved: a forward AEB outside the turn window
-    needs_lanes: bool = False  # the objects' lane indices (improved with target_model map)
-    accel_alpha: float | None = None  # EMA of the finite-difference accelerations; None: not computed
+    p: AEBParams  # the parameters: every decision reads them here (a field copied onto self would be a second copy)
     # The counterfactual labeller's handles (eval/interventions.py); neither changes a decision.
     on_intervention: Any = None  # called as on_intervention(shield, action) when a brake starts, before the step
     bypass: bool = False  # True: pass the agent's action through untouched and decide nothing
     target_xy: np.ndarray | None = None  # position of the object the last decision named (NaN when none)
-    # A second opinion before a brake at the stop line (never before an emergency brake): an object with
-    # ``reset()``, ``observe(env, obs)`` (each observation of the sensed env) and ``go_is_safe(env) -> bool``;
-    # True withholds the brake. Installed by its owner (the harness's eval.agents.make_eval_env, for
-    # ``second_opinion``): the library has no planner of its own.
-    opinion: Any = None
+    _opinion: Opinion | None = None
     withheld: int = 0  # stop-line brakes the opinion withheld this episode
     _proposed: Any = None  # the agent's action for the step being decided (the improved variant's check_action)
 
@@ -144,17 +140,43 @@ class AEBShield(gym.Wrapper):
         if type(self) is AEBShield:
             raise TypeError("AEBShield is the variants' base: use AEBShield.from_config(env, section) or a variant "
                             f"class ({AEB_VARIANTS.names()} in AEB_VARIANTS)")
-        p = self.params = self.Params.build(params, **overrides)
+        p = self.p = self.Params.build(params, **overrides)
         super().__init__(env)
         if getattr(env.unwrapped, "scenario", None) != "left_turn":
             raise ParamError(f"kind aeb works on the left_turn scenario only, not "
                              f"{getattr(env.unwrapped, 'scenario', '?')!r}")
-        self.mode, self.ttc_brake = p.mode, p.ttc_brake
         self.actuator = BrakeActuator(p.brake)
         self.detector = self.tracker = None
         self._lanes: list = []
-        if self.mode == "perceived":
+        if p.mode == "perceived":
             self._build_perception(p.detector, p.tracker)
+
+    @property
+    def params(self) -> AEBParams:
+        """The parameters the shield was built with (:attr:`p`), under the constructor's name."""
+        return self.p
+
+    @property
+    def ttc_brake(self) -> float:
+        """s, the emergency threshold (``p.ttc_brake``): what a caller compares an ``aeb_ttc`` with."""
+        return self.p.ttc_brake
+
+    @property
+    def opinion(self) -> Opinion | None:
+        """The second opinion asked before a brake at the stop line (never before an emergency brake): an
+        :class:`~av_gym.shields.opinion.Opinion`, whose ``go_is_safe`` True withholds the brake. Installed by
+        whoever builds the shield: the library has none of its own."""
+        return self._opinion
+
+    @opinion.setter
+    def opinion(self, opinion: Opinion | None) -> None:
+        check_opinion(opinion)
+        self._opinion = opinion
+
+    @property
+    def needs_lanes(self) -> bool:
+        """Whether the decision reads the objects' lane indices (the improved variant's map-based models)."""
+        return False
 
     # ------------------------------------------------------------------------------------------- perception
     def _build_perception(self, detector: DetectorParams, tracker: TrackerParams) -> None:
@@ -290,7 +312,7 @@ class AEBShield(gym.Wrapper):
         """Other vehicles ``(N, 7)`` [x, y, vx, vy, heading, length, width], a persistent key per row (for the
         finite differences) and the id reported in ``info`` (index in ``truth["others"]``, or the track id)."""
         u = self.env.unwrapped
-        if self.mode == "ground_truth":
+        if self.p.mode == "ground_truth":
             vehicles = [v for v in u.road.vehicles if v is not u.vehicle]
             state = np.array([(v.position[0], v.position[1], v.speed, v.heading, v.LENGTH, v.WIDTH)
                               for v in vehicles], dtype=float).reshape(-1, 6)
@@ -322,7 +344,8 @@ class AEBShield(gym.Wrapper):
                 prev = np.array([self._prev_v[keys[i]] for i in seen])
                 ema = np.array([self._ema.get(keys[i], _NO_ACCEL) for i in seen])
                 raw = (velocities[seen] - prev) / dt
-                self._ema.update(zip([keys[i] for i in seen], self.accel_alpha * raw + (1 - self.accel_alpha) * ema))
+                alpha = self.p.accel_alpha
+                self._ema.update(zip([keys[i] for i in seen], alpha * raw + (1 - alpha) * ema))
         out = np.array([self._ema.get(k, _NO_ACCEL) for k in keys], dtype=float).reshape(-1, 2)
         self._prev_v = dict(zip(keys, velocities))  # keys no longer present are dropped, as from the EMA
         self._ema = {k: self._ema[k] for k in keys if k in self._ema}
@@ -335,7 +358,7 @@ class AEBShield(gym.Wrapper):
     def _is_active(self, ego: dict) -> bool:
         """Inside the turn window: from ``activation_distance`` before the stop line until the turn is cleared."""
         front_to_line = self.stop_line_s - (ego["s"] + 0.5 * ego["size"][0])
-        return ego["s"] < self.clear_s and front_to_line <= self.activation_distance
+        return ego["s"] < self.clear_s and front_to_line <= self.p.activation_distance
 
     # ------------------------------------------------------------------------------------------- decision
     def _decide(self):
@@ -345,7 +368,7 @@ class AEBShield(gym.Wrapper):
         others, keys, out_ids = self._objects(ego)
         self._keys = keys  # a persistent key per row of ``others`` (for a variant's own per-object memory)
         ego_key = "__ego__"
-        if self.accel_alpha is not None:
+        if hasattr(self.p, "accel_alpha"):  # the turn-window variants' EMA (TurnParams)
             accels = self._accelerations([ego_key, *keys], np.vstack([ego["velocity"][None], others[:, 2:4]]), t)
         else:  # a variant that reads no accelerations
             accels = np.zeros((len(others) + 1, 2))
@@ -386,7 +409,8 @@ class AEBShield(gym.Wrapper):
             return True
         if self._stopped_at is None:
             self._stopped_at = t
-        if self.standstill_hold is None or t - self._stopped_at < self.standstill_hold - 1e-9:
+        hold = self.p.standstill_hold
+        if hold is None or t - self._stopped_at < hold - 1e-9:
             return True
         self._release()
         return False

@@ -23,47 +23,38 @@ class ImprovedAEB(AEBShield):
     """``improved``: our design (module docstring); parameters :class:`ImprovedParams`."""
 
     Params = ImprovedParams
+    p: ImprovedParams
     variant = "improved"
     decides_outside_window = True
 
     def __init__(self, env: gym.Env, params: ImprovedParams | None = None, **overrides) -> None:
         super().__init__(env, params, **overrides)
-        p = self.params
-        self.T, self.activation_distance, self.accel_alpha = p.step, p.activation_distance, p.accel_alpha
-        self.margin, self.release_margin, self.stop_margin = p.margin, p.release_margin, p.stop_margin
-        self.horizon_min, self.horizon_max, self.target_model = p.horizon_min, p.horizon_max, p.target_model
-        self.release_hold, self.feasibility, self.go_speed = p.release_hold, p.feasibility, p.go_speed
-        self.release_standing, self.emergency_accel_time = p.release_standing, p.emergency_accel_time
-        self.release_accel_time = p.release_accel_time
-        self.setoff_speed, self.setoff_accel, self.setoff_horizon = p.setoff_speed, p.setoff_accel, p.setoff_horizon
-        self.setoff_recent = p.setoff_recent
-        self.second_opinion = p.second_opinion
         self._moved_at: dict = {}
-        self.warn_ttc, self.ignore_rear, self.check_action = p.warn_ttc, p.ignore_rear, p.check_action
-        self.needs_lanes = self.target_model in ("map", "conflict")
         self._hypotheses: LaneHypotheses | None = None
         self._conflicts: ConflictModel | None = None
-        self.hypothesis_min_p, self.signals = p.hypothesis_min_p, p.signals
-        self._signal_params = p.signal_channel
         self._drivers = DriverDraws()  # the shield's own channel's per-driver draws, keyed by the vehicle
         self._intended_at: dict = {}  # vehicle -> (lane index, the indicator its route asks for there)
-        self._beliefs = DriverIntent(p.signal_channel)
+        self._beliefs = DriverIntent(self.p.signal_channel)
+
+    @property
+    def needs_lanes(self) -> bool:
+        return self.p.target_model in ("map", "conflict")
 
     def _on_reset(self, u) -> None:
-        if self.second_opinion != "none" and self.opinion is None:
+        if self.p.second_opinion != "none" and self.opinion is None:
             from av_gym.errors import ConfigError
 
-            raise ConfigError(f"shield.second_opinion={self.second_opinion!r} is the harness's planner and none is "
-                              f"installed: python -m eval installs it; from your own code set the shield's opinion "
-                              f"(agents.belief.PlannerOpinion; from an installed wheel after "
-                              f"av_gym_harness.use_harness()), or shield.second_opinion=none")
-        if self.target_model == "map":
+            raise ConfigError(f"shield.second_opinion={self.p.second_opinion!r} is the harness's planner and none is "
+                              f"installed: python -m eval installs it; from your own code install an opinion, an "
+                              f"object with reset(), observe(env, obs) and go_is_safe(env) (av_gym.shields.Opinion), "
+                              f"as find_shield(env).opinion, or set shield.second_opinion=none")
+        if self.p.target_model == "map":
             if self._hypotheses is None:
                 self._hypotheses = LaneHypotheses(u.road.network)
             self._hypotheses.network = u.road.network
-        if self.target_model == "conflict":
+        if self.p.target_model == "conflict":
             if self._conflicts is None:
-                self._conflicts = ConflictModel(u.road.network, min_p=self.hypothesis_min_p)
+                self._conflicts = ConflictModel(u.road.network, min_p=self.p.hypothesis_min_p)
             self._conflicts.network = u.road.network
             self._drivers.clear()
             self._intended_at = {}
@@ -79,10 +70,10 @@ class ImprovedAEB(AEBShield):
         per driver when first read, does it indicate and on which side; per reading, is it missed) and belongs to
         the true vehicle: the object itself in ground-truth mode (``keys``), the vehicle within 2 m of the track
         in perceived mode (none elsewhere). None beyond the channel's range; what was read stays known."""
-        if not self.signals:
+        if not self.p.signals:
             return None
-        u, sp = self.env.unwrapped, self._signal_params
-        if self.mode == "ground_truth":
+        u, sp = self.env.unwrapped, self.p.signal_channel
+        if self.p.mode == "ground_truth":
             drivers = list(keys)
         else:
             vehicles = [v for v in u.road.vehicles if v is not u.vehicle]
@@ -133,8 +124,8 @@ class ImprovedAEB(AEBShield):
         """Time (s) until the ego's centre has passed the end of the turn (the conflict zone is cleared) under the
         distance profile ``ds`` at times ``t``, plus one slice, clipped to [horizon_min, horizon_max]."""
         reached = s0 + ds >= self.clear_s
-        h = t[int(np.argmax(reached))] + self.T if reached.any() else self.horizon_max
-        return float(np.clip(h, self.horizon_min, self.horizon_max))
+        h = t[int(np.argmax(reached))] + self.p.step if reached.any() else self.p.horizon_max
+        return float(np.clip(h, self.p.horizon_min, self.p.horizon_max))
 
     def _decide_improved(self, ego, others, a_others, t, in_turn: bool = True):
         """Outside the turn window (``in_turn`` False: far up the approach, or past the turn) only the emergency
@@ -146,12 +137,13 @@ class ImprovedAEB(AEBShield):
         sc = self._predict_scene(ego, others, a_others, t, in_turn)
         sc.ds_cruise = self._continue_profile(ego, sc.t_long)
         sc.horizon = self._horizon(sc.s0, sc.ds_cruise, sc.t_long)
-        sc.n = int(round(sc.horizon / self.T))
-        ttc, target = self._ttc_of(sc, sc.ds_cruise, sc.n, self.margin)
+        sc.n = int(round(sc.horizon / self.p.step))
+        ttc, target = self._ttc_of(sc, sc.ds_cruise, sc.n, self.p.margin)
         sc.target_out = int(sc.idx[target]) if target >= 0 else -1
         # A car standing in the box that may set off (before the line only): checked where it can make a
         # difference, in the release test and at the stop-line trigger point (it never warns or brakes elsewhere)
-        setoff_rule = self.setoff_speed > 0 and self.target_model == "conflict" and in_turn and sc.front_to_line >= 0
+        p = self.p
+        setoff_rule = p.setoff_speed > 0 and p.target_model == "conflict" and in_turn and sc.front_to_line >= 0
         setoff = None
         if setoff_rule and (self._latched or (not np.isfinite(ttc) and self._at_trigger_point(sc))):
             setoff = self._setoff_predict(sc.others, sc.lanes, sc.t_long, sc.intent, sc.recent)
@@ -170,14 +162,14 @@ class ImprovedAEB(AEBShield):
     def _recently_moved(self, others: np.ndarray, t: float) -> np.ndarray | None:
         """Per object, whether it was faster than ``setoff_speed`` within the last ``setoff_recent`` s (None when
         the set-off rule is off); also records who is moving now."""
-        if self.setoff_speed <= 0:
+        if self.p.setoff_speed <= 0:
             return None
         keys = getattr(self, "_keys", None) or [None] * len(others)
-        fast = np.hypot(others[:, 2], others[:, 3]) >= self.setoff_speed if len(others) else np.zeros(0, bool)
+        fast = np.hypot(others[:, 2], others[:, 3]) >= self.p.setoff_speed if len(others) else np.zeros(0, bool)
         for key, f in zip(keys, fast):
             if f and key is not None:
                 self._moved_at[key] = t
-        return np.array([key is not None and t - self._moved_at.get(key, -np.inf) <= self.setoff_recent + 1e-9
+        return np.array([key is not None and t - self._moved_at.get(key, -np.inf) <= self.p.setoff_recent + 1e-9
                          for key in keys], dtype=bool) if len(others) else np.zeros(0, bool)
 
     def _predict_scene(self, ego, others, a_others, t, in_turn: bool) -> SimpleNamespace:
@@ -189,23 +181,24 @@ class ImprovedAEB(AEBShield):
         recent = self._recently_moved(others, t)
         recent = recent[keep] if recent is not None else None
         others, a_others = others[keep], a_others[keep]
-        t_long = self.T * np.arange(1, int(round(max(self.horizon_max, 4.0 + self.horizon_min) / self.T)) + 1)
+        p = self.p
+        t_long = p.step * np.arange(1, int(round(max(p.horizon_max, 4.0 + p.horizon_min) / p.step)) + 1)
         lanes, intent = None, None
-        if self.target_model == "map":
+        if self.p.target_model == "map":
             lanes = [lane for lane, k in zip(self._lanes, keep) if k]
             obj_xy, obj_h, owner, turn = self._hypotheses.predict(others, lanes, t_long)
             # A vehicle that would turn into the ego's lane behind it has to yield to the ego: its map
             # hypotheses never count as running into the ego from behind.
-            rear = turn | self.ignore_rear
-        elif self.target_model == "conflict":
+            rear = turn | self.p.ignore_rear
+        elif self.p.target_model == "conflict":
             lanes = [lane for lane, k in zip(self._lanes, keep) if k]
             intent = self._intent(others, [k for k, kept in zip(self._keys, keep) if kept])
             obj_xy, obj_h, owner, turn, _ = self._conflicts.predict(others, lanes, a_others, t_long, intent)
-            rear = turn | self.ignore_rear
+            rear = turn | self.p.ignore_rear
         else:
-            obj_xy, obj_h = object_predict(others, t_long, a_others if self.target_model == "ca" else None)
+            obj_xy, obj_h = object_predict(others, t_long, a_others if self.p.target_model == "ca" else None)
             owner = np.arange(len(others))
-            rear = np.full(len(owner), self.ignore_rear)
+            rear = np.full(len(owner), self.p.ignore_rear)
         return SimpleNamespace(
             ego=ego, in_turn=in_turn, keep=keep, recent=recent, others=others, a_others=a_others, t_long=t_long,
             lanes=lanes, intent=intent, obj_xy=obj_xy, obj_h=obj_h, owner=owner, rear=rear,
@@ -230,7 +223,7 @@ class ImprovedAEB(AEBShield):
         if not (sc.in_turn and 0.0 <= sc.front_to_line):
             return False
         d_stop, _ = self.actuator.stopping_distance(sc.v, sc.a, self.sim_dt)
-        return sc.front_to_line <= d_stop + sc.v * self.T + self.stop_margin
+        return sc.front_to_line <= d_stop + sc.v * self.p.step + self.p.stop_margin
 
     def _release_test(self, sc: SimpleNamespace, ttc: float, setoff) -> tuple | None:
         """Latched: the ego setting off again (or carrying on, if still rolling) must be predicted conflict-free,
@@ -241,25 +234,25 @@ class ImprovedAEB(AEBShield):
         profiles = [sc.ds_cruise] if ego["set_speed"] is not None else [sc.ds_cruise, self._go_profile(ego, t_long)]
         predictions = [(sc.obj_xy, sc.obj_h)]
         speeding_up = self._along_accel(others, sc.a_others, sign=1.0)
-        if self.release_accel_time > 0 and self.target_model == "conflict" and speeding_up.any():
+        if self.p.release_accel_time > 0 and self.p.target_model == "conflict" and speeding_up.any():
             accel_xy, accel_h, _, _ = self._accel_predict(others, sc.lanes, speeding_up, t_long, sc.intent,
-                                                          self.release_accel_time)
+                                                          self.p.release_accel_time)
             predictions.append((accel_xy, accel_h))
         for p_xy, p_h in predictions:
             xy_r, h_r = self._release_objects(ego, others, sc.owner, p_xy, p_h)
             for ds_p in profiles:  # commanded acceleration: safe whether the agent holds its speed or sets off
-                n_p = int(round(self._horizon(sc.s0, ds_p, t_long) / self.T))
-                ttc_p, tg_p = self._ttc_of(sc, ds_p, n_p, self.release_margin, xy_r, h_r)
+                n_p = int(round(self._horizon(sc.s0, ds_p, t_long) / self.p.step))
+                ttc_p, tg_p = self._ttc_of(sc, ds_p, n_p, self.p.release_margin, xy_r, h_r)
                 if ttc_p < ttc_go:
                     ttc_go, tgo = ttc_p, tg_p
         if setoff is not None:  # a car standing in the box that may set off (before the line only)
             for ds_p in profiles:
-                n_p = int(round(self._horizon(sc.s0, ds_p, t_long) / self.T))
-                n_p = min(n_p, int(round(self.setoff_horizon / self.T)))
-                ttc_p, _ = self._ttc_of(sc, ds_p, n_p, self.release_margin, *setoff[:2], *setoff[3:])
+                n_p = int(round(self._horizon(sc.s0, ds_p, t_long) / self.p.step))
+                n_p = min(n_p, int(round(self.p.setoff_horizon / self.p.step)))
+                ttc_p, _ = self._ttc_of(sc, ds_p, n_p, self.p.release_margin, *setoff[:2], *setoff[3:])
                 ttc_go = min(ttc_go, ttc_p)
-        self._clear_for = self._clear_for + self.T if not np.isfinite(ttc_go) else 0.0
-        if not np.isfinite(ttc_go) and self._clear_for + 1e-9 >= self.release_hold:
+        self._clear_for = self._clear_for + self.p.step if not np.isfinite(ttc_go) else 0.0
+        if not np.isfinite(ttc_go) and self._clear_for + 1e-9 >= self.p.release_hold:
             self._release()
             return None
         t_out = int(sc.idx[tgo]) if tgo >= 0 else sc.target_out
@@ -267,8 +260,8 @@ class ImprovedAEB(AEBShield):
 
     def _setoff_stop(self, sc: SimpleNamespace, setoff, t: float) -> tuple | None:
         """A standing car that may set off: a reason to stop at the line, never an emergency."""
-        n_set = min(sc.n, int(round(self.setoff_horizon / self.T)))
-        ttc_set, k = self._ttc_of(sc, sc.ds_cruise, n_set, self.margin, *setoff[:2], *setoff[3:])
+        n_set = min(sc.n, int(round(self.p.setoff_horizon / self.p.step)))
+        ttc_set, k = self._ttc_of(sc, sc.ds_cruise, n_set, self.p.margin, *setoff[:2], *setoff[3:])
         if not np.isfinite(ttc_set) or self._second_opinion_withholds():
             return None
         self._latch(t)
@@ -280,22 +273,22 @@ class ImprovedAEB(AEBShield):
         the ego in the path of the object braked for; else warn (in the turn window, or TTC <= warn_ttc)."""
         stop_line_trigger = self._at_trigger_point(sc)
         emergency = False
-        if ttc <= self.ttc_brake:
+        if ttc <= self.p.ttc_brake:
             ttc_raw, _ = self._ttc_of(sc, sc.ds_cruise, sc.n, 0.0)
-            emergency = ttc_raw <= self.ttc_brake
-            if not emergency and self.emergency_accel_time > 0 and self.target_model == "conflict":
+            emergency = ttc_raw <= self.p.ttc_brake
+            if not emergency and self.p.emergency_accel_time > 0 and self.p.target_model == "conflict":
                 emergency = self._braking_ttc(sc.ego, sc.ds_cruise, sc.n, sc.others, sc.lanes, sc.a_others,
-                                              sc.t_long, sc.intent) <= self.ttc_brake
+                                              sc.t_long, sc.intent) <= self.p.ttc_brake
         if not (stop_line_trigger or emergency) or (not emergency and self._second_opinion_withholds()):
-            return (WARN if sc.in_turn or ttc <= self.warn_ttc else MONITOR), ttc, sc.horizon, sc.target_out, False
+            return (WARN if sc.in_turn or ttc <= self.p.warn_ttc else MONITOR), ttc, sc.horizon, sc.target_out, False
         # Feasibility against the object braked for (any of its path hypotheses) only: another road user that
         # would reach the standing ego seconds later is a later conflict (it can brake, the ego can set off),
         # not a reason to drive into this one (seed 1019: a rear-end at TTC 1.3 s went unbraked because a car
         # merging into the exit lane was predicted through the stopped ego 5.9 s later).
         mine = sc.owner == sc.owner[target]
-        if self.feasibility and self._parked_in_path(sc.v, sc.a, sc.s0, sc.ego, sc.obj_xy[:, mine], sc.obj_h[:, mine],
-                                                     sc.size[mine], sc.t_long,
-                                                     np.broadcast_to(sc.rear, sc.owner.shape)[mine]):
+        if self.p.feasibility and self._parked_in_path(sc.v, sc.a, sc.s0, sc.ego, sc.obj_xy[:, mine],
+                                                       sc.obj_h[:, mine], sc.size[mine], sc.t_long,
+                                                       np.broadcast_to(sc.rear, sc.owner.shape)[mine]):
             return WARN, ttc, sc.horizon, sc.target_out, True
         self._latch(t)
         return BRAKE, ttc, sc.horizon, sc.target_out, False
@@ -316,7 +309,7 @@ class ImprovedAEB(AEBShield):
         off from 0.5 m/s at ``setoff_accel`` (for 3 s); None when there is none."""
         box = np.array([lane is not None and str(lane[0]).startswith("ir") for lane in lanes], dtype=bool)
         speed = np.hypot(others[:, 2], others[:, 3]) if len(others) else np.zeros(0)
-        slow = box & (speed < self.setoff_speed) & recent
+        slow = box & (speed < self.p.setoff_speed) & recent
         if not slow.any():
             return None
         idx = np.flatnonzero(slow)
@@ -325,10 +318,10 @@ class ImprovedAEB(AEBShield):
         mod[:, 2:4] = 0.5 * direction
         sub_lanes = [lanes[i] for i in idx]
         sub_intent = None if intent is None else intent[idx]
-        xy, h, owner, turn = self._accel_predict(mod, sub_lanes, self.setoff_accel * direction, t_long,
+        xy, h, owner, turn = self._accel_predict(mod, sub_lanes, self.p.setoff_accel * direction, t_long,
                                                  sub_intent, 3.0)
         return xy, h, idx[owner], np.asarray(others[idx[owner], 5:7], dtype=float).reshape(-1, 2), \
-            turn | self.ignore_rear
+            turn | self.p.ignore_rear
 
     def _accel_predict(self, others, lanes, accels, t_long, intent, accel_time):
         """The conflict model's path hypotheses (same ones, same order) with each road user keeping the
@@ -351,12 +344,12 @@ class ImprovedAEB(AEBShield):
         if not braking.any():
             return float("inf")
         obj_xy, obj_h, owner, turn = self._accel_predict(others, lanes, braking, t_long, intent,
-                                                         self.emergency_accel_time)
+                                                         self.p.emergency_accel_time)
         v, s0 = ego["speed"], ego["s"]
         xy, h = self.driven.poses(s0, ds[:n], profile_speeds(ds[:n], t_long[:n], v))
         size_b = np.asarray(others[owner, 5:7], dtype=float).reshape(-1, 2)
         ttc, _ = footprint_ttc(xy, h, ego["size"], obj_xy[:n], obj_h[:n], size_b, t_long[:n], 0.0,
-                               turn | self.ignore_rear)
+                               turn | self.p.ignore_rear)
         return ttc
 
     def _release_objects(self, ego: dict, others: np.ndarray, owner: np.ndarray, obj_xy: np.ndarray,
@@ -367,12 +360,12 @@ class ImprovedAEB(AEBShield):
         a car that is barely moving there itself (one yielding, creeping, or sliding to a stop after a collision
         with another car) whose path hypotheses at that speed cross the ego's, until the time-out or until a third
         car runs into the standing ego; a car that does set off again is still met by the emergency brake."""
-        if self.release_standing <= 0 or ego["speed"] > STOP_SPEED or len(owner) == 0:
+        if self.p.release_standing <= 0 or ego["speed"] > STOP_SPEED or len(owner) == 0:
             return obj_xy, obj_h
         front_to_line = self.stop_line_s - (ego["s"] + 0.5 * ego["size"][0])
         if front_to_line >= 0.0 or ego["s"] >= self.clear_s:
             return obj_xy, obj_h
-        slow = np.hypot(others[owner, 2], others[owner, 3]) < self.release_standing
+        slow = np.hypot(others[owner, 2], others[owner, 3]) < self.p.release_standing
         if not slow.any():
             return obj_xy, obj_h
         xy, h = obj_xy.copy(), obj_h.copy()
@@ -390,7 +383,7 @@ class ImprovedAEB(AEBShield):
         With ``check_action``, under the agent's proposed action instead, held over the horizon (a policy step is
         the decision period): FASTER/SLOWER repeated (the set-point moves one step from the one nearest the speed
         at every step, :func:`setpoint_profile`), IDLE the set-point kept, a commanded acceleration held for 1 s."""
-        action = self._proposed if self.check_action else None
+        action = self._proposed if self.p.check_action else None
         u = self.env.unwrapped
         if ego["set_speed"] is not None:
             name = u.action_type.actions.get(int(action)) if action is not None and np.ndim(action) == 0 else None
@@ -403,7 +396,7 @@ class ImprovedAEB(AEBShield):
                 return setpoint_profile(ego["speed"], set_at, t, dt=self.sim_dt)
             return go_profile(ego["speed"], ego["set_speed"], t)
         accel = ego["accel"] if action is None else u.action_type.acceleration(action)
-        v_cap = max(ego["speed"], self.go_speed, ego["speed_limit"] or self.go_speed)
+        v_cap = max(ego["speed"], self.p.go_speed, ego["speed_limit"] or self.p.go_speed)
         a = accel if ego["speed"] > STOP_SPEED else max(accel, 0.0)
         return cruise_profile(ego["speed"], a, t, v_max=v_cap)
 
@@ -411,21 +404,21 @@ class ImprovedAEB(AEBShield):
         """Distance (m) at times ``t`` if the brake is released now: the first-order speed response to the
         vehicle's cruise set-point, or to ``go_speed`` (at least the current speed) when it has none — an agent
         commanding acceleration is assumed to set off again."""
-        v_set = ego["set_speed"] if ego["set_speed"] is not None else max(self.go_speed, ego["speed"])
+        v_set = ego["set_speed"] if ego["set_speed"] is not None else max(self.p.go_speed, ego["speed"])
         return go_profile(ego["speed"], v_set, t)
 
     def _parked_in_path(self, v, a, s0, ego, obj_xy, obj_h, size, t_long, rear) -> bool:
         """Brake-feasibility check (digest 003 §9.7): would braking now leave the ego standing where a target
         will hit it? A collision that happens while the ego is still moving is not a reason to hold off (braking
         still mitigates it); one after standstill is."""
-        ticks = int(round(self.T / self.sim_dt))
+        ticks = int(round(self.p.step / self.sim_dt))
         xs, vs = self.actuator.profile(v, a, t_long[-1] + 1e-9, self.sim_dt)
         ds = xs[ticks - 1::ticks][: len(t_long)]
         stopped = vs[ticks - 1::ticks][: len(t_long)] <= 0.0
         xy, h = self.driven.poses(s0, ds, profile_speeds(ds, t_long[: len(ds)], v))
         ttc, _ = footprint_ttc(xy, h, ego["size"], obj_xy[: len(ds)], obj_h[: len(ds)], size, t_long[: len(ds)],
-                               self.margin, rear)
+                               self.p.margin, rear)
         if not np.isfinite(ttc):
             return False
-        k = int(round(ttc / self.T)) - 1
+        k = int(round(ttc / self.p.step)) - 1
         return bool(stopped[k])

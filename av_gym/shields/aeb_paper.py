@@ -16,13 +16,11 @@ class PaperAEB(AEBShield):
     """``paper``: the predictive AEB of digest 003 §4.1-4.8 (module docstring); parameters :class:`PaperParams`."""
 
     Params = PaperParams
+    p: PaperParams
     variant = "paper"
 
     def __init__(self, env: gym.Env, params: PaperParams | None = None, **overrides) -> None:
         super().__init__(env, params, **overrides)
-        p = self.params
-        self.T, self.activation_distance, self.accel_alpha = p.step, p.activation_distance, p.accel_alpha
-        self.half_accel_term, self.limits, self.standstill_hold = p.half_accel_term, p.limits, p.standstill_hold
 
     def _decide_variant(self, ego, others, a_ego, a_others, t, active):
         horizon = paper_horizon(ego["speed"])
@@ -34,10 +32,10 @@ class PaperAEB(AEBShield):
             phi0 = -_wrap(ego["heading"] - self.approach_heading)  # + = turning left (heading decreases here)
             ttc, target = paper_ttc(rel, rot @ ego["velocity"], rot @ a_ego, others[:, 2:4] @ rot.T,
                                     a_others @ rot.T, others[:, 5:7], ego["size"], phi0, -ego["yaw_rate"],
-                                    horizon, self.T, self.half_accel_term, self.limits)
+                                    horizon, self.p.step, self.p.half_accel_term, self.p.limits)
         if self._latched and self._latched_until_standstill(ego["speed"], t):
             return BRAKE, ttc, horizon, target, False
-        if ttc <= self.ttc_brake:
+        if ttc <= self.p.ttc_brake:
             self._latch(t)
             return BRAKE, ttc, horizon, target, False
         return (WARN if ttc <= horizon else MONITOR), ttc, horizon, target, False

@@ -204,11 +204,12 @@ class ImprovedParams(TurnParams):
                               "before)")
     feasibility: bool = param(True, doc="no braking when it would leave the ego parked in the target's path "
                                         "(003 §9.7)")
-    second_opinion: Literal["none", "belief_lookahead"] = param(
-        "none", doc="before a brake at the stop line (never an emergency brake) ask the belief-space planner whether "
-                    "going on is safe, and withhold the brake when it is (conf/shield/aeb_belief.yaml). The planner "
-                    "is the harness's (agents/belief.py PlannerOpinion): python -m eval installs it on the shield; "
-                    "from your own code set shield.opinion yourself")
+    second_opinion: str = param(
+        "none", doc="the second opinion this shield needs before a brake at the stop line (never an emergency "
+                    "brake): its owner installs it (AEBShield.opinion, an av_gym.shields.Opinion) and names it "
+                    "here, and the shield refuses to run without one; none = it runs without (an opinion installed "
+                    "is still asked). The names are the owner's: python -m eval installs the one "
+                    "conf/shield/aeb_belief.yaml names")
     go_speed: float = param(4.5, "m/s", gt=0, doc="speed assumed for setting off when the ego has no cruise "
                                                   "set-point (commanded acceleration)")
     warn_ttc: float = param(2.5, "s", gt=0, doc="outside the turn window: forward-collision warning at TTC <= this")

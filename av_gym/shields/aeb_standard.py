@@ -17,25 +17,24 @@ class StandardAEB(AEBShield):
     always active; parameters :class:`StandardParams`."""
 
     Params = StandardParams
+    p: StandardParams
     variant = "standard"
 
     def __init__(self, env: gym.Env, params: StandardParams | None = None, **overrides) -> None:
         super().__init__(env, params, **overrides)
-        p = self.params
-        self.warn_ttc, self.lateral_margin, self.standstill_hold = p.warn_ttc, p.lateral_margin, p.standstill_hold
-        self.steering_inhibit = None if p.steering_inhibit_deg is None else np.radians(p.steering_inhibit_deg)
 
     def _is_active(self, ego: dict) -> bool:
         return True
 
     def _decide_variant(self, ego, others, a_ego, a_others, t, active):
-        ttc, target = standard_ttc(ego["xy"], ego["heading"], ego["speed"], ego["size"], others,
-                                   self.lateral_margin)
-        if self.steering_inhibit is not None and abs(ego["steering"]) > self.steering_inhibit:
+        p = self.p
+        ttc, target = standard_ttc(ego["xy"], ego["heading"], ego["speed"], ego["size"], others, p.lateral_margin)
+        inhibit = p.steering_inhibit_deg
+        if inhibit is not None and abs(ego["steering"]) > np.radians(inhibit):
             ttc, target = float("inf"), -1
         if self._latched and self._latched_until_standstill(ego["speed"], t):
-            return BRAKE, ttc, self.warn_ttc, target, False
-        if ttc <= self.ttc_brake:
+            return BRAKE, ttc, p.warn_ttc, target, False
+        if ttc <= p.ttc_brake:
             self._latch(t)
-            return BRAKE, ttc, self.warn_ttc, target, False
-        return (WARN if ttc <= self.warn_ttc else MONITOR), ttc, self.warn_ttc, target, False
+            return BRAKE, ttc, p.warn_ttc, target, False
+        return (WARN if ttc <= p.warn_ttc else MONITOR), ttc, p.warn_ttc, target, False
