@@ -263,6 +263,19 @@ class OwnedFolders:
         self._held[key] = fd
         return True
 
+    def claim(self, folder: str | Path, field: str, holder: str = "another process") -> bool:
+        """:meth:`take` for a command: one line naming ``field`` (the setting or flag that gave ``folder``) when
+        another process holds it (``holder``, with its pid) or it cannot be made, as a :class:`ConfigError`."""
+        try:
+            return self.take(folder)
+        except BlockingIOError:
+            pid = lock_holder(Path(folder) / LOCK)
+            raise ConfigError(f"{field}={folder}: {holder}{f' (pid {pid})' if pid else ''} is writing it "
+                              f"({Path(folder) / LOCK} is locked); wait for it, or pick another {field}") from None
+        except OSError as exc:
+            raise ConfigError(f"{field}={folder}: cannot be written: "
+                              f"{os.strerror(exc.errno) if exc.errno else exc}") from None
+
     def release(self, folder: str | Path) -> None:
         folder = Path(folder)
         key = folder.resolve()

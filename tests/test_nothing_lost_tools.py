@@ -108,3 +108,91 @@ def test_a_finished_run_is_not_told_to_resume(tmp_path, monkeypatch, capsys, rel
         (tmp_path / "checkpoints" / "rule" / name).unlink()
     line = check_line("train", ["agent=always_proceed", "run_name=rule"], monkeypatch, capsys)
     assert "already holds a run (config.yaml)" in line and "stopped before" not in line, line
+
+
+# --------------------------------------------------------------------- export and operating point: the destination's
+@pytest.fixture
+def two_runs(tmp_path):
+    """checkpoints/A and checkpoints/B: two training runs' folders (copies of dagger_turn, a GO/YIELD student both
+    tools take), B with a latest.zip of its own."""
+    runs = {}
+    for name in ("A", "B"):
+        runs[name] = tmp_path / "checkpoints" / name
+        shutil.copytree(REF / "dagger_turn", runs[name])
+    shutil.copy(runs["B"] / "model.zip", runs["B"] / "latest.zip")
+    (runs["B"] / "config.yaml").write_text((runs["B"] / "config.yaml").read_text() + "# B's own\n")
+    return runs
+
+
+def export_argv(tool: str, a: Path, b: Path | str) -> list[str]:
+    return [str(a), str(b)] if tool == "export" else [str(a), "--write", "0.5", "--dest", str(b)]
+
+
+def tool_main(tool: str):
+    from train.export import main as export_main
+    from train.operating_point import main as operating_point_main
+
+    return export_main if tool == "export" else operating_point_main
+
+
+@pytest.mark.parametrize("tool", ["export", "operating_point"])
+def test_a_tool_does_not_replace_another_runs_model(tool, two_runs, capsys):
+    """``train.export A B`` and ``train.operating_point A --write 0.5 --dest B`` replaced run B's model, leaving it
+    beside A's config. Refused in one line; ``--overwrite`` replaces B's files, all of them (no mix of two runs)."""
+    a, b = two_runs["A"], two_runs["B"]
+    before = snapshot(b)
+    line = cli(tool_main(tool), export_argv(tool, a, b), capsys)
+    assert f"dest={b} already holds COMMAND, config.yaml, latest.zip ..." in line and "--overwrite" in line, line
+    assert snapshot(b) == before
+    tool_main(tool)([*export_argv(tool, a, b), "--overwrite"])
+    after = snapshot(b)
+    assert sorted(after) == sorted(["config.yaml", "model.zip", *(["COMMAND"] if tool == "operating_point" else [])])
+    assert b"# B's own" not in after["config.yaml"] and not (b / ".lock").exists()
+
+
+@pytest.mark.parametrize("tool", ["export", "operating_point"])
+def test_a_tool_does_not_write_a_run_in_training(tool, two_runs, capsys):
+    """Run B in training holds its folder's lock (python -m train): refused even with --overwrite, B untouched."""
+    a, b = two_runs["A"], two_runs["B"]
+    (b / "model.zip").unlink()  # still training: no final model yet
+    fd = locked_by_another(b)
+    before = snapshot(b)
+    try:
+        line = cli(tool_main(tool), [*export_argv(tool, a, b), "--overwrite"], capsys)
+    finally:
+        os.close(fd)
+    assert f"dest={b}: another process (pid 4242) is writing it" in line, line
+    assert snapshot(b) == before
+
+
+@pytest.mark.parametrize("tool", ["export", "operating_point"])
+def test_a_second_export_to_the_same_folder_is_refused(tool, two_runs, tmp_path, capsys):
+    """A second export into the same folder silently replaced the first."""
+    a, out = two_runs["A"], tmp_path / "checkpoints" / "out"
+    tool_main(tool)(export_argv(tool, a, out))
+    first = snapshot(out)
+    assert "model.zip" in first and not (out / ".lock").exists()
+    line = cli(tool_main(tool), export_argv(tool, two_runs["B"], out), capsys)
+    assert "already holds" in line, line
+    assert snapshot(out) == first
+
+
+@pytest.mark.parametrize("dest", ["", "."])
+def test_an_export_to_no_folder_is_one_line(dest, two_runs, tmp_path, monkeypatch, capsys):
+    """``train.export A ""`` was a traceback (``Path('.').with_name``)."""
+    monkeypatch.chdir(tmp_path)
+    before = snapshot(tmp_path)
+    line = cli(tool_main("export"), [str(two_runs["A"]), dest, "--overwrite"], capsys)
+    assert "dest='.': give the folder to write" in line, line  # '' is the working directory, '.'
+    assert snapshot(tmp_path) == before
+
+
+def test_the_operating_point_shows_progress(capsys):
+    """``train.operating_point`` printed nothing until a threshold's episodes were all measured (minutes): each
+    threshold's episodes now have a progress bar on stderr."""
+    from train.operating_point import main
+
+    main([str(REF / "dagger_turn"), "--thresholds", "[0.5,0.9]", "--episodes", "2"])
+    out, err = capsys.readouterr()
+    assert "| 0.50 |" in out and "| 0.90 |" in out
+    assert "P(GO) >= 0.5" in err and "P(GO) >= 0.9" in err and "/2 [" in err, err

@@ -1,5 +1,5 @@
 """Export a trained PPO run as a reference checkpoint: ``python -m train.export checkpoints/<run>
-checkpoints/reference/<name> [--best] [--command "python -m train ..."] [--overwrite-reference]``.
+checkpoints/<name> [--best] [--command "python -m train ..."] [--overwrite] [--overwrite-reference]``.
 
 Writes ``<dest>/model.zip`` (the run's ``model.zip``, or ``best.zip`` with ``--best``) without the optimizer's
 state, the run's ``config.yaml`` beside it, and ``COMMAND`` (the command that trained it; every reference folder
@@ -11,15 +11,21 @@ The shipped reference agents (``checkpoints/reference/``, :func:`av_gym.referenc
 to the tools (an export of a lane keeper replaced the shipped ``ppo_turn``): a destination there is
 refused unless ``--overwrite-reference`` is given, and then only for a checkpoint of the same scenario, actions,
 kind and sensors as the reference it replaces, with ``--command``; the folder's model, config and COMMAND are
-replaced in one step (:func:`av_gym.atomic.replace_folder_atomic`)."""
+replaced in one step (:func:`av_gym.atomic.replace_folder_atomic`).
+
+Any other destination is held while it is written (its ``.lock``, the lock a training run holds: a run in progress
+is refused) and must be empty or new: a folder holding files (another run's model, an earlier export) is replaced,
+all of its files, only with ``--overwrite``."""
 
 from __future__ import annotations
 
+import contextlib
 import shutil
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 
-from av_gym.errors import ConfigError, run_cli
+from av_gym.atomic import LOCK, OwnedFolders
+from av_gym.errors import ConfigError, folder_problem, run_cli
 from conf.cli import ToolParser
 
 # What a reference's name promises: ``eval agents=[ppo_turn]`` runs whatever ``reference/ppo_turn`` holds, on the
@@ -27,6 +33,8 @@ from conf.cli import ToolParser
 # labelled with it) would silently mean another agent.
 SAME_AS_REFERENCE = ("env.name", "env.action", "agent.kind", "agent.actions", "sensors.name")
 FLAG = "--overwrite-reference"
+OVERWRITE = "--overwrite"
+DESTS = OwnedFolders()  # the folders this process writes a checkpoint into (the lock a training run takes too)
 
 
 def _get(cfg: Mapping, dotted: str):
@@ -79,9 +87,11 @@ def write_checkpoint_folder(dest: Path, files: dict[str, Callable[[Path], object
     from av_gym.atomic import replace_folder_atomic
 
     def fill(tmp: Path) -> None:
+        if (dest / LOCK).is_file():  # the same lock file (a hard link): the swapped-in folder stays ours alone
+            (tmp / LOCK).hardlink_to(dest / LOCK)
         if keep_others and dest.is_dir():
             for p in dest.iterdir():
-                if p.name not in files and p.name != ".lock":
+                if p.name not in files and p.name != LOCK:
                     (shutil.copytree if p.is_dir() else shutil.copy2)(p, tmp / p.name)
         for name, content in files.items():
             if isinstance(content, str):
@@ -92,11 +102,53 @@ def write_checkpoint_folder(dest: Path, files: dict[str, Callable[[Path], object
     return replace_folder_atomic(dest, fill, "dest")
 
 
+def dest_problem(run_dir: Path, dest: Path, overwrite: bool) -> str | None:
+    """Why ``dest`` (a folder outside the shipped references) may not receive ``run_dir``'s checkpoint, or None:
+    it cannot be written, it is the run's own folder, or it holds files (another run's, an earlier export) and
+    ``overwrite`` was not given."""
+    problem = folder_problem(dest, "dest")
+    if problem:
+        return problem
+    if dest.resolve() == run_dir.resolve():
+        return f"dest={dest} is run_dir itself; write the checkpoint elsewhere (e.g. {dest}-export)"
+    held = sorted(p.name for p in dest.iterdir() if p.name != LOCK) if dest.is_dir() else []
+    if held and not overwrite:
+        return (f"dest={dest} already holds {', '.join(held[:3])}{' ...' if len(held) > 3 else ''} (another run's "
+                f"or an earlier export); write elsewhere, or replace its files with {OVERWRITE}")
+    return None
+
+
+@contextlib.contextmanager
+def destination(run_dir: Path, dest: Path, cfg: Mapping, tool: str, overwrite: bool = False,
+                overwrite_reference: bool = False, has_command: bool = False) -> Iterator[bool]:
+    """``dest`` checked (:func:`reference_problem`, :func:`dest_problem`) and held for this process while the
+    block writes it (the lock a training run holds, so a run in progress is refused, and checked again under it);
+    yields whether the folder's other files are carried over (a shipped reference's) or all replaced."""
+    from av_gym.references import is_shipped
+
+    if not str(dest).strip() or dest.name in ("", ".", ".."):
+        raise ConfigError(f"{tool}: dest={str(dest)!r}: give the folder to write, e.g. checkpoints/<name>")
+    problem, shipped = reference_problem(dest, cfg, overwrite_reference, has_command, tool), is_shipped(dest)
+    if not problem and not shipped:
+        problem = dest_problem(run_dir, dest, overwrite)
+    if problem:
+        raise ConfigError(problem)
+    DESTS.claim(dest, "dest")  # a training run's, or another export's
+    try:
+        problem = None if shipped else dest_problem(run_dir, dest, overwrite)  # written while we waited?
+        if problem:
+            raise ConfigError(problem)
+        yield shipped
+    finally:
+        DESTS.release(dest)
+
+
 def export_reference(run_dir: str | Path, dest: str | Path, best: bool = False, command: str | None = None,
-                     overwrite_reference: bool = False) -> Path:
+                     overwrite_reference: bool = False, overwrite: bool = False) -> Path:
     """Copy run ``run_dir``'s policy (``model.zip`` or ``best.zip``) and ``config.yaml`` to ``dest``, and write
-    ``command`` to ``dest/COMMAND`` if given; returns the written zip. The folder's files are replaced at once;
-    a shipped reference only as :func:`reference_problem` allows."""
+    ``command`` to ``dest/COMMAND`` if given; returns the written zip. The folder's files are replaced at once,
+    under its lock: a folder holding files only with ``overwrite`` (:func:`dest_problem`), a shipped reference
+    only as :func:`reference_problem` allows."""
     from agents.checkpoint import load_sb3, read_config_yaml
 
     run_dir, dest = Path(run_dir), Path(dest)
@@ -105,18 +157,17 @@ def export_reference(run_dir: str | Path, dest: str | Path, best: bool = False, 
         if not path.is_file():
             raise ConfigError(f"{path} does not exist: run_dir must be a training run's checkpoint folder "
                               f"(checkpoints/<run_name>/ with model.zip{', best.zip' if best else ''} and config.yaml)")
-    problem = reference_problem(dest, read_config_yaml(run_dir / "config.yaml"), overwrite_reference,
-                                bool(command), "python -m train.export")
-    if problem:
-        raise ConfigError(problem)
-    model = load_sb3(src, device="cpu")  # one line for an empty, truncated or corrupt zip
-    policy = model.policy
-    policy.optimizer = policy.optimizer_class(policy.parameters(), lr=model.lr_schedule(1.0),
-                                              **policy.optimizer_kwargs)  # fresh: no moments
-    files: dict = {"model.zip": lambda p: model.save(str(p)), "config.yaml": (run_dir / "config.yaml").read_text()}
-    if command:
-        files["COMMAND"] = command.rstrip("\n") + "\n"
-    write_checkpoint_folder(dest, files)
+    with destination(run_dir, dest, read_config_yaml(run_dir / "config.yaml"), "python -m train.export", overwrite,
+                     overwrite_reference, bool(command)) as keep_others:
+        model = load_sb3(src, device="cpu")  # one line for an empty, truncated or corrupt zip
+        policy = model.policy
+        policy.optimizer = policy.optimizer_class(policy.parameters(), lr=model.lr_schedule(1.0),
+                                                  **policy.optimizer_kwargs)  # fresh: no moments
+        files: dict = {"model.zip": lambda p: model.save(str(p)),
+                       "config.yaml": (run_dir / "config.yaml").read_text()}
+        if command:
+            files["COMMAND"] = command.rstrip("\n") + "\n"
+        write_checkpoint_folder(dest, files, keep_others)
     return dest / "model.zip"
 
 
@@ -131,8 +182,11 @@ def main(argv: list[str] | None = None) -> None:
                         help="allow DEST to be a shipped reference agent's folder: replaced (model, config and "
                              "COMMAND at once) by a checkpoint of the same scenario, actions, kind and sensors; "
                              "needs --command")
+    parser.add_argument(OVERWRITE, action="store_true",
+                        help="allow DEST to hold files (an earlier export, another run's): all of them replaced")
     args = parser.parse_args(argv)
-    out = export_reference(args.run_dir, args.dest, args.best, args.command, args.overwrite_reference)
+    out = export_reference(args.run_dir, args.dest, args.best, args.command, args.overwrite_reference,
+                           args.overwrite)
     print(f"[export] {out} ({out.stat().st_size / 1e6:.1f} MB) and config.yaml")
     if not (out.parent / "COMMAND").is_file():
         print(f"[export] {out.parent}/COMMAND is missing: write the command that trained the run there "

@@ -8,7 +8,8 @@ with ``log(τ / (1 - τ))`` taken off the GO logit's bias, so the result is stil
 validation split (the same episodes for each threshold) and prints success and collision per
 threshold (the per-env stack where the run's sensors need it, e.g. turn_perceived's tracker); ``--write τ`` saves
 the student at τ into ``--dest`` (model.zip + config.yaml, ``agent.go_threshold`` recorded, and COMMAND: the run's
-own followed by this command). Thresholds are absolute: a run saved at its own ``agent.go_threshold`` is moved back
+own followed by this command), under the folder's lock; a folder that holds files is replaced only with
+``--overwrite``. Thresholds are absolute: a run saved at its own ``agent.go_threshold`` is moved back
 to 0.5 first. The student must choose GO or YIELD (``agent.actions=go_yield``); a shipped reference's folder is
 written only with ``--overwrite-reference`` (train/export.py: same scenario, actions, kind and sensors; the
 folder's files replaced at once).
@@ -47,11 +48,11 @@ def shift_go(model, threshold: float) -> float:
 
 def evaluate(run_dir: Path, thresholds: list[float], episodes: int, first: int | None, n_envs: int = 128,
              zip_name: str = "model.zip") -> list:
-    """(τ, collision, success) on ``episodes`` validation episodes for each threshold."""
+    """(τ, collision, success) on ``episodes`` validation episodes for each threshold, each row printed as it is
+    measured, a progress bar while it is."""
     from agents.checkpoint import load_sb3, read_config_yaml
     from agents.ppo import SB3Policy
     from av_gym.seeds import config_seeds
-    from eval.batched import play_on
 
     cfg = read_config_yaml(run_dir / "config.yaml")
     plain = [cfg["env"], cfg["sensors"], cfg["shield"]]
@@ -62,10 +63,28 @@ def evaluate(run_dir: Path, thresholds: list[float], episodes: int, first: int |
         model = _at(load_sb3(run_dir / zip_name, device="cpu"), cfg, tau)
         policy = SB3Policy(model, int(agent.get("action_repeat", 1)), agent.get("actions", "env"))
         # a tracker (turn_perceived) or a shield: the per-env stack, as python -m eval runs it
-        rows = play_on(*plain, policy, seeds, min(episodes, n_envs), f"t{tau}", batched)
+        rows = _play(plain, policy, seeds, min(episodes, n_envs), f"P(GO) >= {tau:g}", batched)
         out.append((tau, float(np.mean([r["collision"] for r in rows])), float(np.mean([r["success"] for r in rows]))))
         print(f"| {tau:.2f} | {out[-1][1]:.3f} | {out[-1][2]:.3f} |", flush=True)
     return out
+
+
+def _play(plain: list, policy, seeds: range, n_envs: int, label: str, batched: bool) -> list[dict]:
+    """The episodes ``seeds`` of ``policy`` on ``plain`` (env, sensors, shield configs) with a progress bar on
+    stderr (a threshold's 300 episodes on the per-env stack take minutes): on the batch when it can run them
+    (``n_envs`` at a time), else on one per-env env."""
+    if batched:
+        from eval.batched import play_batched
+
+        return play_batched(*plain, policy, seeds, n_envs, label)
+    from eval.agents import make_eval_env
+    from eval.runner import run_episodes
+
+    env = make_eval_env(*plain)
+    try:
+        return run_episodes(env, policy, seeds, label)
+    finally:
+        env.close()
 
 
 def _at(model, cfg: dict, tau: float):
@@ -99,24 +118,35 @@ def go_yield_problem(run_dir: Path, cfg: dict) -> str | None:
 
 
 def write(run_dir: Path, dest: Path, tau: float, zip_name: str = "model.zip", overwrite_reference: bool = False,
-          command: str | None = None) -> Path:
+          command: str | None = None, overwrite: bool = False) -> Path:
     """The student of ``run_dir`` at threshold ``tau`` into ``dest`` (model.zip, config.yaml and COMMAND: the
-    run's own followed by ``command``), the folder's files replaced at once; a shipped reference's folder only with
+    run's own followed by ``command``), the folder's files replaced at once under its lock; a folder holding files
+    only with ``overwrite`` (:func:`train.export.dest_problem`), a shipped reference's folder only with
     ``overwrite_reference`` (:func:`train.export.reference_problem`)."""
-    import yaml
-
-    from agents.checkpoint import load_sb3, read_config_yaml
-    from train.export import reference_problem, write_checkpoint_folder
+    from agents.checkpoint import read_config_yaml
+    from train.export import destination
 
     cfg = read_config_yaml(run_dir / "config.yaml")
     problem = go_yield_problem(run_dir, cfg)
     if problem:
         raise ConfigError(problem)
     command = command or (f"python -m train.operating_point {run_dir} --model {zip_name} --write {tau} --dest {dest}"
-                          + (" --overwrite-reference" if overwrite_reference else ""))
-    problem = reference_problem(dest, cfg, overwrite_reference, True, "python -m train.operating_point")
-    if problem:
-        raise ConfigError(problem)
+                          + (" --overwrite-reference" if overwrite_reference else "")
+                          + (" --overwrite" if overwrite else ""))
+    with destination(run_dir, dest, cfg, "python -m train.operating_point", overwrite, overwrite_reference,
+                     True) as keep_others:
+        _write_student(run_dir, dest, cfg, tau, zip_name, command, keep_others)
+    return dest / "model.zip"
+
+
+def _write_student(run_dir: Path, dest: Path, cfg: dict, tau: float, zip_name: str, command: str,
+                   keep_others: bool) -> None:
+    """The files of :func:`write`, into ``dest`` (held by this process)."""
+    import yaml
+
+    from agents.checkpoint import load_sb3
+    from train.export import write_checkpoint_folder
+
     model = _at(load_sb3(run_dir / zip_name, device="cpu"), cfg, tau)
     cfg["agent"]["go_threshold"] = float(tau)
     source = (run_dir / "COMMAND").read_text() if (run_dir / "COMMAND").is_file() else ""
@@ -124,8 +154,8 @@ def write(run_dir: Path, dest: Path, tau: float, zip_name: str = "model.zip", ov
                   f"# {run_dir}: no COMMAND (its config.yaml has the training settings)\n")
     provenance += f"# then, P(GO) >= {tau} from {run_dir / zip_name}:\n{command}\n"
     write_checkpoint_folder(dest, {"model.zip": lambda p: model.save(str(p)),
-                                   "config.yaml": yaml.safe_dump(cfg, sort_keys=False), "COMMAND": provenance})
-    return dest / "model.zip"
+                                   "config.yaml": yaml.safe_dump(cfg, sort_keys=False), "COMMAND": provenance},
+                            keep_others)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -146,6 +176,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--overwrite-reference", action="store_true",
                         help="allow --dest to be a shipped reference agent's folder: replaced (model, config and "
                              "COMMAND at once) by a student of the same scenario, actions, kind and sensors")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="allow --dest to hold files (an earlier student's, another run's): all of them replaced")
     args = parser.parse_args(argv)
     run_dir = Path(args.run_dir)
     for path in (run_dir / args.model, run_dir / "config.yaml"):
@@ -163,7 +195,8 @@ def main(argv: list[str] | None = None) -> None:
 
         command = "python -m train.operating_point " + " ".join(shlex.quote(a) for a in (
             argv if argv is not None else sys.argv[1:]))
-        out = write(run_dir, Path(args.dest), args.write, args.model, args.overwrite_reference, command)
+        out = write(run_dir, Path(args.dest), args.write, args.model, args.overwrite_reference, command,
+                    args.overwrite)
         print(f"[operating_point] {out}, with config.yaml and COMMAND")
         return
     if args.episodes < 1:
