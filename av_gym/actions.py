@@ -48,3 +48,38 @@ def _action_problem(space: spaces.Space, action: Any) -> str | None:
             return None
         return "not finite (NaN or inf)" if not np.isfinite(values).all() else "out of bounds"
     return None if space.contains(action) else "not contained"  # pragma: no cover - the scenarios use Discrete/Box
+
+
+def check_actions(space: spaces.Space, actions: Any, n: int) -> None:
+    """:func:`check_action` for a batch of ``n`` envs that share ``space`` (the batched engine's step): one action
+    per env along the first axis, shape ``(n, *space.shape)``, where one number per env may also come as ``(n,)``
+    or ``(n, 1)``. Vectorised, one pass over the batch (a step of 256 envs costs milliseconds, this microseconds);
+    only a batch that fails is looked at env by env, so that the message names the first wrong env in
+    :func:`check_action`'s words. Only checked, never converted."""
+    values = np.asarray(actions) if not isinstance(actions, (str, bytes, dict)) else np.asarray(None)
+    shapes = [(n, *space.shape)] + ([(n,), (n, 1)] if int(np.prod(space.shape)) == 1 else [])
+    if values.shape not in shapes:
+        raise InvalidAction(f"actions of shape {values.shape} for {n} envs: expected shape "
+                            f"{' or '.join(str(s) for s in dict.fromkeys(shapes))}, one action of {space} per env")
+    per_env = values.reshape(n, *space.shape)
+    if _batch_in_space(space, per_env):
+        return
+    for i in range(n):
+        problem = _action_problem(space, per_env[i])
+        if problem:
+            text = np.array2string(np.asarray(per_env[i]), threshold=8)
+            raise InvalidAction(f"action {text[:80]} of env {i} is not in the action space {space}: {problem}")
+
+
+def _batch_in_space(space: spaces.Space, per_env: np.ndarray) -> bool:
+    """Whether every row of ``per_env`` (shape ``(n, *space.shape)``) is in ``space``, in one vectorised pass;
+    False also for what it cannot decide at once (an object array), which is then checked env by env."""
+    if isinstance(space, spaces.Discrete):
+        if not np.issubdtype(per_env.dtype, np.integer):
+            return False
+        return bool(((per_env >= space.start) & (per_env < space.start + space.n)).all())
+    if isinstance(space, spaces.Box):
+        if per_env.dtype.kind not in "biuf":
+            return False
+        return bool(((per_env >= space.low) & (per_env <= space.high)).all())  # NaN fails both comparisons
+    return False  # pragma: no cover - the scenarios use Discrete/Box

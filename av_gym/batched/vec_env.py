@@ -1,8 +1,8 @@
 """The batched left turn (:mod:`av_gym.batched.left_turn`) with the training wrappers done on the batch
 (:class:`BatchedLeftTurnBatch`, SB3's ``VecEnv`` interface without importing SB3) and as a Gymnasium ``VectorEnv``
 (:class:`BatchedLeftTurnVectorEnv`, what ``gymnasium.make_vec`` gives). The SB3 ``VecEnv`` that ``python -m train
-agent=ppo_turn agent.vec_env=batched`` trains on is the harness's :mod:`agents.batched_vec_env`: the library
-does not import SB3 or torch.
+agent=ppo_turn agent.vec_env=batched`` trains on is :class:`av_gym_sb3.BatchedLeftTurnVecEnv` (``from av_gym_sb3
+import BatchedLeftTurnVecEnv``): the library does not import SB3 or torch.
 
 What the batch gives: ``env=left_turn`` in both modes (traffic, CCFtap) with discrete or continuous actions, and the
 sensors of the ``turn_truth`` preset (``turn_features`` with ``source: truth``, ``turn_signals``, ``turn_intent``,
@@ -23,6 +23,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from av_gym.actions import check_actions
 from av_gym.batched.left_turn import BatchedIntent, BatchedLeftTurn
 from av_gym.errors import ConfigError
 from av_gym.estimation.turn_features import TurnFeaturesParams
@@ -51,11 +52,37 @@ def check_batchable(env_cfg: dict, sensors_cfg: dict | None, shield_cfg: dict | 
         raise ConfigError(f"shield={kind} is not available with agent.vec_env=batched; use agent.vec_env=subproc")
 
 
+def batch_seeds(seed, n: int) -> list:
+    """The seeds of ``n`` envs for ``seed``: an int (env i gets ``seed + i``), a sequence of ``n`` seeds (None
+    where an env's generator goes on), or None. Each a non-negative integer, as Gymnasium's ``reset(seed=)`` wants
+    it; anything else is one ConfigError line naming the field (``seed``) and what it may be."""
+    if seed is None:
+        return [None] * n
+    if _is_seed(seed):
+        return [int(seed) + i for i in range(n)]
+    if isinstance(seed, (str, bytes, dict)) or not hasattr(seed, "__len__"):
+        raise ConfigError(f"seed must be a non-negative integer, a list of {n} of them (one per env) or None, "
+                          f"got {seed!r:.80}")
+    seeds = list(seed)
+    if len(seeds) != n:
+        raise ConfigError(f"seed lists {len(seeds)} seeds for {n} envs; give one per env (or an int: env i gets "
+                          f"seed + i)")
+    bad = [i for i, s in enumerate(seeds) if s is not None and not _is_seed(s)]
+    if bad:
+        raise ConfigError(f"seed[{bad[0]}] must be a non-negative integer or None, got {seeds[bad[0]]!r:.80}")
+    return [None if s is None else int(s) for s in seeds]
+
+
+def _is_seed(value) -> bool:
+    """An int or numpy integer (not a bool, which Python counts as an int), >= 0."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_)) and value >= 0
+
+
 class BatchedLeftTurnBatch:
     """:class:`BatchedLeftTurn` with the training wrappers of the per-env stack (the action set's mapping,
     ActionRepeat, TimeLimitIsTerminal, FlatDictObservation) done on the batch, behind SB3's ``VecEnv`` methods (``reset``,
     ``step_async``/``step_wait``, ``seed``, ``get_attr`` ...), so that SB3's adapter is only the base class
-    (:class:`agents.batched_vec_env.BatchedLeftTurnVecEnv`)."""
+    (:class:`av_gym_sb3.batched.BatchedLeftTurnVecEnv`)."""
 
     def __init__(self, env_cfg: dict, sensors_cfg: dict, shield_cfg: dict | None, n_envs: int, *,
                  action_repeat: int = 1, actions: str = "env", timeout_is_terminal: bool = False,
@@ -184,6 +211,13 @@ class BatchedLeftTurnBatch:
         return self.step_wait()
 
     def step_async(self, actions: np.ndarray) -> None:
+        """Take one action per env (shape ``(num_envs, *action_space.shape)``), checked against ``action_space``
+        as the per-env stack checks its one (:func:`av_gym.actions.check_actions`: out of the space, NaN or a wrong
+        shape is an :class:`~av_gym.actions.InvalidAction` line); before the first ``reset``/``play`` there is no
+        episode to act in (Gymnasium's ``ResetNeeded``, as the per-env stack)."""
+        if self._obs is None:
+            raise gym.error.ResetNeeded("Cannot call step() before calling reset() (or play()) on the batch")
+        check_actions(self.action_space, actions, self.num_envs)
         self._actions = np.asarray(actions).reshape(self.num_envs, -1)[:, 0]
 
     def step_wait(self):
@@ -251,9 +285,11 @@ class BatchedLeftTurnBatch:
     def close(self) -> None:
         pass
 
-    def seed(self, seed: int | None = None):
-        """Seeds for the next reset: env i gets ``seed + i`` (as SB3's make_vec_env seeds per-env stacks)."""
-        self._seeds = [None if seed is None else seed + i for i in range(self.num_envs)]
+    def seed(self, seed: int | list | None = None):
+        """Seeds for the next reset: env i gets ``seed + i`` (as SB3's make_vec_env seeds per-env stacks), or
+        ``seed[i]`` from a list of ``num_envs`` seeds (None: that env's generator goes on). A seed is a
+        non-negative integer (as Gymnasium's ``reset(seed=)``); anything else is a ConfigError line."""
+        self._seeds = batch_seeds(seed, self.num_envs)
         return self._seeds
 
     def get_attr(self, attr_name, indices=None):
@@ -288,8 +324,10 @@ class BatchedLeftTurnVectorEnv(gym.vector.VectorEnv):
         self.metadata = {"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP}
 
     def reset(self, *, seed=None, options=None):
+        """Gymnasium's vector reset: ``seed`` an int (env i gets ``seed + i``), a list of ``num_envs`` seeds, or
+        None (see :meth:`BatchedLeftTurnBatch.seed`)."""
         if seed is not None:
-            self.venv.seed(seed) if isinstance(seed, int) else setattr(self.venv, "_seeds", list(seed))
+            self.venv.seed(seed)
         return self.venv.reset(), {}
 
     def step(self, actions):
