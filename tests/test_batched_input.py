@@ -24,7 +24,8 @@ def _one_line(err: pytest.ExceptionInfo) -> str:
 
 
 @pytest.mark.parametrize("space,actions,says", [
-    (DISCRETE, np.full(N, 5), "action 5 of env 0 is not in the action space Discrete(3): expected an integer in [0, 2]"),
+    (DISCRETE, np.full(N, 5),
+     "action 5 of env 0 is not in the action space Discrete(3): expected an integer in [0, 2]"),
     (DISCRETE, np.array([0, 1, -1, 2]), "action -1 of env 2 is not in the action space Discrete(3)"),
     (DISCRETE, np.full(N, np.nan), "got float64"),
     (DISCRETE, np.full(N, 1e9), "got float64"),
