@@ -36,12 +36,14 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from av_gym.seeds import SPLITS
-from av_gym.atomic import csv_text, write_text_atomic
+from av_gym.atomic import OwnedFolders, csv_text, write_text_atomic
+from av_gym.errors import ConfigError
+from av_gym.seeds import SPLITS, config_seeds
 from av_gym.shields.aeb import find_shield
 from av_gym.shields.conflicts import PARTNER_TYPES, partner_type
 from eval.runner import play_episode
-from conf.cli import Extend, ToolParser, items
+from conf.cli import ToolParser, items, number, out_folder_problem
+from conf.commands import PROCESSES_MAX
 
 WINDOW = 8.0  # s, default counterfactual window (module docstring)
 
@@ -245,41 +247,80 @@ def run(spec: str, seeds, env_set=(), shield_set=(), window: float = WINDOW, wor
     return episodes, rows
 
 
-def main(argv: list[str] | None = None) -> int:
+OUTPUTS = ("episodes.csv", "interventions.csv", "interventions.md")
+OUT_DIRS = OwnedFolders()  # the --out folders this process is writing
+
+
+def _parser() -> ToolParser:
     ap = ToolParser(prog="python -m eval.interventions", description=__doc__.split("\n\n")[0])
     ap.add_argument("--agents", default=["always_proceed+aeb", "lookahead+aeb"], type=items(str),
                     help="agent+shield specs, [a+aeb,b+aeb]")
-    ap.add_argument("--episodes", type=int, default=100, choices=range(1, 100_001), metavar="[1, 100000]")
-    ap.add_argument("--seed", type=int, default=SPLITS["validation"].start,
-                    help="first seed (default: the validation split's first, av_gym/seeds.py: shield "
-                         "development looks at validation, never test)")
-    ap.add_argument("--window", type=float, default=WINDOW, help="counterfactual window (s)")
+    ap.add_argument("--episodes", type=number(int, low=1, high=100_000), default=100, help="episodes, [1, 100000]")
+    ap.add_argument("--split", choices=list(SPLITS), default="validation",
+                    help="the seeds' split (av_gym/seeds.py; default validation: shield development looks at "
+                         "validation, never test)")
+    ap.add_argument("--seed", type=number(int), default=None, help="first seed (default: the split's first)")
+    ap.add_argument("--window", type=number(float, low=0.1, high=600.0), default=WINDOW,
+                    help="counterfactual window (s), [0.1, 600]")
     ap.add_argument("--env-set", action="append", default=[], metavar="KEY=VALUE", help="env field override")
     ap.add_argument("--shield-set", action="append", default=[], metavar="KEY=VALUE",
                     help="shield field override (e.g. target_model=map, mode=perceived)")
-    ap.add_argument("--workers", type=int, default=1)
-    ap.add_argument("--out", default="runs/interventions")
-    a = ap.parse_args(argv)
-    seeds = list(range(a.seed, a.seed + a.episodes))
+    ap.add_argument("--workers", type=number(int, low=1, high=PROCESSES_MAX), default=1,
+                    help=f"worker processes, [1, {PROCESSES_MAX}]")
+    ap.add_argument("--out", default="runs/interventions", help="folder of the tables (held while they are written)")
+    ap.add_argument("--overwrite", action="store_true", help="replace the tables --out already holds")
+    return ap
+
+
+def claim_out(out: str, overwrite: bool) -> None:
+    """``--out`` for this process alone while it runs (``out/.lock``, as ``python -m eval`` holds its out_dir), then
+    checked under the lock: a folder that holds another run's tables is refused unless ``overwrite``. One line
+    (:class:`ConfigError`) otherwise; a refused claim leaves nothing behind."""
+    problem = out_folder_problem(out, "--out")
+    if problem:
+        raise ConfigError(problem)
+    OUT_DIRS.claim(out, "--out", "another eval.interventions")
+    held = [name for name in OUTPUTS if (Path(out) / name).exists()]
+    if held and not overwrite:
+        OUT_DIRS.release(out)
+        raise ConfigError(f"--out={out} already holds {', '.join(held)} of an earlier run; pick another --out, or "
+                          f"replace them with --overwrite")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The command line: every flag checked (bounds, the seeds in their split, ``--out`` writable and ours) before
+    any episode, then each agent's labelled episodes, the tables rewritten after each agent."""
+    a = _parser().parse_args(argv)
+    bare = [spec for spec in a.agents if "+" not in spec]
+    if bare:
+        raise ConfigError(f"--agents: {bare[0]!r} has no shield: use an agent+aeb spec")
+    seeds = list(config_seeds(a.split, a.episodes, a.seed, "--seed"))
+    claim_out(a.out, a.overwrite)
+    try:
+        text = _label_all(a, seeds)
+    finally:
+        OUT_DIRS.release(a.out)
+    print(text)
+    return 0
+
+
+def _label_all(a, seeds: list[int]) -> str:
+    """Each agent's labelled episodes; the tables written after each agent (a long run stopped later keeps what it
+    measured); returns the markdown."""
     episodes, rows = [], []
     start = time.perf_counter()
     for spec in a.agents:
-        if "+" not in spec:
-            print(f"error: {spec!r} has no shield: use an agent+aeb spec", file=sys.stderr)
-            return 2
         e, r = run(spec, seeds, a.env_set, a.shield_set, a.window, a.workers)
         episodes += e
         rows += r
-        # after each agent: a long run stopped later keeps what it measured
-        meta = (f"{a.episodes} episodes from seed {a.seed}, window {a.window:g} s, env overrides "
-                f"{a.env_set or '-'}, shield overrides {a.shield_set or '-'}; {time.perf_counter() - start:.0f} s "
-                f"wall")
+        meta = (f"{a.episodes} episodes of the {a.split} split from seed {seeds[0]}, window {a.window:g} s, env "
+                f"overrides {a.env_set or '-'}, shield overrides {a.shield_set or '-'}; "
+                f"{time.perf_counter() - start:.0f} s wall")
         text = write_outputs(episodes, rows, Path(a.out), meta)
-    print(text)
-    return 0
+    return text
 
 
 if __name__ == "__main__":
     from av_gym.errors import run_cli
 
-    run_cli(lambda: sys.exit(main()))  # a write that fails (a full disk): one line, exit 2
+    run_cli(lambda: sys.exit(main()))  # bad input or a write that fails (a full disk): one line, exit 2

@@ -92,7 +92,7 @@ def test_partner_type_from_the_road_network(make, turn_cfg):
 
 
 def test_cli_writes_the_tables(tmp_path):
-    assert main(["--agents", "always_proceed+aeb", "--episodes", "2", "--seed", "1000", "--out",
+    assert main(["--agents", "always_proceed+aeb", "--episodes", "2", "--seed", "1000000", "--out",
                  str(tmp_path)]) == 0
     text = (tmp_path / "interventions.md").read_text()
     assert "needed" in text and "unneeded_share" in text

@@ -196,3 +196,53 @@ def test_the_operating_point_shows_progress(capsys):
     out, err = capsys.readouterr()
     assert "| 0.50 |" in out and "| 0.90 |" in out
     assert "P(GO) >= 0.5" in err and "P(GO) >= 0.9" in err and "/2 [" in err, err
+
+
+# ------------------------------------------------------------------------------------ eval.interventions: eval's guards
+@pytest.mark.parametrize("argv, needle", [
+    (["--window", "-1"], "argument --window: each value must be in [0.1, 600.0], got '-1'"),
+    (["--window", "nan"], "argument --window: 'nan' is not a number"),
+    (["--workers", "0"], "argument --workers: each value must be in [1, 64], got '0'"),
+    (["--episodes", "0"], "argument --episodes: each value must be in [1, 100000], got '0'"),
+    (["--seed", "-3"], "--seed=-3 with 100 episodes leaves split 'validation' (seeds 1000000..1999999)"),
+    (["--seed", "1999990"], "--seed=1999990 with 100 episodes leaves split 'validation'"),  # into the test split
+    (["--seed", "1000"], "--seed=1000 with 100 episodes leaves split 'validation'"),  # a train seed
+    (["--split", "test", "--seed", "1000000"], "leaves split 'test'"),
+    (["--out", "/proc/x"], "--out=/proc/x: nothing can be created in '/proc'"),
+    (["--agents", "[always_proceed]"], "--agents: 'always_proceed' has no shield: use an agent+aeb spec"),
+])
+def test_interventions_checks_its_flags_in_one_line(argv, needle, tmp_path, monkeypatch, capsys):
+    """``--window -1``/``nan`` and ``--workers 0`` were accepted, ``--seed -3`` and ``--out /proc/x`` were
+    tracebacks, ``--episodes 0`` printed a 689 KB line (argparse listing choices=range(1, 100001)), seeds outside
+    their split were accepted. Each is one short line, exit 2, before any episode; nothing is written."""
+    from eval.interventions import main
+
+    monkeypatch.chdir(tmp_path)
+    line = cli(lambda args: main(args), argv, capsys)
+    assert needle in line and len(line) < 300, line
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_interventions_does_not_replace_another_runs_tables(tmp_path, capsys):
+    """Two runs into one --out: the second's tables replaced the first's (or both wrote at once and one's rows were
+    lost). The folder is held while a run writes it and its tables are replaced only with --overwrite."""
+    from eval.interventions import main
+
+    out = tmp_path / "iv"
+    argv = ["--agents", "[always_proceed+aeb]", "--episodes", "1", "--out", str(out)]
+    assert main(argv) == 0
+    first = snapshot(out)
+    assert sorted(first) == ["episodes.csv", "interventions.csv", "interventions.md"]
+    line = cli(lambda args: main(args), [*argv, "--seed", "1000001"], capsys)
+    assert f"--out={out} already holds episodes.csv, interventions.csv, interventions.md" in line, line
+    assert "--overwrite" in line and snapshot(out) == first
+    fd = locked_by_another(out)
+    try:
+        line = cli(lambda args: main(args), [*argv, "--overwrite"], capsys)
+    finally:
+        os.close(fd)
+    assert f"--out={out}: another eval.interventions (pid 4242) is writing it" in line, line
+    assert snapshot(out) == {**first, ".lock": b"4242\n"}
+    (out / ".lock").unlink()
+    assert main([*argv, "--seed", "1000001", "--overwrite"]) == 0
+    assert "1000001" in (out / "episodes.csv").read_text() and not (out / ".lock").exists()
