@@ -146,7 +146,16 @@ def page(results: list[dict]) -> str:
 
 
 def load_all(root: Path) -> list[dict]:
-    folders = sorted(p for p in Path(root).iterdir() if (p / "results.csv").is_file() and (p / "meta.json").is_file())
+    """Every result folder under ``root`` (each visible sub-folder is one). A folder without its ``results.csv``
+    or ``meta.json`` is refused, naming it: skipped, its agents' rows would vanish from the page and the README
+    without a word (a hidden one, ``.name``, is a tool's temporary folder and is not read)."""
+    folders = sorted(p for p in Path(root).iterdir() if p.is_dir() and not p.name.startswith("."))
+    for folder in folders:
+        missing = [name for name in ("results.csv", "meta.json") if not (folder / name).is_file()]
+        if missing:
+            raise ValueError(f"{folder} has no {' and no '.join(missing)}: every folder under {root} is a result "
+                             f"folder (results.csv from python -m eval, meta.json with its command); add "
+                             f"{' and '.join(missing)}, or move the folder out of {root}")
     if not folders:
         raise ValueError(f"no result folders (results.csv + meta.json) under {root}")
     return [load_folder(f) for f in folders]

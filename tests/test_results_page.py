@@ -60,3 +60,16 @@ def test_a_folder_mixing_splits_or_repeating_an_episode_is_refused(tmp_path, cap
     _folder(tmp_path / "results", "lt", seeds, [0, 0])
     assert main(["--results", str(tmp_path / "results"), "--out", str(tmp_path / "p.md")]) == 2
     assert needle in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("missing", ["meta.json", "results.csv"])
+def test_a_folder_without_its_meta_or_results_is_refused_in_one_line(missing, tmp_path, capsys):
+    """A result folder whose meta.json is missing was skipped without a word: its rows (four headline rows for
+    the folders of the issue) vanished from the page and the README's block. Refused, naming the folder."""
+    results = tmp_path / "results"
+    _folder(results, "kept", range(2_000_000, 2_000_004), [0, 0, 0, 0])
+    (_folder(results, "lt", range(2_000_000, 2_000_004), [1, 0, 0, 0]) / missing).unlink()
+    assert main(["--results", str(results), "--out", str(tmp_path / "p.md")]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and f"{results / 'lt'} has no {missing}" in err[0], err
+    assert not (tmp_path / "p.md").exists()
