@@ -1,30 +1,38 @@
 """Lane-keeping figures for ``python -m eval env=lane_keeping``: CTE along the lap (PNG) for each agent and, with
-``videos=true``, one lap per agent seen from the centre camera (MP4, or GIF if no MP4 encoder is available). On the
-left turn ``videos=true`` renders each agent's first episode top-down (:func:`turn_videos`).
+``videos=true``, one lap per agent seen from the centre camera (WebM, VP8: what browsers play; GIF if this OpenCV
+has no VP8 encoder). On the left turn ``videos=true`` renders each agent's first episode top-down
+(:func:`turn_videos`). Each figure and video is announced by a line before it is drawn (a lap takes seconds).
 
 Each agent drives the first evaluation seed once more with the same sensors and shield as in the
 table, so the figure shows one of the laps that were scored (policies are deterministic and sensors are seeded).
 Output, in the eval folder: ``cte_<agent>.png`` per agent, ``cte_all.png`` (every agent on one axis) and
-``lap_<agent>.mp4``. The video is the clean centre-camera render (the same 66×200 view PilotNet drives from,
+``lap_<agent>.webm``. The video is the clean centre-camera render (the same 66×200 view PilotNet drives from,
 without sensor noise, scaled ×2; every other frame at 2× real time, about 1.5 MB a lap), with the lap distance
 and CTE written on it.
 """
 
 from __future__ import annotations
 
+import contextlib
+import os
 import re
+import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
-from av_gym.atomic import save_figure_atomic
+from av_gym.atomic import atomic_path, save_figure_atomic
 
 LANE_UNITS = 100.0  # paper 001: the lane is 100 units wide
 VIDEO_SCALE, VIDEO_SPEEDUP, VIDEO_FRAME_STEP = 2, 2, 2  # ×2 size, 2× real time, every other frame (small files)
 
 
-def record_lap(env, policy, seed: int, video: bool = False) -> dict:
-    """Drive one episode; per step: lap distance (m), CTE (m), steering (rad), and centre-camera frames if asked."""
+def record_lap(env, policy, seed: int, video: bool = False, desc: str | None = None) -> dict:
+    """Drive one episode; per step: lap distance (m), CTE (m), steering (rad), and centre-camera frames if asked.
+    ``desc``: a progress bar of the steps with that title (a lap takes seconds to a minute)."""
+    from tqdm import tqdm
+
     from av_gym.sensors.camera import CameraSpec, render_view
 
     spec = CameraSpec()
@@ -32,13 +40,15 @@ def record_lap(env, policy, seed: int, video: bool = False) -> dict:
     policy.reset()
     trace = {"progress": [], "cte": [], "steering": [], "frames": []}
     done = False
-    while not done:
-        if video:
-            trace["frames"].append(render_view(env, spec))
-        obs, _, terminated, truncated, info = env.step(policy.act(obs))
-        done = terminated or truncated
-        for key in ("progress", "cte", "steering"):
-            trace[key].append(info["truth"][key])
+    with tqdm(desc=desc, unit="step", disable=desc is None, leave=False) as bar:
+        while not done:
+            if video:
+                trace["frames"].append(render_view(env, spec))
+            obs, _, terminated, truncated, info = env.step(policy.act(obs))
+            done = terminated or truncated
+            for key in ("progress", "cte", "steering"):
+                trace[key].append(info["truth"][key])
+            bar.update()
     out = {k: np.asarray(v, dtype=float) for k, v in trace.items() if k != "frames"}
     out["frames"] = trace["frames"]
     out["lane_width"] = float(info["truth"]["lane_width"])
@@ -113,7 +123,7 @@ def plot_cte(traces: dict[str, dict], out_dir: str | Path, title: str) -> list[P
 
 
 def write_video(trace: dict, label: str, path: str | Path, policy_hz: float = 10.0) -> Path:
-    """The lap's centre-camera frames as MP4 (``mp4v``) at ``VIDEO_SPEEDUP``× real time; GIF if MP4 fails."""
+    """The lap's centre-camera frames as a video (:func:`write_frames`) at ``VIDEO_SPEEDUP``× real time."""
     import cv2
 
     frames = trace["frames"]
@@ -134,25 +144,69 @@ def write_video(trace: dict, label: str, path: str | Path, policy_hz: float = 10
 
 
 def write_frames(frames: list[np.ndarray], path: str | Path, fps: float) -> Path:
-    """RGB frames (H, W, 3 uint8, all the same size) as MP4 (``mp4v``) at ``fps``; a GIF beside it (every other
-    frame) if OpenCV has no MP4 encoder here. Returns the file written."""
+    """RGB frames (H, W, 3 uint8, all the same size) at ``fps`` as WebM (VP8) at ``path`` with the suffix
+    ``.webm``: browsers play it (``mp4v`` MPEG-4 Part 2 they do not, and opencv-python-headless's FFmpeg has no
+    H.264 encoder). A GIF (every other frame) where this OpenCV has no VP8 encoder. Written atomically; returns the
+    file written."""
+    path = Path(path).with_suffix(".webm")
+    try:
+        with atomic_path(path, "out_dir") as tmp:
+            # OpenCV picks the container by the name's suffix: the temporary name must end in .webm too
+            named = tmp.with_name(tmp.name + ".webm")
+            try:
+                _encode_vp8(frames, named, fps)
+                named.replace(tmp)
+            finally:
+                named.unlink(missing_ok=True)
+        return path
+    except _NoEncoder:
+        gif = _write_gif(frames, path.with_suffix(".gif"), fps)
+        print(f"[eval] this OpenCV has no VP8 encoder: {gif.name} instead of {path.name}", flush=True)
+        return gif
+
+
+class _NoEncoder(Exception):
+    """OpenCV could not open a VP8 writer here."""
+
+
+def _encode_vp8(frames: list[np.ndarray], path: Path, fps: float) -> None:
+    """``frames`` (RGB) into ``path`` with OpenCV's VP8 encoder; :class:`_NoEncoder` if it has none."""
     import cv2
 
-    path = Path(path)
     h, w = frames[0].shape[:2]
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
-    if writer.isOpened():
-        for img in frames:
-            writer.write(cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
-        writer.release()
-        return path
+    with _quiet_stderr():  # FFmpeg notes that WebM stores no FourCC tag, once per file: true and harmless
+        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"VP80"), fps, (w, h))
+    if not writer.isOpened():
+        raise _NoEncoder
+    for img in frames:
+        writer.write(cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+    writer.release()
+
+
+def _write_gif(frames: list[np.ndarray], path: Path, fps: float) -> Path:
+    """Every other frame as a looping GIF at ``path`` (the fallback: every browser plays it, at ~5x the size)."""
     from PIL import Image
 
-    gif = path.with_suffix(".gif")
-    step = 2  # every other written frame again keeps the GIF small
+    step = 2
     images = [Image.fromarray(img) for img in frames[::step]]
-    images[0].save(gif, save_all=True, append_images=images[1:], duration=int(1000 * step / fps), loop=0)
-    return gif
+    with atomic_path(path, "out_dir") as tmp:
+        images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=int(1000 * step / fps),
+                       loop=0)
+    return path
+
+
+@contextlib.contextmanager
+def _quiet_stderr() -> Iterator[None]:
+    """File descriptor 2 to /dev/null for the block: FFmpeg writes its notes there from C, past ``sys.stderr``."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def lane_keeping_figures(env_cfg, plans, out_dir: str | Path, first_seed: int, checkpoints: str, split: str,
@@ -162,17 +216,22 @@ def lane_keeping_figures(env_cfg, plans, out_dir: str | Path, first_seed: int, c
     from eval.agents import make_eval_env, resolve_agent
 
     traces, paths = {}, []
+    drawn = ", ".join(["CTE plot"] * plots + ["video"] * videos)
     for plan in plans:
+        print(f"[eval] figures: {plan.label} drives seed {first_seed} once more for its {drawn}", flush=True)
         env = make_eval_env(env_cfg, plan.sensors, plan.shield)
         _, policy = resolve_agent(plan.spec, env, env_cfg["name"], checkpoints)
-        traces[plan.label] = record_lap(env, policy, first_seed, video=videos)
+        traces[plan.label] = record_lap(env, policy, first_seed, video=videos, desc=f"lap of {plan.label}")
         policy_hz = float(env.unwrapped.config["policy_frequency"])
         env.close()
         if videos:
-            paths.append(write_video(traces[plan.label], plan.label, Path(out_dir) / f"lap_{_slug(plan.label)}.mp4",
-                                     policy_hz))
+            path = Path(out_dir) / f"lap_{_slug(plan.label)}.webm"
+            print(f"[eval] figures: writing {path.name}", flush=True)
+            paths.append(write_video(traces[plan.label], plan.label, path, policy_hz))
     if plots:
         title = f"layout {env_cfg.get('track', '?')}, seed {first_seed} ({split})"
+        print(f"[eval] figures: drawing {', '.join(f'cte_{_slug(t)}.png' for t in traces)} and cte_all.png",
+              flush=True)
         paths += plot_cte(traces, out_dir, title)
     return paths
 
@@ -180,13 +239,15 @@ def lane_keeping_figures(env_cfg, plans, out_dir: str | Path, first_seed: int, c
 def turn_videos(env_cfg, plans, out_dir: str | Path, first_seed: int, checkpoints: str) -> list[Path]:
     """For ``python -m eval env=left_turn videos=true``: each agent plan drives ``first_seed`` (the evaluation's
     first) once more with its sensors and shield, rendered top-down by highway-env (the view training's periodic
-    GIFs show), at half resolution and real time: ``turn_<agent>.mp4``."""
+    GIFs show), at half resolution and real time: ``turn_<agent>.webm``."""
     import cv2
 
     from eval.agents import make_eval_env, resolve_agent
 
     paths = []
     for plan in plans:
+        print(f"[eval] video: {plan.label} drives seed {first_seed} once more, rendered into "
+              f"turn_{_slug(plan.label)}.webm", flush=True)
         env = make_eval_env(env_cfg, plan.sensors, plan.shield, render_mode="rgb_array")
         _, policy = resolve_agent(plan.spec, env, env_cfg["name"], checkpoints)
         obs, _ = env.reset(seed=int(first_seed))
@@ -204,7 +265,7 @@ def turn_videos(env_cfg, plans, out_dir: str | Path, first_seed: int, checkpoint
             obs, _, terminated, truncated, _ = env.step(policy.act(obs))
             done, t = terminated or truncated, t + dt
         env.close()
-        paths.append(write_frames(frames, Path(out_dir) / f"turn_{_slug(plan.label)}.mp4", 1.0 / dt))
+        paths.append(write_frames(frames, Path(out_dir) / f"turn_{_slug(plan.label)}.webm", 1.0 / dt))
     return paths
 
 
