@@ -109,8 +109,8 @@ class EvalCommand(Command):
     out_dir: str = param("runs/eval", doc="results.csv and results.md (eval.yaml: Hydra's run folder)")
     progress_bar: bool = param(True)
     plots: bool = param(True, doc="lane keeping: CTE along the lap (PNG) per agent, on the first seed")
-    videos: bool = param(False, doc="lane keeping: one lap per agent from the centre camera (lap_<agent>.mp4); "
-                                    "left turn: each agent's first episode top-down (turn_<agent>.mp4)")
+    videos: bool = param(False, doc="lane keeping: one lap per agent from the centre camera (lap_<agent>.webm); "
+                                    "left turn: each agent's first episode top-down (turn_<agent>.webm, VP8)")
     overwrite: bool = param(False, doc="an out_dir that already holds results.csv or results.md is refused (a "
                                        "finished evaluation is not replaced by accident); true replaces them")
 
