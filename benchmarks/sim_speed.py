@@ -14,6 +14,12 @@ process per env, as ``python -m train`` does), stock vs fast, truth sensors.
 
 from __future__ import annotations
 
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+# a script in the checkout: the harness packages (conf, agents, train, eval) are the checkout's, beside this folder
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 import argparse
 import time
 

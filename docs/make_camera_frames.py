@@ -1,10 +1,10 @@
 """Example frames of the three windshield cameras (left | centre | right), for both scenarios.
 
-    .venv/bin/python docs/make_camera_frames.py
+    python docs/make_camera_frames.py [--each] [--out docs/cameras]
 
-writes ``docs/cameras/contact_sheet.png`` (docs/sensors.md shows it): one row per scene, each a montage of the
-left, centre and right 66×200 images, upscaled ×2 with nearest-neighbour so the pixels the network sees stay
-visible, with a caption strip. Scenes: the lap's straight, the approach to layout A's left hairpin and layout B's
+writes ``contact_sheet.png`` into ``--out`` (default: docs/cameras/, which docs/sensors.md shows): one row per
+scene, each a montage of the left, centre and right 66×200 images, upscaled ×2 with nearest-neighbour so the pixels
+the network sees stay visible, with a caption strip. Scenes: the lap's straight, the approach to layout A's left hairpin and layout B's
 right hairpin, inside the left hairpin, the intersection with oncoming traffic and the CCFtap target, the camera
 noise at its defaults and heavy, fog and night. ``--each`` also writes each scene's montage (×3) and
 ``centre_hires.png`` (the centre camera at 264×800, for detail) beside it.
@@ -12,15 +12,20 @@ noise at its defaults and heavy, fog and night. ``--each`` also writes each scen
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+# a script in the checkout: the harness packages (conf, agents, train, eval) are the checkout's, beside this folder
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import cv2
 import gymnasium as gym
 import numpy as np
 
 import av_gym  # noqa: F401  (registers the envs)
+from av_gym.atomic import atomic_path
 from av_gym.sensors.camera import CAMERA_NAMES, Cameras, CameraSpec, Weather, camera_rig, render_view, render_views
+from conf.cli import ToolParser
 
 OUT = Path(__file__).resolve().parent / "cameras"
 SCALE = 3  # nearest-neighbour upscale of the 66×200 frames
@@ -40,9 +45,14 @@ def montage(frames: dict[str, np.ndarray], caption: str, scale: int = SCALE) -> 
     return np.concatenate([strip, row], 0)
 
 
-def save(name: str, image: np.ndarray) -> None:
-    cv2.imwrite(str(OUT / f"{name}.png"), cv2.cvtColor(image, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_PNG_COMPRESSION, 9])
-    print("wrote", OUT / f"{name}.png")
+def save(out: Path, name: str, image: np.ndarray) -> None:
+    """``<out>/<name>.png`` from an RGB uint8 image, atomically (a failed write leaves the previous file whole)."""
+    ok, png = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_PNG_COMPRESSION, 9])
+    if not ok:
+        raise RuntimeError(f"OpenCV could not encode {name}.png")
+    with atomic_path(out / f"{name}.png", "--out") as tmp:
+        tmp.write_bytes(png.tobytes())
+    print("wrote", out / f"{name}.png")
 
 
 def lap(track: str, start_s: float) -> gym.Env:
@@ -77,15 +87,15 @@ def ccftap(seconds: float) -> gym.Env:
     return env
 
 
-def main(each: bool = False) -> None:
-    OUT.mkdir(parents=True, exist_ok=True)
+def main(out: Path = OUT, each: bool = False) -> None:
+    out.mkdir(parents=True, exist_ok=True)
     rig = camera_rig()
     shots: list[tuple[str, str, dict[str, np.ndarray]]] = []
 
     def shot(name: str, caption: str, frames: dict[str, np.ndarray]) -> None:
         shots.append((name, caption, frames))
         if each:
-            save(name, montage(frames, caption))
+            save(out, name, montage(frames, caption))
 
     shot("lane_keeping_A_straight", "lane keeping, layout A: start of the 120 m straight",
          render_views(lap("A", 0.0), rig))
@@ -117,11 +127,15 @@ def main(each: bool = False) -> None:
     shot("night_lane_keeping", "night (clean), layout A before the left hairpin",
          render_views(lap("A", 110.0), rig, weather=Weather(night=True)))
 
-    save("contact_sheet", np.concatenate([montage(f, c, scale=2) for _, c, f in shots], 0))
+    save(out, "contact_sheet", np.concatenate([montage(f, c, scale=2) for _, c, f in shots], 0))
     if each:
         hires = CameraSpec(height=264, width=800)
-        save("centre_hires", np.concatenate([render_view(lap("A", 110.0), hires), render_view(env, hires)], 0))
+        save(out, "centre_hires", np.concatenate([render_view(lap("A", 110.0), hires), render_view(env, hires)], 0))
 
 
 if __name__ == "__main__":
-    main(each="--each" in sys.argv[1:])
+    parser = ToolParser(prog="docs/make_camera_frames.py", description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=OUT, help="folder for the images (default: docs/cameras/)")
+    parser.add_argument("--each", action="store_true", help="also each scene's montage and centre_hires.png")
+    args = parser.parse_args()
+    main(args.out, args.each)

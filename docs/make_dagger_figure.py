@@ -10,14 +10,20 @@ prefixed by its ``run`` column (``s1``, ``perceived_s1``, ...).
 
 from __future__ import annotations
 
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+# a script in the checkout: the harness packages (conf, agents, train, eval) are the checkout's, beside this folder
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 import csv
-from pathlib import Path
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from av_gym.atomic import save_figure_atomic  # noqa: E402
 from conf.cli import ToolParser  # noqa: E402
 
 
@@ -57,7 +63,7 @@ def main() -> None:
     fig.suptitle(f"DAgger students ({args.sensors}) after each round, validation episodes")
     fig.tight_layout()
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(args.out, dpi=110)
+    save_figure_atomic(fig, args.out, "--out", dpi=110)
     print(f"plot: {args.out}")
 
 

@@ -1,16 +1,20 @@
 """Plot one LiDAR scan over its scene, seen from above, for both scenarios.
 
-    .venv/bin/python docs/make_lidar_figure.py
+    python docs/make_lidar_figure.py [--out docs]
 
-writes ``docs/lidar_scan_lane_keeping.png`` and ``docs/lidar_scan_left_turn.png``. Lanes, the roadside world
-(guard rails, building fronts, poles, sign posts, trees), the other vehicles and the ego are drawn in highway-env's
-world frame with the y axis pointing down, as on highway-env's screen; the scan's points are mapped back to that
-frame with the true scan pose and coloured by label (static world / vehicle).
+writes ``lidar_scan_lane_keeping.png`` and ``lidar_scan_left_turn.png`` into ``--out`` (default: docs/, beside this
+script). Lanes, the roadside world (guard rails, building fronts, poles, sign posts, trees), the other vehicles and
+the ego are drawn in highway-env's world frame with the y axis pointing down, as on highway-env's screen; the scan's
+points are mapped back to that frame with the true scan pose and coloured by label (static world / vehicle).
 """
 
 from __future__ import annotations
 
-from pathlib import Path
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+# a script in the checkout: the harness packages (conf, agents, train, eval) are the checkout's, beside this folder
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import gymnasium as gym
 import matplotlib
@@ -22,10 +26,12 @@ from matplotlib.patches import Circle, Polygon  # noqa: E402
 
 import av_gym  # noqa: E402,F401  (registers the envs)
 from agents.pid import PIDSteering  # noqa: E402
+from av_gym.atomic import save_figure_atomic  # noqa: E402
 from av_gym.geometry import box_corners  # noqa: E402
 from av_gym.sensors.base import others_state  # noqa: E402
 from av_gym.sensors.lidar import LABEL_VEHICLE, Lidar, sensor_to_world  # noqa: E402
 from av_gym.sensors.world import CIRCLE_KINDS, roadside_world  # noqa: E402
+from conf.cli import ToolParser  # noqa: E402
 
 OUT = Path(__file__).resolve().parent
 CIRCLE_COLOURS = {"pole": "0.2", "sign_post": "tab:orange", "tree": "tab:green"}
@@ -74,11 +80,15 @@ def plot_scan(env: Lidar, title: str, path: Path, half_width: float = 60.0) -> N
     ax.set_title(title)
     ax.legend(loc="upper right", fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure_atomic(fig, path, "--out", dpi=120)
     plt.close(fig)
 
 
 def main() -> None:
+    parser = ToolParser(prog="docs/make_lidar_figure.py", description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=OUT, help="folder for the two figures (default: docs/)")
+    out = parser.parse_args().out
+    out.mkdir(parents=True, exist_ok=True)
     # Lane keeping: a few seconds into the lap, entering the first hairpin (guard rails, poles and buildings).
     env = Lidar(gym.make("av_gym/LaneKeepingLap-v0"))
     obs, _ = env.reset(seed=3)
@@ -87,7 +97,7 @@ def main() -> None:
         obs, _, terminated, truncated, _ = env.step(pid.act(obs))
         assert not (terminated or truncated)
     plot_scan(env, "LaneKeepingLap-v0: one 720-beam planar LiDAR scan (seed 3, t = 10 s)",
-              OUT / "lidar_scan_lane_keeping.png")
+              out / "lidar_scan_lane_keeping.png")
 
     # Left turn: ego at the stop line with cross and oncoming traffic around.
     env = Lidar(gym.make("av_gym/UnprotectedLeftTurn-v0"))
@@ -96,7 +106,7 @@ def main() -> None:
         _, _, terminated, truncated, _ = env.step(1)
         assert not (terminated or truncated)
     plot_scan(env, "UnprotectedLeftTurn-v0: one 720-beam planar LiDAR scan (seed 5, t = 2.5 s)",
-              OUT / "lidar_scan_left_turn.png")
+              out / "lidar_scan_left_turn.png")
 
 
 if __name__ == "__main__":

@@ -306,8 +306,8 @@ def tiny(command: Command, chain: Chain) -> list[str]:
     if argv[0] == "tensorboard":
         return ["tensorboard", "--inspect", "--logdir", str(tmp)]
     assert argv[0] in ("python", "python3"), command
-    if argv[1] != "-m":  # a script: benchmarks/*.py
-        return ["python", *argv[1:], *SCRIPT_ARGS.get(argv[1], [])]
+    if argv[1] != "-m":  # a script: benchmarks/*.py, docs/*.py
+        return ["python", *argv[1:], *(script_argv(argv[1], tmp) if argv[1] in SCRIPT_ARGS else [])]
     module, args = argv[2], argv[3:]
     if module == "train":
         return ["python", "-m", "train", *_tiny_train(args, chain)]
@@ -416,13 +416,46 @@ TOOL_ARGS = {
     "train.pid_search": [("--grid", ["quick"]), ("--refine", ["0"]), ("--seeds", ["0"])],
     "train.operating_point": [("--episodes", ["2"]), ("--thresholds", ["[0.5,0.9]"])],
 }
+# Every script a document tells a reader to run (``python benchmarks/<name>.py``, ``python docs/<name>.py``: in a fenced
+# block, an indented one or inline prose) -> the arguments of its tiny form; ``{tmp}`` is the test's folder. A
+# command of a fenced block runs as written with these appended (argparse keeps the last of a flag); a script named
+# only outside fenced blocks runs with these alone (tests/test_documented_commands.py: test_documented_scripts_run).
+PARTITION_CSV = "docs/results/left_turn_partition/results.csv"
 SCRIPT_ARGS = {
+    "benchmarks/aeb_cost.py": ["--vehicles", "2", "--n", "2", "--repeat", "1"],
+    "benchmarks/batched_distribution.py": [PARTITION_CSV, PARTITION_CSV],  # the documented pair: two evals' csv
+    "benchmarks/batched_speed.py": ["--sizes", "1,2", "--seconds", "0.1", "--out", "{tmp}/batched_speed.png"],
+    "benchmarks/belief_information.py": ["--episodes", "2", "--steps", "2", "--samples", "2"],
+    "benchmarks/belief_planner.py": ["--episodes", "2", "--samples", "2", "--thresholds", "0.1", "--n-envs", "2"],
     "benchmarks/odometry.py": ["--scans", "20", "--repeats", "1"],
-    "benchmarks/pilotnet_inference.py": ["--frames", "20"],
-    "benchmarks/sim_speed.py": ["--quick"],
-    "docs/make_dagger_figure.py": ["--out", "runs/documented/dagger.png"],
     "benchmarks/oracle_labels.py": ["--quick"],
+    "benchmarks/partition.py": [PARTITION_CSV, "--resamples", "10"],
+    "benchmarks/pilotnet_inference.py": ["--frames", "20"],
+    "benchmarks/sensor_cost.py": ["--steps", "5", "--repeats", "1"],
+    "benchmarks/sensor_kernels.py": ["--steps", "5", "--repeats", "1"],
+    "benchmarks/sim_speed.py": ["--quick"],
+    "benchmarks/soak.py": ["--episodes", "2", "--sample-every", "1", "--quiet", "--out", "{tmp}/soak.md"],
+    "docs/make_camera_frames.py": ["--out", "{tmp}/cameras"],
+    "docs/make_dagger_figure.py": ["--out", "{tmp}/dagger.png"],
+    "docs/make_lidar_figure.py": ["--out", "{tmp}/lidar"],
 }
+SCRIPT = re.compile(r"(?<![\w/.-])python3? ((?:benchmarks|docs)/[\w/]+\.py)")
+
+
+def documented_scripts() -> dict[str, list[str]]:
+    """Every script README.md or docs/**/*.md tells a reader to run -> where (``docs/<page>.md:12``), wherever the page
+    writes the command: a fenced block, an indented block or a sentence."""
+    found: dict[str, list[str]] = {}
+    for path in documents():
+        text = path.read_text()
+        for m in SCRIPT.finditer(text):
+            found.setdefault(m.group(1), []).append(f"{path.relative_to(ROOT)}:{text[:m.start()].count(chr(10)) + 1}")
+    return found
+
+
+def script_argv(script: str, tmp: Path) -> list[str]:
+    """The tiny form's arguments of a documented script, writing under ``tmp``."""
+    return [a.replace("{tmp}", str(tmp)) for a in SCRIPT_ARGS[script]]
 
 
 if __name__ == "__main__":

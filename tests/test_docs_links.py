@@ -111,6 +111,31 @@ def missing_docs_paths() -> list[str]:
     return out
 
 
+# A path into the code or the shipped data that a page names (prose, inline code or a code block), e.g.
+# ``conf/sensors/detector.yaml``, ``av_gym/estimation/ekf.py``, ``checkpoints/reference/pilotnet``; ``docs/...`` is
+# :func:`docs_paths`'s. Not a path: a Gymnasium id (``av_gym/LaneKeepingLap-v0``).
+REPO_PATH = re.compile(r"(?<![\w/.\-:$])(?:conf|av_gym|av_gym_harness|av_gym_sb3|agents|train|eval|benchmarks|tests"
+                       r"|checkpoints/reference|\.ci)/[\w.*/<>{},\-]*")
+GYM_ID = re.compile(r"-v\d+$")
+WHEEL_ONLY = ("av_gym/_shipped/",)  # what setup.py copies into a wheel: in no checkout (docs/design.md, Packaging)
+
+
+def repo_paths(text: str) -> list[str]:
+    """Every path into the code or shipped data named in ``text``; ``a,b`` lists split (``{a,b}`` is one path)."""
+    found = []
+    for m in REPO_PATH.finditer(text):
+        for path in re.split(r",(?![^{]*})", m.group(0)):
+            path = path.rstrip(".,;:")
+            if path.count("/") and not GYM_ID.search(path) and not path.startswith(WHEEL_ONLY):
+                found.append(path)
+    return found
+
+
+def missing_repo_paths() -> list[str]:
+    return [f"{_rel(page)}:{i}: {p}" for page in pages() for i, line in enumerate(page.read_text().splitlines(), 1)
+            for p in repo_paths(line) if not exists(p)]
+
+
 def docs_files() -> list[Path]:
     return sorted(p for p in DOCS.rglob("*") if p.is_file() and "__pycache__" not in p.parts
                   and not p.name.startswith("."))
@@ -153,6 +178,21 @@ def test_every_link_and_image_of_the_pages_resolves():
 def test_every_docs_path_the_pages_and_the_code_name_exists():
     missing = missing_docs_paths()
     assert not missing, "paths under docs/ that do not exist:\n" + "\n".join(missing)
+
+
+def test_every_code_or_shipped_path_the_pages_name_exists():
+    missing = missing_repo_paths()
+    assert not missing, "paths the pages name that do not exist:\n" + "\n".join(missing)
+
+
+def test_the_repo_path_checker():
+    gone = "conf/" + "sensor/detector.yaml"  # written in two parts, or this file would name a missing path itself
+    assert repo_paths(f"defaults of {gone}: 60 m") == [gone] and not exists(gone)
+    assert repo_paths("`gym.make(\"av_gym/LaneKeepingLap-v0\")` and train/bc.py: augment") == ["train/bc.py"]
+    assert repo_paths("agents=[checkpoints/reference/seeds/a/s1,checkpoints/reference/seeds/a/s3]") == \
+        ["checkpoints/reference/seeds/a/s1", "checkpoints/reference/seeds/a/s3"]
+    assert repo_paths("`conf/{train,eval}.yaml`") == ["conf/{train,eval}.yaml"] and exists("conf/{train,eval}.yaml")
+    assert exists("checkpoints/reference/seeds/ppo_turn/s<S>")
 
 
 def test_docs_holds_one_page_per_topic_and_what_those_pages_show():

@@ -4,6 +4,7 @@ how each command's tiny form is made, is tests/documented_commands.py."""
 from __future__ import annotations
 
 import os
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -11,7 +12,8 @@ from pathlib import Path
 import pytest
 
 import documented_commands as dc
-from documented_commands import KNOWN, ROOT, Chain, Command, all_blocks, tiny
+from documented_commands import (KNOWN, ROOT, SCRIPT_ARGS, Chain, Command, all_blocks, documented_scripts,
+                                 script_argv, tiny)
 
 
 def test_every_documented_command_is_known():
@@ -73,31 +75,38 @@ def _runnable_blocks() -> list:
     return params
 
 
-def _run(argv: list[str], cwd: Path) -> subprocess.CompletedProcess:
+def _run(argv: list[str], tmp: Path) -> subprocess.CompletedProcess:
+    """``argv`` as a user runs it: ``python ...`` from the checkout, a console script (tensorboard, av-gym-*) from a
+    folder of the user's own (``tmp``), and neither with ``PYTHONPATH`` (which tests/conftest.py sets for every
+    test's subprocesses; a user has only the editable install's own paths)."""
     if argv[0] == "python":
-        argv = [sys.executable, *argv[1:]]
-    # Console scripts (tensorboard, av-gym-*) live beside the interpreter: found there even when the venv that
-    # runs the tests is not activated.
-    env_bin = Path(sys.executable).parent
-    if "/" not in argv[0] and (env_bin / argv[0]).exists():
-        argv = [str(env_bin / argv[0]), *argv[1:]]
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+        argv, cwd = [sys.executable, *argv[1:]], ROOT
+    else:
+        # console scripts live beside the interpreter: found there even when the venv that runs the tests is not
+        # activated
+        env_bin = Path(sys.executable).parent
+        if "/" not in argv[0] and (env_bin / argv[0]).exists():
+            argv = [str(env_bin / argv[0]), *argv[1:]]
+        cwd = tmp / "user_folder"
+        cwd.mkdir(exist_ok=True)
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     return subprocess.run(argv, cwd=cwd, capture_output=True, text=True, timeout=600, env=env)
 
 
 @pytest.mark.parametrize("commands", _runnable_blocks())
 def test_documented_commands_run(commands: list[Command], tmp_path):
-    """Each block's commands in order, in their tiny forms, in the repository (so named reference agents are
-    found) with every output under a temporary folder; each must exit 0 and leave nothing in the repository."""
+    """Each block's commands in order, in their tiny forms, as a user runs them (:func:`_run`: ``python ...`` in the
+    checkout, so named reference agents are found) with every output under a temporary folder; each must exit 0
+    and leave nothing in the repository."""
     before = _tracked_changes()
     chain = Chain(tmp_path)
     for command in commands:
         producer = dc.PRODUCERS.get(command.text)
         if producer:
-            res = _run(tiny(Command(command.doc, command.line, producer), chain), ROOT)
+            res = _run(tiny(Command(command.doc, command.line, producer), chain), tmp_path)
             assert res.returncode == 0, f"producer of {command.text}\n{res.stderr[-3000:]}"
         argv = tiny(command, chain)
-        res = _run(argv, ROOT)
+        res = _run(argv, tmp_path)
         assert res.returncode == 0, f"{command.doc}:{command.line}: {command.text}\ntiny form: {argv}\n" \
                                     f"{res.stdout[-1500:]}\n{res.stderr[-3000:]}"
     assert _tracked_changes() == before, "a documented command wrote into tracked files"
@@ -108,3 +117,32 @@ def _tracked_changes() -> str:
     res = subprocess.run(["git", "status", "--porcelain", "--", "docs", "README.md", "conf", "av_gym", "agents",
                           "train", "eval", "checkpoints/reference"], cwd=ROOT, capture_output=True, text=True)
     return res.stdout if res.returncode == 0 else ""
+
+
+def test_every_documented_script_exists_and_has_a_tiny_form():
+    """A script a page tells a reader to run (``python benchmarks/x.py`` in a sentence too, not only in a fenced
+    block) exists and has its tiny form in SCRIPT_ARGS; an entry no page names any more fails too."""
+    documented = documented_scripts()
+    missing = {s: where for s, where in documented.items() if not (ROOT / s).is_file()}
+    assert not missing, f"documented scripts that do not exist: {missing}"
+    unknown = {s: where for s, where in documented.items() if s not in SCRIPT_ARGS}
+    assert not unknown, f"documented scripts without a tiny form in tests/documented_commands.py SCRIPT_ARGS: {unknown}"
+    assert sorted(set(SCRIPT_ARGS) - set(documented)) == [], "SCRIPT_ARGS names scripts no page names any more"
+
+
+def _scripts_outside_blocks() -> list:
+    """The documented scripts no fenced block's ``run`` command runs already (those run in their block)."""
+    in_blocks = {shlex.split(c.text)[1] for block in all_blocks() for c in block
+                 if KNOWN.get(c.text) == "run" and c.text.startswith(("python benchmarks/", "python docs/"))}
+    return [pytest.param(s, id=s, marks=pytest.mark.slow) for s in sorted(documented_scripts()) if s not in in_blocks]
+
+
+@pytest.mark.parametrize("script", _scripts_outside_blocks())
+def test_documented_scripts_run(script: str, tmp_path):
+    """``python <script>`` in its tiny form, as a user runs it from the checkout (no ``PYTHONPATH``): a script
+    that imports the harness (``conf``, ``agents``) must find it itself. Nothing tracked may change."""
+    before = _tracked_changes()
+    argv = ["python", script, *script_argv(script, tmp_path)]
+    res = _run(argv, tmp_path)
+    assert res.returncode == 0, f"{argv}\n{res.stdout[-1500:]}\n{res.stderr[-3000:]}"
+    assert _tracked_changes() == before, f"{script} wrote into tracked files"
