@@ -142,7 +142,7 @@ def _raise_interrupt(signum, frame) -> None:
 
 
 def discard_hydra_run_dir() -> bool:
-    """Remove the current Hydra job's output folder if it holds only Hydra's own files (``.hydra/`` and an empty
+    """Remove the current Hydra job's output folder if it holds only Hydra's own files (``.hydra/`` and the
     job log), then any parent that became empty, up to the working directory. A folder with anything of ours (a
     resumed run's TensorBoard logs, a previous run's results) is kept. Returns whether it was removed.
 
@@ -162,7 +162,7 @@ def discard_hydra_run_dir() -> bool:
     for entry in run_dir.iterdir():
         if entry.name == ".hydra" and entry.is_dir():
             continue
-        if entry.suffix == ".log" and entry.is_file() and entry.stat().st_size == 0:
+        if entry.suffix == ".log" and entry.is_file():  # the job log: what this job printed, shown on the terminal
             continue
         return False
     import logging

@@ -240,7 +240,9 @@ def _check_command_line() -> None:
 
 @hydra.main(config_path="pkg://conf", config_name="train", version_base="1.3")
 def _hydra_main(cfg: DictConfig) -> None:
-    run_cli(train, cfg, hydra_run_dir=True)
+    from conf.run_log import job_logged
+
+    run_cli(job_logged(train), cfg, hydra_run_dir=True)  # the run folder's __main__.log holds what it prints
 
 
 def main() -> None:

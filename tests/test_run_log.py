@@ -1,0 +1,75 @@
+"""The run log (Hydra's ``__main__.log`` in every run folder) holds what the run printed (conf/run_log.py): it
+stayed empty, as the commands report through ``print`` and progress bars, not ``logging``."""
+
+from __future__ import annotations
+
+import logging
+import subprocess
+import sys
+
+import pytest
+from tqdm import tqdm
+
+from av_gym.errors import ConfigError
+from conf.run_log import job_log
+
+
+@pytest.fixture
+def job_log_file(tmp_path):
+    """A root-logger FileHandler, as Hydra's job logging installs one."""
+    path = tmp_path / "__main__.log"
+    handler = logging.FileHandler(path)
+    handler.setFormatter(logging.Formatter("[%(name)s][%(levelname)s] - %(message)s"))
+    root = logging.getLogger()
+    root.addHandler(handler)
+    try:
+        yield path
+    finally:
+        root.removeHandler(handler)
+        handler.close()
+
+
+def test_printed_lines_and_a_bars_last_state_reach_the_job_log(job_log_file, capsys):
+    with job_log():
+        print("[train] cloning 200 episodes")
+        print("a warning", file=sys.stderr)
+        with tqdm(total=3, desc="cloning", file=sys.stderr, mininterval=0) as bar:
+            for _ in range(3):
+                bar.update()
+            tqdm.write("[dagger] round 1: 50 episodes")
+        print("unfinished", end="")
+    log = job_log_file.read_text().splitlines()
+    assert log[:2] == ["[stdout][INFO] - [train] cloning 200 episodes", "[stderr][INFO] - a warning"]
+    bars = [line for line in log if "cloning:" in line]
+    assert len(bars) == 1 and "3/3" in bars[0]  # the bar as it ended, not each redraw
+    assert "[stdout][INFO] - [dagger] round 1: 50 episodes" in log and log[-1] == "[stdout][INFO] - unfinished"
+    out = capsys.readouterr()  # the terminal saw what it always saw
+    assert out.out.startswith("[train] cloning 200 episodes\n") and "a warning" in out.err and "3/3" in out.err
+
+
+def test_an_error_that_ends_the_run_is_in_the_log(job_log_file):
+    with pytest.raises(ConfigError), job_log():
+        raise ConfigError("agent.init_from: its\nobservation space differs")
+    with pytest.raises(ZeroDivisionError), job_log():
+        print(1 / 0)
+    log = job_log_file.read_text()
+    assert "[stderr][ERROR] - error: agent.init_from: its observation space differs" in log
+    assert "ZeroDivisionError: division by zero" in log and "Traceback" in log
+
+
+def test_no_job_log_changes_nothing(capsys):
+    out = sys.stdout
+    with job_log():
+        assert sys.stdout is out
+        print("plain")
+    assert capsys.readouterr().out == "plain\n"
+
+
+def test_the_eval_commands_run_log_holds_its_table(tmp_path):
+    res = subprocess.run([sys.executable, "-m", "eval", "env=left_turn", "agents=[always_proceed]", "episodes=2",
+                          "progress_bar=false", "hydra.run.dir=runs/x"], cwd=tmp_path, capture_output=True, text=True,
+                         timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    log = (tmp_path / "runs" / "x" / "__main__.log").read_text()
+    assert "[eval] per-episode rows: " in res.stdout and "[eval] per-episode rows: " in log
+    assert "| always_proceed" in log  # the results table
