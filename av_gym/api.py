@@ -37,32 +37,6 @@ import numpy as np
 from av_gym.errors import ConfigError
 from av_gym.presets import as_section, compose_group, deep_merge, plain
 
-KMH = 1 / 3.6
-
-# highway-env config key (SI) -> (the scenario Params field it comes from, SI units per Params unit). A key named
-# like its field maps to itself with factor 1. Bounds are scaled by the factor; types come from the field.
-ALIASES: dict[str, dict[str, tuple[str, float]]] = {
-    "left_turn": {
-        "action.type": ("action", 1.0),
-        "action.target_speeds": ("target_speeds_kmh", KMH),
-        "action.acceleration_range": ("acceleration_range", 1.0),
-        "ccftap_ego_speed": ("ccftap.ego_speed_kmh", KMH),
-        "ccftap_target_speed": ("ccftap.target_speed_kmh", KMH),
-        "ccftap_dt": ("ccftap.dt", 1.0),
-        "collision_reward": ("rewards.collision", 1.0),
-        "arrived_reward": ("rewards.arrived", 1.0),
-        "high_speed_reward": ("rewards.high_speed", 1.0),
-        "progress_reward": ("rewards.progress", 1.0),
-        "comfort_reward": ("rewards.comfort", 1.0),
-    },
-    "lane_keeping": {
-        "target_speed": ("target_speed_kmh", KMH),
-        "max_steering": ("max_steering_deg", float(np.radians(1.0))),
-        "initial_heading_std": ("initial_heading_std_deg", float(np.radians(1.0))),
-    },
-}
-
-
 # ----------------------------------------------------------------------------------------------- entry points
 def lane_keeping(**kwargs: Any) -> gym.Env:
     """Entry point of ``av_gym/LaneKeepingLap-v0`` (see the module docstring for the keywords)."""
@@ -189,65 +163,65 @@ def checkpoint_folder(checkpoint: str | Path) -> Path:
 
 # ----------------------------------------------------------------------------------------------- config checks
 def checked_config(scenario: str, config: Mapping | None) -> dict:
-    """``config`` over the scenario's defaults, refused in one line (``config.<key> ...``) for an unknown key, a
-    wrong type or a value outside the scenario Params' bounds. Nested dicts (``action``) are merged, so
+    """``config`` over the scenario's defaults, refused in one line (``config.<key> ...``): an unknown key (with the
+    closest known one); a key that comes from a scenario field (the one table,
+    :attr:`~av_gym.envs.base.ScenarioParams.CONFIG_KEYS`) against that field's type, bounds (in SI) and relations;
+    any other key against the type of its default. Nested dicts (``action``) are merged, so
     ``{"action": {"type": "continuous"}}`` keeps the default acceleration range."""
-    from av_gym.params import _check_value, _hints
+    from av_gym.envs.base import config_value
     from av_gym.registry import SCENARIOS
 
     cls = SCENARIOS.get(scenario, where="env.name")
     defaults = cls.default_config()
     if config is None:
         return defaults
-    config = _mapping(config, "config")
-    problems: list[str] = []
-    for key, value in config.items():
-        if key not in defaults:
-            close = difflib.get_close_matches(str(key), list(defaults), n=1)
-            hint = f" (did you mean {close[0]!r}?)" if close else f"; allowed: {sorted(defaults)}"
-            raise ConfigError(f"config.{key} is not a setting of {scenario}{hint}")
-        if isinstance(defaults[key], dict) and key != "observation":
-            if not isinstance(value, Mapping):
-                raise ConfigError(f"config.{key} must be a mapping, got {value!r}")
-            for sub, v in value.items():
-                if sub not in defaults[key]:
-                    raise ConfigError(f"config.{key}.{sub} is not a setting of {scenario}; allowed: "
-                                      f"{sorted(defaults[key])}")
-                problems += _problems(cls, scenario, f"{key}.{sub}", v, defaults[key][sub], _check_value, _hints)
-        else:
-            problems += _problems(cls, scenario, key, value, defaults[key], _check_value, _hints)
-        if problems:
-            raise ConfigError(problems[0])
     merged = copy.deepcopy(defaults)
-    for key, value in config.items():
-        if isinstance(defaults[key], dict) and key != "observation":
-            merged[key] = {**defaults[key], **value}
-        else:
-            merged[key] = value
+    for key, value in _mapping(config, "config").items():
+        for sub, v in _known_keys(scenario, defaults, key, value):
+            if sub not in cls.Params.CONFIG_KEYS:
+                _check_like_default(sub, v, config_value(defaults, sub))
+        merged[key] = {**defaults[key], **value} if _nested(defaults, key) else value
+    problems = cls.Params.config_problems(merged)
+    if problems:
+        raise ConfigError(problems[0])
     return merged
 
 
-def _problems(cls: type, scenario: str, key: str, value: Any, default: Any, check_value, hints) -> list[str]:
-    """The problems of one config value: checked as its Params field (type and bounds, scaled to SI) when the
-    key comes from one, else against the type of its default."""
-    field, factor = ALIASES.get(scenario, {}).get(key, (key, 1.0))
-    params, name = cls.Params, field
-    while "." in name:  # a nested section (ccftap.dt, rewards.collision)
-        head, name = name.split(".", 1)
-        params = hints(params).get(head)
-    found = {f.name: f for f in __import__("dataclasses").fields(params)} if params else {}
-    if name in found and name != "name":
-        meta = {k: (v * factor if k in ("ge", "gt", "le", "lt") and v is not None else v)
-                for k, v in found[name].metadata.items()}
-        return check_value(value, hints(params)[name], meta, f"config.{key}")
+def _nested(defaults: Mapping, key: str) -> bool:
+    """Whether ``key`` is a dict of settings merged key by key (``action``); ``observation`` is given whole."""
+    return isinstance(defaults[key], dict) and key != "observation"
+
+
+def _known_keys(scenario: str, defaults: Mapping, key: Any, value: Any) -> list[tuple[str, Any]]:
+    """``[(dotted key, value)]`` of one entry of a config (a nested dict's entries each), or a :class:`ConfigError`
+    for a key the scenario does not have."""
+    if key not in defaults:
+        close = difflib.get_close_matches(str(key), list(defaults), n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else f"; allowed: {sorted(defaults)}"
+        raise ConfigError(f"config.{key} is not a setting of {scenario}{hint}")
+    if not _nested(defaults, key):
+        return [(key, value)]
+    if not isinstance(value, Mapping):
+        raise ConfigError(f"config.{key} must be a mapping, got {value!r}")
+    for sub in value:
+        if sub not in defaults[key]:
+            raise ConfigError(f"config.{key}.{sub} is not a setting of {scenario}; allowed: {sorted(defaults[key])}")
+    return [(f"{key}.{sub}", v) for sub, v in value.items()]
+
+
+def _check_like_default(key: str, value: Any, default: Any) -> None:
+    """A key no scenario field gives (``ttc_horizon``, highway-env's own): the type of its default."""
     if isinstance(default, bool):
-        return [] if isinstance(value, bool) else [f"config.{key} must be true or false, got {value!r}"]
-    if isinstance(default, (int, float)):
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
-        return [] if ok else [f"config.{key} must be a finite number, got {value!r}"]
-    if isinstance(default, str):
-        return [] if isinstance(value, str) else [f"config.{key} must be a string, got {value!r}"]
-    return []
+        ok, what = isinstance(value, bool), "true or false"
+    elif isinstance(default, (int, float)):
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and bool(np.isfinite(value))
+        what = "a finite number"
+    elif isinstance(default, str):
+        ok, what = isinstance(value, str), "a string"
+    else:
+        return
+    if not ok:
+        raise ConfigError(f"config.{key} must be {what}, got {value!r}")
 
 
 # ----------------------------------------------------------------------------------------------- presets

@@ -28,7 +28,7 @@ import math
 import re
 import types
 import typing
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import MISSING, dataclass
 from typing import Any, Literal, Union, get_args, get_origin
 
@@ -128,6 +128,40 @@ def check(cls: type[Params], values: Any, where: str = "", what: str | None = No
         return [_REF.sub(lambda m: _join(where, m.group(1)), p) for p in instance.relations()]
     except (TypeError, ValueError) as exc:  # pragma: no cover - a relation that assumed more than was checked
         return [f"{where or cls.__name__}: {exc}"]
+
+
+def field_at(cls: type[Params], path: str) -> tuple[type[Params], dataclasses.Field]:
+    """The Params class holding the field ``path`` (dotted into nested sections: ``ccftap.dt``) and that field; a
+    :class:`KeyError` naming ``path`` if there is none."""
+    params, name = cls, path
+    while "." in name:
+        head, name = name.split(".", 1)
+        params = _hints(params).get(head) if head in params.field_names() else None
+        if not (isinstance(params, type) and issubclass(params, Params)):
+            raise KeyError(f"{cls.__name__} has no section {head!r} for {path!r}")
+    fields = {f.name: f for f in dataclasses.fields(params)}
+    if name not in fields:
+        raise KeyError(f"{cls.__name__} has no field {path!r}")
+    return params, fields[name]
+
+
+def field_problems(cls: type[Params], path: str, value: Any, where: str,
+                   scale: Callable[[float], float] | None = None) -> list[str]:
+    """The problems of ``value`` as the field ``path`` of ``cls`` (:func:`field_at`): its type and bounds, one line
+    naming ``where``. ``scale`` converts the bounds first, for a value in other units than the field's (SI for a
+    km/h field: the message then shows the bounds in the value's units)."""
+    params, f = field_at(cls, path)
+    meta = dict(f.metadata)
+    if scale is not None:
+        meta.update({k: scale(meta[k]) for k in ("ge", "gt", "le", "lt") if meta.get(k) is not None})
+    return _check_value(value, _hints(params)[f.name], meta, where)
+
+
+def relation_problems(cls: type[Params], values: Mapping, name: Callable[[str], str]) -> list[str]:
+    """:meth:`Params.relations` of ``values`` (fields checked one by one already; defaults for the missing ones),
+    each ``@field`` written as ``name(field)``: how a caller that holds the values under other names (an env's
+    config keys) says them."""
+    return [_REF.sub(lambda m: name(m.group(1)), p) for p in _assemble(cls, values).relations()]
 
 
 def _assemble(cls: type[Params], values: Mapping) -> Params:

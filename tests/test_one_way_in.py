@@ -131,3 +131,106 @@ def test_eval_refuses_an_opinion_it_cannot_install_before_building_anything():
                                           r"\['none', 'belief_lookahead'\], got 'oracle'"):
         check_plan(AgentPlan("always_proceed", "always_proceed", compose_group("sensors", "turn_truth"), shield),
                    "left_turn")
+
+
+# ----------------------------------------------------------------------------------------------- scenario configs
+def _outside(meta: dict) -> float | None:
+    """A number just outside a field's lower bound (None: the field has none)."""
+    if meta.get("ge") is not None:
+        return meta["ge"] - 1.0
+    if meta.get("gt") is not None:
+        return float(meta["gt"])
+    return None
+
+
+def _bad_configs(scenario: str):
+    """``(key, config, says)`` for every key of the scenario's table with a lower bound: the key's value just
+    below its field's bound, in SI, inside an otherwise default config."""
+    import copy
+
+    from av_gym.envs.base import TO_SI
+    from av_gym.params import field_at
+    from av_gym.registry import SCENARIOS
+
+    cls = SCENARIOS.get(scenario)
+    for key, path in cls.Params.CONFIG_KEYS.items():
+        _, f = field_at(cls.Params, path)
+        bad = _outside(f.metadata)
+        if bad is None:
+            continue
+        default = cls.Params().env_config()
+        *heads, last = key.split(".")
+        inner = config = copy.deepcopy(default)
+        for head in heads:
+            inner = inner[head]
+        value = TO_SI.get(f.metadata["unit"], lambda v: v)(bad)
+        listed = isinstance(inner[last], list)
+        inner[last] = [value] * len(inner[last]) if listed else value
+        yield key, config, f"config.{key}{'[0]' if listed else ''} must be "
+
+
+@pytest.mark.parametrize("scenario", ["left_turn", "lane_keeping"])
+def test_every_table_key_is_checked_by_its_field_wherever_the_env_is_built(scenario):
+    """One table (``Params.CONFIG_KEYS``) gives each env config key its field: ``gym.make(id, config=...)``, an env
+    class built directly and the field's own check refuse the same value, the bound in SI."""
+    from av_gym import ENV_IDS
+    from av_gym.registry import SCENARIOS
+
+    cls = SCENARIOS.get(scenario)
+    checked = 0
+    for key, config, says in _bad_configs(scenario):
+        given = {key.split(".")[0]: config[key.split(".")[0]]}
+        with pytest.raises(ConfigError, match="^" + says.replace("[", r"\[").replace("]", r"\]")):
+            gym.make(ENV_IDS[scenario], config=given)
+        with pytest.raises(ConfigError, match="^" + says.replace("[", r"\[").replace("]", r"\]")):
+            cls(config=config).reset(seed=0)
+        checked += 1
+    assert checked >= (8 if scenario == "left_turn" else 7)
+
+
+@pytest.mark.parametrize("scenario", ["left_turn", "lane_keeping"])
+def test_env_config_writes_exactly_the_table(scenario):
+    from av_gym.envs.base import ABSENT, config_value
+    from av_gym.registry import SCENARIOS
+
+    cls = SCENARIOS.get(scenario)
+    config = cls.Params().env_config()
+    flat = {f"{k}.{s}" if isinstance(v, dict) else k for k, v in config.items() for s in (v if isinstance(v, dict)
+                                                                                           else [None])}
+    assert flat == set(cls.Params.CONFIG_KEYS)
+    assert all(config_value(config, key) is not ABSENT for key in cls.Params.CONFIG_KEYS)
+    assert cls.Params.config_problems(config) == [] and cls.Params.config_problems({}) == []
+
+
+def test_a_relation_names_the_config_keys_whatever_builds_the_env():
+    from av_gym.envs.left_turn import UnprotectedLeftTurnEnv
+
+    config = {"action": {"type": "continuous", "acceleration_range": [3.0, -8.0]}}
+    says = r"config.action.acceleration_range must be \[min, max\] with min < max \(m/s²\), got \[3, -8\]"
+    with pytest.raises(ConfigError, match=says):
+        gym.make(TURN, config=config)
+    full = UnprotectedLeftTurnEnv.default_config()
+    full["action"] = {**full["action"], **config["action"]}
+    with pytest.raises(ConfigError, match=says):
+        UnprotectedLeftTurnEnv(config=full)
+    with pytest.raises(ConfigError, match=r"config.simulation_frequency \(15\) must be a multiple of "
+                                          r"config.policy_frequency \(10\)"):
+        gym.make(TURN, config={"simulation_frequency": 15})
+
+
+def test_a_config_key_unknown_to_the_scenario_is_refused_with_the_allowed_keys():
+    with pytest.raises(ConfigError) as err:
+        gym.make(TURN, config={"zzzz": 1})
+    line = str(err.value)
+    assert line.startswith("config.zzzz is not a setting of left_turn; allowed: [") and "'ccftap_dt'" in line
+    with pytest.raises(ConfigError, match=r"config.action.speeds is not a setting of left_turn; allowed: "
+                                          r"\['acceleration_range', 'target_speeds', 'type'\]"):
+        gym.make(TURN, config={"action": {"speeds": [1.0]}})
+
+
+def test_the_batched_engine_checks_the_same_table():
+    from av_gym.batched.left_turn import BatchedLeftTurn
+    from av_gym.envs.left_turn import LeftTurnParams
+
+    with pytest.raises(ValueError, match=r"env.spawn_probability must be a number in \[0, 1\], got 2"):
+        BatchedLeftTurn(2, {**LeftTurnParams().env_config(), "spawn_probability": 2})

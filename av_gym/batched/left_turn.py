@@ -16,7 +16,7 @@ import numpy as np
 from gymnasium.utils import seeding
 from highway_env import utils
 
-from av_gym.envs.left_turn import ACTIONS, CONFLICT_POINT, MODES, ONCOMING_NEAR_EDGE_X, ROUTE, UnprotectedLeftTurnEnv
+from av_gym.envs.left_turn import CONFLICT_POINT, ONCOMING_NEAR_EDGE_X, ROUTE, UnprotectedLeftTurnEnv
 from av_gym.estimation.turn_features import (IntentHistory, TurnEncoding, TurnFeaturesParams, TurnIntentParams,
                                             turn_features, turn_path)
 from av_gym.sensors.base import episode_rng
@@ -63,10 +63,9 @@ class BatchedLeftTurn:
     def __init__(self, n_envs: int, config: dict | None = None, features: TurnFeaturesParams | dict | None = None,
                  pool: int = 0, **feature_overrides) -> None:
         self.config = c = full_config(config)
-        if c["mode"] not in MODES:
-            raise ValueError(f"env.mode must be one of {list(MODES)}, got {c['mode']!r}")
-        if c["action"]["type"] not in ACTIONS:
-            raise ValueError(f"env.action.type must be one of {list(ACTIONS)}, got {c['action']['type']!r}")
+        problems = UnprotectedLeftTurnEnv.Params.config_problems(c, where="env")  # the env's own checks, as its keys
+        if problems:
+            raise ValueError(problems[0])
         self.ccftap, self.continuous = c["mode"] == "ccftap", c["action"]["type"] == "continuous"
         # the MDPVehicle's set-points (UnprotectedLeftTurnEnv.define_spaces: ccftap has [0, test speed])
         self.speeds = np.array([0.0, float(c["ccftap_ego_speed"])] if self.ccftap else c["action"]["target_speeds"],

@@ -4,15 +4,29 @@ everything outside the simulator (sensor noise, the roadside world)."""
 from __future__ import annotations
 
 from collections import UserDict
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, ClassVar
 
+import numpy as np
 from gymnasium import error
 
 from av_gym.actions import InvalidAction, check_action  # noqa: F401 - InvalidAction: re-exported
-from av_gym.params import RATE_MAX_HZ, Params, param
+from av_gym.errors import ConfigError
+from av_gym.params import RATE_MAX_HZ, Params, field_at, field_problems, param, relation_problems
 
 KMH = 1 / 3.6  # m/s per km/h: scenario configs take km/h at the edge, the envs m/s
+
+TO_SI: dict[str, Callable[[float], float]] = {
+    "km/h": lambda v: v * KMH,
+    "deg": lambda v: float(np.radians(v)),
+}
+"""A field's edge unit → SI: how the env config key that comes from a field in km/h or degrees gets its value (every
+other unit is SI already)."""
+FROM_SI: dict[str, Callable[[float], float]] = {
+    "km/h": lambda v: v / KMH,
+    "deg": lambda v: float(np.degrees(v)),
+}
 
 
 @dataclass(frozen=True)
@@ -29,6 +43,13 @@ class ScenarioParams(Params):
                                  "stock highway-env)")
     compare: tuple[str, ...] = param((), doc="python -m eval with no agents=: the agents compared on this scenario")
 
+    CONFIG_KEYS: ClassVar[dict[str, str]] = {"simulation_frequency": "simulation_frequency",
+                                             "policy_frequency": "policy_frequency", "fast": "fast"}
+    """The one table of the env config (highway-env's keys, SI units) a scenario's fields give: config key (dotted
+    into a nested dict: ``action.type``) → the field it comes from (dotted into a nested section: ``ccftap.dt``),
+    converted from the field's unit by :data:`TO_SI`. :meth:`env_config` writes it, :meth:`config_problems` checks
+    a config against the fields' types, bounds and relations; a new key is one field and one line here."""
+
     def relations(self) -> list[str]:
         if self.simulation_frequency % self.policy_frequency:
             return [f"@simulation_frequency ({self.simulation_frequency}) must be a multiple of @policy_frequency "
@@ -36,9 +57,60 @@ class ScenarioParams(Params):
         return []
 
     def env_config(self) -> dict:
-        """The env's config dict (SI units), what ``gym.make(id, config=...)`` takes."""
-        return {"simulation_frequency": self.simulation_frequency, "policy_frequency": self.policy_frequency,
-                "fast": self.fast}
+        """The env's config dict (SI units), what ``gym.make(id, config=...)`` takes: :attr:`CONFIG_KEYS`."""
+        config: dict = {}
+        for key, path in self.CONFIG_KEYS.items():
+            value = self
+            for name in path.split("."):
+                value = getattr(value, name)
+            *heads, last = key.split(".")
+            inner = config
+            for head in heads:
+                inner = inner.setdefault(head, {})
+            inner[last] = _convert(value, TO_SI.get(field_at(type(self), path)[1].metadata.get("unit", "")))
+        return config
+
+    @classmethod
+    def config_problems(cls, config: Mapping, where: str = "config") -> list[str]:
+        """Every problem of the keys of an env ``config`` (SI units) that come from a field (:attr:`CONFIG_KEYS`),
+        one line each naming ``<where>.<key>``: the field's type and bounds (converted to SI); once those hold and
+        ``config`` has every top-level field's key, the relations between them. Other keys are not looked at."""
+        found, values, present = [], {}, set()
+        for key, path in cls.CONFIG_KEYS.items():
+            value = config_value(config, key)
+            if value is ABSENT:
+                continue
+            unit = field_at(cls, path)[1].metadata.get("unit", "")
+            found += field_problems(cls, path, value, f"{where}.{key}", scale=TO_SI.get(unit))
+            present.add(key)
+            if "." not in path:  # relations are between top-level fields (a nested section checks its own)
+                values[path] = _convert(value, FROM_SI.get(unit))
+        if found or not {k for k, f in cls.CONFIG_KEYS.items() if "." not in f} <= present:
+            return found
+        key_of = {f: k for k, f in cls.CONFIG_KEYS.items()}
+        return relation_problems(cls, values, lambda name: f"{where}.{key_of.get(name, name)}")
+
+
+ABSENT = object()  # config_value's answer for a key a config does not hold
+
+
+def config_value(config: Mapping, key: str) -> Any:
+    """``config[key]`` with ``key`` dotted into nested dicts (``action.type``); :data:`ABSENT` where there is none."""
+    value: Any = config
+    for name in key.split("."):
+        if not isinstance(value, Mapping) or name not in value:
+            return ABSENT
+        value = value[name]
+    return value
+
+
+def _convert(value: Any, unit: Callable[[float], float] | None) -> Any:
+    """A field's value as an env config holds it: tuples as lists, numbers through ``unit`` (None: as they are)."""
+    if isinstance(value, (tuple, list)):
+        return [_convert(v, unit) for v in value]
+    if unit is None or value is None or isinstance(value, bool) or not isinstance(value, (int, float)):
+        return value
+    return unit(value)
 
 
 class Truth(UserDict):
@@ -66,6 +138,7 @@ class ScenarioMixin:
     """
 
     scenario: str = ""
+    Params: ClassVar[type[ScenarioParams]]  # the scenario's env section: its defaults, checks and config keys
 
     def reset(self, *args, **kwargs):
         self._episode_over = False
@@ -85,6 +158,13 @@ class ScenarioMixin:
     def _step(self, action):
         """The scenario's own step, once the action is checked (highway-env's by default)."""
         return super().step(action)
+
+    def _check_config(self) -> None:
+        """The env's config against its scenario's fields (:meth:`ScenarioParams.config_problems`): built directly,
+        or reconfigured, an env never saw the checks its Params make; one :class:`ConfigError` line."""
+        problems = self.Params.config_problems(self.config)
+        if problems:
+            raise ConfigError(problems[0])
 
     def _init_scenario_state(self) -> None:
         if not hasattr(self, "tick_listeners"):

@@ -16,7 +16,7 @@ from highway_env import utils
 from highway_env.envs.common.abstract import AbstractEnv
 from highway_env.road.road import Road
 
-from av_gym.envs.base import KMH, ScenarioMixin, ScenarioParams
+from av_gym.envs.base import ScenarioMixin, ScenarioParams
 from av_gym.sim.vehicles import ego_kinematics
 from av_gym.envs.observations import LaneKeepingState, StateDict
 from av_gym.envs.track import Track, build_track
@@ -54,18 +54,16 @@ class LaneKeepingParams(ScenarioParams):
         ("pid_paper", "pid_tuned", "pid_localized", "pilotnet", "ppo_lane_localized", "ppo_lane_camera"),
         doc="python -m eval env=lane_keeping with no agents=: every lane-keeping agent")
 
+    CONFIG_KEYS = {**ScenarioParams.CONFIG_KEYS, "track": "track", "lane_width": "lane_width",
+                   "target_speed": "target_speed_kmh", "max_steering": "max_steering_deg",
+                   "offroad_margin": "offroad_margin", "time_limit": "time_limit",
+                   "initial_lateral_std": "initial_lateral_std", "initial_heading_std": "initial_heading_std_deg"}
+
     def relations(self) -> list[str]:
         width = SpeedHeldVehicle.WIDTH  # the ego (fast or not); the lane-departure metric needs it to fit its lane
         if not self.lane_width > width:
             return [f"@lane_width must be wider than the ego vehicle's width, {width} m, got {self.lane_width:g}"]
         return super().relations()
-
-    def env_config(self) -> dict:
-        return {**super().env_config(), "track": self.track, "lane_width": self.lane_width,
-                "target_speed": self.target_speed_kmh * KMH, "max_steering": float(np.radians(self.max_steering_deg)),
-                "offroad_margin": self.offroad_margin, "time_limit": self.time_limit,
-                "initial_lateral_std": self.initial_lateral_std,
-                "initial_heading_std": float(np.radians(self.initial_heading_std_deg))}
 
 
 class LaneKeepingLapEnv(ScenarioMixin, AbstractEnv):
@@ -138,23 +136,6 @@ class LaneKeepingLapEnv(ScenarioMixin, AbstractEnv):
         self._time_limit = (float(self.config["time_limit"]) if self.config["time_limit"]
                             else 2.0 * self.track.length / float(self.config["target_speed"]))
         self._finish_reset()
-
-    def _check_config(self) -> None:
-        c = self.config
-        for key in ("lane_width", "target_speed", "max_steering", "offroad_margin"):
-            if not (np.isfinite(c[key]) and c[key] > 0):
-                raise ValueError(f"env.{key} must be a positive number, got {c[key]!r}")
-        width = SpeedHeldVehicle.WIDTH  # the ego (fast or not); the lane-departure metric needs it to fit its lane
-        if not c["lane_width"] > width:
-            raise ValueError(f"env.lane_width must be wider than the ego vehicle ({width} m), got {c['lane_width']!r}")
-        for key in ("initial_lateral_std", "initial_heading_std"):
-            if not (np.isfinite(c[key]) and c[key] >= 0):
-                raise ValueError(f"env.{key} must be a number >= 0, got {c[key]!r}")
-        if c["simulation_frequency"] % c["policy_frequency"]:
-            raise ValueError(f"env.simulation_frequency ({c['simulation_frequency']}) must be a multiple of "
-                             f"env.policy_frequency ({c['policy_frequency']})")
-        if c["policy_frequency"] < 10:
-            raise ValueError(f"env.policy_frequency must be >= 10 Hz, got {c['policy_frequency']}")
 
     # ----------------------------------------------------------------------------------------------- dynamics
     def step(self, action):

@@ -27,7 +27,7 @@ from highway_env.envs.common.observation import KinematicObservation
 from highway_env.envs.intersection_env import IntersectionEnv
 from highway_env.vehicle.kinematics import Vehicle
 
-from av_gym.envs.base import KMH, ScenarioMixin, ScenarioParams
+from av_gym.envs.base import ScenarioMixin, ScenarioParams
 from av_gym.sim.vehicles import ego_kinematics
 from av_gym.envs.lane_path import LanePath
 from av_gym.envs.observations import FastKinematics, StateDict
@@ -40,8 +40,6 @@ from av_gym.sim.vehicles import FastVehicle
 
 STOCK_IDM = "highway_env.vehicle.behavior.IDMVehicle"
 FAST_IDM = "av_gym.sim.vehicles.FastIDMVehicle"
-MODES = ("traffic", "ccftap")
-ACTIONS = ("discrete", "continuous")
 ROUTE = [("o0", "ir0", 0), ("ir0", "il1", 0), ("il1", "o1", 0)]
 ONCOMING_NEAR_EDGE_X = 0.0  # m, the oncoming lane spans x in [-4, 0]
 CONFLICT_POINT = np.array([-2.0, 11.0 - np.sqrt(13.0**2 - 9.0**2)])  # (-2, 1.62) m, see module docstring
@@ -107,21 +105,19 @@ class LeftTurnParams(ScenarioParams):
         doc="python -m eval env=left_turn with no agents=: the headline comparison, each agent with and "
             "without the AEB shield")
 
+    CONFIG_KEYS = {**ScenarioParams.CONFIG_KEYS, "mode": "mode", "action.type": "action",
+                   "action.target_speeds": "target_speeds_kmh", "action.acceleration_range": "acceleration_range",
+                   "duration": "duration", "spawn_probability": "spawn_probability",
+                   "ccftap_ego_speed": "ccftap.ego_speed_kmh", "ccftap_target_speed": "ccftap.target_speed_kmh",
+                   "ccftap_dt": "ccftap.dt", "collision_reward": "rewards.collision",
+                   "arrived_reward": "rewards.arrived", "high_speed_reward": "rewards.high_speed",
+                   "progress_reward": "rewards.progress", "comfort_reward": "rewards.comfort"}
+
     def relations(self) -> list[str]:
         lo, hi = self.acceleration_range
         if not lo < hi:  # the continuous action -1..1 maps linearly onto [lo, hi]: an empty range divides by zero
             return [f"@acceleration_range must be [min, max] with min < max (m/s²), got [{lo:g}, {hi:g}]"]
         return super().relations()
-
-    def env_config(self) -> dict:
-        r, cc = self.rewards, self.ccftap
-        return {**super().env_config(), "mode": self.mode,
-                "action": {"type": self.action, "target_speeds": [v * KMH for v in self.target_speeds_kmh],
-                           "acceleration_range": list(self.acceleration_range)},
-                "duration": self.duration, "spawn_probability": self.spawn_probability,
-                "ccftap_ego_speed": cc.ego_speed_kmh * KMH, "ccftap_target_speed": cc.target_speed_kmh * KMH,
-                "ccftap_dt": cc.dt, "collision_reward": r.collision, "arrived_reward": r.arrived,
-                "high_speed_reward": r.high_speed, "progress_reward": r.progress, "comfort_reward": r.comfort}
 
 
 STOCK_CONFIG = {"duration": 13.0, "arrived_reward": 1.0, "high_speed_reward": 1.0, "progress_reward": 0.0,
@@ -173,24 +169,6 @@ class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
             self.action_type = LongitudinalAction(self, acceleration_range=tuple(a["acceleration_range"]), fast=fast)
         self.observation_space = self.observation_type.space()
         self.action_space = self.action_type.space()
-
-    def _check_config(self) -> None:
-        c = self.config
-        if c["mode"] not in MODES:
-            raise ValueError(f"env.mode must be one of {list(MODES)}, got {c['mode']!r}")
-        if c["action"].get("type") not in ACTIONS:
-            raise ValueError(f"env.action.type must be one of {list(ACTIONS)}, got {c['action'].get('type')!r}")
-        if c["simulation_frequency"] % c["policy_frequency"]:
-            raise ValueError(f"env.simulation_frequency ({c['simulation_frequency']}) must be a multiple of "
-                             f"env.policy_frequency ({c['policy_frequency']})")
-        lo, hi = c["action"].get("acceleration_range", (-8.0, 3.0))
-        if not lo < hi:  # the continuous action -1..1 maps linearly onto [lo, hi]: an empty range divides by zero
-            raise ValueError(f"env.acceleration_range must be [min, max] with min < max (m/s²), got [{lo}, {hi}]")
-        if not 0.0 <= c["spawn_probability"] <= 1.0:
-            raise ValueError(f"env.spawn_probability must be in [0, 1], got {c['spawn_probability']}")
-        for key in ("ccftap_ego_speed", "ccftap_target_speed", "ccftap_lead_time"):
-            if not c[key] > 0:
-                raise ValueError(f"env.{key} must be positive, got {c[key]!r}")
 
     def cruise_action(self):
         """The action that keeps the current speed: IDLE, or zero acceleration (used by always-proceed)."""
