@@ -9,18 +9,18 @@ files."""
 
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 
 import hydra
 from omegaconf import DictConfig
 
-from av_gym.atomic import LOCK, OwnedFolders, lock_holder
+from av_gym.atomic import OwnedFolders
 from av_gym.errors import ConfigError, check_folder, discard_hydra_run_dir, folder_problem, run_cli, run_hydra
 from conf.commands import EvalCommand
 
 OUT_DIRS = OwnedFolders()  # the out_dirs this process is writing
+DEFAULT_SENSORS = "truth"  # conf/eval.yaml's sensors: what an agent without sensors of its own is given
 
 
 def _check(cfg: DictConfig) -> EvalCommand:
@@ -41,24 +41,67 @@ def _check_needs(cfg: DictConfig) -> EvalCommand:
     if duplicates:  # one row would pool the same seeds twice and count each episode as two
         raise ConfigError(f"agents lists {duplicates[0]!r} more than once; each agent is one row over the same "
                           f"episode seeds, so list it once")
-    _check_plans(_plans(cfg, command), command, _plain(cfg.env))
+    _check_plans(_plans(cfg, command), command, _plain(cfg.env), _plain(cfg.sensors))
     return command
 
 
 def _plans(cfg: DictConfig, command: EvalCommand) -> list:
-    """How each agent runs (:func:`eval.agents.plan_agent`): its spec, label, sensors and shield."""
+    """How each agent runs (:func:`eval.agents.plan_agent`): its spec, label, sensors and shield; on the batch,
+    the sensors the batch runs it with (:func:`_batched_sensors`)."""
     from eval.agents import plan_agent
 
-    sensors, shield = _plain(cfg.sensors), _plain(cfg.shield)
-    return [plan_agent(spec, str(cfg.env.name), sensors, shield, command.paths.checkpoints) for spec in command.agents]
+    sensors, shield, env_cfg = _plain(cfg.sensors), _plain(cfg.shield), _plain(cfg.env)
+    plans = [plan_agent(spec, str(cfg.env.name), sensors, shield, command.paths.checkpoints)
+             for spec in command.agents]
+    return [_batched_sensors(p, env_cfg) for p in plans] if command.vec_env == "batched" else plans
 
 
-def _check_plans(plans: list, command: EvalCommand, env_cfg: dict) -> None:
-    """Each agent's checkpoint (if any) and the sensors it runs with; with ``vec_env=batched``, what the batched
-    engine cannot run, before any folder."""
+def _batched_sensors(plan, env_cfg: dict):
+    """``plan`` as the batch runs it: ``always_proceed`` reads no observation and runs on the batch's own features
+    (:data:`eval.batched.NO_OBS_SENSORS`), which results.md then records; the sensors it was given are what ran
+    only on the per-env stack. Sensors chosen for it that the batch cannot run (``sensors=cameras``) are refused
+    rather than recorded as run; the default preset (what every agent without sensors of its own is given) is
+    not a choice, and is replaced."""
+    import dataclasses
+
+    from av_gym.batched.vec_env import check_batchable
+    from eval.agents import sensor_overrides
+    from eval.batched import NO_OBS_SENSORS, plan_kind
+
+    if env_cfg.get("name") != "left_turn" or plan_kind(plan) != "always_proceed":
+        return plan  # refused or run as planned: check_batched_plan
+    given = plan.sensors or {}
+    if given.get("name") != DEFAULT_SENSORS or sensor_overrides(given):
+        try:  # what the batch can run, on the sensors chosen (check_batched_plan skips them for always_proceed)
+            check_batchable(env_cfg, given, plan.shield)
+        except ConfigError as exc:
+            raise ConfigError(f"agent {plan.label!r}: {str(exc).replace('agent.vec_env=', 'vec_env=')}") from None
+    return dataclasses.replace(plan, sensors=dict(NO_OBS_SENSORS))
+
+
+def given_sensors_problem(plan, given: dict) -> str | None:
+    """A trained agent runs on the sensors it was trained with (its checkpoint's config.yaml), with the command
+    line's ``sensors.*`` overrides on top; a ``sensors=<preset>`` of another name would not reach it, so it is
+    refused (it was ignored without a word) with what does: ``agent@preset``. The default preset is no choice."""
+    own = (plan.trained_sensors or {}).get("name")
+    name = given.get("name")
+    if own is None or "@" in plan.label or name in (own, DEFAULT_SENSORS):
+        return None
+    return (f"sensors={name}: agent {plan.label!r} runs on the sensors it was trained with ({own}), so sensors={name} "
+            f"would not reach it; drive it from {name} with agents=[{plan.label.split('+')[0]}@{name}"
+            f"{'+' + plan.label.split('+')[1] if '+' in plan.label else ''}] (the same observation space), or leave "
+            f"sensors= out")
+
+
+def _check_plans(plans: list, command: EvalCommand, env_cfg: dict, given: dict) -> None:
+    """Each agent's checkpoint (if any) and the sensors it runs with (``given``: the command line's preset);
+    with ``vec_env=batched``, what the batched engine cannot run, before any folder."""
     from eval.agents import check_plan, check_sensor_overrides
 
     for plan in plans:
+        problem = given_sensors_problem(plan, given)
+        if problem:
+            raise ConfigError(problem)
         check_plan(plan, env_cfg["name"])
         check_sensor_overrides(plan, env_cfg)  # a trained agent's sensors with the command line's on top
         if command.vec_env == "batched":
@@ -85,15 +128,7 @@ def claim_out_dir(command: EvalCommand) -> None:
     """``out_dir`` for this process alone (a lock held until the evaluation ends), then checked again under the
     lock: two evaluations started together both passed the check made before it. One line if another holds it."""
     out_dir = command.out_dir
-    try:
-        OUT_DIRS.take(out_dir)
-    except BlockingIOError:
-        pid = lock_holder(Path(out_dir) / LOCK)
-        raise ConfigError(f"out_dir={out_dir}: another evaluation{f' (pid {pid})' if pid else ''} is writing it "
-                          f"({Path(out_dir) / LOCK} is locked); wait for it, or pick another out_dir") from None
-    except OSError as exc:
-        raise ConfigError(f"out_dir={out_dir}: cannot be written: {os.strerror(exc.errno) if exc.errno else exc}") \
-            from None
+    OUT_DIRS.claim(out_dir, "out_dir", "another evaluation")
     problem = results_problem(command)
     if problem:
         OUT_DIRS.release(out_dir)
@@ -209,8 +244,13 @@ def _figures(plans: list, command: EvalCommand, env_cfg: dict, first_seed: int) 
 
 
 def results_problem(command: EvalCommand) -> str | None:
-    """An ``out_dir`` that holds an evaluation's results is not written over unless ``overwrite=true``: a finished
-    evaluation used to be replaced without a word. The default out_dir, Hydra's run folder, is new."""
+    """An ``out_dir`` inside the shipped references is refused; one that holds an evaluation's results is not
+    written over unless ``overwrite=true``. The default out_dir, Hydra's run folder, is new."""
+    from av_gym.references import shipped_problem
+
+    problem = shipped_problem(command.out_dir, "out_dir")  # overwrite=true or not
+    if problem:
+        return problem
     held = [name for name in ("results.csv", "results.md") if (Path(command.out_dir) / name).exists()]
     if held and not command.overwrite:
         return (f"out_dir={command.out_dir} already holds {' and '.join(held)} of an evaluation; pick another "
@@ -244,7 +284,9 @@ def _check_command_line() -> None:
 
 @hydra.main(config_path="pkg://conf", config_name="eval", version_base="1.3")
 def _hydra_main(cfg: DictConfig) -> None:
-    run_cli(evaluate, cfg, hydra_run_dir=True)
+    from conf.run_log import job_logged
+
+    run_cli(job_logged(evaluate), cfg, hydra_run_dir=True)  # the run folder's __main__.log holds what it prints
 
 
 def main() -> None:

@@ -246,3 +246,61 @@ def test_interventions_does_not_replace_another_runs_tables(tmp_path, capsys):
     (out / ".lock").unlink()
     assert main([*argv, "--seed", "1000001", "--overwrite"]) == 0
     assert "1000001" in (out / "episodes.csv").read_text() and not (out / ".lock").exists()
+
+
+# ------------------------------------------------------------------------------------ python -m eval: what it records
+@pytest.mark.parametrize("argv, needle", [
+    (["vec_env=batched", "sensors=cameras", "agents=[always_proceed]"],
+     "agent 'always_proceed': sensors.cameras is not available with vec_env=batched"),
+    (["vec_env=batched", "sensors=turn_perceived", "agents=[always_proceed]"],
+     "is not available with vec_env=batched"),
+    (["sensors=turn_perceived", "agents=[ppo_turn]"],
+     "sensors=turn_perceived: agent 'ppo_turn' runs on the sensors it was trained with (turn_truth), so "
+     "sensors=turn_perceived would not reach it; drive it from turn_perceived with agents=[ppo_turn@turn_perceived]"),
+    (["sensors=cameras", "agents=[ppo_turn+aeb]"], "agents=[ppo_turn@cameras+aeb]"),
+])
+def test_eval_refuses_sensors_that_would_not_run(argv, needle, tmp_path, monkeypatch, capsys):
+    """``vec_env=batched sensors=cameras`` ran truth features and recorded ``cameras`` in results.md;
+    ``sensors=<preset>`` with a trained agent was ignored without a word. One line each, before any folder."""
+    monkeypatch.chdir(tmp_path)
+    line = check_line("eval", [*argv, "episodes=2"], monkeypatch, capsys)
+    assert needle in line, line
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_the_batch_records_the_sensors_it_ran(monkeypatch):
+    """always_proceed on the batch runs the batch's own features, whatever the default preset says: its plan (what
+    results.md records) says so; on the per-env stack it runs, and records, the preset given."""
+    from conf.check import check_command_line
+    from conf.commands import EvalCommand
+    from eval.__main__ import _plans
+
+    for vec_env, name in (("batched", "turn_truth"), ("subproc", "truth")):
+        (cfg,) = check_command_line("eval", [f"vec_env={vec_env}", "agents=[always_proceed,gap_acceptance]"])
+        plans = _plans(cfg, EvalCommand.of(cfg))
+        assert [p.sensors["name"] for p in plans] == [name, "turn_truth"], vec_env
+
+
+def test_a_trained_agent_on_its_own_preset_is_still_accepted(tmp_path, monkeypatch, released):
+    """The documented ``agents=[checkpoints/reference/pilotnet] sensors=cameras`` (its own preset, with overrides)
+    and the default preset are not refused."""
+    import sys
+
+    from eval import __main__ as eval_main
+
+    monkeypatch.chdir(tmp_path)
+    for argv in (["env=lane_keeping", f"agents=[{REF / 'pilotnet'}]", "sensors=cameras", "sensors.cameras.night=true"],
+                 ["agents=[ppo_turn]"]):
+        monkeypatch.setattr(sys, "argv", ["eval", *argv])
+        eval_main._check_command_line()
+
+
+@pytest.mark.parametrize("overwrite", [[], ["overwrite=true"]])
+def test_eval_never_writes_into_a_shipped_reference(overwrite, shipped, tmp_path, monkeypatch, capsys, released):
+    """``out_dir=checkpoints/reference/ppo_turn`` wrote results.csv and results.md into a shipped reference."""
+    monkeypatch.chdir(tmp_path)
+    before = snapshot(shipped)
+    line = check_line("eval", ["agents=[always_proceed]", f"out_dir={shipped}/ppo_turn", *overwrite],
+                      monkeypatch, capsys)
+    assert "is inside the shipped reference agents' folder" in line and "overwrite" not in line, line
+    assert snapshot(shipped) == before
