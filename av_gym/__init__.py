@@ -1,4 +1,25 @@
-"""av-gym: Gymnasium scenarios, sensor-noise wrappers and metrics for autonomous-driving research."""
+"""av-gym: Gymnasium scenarios, sensor-noise wrappers and metrics for autonomous-driving research.
+
+Example: the bare scenario (its privileged ``state`` observation), or the harness's stack through the same id's
+keywords (a sensors preset, a shield, a scenario's fields in their units, km/h and degrees; :mod:`av_gym.api`):
+
+    >>> import gymnasium as gym
+    >>> import av_gym
+    >>> env = gym.make("av_gym/LaneKeepingLap-v0")
+    >>> obs, info = env.reset(seed=0)
+    >>> sorted(obs)
+    ['state']
+    >>> env = gym.make("av_gym/UnprotectedLeftTurn-v0", sensors="turn_perceived", shield="aeb",
+    ...                env={"spawn_probability": 0.3})
+    >>> obs, info = env.reset(seed=0)
+    >>> sorted(obs), env.action_space
+    (['intent', 'turn'], Discrete(3))
+    >>> obs, reward, terminated, truncated, info = env.step(1)
+    >>> "aeb_override" in info
+    True
+    >>> "turn_perceived" in av_gym.presets.preset_names("sensors"), "ppo_turn" in av_gym.reference_names()
+    (True, True)
+"""
 
 import importlib
 import importlib.util

@@ -94,7 +94,18 @@ def highway_config(env_cfg: Mapping | ScenarioParams) -> tuple[str, dict]:
 
 def make_env(env_cfg: Mapping, sensors_cfg: Mapping | None = None, shield_cfg: Mapping | None = None, *,
              render_mode: str | None = None, record_metrics: bool = True) -> gym.Env:
-    """The full stack for one episode stream: scenario → sensors → shield → :class:`EpisodeMetrics`."""
+    """The full stack for one episode stream: scenario → sensors → shield → :class:`EpisodeMetrics`, from config
+    sections as ``python -m train`` composes them (``env_cfg`` names the scenario, its fields in conf/env units).
+
+    Example: the lap's layout B with GNSS and IMU (the ``gnss_imu`` preset, composed by :mod:`av_gym.presets`):
+
+        >>> from av_gym.make import make_env
+        >>> from av_gym.presets import compose_group
+        >>> env = make_env({"name": "lane_keeping", "track": "B"}, compose_group("sensors", "gnss_imu"))
+        >>> obs, info = env.reset(seed=0)
+        >>> sorted(obs)
+        ['gnss', 'imu']
+    """
     env_id, config = highway_config(env_cfg)
     try:
         env = gym.make(env_id, config=config, render_mode=render_mode)

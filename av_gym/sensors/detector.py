@@ -76,7 +76,20 @@ class DetectorParams(Params):
 
 
 class Detector(SensorWrapper):
-    """Adds ``obs["detector"]``; parameters: :class:`DetectorParams`."""
+    """Adds ``obs["detector"]``; parameters: :class:`DetectorParams`.
+
+    Example: rows ``[present, x, y, vx, vy, heading, length, width, age]`` nearest first, zero rows unused:
+
+        >>> import gymnasium as gym
+        >>> import av_gym
+        >>> from av_gym.sensors.detector import Detector
+        >>> env = Detector(gym.make("av_gym/UnprotectedLeftTurn-v0"), miss_rate=0.3, max_objects=8)
+        >>> obs, info = env.reset(seed=0)
+        >>> obs["detector"].shape
+        (8, 9)
+        >>> set(obs["detector"][:, 0].tolist()) <= {0.0, 1.0}  # the present flag
+        True
+    """
 
     key = "detector"
     Params = DetectorParams

@@ -58,7 +58,20 @@ class GNSSParams(Params):
 class GNSS(SensorWrapper):
     """Adds ``obs["gnss"]``; parameters: :class:`GNSSParams`. ``outage``: ``"none"``; ``"random"`` (two-state
     Markov chain, entry rate ``outage_rate`` and mean duration ``outage_mean``, 000 §5.1 highway values);
-    ``"scripted"`` with ``outage_windows`` (002's motivation: a tunnel)."""
+    ``"scripted"`` with ``outage_windows`` (002's motivation: a tunnel).
+
+    Example (any field of :class:`GNSSParams` as a keyword, SI units):
+
+        >>> import gymnasium as gym
+        >>> import av_gym
+        >>> from av_gym.sensors.gnss import GNSS
+        >>> env = GNSS(gym.make("av_gym/LaneKeepingLap-v0"), sigma=1.5, outage="none")
+        >>> obs, info = env.reset(seed=0)
+        >>> obs["gnss"].shape  # [x, y, vx, vy, fresh, valid, age]
+        (7,)
+        >>> bool(obs["gnss"][5])  # a fix is valid from the first step (no outage)
+        True
+    """
 
     key = "gnss"
     Params = GNSSParams

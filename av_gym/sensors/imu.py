@@ -44,7 +44,21 @@ class IMUParams(Params):
 
 
 class IMU(SensorWrapper):
-    """Adds ``obs["imu"]``; parameters: :class:`IMUParams`."""
+    """Adds ``obs["imu"]``; parameters: :class:`IMUParams`.
+
+    Example: one row per simulation tick of the policy step (15 Hz simulation, 5 Hz decisions on the lap: 3 rows),
+    columns ``[a_long (m/s²), a_lat (m/s²), yaw_rate (rad/s)]``:
+
+        >>> import gymnasium as gym
+        >>> import av_gym
+        >>> from av_gym.sensors.imu import IMU
+        >>> env = IMU(gym.make("av_gym/LaneKeepingLap-v0"))
+        >>> obs, info = env.reset(seed=0)
+        >>> obs, reward, terminated, truncated, info = env.step([0.0])
+        >>> obs["imu"].shape == (env.unwrapped.config["simulation_frequency"]
+        ...                      // env.unwrapped.config["policy_frequency"], 3)
+        True
+    """
 
     key = "imu"
     Params = IMUParams

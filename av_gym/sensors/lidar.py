@@ -337,7 +337,22 @@ class LidarParams(Params):
 
 class Lidar(SensorWrapper):
     """Roof-mounted ray-cast LiDAR; adds ``obs["lidar"]`` (ranges) and keeps the last scan's point cloud.
-    Parameters: :class:`LidarParams`."""
+    Parameters: :class:`LidarParams`.
+
+    Example: ranges (m) per channel and beam, and the returns as points in the sensor frame (x forward, y left,
+    z up):
+
+        >>> import gymnasium as gym
+        >>> import av_gym
+        >>> from av_gym.sensors.lidar import Lidar
+        >>> env = Lidar(gym.make("av_gym/UnprotectedLeftTurn-v0"), beams=360)
+        >>> obs, info = env.reset(seed=0)
+        >>> obs["lidar"].shape  # (len(elevations_deg), beams)
+        (1, 360)
+        >>> points, times = env.points()  # (N, 3) m, and when in the sweep each beam fired, in [0, 1)
+        >>> points.shape[1], bool(((0 <= times) & (times < 1)).all())
+        (3, True)
+    """
 
     key = "lidar"
     Params = LidarParams

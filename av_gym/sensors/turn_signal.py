@@ -217,7 +217,20 @@ class TurnSignalsParams(Params):
 
 
 class TurnSignals(SensorWrapper):
-    """Adds ``obs["signals"]`` (see the module docstring); parameters: :class:`TurnSignalsParams`."""
+    """Adds ``obs["signals"]`` (see the module docstring); parameters: :class:`TurnSignalsParams`.
+
+    Example: rows ``[present, x, y, signal]`` nearest first (signal +1 left, -1 right, 0 none seen):
+
+        >>> import gymnasium as gym
+        >>> import av_gym
+        >>> from av_gym.sensors.turn_signal import TurnSignals
+        >>> env = TurnSignals(gym.make("av_gym/UnprotectedLeftTurn-v0"), no_signal_rate=0.0)
+        >>> obs, info = env.reset(seed=0)
+        >>> obs["signals"].shape[1]
+        4
+        >>> set(obs["signals"][:, 3].tolist()) <= {-1.0, 0.0, 1.0}
+        True
+    """
 
     key = "signals"
     Params = TurnSignalsParams
