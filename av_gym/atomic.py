@@ -99,7 +99,7 @@ def write_texts_atomic(texts: dict[str | Path, str], field: str = "") -> None:
 
 def save_figure_atomic(fig, path: str | Path, field: str = "", **kwargs) -> Path:
     """``fig.savefig(path)`` (matplotlib), atomically: a failed or interrupted save leaves the previous image whole
-    and no empty or half-written png (a full disk left an empty ``grid.png`` and three tracebacks). The
+    and no empty or half-written png (a plain ``savefig`` on a full disk leaves an empty png and a traceback). The
     format comes from ``path``'s suffix, not from the temporary name's."""
     path = Path(path)
     kwargs.setdefault("format", path.suffix.lstrip(".") or "png")

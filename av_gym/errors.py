@@ -29,7 +29,7 @@ def run_cli(fn, *args, hydra_run_dir: bool = False) -> None:
     ``hydra_run_dir``: ``fn`` runs as a Hydra job, whose folder Hydra made before ``fn`` could check anything; on a
     ConfigError it is removed again when it holds nothing but what Hydra wrote (see :func:`discard_hydra_run_dir`).
     In a sweep (``-m``, run through :func:`run_hydra`), a job that fails records one line and returns, so that
-    the sweep runs its other jobs (one bad cell used to end the sweep); the line is reported at the end."""
+    the sweep runs its other jobs (one bad cell would otherwise end the sweep); the line is reported at the end."""
     import sys
 
     interrupt_on_sigterm()
@@ -126,8 +126,8 @@ def run_hydra(hydra_main) -> None:
 
 def interrupt_on_sigterm() -> None:
     """SIGTERM (``kill PID``, ``timeout``, a scheduler's end of job) raises KeyboardInterrupt, as Ctrl-C does, so
-    that what the code keeps on Ctrl-C (measured episodes, a checkpoint) is kept on SIGTERM too; it used to end the
-    process at once (rc 143, the episodes lost). Only where SIGTERM still has its default action, in the main
+    that what the code keeps on Ctrl-C (measured episodes, a checkpoint) is kept on SIGTERM too; its default action
+    ends the process at once (rc 143, the episodes lost). Only where SIGTERM still has its default action, in the main
     thread (a handler set by the code, e.g. training's, is left alone)."""
     import signal
     import threading

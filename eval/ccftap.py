@@ -313,7 +313,7 @@ def grid_figure(rows: list[dict], path: Path) -> None:
     fig.legend(handles=[Patch(color=OUTCOMES[c][1], label=OUTCOMES[c][0]) for c in codes] +
                [Patch(color="white", label="u = unnecessary intervention")], loc="lower center", ncol=3, fontsize=8)
     fig.tight_layout(rect=(0, 0.08, 1, 1))
-    try:  # whole or not at all: a full disk left an empty grid.png
+    try:  # whole or not at all: a full disk would leave an empty grid.png
         save_figure_atomic(fig, path, "--out", dpi=120)
     finally:
         plt.close(fig)
@@ -424,7 +424,7 @@ def _parser() -> ToolParser:
     p.add_argument("--checkpoints", default="checkpoints", help="where named trained agents' checkpoints are found")
     p.add_argument("--variants", default=list(VARIANTS), type=items(str, choices=list(VARIANTS)))
     p.add_argument("--modes", default=list(MODES), type=items(str, choices=list(MODES)))
-    bounds = _ccftap_bounds()  # the bounds env.ccftap.* declares (CCFtapParams): 1e9 s used to hang
+    bounds = _ccftap_bounds()  # the bounds env.ccftap.* declares (CCFtapParams): 1e9 s would hang the run
     p.add_argument("--ego", default=list(EGO_KMH), type=items(float, **bounds["ego_speed_kmh"]),
                    help="ego speeds, km/h, [10,15,20]")
     p.add_argument("--target", default=list(TARGET_KMH), type=items(float, **bounds["target_speed_kmh"]),

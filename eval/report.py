@@ -77,6 +77,6 @@ def write_results(rows: list[dict], out_dir: str | Path, scenario: str, title: s
                f"non-negative quantities, Student t for signed ones.\n\n{table}\n"
                + (f"\n{checkpoints_section(checkpoints)}" if checkpoints else "")
                + (f"\n{sensors_section(sensors)}" if sensors else ""))
-    # both files replaced together or neither (a full disk used to leave results.csv torn, results.md stale)
+    # both files replaced together or neither (a full disk could leave results.csv torn, results.md stale)
     write_texts_atomic({out / "results.csv": text.getvalue(), out / "results.md": summary}, field="out_dir")
     return table

@@ -74,10 +74,10 @@ _WORKER: dict = {}
 def guard_worker() -> None:
     """In a worker process (an evaluation pool's, a SubprocVecEnv's): end with the parent, and leave Ctrl-C to it.
 
-    - Ctrl-C in a terminal sends SIGINT to the whole process group: every worker used to print its own
+    - Ctrl-C in a terminal sends SIGINT to the whole process group: every worker would print its own
       KeyboardInterrupt traceback (74 lines for 2 workers). Workers ignore it; the parent, interrupted,
       stops the pool and writes what it measured.
-    - A parent killed outright (``kill -9``, the OOM killer) used to leave its workers running as orphans, ~180 MB
+    - A parent killed outright (``kill -9``, the OOM killer) would leave its workers running as orphans, ~180 MB
       each. Linux's ``prctl(PR_SET_PDEATHSIG, SIGKILL)`` has the kernel kill this process when its parent dies;
       if the parent died before the call, this process exits now. Elsewhere (no prctl) the parent's own clean-up
       on SIGINT/SIGTERM still ends them.

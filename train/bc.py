@@ -473,7 +473,7 @@ def train(args: PilotNetParams, env_cfg: dict, sensors_cfg: dict, run_dir: str |
         log(f"[bc] best epoch {best_epoch + 1} (val MSE {best:.4f}); demos {t_demos:.0f} s, total "
             f"{time.time() - t_start:.0f} s")
         return best_path
-    except KeyboardInterrupt:  # Ctrl-C / SIGTERM: say what is kept (it used to exit 130 without a word)
+    except KeyboardInterrupt:  # Ctrl-C / SIGTERM: say what is kept (rather than exit 130 without a word)
         kept = (f"{best_path} holds epoch {best_epoch + 1}, the best so far (val MSE {best:.4f})" if best_epoch >= 0
                 else "no model was saved yet")
         print(f"[bc] interrupted while {stage}: {kept}", file=sys.stderr)

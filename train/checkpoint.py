@@ -3,8 +3,8 @@ crash or a full disk at any point leaves the old complete file or the new one, n
 file.
 
 ``latest.zip`` carries its RNG states inside (member ``av_gym_rng.pkl``, which SB3's loader ignores): the policy
-and the random streams it continues with are one file, replaced together (a full disk replaced
-``latest.rng`` while ``latest.zip`` stayed old, a pair that no longer matched)."""
+and the random streams it continues with are one file, replaced together (as two files, a full disk can replace
+one and leave the other old, a pair that does not match)."""
 
 from __future__ import annotations
 

@@ -37,7 +37,7 @@ def shift_go(model, threshold: float) -> float:
     if not 0.0 < threshold < 1.0:
         raise ConfigError(f"threshold must be in (0, 1), got {threshold}")
     n = getattr(getattr(model.policy, "action_net", None), "out_features", None)
-    if n != 2:  # a steering or meta-action policy has no GO logit (it was an IndexError)
+    if n != 2:  # a steering or meta-action policy has no GO logit (one line here, not an IndexError later)
         raise ConfigError(f"the operating point is a GO/YIELD student's (agent.actions=go_yield: two logits); this "
                           f"policy has {n if n is not None else 'no discrete'} action outputs")
     delta = math.log(threshold / (1.0 - threshold))
@@ -186,7 +186,7 @@ def main(argv: list[str] | None = None) -> None:
     from agents.checkpoint import read_config_yaml
 
     problem = go_yield_problem(run_dir, read_config_yaml(run_dir / "config.yaml"))
-    if problem:  # before any episode (a lane keeper has no GO logit: it was an IndexError)
+    if problem:  # before any episode (a lane keeper has no GO logit: one line, not an IndexError mid-run)
         raise ConfigError(problem)
     if args.write is not None:
         if not args.dest or not 0 < args.write < 1:

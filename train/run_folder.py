@@ -3,11 +3,11 @@
 ``checkpoints/<run_name>/`` and ``runs/<run_name>/`` belong to one run:
 
 - a ``run_name`` whose folders already hold a run is refused, unless ``train.resume=true`` (continue it) or
-  ``train.overwrite=true`` (delete it and start afresh): a second ``python -m train run_name=R`` used to replace the
-  first run's model.zip and config.yaml and write both runs' curves into one TensorBoard folder;
+  ``train.overwrite=true`` (delete it and start afresh): a second ``python -m train run_name=R`` would otherwise
+  replace the first run's model.zip and config.yaml and write both runs' curves into one TensorBoard folder;
 - ``train.resume=true`` needs the run's ``latest.zip``, and this command's env/sensors/shield/agent sections must be
   the run's own (its ``config.yaml``): both checked before anything is written, so a refused resume leaves the run
-  as it was (it used to overwrite config.yaml first) and a resume of a run that does not exist writes nothing;
+  as it was (config.yaml included) and a resume of a run that does not exist writes nothing;
 - while a process trains a run it holds an exclusive ``flock`` on ``checkpoints/<run_name>/.lock``; a second process
   on the same run is refused in one line. The kernel drops the lock when the holder exits however it exits
   (kill -9 included), so a crashed run can be resumed at once (:class:`av_gym.atomic.OwnedFolders`, which

@@ -1,7 +1,7 @@
 """What each episode metric is, declared beside the metrics, so its interval can respect it.
 
-The kind used to be guessed from the values (all 0/1 → a rate), which called an all-zero ``min_ttc_s`` a rate and
-gave t intervals that left the metric's range (``min_ttc_s 0.59 [-0.157, 1.34]``). Now each metric says:
+Why not guess the kind from the values (all 0/1 → a rate): that calls an all-zero ``min_ttc_s`` a rate and gives
+t intervals that leave the metric's range (``min_ttc_s 0.59 [-0.157, 1.34]``). Each metric says:
 
 - ``rate``: 0 or 1 per episode (collision, success): Wilson score interval on the count, inside [0, 1].
 - ``count``: a non-negative integer per episode (interventions, lane departures): bootstrap of the mean.

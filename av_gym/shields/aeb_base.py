@@ -232,7 +232,7 @@ class AEBShield(gym.Wrapper):
         vehicle.act = _ActuatedAct(vehicle.act, vehicle, self)
 
     def step(self, action):
-        check_action(self.action_space, action)  # before _decide: a NaN crashed its numba predictor
+        check_action(self.action_space, action)  # before _decide: a NaN would crash its numba predictor
         if self.bypass:  # a counterfactual replay (eval/interventions.py): the agent's action, no shield
             obs, reward, terminated, truncated, info = self.env.step(action)
             self._info = self._make_info(MONITOR, float("inf"), 0.0, -1, False, False, action)

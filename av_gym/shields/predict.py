@@ -374,7 +374,7 @@ def footprint_ttc(ego_xy: np.ndarray, ego_heading: np.ndarray, ego_size: tuple[f
     length, width = ego_size[0] + 2 * margin, ego_size[1] + 2 * margin
     # Two boxes can only overlap if their centres are within the sum of their half-diagonals (as
     # av_gym.geometry.constant_velocity_ttc): the separating-axis test runs on those (slice, hypothesis) pairs
-    # only, usually a few of the 80 x ~40 (it was half of the shield's cost per decision, docs/shield.md)
+    # only, usually a few of the 80 x ~40 (testing every pair is half of the shield's cost per decision, docs/shield.md)
     d = others_xy - ego_xy[:, None, :]
     reach = 0.5 * np.hypot(length, width) + 0.5 * np.hypot(others_size[:, 0], others_size[:, 1])  # (M,)
     near = may_overlap(d, reach)  # (K, M)
