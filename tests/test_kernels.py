@@ -181,12 +181,18 @@ def test_point_in_box_kernel_is_the_numpy_one_on_its_edges():
     assert edge == (0.0, 0.0)  # some boxes touch exactly
 
 
+PAIRWISE = {"front", "collisions", "conflicts", "closest", "ttc", "idm"}
+
+
 @pytest.mark.parametrize("env", [{}, {"mode": "ccftap"}])
 def test_batch_with_kernels_is_the_batch_without(monkeypatch, env):
-    """Whole runs (spawns, resets through the pool, yields, crashes, TTC): every state array equal at every step."""
+    """Whole runs (spawns, resets through the pool, yields, crashes, TTC) with the pairwise kernels: every state
+    array equal at every step. (The fused tick, which also moves the transcendental maths of steering and
+    kinematics to the C library, is compared step by step below: over whole runs its last-bit differences from
+    numpy's AVX-512 maths grow as any perturbation of the traffic does.)"""
     _, config = highway_config({"name": "left_turn", **env})
     runs = []
-    for kset in (set(sb.KERNELS) | {"front", "collisions", "conflicts", "closest", "ttc", "idm"}, set()):
+    for kset in (PAIRWISE, set()):
         monkeypatch.setattr(sb, "KERNELS", kset)
         bt = BatchedLeftTurn(16, config, pool=8)
         bt.reset(list(range(16)))
@@ -200,3 +206,67 @@ def test_batch_with_kernels_is_the_batch_without(monkeypatch, env):
         for n, u, w in zip([n for n in sb.Traffic.FIELDS if n != "vid"] + ["ttc"], p, q):
             assert _same(u, w), f"step {step}: {n}"
     assert runs[0][-1][sb.Traffic.FIELDS.index("crashed") - 1].any() or env  # the traffic run had a crash
+
+
+def _lockstep(monkeypatch, config: dict, B: int, steps: int, seed: int, continuous: bool = False) -> dict:
+    """Step a numpy-path engine and, from the same state each step, a fork of it on the fused tick
+    (kernels.advance, ``tick``) with the same actions; every state array, clock and step result of the two must
+    be the same (decisions identical, floats to _numerics' REL). Ended episodes restart from the pool (made on the
+    numpy path; its warm-up is compared on its own). Returns counts of what the steps exercised."""
+    monkeypatch.setattr(sb, "KERNELS", PAIRWISE)
+    ref = BatchedLeftTurn(B, config, pool=8)
+    ref.reset(list(range(seed, seed + B)))
+    rng = np.random.default_rng(seed)
+    seen = {"crashed": 0, "yielding": 0, "arrived": 0, "spawned": 0}
+    for step in range(steps):
+        # mostly IDLE (proceed: the CCFtap ego meets its target), else a random action
+        a = rng.uniform(-1, 1, B) if continuous else np.where(rng.random(B) < 0.6, 1, rng.integers(0, 3, B))
+        active = rng.random(B) < 0.9  # some envs sit a step out, as done envs waiting for their reset do
+        fork = ref.fork(np.arange(B))
+        monkeypatch.setattr(sb, "KERNELS", PAIRWISE | {"tick"})
+        got = fork.step(a, active)
+        monkeypatch.setattr(sb, "KERNELS", PAIRWISE)
+        n_before = ref.traffic.alive.sum()
+        want = ref.step(a, active)
+        for name in sb.Traffic.FIELDS:
+            if name != "vid":
+                assert _same(getattr(fork.traffic, name), getattr(ref.traffic, name)), f"step {step}: {name}"
+        for name in ("ticks", "time", "arrived_time", "progress_s", "cmd"):
+            assert _same(getattr(fork, name), getattr(ref, name)), f"step {step}: {name}"
+        assert np.array_equal(fork.traffic.road_steps, ref.traffic.road_steps)
+        for u, w in zip(got, want):
+            assert _same(u, w), f"step {step}: reward / terminated / truncated"
+        seen["crashed"] += int(ref.traffic.crashed.sum())
+        seen["yielding"] += int(ref.traffic.yielding.sum())
+        seen["arrived"] += int(np.isfinite(ref.arrived_time).sum())
+        seen["spawned"] += int(ref.traffic.alive.sum() > n_before)
+        done = np.nonzero(want[1] | want[2])[0]
+        if len(done):
+            ref.start_from_pool(done)
+    return seen
+
+
+@pytest.mark.parametrize("env", [{}, {"mode": "ccftap"}, {"action": "continuous"}])
+def test_tick_kernel_steps_as_the_numpy_path(monkeypatch, env):
+    """The fused tick against the numpy path, step by step from the same state: meta-actions and continuous
+    accelerations, envs left out of a step, follow_road's route changes, the regulation's yields, impacts and
+    crashes, arrivals."""
+    _, config = highway_config({"name": "left_turn", **env})
+    seen = _lockstep(monkeypatch, config, 16, 150, seed=3, continuous="action" in env)
+    assert seen["crashed"] and (seen["arrived"] or env)
+    assert env or (seen["yielding"] and seen["spawned"])
+
+
+def test_tick_kernel_warms_up_as_the_numpy_path(monkeypatch):
+    """A reset's 3 s warm-up (60 ticks, no ego) on the fused tick gives the numpy path's initial traffic."""
+    _, config = highway_config({"name": "left_turn"})
+    made = []
+    for kset in (PAIRWISE | {"tick"}, PAIRWISE):
+        monkeypatch.setattr(sb, "KERNELS", kset)
+        bt = BatchedLeftTurn(32, config)
+        bt.reset(list(range(500, 532)))
+        made.append(bt.traffic)
+    for name in sb.Traffic.FIELDS:
+        if name != "vid":
+            assert _same(getattr(made[0], name), getattr(made[1], name)), name
+    assert made[1].yielding.any() or made[1].crashed.any()

@@ -174,9 +174,13 @@ class BatchedLeftTurn:
             for k in range(n_vehicles - 1):
                 self._spawn(t, b, rng, np.linspace(0, 80, n_vehicles)[k])
         self._settle(t)
-        for _ in range(3 * int(self.config["simulation_frequency"])):
-            t.act()
-            t.step(self.dt)
+        warm_up = 3 * int(self.config["simulation_frequency"])
+        if "tick" in batched.KERNELS:
+            t.advance(self.dt, warm_up)
+        else:
+            for _ in range(warm_up):
+                t.act()
+                t.step(self.dt)
         T = self.T
         ego_lane = T.id[ROUTE[0]]
         for b, rng in enumerate(rngs):
@@ -390,7 +394,7 @@ class BatchedLeftTurn:
         self._lat = lat
         return self.route_starts[k] + s
 
-    def has_arrived(self, rows, slots, exit_distance: float = 25.0) -> np.ndarray:
+    def has_arrived(self, rows, slots, exit_distance: float = batched.EXIT_DISTANCE) -> np.ndarray:
         """IntersectionEnv.has_arrived: on an "il"→"o" lane, ≥ 25 m along it."""
         t, T = self.traffic, self.T
         lane = t.lane[rows, slots]
@@ -425,9 +429,6 @@ class BatchedLeftTurn:
         if not self.ccftap:
             self._clear_and_spawn(rows[self.ticks[rows] > 0])
         self.time[rows] += 1.0 / c["policy_frequency"]
-        idle = ~active
-        frozen = {name: getattr(t, name)[idle].copy() for name in Traffic.FIELDS} if idle.any() else None
-        steps_frozen = t.road_steps[idle].copy()
         meta = None
         if self.continuous:  # LongitudinalAction.act: clip to [-1, 1], then utils.lmap onto the range
             a = np.clip(np.asarray(actions, dtype=float).reshape(self.B, -1)[:, 0], -1.0, 1.0)
@@ -435,17 +436,11 @@ class BatchedLeftTurn:
             self.cmd[rows] = (lo + (a - -1) * (hi - lo) / (1 - -1))[rows]
         else:
             meta = np.where(active, np.asarray(actions).reshape(self.B), 1)
-        for frame in range(self.frames):
-            t.act(meta if frame == 0 else None, self.speeds, self.cmd if self.continuous else None)
-            t.step(self.dt)
-            self.ticks[rows] += 1
-            e = self.ego_slot(rows)
-            arrived = self.has_arrived(rows, e) & np.isnan(self.arrived_time[rows])
-            self.arrived_time[rows[arrived]] = self.time[rows[arrived]]
-        if frozen is not None:  # envs already done wait for their reset unchanged
-            for name, value in frozen.items():
-                getattr(t, name)[idle] = value
-            t.road_steps[idle] = steps_frozen
+        if "tick" in batched.KERNELS:  # every tick of every active env in one compiled call
+            t.advance(self.dt, self.frames, active, meta, self.speeds, self.cmd if self.continuous else None,
+                      clocks=(self.ticks, self.time, self.arrived_time))
+        else:
+            self._ticks(rows, ~active, meta)
         t.trim()
         reward = np.zeros(self.B)
         reward[rows], terminated, truncated = self._reward(rows), np.zeros(self.B, bool), np.zeros(self.B, bool)
@@ -457,6 +452,24 @@ class BatchedLeftTurn:
             terminated[rows] = crashed | arrived
         truncated[rows] = self.time[rows] >= self.time_limit
         return reward, terminated, truncated
+
+    def _ticks(self, rows: np.ndarray, idle: np.ndarray, meta: np.ndarray | None) -> None:
+        """A policy step's ticks on the numpy path (Traffic.act, Traffic.step), arrivals stamped per tick; the
+        envs ``idle`` are stepped too and then put back as they were (a done env waits for its reset)."""
+        t = self.traffic
+        frozen = {name: getattr(t, name)[idle].copy() for name in Traffic.FIELDS} if idle.any() else None
+        steps_frozen = t.road_steps[idle].copy()
+        for frame in range(self.frames):
+            t.act(meta if frame == 0 else None, self.speeds, self.cmd if self.continuous else None)
+            t.step(self.dt)
+            self.ticks[rows] += 1
+            e = self.ego_slot(rows)
+            arrived = self.has_arrived(rows, e) & np.isnan(self.arrived_time[rows])
+            self.arrived_time[rows[arrived]] = self.time[rows[arrived]]
+        if frozen is not None:  # envs already done wait for their reset unchanged
+            for name, value in frozen.items():
+                getattr(t, name)[idle] = value
+            t.road_steps[idle] = steps_frozen
 
     def target_passed(self, rows) -> np.ndarray:
         """UnprotectedLeftTurnEnv._target_passed: the CCFtap target's rear beyond y = 12 m."""

@@ -35,9 +35,10 @@ from av_gym.geometry import wrap_angle
 from av_gym.sim import kernels
 
 # The pairwise parts run as numba kernels (av_gym/sim/kernels.py: the same formulas, bit-identical results) when
-# named here (``ttc``: BatchedLeftTurn.ttc); the numpy code stays as their reference (tests/test_kernels.py runs
-# the batch both ways).
-KERNELS = {"front", "collisions", "conflicts", "closest", "ttc", "idm"}
+# named here (``ttc``: BatchedLeftTurn.ttc); ``tick``: a policy step's ticks (act + step, every part) as one
+# compiled call per batch step (Traffic.advance). The numpy code stays as their reference (tests/test_kernels.py
+# runs the batch both ways; benchmarks/batched_speed.py times both).
+KERNELS = {"front", "collisions", "conflicts", "closest", "ttc", "idm", "tick"}
 
 # highway-env constants (IntersectionEnv._make_vehicles sets the IDM class attributes to these)
 LENGTH, WIDTH = 5.0, 2.0
@@ -49,6 +50,7 @@ TAU_PURSUIT, KP_LATERAL, KP_HEADING, KP_A = 0.1, 1 / 0.6, 1 / 0.2, 1 / 0.6
 MAX_STEERING = np.pi / 3
 REG_TIMES = np.arange(0.25, 3, 0.25)  # RegulatedRoad.is_conflict_possible(horizon=3, step=0.25)
 EGO_TARGET_SPEEDS = np.array([0.0, 4.5, 9.0])
+EXIT_DISTANCE = 25.0  # m along the leaving lane: IntersectionEnv.has_arrived
 SLOWER, IDLE, FASTER = 0, 1, 2
 _VEHICLE_IDS = itertools.count(1)  # unique over all batches of the process (episodes move between them)
 
@@ -132,6 +134,11 @@ class LaneTable:
         self.to_node = [t for _, t, _ in self.index]
         self.from_node = [f for f, _, _ in self.index]
         self.arr = kernels.lane_array(self)  # the same table for the kernels
+        node = {n: k for k, n in enumerate(sorted(set(self.from_node) | set(self.to_node)))}
+        # the rules' per-lane columns for kernels.advance: speed limit, priority, leaving lane, from / to node ids
+        self.rules = np.ascontiguousarray(np.column_stack([
+            self.speed_limit, self.priority, self.exit, [node[f] for f in self.from_node],
+            [node[t] for t in self.to_node]]).astype(float))
 
     def local(self, k, x, y):
         """(StraightLane|CircularLane).local_coordinates for lane ids ``k`` (broadcast with x, y); the arc formula
@@ -321,6 +328,23 @@ class Traffic:
         return slot
 
     # -------------------------------------------------------------------------------------------- one tick
+    def advance(self, dt: float, frames: int, active: np.ndarray | None = None, meta: np.ndarray | None = None,
+                speeds: np.ndarray = EGO_TARGET_SPEEDS, ego_acceleration: np.ndarray | None = None,
+                clocks: tuple | None = None) -> None:
+        """``frames`` ticks (:meth:`act`, then :meth:`step`) of the envs ``active`` (default: all) in one compiled
+        call (kernels.advance): the ego's meta-action ``meta`` (B,) at the first tick (None: none), the continuous
+        ego's commanded acceleration ``ego_acceleration`` (B,, m/s²); ``clocks``: the env's (ticks, time,
+        arrived_time) arrays, ticks counted and arrivals stamped per tick as BatchedLeftTurn.step does. Inactive
+        envs are left as they are. ``dt`` in s."""
+        B = self.B
+        active = np.ones(B, bool) if active is None else np.ascontiguousarray(active, dtype=bool)
+        meta = np.full(B, -1) if meta is None else np.ascontiguousarray(meta, dtype=np.int64).reshape(B)
+        cmd = np.full(B, np.nan) if ego_acceleration is None else np.ascontiguousarray(ego_acceleration, dtype=float)
+        ticks, time, arrived = clocks if clocks is not None else (np.zeros(B, dtype=int), np.zeros(B), np.zeros(B))
+        T = self.tables
+        kernels.advance(T.arr, T.rules, *_contiguous(self, *_TICK_STATE), active, meta, np.asarray(speeds, float),
+                        cmd, int(frames), float(dt), int(1 / dt / 2), REG_TIMES, _TICK_PARAMS, ticks, time, arrived)
+
     def act(self, ego_action: np.ndarray | None = None, speeds: np.ndarray = EGO_TARGET_SPEEDS,
             ego_acceleration: np.ndarray | None = None) -> None:
         """``Road.act()`` (and, at a policy step's first tick, the action type's ``MDPVehicle.act(meta)`` over the
@@ -555,6 +579,13 @@ class Traffic:
             if not (self.mdp[e, y_] or self.plain[e, y_]):  # ControlledVehicles but MDPVehicle yield
                 self.target[e, y_] = 0.0
                 self.yielding[e, y_] = True
+
+
+# kernels.advance's state arguments, in its order, and its constants (kernels.P_*)
+_TICK_STATE = ("x", "y", "h", "v", "target", "steer", "acc", "delta", "alive", "ego", "plain", "mdp", "crashed",
+               "yielding", "impact_x", "impact_y", "has_impact", "lane", "tlane", "route", "rpos", "road_steps")
+_TICK_PARAMS = np.array([VEHICLE_LENGTH, LENGTH, WIDTH, COMFORT_ACC_MAX, COMFORT_ACC_MIN, ACC_MAX, DISTANCE_WANTED,
+                         TIME_WANTED, TAU_PURSUIT, KP_LATERAL, KP_HEADING, KP_A, MAX_STEERING, EXIT_DISTANCE])
 
 
 def _contiguous(t: Traffic, *names: str) -> list[np.ndarray]:

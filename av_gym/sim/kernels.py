@@ -66,27 +66,32 @@ def closest(lt, x, y, h):
     """LaneTable.closest for 1-d arrays of vehicles: the first lane of least distance_with_heading among the lanes
     whose centreline box is no farther than the nearest box's lane's distance (the same pruning, the same
     comparisons: first on ties)."""
-    L = lt.shape[0]
     out = np.zeros(x.shape[0], dtype=np.int64)
-    lb = np.empty(L)
+    lb = np.empty(lt.shape[0])
     for m in range(x.shape[0]):
-        xm, ym = x[m], y[m]
-        k0 = 0
-        for k in range(L):
-            bx = max(max(lt[k, BX0] - xm, xm - lt[k, BX1]), 0.0)
-            by = max(max(lt[k, BY0] - ym, ym - lt[k, BY1]), 0.0)
-            lb[k] = math.hypot(bx, by)
-            if lb[k] < lb[k0]:
-                k0 = k
-        best = _distance_with_heading(lt, k0, xm, ym, h[m])
-        dmin, kmin = np.inf, 0
-        for k in range(L):
-            if lb[k] <= best:
-                d = _distance_with_heading(lt, k, xm, ym, h[m])
-                if d < dmin:
-                    dmin, kmin = d, k
-        out[m] = kmin
+        out[m] = _closest_one(lt, x[m], y[m], h[m], lb)
     return out
+
+
+@numba.njit(cache=True)
+def _closest_one(lt, xm, ym, hm, lb):
+    """:func:`closest` for one vehicle (``lb``: scratch, one float per lane)."""
+    L = lt.shape[0]
+    k0 = 0
+    for k in range(L):
+        bx = max(max(lt[k, BX0] - xm, xm - lt[k, BX1]), 0.0)
+        by = max(max(lt[k, BY0] - ym, ym - lt[k, BY1]), 0.0)
+        lb[k] = math.hypot(bx, by)
+        if lb[k] < lb[k0]:
+            k0 = k
+    best = _distance_with_heading(lt, k0, xm, ym, hm)
+    dmin, kmin = np.inf, 0
+    for k in range(L):
+        if lb[k] <= best:
+            d = _distance_with_heading(lt, k, xm, ym, hm)
+            if d < dmin:
+                dmin, kmin = d, k
+    return kmin
 
 
 @numba.njit(cache=True)
@@ -98,25 +103,30 @@ def front(lt, lanes, x, y, alive, vehicle_length):
     out = np.full((B, N), -1, dtype=np.int64)
     for b in range(B):
         for i in range(N):
-            if not alive[b, i]:
-                continue
-            k = lanes[b, i]
-            x0, y0 = lt[k, BX0] + -6.0, lt[k, BY0] + -6.0
-            x1, y1 = lt[k, BX1] + 6.0, lt[k, BY1] + 6.0
-            s_self = _local(lt, k, x[b, i], y[b, i])[0]
-            half, end = lt[k, WIDTH] / 2 + 1, lt[k, LENGTH] + vehicle_length
-            best, jbest = np.inf, -1
-            for j in range(N):
-                if j == i or not alive[b, j]:
-                    continue
-                xj, yj = x[b, j], y[b, j]
-                if not (x0 <= xj and xj <= x1 and y0 <= yj and yj <= y1):
-                    continue
-                s, r = _local(lt, k, xj, yj)
-                if abs(r) <= half and -vehicle_length <= s and s < end and s_self <= s and s <= best:
-                    best, jbest = s, j
-            out[b, i] = jbest
+            if alive[b, i]:
+                out[b, i] = _front_one(lt, lanes[b, i], b, i, x, y, alive, vehicle_length)
     return out
+
+
+@numba.njit(cache=True)
+def _front_one(lt, k, b, i, x, y, alive, vehicle_length):
+    """:func:`front` for vehicle i of env b on lane ``k``: the leader's slot, -1 if none."""
+    N = x.shape[1]
+    x0, y0 = lt[k, BX0] + -6.0, lt[k, BY0] + -6.0
+    x1, y1 = lt[k, BX1] + 6.0, lt[k, BY1] + 6.0
+    s_self = _local(lt, k, x[b, i], y[b, i])[0]
+    half, end = lt[k, WIDTH] / 2 + 1, lt[k, LENGTH] + vehicle_length
+    best, jbest = np.inf, -1
+    for j in range(N):
+        if j == i or not alive[b, j]:
+            continue
+        xj, yj = x[b, j], y[b, j]
+        if not (x0 <= xj and xj <= x1 and y0 <= yj and yj <= y1):
+            continue
+        s, r = _local(lt, k, xj, yj)
+        if abs(r) <= half and -vehicle_length <= s and s < end and s_self <= s and s <= best:
+            best, jbest = s, j
+    return jbest
 
 
 @numba.njit(cache=True)
@@ -125,74 +135,80 @@ def collisions(x, y, h, v, alive, dt, length, width, crashed, has_impact, impact
     (hypot <= diagonal + v_i dt), then utils.are_polygons_intersecting as batched._polygons_intersecting computes
     it; a pair that will intersect sets both impacts (a later pair overwrites), one that intersects both crash
     flags."""
-    B, N = x.shape
-    diagonal = math.sqrt(length**2 + width**2)
     lx = np.array([-length / 2, -length / 2, length / 2, length / 2, -length / 2])
     ly = np.array([-width / 2, width / 2, width / 2, -width / 2, -width / 2])
-    pa, pb = np.empty((5, 2)), np.empty((5, 2))
-    nrm = np.empty((8, 2))
-    dist = np.empty(8)
-    for b in range(B):
-        for i in range(N):
-            if not alive[b, i]:
+    pa, pb, nrm, dist = np.empty((5, 2)), np.empty((5, 2)), np.empty((8, 2)), np.empty(8)
+    for b in range(x.shape[0]):
+        _collide_row(b, x, y, h, v, alive, dt, length, width, crashed, has_impact, impact_x, impact_y, lx, ly, pa,
+                     pb, nrm, dist)
+
+
+@numba.njit(cache=True)
+def _collide_row(b, x, y, h, v, alive, dt, length, width, crashed, has_impact, impact_x, impact_y, lx, ly, pa, pb,
+                 nrm, dist):
+    """:func:`collisions` for env b (``lx``, ``ly``: the closed polygon's local corners; the rest: scratch)."""
+    N = x.shape[1]
+    diagonal = math.sqrt(length**2 + width**2)
+    for i in range(N):
+        if not alive[b, i]:
+            continue
+        reach = diagonal + v[b, i] * dt
+        for j in range(i + 1, N):
+            if not alive[b, j] or not math.hypot(x[b, j] - x[b, i], y[b, j] - y[b, i]) <= reach:
                 continue
-            reach = diagonal + v[b, i] * dt
-            for j in range(i + 1, N):
-                if not alive[b, j] or not math.hypot(x[b, j] - x[b, i], y[b, j] - y[b, i]) <= reach:
-                    continue
-                ci, si, cj, sj = math.cos(h[b, i]), math.sin(h[b, i]), math.cos(h[b, j]), math.sin(h[b, j])
-                for p in range(5):  # RoadObject.polygon
-                    pa[p, 0] = ci * lx[p] - si * ly[p] + x[b, i]
-                    pa[p, 1] = si * lx[p] + ci * ly[p] + y[b, i]
-                    pb[p, 0] = cj * lx[p] - sj * ly[p] + x[b, j]
-                    pb[p, 1] = sj * lx[p] + cj * ly[p] + y[b, j]
-                dax, day = ci * (v[b, i] * dt), si * (v[b, i] * dt)
-                dbx, dby = cj * (v[b, j] * dt), sj * (v[b, j] * dt)
-                for e in range(8):  # edge normals, a's edges then b's
-                    q = pa if e < 4 else pb
-                    m = e % 4
-                    ex, ey = q[m + 1, 0] - q[m, 0], q[m + 1, 1] - q[m, 1]
-                    nx, ny = -ey, ex
-                    norm = math.sqrt(nx * nx + ny * ny)
-                    nrm[e, 0], nrm[e, 1] = nx / norm, ny / norm
-                inter, will = True, True
-                for e in range(8):
-                    nx, ny = nrm[e, 0], nrm[e, 1]
-                    min_a = max_a = nx * pa[0, 0] + ny * pa[0, 1]
-                    min_b = max_b = nx * pb[0, 0] + ny * pb[0, 1]
-                    for p in range(1, 5):
-                        qa = nx * pa[p, 0] + ny * pa[p, 1]
-                        qb = nx * pb[p, 0] + ny * pb[p, 1]
-                        min_a, max_a = min(min_a, qa), max(max_a, qa)
-                        min_b, max_b = min(min_b, qb), max(max_b, qb)
-                    if (min_b - max_a if min_a < min_b else min_a - max_b) > 0:
-                        inter = False
-                    vp = nx * (dax - dbx) + ny * (day - dby)
-                    if vp < 0:
-                        min_a = min_a + vp
-                    else:
-                        max_a = max_a + vp
-                    dist[e] = min_b - max_a if min_a < min_b else min_a - max_b
-                    if dist[e] > 0:
-                        will = False
-                if not (inter or will):
-                    continue
-                kk = 0
-                for e in range(1, 8):  # argmin |distance|, first on ties
-                    if abs(dist[e]) < abs(dist[kk]):
-                        kk = e
-                dx = (pa[0, 0] + pa[1, 0] + pa[2, 0] + pa[3, 0]) / 4 - (pb[0, 0] + pb[1, 0] + pb[2, 0] + pb[3, 0]) / 4
-                dy = (pa[0, 1] + pa[1, 1] + pa[2, 1] + pa[3, 1]) / 4 - (pb[0, 1] + pb[1, 1] + pb[2, 1] + pb[3, 1]) / 4
-                ax, ay = nrm[kk, 0], nrm[kk, 1]
-                if not dx * ax + dy * ay > 0:
-                    ax, ay = -ax, -ay
-                tx, ty = abs(dist[kk]) * ax, abs(dist[kk]) * ay
-                if will:
-                    impact_x[b, i], impact_y[b, i] = tx / 2, ty / 2
-                    impact_x[b, j], impact_y[b, j] = -tx / 2, -ty / 2
-                    has_impact[b, i] = has_impact[b, j] = True
-                if inter:
-                    crashed[b, i] = crashed[b, j] = True
+            ci, si, cj, sj = math.cos(h[b, i]), math.sin(h[b, i]), math.cos(h[b, j]), math.sin(h[b, j])
+            for p in range(5):  # RoadObject.polygon
+                pa[p, 0] = ci * lx[p] - si * ly[p] + x[b, i]
+                pa[p, 1] = si * lx[p] + ci * ly[p] + y[b, i]
+                pb[p, 0] = cj * lx[p] - sj * ly[p] + x[b, j]
+                pb[p, 1] = sj * lx[p] + cj * ly[p] + y[b, j]
+            dax, day = ci * (v[b, i] * dt), si * (v[b, i] * dt)
+            dbx, dby = cj * (v[b, j] * dt), sj * (v[b, j] * dt)
+            for e in range(8):  # edge normals, a's edges then b's
+                q = pa if e < 4 else pb
+                m = e % 4
+                ex, ey = q[m + 1, 0] - q[m, 0], q[m + 1, 1] - q[m, 1]
+                nx, ny = -ey, ex
+                norm = math.sqrt(nx * nx + ny * ny)
+                nrm[e, 0], nrm[e, 1] = nx / norm, ny / norm
+            inter, will = True, True
+            for e in range(8):
+                nx, ny = nrm[e, 0], nrm[e, 1]
+                min_a = max_a = nx * pa[0, 0] + ny * pa[0, 1]
+                min_b = max_b = nx * pb[0, 0] + ny * pb[0, 1]
+                for p in range(1, 5):
+                    qa = nx * pa[p, 0] + ny * pa[p, 1]
+                    qb = nx * pb[p, 0] + ny * pb[p, 1]
+                    min_a, max_a = min(min_a, qa), max(max_a, qa)
+                    min_b, max_b = min(min_b, qb), max(max_b, qb)
+                if (min_b - max_a if min_a < min_b else min_a - max_b) > 0:
+                    inter = False
+                vp = nx * (dax - dbx) + ny * (day - dby)
+                if vp < 0:
+                    min_a = min_a + vp
+                else:
+                    max_a = max_a + vp
+                dist[e] = min_b - max_a if min_a < min_b else min_a - max_b
+                if dist[e] > 0:
+                    will = False
+            if not (inter or will):
+                continue
+            kk = 0
+            for e in range(1, 8):  # argmin |distance|, first on ties
+                if abs(dist[e]) < abs(dist[kk]):
+                    kk = e
+            dx = (pa[0, 0] + pa[1, 0] + pa[2, 0] + pa[3, 0]) / 4 - (pb[0, 0] + pb[1, 0] + pb[2, 0] + pb[3, 0]) / 4
+            dy = (pa[0, 1] + pa[1, 1] + pa[2, 1] + pa[3, 1]) / 4 - (pb[0, 1] + pb[1, 1] + pb[2, 1] + pb[3, 1]) / 4
+            ax, ay = nrm[kk, 0], nrm[kk, 1]
+            if not dx * ax + dy * ay > 0:
+                ax, ay = -ax, -ay
+            tx, ty = abs(dist[kk]) * ax, abs(dist[kk]) * ay
+            if will:
+                impact_x[b, i], impact_y[b, i] = tx / 2, ty / 2
+                impact_x[b, j], impact_y[b, j] = -tx / 2, -ty / 2
+                has_impact[b, i] = has_impact[b, j] = True
+            if inter:
+                crashed[b, i] = crashed[b, j] = True
 
 
 @numba.njit(cache=True)
@@ -212,19 +228,24 @@ def conflicts(px, py, ph, alive, length, width):
             if not alive[b, i]:
                 continue
             for j in range(i + 1, N):
-                if not alive[b, j]:
-                    continue
-                for t in range(T):
-                    x1, y1, x2, y2 = px[b, i, t], py[b, i, t], px[b, j, t], py[b, j, t]
-                    if not math.hypot(x2 - x1, y2 - y1) <= length:
-                        continue
-                    c1, s1, c2, s2 = math.cos(ph[b, i, t]), math.sin(ph[b, i, t]), math.cos(ph[b, j, t]), \
-                        math.sin(ph[b, j, t])
-                    if _any_inside(c1, s1, x1, y1, c2, s2, x2, y2, lx, ly, hl, hw) or \
-                            _any_inside(c2, s2, x2, y2, c1, s1, x1, y1, lx, ly, hl, hw):
-                        out[b, i, j] = True
-                        break
+                if alive[b, j]:
+                    out[b, i, j] = _conflict_pair(px[b], py[b], ph[b], i, j, length, lx, ly, hl, hw)
     return out
+
+
+@numba.njit(cache=True)
+def _conflict_pair(px, py, ph, i, j, length, lx, ly, hl, hw):
+    """:func:`conflicts` for vehicles i and j of one env, their predictions (N, T): the first prediction time
+    whose centres are within ``length`` and whose boxes intersect decides."""
+    for t in range(px.shape[1]):
+        x1, y1, x2, y2 = px[i, t], py[i, t], px[j, t], py[j, t]
+        if not math.hypot(x2 - x1, y2 - y1) <= length:
+            continue
+        c1, s1, c2, s2 = math.cos(ph[i, t]), math.sin(ph[i, t]), math.cos(ph[j, t]), math.sin(ph[j, t])
+        if _any_inside(c1, s1, x1, y1, c2, s2, x2, y2, lx, ly, hl, hw) or \
+                _any_inside(c2, s2, x2, y2, c1, s1, x1, y1, lx, ly, hl, hw):
+            return True
+    return False
 
 
 @numba.njit(cache=True, inline="always")
@@ -323,20 +344,262 @@ def idm(lt, x, y, h, v, target, delta, lane, front, speed_limit, acc_max, acc_mi
     current lane (lane_distance_to), utils.not_zero as there; every slot, as the numpy code."""
     B, N = x.shape
     out = np.empty((B, N))
-    ab = -acc_max * acc_min
     for b in range(B):
         for i in range(N):
-            k = lane[b, i]
-            tg = min(max(target[b, i], 0.0), speed_limit[k])
-            tg = tg if abs(tg) > 1e-2 else (1e-2 if tg >= 0 else -1e-2)
-            acc = acc_max * (1 - (max(v[b, i], 0.0) / abs(tg)) ** delta[b, i])
-            f = front[b, i]
-            if f >= 0:
-                d = _local(lt, k, x[b, f], y[b, f])[0] - _local(lt, k, x[b, i], y[b, i])[0]
-                d = d if abs(d) > 1e-2 else (1e-2 if d >= 0 else -1e-2)
-                c, sn = math.cos(h[b, i]), math.sin(h[b, i])
-                dv = (v[b, i] * c - v[b, f] * math.cos(h[b, f])) * c + (v[b, i] * sn - v[b, f] * math.sin(h[b, f])) * sn
-                d_star = distance_wanted + v[b, i] * time_wanted + v[b, i] * dv / (2 * math.sqrt(ab))
-                acc = acc - acc_max * (d_star / d) ** 2.0
-            out[b, i] = acc
+            out[b, i] = _idm_one(lt, b, i, front[b, i], x, y, h, v, target, delta, lane, speed_limit, acc_max,
+                                 acc_min, distance_wanted, time_wanted)
     return out
+
+
+@numba.njit(cache=True)
+def _idm_one(lt, b, i, f, x, y, h, v, target, delta, lane, speed_limit, acc_max, acc_min, distance_wanted,
+             time_wanted):
+    """:func:`idm` for vehicle i of env b with the leader ``f`` (-1: none)."""
+    ab = -acc_max * acc_min
+    k = lane[b, i]
+    tg = min(max(target[b, i], 0.0), speed_limit[k])
+    tg = tg if abs(tg) > 1e-2 else (1e-2 if tg >= 0 else -1e-2)
+    acc = acc_max * (1 - (max(v[b, i], 0.0) / abs(tg)) ** delta[b, i])
+    if f >= 0:
+        d = _local(lt, k, x[b, f], y[b, f])[0] - _local(lt, k, x[b, i], y[b, i])[0]
+        d = d if abs(d) > 1e-2 else (1e-2 if d >= 0 else -1e-2)
+        c, sn = math.cos(h[b, i]), math.sin(h[b, i])
+        dv = (v[b, i] * c - v[b, f] * math.cos(h[b, f])) * c + (v[b, i] * sn - v[b, f] * math.sin(h[b, f])) * sn
+        d_star = distance_wanted + v[b, i] * time_wanted + v[b, i] * dv / (2 * math.sqrt(ab))
+        acc = acc - acc_max * (d_star / d) ** 2.0
+    return acc
+
+
+# ------------------------------------------------------------------------------------------------ one batch tick
+# Traffic.act + Traffic.step for every env, frame after frame, in one call (Traffic.advance): the same formulas as
+# the numpy code of av_gym/sim/batched.py in the same order of operations, env by env (envs never interact, so
+# stepping env b's frames before env b+1's changes nothing). Constants: one float array, indices below.
+(P_VEHICLE_LENGTH, P_LENGTH, P_WIDTH, P_COMFORT_MAX, P_COMFORT_MIN, P_ACC_MAX, P_DISTANCE, P_TIME, P_TAU, P_KP_LAT,
+ P_KP_HEAD, P_KP_A, P_MAX_STEER, P_EXIT_DISTANCE) = range(14)
+SLOWER, FASTER = 0, 2
+
+
+@numba.njit(cache=True)
+def advance(lt, lanes, x, y, h, v, target, steer, acc, delta, alive, ego, plain, mdp, crashed, yielding, impact_x,
+            impact_y, has_impact, lane, tlane, route, rpos, road_steps, active, meta, speeds, cmd, frames, dt,
+            reg_period, reg_times, prm, ticks, time, arrived_time):
+    """``frames`` ticks (Traffic.act then Traffic.step) of every env b with ``active[b]``: the ego's meta-action
+    ``meta[b]`` at the first tick (-1: none), the continuous ego's commanded acceleration ``cmd[b]`` (NaN: the
+    discrete ego's speed control), the regulation every ``reg_period`` road steps; after each tick ``ticks[b]``
+    counts and an ego that has arrived gets ``arrived_time[b] = time[b]`` once. ``lanes``: (L, 5) per lane id:
+    speed limit, priority, leaving lane (1.0), from-node id, to-node id. State arrays are updated in place."""
+    B, N = x.shape
+    T = reg_times.shape[0]
+    lb = np.empty(lt.shape[0])
+    px, py, ph = np.empty((N, T)), np.empty((N, T)), np.empty((N, T))
+    clx = np.array([-prm[P_LENGTH] / 2, -prm[P_LENGTH] / 2, prm[P_LENGTH] / 2, prm[P_LENGTH] / 2,
+                    -prm[P_LENGTH] / 2])
+    cly = np.array([-prm[P_WIDTH] / 2, prm[P_WIDTH] / 2, prm[P_WIDTH] / 2, -prm[P_WIDTH] / 2, -prm[P_WIDTH] / 2])
+    pa, pb, nrm, dist = np.empty((5, 2)), np.empty((5, 2)), np.empty((8, 2)), np.empty(8)
+    for b in range(B):
+        if not active[b]:
+            continue
+        for frame in range(frames):
+            _act_row(lt, lanes, b, x, y, h, v, target, steer, acc, delta, alive, ego, plain, crashed, lane, tlane,
+                     route, rpos, meta[b] if frame == 0 else -1, speeds, cmd[b], prm)
+            road_steps[b] += 1
+            if road_steps[b] % reg_period == 0:
+                _road_rules_row(lt, lanes, b, x, y, h, v, target, alive, plain, mdp, yielding, lane, route, rpos,
+                                reg_times, prm, px, py, ph)
+            _kinematics_row(lt, b, x, y, h, v, steer, acc, alive, crashed, impact_x, impact_y, has_impact, lane,
+                            dt, prm, lb)
+            _collide_row(b, x, y, h, v, alive, dt, prm[P_LENGTH], prm[P_WIDTH], crashed, has_impact, impact_x,
+                         impact_y, clx, cly, pa, pb, nrm, dist)
+            ticks[b] += 1
+            if math.isnan(arrived_time[b]) and _arrived(lt, lanes, b, x, y, ego, lane, prm[P_EXIT_DISTANCE]):
+                arrived_time[b] = time[b]
+
+
+@numba.njit(cache=True)
+def _arrived(lt, lanes, b, x, y, ego, lane, exit_distance):
+    """BatchedLeftTurn.has_arrived for env b's ego (the first ego slot, slot 0 if none, as np.argmax)."""
+    e = 0
+    for j in range(x.shape[1]):
+        if ego[b, j]:
+            e = j
+            break
+    k = lane[b, e]
+    return lanes[k, 2] != 0.0 and _local(lt, k, x[b, e], y[b, e])[0] >= exit_distance
+
+
+@numba.njit(cache=True)
+def _act_row(lt, lanes, b, x, y, h, v, target, steer, acc, delta, alive, ego, plain, crashed, lane, tlane, route,
+             rpos, meta, speeds, cmd, prm):
+    """Traffic.act for env b: the ego's meta-action (MDPVehicle.act), then per controlled vehicle follow_road,
+    steering_control and IDM (the min over the current and the target lane's leader while they differ), or the
+    ego's speed control / commanded acceleration."""
+    N = x.shape[1]
+    n_s = speeds.shape[0]
+    if meta >= 0 and meta != 1:
+        step = 1 if meta == FASTER else -1 if meta == SLOWER else 0
+        for i in range(N):
+            if ego[b, i] and alive[b, i] and step != 0:
+                idx = min(max(np.rint((v[b, i] - speeds[0]) / (speeds[n_s - 1] - speeds[0]) * (n_s - 1)), 0.0),
+                          n_s - 1.0)
+                target[b, i] = speeds[int(min(max(idx + step, 0.0), n_s - 1.0))]
+    for i in range(N):
+        if not alive[b, i] or plain[b, i] or (crashed[b, i] and not ego[b, i]):
+            continue  # IDMVehicle.act returns early when crashed; a plain Vehicle keeps its action
+        _follow_road_one(lt, lanes, b, i, x, y, tlane, route, rpos, prm[P_VEHICLE_LENGTH])
+        s_ = _steering_one(lt, b, i, x, y, h, v, tlane, prm)
+        steer[b, i] = min(max(s_, -prm[P_MAX_STEER]), prm[P_MAX_STEER])
+        if ego[b, i]:
+            if math.isnan(cmd):
+                acc[b, i] = prm[P_KP_A] * (target[b, i] - v[b, i])
+            else:  # RouteFollowingVehicle.act: no reversing, a standstill is held
+                acc[b, i] = max(cmd, -v[b, i] / 0.05)
+            continue
+        a = _idm_one(lt, b, i, _front_one(lt, lane[b, i], b, i, x, y, alive, prm[P_VEHICLE_LENGTH]), x, y, h, v,
+                     target, delta, lane, lanes[:, 0], prm[P_COMFORT_MAX], prm[P_COMFORT_MIN], prm[P_DISTANCE],
+                     prm[P_TIME])
+        if lane[b, i] != tlane[b, i]:
+            a2 = _idm_one(lt, b, i, _front_one(lt, tlane[b, i], b, i, x, y, alive, prm[P_VEHICLE_LENGTH]), x, y, h,
+                          v, target, delta, lane, lanes[:, 0], prm[P_COMFORT_MAX], prm[P_COMFORT_MIN],
+                          prm[P_DISTANCE], prm[P_TIME])
+            a = min(a, a2)
+        acc[b, i] = min(max(a, -prm[P_ACC_MAX]), prm[P_ACC_MAX])
+
+
+@numba.njit(cache=True)
+def _follow_road_one(lt, lanes, b, i, x, y, tlane, route, rpos, vehicle_length):
+    """Traffic._follow_road for one vehicle: past its target lane's end, the route's next step."""
+    k = tlane[b, i]
+    if not _local(lt, k, x[b, i], y[b, i])[0] > lt[k, LENGTH] - vehicle_length / 2:
+        return
+    p = rpos[b, i]
+    if p < 3 and route[b, i, p] == k:
+        p += 1
+    if p < 3 and route[b, i, p] >= 0 and lanes[route[b, i, p], 3] == lanes[k, 4]:
+        tlane[b, i] = route[b, i, p]
+    rpos[b, i] = p
+
+
+@numba.njit(cache=True)
+def _heading_at(lt, k, s):
+    """LaneTable.heading_at for one lane."""
+    if lt[k, CIRC] != 0.0:
+        return lt[k, CDIR] * s / lt[k, RADIUS] + lt[k, PHASE0] + math.pi / 2 * lt[k, CDIR]
+    return lt[k, HEAD]
+
+
+@numba.njit(cache=True)
+def _not_zero(a):
+    return a if abs(a) > 1e-2 else (1e-2 if a >= 0 else -1e-2)
+
+
+@numba.njit(cache=True)
+def _clip(a, lo, hi):
+    return min(max(a, lo), hi)
+
+
+@numba.njit(cache=True)
+def _steering_one(lt, b, i, x, y, h, v, tlane, prm):
+    """Traffic._steering (ControlledVehicle.steering_control) for one vehicle."""
+    k = tlane[b, i]
+    s, r = _local(lt, k, x[b, i], y[b, i])
+    future_heading = _heading_at(lt, k, s + v[b, i] * prm[P_TAU])
+    v_nz = _not_zero(v[b, i])
+    heading_cmd = math.asin(_clip(-prm[P_KP_LAT] * r / v_nz, -1.0, 1.0))
+    heading_ref = future_heading + _clip(heading_cmd, -math.pi / 4, math.pi / 4)
+    rate = prm[P_KP_HEAD] * ((heading_ref - h[b, i] + math.pi) % (2 * math.pi) - math.pi)
+    slip = math.asin(_clip(prm[P_LENGTH] / 2 / v_nz * rate, -1.0, 1.0))
+    return _clip(math.atan(2 * math.tan(slip)), -prm[P_MAX_STEER], prm[P_MAX_STEER])
+
+
+@numba.njit(cache=True)
+def _kinematics_row(lt, b, x, y, h, v, steer, acc, alive, crashed, impact_x, impact_y, has_impact, lane, dt, prm,
+                    lb):
+    """Traffic._kinematics for env b: clip_actions, the kinematic bicycle, a pending impact, the closest lane."""
+    for i in range(x.shape[1]):
+        if not alive[b, i]:
+            continue
+        if crashed[b, i]:
+            steer[b, i], acc[b, i] = 0.0, -1.0 * v[b, i]
+        beta = math.atan(1 / 2 * math.tan(steer[b, i]))
+        xn = x[b, i] + v[b, i] * math.cos(h[b, i] + beta) * dt
+        yn = y[b, i] + v[b, i] * math.sin(h[b, i] + beta) * dt
+        if has_impact[b, i]:
+            xn, yn = xn + impact_x[b, i], yn + impact_y[b, i]
+            crashed[b, i], has_impact[b, i] = True, False
+        hn = h[b, i] + v[b, i] * math.sin(beta) / (prm[P_LENGTH] / 2) * dt
+        x[b, i], y[b, i], h[b, i], v[b, i] = xn, yn, hn, v[b, i] + acc[b, i] * dt
+        lane[b, i] = _closest_one(lt, xn, yn, hn, lb)
+
+
+@numba.njit(cache=True)
+def _road_rules_row(lt, lanes, b, x, y, h, v, target, alive, plain, mdp, yielding, lane, route, rpos, reg_times,
+                    prm, px, py, ph):
+    """Traffic._enforce_road_rules for env b: release the yielding vehicles, predict along the routes, then
+    respect_priorities for every conflicting pair in pair order."""
+    N = x.shape[1]
+    for i in range(N):
+        if yielding[b, i]:
+            target[b, i] = lanes[lane[b, i], 0]
+            yielding[b, i] = False
+    for i in range(N):
+        if alive[b, i]:  # (the numpy code predicts every slot; only live vehicles' predictions are read)
+            _predict_one(lt, b, i, x, y, h, v, plain, lane, route, rpos, reg_times, px, py, ph)
+    L, W = 1.5 * prm[P_LENGTH], 0.9 * prm[P_WIDTH]
+    hl, hw = L / 2, W / 2
+    lx = np.array([-hl, -hl, hl, hl, 0.0, -hl, hl, 0.0, 0.0])
+    ly = np.array([-hw, hw, hw, -hw, 0.0, 0.0, 0.0, -hw, hw])
+    for i in range(N):
+        if not alive[b, i]:
+            continue
+        for j in range(i + 1, N):
+            if not alive[b, j] or not _conflict_pair(px, py, ph, i, j, prm[P_LENGTH], lx, ly, hl, hw):
+                continue
+            p1, p2 = lanes[lane[b, i], 1], lanes[lane[b, j], 1]
+            if p1 > p2:
+                yv = j
+            elif p1 < p2:
+                yv = i
+            else:  # the vehicle behind yields: front_distance_to
+                dx, dy = x[b, j] - x[b, i], y[b, j] - y[b, i]
+                fi = math.cos(h[b, i]) * dx + math.sin(h[b, i]) * dy
+                fj = -(math.cos(h[b, j]) * dx + math.sin(h[b, j]) * dy)
+                yv = i if fi > fj else j
+            if not (mdp[b, yv] or plain[b, yv]):
+                target[b, yv] = 0.0
+                yielding[b, yv] = True
+
+
+@numba.njit(cache=True)
+def _predict_one(lt, b, i, x, y, h, v, plain, lane, route, rpos, reg_times, px, py, ph):
+    """Traffic._predict for one vehicle into row i of (N, T) ``px``, ``py``, ``ph``: constant speed along the rest
+    of its route (a plain vehicle: a straight line along its heading)."""
+    if plain[b, i]:
+        for t in range(reg_times.shape[0]):
+            tt = reg_times[t]
+            px[i, t] = x[b, i] + v[b, i] * math.cos(h[b, i]) * tt
+            py[i, t] = y[b, i] + v[b, i] * math.sin(h[b, i]) * tt
+            ph[i, t] = h[b, i]
+        return
+    s0 = _local(lt, lane[b, i], x[b, i], y[b, i])[0]
+    rp = rpos[b, i]
+    n_left = min(max(3 - rp, 0), 3)
+    head = route[b, i, min(rp, 2)]
+    if head < 0:
+        n_left = 0
+    first = head if n_left > 0 else lane[b, i]
+    for t in range(reg_times.shape[0]):
+        lon = s0 + v[b, i] * reg_times[t]
+        k, left, pos = first, max(n_left, 1), rp
+        for _ in range(2):  # while len(route) > 1 and longitudinal > lane.length: move on
+            if left > 1 and lon > lt[k, LENGTH]:
+                lon = lon - lt[k, LENGTH]
+                pos, left = pos + 1, left - 1
+                k = route[b, i, min(pos, 2)]
+        if lt[k, CIRC] != 0.0:
+            phi = lt[k, CDIR] * lon / lt[k, RADIUS] + lt[k, PHASE0]
+            rad = lt[k, RADIUS] - 0.0 * lt[k, CDIR]
+            px[i, t], py[i, t] = lt[k, OX] + rad * math.cos(phi), lt[k, OY] + rad * math.sin(phi)
+        else:
+            px[i, t] = lt[k, OX] + lon * lt[k, DX] + 0.0 * -lt[k, DY]
+            py[i, t] = lt[k, OY] + lon * lt[k, DY] + 0.0 * lt[k, DX]
+        ph[i, t] = _heading_at(lt, k, lon)
