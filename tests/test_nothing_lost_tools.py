@@ -304,3 +304,27 @@ def test_eval_never_writes_into_a_shipped_reference(overwrite, shipped, tmp_path
                       monkeypatch, capsys)
     assert "is inside the shipped reference agents' folder" in line and "overwrite" not in line, line
     assert snapshot(shipped) == before
+
+
+# ------------------------------------------------------------------------------------- Hydra's files under a size limit
+@pytest.mark.parametrize("argv", [
+    ["eval", "agents=[always_proceed]", "episodes=1", "progress_bar=false"],
+    ["train", "agent=always_proceed", "train.eval_episodes=0", "run_name=R"],
+])
+def test_hydra_files_that_cannot_be_written_are_one_line_and_nothing_is_left(argv, tmp_path):
+    """Under ``ulimit -f 1`` Hydra's config save was a traceback and left a torn ``.hydra`` folder. One line,
+    exit 2, and the working folder as it was (no run folder, no checkpoints folder, no lock)."""
+    import resource
+    import subprocess
+    import sys
+
+    def limit() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (1024, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONDONTWRITEBYTECODE": "1"}
+    proc = subprocess.run([sys.executable, "-m", *argv], cwd=tmp_path, env=env, capture_output=True, text=True,
+                          timeout=300, preexec_fn=limit)
+    err = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 2 and len(err) == 1, (proc.returncode, proc.stderr[-3000:])
+    assert err[0].startswith("error: hydra.run.dir: cannot write ") and "File too large" in err[0], err
+    assert list(tmp_path.iterdir()) == []

@@ -247,8 +247,11 @@ def _hydra_main(cfg: DictConfig) -> None:
 
 def main() -> None:
     """Check the command line before Hydra makes a run folder (one line and exit 2 on bad input), then run."""
+    from conf.hydra_files import hydra_files_whole
+
     run_cli(_check_command_line)
-    run_hydra(_hydra_main)  # a sweep runs every job, then reports the failed ones
+    with hydra_files_whole():  # Hydra's .hydra/*.yaml written whole, or one line and no run folder left
+        run_hydra(_hydra_main)  # a sweep runs every job, then reports the failed ones
 
 
 if __name__ == "__main__":
