@@ -104,8 +104,6 @@ class PilotNetAgent(AgentKind):
 
     Params = PilotNetParams
     checkpoint = "model.pt"
-    trainer = "train.bc:train_pilotnet"
-    train_checks = "train.bc:validate"
 
     @classmethod
     def load(cls, model_path: Path, env: Any) -> Any:

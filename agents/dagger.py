@@ -78,5 +78,3 @@ class DaggerAgent(PPOAgent):
     """Trained by :func:`train.dagger.train_dagger`; ``model.zip`` is an SB3 PPO zip, loaded as PPO's."""
 
     Params = DaggerParams
-    trainer = "train.dagger:train_dagger"
-    train_checks = "train.dagger:validate"

@@ -189,8 +189,6 @@ class PPOAgent(AgentKind):
 
     Params = PPOParams
     checkpoint = "model.zip"
-    trainer = "train.ppo:train_ppo"
-    train_checks = "train.ppo:validate"
 
     @classmethod
     def load(cls, model_path: Path, env: gym.Env) -> SB3Policy:

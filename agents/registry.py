@@ -6,9 +6,8 @@ every field of that kind, with its default, unit, bounds and reason) plus one li
 
 - a rule-based kind implements :meth:`AgentKind.build` (its policy for an env, refusing an env that lacks the
   observation it reads, in one line);
-- a trained kind names its ``checkpoint`` file, implements :meth:`AgentKind.load` and names its ``trainer`` (and
-  the trainer's own ``train_checks``) as ``"module:function"`` strings on the training side, so that agents never
-  import :mod:`train`.
+- a trained kind names its ``checkpoint`` file and implements :meth:`AgentKind.load`; its trainer is registered by
+  kind on the training side (:data:`train.registry.TRAINERS`), so that agents never name :mod:`train`.
 
 Nothing else needs editing: tests/test_registry.py registers a toy kind and runs ``python -m eval``'s machinery
 on it. The defaults of every kind reach Hydra through :func:`register_configs` (group ``agent_kind``), so a file
@@ -17,8 +16,7 @@ on it. The defaults of every kind reach Hydra through :func:`register_configs` (
 
 from __future__ import annotations
 
-import importlib
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -53,11 +51,6 @@ class AgentKind:
     Params: type[AgentParams] = AgentParams
     checkpoint: str | None = None
     """Trained kinds: the model file their trainer writes into ``checkpoints/<run>/`` (``None``: rule-based)."""
-    trainer: str | None = None
-    """Trained kinds: ``"module:function"``, ``train(cfg, ckpt_dir, run_dir) -> model path``."""
-    train_checks: str | None = None
-    """Optional ``"module:function"``, ``validate(cfg) -> [problems]``: what the trainer needs beyond the Params
-    (the env, the sensors preset), each one line."""
 
     @classmethod
     def trained(cls) -> bool:
@@ -73,12 +66,6 @@ class AgentKind:
     def load(cls, model_path: Path, env: Any) -> Any:
         """A trained kind's policy from its ``checkpoint`` file, checked against ``env`` (one-line errors)."""
         raise NotImplementedError(f"agent kind {cls.Params().kind!r} is rule-based: nothing to load")
-
-
-def resolve(target: str) -> Callable:
-    """``"module:function"`` → the function (imported now)."""
-    module, _, attr = target.partition(":")
-    return getattr(importlib.import_module(module), attr)
 
 
 AGENT_KINDS = Registry("agent.kind", {

@@ -279,7 +279,7 @@ def test_a_config_refused_by_the_trainer_leaves_no_run_folder(tmp_path, monkeypa
     checkpoints/<run>/config.yaml, and the run_name was then refused as taken. Here the trainer refuses."""
     from types import SimpleNamespace
 
-    import agents.registry
+    import train.registry
     from av_gym.errors import ConfigError
     from conf.check import check_command_line
     from tests.test_reliability import LANE
@@ -295,9 +295,8 @@ def test_a_config_refused_by_the_trainer_leaves_no_run_folder(tmp_path, monkeypa
         assert (ckpt_dir / "config.yaml").is_file()
         raise ConfigError("agent.init_from='x': checkpoint 'x' was trained on env 'lane_keeping', not 'left_turn'")
 
-    real = agents.registry.resolve
-    monkeypatch.setattr(agents.registry, "resolve", lambda target: refuses if target.endswith(":train_ppo")
-                        else real(target))
+    real = train.registry.trainer_of
+    monkeypatch.setattr(train.registry, "trainer_of", lambda kind: refuses if kind == "ppo" else real(kind))
     try:
         with pytest.raises(ConfigError, match="was trained on env"):
             train_main.train(cfg)

@@ -234,3 +234,28 @@ def test_the_batched_engine_checks_the_same_table():
 
     with pytest.raises(ValueError, match=r"env.spawn_probability must be a number in \[0, 1\], got 2"):
         BatchedLeftTurn(2, {**LeftTurnParams().env_config(), "spawn_probability": 2})
+
+
+# ----------------------------------------------------------------------------------------------- trainers
+def test_trainers_are_registered_by_kind_on_the_training_side():
+    """``train/registry.py`` maps each trained agent kind to its trainer; no agents module names a train module
+    (a ``"train.x:y"`` string), so the harness's layers point one way."""
+    import ast
+    from pathlib import Path
+
+    from agents.registry import trained_kinds
+    from train.registry import TRAIN_CHECKS, TRAINERS, train_problems, trainer_of
+
+    assert sorted(TRAINERS.names()) == sorted(trained_kinds())
+    assert set(TRAIN_CHECKS.names()) <= set(TRAINERS.names())
+    assert all(callable(trainer_of(kind)) for kind in TRAINERS.names())
+    assert train_problems("pid", None) == []  # a kind without a trainer's check
+    with pytest.raises(ConfigError, match=r"agent.kind 'toy' is trained but has no trainer: add it to "
+                                          r"train/registry.py TRAINERS"):
+        trainer_of("toy")
+    root = Path(__file__).resolve().parents[1] / "agents"
+    named = [f"{path.name}: {node.value}" for path in sorted(root.glob("*.py"))
+             for node in ast.walk(ast.parse(path.read_text()))
+             if isinstance(node, ast.Constant) and isinstance(node.value, str)
+             and node.value.startswith("train.") and ":" in node.value]
+    assert named == []

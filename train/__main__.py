@@ -24,7 +24,7 @@ BASELINES = {"left_turn": ("always_proceed", "gap_acceptance"), "lane_keeping": 
 
 
 def _kind(cfg: DictConfig):
-    """The agent's kind (agents/registry.py AGENT_KINDS): its Params, and for a trained kind its trainer."""
+    """The agent's kind (agents/registry.py AGENT_KINDS): its Params, and for a trained kind its checkpoint."""
     from agents.registry import AGENT_KINDS
 
     return AGENT_KINDS.get(cfg.agent.get("kind"))
@@ -50,8 +50,8 @@ def _validate(cfg: DictConfig) -> TrainCommand:
 
 def _check_needs(cfg: DictConfig) -> TrainCommand:
     """What a config whose fields are valid still needs: validation seeds in their split, an agent that drives
-    this env, what its trainer checks (agents/registry.py ``train_checks``). Returns the command's settings."""
-    from agents.registry import resolve
+    this env, what its trainer checks (train/registry.py ``TRAIN_CHECKS``). Returns the command's settings."""
+    from train.registry import train_problems
 
     command = TrainCommand.of(cfg)
     options = command.train
@@ -59,11 +59,9 @@ def _check_needs(cfg: DictConfig) -> TrainCommand:
     agent = cfg.agent
     if cfg.env.name not in agent.scenarios:
         raise ConfigError(f"agent {agent.name!r} drives scenarios {list(agent.scenarios)}, not env={cfg.env.name}")
-    kind = _kind(cfg)
-    if kind.train_checks:
-        problems = resolve(kind.train_checks)(cfg)
-        if problems:
-            raise ConfigError(problems[0])
+    problems = train_problems(cfg.agent.kind, cfg)
+    if problems:
+        raise ConfigError(problems[0])
     return command
 
 
@@ -117,8 +115,8 @@ def _claim_folders(cfg: DictConfig, command: TrainCommand) -> Folders:
 
 
 def _train_agent(cfg: DictConfig, command: TrainCommand, folders: Folders) -> Path | None:
-    """The agent kind's trainer (none for a rule-based agent); returns the final checkpoint."""
-    from agents.registry import resolve
+    """The agent kind's trainer (train/registry.py; none for a rule-based agent); returns the final checkpoint."""
+    from train.registry import trainer_of
     from train.run_folder import discard_if_unstarted
 
     kind = _kind(cfg)
@@ -126,7 +124,7 @@ def _train_agent(cfg: DictConfig, command: TrainCommand, folders: Folders) -> Pa
         print(f"[train] agent {cfg.agent.name!r} is rule-based: nothing to train")
         return None
     try:
-        return resolve(kind.trainer)(cfg, folders.ckpt_dir, folders.run_dir, command=command)
+        return trainer_of(cfg.agent.kind)(cfg, folders.ckpt_dir, folders.run_dir, command=command)
     except ConfigError:
         # refused by the trainer before it wrote anything (an agent.init_from that does not fit): the fresh run's
         # config.yaml goes too, or the run_name would be refused as taken
