@@ -19,13 +19,14 @@ import numpy as np
 
 METRICS = ("collision", "success", "time_to_exit_s", "min_ttc_s")
 OUTCOME = ("collision", "success", "length", "truncated")
+NAMES = ("agent", "split")  # the columns of python -m eval's results.csv that are not numbers
 
 
 def read(path: str) -> dict[str, dict[int, dict]]:
     out: dict[str, dict[int, dict]] = {}
     with open(path, newline="") as f:
         for row in csv.DictReader(f):
-            vals = {k: float(v) if v not in ("", "nan") else math.nan for k, v in row.items() if k != "agent"}
+            vals = {k: float(v) if v not in ("", "nan") else math.nan for k, v in row.items() if k not in NAMES}
             out.setdefault(row["agent"], {})[int(vals["seed"])] = vals
     return out
 
