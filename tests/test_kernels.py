@@ -270,3 +270,27 @@ def test_tick_kernel_warms_up_as_the_numpy_path(monkeypatch):
         if name != "vid":
             assert _same(getattr(made[0], name), getattr(made[1], name)), name
     assert made[1].yielding.any() or made[1].crashed.any()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_path_conflict_kernel_is_the_numpy_closest_approach(monkeypatch, seed):
+    """obs["turn"]'s closest approach to the ego's path: objects anywhere around the intersection, standing
+    (|v|² under 1e-6), moving along the path (exact ties in miss: the first point), on path points exactly."""
+    from av_gym.estimation.turn_features import path_conflict
+
+    _, config = highway_config({"name": "left_turn"})
+    bt = BatchedLeftTurn(1, config)
+    path, path_s = bt.path, bt.path_s
+    rng = np.random.default_rng(seed)
+    p, v = rng.uniform(-40, 40, (64, 8, 2)), rng.normal(0, 6, (64, 8, 2))
+    v[:, 0] = 0.0  # standing
+    p[:, 1] = path[rng.integers(0, len(path), 64)]  # on a path point
+    p[:, 2], v[:, 2] = path[3], (path[4] - path[3]) * 2.0  # along a straight stretch of the path
+    monkeypatch.setattr(sb, "KERNELS", set())
+    ref = path_conflict(p, v, path, path_s)
+    monkeypatch.setattr(sb, "KERNELS", {"path_conflict"})
+    got = path_conflict(p, v, path, path_s)
+    for u, w in zip(got, ref):
+        assert np.array_equal(u, w)
+    assert (ref[0] == 0).any() and (ref[0] == 10.0).any() and ((ref[0] > 0) & (ref[0] < 10)).any()
+    assert (ref[1] == 0).any()

@@ -450,7 +450,15 @@ def path_conflict(p: np.ndarray, v: np.ndarray, path: np.ndarray,
     """Per object (positions ``p``, velocities ``v``, (..., N, 2)): the constant-velocity closest approach to the
     ego's ``path`` (P, 2), ``t* = clip(-(p - c)·v / |v|², 0, T)`` and ``miss = |p + v t* - c|`` for every path
     point ``c``; returns t* (s), miss (m) and the path point's ``path_s`` (m past the stop line) at the smallest
-    miss, each (..., N). Exact ties in miss (an object driving along the exit) go to the first point."""
+    miss, each (..., N). Exact ties in miss (an object driving along the exit) go to the first point.
+    (n, N, 2) inputs run as av_gym.sim.kernels.path_conflict, the same arithmetic compiled, while the batch's
+    kernel switch names it (``av_gym.sim.batched.KERNELS``: "path_conflict"); tests/test_kernels.py compares them.)"""
+    from av_gym.sim import batched as _batched
+
+    if p.ndim == 3 and "path_conflict" in _batched.KERNELS:
+        from av_gym.sim import kernels
+
+        return kernels.path_conflict(*(np.ascontiguousarray(a, dtype=float) for a in (p, v, path, path_s)), T_MAX)
     d = p[..., :, None, :] - path  # (..., N, P, 2)
     vv = np.maximum((v * v).sum(axis=-1), 1e-6)[..., None]
     t = np.clip(-(d * v[..., :, None, :]).sum(axis=-1) / vv, 0.0, T_MAX)  # (..., N, P)

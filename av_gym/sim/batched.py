@@ -36,9 +36,10 @@ from av_gym.sim import kernels
 
 # The pairwise parts run as numba kernels (av_gym/sim/kernels.py: the same formulas, bit-identical results) when
 # named here (``ttc``: BatchedLeftTurn.ttc); ``tick``: a policy step's ticks (act + step, every part) as one
-# compiled call per batch step (Traffic.advance). The numpy code stays as their reference (tests/test_kernels.py
-# runs the batch both ways; benchmarks/batched_speed.py times both).
-KERNELS = {"front", "collisions", "conflicts", "closest", "ttc", "idm", "tick"}
+# compiled call per batch step (Traffic.advance); ``path_conflict``: obs["turn"]'s closest approach to the ego's
+# path (av_gym.estimation.turn_features.path_conflict, both stacks). The numpy code stays as their reference
+# (tests/test_kernels.py runs the batch both ways; benchmarks/batched_speed.py times both).
+KERNELS = {"front", "collisions", "conflicts", "closest", "ttc", "idm", "tick", "path_conflict"}
 
 # highway-env constants (IntersectionEnv._make_vehicles sets the IDM class attributes to these)
 LENGTH, WIDTH = 5.0, 2.0

@@ -603,3 +603,26 @@ def _predict_one(lt, b, i, x, y, h, v, plain, lane, route, rpos, reg_times, px, 
             px[i, t] = lt[k, OX] + lon * lt[k, DX] + 0.0 * -lt[k, DY]
             py[i, t] = lt[k, OY] + lon * lt[k, DY] + 0.0 * lt[k, DX]
         ph[i, t] = _heading_at(lt, k, lon)
+
+
+@numba.njit(cache=True)
+def path_conflict(p, v, path, path_s, t_max):
+    """turn_features.path_conflict for (n, M, 2) positions ``p`` and velocities ``v``: per object the
+    constant-velocity closest approach to each point of the ego's ``path`` (P, 2), t* = clip(-(p - c)·v / max(|v|²,
+    1e-6), 0, t_max) and miss = hypot(p + v t* - c); the first point of least miss gives t* (s), miss (m) and its
+    ``path_s`` (m). The same sums in the same order as the numpy code (two terms each)."""
+    n, M = p.shape[0], p.shape[1]
+    t_out, miss_out, s_out = np.empty((n, M)), np.empty((n, M)), np.empty((n, M))
+    for a in range(n):
+        for m in range(M):
+            px, py, vx, vy = p[a, m, 0], p[a, m, 1], v[a, m, 0], v[a, m, 1]
+            vv = max(vx * vx + vy * vy, 1e-6)
+            best, tb, kb = np.inf, 0.0, 0
+            for k in range(path.shape[0]):
+                dx, dy = px - path[k, 0], py - path[k, 1]
+                t = min(max(-(dx * vx + dy * vy) / vv, 0.0), t_max)
+                miss = math.hypot(dx + vx * t, dy + vy * t)
+                if k == 0 or miss < best:  # np.argmin: the first of equal minima
+                    best, tb, kb = miss, t, k
+            t_out[a, m], miss_out[a, m], s_out[a, m] = tb, best, path_s[kb]
+    return t_out, miss_out, s_out
