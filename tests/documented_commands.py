@@ -199,9 +199,9 @@ KNOWN: dict[str, str] = {
     "python -m eval env=left_turn agents=[lookahead,belief_lookahead,dagger_turn,ppo_turn,dagger_turn_memory,"
     "checkpoints/reference/seeds/dagger_turn_memory/s1,checkpoints/reference/seeds/dagger_turn_memory/s3] split=test "
     "seed=2800000 episodes=1000 vec_env=batched n_envs=250": "run",
-    "python -m eval.interventions --agents [dagger_turn+aeb] --episodes 1000 --seed 2800000 "
+    "python -m eval.interventions --agents [dagger_turn+aeb] --episodes 1000 --split test --seed 2800000 "
     "--out runs/interventions_dagger": "run",
-    "python -m eval.interventions --agents [dagger_turn_memory+aeb] --episodes 1000 --seed 2800000 "
+    "python -m eval.interventions --agents [dagger_turn_memory+aeb] --episodes 1000 --split test --seed 2800000 "
     "--out runs/interventions_memory": "run",
     "python -m train agent=dagger_turn_memory seed=2 agent.rounds=8 agent.round_episodes=192 agent.n_envs=64 "
     "train.eval_n=200 train.eval_episodes=0 train.progress_bar=false train.torch_threads=1 run_name=dagger_memory_s2":
@@ -214,9 +214,9 @@ KNOWN: dict[str, str] = {
     "python -m eval env=left_turn agents=[dagger_turn_soft,checkpoints/reference/seeds/dagger_turn_soft/s1,"
     "checkpoints/reference/seeds/dagger_turn_soft/s3] split=test seed=2800000 episodes=1000 vec_env=batched "
     "n_envs=250": "run",
-    "python -m eval.interventions --agents [dagger_turn_memory+aeb_belief] --episodes 1000 --seed 2800000 "
+    "python -m eval.interventions --agents [dagger_turn_memory+aeb_belief] --episodes 1000 --split test --seed 2800000 "
     "--out runs/interventions_memory_belief": "run",
-    "python -m eval.interventions --agents [dagger_turn+aeb_belief] --episodes 1000 --seed 2800000 "
+    "python -m eval.interventions --agents [dagger_turn+aeb_belief] --episodes 1000 --split test --seed 2800000 "
     "--out runs/interventions_dagger_belief": "run",
     "python benchmarks/partition.py docs/results/left_turn_partition/results.csv --students dagger_turn "
     "dagger_turn_memory ppo_turn":
@@ -410,7 +410,7 @@ OUT_FLAG = {"eval.ccftap": "--out", "eval.tracking": "--out", "eval.intervention
 TOOL_ARGS = {
     "eval.ccftap": [("--ego", ["20"]), ("--target", ["60"]), ("--dts", ["0"]), ("--workers", ["1"])],
     "eval.tracking": [("--episodes", ["1"]), ("--miss-rates", ["0.3"])],
-    "eval.interventions": [("--episodes", ["1"])],
+    "eval.interventions": [("--episodes", ["1"]), ("--overwrite", [])],  # a block's commands share one --out
     "eval.localization": [("--lap-seeds", ["100"]), ("--turn-seeds", ["100"]), ("--pid-seeds", ["100"])],
     "eval.tradeoff": [("--episodes", ["4"]), ("--n-envs", ["4"])],
     "train.pid_search": [("--grid", ["quick"]), ("--refine", ["0"]), ("--seeds", ["0"])],
