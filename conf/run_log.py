@@ -1,4 +1,6 @@
-"""The run log holds what the run printed: Hydra gives every run folder a job log (``__main__.log``, a
+"""What a command shows while it runs (:func:`progress`), and what its run log keeps (:func:`job_log`).
+
+The run log holds what the run printed: Hydra gives every run folder a job log (``__main__.log``, a
 ``logging.FileHandler`` on the root logger), but the commands report through ``print`` and progress bars, so it
 stayed empty. :func:`job_log` copies every line written to ``sys.stdout`` and ``sys.stderr`` into that file while
 a Hydra job runs; the terminal sees exactly what it saw before.
@@ -11,13 +13,16 @@ copied."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import os
 import sys
-import functools
+import time
 import traceback
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any, TextIO
+
+from tqdm import tqdm
 
 from av_gym.errors import ConfigError
 
@@ -106,3 +111,19 @@ def job_logged(fn: Callable) -> Callable:
             return fn(*args, **kwargs)
 
     return run
+
+
+def progress(items: Iterable, total: int, desc: str, unit: str = "item", every_s: float = 10.0) -> Iterator:
+    """``items``, reporting progress as it goes: a tqdm bar on a terminal; elsewhere (a pipe, a file, a test's
+    capture, where a bar's redraws are noise and a line is what is read) a line ``[desc] k/total units, t s`` on
+    stdout every ``every_s`` seconds and at the end."""
+    if sys.stderr.isatty():
+        yield from tqdm(items, total=total, desc=desc, unit=unit)
+        return
+    t0 = last = time.monotonic()
+    for done, item in enumerate(items, start=1):
+        yield item
+        now = time.monotonic()
+        if now - last >= every_s or done == total:
+            print(f"[{desc}] {done}/{total} {unit}s, {now - t0:.0f} s", flush=True)
+            last = now

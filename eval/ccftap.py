@@ -45,6 +45,7 @@ TTC and stage over time for one case).
 from __future__ import annotations
 
 import csv
+import functools
 import io
 import itertools
 import math
@@ -522,14 +523,19 @@ def _shields(a, configs: list[tuple[str, str]]) -> list[dict]:
 
 
 def _run_tasks(tasks: list[dict], workers: int) -> list[dict]:
+    """Each task's row (:func:`run_case`), in ``workers`` processes, in the order of ``tasks``; a progress bar of
+    the runs on a terminal, else a line every 10 s (the full grid takes minutes)."""
+    from conf.run_log import progress
+
+    bar = functools.partial(progress, total=len(tasks), desc="ccftap", unit="run")
     if workers <= 1:
-        return [run_case(t) for t in tasks]
+        return [run_case(t) for t in bar(tasks)]
     import multiprocessing
 
     # a trained policy was loaded here (torch): workers start fresh rather than fork this process
     ctx = multiprocessing.get_context("spawn") if any("agent_spec" in t for t in tasks) else None
     with ProcessPoolExecutor(workers, mp_context=ctx) as pool:
-        return list(pool.map(run_case, tasks, chunksize=4))
+        return list(bar(pool.map(run_case, tasks, chunksize=4)))
 
 
 def _write(a, argv: list[str] | None, plans: list, rows: list[dict], traces: dict, out: Path, t0: float) -> None:

@@ -597,22 +597,28 @@ def _round(run: _Run, params, data: Round, k: int, first: int, seed: int, t_star
 
 
 def _print_round(row: dict, new: Round, validated: bool) -> None:
-    print(f"[train] round {row['round']}: {row['driver']} drove {row['episodes']} episodes (success "
-          f"{row['drive_success']:.3f}, collision {row['drive_collision']:.3f}); the student agreed with the teacher "
-          f"on {row['agreement']:.3f} of its states; {row['labels']} labels "
-          f"({len(new.labels) / max(new.label_s, 1e-9):.0f}/s), fit accuracy {row['fit_accuracy']:.3f}"
-          + (f"; validation success {row['val_success']:.3f}, collision {row['val_collision']:.3f}" if validated
-             else "") + f" [{row['wall_s']:.0f} s]", flush=True)
+    """The round's line, above the rounds' bar (``tqdm.write``: a plain print would split the bar in two)."""
+    from tqdm import tqdm
+
+    tqdm.write(f"[train] round {row['round']}: {row['driver']} drove {row['episodes']} episodes (success "
+               f"{row['drive_success']:.3f}, collision {row['drive_collision']:.3f}); the student agreed with the "
+               f"teacher on {row['agreement']:.3f} of its states; {row['labels']} labels "
+               f"({len(new.labels) / max(new.label_s, 1e-9):.0f}/s), fit accuracy {row['fit_accuracy']:.3f}"
+               + (f"; validation success {row['val_success']:.3f}, collision {row['val_collision']:.3f}" if validated
+                  else "") + f" [{row['wall_s']:.0f} s]")
 
 
 def _say_interrupted(done: int, latest: Path, run_name: str) -> None:
-    """What an interrupted run kept, naming only what exists (it named a latest.zip that may not)."""
+    """What an interrupted run kept, naming only what exists (it named a latest.zip that may not); written past
+    the rounds' bar, which is still open."""
+    from tqdm import tqdm
+
     if done > 0 and latest.is_file():
-        print(f"[train] interrupted in round {done}: rounds 0..{done - 1} are kept in {latest} (student, labels, "
-              f"rounds.csv); continue with run_name={run_name} train.resume=true", file=sys.stderr)
+        tqdm.write(f"[train] interrupted in round {done}: rounds 0..{done - 1} are kept in {latest} (student, "
+                   f"labels, rounds.csv); continue with run_name={run_name} train.resume=true", file=sys.stderr)
     else:
-        print(f"[train] interrupted in round 0, before any round finished: nothing was kept (no latest.zip); "
-              f"start the run again (train.overwrite=true to reuse run_name={run_name})", file=sys.stderr)
+        tqdm.write(f"[train] interrupted in round 0, before any round finished: nothing was kept (no latest.zip); "
+                   f"start the run again (train.overwrite=true to reuse run_name={run_name})", file=sys.stderr)
 
 
 def _validation(options: TrainOptions, plain: list, repeat: int, actions: str, batched: bool):

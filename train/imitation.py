@@ -7,6 +7,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from tqdm import tqdm
+
 
 def make_teacher(name: str, actions: str, scenario: str | None = None, action_repeat: int = 1):
     """The teacher ``agent.init`` names (an agent config, ``conf/agent/<name>.yaml``), as
@@ -83,9 +85,10 @@ def _drive(env, model, teacher, seed: int, student: bool, demos: Demonstrations,
     return _outcome(info)
 
 
-def _drive_batch(env, teacher, seeds, demos: Demonstrations) -> list[tuple[float, float]]:
+def _drive_batch(env, teacher, seeds, demos: Demonstrations, bar=None) -> list[tuple[float, float]]:
     """The teacher's episodes of ``seeds`` on a batched VecEnv, all rows stepped together: the same
-    (observation, label, return) triples as :func:`_drive` gives per env, episode by episode in seed order."""
+    (observation, label, return) triples as :func:`_drive` gives per env, episode by episode in seed order.
+    ``bar``: a tqdm bar, advanced by each finished episode."""
     import numpy as np
 
     obs, B = env.play(iter(seeds)), env.num_envs
@@ -104,6 +107,8 @@ def _drive_batch(env, teacher, seeds, demos: Demonstrations) -> list[tuple[float
             if done[r]:
                 finished[int(infos[r]["seed"])] = (open_eps[r], _outcome(infos[r]))
                 open_eps[r] = []
+                if bar is not None:
+                    bar.update()
     outcomes = []
     for seed in seeds:
         steps, result = finished[int(seed)]
@@ -113,7 +118,7 @@ def _drive_batch(env, teacher, seeds, demos: Demonstrations) -> list[tuple[float
 
 
 def fit_policy(policy, demos: Demonstrations, discrete: bool, epochs: int, batch_size: int,
-               lr: float | None = None, seed: int = 0) -> float:
+               lr: float | None = None, seed: int = 0, desc: str | None = None) -> float:
     """Fit ``policy`` (an SB3 ActorCriticPolicy, with its own optimizer) to ``demos``: the actor by negative
     log-likelihood of the labels, the critic by the returns' MSE. Every tensor goes to the policy's device; the
     minibatch order comes from a CPU generator seeded ``seed``, so it is the same on every device (the cloning
@@ -122,7 +127,7 @@ def fit_policy(policy, demos: Demonstrations, discrete: bool, epochs: int, batch
 
     With ``demos.targets`` (a GO/YIELD student, DAgger's agent.targets=go_safe) the actor is fitted by the
     cross-entropy to those probabilities of GO, -[q log π(GO) + (1 - q) log π(YIELD)], instead of the labels' NLL;
-    the accuracy is still against the labels."""
+    the accuracy is still against the labels. ``desc``: a progress bar of the epochs with that title."""
     import numpy as np
     import torch as th
 
@@ -152,7 +157,7 @@ def fit_policy(policy, demos: Demonstrations, discrete: bool, epochs: int, batch
         log_std.requires_grad_(False)
     policy.set_training_mode(True)
     gen = th.Generator().manual_seed(int(seed))
-    for _ in range(epochs):
+    for _ in tqdm(range(epochs), desc=desc, unit="epoch", disable=desc is None, leave=False):
         for idx in th.randperm(len(y), generator=gen, device="cpu").split(batch_size):
             on = idx.to(device)
             if q is None:
@@ -187,7 +192,7 @@ def fit_policy(policy, demos: Demonstrations, discrete: bool, epochs: int, batch
 
 def pretrain_from_teacher(model, env, teacher, seeds, gamma: float, epochs: int, batch_size: int,
                           action_noise: float = 0.0, dagger_rounds: int = 0, lr: float | None = None,
-                          log=print) -> dict:
+                          log=print, progress: bool = False) -> dict:
     """Behaviour cloning before PPO: ``teacher(env, obs, info)`` (:func:`make_teacher`) labels the states of ``env``
     (the training stack: its actions, action repeat, flat observations) on ``seeds``; the policy is fitted to the
     labels (negative log-likelihood: cross-entropy for GO/YIELD, Gaussian for steering) and the value head to the
@@ -200,6 +205,8 @@ def pretrain_from_teacher(model, env, teacher, seeds, gamma: float, epochs: int,
     labels every state visited and the student is refitted on everything so far. Why: a cloned GO/YIELD policy
     meets states its teacher never visited (waiting at the line after a wrong yield) and has no label for them.
     ``lr``: the optimizer's learning rate while cloning (``None``: PPO's own); PPO resets it at its first update.
+    ``log`` gets a line as each phase starts (the teacher's episodes, each fit: seconds to a minute each);
+    ``progress``: a bar within each.
     Returns ``{"episodes", "decisions", "accuracy" (share of matching choices, or 1 - mean |error| for continuous
     actions), "teacher_collision", "teacher_success" (arrived, or lap completed; teacher-driven episodes),
     "student_collision", "student_success" (the last DAgger round; NaN without DAgger)}``."""
@@ -216,22 +223,42 @@ def pretrain_from_teacher(model, env, teacher, seeds, gamma: float, epochs: int,
         if dagger_rounds or action_noise:
             raise ConfigError("agent.init_dagger_rounds and agent.init_action_noise need the per-env stack: "
                               "agent.vec_env=subproc")
-        teacher_outcomes = _drive_batch(env, teacher, parts[0], demos)
-    else:
-        teacher_outcomes = [_drive(env, model, teacher, seed, False, demos, action_noise, rng) for seed in parts[0]]
-    accuracy = fit_policy(model.policy, demos, discrete, epochs, batch_size, lr)
+    log(f"[train] cloning: the teacher drives {len(parts[0])} demonstration episodes")
+    teacher_outcomes = _teacher_episodes(env, model, teacher, parts[0], demos, action_noise, rng, progress)
+    accuracy = _fit(model, demos, discrete, epochs, batch_size, lr, log, progress)
     student_outcomes = [(np.nan, np.nan)]
     for k, part in enumerate(parts[1:], start=1):
         student_outcomes = [_drive(env, model, teacher, seed, True, demos, action_noise, rng) for seed in part]
         coll, succ = np.mean(student_outcomes, axis=0)
         log(f"[train] DAgger round {k}/{dagger_rounds}: the student drove {len(part)} episodes (collision "
             f"{coll:.2f}, success {succ:.2f}), {len(demos)} labelled decisions")
-        accuracy = fit_policy(model.policy, demos, discrete, epochs, batch_size, lr)
+        accuracy = _fit(model, demos, discrete, epochs, batch_size, lr, log, progress)
     coll, succ = np.mean(teacher_outcomes, axis=0)
     s_coll, s_succ = np.mean(student_outcomes, axis=0)
     return {"episodes": sum(len(p) for p in parts), "decisions": len(demos), "accuracy": accuracy,
             "teacher_collision": float(coll), "teacher_success": float(succ),
             "student_collision": float(s_coll), "student_success": float(s_succ)}
+
+
+def _teacher_episodes(env, model, teacher, seeds, demos: Demonstrations, action_noise: float, rng,
+                      progress: bool) -> list[tuple[float, float]]:
+    """The teacher's episodes of ``seeds`` into ``demos`` (on the batch, or one by one), with a bar of them
+    (``progress``); their outcomes."""
+    with tqdm(total=len(seeds), desc="teacher episodes", unit="ep", disable=not progress, leave=False) as bar:
+        if hasattr(env, "play"):
+            return _drive_batch(env, teacher, seeds, demos, bar)
+        outcomes = []
+        for seed in seeds:
+            outcomes.append(_drive(env, model, teacher, seed, False, demos, action_noise, rng))
+            bar.update()
+        return outcomes
+
+
+def _fit(model, demos: Demonstrations, discrete: bool, epochs: int, batch_size: int, lr: float | None, log,
+         progress: bool) -> float:
+    """:func:`fit_policy` of the model's policy, announced by a line (and a bar of its epochs with ``progress``)."""
+    log(f"[train] cloning: fitting the policy to {len(demos)} labelled decisions ({epochs} epochs)")
+    return fit_policy(model.policy, demos, discrete, epochs, batch_size, lr, desc="fitting" if progress else None)
 
 
 def load_weights(model, spec: str, scenario: str) -> None:

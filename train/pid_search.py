@@ -36,7 +36,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
+from av_gym.atomic import write_text_atomic
 from av_gym.seeds import SPLITS
 from conf.cli import Extend, ToolParser, items
 
@@ -87,9 +89,10 @@ def has_margin(env, gains: dict, seed: int, margin: float, max_osc: float) -> bo
 
 
 def search(grid: dict, seeds, track: str = "A", osc_weight: float = 0.1, refine: int = 60, margin: float = 2.0,
-           max_osc: float = 20.0, log=print) -> dict:
+           max_osc: float = 20.0, log=tqdm.write, progress: bool = True) -> dict:
     """Grid then Nelder–Mead; returns ``{"best": {kp, ki, kd}, "objective", "mean_abs_cte_units",
-    "sign_changes_per_100m", "evaluations", "top": [...]}``."""
+    "sign_changes_per_100m", "evaluations", "top": [...]}``. ``log`` gets a line as each phase starts and ends;
+    ``progress``: a bar of the evaluations (each a lap per seed, ~2 s), with the best J so far."""
     from scipy.optimize import minimize
 
     seeds = [int(s) for s in seeds]
@@ -98,6 +101,11 @@ def search(grid: dict, seeds, track: str = "A", osc_weight: float = 0.1, refine:
                          f"got {seeds}")
     env = lane_env(track)
     table: list[dict] = []
+    n_grid = int(np.prod([len(v) for v in grid.values()]))
+    log(f"[pid_search] grid: {n_grid} gain triples x {len(seeds)} laps on layout {track}"
+        f"{' (+1 lap at x' + format(margin, 'g') + ' gain for the margin)' if margin > 0 else ''}, then up to "
+        f"{max(int(refine), 0)} Nelder-Mead evaluations")
+    bar = tqdm(total=n_grid + max(int(refine), 0), desc="pid_search", unit="eval", disable=not progress)
 
     def evaluate(kp: float, ki: float, kd: float) -> float:
         gains = {"kp": float(kp), "ki": float(ki), "kd": float(kd)}
@@ -109,12 +117,13 @@ def search(grid: dict, seeds, track: str = "A", osc_weight: float = 0.1, refine:
                       "mean_abs_cte_units": float(np.mean([r["cte_mean_abs_units"] for r in rows])),
                       "sign_changes_per_100m": float(np.mean([r["steering_sign_changes_per_100m"] for r in rows])),
                       "laps_completed": float(np.mean([r["lap_completed"] for r in rows]))})
+        bar.update()
+        bar.set_postfix_str(f"best J {min(r['objective'] for r in table):.3f}")
         return j
 
     t0 = time.time()
     for kp, ki, kd in itertools.product(grid["kp"], grid["ki"], grid["kd"]):
         evaluate(kp, ki, kd)
-    n_grid = len(table)
     start = min(table, key=lambda r: r["objective"])
     log(f"[pid_search] grid: {n_grid} triples x {len(seeds)} laps in {time.time() - t0:.0f} s; best "
         f"Kp {start['kp']:g} Ki {start['ki']:g} Kd {start['kd']:g}: J = {start['objective']:.3f}")
@@ -125,6 +134,7 @@ def search(grid: dict, seeds, track: str = "A", osc_weight: float = 0.1, refine:
         minimize(lambda x: evaluate(*np.maximum(x, 0.0)), x0, method="Nelder-Mead",
                  options={"initial_simplex": simplex, "maxfev": int(refine), "xatol": 1e-4, "fatol": 1e-3})
         log(f"[pid_search] Nelder-Mead: {len(table) - n_grid} evaluations, {time.time() - t0:.0f} s in all")
+    bar.close()
     env.close()
     best = min(table, key=lambda r: r["objective"])
     top = sorted(table, key=lambda r: r["objective"])[:10]
@@ -160,8 +170,7 @@ def main(argv=None) -> dict:
           f"{res['sign_changes_per_100m']:.2f} sign changes / 100 m ({res['evaluations']} evaluations)")
     print(f'agents/pid.py PRESETS:  "tuned": {{"kp": {b["kp"]:g}, "ki": {b["ki"]:g}, "kd": {b["kd"]:g}}},')
     if a.out:
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(json.dumps(res, indent=2))
+        write_text_atomic(a.out, json.dumps(res, indent=2), "--out")
         print(f"[pid_search] result: {a.out}")
     return res
 

@@ -158,9 +158,10 @@ def resume_model(latest: Path, venv, params) -> tuple[Any, dict]:
     return model, saved
 
 
-def clone_teacher(model, stack: _Stack, scenario: str) -> None:
+def clone_teacher(model, stack: _Stack, scenario: str, progress: bool = True) -> None:
     """``agent.init``: behaviour-clone its teacher into ``model`` (:func:`pretrain_from_teacher`) on demonstration
-    seeds of the train split, 500000+, away from PPO's own streams (seed + steps, from 0); one line if it diverges."""
+    seeds of the train split, 500000+, away from PPO's own streams (seed + steps, from 0); one line if it diverges.
+    A line as each phase starts, and with ``progress`` a bar within it (cloning takes 20-30 s before PPO)."""
     from eval.agents import load_agent_config
     from train.callbacks import raise_if_diverged
 
@@ -176,12 +177,12 @@ def clone_teacher(model, stack: _Stack, scenario: str) -> None:
     try:
         stats = pretrain_from_teacher(model, demo_env, teacher, seeds,
                                       float(p.gamma), p.init_epochs, p.batch_size, float(p.init_action_noise),
-                                      p.init_dagger_rounds, p.init_lr)
+                                      p.init_dagger_rounds, p.init_lr, print, progress)
     except (ValueError, RuntimeError) as exc:  # NaN logits refused inside torch: say why, in one line
         lr = ("agent.init_lr", p.init_lr) if p.init_lr else ("agent.learning_rate", p.learning_rate)
         raise_if_diverged(exc, model.policy, "behaviour cloning", lr[0], float(lr[1]))
         raise
-    except KeyboardInterrupt:  # it used to exit 130 without a word
+    except KeyboardInterrupt:  # say what is kept, rather than exit 130 without a word
         import sys
 
         print(f"[train] interrupted while cloning {p.init} ({time.time() - t_bc:.0f} s in): nothing was kept; the "
@@ -196,14 +197,15 @@ def clone_teacher(model, stack: _Stack, scenario: str) -> None:
           f"accuracy {stats['accuracy']:.3f} in {time.time() - t_bc:.0f} s")
 
 
-def initialise_model(venv, stack: _Stack, seed: int, scenario: str):
-    """A fresh PPO on ``venv`` seeded ``seed``, cloned from ``agent.init``'s teacher when it names one."""
+def initialise_model(venv, stack: _Stack, seed: int, scenario: str, progress: bool = True):
+    """A fresh PPO on ``venv`` seeded ``seed``, cloned from ``agent.init``'s teacher when it names one (with
+    progress bars: ``progress``)."""
     from agents.ppo import make_ppo
 
     p = stack.params
     model = make_ppo(venv, p.as_dict(), seed=seed, tensorboard_log=None, device=p.device)
     if p.init:
-        clone_teacher(model, stack, scenario)
+        clone_teacher(model, stack, scenario, progress)
     if p.init_from:
         load_weights(model, p.init_from, scenario)
     return model
@@ -312,11 +314,13 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path, command: TrainComm
     # A resumed run's episodes come from fresh seeds (the env streams of the killed run cannot be restored); every
     # stream's seed is folded into the train split (av_gym/seeds.py), whatever the seed and the steps done.
     done_steps = int(PPO.load(str(latest), device=params.device).num_timesteps) if resume else 0
+    print(f"[train] {command.run_name}: starting {params.n_envs} training envs (agent.vec_env={params.vec_env})",
+          flush=True)
     venv = build_envs(stack, train_seed(command.seed, done_steps))
     if resume:
         model, saved = resume_model(latest, venv, params)
     else:
-        model = initialise_model(venv, stack, command.seed, str(cfg.env.name))
+        model = initialise_model(venv, stack, command.seed, str(cfg.env.name), command.train.progress_bar)
     # The checkpoint's own dump (at its step) is complete, so TensorBoard keeps it and drops only what came after.
     model.set_logger(_tensorboard_logger(run_dir / "tb" / params.name, model.num_timesteps + 1 if resume else None))
     if resume:  # values recorded by the last update but not yet written when the run was killed
