@@ -24,6 +24,7 @@ pydantic: one more dependency for what a hundred lines of dataclass introspectio
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import re
 import types
@@ -130,6 +131,7 @@ def check(cls: type[Params], values: Any, where: str = "", what: str | None = No
         return [f"{where or cls.__name__}: {exc}"]
 
 
+@functools.lru_cache(maxsize=None)  # asked per config key at every env reset; a class's fields never change
 def field_at(cls: type[Params], path: str) -> tuple[type[Params], dataclasses.Field]:
     """The Params class holding the field ``path`` (dotted into nested sections: ``ccftap.dt``) and that field; a
     :class:`KeyError` naming ``path`` if there is none."""
