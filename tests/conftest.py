@@ -13,7 +13,8 @@ import yaml
 from av_gym.make import make_env
 
 # `python -m train` / `python -m eval` in a subprocess started from another folder (tmp_path): an install puts only
-# av_gym on sys.path, the harness packages are the checkout's (pyproject's pythonpath does this for pytest itself)
+# av_gym on sys.path, the harness packages are the checkout's (pyproject's pythonpath does this for pytest itself).
+# A documented command runs without it (tests/test_documented_commands.py: _run), as a user runs it.
 os.environ["PYTHONPATH"] = os.pathsep.join(
     [str(Path(__file__).resolve().parents[1]), *filter(None, [os.environ.get("PYTHONPATH")])])
 
