@@ -86,7 +86,21 @@ def make(scenario: str, config: Mapping | None = None, *, env: Mapping | None = 
          shield: Any = None, checkpoint: str | Path | None = None, render_mode: str | None = None,
          record_metrics: bool | None = None) -> gym.Env:
     """The scenario env (``config``: SI, ``env``: edge units), with ``sensors``, ``shield`` and a ``checkpoint``'s
-    agent wrappers; one :class:`ConfigError` line naming the field on bad input, before anything is built."""
+    agent wrappers; one :class:`ConfigError` line naming the field on bad input, before anything is built.
+
+    Example: a shipped agent's env (its sensors and agent-side wrappers: GO/YIELD), and a mistyped field:
+
+        >>> import gymnasium as gym
+        >>> import av_gym
+        >>> env = gym.make("av_gym/UnprotectedLeftTurn-v0", checkpoint="ppo_turn")
+        >>> obs, info = env.reset(seed=0)
+        >>> env.action_space
+        Discrete(2)
+        >>> gym.make("av_gym/UnprotectedLeftTurn-v0", env={"spawn_probabilty": 0.3})
+        Traceback (most recent call last):
+        ...
+        av_gym.params.ParamError: env.spawn_probabilty is not a field of ...; did you mean 'spawn_probability'?
+    """
     from av_gym.make import scenario_params, wrap_env
     from av_gym.registry import SCENARIOS
 

@@ -1,6 +1,6 @@
 """The runnable examples of the public docstrings (Gymnasium's style, ``>>> import gymnasium as gym ...``) run as
-doctests in the fast suite: the sensor wrappers, the package (``gym.make`` with the harness's keywords) and
-:func:`av_gym.make.make_env`. An example whose output no longer matches the code fails here."""
+doctests in the fast suite: the sensor wrappers, the package and :func:`av_gym.api.make` (``gym.make`` with the
+harness's keywords, a checkpoint's env) and :func:`av_gym.make.make_env`. An example whose output no longer matches the code fails here."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from av_gym.sensors.base import SensorWrapper
 
 SENSOR_MODULES = ["av_gym.sensors.camera", "av_gym.sensors.detector", "av_gym.sensors.gnss", "av_gym.sensors.imu",
                   "av_gym.sensors.lidar", "av_gym.sensors.turn_signal"]
-MODULES = ["av_gym", "av_gym.make", *SENSOR_MODULES]
+MODULES = ["av_gym", "av_gym.api", "av_gym.make", *SENSOR_MODULES]
 
 
 @pytest.mark.parametrize("name", MODULES)
