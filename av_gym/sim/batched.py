@@ -26,6 +26,8 @@ new vehicles go after the last live one, cleared vehicles are removed with a sta
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,6 +42,9 @@ from av_gym.sim import kernels
 # path (av_gym.estimation.turn_features.path_conflict, both stacks). The numpy code stays as their reference
 # (tests/test_kernels.py runs the batch both ways; benchmarks/batched_speed.py times both).
 KERNELS = {"front", "collisions", "conflicts", "closest", "ttc", "idm", "tick", "path_conflict"}
+# the pairwise kernels alone, the numpy step around them: the engine before the compiled tick, which the
+# benchmarks time beside the compiled one (benchmarks/batched_speed.py, oracle_labels.py, belief_planner.py)
+PAIRWISE_KERNELS = frozenset({"front", "collisions", "conflicts", "closest", "ttc", "idm"})
 
 # highway-env constants (IntersectionEnv._make_vehicles sets the IDM class attributes to these)
 LENGTH, WIDTH = 5.0, 2.0
@@ -89,6 +94,17 @@ class SpawnPrior:
 
 
 SPAWN_PRIOR = SpawnPrior()
+
+
+@contextmanager
+def using_kernels(names) -> Iterator[None]:
+    """Run the batch with the kernels ``names`` only (the rest on the numpy path) inside the block."""
+    global KERNELS
+    before, KERNELS = KERNELS, set(names)
+    try:
+        yield
+    finally:
+        KERNELS = before
 
 
 def not_zero(x: np.ndarray, eps: float = 1e-2) -> np.ndarray:

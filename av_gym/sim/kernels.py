@@ -67,27 +67,49 @@ def closest(lt, x, y, h):
     whose centreline box is no farther than the nearest box's lane's distance (the same pruning, the same
     comparisons: first on ties)."""
     out = np.zeros(x.shape[0], dtype=np.int64)
-    lb = np.empty(lt.shape[0])
+    lb = np.empty((lt.shape[0], 2))
     for m in range(x.shape[0]):
         out[m] = _closest_one(lt, x[m], y[m], h[m], lb)
     return out
 
 
+@numba.njit(cache=True, inline="always")
+def _within(dx, dy, bound):
+    """``math.hypot(dx, dy) <= bound``, exactly, without the hypot where the squared length decides: its rounding
+    (a few ulp) is far inside the 1e-9 relative margin, and only the cases within it call hypot."""
+    if bound < 0.0:
+        return False
+    s2, b2 = dx * dx + dy * dy, bound * bound
+    if s2 > b2 * (1.0 + 1e-9):
+        return False
+    if s2 < b2 * (1.0 - 1e-9):
+        return True
+    return math.hypot(dx, dy) <= bound
+
+
 @numba.njit(cache=True)
 def _closest_one(lt, xm, ym, hm, lb):
-    """:func:`closest` for one vehicle (``lb``: scratch, one float per lane)."""
+    """:func:`closest` for one vehicle (``lb``: scratch, (L, 2): each lane box's distance components). The nearest
+    box is the first least hypot among the boxes whose squared distance is within 1e-9 of the least (no other can
+    equal it), and each box's ``hypot <= best`` test is :func:`_within`'s: the same lanes as the numpy code."""
     L = lt.shape[0]
-    k0 = 0
+    m2 = np.inf
     for k in range(L):
         bx = max(max(lt[k, BX0] - xm, xm - lt[k, BX1]), 0.0)
         by = max(max(lt[k, BY0] - ym, ym - lt[k, BY1]), 0.0)
-        lb[k] = math.hypot(bx, by)
-        if lb[k] < lb[k0]:
-            k0 = k
+        lb[k, 0], lb[k, 1] = bx, by
+        m2 = min(m2, bx * bx + by * by)
+    k0, h0 = 0, np.inf
+    for k in range(L):
+        bx, by = lb[k, 0], lb[k, 1]
+        if bx * bx + by * by <= m2 * (1.0 + 1e-9):
+            hk = math.hypot(bx, by)
+            if hk < h0:
+                k0, h0 = k, hk
     best = _distance_with_heading(lt, k0, xm, ym, hm)
     dmin, kmin = np.inf, 0
     for k in range(L):
-        if lb[k] <= best:
+        if _within(lb[k, 0], lb[k, 1], best):
             d = _distance_with_heading(lt, k, xm, ym, hm)
             if d < dmin:
                 dmin, kmin = d, k
@@ -154,7 +176,7 @@ def _collide_row(b, x, y, h, v, alive, dt, length, width, crashed, has_impact, i
             continue
         reach = diagonal + v[b, i] * dt
         for j in range(i + 1, N):
-            if not alive[b, j] or not math.hypot(x[b, j] - x[b, i], y[b, j] - y[b, i]) <= reach:
+            if not alive[b, j] or not _within(x[b, j] - x[b, i], y[b, j] - y[b, i], reach):
                 continue
             ci, si, cj, sj = math.cos(h[b, i]), math.sin(h[b, i]), math.cos(h[b, j]), math.sin(h[b, j])
             for p in range(5):  # RoadObject.polygon
@@ -239,7 +261,7 @@ def _conflict_pair(px, py, ph, i, j, length, lx, ly, hl, hw):
     whose centres are within ``length`` and whose boxes intersect decides."""
     for t in range(px.shape[1]):
         x1, y1, x2, y2 = px[i, t], py[i, t], px[j, t], py[j, t]
-        if not math.hypot(x2 - x1, y2 - y1) <= length:
+        if not _within(x2 - x1, y2 - y1, length):
             continue
         c1, s1, c2, s2 = math.cos(ph[i, t]), math.sin(ph[i, t]), math.cos(ph[j, t]), math.sin(ph[j, t])
         if _any_inside(c1, s1, x1, y1, c2, s2, x2, y2, lx, ly, hl, hw) or \
@@ -390,7 +412,7 @@ def advance(lt, lanes, x, y, h, v, target, steer, acc, delta, alive, ego, plain,
     speed limit, priority, leaving lane (1.0), from-node id, to-node id. State arrays are updated in place."""
     B, N = x.shape
     T = reg_times.shape[0]
-    lb = np.empty(lt.shape[0])
+    lb = np.empty((lt.shape[0], 2))
     px, py, ph = np.empty((N, T)), np.empty((N, T)), np.empty((N, T))
     clx = np.array([-prm[P_LENGTH] / 2, -prm[P_LENGTH] / 2, prm[P_LENGTH] / 2, prm[P_LENGTH] / 2,
                     -prm[P_LENGTH] / 2])
