@@ -10,7 +10,8 @@ from __future__ import annotations
 import contextlib
 import io
 import sys
-from collections.abc import Iterable
+import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import gymnasium as gym
@@ -36,22 +37,42 @@ def run_episodes(env: gym.Env, policy: Policy, seeds: Iterable[int], label: str,
     # Seeds are drawn one by one, never listed: episodes=10**12 is a long run, not a MemoryError before the first.
     total = len(seeds) if hasattr(seeds, "__len__") else None
     rows = []
-    for i, seed in enumerate(tqdm(seeds, total=total, desc=f"eval {label}", unit="ep", disable=not progress,
-                                  leave=False)):
-        rows.append({"agent": label, "episode": i, "seed": int(seed), **play_episode(env, policy, int(seed))})
-        if out is not None:
-            out.append(rows[-1])
+    with tqdm(total=total, desc=f"eval {label}", unit="ep", disable=not progress, leave=False) as bar:
+        on_step = _step_counter(bar) if progress else None
+        for i, seed in enumerate(seeds):
+            rows.append({"agent": label, "episode": i, "seed": int(seed),
+                         **play_episode(env, policy, int(seed), on_step)})
+            bar.update()
+            if out is not None:
+                out.append(rows[-1])
     return rows
 
 
-def play_episode(env: gym.Env, policy: Policy, seed: int) -> dict:
-    """One seeded episode of ``policy`` on ``env``; its ``info["episode_metrics"]``."""
+def _step_counter(bar, every_s: float = 1.0) -> Callable[[int], None]:
+    """``on_step(k)`` for :func:`play_episode`: the episode's step count on ``bar`` about every ``every_s``
+    seconds (a lap takes 10-40 s: the bar would otherwise stand still for all of it)."""
+    last = [time.monotonic()]
+
+    def on_step(k: int) -> None:
+        now = time.monotonic()
+        if now - last[0] >= every_s:
+            last[0] = now
+            bar.set_postfix_str(f"episode step {k}")
+
+    return on_step
+
+
+def play_episode(env: gym.Env, policy: Policy, seed: int, on_step: Callable[[int], None] | None = None) -> dict:
+    """One seeded episode of ``policy`` on ``env``; its ``info["episode_metrics"]``. ``on_step(k)`` after each
+    step ``k`` (progress)."""
     obs, _ = env.reset(seed=seed)
     policy.reset()
-    done = False
+    done, k = False, 0
     while not done:
         obs, _, terminated, truncated, info = env.step(policy.act(obs))
-        done = terminated or truncated
+        done, k = terminated or truncated, k + 1
+        if on_step is not None:
+            on_step(k)
     return info["episode_metrics"]
 
 

@@ -112,3 +112,25 @@ def test_eval_announces_each_video_before_rendering_it(tmp_path, capsys):
     turn_videos(env, plans, tmp_path, first, "checkpoints")
     assert f"[eval] video: always_proceed drives seed {first} once more, rendered into turn_always_proceed.webm" \
         in capsys.readouterr().out
+
+
+def test_an_episode_in_progress_moves_the_eval_bar(monkeypatch, capsys):
+    """The bar advanced once per episode, and a lane-keeping lap takes 10-40 s: now its step count, every second."""
+    from eval import runner
+
+    class Env:
+        def reset(self, seed=None):
+            self.k = 0
+            return 0, {}
+
+        def step(self, action):
+            self.k += 1
+            return 0, 0.0, self.k == 30, False, {"episode_metrics": {"return": 1.0}}
+
+    policy = SimpleNamespace(reset=lambda: None, act=lambda obs: 0)
+    clock = iter(np.arange(0.0, 100.0, 0.25))  # a quarter of a second per step
+    monkeypatch.setattr(runner.time, "monotonic", lambda: next(clock))
+    rows = runner.run_episodes(Env(), policy, [7], "lap", progress=True)
+    assert rows == [{"agent": "lap", "episode": 0, "seed": 7, "return": 1.0}]
+    err = capsys.readouterr().err
+    assert "episode step 4" in err and "episode step 28" in err  # every 4 steps = 1 s
