@@ -618,3 +618,17 @@ def test_one_spawn_prior_for_the_engine_and_the_planner():
     p, q = BeliefPlanner()._behaviour_prior(SPAWN_PRIOR, g(), (3, 64)), BeliefPlanner()._behaviour_prior(b.prior, g(), (3, 64))
     assert (p[0] >= 3.5).all() and (q[0] < 2.5).all() and (q[1][p[1] == 10.0] == 10.0).all()
     assert isinstance(b.prior, SpawnPrior)
+
+
+def test_lane_table_pose_is_the_array_position_and_heading():
+    """LaneTable.pose (one vehicle placed at a spawn or a reset) gives the array code's floats exactly, on every
+    lane of the intersection, straight (plain float arithmetic) and circular."""
+    from av_gym.batched.left_turn import tables
+
+    T = tables()[0]
+    rng = np.random.default_rng(0)
+    for k in range(len(T.length)):
+        for s in np.concatenate([rng.uniform(-10, T.length[k] + 10, 30), [0.0, T.length[k]]]):
+            x, y = T.position(np.array([k]), np.array([s]), 0.0)
+            assert T.pose(k, float(s)) == (x[0], y[0], T.heading_at(np.array([k]), np.array([s]))[0])
+    assert T.circular.any() and (~T.circular).any()

@@ -151,6 +151,7 @@ class LaneTable:
         self.to_node = [t for _, t, _ in self.index]
         self.from_node = [f for f, _, _ in self.index]
         self.arr = kernels.lane_array(self)  # the same table for the kernels
+        self._lines = [tuple(float(a[k]) for a in (self.ox, self.oy, self.dx, self.dy, self.h)) for k in range(n)]
         node = {n: k for k, n in enumerate(sorted(set(self.from_node) | set(self.to_node)))}
         # the rules' per-lane columns for kernels.advance: speed limit, priority, leaving lane, from / to node ids
         self.rules = np.ascontiguousarray(np.column_stack([
@@ -181,6 +182,16 @@ class LaneTable:
         dx, dy = self.dx[k], self.dy[k]
         x_s, y_s = self.ox[k] + s * dx + r * -dy, self.oy[k] + s * dy + r * dx
         return np.where(circ, x_c, x_s), np.where(circ, y_c, y_s)
+
+    def pose(self, k: int, s: float) -> tuple[float, float, float]:
+        """:meth:`position` (k, s, 0) and :meth:`heading_at` (k, s) for one lane id and one s (m), as floats: on a
+        straight lane the same arithmetic in plain floats (the same results, without the array calls' overhead:
+        spawns and resets place vehicles one at a time), on an arc the array code."""
+        if self.circular[k]:
+            x, y = self.position(k, s, 0.0)
+            return float(x), float(y), float(self.heading_at(k, s))
+        ox, oy, dx, dy, h = self._lines[k]
+        return ox + s * dx + 0.0 * -dy, oy + s * dy + 0.0 * dx, h
 
     def heading_at(self, k, s):
         phi = self.cdir[k] * s / self.radius[k] + self.phase0[k]
@@ -320,15 +331,15 @@ class Traffic:
             self.lane[b, slots] = self.tlane[b, slots] = self.route[b, slots, 0] = lane
 
     def add(self, b: int, lane: int, s: float, speed: float, route: list[int], delta: float = 4.0,
-            ego: bool = False, target: float | None = None, plain: bool = False, mdp: bool | None = None) -> int:
+            ego: bool = False, target: float | None = None, plain: bool = False, mdp: bool | None = None,
+            pose: tuple[float, float, float] | None = None) -> int:
         """``Vehicle.make_on_lane`` + ``plan_route_to`` + append to ``road.vehicles`` in env ``b``; call
-        :meth:`settle` on the new slots before the next tick."""
+        :meth:`settle` on the new slots before the next tick. ``pose``: ``tables.pose(lane, s)`` when the caller
+        has it already."""
         slot = int(self.alive[b].sum())
         if slot >= self.N:
             self.grow(8)
-        T = self.tables
-        x, y = T.position(lane, s, 0.0)
-        h = T.heading_at(lane, s)
+        x, y, h = self.tables.pose(lane, s) if pose is None else pose
         self.alive[b, slot], self.ego[b, slot], self.plain[b, slot] = True, ego, plain
         self.mdp[b, slot] = ego if mdp is None else mdp
         self.vid[b, slot] = next(_VEHICLE_IDS)
