@@ -73,3 +73,14 @@ def test_the_eval_commands_run_log_holds_its_table(tmp_path):
     log = (tmp_path / "runs" / "x" / "__main__.log").read_text()
     assert "[eval] per-episode rows: " in res.stdout and "[eval] per-episode rows: " in log
     assert "| always_proceed" in log  # the results table
+
+
+@pytest.mark.slow  # ~20 s: a whole (rule-based) training command and its brief evaluation
+def test_the_train_commands_run_log_holds_what_it_printed(tmp_path):
+    res = subprocess.run([sys.executable, "-m", "train", "agent=gap_acceptance", "train.eval_episodes=2",
+                          "train.progress_bar=false", "run_name=r"], cwd=tmp_path, capture_output=True, text=True,
+                         timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    log = (tmp_path / "runs" / "r" / "__main__.log").read_text()
+    assert "[train] agent 'gap_acceptance' is rule-based: nothing to train" in log
+    assert "[train] brief evaluation on 2 validation seeds" in log and "| gap_acceptance | 2 |" in log
