@@ -136,6 +136,24 @@ def missing_repo_paths() -> list[str]:
             for p in repo_paths(line) if not exists(p)]
 
 
+PYTHON_M = re.compile(r"\bpython3? -m ([A-Za-z_][\w.]*)")
+
+
+def missing_modules() -> list[str]:
+    """``python -m <module>`` in a page whose module is neither a file of the checkout nor installed."""
+    import importlib.util
+
+    out = []
+    for page in pages():
+        for i, line in enumerate(page.read_text().splitlines(), 1):
+            for module in PYTHON_M.findall(line):
+                path = ROOT / module.replace(".", "/")
+                if not (path.with_suffix(".py").is_file() or (path / "__main__.py").is_file()
+                        or importlib.util.find_spec(module.split(".")[0]) is not None and "." not in module):
+                    out.append(f"{_rel(page)}:{i}: python -m {module}")
+    return out
+
+
 def docs_files() -> list[Path]:
     return sorted(p for p in DOCS.rglob("*") if p.is_file() and "__pycache__" not in p.parts
                   and not p.name.startswith("."))
@@ -183,6 +201,12 @@ def test_every_docs_path_the_pages_and_the_code_name_exists():
 def test_every_code_or_shipped_path_the_pages_name_exists():
     missing = missing_repo_paths()
     assert not missing, "paths the pages name that do not exist:\n" + "\n".join(missing)
+
+
+def test_every_module_the_pages_run_exists():
+    missing = missing_modules()
+    assert not missing, "python -m <module> lines whose module does not exist:\n" + "\n".join(missing)
+    assert PYTHON_M.findall("`python -m eval.sweep <folder>`, python3 -m venv .venv") == ["eval.sweep", "venv"]
 
 
 def test_the_repo_path_checker():
