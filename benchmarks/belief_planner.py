@@ -3,10 +3,12 @@
 
     python benchmarks/belief_planner.py --split validation --episodes 300 --samples 8 16 --thresholds 0.02 0.05 0.1 0.2
     python benchmarks/belief_planner.py --split validation --episodes 300 --samples 16 --commit never stop
+    python benchmarks/belief_planner.py --episodes 40 --samples 16 --thresholds 0.05 --paths   # numpy vs compiled
 
 Each (K, threshold, commit) plays the same episodes (``python -m eval``'s batched loop,
 :func:`eval.batched.play_batched`); one csv row per point (``--out``), with 95 % Wilson intervals and the labels/s of the planner alone (wall-clock of
-its futures) and of the whole run."""
+its futures) and of the whole run. ``--paths``: each point on both engine paths (the numpy step, the compiled
+step: benchmarks/batched_speed.py's PATHS), one after the other, with the planner's labels per CPU-second."""
 
 from __future__ import annotations
 
@@ -42,6 +44,7 @@ def main() -> None:
                     help="when a GO is final (BeliefLookaheadParams.commit; its default: never)")
     ap.add_argument("--n-envs", type=int, default=100)
     ap.add_argument("--out", default=None, help="csv of the points (appended)")
+    ap.add_argument("--paths", action="store_true", help="each point on the numpy and on the compiled engine step")
     args = ap.parse_args()
 
     import numpy as np
@@ -49,11 +52,14 @@ def main() -> None:
     from agents.belief import BeliefLookahead, BeliefLookaheadParams
     from av_gym.metrics.stats import wilson_ci
     from av_gym.seeds import seeds as split_seeds
+    from av_gym.sim import batched as engine
+    from batched_speed import PATHS
     from eval.batched import _Decider, play_batched
 
     env, sensors, shield = stacks()
     seeds = list(split_seeds(args.split, args.episodes, args.first))
-    for K, thr, commit in itertools.product(args.samples, args.thresholds, args.commit):
+    paths = PATHS if args.paths else {"compiled step": PATHS["compiled step"]}
+    for K, thr, commit, path in itertools.product(args.samples, args.thresholds, args.commit, paths):
         policy = BeliefLookahead(None, BeliefLookaheadParams(samples=K, threshold=thr, commit=commit))
         made = []
         init = _Decider.__init__
@@ -62,13 +68,14 @@ def main() -> None:
             _init(self, p, engine)
             made.append(self)
         _Decider.__init__ = spy
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.process_time()
         try:
-            rows = play_batched(env, sensors, shield, policy, seeds, args.n_envs, "belief_lookahead",
-                                progress=False)
+            with engine.using_kernels(paths[path]):
+                rows = play_batched(env, sensors, shield, policy, seeds, args.n_envs, "belief_lookahead",
+                                    progress=False)
         finally:
             _Decider.__init__ = init
-        wall = time.perf_counter() - start
+        wall, cpu = time.perf_counter() - start, time.process_time() - cpu
         planner = made[0].planner
         n = len(rows)
         col = np.array([r["collision"] for r in rows], float)
@@ -76,11 +83,13 @@ def main() -> None:
         _, cl, ch = wilson_ci(int(col.sum()), n)
         _, sl, sh = wilson_ci(int(suc.sum()), n)
         point = {"split": args.split, "first_seed": seeds[0], "episodes": n, "samples": K, "threshold": thr,
-                 "commit": commit,
+                 "commit": commit, "engine": path,
                  "collision": round(col.mean(), 4), "collision_lo": round(cl, 4), "collision_hi": round(ch, 4),
                  "success": round(suc.mean(), 4), "success_lo": round(sl, 4), "success_hi": round(sh, 4),
                  "labels": planner.labelled, "planner_labels_per_s": round(planner.labelled / planner.seconds, 1),
-                 "run_labels_per_s": round(planner.labelled / wall, 1), "wall_s": round(wall, 1),
+                 "planner_labels_per_cpu_s": round(planner.labelled / planner.cpu_seconds, 1),
+                 "run_labels_per_s": round(planner.labelled / wall, 1),
+                 "run_labels_per_cpu_s": round(planner.labelled / cpu, 1), "wall_s": round(wall, 1),
                  "load": " ".join(f"{x:.2f}" for x in os.getloadavg())}
         print(point, flush=True)
         if args.out:

@@ -3,6 +3,7 @@
     python benchmarks/oracle_labels.py [--episodes 120] [--batch 64] [--quick]
     python benchmarks/oracle_labels.py --drive 1000 --split test     # the oracle's own outcomes, on the batch
     python benchmarks/oracle_labels.py --perceived 64 --batch 32    # the replica labeller on turn_perceived
+    python benchmarks/oracle_labels.py --paths 64 --batch 64        # labels/s, numpy vs compiled engine step
 
 The states: ``--episodes`` left-turn episodes (seeds from ``--seed``; the default 7,000,000+ is used nowhere else)
 driven on the per-env training stack (``agent=ppo_turn``'s: GO/YIELD, action repeat 5, ``turn_truth``) by the
@@ -203,6 +204,31 @@ def perceived(episodes: int, B: int, seed: int) -> tuple[int, int, int, float, f
     return len(pairs), int((mine == ref).sum()), int(ref.sum()), clock[0], clock[1], wall
 
 
+def path_rates(plain, seeds, B: int) -> tuple[dict, int, int]:
+    """The batched oracle on each engine path (benchmarks/batched_speed.py's PATHS: the numpy step, the compiled
+    step) labelling the same states in turn, a seeded :class:`Coin` driving on the compiled path: labels per
+    CPU-second of each, and how many labels (of how many) the two paths agree on."""
+    from agents.batched_oracle import oracle_labels
+    from agents.batched_vec_env import BatchedLeftTurnVecEnv
+    from av_gym.sim import batched as engine
+    from batched_speed import PATHS
+
+    venv = BatchedLeftTurnVecEnv(*plain, B, action_repeat=5, actions="go_yield", pool=0)
+    obs = venv.play(iter(seeds))
+    coin, cpu, agree, n = Coin(seeds[0]), dict.fromkeys(PATHS, 0.0), 0, 0
+    while not venv.idle.all():
+        rows = np.nonzero(~venv.idle)[0]
+        labels = {}
+        for name, names in PATHS.items():
+            with engine.using_kernels(names):
+                c0 = time.process_time()
+                labels[name] = oracle_labels(venv.engine, rows)[0]
+                cpu[name] += time.process_time() - c0
+        agree, n = agree + int((labels["numpy step"] == labels["compiled step"]).sum()), n + len(rows)
+        obs, _, _, _ = venv.step(coin.predict(obs)[0])
+    return {name: n / cpu[name] for name in PATHS}, agree, n
+
+
 def agreement(recorded: dict, labels: dict) -> tuple[int, int, int, int]:
     """(decisions compared, agreeing, per-env GO count, episodes whose lengths differ)."""
     n = agree = go = differ = 0
@@ -226,7 +252,17 @@ def main() -> None:
     parser.add_argument("--split", default="test", choices=["train", "validation", "test"])
     parser.add_argument("--perceived", type=int, default=0, help="instead: this many episodes of the replica "
                         "labeller on turn_perceived (detector + tracker), checked against the per-env oracle")
+    parser.add_argument("--paths", type=int, default=0, help="instead: this many episodes labelled on both engine "
+                        "paths (numpy step, compiled step) in turn: labels / CPU-s of each")
     args = parser.parse_args()
+    if args.paths > 0:
+        print(f"load average before: {load()}", flush=True)
+        rates, agree, n = path_rates(stacks(), list(range(args.seed, args.seed + args.paths)), args.batch)
+        print(f"load average after: {load()}\n\nthe two paths' labels agree on {agree}/{n}\n")
+        print("| batched oracle, engine path | labels / CPU-s |\n|---|---:|")
+        for name, rate in rates.items():
+            print(f"| {name} | {rate:.1f} |")
+        return
     if args.quick and args.perceived > 0:  # the smoke form of --perceived: two episodes side by side
         args.perceived, args.batch = 2, 2
     if args.perceived > 0:
