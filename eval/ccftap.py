@@ -524,7 +524,7 @@ def _shields(a, configs: list[tuple[str, str]]) -> list[dict]:
 
 def _run_tasks(tasks: list[dict], workers: int) -> list[dict]:
     """Each task's row (:func:`run_case`), in ``workers`` processes, in the order of ``tasks``; a progress bar of
-    the runs on a terminal, else a line every 10 s (the full grid takes minutes)."""
+    the runs on a terminal, else a line every ~5 s (the full grid takes minutes)."""
     from conf.run_log import progress
 
     bar = functools.partial(progress, total=len(tasks), desc="ccftap", unit="run")

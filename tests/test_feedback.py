@@ -16,7 +16,7 @@ from conftest import conf
 
 
 def test_ccftap_reports_its_runs_as_they_finish(monkeypatch, capsys):
-    """It printed one line, then nothing for the grid's 3 minutes. Not on a terminal (here): a line every 10 s."""
+    """It printed one line, then nothing for the grid's 3 minutes. Not on a terminal (here): a line every 5 s."""
     import eval.ccftap as ccftap
 
     clock = iter([0.0, 4.0, 11.0, 12.0])  # the start, then after each run
