@@ -16,7 +16,7 @@ MUTATIONS = [
     ("av_gym/sim/kernels.py", "acc = acc - acc_max * (d_star / d) ** 2.0", "acc = acc - acc_max * (d_star / d) ** 2.01",
      "a constant in the IDM kernel's interaction term",
      ["tests/test_kernels.py::test_idm_kernel_is_the_numpy_idm"]),
-    ("av_gym/sim/kernels.py", "                    if dist[e] > 0:\n", "                    if dist[e] >= 0:\n",
+    ("av_gym/sim/kernels.py", "                if dist[e] > 0:\n", "                if dist[e] >= 0:\n",
      "`>` for `>=` in the collision kernel's separating-axis test",
      ["tests/test_kernels.py::test_collision_kernel_is_the_numpy_separating_axes"]),
     ("av_gym/sim/batched.py", "COMFORT_ACC_MAX, COMFORT_ACC_MIN, ACC_MAX = 6.0, -3.0, 6.0",
