@@ -57,14 +57,23 @@ class _Tee:
 
 
 def log_line(line: str, name: str, handlers: list[logging.FileHandler], level: int = logging.INFO) -> None:
-    """``line`` into each of ``handlers`` as a record of logger ``name``; blank lines and closed handlers (the run
-    folder was discarded) are skipped."""
+    """``line`` into each of ``handlers`` as a record of logger ``name``, in the handler's format; blank lines and
+    closed handlers (the run folder was discarded) are skipped. A log that cannot be written (a full disk, a file
+    size limit) is dropped from ``handlers`` without a word: logging's own error report would go to stderr, that
+    is through this copy again, and the terminal has the line anyway."""
     if not line.strip():
         return
     record = logging.LogRecord(name, level, __name__, 0, line.rstrip(), None, None)
-    for handler in handlers:
-        if getattr(handler, "stream", None) is not None:
-            handler.handle(record)
+    for handler in list(handlers):
+        handler.acquire()
+        try:
+            if handler.stream is not None:
+                handler.stream.write(handler.format(record) + handler.terminator)
+                handler.stream.flush()
+        except (OSError, ValueError):
+            handlers.remove(handler)
+        finally:
+            handler.release()
 
 
 def job_log_handlers() -> list[logging.FileHandler]:

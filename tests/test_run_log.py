@@ -84,3 +84,24 @@ def test_the_train_commands_run_log_holds_what_it_printed(tmp_path):
     log = (tmp_path / "runs" / "r" / "__main__.log").read_text()
     assert "[train] agent 'gap_acceptance' is rule-based: nothing to train" in log
     assert "[train] brief evaluation on 2 validation seeds" in log and "| gap_acceptance | 2 |" in log
+
+
+def test_a_log_that_cannot_be_written_is_dropped_quietly(job_log_file, capsys):
+    """A full disk under the log: logging's own error report went to stderr, that is through the copy again."""
+    handler = next(h for h in logging.getLogger().handlers if getattr(h, "baseFilename", "") == str(job_log_file))
+
+    class Full:
+        def write(self, text):
+            raise OSError(28, "No space left on device")
+
+        def flush(self):
+            pass
+
+    with job_log():
+        print("first")
+        handler.stream = Full()
+        print("second")
+        print("third")
+    out = capsys.readouterr()
+    assert out.out == "first\nsecond\nthird\n" and out.err == ""
+    assert job_log_file.read_text() == "[stdout][INFO] - first\n"
