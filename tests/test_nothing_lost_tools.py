@@ -328,3 +328,15 @@ def test_hydra_files_that_cannot_be_written_are_one_line_and_nothing_is_left(arg
     assert proc.returncode == 2 and len(err) == 1, (proc.returncode, proc.stderr[-3000:])
     assert err[0].startswith("error: hydra.run.dir: cannot write ") and "File too large" in err[0], err
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("tool", ["export", "operating_point"])
+def test_overwrite_never_replaces_a_folder_of_runs(tool, two_runs, shipped, tmp_path, capsys):
+    """``--overwrite`` replaces one checkpoint's files: a folder of runs (``checkpoints/``) or one that holds the
+    shipped references is refused whatever the flags, nothing in it touched."""
+    before = snapshot(tmp_path)
+    line = cli(tool_main(tool), [*export_argv(tool, two_runs["A"], tmp_path / "checkpoints"), "--overwrite"], capsys)
+    assert "holds folders (A, B, lane), so it is not one checkpoint's folder" in line, line
+    line = cli(tool_main(tool), [*export_argv(tool, two_runs["A"], tmp_path), "--overwrite"], capsys)
+    assert f"dest={tmp_path}: holds the shipped reference agents' folder" in line, line
+    assert snapshot(tmp_path) == before

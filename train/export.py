@@ -103,15 +103,21 @@ def write_checkpoint_folder(dest: Path, files: dict[str, Callable[[Path], object
 
 
 def dest_problem(run_dir: Path, dest: Path, overwrite: bool) -> str | None:
-    """Why ``dest`` (a folder outside the shipped references) may not receive ``run_dir``'s checkpoint, or None:
-    it cannot be written, it is the run's own folder, or it holds files (another run's, an earlier export) and
-    ``overwrite`` was not given."""
-    problem = folder_problem(dest, "dest")
+    """Why ``dest`` (a folder not inside the shipped references) may not receive ``run_dir``'s checkpoint, or None:
+    it holds the shipped references or other folders (``checkpoints/``), it cannot be written, it is the run's own
+    folder, or it holds files (another run's, an earlier export) and ``overwrite`` was not given."""
+    from av_gym.references import shipped_problem
+
+    problem = shipped_problem(dest, "dest", cleared=True) or folder_problem(dest, "dest")
     if problem:
         return problem
     if dest.resolve() == run_dir.resolve():
         return f"dest={dest} is run_dir itself; write the checkpoint elsewhere (e.g. {dest}-export)"
     held = sorted(p.name for p in dest.iterdir() if p.name != LOCK) if dest.is_dir() else []
+    folders = [name for name in held if (dest / name).is_dir()]
+    if folders:  # checkpoints/, say: --overwrite would replace every run in it
+        return (f"dest={dest} holds folders ({', '.join(folders[:3])}{' ...' if len(folders) > 3 else ''}), so it is "
+                f"not one checkpoint's folder; give the folder of one checkpoint, e.g. {dest}/<name>")
     if held and not overwrite:
         return (f"dest={dest} already holds {', '.join(held[:3])}{' ...' if len(held) > 3 else ''} (another run's "
                 f"or an earlier export); write elsewhere, or replace its files with {OVERWRITE}")
