@@ -103,6 +103,15 @@ def test_the_batch_refuses_bad_seeds(batch, seed) -> None:
         batch.seed(seed)
 
 
+@pytest.mark.parametrize("seeds,says", [(["x"], "seeds[0] must be a non-negative integer, got 'x'"),
+                                        ([3, -1], "seeds[1] must be a non-negative integer, got -1")])
+def test_the_batch_plays_only_seeds(batch, seeds, says) -> None:
+    """The evaluation's seeded queue: int("x") was a bare ValueError, -1 Gymnasium's seeding error."""
+    with pytest.raises(ConfigError) as err:
+        batch.play(seeds)
+    assert says in _one_line(err)
+
+
 def test_vector_env_checks_too() -> None:
     venv = gym.make_vec("av_gym/UnprotectedLeftTurn-v0", num_envs=N, sensors="turn_truth", env={"duration": 1.0})
     with pytest.raises(gym.error.ResetNeeded):

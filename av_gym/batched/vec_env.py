@@ -1,8 +1,8 @@
 """The batched left turn (:mod:`av_gym.batched.left_turn`) with the training wrappers done on the batch
 (:class:`BatchedLeftTurnBatch`, SB3's ``VecEnv`` interface without importing SB3) and as a Gymnasium ``VectorEnv``
 (:class:`BatchedLeftTurnVectorEnv`, what ``gymnasium.make_vec`` gives). The SB3 ``VecEnv`` that ``python -m train
-agent=ppo_turn agent.vec_env=batched`` trains on is :class:`av_gym_sb3.BatchedLeftTurnVecEnv` (``from av_gym_sb3
-import BatchedLeftTurnVecEnv``): the library does not import SB3 or torch.
+agent=ppo_turn agent.vec_env=batched`` trains on is :class:`av_gym_sb3.BatchedLeftTurnVecEnv`
+(``from av_gym_sb3 import BatchedLeftTurnVecEnv``): the library does not import SB3 or torch.
 
 What the batch gives: ``env=left_turn`` in both modes (traffic, CCFtap) with discrete or continuous actions, and the
 sensors of the ``turn_truth`` preset (``turn_features`` with ``source: truth``, ``turn_signals``, ``turn_intent``,
@@ -18,6 +18,7 @@ episodes (see :meth:`BatchedLeftTurn.step_autoreset`).
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 
 import gymnasium as gym
 import numpy as np
@@ -71,6 +72,14 @@ def batch_seeds(seed, n: int) -> list:
     if bad:
         raise ConfigError(f"seed[{bad[0]}] must be a non-negative integer or None, got {seeds[bad[0]]!r:.80}")
     return [None if s is None else int(s) for s in seeds]
+
+
+def _checked_seeds(seeds) -> Iterator[int]:
+    """``seeds`` (any iterable, drawn lazily), each checked as :func:`batch_seeds` checks one."""
+    for k, seed in enumerate(seeds):
+        if not _is_seed(seed):
+            raise ConfigError(f"seeds[{k}] must be a non-negative integer, got {seed!r:.80}")
+        yield int(seed)
 
 
 def _is_seed(value) -> bool:
@@ -176,7 +185,7 @@ class BatchedLeftTurnBatch:
         default ``num_envs``); an env left without one goes idle (``idle``) and is no longer stepped. The seed each
         env plays is ``row_seed``; a finished episode's is ``info["seed"]``. Returns the first observations."""
         e = self.engine
-        e.queue(seeds, self.num_envs if chunk is None else chunk)
+        e.queue(_checked_seeds(seeds), self.num_envs if chunk is None else chunk)
         self._queued = True
         rows = np.arange(self.num_envs)
         self.row_seed = e.start_queued(rows)
