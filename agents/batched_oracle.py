@@ -56,13 +56,12 @@ def go_futures(engine: BatchedLeftTurn, rows: np.ndarray | None = None, spawns: 
     if n == 0:
         return out
     f = engine.fork(rows, spawns=spawns)
-    active = np.ones(n, bool)
-    go = np.full(n, GO)
+    active, live = np.ones(n, bool), np.arange(n)
+    actions = np.full(n, GO)  # meta-actions; the ended rows' entries are not read
     turn = f.observe()
-    while active.any():
-        _, terminated, truncated = f.step(meta_actions(go, turn), active)
-        turn = f.observe()
-        live = np.nonzero(active)[0]
+    while len(live):  # features only of the rows still playing (each row's are its own)
+        actions[live] = meta_actions(np.full(len(live), GO), turn)
+        _, terminated, truncated = f.step(actions, active)
         out.min_gap[live] = np.minimum(out.min_gap[live], _nearest(f, live))
         ended = (terminated | truncated) & active
         if ended.any():
@@ -72,6 +71,9 @@ def go_futures(engine: BatchedLeftTurn, rows: np.ndarray | None = None, spawns: 
             out.arrived[e] = f.has_arrived(e, slots)
             out.end_time[e] = f.time[e]
             active &= ~ended
+        live = np.nonzero(active)[0]
+        if len(live):
+            turn = f.observe(live)
     return out
 
 

@@ -17,7 +17,9 @@ every vehicle of every environment at once instead of one Python object per vehi
   that ``reset(seed=s)`` of the per-env stack draws.
 
 The pairwise parts (leader search and IDM, regulation conflicts, collisions, closest lane) run as numba kernels
-(:mod:`av_gym.sim.kernels`, bit-identical to the numpy code here, which stays as their reference: ``KERNELS``).
+(:mod:`av_gym.sim.kernels`, the numpy code's formulas in its order, which stays as their reference: ``KERNELS``),
+and a policy step's ticks run as one compiled call (:meth:`Traffic.advance`, ``KERNELS``'s "tick"); the
+engine's state is these arrays, which its own methods fork and view (BatchedLeftTurn.fork / keep / observed).
 
 Slot order in the arrays is ``road.vehicles`` order (the regulation, collisions and neighbour ties depend on it):
 new vehicles go after the last live one, cleared vehicles are removed with a stable compaction.

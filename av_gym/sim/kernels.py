@@ -1,20 +1,26 @@
-"""Numba kernels for the batched left turn's pairwise parts.
+"""Numba kernels for the batched left turn: its pairwise parts, and the whole batch tick in one call.
 
 Why compiled code here: highway-env has no batched version of these models, and av_gym/sim/batched.py's numpy
 formulation of the pairwise parts (leader search, IDM gap, collisions, the regulation's conflict test, the closest
 lane, the ego's TTC) builds (B, N, N), (B, N, N, T) or (vehicles, lanes) arrays, gathers the candidates with
 ``nonzero`` and evaluates them in many small array calls; at B = 256 that bookkeeping, not the arithmetic, was
 most of their cost (docs/performance.md, "Numba kernels"). A loop over the candidates skips the masks and stops at
-the first hit.
+the first hit. :func:`advance` then runs a policy step's ticks of every env (act, regulation, kinematics, closest
+lane, collisions, arrivals) in one call, the pairwise parts as per-env helpers it shares with the batch kernels:
+Python runs once per batch step instead of once per part (docs/performance.md, "One compiled batch step").
 
 What stays identical: each kernel evaluates the numpy code's formulas in the same order of operations (no
 ``fastmath``, so no reassociation or fused multiply-adds), on the same inputs, and makes every decision with the
-same comparisons (``<=`` / ``<``, first or last on ties as there). numba's ``math`` calls the C library, and so
-do numpy's float64 ufuncs on this project's (AVX2) machines, so the kernels reproduce the numpy path bit for bit:
-tests/test_kernels.py checks each kernel against the numpy code on random inputs with ties and exact contacts, and
-whole batch runs with and without kernels (where a numpy build uses its own SIMD maths, e.g. AVX-512, floats may
-differ in the last bit, as the numpy path's own results already do between batch layouts). ``cache=True``: compiled once per
-checkout into ``__pycache__`` (cold: ~5-9 s for all of them), so later processes only load them.
+same comparisons (``<=`` / ``<``, first or last on ties as there; a ``hypot(dx, dy) <= bound`` pre-check is
+decided from the squared length where that cannot differ, :func:`_within`). numba's ``math`` calls the C library;
+numpy's float64 ufuncs do too on AVX2 builds, where the kernels reproduce the numpy path bit for bit. An AVX-512
+numpy build uses its own SIMD sin / cos / tan / arcsin / arctan / power, which differ from the C library's in the
+last bit: each kernel still equals the numpy code to 1e-12 relative with identical decisions (tests/_numerics.py),
+but over whole runs of the fused tick (which also moves steering and kinematics to the C library) those last bits
+grow as any perturbation of the traffic does, so tests/test_kernels.py compares the tick with the numpy path step by
+step from the same state, and whole episodes by their outcome (>= 99.5 %; 1,000 / 1,000 measured on AVX-512).
+``cache=True``: compiled once per checkout into ``__pycache__`` (cold: ~14 CPU-s for all of them), so later
+processes only load them.
 
 The lane table is passed as one (L, 15) float array (:func:`lane_array`); column indices below.
 """
@@ -133,10 +139,15 @@ def front(lt, lanes, x, y, alive, vehicle_length):
 @numba.njit(cache=True)
 def _front_one(lt, k, b, i, x, y, alive, vehicle_length):
     """:func:`front` for vehicle i of env b on lane ``k``: the leader's slot, -1 if none."""
+    return _front_from(lt, k, _local(lt, k, x[b, i], y[b, i])[0], b, i, x, y, alive, vehicle_length)
+
+
+@numba.njit(cache=True)
+def _front_from(lt, k, s_self, b, i, x, y, alive, vehicle_length):
+    """:func:`_front_one` with the vehicle's own ``s_self`` on lane ``k`` already known."""
     N = x.shape[1]
     x0, y0 = lt[k, BX0] + -6.0, lt[k, BY0] + -6.0
     x1, y1 = lt[k, BX1] + 6.0, lt[k, BY1] + 6.0
-    s_self = _local(lt, k, x[b, i], y[b, i])[0]
     half, end = lt[k, WIDTH] / 2 + 1, lt[k, LENGTH] + vehicle_length
     best, jbest = np.inf, -1
     for j in range(N):
@@ -377,16 +388,28 @@ def idm(lt, x, y, h, v, target, delta, lane, front, speed_limit, acc_max, acc_mi
 def _idm_one(lt, b, i, f, x, y, h, v, target, delta, lane, speed_limit, acc_max, acc_min, distance_wanted,
              time_wanted):
     """:func:`idm` for vehicle i of env b with the leader ``f`` (-1: none)."""
+    if f < 0:
+        return _idm_with(lt, b, i, f, 0.0, 0.0, 0.0, 0.0, 0.0, x, y, v, target, delta, lane, speed_limit, acc_max,
+                         acc_min, distance_wanted, time_wanted)
+    return _idm_with(lt, b, i, f, _local(lt, lane[b, i], x[b, i], y[b, i])[0], math.cos(h[b, i]), math.sin(h[b, i]),
+                     math.cos(h[b, f]), math.sin(h[b, f]), x, y, v, target, delta, lane, speed_limit, acc_max,
+                     acc_min, distance_wanted, time_wanted)
+
+
+@numba.njit(cache=True)
+def _idm_with(lt, b, i, f, s_i, ci, si, cf, sf, x, y, v, target, delta, lane, speed_limit, acc_max, acc_min,
+              distance_wanted, time_wanted):
+    """:func:`_idm_one` with what it shares with the leader search known: the vehicle's own s on its lane
+    (``s_i``, m) and the cosines and sines of its heading and the leader's (unused when ``f`` is -1)."""
     ab = -acc_max * acc_min
     k = lane[b, i]
     tg = min(max(target[b, i], 0.0), speed_limit[k])
     tg = tg if abs(tg) > 1e-2 else (1e-2 if tg >= 0 else -1e-2)
     acc = acc_max * (1 - (max(v[b, i], 0.0) / abs(tg)) ** delta[b, i])
     if f >= 0:
-        d = _local(lt, k, x[b, f], y[b, f])[0] - _local(lt, k, x[b, i], y[b, i])[0]
+        d = _local(lt, k, x[b, f], y[b, f])[0] - s_i
         d = d if abs(d) > 1e-2 else (1e-2 if d >= 0 else -1e-2)
-        c, sn = math.cos(h[b, i]), math.sin(h[b, i])
-        dv = (v[b, i] * c - v[b, f] * math.cos(h[b, f])) * c + (v[b, i] * sn - v[b, f] * math.sin(h[b, f])) * sn
+        dv = (v[b, i] * ci - v[b, f] * cf) * ci + (v[b, i] * si - v[b, f] * sf) * si
         d_star = distance_wanted + v[b, i] * time_wanted + v[b, i] * dv / (2 * math.sqrt(ab))
         acc = acc - acc_max * (d_star / d) ** 2.0
     return acc
@@ -418,12 +441,13 @@ def advance(lt, lanes, x, y, h, v, target, steer, acc, delta, alive, ego, plain,
                     -prm[P_LENGTH] / 2])
     cly = np.array([-prm[P_WIDTH] / 2, prm[P_WIDTH] / 2, prm[P_WIDTH] / 2, -prm[P_WIDTH] / 2, -prm[P_WIDTH] / 2])
     pa, pb, nrm, dist = np.empty((5, 2)), np.empty((5, 2)), np.empty((8, 2)), np.empty(8)
+    ch, sh = np.empty(N), np.empty(N)
     for b in range(B):
         if not active[b]:
             continue
         for frame in range(frames):
             _act_row(lt, lanes, b, x, y, h, v, target, steer, acc, delta, alive, ego, plain, crashed, lane, tlane,
-                     route, rpos, meta[b] if frame == 0 else -1, speeds, cmd[b], prm)
+                     route, rpos, meta[b] if frame == 0 else -1, speeds, cmd[b], prm, ch, sh)
             road_steps[b] += 1
             if road_steps[b] % reg_period == 0:
                 _road_rules_row(lt, lanes, b, x, y, h, v, target, alive, plain, mdp, yielding, lane, route, rpos,
@@ -451,7 +475,7 @@ def _arrived(lt, lanes, b, x, y, ego, lane, exit_distance):
 
 @numba.njit(cache=True)
 def _act_row(lt, lanes, b, x, y, h, v, target, steer, acc, delta, alive, ego, plain, crashed, lane, tlane, route,
-             rpos, meta, speeds, cmd, prm):
+             rpos, meta, speeds, cmd, prm, ch, sh):
     """Traffic.act for env b: the ego's meta-action (MDPVehicle.act), then per controlled vehicle follow_road,
     steering_control and IDM (the min over the current and the target lane's leader while they differ), or the
     ego's speed control / commanded acceleration."""
@@ -464,35 +488,43 @@ def _act_row(lt, lanes, b, x, y, h, v, target, steer, acc, delta, alive, ego, pl
                 idx = min(max(np.rint((v[b, i] - speeds[0]) / (speeds[n_s - 1] - speeds[0]) * (n_s - 1)), 0.0),
                           n_s - 1.0)
                 target[b, i] = speeds[int(min(max(idx + step, 0.0), n_s - 1.0))]
+    for j in range(N):  # IDM reads each heading's cosine and sine up to three times a tick
+        if alive[b, j]:
+            ch[j], sh[j] = math.cos(h[b, j]), math.sin(h[b, j])
+    vl = prm[P_VEHICLE_LENGTH]
     for i in range(N):
         if not alive[b, i] or plain[b, i] or (crashed[b, i] and not ego[b, i]):
             continue  # IDMVehicle.act returns early when crashed; a plain Vehicle keeps its action
-        _follow_road_one(lt, lanes, b, i, x, y, tlane, route, rpos, prm[P_VEHICLE_LENGTH])
-        s_ = _steering_one(lt, b, i, x, y, h, v, tlane, prm)
-        steer[b, i] = min(max(s_, -prm[P_MAX_STEER]), prm[P_MAX_STEER])
+        k = tlane[b, i]  # follow_road, then steering on the (new) target lane: one local_coordinates if unchanged
+        s, r = _local(lt, k, x[b, i], y[b, i])
+        if s > lt[k, LENGTH] - vl / 2:
+            _next_route_step(lanes, b, i, k, tlane, route, rpos)
+            if tlane[b, i] != k:
+                k = tlane[b, i]
+                s, r = _local(lt, k, x[b, i], y[b, i])
+        steer[b, i] = min(max(_steering_sr(lt, k, s, r, v[b, i], h[b, i], prm), -prm[P_MAX_STEER]), prm[P_MAX_STEER])
         if ego[b, i]:
             if math.isnan(cmd):
                 acc[b, i] = prm[P_KP_A] * (target[b, i] - v[b, i])
             else:  # RouteFollowingVehicle.act: no reversing, a standstill is held
                 acc[b, i] = max(cmd, -v[b, i] / 0.05)
             continue
-        a = _idm_one(lt, b, i, _front_one(lt, lane[b, i], b, i, x, y, alive, prm[P_VEHICLE_LENGTH]), x, y, h, v,
-                     target, delta, lane, lanes[:, 0], prm[P_COMFORT_MAX], prm[P_COMFORT_MIN], prm[P_DISTANCE],
-                     prm[P_TIME])
-        if lane[b, i] != tlane[b, i]:
-            a2 = _idm_one(lt, b, i, _front_one(lt, tlane[b, i], b, i, x, y, alive, prm[P_VEHICLE_LENGTH]), x, y, h,
-                          v, target, delta, lane, lanes[:, 0], prm[P_COMFORT_MAX], prm[P_COMFORT_MIN],
-                          prm[P_DISTANCE], prm[P_TIME])
-            a = min(a, a2)
+        kl = lane[b, i]
+        s_l = s if kl == k else _local(lt, kl, x[b, i], y[b, i])[0]
+        f = _front_from(lt, kl, s_l, b, i, x, y, alive, vl)
+        a = _idm_with(lt, b, i, f, s_l, ch[i], sh[i], ch[max(f, 0)], sh[max(f, 0)], x, y, v, target, delta, lane,
+                      lanes[:, 0], prm[P_COMFORT_MAX], prm[P_COMFORT_MIN], prm[P_DISTANCE], prm[P_TIME])
+        if kl != k:  # changing lanes: also the target lane's leader, the gap still measured on the current lane
+            f = _front_from(lt, k, s, b, i, x, y, alive, vl)
+            a = min(a, _idm_with(lt, b, i, f, s_l, ch[i], sh[i], ch[max(f, 0)], sh[max(f, 0)], x, y, v, target,
+                                 delta, lane, lanes[:, 0], prm[P_COMFORT_MAX], prm[P_COMFORT_MIN], prm[P_DISTANCE],
+                                 prm[P_TIME]))
         acc[b, i] = min(max(a, -prm[P_ACC_MAX]), prm[P_ACC_MAX])
 
 
 @numba.njit(cache=True)
-def _follow_road_one(lt, lanes, b, i, x, y, tlane, route, rpos, vehicle_length):
-    """Traffic._follow_road for one vehicle: past its target lane's end, the route's next step."""
-    k = tlane[b, i]
-    if not _local(lt, k, x[b, i], y[b, i])[0] > lt[k, LENGTH] - vehicle_length / 2:
-        return
+def _next_route_step(lanes, b, i, k, tlane, route, rpos):
+    """Traffic._follow_road for one vehicle past the end of its target lane ``k``: the route's next step."""
     p = rpos[b, i]
     if p < 3 and route[b, i, p] == k:
         p += 1
@@ -520,15 +552,13 @@ def _clip(a, lo, hi):
 
 
 @numba.njit(cache=True)
-def _steering_one(lt, b, i, x, y, h, v, tlane, prm):
-    """Traffic._steering (ControlledVehicle.steering_control) for one vehicle."""
-    k = tlane[b, i]
-    s, r = _local(lt, k, x[b, i], y[b, i])
-    future_heading = _heading_at(lt, k, s + v[b, i] * prm[P_TAU])
-    v_nz = _not_zero(v[b, i])
+def _steering_sr(lt, k, s, r, v, h, prm):
+    """Traffic._steering (ControlledVehicle.steering_control) for one vehicle at (s, r) on its target lane k."""
+    future_heading = _heading_at(lt, k, s + v * prm[P_TAU])
+    v_nz = _not_zero(v)
     heading_cmd = math.asin(_clip(-prm[P_KP_LAT] * r / v_nz, -1.0, 1.0))
     heading_ref = future_heading + _clip(heading_cmd, -math.pi / 4, math.pi / 4)
-    rate = prm[P_KP_HEAD] * ((heading_ref - h[b, i] + math.pi) % (2 * math.pi) - math.pi)
+    rate = prm[P_KP_HEAD] * ((heading_ref - h + math.pi) % (2 * math.pi) - math.pi)
     slip = math.asin(_clip(prm[P_LENGTH] / 2 / v_nz * rate, -1.0, 1.0))
     return _clip(math.atan(2 * math.tan(slip)), -prm[P_MAX_STEER], prm[P_MAX_STEER])
 
