@@ -408,10 +408,11 @@ class BatchedLeftTurn:
         """The left turn's step prologue: IntersectionEnv._clear_vehicles, then one spawn try at
         spawn_probability / policy_frequency."""
         t, T = self.traffic, self.T
-        s, _ = T.local(t.lane, t.x, t.y)
-        leaving = T.exit[t.lane] & (s >= T.length[t.lane] - 4 * LENGTH)
         gone = np.zeros_like(t.alive)
-        gone[rows] = (t.alive & ~t.ego & leaving)[rows]
+        gone[rows] = (t.alive & ~t.ego & T.exit[t.lane])[rows]  # on a leaving lane; then: near its end?
+        b, i = np.nonzero(gone)
+        s, _ = T.local(t.lane[b, i], t.x[b, i], t.y[b, i])
+        gone[b, i] = s >= T.length[t.lane[b, i]] - 4 * LENGTH
         if gone.any():
             t.alive &= ~gone
             t.compact()
