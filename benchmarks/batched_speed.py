@@ -2,7 +2,7 @@
 (with the pairwise kernels: the engine before the compiled step), interleaved in one process.
 
     python benchmarks/batched_speed.py [--sizes 1 4 16 64 256 1024] [--seconds 4] [--out docs/batched_speed.png]
-    python benchmarks/batched_speed.py --sizes 256 1024 --seconds 6        # the issue-46 targets, ~2 min
+    python benchmarks/batched_speed.py --sizes 256 1024 --seconds 6        # the sizes the targets name, ~2 min
     python benchmarks/batched_speed.py --profile 256                       # one batch step, profiled
 
 Env steps per CPU-second on one core (``time.process_time``: robust to other jobs sharing the cores; numpy's

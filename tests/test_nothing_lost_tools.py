@@ -1,4 +1,4 @@
-"""Nothing lost, everywhere a tool writes (issue 45): the shipped references are read-only to every tool whatever
+"""Nothing lost, everywhere a tool writes: the shipped references are read-only to every tool whatever
 its run_name, paths or flags; every tool that writes a run or an export folder takes that folder's lock and
 replaces another run's files only when asked; the side tools check what they are given in one line; and a run
 stopped before its first checkpoint is told what starts it again. One test per reproduction of the issue."""
