@@ -4,10 +4,10 @@
 
 writes ``contact_sheet.png`` into ``--out`` (default: docs/cameras/, which docs/sensors.md shows): one row per
 scene, each a montage of the left, centre and right 66×200 images, upscaled ×2 with nearest-neighbour so the pixels
-the network sees stay visible, with a caption strip. Scenes: the lap's straight, the approach to layout A's left hairpin and layout B's
-right hairpin, inside the left hairpin, the intersection with oncoming traffic and the CCFtap target, the camera
-noise at its defaults and heavy, fog and night. ``--each`` also writes each scene's montage (×3) and
-``centre_hires.png`` (the centre camera at 264×800, for detail) beside it.
+the network sees stay visible, with a caption strip. Scenes: the lap's straight, the approach to layout A's left
+hairpin and layout B's right hairpin, inside the left hairpin, the intersection with oncoming traffic and the CCFtap
+target, the camera noise at its defaults and heavy, fog and night. ``--each`` also writes each scene's montage (×3)
+and ``centre_hires.png`` (the centre camera at 264×800, for detail) beside it.
 """
 
 from __future__ import annotations

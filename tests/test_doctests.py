@@ -1,6 +1,7 @@
 """The runnable examples of the public docstrings (Gymnasium's style, ``>>> import gymnasium as gym ...``) run as
 doctests in the fast suite: the sensor wrappers, the package and :func:`av_gym.api.make` (``gym.make`` with the
-harness's keywords, a checkpoint's env) and :func:`av_gym.make.make_env`. An example whose output no longer matches the code fails here."""
+harness's keywords, a checkpoint's env) and :func:`av_gym.make.make_env`. An example whose output no longer
+matches the code fails here."""
 
 from __future__ import annotations
 
