@@ -5,10 +5,11 @@ agent=ppo_turn agent.vec_env=batched`` trains on is :class:`av_gym_sb3.BatchedLe
 (``from av_gym_sb3 import BatchedLeftTurnVecEnv``): the library does not import SB3 or torch.
 
 What the batch gives: ``env=left_turn`` in both modes (traffic, CCFtap) with discrete or continuous actions, and the
-sensors of the ``turn_truth`` preset (``turn_features`` with ``source: truth``, ``turn_signals``, ``turn_intent``,
-``observe``); agent options ``actions`` (an action set of :data:`av_gym.wrappers.ACTION_SETS`, mapped by its own
-function), ``action_repeat``, ``timeout_is_terminal``. Anything else (another sensor, a shield) is refused
-with one line naming it; it runs on the per-env stack.
+sensors of the ``turn_truth`` presets (``turn_features`` with ``source: truth``, ``turn_signals``, ``turn_intent``,
+``observe``) and of the ``turn_perceived`` presets (``detector`` → ``tracker`` → ``turn_features`` with ``source:
+tracks``, :mod:`av_gym.batched.perception`); agent options ``actions`` (an action set of
+:data:`av_gym.wrappers.ACTION_SETS`, mapped by its own function), ``action_repeat``, ``timeout_is_terminal``.
+Anything else (another sensor, a shield) is refused with one line naming it; it runs on the per-env stack.
 
 Auto-reset: an env whose episode ended starts its next one at once (SB3's convention: the step returns the new
 episode's first observation, the last one is ``info["terminal_observation"]``), taken from a pool of ready
@@ -26,11 +27,14 @@ from gymnasium import spaces
 
 from av_gym.actions import check_actions
 from av_gym.batched.left_turn import BatchedIntent, BatchedLeftTurn
+from av_gym.batched.perception import BatchedPerception, check_perceived, perceived
 from av_gym.errors import ConfigError
+from av_gym.estimation.object_tracking import BOUND as TRACK_BOUND
 from av_gym.estimation.turn_features import TurnFeaturesParams
 from av_gym.wrappers import action_set, meta_actions  # noqa: F401 - meta_actions: imported from here too
 
 SENSORS = ("name", "turn_features", "turn_signals", "turn_intent", "observe", "keep_state")
+PERCEIVED = ("detector", "tracker")  # with turn_features.source=tracks (av_gym.batched.perception)
 
 
 def check_batchable(env_cfg: dict, sensors_cfg: dict | None, shield_cfg: dict | None) -> None:
@@ -38,16 +42,17 @@ def check_batchable(env_cfg: dict, sensors_cfg: dict | None, shield_cfg: dict | 
     if env_cfg.get("name") != "left_turn":
         raise ConfigError(f"agent.vec_env=batched runs env=left_turn only, got env={env_cfg.get('name')}")
     s = dict(sensors_cfg or {})
+    allowed = SENSORS + (PERCEIVED if perceived(s) else ())
     for key in s:
-        if key not in SENSORS:
+        if key not in allowed:
             raise ConfigError(f"sensors.{key} is not available with agent.vec_env=batched (the batch gives "
-                              f"turn_features, turn_signals, turn_intent); use agent.vec_env=subproc")
-    if (s.get("turn_features") or {}).get("source", "truth") != "truth":
-        raise ConfigError("sensors.turn_features.source=tracks is not available with agent.vec_env=batched (no "
-                          "tracker on the batch); use agent.vec_env=subproc")
+                              f"turn_features, turn_signals, turn_intent, and detector, tracker under "
+                              f"turn_features.source=tracks); use agent.vec_env=subproc")
     if "turn_features" not in s:
-        raise ConfigError(f"agent.vec_env=batched needs sensors with turn_features (sensors=turn_truth), got "
-                          f"sensors={s.get('name', 'truth')}")
+        raise ConfigError(f"agent.vec_env=batched needs sensors with turn_features (sensors=turn_truth or "
+                          f"turn_perceived), got sensors={s.get('name', 'truth')}")
+    if perceived(s):
+        check_perceived(s)
     kind = (shield_cfg or {}).get("kind", (shield_cfg or {}).get("name", "none"))
     if kind not in (None, "none"):
         raise ConfigError(f"shield={kind} is not available with agent.vec_env=batched; use agent.vec_env=subproc")
@@ -103,6 +108,7 @@ class BatchedLeftTurnBatch:
         s = dict(sensors_cfg)
         features = TurnFeaturesParams.from_mapping(s.get("turn_features") or {}, "sensors.turn_features")
         self.engine = BatchedLeftTurn(n_envs, config, features, pool=max(8, n_envs // 4) if pool is None else pool)
+        self.perception = BatchedPerception(self.engine, s) if perceived(s) else None
         self.keys = list(s.get("observe") or ["turn", *(["signals"] if "turn_signals" in s else []),
                                               *(["intent"] if "turn_intent" in s else [])])
         need_intent = "intent" in self.keys or "signals" in self.keys
@@ -111,6 +117,10 @@ class BatchedLeftTurnBatch:
         M = self.engine.max_objects
         all_spaces = {"turn": spaces.Box(-1.0, 1.0, (self.engine.n_features,), np.float32),
                       "intent": spaces.Box(-1.0, 1.0, (M, self.intent.past.width if self.intent else 2), np.float32)}
+        if self.perception is not None:  # the per-env stack's obs["detector"] and obs["tracks"]
+            all_spaces["detector"] = self.perception.detector.sensor_space()
+            all_spaces["tracks"] = spaces.Box(-TRACK_BOUND, TRACK_BOUND, self.perception.last_tracks.shape[1:],
+                                              np.float32)
         if self.intent is not None and self.intent.sig is not None:
             all_spaces["signals"] = spaces.Box(-1e4, 1e4, (int(self.intent.sig.max_objects), 4), np.float32)
         missing = [k for k in self.keys if k not in all_spaces]
@@ -143,14 +153,19 @@ class BatchedLeftTurnBatch:
 
     # ---------------------------------------------------------------------------------------------- observe
     def _observe(self, rows: np.ndarray, new_episode: np.ndarray | None = None, trace: bool = True) -> dict:
-        e = self.engine
-        turn = e.observe(rows)
+        e, seen = self.engine, self.perception
+        if seen is not None and new_episode is not None and new_episode.any():
+            seen.reset(rows[new_episode])
+        turn = e.observe(rows) if seen is None else seen.observe(rows)
         out = {"turn": turn}
+        if seen is not None:
+            out["detector"], out["tracks"] = seen.last_detections[rows], seen.last_tracks[rows]
         if self.intent is not None:
             if new_episode is not None and new_episode.any():
                 self.intent.reset(rows[new_episode])
             signals = self.intent.signals(rows) if self.intent.sig is not None else None
-            out["intent"] = self.intent.intent(rows, signals)
+            out["intent"] = self.intent.intent(rows, signals) if seen is None else seen.intent(self.intent, rows,
+                                                                                               signals)
             if signals is not None:
                 out["signals"] = signals
         tr = e.last_truth
