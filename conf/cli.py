@@ -82,10 +82,12 @@ class Extend(argparse.Action):
 
 def out_folder_problem(path: str, flag: str) -> str | None:
     """Why folder ``path`` (given to ``flag``) cannot be made and written, in one line (``--out README.md/x``: a
-    file where a folder must be), or None; checked before the tool runs (:func:`av_gym.errors.folder_problem`)."""
+    file where a folder must be; a folder inside the shipped references, read-only to every tool), or None;
+    checked before the tool runs (:func:`av_gym.errors.folder_problem`)."""
     from av_gym.errors import folder_problem
+    from av_gym.references import shipped_problem
 
-    return folder_problem(path, flag)
+    return shipped_problem(path, flag) or folder_problem(path, flag)
 
 
 def out_file_problem(path: str, flag: str) -> str | None:

@@ -340,3 +340,18 @@ def test_overwrite_never_replaces_a_folder_of_runs(tool, two_runs, shipped, tmp_
     line = cli(tool_main(tool), [*export_argv(tool, two_runs["A"], tmp_path), "--overwrite"], capsys)
     assert f"dest={tmp_path}: holds the shipped reference agents' folder" in line, line
     assert snapshot(tmp_path) == before
+
+
+@pytest.mark.parametrize("tool", ["eval.interventions", "eval.results_page", "eval.ccftap"])
+def test_side_tools_never_write_into_a_shipped_reference(tool, shipped, capsys):
+    """The side tools' ``--out`` (conf/cli.py ``out_folder_problem``, ``out_file_problem``) inside the shipped
+    references: one line, nothing written there."""
+    import importlib
+    import sys
+
+    main = importlib.import_module(tool).main
+    out = shipped / "ppo_turn" / ("page.md" if tool == "eval.results_page" else "out")
+    before = snapshot(shipped)
+    line = cli(lambda argv: sys.exit(main(argv)), ["--out", str(out)], capsys)  # as its command line runs it
+    assert "is inside the shipped reference agents' folder" in line, line
+    assert snapshot(shipped) == before
