@@ -21,7 +21,10 @@ perceived mode) and of the counterfactual's collision partner, from the road net
 
 Writes ``interventions.csv`` (one row per intervention), ``episodes.csv`` (one row per episode: the metrics of
 ``python -m eval`` plus the counts) and ``interventions.md`` (the traffic table and the needed/unneeded table by
-partner type).
+partner type) into ``--out``, with ``python -m eval``'s guards: the folder is held while the tables are written
+(``--out/.lock``; a second run into it is refused), tables already there are replaced only with ``--overwrite``,
+the seeds must lie in ``--split`` (default validation; reported runs say ``--split test``), and every count and
+duration has bounds. Bad input is one line, exit status 2, before any episode.
 """
 
 from __future__ import annotations

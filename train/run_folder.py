@@ -17,6 +17,13 @@
   alike: ``latest.zip`` is what a resume continues (PPO: at a rollout, DAgger: at a round), ``model.zip`` what ends
   a run; a kind that writes neither (PilotNet, a rule) has nothing to resume.
 
+- the shipped references (:func:`av_gym.references.reference_root`) are neither a run's folder nor inside one, nor
+  held by one (``run_name=reference``, ``paths.checkpoints=checkpoints/reference``, ``paths.runs=.``), whatever
+  ``train.resume``/``train.overwrite`` say: ``train.overwrite=true`` would clear them;
+- a refusal gives only advice that works: a finished run is not told to resume; a run of a trained kind stopped
+  before its first checkpoint (its folder holds only config.yaml) is told that ``train.overwrite=true`` starts it
+  again.
+
 ``.``/``..`` and path separators in ``run_name`` are refused by its Params (``name_like``).
 """
 
