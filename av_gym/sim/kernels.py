@@ -93,7 +93,7 @@ def _within(dx, dy, bound):
     return math.hypot(dx, dy) <= bound
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _closest_one(lt, xm, ym, hm, lb):
     """:func:`closest` for one vehicle (``lb``: scratch, (L, 2): each lane box's distance components). The nearest
     box is the first least hypot among the boxes whose squared distance is within 1e-9 of the least (no other can
@@ -136,13 +136,13 @@ def front(lt, lanes, x, y, alive, vehicle_length):
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _front_one(lt, k, b, i, x, y, alive, vehicle_length):
     """:func:`front` for vehicle i of env b on lane ``k``: the leader's slot, -1 if none."""
     return _front_from(lt, k, _local(lt, k, x[b, i], y[b, i])[0], b, i, x, y, alive, vehicle_length)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _front_from(lt, k, s_self, b, i, x, y, alive, vehicle_length):
     """:func:`_front_one` with the vehicle's own ``s_self`` on lane ``k`` already known."""
     N = x.shape[1]
@@ -266,7 +266,7 @@ def conflicts(px, py, ph, alive, length, width):
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _conflict_pair(px, py, ph, i, j, length, lx, ly, hl, hw):
     """:func:`conflicts` for vehicles i and j of one env, their predictions (N, T): the first prediction time
     whose centres are within ``length`` and whose boxes intersect decides."""
@@ -379,28 +379,22 @@ def idm(lt, x, y, h, v, target, delta, lane, front, speed_limit, acc_max, acc_mi
     out = np.empty((B, N))
     for b in range(B):
         for i in range(N):
-            out[b, i] = _idm_one(lt, b, i, front[b, i], x, y, h, v, target, delta, lane, speed_limit, acc_max,
-                                 acc_min, distance_wanted, time_wanted)
+            f = front[b, i]
+            s_i, ci, si, cf, sf = 0.0, 0.0, 0.0, 0.0, 0.0  # what IDM shares with the leader search, when it has one
+            if f >= 0:
+                s_i = _local(lt, lane[b, i], x[b, i], y[b, i])[0]
+                ci, si, cf, sf = math.cos(h[b, i]), math.sin(h[b, i]), math.cos(h[b, f]), math.sin(h[b, f])
+            out[b, i] = _idm_with(lt, b, i, f, s_i, ci, si, cf, sf, x, y, v, target, delta, lane, speed_limit,
+                                  acc_max, acc_min, distance_wanted, time_wanted)
     return out
 
 
-@numba.njit(cache=True)
-def _idm_one(lt, b, i, f, x, y, h, v, target, delta, lane, speed_limit, acc_max, acc_min, distance_wanted,
-             time_wanted):
-    """:func:`idm` for vehicle i of env b with the leader ``f`` (-1: none)."""
-    if f < 0:
-        return _idm_with(lt, b, i, f, 0.0, 0.0, 0.0, 0.0, 0.0, x, y, v, target, delta, lane, speed_limit, acc_max,
-                         acc_min, distance_wanted, time_wanted)
-    return _idm_with(lt, b, i, f, _local(lt, lane[b, i], x[b, i], y[b, i])[0], math.cos(h[b, i]), math.sin(h[b, i]),
-                     math.cos(h[b, f]), math.sin(h[b, f]), x, y, v, target, delta, lane, speed_limit, acc_max,
-                     acc_min, distance_wanted, time_wanted)
-
-
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _idm_with(lt, b, i, f, s_i, ci, si, cf, sf, x, y, v, target, delta, lane, speed_limit, acc_max, acc_min,
               distance_wanted, time_wanted):
-    """:func:`_idm_one` with what it shares with the leader search known: the vehicle's own s on its lane
-    (``s_i``, m) and the cosines and sines of its heading and the leader's (unused when ``f`` is -1)."""
+    """:func:`idm` for vehicle i of env b with the leader ``f`` (-1: none), given what it shares with the leader
+    search: the vehicle's own s on its lane (``s_i``, m) and the cosines and sines of its heading and the leader's
+    (unused when ``f`` is -1)."""
     ab = -acc_max * acc_min
     k = lane[b, i]
     tg = min(max(target[b, i], 0.0), speed_limit[k])
@@ -461,7 +455,7 @@ def advance(lt, lanes, x, y, h, v, target, steer, acc, delta, alive, ego, plain,
                 arrived_time[b] = time[b]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _arrived(lt, lanes, b, x, y, ego, lane, exit_distance):
     """BatchedLeftTurn.has_arrived for env b's ego (the first ego slot, slot 0 if none, as np.argmax)."""
     e = 0
@@ -522,7 +516,7 @@ def _act_row(lt, lanes, b, x, y, h, v, target, steer, acc, delta, alive, ego, pl
         acc[b, i] = min(max(a, -prm[P_ACC_MAX]), prm[P_ACC_MAX])
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _next_route_step(lanes, b, i, k, tlane, route, rpos):
     """Traffic._follow_road for one vehicle past the end of its target lane ``k``: the route's next step."""
     p = rpos[b, i]
@@ -533,7 +527,7 @@ def _next_route_step(lanes, b, i, k, tlane, route, rpos):
     rpos[b, i] = p
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _heading_at(lt, k, s):
     """LaneTable.heading_at for one lane."""
     if lt[k, CIRC] != 0.0:
@@ -541,17 +535,17 @@ def _heading_at(lt, k, s):
     return lt[k, HEAD]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _not_zero(a):
     return a if abs(a) > 1e-2 else (1e-2 if a >= 0 else -1e-2)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _clip(a, lo, hi):
     return min(max(a, lo), hi)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _steering_sr(lt, k, s, r, v, h, prm):
     """Traffic._steering (ControlledVehicle.steering_control) for one vehicle at (s, r) on its target lane k."""
     future_heading = _heading_at(lt, k, s + v * prm[P_TAU])
@@ -621,7 +615,7 @@ def _road_rules_row(lt, lanes, b, x, y, h, v, target, alive, plain, mdp, yieldin
                 yielding[b, yv] = True
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _predict_one(lt, b, i, x, y, h, v, plain, lane, route, rpos, reg_times, px, py, ph):
     """Traffic._predict for one vehicle into row i of (N, T) ``px``, ``py``, ``ph``: constant speed along the rest
     of its route (a plain vehicle: a straight line along its heading)."""
