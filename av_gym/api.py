@@ -53,8 +53,8 @@ def left_turn_vector(num_envs: int, *, env: Mapping | None = None, sensors: Any 
                      action_repeat: int = 1) -> gym.vector.VectorEnv:
     """``vector_entry_point`` of ``av_gym/UnprotectedLeftTurn-v0``: the batched engine (all envs in one numpy
     batch, :mod:`av_gym.batched.vec_env`), what ``gymnasium.make_vec(id, n)`` gives when no
-    ``vectorization_mode`` is named. It runs the ``turn_truth`` sensors without a shield; anything else is refused
-    in one line (``vectorization_mode="sync"`` or ``"async"`` runs every stack)."""
+    ``vectorization_mode`` is named. It runs the ``turn_truth`` and ``turn_perceived`` sensors without a shield;
+    anything else is refused in one line (``vectorization_mode="sync"`` or ``"async"`` runs every stack)."""
     import numbers
 
     from av_gym.batched.vec_env import BatchedLeftTurnVectorEnv, check_batchable
@@ -69,8 +69,8 @@ def left_turn_vector(num_envs: int, *, env: Mapping | None = None, sensors: Any 
     if render_mode is not None:
         raise ConfigError(f"render_mode is not available with the batched engine; {other}")
     if sensors is None:
-        raise ConfigError(f"the batched engine needs sensors=\"turn_truth\" (it computes the turn features, not "
-                          f"the privileged state); {other}")
+        raise ConfigError(f"the batched engine needs sensors=\"turn_truth\" or \"turn_perceived\" (it computes the "
+                          f"turn features, not the privileged state); {other}")
     env_cfg = deep_merge(preset("env", "left_turn"), _mapping(env or {}, "env"))
     sensors_cfg, shield_cfg = as_section("sensors", sensors, "truth"), as_section("shield", shield, "none")
     try:

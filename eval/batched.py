@@ -11,9 +11,11 @@ What runs: ``env=left_turn`` in either mode (traffic; ``env.mode=ccftap`` with i
 either action type, no shield, and the agents ``always_proceed`` (it reads no observation: it runs on the batch
 whatever the sensors), ``gap_acceptance``, the ``lookahead`` oracle (its GO futures played for every env that
 decides, all at once, by :mod:`agents.batched_oracle`: the per-env oracle's decisions, ~20x its labels per second)
-and PPO / DAgger checkpoints trained on the batch's sensors (``turn_truth``: turn features from truth, turn signals,
-intent). Anything else (a shield; ``turn_perceived``) is refused in one line before any episode runs, and runs with
-``vec_env=subproc``.
+and PPO / DAgger checkpoints on the batch's sensors: ``turn_truth`` (turn features from truth, turn signals,
+intent) and ``turn_perceived`` / ``turn_perceived_memory`` (the detector, the Kalman tracker and the features on its
+tracks, :mod:`av_gym.batched.perception`: the per-env stack's detections and tracks on the same seeds). Anything
+else (a shield; ``belief_lookahead`` on tracks, whose planner reads the features' objects as the simulator's
+vehicles) is refused in one line before any episode runs, and runs with ``vec_env=subproc``.
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ def plan_kind(plan) -> str:
 
 def check_batched_plan(plan, env_cfg: dict) -> None:
     """One-line ConfigError for an agent the batched engine cannot evaluate (checked before any folder is made)."""
+    from av_gym.batched.perception import perceived
     from av_gym.batched.vec_env import check_batchable
 
     if env_cfg.get("name") != "left_turn":
@@ -55,6 +58,10 @@ def check_batched_plan(plan, env_cfg: dict) -> None:
         raise ConfigError(f"agent {plan.label!r} (kind {kind}) cannot run with vec_env=batched (it runs: "
                           f"{', '.join(KINDS)}); use vec_env=subproc")
     sensors = NO_OBS_SENSORS if kind == "always_proceed" else plan.sensors
+    if kind == "belief_lookahead" and perceived(sensors):
+        raise ConfigError(f"agent {plan.label!r}: belief_lookahead on sensors.turn_features.source=tracks cannot run "
+                          f"with vec_env=batched (its planner on the batch reads the described objects as the "
+                          f"simulator's vehicles); use vec_env=subproc")
     try:
         check_batchable(env_cfg, sensors, plan.shield)
     except ConfigError as exc:

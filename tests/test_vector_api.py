@@ -69,7 +69,8 @@ def test_vector_entry_point_is_the_batched_engine() -> None:
 
 @pytest.mark.parametrize("kwargs,says", [
     ({}, 'the batched engine needs sensors="turn_truth"'),
-    ({"sensors": "turn_perceived"}, "sensors.detector is not available with the batched engine"),
+    ({"sensors": {"name": "turn_perceived", "detector": {"frame": "ego"}}},
+     "sensors.tracker needs sensors.detector.frame=world"),
     ({"sensors": "turn_truth", "shield": "aeb"}, "shield=aeb is not available with the batched engine"),
     ({"sensors": "turn_truth", "render_mode": "rgb_array"}, "render_mode is not available"),
 ])

@@ -464,6 +464,7 @@ class BatchedPerception:
         e, rows = self.e, np.asarray(rows, dtype=int)
         tr = e.truth(rows)
         e.last_truth = tr
+        e.described = None  # the engine's truth objects are not what obs["turn"] describes here: no stale reader
         now = e.ticks[rows] / e.config["simulation_frequency"]  # sim_time: tick resolution
         ego = np.stack([tr["x"], tr["y"], tr["heading"]], axis=1)
         others, vids = self._others(rows)
