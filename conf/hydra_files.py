@@ -1,8 +1,8 @@
 """Hydra's record of a run (``<run folder>/.hydra/config.yaml``, ``hydra.yaml``, ``overrides.yaml``), written the
 house's way: each file whole or not at all (:func:`av_gym.atomic.write_text_atomic`), and a write that fails (a
 file size limit, ``ulimit -f``; a full disk) ends the command in one line, exit status 2, with the run folder
-Hydra had just made removed when it holds nothing but Hydra's own files. Hydra's own save was a traceback that
-left a torn ``.hydra/`` behind.
+Hydra had just made removed when it holds nothing but Hydra's own files. Hydra's own save writes in place and
+reports a failure as a traceback, leaving a torn ``.hydra/`` behind.
 
 Hydra writes these files itself, before the job's function runs (``hydra.core.utils.run_job``), so no check of
 ours sees the failure: :func:`hydra_files_whole` puts this module's save in the place of Hydra's for the time

@@ -82,7 +82,8 @@ def _batched_sensors(plan, env_cfg: dict):
 def given_sensors_problem(plan, given: dict) -> str | None:
     """A trained agent runs on the sensors it was trained with (its checkpoint's config.yaml), with the command
     line's ``sensors.*`` overrides on top; a ``sensors=<preset>`` of another name would not reach it, so it is
-    refused (it was ignored without a word) with what does: ``agent@preset``. The default preset is no choice."""
+    refused (run, the table would say nothing of the preset asked for) with what does: ``agent@preset``. The
+    default preset is no choice."""
     own = (plan.trained_sensors or {}).get("name")
     name = given.get("name")
     if own is None or "@" in plan.label or name in (own, DEFAULT_SENSORS):
