@@ -249,6 +249,7 @@ def _compose_checked(command: str, overrides: list[str], groups: list[str], comp
     from omegaconf.errors import OmegaConfBaseException
 
     from av_gym.errors import folder_problem
+    from av_gym.references import shipped_problem
 
     parsed = OverridesParser.create().parse_overrides(overrides)
     for o in parsed:
@@ -273,8 +274,8 @@ def _compose_checked(command: str, overrides: list[str], groups: list[str], comp
     del cfg["hydra"]
     OmegaConf.set_struct(cfg, True)
     validate_config(cfg, command)
-    if isinstance(job_dir, str):
-        problem = folder_problem(job_dir, key)
+    if isinstance(job_dir, str):  # never the shipped references (train.overwrite=true clears a run's folder)
+        problem = shipped_problem(job_dir, key, cleared=command == "train") or folder_problem(job_dir, key)
         if problem:
             given = any(o.key_or_group == key for o in parsed)
             raise ConfigError(problem if given or raw == job_dir else f"{problem} ({key} is {raw})")

@@ -355,3 +355,19 @@ def test_side_tools_never_write_into_a_shipped_reference(tool, shipped, capsys):
     line = cli(lambda argv: sys.exit(main(argv)), ["--out", str(out)], capsys)  # as its command line runs it
     assert "is inside the shipped reference agents' folder" in line, line
     assert snapshot(shipped) == before
+
+
+@pytest.mark.parametrize("module, argv", [
+    ("eval", ["agents=[always_proceed]", "hydra.run.dir={root}/ppo_turn"]),
+    ("train", ["agent=always_proceed", "run_name=R", "hydra.run.dir={root}/ppo_turn"]),
+    ("train", ["agent=always_proceed", "run_name=R", "hydra.run.dir={root}/.."]),  # cleared by train.overwrite=true
+])
+def test_a_hydra_folder_in_the_shipped_references_is_refused(module, argv, shipped, tmp_path, monkeypatch, capsys,
+                                                              released):
+    """``hydra.run.dir`` is where Hydra writes ``.hydra/`` (and eval its results, train its logs) before the job
+    runs: inside the shipped references (or, for train, holding them) it is refused before Hydra writes."""
+    monkeypatch.chdir(tmp_path)
+    before = snapshot(tmp_path)
+    line = check_line(module, [a.format(root=shipped) for a in argv], monkeypatch, capsys)
+    assert "hydra.run.dir=" in line and "the shipped reference agents' folder" in line, line
+    assert snapshot(tmp_path) == before
