@@ -74,12 +74,8 @@ def test_videos_on_the_left_turn_show_each_agents_first_episode(tmp_path):
     assert [p.name for p in paths] == ["turn_always_proceed.webm", "turn_gap_acceptance.webm"]
     clips = []
     for path in paths:
+        frames = _decode(path)
         video = cv2.VideoCapture(str(path))
-        frames = []
-        ok, frame = video.read()
-        while ok:
-            frames.append(frame)
-            ok, frame = video.read()
         assert len(frames) == 21  # the reset and each of the 20 steps
         assert _fourcc(video) == "VP80"  # VP8: what browsers play in a WebM
         assert video.get(cv2.CAP_PROP_FPS) == 10.0  # real time at the policy's 10 Hz
