@@ -657,18 +657,27 @@ def path_conflict(p, v, path, path_s, t_max):
     constant-velocity closest approach to each point of the ego's ``path`` (P, 2), t* = clip(-(p - c)·v / max(|v|²,
     1e-6), 0, t_max) and miss = hypot(p + v t* - c); the first point of least miss gives t* (s), miss (m) and its
     ``path_s`` (m). The same sums in the same order as the numpy code (two terms each)."""
-    n, M = p.shape[0], p.shape[1]
+    n, M, P = p.shape[0], p.shape[1], path.shape[0]
     t_out, miss_out, s_out = np.empty((n, M)), np.empty((n, M)), np.empty((n, M))
+    tk, qx, qy, q2 = np.empty(P), np.empty(P), np.empty(P), np.empty(P)
     for a in range(n):
         for m in range(M):
             px, py, vx, vy = p[a, m, 0], p[a, m, 1], v[a, m, 0], v[a, m, 1]
             vv = max(vx * vx + vy * vy, 1e-6)
-            best, tb, kb = np.inf, 0.0, 0
-            for k in range(path.shape[0]):
+            m2 = np.inf
+            for k in range(P):
                 dx, dy = px - path[k, 0], py - path[k, 1]
-                t = min(max(-(dx * vx + dy * vy) / vv, 0.0), t_max)
-                miss = math.hypot(dx + vx * t, dy + vy * t)
-                if k == 0 or miss < best:  # np.argmin: the first of equal minima
-                    best, tb, kb = miss, t, k
-            t_out[a, m], miss_out[a, m], s_out[a, m] = tb, best, path_s[kb]
+                tk[k] = min(max(-(dx * vx + dy * vy) / vv, 0.0), t_max)
+                qx[k], qy[k] = dx + vx * tk[k], dy + vy * tk[k]
+                q2[k] = qx[k] * qx[k] + qy[k] * qy[k]
+                m2 = min(m2, q2[k])
+            # the least miss is among the points whose squared miss is within 1e-9 of the least (hypot's and the
+            # square's rounding are a few ulp): hypot only for those, the first of equal minima as np.argmin
+            best, kb = np.inf, 0
+            for k in range(P):
+                if q2[k] <= m2 * (1.0 + 1e-9):
+                    miss = math.hypot(qx[k], qy[k])
+                    if miss < best:
+                        best, kb = miss, k
+            t_out[a, m], miss_out[a, m], s_out[a, m] = tk[kb], best, path_s[kb]
     return t_out, miss_out, s_out
