@@ -4,7 +4,6 @@ stayed empty, as the commands report through ``print`` and progress bars, not ``
 from __future__ import annotations
 
 import logging
-import subprocess
 import sys
 
 import pytest
@@ -12,6 +11,7 @@ from tqdm import tqdm
 
 from av_gym.errors import ConfigError
 from conf.run_log import job_log
+from conftest import run
 
 
 @pytest.fixture
@@ -66,9 +66,8 @@ def test_no_job_log_changes_nothing(capsys):
 
 
 def test_the_eval_commands_run_log_holds_its_table(tmp_path):
-    res = subprocess.run([sys.executable, "-m", "eval", "env=left_turn", "agents=[always_proceed]", "episodes=2",
-                          "progress_bar=false", "hydra.run.dir=runs/x"], cwd=tmp_path, capture_output=True, text=True,
-                         timeout=600)
+    res = run("eval", "env=left_turn", "agents=[always_proceed]", "episodes=2", "progress_bar=false",
+              "hydra.run.dir=runs/x", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-2000:]
     log = (tmp_path / "runs" / "x" / "__main__.log").read_text()
     assert "[eval] per-episode rows: " in res.stdout and "[eval] per-episode rows: " in log
@@ -77,9 +76,8 @@ def test_the_eval_commands_run_log_holds_its_table(tmp_path):
 
 @pytest.mark.slow  # ~20 s: a whole (rule-based) training command and its brief evaluation
 def test_the_train_commands_run_log_holds_what_it_printed(tmp_path):
-    res = subprocess.run([sys.executable, "-m", "train", "agent=gap_acceptance", "train.eval_episodes=2",
-                          "train.progress_bar=false", "run_name=r"], cwd=tmp_path, capture_output=True, text=True,
-                         timeout=600)
+    res = run("train", "agent=gap_acceptance", "train.eval_episodes=2", "train.progress_bar=false", "run_name=r",
+              cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-2000:]
     log = (tmp_path / "runs" / "r" / "__main__.log").read_text()
     assert "[train] agent 'gap_acceptance' is rule-based: nothing to train" in log
