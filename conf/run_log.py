@@ -1,9 +1,9 @@
 """What a command shows while it runs (:func:`progress`), and what its run log keeps (:func:`job_log`).
 
 The run log holds what the run printed: Hydra gives every run folder a job log (``__main__.log``, a
-``logging.FileHandler`` on the root logger), but the commands report through ``print`` and progress bars, so it
-stayed empty. :func:`job_log` copies every line written to ``sys.stdout`` and ``sys.stderr`` into that file while
-a Hydra job runs; the terminal sees exactly what it saw before.
+``logging.FileHandler`` on the root logger), but the commands report through ``print`` and progress bars, which
+never reach ``logging``. :func:`job_log` copies every line written to ``sys.stdout`` and ``sys.stderr`` into that
+file while a Hydra job runs; the terminal sees the same output as without it.
 
 A progress bar redraws its line with carriage returns; the log keeps each line as it last stood when it ended
 (a bar's final state, a message written beside it by ``tqdm.write``), not every redraw. Lines written by

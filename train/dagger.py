@@ -609,8 +609,8 @@ def _print_round(row: dict, new: Round, validated: bool) -> None:
 
 
 def _say_interrupted(done: int, latest: Path, run_name: str) -> None:
-    """What an interrupted run kept, naming only what exists (it named a latest.zip that may not); written past
-    the rounds' bar, which is still open."""
+    """What an interrupted run kept, naming only what exists (no latest.zip before the first round has ended);
+    written past the rounds' bar, which is still open."""
     from tqdm import tqdm
 
     if done > 0 and latest.is_file():
