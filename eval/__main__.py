@@ -88,10 +88,10 @@ def given_sensors_problem(plan, given: dict) -> str | None:
     name = given.get("name")
     if own is None or "@" in plan.label or name in (own, DEFAULT_SENSORS):
         return None
+    agent, plus, shield = plan.label.partition("+")
     return (f"sensors={name}: agent {plan.label!r} runs on the sensors it was trained with ({own}), so sensors={name} "
-            f"would not reach it; drive it from {name} with agents=[{plan.label.split('+')[0]}@{name}"
-            f"{'+' + plan.label.split('+')[1] if '+' in plan.label else ''}] (the same observation space), or leave "
-            f"sensors= out")
+            f"would not reach it; drive it from {name} with agents=[{agent}@{name}{plus}{shield}] (the same "
+            f"observation space), or leave sensors= out")
 
 
 def _check_plans(plans: list, command: EvalCommand, env_cfg: dict, given: dict) -> None:
