@@ -58,7 +58,6 @@ def is_shipped(path: str | os.PathLike) -> bool:
         return False
 
 
-
 def holds_shipped(path: str | os.PathLike) -> bool:
     """Whether folder ``path`` holds the shipped reference folder (``checkpoints/``, or the checkout): clearing it
     would take the references along."""
