@@ -248,8 +248,7 @@ def _compose_checked(command: str, overrides: list[str], groups: list[str], comp
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
-    from av_gym.errors import folder_problem
-    from av_gym.references import shipped_problem
+    from conf.cli import out_folder_problem
 
     parsed = OverridesParser.create().parse_overrides(overrides)
     for o in parsed:
@@ -275,7 +274,7 @@ def _compose_checked(command: str, overrides: list[str], groups: list[str], comp
     OmegaConf.set_struct(cfg, True)
     validate_config(cfg, command)
     if isinstance(job_dir, str):  # never the shipped references (train.overwrite=true clears a run's folder)
-        problem = shipped_problem(job_dir, key, cleared=command == "train") or folder_problem(job_dir, key)
+        problem = out_folder_problem(job_dir, key, cleared=command == "train")
         if problem:
             given = any(o.key_or_group == key for o in parsed)
             raise ConfigError(problem if given or raw == job_dir else f"{problem} ({key} is {raw})")

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 
@@ -80,20 +81,19 @@ class Extend(argparse.Action):
         setattr(namespace, self.dest, [v for group in values for v in group])
 
 
-def out_folder_problem(path: str, flag: str) -> str | None:
+def out_folder_problem(path: str | Path, flag: str, cleared: bool = False) -> str | None:
     """Why folder ``path`` (given to ``flag``) cannot be made and written, in one line (``--out README.md/x``: a
-    file where a folder must be; a folder inside the shipped references, read-only to every tool), or None;
-    checked before the tool runs (:func:`av_gym.errors.folder_problem`)."""
+    file where a folder must be; a folder inside the shipped references, read-only to every tool, or with
+    ``cleared``, a folder the tool may empty, one that holds them: :func:`av_gym.references.shipped_problem`), or
+    None; checked before the tool runs (:func:`av_gym.errors.folder_problem`)."""
     from av_gym.errors import folder_problem
     from av_gym.references import shipped_problem
 
-    return shipped_problem(path, flag) or folder_problem(path, flag)
+    return shipped_problem(path, flag, cleared) or folder_problem(path, flag)
 
 
 def out_file_problem(path: str, flag: str) -> str | None:
     """Why file ``path`` cannot be written: its folder cannot be made, or it is a folder itself; or None."""
-    from pathlib import Path
-
     if Path(path).is_dir():
         return f"{flag}={path}: is a folder, not a file"
     parent = str(Path(path).parent)

@@ -25,8 +25,8 @@ from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 
 from av_gym.atomic import LOCK, OwnedFolders
-from av_gym.errors import ConfigError, folder_problem, run_cli
-from conf.cli import ToolParser
+from av_gym.errors import ConfigError, run_cli
+from conf.cli import ToolParser, out_folder_problem
 
 # What a reference's name promises: ``eval agents=[ppo_turn]`` runs whatever ``reference/ppo_turn`` holds, on the
 # scenario, actions and sensors its config.yaml says. A replacement must keep them, or the name (and every table
@@ -106,9 +106,7 @@ def dest_problem(run_dir: Path, dest: Path, overwrite: bool) -> str | None:
     """Why ``dest`` (a folder not inside the shipped references) may not receive ``run_dir``'s checkpoint, or None:
     it holds the shipped references or other folders (``checkpoints/``), it cannot be written, it is the run's own
     folder, or it holds files (another run's, an earlier export) and ``overwrite`` was not given."""
-    from av_gym.references import shipped_problem
-
-    problem = shipped_problem(dest, "dest", cleared=True) or folder_problem(dest, "dest")
+    problem = out_folder_problem(dest, "dest", cleared=True)
     if problem:
         return problem
     if dest.resolve() == run_dir.resolve():
