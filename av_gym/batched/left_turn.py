@@ -109,7 +109,9 @@ class BatchedLeftTurn:
         draw, when the caller made it)."""
         if (rng.uniform() if u is None else u) > spawn_probability:
             return
-        route = rng.choice(range(4), size=2, replace=False)
+        # choice(range(4), ...) as highway-env calls it: the same draws and values from the int population (the
+        # range becomes arange(4), indexed by the same picks), without converting the range each time
+        route = rng.choice(4, size=2, replace=False)
         route[1] = (route[0] + 2) % 4 if go_straight else route[1]
         T = self.T
         lane = T.id[(f"o{route[0]}", f"ir{route[0]}", 0)]
