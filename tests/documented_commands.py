@@ -429,6 +429,8 @@ PARTITION_CSV = "docs/results/left_turn_partition/results.csv"
 SCRIPT_ARGS = {
     "benchmarks/aeb_cost.py": ["--vehicles", "2", "--n", "2", "--repeat", "1"],
     "benchmarks/batched_distribution.py": [PARTITION_CSV, PARTITION_CSV],  # the documented pair: two evals' csv
+    "benchmarks/batched_perception.py": ["--agent", "gap_acceptance@turn_perceived", "--B", "2",
+                                         "--batch-episodes", "2", "--per-env-episodes", "1"],
     "benchmarks/batched_speed.py": ["--sizes", "1,2", "--seconds", "0.1", "--out", "{tmp}/batched_speed.png"],
     "benchmarks/belief_information.py": ["--episodes", "2", "--steps", "2", "--samples", "2"],
     "benchmarks/belief_planner.py": ["--episodes", "2", "--samples", "2", "--thresholds", "0.1", "--n-envs", "2"],
