@@ -223,3 +223,28 @@ def test_the_lookahead_oracle_on_perceived_features_drives_as_on_the_per_env_sta
     """lookahead@turn_perceived: the oracle reads only the ego's own features of obs["turn"] (the same from truth
     or tracks), so on the batch it must end 6 validation seeds as on the per-env stack (measured: 6 of 6)."""
     assert _outcome_splits("lookahead@turn_perceived", list(range(1_000_500, 1_000_506))) == []
+
+
+def test_what_the_batch_still_refuses_on_tracks_is_one_line():
+    """belief_lookahead reads obs["intent"]'s rows as the simulator's vehicles nearest first: on tracks it is refused
+    on the batch, for evaluation and as DAgger's teacher, in one line naming why; the same agent on truth is not."""
+    from hydra import compose, initialize_config_module
+
+    from av_gym.errors import ConfigError
+    from eval.agents import plan_agent
+    from eval.batched import check_batched_plan
+    from train.dagger import validate
+
+    from tests.conftest import conf
+
+    env_cfg = conf("env", "left_turn")
+    plan = plan_agent("belief_lookahead@turn_perceived", "left_turn", conf("sensors", "truth"),
+                      {"name": "none", "kind": "none"}, "checkpoints")
+    with pytest.raises(ConfigError, match="^agent 'belief_lookahead@turn_perceived': belief_lookahead on sensors"):
+        check_batched_plan(plan, env_cfg)
+    with initialize_config_module("conf", version_base="1.3"):
+        own = compose("train", overrides=["agent=dagger_turn_memory"])
+        tracks = compose("train", overrides=["agent=dagger_turn_memory", "sensors=turn_perceived_memory"])
+    assert validate(own) == []
+    (problem,) = validate(tracks)
+    assert "kind belief_lookahead" in problem and "source=tracks" in problem and "\n" not in problem

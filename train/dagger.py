@@ -108,12 +108,17 @@ def validate(cfg: DictConfig) -> list[str]:
         if kind not in ("lookahead", "belief_lookahead", "gap_acceptance"):
             return [f"agent.teacher={agent.teacher} (kind {kind}) cannot label on agent.vec_env=batched (lookahead, "
                     f"belief_lookahead or gap_acceptance can); use agent.vec_env=subproc"]
+        from av_gym.batched.perception import perceived
         from av_gym.batched.vec_env import check_batchable
 
         try:
             check_batchable(*[OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)])
         except ConfigError as exc:
             return [str(exc)]
+        if kind == "belief_lookahead" and perceived(OmegaConf.to_container(cfg.sensors, resolve=True)):
+            return [f"agent.teacher={agent.teacher} (kind belief_lookahead) cannot label sensors.turn_features."
+                    f"source=tracks on agent.vec_env=batched (its batched planner reads the described objects as the "
+                    f"simulator's vehicles); use agent.vec_env=subproc"]
     if agent.targets == "go_safe" and (not batched or _teacher_kind(cfg) != "belief_lookahead"):
         return [f"agent.targets=go_safe needs agent.teacher of kind belief_lookahead on agent.vec_env=batched (the "
                 f"share of its GO futures without a collision); got agent.teacher={agent.teacher} (kind "
