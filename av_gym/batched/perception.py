@@ -224,7 +224,8 @@ class BatchedTracker:
         r, d = rows[b], dt[b, k]
         F = np.tile(np.eye(4), (len(b), 1, 1))
         F[:, 0, 2] = F[:, 1, 3] = d
-        Q = np.stack([self._Q(float(v)) for v in d])
+        steps, which = np.unique(d, return_inverse=True)  # one Q per time step length (all tracks: one or two)
+        Q = np.stack([self._Q(float(v)) for v in steps])[which.reshape(-1)]
         self.x[r, k] = F @ self.x[r, k]
         self.P[r, k] = 1.0 * ((F @ self.P[r, k]) @ F.transpose(0, 2, 1)) + Q
         self.t[r, k] = t[b]
