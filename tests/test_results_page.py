@@ -73,3 +73,66 @@ def test_a_folder_without_its_meta_or_results_is_refused_in_one_line(missing, tm
     err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert len(err) == 1 and f"{results / 'lt'} has no {missing}" in err[0], err
     assert not (tmp_path / "p.md").exists()
+
+
+def _seeds_folder(root: Path, name: str, collisions: dict[str, list[int]], first: int = 2_000_000) -> Path:
+    """A result folder with several agents, each row its agent's collisions on test seeds ``first``, ``first+1``..."""
+    d = root / name
+    d.mkdir(parents=True)
+    with open(d / "results.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["agent", "episode", "seed", "collision", "success"])
+        w.writeheader()
+        for agent, cs in collisions.items():
+            for i, c in enumerate(cs):
+                w.writerow({"agent": agent, "episode": i, "seed": first + i, "collision": c, "success": 1 - c})
+    (d / "meta.json").write_text(json.dumps({"command": "python -m eval env=left_turn split=test", "commit": "0" * 40,
+                                             "started": "t0", "finished": "t1", "wall_s": 1, "load": "1"}))
+    return d
+
+
+SEED = "checkpoints/reference/seeds/ppo_turn/s{}"
+
+
+def _rows(text: str, start: str) -> list[list[str]]:
+    return [[c.strip() for c in line.strip("|").split("|")] for line in text.splitlines() if line.startswith(start)]
+
+
+def test_a_folder_with_training_seeds_gets_the_methods_lines_over_them(tmp_path):
+    """Three seeds of ppo_turn (collision 0.1, 0.2, 0.6 on the same 10 episodes): every seed's row stays, and the
+    method's mean (0.300) and IQM lines over 3 seeds follow them; the rule beside them is not grouped."""
+    results = tmp_path / "results"
+    _seeds_folder(results, "lt", {"always_proceed": [1] * 5 + [0] * 5, "ppo_turn": [1] + [0] * 9,
+                                  SEED.format(2): [1] * 2 + [0] * 8, SEED.format(3): [1] * 6 + [0] * 4})
+    text = page(load_all(results))
+    section = text[text.index("## lt"):]
+    agents = [r[0] for r in _rows(section, "| ")][2:]
+    assert agents == ["always_proceed", "ppo_turn", SEED.format(2), SEED.format(3), "ppo_turn, mean of 3 seeds",
+                      "ppo_turn, IQM of 3 seeds"]
+    mean = _rows(section, "| ppo_turn, mean of 3 seeds")[0]
+    assert mean[1:4] == ["3", "3 \u00d7 10", mean[3]] and mean[3].startswith("0.300 [")
+    lo, hi = (float(v) for v in mean[3][len("0.300 ["):-1].split(", "))
+    assert lo < 0.3 < hi and hi - lo > 0.2  # the seeds disagree: the interval says so
+    assert _rows(section, "| ppo_turn, IQM of 3 seeds")[0][4].startswith("0.700 [")  # success, nothing cut at 3
+
+
+def test_the_readme_block_says_which_rows_are_single_policies_and_which_are_over_seeds(tmp_path):
+    results = tmp_path / "results"
+    _seeds_folder(results, "lt", {"gap_acceptance": [0] * 4, "ppo_turn_shielded": [0] * 4, "ppo_turn+aeb": [0] * 4,
+                                  SEED.format(2) + "+aeb": [1, 0, 0, 0], "dagger_turn": [0] * 4})
+    block = quoted_block(page(load_all(results)), "the page")
+    seeds = {r[0]: r[3] for r in _rows(block, "| ") if r[0] not in ("agent", "---")}
+    assert seeds == {"gap_acceptance": "\u2013", "ppo_turn_shielded": "1", "ppo_turn+aeb": "1",
+                     SEED.format(2) + "+aeb": "1", "dagger_turn": "1", "ppo_turn+aeb, mean of 2 seeds": "2",
+                     "ppo_turn+aeb, IQM of 2 seeds": "2"}
+    assert "1 is a single policy" in block and "stratified-bootstrap 95 % interval" in block
+    assert "2000 resamples" in block
+
+
+def test_seeds_of_one_method_on_different_episodes_are_refused_in_one_line(tmp_path, capsys):
+    results = tmp_path / "results"
+    d = _seeds_folder(results, "lt", {"ppo_turn": [0, 0, 1]})
+    with open(d / "results.csv", "a", newline="") as f:
+        csv.writer(f).writerows([[SEED.format(2), i, 2_000_010 + i, 0, 1] for i in range(3)])
+    assert main(["--results", str(results), "--out", str(tmp_path / "p.md")]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and "training seeds of ppo_turn on different episodes" in err[0], err
