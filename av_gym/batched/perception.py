@@ -35,12 +35,12 @@ from av_gym.errors import ConfigError
 from av_gym.estimation.object_tracking import BOUND as TRACK_BOUND
 from av_gym.estimation.object_tracking import FIELDS as TRACK_FIELDS
 from av_gym.estimation.object_tracking import ObjectTrackerParams
+from av_gym.estimation.object_tracking import tracker_params as object_tracker_params
 from av_gym.estimation.tracker import _BIG, TrackerParams, TrackingModel
 from av_gym.estimation.turn_features import turn_features
-from av_gym.params import ParamError
 from av_gym.sensors.base import episode_rng
 from av_gym.sensors.detector import FIELDS as DETECTOR_FIELDS
-from av_gym.sensors.detector import Detector, DetectorParams
+from av_gym.sensors.detector import Detector, DetectorParams, miss_chain
 from av_gym.sim.batched import LENGTH, WIDTH
 
 
@@ -63,36 +63,30 @@ def check_perceived(sensors_cfg: dict) -> None:
 
 
 def tracker_params(cfg: dict, detector: DetectorParams) -> tuple[TrackerParams, int]:
-    """:class:`ObjectTracker`'s tracker parameters for a ``sensors.tracker`` section over ``detector`` (its error
-    model is R unless the section sets it, as ObjectTracker.__init__ takes it) and its ``max_tracks``."""
+    """:class:`ObjectTracker`'s tracker parameters for a ``sensors.tracker`` section over ``detector`` and its
+    ``max_tracks``."""
     p = ObjectTrackerParams.from_mapping(cfg, "sensors.tracker")
-    noise = {name: getattr(detector, name) if getattr(p, name) is None else getattr(p, name)
-             for name in ("sigma_pos0", "sigma_pos_k", "sigma_vel")}
-    model = {name: getattr(p, name) for name in TrackingModel.field_names()}
-    try:
-        return TrackerParams(**model, **noise), int(p.max_tracks)
-    except ParamError as exc:
-        raise ConfigError(f"{exc} (the detector's, the tracker's measurement noise unless set here)") from None
+    return object_tracker_params(p, detector), int(p.max_tracks)
 
 
 class BatchedDetector:
     """:class:`~av_gym.sensors.detector.Detector` (``frame: world``) for B envs: ``obs["detector"]`` (n,
     max_objects, 9) float32 per call of :meth:`measure`, each env's frames drawn from its own generator."""
 
-    # the per-env detector's field of view / occlusion code and observation space, run on this object's attributes
-    _view, _occluded, sensor_space = Detector._view, Detector._occluded, Detector.sensor_space
+    # the per-env detector's field of view, occlusion, frame and observation space code, run on this object's
+    # attributes
+    _view, _occluded, _world_frame = Detector._view, Detector._occluded, Detector._world_frame
+    sensor_space = Detector.sensor_space
 
     def __init__(self, n_envs: int, params: DetectorParams) -> None:
         p = self.params = params
         if p.frame != "world":
             raise ConfigError(f"sensors.tracker needs sensors.detector.frame=world, got {p.frame!r}")
         # Detector.__init__'s two-state miss chain: leave a run with q, enter it with p so that P(miss) = miss_rate
-        self.q = 1.0 - p.miss_rate if p.burst_length is None else 1.0 / p.burst_length
-        self.p = self.q * p.miss_rate / (1.0 - p.miss_rate) if p.miss_rate > 0 else 0.0
+        self.p, self.q = miss_chain(p.miss_rate, p.burst_length)
         self.rate_hz, self.max_range, self.half_fov = p.rate_hz, p.max_range, np.radians(p.fov_deg) / 2
         self.miss_rate, self.occlusion, self.occlusion_fraction = p.miss_rate, bool(p.occlusion), p.occlusion_fraction
         self.max_objects = int(p.max_objects)
-        self.scales = np.array([0.0, 0.0, p.sigma_vel, p.sigma_vel, p.sigma_heading, p.sigma_size, p.sigma_size])
         space = self.sensor_space()
         self.low, self.high = space.low, space.high
         B = int(n_envs)
@@ -123,50 +117,11 @@ class BatchedDetector:
             out[n, :, 8] = np.where(out[n, :, 0] > 0, t[n] - self.frame_time[r], 0.0)
         return np.clip(out, self.low, self.high)
 
-    def _draw(self, r: int, in_view: np.ndarray, occluded: np.ndarray, vids: np.ndarray) -> tuple[list, list]:
-        """Detector._frame's per-vehicle draws for env ``r``: miss chain, then seven normals per detection."""
-        rng, chain, ids, draws = self.rngs[r], self.chains[r], [], []
-        for i in np.flatnonzero(in_view).tolist():
-            key = int(vids[i])
-            state = chain.get(key)
-            if state is None:  # first sight: start in the chain's stationary distribution
-                missing = rng.random() < self.miss_rate
-            elif state:
-                missing = rng.random() >= self.q
-            else:
-                missing = rng.random() < self.p
-            chain[key] = missing
-            if missing or occluded[i]:
-                continue
-            draws.append(rng.standard_normal(7))
-            ids.append(i)
-        return ids, draws
-
     def _frame(self, r: int, ego: np.ndarray, others: np.ndarray, vids: np.ndarray) -> None:
-        """Detector._frame for env ``r`` (world frame): the same arithmetic on the same draws."""
-        x, y, psi = float(ego[0]), float(ego[1]), float(ego[2])
-        ego_xy = np.array([x, y])
-        detections, clutter, ids = np.zeros((0, 7)), [], []
-        if len(others):
-            rng_range, in_view, occluded = self._view(ego_xy, psi, others)
-            ids, draws = self._draw(r, in_view, occluded, vids)
-            if ids:
-                scales = np.repeat(self.scales[None], len(ids), axis=0)
-                scales[:, 0] = scales[:, 1] = self.params.sigma_pos0 + self.params.sigma_pos_k * rng_range[ids]
-                detections = others[ids] + (0.0 + scales * np.array(draws))
-        rng = self.rngs[r]
-        for _ in range(rng.poisson(self.params.clutter_rate)):
-            rr = self.max_range * np.sqrt(rng.random())  # uniform over the area
-            b = psi + rng.uniform(-self.half_fov, self.half_fov)
-            clutter.append([1.0, x + rr * np.cos(b), y + rr * np.sin(b), 0.0, 0.0, rng.uniform(-np.pi, np.pi), 5.0,
-                            2.0])
-        det = np.empty((len(detections) + len(clutter), 8))
-        det[: len(detections), 0] = 1.0
-        det[: len(detections), 1:] = detections
-        det[len(detections):] = np.array(clutter, dtype=float).reshape(-1, 8)
-        rel = det[:, 1:3] - ego_xy
-        order = np.argsort(np.sqrt(rel[:, 0] * rel[:, 0] + rel[:, 1] * rel[:, 1]), kind="stable")[: self.max_objects]
-        det = det[order]
+        """Detector._frame for env ``r`` (world frame): the same code on the same draws."""
+        psi = float(ego[2])
+        keys = np.asarray(vids).astype(int).tolist()
+        det, _ = self._world_frame(self.rngs[r], self.chains[r], keys, float(ego[0]), float(ego[1]), psi, others)
         det[:, 5] = (det[:, 5] + np.pi) % (2 * np.pi) - np.pi
         self.rows[r] = 0.0
         self.rows[r, : len(det), :8] = det

@@ -34,6 +34,19 @@ class ObjectTrackerParams(TrackingModel):
     sigma_vel: float | None = param(None, "m/s", gt=0, doc="velocity noise; null = the detector's")
 
 
+def tracker_params(p: ObjectTrackerParams, detector) -> TrackerParams:
+    """The tracker's parameters for ``p`` over a detector with :class:`~av_gym.sensors.detector.DetectorParams`
+    ``detector``: the detector's error model is the tracker's R, unless ``p`` sets it (the per-env
+    :class:`ObjectTracker` and the batch's tracker both build theirs here)."""
+    noise = {name: getattr(detector, name) if getattr(p, name) is None else getattr(p, name)
+             for name in ("sigma_pos0", "sigma_pos_k", "sigma_vel")}
+    model = {name: getattr(p, name) for name in TrackingModel.field_names()}
+    try:
+        return TrackerParams(**model, **noise)
+    except ParamError as exc:
+        raise ParamError(f"{exc} (the detector's, the tracker's measurement noise unless set here)") from None
+
+
 class ObjectTracker(SensorWrapper):
     """Adds ``obs["tracks"]``: ``Box(max_tracks, 8)`` rows ``[present, x, y, vx, vy, heading, length, width]``
     (world frame, m, m/s, rad), confirmed tracks nearest the ego first, zero rows unused. Parameters:
@@ -49,14 +62,7 @@ class ObjectTracker(SensorWrapper):
             raise ConfigError("sensors.tracker needs a detector below it (add `detector:` to the sensors preset)")
         if detector.frame != "world":
             raise ConfigError(f"sensors.tracker needs sensors.detector.frame=world, got {detector.frame!r}")
-        # The detector's error model is the tracker's R, unless the config says otherwise.
-        noise = {name: getattr(detector, name) if getattr(p, name) is None else getattr(p, name)
-                 for name in ("sigma_pos0", "sigma_pos_k", "sigma_vel")}
-        model = {name: getattr(p, name) for name in TrackingModel.field_names()}
-        try:
-            self.tracker = MultiObjectTracker(TrackerParams(**model, **noise))
-        except ParamError as exc:
-            raise ParamError(f"{exc} (the detector's, the tracker's measurement noise unless set here)") from None
+        self.tracker = MultiObjectTracker(tracker_params(p, detector.params))
         self.max_tracks = int(p.max_tracks)
         super().__init__(env)
         self._last = np.zeros((self.max_tracks, len(FIELDS)), dtype=np.float32)

@@ -75,6 +75,41 @@ class DetectorParams(Params):
         return []
 
 
+def miss_chain(miss_rate: float, burst_length: float | None) -> tuple[float, float]:
+    """The two-state miss chain's (P(miss | seen), P(seen | missed)) for a stationary miss rate and a mean run of
+    ``burst_length`` missed frames (None: independent misses, P(miss | missed) = miss_rate)."""
+    q = 1.0 - miss_rate if burst_length is None else 1.0 / burst_length
+    return (q * miss_rate / (1.0 - miss_rate) if miss_rate > 0 else 0.0), q
+
+
+def draw_detections(rng: np.random.Generator, chain: dict, keys, in_view: np.ndarray, occluded: np.ndarray,
+                    miss_rate: float, p: float, q: float) -> tuple[list[int], list[np.ndarray]]:
+    """One frame's random draws for the vehicles in view, in the order the detector makes them: each vehicle's
+    miss-chain step (``chain[keys[i]]``: missed last frame or not; P(miss | seen) = ``p``, P(seen | missed) = ``q``;
+    a first sight starts in the chain's stationary distribution), then seven standard normals per detection.
+    rng.normal(0, σ) is 0 + σ·z with z = rng.standard_normal(): one call for a detection's seven draws gives the same
+    numbers, in the same order, as seven normal() calls (the caller scales them). Shared by the per-env
+    :class:`Detector` and the batch's detector, so that both draw the same numbers from the same generator.
+
+    Returns the indices of the vehicles detected and their (7,) draws."""
+    ids, draws = [], []
+    for i in np.flatnonzero(in_view).tolist():
+        key = keys[i]
+        state = chain.get(key)
+        if state is None:
+            missing = rng.random() < miss_rate
+        elif state:
+            missing = rng.random() >= q
+        else:
+            missing = rng.random() < p
+        chain[key] = missing
+        if missing or occluded[i]:
+            continue
+        draws.append(rng.standard_normal(7))
+        ids.append(i)
+    return ids, draws
+
+
 class Detector(SensorWrapper):
     """Adds ``obs["detector"]``; parameters: :class:`DetectorParams`.
 
@@ -98,12 +133,9 @@ class Detector(SensorWrapper):
         p = self.params = DetectorParams.build(params, **overrides)
         miss_rate, burst_length = p.miss_rate, p.burst_length
         # Two-state chain (detect ↔ miss): leave a miss run with q = 1/L, enter it with p so that P(miss) = m.
-        self.q = 1.0 - miss_rate if burst_length is None else 1.0 / burst_length  # None: P(miss | missed) = m
-        self.p = self.q * miss_rate / (1.0 - miss_rate) if miss_rate > 0 else 0.0
+        self.p, self.q = miss_chain(miss_rate, burst_length)
         self.rate_hz, self.max_range, self.half_fov = p.rate_hz, p.max_range, np.radians(p.fov_deg) / 2
         self.miss_rate, self.occlusion, self.occlusion_fraction = miss_rate, bool(p.occlusion), p.occlusion_fraction
-        self.sigma_pos0, self.sigma_pos_k, self.sigma_vel = p.sigma_pos0, p.sigma_pos_k, p.sigma_vel
-        self.sigma_size, self.sigma_heading, self.clutter_rate = p.sigma_size, p.sigma_heading, p.clutter_rate
         self.max_objects, self.frame = int(p.max_objects), p.frame
         super().__init__(env)
 
@@ -162,55 +194,47 @@ class Detector(SensorWrapper):
         occluded = self._occluded(ego_xy, others) if self.occlusion else np.zeros(len(others), dtype=bool)
         return r, in_view, occluded
 
-    def _frame(self) -> None:
-        x, y, psi, _ = ego_pose(self.env)
-        ego_xy = np.array([x, y])
-        others = others_state(self.env)
-        detections, clutter, ids, draws = np.zeros((0, 7)), [], [], []
+    def _world_frame(self, rng: np.random.Generator, chain: dict, keys, x: float, y: float, psi: float,
+                     others: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One frame in the world frame from the ego pose ``x, y`` (m), ``psi`` (rad) and ``others`` (k, 7): the
+        rows ``[present, x, y, vx, vy, heading, length, width]`` (m, 8) nearest first (at most ``max_objects``;
+        headings not yet wrapped) and each row's index in ``others`` (-1: clutter). Draws from ``rng`` and steps
+        the miss chain ``chain`` (keyed by ``keys[i]``). The batch's detector (av_gym/batched/perception.py) runs
+        this on its own attributes with each env's generator and chain, so that both draw the same numbers."""
+        p = self.params
+        detections, clutter, ids = np.zeros((0, 7)), [], []
         if len(others):
-            r, in_view, occluded = self._view(ego_xy, psi, others)
-            unwrapped = self.env.unwrapped
-            vehicles = [v for v in unwrapped.road.vehicles if v is not unwrapped.vehicle]
-            rng, chain = self.rng, self._missing
-            # rng.normal(0, σ) is 0 + σ·z with z = rng.standard_normal(): one call for a detection's seven draws
-            # gives the same numbers, in the same order, as seven normal() calls (scaled below, all at once).
-            scales = np.array([0.0, 0.0, self.sigma_vel, self.sigma_vel, self.sigma_heading, self.sigma_size,
-                               self.sigma_size])
-            for i in np.flatnonzero(in_view).tolist():
-                key = vehicles[i]
-                state = chain.get(key)
-                if state is None:  # first sight: start in the chain's stationary distribution
-                    missing = rng.random() < self.miss_rate
-                elif state:
-                    missing = rng.random() >= self.q
-                else:
-                    missing = rng.random() < self.p
-                chain[key] = missing
-                if missing or occluded[i]:
-                    continue
-                draws.append(rng.standard_normal(7))
-                ids.append(i)
+            r, in_view, occluded = self._view(np.array([x, y]), psi, others)
+            ids, draws = draw_detections(rng, chain, keys, in_view, occluded, self.miss_rate, self.p, self.q)
             if ids:
-                scales = np.repeat(scales[None], len(ids), axis=0)
-                scales[:, 0] = scales[:, 1] = self.sigma_pos0 + self.sigma_pos_k * r[ids]
+                scales = np.repeat(np.array([[0.0, 0.0, p.sigma_vel, p.sigma_vel, p.sigma_heading, p.sigma_size,
+                                              p.sigma_size]]), len(ids), axis=0)
+                scales[:, 0] = scales[:, 1] = p.sigma_pos0 + p.sigma_pos_k * r[ids]
                 detections = others[ids] + (0.0 + scales * np.array(draws))
-        for _ in range(self.rng.poisson(self.clutter_rate)):
-            rng_r = self.max_range * np.sqrt(self.rng.random())  # uniform over the area
-            b = psi + self.rng.uniform(-self.half_fov, self.half_fov)
-            clutter.append([1.0, x + rng_r * np.cos(b), y + rng_r * np.sin(b), 0.0, 0.0,
-                            self.rng.uniform(-np.pi, np.pi), 5.0, 2.0])
+        for _ in range(rng.poisson(p.clutter_rate)):
+            rng_r = self.max_range * np.sqrt(rng.random())  # uniform over the area
+            b = psi + rng.uniform(-self.half_fov, self.half_fov)
+            clutter.append([1.0, x + rng_r * np.cos(b), y + rng_r * np.sin(b), 0.0, 0.0, rng.uniform(-np.pi, np.pi),
+                            5.0, 2.0])
             ids.append(-1)
         det = np.empty((len(detections) + len(clutter), 8))
         det[: len(detections), 0] = 1.0
         det[: len(detections), 1:] = detections
         det[len(detections):] = np.array(clutter, dtype=float).reshape(-1, 8)
-        rel = det[:, 1:3] - ego_xy
+        rel = det[:, 1:3] - np.array([x, y])
         order = np.argsort(np.sqrt(rel[:, 0] * rel[:, 0] + rel[:, 1] * rel[:, 1]), kind="stable")[: self.max_objects]
-        det, ids = det[order], np.array(ids, dtype=int).reshape(-1)[order]
+        return det[order], np.array(ids, dtype=int).reshape(-1)[order]
+
+    def _frame(self) -> None:
+        x, y, psi, _ = ego_pose(self.env)
+        others = others_state(self.env)
+        unwrapped = self.env.unwrapped
+        vehicles = [v for v in unwrapped.road.vehicles if v is not unwrapped.vehicle]
+        det, ids = self._world_frame(self.rng, self._missing, vehicles, x, y, psi, others)
         if self.frame == "ego":
             c, s = np.cos(psi), np.sin(psi)
             rot = np.array([[c, s], [-s, c]])  # world → ego (x forward, y right in highway-env's y-down frame)
-            det[:, 1:3] = (det[:, 1:3] - ego_xy) @ rot.T
+            det[:, 1:3] = (det[:, 1:3] - np.array([x, y])) @ rot.T
             det[:, 3:5] = det[:, 3:5] @ rot.T
             det[:, 5] = det[:, 5] - psi
         det[:, 5] = (det[:, 5] + np.pi) % (2 * np.pi) - np.pi
