@@ -2,8 +2,8 @@
 
     python docs/make_lidar_figure.py [--out docs]
 
-writes ``lidar_scan_lane_keeping.png`` and ``lidar_scan_left_turn.png`` into ``--out`` (default: docs/, beside this
-script). Lanes, the roadside world (guard rails, building fronts, poles, sign posts, trees), the other vehicles and
+writes ``lidar_scans.png`` (lane keeping on the left, the left turn on the right) into ``--out`` (default: docs/,
+beside this script). Lanes, the roadside world (guard rails, building fronts, poles, sign posts, trees), the other vehicles and
 the ego are drawn in highway-env's world frame with the y axis pointing down, as on highway-env's screen; the scan's
 points are mapped back to that frame with the true scan pose and coloured by label (static world / vehicle).
 """
@@ -59,12 +59,11 @@ def draw_scene(ax, env: gym.Env) -> None:
                          fc="tab:blue", ec="k", alpha=0.6, lw=1.0, zorder=3))
 
 
-def plot_scan(env: Lidar, title: str, path: Path, half_width: float = 60.0) -> None:
+def plot_scan(ax, env: Lidar, title: str, half_width: float = 60.0) -> None:
     points, _ = env.points()
     labels = env.labels()
     pose = env.scan_pose()
     xy = sensor_to_world(points, pose)
-    fig, ax = plt.subplots(figsize=(8, 8))
     draw_scene(ax, env)
     static = labels != LABEL_VEHICLE
     ax.scatter(xy[static, 0], xy[static, 1], s=3, c="tab:cyan", label=f"static returns ({static.sum()})", zorder=4)
@@ -79,16 +78,14 @@ def plot_scan(env: Lidar, title: str, path: Path, half_width: float = 60.0) -> N
     ax.set_ylabel("y (m, down as on highway-env's screen)")
     ax.set_title(title)
     ax.legend(loc="upper right", fontsize=8)
-    fig.tight_layout()
-    save_figure_atomic(fig, path, "--out", dpi=120)
-    plt.close(fig)
 
 
 def main() -> None:
     parser = ToolParser(prog="docs/make_lidar_figure.py", description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=OUT, help="folder for the two figures (default: docs/)")
+    parser.add_argument("--out", type=Path, default=OUT, help="folder for the figure (default: docs/)")
     out = parser.parse_args().out
     out.mkdir(parents=True, exist_ok=True)
+    fig, (left, right) = plt.subplots(1, 2, figsize=(16, 8))
     # Lane keeping: a few seconds into the lap, entering the first hairpin (guard rails, poles and buildings).
     env = Lidar(gym.make("av_gym/LaneKeepingLap-v0"))
     obs, _ = env.reset(seed=3)
@@ -96,8 +93,7 @@ def main() -> None:
     for _ in range(100):
         obs, _, terminated, truncated, _ = env.step(pid.act(obs))
         assert not (terminated or truncated)
-    plot_scan(env, "LaneKeepingLap-v0: one 720-beam planar LiDAR scan (seed 3, t = 10 s)",
-              out / "lidar_scan_lane_keeping.png")
+    plot_scan(left, env, "LaneKeepingLap-v0: one 720-beam planar LiDAR scan (seed 3, t = 10 s)")
 
     # Left turn: ego at the stop line with cross and oncoming traffic around.
     env = Lidar(gym.make("av_gym/UnprotectedLeftTurn-v0"))
@@ -105,8 +101,10 @@ def main() -> None:
     for _ in range(25):
         _, _, terminated, truncated, _ = env.step(1)
         assert not (terminated or truncated)
-    plot_scan(env, "UnprotectedLeftTurn-v0: one 720-beam planar LiDAR scan (seed 5, t = 2.5 s)",
-              out / "lidar_scan_left_turn.png")
+    plot_scan(right, env, "UnprotectedLeftTurn-v0: one 720-beam planar LiDAR scan (seed 5, t = 2.5 s)")
+    fig.tight_layout()
+    save_figure_atomic(fig, out / "lidar_scans.png", "--out", dpi=120)
+    plt.close(fig)
 
 
 if __name__ == "__main__":
