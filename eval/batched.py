@@ -170,18 +170,19 @@ def run_episodes_batched(env_cfg: dict, plan, policy, seeds: Iterable[int], n_en
 
 
 def play_on(env_cfg: dict, sensors: dict, shield: dict, policy, seeds: Iterable[int], n_envs: int, label: str,
-            batched: bool) -> list[dict]:
-    """The episodes ``seeds`` of ``policy``, no progress bar: on the batched engine (:func:`play_batched`, ``n_envs``
-    at a time; the caller has checked it can run the stack) or on one per-env env (:func:`eval.runner.run_episodes`:
-    a tracker, a shield, the lane keeper). The same episodes either way, the batch's cost where it can."""
+            batched: bool, progress: bool = False) -> list[dict]:
+    """The episodes ``seeds`` of ``policy`` (a progress bar on stderr if ``progress``): on the batched engine
+    (:func:`play_batched`, ``n_envs`` at a time; the caller has checked it can run the stack) or on one per-env env
+    (:func:`eval.runner.run_episodes`: a tracker, a shield, the lane keeper). The same episodes either way, the
+    batch's cost where it can."""
     if batched:
-        return play_batched(env_cfg, sensors, shield, policy, seeds, n_envs, label, progress=False)
+        return play_batched(env_cfg, sensors, shield, policy, seeds, n_envs, label, progress=progress)
     from eval.agents import make_eval_env
     from eval.runner import run_episodes
 
     env = make_eval_env(env_cfg, sensors, shield)
     try:
-        return run_episodes(env, policy, seeds, label, progress=False)
+        return run_episodes(env, policy, seeds, label, progress=progress)
     finally:
         env.close()
 

@@ -53,6 +53,7 @@ def evaluate(run_dir: Path, thresholds: list[float], episodes: int, first: int |
     from agents.checkpoint import load_sb3, read_config_yaml
     from agents.ppo import SB3Policy
     from av_gym.seeds import config_seeds
+    from eval.batched import play_on
 
     cfg = read_config_yaml(run_dir / "config.yaml")
     plain = [cfg["env"], cfg["sensors"], cfg["shield"]]
@@ -63,28 +64,11 @@ def evaluate(run_dir: Path, thresholds: list[float], episodes: int, first: int |
         model = _at(load_sb3(run_dir / zip_name, device="cpu"), cfg, tau)
         policy = SB3Policy(model, int(agent.get("action_repeat", 1)), agent.get("actions", "env"))
         # a tracker (turn_perceived) or a shield: the per-env stack, as python -m eval runs it
-        rows = _play(plain, policy, seeds, min(episodes, n_envs), f"P(GO) >= {tau:g}", batched)
+        rows = play_on(*plain, policy, seeds, min(episodes, n_envs), f"P(GO) >= {tau:g}", batched,
+                       progress=True)  # a threshold's 300 episodes on the per-env stack take minutes
         out.append((tau, float(np.mean([r["collision"] for r in rows])), float(np.mean([r["success"] for r in rows]))))
         print(f"| {tau:.2f} | {out[-1][1]:.3f} | {out[-1][2]:.3f} |", flush=True)
     return out
-
-
-def _play(plain: list, policy, seeds: range, n_envs: int, label: str, batched: bool) -> list[dict]:
-    """The episodes ``seeds`` of ``policy`` on ``plain`` (env, sensors, shield configs) with a progress bar on
-    stderr (a threshold's 300 episodes on the per-env stack take minutes): on the batch when it can run them
-    (``n_envs`` at a time), else on one per-env env."""
-    if batched:
-        from eval.batched import play_batched
-
-        return play_batched(*plain, policy, seeds, n_envs, label)
-    from eval.agents import make_eval_env
-    from eval.runner import run_episodes
-
-    env = make_eval_env(*plain)
-    try:
-        return run_episodes(env, policy, seeds, label)
-    finally:
-        env.close()
 
 
 def _at(model, cfg: dict, tau: float):
