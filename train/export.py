@@ -1,11 +1,14 @@
-"""Export a trained PPO run as a reference checkpoint: ``python -m train.export checkpoints/<run>
+"""Export a trained run as a reference checkpoint: ``python -m train.export checkpoints/<run>
 checkpoints/<name> [--best] [--command "python -m train ..."] [--overwrite] [--overwrite-reference]``.
 
-Writes ``<dest>/model.zip`` (the run's ``model.zip``, or ``best.zip`` with ``--best``) without the optimizer's
-state, the run's ``config.yaml`` beside it, and ``COMMAND`` (the command that trained it; every reference folder
-has one, ``tests/test_reference_checkpoints.py``). Why drop the optimizer: Adam keeps two moments per weight, two
-thirds of an SB3 zip; a reference checkpoint is for ``python -m eval``, which never steps an optimizer (resuming
-training reads the run's own folder). The policy's weights, and so its actions, are unchanged.
+Writes the run's model file (its agent kind's ``checkpoint``), the run's ``config.yaml`` beside it, and ``COMMAND``
+(the command that trained it; every reference folder has one, ``tests/test_reference_checkpoints.py``). An SB3 run
+(PPO, DAgger) gives ``<dest>/model.zip`` (the run's ``model.zip``, or ``best.zip`` with ``--best``) without the
+optimizer's state. Why drop the optimizer: Adam keeps two moments per weight, two thirds of an SB3 zip; a reference
+checkpoint is for ``python -m eval``, which never steps an optimizer (resuming training reads the run's own folder).
+The policy's weights, and so its actions, are unchanged. A PilotNet run gives ``<dest>/model.pt`` byte for byte
+(checked to load first): it holds the best validation epoch's weights and no optimizer, so there is nothing to drop
+and no ``best.zip`` to choose.
 
 The shipped reference agents (``checkpoints/reference/``, :func:`av_gym.references.reference_root`) are read-only
 to the tools (an export of a lane keeper replaced the shipped ``ppo_turn``): a destination there is
@@ -153,34 +156,71 @@ def export_reference(run_dir: str | Path, dest: str | Path, best: bool = False, 
     ``command`` to ``dest/COMMAND`` if given; returns the written zip. The folder's files are replaced at once,
     under its lock: a folder holding files only with ``overwrite`` (:func:`dest_problem`), a shipped reference
     only as :func:`reference_problem` allows."""
-    from agents.checkpoint import load_sb3, read_config_yaml
+    from agents.checkpoint import read_config_yaml
 
     run_dir, dest = Path(run_dir), Path(dest)
-    src = run_dir / ("best.zip" if best else "model.zip")
+    cfg = read_config_yaml(run_dir / "config.yaml")
+    name = _model_file(cfg, best)
+    src = run_dir / ("best.zip" if best else name)
     for path in (src, run_dir / "config.yaml"):
         if not path.is_file():
             raise ConfigError(f"{path} does not exist: run_dir must be a training run's checkpoint folder "
-                              f"(checkpoints/<run_name>/ with model.zip{', best.zip' if best else ''} and config.yaml)")
-    with destination(run_dir, dest, read_config_yaml(run_dir / "config.yaml"), "python -m train.export", overwrite,
-                     overwrite_reference, bool(command)) as keep_others:
-        model = load_sb3(src, device="cpu")  # one line for an empty, truncated or corrupt zip
-        policy = model.policy
-        policy.optimizer = policy.optimizer_class(policy.parameters(), lr=model.lr_schedule(1.0),
-                                                  **policy.optimizer_kwargs)  # fresh: no moments
-        files: dict = {"model.zip": lambda p: model.save(str(p)),
+                              f"(checkpoints/<run_name>/ with {name}{', best.zip' if best else ''} and config.yaml)")
+    with destination(run_dir, dest, cfg, "python -m train.export", overwrite, overwrite_reference,
+                     bool(command)) as keep_others:
+        files: dict = {name: (_sb3_writer if name == "model.zip" else _torch_writer)(src),
                        "config.yaml": (run_dir / "config.yaml").read_text()}
         if command:
             files["COMMAND"] = command.rstrip("\n") + "\n"
         write_checkpoint_folder(dest, files, keep_others)
-    return dest / "model.zip"
+    return dest / name
+
+
+def _model_file(cfg: Mapping, best: bool) -> str:
+    """The model file a run of ``cfg``'s agent kind holds (``model.zip`` when the config names no known kind: the
+    SB3 runs this tool was first written for). ``best`` only for SB3 runs, which keep ``best.zip`` beside it."""
+    from agents.registry import AGENT_KINDS
+
+    kind = _get(cfg, "agent.kind")
+    name = (AGENT_KINDS.get(kind).checkpoint if kind in AGENT_KINDS else None) or "model.zip"
+    if best and name != "model.zip":
+        raise ConfigError(f"--best: a run of agent.kind={kind} keeps one {name}, already its best validation epoch "
+                          f"(there is no best.zip); export it without --best")
+    return name
+
+
+def _sb3_writer(src: Path) -> Callable[[Path], object]:
+    """Writes ``src``'s SB3 model without the optimizer's moments (one line for an empty, truncated or corrupt
+    zip, raised now, before the destination is touched)."""
+    from agents.checkpoint import load_sb3
+
+    model = load_sb3(src, device="cpu")
+    policy = model.policy
+    policy.optimizer = policy.optimizer_class(policy.parameters(), lr=model.lr_schedule(1.0),
+                                              **policy.optimizer_kwargs)  # fresh: no moments
+    return lambda p: model.save(str(p))
+
+
+def _torch_writer(src: Path) -> Callable[[Path], object]:
+    """Copies ``src`` (PilotNet's ``model.pt``: weights and plain values, no optimizer) byte for byte, once it has
+    loaded as the kind's checkpoint (one line naming the file when it does not)."""
+    from agents.pilotnet import load_policy
+
+    try:
+        load_policy(src)  # weights_only=True: the shapes and format checked as eval will load them
+    except (ValueError, RuntimeError, EOFError, OSError, KeyError) as exc:
+        raise ConfigError(f"{src}: {(str(exc).splitlines() or [type(exc).__name__])[0]}") from None
+    return lambda p: shutil.copyfile(src, p)
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = ToolParser(prog="python -m train.export", description=__doc__.split("\n\n")[0])
-    parser.add_argument("run_dir", help="checkpoints/<run_name>/ of a PPO training run")
+    parser.add_argument("run_dir", help="checkpoints/<run_name>/ of a training run (PPO, DAgger: model.zip; "
+                                        "PilotNet: model.pt)")
     parser.add_argument("dest", help="folder to write, e.g. checkpoints/<name> (checkpoints/reference/<agent>: "
                                      f"only with {FLAG})")
-    parser.add_argument("--best", action="store_true", help="export best.zip (the best periodic evaluation)")
+    parser.add_argument("--best", action="store_true", help="export best.zip (the best periodic evaluation; SB3 "
+                                                            "runs)")
     parser.add_argument("--command", help="the command that trained the run, written to DEST/COMMAND")
     parser.add_argument(FLAG, action="store_true",
                         help="allow DEST to be a shipped reference agent's folder: replaced (model, config and "
