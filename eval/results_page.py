@@ -95,7 +95,8 @@ SEEDS_NOTE = (f"`seeds`: 1 is a single policy (one trained network, one training
               f"over its k training seeds in that folder (each seed's row is kept above it): the mean and the IQM "
               f"(interquartile mean, rliable's) of the seeds' scores, with a stratified-bootstrap 95 % interval "
               f"(the seeds resampled, then each drawn seed's episodes; {BOOTSTRAP_RESAMPLES} resamples, generator "
-              f"seed {BOOTSTRAP_SEED}); {NOT_TRAINED} is a rule or a planner, nothing trained.")
+              f"seed {BOOTSTRAP_SEED}; a rate's interval is never narrower than the Wilson interval of the seeds' "
+              f"episodes pooled); {NOT_TRAINED} is a rule or a planner, nothing trained.")
 
 
 def method_of(agent: str) -> str:
@@ -133,9 +134,10 @@ def trained(agent: str) -> bool:
 
 def _across_lines(result: dict, method: str, members: list[str], present: list[str]) -> list[dict]:
     """The method's two lines over its training seeds: the mean and the IQM, each metric with its
-    stratified-bootstrap interval (:func:`av_gym.metrics.across_seeds.across_seeds`)."""
+    stratified-bootstrap interval (:func:`av_gym.metrics.across_seeds.across_seeds`; a rate's holds at least the
+    pooled episodes' Wilson interval, so 100 laps of 100 completed are not a certainty)."""
     per_seed = {m: [[r[m] for r in result["rows"] if r["agent"] == a] for a in members] for m in present}
-    stats = {m: across_seeds(per_seed[m]) for m in present}
+    stats = {m: across_seeds(per_seed[m], rate=kind_of(m) == "rate") for m in present}
     n = sum(1 for r in result["rows"] if r["agent"] == members[0])
     lines = []
     for stat, label in (("mean", "mean"), ("iqm", "IQM")):

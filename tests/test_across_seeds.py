@@ -64,3 +64,15 @@ def test_one_seed_is_refused_and_a_seed_without_values_is_undefined():
         across_seeds([np.ones(10)])
     out = across_seeds([np.ones(10), np.full(10, np.nan)])
     assert all(np.isnan(v) for v in out["mean"])
+
+
+def test_a_rate_where_every_episode_ends_alike_keeps_the_episodes_chance():
+    """5 seeds completing 20 of 20 laps each: no resample differs, and the percentile interval alone was the point
+    [1, 1]; a rate's interval holds at least the pooled episodes' Wilson interval (100 of 100: [0.963, 1])."""
+    per_seed = [np.ones(20) for _ in range(5)]
+    assert across_seeds(per_seed)["mean"] == (1.0, 1.0, 1.0)  # a mean of anything: no spread to see
+    _, w_lo, w_hi = wilson_ci(100, 100)
+    for value, lo, hi in across_seeds(per_seed, rate=True).values():
+        assert (value, lo, hi) == (1.0, pytest.approx(w_lo), w_hi) and 0.96 < lo < 0.97
+    spread = _seeds([0.2, 0.8], 1000)  # where the seeds disagree the bootstrap is wider and is kept
+    assert across_seeds(spread, rate=True) == across_seeds(spread)

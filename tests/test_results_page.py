@@ -136,3 +136,31 @@ def test_seeds_of_one_method_on_different_episodes_are_refused_in_one_line(tmp_p
     assert main(["--results", str(results), "--out", str(tmp_path / "p.md")]) == 2
     err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert len(err) == 1 and "training seeds of ppo_turn on different episodes" in err[0], err
+
+
+def test_a_lane_keeping_folder_gets_pilotnets_line_over_seeds_for_its_metrics(tmp_path):
+    """PilotNet and four extra training seeds on the same 20 test laps (each seed's |CTE| 0.04 + 0.01 k m, every
+    lap completed): the method's lines give lane keeping's metrics over seeds; lap_completed, a rate where every
+    lap ends alike, keeps the laps' chance (was 1.000 [1.000, 1.000], now the 100 laps' Wilson interval)."""
+    results = tmp_path / "results"
+    d = results / "lk"
+    d.mkdir(parents=True)
+    agents = ["pid_localized", "pilotnet", *(f"checkpoints/reference/seeds/pilotnet/s{k}" for k in range(1, 5))]
+    with open(d / "results.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["agent", "episode", "seed", "cte_mean_abs_m", "lap_completed"])
+        w.writeheader()
+        for k, agent in enumerate(agents):
+            for i in range(20):
+                w.writerow({"agent": agent, "episode": i, "seed": 2_000_000 + i,
+                            "cte_mean_abs_m": 0.03 + 0.01 * k + 0.002 * (i % 5 - 2), "lap_completed": 1.0})
+    (d / "meta.json").write_text(json.dumps({"command": "python -m eval env=lane_keeping env.track=B split=test",
+                                             "commit": "0" * 40, "started": "t0", "finished": "t1", "wall_s": 1,
+                                             "load": "1"}))
+    text = page(load_all(results))
+    mean = _rows(text[text.index("## lk"):], "| pilotnet, mean of 5 seeds")[0]
+    assert mean[1:4] == ["5", "5 \u00d7 20", "1.000 [0.963, 1.000]"]
+    assert mean[4].startswith("0.06 [")  # the seeds' means 0.04 .. 0.08
+    lo, hi = (float(v) for v in mean[4][len("0.06 ["):-1].split(", "))
+    assert 0.04 < lo < 0.06 < hi < 0.08
+    headline = _rows(quoted_block(text, "the page"), "| pilotnet, IQM of 5 seeds")[0]
+    assert headline[1:5] == ["lane keeping, layout B", "test", "5", "5 \u00d7 20"]
