@@ -1,0 +1,105 @@
+"""DAgger for the perceived student on the batch (``agent=dagger_turn_perceived agent.vec_env=batched``).
+
+The batch runs the detector and the tracker (av_gym/batched/perception.py) and the look-ahead oracle labels its rows
+directly (train/dagger.py :func:`~train.dagger.drive_batched`). The reference recipe drove the same episodes on
+per-env stacks while the oracle labelled a batched replica (:func:`~train.dagger.drive_replica`). A round on the
+batch must be that round: the same states seen, the same labels, the same episodes' outcomes, so that students
+trained either way differ only by the order of their fits, not by what they were taught."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+ROOT = Path(__file__).resolve().parent.parent
+SEEDS = list(range(650_000, 650_006))  # seed 1's first training episodes (agent.train_seed + 50,000 x seed)
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """As ``python -m train`` (train.torch_threads=1)."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def _cfg(*overrides: str):
+    from hydra import compose, initialize_config_module
+
+    with initialize_config_module("conf", version_base="1.3"):
+        return compose("train", overrides=list(overrides))
+
+
+def _oracle_labels_module():
+    spec = importlib.util.spec_from_file_location("oracle_labels", ROOT / "benchmarks" / "oracle_labels.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _student():
+    """The committed perceived student (saved at P(GO) >= 0.9): a real policy of the tracker's features, so the
+    episodes go through yielding, waiting and going as in training."""
+    from agents.checkpoint import load_sb3
+
+    return load_sb3(ROOT / "checkpoints/reference/dagger_turn_perceived/model.zip", device="cpu")
+
+
+def _batch_round(B: int, teacher_drives: bool):
+    from agents.batched_vec_env import BatchedLeftTurnVecEnv
+    from train.dagger import BatchedLabels, drive_batched
+
+    cfg = _cfg("agent=dagger_turn_perceived", "agent.vec_env=batched")
+    plain = [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
+    venv = BatchedLeftTurnVecEnv(*plain, B, action_repeat=5, actions="go_yield", timeout_is_terminal=True, pool=0)
+    return drive_batched(venv, _student(), BatchedLabels(venv, None, True, 0.0), SEEDS, teacher_drives, 0.95)
+
+
+def _replica_round(B: int, teacher_drives: bool):
+    from train.dagger import drive_replica
+
+    envs, replica, labeller = _oracle_labels_module().replica_stack(B)
+    try:
+        return drive_replica(envs, replica, _student(), labeller, SEEDS, teacher_drives, 0.95)
+    finally:
+        for e in envs:
+            e.close()
+
+
+def test_the_batch_picks_its_own_oracle_for_the_perceived_student():
+    """``agent.vec_env=batched`` with turn_perceived: the oracle labels the batch itself (no replica, no per-env
+    stack) and the config passes DAgger's checks; the per-env default keeps its replica."""
+    from train.dagger import labeller_of, validate
+
+    cfg = _cfg("agent=dagger_turn_perceived", "agent.vec_env=batched", "agent.n_envs=64")
+    assert validate(cfg) == []
+    assert labeller_of(cfg) == "batched"
+    assert labeller_of(_cfg("agent=dagger_turn_perceived")) == "replica"
+
+
+@pytest.mark.parametrize("teacher_drives", [False, pytest.param(True, marks=pytest.mark.slow)],
+                         ids=["student_drives", "teacher_drives"])  # the student drives from round 0 (init_from)
+def test_a_round_on_the_batch_is_the_replica_recipes_round(teacher_drives):
+    """Six training episodes, the same rows: every decision's label, the student's agreement, the discounted returns
+    and each episode's outcome equal to the reference recipe's, the returns to float32's precision (the batch's
+    rewards) (per-env tracker stacks + the oracle on a replica);
+    the observations equal to the tracker's tolerance (the batch's features within 1e-4 of the per-env ones,
+    tests/test_batched_perception.py). A label drawn from anything but the simulator's state (the detector's
+    generator disturbed by the oracle's futures, a track read as a vehicle) changes a label or an outcome."""
+    batch, ref = _batch_round(3, teacher_drives), _replica_round(3, teacher_drives)
+    assert len(ref.labels) >= 60 and 0 < int(np.sum(ref.labels)) < len(ref.labels)  # both labels occur
+    assert batch.labels == ref.labels
+    assert batch.agree == ref.agree
+    assert batch.outcomes == ref.outcomes and len(ref.outcomes) == len(SEEDS)
+    assert np.allclose(batch.returns, ref.returns, rtol=1e-6, atol=0)  # the batch's rewards are float32
+    assert set(batch.obs[0]) == set(ref.obs[0])
+    for mine, theirs in zip(batch.obs, ref.obs):
+        for k in theirs:
+            assert np.allclose(mine[k], theirs[k], rtol=0, atol=1e-4), k
