@@ -36,7 +36,13 @@ class DaggerParams(PPOParams):
                                                     "when it starts from init_from), the student the others; the "
                                                     "student is refitted on everything labelled so far after each")
     round_episodes: int = param(128, "episodes", ge=1, le=AGGREGATE_EPISODES_MAX,
-                                doc="episodes driven (and labelled) per round")
+                                doc="episodes driven (and labelled) in the first round (in every round when "
+                                    "round_growth is 1)")
+    round_growth: float = param(1.0, ge=1.0, le=4.0, doc="each round drives this many times the episodes of the one "
+                                                          "before (round k: round_episodes x round_growth^k, "
+                                                          "rounded): the refits' work stays proportional to the "
+                                                          "final aggregate instead of its square, and the rounds "
+                                                          "fall evenly on a log scale of labels; 1: equal rounds")
     fit_epochs: int = param(8, ge=1, doc="passes over the aggregated labels after each round")
     fit_lr: float = param(1.0e-3, gt=0, doc="Adam step of the supervised fit")
     fit_batch: int = param(256, ge=2, doc="minibatch of the supervised fit")
@@ -62,12 +68,18 @@ class DaggerParams(PPOParams):
                                                "(av_gym/seeds.py; + 50,000 x seed, folded into the split): away from "
                                                "the demonstrations (500,000+) and PPO's streams (seed + steps)")
 
+    def round_sizes(self) -> list[int]:
+        """Episodes driven in each round: ``round_episodes x round_growth^k`` rounded, at least one."""
+        return [max(1, round(self.round_episodes * self.round_growth ** k)) for k in range(self.rounds)]
+
     def relations(self) -> list[str]:
         found = super().relations()
-        if self.rounds * self.round_episodes > AGGREGATE_EPISODES_MAX:
+        total = sum(self.round_sizes())
+        if total > AGGREGATE_EPISODES_MAX:
+            grown = f" grown by @round_growth={self.round_growth:g} a round" if self.round_growth > 1 else ""
             found.append(f"@rounds x @round_episodes must be at most {AGGREGATE_EPISODES_MAX:,} episodes (the labelled "
                          f"states are held in memory and saved each round, ~20 kB an episode), got {self.rounds} x "
-                         f"{self.round_episodes} = {self.rounds * self.round_episodes:,}")
+                         f"{self.round_episodes}{grown} = {total:,}")
         allowed = teacher_agents()
         if self.teacher not in allowed:
             found.append(f"@teacher must be one of {allowed}, got {self.teacher!r}")

@@ -343,3 +343,54 @@ def test_go_safe_targets_need_the_belief_planner_on_the_batch():
     (problem,) = validate(_cfg("agent=dagger_turn", "agent.targets=go_safe"))
     assert problem.startswith("agent.targets=go_safe needs agent.teacher of kind belief_lookahead") and \
         "kind lookahead" in problem
+
+
+def test_growing_rounds_follow_each_other_in_the_train_split():
+    """agent.round_growth: round k drives round_episodes x growth^k episodes (rounded), and the rounds' seeds are
+    the train split's next ones, so no episode is driven twice (offsets of k x round_episodes overlap once rounds
+    grow); growth 1 keeps the equal rounds' seeds, so the shipped students' runs are unchanged."""
+    from agents.dagger import DaggerParams
+    from av_gym.seeds import train_seed
+    from train.dagger import round_seeds
+
+    grown = DaggerParams(rounds=5, round_episodes=10, round_growth=1.5)
+    assert grown.round_sizes() == [10, 15, 22, 34, 51]
+    seeds = [s for k in range(5) for s in round_seeds(grown, 650_000, k)]
+    assert seeds == [train_seed(650_000, i) for i in range(132)]
+    equal = DaggerParams(rounds=3, round_episodes=7)
+    assert [round_seeds(equal, 650_000, k) for k in range(3)] == \
+        [[train_seed(650_000, 7 * k + i) for i in range(7)] for k in range(3)]
+
+
+def test_growing_rounds_are_bounded_by_the_aggregate_they_hold(tmp_path, monkeypatch, capsys):
+    """The bound on the labelled episodes counts the grown rounds (20 x 100 equal rounds fit; grown by 1.5 they
+    are 664,852 episodes)."""
+    from conf.check import check_command_line
+    from tests.test_bad_input import check_line
+
+    assert check_command_line("train", ["agent=dagger_turn", "agent.rounds=20", "agent.round_episodes=100"])
+    monkeypatch.chdir(tmp_path)
+    line = check_line("train", ["agent=dagger_turn", "agent.rounds=20", "agent.round_episodes=100",
+                                "agent.round_growth=1.5"], monkeypatch, capsys)
+    assert "agent.rounds x agent.round_episodes must be at most 100,000 episodes" in line and \
+        "agent.round_growth=1.5" in line, line
+    assert not any(tmp_path.iterdir())
+
+
+def test_a_growing_dagger_run_drives_its_rounds_sizes(tmp_path):
+    """End to end (the batched oracle, 3 rounds from 1 episode, x 2 a round): rounds.csv counts 1, 2 and 4
+    episodes and the labels grow with them."""
+    import csv
+
+    from train.dagger import train_dagger
+
+    cfg = _cfg("agent=dagger_turn", "agent.rounds=3", "agent.round_episodes=1", "agent.round_growth=2",
+               "agent.n_envs=2", "agent.extractor=mlp", "agent.fit_epochs=1", "train.eval_n=0",
+               "train.progress_bar=false")
+    ckpt = tmp_path / "ckpt"
+    ckpt.mkdir()
+    train_dagger(cfg, ckpt, tmp_path / "run")
+    rows = list(csv.DictReader((ckpt / "rounds.csv").open()))
+    assert [int(r["episodes"]) for r in rows] == [1, 2, 4]
+    labels = [int(r["labels"]) for r in rows]
+    assert labels[0] > 0 and labels[1] > labels[0] and labels[2] > labels[1]

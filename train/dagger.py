@@ -461,7 +461,9 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path, command: TrainC
     # each training seed drives its own episodes, train_seed + 50,000 x seed + the round's offset, all in the
     # train split (av_gym/seeds.py: folded into it)
     first = int(params.train_seed) + 50_000 * command.seed
-    print(f"[train] DAgger: {params.rounds} rounds x {params.round_episodes} episodes, teacher {params.teacher} "
+    grown = (f" (x {params.round_growth:g} a round: {sum(params.round_sizes())} in all)"
+             if params.round_growth > 1 else "")
+    print(f"[train] DAgger: {params.rounds} rounds x {params.round_episodes} episodes{grown}, teacher {params.teacher} "
           f"({run.how} labels), student {params.extractor} on {cfg.sensors.name}"
           f"{' from ' + str(params.init_from) if params.init_from else ''}; episode seeds {first}+")
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM behaves like Ctrl-C
@@ -576,9 +578,7 @@ def _resume(model, latest: Path, ckpt_dir: Path, params, shift) -> tuple[Round, 
 def _round(run: _Run, params, data: Round, k: int, first: int, seed: int, t_start: float, shift) -> tuple[dict, Round]:
     """Round ``k``: its episodes driven (by the teacher in round 0 of a fresh student) and labelled, the aggregate
     grown, the student refitted, shifted to its operating point and validated; returns its row and new labels."""
-    from av_gym.seeds import train_seed
-
-    seeds = [train_seed(first, k * int(params.round_episodes) + i) for i in range(int(params.round_episodes))]
+    seeds = round_seeds(params, first, k)
     by_teacher = k == 0 and not params.init_from  # a student to go on from drives from the start
     # A student fitted to probabilities (targets go_safe) drives at its operating point: its argmax (P(GO) 0.5)
     # would go where at most half the planner's futures collide, states the student at go_threshold never meets.
@@ -601,6 +601,15 @@ def _round(run: _Run, params, data: Round, k: int, first: int, seed: int, t_star
     if run.validation is not None:
         row["val_collision"], row["val_success"] = run.validation(run.model)
     return row, new
+
+
+def round_seeds(params, first: int, k: int) -> list[int]:
+    """Round ``k``'s episode seeds in the train split: the rounds' episodes follow each other from ``first``, so
+    no two rounds (of any sizes, :meth:`agents.dagger.DaggerParams.round_sizes`) drive the same episode."""
+    from av_gym.seeds import train_seed
+
+    sizes = params.round_sizes()
+    return [train_seed(first, sum(sizes[:k]) + i) for i in range(sizes[k])]
 
 
 def _print_round(row: dict, new: Round, validated: bool) -> None:
