@@ -53,8 +53,8 @@ def left_turn_vector(num_envs: int, *, env: Mapping | None = None, sensors: Any 
                      action_repeat: int = 1) -> gym.vector.VectorEnv:
     """``vector_entry_point`` of ``av_gym/UnprotectedLeftTurn-v0``: the batched engine (all envs in one numpy
     batch, :mod:`av_gym.batched.vec_env`), what ``gymnasium.make_vec(id, n)`` gives when no
-    ``vectorization_mode`` is named. It runs the ``turn_truth`` and ``turn_perceived`` sensors without a shield;
-    anything else is refused in one line (``vectorization_mode="sync"`` or ``"async"`` runs every stack)."""
+    ``vectorization_mode`` is named. It runs the ``turn_truth`` and ``turn_perceived`` sensors, without a shield or
+    with ``shield="aeb"`` (:mod:`av_gym.batched.shield`); anything else is refused in one line (``vectorization_mode="sync"`` or ``"async"`` runs every stack)."""
     import numbers
 
     from av_gym.batched.vec_env import BatchedLeftTurnVectorEnv, check_batchable
@@ -74,11 +74,11 @@ def left_turn_vector(num_envs: int, *, env: Mapping | None = None, sensors: Any 
     env_cfg = deep_merge(preset("env", "left_turn"), _mapping(env or {}, "env"))
     sensors_cfg, shield_cfg = as_section("sensors", sensors, "truth"), as_section("shield", shield, "none")
     try:
-        check_batchable(env_cfg, sensors_cfg, shield_cfg)
+        check_batchable(env_cfg, sensors_cfg, shield_cfg, with_shield=True)
     except ConfigError as exc:
         what = str(exc).split("; use ")[0].replace("agent.vec_env=batched", "the batched engine")
         raise ConfigError(f"{what}; {other}") from None
-    return BatchedLeftTurnVectorEnv(env_cfg, sensors_cfg, int(num_envs), actions=actions,
+    return BatchedLeftTurnVectorEnv(env_cfg, sensors_cfg, int(num_envs), shield_cfg, actions=actions,
                                     action_repeat=int(action_repeat))
 
 

@@ -73,7 +73,7 @@ def _batched_sensors(plan, env_cfg: dict):
     given = plan.sensors or {}
     if given.get("name") != DEFAULT_SENSORS or sensor_overrides(given):
         try:  # what the batch can run, on the sensors chosen (check_batched_plan skips them for always_proceed)
-            check_batchable(env_cfg, given, plan.shield)
+            check_batchable(env_cfg, given, plan.shield, with_shield=True)
         except ConfigError as exc:
             raise ConfigError(f"agent {plan.label!r}: {str(exc).replace('agent.vec_env=', 'vec_env=')}") from None
     return dataclasses.replace(plan, sensors=dict(NO_OBS_SENSORS))

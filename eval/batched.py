@@ -8,13 +8,16 @@ is ``EpisodeMetrics``' row: rows equal to ``vec_env=subproc``'s within the engin
 docs/performance.md). Rows come back in seed order.
 
 What runs: ``env=left_turn`` in either mode (traffic; ``env.mode=ccftap`` with its ``env.ccftap.*`` case) and with
-either action type, no shield, and the agents ``always_proceed`` (it reads no observation: it runs on the batch
-whatever the sensors), ``gap_acceptance``, the ``lookahead`` oracle (its GO futures played for every env that
-decides, all at once, by :mod:`agents.batched_oracle`: the per-env oracle's decisions, ~20x its labels per second)
-and PPO / DAgger checkpoints on the batch's sensors: ``turn_truth`` (turn features from truth, turn signals,
-intent) and ``turn_perceived`` / ``turn_perceived_memory`` (the detector, the Kalman tracker and the features on its
-tracks, :mod:`av_gym.batched.perception`: the per-env stack's detections and tracks on the same seeds). Anything
-else (a shield; ``belief_lookahead`` on tracks, whose planner reads the features' objects as the simulator's
+either action type, without a shield or behind ``shield=aeb`` / ``agent+aeb`` (the improved AEB shield in either
+mode, :mod:`av_gym.batched.shield`: the per-env shield's decisions on every row), and the agents
+``always_proceed`` (it reads no observation: it runs on the batch whatever the sensors), ``gap_acceptance``, the
+``lookahead`` oracle (its GO futures played for every env that decides, all at once, by
+:mod:`agents.batched_oracle`: the per-env oracle's decisions, ~20x its labels per second) and PPO / DAgger
+checkpoints on the batch's sensors: ``turn_truth`` (turn features from truth, turn signals, intent) and
+``turn_perceived`` / ``turn_perceived_memory`` (the detector, the Kalman tracker and the features on its tracks,
+:mod:`av_gym.batched.perception`: the per-env stack's detections and tracks on the same seeds). Anything
+else (another shield or variant, the shield's second opinion ``aeb_belief``, the oracle planning with the shield,
+``plan_with_shield``; ``belief_lookahead`` on tracks, whose planner reads the features' objects as the simulator's
 vehicles) is refused in one line before any episode runs, and runs with ``vec_env=subproc``.
 """
 
@@ -62,12 +65,24 @@ def check_batched_plan(plan, env_cfg: dict) -> None:
         raise ConfigError(f"agent {plan.label!r}: belief_lookahead on sensors.turn_features.source=tracks cannot run "
                           f"with vec_env=batched (its planner on the batch reads the described objects as the "
                           f"simulator's vehicles); use vec_env=subproc")
+    if kind == "lookahead" and (plan.shield or {}).get("kind", "none") != "none" and \
+            _agent_config(plan).get("plan_with_shield"):
+        raise ConfigError(f"agent {plan.label!r}: lookahead with plan_with_shield=true cannot run with "
+                          f"vec_env=batched (its futures on the batch are the driver's own, without the shield); "
+                          f"use vec_env=subproc")
     try:
-        check_batchable(env_cfg, sensors, plan.shield)
+        check_batchable(env_cfg, sensors, plan.shield, with_shield=True)
     except ConfigError as exc:
         msg = str(exc).replace("agent.vec_env=batched", "vec_env=batched").replace("agent.vec_env=subproc",
                                                                                     "vec_env=subproc")
         raise ConfigError(f"agent {plan.label!r}: {msg}") from None
+
+
+def _agent_config(plan) -> dict:
+    """The agent config of a rule-based plan (its spec's ``conf/agent`` file; {} for a checkpoint)."""
+    from eval.agents import _is_path, load_agent_config
+
+    return {} if _is_path(str(plan.spec)) else dict(load_agent_config(str(plan.spec)))
 
 
 class _Decider:
@@ -99,7 +114,7 @@ class _Decider:
             self.planner = BeliefPlanner(policy.params, n_rows=n)
             self.k = np.zeros(n, dtype=int)
             self.choice = np.full(n, YIELD)
-        elif isinstance(policy, Lookahead):  # no shield on the batch, so plan_with_shield changes nothing here
+        elif isinstance(policy, Lookahead):  # its futures without the shield (plan_with_shield is refused)
             self.kind = "lookahead"
             self.k = np.zeros(n, dtype=int)  # Lookahead._t
             self.choice = np.full(n, YIELD)  # Lookahead._choice
@@ -188,10 +203,11 @@ def play_on(env_cfg: dict, sensors: dict, shield: dict, policy, seeds: Iterable[
 
 
 def play_batched(env_cfg: dict, sensors: dict, shield: dict, policy, seeds: Iterable[int], n_envs: int, label: str,
-                 progress: bool = True, out: list | None = None) -> list[dict]:
+                 progress: bool = True, out: list | None = None, aeb: dict | None = None) -> list[dict]:
     """The episodes ``seeds`` of ``policy`` on the batched engine (``n_envs`` at a time), rows in seed order; the
     caller has checked that the engine can run this env, sensors, shield and policy (:func:`check_batched_plan`,
-    or ``train/ppo.py``'s own check for the stack it trains on)."""
+    or ``train/ppo.py``'s own check for the stack it trains on). ``aeb``: a dict that gets, per seed, what the
+    shield did in that episode (``info["aeb"]``: brake time, stop position, the steps it overrode)."""
     from agents.batched_vec_env import BatchedLeftTurnVecEnv
 
     total = len(seeds) if hasattr(seeds, "__len__") else None
@@ -217,6 +233,8 @@ def play_batched(env_cfg: dict, sensors: dict, shield: dict, policy, seeds: Iter
             restarted = []
             for r in np.nonzero(ended)[0]:
                 done[infos[r]["seed"]] = infos[r]["episode_metrics"]
+                if aeb is not None and "aeb" in infos[r]:
+                    aeb[infos[r]["seed"]] = infos[r]["aeb"]
                 restarted.append(r)
             decide.reset(np.array(restarted, dtype=int))
             while len(rows) < len(wanted) and wanted[len(rows)] in done:  # seed order

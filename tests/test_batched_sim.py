@@ -448,7 +448,8 @@ def conf_env_ccftap() -> dict:
 
 
 @pytest.mark.parametrize("agents, needle", [
-    ("[always_proceed+aeb]", "agent 'always_proceed+aeb': shield=aeb is not available with vec_env=batched"),
+    ("[always_proceed+aeb_paper]", "agent 'always_proceed+aeb_paper': shield.variant=paper is not available with "
+                                   "vec_env=batched"),
     ("[belief_lookahead@turn_perceived]", "agent 'belief_lookahead@turn_perceived': belief_lookahead on "
                                           "sensors.turn_features.source=tracks cannot run with vec_env=batched"),
     ("[pid_tuned]", "agent 'pid_tuned' (kind pid) cannot run with vec_env=batched"),

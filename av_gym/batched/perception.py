@@ -78,8 +78,9 @@ class BatchedDetector:
     _view, _occluded, _world_frame = Detector._view, Detector._occluded, Detector._world_frame
     sensor_space = Detector.sensor_space
 
-    def __init__(self, n_envs: int, params: DetectorParams) -> None:
+    def __init__(self, n_envs: int, params: DetectorParams, stream: str = "detector") -> None:
         p = self.params = params
+        self.stream = stream  # the per-env sensor's key of its generator (the AEB shield's: "aeb_detector")
         if p.frame != "world":
             raise ConfigError(f"sensors.tracker needs sensors.detector.frame=world, got {p.frame!r}")
         # Detector.__init__'s two-state miss chain: leave a run with q, enter it with p so that P(miss) = miss_rate
@@ -98,7 +99,7 @@ class BatchedDetector:
     def reset(self, rows, episode_seeds) -> None:
         """New episodes in the envs ``rows`` (Detector.reset / on_reset): their generators from the episode seeds."""
         for r, seed in zip(np.asarray(rows, dtype=int), episode_seeds):
-            self.rngs[r] = episode_rng(int(seed), "detector")
+            self.rngs[r] = episode_rng(int(seed), self.stream)
             self.chains[r] = {}
         self.next_frame[rows], self.frame_time[rows] = 0.0, 0.0
         self.rows[rows] = 0.0
@@ -378,6 +379,22 @@ def tracks_observation(tracks: np.ndarray, shown: np.ndarray, ego_xy: np.ndarray
     return rows
 
 
+def others_state(engine, rows: np.ndarray) -> tuple[list, list]:
+    """The detector's input per env of ``rows``: others_state (k, 7) ``[x, y, vx, vy, heading, length, width]``
+    in road order (m, m/s, rad) and the vehicles' ids (the miss chains' keys)."""
+    t = engine.traffic
+    others, vids = [], []
+    for r in np.asarray(rows, dtype=int).tolist():
+        keep = t.alive[r] & ~t.ego[r]
+        v, h = t.v[r, keep], t.h[r, keep]
+        o = np.empty((int(keep.sum()), 7))
+        o[:, 0], o[:, 1], o[:, 2], o[:, 3] = t.x[r, keep], t.y[r, keep], v * np.cos(h), v * np.sin(h)
+        o[:, 4], o[:, 5], o[:, 6] = h, LENGTH, WIDTH
+        others.append(o)
+        vids.append(t.vid[r, keep])
+    return others, vids
+
+
 class BatchedPerception:
     """``turn_perceived`` on a :class:`~av_gym.batched.left_turn.BatchedLeftTurn`: detector → tracker → turn
     features (and, for :class:`~av_gym.batched.left_turn.BatchedIntent`, the intent on the tracks)."""
@@ -400,20 +417,6 @@ class BatchedPerception:
         self.detector.reset(rows, self.e.episode_seed[rows])
         self.tracker.reset(rows)
 
-    def _others(self, rows: np.ndarray) -> tuple[list, list]:
-        """others_state per env (road order) and the vehicles' ids."""
-        t = self.e.traffic
-        others, vids = [], []
-        for r in rows.tolist():
-            keep = t.alive[r] & ~t.ego[r]
-            v, h = t.v[r, keep], t.h[r, keep]
-            o = np.empty((int(keep.sum()), 7))
-            o[:, 0], o[:, 1], o[:, 2], o[:, 3] = t.x[r, keep], t.y[r, keep], v * np.cos(h), v * np.sin(h)
-            o[:, 4], o[:, 5], o[:, 6] = h, LENGTH, WIDTH
-            others.append(o)
-            vids.append(t.vid[r, keep])
-        return others, vids
-
     def observe(self, rows) -> np.ndarray:
         """``obs["turn"]`` (n, width) float32 of the envs ``rows`` from their tracks, after one detector reading
         and one tracker step each (the per-env stack's observation); sets the engine's ``last_truth``."""
@@ -423,7 +426,7 @@ class BatchedPerception:
         e.described = None  # the engine's truth objects are not what obs["turn"] describes here: no stale reader
         now = e.ticks[rows] / e.config["simulation_frequency"]  # sim_time: tick resolution
         ego = np.stack([tr["x"], tr["y"], tr["heading"]], axis=1)
-        others, vids = self._others(rows)
+        others, vids = others_state(e, rows)
         det = self.detector.measure(rows, now, ego, others, vids)
         self.last_detections[rows] = det
         self.tracker.step(rows, det, now, ego[:, :2])

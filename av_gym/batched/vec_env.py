@@ -7,9 +7,11 @@ agent=ppo_turn agent.vec_env=batched`` trains on is :class:`av_gym_sb3.BatchedLe
 What the batch gives: ``env=left_turn`` in both modes (traffic, CCFtap) with discrete or continuous actions, and the
 sensors of the ``turn_truth`` presets (``turn_features`` with ``source: truth``, ``turn_signals``, ``turn_intent``,
 ``observe``) and of the ``turn_perceived`` presets (``detector`` → ``tracker`` → ``turn_features`` with ``source:
-tracks``, :mod:`av_gym.batched.perception`); agent options ``actions`` (an action set of
+tracks``, :mod:`av_gym.batched.perception`); the AEB shield ``shield=aeb`` (the improved variant, either mode,
+:mod:`av_gym.batched.shield`: each finished episode's ``info["aeb"]`` says its brake time, stop position and the
+steps it overrode); agent options ``actions`` (an action set of
 :data:`av_gym.wrappers.ACTION_SETS`, mapped by its own function), ``action_repeat``, ``timeout_is_terminal``.
-Anything else (another sensor, a shield) is refused with one line naming it; it runs on the per-env stack.
+Anything else (another sensor, another shield) is refused with one line naming it; it runs on the per-env stack.
 
 Auto-reset: an env whose episode ended starts its next one at once (SB3's convention: the step returns the new
 episode's first observation, the last one is ``info["terminal_observation"]``), taken from a pool of ready
@@ -28,6 +30,7 @@ from gymnasium import spaces
 from av_gym.actions import check_actions
 from av_gym.batched.left_turn import BatchedIntent, BatchedLeftTurn
 from av_gym.batched.perception import BatchedPerception, check_perceived, perceived
+from av_gym.batched.shield import BatchedShield, check_batched_shield, shield_kind
 from av_gym.errors import ConfigError
 from av_gym.estimation.object_tracking import BOUND as TRACK_BOUND
 from av_gym.estimation.turn_features import TurnFeaturesParams
@@ -37,8 +40,12 @@ SENSORS = ("name", "turn_features", "turn_signals", "turn_intent", "observe", "k
 PERCEIVED = ("detector", "tracker")  # with turn_features.source=tracks (av_gym.batched.perception)
 
 
-def check_batchable(env_cfg: dict, sensors_cfg: dict | None, shield_cfg: dict | None) -> None:
-    """One-line ConfigError for what the batch cannot run."""
+def check_batchable(env_cfg: dict, sensors_cfg: dict | None, shield_cfg: dict | None, *,
+                    with_shield: bool = False) -> None:
+    """One-line ConfigError for what the batch cannot run. ``with_shield``: the caller runs the batch's AEB shield
+    (:class:`BatchedLeftTurnBatch`: ``python -m eval``, ``gymnasium.make_vec``, the SB3 VecEnv), which then takes
+    ``shield=aeb`` as :func:`av_gym.batched.shield.check_batched_shield` allows it; other callers (training, the
+    DAgger replica, whose episodes a shield would change) refuse any shield."""
     if env_cfg.get("name") != "left_turn":
         raise ConfigError(f"agent.vec_env=batched runs env=left_turn only, got env={env_cfg.get('name')}")
     s = dict(sensors_cfg or {})
@@ -53,9 +60,13 @@ def check_batchable(env_cfg: dict, sensors_cfg: dict | None, shield_cfg: dict | 
                           f"turn_perceived), got sensors={s.get('name', 'truth')}")
     if perceived(s):
         check_perceived(s)
-    kind = (shield_cfg or {}).get("kind", (shield_cfg or {}).get("name", "none"))
-    if kind not in (None, "none"):
-        raise ConfigError(f"shield={kind} is not available with agent.vec_env=batched; use agent.vec_env=subproc")
+    if with_shield:
+        check_batched_shield(shield_cfg, env_cfg)
+        return
+    kind = shield_kind(shield_cfg)
+    if kind != "none":
+        raise ConfigError(f"shield={kind} is not available with agent.vec_env=batched here (python -m eval "
+                          f"vec_env=batched runs shield=aeb); use agent.vec_env=subproc")
 
 
 def batch_seeds(seed, n: int) -> list:
@@ -103,12 +114,14 @@ class BatchedLeftTurnBatch:
                  pool: int | None = None) -> None:
         from av_gym.make import highway_config
 
-        check_batchable(env_cfg, sensors_cfg, shield_cfg)
+        check_batchable(env_cfg, sensors_cfg, shield_cfg, with_shield=True)
+        shield = check_batched_shield(shield_cfg, env_cfg)
         _, config = highway_config(env_cfg)
         s = dict(sensors_cfg)
         features = TurnFeaturesParams.from_mapping(s.get("turn_features") or {}, "sensors.turn_features")
         self.engine = BatchedLeftTurn(n_envs, config, features, pool=max(8, n_envs // 4) if pool is None else pool)
         self.perception = BatchedPerception(self.engine, s) if perceived(s) else None
+        self.shield = BatchedShield(self.engine, shield) if shield is not None else None
         self.keys = list(s.get("observe") or ["turn", *(["signals"] if "turn_signals" in s else []),
                                               *(["intent"] if "turn_intent" in s else [])])
         need_intent = "intent" in self.keys or "signals" in self.keys
@@ -147,6 +160,10 @@ class BatchedLeftTurnBatch:
         self._ep_len = np.zeros(n_envs, dtype=int)
         self._ep_start = np.full(n_envs, time.time())
         self._traces: list[list] = [[] for _ in range(n_envs)]
+        # EpisodeMetrics' shield columns: steps overridden, override onsets, time (s) of the first (NaN: none)
+        self._overrides, self._onsets = np.zeros(n_envs, dtype=int), np.zeros(n_envs, dtype=int)
+        self._first_override = np.full(n_envs, np.nan)
+        self._overriding = np.zeros(n_envs, bool)
         self._idle = np.zeros(n_envs, bool)  # no episode to play (play(): its seeds ran out)
         self._queued = False
         self.row_seed: list = [None] * n_envs  # play(): the seed of the episode each env is playing
@@ -156,6 +173,10 @@ class BatchedLeftTurnBatch:
         e, seen = self.engine, self.perception
         if seen is not None and new_episode is not None and new_episode.any():
             seen.reset(rows[new_episode])
+        if self.shield is not None and new_episode is not None and new_episode.any():
+            new = rows[new_episode]
+            self.shield.reset(new)
+            self._overrides[new], self._onsets[new], self._first_override[new], self._overriding[new] = 0, 0, np.nan, 0
         turn = e.observe(rows) if seen is None else seen.observe(rows)
         out = {"turn": turn}
         if seen is not None:
@@ -251,8 +272,8 @@ class BatchedLeftTurnBatch:
         term_all, trunc_all = np.zeros(B, bool), np.zeros(B, bool)
         for _ in range(self.repeat if active.any() else 0):
             meta = self.action_set.act(self._actions, self._obs)
-            reward, term, trunc = e.step(meta, active)
             rows = np.nonzero(active)[0]
+            reward, term, trunc = self._env_step(meta, active, rows)
             self._store(rows, self._observe(rows))
             total += np.where(active, reward, 0.0)
             self._env_return += np.where(active, reward, 0.0)
@@ -276,6 +297,8 @@ class BatchedLeftTurnBatch:
                 # EpisodeMetrics' `truncated` is the env's flag as it is, also when the episode ends both ways (the
                 # ego arrives on the time limit's step); SB3's TimeLimit.truncated above is not
                 infos[r]["episode_metrics"] = self._metrics(r, bool(trunc_all[r]))
+                if self.shield is not None:  # what the shield did: the per-env shield's aeb_* info at the end
+                    infos[r]["aeb"] = self.shield.episode(r)
                 if self._queued:
                     infos[r]["seed"] = self.row_seed[r]
             self._traces_reset(rows)
@@ -288,13 +311,32 @@ class BatchedLeftTurnBatch:
             term_all, trunc_all = term_all | trunc_all, np.zeros(B, bool)
         return {k: v.copy() for k, v in self._obs.items()}, total.astype(np.float32), done, infos
 
+    def _env_step(self, meta: np.ndarray, active: np.ndarray, rows: np.ndarray) -> tuple:
+        """One env step of the envs ``active`` (``rows``) under the env actions ``meta``, behind the shield if
+        there is one (its decision, the throttle cut, its brake on every tick, its override counted as
+        EpisodeMetrics counts it: per env step, onsets, the time after the first)."""
+        e, sh = self.engine, self.shield
+        if sh is None:
+            return e.step(meta, active)
+        applied = sh.decide(rows, meta)
+        with sh.actuated(rows):
+            out = e.step(applied, active)
+        sh.after(rows)
+        over = rows[sh.override[rows]]
+        self._overrides[over] += 1
+        self._onsets[over[~self._overriding[over]]] += 1
+        self._overriding[rows] = sh.override[rows]
+        first = over[np.isnan(self._first_override[over])]
+        self._first_override[first] = e.time[first]
+        return out
+
     def _traces_reset(self, rows) -> None:
         for r in rows:
             self._traces[r] = []
 
     def _metrics(self, r: int, truncated: bool) -> dict:
         """EpisodeMetrics' row from the ego's per-step truth: the left-turn summary (min TTC from
-        :meth:`BatchedLeftTurn.ttc`), return, length, truncated, and the shield's columns (no shield on the batch:
+        :meth:`BatchedLeftTurn.ttc`), return, length, truncated, and the shield's columns (none without a shield:
         no override, ``first_override_s`` NaN)."""
         from av_gym.metrics.left_turn import left_turn_summary
 
@@ -302,8 +344,9 @@ class BatchedLeftTurnBatch:
         row = left_turn_summary(tr[:, 0], tr[:, 1], tr[:, 2].astype(bool), tr[:, 3].astype(bool),
                                 tr[:, 6], tr[:, 4], tr[:, 5])
         row.update({"return": float(self._env_return[r]), "length": float(len(tr)),
-                    "truncated": float(truncated), "override_fraction": 0.0, "intervention": 0.0,
-                    "interventions": 0.0, "first_override_s": float("nan")})
+                    "truncated": float(truncated), "override_fraction": self._overrides[r] / max(1, len(tr)),
+                    "intervention": float(self._overrides[r] > 0), "interventions": float(self._onsets[r]),
+                    "first_override_s": float(self._first_override[r])})
         return row
 
     def close(self) -> None:
@@ -338,8 +381,9 @@ class BatchedLeftTurnVectorEnv(gym.vector.VectorEnv):
     """Gymnasium ``VectorEnv`` over the same batch: meta-actions (or GO/YIELD), ``obs`` as a dict of batched
     arrays, autoreset in the same step (``info["final_obs"]`` / ``info["_final_obs"]``)."""
 
-    def __init__(self, env_cfg: dict, sensors_cfg: dict, n_envs: int, **kwargs) -> None:
-        self.venv = BatchedLeftTurnBatch(env_cfg, sensors_cfg, None, n_envs, **kwargs)
+    def __init__(self, env_cfg: dict, sensors_cfg: dict, n_envs: int, shield_cfg: dict | None = None,
+                 **kwargs) -> None:
+        self.venv = BatchedLeftTurnBatch(env_cfg, sensors_cfg, shield_cfg, n_envs, **kwargs)
         self.num_envs = n_envs
         self.single_observation_space = self.venv.observation_space
         self.single_action_space = self.venv.action_space

@@ -1,0 +1,369 @@
+"""The AEB shield (``shield=aeb``: the ``improved`` variant, ground-truth or perceived mode) for every env of a
+:class:`~av_gym.batched.left_turn.BatchedLeftTurn`.
+
+The per-env shield (:class:`~av_gym.shields.aeb_improved.ImprovedAEB`) stays the reference and is what decides
+here: each env of the batch has its own ImprovedAEB, built around a :class:`RowEnv`, a read-only view of that env's
+row of the batch's arrays with the attributes the shield reads of highway-env's env (the ego, the road's vehicles in
+road order, the road network, the route, the clock, the action type). So every decision (the conflict model, the
+driven path, the stop-line trigger, feasibility, release, the indicator channel and its Bayes filter) is the per-env
+shield's code on the per-env shield's inputs: one implementation, nothing to keep in step.
+
+What the batch does itself:
+
+- **perception** (``mode: perceived``): the shield's own detector and tracker for all envs at once
+  (:class:`~av_gym.batched.perception.BatchedDetector` on each env's ``episode_rng(seed, "aeb_detector")``, the
+  per-env shield's stream, and :class:`~av_gym.batched.perception.BatchedTracker`, the per-env
+  ``MultiObjectTracker``'s arithmetic); each env's shield reads its confirmed tracks.
+- **the brake actuator**: the per-env shield patches the ego's ``act`` so that every 20 Hz tick ends with the
+  actuator's acceleration. On the batch each tick of a braking env gets that acceleration as the ego's commanded
+  one (the engine's ``Traffic.advance`` ``ego_acceleration``, whose ``max(a, -v / 0.05)`` is the actuator's own
+  no-reversing clamp at 20 Hz), one tick per call while any env brakes (:meth:`BatchedShield.actuated`).
+
+Not on the batch (refused in one line by :func:`check_batched_shield`): the ``paper`` and ``standard`` variants, a
+second opinion (``aeb_belief``: the planner it asks plays the per-env stack's copies), and a simulation frequency
+other than 20 Hz.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+from collections.abc import Iterator, Mapping
+
+import gymnasium as gym
+import numpy as np
+from highway_env.envs.common.action import DiscreteMetaAction
+from highway_env.vehicle.controller import MDPVehicle
+
+from av_gym.batched.left_turn import tables
+from av_gym.envs.lane_path import LanePath
+from av_gym.envs.left_turn import ROUTE, UnprotectedLeftTurnEnv
+from av_gym.errors import ConfigError
+from av_gym.params import ParamError
+from av_gym.shields.aeb_params import BRAKE, STOP_SPEED, ImprovedParams
+from av_gym.sim.batched import LENGTH, WIDTH
+
+SIM_HZ = 20  # the engine's commanded acceleration clamps a standstill at v / 0.05 s, the actuator at v / sim_dt
+
+
+def shield_kind(shield_cfg: Mapping | None) -> str:
+    """The ``kind`` of a shield section (``none`` when there is none)."""
+    s = shield_cfg or {}
+    return str(s.get("kind", s.get("name", "none")) or "none")
+
+
+def check_batched_shield(shield_cfg: Mapping | None, env_cfg: Mapping | None = None) -> ImprovedParams | None:
+    """The shield's parameters if the batch can run this ``shield`` section (None for no shield), else one
+    ConfigError line naming the field and what the batch runs."""
+    kind = shield_kind(shield_cfg)
+    if kind == "none":
+        return None
+    if kind != "aeb":
+        raise ConfigError(f"shield.kind={kind} is not available with agent.vec_env=batched (it runs shield=aeb, "
+                          f"the improved variant); use agent.vec_env=subproc")
+    values = {k: v for k, v in dict(shield_cfg).items() if k not in ("name", "kind", "variant")}
+    variant = dict(shield_cfg).get("variant", "improved")
+    if variant != "improved":
+        raise ConfigError(f"shield.variant={variant} is not available with agent.vec_env=batched (it runs the "
+                          f"improved variant: shield=aeb); use agent.vec_env=subproc")
+    try:
+        p = ImprovedParams.from_mapping(values, "shield", what="a parameter of the AEB shield's improved variant")
+    except ParamError as exc:
+        raise ConfigError(str(exc)) from None
+    if p.second_opinion != "none":
+        raise ConfigError(f"shield.second_opinion={p.second_opinion} is not available with agent.vec_env=batched "
+                          f"(its planner plays copies of the per-env stack); use agent.vec_env=subproc, or "
+                          f"shield=aeb")
+    hz = ((env_cfg or {}).get("simulation_frequency") if env_cfg else None) or SIM_HZ
+    if int(hz) != SIM_HZ:
+        raise ConfigError(f"env.simulation_frequency={hz} with shield=aeb is not available with "
+                          f"agent.vec_env=batched (its brake actuator runs at {SIM_HZ} Hz); use agent.vec_env=subproc")
+    return p
+
+
+# ----------------------------------------------------------------------------------------------- one env's view
+class _Vehicle:
+    """What the shield reads of a highway-env vehicle, for one slot of the batch (one object per vehicle for the
+    whole episode, as highway-env's: the shield keys its per-object memory by it)."""
+
+    LENGTH, WIDTH = LENGTH, WIDTH
+
+    def __init__(self, vid: int) -> None:
+        self.vid = int(vid)
+        self.action: dict = {}
+
+    def act(self, action=None) -> None:
+        """The per-env shield wraps the ego's ``act`` with its actuator; on the batch the actuator runs in
+        :meth:`BatchedShield.actuated`."""
+
+    # MDPVehicle's set-point arithmetic, on this view's target_speeds (the ego's, discrete actions)
+    speed_to_index = MDPVehicle.speed_to_index
+    index_to_speed = MDPVehicle.index_to_speed
+
+
+class _Road:
+    def __init__(self, network) -> None:
+        self.network = network
+        self.vehicles: list[_Vehicle] = []
+
+
+class RowEnv(gym.Env):
+    """The scenario env of one row of a :class:`BatchedLeftTurn` as the AEB shield reads it: ``vehicle`` (the ego),
+    ``road.vehicles`` (road order) and ``road.network``, ``route``, ``steps``, ``config``, ``episode_seed``,
+    ``action_type`` and ``cruise_action``. :meth:`refresh` reads the row's state now (SI units)."""
+
+    scenario = "left_turn"
+
+    def __init__(self, engine, row: int, template: UnprotectedLeftTurnEnv, network, route: LanePath) -> None:
+        self.e, self.row, self.template = engine, int(row), template
+        self.action_space, self.observation_space = template.action_space, template.observation_space
+        self.action_type, self.config, self.route = template.action_type, engine.config, route
+        self.road = _Road(network)
+        self.vehicle: _Vehicle | None = None
+        self._by_vid: dict[int, _Vehicle] = {}
+
+    def cruise_action(self):
+        return self.template.cruise_action()
+
+    @property
+    def steps(self) -> int:
+        return int(self.e.ticks[self.row])
+
+    @property
+    def episode_seed(self) -> int:
+        return int(self.e.episode_seed[self.row])
+
+    def reset(self, **kwargs):
+        self._by_vid = {}
+        self.refresh()
+        return {}, {}
+
+    def refresh(self) -> None:
+        """Every alive vehicle of the row, in road order, as the shield reads it now."""
+        e, t, r = self.e, self.e.traffic, self.row
+        slots = np.flatnonzero(t.alive[r])
+        T = e.T
+        by_vid, vehicles = {}, []
+        for i in slots.tolist():
+            vid = int(t.vid[r, i])
+            v = self._by_vid.get(vid) or _Vehicle(vid)
+            v.position = np.array([t.x[r, i], t.y[r, i]])
+            v.speed, v.heading = float(t.v[r, i]), float(t.h[r, i])
+            v.lane_index = T.index[t.lane[r, i]]
+            route = t.route[r, i]
+            v.route = [T.index[k] for k in route if k >= 0] or None
+            by_vid[vid] = v
+            vehicles.append(v)
+            if t.ego[r, i]:
+                self._ego(v, r, i)
+        self._by_vid, self.road.vehicles = by_vid, vehicles
+
+    def _ego(self, v: _Vehicle, r: int, i: int) -> None:
+        """The ego's own state: velocity, last commanded steering and acceleration, set-point, lane."""
+        e, t = self.e, self.e.traffic
+        v.velocity = v.speed * np.array([np.cos(v.heading), np.sin(v.heading)])
+        v.action = {"steering": float(t.steer[r, i]), "acceleration": float(t.acc[r, i])}
+        v.lane = self.road.network.get_lane(v.lane_index)
+        if not e.continuous:  # an MDPVehicle (hasattr speed_index: the shield's test for a cruise set-point)
+            v.target_speeds, v.target_speed, v.speed_index = e.speeds, float(t.target[r, i]), 0
+        self.vehicle = v
+
+
+# ----------------------------------------------------------------------------------------------- perception
+class _Tracks:
+    """The per-env shield's ``detector`` and ``tracker`` for one row: the batch's readings, measured for every row
+    before the decisions (:meth:`BatchedShield._perceive`)."""
+
+    def __init__(self) -> None:
+        self.rows, self.ids = np.zeros((0, 7)), np.zeros(0, dtype=int)
+        self.rng = None
+
+    def on_reset(self) -> None:
+        pass
+
+    def reset(self) -> None:
+        pass
+
+    def measure(self) -> None:
+        return None
+
+    def step(self, detections, t: float, ego_xy) -> np.ndarray:
+        return self.rows
+
+    def track_ids(self) -> np.ndarray:
+        return self.ids
+
+
+# ----------------------------------------------------------------------------------------------- the batch
+class BatchedShield:
+    """``shield=aeb`` for every env of ``engine``: per env the per-env shield deciding on its :class:`RowEnv`;
+    :meth:`decide` before a step (the applied actions), :meth:`actuated` around the engine's step, :meth:`after`
+    after it; per episode ``brake_time`` (s), ``stop_position`` (m past the stop line), ``overrides`` (the steps it
+    overrode)."""
+
+    def __init__(self, engine, params: ImprovedParams) -> None:
+        from av_gym.shields.aeb_improved import ImprovedAEB
+
+        self.e, self.p = engine, params
+        B = engine.B
+        cfg = {k: v for k, v in engine.config.items() if k != "observation"}
+        template = UnprotectedLeftTurnEnv(config=cfg)
+        network = tables()[1]  # the intersection's highway-env road network, built once per process
+        route = LanePath([network.get_lane(i) for i in ROUTE])
+        self.views = [RowEnv(engine, r, template, network, route) for r in range(B)]
+        self.shields = []
+        for view in self.views:
+            s = ImprovedAEB(view, dataclasses.replace(params, mode="ground_truth"))
+            s.p = params  # the section's mode: its perception is the batch's (_Tracks)
+            if params.mode == "perceived":
+                s.detector, s.tracker = _Tracks(), _Tracks()
+            self.shields.append(s)
+        self.perception = _shield_perception(engine, params) if params.mode == "perceived" else None
+        self.override = np.zeros(B, bool)
+        self.steps = np.zeros(B, dtype=int)
+        self.overrides: list[list[int]] = [[] for _ in range(B)]
+        self._brake_from: np.ndarray | None = None
+
+    def reset(self, rows) -> None:
+        """New episodes in the envs ``rows`` (after the engine started them): the per-env shield's reset."""
+        rows = np.asarray(rows, dtype=int)
+        if self.perception is not None:
+            self.perception.detector.reset(rows, self.e.episode_seed[rows])
+            self.perception.tracker.reset(rows)
+        for r in rows.tolist():
+            self.shields[r].reset()
+            self.override[r], self.steps[r], self.overrides[r] = False, 0, []
+
+    def decide(self, rows: np.ndarray, actions: np.ndarray) -> np.ndarray:
+        """The shield's decision for the envs ``rows`` before their step under the env actions ``actions`` (B,)
+        (meta-actions, or the continuous command in [-1, 1]); returns the actions applied (the throttle cut while
+        braking) and sets :attr:`override`."""
+        rows = np.asarray(rows, dtype=int)
+        for r in rows.tolist():
+            self.views[r].refresh()
+        if self.perception is not None:
+            self._perceive(rows)
+        applied = np.array(actions, copy=True)
+        for r in rows.tolist():
+            s = self.shields[r]
+            action = self._env_action(actions[r])
+            s._proposed = action
+            stage, *_ = s._decide()
+            self.override[r] = stage == BRAKE
+            if self.override[r]:
+                self.overrides[r].append(int(self.steps[r]))
+                applied[r] = np.asarray(s._throttle_cut(action)).reshape(-1)[0]
+        self.steps[rows] += 1
+        return applied
+
+    def _env_action(self, a):
+        """One env's action as the per-env env takes it: a meta-action int, or the continuous (1,) float32."""
+        return np.array([a], dtype=np.float32) if self.e.continuous else int(a)
+
+    def _perceive(self, rows: np.ndarray) -> None:
+        """The shield's own detector frame and tracker step for the envs ``rows``; each row's confirmed tracks and
+        their ids for its shield (``MultiObjectTracker.tracks`` / ``track_ids``)."""
+        e, seen = self.e, self.perception
+        tr = e.truth(rows)
+        now = e.ticks[rows] / e.config["simulation_frequency"]
+        ego = np.stack([tr["x"], tr["y"], tr["heading"]], axis=1)
+        others, vids = seen.others(rows)
+        det = seen.detector.measure(rows, now, ego, others, vids)
+        seen.tracker.step(rows, det, now, ego[:, :2])
+        tracks, shown = seen.tracker.tracks(rows)
+        for n, r in enumerate(rows.tolist()):
+            src = self.shields[r].tracker
+            src.rows = tracks[n][shown[n]]
+            src.ids = seen.tracker.id[r, : shown.shape[1]][shown[n]].astype(int)
+
+    @contextlib.contextmanager
+    def actuated(self, rows: np.ndarray) -> Iterator[None]:
+        """Around the engine's step of the envs ``rows``: each tick of an env whose actuator is engaged takes the
+        actuator's deceleration (after its delay) as the ego's acceleration, as the per-env shield's patched
+        ``act`` sets it; the engine then runs one tick per call (the others' ticks are the same ticks)."""
+        braking = [r for r in np.asarray(rows, dtype=int).tolist()
+                   if self.shields[r].actuator.engaged_at is not None]
+        if not braking:
+            yield
+            return
+        traffic = self.e.traffic
+        plan = self._brake_plan(np.array(braking))
+        traffic.advance = _TickByTick(traffic.advance, plan)
+        traffic.act = _ActByAct(traffic, plan, 1.0 / self.e.config["simulation_frequency"])
+        try:
+            yield
+        finally:
+            del traffic.advance, traffic.act
+
+    def _brake_plan(self, braking: np.ndarray) -> np.ndarray:
+        """(frames, B) the ego's acceleration (m/s²) per tick of this step, NaN where its own control acts."""
+        e = self.e
+        dt = 1.0 / e.config["simulation_frequency"]
+        plan = np.full((e.frames, e.B), np.nan)
+        for r in braking.tolist():
+            act = self.shields[r].actuator
+            for f in range(e.frames):
+                d = act.deceleration((e.ticks[r] + f) * dt - act.engaged_at, dt)
+                plan[f, r] = np.nan if d is None else -d
+        return plan
+
+    def after(self, rows: np.ndarray) -> None:
+        """After the step of the envs ``rows``: where a braking ego came to a standstill, its stop position."""
+        for r in np.asarray(rows, dtype=int).tolist():
+            s = self.shields[r]
+            if not self.override[r] or not np.isnan(s._stop_position):
+                continue
+            e = self.e
+            if e.traffic.v[r, e.ego_slot([r])[0]] < STOP_SPEED:
+                self.views[r].refresh()
+                s._stop_position = s._front_past_line()
+
+    def episode(self, r: int) -> dict:
+        """Env ``r``'s episode so far: ``brake_time`` (s, first brake; None if none), ``stop_position`` (m past the
+        stop line at the first standstill under braking; None if none), ``overrides`` (the steps it braked)."""
+        info = self.shields[r]._make_info(0, float("inf"), 0.0, -1, False, False, None)
+        return {"brake_time": info["aeb_brake_time"], "stop_position": info["aeb_stop_position"],
+                "overrides": list(self.overrides[r])}
+
+
+class _TickByTick:
+    """``Traffic.advance`` one tick per call, the ego's commanded acceleration per tick from the brake plan
+    (frames, B) where it is not NaN (elsewhere the continuous ego's own command, or the speed control)."""
+
+    def __init__(self, advance, plan: np.ndarray) -> None:
+        self.advance, self.plan = advance, plan
+
+    def __call__(self, dt, frames, active=None, meta=None, speeds=None, ego_acceleration=None, clocks=None):
+        B = self.plan.shape[1]
+        own = np.full(B, np.nan) if ego_acceleration is None else np.asarray(ego_acceleration, dtype=float)
+        kwargs = {} if speeds is None else {"speeds": speeds}
+        for f in range(int(frames)):
+            cmd = np.where(np.isnan(self.plan[f]), own, self.plan[f])
+            self.advance(dt, 1, active, meta if f == 0 else None, ego_acceleration=cmd, clocks=clocks, **kwargs)
+
+
+class _ActByAct:
+    """``Traffic.act`` (the engine's numpy path, one call per tick), then the brake plan's acceleration per tick
+    for the braking egos, as the per-env shield's patched ``act`` sets it (no reversing: at most v / dt)."""
+
+    def __init__(self, traffic, plan: np.ndarray, dt: float) -> None:
+        self.traffic, self.act, self.plan, self.dt, self.frame = traffic, traffic.act, plan, dt, 0
+
+    def __call__(self, *args, **kwargs) -> None:
+        self.act(*args, **kwargs)
+        t, a = self.traffic, self.plan[self.frame]
+        self.frame += 1
+        b = np.flatnonzero(~np.isnan(a))
+        e = np.argmax(t.ego[b], axis=1)
+        t.acc[b, e] = np.maximum(a[b], -np.maximum(t.v[b, e], 0.0) / self.dt)
+
+
+def _shield_perception(engine, params: ImprovedParams):
+    """The shield's own detector (world frame, its ``aeb_detector`` stream) and tracker for the batch."""
+    from types import SimpleNamespace
+
+    from av_gym.batched.perception import BatchedDetector, BatchedTracker, others_state
+
+    det = BatchedDetector(engine.B, dataclasses.replace(params.detector, frame="world"), stream="aeb_detector")
+    return SimpleNamespace(detector=det, tracker=BatchedTracker(engine.B, params.tracker),
+                           others=lambda rows: others_state(engine, rows))

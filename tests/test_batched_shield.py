@@ -1,0 +1,251 @@
+"""The AEB shield on the batch (av_gym/batched/shield.py) against the per-env shield (ImprovedAEB around highway-env),
+same seeds, same agents: per episode the steps it overrode (interventions), the time of its first brake, the stop
+position (front bumper past the stop line at the first standstill under braking), and the outcome (collision,
+success, length, time-out).
+
+Tolerances, and why: the steps overridden, the outcomes and whether a brake time or stop position exists are
+decisions and must be equal; the brake time is a tick count (equal); the stop position is a float of the ego's
+pose, which the batch's engine gives within 1e-12 relative of highway-env's (tests/test_batched_sim.py), so it is
+compared within 1e-6 m. The per-env shield's own code decides on the batch (each row's ImprovedAEB on a view of
+its arrays), so nothing else may differ; a decision split would be named by seed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from av_gym.errors import ConfigError
+from av_gym.presets import compose_group
+from tests.conftest import conf
+
+STOP_TOL = 1e-6  # m
+VALIDATION = 1_000_000
+
+
+def _plan(spec: str, shield: dict | None = None):
+    """``spec``'s plan (``shield``: the command line's ``shield=`` section, applied to it), env and policy."""
+    from eval.agents import make_eval_env, plan_agent, resolve_agent
+
+    plan = plan_agent(spec, "left_turn", conf("sensors", "truth"), shield or {"name": "none", "kind": "none"},
+                      "checkpoints")
+    env = make_eval_env(conf("env", "left_turn"), plan.sensors, plan.shield)
+    _, policy = resolve_agent(plan.spec, env, "left_turn", "checkpoints")
+    return plan, env, policy
+
+
+def per_env(spec: str, seeds: list[int], shield: dict | None = None) -> dict[int, tuple[dict, dict]]:
+    """Per seed: EpisodeMetrics' row and what the shield did (its ``info["aeb_*"]`` at the end, the steps it
+    overrode), on the per-env stack."""
+    plan, env, policy = _plan(spec, shield)
+    out = {}
+    try:
+        for seed in seeds:
+            obs, _ = env.reset(seed=seed)
+            policy.reset()
+            overrides, k, done = [], 0, False
+            while not done:
+                obs, _, term, trunc, info = env.step(policy.act(obs))
+                if info["shield_override"]:
+                    overrides.append(k)
+                k, done = k + 1, term or trunc
+            out[seed] = (info["episode_metrics"], {"brake_time": info["aeb_brake_time"],
+                                                   "stop_position": info["aeb_stop_position"], "overrides": overrides})
+    finally:
+        env.close()
+    return out
+
+
+def batched(spec: str, seeds: list[int], n_envs: int, shield: dict | None = None) -> dict[int, tuple[dict, dict]]:
+    """The same on the batch (``n_envs`` at a time), by ``python -m eval vec_env=batched``'s loop."""
+    from eval.batched import NO_OBS_SENSORS, check_batched_plan, plan_kind, play_batched
+
+    plan, env, policy = _plan(spec, shield)
+    env.close()
+    check_batched_plan(plan, conf("env", "left_turn"))
+    sensors = NO_OBS_SENSORS if plan_kind(plan) == "always_proceed" else plan.sensors
+    aeb: dict = {}
+    rows = play_batched(conf("env", "left_turn"), sensors, plan.shield, policy, seeds, n_envs, spec, progress=False,
+                        aeb=aeb)
+    return {r["seed"]: (r, aeb[r["seed"]]) for r in rows}
+
+
+OUTCOME = ("collision", "success", "length", "truncated", "interventions", "override_fraction", "first_override_s")
+
+
+def splits(ref: dict, got: dict) -> list[str]:
+    """Each seed whose shield or outcome differs, with what differs."""
+    out = []
+    for seed, (m, a) in ref.items():
+        mb, b = got[seed]
+        diff = [f"{k} {m[k]} vs {mb[k]}" for k in OUTCOME if not (m[k] == mb[k] or (m[k] != m[k] and mb[k] != mb[k]))]
+        if a["overrides"] != b["overrides"]:
+            diff.append(f"overrides {a['overrides']} vs {b['overrides']}")
+        for k, tol in (("brake_time", 1e-9), ("stop_position", STOP_TOL)):
+            if (a[k] is None) != (b[k] is None) or (a[k] is not None and abs(a[k] - b[k]) > tol):
+                diff.append(f"{k} {a[k]} vs {b[k]}")
+        if diff:
+            out.append(f"seed {seed}: " + "; ".join(diff))
+    return out
+
+
+def _check(spec: str, seeds: list[int], n_envs: int, allowed: int = 0, shield: dict | None = None) -> dict:
+    ref = per_env(spec, seeds, shield)
+    got = batched(spec, seeds, n_envs, shield)
+    assert sorted(got) == sorted(ref) == sorted(seeds)
+    found = splits(ref, got)
+    assert len(found) <= allowed, found
+    return ref
+
+
+@pytest.mark.parametrize("spec, seeds", [
+    ("always_proceed+aeb", [VALIDATION + k for k in (0, 3, 4, 5)]),  # brakes, stops at the line, a time-out
+    ("dagger_turn+aeb", [VALIDATION + k for k in range(4)]),
+    ("dagger_turn_perceived+aeb", [VALIDATION + k for k in range(3)]),  # mode: ground truth; agent on tracks
+])
+def test_the_shield_on_the_batch_is_the_per_env_shield(spec, seeds):
+    """Interventions, brake times, stop positions and outcomes per episode equal to the per-env stack's, with
+    several episodes in one batch (the rows' shields are independent) and with the brake actually used."""
+    ref = _check(spec, seeds, n_envs=len(seeds))
+    if spec == "always_proceed+aeb":  # the comparison means something: the shield braked and stopped the car
+        assert sum(bool(a["overrides"]) for _, a in ref.values()) >= 3
+        assert any(a["stop_position"] is not None for _, a in ref.values())
+
+
+def test_the_perceived_shield_on_the_batch_is_the_per_env_one():
+    """``shield.mode=perceived`` (its own detector on the ``aeb_detector`` stream and Kalman tracker): the same
+    interventions, brake times, stop positions and outcomes as the per-env shield."""
+    ref = _check("always_proceed", [VALIDATION + k for k in (0, 4, 5)], n_envs=3,
+                 shield={**compose_group("shield", "aeb"), "mode": "perceived"})
+    assert sum(bool(a["overrides"]) for _, a in ref.values()) >= 2
+
+
+@pytest.mark.slow  # ~10-20 CPU-minutes per agent on the per-env stack: 200 shielded episodes each
+@pytest.mark.parametrize("spec", ["always_proceed+aeb", "dagger_turn+aeb", "dagger_turn_perceived+aeb"])
+def test_the_shield_on_the_batch_is_the_per_env_shield_on_200_episodes(spec):
+    """200 validation episodes per agent: every episode's interventions, brake time, stop position and outcome
+    equal (measured: 200 / 200 for each of the three)."""
+    _check(spec, list(range(VALIDATION, VALIDATION + 200)), n_envs=50)
+
+
+# ----------------------------------------------------------------------------------------------- the actuator
+def _venv(n: int = 2, shield: dict | None = None, **env):
+    from av_gym.batched.vec_env import BatchedLeftTurnBatch
+    from av_gym.presets import compose_group
+
+    return BatchedLeftTurnBatch({"name": "left_turn", **env}, compose_group("sensors", "turn_truth"),
+                                compose_group("shield", "aeb") if shield is None else shield, n, pool=0)
+
+
+def test_the_brake_follows_the_actuator_tick_by_tick():
+    """An engaged brake gives the ego, on each 20 Hz tick, the per-env actuator's deceleration: nothing for its
+    0.15 s delay, then a 30 m/s³ ramp to 8 m/s² (BrakeActuator.command), whatever the agent asks for."""
+    from av_gym.shields.actuator import BrakeActuator
+
+    venv = _venv(1)
+    venv.play(iter([VALIDATION]))
+    e, sh = venv.engine, venv.shield
+    actuator = sh.shields[0].actuator
+    t0 = e.ticks[0] / 20
+    actuator.engage(t0)
+    accels = []
+    for _ in range(6):
+        plan = sh._brake_plan(np.array([0]))
+        accels += plan[:, 0].tolist()
+        with sh.actuated(np.array([0])):
+            e.step(np.array([2]))
+        assert e.traffic.acc[0, e.ego_slot([0])[0]] == pytest.approx(plan[-1, 0]) or np.isnan(plan[-1, 0])
+    ref = BrakeActuator()
+    want = [ref.deceleration(k * 0.05, 0.05) for k in range(12)]
+    assert [None if np.isnan(a) else -a for a in accels] == want
+
+
+def test_stepping_tick_by_tick_is_the_engines_step():
+    """Without a brake (every tick the ego's own control) the actuated step, one tick per call, gives the engine's
+    own multi-tick step bit for bit: the meta-action only at the first tick, the clocks and arrivals per tick."""
+    from av_gym.batched.shield import _TickByTick
+
+    a, b = _venv(4), _venv(4)
+    seeds = [VALIDATION + k for k in range(4)]
+    a.play(iter(seeds))
+    b.play(iter(seeds))
+    rng = np.random.default_rng(0)
+    for _ in range(40):
+        meta = rng.integers(0, 3, size=4)
+        a.engine.step(meta)
+        t = b.engine.traffic
+        t.advance = _TickByTick(t.advance, np.full((b.engine.frames, 4), np.nan))
+        try:
+            b.engine.step(meta)
+        finally:
+            del t.advance
+        for name in ("x", "y", "v", "h", "acc", "target"):
+            np.testing.assert_array_equal(getattr(a.engine.traffic, name), getattr(t, name), err_msg=name)
+        np.testing.assert_array_equal(a.engine.ticks, b.engine.ticks)
+
+
+# ----------------------------------------------------------------------------------------------- refusals
+@pytest.mark.parametrize("shield, needle", [
+    ("aeb_paper", "shield.variant=paper is not available with agent.vec_env=batched"),
+    ("aeb_standard", "shield.variant=standard is not available with agent.vec_env=batched"),
+    ("aeb_belief", "shield.second_opinion=belief_lookahead is not available with agent.vec_env=batched"),
+])
+def test_what_the_batch_does_not_run_of_the_shield_is_one_line(shield, needle):
+    from av_gym.presets import compose_group
+
+    with pytest.raises(ConfigError, match=needle) as exc:
+        _venv(1, compose_group("shield", shield))
+    assert "\n" not in str(exc.value)
+
+
+def test_a_simulation_frequency_the_actuator_does_not_run_is_one_line():
+    with pytest.raises(ConfigError, match="env.simulation_frequency=15 with shield=aeb is not available"):
+        _venv(1, simulation_frequency=15)
+
+
+def test_training_on_the_batch_still_refuses_a_shield():
+    """check_batchable without ``with_shield`` (training, the DAgger replica: a shield would change the episodes
+    their labels are for) refuses it in one line."""
+    from av_gym.batched.vec_env import check_batchable
+    from av_gym.presets import compose_group
+
+    with pytest.raises(ConfigError, match="shield=aeb is not available with agent.vec_env=batched here"):
+        check_batchable({"name": "left_turn"}, compose_group("sensors", "turn_truth"), compose_group("shield", "aeb"))
+
+
+def test_make_vec_and_the_sb3_vec_env_run_the_shield():
+    """``gymnasium.make_vec(..., shield="aeb")`` and the SB3 VecEnv run the batch's shield: an always-proceed
+    episode that the per-env shield brakes in is braked in (its first brake at the per-env shield's time)."""
+    import gymnasium as gym
+
+    from av_gym_sb3 import BatchedLeftTurnVecEnv
+    from av_gym.presets import compose_group
+
+    ref = per_env("always_proceed+aeb", [VALIDATION])[VALIDATION][1]
+    venv = gym.make_vec("av_gym/UnprotectedLeftTurn-v0", 1, sensors="turn_truth", shield="aeb")
+    assert venv.venv.shield is not None
+    venv.reset(seed=VALIDATION)
+    for _ in range(300):
+        _, _, term, trunc, info = venv.step(np.array([2]))
+        if term[0] or trunc[0]:
+            break
+    sb3 = BatchedLeftTurnVecEnv({"name": "left_turn"}, compose_group("sensors", "turn_truth"),
+                                compose_group("shield", "aeb"), 1)
+    assert sb3.shield is not None and ref["brake_time"] is not None
+    assert info["episode_metrics"][0]["first_override_s"] == pytest.approx(ref["brake_time"] + 0.1)
+
+
+def test_eval_on_the_batch_records_the_shield_it_ran(tmp_path):
+    """``python -m eval vec_env=batched agents=[always_proceed+aeb]`` runs (it was refused) and its results say
+    the shield ran: the label, and interventions in its rows."""
+    import csv
+
+    from tests.conftest import cli
+
+    res = cli("eval", "vec_env=batched", "agents=[always_proceed+aeb]", "episodes=4", f"seed={VALIDATION}",
+              "split=validation", "progress_bar=false", "n_envs=4", f"out_dir={tmp_path / 'out'}", "videos=false",
+              cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-2000:]
+    rows = list(csv.DictReader(open(tmp_path / "out" / "results.csv")))
+    assert {r["agent"] for r in rows} == {"always_proceed+aeb"}
+    assert sum(float(r["interventions"]) for r in rows) > 0
