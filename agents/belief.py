@@ -76,6 +76,14 @@ class BeliefLookaheadParams(AgentParams):
                      "while the ego can still stop before the line at the approach's comfortable deceleration | "
                      "go: GO is final, as the oracle's (whose futures are exact). Chosen on the 300 validation "
                      "episodes at K 16: never 0.010 / 0.857 (collision / success), stop 0.053 / 0.830")
+    unseen: float = param(1.0, ge=0, le=10, doc="on tracks (sensors turn_perceived): the density of the road users "
+                                                "the tracker has not confirmed, as a multiple of the spawn "
+                                                "process's (agents/track_prior.py: the approach lanes out of range, "
+                                                "behind confirmed tracks or not yet confirmed, thinned where the "
+                                                "sensor looked); 0: what is not confirmed is taken for nobody")
+    tentative: Literal["ignore", "road_user"] = param(
+        "ignore", doc="on tracks: a tentative track (fewer than the tracker's min_hits detections) is nobody, as the "
+                      "features show it (ignore), or a road user in the futures (road_user)")
 
 
 def _lane_kinds(T) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -98,8 +106,15 @@ class BeliefPlanner:
     (:meth:`go_collision`)."""
 
     def __init__(self, params: BeliefLookaheadParams | None = None, signals: TurnSignalsParams | None = None,
-                 n_rows: int = 0) -> None:
+                 n_rows: int = 0, perception: Any = None) -> None:
         self.params = p = params or BeliefLookaheadParams()
+        # on tracks (a batch's BatchedPerception): the road as the tracker has it, and the road users it has not
+        # confirmed (agents/track_prior.py); on truth the engine's own vehicles
+        self.tracks = None
+        if perception is not None:
+            from agents.track_prior import TrackBelief
+
+            self.tracks = TrackBelief(p, perception, n_rows)
         self.signals = signals or TurnSignalsParams()
         self.K, self.threshold, self.seed, self.gate = int(p.samples), float(p.threshold), int(p.seed), float(p.gate)
         self.filter = DriverIntent(self.signals, floor=float(p.floor))
@@ -116,6 +131,8 @@ class BeliefPlanner:
             while r >= len(self.counts):
                 self.counts.append({})
             self.counts[r] = {}
+        if self.tracks is not None:
+            self.tracks.reset(rows)
 
     def read(self, engine, rows, intent: np.ndarray) -> None:
         """One indicator reading per driver the car sees: ``intent`` (len(rows), M, 2) is ``obs["intent"]`` of
@@ -123,6 +140,8 @@ class BeliefPlanner:
         A driver beyond the indicator sensor's range gives no reading (its 0 there is not a "none seen")."""
         rows = np.asarray(rows, dtype=int)
         self.reset([r for r in rows if r >= len(self.counts)])
+        if self.tracks is not None:  # the engine of the car's tracks (the described ones alive) for the true one
+            engine = self.tracks.read(engine, rows, intent)
         slots, present, d = described(engine, rows)
         vid = np.take_along_axis(engine.traffic.vid[rows], slots, 1)
         read = present & (d <= float(self.signals.max_range))
@@ -157,7 +176,11 @@ class BeliefPlanner:
         if len(rows) == 0:
             return np.zeros(0)
         start, cpu = time.perf_counter(), time.process_time()
+        if self.tracks is not None:
+            engine = self.tracks.current(engine)
         f = self.futures(engine, rows)
+        if self.tracks is not None:
+            self.tracks.fill(f, rows, self.seed, self.K)
         safe = play_go_fast(f)
         self.labelled += len(rows)
         self.seconds += time.perf_counter() - start

@@ -17,8 +17,7 @@ checkpoints on the batch's sensors: ``turn_truth`` (turn features from truth, tu
 ``turn_perceived`` / ``turn_perceived_memory`` (the detector, the Kalman tracker and the features on its tracks,
 :mod:`av_gym.batched.perception`: the per-env stack's detections and tracks on the same seeds). Anything
 else (another shield or variant, the shield's second opinion ``aeb_belief``, the oracle planning with the shield,
-``plan_with_shield``; ``belief_lookahead`` on tracks, whose planner reads the features' objects as the simulator's
-vehicles) is refused in one line before any episode runs, and runs with ``vec_env=subproc``.
+``plan_with_shield``) is refused in one line before any episode runs, and runs with ``vec_env=subproc``.
 """
 
 from __future__ import annotations
@@ -51,7 +50,6 @@ def plan_kind(plan) -> str:
 
 def check_batched_plan(plan, env_cfg: dict) -> None:
     """One-line ConfigError for an agent the batched engine cannot evaluate (checked before any folder is made)."""
-    from av_gym.batched.perception import perceived
     from av_gym.batched.vec_env import check_batchable
 
     if env_cfg.get("name") != "left_turn":
@@ -61,10 +59,6 @@ def check_batched_plan(plan, env_cfg: dict) -> None:
         raise ConfigError(f"agent {plan.label!r} (kind {kind}) cannot run with vec_env=batched (it runs: "
                           f"{', '.join(KINDS)}); use vec_env=subproc")
     sensors = NO_OBS_SENSORS if kind == "always_proceed" else plan.sensors
-    if kind == "belief_lookahead" and perceived(sensors):
-        raise ConfigError(f"agent {plan.label!r}: belief_lookahead on sensors.turn_features.source=tracks cannot run "
-                          f"with vec_env=batched (its planner on the batch reads the described objects as the "
-                          f"simulator's vehicles); use vec_env=subproc")
     if kind == "lookahead" and (plan.shield or {}).get("kind", "none") != "none" and \
             _agent_config(plan).get("plan_with_shield"):
         raise ConfigError(f"agent {plan.label!r}: lookahead with plan_with_shield=true cannot run with "
@@ -88,7 +82,7 @@ def _agent_config(plan) -> dict:
 class _Decider:
     """The agents' decisions for a batch: per env as :class:`agents.Policy.act` would decide for it."""
 
-    def __init__(self, policy, engine) -> None:
+    def __init__(self, policy, engine, perception=None) -> None:
         from agents import AlwaysProceed
         from agents.belief import BeliefLookahead, BeliefPlanner
         from agents.go_yield import GapAcceptance, Lookahead
@@ -111,7 +105,7 @@ class _Decider:
             self.kind = "gap_acceptance"
         elif isinstance(policy, BeliefLookahead):  # its planner for every row: beliefs per row, K futures each
             self.kind = "belief_lookahead"
-            self.planner = BeliefPlanner(policy.params, n_rows=n)
+            self.planner = BeliefPlanner(policy.params, n_rows=n, perception=perception)  # on tracks: the tracker's
             self.k = np.zeros(n, dtype=int)
             self.choice = np.full(n, YIELD)
         elif isinstance(policy, Lookahead):  # its futures without the shield (plan_with_shield is refused)
@@ -213,7 +207,7 @@ def play_batched(env_cfg: dict, sensors: dict, shield: dict, policy, seeds: Iter
     total = len(seeds) if hasattr(seeds, "__len__") else None
     B = max(1, min(int(n_envs), total if total is not None else int(n_envs)))
     venv = BatchedLeftTurnVecEnv(env_cfg, sensors, shield, B, action_repeat=1, actions="env", pool=0)
-    decide = _Decider(policy, venv.engine)
+    decide = _Decider(policy, venv.engine, venv.perception)
     order = iter(seeds)
     wanted: list[int] = []  # seeds handed to the engine, in order
 

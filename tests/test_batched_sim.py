@@ -450,8 +450,6 @@ def conf_env_ccftap() -> dict:
 @pytest.mark.parametrize("agents, needle", [
     ("[always_proceed+aeb_paper]", "agent 'always_proceed+aeb_paper': shield.variant=paper is not available with "
                                    "vec_env=batched"),
-    ("[belief_lookahead@turn_perceived]", "agent 'belief_lookahead@turn_perceived': belief_lookahead on "
-                                          "sensors.turn_features.source=tracks cannot run with vec_env=batched"),
     ("[pid_tuned]", "agent 'pid_tuned' (kind pid) cannot run with vec_env=batched"),
 ])
 def test_eval_batched_refuses_what_the_batch_cannot_run_in_one_line(tmp_path, agents, needle):

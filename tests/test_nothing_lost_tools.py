@@ -252,8 +252,6 @@ def test_interventions_does_not_replace_another_runs_tables(tmp_path, capsys):
 @pytest.mark.parametrize("argv, needle", [
     (["vec_env=batched", "sensors=cameras", "agents=[always_proceed]"],
      "agent 'always_proceed': sensors.cameras is not available with vec_env=batched"),
-    (["vec_env=batched", "agents=[belief_lookahead@turn_perceived]"],
-     "cannot run with vec_env=batched"),
     (["sensors=turn_perceived", "agents=[ppo_turn]"],
      "sensors=turn_perceived: agent 'ppo_turn' runs on the sensors it was trained with (turn_truth), so "
      "sensors=turn_perceived would not reach it; drive it from turn_perceived with agents=[ppo_turn@turn_perceived]"),

@@ -1,0 +1,335 @@
+"""The belief planner on tracks (``belief_lookahead@turn_perceived``): what it starts its futures from.
+
+On ``sensors=turn_perceived`` the car knows the road users its tracker holds, not the simulator's vehicles. The
+planner's futures (:meth:`agents.belief.BeliefPlanner.futures`) then start from:
+
+- **the confirmed tracks** (:class:`TrackBelief`, :meth:`~TrackBelief.read`): position, velocity and heading as the
+  tracker has them (the rows ``obs["tracks"]`` gives, nearest first, so that the indicator readings of
+  ``obs["intent"]`` attach to the track the features describe), the closest lane from that pose, the acceleration
+  the intent features measure, the track id as the driver's identity; the ego's own state;
+- **the tentative tracks** (``tentative: road_user``): road users too (their routes and behaviour from the prior; no
+  indicator reading is attached to them), or nothing (``ignore``: the tracker's own rule, what the features show);
+- **the road users nobody has confirmed** (:class:`UnseenTraffic`): each future fills the approach lanes with
+  drivers drawn from the traffic's own spawn process (``IntersectionEnv._spawn_vehicle`` as
+  :meth:`av_gym.batched.left_turn.BatchedLeftTurn._spawn` draws it: a try per policy step with probability
+  ``spawn_probability / policy_frequency``, an approach drawn uniformly, entering 5 m along it at a speed from
+  :data:`av_gym.sim.batched.SPAWN_PRIOR`, no spawn within ``SPAWN_CLEAR`` of another vehicle), thinned by what the
+  sensor saw: a driver that entered ``a`` policy steps ago at speed ``v`` is now ``5 + v·a·dt`` m along its
+  approach, and every detector frame in which that place was in range, in the field of view and not behind a
+  confirmed track was a look at it. A driver present there stays unconfirmed with the probability the tracker's
+  rule gives over those looks (each missed with ``miss_rate``; ``min_hits`` consecutive detections confirm; a
+  tentative track is dropped at its first miss): ``miss_rate ** looks`` for one hit to confirm, a little more for
+  two. The density of a driver at that place is the spawn density times that probability (times ``unseen``, the
+  prior's scale, chosen on validation), so the lanes out of range, behind other cars or seen only for a frame keep
+  their traffic, and the ones the sensor has watched are nearly empty.
+
+Nothing here reads the simulator's other vehicles: the ego's own state and clock, the tracker's tracks and
+``obs["intent"]``, the env's configuration (spawn rate, frequencies) and the detector's and tracker's parameters
+(tests/test_belief_tracks.py moves and removes hidden vehicles and re-draws hidden routes: the same decisions).
+Every draw comes from ``SeedSequence([seed, episode_seed, tick, 1])`` (the futures' own stream is ``[seed,
+episode_seed, tick]``).
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+from scipy.stats import norm
+
+from av_gym.batched.left_turn import SPAWN_CLEAR
+from av_gym.estimation.turn_features import ACC_SCALE
+from av_gym.sim.batched import Traffic
+
+__all__ = ["SPEED_CLASSES", "SPAWN_S", "TrackBelief", "UnseenTraffic"]
+
+SPAWN_S = 5.0  # m along the approach where a spawn enters (IntersectionEnv._spawn_vehicle: longitudinal + 5)
+SPEED_CLASSES = 3  # spawn speeds per cohort: the middles of equal-probability slices of the spawn speed's normal
+
+
+class UnseenTraffic:
+    """The spawn process's drivers on the four approach lanes that the tracker may not have confirmed, for the B
+    rows of a batch: cohorts (approach lane, speed class, policy steps since the spawn) with the probability that a
+    driver of that cohort, present, is still unconfirmed (:meth:`look` after every detector frame) and the draws of
+    such drivers into the planner's futures (:meth:`fill`)."""
+
+    def __init__(self, engine, detector, tracker, n_rows: int, scale: float = 1.0, tentative: str = "ignore") -> None:
+        from agents.belief import _lane_kinds
+
+        T = self.T = engine.T
+        kind, origin, dest = _lane_kinds(T)
+        self.approach = np.array([int(np.flatnonzero((kind == 0) & (origin == o))[0]) for o in range(4)])
+        self.cross = {(int(o), int(d)): k for k, (kd, o, d) in enumerate(zip(kind, origin, dest)) if kd == 1}
+        self.exit = {int(d): k for k, (kd, d) in enumerate(zip(kind, dest)) if kd == 2}
+        c = engine.config
+        self.dt = 1.0 / float(c["policy_frequency"])  # s per policy step: one spawn try each
+        self.frames = int(c["simulation_frequency"] // c["policy_frequency"])  # engine ticks per policy step
+        prior = engine.prior
+        z = norm.ppf((np.arange(SPEED_CLASSES) + 0.5) / SPEED_CLASSES)
+        self.speeds = prior.speed + prior.speed_sd * z  # m/s
+        length = T.length[self.approach]
+        ages = int(np.ceil((length.max() - SPAWN_S) / (max(self.speeds.min(), 1.0) * self.dt))) + 1
+        # where each cohort is now: (4, C, A) m along its approach, and which of them are still on it
+        self.s = SPAWN_S + self.speeds[None, :, None] * self.dt * np.arange(ages)[None, None, :]
+        self.s = np.broadcast_to(self.s, (4, SPEED_CLASSES, ages)).copy()
+        self.on_lane = self.s <= length[:, None, None]
+        lane = np.broadcast_to(self.approach[:, None, None], self.s.shape)
+        self.x, self.y = T.position(lane, np.minimum(self.s, length[:, None, None]), 0.0)
+        self.h = T.heading_at(lane, self.s)
+        # one try per policy step, on one of the four approaches; spread over the speed classes
+        self.rate = float(c["spawn_probability"]) * self.dt / 4.0 / SPEED_CLASSES * float(scale)
+        self.tentative = tentative
+        self.max_range, self.half_fov = float(detector.max_range), float(np.radians(detector.fov_deg) / 2)
+        self.miss, self.occlusion = float(detector.miss_rate), bool(detector.occlusion)
+        self.hits = max(1, int(tracker.min_hits))
+        # q[k]: P(unconfirmed and k consecutive detections so far | a driver of the cohort is there)
+        self.q = np.zeros((self.hits, int(n_rows), *self.s.shape))
+        self.step = np.full(int(n_rows), -1)
+        self.reset(np.arange(int(n_rows)))
+
+    def reset(self, rows) -> None:
+        """New episodes in ``rows``: nothing seen yet (the drivers already on the map are as unseen as new ones)."""
+        rows = np.asarray(rows, dtype=int)
+        self.q[:, rows] = 0.0
+        self.q[0, rows] = 1.0
+        self.step[rows] = -1
+
+    def age(self, rows: np.ndarray, steps: np.ndarray) -> None:
+        """Move the cohorts of ``rows`` on to the policy steps ``steps``: each one step older per step, a fresh
+        (never seen) cohort entering at the spawn point."""
+        first = self.step[rows] < 0
+        d = np.where(first, 0, steps - self.step[rows])
+        self.step[rows] = steps
+        for shift in np.unique(d[d > 0]).tolist():
+            r = rows[d == shift]
+            k = min(int(shift), self.q.shape[-1])
+            sub = self.q[:, r]
+            sub[..., k:] = sub[..., :-k] if k < sub.shape[-1] else sub[..., :0]
+            sub[..., :k] = 0.0
+            sub[0, ..., :k] = 1.0
+            self.q[:, r] = sub
+
+    def in_view(self, ego: np.ndarray, occluders: np.ndarray, present: np.ndarray) -> np.ndarray:
+        """(n, 4, C, A): each cohort's place within range and the field of view of the ego poses ``ego`` (n, 3)
+        ``[x, y, heading]`` and not behind a nearer confirmed track (``occluders`` (n, M, 5) ``[x, y, heading,
+        length, width]``, ``present`` (n, M)): the detector's view, its occlusion by the occluders the car knows."""
+        dx, dy = self.x[None] - ego[:, 0, None, None, None], self.y[None] - ego[:, 1, None, None, None]
+        r = np.hypot(dx, dy)
+        bearing = np.arctan2(dy, dx)
+        rel = (bearing - ego[:, 2, None, None, None] + np.pi) % (2 * np.pi) - np.pi
+        seen = (r <= self.max_range) & (np.abs(rel) <= self.half_fov) & self.on_lane[None]
+        if self.occlusion and occluders.shape[1]:
+            ox, oy = occluders[..., 0] - ego[:, 0, None], occluders[..., 1] - ego[:, 1, None]
+            od = np.hypot(ox, oy)
+            ob = np.arctan2(oy, ox)
+            theta = occluders[..., 2] - ob
+            # the half-width the box shows across the line of sight, as an angle at its distance
+            half = 0.5 * (np.abs(occluders[..., 3] * np.sin(theta)) + np.abs(occluders[..., 4] * np.cos(theta)))
+            ang = np.arctan2(half, np.maximum(od, 1e-6))
+            shape = (len(ego), 1, 1, 1)
+            for m in np.flatnonzero(present.any(axis=0)).tolist():
+                diff = (bearing - ob[:, m].reshape(shape) + np.pi) % (2 * np.pi) - np.pi
+                hidden = (np.abs(diff) <= ang[:, m].reshape(shape)) & (r > od[:, m].reshape(shape))
+                seen &= ~(hidden & present[:, m].reshape(shape))
+        return seen
+
+    def look(self, rows: np.ndarray, seen: np.ndarray) -> None:
+        """One detector frame of ``rows`` whose cohorts ``seen`` (n, 4, C, A) were in view: a driver there is
+        detected with 1 - miss_rate; ``min_hits`` consecutive detections confirm it; a tentative track is dropped at
+        its first frame without a detection (missed, or out of view)."""
+        q = self.q[:, rows]
+        total = q.sum(axis=0)
+        new = np.zeros_like(q)
+        new[0] = np.where(seen, self.miss * total, total)
+        for k in range(1, self.hits):
+            new[k] = np.where(seen, (1.0 - self.miss) * q[k - 1], 0.0)
+        self.q[:, rows] = new
+
+    def density(self, rows: np.ndarray) -> np.ndarray:
+        """(n, 4, C, A): the probability that a driver of each cohort is there and not among the road users the
+        planner already has (the confirmed tracks; also the tentative ones with ``tentative: road_user``)."""
+        q = self.q[0, rows] if self.tentative == "road_user" else self.q[:, rows].sum(axis=0)
+        return np.where(self.on_lane[None], np.clip(self.rate * q, 0.0, 1.0), 0.0)
+
+    def draws(self, rows: np.ndarray, users: np.ndarray, users_alive: np.ndarray, gens: list, K: int) -> tuple:
+        """The unseen drivers of K futures per row: (future row, approach, speed class, cohort, destination draw,
+        delta draw) arrays. A cohort within ``SPAWN_CLEAR`` of a road user the planner has (``users`` (n, M, 2)
+        positions, ``users_alive`` (n, M)) or of an unseen driver drawn before it on its lane holds none: the spawn
+        rule, which keeps the drivers of a lane that far apart when they enter."""
+        p = self.density(rows)  # (n, 4, C, A)
+        d = np.hypot(self.x[None, ..., None] - users[:, None, None, None, :, 0],
+                     self.y[None, ..., None] - users[:, None, None, None, :, 1])
+        p = np.where((np.where(users_alive[:, None, None, None, :], d, np.inf) < SPAWN_CLEAR).any(axis=-1), 0.0, p)
+        A = p.shape[-1]
+        u = np.stack([g.random((4, K, 4, A)) for g in gens], axis=1)  # (4 kinds of draw, n, K, 4, A)
+        total = p.sum(axis=2)  # (n, 4, A): a driver of the cohort in any speed class
+        cdf = np.cumsum(p, axis=2) / np.where(total > 0, total, 1.0)[:, :, None]
+        last = np.full((len(rows), K, 4), -np.inf)
+        out = []
+        for a in range(A):
+            arrive = u[0, ..., a] < total[:, None, :, a]  # (n, K, 4)
+            if not arrive.any():
+                continue
+            cls = np.minimum((u[1, ..., a][..., None] >= cdf[:, None, :, :, a]).sum(axis=-1), SPEED_CLASSES - 1)
+            s = self.s[np.arange(4)[None, None], cls, a]
+            ok = arrive & (np.abs(s - last) >= SPAWN_CLEAR)
+            last = np.where(ok, s, last)
+            n, k, j = np.nonzero(ok)
+            out.append((n * K + k, j, cls[n, k, j], np.full(len(n), a), u[2, n, k, j, a], u[3, n, k, j, a]))
+        if not out:
+            return tuple(np.zeros(0, dtype=int) for _ in range(4)) + (np.zeros(0), np.zeros(0))
+        return tuple(np.concatenate(c) for c in zip(*out))
+
+    def fill(self, f, rows: np.ndarray, users: np.ndarray, users_alive: np.ndarray, gens: list, K: int) -> None:
+        """Add the unseen drivers of :meth:`draws` to the future engine ``f`` (len(rows)·K rows, row-major): on
+        their approach at their cohort's place and speed (also their set-point, as a spawn's), a destination
+        uniform over the three other approaches, delta from the spawn prior; after the road users already there."""
+        fr, j, c, a, u_dest, u_delta = self.draws(rows, users, users_alive, gens, K)
+        if not len(fr):
+            return
+        t, T = f.traffic, self.T
+        order = np.argsort(fr, kind="stable")
+        fr, j, c, a, u_dest, u_delta = fr[order], j[order], c[order], a[order], u_dest[order], u_delta[order]
+        start = np.r_[0, np.flatnonzero(np.diff(fr)) + 1]
+        rank = np.arange(len(fr)) - np.repeat(start, np.diff(np.r_[start, len(fr)]))
+        slot = t.alive.sum(axis=1)[fr] + rank
+        if slot.max() >= t.N:
+            t.grow(int(slot.max()) + 1 - t.N)
+        lane = self.approach[j]
+        dest = (j + 1 + np.minimum((u_dest * 3).astype(int), 2)) % 4
+        speed = self.speeds[c]
+        lo, hi = f.prior.delta
+        for name in ("ego", "plain", "mdp", "crashed", "yielding", "has_impact"):
+            getattr(t, name)[fr, slot] = False
+        t.alive[fr, slot] = True
+        t.x[fr, slot], t.y[fr, slot], t.h[fr, slot] = self.x[j, c, a], self.y[j, c, a], self.h[j, c, a]
+        t.v[fr, slot] = t.target[fr, slot] = speed
+        t.delta[fr, slot] = lo + (hi - lo) * u_delta
+        t.steer[fr, slot] = t.acc[fr, slot] = t.impact_x[fr, slot] = t.impact_y[fr, slot] = 0.0
+        t.lane[fr, slot] = t.tlane[fr, slot] = lane
+        t.route[fr, slot] = np.stack([lane, [self.cross[(int(o), int(d))] for o, d in zip(j, dest)],
+                                      [self.exit[int(d)] for d in dest]], axis=1)
+        t.rpos[fr, slot], t.vid[fr, slot] = 0, 0
+
+
+class TrackBelief:
+    """The planner's road on tracks for the rows of a batch with a
+    :class:`~av_gym.batched.perception.BatchedPerception`: :meth:`read` (every env step, after the observation)
+    builds the engine the planner reads indicators on and the one its futures start from, and updates the unseen
+    traffic's looks; :meth:`fill` adds the unseen drivers to the futures."""
+
+    def __init__(self, params, perception, n_rows: int) -> None:
+        self.perception, self.params = perception, params
+        e = perception.e
+        self.tentative = str(params.tentative)
+        self.unseen = UnseenTraffic(e, perception.detector.params, perception.tracker.params, n_rows,
+                                    float(params.unseen), self.tentative) if float(params.unseen) > 0 else None
+        self.engine = None  # the futures' start (ego, confirmed [and tentative] tracks), all rows
+        self._ticks = None
+
+    def reset(self, rows) -> None:
+        if self.unseen is not None:
+            self.unseen.reset(rows)
+
+    def _tracks(self, rows: np.ndarray) -> tuple:
+        """The tracker's tracks of ``rows`` as ``obs["tracks"]`` orders them (confirmed and finite, nearest the
+        ego first: tracks_observation's order), then the tentative ones: positions (n, M, 7), ids (n, M),
+        confirmed (n, M), tentative (n, M)."""
+        p = self.perception
+        tracks, shown = p.tracker.tracks(rows)
+        ids = p.tracker.id[rows]
+        live = np.arange(tracks.shape[1])[None] < p.tracker.n[rows][:, None]
+        finite = np.isfinite(tracks).all(axis=-1)
+        confirmed = shown & finite
+        e = p.e
+        slot = e.ego_slot(rows)  # the ego's own position, from which obs["tracks"] orders them
+        ego = np.stack([e.traffic.x[rows, slot], e.traffic.y[rows, slot]], axis=1)
+        d = np.hypot(tracks[..., 0] - ego[:, 0, None], tracks[..., 1] - ego[:, 1, None])
+        key = np.where(confirmed, d, np.inf)
+        order = np.argsort(key, axis=1, kind="stable")[:, : p.max_tracks]
+        take = lambda a: np.take_along_axis(a, order if a.ndim == 2 else order[..., None], axis=1)  # noqa: E731
+        conf = take(confirmed)
+        rows_obs = p.last_tracks[rows][:, : order.shape[1]]  # the float32 rows the features saw, same order
+        pos = np.where(conf[..., None], rows_obs[..., 1:8].astype(float), 0.0)
+        tent = live & finite & ~shown & (self.tentative == "road_user")
+        return (np.concatenate([pos, np.where(tent[..., None], tracks, 0.0)], axis=1),
+                np.concatenate([take(ids), ids], axis=1), np.concatenate([conf, np.zeros_like(tent)], axis=1),
+                np.concatenate([np.zeros_like(conf), tent], axis=1))
+
+    def read(self, engine, rows, intent: np.ndarray):
+        """The engine of what the car knows at this step (every row's ego; ``rows``' tracks), kept for
+        :meth:`current`; returns it with only the confirmed tracks alive (the road users ``obs["intent"]``
+        describes, nearest first, for :meth:`BeliefPlanner.read`). Updates the unseen traffic of ``rows``."""
+        rows = np.asarray(rows, dtype=int)
+        obs, conf, tent = self._observed(engine, rows, np.asarray(intent))
+        self.engine, self._ticks = obs, engine.ticks.copy()
+        if self.unseen is not None and len(rows):
+            self._look(engine, rows, obs)
+        shown = copy.copy(obs)
+        shown.traffic = copy.copy(obs.traffic)
+        shown.traffic.alive = obs.traffic.alive & ~tent
+        return shown
+
+    def _observed(self, engine, rows: np.ndarray, intent: np.ndarray) -> tuple:
+        """The observed engine (ego in slot 0, then the tracks) and its confirmed / tentative slot masks."""
+        src, B = engine.traffic, engine.B
+        pos, ids, conf, tent = self._tracks(rows)
+        M = pos.shape[1]
+        t = Traffic(engine.T, B, N=M + 2)
+        t.road_steps[:] = src.road_steps
+        e = engine.ego_slot(np.arange(B))
+        for name in Traffic.FIELDS:  # the ego knows itself: its whole state
+            getattr(t, name)[:, 0] = getattr(src, name)[np.arange(B), e]
+        t.vid[:, 0] = 0
+        users = conf | tent
+        sl = slice(1, M + 1)
+        t.alive[rows, sl] = users
+        x, y, vx, vy, h = (pos[..., k] for k in range(5))
+        t.x[rows, sl], t.y[rows, sl], t.h[rows, sl] = x, y, h
+        t.v[rows, sl] = t.target[rows, sl] = np.hypot(vx, vy)
+        lane = engine.T.closest(x, y, h)
+        t.lane[rows, sl] = t.tlane[rows, sl] = np.where(users, lane, 0)
+        t.route[rows, sl, 0] = np.where(users, lane, -1)
+        t.vid[rows, sl] = ids + 1
+        # the acceleration the intent features measure, for the described tracks (nearest first, as obs["intent"])
+        m = min(intent.shape[1], M)
+        acc = np.zeros(pos.shape[:2])
+        acc[:, :m] = intent[:, :m, 0] * ACC_SCALE
+        t.acc[rows, sl] = np.where(conf, acc, 0.0)
+        full_conf, full_tent = np.zeros((B, M + 2), bool), np.zeros((B, M + 2), bool)
+        full_conf[rows, sl], full_tent[rows, sl] = conf, tent
+        obs = engine.observed(t, engine.time, engine.ticks, engine.episode_seed)
+        return obs, full_conf, full_tent
+
+    def _look(self, engine, rows: np.ndarray, obs) -> None:
+        """Age ``rows``' cohorts to this policy step and, where the tracker fused a detector frame now, count a
+        look at every cohort place in view."""
+        u, p = self.unseen, self.perception
+        u.age(rows, engine.ticks[rows] // u.frames)
+        now = engine.ticks[rows] / engine.config["simulation_frequency"]
+        fused = np.abs(p.tracker.fused_at[rows] - now) < 1e-9
+        if not fused.any():
+            return
+        r = rows[fused]
+        t = obs.traffic
+        ego = np.stack([t.x[r, 0], t.y[r, 0], t.h[r, 0]], axis=1)
+        pos, _, conf, _ = self._tracks(r)
+        occ = np.concatenate([pos[..., :2], pos[..., 4:7]], axis=-1)
+        u.look(r, u.in_view(ego, occ, conf))
+
+    def current(self, engine):
+        """The engine :meth:`read` built at this step (the futures' start)."""
+        if self.engine is None or not np.array_equal(self._ticks, engine.ticks):
+            raise ValueError("TrackBelief: read() the rows at this step before deciding")
+        return self.engine
+
+    def fill(self, f, rows: np.ndarray, seed: int, K: int) -> None:
+        """Add the unseen drivers to the future engine ``f`` (:meth:`BeliefPlanner.futures` of ``rows``)."""
+        if self.unseen is None or not len(rows):
+            return
+        e = self.engine
+        gens = [np.random.default_rng(np.random.SeedSequence([int(seed), int(e.episode_seed[r]) % 2**63,
+                                                               int(e.ticks[r]), 1])) for r in rows]
+        t = e.traffic
+        users = np.stack([t.x[rows], t.y[rows]], axis=-1)
+        self.unseen.fill(f, rows, users, t.alive[rows], gens, K)

@@ -1,0 +1,169 @@
+"""belief_lookahead on tracks (agents/track_prior.py): its futures start from the tracker's confirmed tracks and a
+prior over the road users it has not confirmed, and read nothing else of the simulator."""
+
+from __future__ import annotations
+
+import copy
+import itertools
+
+import numpy as np
+import pytest
+
+from agents.belief import BeliefLookaheadParams, BeliefPlanner
+from agents.track_prior import UnseenTraffic
+from av_gym.batched.perception import tracks_observation
+from av_gym.batched.vec_env import BatchedLeftTurnBatch, meta_actions
+from av_gym.presets import compose_group
+from av_gym.wrappers import GO, YIELD
+from tests.test_belief import rerandomise
+
+B = 12
+
+
+def _batch(seeds, steps: int, planner_params: BeliefLookaheadParams):
+    """A batch on turn_perceived driven ``steps`` env steps under YIELD, its planner on tracks reading every
+    observation but the last (returned with the rows still driving)."""
+    venv = BatchedLeftTurnBatch({"name": "left_turn"}, compose_group("sensors", "turn_perceived"), None, len(seeds),
+                                pool=0)
+    obs = venv.play(iter(seeds))
+    planner = BeliefPlanner(planner_params, n_rows=len(seeds), perception=venv.perception)
+    for _ in range(steps):
+        live = np.nonzero(~venv.idle)[0]
+        planner.read(venv.engine, live, obs["intent"][live])
+        obs, _, _, _ = venv.step(meta_actions(np.full(len(seeds), YIELD), obs["turn"]))
+    return venv, planner, obs, np.nonzero(~venv.idle)[0]
+
+
+@pytest.fixture(scope="module")
+def tracked():
+    return _batch(list(range(410_000, 410_000 + B)), 30, BeliefLookaheadParams(samples=8))
+
+
+def _decide(planner, engine, rows, obs) -> np.ndarray:
+    planner.read(engine, rows, obs["intent"][rows])
+    return planner.go_collision(engine, rows)
+
+
+def _hide_changes(engine, rows, max_range: float, tracks: np.ndarray) -> int:
+    """Every other vehicle the car has no confirmed track of (farther than ``max_range`` from the ego, or more than
+    4 m from every track of ``tracks`` (n, M, 8), ``obs["tracks"]``): every other one removed, the rest moved 4 m
+    on along their heading; returns how many were touched."""
+    t = engine.traffic
+    touched = 0
+    for n, r in enumerate(rows):
+        e = int(engine.ego_slot([r])[0])
+        trk = tracks[n][tracks[n, :, 0] > 0]
+        d = np.hypot(t.x[r][:, None] - trk[None, :, 1], t.y[r][:, None] - trk[None, :, 2])
+        untracked = ~(d <= 4.0).any(axis=1)
+        far = np.hypot(t.x[r] - t.x[r, e], t.y[r] - t.y[r, e]) > max_range
+        hidden = np.flatnonzero(t.alive[r] & ~t.ego[r] & (far | untracked))
+        for k, j in enumerate(hidden):
+            if k % 2:
+                t.x[r, j] += 4.0 * np.cos(t.h[r, j])
+                t.y[r, j] += 4.0 * np.sin(t.h[r, j])
+            else:
+                t.alive[r, j] = False
+        touched += len(hidden)
+    t.compact()
+    return touched
+
+
+def test_decisions_do_not_read_the_hidden_traffic(tracked):
+    """The same tracks, observations and ego give the same decisions, bit for bit, after the simulator's hidden
+    traffic changed: the vehicles without a confirmed track (beyond the detector's range, occluded, or not yet
+    confirmed) removed or moved, every driver's route, IDM draws, regulation hold and the rows' future spawns
+    re-drawn. The planner on truth, which reads the vehicles, moves."""
+    venv, planner, obs, rows = tracked
+    engine = venv.engine
+    shared = {id(venv.perception): venv.perception, id(engine): engine, id(planner.tracks.engine): None}
+    again, truth = copy.deepcopy(planner, shared), BeliefPlanner(planner.params, n_rows=B)
+    truth_again = copy.deepcopy(truth)
+    p_before, truth_before = _decide(planner, engine, rows, obs), _decide(truth, engine, rows, obs)
+    assert _hide_changes(engine, rows, venv.perception.detector.max_range, venv.perception.last_tracks[rows]) > 0
+    rerandomise(engine, rows, seed=11)
+    p_after, truth_after = _decide(again, engine, rows, obs), _decide(truth_again, engine, rows, obs)
+    np.testing.assert_array_equal(p_before, p_after)
+    assert (truth_before != truth_after).any(), "the planner on truth reads the vehicles: it must move"
+    assert 0.0 < p_before.mean() < 1.0  # neither always GO nor always YIELD
+
+
+def _only_track(venv, r: int, track: tuple | None) -> None:
+    """The tracker of row ``r`` holds one confirmed track ``(x, y, vx, vy)`` (m, m/s), or none."""
+    trk, p = venv.perception.tracker, venv.perception
+    now = venv.engine.ticks[r] / venv.engine.config["simulation_frequency"]
+    trk.n[r] = 0
+    if track is not None:
+        trk.n[r] = 1
+        trk.x[r, 0] = np.array(track, float)[:, None]
+        trk.P[r, 0] = np.eye(4) * 0.1
+        trk.t[r, 0] = trk.t_update[r, 0] = now
+        trk.length[r, 0], trk.width[r, 0], trk.heading[r, 0] = 5.0, 2.0, np.arctan2(track[3], track[2])
+        trk.hits[r, 0], trk.confirmed[r, 0], trk.id[r, 0] = 5, True, 7
+    e = venv.engine
+    s = e.ego_slot([r])
+    ego = np.stack([e.traffic.x[r, s], e.traffic.y[r, s]], axis=1)
+    p.last_tracks[[r]] = tracks_observation(*trk.tracks([r]), ego, p.max_tracks)
+
+
+def test_it_yields_to_a_confirmed_track_on_a_collision_course():
+    """Near the stop line, an oncoming confirmed track 25 m from the junction's centre at 9 m/s: YIELD (the futures
+    where it goes straight on collide); the same state without it: GO (no unseen prior here, so nothing else is on
+    the road)."""
+    venv, planner, obs, rows = _batch([420_001, 420_002], 45, BeliefLookaheadParams(samples=16, unseen=0.0))
+    e = venv.engine
+    s = e.ego_slot(rows)
+    assert (e.traffic.y[rows, s] < 25.0).all()  # near the stop line (y = 11 m)
+    zero = {"intent": np.zeros_like(obs["intent"])}
+    out = {}
+    for name, track in (("clear", None), ("oncoming", (-2.0, -25.0, 0.0, 9.0))):
+        for r in rows:
+            _only_track(venv, int(r), track)
+        p = copy.deepcopy(planner, {id(venv.perception): venv.perception, id(e): e,
+                                    id(planner.tracks.engine): None})
+        out[name] = _decide(p, e, rows, zero)
+        assert (p.tracks.engine.traffic.alive[rows].sum(axis=1) == (1 if track is None else 2)).all()
+    np.testing.assert_array_equal(planner.label_of(out["clear"]), np.full(len(rows), GO))
+    np.testing.assert_array_equal(planner.label_of(out["oncoming"]), np.full(len(rows), YIELD))
+
+
+def _unconfirmed(frames: list[bool], miss: float, hits: int) -> tuple[float, float]:
+    """By enumeration of every detection pattern: P(not confirmed) and P(not confirmed, no tentative track), for a
+    road user present through ``frames`` (True: in view), each detected with 1 - ``miss``, confirmed by ``hits``
+    consecutive detections, a tentative track dropped at a frame without one."""
+    seen = [k for k, f in enumerate(frames) if f]
+    p_none = p_free = 0.0
+    for pattern in itertools.product([True, False], repeat=len(seen)):
+        det = dict(zip(seen, pattern))
+        prob = np.prod([(1 - miss) if d else miss for d in pattern])
+        run, confirmed = 0, False
+        for k in range(len(frames)):
+            run = run + 1 if det.get(k, False) else 0
+            confirmed |= run >= hits
+        if not confirmed:
+            p_none += prob
+            p_free += prob * (run == 0)
+    return p_none, p_free
+
+
+@pytest.mark.parametrize("hits, miss", [(2, 0.1), (3, 0.4), (1, 0.25)])
+def test_unseen_drivers_thin_as_the_tracker_confirms(hits, miss):
+    """P(a present road user is still unconfirmed) after a run of frames in and out of view is what the tracker's
+    rule gives (enumerated over every detection pattern); ``tentative: road_user`` keeps only the part without a
+    tentative track. A place never in view keeps the spawn process's density."""
+    from types import SimpleNamespace
+
+    from av_gym.batched.left_turn import BatchedLeftTurn
+
+    engine = BatchedLeftTurn(1, {})
+    det = SimpleNamespace(max_range=80.0, fov_deg=360.0, miss_rate=miss, occlusion=False)
+    frames = [True, False, True, True, False, True, True, True]
+    for tentative in ("ignore", "road_user"):
+        u = UnseenTraffic(engine, det, SimpleNamespace(min_hits=hits), 1, tentative=tentative)
+        for f in frames:
+            u.look(np.array([0]), np.full((1, *u.s.shape), f))
+        p_none, p_free = _unconfirmed(frames, miss, hits)
+        want = p_none if tentative == "ignore" else p_free
+        got = u.density(np.array([0]))[0] / u.rate
+        np.testing.assert_allclose(got[u.on_lane], want, rtol=1e-12)
+        fresh = UnseenTraffic(engine, det, SimpleNamespace(min_hits=hits), 1, tentative=tentative)
+        np.testing.assert_allclose(fresh.density(np.array([0]))[0][fresh.on_lane], fresh.rate)
