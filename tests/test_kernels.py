@@ -10,6 +10,7 @@ checks that these tests fail."""
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import pytest
 
@@ -338,3 +339,110 @@ def test_compiled_step_ends_episodes_as_the_numpy_step():
 @pytest.mark.slow  # ~1 CPU-min: 1,000 whole episodes on both paths
 def test_compiled_step_ends_1000_episodes_as_the_numpy_step():
     _episodes_end_alike(1000)
+
+
+# ------------------------------------------------------------------------------------------------ generator draws
+_OPS = np.array([0, 2, 1, 1, 3, 0, 4, 2, 1, 3, 5, 0, 2, 6, 1])  # the kernel's draws, in this order, per round
+
+
+@numba.njit  # not cached: numba's cache would not see a change of the kernels it inlines
+def _kernel_draws(fns, states, ops, out, col):
+    """Round of draws ``ops`` on each generator (by state address), into ``out[:, col:]``: 0 next_double (random(),
+    uniform()), 1 normal(), 2 choice(4, 2, replace=False) as 10 a + b, 3 uniform(3.5, 4.5), 4 choice(2, 2, ...),
+    5 integers(0, 3) (bounded 2), 6 integers(0, 2**31 - 1) (bounded 2**31 - 2)."""
+    for i in range(states.shape[0]):
+        st = states[i]
+        for k in range(ops.shape[0]):
+            o = ops[k]
+            if o == 0:
+                out[i, col + k] = fns[2](st)
+            elif o == 1:
+                out[i, col + k] = kernels.standard_normal(fns, st)
+            elif o == 2 or o == 4:
+                a, b = kernels.choice2(fns, st, 4 if o == 2 else 2)
+                out[i, col + k] = 10 * a + b
+            elif o == 3:
+                out[i, col + k] = 3.5 + (4.5 - 3.5) * fns[2](st)
+            else:
+                out[i, col + k] = kernels.bounded(fns, st, 2 if o == 5 else 2**31 - 2)
+
+
+def _numpy_draws(g, ops) -> list:
+    out = []
+    for o in ops:
+        if o in (2, 4):
+            a, b = g.choice(range(4 if o == 2 else 2), 2, replace=False)
+            out.append(10 * a + b)
+        else:
+            out.append({0: g.random, 1: g.normal, 3: lambda: g.uniform(low=3.5, high=4.5),
+                        5: lambda: g.integers(0, 3), 6: lambda: g.integers(0, 2**31 - 1)}[o]())
+    return out
+
+
+def test_kernel_draws_are_the_generators_own_stream():
+    """The spawn kernels' draws (kernels.standard_normal, bounded, choice2, next_double) on 3,000 seeded PCG64
+    generators give numpy's values and leave numpy's states (the 32-bit buffer included), rounds of kernel draws
+    interleaved with numpy calls on the same generators (a Python ``integers`` leaves half a 64-bit output in the
+    buffer that the kernel's next 32-bit draw must use). The ziggurat's tail (|x| > its r) is drawn too.
+    Mutation: choice2's shuffle taking ``== 1`` for the swap fails it."""
+    n = 3000
+    ours = [np.random.default_rng(s) for s in range(n)]
+    ref = [np.random.default_rng(s) for s in range(n)]
+    out, want = np.zeros((n, 4 * len(_OPS))), np.zeros((n, 4 * len(_OPS)))
+    between = np.zeros((n, 3))
+    for rnd in range(4):
+        states = kernels.generator_states(ours)
+        _kernel_draws(kernels.pcg64_functions(), states, _OPS, out, rnd * len(_OPS))
+        for i in range(n):
+            want[i, rnd * len(_OPS):(rnd + 1) * len(_OPS)] = _numpy_draws(ref[i], _OPS)
+            if rnd < 3:  # numpy calls in between, on both
+                between[i, rnd] = ours[i].integers(0, 5)
+                assert ref[i].integers(0, 5) == between[i, rnd]
+    assert np.array_equal(out, want)
+    assert all(a.bit_generator.state == b.bit_generator.state for a, b in zip(ours, ref))
+    normals = out[:, np.tile(_OPS, 4) == 1]
+    assert (np.abs(normals) > kernels.ZIG_R).any()  # the tail branch ran
+
+
+def test_generator_states_refuse_what_the_kernels_cannot_draw_from():
+    """Only distinct PCG64 generators go to the kernels: a Philox generator or one generator on two rows (whose
+    draws numpy makes in an order across rows) give None, and the batch then spawns by numpy's calls."""
+    g = np.random.default_rng(1)
+    assert kernels.generator_states([g, np.random.default_rng(2)]) is not None
+    assert kernels.generator_states([g, g]) is None
+    assert kernels.generator_states([np.random.Generator(np.random.Philox(1))]) is None
+
+
+def _spawn_run(config: dict, kset: set, rngs_from: int | None = None) -> list:
+    """A whole run of 16 envs (pool resets) with the kernels ``kset``: every state array and the live vehicles'
+    ids (relative to the run's first) at every step. ``rngs_from``: rows from this one on get Philox generators."""
+    with sb.using_kernels(kset):
+        bt = BatchedLeftTurn(16, config, pool=8)
+        bt.reset(list(range(40, 56)))
+        if rngs_from is not None:
+            for r in range(rngs_from, 16):
+                bt.rngs[r] = np.random.Generator(np.random.Philox(r))
+        rng, states = np.random.default_rng(0), []
+        first = bt.traffic.vid[bt.traffic.alive].min()
+        for _ in range(120):
+            bt.step_autoreset(rng.integers(0, 3, 16))
+            t = bt.traffic
+            states.append([getattr(t, n).copy() for n in t.FIELDS if n != "vid"] + [t.vid[t.alive] - first])
+    return states
+
+
+@pytest.mark.parametrize("philox", [False, True])
+def test_spawn_kernels_draw_the_numpy_spawns(philox):
+    """The spawn tries, a reset's initial traffic and its challenger from the kernels (``spawn``) against numpy's
+    calls (BatchedLeftTurn._spawn), everything else the same: every state array identical, bit for bit, at every
+    step of a whole run with pool resets, the vehicle ids in the same order (``philox``: some rows' generators
+    are not PCG64, so those steps spawn by numpy's calls: the same run again). Mutations: the step's spawn position
+    deviation 1.0 as 1.001, or choice2's swap on ``== 1``, fail it."""
+    _, config = highway_config({"name": "left_turn"})
+    a = _spawn_run(config, PAIRWISE, 12 if philox else None)
+    b = _spawn_run(config, PAIRWISE | {"spawn"}, 12 if philox else None)
+    names = [n for n in sb.Traffic.FIELDS if n != "vid"] + ["vid"]
+    for step, (p, q) in enumerate(zip(a, b)):
+        for n, u, w in zip(names, p, q):
+            assert u.shape == w.shape and np.array_equal(u, w), f"step {step}: {n}"
+    assert a[-1][-1].max() > 16 * 12  # many vehicles were spawned

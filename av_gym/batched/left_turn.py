@@ -27,6 +27,10 @@ from av_gym.sim.batched import LENGTH, SPAWN_PRIOR, WIDTH, LaneTable, SpawnPrior
 
 SPAWN_CLEAR = 15.0  # m, IntersectionEnv._spawn_vehicle: no spawn this close to another vehicle
 EGO_CLEAR = 20.0  # m, _make_vehicles: vehicles this close to the ego are removed ("prevent early collisions")
+INITIAL_SPAWN_PROBABILITY = 0.6  # _spawn_vehicle's default, which _make_vehicles' initial spawns use
+# the state arrays a spawn kernel writes (kernels._spawn_one's ``fl``, ``flags``, ``it``)
+_SPAWN_FLOATS = ("x", "y", "h", "v", "target", "delta", "steer", "acc", "impact_x", "impact_y")
+_SPAWN_FLAGS, _SPAWN_INTS = ("crashed", "yielding", "has_impact"), ("lane", "tlane", "rpos", "vid")
 
 _TABLES = None
 
@@ -82,6 +86,7 @@ class BatchedLeftTurn:
         self.rngs = [seeding.np_random(None)[0] for _ in range(self.B)]
         T = self.T
         self.route = np.array([T.id[i] for i in ROUTE])
+        self._spawn_table = self._spawn_lanes()
         self.route_starts = np.concatenate([[0.0], np.cumsum(T.length[self.route])[:-1]])
         turn = network.get_lane(ROUTE[1])
         self.conflict_s = self.route_starts[1] + turn.local_coordinates(CONFLICT_POINT)[0]
@@ -103,7 +108,8 @@ class BatchedLeftTurn:
 
     # ------------------------------------------------------------------------------------------- traffic draws
     def _spawn(self, t: Traffic, b: int, rng, longitudinal: float = 0.0, position_deviation: float = 1.0,
-               speed_deviation: float = 1.0, spawn_probability: float = 0.6, go_straight: bool = False,
+               speed_deviation: float = 1.0, spawn_probability: float = INITIAL_SPAWN_PROBABILITY,
+               go_straight: bool = False,
                u: float | None = None) -> None:
         """IntersectionEnv._spawn_vehicle: the same draws in the same order on env b's generator (``u``: its first
         draw, when the caller made it)."""
@@ -127,6 +133,34 @@ class BatchedLeftTurn:
         delta = self.prior.draw_delta(rng)  # IDMVehicle.randomize_behavior
         # plan[0]: settled to the closest lane
         self._new.append((b, t.add(b, lane, s, speed, plan, delta=delta, pose=pose)))
+
+    def _spawn_lanes(self) -> np.ndarray | None:
+        """The spawn kernels' lane table (kernels._spawn_one's ``lanes``), or None if a spawn lane is not straight
+        (the kernels place vehicles by the straight-lane arithmetic; numpy's calls then spawn)."""
+        T, out = self.T, np.full((4, 6), -1, dtype=np.int64)
+        for r in range(4):
+            out[r, 0], out[r, 5] = T.id[(f"o{r}", f"ir{r}", 0)], T.id[(f"il{r}", f"o{r}", 0)]
+            for d in range(4):
+                out[r, 1 + d] = T.id.get((f"ir{r}", f"il{d}", 0), -1)
+        return None if T.circular[out[:, 0]].any() else out
+
+    def _spawn_kernel(self, t: Traffic, rngs: list, new_per_env: int, call) -> bool:
+        """Run the spawn kernel ``call(fns, states, *lane and state arrays, first_id)`` on ``t`` for the generators
+        ``rngs`` (one per row it draws for), each row adding at most ``new_per_env`` vehicles. False (nothing drawn)
+        when the numpy calls must spawn instead: ``spawn`` not in KERNELS, a generator that is not a PCG64 or
+        shared, or a row without free slots for them (Traffic.add would grow the arrays)."""
+        if "spawn" not in batched.KERNELS or self._spawn_table is None:
+            return False
+        states = kernels.generator_states(rngs)
+        if states is None or int(t.alive.sum(axis=1).max(initial=0)) + new_per_env > t.N:
+            return False
+        p = self.prior
+        args = (kernels.pcg64_functions(), states, self.T.arr, self._spawn_table,
+                np.array([p.speed, p.speed_sd, *p.delta], dtype=float), tuple(batched._contiguous(t, *_SPAWN_FLOATS)),
+                *batched._contiguous(t, "alive", "ego", "plain", "mdp"), tuple(batched._contiguous(t, *_SPAWN_FLAGS)),
+                tuple(batched._contiguous(t, *_SPAWN_INTS)), *batched._contiguous(t, "route"))
+        batched.numbered(lambda first: call(*args, first))
+        return True
 
     def _settle(self, t: Traffic) -> None:
         if self._new:
@@ -175,9 +209,13 @@ class BatchedLeftTurn:
         n_vehicles = int(self.config["initial_vehicle_count"])
         starts = np.linspace(0, 80, n_vehicles)  # m, the initial vehicles' spawn offsets
         t = Traffic(self.T, len(rngs), N=max(16, n_vehicles + 4))
-        for b, rng in enumerate(rngs):
-            for k in range(n_vehicles - 1):
-                self._spawn(t, b, rng, starts[k])
+        first = starts[: max(n_vehicles - 1, 0)]
+        initial = lambda fns, states, lt, lanes, prior, *rest: kernels.spawn_initial(  # noqa: E731
+            fns, states, first, INITIAL_SPAWN_PROBABILITY, lt, lanes, prior, *rest)
+        if not self._spawn_kernel(t, rngs, len(first), initial):
+            for b, rng in enumerate(rngs):
+                for k in range(n_vehicles - 1):
+                    self._spawn(t, b, rng, starts[k])
         self._settle(t)
         warm_up = 3 * int(self.config["simulation_frequency"])
         if "tick" in batched.KERNELS:
@@ -188,12 +226,17 @@ class BatchedLeftTurn:
                 t.step(self.dt)
         T = self.T
         ego_lane = T.id[ROUTE[0]]
+        ego_s, ego_id = np.zeros(len(rngs)), np.zeros(len(rngs), dtype=np.int64)
+        challengers = lambda *args: kernels.spawn_challengers(*args, ego_s, ego_id)  # noqa: E731
+        compiled = self._spawn_kernel(t, rngs, 2, challengers)
         for b, rng in enumerate(rngs):
-            self._spawn(t, b, rng, 60, spawn_probability=1.0, go_straight=True, position_deviation=0.1,
-                        speed_deviation=0.0)
-            s = 60.0 + 5.0 * rng.normal(1.0)
-            slot = t.add(b, ego_lane, s, T.speed_limit[ego_lane], [ego_lane, *self.route[1:]], ego=True,
-                         target=self._ego_target(T.speed_limit[ego_lane]), mdp=not self.continuous)
+            if not compiled:
+                self._spawn(t, b, rng, 60, spawn_probability=1.0, go_straight=True, position_deviation=0.1,
+                            speed_deviation=0.0)
+                ego_s[b] = 60.0 + 5.0 * rng.normal(1.0)
+            slot = t.add(b, ego_lane, float(ego_s[b]), T.speed_limit[ego_lane], [ego_lane, *self.route[1:]],
+                         ego=True, target=self._ego_target(T.speed_limit[ego_lane]), mdp=not self.continuous,
+                         vid=int(ego_id[b]) if compiled else None)
             t.h[b, slot] = T.heading_at(ego_lane, 60.0)
             self._new.append((b, slot))
         self._settle(t)
@@ -419,12 +462,15 @@ class BatchedLeftTurn:
             t.alive &= ~gone
             t.compact()
         p = self.config["spawn_probability"] / self.config["policy_frequency"]
-        # the spawn try's first draw, rng.uniform() (most tries stop there): random() draws the same double from
-        # the stream and uniform(0, 1) returns 0 + 1 · it, the same float, for a quarter of the call's cost
-        u = [self.rngs[b].random() for b in rows]
-        for b, u_b in zip(rows, u):
-            if u_b <= p:
-                self._spawn(t, int(b), self.rngs[b], spawn_probability=p, u=u_b)
+        rows = np.asarray(rows, dtype=np.int64)
+        tries = lambda fns, states, *rest: kernels.spawn_tries(fns, states, rows, float(p), *rest)  # noqa: E731
+        if not self._spawn_kernel(t, [self.rngs[b] for b in rows], 1, tries):
+            # the spawn try's first draw, rng.uniform() (most tries stop there): random() draws the same double
+            # from the stream and uniform(0, 1) returns 0 + 1 · it, the same float, for a quarter of the call's cost
+            u = [self.rngs[b].random() for b in rows]
+            for b, u_b in zip(rows, u):
+                if u_b <= p:
+                    self._spawn(t, int(b), self.rngs[b], spawn_probability=p, u=u_b)
         self._settle(t)
 
     def step(self, actions: np.ndarray, active: np.ndarray | None = None):

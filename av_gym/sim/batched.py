@@ -28,7 +28,7 @@ new vehicles go after the last live one, cleared vehicles are removed with a sta
 from __future__ import annotations
 
 import itertools
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -42,8 +42,10 @@ from av_gym.sim import kernels
 # named here (``ttc``: BatchedLeftTurn.ttc); ``tick``: a policy step's ticks (act + step, every part) as one
 # compiled call per batch step (Traffic.advance); ``path_conflict``: obs["turn"]'s closest approach to the ego's
 # path (av_gym.estimation.turn_features.path_conflict, both stacks). The numpy code stays as their reference
-# (tests/test_kernels.py runs the batch both ways; benchmarks/batched_speed.py times both).
-KERNELS = {"front", "collisions", "conflicts", "closest", "ttc", "idm", "tick", "path_conflict"}
+# (tests/test_kernels.py runs the batch both ways; benchmarks/batched_speed.py times both). ``spawn``: the spawn
+# tries and a reset's initial traffic and challenger drawn in kernels from each env's own generator
+# (BatchedLeftTurn._spawn's draws, the same stream: kernels.spawn_tries and the generator draws above them).
+KERNELS = {"front", "collisions", "conflicts", "closest", "ttc", "idm", "tick", "path_conflict", "spawn"}
 # the pairwise kernels alone, the numpy step around them: the engine before the compiled tick, which the
 # benchmarks time beside the compiled one (benchmarks/batched_speed.py, oracle_labels.py, belief_planner.py)
 PAIRWISE_KERNELS = frozenset({"front", "collisions", "conflicts", "closest", "ttc", "idm"})
@@ -61,6 +63,16 @@ EGO_TARGET_SPEEDS = np.array([0.0, 4.5, 9.0])
 EXIT_DISTANCE = 25.0  # m along the leaving lane: IntersectionEnv.has_arrived
 SLOWER, IDLE, FASTER = 0, 1, 2
 _VEHICLE_IDS = itertools.count(1)  # unique over all batches of the process (episodes move between them)
+
+
+def numbered(kernel_call: Callable[[int], int]) -> int:
+    """Run ``kernel_call(first_id)``, a kernel that numbers the vehicles it adds from ``first_id`` on and returns how
+    many ids it used; the process's vehicle ids go on after them. Returns that count."""
+    global _VEHICLE_IDS
+    first = next(_VEHICLE_IDS)
+    n = int(kernel_call(first))
+    _VEHICLE_IDS = itertools.count(first + n)
+    return n
 
 
 @dataclass(frozen=True)
@@ -334,17 +346,17 @@ class Traffic:
 
     def add(self, b: int, lane: int, s: float, speed: float, route: list[int], delta: float = 4.0,
             ego: bool = False, target: float | None = None, plain: bool = False, mdp: bool | None = None,
-            pose: tuple[float, float, float] | None = None) -> int:
+            pose: tuple[float, float, float] | None = None, vid: int | None = None) -> int:
         """``Vehicle.make_on_lane`` + ``plan_route_to`` + append to ``road.vehicles`` in env ``b``; call
         :meth:`settle` on the new slots before the next tick. ``pose``: ``tables.pose(lane, s)`` when the caller
-        has it already."""
+        has it already; ``vid``: an id a kernel reserved (:func:`numbered`), else the next one."""
         slot = int(self.alive[b].sum())
         if slot >= self.N:
             self.grow(8)
         x, y, h = self.tables.pose(lane, s) if pose is None else pose
         self.alive[b, slot], self.ego[b, slot], self.plain[b, slot] = True, ego, plain
         self.mdp[b, slot] = ego if mdp is None else mdp
-        self.vid[b, slot] = next(_VEHICLE_IDS)
+        self.vid[b, slot] = next(_VEHICLE_IDS) if vid is None else vid
         self.x[b, slot], self.y[b, slot], self.h[b, slot], self.v[b, slot] = x, y, h, speed
         self.target[b, slot] = speed if target is None else target  # ControlledVehicle: target_speed or speed
         self.route[b, slot] = -1

@@ -27,10 +27,12 @@ The lane table is passed as one (L, 15) float array (:func:`lane_array`); column
 
 from __future__ import annotations
 
+import ctypes
 import math
 
 import numba
 import numpy as np
+from numba.np.random._constants import fi_double, ki_double, wi_double, ziggurat_nor_inv_r, ziggurat_nor_r
 
 OX, OY, DX, DY, CIRC, PHASE0, RADIUS, CDIR, WIDTH, LENGTH, BX0, BY0, BX1, BY1, HEAD = range(15)
 
@@ -681,3 +683,194 @@ def path_conflict(p, v, path, path_s, t_max):
                         best, kb = miss, k
             t_out[a, m], miss_out[a, m], s_out[a, m] = tk[kb], best, path_s[kb]
     return t_out, miss_out, s_out
+
+
+
+# ------------------------------------------------------------------------------------------------ generator draws
+# numpy Generator draws inside the kernels, on each env's own generator. Every env of the batch has its own
+# np.random.Generator whose stream must stay the one highway-env's calls make on the per-env stack (uniform,
+# choice(range(4), 2, replace=False), normal, in highway-env's order); a Python call per draw costs 1-25 us. Here a
+# kernel calls the bit generator's own C functions (BitGenerator.ctypes: next_uint64, next_uint32, next_double)
+# through their pointers on each generator's state address, and runs numpy's distribution code
+# (numpy/random/src/distributions/distributions.c: random_standard_normal's ziggurat with numba's copy of numpy's
+# tables, random_bounded_uint64's Lemire rejection, Generator.choice's Floyd sampling and shuffle) in the same order
+# of operations: a draw advances the same state by the same amount to the same value as the numpy call, so Python
+# and kernel draws interleave freely on one generator (tests/test_kernels.py::
+# test_kernel_draws_are_the_generators_own_stream: values and states, many seeds). The pointers are declared with a
+# uint64 argument for the ``void *`` state (the same integer register on the x86-64 and AArch64 C conventions;
+# numba has no integer-to-pointer cast). Only PCG64 generators are drawn from here (generator_states).
+_U64 = ctypes.CFUNCTYPE(ctypes.c_uint64, ctypes.c_uint64)
+_U32 = ctypes.CFUNCTYPE(ctypes.c_uint32, ctypes.c_uint64)
+_DBL = ctypes.CFUNCTYPE(ctypes.c_double, ctypes.c_uint64)
+_PCG64_FUNCTIONS = []
+ZIG_KI, ZIG_WI, ZIG_FI = (np.asarray(ki_double, dtype=np.uint64), np.asarray(wi_double, dtype=np.float64),
+                          np.asarray(fi_double, dtype=np.float64))
+ZIG_R, ZIG_INV_R = float(ziggurat_nor_r), float(ziggurat_nor_inv_r)
+
+
+def pcg64_functions() -> tuple:
+    """PCG64's (next_uint64, next_uint32, next_double) as ctypes functions of a state address (the same C functions
+    for every PCG64 instance), for the kernels' ``fns`` argument."""
+    if not _PCG64_FUNCTIONS:
+        c = np.random.PCG64(0).ctypes
+        address = lambda f: ctypes.cast(f, ctypes.c_void_p).value  # noqa: E731
+        _PCG64_FUNCTIONS.extend((_U64(address(c.next_uint64)), _U32(address(c.next_uint32)),
+                                 _DBL(address(c.next_double))))
+    return tuple(_PCG64_FUNCTIONS)
+
+
+def generator_states(rngs) -> np.ndarray | None:
+    """The state addresses (uint64) of ``rngs``' bit generators, or None when one is not a PCG64, or two rows share a
+    generator (numpy's calls then keep an order across rows that a kernel's env-by-env loop would change). The
+    caller holds the generators while a kernel uses the addresses."""
+    out = np.empty(len(rngs), dtype=np.uint64)
+    for k, g in enumerate(rngs):
+        bg = getattr(g, "bit_generator", None)
+        if type(bg) is not np.random.PCG64:
+            return None
+        out[k] = bg.ctypes.state_address
+    return out if len(np.unique(out)) == len(out) else None
+
+
+@numba.njit(cache=True, inline="always")
+def standard_normal(fns, st):
+    """Generator.normal() / standard_normal() on the generator at state address ``st``: numpy's
+    random_standard_normal (the 256-layer ziggurat)."""
+    while True:
+        r = fns[0](st)
+        idx = np.int64(r & np.uint64(0xFF))
+        r = r >> np.uint64(8)
+        sign = r & np.uint64(1)
+        rabs = (r >> np.uint64(1)) & np.uint64(0x000FFFFFFFFFFFFF)
+        x = rabs * ZIG_WI[idx]
+        if sign != np.uint64(0):
+            x = -x
+        if rabs < ZIG_KI[idx]:
+            return x  # 99.3 % of the draws
+        if idx == 0:
+            while True:
+                xx = -ZIG_INV_R * math.log1p(-fns[2](st))
+                yy = -math.log1p(-fns[2](st))
+                if yy + yy > xx * xx:
+                    return -(ZIG_R + xx) if (rabs >> np.uint64(8)) & np.uint64(1) else ZIG_R + xx
+        elif (ZIG_FI[idx - 1] - ZIG_FI[idx]) * fns[2](st) + ZIG_FI[idx] < math.exp(-0.5 * x * x):
+            return x
+
+
+@numba.njit(cache=True, inline="always")
+def bounded(fns, st, rng):
+    """random_bounded_uint64(off=0, rng, use_masked=False) for 0 < rng < 2**32 - 1: an integer in [0, rng] by
+    Lemire's rejection on next_uint32 (which uses the bit generator's own 32-bit buffer)."""
+    rng_excl = np.uint64(rng) + np.uint64(1)
+    m = np.uint64(fns[1](st)) * rng_excl
+    leftover = m & np.uint64(0xFFFFFFFF)
+    if leftover < rng_excl:
+        threshold = (np.uint64(0xFFFFFFFF) - np.uint64(rng)) % rng_excl
+        while leftover < threshold:
+            m = np.uint64(fns[1](st)) * rng_excl
+            leftover = m & np.uint64(0xFFFFFFFF)
+    return np.int64(m >> np.uint64(32))
+
+
+@numba.njit(cache=True, inline="always")
+def choice2(fns, st, n):
+    """Generator.choice(n, size=2, replace=False) for 2 <= n <= 10000: Floyd's sampling of two of range(n), then
+    the shuffle (_shuffle_int(2, 1)). Returns the pair."""
+    a = bounded(fns, st, n - 2) if n > 2 else np.int64(0)  # a bound of 0 draws nothing
+    val = bounded(fns, st, n - 1)
+    b = n - 1 if val == a else val
+    if bounded(fns, st, 1) == 0:
+        a, b = b, a
+    return a, b
+
+
+# ------------------------------------------------------------------------------------------------ spawns
+# IntersectionEnv._spawn_vehicle for many envs in one call (BatchedLeftTurn._spawn's draws and arithmetic, in its
+# order of operations), each env drawing from its own generator (above); the vehicle is added as Traffic.add does and
+# settled (its closest lane) at once: spawns read no lane, so settling each at once equals settling all at the end.
+# Spawn lanes are straight (o -> ir): the pose is LaneTable.pose's straight-lane arithmetic. ``lanes`` (4, 6) per
+# origin r: the entry lane, the turn lanes ir_r -> il_d for d = 0..3 (columns 1-4; -1: none), the exit lane il_r ->
+# o_r (column 5: the route's last step when r is the destination). ``prior``: speed, speed_sd, delta_lo, delta_hi.
+# ``fl`` / ``flags``: tuples of the state's float arrays (x, y, h, v, target, delta, steer, acc, impact_x, impact_y)
+# and bool arrays (crashed, yielding, has_impact), written in place; ``it``: lane, tlane, rpos, vid (int, (B, N)).
+SPAWN_CLEAR = 15.0  # m, no spawn this close to another vehicle (IntersectionEnv._spawn_vehicle)
+
+
+@numba.njit(cache=True)
+def _spawn_one(fns, st, lt, lanes, prior, b, longitudinal, position_deviation, speed_deviation, p, go_straight, u,
+               fl, alive, ego, plain, mdp, flags, it, route, next_id, lb):
+    """One spawn try in env b (``u``: its first draw when the caller made it, NaN: drawn here). Returns 1 if a
+    vehicle was added (with id ``next_id``), else 0."""
+    if math.isnan(u):
+        u = fns[2](st)  # uniform(): 0 + 1 * the double
+    if u > p:
+        return 0
+    r0, r1 = choice2(fns, st, 4)
+    if go_straight:
+        r1 = (r0 + 2) % 4
+    k = lanes[r0, 0]
+    s = longitudinal + 5.0 + standard_normal(fns, st) * position_deviation
+    speed = prior[0] + standard_normal(fns, st) * (prior[1] * speed_deviation)
+    x0, y0 = lt[k, OX] + s * lt[k, DX] + 0.0 * -lt[k, DY], lt[k, OY] + s * lt[k, DY] + 0.0 * lt[k, DX]
+    slot = 0
+    for j in range(alive.shape[1]):  # live slots are a prefix: the new one is their count
+        if alive[b, j]:
+            slot += 1
+            if math.hypot(fl[0][b, j] - x0, fl[1][b, j] - y0) < SPAWN_CLEAR:
+                return 0
+    delta = prior[2] + (prior[3] - prior[2]) * fns[2](st)  # uniform(lo, hi): lo + (hi - lo) * the double
+    alive[b, slot], ego[b, slot], plain[b, slot], mdp[b, slot] = True, False, False, False
+    for q, value in enumerate((x0, y0, lt[k, HEAD], speed, speed, delta, 0.0, 0.0, 0.0, 0.0)):
+        fl[q][b, slot] = value
+    for q in range(3):
+        flags[q][b, slot] = False
+    closest_lane = _closest_one(lt, x0, y0, lt[k, HEAD], lb)  # Traffic.settle
+    it[0][b, slot] = it[1][b, slot] = route[b, slot, 0] = closest_lane
+    route[b, slot, 1], route[b, slot, 2] = lanes[r0, 1 + r1], lanes[r1, 5]
+    it[2][b, slot], it[3][b, slot] = 0, next_id
+    return 1
+
+
+@numba.njit(cache=True)
+def spawn_tries(fns, states, rows, p, lt, lanes, prior, fl, alive, ego, plain, mdp, flags, it, route, next_id):
+    """BatchedLeftTurn._clear_and_spawn's spawn tries: env rows[k] (generator state ``states[k]``) draws u and
+    spawns if u <= p. Returns the number of vehicles added (ids from ``next_id`` on, in row order)."""
+    lb = np.empty((lt.shape[0], 2))
+    n = 0
+    for k in range(rows.shape[0]):
+        u = fns[2](states[k])
+        if u <= p:
+            n += _spawn_one(fns, states[k], lt, lanes, prior, rows[k], 0.0, 1.0, 1.0, p, False, u, fl, alive, ego,
+                            plain, mdp, flags, it, route, next_id + n, lb)
+    return n
+
+
+@numba.njit(cache=True)
+def spawn_initial(fns, states, starts, p, lt, lanes, prior, fl, alive, ego, plain, mdp, flags, it, route, next_id):
+    """_make_vehicles' initial traffic: env b (generator state ``states[b]``) tries one spawn at each offset of
+    ``starts`` (m) with probability ``p``, env after env. Returns the number of vehicles added."""
+    lb = np.empty((lt.shape[0], 2))
+    n = 0
+    for b in range(states.shape[0]):
+        for k in range(starts.shape[0]):
+            n += _spawn_one(fns, states[b], lt, lanes, prior, b, starts[k], 1.0, 1.0, p, False, np.nan, fl, alive,
+                            ego, plain, mdp, flags, it, route, next_id + n, lb)
+    return n
+
+
+@numba.njit(cache=True)
+def spawn_challengers(fns, states, lt, lanes, prior, fl, alive, ego, plain, mdp, flags, it, route, next_id, ego_s,
+                      ego_id):
+    """_make_vehicles' challenger (60 m in, going straight, position deviation 0.1 m, the prior's mean speed) and the
+    ego's draw after it, ``ego_s[b] = 60 + 5 normal(1)`` (m), env after env; the ego's id (``ego_id[b]``, the one
+    after its challenger's, as Traffic.add numbers them) is reserved for the caller, who adds the ego. Returns the
+    number of ids used."""
+    lb = np.empty((lt.shape[0], 2))
+    n = 0
+    for b in range(states.shape[0]):
+        n += _spawn_one(fns, states[b], lt, lanes, prior, b, 60.0, 0.1, 0.0, 1.0, True, np.nan, fl, alive, ego,
+                        plain, mdp, flags, it, route, next_id + n, lb)
+        ego_s[b] = 60.0 + 5.0 * (1.0 + 1.0 * standard_normal(fns, states[b]))  # normal(loc=1): loc + scale * z
+        ego_id[b] = next_id + n
+        n += 1
+    return n
