@@ -420,6 +420,7 @@ class BeliefLookahead:
         p = self.params = BeliefLookaheadParams.build(params, **overrides)
         self.env, self.repeat = env, int(p.repeat)
         self.planner = BeliefPlanner(p, n_rows=1)
+        self.tracks = None  # on tracks: the env's tracker as the planner reads it (at the first observation)
         self.reset()
 
     def reset(self) -> None:
@@ -431,10 +432,27 @@ class BeliefLookahead:
 
     def act(self, obs) -> int:
         engine = self.view.engine(self.env, obs)
+        if self.tracks is None and _on_tracks(self.env):  # the planner on the tracker's tracks, as on the batch
+            from agents.track_prior import EnvTracks
+
+            self.tracks = EnvTracks(self.env)
+            self.tracks.update(engine)
+            self.planner = BeliefPlanner(self.params, n_rows=1, perception=self.tracks)
+        if self.tracks is not None:
+            self.tracks.update(engine)
         self.planner.read(engine, [0], obs["intent"][None])
         self._choice = int(self.planner.decide(engine, [0], np.array([self._choice]), np.array([self._t]))[0])
         self._t += 1
         return meta_action(self._choice, obs["turn"])
+
+
+def _on_tracks(env: gym.Env) -> bool:
+    """Whether the env's turn features describe the tracker's tracks (sensors turn_perceived)."""
+    from av_gym.estimation.turn_features import TurnFeatures
+    from av_gym.sensors.base import find_wrapper
+
+    features = find_wrapper(env, TurnFeatures)
+    return features is not None and features.source == "tracks"
 
 
 def belief_lookahead_teacher(params: BeliefLookaheadParams, actions: str, scenario: str | None = None,

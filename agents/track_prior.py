@@ -333,3 +333,38 @@ class TrackBelief:
         t = e.traffic
         users = np.stack([t.x[rows], t.y[rows]], axis=-1)
         self.unseen.fill(f, rows, users, t.alive[rows], gens, K)
+
+
+class EnvTracks:
+    """The per-env stack's detector and tracker (:class:`~av_gym.estimation.object_tracking.ObjectTracker` over
+    :class:`~av_gym.estimation.tracker.MultiObjectTracker`) as the arrays :class:`TrackBelief` reads of the batch's
+    :class:`~av_gym.batched.perception.BatchedPerception`, for a one-row view of the env
+    (:class:`agents.belief.EnvView`); :meth:`update` after every observation."""
+
+    def __init__(self, env) -> None:
+        from av_gym.estimation.object_tracking import ObjectTracker
+        from av_gym.sensors.base import find_wrapper
+        from av_gym.sensors.detector import Detector
+
+        self.wrapper = find_wrapper(env, ObjectTracker)
+        self.detector = find_wrapper(env, Detector)
+        self.tracker = self  # the batch's tracker arrays, one row
+        self.params = self.wrapper.tracker.params
+        self.max_tracks = int(self.wrapper.max_tracks)
+        self.e = None
+
+    def update(self, engine) -> None:
+        """The tracker's state now, for the view ``engine`` of the env (its one row)."""
+        mtt = self.wrapper.tracker
+        all_tracks = mtt.tracks(include_tentative=True)
+        confirmed = np.array([tr.confirmed for tr in mtt._tracks], dtype=bool)
+        self.e = engine
+        self._tracks, self._shown = all_tracks[None], confirmed[None]
+        self.id = mtt.track_ids(include_tentative=True)[None]
+        self.n = np.array([len(all_tracks)])
+        self.fused_at = np.array([float(mtt._fused_at)])
+        self.last_tracks = self.wrapper._last[None]
+
+    def tracks(self, rows) -> tuple[np.ndarray, np.ndarray]:
+        """(1, K, 7) tracks in the tracker's order and which are confirmed (BatchedTracker.tracks' layout)."""
+        return self._tracks, self._shown

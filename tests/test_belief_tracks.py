@@ -167,3 +167,37 @@ def test_unseen_drivers_thin_as_the_tracker_confirms(hits, miss):
         np.testing.assert_allclose(got[u.on_lane], want, rtol=1e-12)
         fresh = UnseenTraffic(engine, det, SimpleNamespace(min_hits=hits), 1, tentative=tentative)
         np.testing.assert_allclose(fresh.density(np.array([0]))[0][fresh.on_lane], fresh.rate)
+
+
+def test_the_per_env_agent_on_tracks_decides_as_the_batch():
+    """belief_lookahead@turn_perceived per env (its one-row view of the env's own tracker, agents.track_prior
+    EnvTracks) gives the batch's GO collision probabilities for the same episodes, decision by decision: the same
+    tracks, the same unseen traffic, the same draws."""
+    from agents.belief import BeliefLookahead
+    from av_gym.make import make_env
+    from av_gym.wrappers import meta_action
+
+    seeds, sensors = [400_100, 400_101, 400_102], compose_group("sensors", "turn_perceived")
+    params = BeliefLookaheadParams(samples=4)
+    venv = BatchedLeftTurnBatch({"name": "left_turn"}, sensors, None, len(seeds), pool=0)
+    bobs = venv.play(iter(seeds))
+    batch = BeliefPlanner(params, n_rows=len(seeds), perception=venv.perception)
+    envs = [make_env({"name": "left_turn"}, sensors, None) for _ in seeds]
+    obs = [e.reset(seed=s)[0] for e, s in zip(envs, seeds)]
+    agents = [BeliefLookahead(e, params) for e in envs]
+    rows, compared = np.arange(len(seeds)), []
+    for k in range(16):
+        batch.read(venv.engine, rows, bobs["intent"])
+        choices = [a.act(o) for a, o in zip(agents, obs)]  # reads, and decides every `repeat` steps
+        if k % 5 == 0:
+            per_env = [a.planner.go_collision(a.planner.tracks.engine, [0])[0] for a in agents]
+            compared.append((batch.go_collision(venv.engine, rows), np.array(per_env)))
+        bobs, _, done, _ = venv.step(meta_actions(np.full(len(seeds), YIELD), bobs["turn"]))
+        obs = [e.step(meta_action(YIELD, o["turn"]))[0] for e, o in zip(envs, obs)]
+        assert not done.any() and len(choices) == len(seeds)
+    for e in envs:
+        e.close()
+    assert all(a.planner.tracks is not None for a in agents)
+    for on_batch, per_env in compared:
+        np.testing.assert_array_equal(on_batch, per_env)
+    assert any(0.0 < p.mean() < 1.0 for p, _ in compared)
