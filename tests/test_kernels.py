@@ -427,22 +427,27 @@ def _spawn_run(config: dict, kset: set, rngs_from: int | None = None) -> list:
         for _ in range(120):
             bt.step_autoreset(rng.integers(0, 3, 16))
             t = bt.traffic
-            states.append([getattr(t, n).copy() for n in t.FIELDS if n != "vid"] + [t.vid[t.alive] - first])
+            states.append([getattr(t, n).copy() for n in t.FIELDS if n != "vid"] + [t.vid[t.alive] - first,
+                                                                                   np.array(t.N)])
     return states
 
 
 @pytest.mark.parametrize("philox", [False, True])
 def test_spawn_kernels_draw_the_numpy_spawns(philox):
-    """The spawn tries, a reset's initial traffic and its challenger from the kernels (``spawn``) against numpy's
-    calls (BatchedLeftTurn._spawn), everything else the same: every state array identical, bit for bit, at every
+    """The spawn tries, a reset's initial traffic and its challenger from the kernels (``spawn``), and the clearing
+    of vehicles at the exits with the compaction (``clear``), against numpy's calls (BatchedLeftTurn._spawn,
+    Traffic.compact), everything else the same: every state array identical, bit for bit, at every
     step of a whole run with pool resets, the vehicle ids in the same order (``philox``: some rows' generators
     are not PCG64, so those steps spawn by numpy's calls: the same run again). Mutations: the step's spawn position
-    deviation 1.0 as 1.001, or choice2's swap on ``== 1``, fail it."""
+    deviation 1.0 as 1.001, choice2's swap on ``== 1``, or clear_exits putting the dead slots in reverse order, fail
+    it."""
     _, config = highway_config({"name": "left_turn"})
     a = _spawn_run(config, PAIRWISE, 12 if philox else None)
-    b = _spawn_run(config, PAIRWISE | {"spawn"}, 12 if philox else None)
-    names = [n for n in sb.Traffic.FIELDS if n != "vid"] + ["vid"]
+    b = _spawn_run(config, PAIRWISE | {"spawn", "clear"}, 12 if philox else None)
+    names = [n for n in sb.Traffic.FIELDS if n != "vid"] + ["vid", "slots"]
     for step, (p, q) in enumerate(zip(a, b)):
         for n, u, w in zip(names, p, q):
             assert u.shape == w.shape and np.array_equal(u, w), f"step {step}: {n}"
-    assert a[-1][-1].max() > 16 * 12  # many vehicles were spawned
+    assert a[-1][-2].max() > 16 * 12  # many vehicles were spawned
+    slots = [int(s[-1]) for s in a]
+    assert any(m > n for n, m in zip(slots, slots[1:]))  # a spawn found its row full: the arrays grew

@@ -31,6 +31,7 @@ INITIAL_SPAWN_PROBABILITY = 0.6  # _spawn_vehicle's default, which _make_vehicle
 # the state arrays a spawn kernel writes (kernels._spawn_one's ``fl``, ``flags``, ``it``)
 _SPAWN_FLOATS = ("x", "y", "h", "v", "target", "delta", "steer", "acc", "impact_x", "impact_y")
 _SPAWN_FLAGS, _SPAWN_INTS = ("crashed", "yielding", "has_impact"), ("lane", "tlane", "rpos", "vid")
+_CLEAR_FLAGS = ("alive", "ego", "plain", "mdp", *_SPAWN_FLAGS)  # kernels.clear_exits' ``bl`` (alive, ego first)
 
 _TABLES = None
 
@@ -147,20 +148,32 @@ class BatchedLeftTurn:
     def _spawn_kernel(self, t: Traffic, rngs: list, new_per_env: int, call) -> bool:
         """Run the spawn kernel ``call(fns, states, *lane and state arrays, first_id)`` on ``t`` for the generators
         ``rngs`` (one per row it draws for), each row adding at most ``new_per_env`` vehicles. False (nothing drawn)
-        when the numpy calls must spawn instead: ``spawn`` not in KERNELS, a generator that is not a PCG64 or
-        shared, or a row without free slots for them (Traffic.add would grow the arrays)."""
+        when the numpy calls must spawn instead: ``spawn`` not in KERNELS, or a generator that is not a PCG64 or
+        shared. Slots: the arrays grow by 8 at a time as far as the spawns could need, then keep only the growth
+        that Traffic.add's own (8 slots when a spawn finds its row full) would have made."""
         if "spawn" not in batched.KERNELS or self._spawn_table is None:
             return False
         states = kernels.generator_states(rngs)
-        if states is None or int(t.alive.sum(axis=1).max(initial=0)) + new_per_env > t.N:
+        if states is None:
             return False
+        before = t.N
+        short = int(t.alive.sum(axis=1).max(initial=0)) + new_per_env - before
+        if short > 0:
+            t.grow(8 * -(-short // 8))
+        self._spawn_call(t, states, call)
+        if short > 0:
+            used = int(t.alive.sum(axis=1).max(initial=0)) - before
+            t.cut(before + 8 * -(-max(used, 0) // 8))
+        return True
+
+    def _spawn_call(self, t: Traffic, states: np.ndarray, call) -> None:
+        """:meth:`_spawn_kernel`'s call, with the lane table, the prior and ``t``'s state arrays."""
         p = self.prior
         args = (kernels.pcg64_functions(), states, self.T.arr, self._spawn_table,
                 np.array([p.speed, p.speed_sd, *p.delta], dtype=float), tuple(batched._contiguous(t, *_SPAWN_FLOATS)),
                 *batched._contiguous(t, "alive", "ego", "plain", "mdp"), tuple(batched._contiguous(t, *_SPAWN_FLAGS)),
                 tuple(batched._contiguous(t, *_SPAWN_INTS)), *batched._contiguous(t, "route"))
         batched.numbered(lambda first: call(*args, first))
-        return True
 
     def _settle(self, t: Traffic) -> None:
         if self._new:
@@ -453,16 +466,21 @@ class BatchedLeftTurn:
         """The left turn's step prologue: IntersectionEnv._clear_vehicles, then one spawn try at
         spawn_probability / policy_frequency."""
         t, T = self.traffic, self.T
-        gone = np.zeros_like(t.alive)
-        gone[rows] = (t.alive & ~t.ego & T.exit[t.lane])[rows]  # on a leaving lane; then: near its end?
-        b, i = np.nonzero(gone)
-        s, _ = T.local(t.lane[b, i], t.x[b, i], t.y[b, i])
-        gone[b, i] = s >= T.length[t.lane[b, i]] - 4 * LENGTH
-        if gone.any():
-            t.alive &= ~gone
-            t.compact()
-        p = self.config["spawn_probability"] / self.config["policy_frequency"]
         rows = np.asarray(rows, dtype=np.int64)
+        if "clear" in batched.KERNELS:  # the same test and compaction in one call
+            kernels.clear_exits(T.arr, T.rules, rows, 4 * LENGTH, tuple(batched._contiguous(t, *_SPAWN_FLOATS)),
+                                tuple(batched._contiguous(t, *_CLEAR_FLAGS)),
+                                tuple(batched._contiguous(t, *_SPAWN_INTS)), *batched._contiguous(t, "route"))
+        else:
+            gone = np.zeros_like(t.alive)
+            gone[rows] = (t.alive & ~t.ego & T.exit[t.lane])[rows]  # on a leaving lane; then: near its end?
+            b, i = np.nonzero(gone)
+            s, _ = T.local(t.lane[b, i], t.x[b, i], t.y[b, i])
+            gone[b, i] = s >= T.length[t.lane[b, i]] - 4 * LENGTH
+            if gone.any():
+                t.alive &= ~gone
+                t.compact()
+        p = self.config["spawn_probability"] / self.config["policy_frequency"]
         tries = lambda fns, states, *rest: kernels.spawn_tries(fns, states, rows, float(p), *rest)  # noqa: E731
         if not self._spawn_kernel(t, [self.rngs[b] for b in rows], 1, tries):
             # the spawn try's first draw, rng.uniform() (most tries stop there): random() draws the same double

@@ -44,8 +44,9 @@ from av_gym.sim import kernels
 # path (av_gym.estimation.turn_features.path_conflict, both stacks). The numpy code stays as their reference
 # (tests/test_kernels.py runs the batch both ways; benchmarks/batched_speed.py times both). ``spawn``: the spawn
 # tries and a reset's initial traffic and challenger drawn in kernels from each env's own generator
-# (BatchedLeftTurn._spawn's draws, the same stream: kernels.spawn_tries and the generator draws above them).
-KERNELS = {"front", "collisions", "conflicts", "closest", "ttc", "idm", "tick", "path_conflict", "spawn"}
+# (BatchedLeftTurn._spawn's draws, the same stream: kernels.spawn_tries and the generator draws above them);
+# ``clear``: the step's removal of vehicles at the end of a leaving lane and the compaction (kernels.clear_exits).
+KERNELS = {"front", "collisions", "conflicts", "closest", "ttc", "idm", "tick", "path_conflict", "spawn", "clear"}
 # the pairwise kernels alone, the numpy step around them: the engine before the compiled tick, which the
 # benchmarks time beside the compiled one (benchmarks/batched_speed.py, oracle_labels.py, belief_planner.py)
 PAIRWISE_KERNELS = frozenset({"front", "collisions", "conflicts", "closest", "ttc", "idm"})
@@ -300,6 +301,13 @@ class Traffic:
             a = getattr(self, name)
             idx = order if a.ndim == 2 else order[..., None]
             setattr(self, name, np.take_along_axis(a, idx, axis=1))
+
+    def cut(self, n: int) -> None:
+        """Keep the first ``n`` slots of every env (``n`` >= every env's live vehicles)."""
+        if n < self.N:
+            for name in self.FIELDS:
+                setattr(self, name, np.ascontiguousarray(getattr(self, name)[:, :n]))
+            self.N = n
 
     def trim(self, spare: int = 2) -> None:
         """Drop trailing slots no env uses (the pairwise work is O(N²) in the slot count, not the vehicle count)."""

@@ -118,10 +118,36 @@ def _closest_one(lt, xm, ym, hm, lb):
     dmin, kmin = np.inf, 0
     for k in range(L):
         if _within(lb[k, 0], lb[k, 1], best):
-            d = _distance_with_heading(lt, k, xm, ym, hm)
+            d = _distance_below(lt, k, xm, ym, hm, min(dmin, best))
             if d < dmin:
                 dmin, kmin = d, k
     return kmin
+
+
+@numba.njit(cache=True, inline="always")
+def _distance_below(lt, k, x, y, h, bound):
+    """:func:`_distance_with_heading` (the same operations, the same result), or +inf without the arc's atan2 and
+    the angle wraps when |r| alone exceeds ``bound``: the distance is |r| plus non-negative terms, and a float sum
+    of non-negative terms is never below its first, so such a lane is farther than ``bound`` (the least distance
+    so far, or the nearest box's lane's) and cannot be the first least one."""
+    ex, ey = x - lt[k, OX], y - lt[k, OY]
+    if lt[k, CIRC] != 0.0:
+        R, cd = lt[k, RADIUS], lt[k, CDIR]
+        r = cd * (R - math.hypot(ex, ey))
+        if abs(r) > bound:
+            return np.inf
+        p0 = lt[k, PHASE0]
+        phi = p0 + ((math.atan2(ey, ex) - p0 + math.pi) % (2 * math.pi) - math.pi)  # wrap_to_pi
+        s = cd * (phi - p0) * R
+        heading = cd * s / R + p0 + math.pi / 2 * cd
+    else:
+        dx, dy = lt[k, DX], lt[k, DY]
+        s, r = ex * dx + ey * dy, ex * -dy + ey * dx
+        if abs(r) > bound:
+            return np.inf
+        heading = lt[k, HEAD]
+    angle = abs((h - heading + math.pi) % (2 * math.pi) - math.pi)
+    return abs(r) + max(s - lt[k, LENGTH], 0.0) + max(0.0 - s, 0.0) + angle
 
 
 @numba.njit(cache=True)
@@ -723,12 +749,14 @@ def generator_states(rngs) -> np.ndarray | None:
     """The state addresses (uint64) of ``rngs``' bit generators, or None when one is not a PCG64, or two rows share a
     generator (numpy's calls then keep an order across rows that a kernel's env-by-env loop would change). The
     caller holds the generators while a kernel uses the addresses."""
-    out = np.empty(len(rngs), dtype=np.uint64)
-    for k, g in enumerate(rngs):
-        bg = getattr(g, "bit_generator", None)
-        if type(bg) is not np.random.PCG64:
-            return None
-        out[k] = bg.ctypes.state_address
+    try:
+        bgs = [g.bit_generator for g in rngs]
+    except AttributeError:  # not a Generator (None: a view whose futures get theirs later)
+        return None
+    pcg64 = np.random.PCG64
+    if not all(type(bg) is pcg64 for bg in bgs):
+        return None
+    out = np.array([bg.ctypes.state_address for bg in bgs], dtype=np.uint64)
     return out if len(np.unique(out)) == len(out) else None
 
 
@@ -874,3 +902,52 @@ def spawn_challengers(fns, states, lt, lanes, prior, fl, alive, ego, plain, mdp,
         ego_id[b] = next_id + n
         n += 1
     return n
+
+
+@numba.njit(cache=True)
+def clear_exits(lt, lanes, rows, exit_margin, fl, bl, il, route):
+    """IntersectionEnv._clear_vehicles for the envs ``rows`` (BatchedLeftTurn._clear_and_spawn): a live non-ego
+    vehicle on a leaving lane (``lanes[:, 2]``) with s >= the lane's length - ``exit_margin`` (m) is removed; then,
+    if any was, Traffic.compact: every env's live slots first, the dead ones after them, each in slot order (a
+    stable partition, as the stable argsort there). ``fl``: the float state arrays (x and y first), ``bl`` the bool
+    ones (alive, ego first), ``il`` the int ones (the lane first), ``route`` (B, N, 3); all written in place.
+    Returns the count."""
+    alive, ego, x, y = bl[0], bl[1], fl[0], fl[1]
+    B, N = alive.shape
+    gone = 0
+    for q in range(rows.shape[0]):
+        b = rows[q]
+        for i in range(N):
+            k = il[0][b, i]
+            if alive[b, i] and not ego[b, i] and lanes[k, 2] != 0.0 \
+                    and _local(lt, k, x[b, i], y[b, i])[0] >= lt[k, LENGTH] - exit_margin:
+                alive[b, i] = False
+                gone += 1
+    if gone == 0:
+        return 0
+    order, ftmp, itmp, btmp = np.empty(N, np.int64), np.empty(N), np.empty(N, np.int64), np.empty(N, np.bool_)
+    rtmp = np.empty((N, 3), np.int64)
+    for b in range(B):
+        n = 0
+        for i in range(N):
+            if alive[b, i]:
+                order[n] = i
+                n += 1
+        if n == 0 or order[n - 1] == n - 1:
+            continue  # the live slots are a prefix already: the partition leaves the row as it is
+        for i in range(N):
+            if not alive[b, i]:
+                order[n] = i
+                n += 1
+        for a in fl:
+            ftmp[:] = a[b, order]
+            a[b, :] = ftmp
+        for a in bl:
+            btmp[:] = a[b, order]
+            a[b, :] = btmp
+        for a in il:
+            itmp[:] = a[b, order]
+            a[b, :] = itmp
+        rtmp[:] = route[b][order]
+        route[b] = rtmp
+    return gone
