@@ -286,7 +286,10 @@ class TrackBelief:
         t.alive[rows, sl] = users
         x, y, vx, vy, h = (pos[..., k] for k in range(5))
         t.x[rows, sl], t.y[rows, sl], t.h[rows, sl] = x, y, h
-        t.v[rows, sl] = t.target[rows, sl] = np.hypot(vx, vy)
+        t.v[rows, sl] = t.target[rows, sl] = speed = np.hypot(vx, vy)
+        # the tracks carry no crash flag: a road user standing still is taken to stay where it is (a crashed car
+        # does; one held at a line is released later than the futures would have it go)
+        t.crashed[rows, sl] = users & (speed < float(self.params.stopped))
         lane = engine.T.closest(x, y, h)
         t.lane[rows, sl] = t.tlane[rows, sl] = np.where(users, lane, 0)
         t.route[rows, sl, 0] = np.where(users, lane, -1)
