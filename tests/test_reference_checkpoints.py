@@ -14,8 +14,10 @@ from eval.runner import run_episodes
 
 REF = resources.files("conf").parent / "checkpoints" / "reference"
 SB3_REFS = sorted(p.name for p in REF.iterdir() if (p / "model.zip").is_file())
-# extra training seeds a multi-seed row needs: reference/seeds/<name>/s<seed>/ (the reference itself is the other seed)
-SEED_REFS = sorted(str(p.relative_to(REF)) for p in REF.glob("seeds/*/s*") if (p / "model.zip").is_file())
+# extra training seeds a multi-seed row needs: reference/seeds/<name>/s<seed>/ (the reference itself is the other seed),
+# each with its kind's model file (an SB3 zip, or PilotNet's model.pt)
+MODELS = ("model.zip", "model.pt")
+SEED_REFS = sorted(str(p.relative_to(REF)) for p in REF.glob("seeds/*/s*") if any((p / m).is_file() for m in MODELS))
 NAMED = ("dagger_turn", "dagger_turn_memory", "dagger_turn_perceived", "dagger_turn_soft", "pilotnet",
          "ppo_lane_camera", "ppo_lane_localized", "ppo_turn", "ppo_turn_perceived", "ppo_turn_shielded")
 
@@ -23,7 +25,8 @@ NAMED = ("dagger_turn", "dagger_turn_memory", "dagger_turn_perceived", "dagger_t
 def _env_and_policy(name: str):
     saved = yaml.safe_load((REF / name / "config.yaml").read_text())
     env_name = saved["env"]["name"]
-    plan = plan_agent(str(REF / name / "model.zip"), env_name, {}, compose_group("shield", "none"), "checkpoints")
+    model = next(m for m in MODELS if (REF / name / m).is_file())
+    plan = plan_agent(str(REF / name / model), env_name, {}, compose_group("shield", "none"), "checkpoints")
     check_plan(plan, env_name)
     env = make_env(saved["env"], plan.sensors, plan.shield)
     return env, resolve_agent(plan.spec, env, env_name, "checkpoints")[1]
@@ -46,7 +49,8 @@ def test_reference_holds_the_named_agents_and_a_name_means_one_folder():
         assert saved["agent"]["name"] == name and f"s{saved['seed']}" == s
     assert SEED_REFS == ["seeds/dagger_turn_memory/s1", "seeds/dagger_turn_memory/s3", "seeds/dagger_turn_perceived/s2",
                          "seeds/dagger_turn_perceived/s3", "seeds/dagger_turn_soft/s1", "seeds/dagger_turn_soft/s3",
-                         "seeds/ppo_turn/s2", "seeds/ppo_turn/s3", "seeds/ppo_turn/s4", "seeds/ppo_turn/s5"]
+                         "seeds/pilotnet/s1", "seeds/ppo_turn/s2", "seeds/ppo_turn/s3", "seeds/ppo_turn/s4",
+                         "seeds/ppo_turn/s5"]
 
 
 @pytest.mark.parametrize("name", SB3_REFS + SEED_REFS)
