@@ -1,5 +1,6 @@
-"""Batched left turn vs the per-env fast stack, side by side in one run: the compiled batch step and the numpy step
-(with the pairwise kernels: the engine before the compiled step), interleaved in one process.
+"""Batched left turn vs the per-env fast stack, side by side in one run: the compiled batch step, the compiled tick
+with numpy's spawn draws (the compiled step before its spawn kernels) and the numpy step (with the pairwise kernels:
+the engine before the compiled step), interleaved in one process.
 
     python benchmarks/batched_speed.py [--sizes 1 4 16 64 256 1024] [--seconds 4] [--out docs/batched_speed.png]
     python benchmarks/batched_speed.py --sizes 256 1024 --seconds 6        # the sizes the targets name, ~2 min
@@ -12,7 +13,7 @@ on the batch: the episode metrics' min TTC), random meta-actions, episodes reset
 auto-reset pool, as its VecEnv does).
 Per-env: ``UnprotectedLeftTurn-v0`` (``fast: true``) + ``TurnFeatures``, one env stepped in a loop (the per-env
 rate does not depend on how many are stepped one after the other). Memory per env: the batch's state arrays
-(bytes / B). The two batch paths alternate in slices of ``--seconds`` / 4 (their CPU time summed), so a change of
+(bytes / B). The batch paths alternate in slices of ``--seconds`` / 4 (their CPU time summed), so a change of
 the machine's load hits both alike. Prints a markdown table and ``uptime``'s load average, and saves a plot.
 """
 
@@ -37,7 +38,11 @@ from av_gym.make import highway_config
 from av_gym.sim import batched
 from conf.cli import Extend, ToolParser, items, number
 
-PATHS = {"numpy step": batched.PAIRWISE_KERNELS, "compiled step": frozenset(batched.KERNELS)}
+# the numpy step (the pairwise kernels only), the compiled tick with numpy's spawn draws and clearing (the compiled
+# step before its spawn kernels), the compiled step
+PATHS = {"numpy step": batched.PAIRWISE_KERNELS,
+         "compiled tick, numpy spawns": frozenset(batched.KERNELS) - {"spawn", "clear"},
+         "compiled step": frozenset(batched.KERNELS)}
 
 
 def load() -> str:
@@ -191,13 +196,13 @@ def main() -> None:
     base_after = per_env_rate(config, args.seconds)
     print(f"\nper-env fast stack + TurnFeatures: {base:.0f} steps/s before, {base_after:.0f} after; load {load()}\n")
     ref = 0.5 * (base + base_after)
-    print("| B | numpy step, steps/CPU-s | compiled step, steps/CPU-s | per-env steps/CPU-s | numpy / per-env "
-          "| compiled / per-env | compiled / numpy | state bytes / env |")
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("| B | " + " | ".join(f"{name}, steps/CPU-s" for name in PATHS) + " | per-env steps/CPU-s | "
+          + " | ".join(f"{name} / per-env" for name in PATHS) + " | compiled / numpy | state bytes / env |")
+    print("|---:" * (2 * len(PATHS) + 4) + "|")
     for B, rates, mem in rows:
-        old, new = rates["numpy step"], rates["compiled step"]
-        print(f"| {B} | {old:.0f} | {new:.0f} | {ref:.0f} | {old / ref:.1f} | **{new / ref:.1f}** | {new / old:.2f} "
-              f"| {mem:.0f} |")
+        print(f"| {B} | " + " | ".join(f"{rates[name]:.0f}" for name in PATHS) + f" | {ref:.0f} | "
+              + " | ".join(f"{rates[name] / ref:.1f}" for name in PATHS)
+              + f" | {rates['compiled step'] / rates['numpy step']:.2f} | {mem:.0f} |")
     try:
         import matplotlib
 

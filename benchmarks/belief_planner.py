@@ -7,8 +7,9 @@
 
 Each (K, threshold, commit) plays the same episodes (``python -m eval``'s batched loop,
 :func:`eval.batched.play_batched`); one csv row per point (``--out``), with 95 % Wilson intervals and the labels/s of the planner alone (wall-clock of
-its futures) and of the whole run. ``--paths``: each point on both engine paths (the numpy step, the compiled
-step: benchmarks/batched_speed.py's PATHS), one after the other, with the planner's labels per CPU-second."""
+its futures) and of the whole run. ``--paths``: each point on every engine path (the numpy step, the compiled tick
+with numpy's spawns, the compiled step: benchmarks/batched_speed.py's PATHS), one after the other, with the
+planner's labels per CPU-second."""
 
 from __future__ import annotations
 
@@ -44,7 +45,7 @@ def main() -> None:
                     help="when a GO is final (BeliefLookaheadParams.commit; its default: never)")
     ap.add_argument("--n-envs", type=int, default=100)
     ap.add_argument("--out", default=None, help="csv of the points (appended)")
-    ap.add_argument("--paths", action="store_true", help="each point on the numpy and on the compiled engine step")
+    ap.add_argument("--paths", action="store_true", help="each point on every engine path (batched_speed.PATHS)")
     args = ap.parse_args()
 
     import numpy as np

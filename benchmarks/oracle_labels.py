@@ -206,8 +206,9 @@ def perceived(episodes: int, B: int, seed: int) -> tuple[int, int, int, float, f
 
 def path_rates(plain, seeds, B: int) -> tuple[dict, int, int]:
     """The batched oracle on each engine path (benchmarks/batched_speed.py's PATHS: the numpy step, the compiled
-    step) labelling the same states in turn, a seeded :class:`Coin` driving on the compiled path: labels per
-    CPU-second of each, and how many labels (of how many) the two paths agree on."""
+    tick with numpy's spawns, the compiled step) labelling the same states in turn, a seeded :class:`Coin` driving
+    on the compiled path: labels per CPU-second of each, and how many labels (of how many) the numpy step and the
+    compiled step agree on."""
     from agents.batched_oracle import oracle_labels
     from agents.batched_vec_env import BatchedLeftTurnVecEnv
     from av_gym.sim import batched as engine
@@ -252,8 +253,8 @@ def main() -> None:
     parser.add_argument("--split", default="test", choices=["train", "validation", "test"])
     parser.add_argument("--perceived", type=int, default=0, help="instead: this many episodes of the replica "
                         "labeller on turn_perceived (detector + tracker), checked against the per-env oracle")
-    parser.add_argument("--paths", type=int, default=0, help="instead: this many episodes labelled on both engine "
-                        "paths (numpy step, compiled step) in turn: labels / CPU-s of each")
+    parser.add_argument("--paths", type=int, default=0, help="instead: this many episodes labelled on every engine "
+                        "path (batched_speed.PATHS) in turn: labels / CPU-s of each")
     args = parser.parse_args()
     if args.paths > 0:
         print(f"load average before: {load()}", flush=True)
