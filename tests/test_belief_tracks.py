@@ -201,3 +201,23 @@ def test_the_per_env_agent_on_tracks_decides_as_the_batch():
     for on_batch, per_env in compared:
         np.testing.assert_array_equal(on_batch, per_env)
     assert any(0.0 < p.mean() < 1.0 for p, _ in compared)
+
+
+def test_a_track_standing_in_the_way_stays_there():
+    """A confirmed track standing still on the ego's turn (the tracks carry no crash flag; a crashed car stands
+    there for good): with ``stopped`` 1 m/s it stays put in every future and GO collides in all of them; with
+    ``stopped`` 0 it drives on in the futures and fewer of them collide."""
+    out = {}
+    for stopped in (1.0, 0.0):
+        venv, planner, obs, rows = _batch([420_001, 420_002], 45, BeliefLookaheadParams(samples=16, unseen=0.0,
+                                                                                       stopped=stopped))
+        e = venv.engine
+        for r in rows:
+            _only_track(venv, int(r), (2.0, 2.0, 0.0, 0.0))
+        p = copy.deepcopy(planner, {id(venv.perception): venv.perception, id(e): e,
+                                    id(planner.tracks.engine): None})
+        out[stopped] = _decide(p, e, rows, {"intent": np.zeros_like(obs["intent"])})
+        crashed = p.tracks.engine.traffic.crashed[rows]
+        assert crashed.sum(axis=1).tolist() == [int(stopped > 0)] * len(rows)
+    np.testing.assert_array_equal(out[1.0], np.ones(2))
+    assert (out[0.0] < out[1.0]).all()
