@@ -1,0 +1,66 @@
+"""belief_lookahead on tracks on the batch, one parameter point on validation episodes (docs/dagger.md, "What sensing
+costs": how belief_tracks' parameters were chosen).
+
+    python benchmarks/belief_tracks_sweep.py --episodes 300 --set tentative=road_user
+
+Plays ``--episodes`` validation seeds from ``--seed`` (default 1,000,000) with :class:`agents.belief.BeliefLookahead`
+on ``sensors=turn_perceived`` (``--set key=value``: BeliefLookaheadParams fields, e.g. ``unseen=2 samples=32``),
+``--n-envs`` at a time, and prints one JSON line: the point, collision and success rates, the seeds that collided,
+wall and CPU seconds and the load."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # the checkout's agents/ and eval/
+
+
+def fail(message: str) -> None:
+    """One ``error:`` line on stderr, exit status 2 (bad input)."""
+    print(f"error: {message}", file=sys.stderr)
+    sys.exit(2)
+
+
+def main() -> None:
+    import yaml
+
+    from agents.belief import BeliefLookahead, BeliefLookaheadParams
+    from av_gym.errors import ConfigError
+    from av_gym.presets import compose_group
+    from av_gym.seeds import SPLITS
+    from eval.batched import play_batched
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--episodes", type=int, default=300)
+    ap.add_argument("--seed", type=int, default=SPLITS["validation"].start)
+    ap.add_argument("--n-envs", type=int, default=300)
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
+    args = ap.parse_args()
+    seeds = range(args.seed, args.seed + args.episodes)
+    if args.episodes < 1 or seeds[0] not in SPLITS["validation"] or seeds[-1] not in SPLITS["validation"]:
+        fail(f"--seed/--episodes must stay in the validation split {SPLITS['validation']}")
+    bad = [kv for kv in args.set if "=" not in kv]
+    if bad:
+        fail(f"--set takes KEY=VALUE (BeliefLookaheadParams fields), got {bad[0]!r}")
+    try:
+        point = {k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in args.set)}
+        params = BeliefLookaheadParams.from_mapping(point, "--set")
+    except (ValueError, ConfigError, yaml.YAMLError) as exc:
+        fail(str(exc).splitlines()[0])
+    t0, c0 = time.time(), time.process_time()
+    rows = play_batched({"name": "left_turn"}, compose_group("sensors", "turn_perceived"), None,
+                        BeliefLookahead(None, params), list(seeds), args.n_envs, "belief_tracks", progress=False)
+    n = len(rows)
+    print(json.dumps({"point": point, "episodes": n, "seed": args.seed,
+                      "collision": sum(r["collision"] for r in rows) / n, "success": sum(r["success"] for r in rows) / n,
+                      "collided": [r["seed"] for r in rows if r["collision"]], "wall_s": round(time.time() - t0, 1),
+                      "cpu_s": round(time.process_time() - c0, 1), "load": os.getloadavg()[0]}))
+
+
+if __name__ == "__main__":
+    main()
