@@ -439,8 +439,8 @@ def test_spawn_kernels_draw_the_numpy_spawns(philox):
     Traffic.compact), everything else the same: every state array identical, bit for bit, at every
     step of a whole run with pool resets, the vehicle ids in the same order (``philox``: some rows' generators
     are not PCG64, so those steps spawn by numpy's calls: the same run again). Mutations: the step's spawn position
-    deviation 1.0 as 1.001, choice2's swap on ``== 1``, or clear_exits putting the dead slots in reverse order, fail
-    it."""
+    deviation 1.0 as 1.001, choice2's swap on ``== 1``, clear_exits putting the dead slots in reverse order, or the
+    speed of a spawn that found its row full (placed by Traffic.add after the kernel) + 1e-6, fail it."""
     _, config = highway_config({"name": "left_turn"})
     a = _spawn_run(config, PAIRWISE, 12 if philox else None)
     b = _spawn_run(config, PAIRWISE | {"spawn", "clear"}, 12 if philox else None)

@@ -166,6 +166,32 @@ class BatchedLeftTurn:
             t.cut(before + 8 * -(-max(used, 0) // 8))
         return True
 
+    def _spawn_tries(self, t: Traffic, rows: np.ndarray, p: float) -> bool:
+        """The spawn tries of ``rows`` (probability ``p``) in kernels.spawn_tries, or False (nothing drawn) as
+        :meth:`_spawn_kernel`. A spawn that finds its row full comes back drawn but not placed: Traffic.add places
+        it (growing the slots by 8, as on numpy's path) and settles it, and the tries go on after its row."""
+        if "spawn" not in batched.KERNELS or self._spawn_table is None:
+            return False
+        states = kernels.generator_states([self.rngs[b] for b in rows])
+        if states is None:
+            return False
+        start, pending, stop = 0, np.zeros(9), [-1]
+
+        def tries(*args) -> int:
+            n, stop[0] = kernels.spawn_tries(args[0], args[1], rows, start, p, *args[2:], pending)
+            return n
+
+        while start <= len(rows):
+            self._spawn_call(t, states, tries)
+            if stop[0] < 0:
+                return True
+            k, s, x, y, h, speed, delta, lane1, lane2 = pending
+            b, k = int(rows[stop[0]]), int(k)
+            slot = t.add(b, k, s, speed, [k, int(lane1), int(lane2)], delta=delta, pose=(x, y, h))
+            t.settle(np.array([b]), np.array([slot]))
+            start = stop[0] + 1
+        return True
+
     def _spawn_call(self, t: Traffic, states: np.ndarray, call) -> None:
         """:meth:`_spawn_kernel`'s call, with the lane table, the prior and ``t``'s state arrays."""
         p = self.prior
@@ -481,8 +507,7 @@ class BatchedLeftTurn:
                 t.alive &= ~gone
                 t.compact()
         p = self.config["spawn_probability"] / self.config["policy_frequency"]
-        tries = lambda fns, states, *rest: kernels.spawn_tries(fns, states, rows, float(p), *rest)  # noqa: E731
-        if not self._spawn_kernel(t, [self.rngs[b] for b in rows], 1, tries):
+        if not self._spawn_tries(t, rows, float(p)):
             # the spawn try's first draw, rng.uniform() (most tries stop there): random() draws the same double
             # from the stream and uniform(0, 1) returns 0 + 1 · it, the same float, for a quarter of the call's cost
             u = [self.rngs[b].random() for b in rows]

@@ -729,6 +729,9 @@ _U64 = ctypes.CFUNCTYPE(ctypes.c_uint64, ctypes.c_uint64)
 _U32 = ctypes.CFUNCTYPE(ctypes.c_uint32, ctypes.c_uint64)
 _DBL = ctypes.CFUNCTYPE(ctypes.c_double, ctypes.c_uint64)
 _PCG64_FUNCTIONS = []
+# a private prototype (not ctypes.pythonapi's shared attribute, whose argtypes other code may set)
+_CAPSULE_POINTER = ctypes.PYFUNCTYPE(ctypes.c_void_p, ctypes.py_object, ctypes.c_char_p)(
+    ("PyCapsule_GetPointer", ctypes.pythonapi))
 ZIG_KI, ZIG_WI, ZIG_FI = (np.asarray(ki_double, dtype=np.uint64), np.asarray(wi_double, dtype=np.float64),
                           np.asarray(fi_double, dtype=np.float64))
 ZIG_R, ZIG_INV_R = float(ziggurat_nor_r), float(ziggurat_nor_inv_r)
@@ -753,11 +756,14 @@ def generator_states(rngs) -> np.ndarray | None:
         bgs = [g.bit_generator for g in rngs]
     except AttributeError:  # not a Generator (None: a view whose futures get theirs later)
         return None
-    pcg64 = np.random.PCG64
-    if not all(type(bg) is pcg64 for bg in bgs):
+    if {type(bg) for bg in bgs} - {np.random.PCG64}:
         return None
-    out = np.array([bg.ctypes.state_address for bg in bgs], dtype=np.uint64)
-    return out if len(np.unique(out)) == len(out) else None
+    # bitgen_t's first field is the state pointer (what BitGenerator.ctypes.state_address gives): read through the
+    # capsule every BitGenerator holds, since .ctypes builds three ctypes functions on its first use (~10 us), and
+    # most generators here are new (forks' copies, the planner's futures)
+    get, name, pointer_at = _CAPSULE_POINTER, b"BitGenerator", ctypes.c_void_p.from_address
+    addresses = [pointer_at(get(bg.capsule, name)).value for bg in bgs]
+    return np.array(addresses, dtype=np.uint64) if len(set(addresses)) == len(addresses) else None
 
 
 @numba.njit(cache=True, inline="always")
@@ -826,9 +832,11 @@ SPAWN_CLEAR = 15.0  # m, no spawn this close to another vehicle (IntersectionEnv
 
 @numba.njit(cache=True)
 def _spawn_one(fns, st, lt, lanes, prior, b, longitudinal, position_deviation, speed_deviation, p, go_straight, u,
-               fl, alive, ego, plain, mdp, flags, it, route, next_id, lb):
+               fl, alive, ego, plain, mdp, flags, it, route, next_id, lb, pending):
     """One spawn try in env b (``u``: its first draw when the caller made it, NaN: drawn here). Returns 1 if a
-    vehicle was added (with id ``next_id``), else 0."""
+    vehicle was added (with id ``next_id``), else 0; -1 if it drew a vehicle but the row has no free slot: then
+    ``pending`` holds Traffic.add's arguments (entry lane, s, x, y, heading, speed, delta, the route's two next
+    lanes) for the caller, who grows the arrays as Traffic.add does."""
     if math.isnan(u):
         u = fns[2](st)  # uniform(): 0 + 1 * the double
     if u > p:
@@ -847,6 +855,11 @@ def _spawn_one(fns, st, lt, lanes, prior, b, longitudinal, position_deviation, s
             if math.hypot(fl[0][b, j] - x0, fl[1][b, j] - y0) < SPAWN_CLEAR:
                 return 0
     delta = prior[2] + (prior[3] - prior[2]) * fns[2](st)  # uniform(lo, hi): lo + (hi - lo) * the double
+    if slot >= alive.shape[1]:
+        for q, value in enumerate((float(k), s, x0, y0, lt[k, HEAD], speed, delta, float(lanes[r0, 1 + r1]),
+                                   float(lanes[r1, 5]))):
+            pending[q] = value
+        return -1
     alive[b, slot], ego[b, slot], plain[b, slot], mdp[b, slot] = True, False, False, False
     for q, value in enumerate((x0, y0, lt[k, HEAD], speed, speed, delta, 0.0, 0.0, 0.0, 0.0)):
         fl[q][b, slot] = value
@@ -860,29 +873,36 @@ def _spawn_one(fns, st, lt, lanes, prior, b, longitudinal, position_deviation, s
 
 
 @numba.njit(cache=True)
-def spawn_tries(fns, states, rows, p, lt, lanes, prior, fl, alive, ego, plain, mdp, flags, it, route, next_id):
-    """BatchedLeftTurn._clear_and_spawn's spawn tries: env rows[k] (generator state ``states[k]``) draws u and
-    spawns if u <= p. Returns the number of vehicles added (ids from ``next_id`` on, in row order)."""
+def spawn_tries(fns, states, rows, start, p, lt, lanes, prior, fl, alive, ego, plain, mdp, flags, it, route,
+                next_id, pending):
+    """BatchedLeftTurn._clear_and_spawn's spawn tries from ``rows[start]`` on: env rows[k] (generator state
+    ``states[k]``) draws u and spawns if u <= p. Returns the number of vehicles added (ids from ``next_id`` on, in
+    row order) and -1, or, when a spawn found its row full, the count so far and that k (``pending``: the vehicle,
+    see _spawn_one)."""
     lb = np.empty((lt.shape[0], 2))
     n = 0
-    for k in range(rows.shape[0]):
+    for k in range(start, rows.shape[0]):
         u = fns[2](states[k])
         if u <= p:
-            n += _spawn_one(fns, states[k], lt, lanes, prior, rows[k], 0.0, 1.0, 1.0, p, False, u, fl, alive, ego,
-                            plain, mdp, flags, it, route, next_id + n, lb)
-    return n
+            added = _spawn_one(fns, states[k], lt, lanes, prior, rows[k], 0.0, 1.0, 1.0, p, False, u, fl, alive, ego,
+                               plain, mdp, flags, it, route, next_id + n, lb, pending)
+            if added < 0:
+                return n, k
+            n += added
+    return n, -1
 
 
 @numba.njit(cache=True)
 def spawn_initial(fns, states, starts, p, lt, lanes, prior, fl, alive, ego, plain, mdp, flags, it, route, next_id):
     """_make_vehicles' initial traffic: env b (generator state ``states[b]``) tries one spawn at each offset of
-    ``starts`` (m) with probability ``p``, env after env. Returns the number of vehicles added."""
+    ``starts`` (m) with probability ``p``, env after env (the caller makes room for them all). Returns the number
+    of vehicles added."""
     lb = np.empty((lt.shape[0], 2))
     n = 0
     for b in range(states.shape[0]):
         for k in range(starts.shape[0]):
             n += _spawn_one(fns, states[b], lt, lanes, prior, b, starts[k], 1.0, 1.0, p, False, np.nan, fl, alive,
-                            ego, plain, mdp, flags, it, route, next_id + n, lb)
+                            ego, plain, mdp, flags, it, route, next_id + n, lb, np.empty(9))
     return n
 
 
@@ -897,7 +917,7 @@ def spawn_challengers(fns, states, lt, lanes, prior, fl, alive, ego, plain, mdp,
     n = 0
     for b in range(states.shape[0]):
         n += _spawn_one(fns, states[b], lt, lanes, prior, b, 60.0, 0.1, 0.0, 1.0, True, np.nan, fl, alive, ego,
-                        plain, mdp, flags, it, route, next_id + n, lb)
+                        plain, mdp, flags, it, route, next_id + n, lb, np.empty(9))
         ego_s[b] = 60.0 + 5.0 * (1.0 + 1.0 * standard_normal(fns, states[b]))  # normal(loc=1): loc + scale * z
         ego_id[b] = next_id + n
         n += 1
