@@ -1,8 +1,10 @@
-"""Perceived evaluation (``sensors=turn_perceived``: detector → Kalman tracker → turn features) on the batch against
-the per-env stack, both in one run: episodes per CPU-second and their ratio.
+"""Perceived evaluation (``sensors=turn_perceived``: detector → Kalman tracker → turn features), with or without the
+AEB shield, on the batch against the per-env stack, both in one run: episodes per CPU-second and their ratio, and
+each stack's wall time.
 
     python benchmarks/batched_perception.py                                  # dagger_turn_perceived, B = 250
     python benchmarks/batched_perception.py --agent gap_acceptance@turn_perceived --batch-episodes 1000
+    python benchmarks/batched_perception.py --agent dagger_turn_perceived+aeb --batch-episodes 1000  # shielded
 
 The same agent on validation seeds from 1,000,000: ``--per-env-episodes`` of them one after the other on the per-env
 stack (:func:`eval.runner.run_episodes`, what ``python -m eval vec_env=subproc`` runs in each worker), then
@@ -47,11 +49,11 @@ def setup(spec: str):
     return env_cfg, plan, policy, label
 
 
-def timed(run, seeds: list[int]) -> tuple[float, list[dict]]:
-    """CPU seconds of ``run(seeds)`` and its rows."""
-    t0 = time.process_time()
+def timed(run, seeds: list[int]) -> tuple[float, float, list[dict]]:
+    """CPU seconds and wall seconds of ``run(seeds)``, and its rows."""
+    t0, w0 = time.process_time(), time.perf_counter()
     rows = run(seeds)
-    return time.process_time() - t0, rows
+    return time.process_time() - t0, time.perf_counter() - w0, rows
 
 
 def main() -> None:
@@ -83,16 +85,18 @@ def main() -> None:
 
     print(f"load average before: {load()}", flush=True)
     n_per, n_batch = args.per_env_episodes, args.batch_episodes
-    cpu_a, _ = timed(per_env, list(range(FIRST_SEED, FIRST_SEED + n_per)))
-    cpu_b, rows = timed(batch, list(range(FIRST_SEED, FIRST_SEED + n_batch)))
-    cpu_c, _ = timed(per_env, list(range(FIRST_SEED + n_per, FIRST_SEED + 2 * n_per)))
+    cpu_a, wall_a, _ = timed(per_env, list(range(FIRST_SEED, FIRST_SEED + n_per)))
+    cpu_b, wall_b, rows = timed(batch, list(range(FIRST_SEED, FIRST_SEED + n_batch)))
+    cpu_c, wall_c, _ = timed(per_env, list(range(FIRST_SEED + n_per, FIRST_SEED + 2 * n_per)))
     per_rate, batch_rate = 2 * n_per / (cpu_a + cpu_c), n_batch / cpu_b
     success = sum(r["success"] for r in rows) / len(rows)
     print(f"load average after: {load()}\n")
-    print(f"agent {label}, sensors {plan.sensors.get('name')}, validation seeds from {FIRST_SEED}\n")
-    print("| stack | episodes | CPU-s | episodes / CPU-s | ratio |\n|---|---:|---:|---:|---:|")
-    print(f"| per-env (two runs) | {2 * n_per} | {cpu_a + cpu_c:.1f} | {per_rate:.2f} | 1.0 |")
-    print(f"| batch, B = {args.B} | {n_batch} | {cpu_b:.1f} | {batch_rate:.2f} | **{batch_rate / per_rate:.1f}** |")
+    shield = (plan.shield or {}).get("name", "none")
+    print(f"agent {label}, sensors {plan.sensors.get('name')}, shield {shield}, validation seeds from {FIRST_SEED}\n")
+    print("| stack | episodes | CPU-s | wall s | episodes / CPU-s | ratio |\n|---|---:|---:|---:|---:|---:|")
+    print(f"| per-env (two runs) | {2 * n_per} | {cpu_a + cpu_c:.1f} | {wall_a + wall_c:.1f} | {per_rate:.2f} | 1.0 |")
+    print(f"| batch, B = {args.B} | {n_batch} | {cpu_b:.1f} | {wall_b:.1f} | {batch_rate:.2f} | "
+          f"**{batch_rate / per_rate:.1f}** |")
     print(f"\nbatch success rate {success:.3f} over {n_batch} episodes")
 
 

@@ -5,9 +5,17 @@ success, length, time-out).
 
 Tolerances, and why: the steps overridden, the outcomes and whether a brake time or stop position exists are
 decisions and must be equal; the brake time is a tick count (equal); the stop position is a float of the ego's
-pose, which the batch's engine gives within 1e-12 relative of highway-env's (tests/test_batched_sim.py), so it is
-compared within 1e-6 m. The per-env shield's own code decides on the batch (each row's ImprovedAEB on a view of
-its arrays), so nothing else may differ; a decision split would be named by seed.
+pose, compared within 1 cm: the batch's engine steps within 1e-12 relative of highway-env (tests/test_batched_sim.py),
+but a car creeping to a stop steers with gains divided by its speed, which amplifies those last bits into its pose
+(measured on seed 2,000,072 of the test split, dagger_turn_perceived+aeb, unbraked: the same speeds every step, the
+route position 7e-9 m apart at 0.12 m/s and 1.7e-5 m at 0.09 m/s; at most 1.5e-3 m over 1,000 test episodes). The
+per-env shield's own code decides on the batch (each row's ImprovedAEB on a view of its arrays, every input equal
+within 1e-9), so only a decision the per-env shield itself takes on a last bit can split: its set-off rule predicts a
+car standing in the box setting off at exactly 0.5 m/s (``0.5 * [cos h, sin h]``), and the conflict model follows
+the lanes only at ``speed >= 0.5``, so the last bit of that car's heading decides whether the car is predicted along
+its lanes or straight on (traced: test seed 2,000,732, dagger_turn+aeb, braked one step later on the batch). Measured
+over 1,000 test episodes each: dagger_turn_perceived+aeb 0 splits, dagger_turn+aeb 3; the 200-episode slow test
+allows 2 (1 %) and names them.
 """
 
 from __future__ import annotations
@@ -19,7 +27,7 @@ from av_gym.errors import ConfigError
 from av_gym.presets import compose_group
 from tests.conftest import conf
 
-STOP_TOL = 1e-6  # m
+STOP_TOL = 0.01  # m (module docstring)
 VALIDATION = 1_000_000
 
 
@@ -124,8 +132,8 @@ def test_the_perceived_shield_on_the_batch_is_the_per_env_one():
 @pytest.mark.parametrize("spec", ["always_proceed+aeb", "dagger_turn+aeb", "dagger_turn_perceived+aeb"])
 def test_the_shield_on_the_batch_is_the_per_env_shield_on_200_episodes(spec):
     """200 validation episodes per agent: every episode's interventions, brake time, stop position and outcome
-    equal (measured: 200 / 200 for each of the three)."""
-    _check(spec, list(range(VALIDATION, VALIDATION + 200)), n_envs=50)
+    equal but for at most 2 (1 %) split on a last bit (module docstring), named by seed."""
+    _check(spec, list(range(VALIDATION, VALIDATION + 200)), n_envs=50, allowed=2)
 
 
 # ----------------------------------------------------------------------------------------------- the actuator

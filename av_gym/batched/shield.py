@@ -41,6 +41,7 @@ from av_gym.envs.left_turn import ROUTE, UnprotectedLeftTurnEnv
 from av_gym.errors import ConfigError
 from av_gym.params import ParamError
 from av_gym.shields.aeb_params import BRAKE, STOP_SPEED, ImprovedParams
+from av_gym.sim.fast_network import FastRoadNetwork
 from av_gym.sim.batched import LENGTH, WIDTH
 
 SIM_HZ = 20  # the engine's commanded acceleration clamps a standstill at v / 0.05 s, the actuator at v / sim_dt
@@ -209,6 +210,8 @@ class BatchedShield:
         cfg = {k: v for k, v in engine.config.items() if k != "observation"}
         template = UnprotectedLeftTurnEnv(config=cfg)
         network = tables()[1]  # the intersection's highway-env road network, built once per process
+        if engine.config.get("fast", True):  # the per-env env's own (UnprotectedLeftTurnEnv._reset): its lanes' floats
+            network = FastRoadNetwork.from_network(network)
         route = LanePath([network.get_lane(i) for i in ROUTE])
         self.views = [RowEnv(engine, r, template, network, route) for r in range(B)]
         self.shields = []
