@@ -161,7 +161,7 @@ def plot_curve(rows: list[dict], out: str, highlight: list[str]) -> None:
         ax.set_xlabel("teacher labels (aggregate)")
         ax.set_ylabel(f"validation {key}")
         ax.grid(alpha=0.3, which="both")
-    axes[1].legend(fontsize=7, loc="upper right")
+    axes[0].legend(fontsize=7, loc="lower right")
     fig.suptitle("The planner's students (turn_truth_memory) against labels: validation after each DAgger round")
     fig.tight_layout()
     save_figure_atomic(fig, out, "--out", dpi=110)
