@@ -230,6 +230,13 @@ KNOWN: dict[str, str] = {
     "python -m train.operating_point checkpoints/<run_name> --thresholds [0.5,0.7,0.8,0.9,0.95] --episodes 300": "run",
     "python docs/make_dagger_figure.py docs/dagger/rounds.csv --sensors 'turn_truth; memory_s*: turn_truth_memory' "
     "--out docs/dagger.png": "run",
+    "python -m train agent=dagger_turn_memory seed=1 agent.rounds=8 agent.round_episodes=128 agent.round_growth=1.5 "
+    "agent.n_envs=64 train.eval_n=300 train.eval_episodes=0 train.progress_bar=false train.torch_threads=1 "
+    "run_name=dagger_curve_s1": "run",
+    "python -m eval env=left_turn agents=[belief_lookahead] split=validation episodes=500 vec_env=batched n_envs=250 "
+    "out_dir=runs/dagger_curve_planner_val": "run",
+    "python docs/make_dagger_figure.py --curve docs/dagger/learning_curve.csv --highlight dagger_curve_* "
+    "--out docs/dagger_learning_curve.png": "run",
     "python -m train agent=ppo_turn agent.init=null agent.init_from=checkpoints/reference/dagger_turn seed=1 "
     "agent.total_timesteps=30720 train.eval_every=3072 train.eval_n=300 train.eval_episodes=0 run_name=dagger_ppo_s1":
         "run",
