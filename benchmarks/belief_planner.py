@@ -65,8 +65,8 @@ def main() -> None:
         made = []
         init = _Decider.__init__
 
-        def spy(self, p, engine, _init=init):  # keep the decider to read its planner's counters
-            _init(self, p, engine)
+        def spy(self, *args, _init=init, **kwargs):  # keep the decider to read its planner's counters
+            _init(self, *args, **kwargs)
             made.append(self)
         _Decider.__init__ = spy
         start, cpu = time.perf_counter(), time.process_time()
