@@ -32,7 +32,14 @@ import math
 
 import numba
 import numpy as np
-from numba.np.random._constants import fi_double, ki_double, wi_double, ziggurat_nor_inv_r, ziggurat_nor_r
+try:  # numba's copy of numpy's ziggurat tables (a private module): without it the spawns keep numpy's own calls
+    from numba.np.random._constants import fi_double, ki_double, wi_double, ziggurat_nor_inv_r, ziggurat_nor_r
+except ImportError:  # pragma: no cover - another numba layout
+    fi_double = ki_double = wi_double = [0]
+    ziggurat_nor_inv_r = ziggurat_nor_r = 0.0
+    _ZIGGURAT_TABLES = False
+else:
+    _ZIGGURAT_TABLES = True
 
 OX, OY, DX, DY, CIRC, PHASE0, RADIUS, CDIR, WIDTH, LENGTH, BX0, BY0, BX1, BY1, HEAD = range(15)
 
@@ -756,8 +763,8 @@ def generator_states(rngs) -> np.ndarray | None:
         bgs = [g.bit_generator for g in rngs]
     except AttributeError:  # not a Generator (None: a view whose futures get theirs later)
         return None
-    if {type(bg) for bg in bgs} - {np.random.PCG64}:
-        return None
+    if {type(bg) for bg in bgs} - {np.random.PCG64} or not _ZIGGURAT_TABLES or ctypes.sizeof(ctypes.c_void_p) != 8:
+        return None  # the state pointer passes as a uint64 only where a pointer is 64 bits
     # bitgen_t's first field is the state pointer (what BitGenerator.ctypes.state_address gives): read through the
     # capsule every BitGenerator holds, since .ctypes builds three ctypes functions on its first use (~10 us), and
     # most generators here are new (forks' copies, the planner's futures)
