@@ -10,8 +10,9 @@ the car can know cannot get) and its learning part ``planner - student`` (what t
 does not use); each with a 95 % interval from a paired bootstrap over seeds (``--resamples``), and the shares
 ``information / edge`` and ``learning / edge`` with their bootstrap intervals. Prints a markdown table.
 
-    python benchmarks/partition.py docs/results/left_turn_sensing_partition/results.csv \
-        --chain lookahead belief_lookahead belief_tracks dagger_turn_perceived
+    python benchmarks/partition.py docs/results/left_turn_partition/results.csv \\
+        docs/results/left_turn_sensing_partition/results.csv --chain lookahead belief_lookahead belief_tracks \\
+        dagger_turn_perceived
 
 ``--chain A B C ...`` splits the edge of the first agent over the last into the steps between neighbours (the
 sensing partition, docs/dagger.md "What sensing costs": information no sensor has = oracle - planner on truth, what
@@ -28,9 +29,10 @@ from collections import defaultdict
 import numpy as np
 
 
-def load(path: str) -> dict[str, dict[int, dict[str, float]]]:
+def load(paths: list[str]) -> dict[str, dict[int, dict[str, float]]]:
+    """Each agent's rows by seed from ``python -m eval`` results.csv files (each may be a comma-separated list)."""
     out: dict[str, dict[int, dict[str, float]]] = defaultdict(dict)
-    for files in path.split(","):
+    for files in ",".join(paths).split(","):
         with open(files) as fh:
             for row in csv.DictReader(fh):
                 out[row["agent"]][int(row["seed"])] = {"collision": float(row["collision"]),
@@ -73,7 +75,7 @@ def chain(rows: dict, agents: list[str], resamples: int, g: np.random.Generator)
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("csv", help="results.csv of python -m eval (several: comma-separated)")
+    ap.add_argument("csv", nargs="+", help="results.csv of python -m eval (several: one after the other)")
     ap.add_argument("--oracle", default="lookahead")
     ap.add_argument("--planner", default="belief_lookahead")
     ap.add_argument("--students", nargs="+", default=["dagger_turn", "ppo_turn"])

@@ -220,6 +220,13 @@ KNOWN: dict[str, str] = {
     "python benchmarks/partition.py docs/results/left_turn_partition/results.csv --students dagger_turn "
     "dagger_turn_memory ppo_turn":
         "covered:tests/test_partition.py::test_the_partition_adds_up_to_the_oracles_edge",
+    "python -m eval env=left_turn agents=[belief_tracks,dagger_turn_perceived,dagger_turn@turn_perceived,"
+    "dagger_turn_perceived+aeb,dagger_turn@turn_perceived+aeb] split=test seed=2800000 episodes=1000 "
+    "vec_env=batched n_envs=250": "run",
+    "python benchmarks/partition.py docs/results/left_turn_partition/results.csv "
+    "docs/results/left_turn_sensing_partition/results.csv --chain lookahead belief_lookahead belief_tracks "
+    "dagger_turn_perceived": "covered:tests/test_partition_chain.py::test_the_chain_adds_up_to_the_first_agents_edge",
+    "python benchmarks/belief_tracks_sweep.py --episodes 300 --set tentative=road_user": "run",
     "python -m train agent=dagger_turn_perceived": "run",
     "python -m train agent=dagger_turn_perceived seed=1 agent.rounds=6 agent.round_episodes=128 train.eval_n=100 "
     "train.eval_episodes=0 train.torch_threads=1 run_name=dagger_perceived_s1": "run",
@@ -443,6 +450,7 @@ SCRIPT_ARGS = {
     "benchmarks/belief_planner.py": ["--episodes", "2", "--samples", "2", "--thresholds", "0.1", "--n-envs", "2"],
     "benchmarks/odometry.py": ["--scans", "20", "--repeats", "1"],
     "benchmarks/oracle_labels.py": ["--quick"],
+    "benchmarks/belief_tracks_sweep.py": ["--episodes", "1", "--n-envs", "1"],
     "benchmarks/partition.py": [PARTITION_CSV, "--resamples", "10"],
     "benchmarks/pilotnet_inference.py": ["--frames", "20"],
     "benchmarks/sensor_cost.py": ["--steps", "5", "--repeats", "1"],
