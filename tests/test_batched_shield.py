@@ -14,8 +14,8 @@ within 1e-9), so only a decision the per-env shield itself takes on a last bit c
 car standing in the box setting off at exactly 0.5 m/s (``0.5 * [cos h, sin h]``), and the conflict model follows
 the lanes only at ``speed >= 0.5``, so the last bit of that car's heading decides whether the car is predicted along
 its lanes or straight on (traced: test seed 2,000,732, dagger_turn+aeb, braked one step later on the batch). Measured
-over 1,000 test episodes each: dagger_turn_perceived+aeb 0 splits, dagger_turn+aeb 3; the 200-episode slow test
-allows 2 (1 %) and names them.
+over 1,000 test episodes each: dagger_turn_perceived+aeb 0 splits, dagger_turn+aeb 3; the 50-episode slow test
+allows 1 and names it.
 """
 
 from __future__ import annotations
@@ -128,12 +128,13 @@ def test_the_perceived_shield_on_the_batch_is_the_per_env_one():
     assert sum(bool(a["overrides"]) for _, a in ref.values()) >= 2
 
 
-@pytest.mark.slow  # ~10-20 CPU-minutes per agent on the per-env stack: 200 shielded episodes each
+@pytest.mark.slow  # ~1-5 CPU-minutes per agent, most of it the per-env stack's 50 shielded episodes
 @pytest.mark.parametrize("spec", ["always_proceed+aeb", "dagger_turn+aeb", "dagger_turn_perceived+aeb"])
-def test_the_shield_on_the_batch_is_the_per_env_shield_on_200_episodes(spec):
-    """200 validation episodes per agent: every episode's interventions, brake time, stop position and outcome
-    equal but for at most 2 (1 %) split on a last bit (module docstring), named by seed."""
-    _check(spec, list(range(VALIDATION, VALIDATION + 200)), n_envs=50, allowed=2)
+def test_the_shield_on_the_batch_is_the_per_env_shield_on_50_episodes(spec):
+    """50 validation episodes per agent (the 3,000 test episodes of docs/shield.md, "On the batch", are the long
+    comparison): every episode's interventions, brake time, stop position and outcome equal but for at most one
+    split on a last bit (module docstring), named by seed."""
+    _check(spec, list(range(VALIDATION, VALIDATION + 50)), n_envs=25, allowed=1)
 
 
 # ----------------------------------------------------------------------------------------------- the actuator
