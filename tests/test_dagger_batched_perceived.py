@@ -15,26 +15,10 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
+from tests.test_dagger import _cfg, _one_torch_thread  # noqa: F401 (the fixture: one torch thread, as train)
+
 ROOT = Path(__file__).resolve().parent.parent
 SEEDS = list(range(650_000, 650_006))  # seed 1's first training episodes (agent.train_seed + 50,000 x seed)
-
-
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """As ``python -m train`` (train.torch_threads=1)."""
-    import torch
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
-def _cfg(*overrides: str):
-    from hydra import compose, initialize_config_module
-
-    with initialize_config_module("conf", version_base="1.3"):
-        return compose("train", overrides=list(overrides))
 
 
 def _oracle_labels_module():

@@ -15,7 +15,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 DOCS = ROOT / "docs"
-MAX_DOCS_FILES = 60
+MAX_DOCS_FILES = 30  # pages, their figures and scripts: everything under docs/ but the result folders
+MAX_RESULT_FOLDERS = 30  # docs/results/<name>/: measured data, each exactly results.csv + meta.json (the results page)
 CODE_DIRS = ("av_gym", "agents", "train", "eval", "conf", "benchmarks", "tests", "docs")
 
 # Narration: a number that only means something in the project's tracker or its work log. DAgger's own numbered
@@ -220,9 +221,16 @@ def test_the_repo_path_checker():
 
 
 def test_docs_holds_one_page_per_topic_and_what_those_pages_show():
-    files = docs_files()
-    assert len(files) <= MAX_DOCS_FILES, (f"{len(files)} files under docs/ (at most {MAX_DOCS_FILES}): merge pages, "
-                                          f"leave superseded data to git")
+    results = DOCS / "results"
+    pages = [p for p in docs_files() if results not in p.parents]
+    assert len(pages) <= MAX_DOCS_FILES, (f"{len(pages)} files under docs/ outside docs/results/ (at most "
+                                          f"{MAX_DOCS_FILES}): merge pages, leave superseded data to git")
+    folders = sorted(p for p in results.iterdir() if p.is_dir())
+    assert len(folders) <= MAX_RESULT_FOLDERS, (f"{len(folders)} result folders (at most {MAX_RESULT_FOLDERS}): "
+                                                f"measure rows that belong together in one folder")
+    loose = [str(p) for p in docs_files() if results in p.parents
+             and (p.parent.parent != results or p.name not in ("results.csv", "meta.json"))]
+    assert not loose, f"a result folder holds results.csv and meta.json only: {loose}"
 
 
 def test_no_document_comment_or_docstring_narrates_the_history():
