@@ -36,7 +36,7 @@ import numpy as np
 from agents.registry import AgentKind, AgentParams
 from av_gym.estimation.driver_intent import DriverIntent
 from av_gym.params import param
-from av_gym.sensors.turn_signal import TurnSignalsParams, node_index
+from av_gym.sensors.turn_signal import TurnSignalsParams
 from av_gym.sim.batched import SpawnPrior
 from av_gym.wrappers import GO, YIELD, meta_action
 
@@ -92,20 +92,6 @@ class BeliefLookaheadParams(AgentParams):
     tentative: Literal["ignore", "road_user"] = param(
         "ignore", doc="on tracks: a tentative track (fewer than the tracker's min_hits detections) is nobody, as the "
                       "features show it (ignore), or a road user in the futures (road_user)")
-
-
-def _lane_kinds(T) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per lane id: kind (0 approach o→ir, 1 crossing ir→il, 2 exit il→o), origin approach, destination exit (-1
-    where the lane does not say)."""
-    kind, origin, dest = [], [], []
-    for f, t, _ in T.index:
-        if f.startswith("o") and t.startswith("ir"):
-            kind.append(0), origin.append(node_index(t, "ir")), dest.append(-1)
-        elif f.startswith("ir"):
-            kind.append(1), origin.append(node_index(f, "ir")), dest.append(node_index(t, "il"))
-        else:
-            kind.append(2), origin.append(-1), dest.append(node_index(t, "o"))
-    return np.array(kind), np.array(origin), np.array(dest)
 
 
 class BeliefPlanner:
@@ -242,7 +228,9 @@ class BeliefPlanner:
         T = engine.T
         if self._tables is not T:
             self._tables = T
-            self._kind, self._origin, self._dest = _lane_kinds(T)
+            from agents.track_prior import lane_kinds
+
+            self._kind, self._origin, self._dest = lane_kinds(T)
             self._cross = {(int(o), int(d)): k for k, (kd, o, d) in
                            enumerate(zip(self._kind, self._origin, self._dest)) if kd == 1}
             self._approach = {int(o): k for k, (kd, o) in enumerate(zip(self._kind, self._origin)) if kd == 0}

@@ -39,12 +39,27 @@ from scipy.stats import norm
 
 from av_gym.batched.left_turn import SPAWN_CLEAR
 from av_gym.estimation.turn_features import ACC_SCALE
+from av_gym.sensors.turn_signal import node_index
 from av_gym.sim.batched import Traffic
 
 __all__ = ["SPEED_CLASSES", "SPAWN_S", "TrackBelief", "UnseenTraffic"]
 
 SPAWN_S = 5.0  # m along the approach where a spawn enters (IntersectionEnv._spawn_vehicle: longitudinal + 5)
 SPEED_CLASSES = 3  # spawn speeds per cohort: the middles of equal-probability slices of the spawn speed's normal
+
+
+def lane_kinds(T) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per lane id: kind (0 approach o→ir, 1 crossing ir→il, 2 exit il→o), origin approach, destination exit (-1
+    where the lane does not say)."""
+    kind, origin, dest = [], [], []
+    for f, t, _ in T.index:
+        if f.startswith("o") and t.startswith("ir"):
+            kind.append(0), origin.append(node_index(t, "ir")), dest.append(-1)
+        elif f.startswith("ir"):
+            kind.append(1), origin.append(node_index(f, "ir")), dest.append(node_index(t, "il"))
+        else:
+            kind.append(2), origin.append(-1), dest.append(node_index(t, "o"))
+    return np.array(kind), np.array(origin), np.array(dest)
 
 
 class UnseenTraffic:
@@ -54,10 +69,8 @@ class UnseenTraffic:
     such drivers into the planner's futures (:meth:`fill`)."""
 
     def __init__(self, engine, detector, tracker, n_rows: int, scale: float = 1.0, tentative: str = "ignore") -> None:
-        from agents.belief import _lane_kinds
-
         T = self.T = engine.T
-        kind, origin, dest = _lane_kinds(T)
+        kind, origin, dest = lane_kinds(T)
         self.approach = np.array([int(np.flatnonzero((kind == 0) & (origin == o))[0]) for o in range(4)])
         self.cross = {(int(o), int(d)): k for k, (kd, o, d) in enumerate(zip(kind, origin, dest)) if kd == 1}
         self.exit = {int(d): k for k, (kd, d) in enumerate(zip(kind, dest)) if kd == 2}

@@ -38,11 +38,11 @@ def rerandomise(engine, rows, seed: int) -> None:
     """New hidden draws for every traffic driver of ``rows``: a destination (its route re-planned from its origin
     and the step it is on kept), IDM delta, set-point, regulation hold; new generators for the rows (other future
     spawns). Positions, headings, speeds, lanes, accelerations, crashes and identities stay."""
-    from agents.belief import _lane_kinds
+    from agents.track_prior import lane_kinds
 
     t, T = engine.traffic, engine.T
     g = np.random.default_rng(seed)
-    kind, origin, dest = _lane_kinds(T)
+    kind, origin, dest = lane_kinds(T)
     lane_of = {(k, int(o), int(d)): i for i, (k, o, d) in enumerate(zip(kind, origin, dest))}
     approach = {int(o): i for i, (k, o) in enumerate(zip(kind, origin)) if k == 0}
     cross = {(int(o), int(d)): i for i, (k, o, d) in enumerate(zip(kind, origin, dest)) if k == 1}

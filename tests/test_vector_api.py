@@ -71,7 +71,7 @@ def test_vector_entry_point_is_the_batched_engine() -> None:
     ({}, 'the batched engine needs sensors="turn_truth"'),
     ({"sensors": {"name": "turn_perceived", "detector": {"frame": "ego"}}},
      "sensors.tracker needs sensors.detector.frame=world"),
-    ({"sensors": "turn_truth", "shield": "aeb"}, "shield=aeb is not available with the batched engine"),
+    ({"sensors": "turn_truth", "shield": "aeb_paper"}, "shield.variant=paper is not available with the batched engine"),
     ({"sensors": "turn_truth", "render_mode": "rgb_array"}, "render_mode is not available"),
 ])
 def test_vector_entry_point_refuses_in_one_line(kwargs, says) -> None:
