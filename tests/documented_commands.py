@@ -226,7 +226,6 @@ KNOWN: dict[str, str] = {
     "python benchmarks/partition.py docs/results/left_turn_partition/results.csv "
     "docs/results/left_turn_sensing_partition/results.csv --chain lookahead belief_lookahead belief_tracks "
     "dagger_turn_perceived": "covered:tests/test_partition_chain.py::test_the_chain_adds_up_to_the_first_agents_edge",
-    "python benchmarks/belief_tracks_sweep.py --episodes 300 --set tentative=road_user": "run",
     "python -m train agent=dagger_turn_perceived": "run",
     "python -m train agent=dagger_turn_perceived seed=1 agent.rounds=6 agent.round_episodes=128 train.eval_n=100 "
     "train.eval_episodes=0 train.torch_threads=1 run_name=dagger_perceived_s1": "run",
