@@ -58,6 +58,12 @@ class DaggerParams(PPOParams):
     go_threshold: float = param(0.5, gt=0, lt=1, doc="go/yield students: GO where the student's P(GO) is at least "
                                                      "this (the checkpoints and validations are at it; the fit is "
                                                      "not); 0.5 = its argmax. train/operating_point.py sweeps it")
+    drive_at_threshold: bool = param(False, doc="go/yield students fitted to labels: the student drives its rounds "
+                                                "at go_threshold, where it is validated and used, so the labels "
+                                                "fall on the states it meets there (waiting for a gap) rather than "
+                                                "on those after the GOs its argmax takes and its operating point "
+                                                "does not; false: at its argmax (targets go_safe always drives at "
+                                                "go_threshold)")
     labeller: Literal["auto", "batched", "replica", "per_env"] = param(
         "auto", doc="batched: the look-ahead oracle on the batched engine (agents/batched_oracle.py, needs "
                     "vec_env=batched and teacher kind lookahead) | replica: the student on the per-env stack (any "
@@ -80,6 +86,9 @@ class DaggerParams(PPOParams):
             found.append(f"@rounds x @round_episodes must be at most {AGGREGATE_EPISODES_MAX:,} episodes (the labelled "
                          f"states are held in memory and saved each round, ~20 kB an episode), got {self.rounds} x "
                          f"{self.round_episodes}{grown} = {total:,}")
+        if self.drive_at_threshold and self.actions != "go_yield":
+            found.append(f"@drive_at_threshold needs a GO/YIELD student (@actions=go_yield: a threshold on P(GO)), "
+                         f"got @actions={self.actions}")
         allowed = teacher_agents()
         if self.teacher not in allowed:
             found.append(f"@teacher must be one of {allowed}, got {self.teacher!r}")

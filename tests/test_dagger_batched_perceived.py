@@ -87,3 +87,48 @@ def test_a_round_on_the_batch_is_the_replica_recipes_round(teacher_drives):
     for mine, theirs in zip(batch.obs, ref.obs):
         for k in theirs:
             assert np.allclose(mine[k], theirs[k], rtol=0, atol=1e-4), k
+
+
+def _round_as_run(params_overrides: tuple[str, ...]):
+    """One student-driven round of :func:`train.dagger._round` on the batch's perceived stack (6 training episodes),
+    the committed perceived student (P(GO) >= 0.9, moved back to its fit's 0.5 as a run holds it between rounds)."""
+    from agents.batched_vec_env import BatchedLeftTurnVecEnv
+    from agents.dagger import DaggerParams
+    from train.dagger import BatchedLabels, Round, _operating_point, _round, _Run, drive_batched, round_seeds
+
+    assert round_seeds(DaggerParams(round_episodes=len(SEEDS)), SEEDS[0], 0) == SEEDS
+
+    cfg = _cfg("agent=dagger_turn_perceived", "agent.vec_env=batched", "agent.fit_epochs=1", "agent.rounds=1",
+               f"agent.round_episodes={len(SEEDS)}", *params_overrides)
+    params = DaggerParams.from_mapping(OmegaConf.to_container(cfg.agent, resolve=True), where="agent")
+    plain = [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
+    venv = BatchedLeftTurnVecEnv(*plain, 3, action_repeat=5, actions="go_yield", timeout_is_terminal=True, pool=0)
+    shift, model = _operating_point(params), _student()
+    shift(model, False)
+    labels = BatchedLabels(venv, None, True, 0.0)
+    run = _Run(model, [venv], lambda seeds, by_teacher: drive_batched(venv, model, labels, seeds, by_teacher, 0.95),
+               "batched", None)
+    _, new = _round(run, params, Round(), 0, SEEDS[0], 1, 0.0, shift)
+    return new, venv, labels
+
+
+def test_drive_at_threshold_labels_the_states_the_student_meets_at_its_operating_point():
+    """agent.drive_at_threshold: the round is driven at go_threshold (0.9), so its labelled states and outcomes are
+    those of the student used at 0.9 (the committed student as shipped, driven on the same episodes), not those of
+    its argmax, which goes earlier and meets other states (the default, as before)."""
+    from train.dagger import BatchedLabels, drive_batched
+
+    at_tau, venv, _ = _round_as_run(("agent.drive_at_threshold=true",))
+    argmax, _, _ = _round_as_run(())
+    shipped = drive_batched(venv, _student(), BatchedLabels(venv, None, True, 0.0), SEEDS, False, 0.95)
+    assert at_tau.labels == shipped.labels and at_tau.outcomes == shipped.outcomes
+    assert at_tau.agree == shipped.agree
+    assert len(argmax.labels) != len(at_tau.labels) or argmax.agree != at_tau.agree  # the argmax drives elsewhere
+
+
+def test_drive_at_threshold_needs_a_go_yield_student():
+    from agents.dagger import DaggerParams
+    from av_gym.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="drive_at_threshold needs a GO/YIELD student"):
+        DaggerParams.from_mapping({"kind": "dagger", "actions": "env", "drive_at_threshold": True}, where="agent")

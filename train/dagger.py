@@ -582,7 +582,8 @@ def _round(run: _Run, params, data: Round, k: int, first: int, seed: int, t_star
     by_teacher = k == 0 and not params.init_from  # a student to go on from drives from the start
     # A student fitted to probabilities (targets go_safe) drives at its operating point: its argmax (P(GO) 0.5)
     # would go where at most half the planner's futures collide, states the student at go_threshold never meets.
-    at_tau = params.targets == "go_safe" and not by_teacher
+    # agent.drive_at_threshold: a label student likewise, so its labels are of the states it meets when used.
+    at_tau = (params.targets == "go_safe" or params.drive_at_threshold) and not by_teacher
     if at_tau:
         shift(run.model, True)
     new = run.drive(seeds, by_teacher)
