@@ -55,6 +55,12 @@ class DaggerParams(PPOParams):
                       "vec_env=batched): its label keeps one bit of that K-sample estimate, the share keeps the "
                       "rest. The labels still drive round 0, and the fit accuracy and agreement are against them; "
                       "the student drives its rounds at go_threshold (not at its argmax)")
+    disagree_weight: float = param(1.0, ge=1.0, le=100.0,
+                                   doc="each refit weighs the actor's loss on the aggregated states where the "
+                                       "student about to be refitted (the one that drove the round) chooses "
+                                       "otherwise than the teacher's label this many times a state it gets right: "
+                                       "the fit spends its capacity on the states the student still gets wrong "
+                                       "(recomputed every refit; discrete actions only); 1: every state alike")
     go_threshold: float = param(0.5, gt=0, lt=1, doc="go/yield students: GO where the student's P(GO) is at least "
                                                      "this (the checkpoints and validations are at it; the fit is "
                                                      "not); 0.5 = its argmax. train/operating_point.py sweeps it")

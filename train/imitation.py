@@ -6,8 +6,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from tqdm import tqdm
+
+if TYPE_CHECKING:
+    import numpy as np
+    import torch as th
 
 
 def make_teacher(name: str, actions: str, scenario: str | None = None, action_repeat: int = 1):
@@ -118,7 +123,8 @@ def _drive_batch(env, teacher, seeds, demos: Demonstrations, bar=None) -> list[t
 
 
 def fit_policy(policy, demos: Demonstrations, discrete: bool, epochs: int, batch_size: int,
-               lr: float | None = None, seed: int = 0, desc: str | None = None) -> float:
+               lr: float | None = None, seed: int = 0, desc: str | None = None,
+               weights: np.ndarray | None = None) -> float:
     """Fit ``policy`` (an SB3 ActorCriticPolicy, with its own optimizer) to ``demos``: the actor by negative
     log-likelihood of the labels, the critic by the returns' MSE. Every tensor goes to the policy's device; the
     minibatch order comes from a CPU generator seeded ``seed``, so it is the same on every device (the cloning
@@ -127,7 +133,9 @@ def fit_policy(policy, demos: Demonstrations, discrete: bool, epochs: int, batch
 
     With ``demos.targets`` (a GO/YIELD student, DAgger's agent.targets=go_safe) the actor is fitted by the
     cross-entropy to those probabilities of GO, -[q log π(GO) + (1 - q) log π(YIELD)], instead of the labels' NLL;
-    the accuracy is still against the labels. ``desc``: a progress bar of the epochs with that title."""
+    the accuracy is still against the labels. ``desc``: a progress bar of the epochs with that title. ``weights``
+    (one per label, > 0): the actor's loss is the weighted mean over each minibatch (DAgger's
+    agent.disagree_weight); None: the plain mean."""
     import numpy as np
     import torch as th
 
@@ -142,6 +150,7 @@ def fit_policy(policy, demos: Demonstrations, discrete: bool, epochs: int, batch
     if q is not None and (not discrete or len(q) != len(y)):
         raise ValueError(f"targets: {len(q)} P(GO) values for {len(y)} labels of a "
                          f"{'discrete' if discrete else 'continuous'} policy; one per label of a GO/YIELD student")
+    w = th.as_tensor(np.asarray(weights), dtype=th.float32, device=device) if weights is not None else None
     g_var = max(float(g.var()), 1.0) if len(g) > 1 else 1.0
     if q is not None:
         from av_gym.wrappers import GO
@@ -162,11 +171,11 @@ def fit_policy(policy, demos: Demonstrations, discrete: bool, epochs: int, batch
             on = idx.to(device)
             if q is None:
                 values, log_prob, _ = policy.evaluate_actions(batch(idx), y[on])
-                actor = -log_prob.mean()
+                actor = -_mean(log_prob, w, on)
             else:  # log π(GO) from one pass; log π(YIELD) = log(1 - π(GO)) (two actions)
                 values, log_go, _ = policy.evaluate_actions(batch(idx), th.full_like(y[on], GO))
                 log_other = th.log1p(-log_go.exp().clamp(max=1.0 - 1e-6))
-                actor = -(q[on] * log_go + (1.0 - q[on]) * log_other).mean()
+                actor = -_mean(q[on] * log_go + (1.0 - q[on]) * log_other, w, on)
             # The value error is scaled by the returns' variance: the actor and critic share the feature extractor
             # (a CNN on images), and raw squared returns (a lap is worth ~50) would drown the actor's gradient
             # (measured: the camera clone reached only 0.82 with them).
@@ -188,6 +197,11 @@ def fit_policy(policy, demos: Demonstrations, discrete: bool, epochs: int, batch
             else:
                 scores.append(1.0 - (dist.mean - y[on]).abs().mean(1))
         return float(th.cat(scores).mean())
+
+
+def _mean(x: th.Tensor, w: th.Tensor | None, on: th.Tensor) -> th.Tensor:
+    """The mean of ``x`` over a minibatch, weighted by ``w[on]`` (None: unweighted)."""
+    return x.mean() if w is None else (w[on] * x).sum() / w[on].sum()
 
 
 def pretrain_from_teacher(model, env, teacher, seeds, gamma: float, epochs: int, batch_size: int,

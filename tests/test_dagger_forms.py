@@ -1,0 +1,141 @@
+"""DAgger's student forms (issue 48 item 2): the disagreement weights (agent.disagree_weight) weigh the states
+where the student chooses otherwise than its teacher, the weighted fit moves the student towards those labels, one
+config value reaches the round's refit, and the offline screen (train/dagger_forms.py) refuses what it cannot
+build in one line."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from train.dagger import Round
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+class _Env(gym.Env):
+    """A Dict observation and two choices: enough for an SB3 MultiInputPolicy (never stepped)."""
+
+    observation_space = gym.spaces.Dict({"x": gym.spaces.Box(-1.0, 1.0, (3,), np.float32)})
+    action_space = gym.spaces.Discrete(2)
+
+    def reset(self, *, seed=None, options=None):
+        return {"x": np.zeros(3, np.float32)}, {}
+
+    def step(self, action):
+        return {"x": np.zeros(3, np.float32)}, 0.0, True, False, {}
+
+
+def _model(action_space=None, seed: int = 0):
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    class Env(_Env):
+        pass
+
+    if action_space is not None:
+        Env.action_space = action_space
+    return PPO("MultiInputPolicy", DummyVecEnv([Env]), seed=seed, device="cpu", verbose=0,
+               policy_kwargs={"net_arch": [16]})
+
+
+def _choices(model, x: np.ndarray) -> np.ndarray:
+    import torch as th
+
+    with th.no_grad():
+        obs = model.policy.obs_to_tensor({"x": x})[0]
+        return model.policy.get_distribution(obs).distribution.probs.argmax(1).numpy()
+
+
+def test_the_weights_are_larger_exactly_where_the_student_disagrees_with_the_teacher():
+    """Labels equal to the student's own choice on even states and the other choice on odd ones: weight w on the
+    odd states, 1 on the even, whatever the student's choices are."""
+    from train.dagger import disagreement_weights
+
+    model = _model()
+    x = np.random.default_rng(3).uniform(-1, 1, (400, 3)).astype(np.float32)
+    own = _choices(model, x)
+    labels = np.where(np.arange(400) % 2 == 0, own, 1 - own)
+    data = Round(obs=[{"x": row} for row in x], labels=list(labels))
+    w = disagreement_weights(model, data, 4.0, chunk=64)  # chunks smaller than the aggregate: their seams too
+    assert w.shape == (400,)
+    np.testing.assert_array_equal(w, np.where(np.arange(400) % 2 == 1, 4.0, 1.0))
+
+
+def test_a_continuous_student_has_no_choice_to_disagree_on_and_says_so():
+    from av_gym.errors import ConfigError
+    from train.dagger import disagreement_weights
+
+    model = _model(gym.spaces.Box(-1.0, 1.0, (1,), np.float32))
+    data = Round(obs=[{"x": np.zeros(3, np.float32)}], labels=[np.zeros(1)])
+    with pytest.raises(ConfigError, match="agent.disagree_weight=2 needs discrete choices"):
+        disagreement_weights(model, data, 2.0)
+
+
+def test_the_weighted_fit_leans_towards_the_heavier_labels():
+    """One observation labelled 0 on 60 states and 1 on 60: the plain fit's P(1) is ~0.5, the fit that weighs the
+    1-labels 3 times ~0.75 (the weighted share); the weights must reach the actor's loss to get there."""
+    from train.imitation import Demonstrations, fit_policy
+
+    x = np.full(3, 0.3, np.float32)
+    labels = [0] * 60 + [1] * 60
+    p_one = []
+    for weights in (None, np.array([1.0] * 60 + [3.0] * 60)):
+        model = _model(seed=5)
+        demos = Demonstrations(0.0, [{"x": x}] * 120, labels, [0.0] * 120)
+        fit_policy(model.policy, demos, True, 60, 40, 3e-3, seed=1, weights=weights)
+        import torch as th
+
+        with th.no_grad():
+            obs = model.policy.obs_to_tensor({"x": x[None]})[0]
+            p_one.append(float(model.policy.get_distribution(obs).distribution.probs[0, 1]))
+    assert abs(p_one[0] - 0.5) < 0.05, p_one
+    assert abs(p_one[1] - 0.75) < 0.05, p_one
+
+
+def test_agent_disagree_weight_is_what_the_rounds_refit_uses(monkeypatch):
+    """The round reads agent.disagree_weight once and hands it to the refit; 1 (the default) fits unweighted."""
+    import train.dagger as dagger
+    from agents.dagger import DaggerParams
+
+    seen = []
+
+    def fake_fit(model, data, epochs, batch, lr, seed, disagree_weight=1.0):
+        seen.append(disagree_weight)
+        return 1.0
+
+    monkeypatch.setattr(dagger, "fit", fake_fit)
+    new = Round(obs=[{"x": np.zeros(3)}], labels=[0], returns=[0.0], agree=[1.0], outcomes=[(0.0, 1.0)])
+    run = dagger._Run(model=None, stacks=[], drive=lambda seeds, by_teacher: new, how="batched", validation=None)
+    for weight in (1.0, 2.5):
+        params = DaggerParams(rounds=2, round_episodes=1, disagree_weight=weight)
+        dagger._round(run, params, Round(), 1, 600_000, 1, 0.0, lambda m, on: None)
+    assert seen == [1.0, 2.5]
+    monkeypatch.undo()  # the real refit, down to the weights it hands the fit
+    captured = []
+    monkeypatch.setattr("train.imitation.fit_policy", lambda *a, **k: captured.append(k["weights"]) or 1.0)
+    model = _model()
+    data = Round(obs=[{"x": np.zeros(3, np.float32)}] * 4, labels=[0, 1, 0, 1], returns=[0.0] * 4)
+    dagger.fit(model, data, 1, 2, 1e-3, 0)
+    dagger.fit(model, data, 1, 2, 1e-3, 0, 3.0)
+    assert captured[0] is None
+    assert sorted(set(captured[1])) == [1.0, 3.0]  # the labels 0 and 1 on one state: the student gets one wrong
+
+
+def test_disagree_weight_is_bounded_and_refused_for_continuous_actions():
+    from av_gym.errors import ConfigError
+    from agents.dagger import DaggerParams
+
+    assert DaggerParams.from_mapping({"disagree_weight": 2.0}, where="agent").disagree_weight == 2.0
+    for bad in (0.5, 1000.0):
+        with pytest.raises(ConfigError, match="disagree_weight"):
+            DaggerParams.from_mapping({"disagree_weight": bad}, where="agent")
