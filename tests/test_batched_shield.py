@@ -148,49 +148,60 @@ def _venv(n: int = 2, shield: dict | None = None, **env):
 
 def test_the_brake_follows_the_actuator_tick_by_tick():
     """An engaged brake gives the ego, on each 20 Hz tick, the per-env actuator's deceleration: nothing for its
-    0.15 s delay, then a 30 m/s³ ramp to 8 m/s² (BrakeActuator.command), whatever the agent asks for."""
+    0.15 s delay, then a 30 m/s³ ramp to 8 m/s² (BrakeActuator.command), whatever the agent asks for; the engine
+    applies the plan tick by tick within one step."""
     from av_gym.shields.actuator import BrakeActuator
 
     venv = _venv(1)
     venv.play(iter([VALIDATION]))
     e, sh = venv.engine, venv.shield
     actuator = sh.shields[0].actuator
-    t0 = e.ticks[0] / 20
-    actuator.engage(t0)
+    assert sh.brake_plan(np.array([0])) is None  # nobody brakes: the engine's own step
+    actuator.engage(e.ticks[0] / 20)
     accels = []
     for _ in range(6):
-        plan = sh._brake_plan(np.array([0]))
+        plan = sh.brake_plan(np.array([0]))
         accels += plan[:, 0].tolist()
-        with sh.actuated(np.array([0])):
-            e.step(np.array([2]))
-        assert e.traffic.acc[0, e.ego_slot([0])[0]] == pytest.approx(plan[-1, 0]) or np.isnan(plan[-1, 0])
+        ego = e.ego_slot([0])[0]
+        v0 = e.traffic.v[0, ego]
+        e.step(np.array([2]), None, plan)
+        if not np.isnan(plan[0, 0]):  # both ticks braked: the speed fell by the plan's two decelerations
+            assert e.traffic.v[0, ego] == pytest.approx(max(v0 + 0.05 * plan[:, 0].sum(), 0.0), abs=1e-9)
+        assert e.traffic.acc[0, ego] == pytest.approx(plan[-1, 0]) or np.isnan(plan[-1, 0])
     ref = BrakeActuator()
     want = [ref.deceleration(k * 0.05, 0.05) for k in range(12)]
     assert [None if np.isnan(a) else -a for a in accels] == want
 
 
-def test_stepping_tick_by_tick_is_the_engines_step():
-    """Without a brake (every tick the ego's own control) the actuated step, one tick per call, gives the engine's
-    own multi-tick step bit for bit: the meta-action only at the first tick, the clocks and arrivals per tick."""
-    from av_gym.batched.shield import _TickByTick
+@pytest.mark.parametrize("env", [{}, {"action": "continuous"}])
+def test_the_engine_takes_a_brake_plan_per_tick_on_both_paths(env):
+    """``BatchedLeftTurn.step(..., ego_acceleration)`` (frames, B): NaN everywhere is the engine's own step bit
+    for bit; a plan braking some envs on some ticks gives the same state on the compiled tick
+    (kernels.advance) as on the numpy path (Traffic.act per tick), to tests/_numerics.py's tolerance, with
+    meta-actions and continuous commands kept where the plan is NaN."""
+    from _numerics import same
 
-    a, b = _venv(4), _venv(4)
-    seeds = [VALIDATION + k for k in range(4)]
-    a.play(iter(seeds))
-    b.play(iter(seeds))
-    rng = np.random.default_rng(0)
-    for _ in range(40):
-        meta = rng.integers(0, 3, size=4)
-        a.engine.step(meta)
-        t = b.engine.traffic
-        t.advance = _TickByTick(t.advance, np.full((b.engine.frames, 4), np.nan))
-        try:
-            b.engine.step(meta)
-        finally:
-            del t.advance
-        for name in ("x", "y", "v", "h", "acc", "target"):
-            np.testing.assert_array_equal(getattr(a.engine.traffic, name), getattr(t, name), err_msg=name)
-        np.testing.assert_array_equal(a.engine.ticks, b.engine.ticks)
+    from av_gym.sim import batched as sb
+
+    venv = _venv(6, {"name": "none", "kind": "none"}, **env)
+    venv.play(iter([VALIDATION + k for k in range(6)]))
+    e, rows, rng = venv.engine, np.arange(6), np.random.default_rng(0)
+    for step in range(60):
+        a = rng.uniform(-1, 1, 6) if env else rng.integers(0, 3, 6)
+        plan = np.where(rng.random((e.frames, 6)) < 0.4, -rng.uniform(0, 8, (e.frames, 6)), np.nan)
+        own, nan, numpy_path = e.fork(rows), e.fork(rows), e.fork(rows)
+        own.step(a)
+        nan.step(a, None, np.full((e.frames, 6), np.nan))
+        for name in ("x", "y", "v", "h", "acc", "target", "steer"):
+            np.testing.assert_array_equal(getattr(own.traffic, name), getattr(nan.traffic, name), err_msg=name)
+        e.step(a, None, plan)
+        with sb.using_kernels(sb.KERNELS - {"tick"}):
+            numpy_path.step(a, None, plan)
+        for name in sb.Traffic.FIELDS:
+            if name != "vid":
+                assert same(getattr(e.traffic, name), getattr(numpy_path.traffic, name)), (step, name)
+        assert same(e.ticks, numpy_path.ticks) and same(e.arrived_time, numpy_path.arrived_time)
+    assert (e.traffic.v[rows, e.ego_slot(rows)] < 1.0).any()  # the brakes acted
 
 
 # ----------------------------------------------------------------------------------------------- refusals

@@ -516,10 +516,11 @@ class BatchedLeftTurn:
                     self._spawn(t, int(b), self.rngs[b], spawn_probability=p, u=u_b)
         self._settle(t)
 
-    def step(self, actions: np.ndarray, active: np.ndarray | None = None):
+    def step(self, actions: np.ndarray, active: np.ndarray | None = None, ego_acceleration: np.ndarray | None = None):
         """One policy step of every env (``active``: the envs to step; the others are left as they are).
         ``actions``: discrete meta-actions (B,) {0: SLOWER, 1: IDLE, 2: FASTER}, or continuous (B,) / (B, 1) in
-        [-1, 1] mapped onto ``acceleration_range`` (LongitudinalAction.act)."""
+        [-1, 1] mapped onto ``acceleration_range`` (LongitudinalAction.act). ``ego_acceleration`` (frames, B), m/s²:
+        the ego's acceleration per tick over its own control where not NaN (the AEB shield's brake)."""
         c, t = self.config, self.traffic
         active = np.ones(self.B, bool) if active is None else np.asarray(active, bool)
         rows = np.nonzero(active)[0]
@@ -533,11 +534,15 @@ class BatchedLeftTurn:
             self.cmd[rows] = (lo + (a - -1) * (hi - lo) / (1 - -1))[rows]
         else:
             meta = np.where(active, np.asarray(actions).reshape(self.B), 1)
+        cmd = self.cmd if self.continuous else None
+        if ego_acceleration is not None:  # per tick: the brake where given, the ego's own command elsewhere
+            own = np.broadcast_to(np.nan if cmd is None else cmd, (self.frames, self.B))
+            cmd = np.where(np.isnan(ego_acceleration), own, ego_acceleration)
         if "tick" in batched.KERNELS:  # every tick of every active env in one compiled call
-            t.advance(self.dt, self.frames, active, meta, self.speeds, self.cmd if self.continuous else None,
+            t.advance(self.dt, self.frames, active, meta, self.speeds, cmd,
                       clocks=(self.ticks, self.time, self.arrived_time))
         else:
-            self._ticks(rows, ~active, meta)
+            self._ticks(rows, ~active, meta, cmd)
         t.trim()
         reward = np.zeros(self.B)
         reward[rows], terminated, truncated = self._reward(rows), np.zeros(self.B, bool), np.zeros(self.B, bool)
@@ -550,14 +555,16 @@ class BatchedLeftTurn:
         truncated[rows] = self.time[rows] >= self.time_limit
         return reward, terminated, truncated
 
-    def _ticks(self, rows: np.ndarray, idle: np.ndarray, meta: np.ndarray | None) -> None:
-        """A policy step's ticks on the numpy path (Traffic.act, Traffic.step), arrivals stamped per tick; the
+    def _ticks(self, rows: np.ndarray, idle: np.ndarray, meta: np.ndarray | None, cmd: np.ndarray | None) -> None:
+        """A policy step's ticks on the numpy path (Traffic.act, Traffic.step), the ego's commanded acceleration
+        ``cmd`` ((B,) or (frames, B), m/s², NaN: its speed control; None: none), arrivals stamped per tick; the
         envs ``idle`` are stepped too and then put back as they were (a done env waits for its reset)."""
         t = self.traffic
         frozen = {name: getattr(t, name)[idle].copy() for name in Traffic.FIELDS} if idle.any() else None
         steps_frozen = t.road_steps[idle].copy()
         for frame in range(self.frames):
-            t.act(meta if frame == 0 else None, self.speeds, self.cmd if self.continuous else None)
+            t.act(meta if frame == 0 else None, self.speeds,
+                  None if cmd is None else np.broadcast_to(cmd, (self.frames, self.B))[frame])
             t.step(self.dt)
             self.ticks[rows] += 1
             e = self.ego_slot(rows)

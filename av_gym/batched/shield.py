@@ -15,9 +15,9 @@ What the batch does itself:
   per-env shield's stream, and :class:`~av_gym.batched.perception.BatchedTracker`, the per-env
   ``MultiObjectTracker``'s arithmetic); each env's shield reads its confirmed tracks.
 - **the brake actuator**: the per-env shield patches the ego's ``act`` so that every 20 Hz tick ends with the
-  actuator's acceleration. On the batch each tick of a braking env gets that acceleration as the ego's commanded
-  one (the engine's ``Traffic.advance`` ``ego_acceleration``, whose ``max(a, -v / 0.05)`` is the actuator's own
-  no-reversing clamp at 20 Hz), one tick per call while any env brakes (:meth:`BatchedShield.actuated`).
+  actuator's acceleration. On the batch the engine's step takes that acceleration per tick as the ego's commanded
+  one (:meth:`BatchedShield.brake_plan`, (frames, B), handed to ``BatchedLeftTurn.step``; the engine's
+  ``max(a, -v / 0.05)`` is the actuator's own no-reversing clamp at 20 Hz).
 
 Not on the batch (refused in one line by :func:`check_batched_shield`): the ``paper`` and ``standard`` variants, a
 second opinion (``aeb_belief``: the planner it asks plays the per-env stack's copies), and a simulation frequency
@@ -26,9 +26,8 @@ other than 20 Hz.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 
 import gymnasium as gym
 import numpy as np
@@ -95,7 +94,7 @@ class _Vehicle:
 
     def act(self, action=None) -> None:
         """The per-env shield wraps the ego's ``act`` with its actuator; on the batch the actuator runs in
-        :meth:`BatchedShield.actuated`."""
+        :meth:`BatchedShield.brake_plan`."""
 
     # MDPVehicle's set-point arithmetic, on this view's target_speeds (the ego's, discrete actions)
     speed_to_index = MDPVehicle.speed_to_index
@@ -198,7 +197,7 @@ class _Tracks:
 # ----------------------------------------------------------------------------------------------- the batch
 class BatchedShield:
     """``shield=aeb`` for every env of ``engine``: per env the per-env shield deciding on its :class:`RowEnv`;
-    :meth:`decide` before a step (the applied actions), :meth:`actuated` around the engine's step, :meth:`after`
+    :meth:`decide` before a step (the applied actions), :meth:`brake_plan` for the engine's step, :meth:`after`
     after it; per episode ``brake_time`` (s), ``stop_position`` (m past the stop line), ``overrides`` (the steps it
     overrode)."""
 
@@ -279,31 +278,19 @@ class BatchedShield:
             src.rows = tracks[n][shown[n]]
             src.ids = seen.tracker.id[r, : shown.shape[1]][shown[n]].astype(int)
 
-    @contextlib.contextmanager
-    def actuated(self, rows: np.ndarray) -> Iterator[None]:
-        """Around the engine's step of the envs ``rows``: each tick of an env whose actuator is engaged takes the
-        actuator's deceleration (after its delay) as the ego's acceleration, as the per-env shield's patched
-        ``act`` sets it; the engine then runs one tick per call (the others' ticks are the same ticks)."""
-        braking = [r for r in np.asarray(rows, dtype=int).tolist()
-                   if self.shields[r].actuator.engaged_at is not None]
+    def brake_plan(self, rows: np.ndarray) -> np.ndarray | None:
+        """(frames, B) the ego's acceleration (m/s²) on each tick of the coming step of the envs ``rows`` whose
+        actuator is engaged: its deceleration after its delay, as the per-env shield's patched ``act`` sets it (NaN
+        where the ego's own control acts); None when no env brakes. The engine's step takes it
+        (``BatchedLeftTurn.step``'s ``ego_acceleration``: ``max(a, -v / 0.05)``, the actuator's own no-reversing
+        clamp at 20 Hz)."""
+        braking = [r for r in np.asarray(rows, dtype=int).tolist() if self.shields[r].actuator.engaged_at is not None]
         if not braking:
-            yield
-            return
-        traffic = self.e.traffic
-        plan = self._brake_plan(np.array(braking))
-        traffic.advance = _TickByTick(traffic.advance, plan)
-        traffic.act = _ActByAct(traffic, plan, 1.0 / self.e.config["simulation_frequency"])
-        try:
-            yield
-        finally:
-            del traffic.advance, traffic.act
-
-    def _brake_plan(self, braking: np.ndarray) -> np.ndarray:
-        """(frames, B) the ego's acceleration (m/s²) per tick of this step, NaN where its own control acts."""
+            return None
         e = self.e
         dt = 1.0 / e.config["simulation_frequency"]
         plan = np.full((e.frames, e.B), np.nan)
-        for r in braking.tolist():
+        for r in braking:
             act = self.shields[r].actuator
             for f in range(e.frames):
                 d = act.deceleration((e.ticks[r] + f) * dt - act.engaged_at, dt)
@@ -327,38 +314,6 @@ class BatchedShield:
         info = self.shields[r]._make_info(0, float("inf"), 0.0, -1, False, False, None)
         return {"brake_time": info["aeb_brake_time"], "stop_position": info["aeb_stop_position"],
                 "overrides": list(self.overrides[r])}
-
-
-class _TickByTick:
-    """``Traffic.advance`` one tick per call, the ego's commanded acceleration per tick from the brake plan
-    (frames, B) where it is not NaN (elsewhere the continuous ego's own command, or the speed control)."""
-
-    def __init__(self, advance, plan: np.ndarray) -> None:
-        self.advance, self.plan = advance, plan
-
-    def __call__(self, dt, frames, active=None, meta=None, speeds=None, ego_acceleration=None, clocks=None):
-        B = self.plan.shape[1]
-        own = np.full(B, np.nan) if ego_acceleration is None else np.asarray(ego_acceleration, dtype=float)
-        kwargs = {} if speeds is None else {"speeds": speeds}
-        for f in range(int(frames)):
-            cmd = np.where(np.isnan(self.plan[f]), own, self.plan[f])
-            self.advance(dt, 1, active, meta if f == 0 else None, ego_acceleration=cmd, clocks=clocks, **kwargs)
-
-
-class _ActByAct:
-    """``Traffic.act`` (the engine's numpy path, one call per tick), then the brake plan's acceleration per tick
-    for the braking egos, as the per-env shield's patched ``act`` sets it (no reversing: at most v / dt)."""
-
-    def __init__(self, traffic, plan: np.ndarray, dt: float) -> None:
-        self.traffic, self.act, self.plan, self.dt, self.frame = traffic, traffic.act, plan, dt, 0
-
-    def __call__(self, *args, **kwargs) -> None:
-        self.act(*args, **kwargs)
-        t, a = self.traffic, self.plan[self.frame]
-        self.frame += 1
-        b = np.flatnonzero(~np.isnan(a))
-        e = np.argmax(t.ego[b], axis=1)
-        t.acc[b, e] = np.maximum(a[b], -np.maximum(t.v[b, e], 0.0) / self.dt)
 
 
 def _shield_perception(engine, params: ImprovedParams):

@@ -319,8 +319,7 @@ class BatchedLeftTurnBatch:
         if sh is None:
             return e.step(meta, active)
         applied = sh.decide(rows, meta)
-        with sh.actuated(rows):
-            out = e.step(applied, active)
+        out = e.step(applied, active, sh.brake_plan(rows))
         sh.after(rows)
         over = rows[sh.override[rows]]
         self._overrides[over] += 1

@@ -382,14 +382,16 @@ class Traffic:
                 speeds: np.ndarray = EGO_TARGET_SPEEDS, ego_acceleration: np.ndarray | None = None,
                 clocks: tuple | None = None) -> None:
         """``frames`` ticks (:meth:`act`, then :meth:`step`) of the envs ``active`` (default: all) in one compiled
-        call (kernels.advance): the ego's meta-action ``meta`` (B,) at the first tick (None: none), the continuous
-        ego's commanded acceleration ``ego_acceleration`` (B,, m/s²); ``clocks``: the env's (ticks, time,
-        arrived_time) arrays, ticks counted and arrivals stamped per tick as BatchedLeftTurn.step does. Inactive
-        envs are left as they are. ``dt`` in s."""
+        call (kernels.advance): the ego's meta-action ``meta`` (B,) at the first tick (None: none), the ego's
+        commanded acceleration ``ego_acceleration`` (m/s²; (B,) for every tick, or (frames, B) per tick: the
+        continuous ego's command or the AEB shield's brake; NaN: the discrete ego's speed control; None: NaN
+        everywhere); ``clocks``: the env's (ticks, time, arrived_time) arrays, ticks counted and arrivals stamped
+        per tick as BatchedLeftTurn.step does. Inactive envs are left as they are. ``dt`` in s."""
         B = self.B
         active = np.ones(B, bool) if active is None else np.ascontiguousarray(active, dtype=bool)
         meta = np.full(B, -1) if meta is None else np.ascontiguousarray(meta, dtype=np.int64).reshape(B)
-        cmd = np.full(B, np.nan) if ego_acceleration is None else np.ascontiguousarray(ego_acceleration, dtype=float)
+        cmd = np.full(B, np.nan) if ego_acceleration is None else np.asarray(ego_acceleration, dtype=float)
+        cmd = np.ascontiguousarray(np.broadcast_to(cmd, (int(frames), B)))
         ticks, time, arrived = clocks if clocks is not None else (np.zeros(B, dtype=int), np.zeros(B), np.zeros(B))
         T = self.tables
         kernels.advance(T.arr, T.rules, *_contiguous(self, *_TICK_STATE), active, meta, np.asarray(speeds, float),
@@ -398,8 +400,9 @@ class Traffic:
     def act(self, ego_action: np.ndarray | None = None, speeds: np.ndarray = EGO_TARGET_SPEEDS,
             ego_acceleration: np.ndarray | None = None) -> None:
         """``Road.act()`` (and, at a policy step's first tick, the action type's ``MDPVehicle.act(meta)`` over the
-        set-points ``speeds``). ``ego_acceleration`` (B,): the continuous action's commanded acceleration (m/s²),
-        av_gym.envs.vehicles.RouteFollowingVehicle in place of the MDPVehicle's speed control."""
+        set-points ``speeds``). ``ego_acceleration`` (B,): the ego's commanded acceleration this tick (m/s², the
+        continuous action's or the AEB shield's brake), av_gym.envs.vehicles.RouteFollowingVehicle in place of the
+        MDPVehicle's speed control; NaN (or None for all): the speed control."""
         T, a = self.tables, self.alive
         if ego_action is not None:  # MDPVehicle.act: FASTER / SLOWER move the index from the *current* speed
             e = self.ego & a
@@ -411,10 +414,10 @@ class Traffic:
         self._follow_road()
         steer = np.clip(self._steering(), -MAX_STEERING, MAX_STEERING)
         acc_idm = np.clip(self._idm(), -ACC_MAX, ACC_MAX)
-        if ego_acceleration is None:
-            acc_ego = KP_A * (self.target - self.v)  # ControlledVehicle.speed_control
-        else:  # RouteFollowingVehicle.act: no reversing, a standstill is held
-            acc_ego = np.maximum(np.asarray(ego_acceleration, dtype=float)[:, None], -self.v / 0.05)
+        acc_ego = KP_A * (self.target - self.v)  # ControlledVehicle.speed_control
+        if ego_acceleration is not None:  # RouteFollowingVehicle.act: no reversing, a standstill is held
+            cmd = np.asarray(ego_acceleration, dtype=float)[:, None]
+            acc_ego = np.where(np.isnan(cmd), acc_ego, np.maximum(cmd, -self.v / 0.05))
         # IDMVehicle.act returns early when crashed (action kept); a plain Vehicle's act(None) keeps its action
         live = a & ~self.plain & (~self.crashed | self.ego)
         self.steer = np.where(live, steer, self.steer)

@@ -458,9 +458,10 @@ def advance(lt, lanes, x, y, h, v, target, steer, acc, delta, alive, ego, plain,
             impact_y, has_impact, lane, tlane, route, rpos, road_steps, active, meta, speeds, cmd, frames, dt,
             reg_period, reg_times, prm, ticks, time, arrived_time):
     """``frames`` ticks (Traffic.act then Traffic.step) of every env b with ``active[b]``: the ego's meta-action
-    ``meta[b]`` at the first tick (-1: none), the continuous ego's commanded acceleration ``cmd[b]`` (NaN: the
-    discrete ego's speed control), the regulation every ``reg_period`` road steps; after each tick ``ticks[b]``
-    counts and an ego that has arrived gets ``arrived_time[b] = time[b]`` once. ``lanes``: (L, 5) per lane id:
+    ``meta[b]`` at the first tick (-1: none), the ego's commanded acceleration ``cmd[frame, b]`` per tick (m/s²,
+    the continuous ego's command or the AEB shield's brake; NaN: the discrete ego's speed control), the
+    regulation every ``reg_period`` road steps; after each tick ``ticks[b]`` counts and an ego that has arrived
+    gets ``arrived_time[b] = time[b]`` once. ``lanes``: (L, 5) per lane id:
     speed limit, priority, leaving lane (1.0), from-node id, to-node id. State arrays are updated in place."""
     B, N = x.shape
     T = reg_times.shape[0]
@@ -476,7 +477,7 @@ def advance(lt, lanes, x, y, h, v, target, steer, acc, delta, alive, ego, plain,
             continue
         for frame in range(frames):
             _act_row(lt, lanes, b, x, y, h, v, target, steer, acc, delta, alive, ego, plain, crashed, lane, tlane,
-                     route, rpos, meta[b] if frame == 0 else -1, speeds, cmd[b], prm, ch, sh)
+                     route, rpos, meta[b] if frame == 0 else -1, speeds, cmd[frame, b], prm, ch, sh)
             road_steps[b] += 1
             if road_steps[b] % reg_period == 0:
                 _road_rules_row(lt, lanes, b, x, y, h, v, target, alive, plain, mdp, yielding, lane, route, rpos,
