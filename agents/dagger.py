@@ -68,8 +68,10 @@ class DaggerParams(PPOParams):
                                                 "at go_threshold, where it is validated and used, so the labels "
                                                 "fall on the states it meets there (waiting for a gap) rather than "
                                                 "on those after the GOs its argmax takes and its operating point "
-                                                "does not; false: at its argmax (targets go_safe always drives at "
-                                                "go_threshold)")
+                                                "does not (a student from init_from saved at its own threshold is "
+                                                "moved back to its fit's 0.5 first, so round 0 too is at "
+                                                "go_threshold); false: at its argmax (targets go_safe always drives "
+                                                "at go_threshold)")
     labeller: Literal["auto", "batched", "replica", "per_env"] = param(
         "auto", doc="batched: the look-ahead oracle on the batched engine (agents/batched_oracle.py, needs "
                     "vec_env=batched and teacher kind lookahead) | replica: the student on the per-env stack (any "
