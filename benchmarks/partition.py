@@ -17,7 +17,9 @@ does not use); each with a 95 % interval from a paired bootstrap over seeds (``-
 ``--chain A B C ...`` splits the edge of the first agent over the last into the steps between neighbours (the
 sensing partition, docs/dagger.md "What sensing costs": information no sensor has = oracle - planner on truth, what
 the sensors lose = planner on truth - planner on tracks, learning still to do = planner on tracks - student), each
-step and its share of the edge with the same paired bootstrap (the same resampled seeds for every step)."""
+step and its share of the edge with the same paired bootstrap (the same resampled seeds for every step). The same
+chain with the shield: ``--chain lookahead+aeb belief_lookahead+aeb belief_tracks+aeb dagger_turn_perceived+aeb``
+(each agent's label as ``python -m eval`` wrote it). An agent without rows in the files is one line, exit 2."""
 
 from __future__ import annotations
 
@@ -44,6 +46,16 @@ def ci(a: np.ndarray) -> str:
     """The 95 % percentile interval of bootstrap values ``a``."""
     lo, hi = np.percentile(a, [2.5, 97.5])
     return f"[{lo:.3f}, {hi:.3f}]"
+
+
+def missing(rows: dict, agents: list[str], paths: list[str]) -> str | None:
+    """The one-line error for agents without rows in the files (a misspelt label, a ``+aeb`` row not measured yet),
+    naming the agents the files hold; None when every agent has rows."""
+    absent = [a for a in agents if not rows.get(a)]
+    if not absent:
+        return None
+    return (f"error: no rows for {', '.join(absent)} in {', '.join(paths)}; the files hold: "
+            f"{', '.join(sorted(a for a in rows if rows[a]))}")
 
 
 def chain(rows: dict, agents: list[str], resamples: int, g: np.random.Generator) -> None:
@@ -83,12 +95,16 @@ def main() -> None:
     ap.add_argument("--resamples", type=int, default=10000)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
+    if args.chain is not None and len(args.chain) < 2:
+        print("error: --chain needs at least two agents (best first)", file=sys.stderr)
+        sys.exit(2)
     rows = load(args.csv)
+    problem = missing(rows, args.chain or [args.oracle, args.planner, *args.students], args.csv)
+    if problem:
+        print(problem, file=sys.stderr)
+        sys.exit(2)
     g = np.random.default_rng(args.seed)
     if args.chain:
-        if len(args.chain) < 2:
-            print("error: --chain needs at least two agents (best first)", file=sys.stderr)
-            sys.exit(2)
         chain(rows, args.chain, args.resamples, g)
         return
     print("| student | metric | oracle | planner | student | edge (oracle over student) | information (oracle - "

@@ -45,3 +45,11 @@ def test_a_chain_of_one_agent_is_one_line():
     res = subprocess.run([sys.executable, "benchmarks/partition.py", str(ROWS), "--chain", "lookahead"], cwd=ROOT,
                          capture_output=True, text=True, timeout=120)
     assert res.returncode == 2 and res.stderr.strip().count("\n") == 0 and "--chain" in res.stderr
+
+
+def test_an_agent_without_rows_is_one_line_naming_what_the_files_hold():
+    res = subprocess.run([sys.executable, "benchmarks/partition.py", str(ROWS), "--chain", "lookahead+aeb",
+                          "belief_lookahead"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    line = res.stderr.strip()
+    assert res.returncode == 2 and line.count("\n") == 0 and line.startswith("error: no rows for lookahead+aeb ")
+    assert "lookahead, " in line and res.stdout == ""
