@@ -13,7 +13,9 @@ prefixed by its ``run`` column (``s1``, ``perceived_s1``, ...).
 validation split) first writes CSV: one row per round of the runs ``--runs`` selects and one for the planner, each
 with its validation episodes and Wilson 95 % intervals (a run's episodes from train.eval_n in the config.yaml
 beside its rounds.csv, else ``--val-n``); it never writes over an existing CSV (the rounds it keeps are the record).
-Without rounds.csv files it plots CSV as it is.
+Without rounds.csv files it plots CSV as it is. ``--extend`` adds the rounds of runs CSV does not hold yet (another
+training seed) to an existing CSV: its rows are kept as they are (a run it already holds is refused), the new
+runs' rows go before its planner row, and the file is replaced at once (docs/dagger.md, "Learning curve").
 """
 
 from __future__ import annotations
@@ -112,8 +114,9 @@ def planner_point(results: Path) -> dict:
                  sum(float(r["collision"]) for r in rows) / n)
 
 
-def curve_rows(paths: list[str], runs: list[str], planner: Path, val_n: int) -> list[dict]:
-    """The csv's rows: every validated round of the runs matching ``runs`` (fnmatch patterns), then the planner."""
+def curve_rows(paths: list[str], runs: list[str], planner: Path | None, val_n: int) -> list[dict]:
+    """The csv's rows: every validated round of the runs matching ``runs`` (fnmatch patterns), then the planner
+    (none without ``planner``)."""
     out = []
     for path in map(Path, paths):
         n = val_episodes(path, val_n)
@@ -123,7 +126,7 @@ def curve_rows(paths: list[str], runs: list[str], planner: Path, val_n: int) -> 
             for k, labels, s, c in zip(d["round"], d["labels"], d["val_success"], d["val_collision"]):
                 if s == s:  # NaN: a round without validation
                     out.append(point("student", name, str(int(k)), str(int(labels)), n, s, c))
-    return [*out, planner_point(planner)]
+    return [*out, planner_point(planner)] if planner is not None else out
 
 
 def write_curve(rows: list[dict], path: Path) -> None:
@@ -186,6 +189,8 @@ def main() -> None:
     parser.add_argument("--runs", nargs="+", default=["*"], help="--curve: the runs to keep (fnmatch patterns)")
     parser.add_argument("--highlight", nargs="+", default=["*"], help="--curve: runs drawn in colour (the others "
                                                                       "grey)")
+    parser.add_argument("--extend", action="store_true", help="--curve: add the rounds.csv files' runs to the "
+                                                               "existing CSV (its rows kept; a run it holds refused)")
     parser.add_argument("--val-n", type=int, default=200, help="--curve: validation episodes per round of a "
                                                                 "rounds.csv without a config.yaml beside it")
     args = parser.parse_args()
@@ -211,6 +216,8 @@ def _curve(args, parser) -> list[dict]:
         if not path.is_file():
             parser.error(f"--curve: no such file: {path} (give rounds.csv files and --planner to write it)")
         return read_curve(path)
+    if args.extend:
+        return _extend(args, parser, path)
     if args.planner is None:
         parser.error("--curve with rounds.csv files needs --planner (the planner's validation results.csv)")
     if path.exists():
@@ -219,6 +226,24 @@ def _curve(args, parser) -> list[dict]:
     rows = curve_rows(args.rounds, args.runs, Path(args.planner), args.val_n)
     write_curve(rows, path)
     print(f"curve: {path} ({len(rows)} points)")
+    return rows
+
+
+def _extend(args, parser, path: Path) -> list[dict]:
+    """``--extend``: the existing curve's rows, the new runs' rounds before its planner row, written at once."""
+    if not path.is_file():
+        parser.error(f"--extend: no such file: {path} (without --extend the rounds and --planner write a new one)")
+    kept = read_curve(path)
+    new = curve_rows(args.rounds, args.runs, None, args.val_n)
+    held = sorted({r["run"] for r in new} & {r["run"] for r in kept})
+    if held:
+        parser.error(f"--extend: {path} already holds run {held[0]}: its rows are the record; give runs it does "
+                     f"not hold")
+    if not new:
+        parser.error(f"--extend: no validated round in {', '.join(args.rounds)} matches --runs {' '.join(args.runs)}")
+    rows = ([r for r in kept if r["series"] != "planner"] + new + [r for r in kept if r["series"] == "planner"])
+    write_curve(rows, path)
+    print(f"curve: {path} ({len(new)} points added, {len(rows)} in all)")
     return rows
 
 

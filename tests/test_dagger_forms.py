@@ -139,3 +139,39 @@ def test_disagree_weight_is_bounded_and_refused_for_continuous_actions():
     for bad in (0.5, 1000.0):
         with pytest.raises(ConfigError, match="disagree_weight"):
             DaggerParams.from_mapping({"disagree_weight": bad}, where="agent")
+
+
+def test_a_second_training_seed_extends_the_curve_and_keeps_its_record(tmp_path):
+    """--extend: the curve's rows stay as they were, the new run's validated rounds go before the planner's row;
+    a run the curve already holds is refused in one line and the file is left as it was."""
+    import csv
+    import shutil
+
+    from test_dagger_curve import HEADER, _run
+
+    first = tmp_path / "checkpoints" / "dagger_curve_s1"
+    first.mkdir(parents=True)
+    (first / "rounds.csv").write_text(HEADER + "0,teacher,10,300,1,1,0.5,0.9,0,0.9,0.5,0.2\n")
+    (tmp_path / "planner.csv").write_text("agent,episode,collision,success,split\n" + "".join(
+        f"belief_lookahead,{i},0.0,1.0,validation\n" for i in range(10)))
+    made = _run("checkpoints/dagger_curve_s1/rounds.csv", "--planner", "planner.csv", "--curve", "curve.csv", "--out",
+                "a.png", cwd=tmp_path)
+    assert made.returncode == 0, made.stderr
+    before = (tmp_path / "curve.csv").read_text()
+    second = tmp_path / "checkpoints" / "dagger_curve_s2"
+    shutil.copytree(first, second)
+    (second / "rounds.csv").write_text(HEADER + "0,teacher,10,310,1,1,0.5,0.9,0,0.9,0.4,0.1\n"
+                                                "1,student,15,720,2,1,0.6,0.7,0.1,0.9,nan,nan\n")
+    res = _run("checkpoints/dagger_curve_s2/rounds.csv", "--curve", "curve.csv", "--extend", "--out", "b.png",
+               cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    after = (tmp_path / "curve.csv").read_text()
+    got = list(csv.DictReader(open(tmp_path / "curve.csv")))
+    assert [(r["series"], r["run"], r["labels"]) for r in got] == [
+        ("student", "dagger_curve_s1", "300"), ("student", "dagger_curve_s2", "310"), ("planner", "belief_lookahead", "")]
+    assert after.splitlines()[:2] == before.splitlines()[:2] and after.splitlines()[-1] == before.splitlines()[-1]
+    again = _run("checkpoints/dagger_curve_s2/rounds.csv", "--curve", "curve.csv", "--extend", "--out", "c.png",
+                 cwd=tmp_path)
+    lines = [line for line in again.stderr.splitlines() if line.strip()]
+    assert again.returncode == 2 and len(lines) == 1 and "already holds run dagger_curve_s2" in lines[0], again.stderr
+    assert (tmp_path / "curve.csv").read_text() == after and not (tmp_path / "c.png").exists()
