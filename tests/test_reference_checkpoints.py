@@ -50,7 +50,8 @@ def test_reference_holds_the_named_agents_and_a_name_means_one_folder():
     assert SEED_REFS == ["seeds/dagger_turn/s2", "seeds/dagger_turn/s3", "seeds/dagger_turn/s4", "seeds/dagger_turn/s5",
                          "seeds/dagger_turn_memory/s1", "seeds/dagger_turn_memory/s3", "seeds/dagger_turn_memory/s4",
                          "seeds/dagger_turn_memory/s5", "seeds/dagger_turn_perceived/s2",
-                         "seeds/dagger_turn_perceived/s3", "seeds/dagger_turn_soft/s1", "seeds/dagger_turn_soft/s3",
+                         "seeds/dagger_turn_perceived/s3", "seeds/dagger_turn_perceived/s4",
+                         "seeds/dagger_turn_perceived/s5", "seeds/dagger_turn_soft/s1", "seeds/dagger_turn_soft/s3",
                          "seeds/pilotnet/s1", "seeds/pilotnet/s2", "seeds/pilotnet/s3",
                          "seeds/pilotnet/s4", "seeds/ppo_turn/s2", "seeds/ppo_turn/s3",
                          "seeds/ppo_turn/s4", "seeds/ppo_turn/s5"]
