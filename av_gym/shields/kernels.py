@@ -251,3 +251,72 @@ def driven_poses(data, route, limits, bins, grid_table, ids, s0, ds, speeds, xy,
                 ah += wi * h
             xy[m, k, 0], xy[m, k, 1], hh[m, k] = ax, ay, ah
     return 0
+
+
+# ----------------------------------------------------------------------------------------------- footprint test
+SAME_DIRECTION = float(np.radians(45))  # footprint_ttc's "heading the same way" (rad)
+
+
+@numba.njit(cache=True, inline="always")
+def _corners(cx, cy, h, length, width, out):
+    """av_gym.geometry.box_corners for one box into ``out`` (4, 2): the corners (hl, hw), (hl, -hw), (-hl, -hw),
+    (-hl, hw) rotated by ``h`` (the einsum's ``c·lx + (-s)·ly``, ``s·lx + c·ly``) and moved to the centre."""
+    c, s = math.cos(h), math.sin(h)
+    hl, hw = 0.5 * length, 0.5 * width
+    for q in range(4):
+        lx = hl if q < 2 else -hl
+        ly = hw if q == 0 or q == 3 else -hw
+        out[q, 0] = cx + (c * lx + -s * ly)
+        out[q, 1] = cy + (s * lx + c * ly)
+
+
+@numba.njit(cache=True, inline="always")
+def _overlap(a, b):
+    """av_gym.geometry.boxes_overlap for one pair of corner arrays (4, 2): the separating-axis test on the normals
+    of two edges of each box, touching counts as overlap."""
+    for p in range(2):
+        poly = a if p == 0 else b
+        for i in range(2):
+            ax, ay = -(poly[i + 1, 1] - poly[i, 1]), poly[i + 1, 0] - poly[i, 0]
+            a_lo, a_hi, b_lo, b_hi = np.inf, -np.inf, np.inf, -np.inf
+            for q in range(4):
+                pa = a[q, 0] * ax + a[q, 1] * ay
+                pb = b[q, 0] * ax + b[q, 1] * ay
+                a_lo, a_hi = min(a_lo, pa), max(a_hi, pa)
+                b_lo, b_hi = min(b_lo, pb), max(b_hi, pb)
+            if not (a_hi >= b_lo and b_hi >= a_lo):
+                return False
+    return True
+
+
+@numba.njit(cache=True)
+def footprint_hit(ego_xy, ego_h, length, width, oxy, oh, osize, reach, rear):
+    """:func:`av_gym.shields.predict.footprint_ttc`'s first hit: (slice k, other m) of the first overlap in slice
+    order, then the others' order, of the ego box (``ego_xy`` (K, 2), ``ego_h`` (K,), ``length`` x ``width``, the
+    margin included) with another box (``oxy`` (K, M, 2), ``oh`` (K, M), ``osize`` (M, 2)), (-1, -1) if none.
+
+    The reference's steps per (slice, other) pair in the same arithmetic: the centre-distance pre-check
+    (geometry.may_overlap with ``reach`` (M,), the half-diagonals' sums), the separating-axis test on the corners
+    (geometry.box_corners, boxes_overlap), and with ``rear[m]`` an overlap with another behind the ego heading the
+    same way (within 45°) skipped."""
+    K, M = oxy.shape[0], oxy.shape[1]
+    ea, eb = np.empty((4, 2)), np.empty((4, 2))
+    for k in range(K):
+        ex, ey, eh = ego_xy[k, 0], ego_xy[k, 1], ego_h[k]
+        built = False
+        for m in range(M):
+            dx, dy = oxy[k, m, 0] - ex, oxy[k, m, 1] - ey
+            if not (dx ** 2 + dy ** 2 <= (reach[m] * (1 + 1e-9) + 1e-9) ** 2):
+                continue
+            if not built:
+                _corners(ex, ey, eh, length, width, ea)
+                built = True
+            _corners(oxy[k, m, 0], oxy[k, m, 1], oh[k, m], osize[m, 0], osize[m, 1], eb)
+            if not _overlap(ea, eb):
+                continue
+            if rear[m]:
+                ahead = dx * math.cos(eh) + dy * math.sin(eh)
+                if abs((oh[k, m] - eh + np.pi) % (2 * np.pi) - np.pi) < SAME_DIRECTION and ahead < 0:
+                    continue
+            return k, m
+    return -1, -1

@@ -1,0 +1,83 @@
+"""The AEB shield's compiled footprint test (av_gym/shields/kernels.py ``footprint_hit``, behind
+:func:`av_gym.shields.predict.footprint_ttc`) against its numpy reference (``footprint_ttc_numpy``): the same first hit
+(slice and other) on random scenes, on boxes exactly touching, with and without the rear rule, and the same decisions
+over a whole shielded episode."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from agents import AlwaysProceed
+from av_gym.shields import predict
+from av_gym.shields.predict import footprint_ttc, footprint_ttc_numpy
+from conftest import conf
+
+
+def _scene(rng: np.random.Generator, K: int, M: int):
+    """An ego path and M others drifting over K slices, most of them first meeting the ego somewhere in the
+    horizon (the first hit's slice spread over it), a few overlapping from the start."""
+    t = 0.1 * np.arange(1, K + 1)
+    ego_xy = np.cumsum(rng.normal(0.0, 0.5, (K, 2)), 0) + [0.0, 0.0]
+    ego_h = rng.uniform(-np.pi, np.pi) + np.cumsum(rng.normal(0.0, 0.05, K))
+    start = rng.uniform(-30, 30, (1, M, 2)) * rng.uniform(0.1, 1.0, (1, M, 1))
+    oxy = start + np.cumsum(rng.normal(0.0, 0.6, (K, M, 2)), 0) - start * t[:, None, None] / t[-1]
+    oh = rng.uniform(-4, 4, (1, M)) + np.cumsum(rng.normal(0.0, 0.1, (K, M)), 0)
+    return ego_xy, ego_h, oxy, oh, rng.uniform(2.0, 6.0, (M, 2)), t
+
+
+def test_the_footprint_kernel_finds_the_references_first_hit():
+    rng = np.random.default_rng(5)
+    slices = set()
+    for trial in range(1500):
+        K, M = int(rng.integers(1, 81)), int(rng.integers(1, 41))
+        ego_xy, ego_h, oxy, oh, size, t = _scene(rng, K, M)
+        rear = rng.random(M) < 0.5 if trial % 3 else bool(trial % 2)
+        margin = (0.0, 0.3, 0.6)[trial % 3]
+        got = footprint_ttc(ego_xy, ego_h, (5.0, 2.0), oxy, oh, size, t, margin, rear)
+        want = footprint_ttc_numpy(ego_xy, ego_h, (5.0, 2.0), oxy, oh, size, t, margin, rear)
+        assert got == want, trial
+        slices.add(got[0])
+    assert len(slices) > 30 and np.inf in slices  # first hits all over the horizon, and misses
+
+
+@pytest.mark.parametrize("gap, hit", [(5.0, True), (5.0 + 1e-12, False), (4.999, True)])
+def test_boxes_exactly_touching_overlap_in_both(gap, hit):
+    """Touching counts as overlap (geometry.boxes_overlap): two 5 m boxes whose centres are exactly 5 m apart."""
+    ego_xy, h = np.zeros((1, 2)), np.zeros(1)
+    oxy, oh, size, t = np.array([[[gap, 0.0]]]), np.zeros((1, 1)), np.array([[5.0, 2.0]]), np.array([0.1])
+    want = (0.1, 0) if hit else (np.inf, -1)
+    assert footprint_ttc(ego_xy, h, (5.0, 2.0), oxy, oh, size, t) == want
+    assert footprint_ttc_numpy(ego_xy, h, (5.0, 2.0), oxy, oh, size, t) == want
+
+
+def test_a_follower_is_skipped_only_with_the_rear_rule():
+    """An other 3 m behind the ego, heading the same way (within 45°), overlapping it: a hit unless ignored."""
+    ego_xy, h = np.zeros((1, 2)), np.zeros(1)
+    oxy, oh, size, t = np.array([[[-3.0, 0.0]]]), np.array([[0.2]]), np.array([[5.0, 2.0]]), np.array([0.1])
+    for fn in (footprint_ttc, footprint_ttc_numpy):
+        assert fn(ego_xy, h, (5.0, 2.0), oxy, oh, size, t, 0.0, False) == (0.1, 0)
+        assert fn(ego_xy, h, (5.0, 2.0), oxy, oh, size, t, 0.0, True) == (np.inf, -1)
+        assert fn(ego_xy, h, (5.0, 2.0), oxy, oh + 1.0, size, t, 0.0, True) == (0.1, 0)  # not the same way
+
+
+def test_shield_decisions_are_the_same_with_the_footprint_kernel_and_with_numpy(make, turn_cfg):
+    """A traffic episode with braking and release (seed 1001), every step's decision, with the compiled
+    footprint test and with the numpy reference."""
+    runs = []
+    for kernel in (True, False):
+        predict.FOOTPRINT_KERNEL = kernel
+        try:
+            env = make(turn_cfg, None, conf("shield", "aeb"))
+            policy = AlwaysProceed(env.unwrapped.cruise_action())
+            obs, _ = env.reset(seed=1001)
+            steps, done = [], False
+            while not done:
+                obs, _, terminated, truncated, info = env.step(policy.act(obs))
+                steps.append((info["aeb_stage"], info["aeb_ttc"], info["aeb_target_id"], info["aeb_horizon"]))
+                done = terminated or truncated
+            runs.append(steps)
+        finally:
+            predict.FOOTPRINT_KERNEL = True
+    assert any(s[0] == 2 for s in runs[0])  # it does brake
+    assert runs[0] == runs[1]
