@@ -175,3 +175,17 @@ def test_a_second_training_seed_extends_the_curve_and_keeps_its_record(tmp_path)
     lines = [line for line in again.stderr.splitlines() if line.strip()]
     assert again.returncode == 2 and len(lines) == 1 and "already holds run dagger_curve_s2" in lines[0], again.stderr
     assert (tmp_path / "curve.csv").read_text() == after and not (tmp_path / "c.png").exists()
+
+
+def test_a_steering_student_with_disagreement_weights_is_refused_before_any_folder():
+    from test_dagger import _cfg
+
+    from train.dagger import validate
+
+    lane = ("agent=dagger_turn", "env=lane_keeping", "sensors=truth", "agent.actions=env", "agent.teacher=pid_tuned",
+            "agent.vec_env=dummy", "agent.extractor=mlp", "agent.action_repeat=1")
+    assert validate(_cfg(*lane)) == []
+    (line,) = validate(_cfg(*lane, "agent.disagree_weight=2"))
+    assert line == ("agent.disagree_weight=2 needs discrete choices to disagree on (agent.actions=go_yield or "
+                    "env.action=discrete); got agent.actions=env on env=lane_keeping"), line
+    assert validate(_cfg("agent=dagger_turn_memory", "agent.disagree_weight=2")) == []

@@ -132,8 +132,8 @@ def validate(cfg: DictConfig) -> list[str]:
     if float(agent.get("disagree_weight", 1.0)) != 1.0 and agent.actions != "go_yield" \
             and cfg.env.get("action") != "discrete":
         return [f"agent.disagree_weight={agent.disagree_weight} needs discrete choices to disagree on "
-                f"(agent.actions=go_yield or env.action=discrete); got agent.actions={agent.actions}, "
-                f"env.action={cfg.env.get('action')}"]
+                f"(agent.actions=go_yield or env.action=discrete); got agent.actions={agent.actions} on "
+                f"env={cfg.env.name}"]
     return []
 
 
