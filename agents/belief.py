@@ -92,6 +92,16 @@ class BeliefLookaheadParams(AgentParams):
     tentative: Literal["ignore", "road_user"] = param(
         "ignore", doc="on tracks: a tentative track (fewer than the tracker's min_hits detections) is nobody, as the "
                       "features show it (ignore), or a road user in the futures (road_user)")
+    track_heading: Literal["velocity", "detected"] = param(
+        "velocity", doc="on tracks: a track's pose for its lane and its futures takes the heading of the filter's "
+                        "velocity (above 1 m/s, as obs['tracks']) and its speed (velocity), or the detector's heading "
+                        "(the tracker's running mean, sd 0.05 rad a frame) and the speed along it, a track whose "
+                        "velocity points backwards standing (detected)")
+    ghost: int = param(0, "detector frames", ge=0, doc="on tracks: a track the detector missed in this many frames "
+                                                       "running although its place is in view (range, field of "
+                                                       "view, not behind a track detected now) is nobody in the "
+                                                       "futures (the tracker coasts on it after its car left the "
+                                                       "constant-velocity path); 0: every track is a road user")
 
 
 class BeliefPlanner:

@@ -62,6 +62,35 @@ def lane_kinds(T) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.array(kind), np.array(origin), np.array(dest)
 
 
+def in_view(px: np.ndarray, py: np.ndarray, ego: np.ndarray, occluders: np.ndarray, present: np.ndarray,
+            max_range: float, half_fov: float, occlusion: bool) -> np.ndarray:
+    """Whether the places ``px``, ``py`` (m; (n, ...) or broadcastable to it) are within ``max_range`` (m) and the
+    field of view ``half_fov`` (rad each side) of the ego poses ``ego`` (n, 3) ``[x, y, heading]``, and (with
+    ``occlusion``) not behind a nearer occluder: ``occluders`` (n, M, 5) ``[x, y, heading, length, width]``,
+    ``present`` (n, M); a place is behind one when its bearing is within the half-width the box shows across the
+    line of sight and it is farther (the detector's view, its occlusion by the road users the car knows)."""
+    extra = (1,) * (max(np.ndim(px), np.ndim(py)) - 1)
+    col = lambda a: a.reshape((len(ego),) + extra)  # noqa: E731
+    dx, dy = px - col(ego[:, 0]), py - col(ego[:, 1])
+    r = np.hypot(dx, dy)
+    bearing = np.arctan2(dy, dx)
+    rel = (bearing - col(ego[:, 2]) + np.pi) % (2 * np.pi) - np.pi
+    seen = (r <= max_range) & (np.abs(rel) <= half_fov)
+    if occlusion and occluders.shape[1]:
+        ox, oy = occluders[..., 0] - ego[:, 0, None], occluders[..., 1] - ego[:, 1, None]
+        od = np.hypot(ox, oy)
+        ob = np.arctan2(oy, ox)
+        theta = occluders[..., 2] - ob
+        # the half-width the box shows across the line of sight, as an angle at its distance
+        half = 0.5 * (np.abs(occluders[..., 3] * np.sin(theta)) + np.abs(occluders[..., 4] * np.cos(theta)))
+        ang = np.arctan2(half, np.maximum(od, 1e-6))
+        for m in np.flatnonzero(present.any(axis=0)).tolist():
+            diff = (bearing - col(ob[:, m]) + np.pi) % (2 * np.pi) - np.pi
+            hidden = (np.abs(diff) <= col(ang[:, m])) & (r > col(od[:, m]))
+            seen = seen & ~(hidden & col(present[:, m]))
+    return seen
+
+
 class UnseenTraffic:
     """The spawn process's drivers on the four approach lanes that the tracker may not have confirmed, for the B
     rows of a batch: cohorts (approach lane, speed class, policy steps since the spawn) with the probability that a
@@ -126,25 +155,9 @@ class UnseenTraffic:
         """(n, 4, C, A): each cohort's place within range and the field of view of the ego poses ``ego`` (n, 3)
         ``[x, y, heading]`` and not behind a nearer confirmed track (``occluders`` (n, M, 5) ``[x, y, heading,
         length, width]``, ``present`` (n, M)): the detector's view, its occlusion by the occluders the car knows."""
-        dx, dy = self.x[None] - ego[:, 0, None, None, None], self.y[None] - ego[:, 1, None, None, None]
-        r = np.hypot(dx, dy)
-        bearing = np.arctan2(dy, dx)
-        rel = (bearing - ego[:, 2, None, None, None] + np.pi) % (2 * np.pi) - np.pi
-        seen = (r <= self.max_range) & (np.abs(rel) <= self.half_fov) & self.on_lane[None]
-        if self.occlusion and occluders.shape[1]:
-            ox, oy = occluders[..., 0] - ego[:, 0, None], occluders[..., 1] - ego[:, 1, None]
-            od = np.hypot(ox, oy)
-            ob = np.arctan2(oy, ox)
-            theta = occluders[..., 2] - ob
-            # the half-width the box shows across the line of sight, as an angle at its distance
-            half = 0.5 * (np.abs(occluders[..., 3] * np.sin(theta)) + np.abs(occluders[..., 4] * np.cos(theta)))
-            ang = np.arctan2(half, np.maximum(od, 1e-6))
-            shape = (len(ego), 1, 1, 1)
-            for m in np.flatnonzero(present.any(axis=0)).tolist():
-                diff = (bearing - ob[:, m].reshape(shape) + np.pi) % (2 * np.pi) - np.pi
-                hidden = (np.abs(diff) <= ang[:, m].reshape(shape)) & (r > od[:, m].reshape(shape))
-                seen &= ~(hidden & present[:, m].reshape(shape))
-        return seen
+        seen = in_view(self.x[None], self.y[None], ego, occluders, present, self.max_range, self.half_fov,
+                       self.occlusion)
+        return seen & self.on_lane[None]
 
     def look(self, rows: np.ndarray, seen: np.ndarray) -> None:
         """One detector frame of ``rows`` whose cohorts ``seen`` (n, 4, C, A) were in view: a driver there is
@@ -238,6 +251,8 @@ class TrackBelief:
         self.unseen = UnseenTraffic(e, perception.detector.params, perception.tracker.params, n_rows,
                                     float(params.unseen), self.tentative) if float(params.unseen) > 0 else None
         self.engine = None  # the futures' start (ego, confirmed [and tentative] tracks), all rows
+        self.tent = None  # (B, N) its slots that hold a tentative track
+        self.ghost = None  # (B, N) its slots whose track the detector has missed while in view (not in the futures)
         self._ticks = None
 
     def reset(self, rows) -> None:
@@ -247,7 +262,8 @@ class TrackBelief:
     def _tracks(self, rows: np.ndarray) -> tuple:
         """The tracker's tracks of ``rows`` as ``obs["tracks"]`` orders them (confirmed and finite, nearest the
         ego first: tracks_observation's order), then the tentative ones: positions (n, M, 7), ids (n, M),
-        confirmed (n, M), tentative (n, M)."""
+        confirmed (n, M), tentative (n, M), and (n, M, 2) each track's detected heading (rad, the tracker's running
+        mean of the detector's) and the detector frames since a detection last updated it."""
         p = self.perception
         tracks, shown = p.tracker.tracks(rows)
         ids = p.tracker.id[rows]
@@ -265,28 +281,33 @@ class TrackBelief:
         rows_obs = p.last_tracks[rows][:, : order.shape[1]]  # the float32 rows the features saw, same order
         pos = np.where(conf[..., None], rows_obs[..., 1:8].astype(float), 0.0)
         tent = live & finite & ~shown & (self.tentative == "road_user")
+        rate = float(p.detector.params.rate_hz)
+        missed = np.rint((p.tracker.fused_at[rows][:, None] - p.tracker.t_update[rows]) * rate)
+        seen = np.stack([p.tracker.heading[rows], missed], axis=-1)
         return (np.concatenate([pos, np.where(tent[..., None], tracks, 0.0)], axis=1),
                 np.concatenate([take(ids), ids], axis=1), np.concatenate([conf, np.zeros_like(tent)], axis=1),
-                np.concatenate([np.zeros_like(conf), tent], axis=1))
+                np.concatenate([np.zeros_like(conf), tent], axis=1), np.concatenate([take(seen), seen], axis=1))
 
     def read(self, engine, rows, intent: np.ndarray):
         """The engine of what the car knows at this step (every row's ego; ``rows``' tracks), kept for
         :meth:`current`; returns it with only the confirmed tracks alive (the road users ``obs["intent"]``
         describes, nearest first, for :meth:`BeliefPlanner.read`). Updates the unseen traffic of ``rows``."""
         rows = np.asarray(rows, dtype=int)
-        obs, conf, tent = self._observed(engine, rows, np.asarray(intent))
-        self.engine, self._ticks = obs, engine.ticks.copy()
+        obs, conf, tent, ghost = self._observed(engine, rows, np.asarray(intent))
+        self.engine, self._ticks, self.tent, self.ghost = obs, engine.ticks.copy(), tent, ghost
         if self.unseen is not None and len(rows):
             self._look(engine, rows, obs)
         shown = copy.copy(obs)
         shown.traffic = copy.copy(obs.traffic)
         shown.traffic.alive = obs.traffic.alive & ~tent
+        # a ghost keeps its place among the described tracks (obs["intent"]'s order) but is nobody in the futures
+        obs.traffic.alive = obs.traffic.alive & ~ghost
         return shown
 
     def _observed(self, engine, rows: np.ndarray, intent: np.ndarray) -> tuple:
-        """The observed engine (ego in slot 0, then the tracks) and its confirmed / tentative slot masks."""
+        """The observed engine (ego in slot 0, then the tracks) and its confirmed / tentative / ghost slot masks."""
         src, B = engine.traffic, engine.B
-        pos, ids, conf, tent = self._tracks(rows)
+        pos, ids, conf, tent, seen = self._tracks(rows)
         M = pos.shape[1]
         t = Traffic(engine.T, B, N=M + 2)
         t.road_steps[:] = src.road_steps
@@ -298,8 +319,14 @@ class TrackBelief:
         sl = slice(1, M + 1)
         t.alive[rows, sl] = users
         x, y, vx, vy, h = (pos[..., k] for k in range(5))
+        speed = np.hypot(vx, vy)
+        if self.params.track_heading == "detected":
+            # the detector's heading (sd 0.05 rad a frame) for the pose the lane is matched from; the speed along
+            # it, negative where the filter's velocity points backwards (a car braking to a halt, backing)
+            h = np.where(users, seen[..., 0], h)
+            speed = vx * np.cos(h) + vy * np.sin(h)
         t.x[rows, sl], t.y[rows, sl], t.h[rows, sl] = x, y, h
-        t.v[rows, sl] = t.target[rows, sl] = speed = np.hypot(vx, vy)
+        t.v[rows, sl] = t.target[rows, sl] = np.maximum(speed, 0.0)
         # the tracks carry no crash flag: a road user standing still is taken to stay where it is (a crashed car
         # does; one held at a line is released later than the futures would have it go)
         t.crashed[rows, sl] = users & (speed < float(self.params.stopped))
@@ -312,10 +339,27 @@ class TrackBelief:
         acc = np.zeros(pos.shape[:2])
         acc[:, :m] = intent[:, :m, 0] * ACC_SCALE
         t.acc[rows, sl] = np.where(conf, acc, 0.0)
-        full_conf, full_tent = np.zeros((B, M + 2), bool), np.zeros((B, M + 2), bool)
+        full_conf, full_tent, full_ghost = (np.zeros((B, M + 2), bool) for _ in range(3))
         full_conf[rows, sl], full_tent[rows, sl] = conf, tent
+        full_ghost[rows, sl] = self._ghosts(t, rows, pos, users, seen[..., 1])
         obs = engine.observed(t, engine.time, engine.ticks, engine.episode_seed)
-        return obs, full_conf, full_tent
+        return obs, full_conf, full_tent, full_ghost
+
+    def _ghosts(self, t, rows: np.ndarray, pos: np.ndarray, users: np.ndarray, missed: np.ndarray) -> np.ndarray:
+        """(n, M): the road users of ``rows`` the detector has missed in the last ``ghost`` frames although their
+        place is in view now (in range, in the field of view, not behind a road user detected in this frame).
+        A car there is missed with ``miss_rate`` a frame (0.1: twice in a row 1 %): such a track is what the
+        tracker coasts on after its car left the constant-velocity path (a turn: the car's detections start a new
+        track), for up to ``max_coast``, straight on into lanes the car never takes."""
+        k = int(self.params.ghost)
+        if k <= 0 or not len(rows):
+            return np.zeros(users.shape, bool)
+        det = self.perception.detector.params
+        ego = np.stack([t.x[rows, 0], t.y[rows, 0], t.h[rows, 0]], axis=1)
+        occ = np.concatenate([pos[..., :2], pos[..., 4:7]], axis=-1)
+        seen = in_view(pos[..., 0], pos[..., 1], ego, occ, users & (missed == 0), float(det.max_range),
+                       float(np.radians(det.fov_deg) / 2), bool(det.occlusion))
+        return users & (missed >= k) & seen
 
     def _look(self, engine, rows: np.ndarray, obs) -> None:
         """Age ``rows``' cohorts to this policy step and, where the tracker fused a detector frame now, count a
@@ -329,7 +373,7 @@ class TrackBelief:
         r = rows[fused]
         t = obs.traffic
         ego = np.stack([t.x[r, 0], t.y[r, 0], t.h[r, 0]], axis=1)
-        pos, _, conf, _ = self._tracks(r)
+        pos, _, conf, _, _ = self._tracks(r)
         occ = np.concatenate([pos[..., :2], pos[..., 4:7]], axis=-1)
         u.look(r, u.in_view(ego, occ, conf))
 
@@ -379,6 +423,8 @@ class EnvTracks:
         self.id = mtt.track_ids(include_tentative=True)[None]
         self.n = np.array([len(all_tracks)])
         self.fused_at = np.array([float(mtt._fused_at)])
+        self.t_update = np.array([[tr.t_update for tr in mtt._tracks]], dtype=float).reshape(1, -1)
+        self.heading = np.array([[tr.heading for tr in mtt._tracks]], dtype=float).reshape(1, -1)
         self.last_tracks = self.wrapper._last[None]
 
     def tracks(self, rows) -> tuple[np.ndarray, np.ndarray]:

@@ -221,3 +221,84 @@ def test_a_track_standing_in_the_way_stays_there():
         assert crashed.sum(axis=1).tolist() == [int(stopped > 0)] * len(rows)
     np.testing.assert_array_equal(out[1.0], np.ones(2))
     assert (out[0.0] < out[1.0]).all()
+
+
+def _coasting_track(venv, r: int, track: tuple, missed: int, heading: float | None = None) -> None:
+    """Row ``r``'s tracker holds one confirmed track ``(x, y, vx, vy)`` (m, m/s) that the detector last updated
+    ``missed`` frames ago, its detected heading ``heading`` (rad; default: its velocity's)."""
+    _only_track(venv, r, track)
+    trk = venv.perception.tracker
+    rate = venv.perception.detector.params.rate_hz
+    trk.t_update[r, 0] = trk.fused_at[r] - missed / rate
+    if heading is not None:
+        trk.heading[r, 0] = heading
+
+
+def _decide_on(venv, planner, rows, obs) -> tuple:
+    """GO's collision probabilities on a copy of ``planner`` and the engine its futures started from."""
+    e = venv.engine
+    p = copy.deepcopy(planner, {id(venv.perception): venv.perception, id(e): e, id(planner.tracks.engine): None})
+    return _decide(p, e, rows, {"intent": np.zeros_like(obs["intent"])}), p.tracks
+
+
+def test_a_track_missed_while_in_view_is_nobody():
+    """An oncoming confirmed track on a collision course that the detector missed in the last 3 frames although it
+    is in plain view (what the tracker coasts on after its car turned off the constant-velocity path): nobody in the
+    futures with ``ghost`` 2 (GO), a road user with ``ghost`` 0 (YIELD) and while it was missed only once (YIELD).
+    The track keeps its place among the described road users (obs["intent"]'s order)."""
+    out = {}
+    for ghost, missed in ((2, 3), (0, 3), (2, 1)):
+        venv, planner, obs, rows = _batch([420_001, 420_002], 45, BeliefLookaheadParams(samples=16, unseen=0.0,
+                                                                                       ghost=ghost))
+        for r in rows:
+            _coasting_track(venv, int(r), (-2.0, -25.0, 0.0, 9.0), missed)
+        out[ghost, missed], tracks = _decide_on(venv, planner, rows, obs)
+        assert tracks.ghost[rows].sum(axis=1).tolist() == [int(ghost == 2 and missed == 3)] * len(rows)
+        # the ghost is out of the futures' start, not out of the engine the indicator readings attach to
+        assert (tracks.engine.traffic.alive[rows].sum(axis=1) == (1 if tracks.ghost[rows].any() else 2)).all()
+    np.testing.assert_array_equal(planner.label_of(out[2, 3]), np.full(len(rows), GO))
+    np.testing.assert_array_equal(planner.label_of(out[0, 3]), np.full(len(rows), YIELD))
+    np.testing.assert_array_equal(planner.label_of(out[2, 1]), np.full(len(rows), YIELD))
+
+
+def test_a_track_behind_a_detected_one_is_not_a_ghost():
+    """A track missed for 3 frames behind a track detected now (the detector's occlusion: it cannot have been
+    seen) stays a road user with ``ghost`` 2."""
+    venv, planner, obs, rows = _batch([420_001, 420_002], 45, BeliefLookaheadParams(samples=4, unseen=0.0, ghost=2))
+    trk, p, e = venv.perception.tracker, venv.perception, venv.engine
+    for r in rows:
+        _coasting_track(venv, int(r), (-2.0, -25.0, 0.0, 9.0), 3)
+        s = int(e.ego_slot([r])[0])
+        ex, ey = e.traffic.x[r, s], e.traffic.y[r, s]
+        # a second confirmed track, detected now, halfway between the ego and the first one
+        trk.n[r] = 2
+        for name in ("P", "t", "length", "width", "heading", "hits", "confirmed"):
+            getattr(trk, name)[r, 1] = getattr(trk, name)[r, 0]
+        trk.x[r, 1] = np.array([(ex - 2.0) / 2, (ey - 25.0) / 2, 0.0, 9.0])[:, None]
+        trk.t_update[r, 1], trk.id[r, 1] = trk.fused_at[r], 8
+        ego = np.array([[ex, ey]])
+        p.last_tracks[[r]] = tracks_observation(*trk.tracks([r]), ego, p.max_tracks)
+    _, tracks = _decide_on(venv, planner, rows, obs)
+    assert not tracks.ghost[rows].any()
+    assert (tracks.engine.traffic.alive[rows].sum(axis=1) == 3).all()
+
+
+def test_a_track_backing_up_stands_on_its_detected_heading():
+    """A confirmed track in the ego's turn whose filter velocity (1.5 m/s) points against its detected heading (a
+    car overshooting to a halt, backing): with ``track_heading`` detected its pose is the detected one and it
+    stands (the speed along its heading is negative): every GO future collides; with ``velocity`` it is turned
+    around onto the lane its velocity points along and drives off: fewer do."""
+    out = {}
+    for heading in ("detected", "velocity"):
+        venv, planner, obs, rows = _batch([420_001, 420_002], 45, BeliefLookaheadParams(
+            samples=16, unseen=0.0, track_heading=heading))
+        for r in rows:
+            _coasting_track(venv, int(r), (2.0, 2.0, 0.0, -1.5), 0, heading=np.pi / 2)
+        out[heading], tracks = _decide_on(venv, planner, rows, obs)
+        t = tracks.engine.traffic
+        slot = np.argmax(t.alive[rows] & ~t.ego[rows], axis=1)
+        h = t.h[rows, slot]
+        np.testing.assert_allclose(np.cos(h - np.pi / 2), 1.0 if heading == "detected" else -1.0, atol=1e-9)
+        assert t.crashed[rows, slot].tolist() == [heading == "detected"] * len(rows)
+    np.testing.assert_array_equal(out["detected"], np.ones(2))
+    assert (out["velocity"] < out["detected"]).all()

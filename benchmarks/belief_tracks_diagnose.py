@@ -1,0 +1,187 @@
+"""What the planner on tracks believed about the car it hit (docs/dagger.md, "What sensing costs"): validation
+episodes only.
+
+    python benchmarks/belief_tracks_diagnose.py --seeds 1000003 1000017 --set tentative=road_user
+
+Plays each seed with :class:`agents.belief.BeliefPlanner` on ``sensors=turn_perceived`` (``--set``:
+BeliefLookaheadParams fields) as ``eval.batched`` drives it. For a collision after a GO, the last GO decision before
+it is taken apart for the car hit (the "culprit"): its track against the simulator's vehicle (position, speed,
+acceleration, heading, closest lane, the planner's destination probabilities against the true route, the true
+set-point and regulation hold), and GO's collision probability again with one attribute of that track replaced by the
+simulator's (position and heading, speed, acceleration, lane): which part of the behaviour model made the planner go.
+Prints one JSON line per episode."""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # the checkout's agents/ and eval/
+
+SWAPS = {"pos": ("x", "y", "h"), "v": ("v", "target"), "acc": ("acc",), "lane": ("lane", "tlane", "route0")}
+
+
+def fail(message: str) -> None:
+    """One ``error:`` line on stderr, exit status 2 (bad input)."""
+    print(f"error: {message}", file=sys.stderr)
+    sys.exit(2)
+
+
+def _match(tracks_engine, engine, r: int) -> dict:
+    """Track slot -> (true slot, distance m) for row ``r``: the nearest simulator vehicle of each road user the
+    planner has."""
+    t, s = tracks_engine.traffic, engine.traffic
+    out = {}
+    others = np.flatnonzero(s.alive[r] & ~s.ego[r])
+    for j in np.flatnonzero(t.alive[r] & ~t.ego[r]):
+        d = np.hypot(s.x[r, others] - t.x[r, j], s.y[r, others] - t.y[r, j])
+        if len(d):
+            out[int(j)] = (int(others[np.argmin(d)]), float(d.min()))
+    return out
+
+
+def _swapped(planner, engine, r: int, j: int, i: int, what: tuple) -> float:
+    """GO's collision probability for row ``r`` with the track slot ``j``'s ``what`` replaced by the simulator's
+    vehicle ``i``'s."""
+    saved = planner.tracks.engine
+    e = copy.copy(saved)
+    e.traffic = saved.traffic.subset(np.arange(saved.B))
+    t, s = e.traffic, engine.traffic
+    for name in what:
+        if name == "route0":
+            t.route[r, j, 0] = s.lane[r, i]
+        else:
+            getattr(t, name)[r, j] = getattr(s, name)[r, i]
+    planner.tracks.engine = e
+    try:
+        return float(planner.go_collision(engine, np.array([r]))[0])
+    finally:
+        planner.tracks.engine = saved
+
+
+def _snapshot(planner, engine, r: int) -> dict:
+    """Every road user of row ``r`` at a GO decision: the track against its simulator vehicle, and GO's collision
+    probability with each attribute swapped for the truth."""
+    te = planner.tracks.engine
+    t, s = te.traffic, engine.traffic
+    out = {}
+    for j, (i, dist) in _match(te, engine, r).items():
+        probs = planner.turn_probabilities([r], t.vid[[r]])[0, j]
+        origin = planner._origin[t.lane[r, j]]
+        cand = ((origin + np.array([-1, 2, 1])) % 4).tolist()
+        true_dest = int(planner._dest[s.route[r, i, 2]]) if s.route[r, i, 2] >= 0 else -1
+        swaps = {k: _swapped(planner, engine, r, j, i, v) for k, v in SWAPS.items()}
+        swaps["all"] = _swapped(planner, engine, r, j, i, sum(SWAPS.values(), ()))
+        out[int(s.vid[r, i])] = {
+            "pos_err_m": round(dist, 2), "h_err_rad": round(float(np.angle(np.exp(1j * (t.h[r, j] - s.h[r, i])))), 3),
+            "v_track": round(float(t.v[r, j]), 2), "v_true": round(float(s.v[r, i]), 2),
+            "acc_track": round(float(t.acc[r, j]), 2), "acc_true": round(float(s.acc[r, i]), 2),
+            "lane_track": int(t.lane[r, j]), "lane_true": int(s.lane[r, i]), "crashed_track": bool(t.crashed[r, j]),
+            "p_dest": {int(c): round(float(p), 2) for c, p in zip(cand, probs)}, "true_dest": true_dest,
+            "target_true": round(float(s.target[r, i]), 2), "yielding_true": bool(s.yielding[r, i]),
+            "p_swapped": {k: round(v, 3) for k, v in swaps.items()}}
+    return out
+
+
+def _blame(planner, engine, r: int) -> dict:
+    """At a GO taken back: GO's collision probability for row ``r`` without each road user the planner has (and
+    without the unseen traffic), for those whose removal lowers it: which road user made the futures collide."""
+    saved, unseen = planner.tracks.engine, planner.tracks.unseen
+    base = float(planner.go_collision(engine, np.array([r]))[0])
+    s = engine.traffic
+    out = {"p": round(base, 3)}
+    planner.tracks.unseen = None
+    try:
+        out["no_unseen"] = round(float(planner.go_collision(engine, np.array([r]))[0]), 3)
+    finally:
+        planner.tracks.unseen = unseen
+    matched = _match(saved, engine, r)
+    tent = planner.tracks.tent
+    for j in np.flatnonzero(saved.traffic.alive[r] & ~saved.traffic.ego[r]):
+        e = copy.copy(saved)
+        e.traffic = saved.traffic.subset(np.arange(saved.B))
+        e.traffic.alive[r, j] = False
+        planner.tracks.engine = e
+        try:
+            p = float(planner.go_collision(engine, np.array([r]))[0])
+        finally:
+            planner.tracks.engine = saved
+        if p < base:
+            t = saved.traffic
+            i, dist = matched.get(int(j), (-1, np.inf))
+            out[f"slot{int(j)}"] = {"p_without": round(p, 3), "tentative": bool(tent[r, j]),
+                                   "true_dist_m": round(dist, 2), "v_track": round(float(t.v[r, j]), 2),
+                                   "v_true": round(float(s.v[r, i]), 2) if i >= 0 else None,
+                                   "acc_track": round(float(t.acc[r, j]), 2), "lane": int(t.lane[r, j]),
+                                   "lane_true": int(s.lane[r, i]) if i >= 0 else None,
+                                   "stands": bool(t.crashed[r, j]), "true_vid": int(s.vid[r, i]) if i >= 0 else None}
+    return out
+
+
+def main() -> None:
+    import yaml
+
+    from agents.belief import BeliefLookaheadParams, BeliefPlanner
+    from av_gym.batched.vec_env import BatchedLeftTurnBatch, meta_actions
+    from av_gym.errors import ConfigError
+    from av_gym.presets import compose_group
+    from av_gym.seeds import SPLITS
+    from av_gym.wrappers import GO, YIELD
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, nargs="+", required=True)
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
+    args = ap.parse_args()
+    if any(s not in SPLITS["validation"] for s in args.seeds):
+        fail(f"--seeds must be in the validation split {SPLITS['validation']}")
+    try:
+        point = {k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in args.set)}
+        params = BeliefLookaheadParams.from_mapping(point, "--set")
+    except (ValueError, ConfigError, yaml.YAMLError) as exc:
+        fail(str(exc).splitlines()[0])
+    B = len(args.seeds)
+    venv = BatchedLeftTurnBatch({"name": "left_turn"}, compose_group("sensors", "turn_perceived"), None, B, pool=0)
+    obs = venv.play(iter(args.seeds))
+    planner = BeliefPlanner(params, n_rows=B, perception=venv.perception)
+    planner.reset(np.arange(B))
+    engine = venv.engine
+    choice, k = np.full(B, YIELD), np.zeros(B, dtype=int)
+    history = [[] for _ in range(B)]  # (time s, choice, p) per decision
+    last_go = [None] * B
+    takeback = [[] for _ in range(B)]  # (time s, _blame) at each GO taken back
+    while not venv.idle.all():
+        rows = np.flatnonzero(~venv.idle)
+        planner.read(engine, rows, obs["intent"][rows])
+        due = rows[k[rows] % int(params.repeat) == 0]
+        if len(due):
+            p = planner.go_collision(engine, due)
+            before = choice[due].copy()
+            choice[due] = planner.label_of(p)
+            for r, pr in zip(due, p):
+                history[r].append((round(float(engine.time[r]), 1), int(choice[r]), round(float(pr), 3)))
+                if choice[r] == GO:
+                    last_go[r] = (float(engine.time[r]), _snapshot(planner, engine, int(r)))
+            for r, b in zip(due, before):
+                if b == GO and choice[r] != GO:
+                    takeback[r].append((round(float(engine.time[r]), 1), _blame(planner, engine, int(r))))
+        k[rows] += 1
+        obs, _, done, infos = venv.step(meta_actions(choice, obs["turn"]))
+        for r in np.flatnonzero(done):
+            m = infos[r]["episode_metrics"]
+            t = engine.traffic
+            hit = [int(t.vid[r, j]) for j in np.flatnonzero(t.alive[r] & t.crashed[r] & ~t.ego[r])]
+            go = last_go[r]
+            print(json.dumps({"seed": infos[r]["seed"], "collision": bool(m["collision"]),
+                              "success": bool(m["success"]), "end_s": round(float(engine.time[r]), 1), "hit": hit,
+                              "last_go_s": None if go is None else round(go[0], 1),
+                              "culprit": None if go is None else {v: go[1].get(v) for v in hit},
+                              "decisions": history[r][-8:], "taken_back": takeback[r][-2:]}), flush=True)
+
+
+if __name__ == "__main__":
+    main()
