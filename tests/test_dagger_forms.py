@@ -189,3 +189,41 @@ def test_a_steering_student_with_disagreement_weights_is_refused_before_any_fold
     assert line == ("agent.disagree_weight=2 needs discrete choices to disagree on (agent.actions=go_yield or "
                     "env.action=discrete); got agent.actions=env on env=lane_keeping"), line
     assert validate(_cfg("agent=dagger_turn_memory", "agent.disagree_weight=2")) == []
+
+
+def test_the_screen_fits_a_form_on_a_runs_aggregate_and_refuses_what_it_cannot_build(tmp_path, capsys):
+    """A tiny DAgger run (one round, the batched oracle), then ``python -m train.dagger_forms`` on it: the row
+    counts the run's labels and the form's own parameters (another head: another count), a bad --set and an --out that exists
+    are one line each and write nothing."""
+    import json
+
+    from omegaconf import OmegaConf
+    from test_dagger import _cfg
+
+    from av_gym.errors import ConfigError
+    from train.dagger import train_dagger
+    from train.dagger_forms import main
+
+    cfg = _cfg("agent=dagger_turn", "agent.rounds=1", "agent.round_episodes=2", "agent.n_envs=2",
+               "agent.fit_epochs=1", "train.eval_n=0", "train.progress_bar=false")
+    ckpt = tmp_path / "ckpt"
+    ckpt.mkdir()
+    (ckpt / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    train_dagger(cfg, ckpt, tmp_path / "run")
+    labels = int((ckpt / "rounds.csv").read_text().splitlines()[1].split(",")[3])
+    rows = []
+    for name, extra in (("plain", []), ("deep", ["--set", "agent.net_arch=[32,32,32]", "agent.disagree_weight=3"])):
+        main([str(ckpt), "--refits", "2", "--epochs", "1", "--episodes", "2", "--out", str(tmp_path / f"{name}.json"),
+              *extra])
+        rows.append(json.loads((tmp_path / f"{name}.json").read_text()))
+    assert [r["labels"] for r in rows] == [labels, labels] and rows[1]["set"][0] == "agent.net_arch=[32,32,32]"
+    assert rows[1]["parameters"] != rows[0]["parameters"]
+    assert all(0 <= r["val_success"] <= 1 and r["val_episodes"] == 2 for r in rows)
+    for bad, needle in ((["--set", "agent.no_such_field=1"], "--set takes agent.<field>=<value>"),
+                        (["--set", "agent.disagree_weight=0.5"], "disagree_weight")):
+        with pytest.raises(ConfigError, match=needle):
+            main([str(ckpt), "--out", str(tmp_path / "bad.json"), *bad])
+    with pytest.raises(SystemExit) as stop:
+        main([str(ckpt), "--out", str(tmp_path / "plain.json")])
+    assert stop.value.code == 2 and "--out" in capsys.readouterr().err
+    assert not (tmp_path / "bad.json").exists()
