@@ -168,7 +168,8 @@ def test_a_second_training_seed_extends_the_curve_and_keeps_its_record(tmp_path)
     after = (tmp_path / "curve.csv").read_text()
     got = list(csv.DictReader(open(tmp_path / "curve.csv")))
     assert [(r["series"], r["run"], r["labels"]) for r in got] == [
-        ("student", "dagger_curve_s1", "300"), ("student", "dagger_curve_s2", "310"), ("planner", "belief_lookahead", "")]
+        ("student", "dagger_curve_s1", "300"), ("student", "dagger_curve_s2", "310"),
+        ("planner", "belief_lookahead", "")]
     assert after.splitlines()[:2] == before.splitlines()[:2] and after.splitlines()[-1] == before.splitlines()[-1]
     again = _run("checkpoints/dagger_curve_s2/rounds.csv", "--curve", "curve.csv", "--extend", "--out", "c.png",
                  cwd=tmp_path)
@@ -193,8 +194,8 @@ def test_a_steering_student_with_disagreement_weights_is_refused_before_any_fold
 
 def test_the_screen_fits_a_form_on_a_runs_aggregate_and_refuses_what_it_cannot_build(tmp_path, capsys):
     """A tiny DAgger run (one round, the batched oracle), then ``python -m train.dagger_forms`` on it: the row
-    counts the run's labels and the form's own parameters (another head: another count), a bad --set and an --out that exists
-    are one line each and write nothing."""
+    counts the run's labels and the form's own parameters (another head: another count), a bad --set and an --out
+    that exists are one line each and write nothing."""
     import json
 
     from omegaconf import OmegaConf
