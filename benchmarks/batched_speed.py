@@ -1,6 +1,6 @@
-"""Batched left turn vs the per-env fast stack, side by side in one run: the compiled batch step, the compiled tick
-with numpy's spawn draws (the compiled step before its spawn kernels) and the numpy step (with the pairwise kernels:
-the engine before the compiled step), interleaved in one process.
+"""Batched left turn vs the per-env fast stack, side by side in one run: the compiled batch step, the compiled step
+with obs["turn"], truth and rewards in numpy (the step before those kernels: ``batched.OBSERVE_KERNELS`` left out)
+and the numpy step (with the pairwise kernels: the engine before the compiled step), interleaved in one process.
 
     python benchmarks/batched_speed.py [--sizes 1 4 16 64 256 1024] [--seconds 4] [--out docs/batched_speed.png]
     python benchmarks/batched_speed.py --sizes 256 1024 --seconds 6        # the sizes the targets name, ~2 min
@@ -38,10 +38,10 @@ from av_gym.make import highway_config
 from av_gym.sim import batched
 from conf.cli import Extend, ToolParser, items, number
 
-# the numpy step (the pairwise kernels only), the compiled tick with numpy's spawn draws and clearing (the compiled
-# step before its spawn kernels), the compiled step
+# the numpy step (the pairwise kernels only), the compiled step with obs["turn"], truth and rewards in numpy (before
+# their kernels), the compiled step
 PATHS = {"numpy step": batched.PAIRWISE_KERNELS,
-         "compiled tick, numpy spawns": frozenset(batched.KERNELS) - {"spawn", "clear"},
+         "compiled step, numpy obs": frozenset(batched.KERNELS) - batched.OBSERVE_KERNELS,
          "compiled step": frozenset(batched.KERNELS)}
 
 
@@ -197,12 +197,14 @@ def main() -> None:
     print(f"\nper-env fast stack + TurnFeatures: {base:.0f} steps/s before, {base_after:.0f} after; load {load()}\n")
     ref = 0.5 * (base + base_after)
     print("| B | " + " | ".join(f"{name}, steps/CPU-s" for name in PATHS) + " | per-env steps/CPU-s | "
-          + " | ".join(f"{name} / per-env" for name in PATHS) + " | compiled / numpy | state bytes / env |")
-    print("|---:" * (2 * len(PATHS) + 4) + "|")
+          + " | ".join(f"{name} / per-env" for name in PATHS)
+          + " | compiled / numpy | after / before | state bytes / env |")
+    print("|---:" * (2 * len(PATHS) + 5) + "|")
     for B, rates, mem in rows:
         print(f"| {B} | " + " | ".join(f"{rates[name]:.0f}" for name in PATHS) + f" | {ref:.0f} | "
               + " | ".join(f"{rates[name] / ref:.1f}" for name in PATHS)
-              + f" | {rates['compiled step'] / rates['numpy step']:.2f} | {mem:.0f} |")
+              + f" | {rates['compiled step'] / rates['numpy step']:.2f}"
+              + f" | {rates['compiled step'] / rates['compiled step, numpy obs']:.2f} | {mem:.0f} |")
     try:
         import matplotlib
 

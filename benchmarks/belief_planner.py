@@ -7,9 +7,9 @@
 
 Each (K, threshold, commit) plays the same episodes (``python -m eval``'s batched loop,
 :func:`eval.batched.play_batched`); one csv row per point (``--out``), with 95 % Wilson intervals and the labels/s of the planner alone (wall-clock of
-its futures) and of the whole run. ``--paths``: each point on every engine path (the numpy step, the compiled tick
-with numpy's spawns, the compiled step: benchmarks/batched_speed.py's PATHS), one after the other, with the
-planner's labels per CPU-second."""
+its futures) and of the whole run. ``--paths``: each point on every engine path (the numpy step, the compiled step
+with obs["turn"], truth and rewards in numpy, the compiled step: benchmarks/batched_speed.py's PATHS), one after the
+other, with the planner's labels per CPU-second."""
 
 from __future__ import annotations
 

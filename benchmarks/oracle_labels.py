@@ -206,7 +206,7 @@ def perceived(episodes: int, B: int, seed: int) -> tuple[int, int, int, float, f
 
 def path_rates(plain, seeds, B: int) -> tuple[dict, int, int]:
     """The batched oracle on each engine path (benchmarks/batched_speed.py's PATHS: the numpy step, the compiled
-    tick with numpy's spawns, the compiled step) labelling the same states in turn, a seeded :class:`Coin` driving
+    step with obs["turn"], truth and rewards in numpy, the compiled step) labelling the same states in turn, a seeded :class:`Coin` driving
     on the compiled path: labels per CPU-second of each, and how many labels (of how many) the numpy step and the
     compiled step agree on."""
     from agents.batched_oracle import oracle_labels

@@ -451,3 +451,166 @@ def test_spawn_kernels_draw_the_numpy_spawns(philox):
     assert a[-1][-2].max() > 16 * 12  # many vehicles were spawned
     slots = [int(s[-1]) for s in a]
     assert any(m > n for n, m in zip(slots, slots[1:]))  # a spawn found its row full: the arrays grew
+
+
+# ------------------------------------------------------------------------------------------------ obs["turn"], truth
+F32 = 2.0**-23  # one float32 rounding step of features in [-1, 1]: where a last-bit float64 difference crosses one
+
+
+def _feature_inputs(rng, n: int, N: int) -> tuple:
+    """Random egos and others around the intersection: duplicated others (exact distance ties), others exactly at
+    the ego, invalid rows, NaN rows, others beyond 80 m, values beyond their scales (clipped), a NaN ego time."""
+    ego = {"x": rng.uniform(-20, 20, n), "y": rng.uniform(-20, 20, n), "heading": rng.uniform(-np.pi, np.pi, n),
+           "speed": rng.uniform(0, 15, n), "set_point": rng.choice([0.0, 4.5, 9.0], n),
+           "stop_line_offset": rng.uniform(-40, 40, n), "distance_to_conflict": rng.uniform(-10, 50, n),
+           "time": rng.uniform(0, 30, n)}
+    ego["time"][0] = np.nan
+    others = np.concatenate([rng.uniform(-120, 120, (n, N, 2)), rng.normal(0, 12, (n, N, 2))], axis=-1)
+    dup = rng.random((n, N)) < 0.25
+    others[dup] = np.broadcast_to(others[:, :1], others.shape)[dup]
+    at_ego = rng.random((n, N)) < 0.05
+    others[at_ego, 0], others[at_ego, 1] = np.broadcast_to(ego["x"][:, None], (n, N))[at_ego], \
+        np.broadcast_to(ego["y"][:, None], (n, N))[at_ego]
+    others[rng.random((n, N)) < 0.05] = np.nan
+    return ego, others, rng.random((n, N)) < 0.85
+
+
+@pytest.mark.parametrize("seed,N,max_objects", [(0, 12, 8), (1, 5, 8), (2, 0, 8), (3, 30, 16)])
+def test_turn_features_kernel_is_the_numpy_function(monkeypatch, seed, N, max_objects):
+    """obs["turn"] compiled (kernels.turn_features, both stacks) against the numpy function: the same described
+    objects in the same order (ties in row order, NaN and invalid rows last) and the same features to one float32
+    rounding step. Mutations that fail it: ties taken last (``_before``'s ``<`` as ``<=``); the present test's
+    ``<=`` max_range as ``<``; an object's ``left`` with ``+ ry * c`` dropped."""
+    from av_gym.envs.left_turn import CONFLICT_POINT
+    from av_gym.estimation.turn_features import TurnFeaturesParams, turn_features
+
+    _, config = highway_config({"name": "left_turn"})
+    bt = BatchedLeftTurn(1, config)
+    ego, others, valid = _feature_inputs(np.random.default_rng(seed), 96, N)
+    if N:
+        others[:, -1, :2] = np.stack([ego["x"] + 80.0, ego["y"]], axis=1)  # exactly at max_range: described
+    params = TurnFeaturesParams(max_objects=max_objects)
+    outs = []
+    for kset in (sb.KERNELS - {"turn_features"}, sb.KERNELS):
+        monkeypatch.setattr(sb, "KERNELS", kset)
+        outs.append(turn_features(ego, others, valid, bt.path, bt.path_s, CONFLICT_POINT, params))
+    (want, w_order, w_present), (got, g_order, g_present) = outs
+    assert got.dtype == np.float32 and got.shape == want.shape
+    assert np.array_equal(g_order, w_order) and np.array_equal(g_present, w_present)
+    assert _same(got, want, rel=F32)
+    if N:  # described and left-out objects, clipped values, the object exactly at max_range described
+        assert w_present.any() and (~w_present).any() and (np.abs(want) == 1.0).any()
+        assert (w_present & (w_order == N - 1)).any()
+
+
+def _observe_lockstep(monkeypatch, config: dict, B: int, steps: int, seed: int, continuous: bool = False) -> dict:
+    """Step an engine with obs["turn"], truth and rewards in numpy (sb.OBSERVE_KERNELS left out) and, from the same
+    state each step, a fork with them compiled: the same rewards, terminations, progress, route hints, truth and
+    features (features to one float32 rounding step). Returns counts of what the steps exercised."""
+    numpy_path = sb.KERNELS - sb.OBSERVE_KERNELS
+    compiled = set(sb.KERNELS)
+    monkeypatch.setattr(sb, "KERNELS", numpy_path)
+    ref = BatchedLeftTurn(B, config, pool=8)
+    ref.reset(list(range(seed, seed + B)))
+    rng = np.random.default_rng(seed)
+    seen = {"crashed": 0, "arrived": 0, "described": 0}
+    for step in range(steps):
+        a = rng.uniform(-1, 1, B) if continuous else np.where(rng.random(B) < 0.6, 1, rng.integers(0, 3, B))
+        active = rng.random(B) < 0.9
+        fork = ref.fork(np.arange(B))
+        monkeypatch.setattr(sb, "KERNELS", compiled)
+        got = fork.step(a, active)
+        got_obs, got_truth = fork.observe(), fork.last_truth
+        rows = np.nonzero(active)[0][::2]
+        got_rows = fork.truth(rows)
+        monkeypatch.setattr(sb, "KERNELS", numpy_path)
+        want = ref.step(a, active)
+        want_obs, want_truth = ref.observe(), ref.last_truth
+        want_rows = ref.truth(rows)
+        for u, w in zip(got, want):
+            assert _same(u, w), f"step {step}: reward / terminated / truncated"
+        for name in ("progress_s", "_route_k"):
+            assert _same(getattr(fork, name), getattr(ref, name)), f"step {step}: {name}"
+        assert _same(got_obs, want_obs, rel=F32), f"step {step}: obs['turn']"
+        for g, w in ((got_truth, want_truth), (got_rows, want_rows)):
+            assert g.keys() == w.keys()
+            for k in w:
+                assert _same(g[k], w[k]), f"step {step}: truth {k}"
+        for u, w in zip(fork.described, ref.described):
+            assert np.array_equal(u, w), f"step {step}: described"
+        seen["crashed"] += int(want_truth["collision"].sum())
+        seen["arrived"] += int(want_truth["arrived"].sum())
+        seen["described"] += int(ref.described[1].sum())
+        done = np.nonzero(want[1] | want[2])[0]
+        if len(done):
+            ref.start_from_pool(done)
+    return seen
+
+
+@pytest.mark.parametrize("env", [{}, {"mode": "ccftap"}, {"action": "continuous"}])
+def test_truth_features_and_rewards_kernels_step_as_the_numpy_code(monkeypatch, env):
+    """kernels.truth, observe and rewards against BatchedLeftTurn's numpy truth, observe and _reward, step by step
+    from the same state (route positions moving along the route, progress, crashes, arrivals). Mutations that
+    fail it: the stop line's ``+ LENGTH / 2`` as ``-``; the comfort term's ``/ 3.0`` as ``/ 3.1``. (The route
+    hint's step back never happens in these runs: an ego does not reverse.)"""
+    _, config = highway_config({"name": "left_turn", **env})
+    seen = _observe_lockstep(monkeypatch, config, 16, 120, seed=5, continuous="action" in env)
+    assert seen["described"] and (env or (seen["crashed"] and seen["arrived"]))  # ego crashes and arrivals
+
+
+def test_the_per_env_stack_computes_its_features_with_the_kernel(monkeypatch):
+    """TurnFeatures (the per-env wrapper) calls the same compiled function with one row: along per-env episodes its
+    feature vectors and described objects are the numpy function's (to one float32 rounding step)."""
+    import gymnasium as gym
+
+    from av_gym.estimation.turn_features import TurnFeatures
+
+    env_id, config = highway_config({"name": "left_turn"})
+    env = TurnFeatures(gym.make(env_id, config=config))
+    rng = np.random.default_rng(0)
+    env.reset(seed=7)
+    compared = 0
+    for _ in range(120):
+        _, _, term, trunc, info = env.step(int(rng.integers(0, 3)))
+        others = info["truth"]["others"][:, :4]
+        outs = []
+        for kset in (sb.KERNELS - {"turn_features"}, sb.KERNELS):
+            monkeypatch.setattr(sb, "KERNELS", kset)
+            outs.append((env.features(info["truth"], others), env.described.copy()))
+        assert _same(outs[1][0], outs[0][0], rel=F32) and np.array_equal(outs[1][1], outs[0][1])
+        compared += len(outs[0][1])
+        if term or trunc:
+            env.reset(seed=int(rng.integers(1000)))
+    env.close()
+    assert compared > 100
+
+
+def test_a_shipped_student_decides_as_on_the_numpy_features():
+    """The committed dagger_turn (trained on the numpy features) on 200 validation episodes on the batch: every
+    episode's metrics identical with obs["turn"], truth and rewards compiled and in numpy (the rest compiled both
+    times): the kernels change no decision of a shipped checkpoint."""
+    from av_gym.make import make_env
+    from eval.agents import plan_agent, resolve_agent
+    from eval.batched import run_episodes_batched
+
+    from tests.conftest import conf
+
+    env_cfg = conf("env", "left_turn")
+    plan = plan_agent("dagger_turn", "left_turn", conf("sensors", "truth"), {"name": "none", "kind": "none"},
+                      "checkpoints")
+    env = make_env(env_cfg, plan.sensors, plan.shield)
+    label, policy = resolve_agent(plan.spec, env, "left_turn", "checkpoints")
+    env.close()
+    seeds = list(range(1_000_000, 1_000_200))
+    rows = []
+    for kset in (sb.KERNELS - sb.OBSERVE_KERNELS, set(sb.KERNELS)):
+        with sb.using_kernels(kset):
+            rows.append(run_episodes_batched(env_cfg, plan, policy, seeds, 100, label, progress=False))
+    assert len(rows[0]) == len(rows[1]) == 200
+    for want, got in zip(*rows):  # the same episode: its outcome and length exactly, its metrics to _numerics' REL
+        assert want.keys() == got.keys()
+        for k in ("seed", "collision", "success", "length", "truncated", "stopped"):
+            assert want[k] == got[k], (want["seed"], k)
+        for k, w in want.items():
+            assert k == "agent" or _same(w, got[k]), (want["seed"], k)
+    assert len({r["collision"] for r in rows[0]}) == 2 and len({r["success"] for r in rows[0]}) == 2

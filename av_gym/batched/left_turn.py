@@ -18,7 +18,7 @@ from highway_env import utils
 
 from av_gym.envs.left_turn import CONFLICT_POINT, ONCOMING_NEAR_EDGE_X, ROUTE, UnprotectedLeftTurnEnv
 from av_gym.estimation.turn_features import (IntentHistory, TurnEncoding, TurnFeaturesParams, TurnIntentParams,
-                                            turn_features, turn_path)
+                                            T_MAX, turn_features, turn_path)
 from av_gym.sensors.base import episode_rng
 from av_gym.sensors.turn_signal import (DriverDraws, TurnSignalsParams, node_index, read_signals, route_origin,
                                        turn_signal)
@@ -34,6 +34,7 @@ _SPAWN_FLAGS, _SPAWN_INTS = ("crashed", "yielding", "has_impact"), ("lane", "tla
 _CLEAR_FLAGS = ("alive", "ego", "plain", "mdp", *_SPAWN_FLAGS)  # kernels.clear_exits' ``bl`` (alive, ego first)
 
 _TABLES = None
+_NOT_READ = object()  # a row whose generator's state address was not read yet (BatchedLeftTurn._row_states)
 
 
 def tables() -> tuple[LaneTable, object]:
@@ -106,6 +107,7 @@ class BatchedLeftTurn:
         self.pool_size = int(pool)
         self._pending: list = []  # generators whose next episode is not made yet
         self._ready, self._ready_rngs, self._ready_seeds = None, [], []
+        self._state_rngs, self._states = None, None  # the generator addresses of _row_states
 
     # ------------------------------------------------------------------------------------------- traffic draws
     def _spawn(self, t: Traffic, b: int, rng, longitudinal: float = 0.0, position_deviation: float = 1.0,
@@ -172,7 +174,7 @@ class BatchedLeftTurn:
         it (growing the slots by 8, as on numpy's path) and settles it, and the tries go on after its row."""
         if "spawn" not in batched.KERNELS or self._spawn_table is None:
             return False
-        states = kernels.generator_states([self.rngs[b] for b in rows])
+        states = self._row_states(rows)
         if states is None:
             return False
         start, pending, stop = 0, np.zeros(9), [-1]
@@ -191,6 +193,25 @@ class BatchedLeftTurn:
             t.settle(np.array([b]), np.array([slot]))
             start = stop[0] + 1
         return True
+
+    def _row_states(self, rows: np.ndarray) -> np.ndarray | None:
+        """kernels.generator_states of the generators of ``rows``, reading only those of rows whose generator
+        changed since it was last read (a state's address is fixed for its generator's life; reading B of them
+        costs ~1.5 us each, most of a step's spawn tries at B = 1,024). ``_state_rngs`` holds the generators whose
+        addresses ``_states`` caches, so none of them is freed while cached."""
+        if self._state_rngs is None or len(self._state_rngs) != self.B:
+            self._state_rngs, self._states = [_NOT_READ] * self.B, np.zeros(self.B, dtype=np.uint64)
+        cached, rngs = self._state_rngs, self.rngs
+        stale = [b for b in rows if rngs[b] is not cached[b]]
+        if stale:
+            read = kernels.generator_states([rngs[b] for b in stale])
+            if read is None:
+                return None
+            self._states[stale] = read
+            for b in stale:
+                cached[b] = rngs[b]
+        states = self._states[rows]
+        return states if len(np.unique(states)) == len(states) else None  # a generator shared by two rows
 
     def _spawn_call(self, t: Traffic, states: np.ndarray, call) -> None:
         """:meth:`_spawn_kernel`'s call, with the lane table, the prior and ``t``'s state arrays."""
@@ -424,7 +445,9 @@ class BatchedLeftTurn:
         for name in self._ROW_ARRAYS:
             setattr(f, name, getattr(self, name)[rows].copy())
         f._new, f._pending, f._ready, f._ready_rngs, f._ready_seeds = [], [], None, [], []
-        f.pool_size = 0
+        f.pool_size, f._state_rngs, f._states = 0, None, None
+        if self._state_rngs is not None and len(self._state_rngs) == self.B:  # _row_states' reads carried over
+            f._state_rngs, f._states = [self._state_rngs[r] for r in rows], self._states[rows]
         return f
 
     def keep(self, rows) -> "BatchedLeftTurn":
@@ -544,10 +567,8 @@ class BatchedLeftTurn:
         else:
             self._ticks(rows, ~active, meta, cmd)
         t.trim()
-        reward = np.zeros(self.B)
-        reward[rows], terminated, truncated = self._reward(rows), np.zeros(self.B, bool), np.zeros(self.B, bool)
-        e = self.ego_slot(rows)
-        crashed, arrived = t.crashed[rows, e], self.has_arrived(rows, e)
+        reward, terminated, truncated = np.zeros(self.B), np.zeros(self.B, bool), np.zeros(self.B, bool)
+        reward[rows], crashed, arrived = self._reward(rows)
         if self.ccftap:  # the episode runs on until the target has passed, so an ego parked in its path is hit
             terminated[rows] = crashed | (arrived & self.target_passed(rows))
         else:
@@ -581,13 +602,20 @@ class BatchedLeftTurn:
         j = np.argmax(t.plain[rows], axis=1)
         return t.y[rows, j] - LENGTH / 2 > 12.0
 
-    def _reward(self, rows: np.ndarray) -> np.ndarray:
-        """UnprotectedLeftTurnEnv._reward for the envs ``rows``."""
+    def _reward(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """UnprotectedLeftTurnEnv._reward for the envs ``rows``, and whether each ego crashed and has arrived."""
         c, t = self.config, self.traffic
-        e = self.ego_slot(rows)
         dt = 1.0 / c["policy_frequency"]
-        v = t.v[rows, e]
         lo, hi = c["reward_speed_range"]
+        if "reward" in batched.KERNELS:  # the same terms in one call (kernels.rewards)
+            prm = np.array([c["high_speed_reward"], lo, hi, dt, c["progress_reward"], c["comfort_reward"],
+                            c["collision_reward"], c["arrived_reward"], batched.EXIT_DISTANCE], dtype=float)
+            return kernels.rewards(self.T.arr, self.T.rules, self.route, self.route_starts,
+                                   np.asarray(rows, dtype=np.int64), *batched._contiguous(t, "x", "y", "v", "acc",
+                                                                                          "ego", "crashed", "lane"),
+                                   self._route_k, self.progress_s, self.progress_total, prm)
+        e = self.ego_slot(rows)
+        v = t.v[rows, e]
         reward = c["high_speed_reward"] * np.clip((v - lo) / (hi - lo), 0, 1) * dt
         if c["progress_reward"]:
             s = self._route_s(rows)
@@ -598,7 +626,8 @@ class BatchedLeftTurn:
             reward = reward - c["comfort_reward"] * (t.acc[rows, e] / 3.0) ** 2 * dt
         crashed = t.crashed[rows, e]
         arrived = self.has_arrived(rows, e)
-        return reward + np.where(crashed, c["collision_reward"], np.where(arrived, c["arrived_reward"], 0.0))
+        return reward + np.where(crashed, c["collision_reward"], np.where(arrived, c["arrived_reward"], 0.0)), \
+            crashed, arrived
 
     # ------------------------------------------------------------------------------------------- truth, obs
     def truth(self, rows=None) -> dict:
@@ -606,6 +635,8 @@ class BatchedLeftTurn:
         ``others`` is not built per env here: :meth:`others` gives (rows, N, 7) with a mask."""
         rows = np.arange(self.B) if rows is None else np.asarray(rows)
         t = self.traffic
+        if "truth" in batched.KERNELS:  # the same fields in one call (kernels.truth)
+            return self._truth_dict(kernels.truth(*self._truth_args(rows)))
         e = self.ego_slot(rows)
         route_s = self._route_s(rows)
         x, y, h, v = t.x[rows, e], t.y[rows, e], t.h[rows, e], t.v[rows, e]
@@ -621,6 +652,22 @@ class BatchedLeftTurn:
                 "oncoming_gap": corner_x.min(axis=1) - ONCOMING_NEAR_EDGE_X,
                 "collision": t.crashed[rows, e].copy(), "arrived": self.has_arrived(rows, e),
                 "arrived_time": self.arrived_time[rows].copy(), "set_point": t.target[rows, e].copy()}
+
+    def _truth_args(self, rows: np.ndarray, *extra: str) -> tuple:
+        """kernels.truth's arguments for the envs ``rows`` (the state arrays made contiguous in place); ``extra``
+        state arrays after ``target`` (kernels.observe's ``alive``)."""
+        geo = np.array([LENGTH, WIDTH, self.conflict_s, ONCOMING_NEAR_EDGE_X, batched.EXIT_DISTANCE])
+        state = batched._contiguous(self.traffic, "x", "y", "h", "v", "steer", "acc", "target", *extra, "ego",
+                                    "crashed", "lane")
+        return (self.T.arr, self.T.rules, self.route, self.route_starts, geo, np.asarray(rows, dtype=np.int64),
+                *state, self._route_k, self.time, self.arrived_time)
+
+    def _truth_dict(self, columns: np.ndarray) -> dict:
+        """kernels.truth's (n, 17) columns as :meth:`truth`'s dict (collision and arrived as bools)."""
+        tr = {name: columns[:, k] for k, name in enumerate(kernels.TRUTH_FIELDS)}
+        tr["collision"], tr["arrived"] = tr["collision"] != 0.0, tr["arrived"] != 0.0
+        self._lat = tr["cte"]
+        return tr
 
     def ttc(self, rows=None) -> np.ndarray:
         """``info["truth"]["ttc"]`` for the envs ``rows``: av_gym.geometry.constant_velocity_ttc (the first time on
@@ -702,6 +749,13 @@ class BatchedLeftTurn:
         """TurnFeatures.features (source=truth) for the envs ``rows``: (len(rows), width) float32, by the same
         function (:func:`av_gym.estimation.turn_features.turn_features`) for all of them at once."""
         rows = np.arange(self.B) if rows is None else np.asarray(rows)
+        if {"truth", "turn_features"} <= batched.KERNELS:  # truth and features in one call (kernels.observe)
+            enc = TurnEncoding.of(self.features)
+            columns, out, order, present = kernels.observe(
+                *self._truth_args(rows, "alive"), self.path, self.path_s, CONFLICT_POINT, enc.max_objects,
+                float(self.features.max_range), enc.ego_scales, enc.object_scales, T_MAX)
+            self.last_truth, self.described = self._truth_dict(columns), (order, present)
+            return out
         t, tr = self.traffic, self.truth(rows)
         self.last_truth = tr
         v, h = t.v[rows], t.h[rows]

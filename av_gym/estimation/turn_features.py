@@ -283,8 +283,20 @@ def turn_features(ego: dict, others: np.ndarray, valid: np.ndarray, path: np.nda
 
     Returns the features (n, width) float32, and which rows of ``others`` they describe: ``order`` (n,
     min(max_objects, N)) indices, nearest first (ties in row order), and ``present`` (n, same): that row is a road
-    user within ``max_range`` (a described object)."""
+    user within ``max_range`` (a described object). Both stacks run it compiled (av_gym.sim.kernels.turn_features,
+    the same formulas) while ``av_gym.sim.batched.KERNELS`` names "turn_features"; the numpy code below stays its
+    reference (tests/test_kernels.py compares them)."""
     enc = TurnEncoding.of(params)
+    from av_gym.sim import batched as _batched
+
+    if "turn_features" in _batched.KERNELS:  # the same formulas compiled (av_gym.sim.kernels.turn_features)
+        from av_gym.sim import kernels
+
+        inputs = np.stack([np.asarray(ego[k], dtype=float) for k in EGO_INPUTS], axis=1)
+        return kernels.turn_features(inputs, np.ascontiguousarray(others, dtype=float),
+                                     np.ascontiguousarray(valid, dtype=bool), path, path_s,
+                                     np.asarray(conflict, dtype=float), enc.max_objects, float(params.max_range),
+                                     enc.ego_scales, enc.object_scales, T_MAX)
     M, n = enc.max_objects, len(others)
     ex, ey = ego["x"][:, None], ego["y"][:, None]
     d = np.where(valid, np.hypot(others[..., 0] - ex, others[..., 1] - ey), np.inf)

@@ -46,10 +46,16 @@ from av_gym.sim import kernels
 # tries and a reset's initial traffic and challenger drawn in kernels from each env's own generator
 # (BatchedLeftTurn._spawn's draws, the same stream: kernels.spawn_tries and the generator draws above them);
 # ``clear``: the step's removal of vehicles at the end of a leaving lane and the compaction (kernels.clear_exits).
-KERNELS = {"front", "collisions", "conflicts", "closest", "ttc", "idm", "tick", "path_conflict", "spawn", "clear"}
+# ``turn_features``: obs["turn"] (av_gym.estimation.turn_features.turn_features, both stacks: kernels.turn_features);
+# ``truth``: BatchedLeftTurn.truth, and observe's truth and features in one call (kernels.truth, kernels.observe);
+# ``reward``: the step's rewards, crashes and arrivals (kernels.rewards).
+KERNELS = {"front", "collisions", "conflicts", "closest", "ttc", "idm", "tick", "path_conflict", "spawn", "clear",
+           "turn_features", "truth", "reward"}
 # the pairwise kernels alone, the numpy step around them: the engine before the compiled tick, which the
 # benchmarks time beside the compiled one (benchmarks/batched_speed.py, oracle_labels.py, belief_planner.py)
 PAIRWISE_KERNELS = frozenset({"front", "collisions", "conflicts", "closest", "ttc", "idm"})
+# obs["turn"], truth and rewards compiled: without them, the compiled step before they were (the benchmarks' "before")
+OBSERVE_KERNELS = frozenset({"turn_features", "truth", "reward"})
 
 # highway-env constants (IntersectionEnv._make_vehicles sets the IDM class attributes to these)
 LENGTH, WIDTH = 5.0, 2.0

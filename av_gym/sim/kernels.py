@@ -690,34 +690,246 @@ def _predict_one(lt, b, i, x, y, h, v, plain, lane, route, rpos, reg_times, px, 
 @numba.njit(cache=True)
 def path_conflict(p, v, path, path_s, t_max):
     """turn_features.path_conflict for (n, M, 2) positions ``p`` and velocities ``v``: per object the
-    constant-velocity closest approach to each point of the ego's ``path`` (P, 2), t* = clip(-(p - c)·v / max(|v|²,
-    1e-6), 0, t_max) and miss = hypot(p + v t* - c); the first point of least miss gives t* (s), miss (m) and its
-    ``path_s`` (m). The same sums in the same order as the numpy code (two terms each)."""
+    constant-velocity closest approach to each point of the ego's ``path`` (P, 2) (:func:`_closest_approach`);
+    returns t* (s), miss (m) and the path point's ``path_s`` (m), each (n, M)."""
     n, M, P = p.shape[0], p.shape[1], path.shape[0]
     t_out, miss_out, s_out = np.empty((n, M)), np.empty((n, M)), np.empty((n, M))
     tk, qx, qy, q2 = np.empty(P), np.empty(P), np.empty(P), np.empty(P)
     for a in range(n):
         for m in range(M):
-            px, py, vx, vy = p[a, m, 0], p[a, m, 1], v[a, m, 0], v[a, m, 1]
-            vv = max(vx * vx + vy * vy, 1e-6)
-            m2 = np.inf
-            for k in range(P):
-                dx, dy = px - path[k, 0], py - path[k, 1]
-                tk[k] = min(max(-(dx * vx + dy * vy) / vv, 0.0), t_max)
-                qx[k], qy[k] = dx + vx * tk[k], dy + vy * tk[k]
-                q2[k] = qx[k] * qx[k] + qy[k] * qy[k]
-                m2 = min(m2, q2[k])
-            # the least miss is among the points whose squared miss is within 1e-9 of the least (hypot's and the
-            # square's rounding are a few ulp): hypot only for those, the first of equal minima as np.argmin
-            best, kb = np.inf, 0
-            for k in range(P):
-                if q2[k] <= m2 * (1.0 + 1e-9):
-                    miss = math.hypot(qx[k], qy[k])
-                    if miss < best:
-                        best, kb = miss, k
-            t_out[a, m], miss_out[a, m], s_out[a, m] = tk[kb], best, path_s[kb]
+            t_out[a, m], miss_out[a, m], s_out[a, m] = _closest_approach(p[a, m, 0], p[a, m, 1], v[a, m, 0],
+                                                                         v[a, m, 1], path, path_s, t_max, tk, qx,
+                                                                         qy, q2)
     return t_out, miss_out, s_out
 
+
+@numba.njit(cache=True, inline="always")
+def _closest_approach(px, py, vx, vy, path, path_s, t_max, tk, qx, qy, q2):
+    """One object's constant-velocity closest approach to each point c of ``path``: t* = clip(-(p - c)·v /
+    max(|v|², 1e-6), 0, t_max) and miss = hypot(p + v t* - c); the first point of least miss gives (t* (s), miss
+    (m), its ``path_s`` (m)). The same sums in the same order as the numpy code (two terms each); ``tk``, ``qx``,
+    ``qy``, ``q2`` (P,) are scratch."""
+    P = path.shape[0]
+    vv = max(vx * vx + vy * vy, 1e-6)
+    m2 = np.inf
+    for k in range(P):
+        dx, dy = px - path[k, 0], py - path[k, 1]
+        tk[k] = min(max(-(dx * vx + dy * vy) / vv, 0.0), t_max)
+        qx[k], qy[k] = dx + vx * tk[k], dy + vy * tk[k]
+        q2[k] = qx[k] * qx[k] + qy[k] * qy[k]
+        m2 = min(m2, q2[k])
+    # the least miss is among the points whose squared miss is within 1e-9 of the least (hypot's and the square's
+    # rounding are a few ulp): hypot only for those, the first of equal minima as np.argmin
+    best, kb = np.inf, 0
+    for k in range(P):
+        if q2[k] <= m2 * (1.0 + 1e-9):
+            miss = math.hypot(qx[k], qy[k])
+            if miss < best:
+                best, kb = miss, k
+    return tk[kb], best, path_s[kb]
+
+
+# ------------------------------------------------------------------------------------------------ obs["turn"], truth
+# The turn features (av_gym.estimation.turn_features.turn_features) and the batch's truth and rewards
+# (BatchedLeftTurn.truth / _reward / observe) in one call each: numpy's formulas in numpy's order; only cos / sin /
+# tan / atan / atan2 are the C library's (numpy's own SIMD code on AVX-512 builds: the last bit may differ there).
+# ego inputs of a feature row (turn_features.EGO_INPUTS' order)
+E_X, E_Y, E_HEADING, E_SPEED, E_SET_POINT, E_STOP_LINE, E_TO_CONFLICT, E_TIME = range(8)
+# truth's columns (BatchedLeftTurn.truth's keys, in TRUTH_FIELDS' order)
+TRUTH_FIELDS = ("time", "x", "y", "heading", "speed", "yaw_rate", "acceleration", "steering", "route_s", "cte",
+                "stop_line_offset", "distance_to_conflict", "oncoming_gap", "collision", "arrived", "arrived_time",
+                "set_point")
+(T_TIME, T_X, T_Y, T_HEADING, T_SPEED, T_YAW_RATE, T_ACC, T_STEER, T_ROUTE_S, T_CTE, T_STOP_LINE, T_TO_CONFLICT,
+ T_ONCOMING_GAP, T_COLLISION, T_ARRIVED, T_ARRIVED_TIME, T_SET_POINT) = range(17)
+# truth's geometry (``geo``): vehicle length, width (m), the conflict point's route position (m), the oncoming
+# lane's near edge x (m), the arrival distance along a leaving lane (m)
+G_LENGTH, G_WIDTH, G_CONFLICT_S, G_ONCOMING_EDGE, G_EXIT_DISTANCE = range(5)
+# rewards' parameters (``prm``): UnprotectedLeftTurnEnv._reward's config values, its dt (s) and the arrival distance
+(R_SPEED_REWARD, R_SPEED_LO, R_SPEED_HI, R_DT, R_PROGRESS, R_COMFORT, R_COLLISION, R_ARRIVED,
+ R_EXIT_DISTANCE) = range(9)
+
+
+@numba.njit(cache=True, inline="always")
+def _encode(value, scale):
+    """TurnEncoding.encode for one value: value / scale clipped to [-1, 1], NaN → 0, as float32."""
+    q = value / scale
+    if math.isnan(q):
+        return np.float32(0.0)
+    return np.float32(min(max(q, -1.0), 1.0))
+
+
+@numba.njit(cache=True, inline="always")
+def _before(a, b):
+    """np.argsort's order of two distances: NaN after every number, else the smaller first."""
+    return not math.isnan(a) and (math.isnan(b) or a < b)
+
+
+@numba.njit(cache=True)
+def _features_row(out, order, present, a, ego, others, valid, path, path_s, conflict, max_range, ego_scales,
+                  obj_scales, t_max, d, idx, tk, qx, qy, q2):
+    """turn_features for one ego: ``ego`` (8,) its EGO_INPUTS (SI), ``others`` (N, ≥4) ``[x, y, vx, vy]`` (m, m/s)
+    with ``valid`` (N,); writes row ``a`` of ``out`` (n, width) float32, ``order`` and ``present`` (n, m).
+    ``d``, ``idx`` (N,) and ``tk``, ``qx``, ``qy``, ``q2`` (P,) are scratch."""
+    N, m, F = others.shape[0], order.shape[1], obj_scales.shape[0]
+    ex, ey, ev = ego[E_X], ego[E_Y], ego[E_SPEED]
+    for j in range(N):
+        d[j] = math.hypot(others[j, 0] - ex, others[j, 1] - ey) if valid[j] else np.inf
+        idx[j] = j
+    for j in range(1, N):  # np.argsort(kind="stable"): insertion, so equal distances stay in row order
+        cur, k = idx[j], j
+        while k > 0 and _before(d[cur], d[idx[k - 1]]):
+            idx[k] = idx[k - 1]
+            k -= 1
+        idx[k] = cur
+    out[a, 0], out[a, 1] = _encode(ev, ego_scales[0]), _encode(ego[E_SET_POINT], ego_scales[1])
+    out[a, 2], out[a, 3] = _encode(-ego[E_STOP_LINE], ego_scales[2]), _encode(ego[E_TO_CONFLICT], ego_scales[3])
+    out[a, 4] = _encode(ego[E_TIME], ego_scales[4])
+    c, s = math.cos(ego[E_HEADING]), math.sin(ego[E_HEADING])
+    for r in range(m):
+        j = idx[r]
+        order[a, r], present[a, r] = j, d[j] <= max_range
+        if not present[a, r]:  # a zero row (out starts as zeros)
+            continue
+        ox, oy, ovx, ovy = others[j, 0], others[j, 1], others[j, 2], others[j, 3]
+        rx, ry = ox - ex, oy - ey  # relative position and velocity in the ego frame (x forward, y left)
+        rvx, rvy = ovx - ev * c, ovy - ev * s
+        t_star, miss, ps = _closest_approach(ox, oy, ovx, ovy, path, path_s, t_max, tk, qx, qy, q2)
+        row = (1.0, rx * c + ry * s, rx * -s + ry * c, rvx * c + rvy * s, rvx * -s + rvy * c, ox - conflict[0],
+               oy - conflict[1], ovx, ovy, t_star, miss, ps)
+        for f in range(F):
+            out[a, ego_scales.shape[0] + F * r + f] = _encode(row[f], obj_scales[f])
+
+
+@numba.njit(cache=True)
+def turn_features(ego, others, valid, path, path_s, conflict, max_objects, max_range, ego_scales, obj_scales,
+                  t_max):
+    """av_gym.estimation.turn_features.turn_features for n egos: ``ego`` (n, 8) EGO_INPUTS, ``others`` (n, N, ≥4)
+    with ``valid`` (n, N); the encoding's scales. Returns the features (n, width) float32, ``order`` and
+    ``present`` (n, min(max_objects, N)), as the numpy function."""
+    n, N = valid.shape
+    m = min(max_objects, N)
+    out = np.zeros((n, ego_scales.shape[0] + obj_scales.shape[0] * max_objects), dtype=np.float32)
+    order, present = np.zeros((n, m), dtype=np.int64), np.zeros((n, m), dtype=np.bool_)
+    d, idx = np.empty(N), np.empty(N, dtype=np.int64)
+    P = path.shape[0]
+    tk, qx, qy, q2 = np.empty(P), np.empty(P), np.empty(P), np.empty(P)
+    for a in range(n):
+        _features_row(out, order, present, a, ego[a], others[a], valid[a], path, path_s, conflict, max_range,
+                      ego_scales, obj_scales, t_max, d, idx, tk, qx, qy, q2)
+    return out, order, present
+
+
+@numba.njit(cache=True, inline="always")
+def _ego_of(ego, b):
+    """The first ego slot of env b (slot 0 if none, as np.argmax)."""
+    for j in range(ego.shape[1]):
+        if ego[b, j]:
+            return j
+    return 0
+
+
+@numba.njit(cache=True, inline="always")
+def _route_position(lt, route, route_starts, route_k, b, x, y):
+    """BatchedLeftTurn._route_s for one ego at (x, y) (LanePath.locate from the hint ``route_k[b]``, which it moves
+    along): the route position (m) and the lateral offset (m)."""
+    R = route.shape[0]
+    k = route_k[b]
+    s, lat = _local(lt, route[k], x, y)
+    step = 1 if s > lt[route[k], LENGTH] else (-1 if s < 0 else 0)
+    for _ in range(R):
+        if step == 0 or k + step < 0 or k + step >= R:
+            break
+        k += step
+        s, lat = _local(lt, route[k], x, y)
+        if (step > 0 and s <= lt[route[k], LENGTH]) or (step < 0 and s >= 0):
+            step = 0
+    route_k[b] = k
+    return route_starts[k] + s, lat
+
+
+@numba.njit(cache=True)
+def truth(lt, lanes, route, route_starts, geo, rows, x, y, h, v, steer, acc, target, ego, crashed, lane, route_k,
+          time, arrived_time):
+    """BatchedLeftTurn.truth for the envs ``rows``: (n, 17) float, columns TRUTH_FIELDS (collision and arrived as
+    0 / 1); ``route_k`` moves along as _route_s moves it. ``geo``: G_* values."""
+    n = rows.shape[0]
+    out = np.empty((n, len(TRUTH_FIELDS)))
+    half_l, half_w = geo[G_LENGTH] / 2, geo[G_WIDTH] / 2
+    for a in range(n):
+        b = rows[a]
+        e = _ego_of(ego, b)
+        xe, ye, he, ve = x[b, e], y[b, e], h[b, e], v[b, e]
+        route_s, lat = _route_position(lt, route, route_starts, route_k, b, xe, ye)
+        beta = math.atan(0.5 * math.tan(steer[b, e]))
+        c, s = math.cos(he), math.sin(he)
+        gap = np.inf
+        for sx, sy in ((-1.0, -1.0), (-1.0, 1.0), (1.0, 1.0), (1.0, -1.0)):  # the box's corners, rear left first
+            gap = min(gap, xe + sx * half_l * c - sy * half_w * s)
+        o = out[a]
+        o[T_TIME], o[T_X], o[T_Y], o[T_HEADING], o[T_SPEED] = time[b], xe, ye, he, ve
+        o[T_YAW_RATE], o[T_ACC], o[T_STEER] = ve * math.sin(beta) / half_l, acc[b, e], steer[b, e]
+        o[T_ROUTE_S], o[T_CTE], o[T_STOP_LINE] = route_s, lat, route_s + half_l - route_starts[1]
+        o[T_TO_CONFLICT], o[T_ONCOMING_GAP] = geo[G_CONFLICT_S] - route_s, gap - geo[G_ONCOMING_EDGE]
+        o[T_COLLISION] = 1.0 if crashed[b, e] else 0.0
+        o[T_ARRIVED] = 1.0 if _arrived(lt, lanes, b, x, y, ego, lane, geo[G_EXIT_DISTANCE]) else 0.0
+        o[T_ARRIVED_TIME], o[T_SET_POINT] = arrived_time[b], target[b, e]
+    return out
+
+
+@numba.njit(cache=True)
+def observe(lt, lanes, route, route_starts, geo, rows, x, y, h, v, steer, acc, target, alive, ego, crashed, lane,
+            route_k, time, arrived_time, path, path_s, conflict, max_objects, max_range, ego_scales, obj_scales,
+            t_max):
+    """BatchedLeftTurn.observe for the envs ``rows``: :func:`truth`'s columns, then :func:`turn_features` of each
+    ego with every other vehicle of its env (``[x, y, v cos h, v sin h]``). Returns (truth, features, order,
+    present)."""
+    tr = truth(lt, lanes, route, route_starts, geo, rows, x, y, h, v, steer, acc, target, ego, crashed, lane,
+               route_k, time, arrived_time)
+    n, N, P = rows.shape[0], x.shape[1], path.shape[0]
+    m = min(max_objects, N)
+    out = np.zeros((n, ego_scales.shape[0] + obj_scales.shape[0] * max_objects), dtype=np.float32)
+    order, present = np.zeros((n, m), dtype=np.int64), np.zeros((n, m), dtype=np.bool_)
+    others, valid, inputs = np.empty((N, 4)), np.empty(N, dtype=np.bool_), np.empty(8)
+    d, idx = np.empty(N), np.empty(N, dtype=np.int64)
+    tk, qx, qy, q2 = np.empty(P), np.empty(P), np.empty(P), np.empty(P)
+    for a in range(n):
+        b = rows[a]
+        for j in range(N):
+            others[j, 0], others[j, 1] = x[b, j], y[b, j]
+            others[j, 2], others[j, 3] = v[b, j] * math.cos(h[b, j]), v[b, j] * math.sin(h[b, j])
+            valid[j] = alive[b, j] and not ego[b, j]
+        inputs[E_X], inputs[E_Y], inputs[E_HEADING], inputs[E_SPEED] = tr[a, T_X], tr[a, T_Y], tr[a, T_HEADING], \
+            tr[a, T_SPEED]
+        inputs[E_SET_POINT], inputs[E_STOP_LINE] = tr[a, T_SET_POINT], tr[a, T_STOP_LINE]
+        inputs[E_TO_CONFLICT], inputs[E_TIME] = tr[a, T_TO_CONFLICT], tr[a, T_TIME]
+        _features_row(out, order, present, a, inputs, others, valid, path, path_s, conflict, max_range, ego_scales,
+                      obj_scales, t_max, d, idx, tk, qx, qy, q2)
+    return tr, out, order, present
+
+
+@numba.njit(cache=True)
+def rewards(lt, lanes, route, route_starts, rows, x, y, v, acc, ego, crashed, lane, route_k, progress_s,
+            progress_total, prm):
+    """UnprotectedLeftTurnEnv._reward (BatchedLeftTurn._reward) for the envs ``rows``, the progress and route hint
+    updated in place; ``prm``: R_* values. Returns the rewards, and whether each ego crashed and has arrived."""
+    n = rows.shape[0]
+    reward, crashed_out, arrived_out = np.empty(n), np.empty(n, dtype=np.bool_), np.empty(n, dtype=np.bool_)
+    lo, hi, dt = prm[R_SPEED_LO], prm[R_SPEED_HI], prm[R_DT]
+    for a in range(n):
+        b = rows[a]
+        e = _ego_of(ego, b)
+        r = prm[R_SPEED_REWARD] * min(max((v[b, e] - lo) / (hi - lo), 0.0), 1.0) * dt
+        if prm[R_PROGRESS] != 0.0:
+            s = _route_position(lt, route, route_starts, route_k, b, x[b, e], y[b, e])[0]
+            gain = s - progress_s[b]
+            r = r + prm[R_PROGRESS] * (gain if gain > 0.0 or math.isnan(gain) else 0.0) / progress_total[b]
+            progress_s[b] = s if s > progress_s[b] or math.isnan(s) else progress_s[b]
+        if prm[R_COMFORT] != 0.0:
+            r = r - prm[R_COMFORT] * (acc[b, e] / 3.0) ** 2 * dt
+        crashed_out[a] = crashed[b, e]
+        arrived_out[a] = _arrived(lt, lanes, b, x, y, ego, lane, prm[R_EXIT_DISTANCE])
+        reward[a] = r + (prm[R_COLLISION] if crashed_out[a] else (prm[R_ARRIVED] if arrived_out[a] else 0.0))
+    return reward, crashed_out, arrived_out
 
 
 # ------------------------------------------------------------------------------------------------ generator draws
