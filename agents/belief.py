@@ -102,6 +102,12 @@ class BeliefLookaheadParams(AgentParams):
                                                        "view, not behind a track detected now) is nobody in the "
                                                        "futures (the tracker coasts on it after its car left the "
                                                        "constant-velocity path); 0: every track is a road user")
+    track_lag: float = param(0.0, "s", ge=0, le=1, doc="on tracks: a described track's speed is its filter's plus "
+                                                       "this times the acceleration the intent features measure: "
+                                                       "the constant-velocity filter's speed trails a car "
+                                                       "accelerating at a by 0.20 s x a in steady state (the "
+                                                       "default tracker at 10 Hz, 10-60 m of range); 0: the "
+                                                       "filter's speed")
 
 
 class BeliefPlanner:

@@ -325,6 +325,13 @@ class TrackBelief:
             # it, negative where the filter's velocity points backwards (a car braking to a halt, backing)
             h = np.where(users, seen[..., 0], h)
             speed = vx * np.cos(h) + vy * np.sin(h)
+        # the acceleration the intent features measure, for the described tracks (nearest first, as obs["intent"])
+        m = min(intent.shape[1], M)
+        acc = np.zeros(pos.shape[:2])
+        acc[:, :m] = intent[:, :m, 0] * ACC_SCALE
+        acc = np.where(conf, acc, 0.0)
+        # the constant-velocity filter's speed trails an accelerating car by track_lag s times its acceleration
+        speed = speed + float(self.params.track_lag) * acc
         t.x[rows, sl], t.y[rows, sl], t.h[rows, sl] = x, y, h
         t.v[rows, sl] = t.target[rows, sl] = np.maximum(speed, 0.0)
         # the tracks carry no crash flag: a road user standing still is taken to stay where it is (a crashed car
@@ -334,11 +341,7 @@ class TrackBelief:
         t.lane[rows, sl] = t.tlane[rows, sl] = np.where(users, lane, 0)
         t.route[rows, sl, 0] = np.where(users, lane, -1)
         t.vid[rows, sl] = ids + 1
-        # the acceleration the intent features measure, for the described tracks (nearest first, as obs["intent"])
-        m = min(intent.shape[1], M)
-        acc = np.zeros(pos.shape[:2])
-        acc[:, :m] = intent[:, :m, 0] * ACC_SCALE
-        t.acc[rows, sl] = np.where(conf, acc, 0.0)
+        t.acc[rows, sl] = acc
         full_conf, full_tent, full_ghost = (np.zeros((B, M + 2), bool) for _ in range(3))
         full_conf[rows, sl], full_tent[rows, sl] = conf, tent
         full_ghost[rows, sl] = self._ghosts(t, rows, pos, users, seen[..., 1])

@@ -120,6 +120,8 @@ def _blame(planner, engine, r: int) -> dict:
                                    "acc_track": round(float(t.acc[r, j]), 2), "lane": int(t.lane[r, j]),
                                    "lane_true": int(s.lane[r, i]) if i >= 0 else None,
                                    "stands": bool(t.crashed[r, j]), "true_vid": int(s.vid[r, i]) if i >= 0 else None}
+    ghosts = np.flatnonzero(planner.tracks.ghost[r]) if planner.tracks.ghost is not None else []
+    out["ghosts"] = len(ghosts)  # tracks left out of the futures (track_prior.TrackBelief._ghosts)
     return out
 
 

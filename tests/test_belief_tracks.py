@@ -13,6 +13,7 @@ from agents.belief import BeliefLookaheadParams, BeliefPlanner
 from agents.track_prior import UnseenTraffic
 from av_gym.batched.perception import tracks_observation
 from av_gym.batched.vec_env import BatchedLeftTurnBatch, meta_actions
+from av_gym.estimation.turn_features import ACC_SCALE
 from av_gym.presets import compose_group
 from av_gym.wrappers import GO, YIELD
 from tests.test_belief import rerandomise
@@ -302,3 +303,26 @@ def test_a_track_backing_up_stands_on_its_detected_heading():
         assert t.crashed[rows, slot].tolist() == [heading == "detected"] * len(rows)
     np.testing.assert_array_equal(out["detected"], np.ones(2))
     assert (out["velocity"] < out["detected"]).all()
+
+
+def test_an_accelerating_track_starts_at_the_filters_speed_plus_its_lag():
+    """The constant-velocity filter's speed trails an accelerating car (0.2 s x its acceleration in steady
+    state): with ``track_lag`` 0.2 a described track measured at 3 m/s² starts its futures 0.6 m/s faster than the
+    filter's speed; with 0 at the filter's speed."""
+    speeds = {}
+    for lag in (0.2, 0.0):
+        venv, planner, obs, rows = _batch([420_001, 420_002], 45, BeliefLookaheadParams(samples=4, unseen=0.0,
+                                                                                       track_lag=lag))
+        for r in rows:
+            _coasting_track(venv, int(r), (-2.0, -25.0, 0.0, 6.0), 0)
+        intent = np.zeros_like(obs["intent"])
+        intent[:, 0, 0] = 3.0 / ACC_SCALE  # the nearest described track accelerates at 3 m/s²
+        p = copy.deepcopy(planner, {id(venv.perception): venv.perception, id(venv.engine): venv.engine,
+                                    id(planner.tracks.engine): None})
+        _decide(p, venv.engine, rows, {"intent": intent})
+        t = p.tracks.engine.traffic
+        slot = np.argmax(t.alive[rows] & ~t.ego[rows], axis=1)
+        speeds[lag] = t.v[rows, slot]
+        np.testing.assert_allclose(t.acc[rows, slot], 3.0, rtol=1e-6)
+    np.testing.assert_allclose(speeds[0.0], 6.0, rtol=1e-6)
+    np.testing.assert_allclose(speeds[0.2], 6.6, rtol=1e-6)
