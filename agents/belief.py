@@ -251,6 +251,12 @@ class BeliefPlanner:
                            enumerate(zip(self._kind, self._origin, self._dest)) if kd == 1}
             self._approach = {int(o): k for k, (kd, o) in enumerate(zip(self._kind, self._origin)) if kd == 0}
             self._exit = {int(d): k for k, (kd, d) in enumerate(zip(self._kind, self._dest)) if kd == 2}
+            # the same maps as arrays over approach / exit indices 0-3 (index -1, "none", gives -1 as .get does)
+            self._approach_of, self._exit_of, self._cross_of = np.full(5, -1), np.full(5, -1), np.full((5, 5), -1)
+            for table, keys in ((self._approach_of, self._approach), (self._exit_of, self._exit),
+                                (self._cross_of, self._cross)):
+                for key, k in keys.items():
+                    table[key] = k
         n, N = len(rows), engine.traffic.N  # a fork keeps the slot count
         drivers = engine.traffic.alive[rows] & ~engine.traffic.ego[rows] & ~engine.traffic.plain[rows]  # (n, N)
         # every draw of a decision from its own stream: the planner's seed, the episode, the decision's tick
@@ -281,9 +287,7 @@ class BeliefPlanner:
         kind, origin = self._kind[lane], self._origin[lane]
         origin = np.where(kind == 2, (self._dest[lane] + 2) % 4, origin)  # on the exit road the origin is unused
         o = np.broadcast_to(origin[:, None, :], dest.shape)
-        appr = np.vectorize(lambda a: self._approach.get(int(a), -1))(o)
-        cross = np.vectorize(lambda a, b: self._cross.get((int(a), int(b)), -1))(o, dest)
-        exit_ = np.vectorize(lambda b: self._exit.get(int(b), -1))(dest)
+        appr, cross, exit_ = self._approach_of[o], self._cross_of[o, dest], self._exit_of[dest]
         route = np.stack([appr, cross, exit_], axis=-1).reshape(n * K, N, 3)
         rpos = np.broadcast_to(kind[:, None, :], dest.shape).reshape(n * K, N)
         m = np.repeat(drivers, K, axis=0)  # (n·K, N)
@@ -366,8 +370,7 @@ class BeliefPlanner:
         if inside.any():
             b, j = np.nonzero(inside)
             x, y, h = src.x[rows][b, j], src.y[rows][b, j], src.h[rows][b, j]
-            lanes = np.vectorize(lambda a, c: self._cross.get((int(a), int(c)), -1))(origin[b, j][:, None],
-                                                                                       cand[b, j])
+            lanes = self._cross_of[origin[b, j][:, None], cand[b, j]]
             d = np.stack([T.distance_with_heading(lanes[:, k], x, y, h) for k in range(3)], axis=1)
             fits = d <= d.min(axis=1, keepdims=True) + self.gate
             q = p[b, j] * fits
