@@ -81,3 +81,27 @@ def test_shield_decisions_are_the_same_with_the_footprint_kernel_and_with_numpy(
             predict.FOOTPRINT_KERNEL = True
     assert any(s[0] == 2 for s in runs[0])  # it does brake
     assert runs[0] == runs[1]
+
+
+@pytest.mark.parametrize("delay, jerk", [(0.15, 30.0), (0.0, 0.0), (0.33, 12.5)])
+def test_the_brake_profile_is_the_actuator_applied_tick_by_tick(delay, jerk):
+    """BrakeActuator.profile (compiled: kernels.brake_profile), what the shield predicts braking does, equals the
+    actuator's per-tick command (BrakeActuator.command, what the per-env shield applies to the ego every tick)
+    integrated as highway-env's Vehicle.step does, bit for bit: the delay at the car's own acceleration, the
+    jerk-limited ramp, never reversing."""
+    from av_gym.shields.actuator import BrakeActuator
+
+    rng = np.random.default_rng(3)
+    act = BrakeActuator(delay=delay, jerk=jerk)
+    for _ in range(200):
+        v0, a_before, dt = float(rng.uniform(0.0, 14.0)), float(rng.uniform(-2.0, 2.0)), 0.05
+        xs, vs = act.profile(v0, a_before, 4.0, dt)
+        act.engage(0.0)
+        x, v = 0.0, v0
+        for i in range(len(xs)):
+            a = act.command(i * dt, v, dt)
+            x += v * dt
+            v = max(v + (a_before if a is None else a) * dt, 0.0)
+            assert (xs[i], vs[i]) == (x, v)
+        act.release()
+    assert vs[-1] == 0.0

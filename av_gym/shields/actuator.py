@@ -47,17 +47,14 @@ class BrakeActuator:
     def profile(self, v0: float, a_before: float, duration: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """Distance (m) and speed (m/s) after each tick of ``dt`` s over ``duration`` s when the brake is commanded
         now at speed ``v0`` and the vehicle keeps ``a_before`` (m/s²) during the delay; integrated like
-        highway-env's ``Vehicle.step`` (position with the speed before the update)."""
+        highway-env's ``Vehicle.step`` (position with the speed before the update); the ticks in one compiled call
+        (:func:`av_gym.shields.kernels.brake_profile`, :meth:`deceleration`'s arithmetic: the shield asks for ~40
+        ticks several times per decision)."""
+        from av_gym.shields.kernels import brake_profile
+
         n = int(np.ceil(duration / dt - 1e-9))
-        x, v = 0.0, max(float(v0), 0.0)
-        xs, vs = np.empty(n), np.empty(n)
-        for i in range(n):
-            d = self.deceleration(i * dt, dt)
-            a = a_before if d is None else max(-d, -v / dt)
-            x += v * dt
-            v = max(v + a * dt, 0.0)
-            xs[i], vs[i] = x, v
-        return xs, vs
+        return brake_profile(max(float(v0), 0.0), float(a_before), n, float(dt), float(self.decel),
+                             float(self.delay), float(self.jerk))
 
     def stopping_distance(self, v0: float, a_before: float, dt: float) -> tuple[float, float]:
         """Distance (m) and time (s) to standstill when braking is commanded now."""

@@ -320,3 +320,25 @@ def footprint_hit(ego_xy, ego_h, length, width, oxy, oh, osize, reach, rear):
                     continue
             return k, m
     return -1, -1
+
+
+# ----------------------------------------------------------------------------------------------- brake actuator
+@numba.njit(cache=True)
+def brake_profile(v0, a_before, n, dt, decel, delay, jerk):
+    """:meth:`av_gym.shields.actuator.BrakeActuator.profile`'s ticks: distance (m) and speed (m/s) after each of
+    ``n`` ticks of ``dt`` s when the brake is commanded at speed ``v0`` (already clipped at 0) and the vehicle keeps
+    ``a_before`` (m/s²) during the ``delay``: the deceleration of :meth:`BrakeActuator.deceleration`, never
+    reversing; the same float operations in the same order (plain IEEE arithmetic, no transcendental)."""
+    xs, vs = np.empty(n), np.empty(n)
+    x, v = 0.0, v0
+    for i in range(n):
+        elapsed = i * dt
+        if elapsed < delay - 1e-9:
+            a = a_before
+        else:
+            d = decel if jerk <= 0 else min(decel, jerk * (elapsed - delay + dt))
+            a = max(-d, -v / dt)
+        x += v * dt
+        v = max(v + a * dt, 0.0)
+        xs[i], vs[i] = x, v
+    return xs, vs
