@@ -256,14 +256,18 @@ def test_driven_path_kernel_equals_the_numpy_reference(make, turn_cfg):
             assert_same(h[m], ref_h, f"trial {trial}, object {m}: headings")
 
 
-def test_shield_decisions_are_the_same_with_the_kernel_and_with_numpy(make, turn_cfg):
-    """A traffic episode with braking and release (seed 1001), every step's decision, with the compiled look-up
-    and with the numpy reference (DrivenPath.kernel False)."""
-    from av_gym.shields.predict import DrivenPath
+@pytest.mark.parametrize("switch", ["DrivenPath.kernel", "FOOTPRINT_KERNEL"])
+def test_shield_decisions_are_the_same_with_the_kernel_and_with_numpy(make, turn_cfg, switch):
+    """A traffic episode with braking and release (seed 1001), every step's decision, with the compiled driven-path
+    look-up / footprint test and with its numpy reference (``switch`` False: DrivenPath.poses_numpy,
+    predict.footprint_ttc_numpy)."""
+    from av_gym.shields import predict
 
+    owner = predict.DrivenPath if switch == "DrivenPath.kernel" else predict
+    name = switch.split(".")[-1]
     runs = []
     for kernel in (True, False):
-        DrivenPath.kernel = kernel
+        setattr(owner, name, kernel)
         try:
             env = make(turn_cfg, None, shield())
             policy = AlwaysProceed(env.unwrapped.cruise_action())
@@ -275,7 +279,7 @@ def test_shield_decisions_are_the_same_with_the_kernel_and_with_numpy(make, turn
                 done = terminated or truncated
             runs.append(steps)
         finally:
-            DrivenPath.kernel = True
+            setattr(owner, name, True)
     assert any(s[0] == 2 for s in runs[0])  # it does brake
     assert runs[0] == runs[1]
 
