@@ -687,13 +687,13 @@ class BatchedLeftTurn:
         t, n = self.traffic, len(rows)
         horizon, dt = float(self.config["ttc_horizon"]), 0.05
         grid = np.arange(0.0, horizon + 1e-9, dt)
+        if "ttc" in batched.KERNELS:  # the same intervals and box tests, pair by pair (av_gym/sim/kernels.py)
+            return kernels.ttc_rows(np.asarray(rows, dtype=np.int64), *batched._contiguous(t, "x", "y", "h", "v",
+                                                                                          "alive", "ego"),
+                                    grid, horizon, dt, LENGTH, WIDTH)
         K = len(grid)
         out = np.full(n, np.inf)
         e = self.ego_slot(rows)
-        if "ttc" in batched.KERNELS:  # the same intervals and box tests, pair by pair (av_gym/sim/kernels.py)
-            rx, ry, rh, rv = (np.ascontiguousarray(a[rows]) for a in (t.x, t.y, t.h, t.v))
-            return kernels.ttc(rx, ry, rh, rv, np.ascontiguousarray(t.alive[rows] & ~t.ego[rows]), e, grid, horizon,
-                               dt, LENGTH, WIDTH)
         ex, ey, eh, ev = t.x[rows, e], t.y[rows, e], t.h[rows, e], t.v[rows, e]
         evx, evy = ev * np.cos(eh), ev * np.sin(eh)
         other = t.alive[rows] & ~t.ego[rows]

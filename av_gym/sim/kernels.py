@@ -331,62 +331,93 @@ def _any_inside(c1, s1, x1, y1, c2, s2, x2, y2, lx, ly, hl, hw):
 
 
 @numba.njit(cache=True)
-def ttc(x, y, h, v, other, e, grid, horizon, dt, length, width):
-    """BatchedLeftTurn.ttc for (n, N) rows with the ego in slot ``e`` (n,): per pair, the constant-velocity
-    overlap interval [t_in, t_out] from the four separating axes, then the per-env box test (geometry.box_corners /
-    boxes_overlap arithmetic) at the grid times first..last around it, in ascending order: the first hit is the
-    pair's time (the numpy code tests first..first+3, then the rest if none hit: the same times, the same minimum)."""
-    n, N = x.shape
-    K = grid.shape[0]
+def ttc_rows(rows, x, y, h, v, alive, ego, grid, horizon, dt, length, width):
+    """BatchedLeftTurn.ttc for the envs ``rows`` of the batch's (B, N) state (:func:`_ttc_one` per env): the ego its
+    first ego slot (slot 0 if none, as np.argmax), the others every other live vehicle; +inf where none is hit."""
+    n, N = rows.shape[0], x.shape[1]
     out = np.full(n, np.inf)
-    hl, hw = 0.5 * length, 0.5 * width
-    lx = np.array([hl, hl, -hl, -hl])
-    ly = np.array([hw, -hw, -hw, hw])
     ca, cb = np.empty((4, 2)), np.empty((4, 2))
+    other = np.empty(N, dtype=np.bool_)
     for m in range(n):
-        ex, ey, eh, ev = x[m, e[m]], y[m, e[m]], h[m, e[m]], v[m, e[m]]
-        evx, evy = ev * math.cos(eh), ev * math.sin(eh)
-        ce, se = math.cos(eh), math.sin(eh)
+        b = rows[m]
         for j in range(N):
-            if not other[m, j]:
-                continue
-            oh = h[m, j]
-            ovx, ovy = v[m, j] * math.cos(oh), v[m, j] * math.sin(oh)
-            px, py = x[m, j] - ex, y[m, j] - ey
-            wx, wy = ovx - evx, ovy - evy
-            t_in, t_out = -np.inf, np.inf
-            for a in range(4):
-                theta = eh if a == 0 else eh + math.pi / 2 if a == 1 else oh if a == 2 else oh + math.pi / 2
-                ux, uy = math.cos(theta), math.sin(theta)
-                half = length / 2 * (abs(math.cos(eh - theta)) + abs(math.cos(oh - theta))) \
-                    + width / 2 * (abs(math.sin(eh - theta)) + abs(math.sin(oh - theta)))
-                q, r = ux * px + uy * py, ux * wx + uy * wy
-                if r != 0.0:
-                    ta, tb = (-half - q) / r, (half - q) / r
-                    lo, hi = min(ta, tb), max(ta, tb)
-                elif abs(q) <= half:
-                    lo, hi = -np.inf, np.inf
-                else:
-                    lo, hi = np.inf, -np.inf
-                t_in, t_out = max(t_in, lo), min(t_out, hi)
-            if not (t_in <= t_out + dt and t_out >= -dt and t_in <= horizon + dt):
-                continue
-            first = min(max(int(math.floor(max(t_in, 0.0) / dt)) - 1, 0), K - 1)
-            last = min(max(int(math.ceil(min(t_out, horizon) / dt)) + 1, 0), K - 1)
-            co, so = math.cos(oh), math.sin(oh)
-            for k in range(first, last + 1):
-                tk = grid[k]
-                if tk >= out[m]:
-                    break
-                ax, ay = ex + tk * evx, ey + tk * evy
-                bx, by = x[m, j] + tk * ovx, y[m, j] + tk * ovy
-                for p in range(4):  # box_corners: centre + rot @ local
-                    ca[p, 0], ca[p, 1] = ax + (ce * lx[p] + -se * ly[p]), ay + (se * lx[p] + ce * ly[p])
-                    cb[p, 0], cb[p, 1] = bx + (co * lx[p] + -so * ly[p]), by + (so * lx[p] + co * ly[p])
-                if _boxes_overlap(ca, cb):
-                    out[m] = tk
-                    break
+            other[j] = alive[b, j] and not ego[b, j]
+        out[m] = _ttc_one(x[b], y[b], h[b], v[b], other, _ego_of(ego, b), grid, horizon, dt, length, width, ca, cb)
     return out
+
+
+@numba.njit(cache=True)
+def _ttc_one(x, y, h, v, other, e, grid, horizon, dt, length, width, ca, cb):
+    """One env's TTC (rows ``x``, ``y``, ``h``, ``v``, ``other`` (N,), ego slot ``e``): per pair, the
+    constant-velocity overlap interval [t_in, t_out] from the four separating axes, then the per-env box test
+    (geometry.box_corners / boxes_overlap arithmetic) at the grid times first..last around it, in ascending order:
+    the first hit is the pair's time (the numpy code tests first..first+3, then the rest if none hit: the same times,
+    the same minimum). On the axes along the ego's and the other's own heading the angle differences are exactly
+    zero (ψ - ψ), so their cosine 1 and sine 0, and the axis' direction is that heading's cosine and sine: constants
+    and values already computed, the numpy code's results bit for bit."""
+    K = grid.shape[0]
+    best = np.inf
+    hl, hw = 0.5 * length, 0.5 * width
+    ex, ey, eh, ev = x[e], y[e], h[e], v[e]
+    ce, se = math.cos(eh), math.sin(eh)
+    evx, evy = ev * ce, ev * se
+    for j in range(x.shape[0]):
+        if not other[j]:
+            continue
+        oh = h[j]
+        co, so = math.cos(oh), math.sin(oh)
+        ovx, ovy = v[j] * co, v[j] * so
+        px, py = x[j] - ex, y[j] - ey
+        wx, wy = ovx - evx, ovy - evy
+        t_in, t_out = -np.inf, np.inf
+        for a in range(4):
+            if a == 0:  # theta = eh
+                ux, uy = ce, se
+                c_e, s_e, c_o, s_o = 1.0, 0.0, math.cos(oh - eh), math.sin(oh - eh)
+            elif a == 2:  # theta = oh
+                ux, uy = co, so
+                c_e, s_e, c_o, s_o = math.cos(eh - oh), math.sin(eh - oh), 1.0, 0.0
+            else:
+                theta = eh + math.pi / 2 if a == 1 else oh + math.pi / 2
+                ux, uy = math.cos(theta), math.sin(theta)
+                c_e, s_e = math.cos(eh - theta), math.sin(eh - theta)
+                c_o, s_o = math.cos(oh - theta), math.sin(oh - theta)
+            half = length / 2 * (abs(c_e) + abs(c_o)) + width / 2 * (abs(s_e) + abs(s_o))
+            q, r = ux * px + uy * py, ux * wx + uy * wy
+            if r != 0.0:
+                ta, tb = (-half - q) / r, (half - q) / r
+                lo, hi = min(ta, tb), max(ta, tb)
+            elif abs(q) <= half:
+                lo, hi = -np.inf, np.inf
+            else:
+                lo, hi = np.inf, -np.inf
+            t_in, t_out = max(t_in, lo), min(t_out, hi)
+        if not (t_in <= t_out + dt and t_out >= -dt and t_in <= horizon + dt):
+            continue
+        first = min(max(int(math.floor(max(t_in, 0.0) / dt)) - 1, 0), K - 1)
+        last = min(max(int(math.ceil(min(t_out, horizon) / dt)) + 1, 0), K - 1)
+        for k in range(first, last + 1):
+            tk = grid[k]
+            if tk >= best:
+                break
+            if _boxes_at(ex + tk * evx, ey + tk * evy, ce, se, x[j] + tk * ovx, y[j] + tk * ovy, co, so, hl, hw,
+                         ca, cb):
+                best = tk
+                break
+    return best
+
+
+@numba.njit(cache=True, inline="always")
+def _boxes_at(ax, ay, ce, se, bx, by, co, so, hl, hw, ca, cb):
+    """Whether two length × width boxes centred at (ax, ay) and (bx, by) with headings of cosine/sine (ce, se) and
+    (co, so) overlap: box_corners (centre + rot @ local, local corners (hl, hw), (hl, -hw), (-hl, -hw), (-hl, hw))
+    into ``ca``, ``cb``, then :func:`_boxes_overlap`."""
+    for p in range(4):
+        lx = hl if p < 2 else -hl
+        ly = hw if p == 0 or p == 3 else -hw
+        ca[p, 0], ca[p, 1] = ax + (ce * lx + -se * ly), ay + (se * lx + ce * ly)
+        cb[p, 0], cb[p, 1] = bx + (co * lx + -so * ly), by + (so * lx + co * ly)
+    return _boxes_overlap(ca, cb)
 
 
 @numba.njit(cache=True, inline="always")
