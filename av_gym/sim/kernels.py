@@ -7,7 +7,9 @@ lane, the ego's TTC) builds (B, N, N), (B, N, N, T) or (vehicles, lanes) arrays,
 most of their cost (docs/performance.md, "Numba kernels"). A loop over the candidates skips the masks and stops at
 the first hit. :func:`advance` then runs a policy step's ticks of every env (act, regulation, kinematics, closest
 lane, collisions, arrivals) in one call, the pairwise parts as per-env helpers it shares with the batch kernels:
-Python runs once per batch step instead of once per part (docs/performance.md, "One compiled batch step").
+Python runs once per batch step instead of once per part (docs/performance.md, "One compiled batch step");
+:func:`turn_features` (``obs["turn"]``, both stacks), :func:`truth`, :func:`observe` and :func:`rewards` compute
+what the env layer reads after it.
 
 What stays identical: each kernel evaluates the numpy code's formulas in the same order of operations (no
 ``fastmath``, so no reassociation or fused multiply-adds), on the same inputs, and makes every decision with the
@@ -19,8 +21,8 @@ last bit: each kernel still equals the numpy code to 1e-12 relative with identic
 but over whole runs of the fused tick (which also moves steering and kinematics to the C library) those last bits
 grow as any perturbation of the traffic does, so tests/test_kernels.py compares the tick with the numpy path step by
 step from the same state, and whole episodes by their outcome (>= 99.5 %; 1,000 / 1,000 measured on AVX-512).
-``cache=True``: compiled once per checkout into ``__pycache__`` (cold: ~14 CPU-s for all of them), so later
-processes only load them.
+``cache=True``: compiled once per checkout into ``__pycache__`` (cold: ~26 CPU-s for all of them, at load ~10), so
+later processes only load them.
 
 The lane table is passed as one (L, 15) float array (:func:`lane_array`); column indices below.
 """
