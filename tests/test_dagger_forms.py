@@ -1,4 +1,4 @@
-"""DAgger's student forms (issue 48 item 2): the disagreement weights (agent.disagree_weight) weigh the states
+"""DAgger's student forms: the disagreement weights (agent.disagree_weight) weigh the states
 where the student chooses otherwise than its teacher, the weighted fit moves the student towards those labels, one
 config value reaches the round's refit, and the offline screen (train/dagger_forms.py) refuses what it cannot
 build in one line."""
