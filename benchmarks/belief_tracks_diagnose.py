@@ -22,14 +22,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # the checkout's agents/ and eval/
+from belief_tracks_sweep import fail, planner_point  # noqa: E402  (this folder is sys.path[0] when run as a script)
 
 SWAPS = {"pos": ("x", "y", "h"), "v": ("v", "target"), "acc": ("acc",), "lane": ("lane", "tlane", "route0")}
-
-
-def fail(message: str) -> None:
-    """One ``error:`` line on stderr, exit status 2 (bad input)."""
-    print(f"error: {message}", file=sys.stderr)
-    sys.exit(2)
 
 
 def _match(tracks_engine, engine, r: int) -> dict:
@@ -126,11 +121,8 @@ def _blame(planner, engine, r: int) -> dict:
 
 
 def main() -> None:
-    import yaml
-
-    from agents.belief import BeliefLookaheadParams, BeliefPlanner
+    from agents.belief import BeliefPlanner
     from av_gym.batched.vec_env import BatchedLeftTurnBatch, meta_actions
-    from av_gym.errors import ConfigError
     from av_gym.presets import compose_group
     from av_gym.seeds import SPLITS
     from av_gym.wrappers import GO, YIELD
@@ -141,11 +133,7 @@ def main() -> None:
     args = ap.parse_args()
     if any(s not in SPLITS["validation"] for s in args.seeds):
         fail(f"--seeds must be in the validation split {SPLITS['validation']}")
-    try:
-        point = {k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in args.set)}
-        params = BeliefLookaheadParams.from_mapping(point, "--set")
-    except (ValueError, ConfigError, yaml.YAMLError) as exc:
-        fail(str(exc).splitlines()[0])
+    point, params = planner_point(args.set)
     B = len(args.seeds)
     venv = BatchedLeftTurnBatch({"name": "left_turn"}, compose_group("sensors", "turn_perceived"), None, B, pool=0)
     obs = venv.play(iter(args.seeds))

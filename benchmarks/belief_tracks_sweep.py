@@ -26,11 +26,25 @@ def fail(message: str) -> None:
     sys.exit(2)
 
 
-def main() -> None:
+def planner_point(pairs: list[str]):
+    """``--set KEY=VALUE ...`` as (the point's mapping, its BeliefLookaheadParams); a bad pair is one error line."""
     import yaml
 
-    from agents.belief import BeliefLookahead, BeliefLookaheadParams
+    from agents.belief import BeliefLookaheadParams
     from av_gym.errors import ConfigError
+
+    bad = [kv for kv in pairs if "=" not in kv]
+    if bad:
+        fail(f"--set takes KEY=VALUE (BeliefLookaheadParams fields), got {bad[0]!r}")
+    try:
+        point = {k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in pairs)}
+        return point, BeliefLookaheadParams.from_mapping(point, "--set")
+    except (ValueError, ConfigError, yaml.YAMLError) as exc:
+        fail(str(exc).splitlines()[0])
+
+
+def main() -> None:
+    from agents.belief import BeliefLookahead
     from av_gym.presets import compose_group
     from av_gym.seeds import SPLITS
     from eval.batched import play_batched
@@ -44,14 +58,7 @@ def main() -> None:
     seeds = range(args.seed, args.seed + args.episodes)
     if args.episodes < 1 or seeds[0] not in SPLITS["validation"] or seeds[-1] not in SPLITS["validation"]:
         fail(f"--seed/--episodes must stay in the validation split {SPLITS['validation']}")
-    bad = [kv for kv in args.set if "=" not in kv]
-    if bad:
-        fail(f"--set takes KEY=VALUE (BeliefLookaheadParams fields), got {bad[0]!r}")
-    try:
-        point = {k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in args.set)}
-        params = BeliefLookaheadParams.from_mapping(point, "--set")
-    except (ValueError, ConfigError, yaml.YAMLError) as exc:
-        fail(str(exc).splitlines()[0])
+    point, params = planner_point(args.set)
     t0, c0 = time.time(), time.process_time()
     rows = play_batched({"name": "left_turn"}, compose_group("sensors", "turn_perceived"), None,
                         BeliefLookahead(None, params), list(seeds), args.n_envs, "belief_tracks", progress=False)
