@@ -22,6 +22,8 @@ import math
 import numba
 import numpy as np
 
+from av_gym.sim.kernels import box_corners, boxes_overlap  # the engine's box geometry, one copy of the maths
+
 
 class Store:
     """Every driven path's tables in one growing float64 array, and each path's place in it, so that one kernel
@@ -257,38 +259,6 @@ def driven_poses(data, route, limits, bins, grid_table, ids, s0, ds, speeds, xy,
 SAME_DIRECTION = float(np.radians(45))  # footprint_ttc's "heading the same way" (rad)
 
 
-@numba.njit(cache=True, inline="always")
-def _corners(cx, cy, h, length, width, out):
-    """av_gym.geometry.box_corners for one box into ``out`` (4, 2): the corners (hl, hw), (hl, -hw), (-hl, -hw),
-    (-hl, hw) rotated by ``h`` (the einsum's ``c·lx + (-s)·ly``, ``s·lx + c·ly``) and moved to the centre."""
-    c, s = math.cos(h), math.sin(h)
-    hl, hw = 0.5 * length, 0.5 * width
-    for q in range(4):
-        lx = hl if q < 2 else -hl
-        ly = hw if q == 0 or q == 3 else -hw
-        out[q, 0] = cx + (c * lx + -s * ly)
-        out[q, 1] = cy + (s * lx + c * ly)
-
-
-@numba.njit(cache=True, inline="always")
-def _overlap(a, b):
-    """av_gym.geometry.boxes_overlap for one pair of corner arrays (4, 2): the separating-axis test on the normals
-    of two edges of each box, touching counts as overlap."""
-    for p in range(2):
-        poly = a if p == 0 else b
-        for i in range(2):
-            ax, ay = -(poly[i + 1, 1] - poly[i, 1]), poly[i + 1, 0] - poly[i, 0]
-            a_lo, a_hi, b_lo, b_hi = np.inf, -np.inf, np.inf, -np.inf
-            for q in range(4):
-                pa = a[q, 0] * ax + a[q, 1] * ay
-                pb = b[q, 0] * ax + b[q, 1] * ay
-                a_lo, a_hi = min(a_lo, pa), max(a_hi, pa)
-                b_lo, b_hi = min(b_lo, pb), max(b_hi, pb)
-            if not (a_hi >= b_lo and b_hi >= a_lo):
-                return False
-    return True
-
-
 @numba.njit(cache=True)
 def footprint_hit(ego_xy, ego_h, length, width, oxy, oh, osize, reach, rear):
     """:func:`av_gym.shields.predict.footprint_ttc`'s first hit: (slice k, other m) of the first overlap in slice
@@ -309,10 +279,11 @@ def footprint_hit(ego_xy, ego_h, length, width, oxy, oh, osize, reach, rear):
             if not (dx ** 2 + dy ** 2 <= (reach[m] * (1 + 1e-9) + 1e-9) ** 2):
                 continue
             if not built:
-                _corners(ex, ey, eh, length, width, ea)
+                box_corners(ex, ey, math.cos(eh), math.sin(eh), 0.5 * length, 0.5 * width, ea)
                 built = True
-            _corners(oxy[k, m, 0], oxy[k, m, 1], oh[k, m], osize[m, 0], osize[m, 1], eb)
-            if not _overlap(ea, eb):
+            box_corners(oxy[k, m, 0], oxy[k, m, 1], math.cos(oh[k, m]), math.sin(oh[k, m]), 0.5 * osize[m, 0],
+                        0.5 * osize[m, 1], eb)
+            if not boxes_overlap(ea, eb):
                 continue
             if rear[m]:
                 ahead = dx * math.cos(eh) + dy * math.sin(eh)

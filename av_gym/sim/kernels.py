@@ -413,18 +413,27 @@ def _ttc_one(x, y, h, v, other, e, grid, horizon, dt, length, width, ca, cb):
 def _boxes_at(ax, ay, ce, se, bx, by, co, so, hl, hw, ca, cb):
     """Whether two length × width boxes centred at (ax, ay) and (bx, by) with headings of cosine/sine (ce, se) and
     (co, so) overlap: box_corners (centre + rot @ local, local corners (hl, hw), (hl, -hw), (-hl, -hw), (-hl, hw))
-    into ``ca``, ``cb``, then :func:`_boxes_overlap`."""
-    for p in range(4):
-        lx = hl if p < 2 else -hl
-        ly = hw if p == 0 or p == 3 else -hw
-        ca[p, 0], ca[p, 1] = ax + (ce * lx + -se * ly), ay + (se * lx + ce * ly)
-        cb[p, 0], cb[p, 1] = bx + (co * lx + -so * ly), by + (so * lx + co * ly)
-    return _boxes_overlap(ca, cb)
+    into ``ca``, ``cb``, then :func:`boxes_overlap`."""
+    box_corners(ax, ay, ce, se, hl, hw, ca)
+    box_corners(bx, by, co, so, hl, hw, cb)
+    return boxes_overlap(ca, cb)
 
 
 @numba.njit(cache=True, inline="always")
-def _boxes_overlap(a, b):
-    """geometry.boxes_overlap for one pair of (4, 2) corner arrays: two edge normals of each box, touching counts."""
+def box_corners(cx, cy, c, s, hl, hw, out):
+    """geometry.box_corners for one box into ``out`` (4, 2): the local corners (hl, hw), (hl, -hw), (-hl, -hw),
+    (-hl, hw) rotated by the heading of cosine/sine (c, s) (the einsum's ``c·lx + (-s)·ly``, ``s·lx + c·ly``) and
+    moved to the centre (cx, cy). Also the AEB shield's footprint test (av_gym.shields.kernels.footprint_hit)."""
+    for p in range(4):
+        lx = hl if p < 2 else -hl
+        ly = hw if p == 0 or p == 3 else -hw
+        out[p, 0], out[p, 1] = cx + (c * lx + -s * ly), cy + (s * lx + c * ly)
+
+
+@numba.njit(cache=True, inline="always")
+def boxes_overlap(a, b):
+    """geometry.boxes_overlap for one pair of (4, 2) corner arrays: two edge normals of each box, touching counts.
+    Also the AEB shield's footprint test (av_gym.shields.kernels.footprint_hit)."""
     for poly in range(2):
         c = a if poly == 0 else b
         for i in range(2):
