@@ -577,23 +577,20 @@ def _build(cfg: DictConfig, command: TrainCommand, params, resume: bool) -> _Run
 
         load_weights(model, params.init_from, str(cfg.env.name))
         if params.drive_at_threshold:  # an absolute P(GO) from round 0: the init back at its fit's own boundary
-            from train.operating_point import shift_go
+            from train.operating_point import at_fit_boundary
 
-            saved = saved_threshold(params.init_from, str(cfg.env.name))
-            if saved != 0.5:
-                shift_go(model, 1.0 - saved)
+            at_fit_boundary(model, saved_config(params.init_from, str(cfg.env.name)))
     validation = _validation(command.train, plain, repeat, actions, how in ("batched", "rule"))
     return _Run(model, stacks, drive, how, validation)
 
 
-def saved_threshold(spec: str, scenario: str) -> float:
-    """The P(GO) threshold the student of ``spec`` (agent.init_from: a checkpoint folder or its model file) was
-    saved at: its config.yaml's ``agent.go_threshold``, 0.5 (its fit's own boundary) when it names none."""
+def saved_config(spec: str, scenario: str) -> dict:
+    """The config.yaml beside the student of ``spec`` (agent.init_from: a checkpoint folder or its model file)."""
     from agents.checkpoint import read_config_yaml
     from eval.agents import _checkpoint_file
 
     _, path = _checkpoint_file(Path(spec), scenario)
-    return float(read_config_yaml(path.parent / "config.yaml").get("agent", {}).get("go_threshold", 0.5))
+    return read_config_yaml(path.parent / "config.yaml")
 
 
 def _operating_point(params) -> Callable[[Any, bool], None]:

@@ -71,12 +71,18 @@ def evaluate(run_dir: Path, thresholds: list[float], episodes: int, first: int |
     return out
 
 
+def at_fit_boundary(model, cfg: dict):
+    """``model`` (saved at its config's ``agent.go_threshold``, 0.5 if none) moved back to its fit's own boundary,
+    P(GO) 0.5: thresholds are absolute P(GO), so a saved student is shifted from there."""
+    saved = float(cfg.get("agent", {}).get("go_threshold", 0.5))
+    if saved != 0.5:
+        shift_go(model, 1.0 - saved)
+    return model
+
+
 def _at(model, cfg: dict, tau: float):
     """``model`` (saved at its run's ``agent.go_threshold``, 0.5 if none) moved to the threshold ``tau``."""
-    saved = float(cfg["agent"].get("go_threshold", 0.5))
-    if saved != 0.5:
-        shift_go(model, 1.0 - saved)  # back to the fit's own boundary: thresholds are absolute P(GO)
-    shift_go(model, tau)
+    shift_go(at_fit_boundary(model, cfg), tau)
     return model
 
 
