@@ -6,7 +6,9 @@ sees); its deterministic choice GOes where that is above 0.5. Going only above a
 with ``log(τ / (1 - τ))`` taken off the GO logit's bias, so the result is still a plain PPO zip that
 ``python -m eval`` loads ("a user can pick its operating point"). This tool evaluates thresholds on the
 validation split (the same episodes for each threshold) and prints success and collision per
-threshold (the per-env stack where the run's sensors need it, e.g. turn_perceived's tracker); ``--write τ`` saves
+threshold (the per-env stack where the run's sensors need it, e.g. turn_perceived's tracker), then the threshold
+its ``--rule`` chooses (:func:`choose`: ``margin``, the largest success - collision; ``capped --max-collision c``,
+the largest success at collisions <= c, e.g. the truth student's on the same episodes); ``--write τ`` saves
 the student at τ into ``--dest`` (model.zip + config.yaml, ``agent.go_threshold`` recorded, and COMMAND: the run's
 own followed by this command), under the folder's lock; a folder that holds files is replaced only with
 ``--overwrite``. Thresholds are absolute: a run saved at its own ``agent.go_threshold`` is moved back
@@ -24,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from av_gym.errors import ConfigError, run_cli
-from conf.cli import Extend, ToolParser, items
+from conf.cli import Extend, ToolParser, items, number
 
 
 def shift_go(model, threshold: float) -> float:
@@ -69,6 +71,35 @@ def evaluate(run_dir: Path, thresholds: list[float], episodes: int, first: int |
         out.append((tau, float(np.mean([r["collision"] for r in rows])), float(np.mean([r["success"] for r in rows]))))
         print(f"| {tau:.2f} | {out[-1][1]:.3f} | {out[-1][2]:.3f} |", flush=True)
     return out
+
+
+RULES = ("margin", "capped")
+# Collision rates are shares of the same episodes (k / n); a cap typed as a decimal (0.026 for 26 / 1,000) must not
+# fall on the wrong side of one by rounding.
+_CAP_SLACK = 1e-9
+
+
+def choose(rows: list[tuple[float, float, float]], rule: str = "margin",
+           max_collision: float | None = None) -> tuple[float, str]:
+    """The threshold ``rule`` picks from ``rows`` of (τ, collision, success), each a share of the same validation
+    episodes, and why in words. ``margin``: the largest success - collision. ``capped``: the largest success among
+    the thresholds whose collision is at most ``max_collision`` (a share; when none is, the fewest collisions).
+    Ties go to fewer collisions, then to the higher τ (the more cautious student)."""
+    if rule not in RULES:
+        raise ConfigError(f"rule must be one of {list(RULES)}, got {rule!r}")
+    if not rows:
+        raise ConfigError("choose needs at least one measured threshold")
+    if rule == "margin":
+        best = max(rows, key=lambda r: (r[2] - r[1], -r[1], r[0]))
+        return best[0], f"the largest success - collision, {best[2] - best[1]:.3f}"
+    if max_collision is None or not 0.0 <= max_collision <= 1.0:
+        raise ConfigError(f"rule=capped needs max_collision, a collision share in [0, 1], got {max_collision}")
+    within = [r for r in rows if r[1] <= max_collision + _CAP_SLACK]
+    if not within:
+        best = min(rows, key=lambda r: (r[1], -r[2], -r[0]))
+        return best[0], f"no threshold at collisions <= {max_collision:g}: the fewest, {best[1]:.3f}"
+    best = max(within, key=lambda r: (r[2], -r[1], r[0]))
+    return best[0], f"the largest success, {best[2]:.3f}, at collisions <= {max_collision:g}"
 
 
 def at_fit_boundary(model, cfg: dict):
@@ -160,6 +191,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--model", default="model.zip", choices=["model.zip", "best.zip", "latest.zip"],
                         help="which of the run's zips")
     parser.add_argument("--seed", type=int, default=None, help="first validation seed (default: the split's start)")
+    parser.add_argument("--rule", default="margin", choices=list(RULES),
+                        help="how the threshold is chosen from the table: margin, the largest success - collision; "
+                             "capped, the largest success at collisions <= --max-collision")
+    parser.add_argument("--max-collision", type=number(float, low=0.0, high=1.0), default=None,
+                        help="--rule capped's cap on the validation collision share, e.g. the truth student's on "
+                             "the same episodes (python -m eval ... split=validation)")
     parser.add_argument("--write", type=float, default=None, help="save the student at this threshold to --dest")
     parser.add_argument("--dest", default=None, help="folder for --write (a shipped reference's: only with "
                                                      "--overwrite-reference)")
@@ -191,8 +228,12 @@ def main(argv: list[str] | None = None) -> None:
         return
     if args.episodes < 1:
         parser.error("--episodes must be >= 1")
+    if (args.rule == "capped") != (args.max_collision is not None):
+        parser.error("--max-collision goes with --rule capped (the cap on validation collisions), and only with it")
     print("| P(GO) threshold | collision | success |\n|---:|---:|---:|")
-    evaluate(run_dir, args.thresholds, args.episodes, args.seed, zip_name=args.model)
+    rows = evaluate(run_dir, args.thresholds, args.episodes, args.seed, zip_name=args.model)
+    tau, why = choose(rows, args.rule, args.max_collision)
+    print(f"[operating_point] rule {args.rule}: P(GO) >= {tau:g} ({why})")
 
 
 if __name__ == "__main__":
