@@ -108,6 +108,12 @@ class BeliefLookaheadParams(AgentParams):
                                                        "accelerating at a by 0.20 s x a in steady state (the "
                                                        "default tracker at 10 Hz, 10-60 m of range); 0: the "
                                                        "filter's speed")
+    track_spread: float = param(0.0, "sd", ge=0, le=5, doc="on tracks: each future starts every moving track this "
+                                                           "many of its filter's standard deviations off along its "
+                                                           "heading, in place and speed (a joint normal draw from "
+                                                           "the covariance P projected on the heading), so GO must "
+                                                           "be safe against the tracks' own error; 0: every future "
+                                                           "starts at the filter's estimate")
 
 
 class BeliefPlanner:

@@ -253,6 +253,7 @@ class TrackBelief:
         self.engine = None  # the futures' start (ego, confirmed [and tentative] tracks), all rows
         self.tent = None  # (B, N) its slots that hold a tentative track
         self.ghost = None  # (B, N) its slots whose track the detector has missed while in view (not in the futures)
+        self.along = None  # (B, N, 2, 2) its slots' filter covariance of (place, speed) along their heading
         self._ticks = None
 
     def reset(self, rows) -> None:
@@ -262,8 +263,9 @@ class TrackBelief:
     def _tracks(self, rows: np.ndarray) -> tuple:
         """The tracker's tracks of ``rows`` as ``obs["tracks"]`` orders them (confirmed and finite, nearest the
         ego first: tracks_observation's order), then the tentative ones: positions (n, M, 7), ids (n, M),
-        confirmed (n, M), tentative (n, M), and (n, M, 2) each track's detected heading (rad, the tracker's running
-        mean of the detector's) and the detector frames since a detection last updated it."""
+        confirmed (n, M), tentative (n, M), (n, M, 2) each track's detected heading (rad, the tracker's running
+        mean of the detector's) and the detector frames since a detection last updated it, and (n, M, 4, 4) its
+        filter's covariance of ``[x, y, vx, vy]`` (m², m²/s, m²/s²)."""
         p = self.perception
         tracks, shown = p.tracker.tracks(rows)
         ids = p.tracker.id[rows]
@@ -284,9 +286,13 @@ class TrackBelief:
         rate = float(p.detector.params.rate_hz)
         missed = np.rint((p.tracker.fused_at[rows][:, None] - p.tracker.t_update[rows]) * rate)
         seen = np.stack([p.tracker.heading[rows], missed], axis=-1)
+        P = p.tracker.P[rows][:, : tracks.shape[1]]
+        cov = np.concatenate([np.take_along_axis(P, order[..., None, None], axis=1), P], axis=1)
+        users = np.concatenate([conf, tent], axis=1)
         return (np.concatenate([pos, np.where(tent[..., None], tracks, 0.0)], axis=1),
                 np.concatenate([take(ids), ids], axis=1), np.concatenate([conf, np.zeros_like(tent)], axis=1),
-                np.concatenate([np.zeros_like(conf), tent], axis=1), np.concatenate([take(seen), seen], axis=1))
+                np.concatenate([np.zeros_like(conf), tent], axis=1), np.concatenate([take(seen), seen], axis=1),
+                np.where(users[..., None, None], cov, 0.0))
 
     def read(self, engine, rows, intent: np.ndarray):
         """The engine of what the car knows at this step (every row's ego; ``rows``' tracks), kept for
@@ -307,7 +313,7 @@ class TrackBelief:
     def _observed(self, engine, rows: np.ndarray, intent: np.ndarray) -> tuple:
         """The observed engine (ego in slot 0, then the tracks) and its confirmed / tentative / ghost slot masks."""
         src, B = engine.traffic, engine.B
-        pos, ids, conf, tent, seen = self._tracks(rows)
+        pos, ids, conf, tent, seen, cov = self._tracks(rows)
         M = pos.shape[1]
         t = Traffic(engine.T, B, N=M + 2)
         t.road_steps[:] = src.road_steps
@@ -345,6 +351,8 @@ class TrackBelief:
         full_conf, full_tent, full_ghost = (np.zeros((B, M + 2), bool) for _ in range(3))
         full_conf[rows, sl], full_tent[rows, sl] = conf, tent
         full_ghost[rows, sl] = self._ghosts(t, rows, pos, users, seen[..., 1])
+        self.along = np.zeros((B, M + 2, 2, 2))
+        self.along[rows, sl] = along_heading(cov, h)
         obs = engine.observed(t, engine.time, engine.ticks, engine.episode_seed)
         return obs, full_conf, full_tent, full_ghost
 
@@ -376,7 +384,7 @@ class TrackBelief:
         r = rows[fused]
         t = obs.traffic
         ego = np.stack([t.x[r, 0], t.y[r, 0], t.h[r, 0]], axis=1)
-        pos, _, conf, _, _ = self._tracks(r)
+        pos, _, conf, _, _, _ = self._tracks(r)
         occ = np.concatenate([pos[..., :2], pos[..., 4:7]], axis=-1)
         u.look(r, u.in_view(ego, occ, conf))
 
@@ -387,15 +395,60 @@ class TrackBelief:
         return self.engine
 
     def fill(self, f, rows: np.ndarray, seed: int, K: int) -> None:
-        """Add the unseen drivers to the future engine ``f`` (:meth:`BeliefPlanner.futures` of ``rows``)."""
-        if self.unseen is None or not len(rows):
+        """Spread the tracks' start in the future engine ``f`` (:meth:`BeliefPlanner.futures` of ``rows``) by their
+        filter's error (``track_spread``) and add the unseen drivers to it."""
+        if not len(rows):
             return
         e = self.engine
+        if float(self.params.track_spread) > 0:
+            self._spread(f, rows, seed, K)
+        if self.unseen is None:
+            return
         gens = [np.random.default_rng(np.random.SeedSequence([int(seed), int(e.episode_seed[r]) % 2**63,
                                                                int(e.ticks[r]), 1])) for r in rows]
         t = e.traffic
         users = np.stack([t.x[rows], t.y[rows]], axis=-1)
         self.unseen.fill(f, rows, users, t.alive[rows], gens, K)
+
+    def _spread(self, f, rows: np.ndarray, seed: int, K: int) -> None:
+        """Move each moving road user of ``rows``' K futures (``f``'s rows, row-major, before the unseen drivers
+        join) ``track_spread`` times a draw of its filter's error along its heading: place (m) and speed (m/s)
+        jointly normal with the covariance :func:`along_heading` gives; a speed is kept at or above 0. Draws from
+        ``SeedSequence([seed, episode_seed, tick, 2])``."""
+        e = self.engine
+        N = e.traffic.N
+        z = np.stack([np.random.default_rng(np.random.SeedSequence([int(seed), int(e.episode_seed[r]) % 2**63,
+                                                                    int(e.ticks[r]), 2])).standard_normal((K, N, 2))
+                      for r in rows])  # (n, K, N, 2)
+        t = e.traffic
+        moving = t.alive[rows] & ~t.ego[rows] & ~t.crashed[rows]  # a standing track stays where it is
+        # a Cholesky factor of each 2x2 covariance (a zero one where the slot holds no track)
+        S = self.along[rows]
+        a = np.sqrt(np.maximum(S[..., 0, 0], 0.0))
+        b = np.where(a > 0, S[..., 0, 1] / np.where(a > 0, a, 1.0), 0.0)
+        c = np.sqrt(np.maximum(S[..., 1, 1] - b**2, 0.0))
+        scale = float(self.params.track_spread) * moving
+        ds = (scale * a)[:, None] * z[..., 0]
+        dv = scale[:, None] * (b[:, None] * z[..., 0] + c[:, None] * z[..., 1])
+        ft = f.traffic
+        n = len(rows)
+        h = np.repeat(t.h[rows], K, axis=0)
+        ft.x[:, :N] += ds.reshape(n * K, N) * np.cos(h)
+        ft.y[:, :N] += ds.reshape(n * K, N) * np.sin(h)
+        ft.v[:, :N] = np.where(np.repeat(moving, K, axis=0), np.maximum(ft.v[:, :N] + dv.reshape(n * K, N), 0.0),
+                               ft.v[:, :N])
+
+
+def along_heading(cov: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """(..., 2, 2): the covariance ``cov`` (..., 4, 4) of ``[x, y, vx, vy]`` projected on the unit vector of the
+    headings ``h`` (rad): of (place along the heading, speed along it), m², m²/s, m²/s²."""
+    u = np.stack([np.cos(h), np.sin(h)], axis=-1)[..., :, None]  # (..., 2, 1)
+    ut = np.swapaxes(u, -1, -2)
+    out = np.empty(cov.shape[:-2] + (2, 2))
+    out[..., 0, 0] = (ut @ cov[..., :2, :2] @ u)[..., 0, 0]
+    out[..., 1, 1] = (ut @ cov[..., 2:, 2:] @ u)[..., 0, 0]
+    out[..., 0, 1] = out[..., 1, 0] = (ut @ cov[..., :2, 2:] @ u)[..., 0, 0]
+    return out
 
 
 class EnvTracks:
@@ -428,6 +481,7 @@ class EnvTracks:
         self.fused_at = np.array([float(mtt._fused_at)])
         self.t_update = np.array([[tr.t_update for tr in mtt._tracks]], dtype=float).reshape(1, -1)
         self.heading = np.array([[tr.heading for tr in mtt._tracks]], dtype=float).reshape(1, -1)
+        self.P = np.array([tr.kf.P for tr in mtt._tracks], dtype=float).reshape(1, -1, 4, 4)
         self.last_tracks = self.wrapper._last[None]
 
     def tracks(self, rows) -> tuple[np.ndarray, np.ndarray]:

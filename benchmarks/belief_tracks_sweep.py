@@ -5,8 +5,9 @@ costs": how belief_tracks' parameters were chosen).
 
 Plays ``--episodes`` validation seeds from ``--seed`` (default 1,000,000) with :class:`agents.belief.BeliefLookahead`
 on ``sensors=turn_perceived`` (``--set key=value``: BeliefLookaheadParams fields, e.g. ``unseen=2 samples=32``),
-``--n-envs`` at a time, and prints one JSON line: the point, collision and success rates, the seeds that collided,
-wall and CPU seconds and the load."""
+``--n-envs`` at a time, and prints one JSON line: the point, collision and success rates, the seeds that collided
+and those that did not arrive (for paired comparisons of points on the same seeds), wall and CPU seconds and the
+load."""
 
 from __future__ import annotations
 
@@ -65,7 +66,8 @@ def main() -> None:
     n = len(rows)
     print(json.dumps({"point": point, "episodes": n, "seed": args.seed,
                       "collision": sum(r["collision"] for r in rows) / n, "success": sum(r["success"] for r in rows) / n,
-                      "collided": [r["seed"] for r in rows if r["collision"]], "wall_s": round(time.time() - t0, 1),
+                      "collided": [r["seed"] for r in rows if r["collision"]],
+                      "not_arrived": [r["seed"] for r in rows if not r["success"]], "wall_s": round(time.time() - t0, 1),
                       "cpu_s": round(time.process_time() - c0, 1), "load": os.getloadavg()[0]}))
 
 

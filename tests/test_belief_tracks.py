@@ -326,3 +326,61 @@ def test_an_accelerating_track_starts_at_the_filters_speed_plus_its_lag():
         np.testing.assert_allclose(t.acc[rows, slot], 3.0, rtol=1e-6)
     np.testing.assert_allclose(speeds[0.0], 6.0, rtol=1e-6)
     np.testing.assert_allclose(speeds[0.2], 6.6, rtol=1e-6)
+
+
+def _futures_start(venv, planner, rows, obs) -> tuple:
+    """The future engine of ``rows`` (K futures each, row-major) as ``go_collision`` starts to play it (not
+    played), and the engine its futures start from."""
+    e = venv.engine
+    p = copy.deepcopy(planner, {id(venv.perception): venv.perception, id(e): e, id(planner.tracks.engine): None})
+    p.read(e, rows, np.zeros_like(obs["intent"])[rows])
+    start = p.tracks.current(e)
+    f = p.futures(start, rows)
+    p.tracks.fill(f, rows, p.seed, p.K)
+    return f, start
+
+
+def test_track_spread_starts_the_futures_at_draws_of_the_filters_error():
+    """With ``track_spread`` 2 an oncoming track heading north (+y) with the filter covariance var(y) 0.25 m²,
+    var(vy) 1 (m/s)², cov(y, vy) 0.3 starts its K futures 2 sd off along its heading: place sd 1 m, speed sd 2 m/s,
+    correlation 0.6, no sideways move; a standing track (0 m/s) stays where it is; with 0 every future starts at
+    the estimate."""
+    K = 256
+    out = {}
+    for spread in (2.0, 0.0):
+        venv, planner, obs, rows = _batch([420_001, 420_002], 45, BeliefLookaheadParams(
+            samples=K, unseen=0.0, track_heading="detected", track_spread=spread))
+        trk = venv.perception.tracker
+        for r in rows:
+            _coasting_track(venv, int(r), (-2.0, -25.0, 0.0, 9.0), 0, heading=np.pi / 2)
+            trk.P[r, 0] = np.diag([0.04, 0.25, 0.09, 1.0])
+            trk.P[r, 0, 1, 3] = trk.P[r, 0, 3, 1] = 0.3
+        f, e = _futures_start(venv, planner, rows, obs)
+        slot = np.argmax(e.traffic.alive[rows] & ~e.traffic.ego[rows], axis=1)
+        j = np.repeat(slot, K)
+        fx, fy, fv = (getattr(f.traffic, k)[np.arange(len(j)), j].reshape(len(rows), K) for k in ("x", "y", "v"))
+        out[spread] = fx + 2.0, fy + 25.0, fv - 9.0
+    dx, dy, dv = out[2.0]
+    np.testing.assert_allclose(dx, 0.0, atol=1e-9)
+    np.testing.assert_allclose(dy.std(axis=1), 1.0, rtol=0.15)
+    np.testing.assert_allclose(dv.std(axis=1), 2.0, rtol=0.15)
+    np.testing.assert_allclose([np.corrcoef(a, b)[0, 1] for a, b in zip(dy, dv)], 0.6, atol=0.1)
+    assert np.abs(dy.mean(axis=1)).max() < 0.25 and not np.array_equal(dy[0], dy[1])
+    for a in out[0.0]:
+        np.testing.assert_allclose(a, 0.0, atol=1e-9)
+
+
+def test_track_spread_leaves_a_standing_track_in_place():
+    """A confirmed track standing in the ego's turn (0 m/s: taken to stay there) is not spread: every future starts
+    it at the estimate, whatever its covariance."""
+    venv, planner, obs, rows = _batch([420_001, 420_002], 45, BeliefLookaheadParams(
+        samples=16, unseen=0.0, track_heading="detected", track_spread=3.0))
+    for r in rows:
+        _coasting_track(venv, int(r), (2.0, 2.0, 0.0, 0.0), 0, heading=np.pi / 2)
+        venv.perception.tracker.P[r, 0] = np.eye(4)
+    f, e = _futures_start(venv, planner, rows, obs)
+    slot = np.repeat(np.argmax(e.traffic.alive[rows] & ~e.traffic.ego[rows], axis=1), 16)
+    i = np.arange(len(slot))
+    assert f.traffic.crashed[i, slot].all()
+    np.testing.assert_allclose(f.traffic.x[i, slot], 2.0, atol=1e-9)
+    np.testing.assert_allclose(f.traffic.y[i, slot], 2.0, atol=1e-9)
