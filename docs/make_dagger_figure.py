@@ -13,9 +13,10 @@ prefixed by its ``run`` column (``s1``, ``perceived_s1``, ...).
 validation split) first writes CSV: one row per round of the runs ``--runs`` selects and one for the planner, each
 with its validation episodes and Wilson 95 % intervals (a run's episodes from train.eval_n in the config.yaml
 beside its rounds.csv, else ``--val-n``); it never writes over an existing CSV (the rounds it keeps are the record).
-Without rounds.csv files it plots CSV as it is. ``--extend`` adds the rounds of runs CSV does not hold yet (another
-training seed) to an existing CSV: its rows are kept as they are (a run it already holds is refused), the new
-runs' rows go before its planner row, and the file is replaced at once (docs/dagger.md, "Learning curve").
+Without rounds.csv files it plots CSV as it is. ``--extend`` adds the rounds CSV does not hold yet (another training
+seed's, or a resumed run's later rounds) to an existing CSV: its rows are kept as they are (a round it holds must
+come back with the same values), the new rows go after their run's, before its planner row, and the file is
+replaced at once (docs/dagger.md, "Learning curve").
 """
 
 from __future__ import annotations
@@ -189,8 +190,8 @@ def main() -> None:
     parser.add_argument("--runs", nargs="+", default=["*"], help="--curve: the runs to keep (fnmatch patterns)")
     parser.add_argument("--highlight", nargs="+", default=["*"], help="--curve: runs drawn in colour (the others "
                                                                       "grey)")
-    parser.add_argument("--extend", action="store_true", help="--curve: add the rounds.csv files' runs to the "
-                                                               "existing CSV (its rows kept; a run it holds refused)")
+    parser.add_argument("--extend", action="store_true", help="--curve: add the rounds.csv files' rounds to the "
+                                                               "existing CSV (its rows kept; new rounds only)")
     parser.add_argument("--val-n", type=int, default=200, help="--curve: validation episodes per round of a "
                                                                 "rounds.csv without a config.yaml beside it")
     args = parser.parse_args()
@@ -230,18 +231,27 @@ def _curve(args, parser) -> list[dict]:
 
 
 def _extend(args, parser, path: Path) -> list[dict]:
-    """``--extend``: the existing curve's rows, the new runs' rounds before its planner row, written at once."""
+    """``--extend``: the existing curve's rows kept as they are; the rounds it does not hold yet (another training
+    seed's, or the later rounds of a resumed run) added after their run's rows, before the planner row; written at
+    once. A round it holds must come back with the same values (the csv is the record of untracked runs)."""
     if not path.is_file():
         parser.error(f"--extend: no such file: {path} (without --extend the rounds and --planner write a new one)")
     kept = read_curve(path)
     new = curve_rows(args.rounds, args.runs, None, args.val_n)
-    held = sorted({r["run"] for r in new} & {r["run"] for r in kept})
-    if held:
-        parser.error(f"--extend: {path} already holds run {held[0]}: its rows are the record; give runs it does "
-                     f"not hold")
+    held = {(r["run"], r["round"]): r for r in kept if r["series"] == "student"}
+    for r in new:
+        old = held.get((r["run"], r["round"]))
+        if old is not None and any(str(old[k]) != str(r[k]) for k in CURVE_FIELDS):
+            parser.error(f"--extend: {path} holds round {r['round']} of run {r['run']} with other values: its rows "
+                         f"are the record; give the rounds.csv of the run it holds, or another run")
+    new = [r for r in new if (r["run"], r["round"]) not in held]
     if not new:
-        parser.error(f"--extend: no validated round in {', '.join(args.rounds)} matches --runs {' '.join(args.runs)}")
-    rows = ([r for r in kept if r["series"] != "planner"] + new + [r for r in kept if r["series"] == "planner"])
+        parser.error(f"--extend: no validated round in {', '.join(args.rounds)} that {path} does not hold matches "
+                     f"--runs {' '.join(args.runs)}")
+    students = [r for r in kept if r["series"] != "planner"]
+    rows = [r for run in dict.fromkeys(r["run"] for r in [*students, *new])
+            for r in [*(r for r in students if r["run"] == run), *(r for r in new if r["run"] == run)]]
+    rows += [r for r in kept if r["series"] == "planner"]
     write_curve(rows, path)
     print(f"curve: {path} ({len(new)} points added, {len(rows)} in all)")
     return rows
