@@ -457,8 +457,10 @@ class Traffic:
         heading_cmd = np.arcsin(np.clip(-KP_LATERAL * r / v_nz, -1, 1))
         heading_ref = future_heading + np.clip(heading_cmd, -np.pi / 4, np.pi / 4)
         rate = KP_HEADING * wrap_to_pi(heading_ref - self.h)
-        slip = np.arcsin(np.clip(LENGTH / 2 / v_nz * rate, -1, 1))
-        return np.clip(np.arctan(2 * np.tan(slip)), -MAX_STEERING, MAX_STEERING)
+        q = np.clip(LENGTH / 2 / v_nz * rate, -1, 1)  # sin(slip)
+        with np.errstate(divide="ignore"):  # tan(asin(q)) = q / sqrt(1 - q²), ±inf at |q| = 1 (atan: ±π/2)
+            tan_slip = q / np.sqrt(1 - q * q)
+        return np.clip(np.arctan(2 * tan_slip), -MAX_STEERING, MAX_STEERING)
 
     def _front(self, lanes: np.ndarray) -> np.ndarray:
         """Road.neighbour_vehicles(vehicle, lane)[0] for every vehicle: among the other vehicles on ``lane``
@@ -534,14 +536,19 @@ class Traffic:
         steer = np.where(self.crashed, 0.0, self.steer)
         acc = np.where(self.crashed, -1.0 * self.v, self.acc)
         self.steer, self.acc = np.where(a, steer, self.steer), np.where(a, acc, self.acc)
-        beta = np.arctan(1 / 2 * np.tan(self.steer))
-        x = self.x + self.v * np.cos(self.h + beta) * dt
-        y = self.y + self.v * np.sin(self.h + beta) * dt
+        # the slip angle β = atan(tan(steer) / 2) by its cosine and sine, 1 / sqrt(1 + t²) and t / sqrt(1 + t²) of
+        # t = tan β, and cos(h + β), sin(h + β) by the sum formulas (kernels._slip_cos_sin: the same arithmetic)
+        t = 1 / 2 * np.tan(self.steer)
+        cb = 1.0 / np.sqrt(1.0 + t * t)
+        sb = t * cb
+        c, s = np.cos(self.h), np.sin(self.h)
+        x = self.x + self.v * (c * cb - s * sb) * dt
+        y = self.y + self.v * (s * cb + c * sb) * dt
         imp = self.has_impact & a
         x, y = np.where(imp, x + self.impact_x, x), np.where(imp, y + self.impact_y, y)
         self.crashed |= imp
         self.has_impact &= ~imp
-        h = self.h + self.v * np.sin(beta) / (LENGTH / 2) * dt
+        h = self.h + self.v * sb / (LENGTH / 2) * dt
         v = self.v + self.acc * dt
         self.x, self.y = np.where(a, x, self.x), np.where(a, y, self.y)
         self.h, self.v = np.where(a, h, self.h), np.where(a, v, self.v)

@@ -43,17 +43,28 @@ except ImportError:  # pragma: no cover - another numba layout
 else:
     _ZIGGURAT_TABLES = True
 
-OX, OY, DX, DY, CIRC, PHASE0, RADIUS, CDIR, WIDTH, LENGTH, BX0, BY0, BX1, BY1, HEAD = range(15)
+OX, OY, DX, DY, CIRC, PHASE0, RADIUS, CDIR, WIDTH, LENGTH, BX0, BY0, BX1, BY1, HEAD, NEAR_N = range(16)
+NEAR_0 = NEAR_N + 1  # then the NEAR_N lanes (ids, ascending) whose box is within 2 NEAR_GAP of this lane's box
+NEAR_GAP = 0.5  # m: a point within this of a lane's box has only those lanes' boxes within this of it
 
 
 def lane_array(T) -> np.ndarray:
-    """A LaneTable's lanes as one C-contiguous (L, 15) float array for the kernels."""
+    """A LaneTable's lanes as one C-contiguous (L, 16 + L) float array for the kernels: the columns above, then
+    each lane's near lanes (:func:`_closest_one`)."""
+    box = np.asarray(T.box, dtype=float)
+    gx = np.maximum(np.maximum(box[:, None, 0] - box[None, :, 2], box[None, :, 0] - box[:, None, 2]), 0.0)
+    gy = np.maximum(np.maximum(box[:, None, 1] - box[None, :, 3], box[None, :, 1] - box[:, None, 3]), 0.0)
+    near = np.hypot(gx, gy) <= 2 * NEAR_GAP + 1e-6  # box to box, with a margin far above rounding
+    table = np.full((len(box), len(box)), -1.0)
+    for k in range(len(box)):
+        ids = np.nonzero(near[k])[0]
+        table[k, :len(ids)] = ids
     return np.ascontiguousarray(np.column_stack([
-        T.ox, T.oy, T.dx, T.dy, T.circular.astype(float), T.phase0, T.radius, T.cdir, T.width, T.length, T.box,
-        T.h]))
+        T.ox, T.oy, T.dx, T.dy, T.circular.astype(float), T.phase0, T.radius, T.cdir, T.width, T.length, box,
+        T.h, near.sum(axis=1), table]))
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _local(lt, k, x, y):
     """LaneTable.local for one lane ``k`` and one point: (Straight|Circular)Lane.local_coordinates."""
     ex, ey = x - lt[k, OX], y - lt[k, OY]
@@ -65,20 +76,7 @@ def _local(lt, k, x, y):
     return ex * dx + ey * dy, ex * -dy + ey * dx
 
 
-@numba.njit(cache=True, inline="always")
-def _distance_with_heading(lt, k, x, y, h):
-    """LaneTable.distance_with_heading for one lane and one vehicle (heading_at: the arc's tangent, or the line's
-    heading)."""
-    s, r = _local(lt, k, x, y)
-    if lt[k, CIRC] != 0.0:
-        heading = lt[k, CDIR] * s / lt[k, RADIUS] + lt[k, PHASE0] + math.pi / 2 * lt[k, CDIR]
-    else:
-        heading = lt[k, HEAD]
-    angle = abs((h - heading + math.pi) % (2 * math.pi) - math.pi)
-    return abs(r) + max(s - lt[k, LENGTH], 0.0) + max(0.0 - s, 0.0) + angle
-
-
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def closest(lt, x, y, h):
     """LaneTable.closest for 1-d arrays of vehicles: the first lane of least distance_with_heading among the lanes
     whose centreline box is no farther than the nearest box's lane's distance (the same pruning, the same
@@ -86,11 +84,11 @@ def closest(lt, x, y, h):
     out = np.zeros(x.shape[0], dtype=np.int64)
     lb = np.empty((lt.shape[0], 2))
     for m in range(x.shape[0]):
-        out[m] = _closest_one(lt, x[m], y[m], h[m], lb)
+        out[m] = _closest_one(lt, x[m], y[m], h[m], lb, -1)
     return out
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _within(dx, dy, bound):
     """``math.hypot(dx, dy) <= bound``, exactly, without the hypot where the squared length decides: its rounding
     (a few ulp) is far inside the 1e-9 relative margin, and only the cases within it call hypot."""
@@ -104,41 +102,58 @@ def _within(dx, dy, bound):
     return math.hypot(dx, dy) <= bound
 
 
-@numba.njit(cache=True, inline="always")
-def _closest_one(lt, xm, ym, hm, lb):
-    """:func:`closest` for one vehicle (``lb``: scratch, (L, 2): each lane box's distance components). The nearest
-    box is the first least hypot among the boxes whose squared distance is within 1e-9 of the least (no other can
-    equal it), and each box's ``hypot <= best`` test is :func:`_within`'s: the same lanes as the numpy code."""
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _closest_one(lt, xm, ym, hm, lb, hint):
+    """:func:`closest` for one vehicle (``lb``: scratch, (L, 2)). The lanes evaluated are those whose box is within
+    the distance of one first lane: ``hint`` (>= 0: the vehicle's lane before it moved, usually the winner, so the
+    bound is tight), else the nearest box's lane, the first least hypot among the boxes whose squared distance is
+    within 1e-9 of the least (no other can equal it). Either way every lane of least distance is among them (a
+    lane's box, grown by 1e-6 m, is nearer than its centreline, which is no farther than the distance), each box's
+    ``hypot <= bound`` test is :func:`_within`'s, and the first least distance wins: the numpy code's lane."""
     L = lt.shape[0]
-    m2 = np.inf
-    for k in range(L):
-        bx = max(max(lt[k, BX0] - xm, xm - lt[k, BX1]), 0.0)
-        by = max(max(lt[k, BY0] - ym, ym - lt[k, BY1]), 0.0)
-        lb[k, 0], lb[k, 1] = bx, by
-        m2 = min(m2, bx * bx + by * by)
-    k0, h0 = 0, np.inf
-    for k in range(L):
-        bx, by = lb[k, 0], lb[k, 1]
-        if bx * bx + by * by <= m2 * (1.0 + 1e-9):
-            hk = math.hypot(bx, by)
-            if hk < h0:
-                k0, h0 = k, hk
-    best = _distance_with_heading(lt, k0, xm, ym, hm)
+    k0 = hint
+    if k0 < 0:
+        m2 = np.inf
+        for k in range(L):
+            bx, by = _box_gap(lt, k, xm, ym)
+            lb[k, 0], lb[k, 1] = bx, by
+            m2 = min(m2, bx * bx + by * by)
+        k0, h0 = 0, np.inf
+        for k in range(L):
+            bx, by = lb[k, 0], lb[k, 1]
+            if bx * bx + by * by <= m2 * (1.0 + 1e-9):
+                hk = math.hypot(bx, by)
+                if hk < h0:
+                    k0, h0 = k, hk
+    best = _distance_below(lt, k0, xm, ym, hm, np.inf)
     dmin, kmin = np.inf, 0
-    for k in range(L):
-        if _within(lb[k, 0], lb[k, 1], best):
-            d = _distance_below(lt, k, xm, ym, hm, min(dmin, best))
+    # within NEAR_GAP of lane k0 (its box is nearer than its distance), a lane whose box is within best of the
+    # point has its box within 2 NEAR_GAP of k0's: only k0's near lanes (ascending ids) can be
+    near = best <= NEAR_GAP
+    for q in range(int(lt[k0, NEAR_N]) if near else L):
+        k = int(lt[k0, NEAR_0 + q]) if near else q
+        bx, by = _box_gap(lt, k, xm, ym)
+        if _within(bx, by, best):
+            # lane k0's is best (_distance_below's, or +inf when bounded below best: then it is not the least)
+            d = best if k == k0 else _distance_below(lt, k, xm, ym, hm, min(dmin, best))
             if d < dmin:
                 dmin, kmin = d, k
     return kmin
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _box_gap(lt, k, x, y):
+    """The x and y gaps (m, >= 0) from the point (x, y) to lane k's centreline box."""
+    return max(max(lt[k, BX0] - x, x - lt[k, BX1]), 0.0), max(max(lt[k, BY0] - y, y - lt[k, BY1]), 0.0)
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _distance_below(lt, k, x, y, h, bound):
-    """:func:`_distance_with_heading` (the same operations, the same result), or +inf without the arc's atan2 and
-    the angle wraps when |r| alone exceeds ``bound``: the distance is |r| plus non-negative terms, and a float sum
-    of non-negative terms is never below its first, so such a lane is farther than ``bound`` (the least distance
-    so far, or the nearest box's lane's) and cannot be the first least one."""
+    """LaneTable.distance_with_heading for one lane and one vehicle (heading_at: the arc's tangent, or the line's
+    heading; :func:`_local`'s operations), or +inf without the arc's atan2 and the angle wraps when |r| alone
+    exceeds ``bound`` (+inf: never): the distance is |r| plus
+    non-negative terms, and a float sum of non-negative terms is never below its first, so such a lane is farther
+    than ``bound`` (the least distance so far, or a first lane's) and cannot be the first least one."""
     ex, ey = x - lt[k, OX], y - lt[k, OY]
     if lt[k, CIRC] != 0.0:
         R, cd = lt[k, RADIUS], lt[k, CDIR]
@@ -159,7 +174,7 @@ def _distance_below(lt, k, x, y, h, bound):
     return abs(r) + max(s - lt[k, LENGTH], 0.0) + max(0.0 - s, 0.0) + angle
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def front(lt, lanes, x, y, alive, vehicle_length):
     """Traffic._front: per vehicle i, among the other live vehicles j within 6 m of lane(i)'s centreline box and on
     it (|r| <= width/2 + 1, -L <= s < length + L) with s_j >= s_i, the one with the smallest s_j, the last in
@@ -169,20 +184,17 @@ def front(lt, lanes, x, y, alive, vehicle_length):
     for b in range(B):
         for i in range(N):
             if alive[b, i]:
-                out[b, i] = _front_one(lt, lanes[b, i], b, i, x, y, alive, vehicle_length)
+                k = lanes[b, i]
+                out[b, i] = _front_from(lt, k, _local(lt, k, x[b, i], y[b, i])[0], b, i, x, y, alive,
+                                        vehicle_length, N)[0]
     return out
 
 
-@numba.njit(cache=True, inline="always")
-def _front_one(lt, k, b, i, x, y, alive, vehicle_length):
-    """:func:`front` for vehicle i of env b on lane ``k``: the leader's slot, -1 if none."""
-    return _front_from(lt, k, _local(lt, k, x[b, i], y[b, i])[0], b, i, x, y, alive, vehicle_length)
-
-
-@numba.njit(cache=True, inline="always")
-def _front_from(lt, k, s_self, b, i, x, y, alive, vehicle_length):
-    """:func:`_front_one` with the vehicle's own ``s_self`` on lane ``k`` already known."""
-    N = x.shape[1]
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _front_from(lt, k, s_self, b, i, x, y, alive, vehicle_length, N):
+    """:func:`front` for vehicle i of env b on lane ``k`` with its own ``s_self`` on it already known, among the
+    first ``N`` slots (no live one after them): the leader's slot (-1 if none) and its s on lane ``k`` (m; +inf if
+    none)."""
     x0, y0 = lt[k, BX0] + -6.0, lt[k, BY0] + -6.0
     x1, y1 = lt[k, BX1] + 6.0, lt[k, BY1] + 6.0
     half, end = lt[k, WIDTH] / 2 + 1, lt[k, LENGTH] + vehicle_length
@@ -196,10 +208,10 @@ def _front_from(lt, k, s_self, b, i, x, y, alive, vehicle_length):
         s, r = _local(lt, k, xj, yj)
         if abs(r) <= half and -vehicle_length <= s and s < end and s_self <= s and s <= best:
             best, jbest = s, j
-    return jbest
+    return jbest, best
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def collisions(x, y, h, v, alive, dt, length, width, crashed, has_impact, impact_x, impact_y):
     """Traffic._collisions in place: for every pair i < j in slot order, the spherical pre-check
     (hypot <= diagonal + v_i dt), then utils.are_polygons_intersecting as batched._polygons_intersecting computes
@@ -210,14 +222,14 @@ def collisions(x, y, h, v, alive, dt, length, width, crashed, has_impact, impact
     pa, pb, nrm, dist = np.empty((5, 2)), np.empty((5, 2)), np.empty((8, 2)), np.empty(8)
     for b in range(x.shape[0]):
         _collide_row(b, x, y, h, v, alive, dt, length, width, crashed, has_impact, impact_x, impact_y, lx, ly, pa,
-                     pb, nrm, dist)
+                     pb, nrm, dist, x.shape[1])
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _collide_row(b, x, y, h, v, alive, dt, length, width, crashed, has_impact, impact_x, impact_y, lx, ly, pa, pb,
-                 nrm, dist):
-    """:func:`collisions` for env b (``lx``, ``ly``: the closed polygon's local corners; the rest: scratch)."""
-    N = x.shape[1]
+                 nrm, dist, N):
+    """:func:`collisions` for env b (``lx``, ``ly``: the closed polygon's local corners; the rest: scratch) over its
+    first ``N`` slots (those after them are not alive)."""
     diagonal = math.sqrt(length**2 + width**2)
     for i in range(N):
         if not alive[b, i]:
@@ -281,7 +293,7 @@ def _collide_row(b, x, y, h, v, alive, dt, length, width, crashed, has_impact, i
                 crashed[b, i] = crashed[b, j] = True
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def conflicts(px, py, ph, alive, length, width):
     """The regulation's pairwise test (Traffic._enforce_road_rules): pair i < j of live vehicles conflicts if at
     some prediction time both centres are within ``length`` (np.hypot) and utils.rotated_rectangles_intersect of
@@ -303,7 +315,7 @@ def conflicts(px, py, ph, alive, length, width):
     return out
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _conflict_pair(px, py, ph, i, j, length, lx, ly, hl, hw):
     """:func:`conflicts` for vehicles i and j of one env, their predictions (N, T): the first prediction time
     whose centres are within ``length`` and whose boxes intersect decides."""
@@ -318,7 +330,7 @@ def _conflict_pair(px, py, ph, i, j, length, lx, ly, hl, hw):
     return False
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _any_inside(c1, s1, x1, y1, c2, s2, x2, y2, lx, ly, hl, hw):
     """batched._inside(_rect_points(box 1), box 2): any of box 1's 9 points in box 2 (rotation by +angle, as
     utils.point_in_rotated_rectangle)."""
@@ -332,7 +344,7 @@ def _any_inside(c1, s1, x1, y1, c2, s2, x2, y2, lx, ly, hl, hw):
     return False
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def ttc_rows(rows, x, y, h, v, alive, ego, grid, horizon, dt, length, width):
     """BatchedLeftTurn.ttc for the envs ``rows`` of the batch's (B, N) state (:func:`_ttc_one` per env): the ego its
     first ego slot (slot 0 if none, as np.argmax), the others every other live vehicle; +inf where none is hit."""
@@ -348,7 +360,7 @@ def ttc_rows(rows, x, y, h, v, alive, ego, grid, horizon, dt, length, width):
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _ttc_one(x, y, h, v, other, e, grid, horizon, dt, length, width, ca, cb):
     """One env's TTC (rows ``x``, ``y``, ``h``, ``v``, ``other`` (N,), ego slot ``e``): per pair, the
     constant-velocity overlap interval [t_in, t_out] from the four separating axes, then the per-env box test
@@ -356,13 +368,20 @@ def _ttc_one(x, y, h, v, other, e, grid, horizon, dt, length, width, ca, cb):
     the first hit is the pair's time (the numpy code tests first..first+3, then the rest if none hit: the same times,
     the same minimum). On the axes along the ego's and the other's own heading the angle differences are exactly
     zero (ψ - ψ), so their cosine 1 and sine 0, and the axis' direction is that heading's cosine and sine: constants
-    and values already computed, the numpy code's results bit for bit."""
+    and values already computed, the numpy code's results bit for bit. The ego's normal axis (ψ_e + π/2) is the same
+    for every other: computed once. A pair whose centres stay farther apart than the boxes' diagonal (+ 1e-6 m,
+    far above the corners' rounding) over [0, horizon + dt] cannot overlap at any grid time: skipped, the same
+    result without its 12 further trigonometric calls (most pairs)."""
     K = grid.shape[0]
     best = np.inf
     hl, hw = 0.5 * length, 0.5 * width
+    reach2 = (math.sqrt(length * length + width * width) + 1e-6) ** 2  # m²: two boxes' centres when they touch
+    t_end = horizon + dt
     ex, ey, eh, ev = x[e], y[e], h[e], v[e]
     ce, se = math.cos(eh), math.sin(eh)
     evx, evy = ev * ce, ev * se
+    t1 = eh + math.pi / 2  # the ego's normal axis
+    u1x, u1y, c1e, s1e = math.cos(t1), math.sin(t1), math.cos(eh - t1), math.sin(eh - t1)
     for j in range(x.shape[0]):
         if not other[j]:
             continue
@@ -371,6 +390,10 @@ def _ttc_one(x, y, h, v, other, e, grid, horizon, dt, length, width, ca, cb):
         ovx, ovy = v[j] * co, v[j] * so
         px, py = x[j] - ex, y[j] - ey
         wx, wy = ovx - evx, ovy - evy
+        ww = wx * wx + wy * wy  # the relative motion's closest approach over [0, t_end]
+        tc = min(max(-(px * wx + py * wy) / ww, 0.0), t_end) if ww > 0.0 else 0.0
+        if (px + wx * tc) ** 2 + (py + wy * tc) ** 2 > reach2:
+            continue
         t_in, t_out = -np.inf, np.inf
         for a in range(4):
             if a == 0:  # theta = eh
@@ -379,8 +402,11 @@ def _ttc_one(x, y, h, v, other, e, grid, horizon, dt, length, width, ca, cb):
             elif a == 2:  # theta = oh
                 ux, uy = co, so
                 c_e, s_e, c_o, s_o = math.cos(eh - oh), math.sin(eh - oh), 1.0, 0.0
+            elif a == 1:  # theta = eh + pi / 2
+                ux, uy, c_e, s_e = u1x, u1y, c1e, s1e
+                c_o, s_o = math.cos(oh - t1), math.sin(oh - t1)
             else:
-                theta = eh + math.pi / 2 if a == 1 else oh + math.pi / 2
+                theta = oh + math.pi / 2
                 ux, uy = math.cos(theta), math.sin(theta)
                 c_e, s_e = math.cos(eh - theta), math.sin(eh - theta)
                 c_o, s_o = math.cos(oh - theta), math.sin(oh - theta)
@@ -409,7 +435,7 @@ def _ttc_one(x, y, h, v, other, e, grid, horizon, dt, length, width, ca, cb):
     return best
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _boxes_at(ax, ay, ce, se, bx, by, co, so, hl, hw, ca, cb):
     """Whether two length × width boxes centred at (ax, ay) and (bx, by) with headings of cosine/sine (ce, se) and
     (co, so) overlap: box_corners (centre + rot @ local, local corners (hl, hw), (hl, -hw), (-hl, -hw), (-hl, hw))
@@ -419,7 +445,7 @@ def _boxes_at(ax, ay, ce, se, bx, by, co, so, hl, hw, ca, cb):
     return boxes_overlap(ca, cb)
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def box_corners(cx, cy, c, s, hl, hw, out):
     """geometry.box_corners for one box into ``out`` (4, 2): the local corners (hl, hw), (hl, -hw), (-hl, -hw),
     (-hl, hw) rotated by the heading of cosine/sine (c, s) (the einsum's ``c·lx + (-s)·ly``, ``s·lx + c·ly``) and
@@ -430,7 +456,7 @@ def box_corners(cx, cy, c, s, hl, hw, out):
         out[p, 0], out[p, 1] = cx + (c * lx + -s * ly), cy + (s * lx + c * ly)
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def boxes_overlap(a, b):
     """geometry.boxes_overlap for one pair of (4, 2) corner arrays: two edge normals of each box, touching counts.
     Also the AEB shield's footprint test (av_gym.shields.kernels.footprint_hit)."""
@@ -448,7 +474,7 @@ def boxes_overlap(a, b):
     return True
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def idm(lt, x, y, h, v, target, delta, lane, front, speed_limit, acc_max, acc_min, distance_wanted, time_wanted):
     """Traffic._idm_acc: IDMVehicle.acceleration with the leader ``front`` (-1: none), the gap measured along the
     current lane (lane_distance_to), utils.not_zero as there; every slot, as the numpy code."""
@@ -457,28 +483,30 @@ def idm(lt, x, y, h, v, target, delta, lane, front, speed_limit, acc_max, acc_mi
     for b in range(B):
         for i in range(N):
             f = front[b, i]
-            s_i, ci, si, cf, sf = 0.0, 0.0, 0.0, 0.0, 0.0  # what IDM shares with the leader search, when it has one
+            # what IDM shares with the leader search, when it has one
+            s_i, s_f, ci, si, cf, sf = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
             if f >= 0:
                 s_i = _local(lt, lane[b, i], x[b, i], y[b, i])[0]
+                s_f = _local(lt, lane[b, i], x[b, f], y[b, f])[0]
                 ci, si, cf, sf = math.cos(h[b, i]), math.sin(h[b, i]), math.cos(h[b, f]), math.sin(h[b, f])
-            out[b, i] = _idm_with(lt, b, i, f, s_i, ci, si, cf, sf, x, y, v, target, delta, lane, speed_limit,
+            out[b, i] = _idm_with(b, i, f, s_i, s_f, ci, si, cf, sf, v, target, delta, lane, speed_limit,
                                   acc_max, acc_min, distance_wanted, time_wanted)
     return out
 
 
-@numba.njit(cache=True, inline="always")
-def _idm_with(lt, b, i, f, s_i, ci, si, cf, sf, x, y, v, target, delta, lane, speed_limit, acc_max, acc_min,
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _idm_with(b, i, f, s_i, s_f, ci, si, cf, sf, v, target, delta, lane, speed_limit, acc_max, acc_min,
               distance_wanted, time_wanted):
     """:func:`idm` for vehicle i of env b with the leader ``f`` (-1: none), given what it shares with the leader
-    search: the vehicle's own s on its lane (``s_i``, m) and the cosines and sines of its heading and the leader's
-    (unused when ``f`` is -1)."""
+    search: the vehicle's own s and the leader's on the vehicle's lane (``s_i``, ``s_f``, m) and the cosines and
+    sines of its heading and the leader's (unused when ``f`` is -1)."""
     ab = -acc_max * acc_min
     k = lane[b, i]
     tg = min(max(target[b, i], 0.0), speed_limit[k])
     tg = tg if abs(tg) > 1e-2 else (1e-2 if tg >= 0 else -1e-2)
     acc = acc_max * (1 - (max(v[b, i], 0.0) / abs(tg)) ** delta[b, i])
     if f >= 0:
-        d = _local(lt, k, x[b, f], y[b, f])[0] - s_i
+        d = s_f - s_i
         d = d if abs(d) > 1e-2 else (1e-2 if d >= 0 else -1e-2)
         dv = (v[b, i] * ci - v[b, f] * cf) * ci + (v[b, i] * si - v[b, f] * sf) * si
         d_star = distance_wanted + v[b, i] * time_wanted + v[b, i] * dv / (2 * math.sqrt(ab))
@@ -495,7 +523,7 @@ def _idm_with(lt, b, i, f, s_i, ci, si, cf, sf, x, y, v, target, delta, lane, sp
 SLOWER, FASTER = 0, 2
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def advance(lt, lanes, x, y, h, v, target, steer, acc, delta, alive, ego, plain, mdp, crashed, yielding, impact_x,
             impact_y, has_impact, lane, tlane, route, rpos, road_steps, active, meta, speeds, cmd, frames, dt,
             reg_period, reg_times, prm, ticks, time, arrived_time):
@@ -517,23 +545,27 @@ def advance(lt, lanes, x, y, h, v, target, steer, acc, delta, alive, ego, plain,
     for b in range(B):
         if not active[b]:
             continue
+        n_used = 0  # the slots after the last live one: nobody (no vehicle enters or leaves during the ticks)
+        for j in range(N):
+            if alive[b, j]:
+                n_used = j + 1
         for frame in range(frames):
             _act_row(lt, lanes, b, x, y, h, v, target, steer, acc, delta, alive, ego, plain, crashed, lane, tlane,
-                     route, rpos, meta[b] if frame == 0 else -1, speeds, cmd[frame, b], prm, ch, sh)
+                     route, rpos, meta[b] if frame == 0 else -1, speeds, cmd[frame, b], prm, ch, sh, n_used)
             road_steps[b] += 1
             if road_steps[b] % reg_period == 0:
                 _road_rules_row(lt, lanes, b, x, y, h, v, target, alive, plain, mdp, yielding, lane, route, rpos,
                                 reg_times, prm, px, py, ph)
             _kinematics_row(lt, b, x, y, h, v, steer, acc, alive, crashed, impact_x, impact_y, has_impact, lane,
-                            dt, prm, lb)
+                            dt, prm, lb, ch, sh)
             _collide_row(b, x, y, h, v, alive, dt, prm[P_LENGTH], prm[P_WIDTH], crashed, has_impact, impact_x,
-                         impact_y, clx, cly, pa, pb, nrm, dist)
+                         impact_y, clx, cly, pa, pb, nrm, dist, n_used)
             ticks[b] += 1
             if math.isnan(arrived_time[b]) and _arrived(lt, lanes, b, x, y, ego, lane, prm[P_EXIT_DISTANCE]):
                 arrived_time[b] = time[b]
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _arrived(lt, lanes, b, x, y, ego, lane, exit_distance):
     """BatchedLeftTurn.has_arrived for env b's ego (the first ego slot, slot 0 if none, as np.argmax)."""
     e = 0
@@ -545,13 +577,14 @@ def _arrived(lt, lanes, b, x, y, ego, lane, exit_distance):
     return lanes[k, 2] != 0.0 and _local(lt, k, x[b, e], y[b, e])[0] >= exit_distance
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _act_row(lt, lanes, b, x, y, h, v, target, steer, acc, delta, alive, ego, plain, crashed, lane, tlane, route,
-             rpos, meta, speeds, cmd, prm, ch, sh):
+             rpos, meta, speeds, cmd, prm, ch, sh, n_used):
     """Traffic.act for env b: the ego's meta-action (MDPVehicle.act), then per controlled vehicle follow_road,
     steering_control and IDM (the min over the current and the target lane's leader while they differ), or the
-    ego's speed control / commanded acceleration."""
-    N = x.shape[1]
+    ego's speed control / commanded acceleration. ``ch``, ``sh`` (N,): filled with each live vehicle's heading's
+    cos and sin; ``n_used``: no live slot after the first n_used."""
+    N = n_used
     n_s = speeds.shape[0]
     if meta >= 0 and meta != 1:
         step = 1 if meta == FASTER else -1 if meta == SLOWER else 0
@@ -583,18 +616,19 @@ def _act_row(lt, lanes, b, x, y, h, v, target, steer, acc, delta, alive, ego, pl
             continue
         kl = lane[b, i]
         s_l = s if kl == k else _local(lt, kl, x[b, i], y[b, i])[0]
-        f = _front_from(lt, kl, s_l, b, i, x, y, alive, vl)
-        a = _idm_with(lt, b, i, f, s_l, ch[i], sh[i], ch[max(f, 0)], sh[max(f, 0)], x, y, v, target, delta, lane,
+        f, s_f = _front_from(lt, kl, s_l, b, i, x, y, alive, vl, n_used)  # s_f: the leader's, IDM's gap
+        a = _idm_with(b, i, f, s_l, s_f, ch[i], sh[i], ch[max(f, 0)], sh[max(f, 0)], v, target, delta, lane,
                       lanes[:, 0], prm[P_COMFORT_MAX], prm[P_COMFORT_MIN], prm[P_DISTANCE], prm[P_TIME])
         if kl != k:  # changing lanes: also the target lane's leader, the gap still measured on the current lane
-            f = _front_from(lt, k, s, b, i, x, y, alive, vl)
-            a = min(a, _idm_with(lt, b, i, f, s_l, ch[i], sh[i], ch[max(f, 0)], sh[max(f, 0)], x, y, v, target,
-                                 delta, lane, lanes[:, 0], prm[P_COMFORT_MAX], prm[P_COMFORT_MIN], prm[P_DISTANCE],
+            f = _front_from(lt, k, s, b, i, x, y, alive, vl, n_used)[0]
+            s_f = _local(lt, kl, x[b, f], y[b, f])[0] if f >= 0 else 0.0
+            a = min(a, _idm_with(b, i, f, s_l, s_f, ch[i], sh[i], ch[max(f, 0)], sh[max(f, 0)], v, target, delta,
+                                 lane, lanes[:, 0], prm[P_COMFORT_MAX], prm[P_COMFORT_MIN], prm[P_DISTANCE],
                                  prm[P_TIME]))
         acc[b, i] = min(max(a, -prm[P_ACC_MAX]), prm[P_ACC_MAX])
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _next_route_step(lanes, b, i, k, tlane, route, rpos):
     """Traffic._follow_road for one vehicle past the end of its target lane ``k``: the route's next step."""
     p = rpos[b, i]
@@ -605,7 +639,7 @@ def _next_route_step(lanes, b, i, k, tlane, route, rpos):
     rpos[b, i] = p
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _heading_at(lt, k, s):
     """LaneTable.heading_at for one lane."""
     if lt[k, CIRC] != 0.0:
@@ -613,17 +647,17 @@ def _heading_at(lt, k, s):
     return lt[k, HEAD]
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _not_zero(a):
     return a if abs(a) > 1e-2 else (1e-2 if a >= 0 else -1e-2)
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _clip(a, lo, hi):
     return min(max(a, lo), hi)
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _steering_sr(lt, k, s, r, v, h, prm):
     """Traffic._steering (ControlledVehicle.steering_control) for one vehicle at (s, r) on its target lane k."""
     future_heading = _heading_at(lt, k, s + v * prm[P_TAU])
@@ -631,31 +665,44 @@ def _steering_sr(lt, k, s, r, v, h, prm):
     heading_cmd = math.asin(_clip(-prm[P_KP_LAT] * r / v_nz, -1.0, 1.0))
     heading_ref = future_heading + _clip(heading_cmd, -math.pi / 4, math.pi / 4)
     rate = prm[P_KP_HEAD] * ((heading_ref - h + math.pi) % (2 * math.pi) - math.pi)
-    slip = math.asin(_clip(prm[P_LENGTH] / 2 / v_nz * rate, -1.0, 1.0))
-    return _clip(math.atan(2 * math.tan(slip)), -prm[P_MAX_STEER], prm[P_MAX_STEER])
+    q = _clip(prm[P_LENGTH] / 2 / v_nz * rate, -1.0, 1.0)  # sin(slip)
+    # tan(slip) = tan(asin(q)) = q / sqrt(1 - q²) (±inf at |q| = 1, whose atan is ±π/2): no slip angle, the same
+    # steering to a few ulp (batched.Traffic._steering computes it so too)
+    tan_slip = q / math.sqrt(1.0 - q * q) if abs(q) < 1.0 else math.copysign(np.inf, q)
+    return _clip(math.atan(2 * tan_slip), -prm[P_MAX_STEER], prm[P_MAX_STEER])
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _slip_cos_sin(steer):
+    """cos β and sin β of the bicycle's slip angle β = atan(tan(steer) / 2) from t = tan β: 1 / sqrt(1 + t²) and
+    t / sqrt(1 + t²), no angle (batched.Traffic._kinematics computes them so too; a few ulp from cos / sin of β)."""
+    t = 1 / 2 * math.tan(steer)
+    cb = 1.0 / math.sqrt(1.0 + t * t)
+    return cb, t * cb
+
+
+@numba.njit(cache=True, error_model="numpy")
 def _kinematics_row(lt, b, x, y, h, v, steer, acc, alive, crashed, impact_x, impact_y, has_impact, lane, dt, prm,
-                    lb):
-    """Traffic._kinematics for env b: clip_actions, the kinematic bicycle, a pending impact, the closest lane."""
+                    lb, ch, sh):
+    """Traffic._kinematics for env b: clip_actions, the kinematic bicycle, a pending impact, the closest lane.
+    ``ch``, ``sh``: each live vehicle's cos and sin of its heading (_act_row's)."""
     for i in range(x.shape[1]):
         if not alive[b, i]:
             continue
         if crashed[b, i]:
             steer[b, i], acc[b, i] = 0.0, -1.0 * v[b, i]
-        beta = math.atan(1 / 2 * math.tan(steer[b, i]))
-        xn = x[b, i] + v[b, i] * math.cos(h[b, i] + beta) * dt
-        yn = y[b, i] + v[b, i] * math.sin(h[b, i] + beta) * dt
+        cb, sb = _slip_cos_sin(steer[b, i])
+        xn = x[b, i] + v[b, i] * (ch[i] * cb - sh[i] * sb) * dt  # cos(h + β)
+        yn = y[b, i] + v[b, i] * (sh[i] * cb + ch[i] * sb) * dt  # sin(h + β)
         if has_impact[b, i]:
             xn, yn = xn + impact_x[b, i], yn + impact_y[b, i]
             crashed[b, i], has_impact[b, i] = True, False
-        hn = h[b, i] + v[b, i] * math.sin(beta) / (prm[P_LENGTH] / 2) * dt
+        hn = h[b, i] + v[b, i] * sb / (prm[P_LENGTH] / 2) * dt
         x[b, i], y[b, i], h[b, i], v[b, i] = xn, yn, hn, v[b, i] + acc[b, i] * dt
-        lane[b, i] = _closest_one(lt, xn, yn, hn, lb)
+        lane[b, i] = _closest_one(lt, xn, yn, hn, lb, lane[b, i])  # hint: its lane before the move
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _road_rules_row(lt, lanes, b, x, y, h, v, target, alive, plain, mdp, yielding, lane, route, rpos, reg_times,
                     prm, px, py, ph):
     """Traffic._enforce_road_rules for env b: release the yielding vehicles, predict along the routes, then
@@ -693,7 +740,7 @@ def _road_rules_row(lt, lanes, b, x, y, h, v, target, alive, plain, mdp, yieldin
                 yielding[b, yv] = True
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _predict_one(lt, b, i, x, y, h, v, plain, lane, route, rpos, reg_times, px, py, ph):
     """Traffic._predict for one vehicle into row i of (N, T) ``px``, ``py``, ``ph``: constant speed along the rest
     of its route (a plain vehicle: a straight line along its heading)."""
@@ -729,7 +776,7 @@ def _predict_one(lt, b, i, x, y, h, v, plain, lane, route, rpos, reg_times, px, 
         ph[i, t] = _heading_at(lt, k, lon)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def path_conflict(p, v, path, path_s, t_max):
     """turn_features.path_conflict for (n, M, 2) positions ``p`` and velocities ``v``: per object the
     constant-velocity closest approach to each point of the ego's ``path`` (P, 2) (:func:`_closest_approach`);
@@ -745,7 +792,7 @@ def path_conflict(p, v, path, path_s, t_max):
     return t_out, miss_out, s_out
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _closest_approach(px, py, vx, vy, path, path_s, t_max, tk, qx, qy, q2):
     """One object's constant-velocity closest approach to each point c of ``path``: t* = clip(-(p - c)·v /
     max(|v|², 1e-6), 0, t_max) and miss = hypot(p + v t* - c); the first point of least miss gives (t* (s), miss
@@ -791,7 +838,7 @@ G_LENGTH, G_WIDTH, G_CONFLICT_S, G_ONCOMING_EDGE, G_EXIT_DISTANCE = range(5)
  R_EXIT_DISTANCE) = range(9)
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _encode(value, scale):
     """TurnEncoding.encode for one value: value / scale clipped to [-1, 1], NaN → 0, as float32."""
     q = value / scale
@@ -800,13 +847,13 @@ def _encode(value, scale):
     return np.float32(min(max(q, -1.0), 1.0))
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _before(a, b):
     """np.argsort's order of two distances: NaN after every number, else the smaller first."""
     return not math.isnan(a) and (math.isnan(b) or a < b)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _features_row(out, order, present, a, ego, others, valid, path, path_s, conflict, max_range, ego_scales,
                   obj_scales, t_max, d, idx, tk, qx, qy, q2):
     """turn_features for one ego: ``ego`` (8,) its EGO_INPUTS (SI), ``others`` (N, ≥4) ``[x, y, vx, vy]`` (m, m/s)
@@ -842,7 +889,7 @@ def _features_row(out, order, present, a, ego, others, valid, path, path_s, conf
             out[a, ego_scales.shape[0] + F * r + f] = _encode(row[f], obj_scales[f])
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def turn_features(ego, others, valid, path, path_s, conflict, max_objects, max_range, ego_scales, obj_scales,
                   t_max):
     """av_gym.estimation.turn_features.turn_features for n egos: ``ego`` (n, 8) EGO_INPUTS, ``others`` (n, N, ≥4)
@@ -861,7 +908,7 @@ def turn_features(ego, others, valid, path, path_s, conflict, max_objects, max_r
     return out, order, present
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _ego_of(ego, b):
     """The first ego slot of env b (slot 0 if none, as np.argmax)."""
     for j in range(ego.shape[1]):
@@ -870,7 +917,7 @@ def _ego_of(ego, b):
     return 0
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _route_position(lt, route, route_starts, route_k, b, x, y):
     """BatchedLeftTurn._route_s for one ego at (x, y) (LanePath.locate from the hint ``route_k[b]``, which it moves
     along): the route position (m) and the lateral offset (m)."""
@@ -889,7 +936,7 @@ def _route_position(lt, route, route_starts, route_k, b, x, y):
     return route_starts[k] + s, lat
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def truth(lt, lanes, route, route_starts, geo, rows, x, y, h, v, steer, acc, target, ego, crashed, lane, route_k,
           time, arrived_time):
     """BatchedLeftTurn.truth for the envs ``rows``: (n, 17) float, columns TRUTH_FIELDS (collision and arrived as
@@ -918,7 +965,7 @@ def truth(lt, lanes, route, route_starts, geo, rows, x, y, h, v, steer, acc, tar
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def observe(lt, lanes, route, route_starts, geo, rows, x, y, h, v, steer, acc, target, alive, ego, crashed, lane,
             route_k, time, arrived_time, path, path_s, conflict, max_objects, max_range, ego_scales, obj_scales,
             t_max):
@@ -936,10 +983,11 @@ def observe(lt, lanes, route, route_starts, geo, rows, x, y, h, v, steer, acc, t
     tk, qx, qy, q2 = np.empty(P), np.empty(P), np.empty(P), np.empty(P)
     for a in range(n):
         b = rows[a]
-        for j in range(N):
-            others[j, 0], others[j, 1] = x[b, j], y[b, j]
-            others[j, 2], others[j, 3] = v[b, j] * math.cos(h[b, j]), v[b, j] * math.sin(h[b, j])
+        for j in range(N):  # an invalid row is never described (its distance is +inf): its values are not read
             valid[j] = alive[b, j] and not ego[b, j]
+            if valid[j]:
+                others[j, 0], others[j, 1] = x[b, j], y[b, j]
+                others[j, 2], others[j, 3] = v[b, j] * math.cos(h[b, j]), v[b, j] * math.sin(h[b, j])
         inputs[E_X], inputs[E_Y], inputs[E_HEADING], inputs[E_SPEED] = tr[a, T_X], tr[a, T_Y], tr[a, T_HEADING], \
             tr[a, T_SPEED]
         inputs[E_SET_POINT], inputs[E_STOP_LINE] = tr[a, T_SET_POINT], tr[a, T_STOP_LINE]
@@ -949,7 +997,7 @@ def observe(lt, lanes, route, route_starts, geo, rows, x, y, h, v, steer, acc, t
     return tr, out, order, present
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def rewards(lt, lanes, route, route_starts, rows, x, y, v, acc, ego, crashed, lane, route_k, progress_s,
             progress_total, prm):
     """UnprotectedLeftTurnEnv._reward (BatchedLeftTurn._reward) for the envs ``rows``, the progress and route hint
@@ -1028,7 +1076,7 @@ def generator_states(rngs) -> np.ndarray | None:
     return np.array(addresses, dtype=np.uint64) if len(set(addresses)) == len(addresses) else None
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def standard_normal(fns, st):
     """Generator.normal() / standard_normal() on the generator at state address ``st``: numpy's
     random_standard_normal (the 256-layer ziggurat)."""
@@ -1053,7 +1101,7 @@ def standard_normal(fns, st):
             return x
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def bounded(fns, st, rng):
     """random_bounded_uint64(off=0, rng, use_masked=False) for 0 < rng < 2**32 - 1: an integer in [0, rng] by
     Lemire's rejection on next_uint32 (which uses the bit generator's own 32-bit buffer)."""
@@ -1068,7 +1116,7 @@ def bounded(fns, st, rng):
     return np.int64(m >> np.uint64(32))
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def choice2(fns, st, n):
     """Generator.choice(n, size=2, replace=False) for 2 <= n <= 10000: Floyd's sampling of two of range(n), then
     the shuffle (_shuffle_int(2, 1)). Returns the pair."""
@@ -1092,7 +1140,7 @@ def choice2(fns, st, n):
 SPAWN_CLEAR = 15.0  # m, no spawn this close to another vehicle (IntersectionEnv._spawn_vehicle)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _spawn_one(fns, st, lt, lanes, prior, b, longitudinal, position_deviation, speed_deviation, p, go_straight, u,
                fl, alive, ego, plain, mdp, flags, it, route, next_id, lb, pending):
     """One spawn try in env b (``u``: its first draw when the caller made it, NaN: drawn here). Returns 1 if a
@@ -1127,14 +1175,14 @@ def _spawn_one(fns, st, lt, lanes, prior, b, longitudinal, position_deviation, s
         fl[q][b, slot] = value
     for q in range(3):
         flags[q][b, slot] = False
-    closest_lane = _closest_one(lt, x0, y0, lt[k, HEAD], lb)  # Traffic.settle
+    closest_lane = _closest_one(lt, x0, y0, lt[k, HEAD], lb, -1)  # Traffic.settle
     it[0][b, slot] = it[1][b, slot] = route[b, slot, 0] = closest_lane
     route[b, slot, 1], route[b, slot, 2] = lanes[r0, 1 + r1], lanes[r1, 5]
     it[2][b, slot], it[3][b, slot] = 0, next_id
     return 1
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def spawn_tries(fns, states, rows, start, p, lt, lanes, prior, fl, alive, ego, plain, mdp, flags, it, route,
                 next_id, pending):
     """BatchedLeftTurn._clear_and_spawn's spawn tries from ``rows[start]`` on: env rows[k] (generator state
@@ -1154,7 +1202,7 @@ def spawn_tries(fns, states, rows, start, p, lt, lanes, prior, fl, alive, ego, p
     return n, -1
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def spawn_initial(fns, states, starts, p, lt, lanes, prior, fl, alive, ego, plain, mdp, flags, it, route, next_id):
     """_make_vehicles' initial traffic: env b (generator state ``states[b]``) tries one spawn at each offset of
     ``starts`` (m) with probability ``p``, env after env (the caller makes room for them all). Returns the number
@@ -1168,7 +1216,7 @@ def spawn_initial(fns, states, starts, p, lt, lanes, prior, fl, alive, ego, plai
     return n
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def spawn_challengers(fns, states, lt, lanes, prior, fl, alive, ego, plain, mdp, flags, it, route, next_id, ego_s,
                       ego_id):
     """_make_vehicles' challenger (60 m in, going straight, position deviation 0.1 m, the prior's mean speed) and the
@@ -1186,7 +1234,7 @@ def spawn_challengers(fns, states, lt, lanes, prior, fl, alive, ego, plain, mdp,
     return n
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def clear_exits(lt, lanes, rows, exit_margin, fl, bl, il, route):
     """IntersectionEnv._clear_vehicles for the envs ``rows`` (BatchedLeftTurn._clear_and_spawn): a live non-ego
     vehicle on a leaving lane (``lanes[:, 2]``) with s >= the lane's length - ``exit_margin`` (m) is removed; then,
@@ -1231,7 +1279,7 @@ def clear_exits(lt, lanes, rows, exit_margin, fl, bl, il, route):
     return gone
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _permute_row(row, order):
     """row[:] = row[order] in place (from a copy: ``order`` moves slots both ways)."""
     tmp = row.copy()
