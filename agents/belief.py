@@ -399,20 +399,21 @@ def play_go_fast(f) -> np.ndarray:
 
     safe = np.ones(f.B, bool)
     idx = np.arange(f.B)  # the rows of the original future that ``f`` still holds
+    live = np.ones(f.B, bool)  # the rows of ``f`` still playing
     top = float(f.speeds[-1])
-    while len(idx):
+    while live.any():
         n = f.B
         sp = f.traffic.target[np.arange(n), f.ego_slot()]
         meta = np.where(top > sp + 1e-3, FASTER, np.where(top < sp - 1e-3, SLOWER, IDLE))
-        _, terminated, truncated = f.step(meta)
-        ended = terminated | truncated
+        _, terminated, truncated = f.step(meta, active=live)  # the ended rows wait as they are
+        ended = (terminated | truncated) & live
         if ended.any():
             e = np.nonzero(ended)[0]
             safe[idx[e]] = ~f.traffic.crashed[e, f.ego_slot(e)]
-            keep = np.nonzero(~ended)[0]
-            idx = idx[keep]
-            if len(idx):  # the engine steps every row it holds: drop the ended ones
-                f = f.keep(keep)
+            live &= ~ended
+            if 0 < live.sum() <= n // 2:  # drop the ended rows once they are half: a copy per halving, not per end
+                keep = np.nonzero(live)[0]
+                idx, f, live = idx[keep], f.keep(keep), np.ones(len(keep), bool)
     return safe
 
 
