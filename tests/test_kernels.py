@@ -134,6 +134,55 @@ def test_closest_lane_kernel_is_the_numpy_argmin(monkeypatch, seed):
                           ref[:60].reshape(3, 20))
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_closest_lane_from_any_hint_is_the_numpy_argmin(monkeypatch, seed):
+    """The tick's closest lane starts from the vehicle's previous lane (a hint) and, within kernels.NEAR_GAP of it,
+    evaluates only its near lanes: the numpy argmin whatever the hint. Points within centimetres of a lane (the near
+    path), on lane ends (ties where lanes meet) and anywhere; hints the true lane, a lane the point left, any lane."""
+    T, rng = tables()[0], np.random.default_rng(seed)
+    n = 4000
+    k = rng.integers(0, len(T.length), n)
+    s = np.where(rng.random(n) < 0.3, rng.integers(0, 2, n) * T.length[k], rng.uniform(-0.2, 1.2, n) * T.length[k])
+    r = np.where(rng.random(n) < 0.6, rng.normal(0, 0.05, n), rng.normal(0, 2, n))
+    x, y = T.position(k, s, r)
+    h = T.heading_at(k, s) + np.where(rng.random(n) < 0.6, rng.normal(0, 0.02, n), rng.normal(0, 0.5, n))
+    x[-400:], y[-400:] = rng.uniform(-120, 120, (2, 400))
+    monkeypatch.setattr(sb, "KERNELS", set())
+    ref = T.closest(x, y, h)
+    near = T.distance_with_heading(ref, x, y, h) <= kernels.NEAR_GAP
+    assert near.mean() > 0.4 and len(np.unique(ref[near])) == len(T.length)  # the near path on every lane
+    for hint in (ref, k, rng.integers(0, len(T.length), n), np.full(n, -1)):
+        got = kernels.closest(T.arr, x, y, h, np.ascontiguousarray(hint, dtype=np.int64))
+        assert np.array_equal(got, ref), np.nonzero(got != ref)[0][:10]
+
+
+def test_steering_and_slip_by_their_cosines_and_sines_are_the_angle_formulas():
+    """Traffic._steering's tan(asin q) = q / sqrt(1 - q²) and Traffic._kinematics' slip angle by its cosine and
+    sine from t = tan(steer) / 2 give highway-env's angle formulas (atan(2 tan(asin q)); atan(t), cos(h + β),
+    sin(h + β), sin β) to 1e-12, saturated steering (|q| = 1) included; the tick kernel does the same arithmetic
+    (the lockstep tests)."""
+    rng = np.random.default_rng(4)
+    t = _traffic(rng, 64, 12, 0.0)
+    t.tlane[:] = t.lane
+    t.v[:] = np.where(rng.random(t.v.shape) < 0.1, 0.3, t.v)  # slow: |q| clips to 1, full lock
+    T = t.tables
+    s, r = T.local(t.tlane, t.x, t.y)
+    v_nz = sb.not_zero(t.v)
+    ref_h = T.heading_at(t.tlane, s + t.v * sb.TAU_PURSUIT) \
+        + np.clip(np.arcsin(np.clip(-sb.KP_LATERAL * r / v_nz, -1, 1)), -np.pi / 4, np.pi / 4)
+    q = np.clip(sb.LENGTH / 2 / v_nz * sb.KP_HEADING * sb.wrap_to_pi(ref_h - t.h), -1, 1)
+    steer = np.clip(np.arctan(2 * np.tan(np.arcsin(q))), -sb.MAX_STEERING, sb.MAX_STEERING)
+    assert _same(t._steering(), steer) and (np.abs(q) == 1).any() and (np.abs(steer) < sb.MAX_STEERING).sum() > 50
+    t.steer[:] = steer
+    beta = np.arctan(1 / 2 * np.tan(steer))
+    dt, a = 1 / 15, t.alive
+    want = (t.x + t.v * np.cos(t.h + beta) * dt, t.y + t.v * np.sin(t.h + beta) * dt,
+            t.h + t.v * np.sin(beta) / (sb.LENGTH / 2) * dt)
+    t._kinematics(dt)
+    for got, ref in zip((t.x, t.y, t.h), want):
+        assert _same(got[a], ref[a])
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_ttc_kernel_is_the_numpy_ttc(monkeypatch, seed):
     """Random traffic around the ego (slot 0): overlapping now (0 s), stationary and equal-velocity pairs (the

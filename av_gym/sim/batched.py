@@ -233,7 +233,8 @@ class LaneTable:
         shape = np.shape(x)
         x, y, h = np.ravel(x), np.ravel(y), np.ravel(h)
         if "closest" in KERNELS:
-            return kernels.closest(self.arr, *(np.ascontiguousarray(a, dtype=float) for a in (x, y, h))).reshape(shape)
+            return kernels.closest(self.arr, *(np.ascontiguousarray(a, dtype=float) for a in (x, y, h)),
+                                   np.full(x.shape, -1)).reshape(shape)
         bx = np.maximum(np.maximum(self.box[:, 0] - x[:, None], x[:, None] - self.box[:, 2]), 0)
         by = np.maximum(np.maximum(self.box[:, 1] - y[:, None], y[:, None] - self.box[:, 3]), 0)
         lb = np.hypot(bx, by)  # (M, L)

@@ -77,14 +77,14 @@ def _local(lt, k, x, y):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def closest(lt, x, y, h):
+def closest(lt, x, y, h, hint):
     """LaneTable.closest for 1-d arrays of vehicles: the first lane of least distance_with_heading among the lanes
-    whose centreline box is no farther than the nearest box's lane's distance (the same pruning, the same
-    comparisons: first on ties)."""
+    whose centreline box is no farther than a first lane's distance (``hint[m]``, a lane id, or -1: the nearest
+    box's lane; :func:`_closest_one`): the same lane whatever the hint."""
     out = np.zeros(x.shape[0], dtype=np.int64)
     lb = np.empty((lt.shape[0], 2))
     for m in range(x.shape[0]):
-        out[m] = _closest_one(lt, x[m], y[m], h[m], lb, -1)
+        out[m] = _closest_one(lt, x[m], y[m], h[m], lb, hint[m])
     return out
 
 
