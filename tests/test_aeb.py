@@ -256,14 +256,14 @@ def test_driven_path_kernel_equals_the_numpy_reference(make, turn_cfg):
             assert_same(h[m], ref_h, f"trial {trial}, object {m}: headings")
 
 
-@pytest.mark.parametrize("switch", ["DrivenPath.kernel", "FOOTPRINT_KERNEL"])
+@pytest.mark.parametrize("switch", ["DrivenPath.kernel", "FOOTPRINT_KERNEL", "conflicts.CONFLICT_KERNEL"])
 def test_shield_decisions_are_the_same_with_the_kernel_and_with_numpy(make, turn_cfg, switch):
     """A traffic episode with braking and release (seed 1001), every step's decision, with the compiled driven-path
-    look-up / footprint test and with its numpy reference (``switch`` False: DrivenPath.poses_numpy,
-    predict.footprint_ttc_numpy)."""
-    from av_gym.shields import predict
+    look-up / footprint test / conflict model's choice of hypotheses and with its numpy reference (``switch``
+    False: DrivenPath.poses_numpy, predict.footprint_ttc_numpy, ConflictModel._select)."""
+    from av_gym.shields import conflicts, predict
 
-    owner = predict.DrivenPath if switch == "DrivenPath.kernel" else predict
+    owner = {"DrivenPath.kernel": predict.DrivenPath, "FOOTPRINT_KERNEL": predict}.get(switch, conflicts)
     name = switch.split(".")[-1]
     runs = []
     for kernel in (True, False):

@@ -80,3 +80,89 @@ def test_the_brake_profile_is_the_actuator_applied_tick_by_tick(delay, jerk):
             assert (xs[i], vs[i]) == (x, v)
         act.release()
     assert vs[-1] == 0.0
+
+
+@pytest.mark.parametrize("speeds_kmh", [(0.0, 16.2, 32.4), (0.0, 10.0, 20.0, 30.0, 40.0)])
+def test_the_setpoint_kernel_is_the_reference_with_mdpvehicles_set_points(speeds_kmh):
+    """setpoint_steps (compiled: kernels.setpoint_ticks) equals setpoint_profile with highway-env's MDPVehicle.act
+    for a repeated FASTER / SLOWER as ``set_at`` (speed_to_index's rounding of the nearest set-point, clipped), bit
+    for bit, from speeds between and exactly on the set-points (rounding ties) and beyond them."""
+    from highway_env.vehicle.controller import MDPVehicle
+
+    from av_gym.shields.predict import setpoint_profile, setpoint_steps
+
+    class Ego:  # MDPVehicle's set-point arithmetic on its own target speeds
+        speed_to_index, index_to_speed = MDPVehicle.speed_to_index, MDPVehicle.index_to_speed
+
+    ego = Ego()
+    ego.target_speeds = np.array(speeds_kmh) / 3.6
+    top, rng = len(ego.target_speeds) - 1, np.random.default_rng(11)
+    halfway = 0.5 * (ego.target_speeds[:-1] + ego.target_speeds[1:])
+    starts = np.concatenate([rng.uniform(0.0, 1.2 * ego.target_speeds[-1], 150), ego.target_speeds, halfway])
+    t = 0.1 * np.arange(1, 81)
+    for v0 in starts:
+        for step in (1, -1):
+            want = setpoint_profile(v0, lambda v: float(ego.index_to_speed(  # noqa: B023
+                int(np.clip(int(ego.speed_to_index(v)) + step, 0, top)))), t, dt=0.05)  # noqa: B023
+            got = setpoint_steps(v0, ego.target_speeds, step, t, dt=0.05)
+            assert np.array_equal(got, want), (v0, step)
+
+
+def _objects_on_lanes(rng: np.random.Generator, net, M: int):
+    """M road users on the intersection's lanes: most near a lane (some beyond the on-lane distance or heading
+    30° off it, some before or past its ends), some standing or at exactly 0.5 m/s, a few off the map (lane None)."""
+    lanes = [(a, b, i) for a, to in net.graph.items() for b, ls in to.items() for i in range(len(ls))]
+    others, lane_indices = np.zeros((M, 7)), []
+    for m in range(M):
+        li = lanes[rng.integers(len(lanes))]
+        lane = net.get_lane(li)
+        s = rng.uniform(-5.0, lane.length + 5.0)
+        xy = lane.position(s, rng.normal(0.0, 1.5))
+        h = lane.heading_at(s) + rng.choice([rng.normal(0.0, 0.3), np.radians(30) * rng.choice([-1, 1]), 3.0])
+        speed = rng.choice([rng.uniform(0.0, 14.0), 0.5, 0.0, 0.49])
+        others[m] = (*xy, speed * np.cos(h), speed * np.sin(h), h, 5.0, 2.0)
+        lane_indices.append(None if rng.random() < 0.1 else li)
+    return others, lane_indices
+
+
+def test_the_conflict_kernel_chooses_the_references_hypotheses():
+    """ConflictModel.predict with the compiled choice of hypotheses (kernels.conflict_hypotheses) and with its
+    Python reference (ConflictModel._select): the same positions, headings, owners, map flags and probabilities,
+    bit for bit (the kernel takes numpy's hypot and arctan2 and computes np.dot's 2-vector sum as this machine's
+    BLAS does, fused or not), on random road users on and off the intersection's lanes, some exactly at the
+    thresholds (0.5 m/s, 30° off the lane), with and without indicator readings (some ruling a turn out, so
+    hypotheses under min_p are dropped), braking and speeding up."""
+    from av_gym.envs.left_turn import UnprotectedLeftTurnEnv
+    from av_gym.shields import conflicts
+    from av_gym.shields.conflicts import ConflictModel
+
+    env = UnprotectedLeftTurnEnv()
+    env.reset(seed=3)
+    net = env.unwrapped.road.network
+    rng = np.random.default_rng(7)
+    t = 0.1 * np.arange(1, 81)
+    seen = {"dropped": 0, "cv": 0, "map": 0}
+    for trial in range(300):
+        model = ConflictModel(net, min_p=(0.1, 0.3)[trial % 2], accel_time=(0.0, 1.5)[trial % 3 == 0])
+        M = int(rng.integers(0, 25))
+        others, lane_indices = _objects_on_lanes(rng, net, M)
+        accels = rng.normal(0.0, 2.0, (M, 2))
+        intent = None
+        if trial % 4:
+            intent = rng.dirichlet(np.ones(3), M) * rng.choice([1.0, 0.0], (M, 3), p=[0.8, 0.2])
+            intent[rng.random(M) < 0.3] = np.nan
+            intent[intent.sum(1) == 0] = np.nan
+        outs = []
+        for kernel in (True, False):
+            conflicts.CONFLICT_KERNEL = kernel
+            try:
+                outs.append(model.predict(others, lane_indices, accels, t, intent))
+            finally:
+                conflicts.CONFLICT_KERNEL = True
+        for got, want in zip(*outs):  # NaN == NaN here (weights that rule out every continuation)
+            np.testing.assert_array_equal(got, want, err_msg=f"trial {trial}", strict=True)
+        is_map, prob = outs[0][3], outs[0][4]
+        seen["map"] += int(is_map.sum())
+        seen["cv"] += int((~is_map).sum())
+        seen["dropped"] += int(np.any(prob[is_map] < 0.5) and intent is not None)
+    assert min(seen.values()) > 20, seen

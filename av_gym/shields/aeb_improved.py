@@ -14,7 +14,7 @@ from av_gym.sensors.turn_signal import DRIVER_DRAWS, DriverDraws, first_sighting
 from av_gym.shields.conflicts import ConflictModel
 from av_gym.estimation.driver_intent import DriverIntent
 from av_gym.shields.predict import (LaneHypotheses, cruise_profile, footprint_ttc, go_profile, object_predict,
-                                    profile_speeds, setpoint_profile)
+                                    profile_speeds, setpoint_steps)
 from av_gym.shields.aeb_base import AEBShield
 from av_gym.shields.aeb_params import BRAKE, MONITOR, STOP_SPEED, WARN, ImprovedParams
 
@@ -387,13 +387,9 @@ class ImprovedAEB(AEBShield):
         u = self.env.unwrapped
         if ego["set_speed"] is not None:
             name = u.action_type.actions.get(int(action)) if action is not None and np.ndim(action) == 0 else None
-            if name in ("FASTER", "SLOWER"):
-                vehicle, step = u.vehicle, 1 if name == "FASTER" else -1
-                top = len(vehicle.target_speeds) - 1
-
-                def set_at(v: float) -> float:  # MDPVehicle.act for this action
-                    return float(vehicle.index_to_speed(int(np.clip(int(vehicle.speed_to_index(v)) + step, 0, top))))
-                return setpoint_profile(ego["speed"], set_at, t, dt=self.sim_dt)
+            if name in ("FASTER", "SLOWER"):  # MDPVehicle.act for this action, repeated
+                return setpoint_steps(ego["speed"], u.vehicle.target_speeds, 1 if name == "FASTER" else -1, t,
+                                      dt=self.sim_dt)
             return go_profile(ego["speed"], ego["set_speed"], t)
         accel = ego["accel"] if action is None else u.action_type.acceleration(action)
         v_cap = max(ego["speed"], self.p.go_speed, ego["speed_limit"] or self.p.go_speed)

@@ -109,6 +109,79 @@ def _turn_weights(hyps: list, intent_row: np.ndarray | None) -> list[float]:
     return (p / p.sum()).tolist()
 
 
+CONFLICT_KERNEL = True
+"""False: :meth:`ConflictModel.predict` chooses the hypotheses with its Python reference :meth:`ConflictModel._select`
+(tests, A/B checks)."""
+
+
+class _Lanes:
+    """The lanes a conflict model met on one road network, as the rows :func:`av_gym.shields.kernels.
+    conflict_hypotheses` reads: ``lanes`` (L, 8) each lane's geometry, ``hyp_off`` / ``hyp_n`` where its hypotheses
+    are in ``hyp_turn`` (their turns), ``ids`` (their driven paths' ids in the kernels' store) and ``paths``
+    (the DrivenPaths)."""
+
+    def __init__(self) -> None:
+        self.row: dict = {}
+        self.lanes, self.hyp_off, self.hyp_n = np.zeros((0, 8)), np.zeros(0, np.int64), np.zeros(0, np.int64)
+        self.hyp_turn, self.ids, self.paths = np.zeros(0), np.zeros(0, np.int64), []
+
+    def rows(self, model: "ConflictModel", lane_indices: list) -> np.ndarray | None:
+        """Each lane index's row (-1 for None), registering new lanes with ``model``'s hypotheses; None if one cannot
+        be a kernel row."""
+        get = self.row.get
+        out = [-1 if li is None else get(li, -2) for li in lane_indices]
+        if -2 in out:
+            for m, li in enumerate(lane_indices):
+                if out[m] == -2:
+                    out[m] = self._register(model, li)
+                    if out[m] < 0:
+                        return None
+        return np.array(out, dtype=np.int64)
+
+    def _register(self, model: "ConflictModel", lane_index) -> int:
+        """A new lane's row (its geometry, its hypotheses), -1 if it cannot be one."""
+        geometry = _geometry(model.network.get_lane(lane_index))
+        if geometry is None:
+            return -1
+        hyps, driven = model.hypotheses(lane_index), model._driven_all(lane_index)
+        ids = [path._register() for path in driven]
+        if min(ids) < 0:
+            return -1
+        k = len(self.lanes)
+        self.lanes = np.vstack([self.lanes, [geometry]])
+        self.hyp_off = np.append(self.hyp_off, len(self.paths))
+        self.hyp_n = np.append(self.hyp_n, len(hyps))
+        self.hyp_turn = np.append(self.hyp_turn, [turn for _, turn in hyps])
+        self.ids = np.append(self.ids, ids)
+        self.paths += list(driven)
+        self.row[lane_index] = k
+        return k
+
+
+def _geometry(lane) -> list[float] | None:
+    """A straight or circular lane's kernel row (:func:`av_gym.shields.kernels._stock_local`'s layout) from its own
+    attributes; None for another lane type."""
+    from highway_env.road.lane import CircularLane, StraightLane
+
+    if type(lane) is StraightLane:
+        return [0.0, *map(float, lane.start), *map(float, lane.direction), *map(float, lane.direction_lateral),
+                float(lane.heading)]
+    if type(lane) is CircularLane:
+        return [1.0, *map(float, lane.center), float(lane.radius), float(lane.start_phase), float(lane.direction),
+                0.0, 0.0]
+    return None
+
+
+def _lanes_of(model: "ConflictModel") -> _Lanes:
+    """The lane registry of ``model``'s road network, kept beside that network's driven paths and shared as they
+    are (no reference back to a model: the network is a weak key)."""
+    by_seq = _BY_NETWORK.setdefault(model.network, {})
+    reg = by_seq.get("kernel lanes")
+    if reg is None:
+        reg = by_seq["kernel lanes"] = _Lanes()
+    return reg
+
+
 class ConflictModel:
     """Every road user's possible paths across the ego's: one hypothesis per way the road network lets
     it continue from the lane it is on (:class:`av_gym.shields.predict.LaneHypotheses`: straight, left, right at
@@ -199,22 +272,12 @@ class ConflictModel:
             by_seq[key] = [self.driven(seq) for seq, _ in self.hypotheses(lane_index)]
         return by_seq[key]
 
-    def predict(self, others: np.ndarray, lane_indices: list, accels: np.ndarray, t: np.ndarray,
-                intent: np.ndarray | None = None):
-        """Positions (K, M', 2), headings (K, M'), owner (M',), whether each is a map hypothesis (M',) and its
-        probability (M',) over the hypotheses of ``others`` (M, 7) on ``lane_indices`` (None = off the map),
-        ``accels`` (M, 2) m/s² world frame; ``intent`` (M, 3) the weight of each turn (right, straight, left:
-        :data:`av_gym.estimation.driver_intent.TURNS`) from the object's indicator readings, a NaN row where there are
-        none.
-
-        Every map hypothesis is placed on its driven path in one compiled call
-        (:func:`av_gym.shields.predict.driven_poses`; ``DrivenPath.kernel = False``: one numpy look-up at a time,
-        the reference), the distance and speed profiles of all objects computed at once (the shield's cost)."""
-        from av_gym.shields.predict import DrivenPath, driven_poses, object_predict, profile_speeds
-
-        t = np.asarray(t, dtype=float)
-        xs, hs, owner, is_map, prob = [], [], [], [], []
-        cv = []
+    def _select(self, others: np.ndarray, lane_indices: list, accels: np.ndarray, intent: np.ndarray | None):
+        """The hypotheses of :meth:`predict`, one object at a time (the Python reference of :meth:`_select_compiled`):
+        per map hypothesis its driven path, store id (None: looked up later), start (m along the lane), the object's
+        place among those on the map and its row, probability; per object on the map its speed (m/s) and
+        acceleration along its path (m/s²); the rows of the constant-velocity objects."""
+        owner, prob, cv = [], [], []
         max_dh = np.radians(30)
         speeds_all = np.hypot(others[:, 2], others[:, 3]) if len(others) else np.zeros(0)
         on_map, v_on, a_on = [], [], []  # objects with map hypotheses: row, speed, along-path acceleration
@@ -244,10 +307,62 @@ class ConflictModel:
                     starts += [s0] * n_k
                     rows += [row] * n_k
                     owner += [m] * n_k
-                    is_map += [True] * n_k
                     continue
             cv.append(m)
-        if paths:
+        return paths, None, starts, rows, v_on, a_on, owner, prob, cv
+
+    def _select_compiled(self, others: np.ndarray, lane_indices: list, accels: np.ndarray,
+                         intent: np.ndarray | None):
+        """:meth:`_select` in one compiled call (:func:`av_gym.shields.kernels.conflict_hypotheses`: the same floats,
+        with numpy's hypot, arctan2 and 2-vector dot as this machine's numpy computes them), on this road network's
+        lane registry (:class:`_Lanes`); None for a lane other than straight or circular (the reference serves it)."""
+        from av_gym.shields.kernels import DOT_FUSED, conflict_hypotheses
+
+        reg = _lanes_of(self)
+        lane_row = reg.rows(self, lane_indices)
+        if lane_row is None:
+            return None
+        M = len(others)
+        n_max = int(reg.hyp_n[lane_row[lane_row >= 0]].sum()) if M else 0
+        hyp, starts, rows, owner = np.empty(n_max, np.int64), np.empty(n_max), np.empty(n_max, np.int64), \
+            np.empty(n_max, np.int64)
+        prob, v_on, a_on, cv = np.empty(n_max), np.empty(M), np.empty(M), np.empty(M, np.int64)
+        if intent is None:  # no reading of anyone: uniform weights
+            intent = np.full((M, 3), np.nan)
+        others = np.ascontiguousarray(others, dtype=float)
+        # numpy's own hypot and arctan2 (the reference's; an AVX-512 numpy's are not the C library's), elementwise
+        speeds = np.hypot(others[:, 2], others[:, 3])
+        centre = reg.lanes[lane_row, 1:3] if len(reg.lanes) else np.zeros((M, 2))  # row -1: any, unread
+        phis = np.arctan2(others[:, 1] - centre[:, 1], others[:, 0] - centre[:, 0])
+        n, n_on, n_cv = conflict_hypotheses(
+            others, speeds, phis, lane_row, reg.lanes, reg.hyp_off, reg.hyp_n, reg.hyp_turn,
+            np.ascontiguousarray(intent, dtype=float), np.ascontiguousarray(accels, dtype=float), float(self.min_p),
+            float(self.on_lane), float(np.radians(30)), DOT_FUSED, hyp, starts, rows, owner, prob, v_on, a_on, cv)
+        hyp = hyp[:n]
+        paths = [reg.paths[h] for h in hyp.tolist()]
+        return paths, reg.ids[hyp], starts[:n], rows[:n], v_on[:n_on], a_on[:n_on], owner[:n], prob[:n], cv[:n_cv]
+
+    def predict(self, others: np.ndarray, lane_indices: list, accels: np.ndarray, t: np.ndarray,
+                intent: np.ndarray | None = None):
+        """Positions (K, M', 2), headings (K, M'), owner (M',), whether each is a map hypothesis (M',) and its
+        probability (M',) over the hypotheses of ``others`` (M, 7) on ``lane_indices`` (None = off the map),
+        ``accels`` (M, 2) m/s² world frame; ``intent`` (M, 3) the weight of each turn (right, straight, left:
+        :data:`av_gym.estimation.driver_intent.TURNS`) from the object's indicator readings, a NaN row where there are
+        none.
+
+        Which hypotheses each object gets is chosen in one compiled call (:func:`av_gym.shields.kernels.
+        conflict_hypotheses`; ``CONFLICT_KERNEL = False``: :meth:`_select`, the Python reference), every map
+        hypothesis is placed on its driven path in one compiled call (:func:`av_gym.shields.predict.driven_poses`;
+        ``DrivenPath.kernel = False``: one numpy look-up at a time, the reference), the distance and speed profiles of
+        all objects computed at once (the shield's cost)."""
+        from av_gym.shields.predict import DrivenPath, driven_poses, object_predict, profile_speeds
+
+        t = np.asarray(t, dtype=float)
+        chosen = self._select_compiled(others, lane_indices, accels, intent) if CONFLICT_KERNEL else None
+        paths, ids, starts, rows, v_on, a_on, owner, prob, cv = chosen or self._select(others, lane_indices, accels,
+                                                                                      intent)
+        xs, hs, is_map = [], [], [True] * len(paths)
+        if len(paths):
             dist = self.along_many(np.array(v_on), np.array(a_on), t)  # (objects, K)
             zero = np.zeros((len(dist), 1))
             # profile_speeds, row by row the same
@@ -255,7 +370,7 @@ class ConflictModel:
                                 / np.maximum(np.diff(np.concatenate([[0.0], t])), 1e-9), 0.0)
             rows = np.asarray(rows)
             if DrivenPath.kernel:  # every hypothesis on its driven path in one compiled call
-                xy, h = driven_poses(paths, np.array(starts), dist[rows], v_path[rows])
+                xy, h = driven_poses(paths, np.asarray(starts, dtype=float), dist[rows], v_path[rows], ids)
                 xs.append(xy.transpose(1, 0, 2))
                 hs.append(h.T)
             else:  # the numpy reference, one look-up at a time, with the per-object profiles of before
@@ -264,13 +379,13 @@ class ConflictModel:
                     xy, h = path.poses_numpy(s0, ds, profile_speeds(ds, t, v_on[r]))
                     xs.append(xy[:, None, :])
                     hs.append(h[:, None])
-        if cv:
+        if len(cv):
             cv_xy, cv_h = object_predict(others[cv], t)
             xs.append(cv_xy)
             hs.append(cv_h)
-            owner += cv
+            owner = [*owner, *cv]
             is_map += [False] * len(cv)
-            prob += [1.0] * len(cv)
+            prob = [*prob, *[1.0] * len(cv)]
         if not xs:
             return np.zeros((len(t), 0, 2)), np.zeros((len(t), 0)), np.zeros(0, int), np.zeros(0, bool), \
                 np.zeros(0)

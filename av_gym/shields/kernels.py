@@ -21,6 +21,8 @@ import math
 
 import numba
 import numpy as np
+from numba.core import types
+from numba.extending import intrinsic
 
 from av_gym.sim.kernels import box_corners, boxes_overlap  # the engine's box geometry, one copy of the maths
 
@@ -313,3 +315,153 @@ def brake_profile(v0, a_before, n, dt, decel, delay, jerk):
         v = max(v + a * dt, 0.0)
         xs[i], vs[i] = x, v
     return xs, vs
+
+
+# ----------------------------------------------------------------------------------------------- ego set-point profile
+@numba.njit(cache=True)
+def setpoint_ticks(v0, target_speeds, step, t, dt, tau):
+    """:func:`av_gym.shields.predict.setpoint_profile` with highway-env's ``MDPVehicle.act`` for a repeated FASTER
+    (``step`` +1) or SLOWER (-1) as ``set_at``: at the start of every interval of ``t`` (s) the set-point is the
+    target speed one index from the one nearest the speed then (``speed_to_index``: ``np.round`` of the fraction,
+    clipped), then ``round((t_i - t_prev) / dt)`` ticks of the first-order response with time constant ``tau`` (s);
+    distance (m) at each time in ``t``. The same float operations in the same order as the Python reference."""
+    n = target_speeds.shape[0]
+    lo, hi = target_speeds[0], target_speeds[n - 1]
+    out = np.empty(t.shape[0])
+    v, s, prev = v0, 0.0, 0.0
+    for i in range(t.shape[0]):
+        x = (v - lo) / (hi - lo)
+        idx = int(min(max(np.rint(x * (n - 1)), 0.0), n - 1.0))
+        v_set = target_speeds[min(max(idx + step, 0), n - 1)]
+        for _ in range(int(np.rint((t[i] - prev) / dt))):
+            s += v * dt
+            v += (v_set - v) / tau * dt
+        prev = t[i]
+        out[i] = s
+    return out
+
+
+# ----------------------------------------------------------------------------------------------- conflict model
+STRAIGHT_LANE, CIRCULAR_LANE = 0.0, 1.0  # column 0 of a conflict-model lane row (ConflictModel's lane registry)
+
+
+@intrinsic
+def _fma(typingctx, a, b, c):
+    """``a * b + c`` rounded once (LLVM's fma): numpy's ``np.dot`` of two 2-vectors where its BLAS fuses them."""
+    sig = types.float64(types.float64, types.float64, types.float64)
+
+    def codegen(context, builder, signature, args):
+        return builder.fma(*args)
+    return sig, codegen
+
+
+@numba.njit(cache=True, inline="always")
+def _dot2(a0, a1, b0, b1, fused):
+    """``np.dot([a0, a1], [b0, b1])`` as this machine's numpy computes it: ``a0*b0 + a1*b1``, or with the second
+    product fused (``fused``: :data:`DOT_FUSED`)."""
+    return _fma(a1, b1, a0 * b0) if fused else a0 * b0 + a1 * b1
+
+
+def _dot_is_fused() -> bool:
+    """Whether numpy's 2-vector dot is ``fma(a1, b1, a0*b0)`` (an FMA BLAS) rather than the plain sum, on samples
+    where the two differ (checked exactly with fractions); an error if it is neither."""
+    from fractions import Fraction
+
+    rng = np.random.default_rng(12345)
+    fused = plain = True
+    for a in rng.uniform(-300.0, 300.0, (400, 4)):
+        d = float(np.dot(a[:2], a[2:]))
+        fused &= d == float(Fraction(a[1]) * Fraction(a[3]) + Fraction(float(a[0] * a[2])))
+        plain &= d == a[0] * a[2] + a[1] * a[3]
+    if not (fused or plain):  # pragma: no cover - another BLAS
+        raise RuntimeError("numpy's 2-vector dot is neither the plain nor the fused sum: the AEB conflict kernel "
+                           "cannot reproduce it; set av_gym.shields.conflicts.CONFLICT_KERNEL = False")
+    return fused and not plain
+
+
+DOT_FUSED = _dot_is_fused()
+
+
+@numba.njit(cache=True, inline="always")
+def _stock_local(lanes, k, x, y, phi, fused):
+    """highway-env's ``(Straight|Circular)Lane.local_coordinates`` for the lane row ``k`` ([kind, then a straight
+    lane's start x, y, direction x, y, lateral direction x, y and heading; a circular lane's centre x, y, radius,
+    start phase, direction]), ``phi``: a circular lane's ``np.arctan2`` of the point from its centre (numpy's own:
+    an AVX-512 numpy's differs from the C library's); the stock formulas in the same order, ``np.dot`` and the norm
+    (``sqrt(dot(d, d))``) as this machine's numpy computes them (:func:`_dot2`)."""
+    dx, dy = x - lanes[k, 1], y - lanes[k, 2]
+    if lanes[k, 0] == CIRCULAR_LANE:
+        radius, phase, direction = lanes[k, 3], lanes[k, 4], lanes[k, 5]
+        phi = phase + (((phi - phase + math.pi) % (2 * math.pi)) - math.pi)
+        return direction * (phi - phase) * radius, direction * (radius - math.sqrt(_dot2(dx, dy, dx, dy, fused)))
+    return _dot2(dx, dy, lanes[k, 3], lanes[k, 4], fused), _dot2(dx, dy, lanes[k, 5], lanes[k, 6], fused)
+
+
+@numba.njit(cache=True, inline="always")
+def _stock_heading(lanes, k, s):
+    """highway-env's ``heading_at(s)`` for the lane row ``k`` (:func:`_stock_local`'s layout)."""
+    if lanes[k, 0] == CIRCULAR_LANE:
+        direction = lanes[k, 5]
+        return direction * s / lanes[k, 3] + lanes[k, 4] + math.pi / 2 * direction
+    return lanes[k, 7]
+
+
+@numba.njit(cache=True, error_model="numpy")  # weights that sum to 0 give NaN, as numpy's, not an exception
+def conflict_hypotheses(others, speeds, phis, lane_row, lanes, hyp_off, hyp_n, hyp_turn, intent, accels, min_p,
+                        on_lane, max_dh, fused, out_hyp, out_s0, out_row, out_owner, out_prob, v_on, a_on, cv):
+    """:meth:`av_gym.shields.conflicts.ConflictModel.predict`'s choice of hypotheses for the objects ``others``
+    (M, 7) on the lane rows ``lane_row`` (M,; -1 off the map) of ``lanes`` (``speeds``: numpy's hypot of their
+    velocities, ``phis``: numpy's arctan2 of each from its lane's centre where circular; ``fused``:
+    :data:`DOT_FUSED`): an object at >= 0.5 m/s within
+    ``on_lane`` m of its lane and ``max_dh`` rad of its heading gets the lane's hypotheses ``hyp_off[k]`` ..
+    ``+ hyp_n[k]`` (``hyp_turn``: each one's turn, -1 / 0 / +1), weighted by its indicator readings ``intent`` (M, 3;
+    a NaN in a row: never read, uniform weights), normalised, those below ``min_p`` dropped when any is; every other
+    object the constant-velocity hypothesis.
+
+    Writes per map hypothesis (in the reference's order) its hypothesis index, start position along the lane (m),
+    object's place among the objects on the map, object row and probability; per object on the map its speed (m/s)
+    and acceleration along its velocity (m/s², from ``accels`` (M, 2)); the constant-velocity objects' rows. Returns
+    (map hypotheses, objects on the map, constant-velocity objects)."""
+    n, n_on, n_cv = 0, 0, 0
+    p = np.empty(hyp_n.max() if hyp_n.shape[0] else 1)
+    for m in range(others.shape[0]):
+        k = lane_row[m]
+        speed = speeds[m]
+        if k < 0 or not speed >= 0.5:
+            cv[n_cv] = m
+            n_cv += 1
+            continue
+        s0, lat = _stock_local(lanes, k, others[m, 0], others[m, 1], phis[m], fused)
+        dh = abs((_stock_heading(lanes, k, s0) - others[m, 4] + math.pi) % (2 * math.pi) - math.pi)
+        if not (abs(lat) <= on_lane and dh <= max_dh):
+            cv[n_cv] = m
+            n_cv += 1
+            continue
+        off, nh = hyp_off[k], hyp_n[k]
+        read = True
+        for j in range(3):
+            if not math.isfinite(intent[m, j]):
+                read = False
+        if read:  # the reference's np.array([...]) / n_h, then p / p.sum()
+            total = 0.0
+            for j in range(nh):
+                p[j] = intent[m, int(hyp_turn[off + j]) + 1] / nh
+                total = p[j] if j == 0 else total + p[j]
+            for j in range(nh):
+                p[j] = p[j] / total
+        else:
+            for j in range(nh):
+                p[j] = 1.0 / nh
+        least = p[0]
+        for j in range(1, nh):
+            if p[j] < least:
+                least = p[j]
+        for j in range(nh):
+            if least < min_p and p[j] < min_p:
+                continue
+            out_hyp[n], out_s0[n], out_row[n], out_owner[n], out_prob[n] = off + j, s0, n_on, m, p[j]
+            n += 1
+        v_on[n_on] = speed
+        a_on[n_on] = _dot2(accels[m, 0], accels[m, 1], others[m, 2], others[m, 3], fused) / speed
+        n_on += 1
+    return n, n_on, n_cv

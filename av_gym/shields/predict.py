@@ -258,17 +258,19 @@ def _store():
     return _STORE
 
 
-def driven_poses(paths: list, s0: np.ndarray, ds: np.ndarray, speeds: np.ndarray
+def driven_poses(paths: list, s0: np.ndarray, ds: np.ndarray, speeds: np.ndarray, ids: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray]:
     """:meth:`DrivenPath.poses` of H look-ups at once: ``paths`` (H DrivenPaths, repeats allowed), route positions
     ``s0`` (H,), distances ``ds`` and speeds ``speeds`` (H, K); positions (H, K, 2) and headings (H, K), each row
     the reference's (:meth:`DrivenPath.poses_numpy`) bit for bit, in one compiled call
-    (:func:`av_gym.shields.kernels.driven_poses`) instead of ~20 numpy calls per look-up."""
+    (:func:`av_gym.shields.kernels.driven_poses`) instead of ~20 numpy calls per look-up. ``ids``: the paths' ids in
+    the kernels' store, where the caller has them (all registered)."""
     from av_gym.shields.kernels import driven_poses as kernel
 
     ds = np.ascontiguousarray(ds, dtype=float)
     H, K = ds.shape
-    ids = np.array([p.store_id if p.store_id >= 0 else p._register() for p in paths], dtype=np.int64)
+    if ids is None:
+        ids = np.array([p.store_id if p.store_id >= 0 else p._register() for p in paths], dtype=np.int64)
     if H and ids.min() < 0:  # speed bins of its own: the reference, one look-up at a time
         out = [p.poses_numpy(float(a), d, v) for p, a, d, v in zip(paths, s0, ds, speeds)]
         return np.stack([o[0] for o in out]), np.stack([o[1] for o in out])
@@ -332,6 +334,18 @@ def setpoint_profile(v0: float, set_at, t: np.ndarray, dt: float = 0.05, tau: fl
         prev = ti
         out[i] = s
     return out
+
+
+def setpoint_steps(v0: float, target_speeds: np.ndarray, step: int, t: np.ndarray, dt: float = 0.05,
+                   tau: float = 0.6) -> np.ndarray:
+    """:func:`setpoint_profile` for a discrete agent repeating FASTER (``step`` +1) or SLOWER (-1) on highway-env's
+    ``MDPVehicle`` with the set-points ``target_speeds`` (m/s, evenly spaced, ascending): ``set_at(v)`` is
+    ``index_to_speed(clip(speed_to_index(v) + step))``. One compiled call (:func:`av_gym.shields.kernels.
+    setpoint_ticks`, the same floats as the reference with that ``set_at``) instead of a Python loop over the ticks."""
+    from av_gym.shields.kernels import setpoint_ticks
+
+    return setpoint_ticks(float(v0), np.ascontiguousarray(target_speeds, dtype=float), int(step),
+                          np.ascontiguousarray(t, dtype=float), float(dt), float(tau))
 
 
 def object_predict(others: np.ndarray, t: np.ndarray, accel: np.ndarray | None = None,
