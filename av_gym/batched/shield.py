@@ -142,19 +142,21 @@ class RowEnv(gym.Env):
         """Every alive vehicle of the row, in road order, as the shield reads it now."""
         e, t, r = self.e, self.e.traffic, self.row
         slots = np.flatnonzero(t.alive[r])
-        T = e.T
-        by_vid, vehicles = {}, []
-        for i in slots.tolist():
-            vid = int(t.vid[r, i])
-            v = self._by_vid.get(vid) or _Vehicle(vid)
-            v.position = np.array([t.x[r, i], t.y[r, i]])
-            v.speed, v.heading = float(t.v[r, i]), float(t.h[r, i])
-            v.lane_index = T.index[t.lane[r, i]]
-            route = t.route[r, i]
-            v.route = [T.index[k] for k in route if k >= 0] or None
+        index = e.T.index
+        by_vid, vehicles, known = {}, [], self._by_vid
+        # the row's numbers as Python floats and ints at once (the same values as one element at a time)
+        columns = zip(slots.tolist(), t.vid[r, slots].tolist(), t.x[r, slots].tolist(), t.y[r, slots].tolist(),
+                      t.v[r, slots].tolist(), t.h[r, slots].tolist(), t.lane[r, slots].tolist(),
+                      t.route[r, slots].tolist(), t.ego[r, slots].tolist())
+        for i, vid, x, y, speed, heading, lane, route, ego in columns:
+            v = known.get(vid) or _Vehicle(vid)
+            v.position = np.array([x, y])
+            v.speed, v.heading = speed, heading
+            v.lane_index = index[lane]
+            v.route = [index[k] for k in route if k >= 0] or None
             by_vid[vid] = v
             vehicles.append(v)
-            if t.ego[r, i]:
+            if ego:
                 self._ego(v, r, i)
         self._by_vid, self.road.vehicles = by_vid, vehicles
 
