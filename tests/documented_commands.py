@@ -447,6 +447,8 @@ SCRIPT_ARGS = {
     "benchmarks/batched_speed.py": ["--sizes", "1,2", "--seconds", "0.1", "--out", "{tmp}/batched_speed.png"],
     "benchmarks/belief_information.py": ["--episodes", "2", "--steps", "2", "--samples", "2"],
     "benchmarks/belief_planner.py": ["--episodes", "2", "--samples", "2", "--thresholds", "0.1", "--n-envs", "2"],
+    "benchmarks/label_noise.py": ["checkpoints/reference/dagger_turn_memory", "--model", "model.zip", "--episodes",
+                                  "1", "--n-envs", "1", "--samples", "2", "4", "--out", "{tmp}/noise.csv"],
     "benchmarks/odometry.py": ["--scans", "20", "--repeats", "1"],
     "benchmarks/oracle_labels.py": ["--quick"],
     "benchmarks/belief_tracks_sweep.py": ["--episodes", "1", "--n-envs", "1"],
