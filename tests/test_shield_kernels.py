@@ -166,3 +166,26 @@ def test_the_conflict_kernel_chooses_the_references_hypotheses():
         seen["cv"] += int((~is_map).sum())
         seen["dropped"] += int(np.any(prob[is_map] < 0.5) and intent is not None)
     assert min(seen.values()) > 20, seen
+
+
+def test_the_along_path_kernel_is_along_many_and_profile_speeds():
+    """kernels.along_profiles equals ConflictModel.along_many (distances along a path, braking ones stopping) and
+    profile_speeds of each row (the speeds the driven paths are looked up at), bit for bit: accelerating, braking
+    to a stop inside and after the acceleration time, standing, and on time grids with a repeated time."""
+    from av_gym.shields.conflicts import ConflictModel
+    from av_gym.shields.kernels import along_profiles
+    from av_gym.shields.predict import profile_speeds
+
+    rng = np.random.default_rng(13)
+    for trial in range(200):
+        M = int(rng.integers(1, 30))
+        v = rng.choice([0.0, 0.5, 3.0, rng.uniform(0.0, 14.0)], M) + rng.uniform(0.0, 1.0, M) * (trial % 2)
+        a = rng.choice([0.0, -6.0, 2.0, rng.normal(0.0, 3.0)], M)
+        t = 0.1 * np.arange(1, 81) if trial % 5 else np.sort(rng.choice(0.1 * np.arange(1, 30), 40))
+        model = ConflictModel.__new__(ConflictModel)
+        model.accel_time = (0.0, 1.5, 3.0)[trial % 3]
+        dist, speed = along_profiles(v, a, t, model.accel_time)
+        want = model.along_many(v, a, t)
+        np.testing.assert_array_equal(dist, want, err_msg=f"trial {trial}", strict=True)
+        for m in range(M):
+            np.testing.assert_array_equal(speed[m], profile_speeds(want[m], t, v[m]), err_msg=f"trial {trial}")

@@ -363,11 +363,17 @@ class ConflictModel:
                                                                                       intent)
         xs, hs, is_map = [], [], [True] * len(paths)
         if len(paths):
-            dist = self.along_many(np.array(v_on), np.array(a_on), t)  # (objects, K)
-            zero = np.zeros((len(dist), 1))
-            # profile_speeds, row by row the same
-            v_path = np.maximum(np.diff(np.concatenate([zero, dist], 1), axis=1)
-                                / np.maximum(np.diff(np.concatenate([[0.0], t])), 1e-9), 0.0)
+            if CONFLICT_KERNEL:  # distances and path speeds (objects, K) in one compiled call
+                from av_gym.shields.kernels import along_profiles
+
+                dist, v_path = along_profiles(np.asarray(v_on, dtype=float), np.asarray(a_on, dtype=float), t,
+                                              float(self.accel_time))
+            else:
+                dist = self.along_many(np.array(v_on), np.array(a_on), t)  # (objects, K)
+                zero = np.zeros((len(dist), 1))
+                # profile_speeds, row by row the same
+                v_path = np.maximum(np.diff(np.concatenate([zero, dist], 1), axis=1)
+                                    / np.maximum(np.diff(np.concatenate([[0.0], t])), 1e-9), 0.0)
             rows = np.asarray(rows)
             if DrivenPath.kernel:  # every hypothesis on its driven path in one compiled call
                 xy, h = driven_poses(paths, np.asarray(starts, dtype=float), dist[rows], v_path[rows], ids)

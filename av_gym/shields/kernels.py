@@ -465,3 +465,28 @@ def conflict_hypotheses(others, speeds, phis, lane_row, lanes, hyp_off, hyp_n, h
         a_on[n_on] = _dot2(accels[m, 0], accels[m, 1], others[m, 2], others[m, 3], fused) / speed
         n_on += 1
     return n, n_on, n_cv
+
+
+@numba.njit(cache=True)
+def along_profiles(v, a, t, accel_time):
+    """:meth:`av_gym.shields.conflicts.ConflictModel.along_many` and the path speeds :func:`av_gym.shields.predict.
+    profile_speeds` gives each row, for speeds ``v`` (M,, m/s) and along-path accelerations ``a`` (M,, m/s²) at
+    times ``t`` (K,, s): distances (M, K) m, each keeping its acceleration for ``accel_time`` s (a braking one
+    stops, never reverses) then its speed, and speeds (M, K) m/s (finite differences, floored at 0); the same
+    float operations in the same order as the numpy code."""
+    M, K = v.shape[0], t.shape[0]
+    dist, speed = np.empty((M, K)), np.empty((M, K))
+    for m in range(M):
+        prev_d, prev_t = 0.0, 0.0
+        for k in range(K):
+            ta = min(t[k], accel_time)
+            if a[m] < 0:
+                stop = v[m] / -a[m]
+                ta = stop if stop < ta else ta  # np.minimum: the first where equal (the same value)
+            s = v[m] * ta + 0.5 * a[m] * (ta * ta)
+            d = s + (v[m] + a[m] * ta) * (t[k] - ta)
+            step = t[k] - prev_t
+            vk = (d - prev_d) / (step if step >= 1e-9 else 1e-9)
+            dist[m, k], speed[m, k] = d, (vk if vk >= 0.0 or vk != vk else 0.0)  # np.maximum's rule
+            prev_d, prev_t = d, t[k]
+    return dist, speed
