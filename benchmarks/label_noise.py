@@ -21,6 +21,9 @@ risk p̄ (the collision share over every future drawn for it, all K and replicat
 - ``student``: the student's choice against the K=16 labels (DAgger's ``agreement`` in rounds.csv) and against
   that predictor (how well it learned the function, the label noise taken out).
 
+Then, by how many road users alive the student's features leave out (beyond its nearest ``max_objects`` or its
+``max_range``; the planner's futures play them all): its agreement and its errors on clear-cut states.
+
 ``--out`` writes the table as csv, ``--states`` the per-state arrays (npz); neither overwrites a file.
 """
 
@@ -71,14 +74,38 @@ def bins_of(risk: np.ndarray, edges: tuple[float, ...] = EDGES) -> np.ndarray:
     return np.clip(np.searchsorted(np.asarray(edges), np.asarray(risk), side="left") - 1, 0, len(edges) - 2)
 
 
+def pooled_risk(states: dict) -> np.ndarray:
+    """Each state's colliding share of every future drawn for it (all K, all replicates)."""
+    coll = sum(c.sum(axis=1) for c in states["collided"].values())
+    return coll / sum(K * lab.shape[1] for K, lab in states["labels"].items())
+
+
+def by_unseen(states: dict, clear: tuple[float, float] = (0.0, 0.2)) -> list[dict]:
+    """The student's agreement with the labels by how many road users its features leave out (``unseen``: alive,
+    not among its nearest ``max_objects`` within ``max_range``): 0, 1, 2 or more; ``clear_error`` is the share of
+    the group's states that are clear-cut (pooled risk ``clear[0]`` exactly, or over ``clear[1]``) and that the
+    student answers otherwise than the labels' first replicate."""
+    k0 = min(states["labels"])
+    base, student = states["labels"][k0][:, 0], np.asarray(states["student"])
+    risk = pooled_risk(states)
+    clear_cut = (risk <= clear[0]) | (risk > clear[1])
+    group = np.minimum(np.asarray(states["unseen"]), 2)
+    rows = []
+    for g in range(3):
+        sel = group == g
+        if sel.any():
+            rows.append({"unseen": ("2+" if g == 2 else str(g)), "states": int(sel.sum()), "share": float(sel.mean()),
+                         f"student_K{k0}": float(np.mean(student[sel] == base[sel])),
+                         "clear_error": float(np.mean(clear_cut[sel] & (student[sel] != base[sel])))})
+    return rows
+
+
 def table(states: dict, threshold: float, edges: tuple[float, ...] = EDGES) -> list[dict]:
     """The rows of the report (``all`` and one per risk bin) from :func:`collect`'s arrays: ``labels[K]`` (n, R),
     ``collided[K]`` (n, R) futures that collided of ``K`` each, ``student`` (n,) the driver's choices."""
     Ks = sorted(states["labels"])
     k0, big = Ks[0], Ks[-1]
-    coll = sum(states["collided"][K].sum(axis=1) for K in Ks)
-    drawn = sum(K * states["labels"][K].shape[1] for K in Ks)
-    risk = coll / drawn
+    risk = pooled_risk(states)
     q = p_label_go(states["collided"][big].sum(axis=1), big * states["labels"][big].shape[1], k0, threshold)
     best = np.where(q > 0.5, GO, YIELD)
     base, student = states["labels"][k0], np.asarray(states["student"])
@@ -155,7 +182,7 @@ def collect(run_dir: Path, model_name: str, driver: str, episodes: int, n_envs: 
     labellers = _labellers(venv, belief, samples, repeats, seed)
     labels = {K: [] for K in samples}
     collided = {K: [] for K in samples}
-    chosen = []
+    chosen, unseen = [], []
     obs = venv.play(iter(config_seeds("validation", episodes, first, "--first")))
     B = venv.num_envs
     while not venv.idle.all():
@@ -169,12 +196,23 @@ def collect(run_dir: Path, model_name: str, driver: str, episodes: int, n_envs: 
         if driver == "teacher":
             actions[rows] = labels[samples[0]][-1][:, 0]
         chosen.append(student[rows])
+        unseen.append(_unseen(venv.engine, rows))
         obs, _, _, _ = venv.step(actions)
     venv.close()
     states = {"labels": {K: np.concatenate(v) for K, v in labels.items()},
               "collided": {K: np.concatenate(v).astype(int) for K, v in collided.items()},
-              "student": np.concatenate(chosen)}
+              "student": np.concatenate(chosen), "unseen": np.concatenate(unseen)}
     return states, float(belief.threshold)
+
+
+def _unseen(engine, rows: np.ndarray) -> np.ndarray:
+    """Per row, the road users alive that ``obs["turn"]`` does not describe (beyond its nearest ``max_objects`` or
+    its ``max_range``): what the planner's futures play and the student never sees."""
+    from agents.belief import described
+
+    t = engine.traffic
+    _, present, _ = described(engine, rows)
+    return (t.alive[rows] & ~t.ego[rows]).sum(axis=1) - present.sum(axis=1)
 
 
 # ------------------------------------------------------------------------------------------------ the command
@@ -216,7 +254,7 @@ def _write(args: argparse.Namespace, rows: list[dict], states: dict) -> None:
     if args.states:
         arrays = {f"{k}_K{K}": v for k in ("labels", "collided") for K, v in states[k].items()}
         with atomic_path(args.states, "--states") as tmp, open(tmp, "wb") as f:
-            np.savez_compressed(f, student=states["student"], **arrays)
+            np.savez_compressed(f, student=states["student"], unseen=states["unseen"], **arrays)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -236,6 +274,10 @@ def main(argv: list[str] | None = None) -> None:
     print(" | ".join(keys))
     for r in rows:
         print(" | ".join(f"{r[k]:.3f}" if isinstance(r[k], float) else str(r[k]) for k in keys))
+    groups = by_unseen(states)
+    print("by road users the student's features leave out:")
+    for r in groups:
+        print(" | ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in r.items()))
     _write(args, rows, states)
 
 

@@ -98,6 +98,20 @@ def test_the_student_is_scored_against_the_denoised_label():
     assert rows[0]["student_best"] == pytest.approx(float(np.mean(best == GO)))
 
 
+def test_by_unseen_groups_the_students_errors_on_clear_cut_states():
+    """Four states: clear GO (risk 0), clear YIELD (risk 1), near the threshold (risk 1/16), each with 0, 1 or 3
+    road users left out of the features; the student wrong on the clear GO with 1 unseen and on the near state."""
+    states = {"labels": {16: np.array([[GO, GO], [YIELD, YIELD], [GO, YIELD], [GO, GO]])},
+              "collided": {16: np.array([[0, 0], [16, 16], [1, 1], [0, 0]])},
+              "student": np.array([YIELD, YIELD, YIELD, GO]), "unseen": np.array([1, 0, 0, 3])}
+    rows = ln.by_unseen(states)
+    assert [(r["unseen"], r["states"]) for r in rows] == [("0", 2), ("1", 1), ("2+", 1)]
+    # unseen 0: the clear YIELD answered right, the near state answered wrong (not clear-cut: no clear error)
+    assert rows[0]["student_K16"] == 0.5 and rows[0]["clear_error"] == 0.0
+    assert rows[1]["student_K16"] == 0.0 and rows[1]["clear_error"] == 1.0
+    assert rows[2]["student_K16"] == 1.0 and rows[2]["clear_error"] == 0.0
+
+
 @pytest.mark.parametrize("args, says", [(["--repeats", "1"], "--repeats must be >= 2"),
                                         (["--samples", "64", "16"], "--samples must be >= 1 with the labels' K first"),
                                         (["--episodes", "0"], "--episodes must be >= 1")])
