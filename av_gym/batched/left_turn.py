@@ -202,7 +202,7 @@ class BatchedLeftTurn:
         if self._state_rngs is None or len(self._state_rngs) != self.B:
             self._state_rngs, self._states = [_NOT_READ] * self.B, np.zeros(self.B, dtype=np.uint64)
         cached, rngs = self._state_rngs, self.rngs
-        stale = [b for b in rows if rngs[b] is not cached[b]]
+        stale = [b for b in np.asarray(rows).tolist() if rngs[b] is not cached[b]]  # Python ints: list indexing
         if stale:
             read = kernels.generator_states([rngs[b] for b in stale])
             if read is None:
@@ -211,7 +211,8 @@ class BatchedLeftTurn:
             for b in stale:
                 cached[b] = rngs[b]
         states = self._states[rows]
-        return states if len(np.unique(states)) == len(states) else None  # a generator shared by two rows
+        ordered = np.sort(states)  # a generator shared by two rows: equal neighbours (a sort, not np.unique's hash)
+        return None if (ordered[1:] == ordered[:-1]).any() else states
 
     def _spawn_call(self, t: Traffic, states: np.ndarray, call) -> None:
         """:meth:`_spawn_kernel`'s call, with the lane table, the prior and ``t``'s state arrays."""
