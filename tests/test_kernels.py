@@ -481,6 +481,18 @@ def _spawn_run(config: dict, kset: set, rngs_from: int | None = None) -> list:
     return states
 
 
+def test_rows_sharing_a_generator_draw_by_numpy_calls():
+    """A kernel draws env after env, so two rows on one generator would change the order of draws numpy's calls
+    make across rows: such rows get no state addresses (the caller falls back to numpy's calls), other rows do."""
+    _, config = highway_config({"name": "left_turn"})
+    bt = BatchedLeftTurn(4, config)
+    bt.reset([11, 12, 13, 14])
+    assert bt._row_states(np.arange(4)) is not None
+    bt.rngs[2] = bt.rngs[0]
+    assert bt._row_states(np.arange(4)) is None and bt._row_states(np.array([0, 1, 3])) is not None
+    assert bt._row_states(np.array([2, 3])) is not None
+
+
 @pytest.mark.parametrize("philox", [False, True])
 def test_spawn_kernels_draw_the_numpy_spawns(philox):
     """The spawn tries, a reset's initial traffic and its challenger from the kernels (``spawn``), and the clearing
