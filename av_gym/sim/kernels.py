@@ -68,12 +68,20 @@ def lane_array(T) -> np.ndarray:
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
+def _wrap(a):
+    """wrap_to_pi: (a + π) % 2π − π. The modulo of a value already in [0, 2π) is that value, exactly: the
+    remainder (an fmod call) only for the others."""
+    q = a + math.pi
+    return (q if 0.0 <= q < 2 * math.pi else q % (2 * math.pi)) - math.pi
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _local(lt, k, x, y):
     """LaneTable.local for one lane ``k`` and one point: (Straight|Circular)Lane.local_coordinates."""
     ex, ey = x - lt[k, OX], y - lt[k, OY]
     if lt[k, CIRC] != 0.0:
         p0, R, cd = lt[k, PHASE0], lt[k, RADIUS], lt[k, CDIR]
-        phi = p0 + ((math.atan2(ey, ex) - p0 + math.pi) % (2 * math.pi) - math.pi)  # wrap_to_pi
+        phi = p0 + _wrap(math.atan2(ey, ex) - p0)
         return cd * (phi - p0) * R, cd * (R - math.hypot(ex, ey))
     dx, dy = lt[k, DX], lt[k, DY]
     return ex * dx + ey * dy, ex * -dy + ey * dx
@@ -164,7 +172,7 @@ def _distance_below(lt, k, x, y, h, bound):
         if abs(r) > bound:
             return np.inf
         p0 = lt[k, PHASE0]
-        phi = p0 + ((math.atan2(ey, ex) - p0 + math.pi) % (2 * math.pi) - math.pi)  # wrap_to_pi
+        phi = p0 + _wrap(math.atan2(ey, ex) - p0)
         s = cd * (phi - p0) * R
         heading = cd * s / R + p0 + math.pi / 2 * cd
     else:
@@ -173,7 +181,7 @@ def _distance_below(lt, k, x, y, h, bound):
         if abs(r) > bound:
             return np.inf
         heading = lt[k, HEAD]
-    angle = abs((h - heading + math.pi) % (2 * math.pi) - math.pi)
+    angle = abs(_wrap(h - heading))
     return abs(r) + max(s - lt[k, LENGTH], 0.0) + max(0.0 - s, 0.0) + angle
 
 
@@ -667,7 +675,7 @@ def _steering_sr(lt, k, s, r, v, h, prm):
     v_nz = _not_zero(v)
     heading_cmd = math.asin(_clip(-prm[P_KP_LAT] * r / v_nz, -1.0, 1.0))
     heading_ref = future_heading + _clip(heading_cmd, -math.pi / 4, math.pi / 4)
-    rate = prm[P_KP_HEAD] * ((heading_ref - h + math.pi) % (2 * math.pi) - math.pi)
+    rate = prm[P_KP_HEAD] * _wrap(heading_ref - h)
     q = _clip(prm[P_LENGTH] / 2 / v_nz * rate, -1.0, 1.0)  # sin(slip)
     # tan(slip) = tan(asin(q)) = q / sqrt(1 - q²) (±inf at |q| = 1, whose atan is ±π/2): no slip angle, the same
     # steering to a few ulp (batched.Traffic._steering computes it so too)
