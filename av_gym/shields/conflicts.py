@@ -315,9 +315,12 @@ class ConflictModel:
                          intent: np.ndarray | None):
         """:meth:`_select` in one compiled call (:func:`av_gym.shields.kernels.conflict_hypotheses`: the same floats,
         with numpy's hypot, arctan2 and 2-vector dot as this machine's numpy computes them), on this road network's
-        lane registry (:class:`_Lanes`); None for a lane other than straight or circular (the reference serves it)."""
+        lane registry (:class:`_Lanes`); None for a lane other than straight or circular, or a numpy whose 2-vector
+        dot the kernel cannot reproduce (the reference serves those)."""
         from av_gym.shields.kernels import DOT_FUSED, conflict_hypotheses
 
+        if DOT_FUSED is None:  # a BLAS whose 2-vector dot is neither sum: the reference
+            return None
         reg = _lanes_of(self)
         lane_row = reg.rows(self, lane_indices)
         if lane_row is None:
