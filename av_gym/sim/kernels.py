@@ -24,7 +24,7 @@ step from the same state, and whole episodes by their outcome (>= 99.5 %; 1,000 
 Steering's tan(asin q) and the bicycle's slip angle are computed without the angles (√ and sum formulas) on both
 paths alike: a few ulp from highway-env's angle formulas, fewer transcendental calls (_steering_sr, _slip_cos_sin).
 ``error_model="numpy"``: no zero-divisor check before each division (no kernel divides by zero).
-``cache=True``: compiled once per checkout into ``__pycache__`` (cold: ~26 CPU-s for all of them, at load ~10), so
+``cache=True``: compiled once per checkout into ``__pycache__`` (cold: ~32 CPU-s for all of them, at load ~8), so
 later processes only load them.
 
 The lane table is passed as one (L, 16 + L) float array (:func:`lane_array`); column indices below.
