@@ -8,7 +8,8 @@ line, the planner reading every indicator). For each state: the oracle's label (
 planner's (GO when at most ``--threshold`` of its K futures collide) with its futures as drawn, and with the true
 routes, the true behaviour (IDM exponent, set-point, regulation hold), both, and both plus the real generators (the
 future spawns). Prints the share of states where each agrees with the oracle, and where the planner agrees with
-itself on another seed (its K futures drawn again): the agreement no student of its labels can beat."""
+itself on another seed (its K futures drawn again): how noisy one label is on these states (not a ceiling for a
+student: a predictor of the label's GO probability agrees with a label more than a second draw of it does)."""
 
 from __future__ import annotations
 
