@@ -174,7 +174,7 @@ def test_a_second_training_seed_extends_the_curve_and_keeps_its_record(tmp_path)
     again = _run("checkpoints/dagger_curve_s2/rounds.csv", "--curve", "curve.csv", "--extend", "--out", "c.png",
                  cwd=tmp_path)
     lines = [line for line in again.stderr.splitlines() if line.strip()]
-    assert again.returncode == 2 and len(lines) == 1 and "already holds run dagger_curve_s2" in lines[0], again.stderr
+    assert again.returncode == 2 and len(lines) == 1 and "that curve.csv does not hold" in lines[0], again.stderr
     assert (tmp_path / "curve.csv").read_text() == after and not (tmp_path / "c.png").exists()
 
 

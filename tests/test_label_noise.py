@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import subprocess
 import sys
 from math import comb
@@ -11,11 +12,21 @@ import numpy as np
 import pytest
 from scipy.stats import binom
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
+from av_gym.wrappers import GO, YIELD
 
-import label_noise as ln  # noqa: E402
-from av_gym.wrappers import GO, YIELD  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _script():
+    """benchmarks/label_noise.py as a module (a script, not a package: loaded by path, as tests/test_dagger.py loads
+    oracle_labels)."""
+    spec = importlib.util.spec_from_file_location("label_noise", ROOT / "benchmarks" / "label_noise.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+ln = _script()
 
 
 def test_pair_agreement_counts_each_pair_of_replicates_once():
