@@ -233,6 +233,20 @@ def test_training_on_the_batch_still_refuses_a_shield():
         check_batchable({"name": "left_turn"}, compose_group("sensors", "turn_truth"), compose_group("shield", "aeb"))
 
 
+def test_ppo_on_the_batch_refuses_an_intervention_cost_before_any_folder(tmp_path):
+    """``agent.intervention_cost`` is paid on the shield's override time, which the batch's training env does not
+    carry: `python -m train` refuses it in one line on the command line, before a run folder exists."""
+    import subprocess
+    import sys
+
+    res = subprocess.run([sys.executable, "-m", "train", "agent=ppo_turn_shielded", "agent.vec_env=batched",
+                          "shield=none", "run_name=costed"], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    lines = [line for line in res.stderr.splitlines() if line.strip()]
+    assert res.returncode == 2 and len(lines) == 1, res.stderr
+    assert "agent.intervention_cost needs a shield" in lines[0] and "agent.vec_env=subproc" in lines[0]
+    assert list(tmp_path.iterdir()) == [], "no runs/ or checkpoints/ folder for a refused command"
+
+
 def test_make_vec_and_the_sb3_vec_env_run_the_shield():
     """``gymnasium.make_vec(..., shield="aeb")`` and the SB3 VecEnv run the batch's shield: an always-proceed
     episode that the per-env shield brakes in is braked in (its first brake at the per-env shield's time)."""

@@ -27,7 +27,8 @@ def _env_factory(env_cfg: dict, sensors_cfg: dict, shield_cfg: dict, interventio
 def validate(cfg: DictConfig) -> list[str]:
     """What PPO's training needs beyond :class:`agents.ppo.PPOParams` (checked by the config checker), as one-line
     messages: a device torch can use here (``agent.device=cuda`` needs a GPU); with ``agent.vec_env=batched``, an
-    env, sensors and shield the batched engine can run (on the command line, before any folder)."""
+    env, sensors and shield the batched engine can run and no ``agent.intervention_cost`` (on the command line,
+    before any folder)."""
     from agents.ppo import PPOParams
     from train.device import device_problems
 
@@ -38,6 +39,9 @@ def validate(cfg: DictConfig) -> list[str]:
     from av_gym.batched.vec_env import check_batchable
     from av_gym.errors import ConfigError
 
+    if params.intervention_cost > 0:  # paid on the shield's override time, which the batch's training env lacks
+        return ["agent.intervention_cost needs a shield: not available with agent.vec_env=batched; use "
+                "agent.vec_env=subproc"]
     try:
         check_batchable(*[OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)])
     except ConfigError as exc:
