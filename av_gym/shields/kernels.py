@@ -24,6 +24,7 @@ import numpy as np
 from numba.core import types
 from numba.extending import intrinsic
 
+from av_gym.sim import fmath
 from av_gym.sim.kernels import box_corners, boxes_overlap  # the engine's box geometry, one copy of the maths
 
 
@@ -362,24 +363,7 @@ def _dot2(a0, a1, b0, b1, fused):
     return _fma(a1, b1, a0 * b0) if fused else a0 * b0 + a1 * b1
 
 
-def _dot_is_fused() -> bool | None:
-    """Whether numpy's 2-vector dot is ``fma(a1, b1, a0*b0)`` (an FMA BLAS) rather than the plain sum, on samples
-    where the two differ (checked exactly with fractions); None if it is neither (the conflict model then keeps its
-    Python reference)."""
-    from fractions import Fraction
-
-    rng = np.random.default_rng(12345)
-    fused = plain = True
-    for a in rng.uniform(-300.0, 300.0, (400, 4)):
-        d = float(np.dot(a[:2], a[2:]))
-        fused &= d == float(Fraction(a[1]) * Fraction(a[3]) + Fraction(float(a[0] * a[2])))
-        plain &= d == a[0] * a[2] + a[1] * a[3]
-    if not (fused or plain):  # pragma: no cover - another BLAS
-        return None
-    return fused and not plain
-
-
-DOT_FUSED = _dot_is_fused()
+DOT_FUSED = fmath.DOT_FUSED  # how this machine's numpy computes a 2-vector dot (None: neither sum)
 
 
 @numba.njit(cache=True, inline="always")

@@ -82,3 +82,23 @@ def _dot_is_plain() -> bool:
 
 
 DOT_EXACT = _dot_is_plain()
+
+
+def _dot_is_fused() -> bool | None:
+    """Whether numpy's 2-vector dot is ``fma(a1, b1, a0*b0)`` (an FMA BLAS) rather than the plain sum, on samples
+    where the two differ (checked exactly with fractions); None if it is neither (the AEB shield's conflict model then
+    keeps its Python reference: av_gym.shields.kernels._dot2 reproduces the other two)."""
+    from fractions import Fraction
+
+    rng = np.random.default_rng(12345)
+    fused = plain = True
+    for a in rng.uniform(-300.0, 300.0, (400, 4)):
+        d = float(np.dot(a[:2], a[2:]))
+        fused &= d == float(Fraction(a[1]) * Fraction(a[3]) + Fraction(float(a[0] * a[2])))
+        plain &= d == a[0] * a[2] + a[1] * a[3]
+    if not (fused or plain):  # pragma: no cover - another BLAS
+        return None
+    return fused and not plain
+
+
+DOT_FUSED = _dot_is_fused()
