@@ -174,6 +174,8 @@ def collect(run_dir: Path, model_name: str, driver: str, episodes: int, n_envs: 
             repeats: int, seed: int, first: int | None) -> tuple[dict, float]:
     """Drive ``episodes`` validation episodes, labelling every decision ``repeats`` times per K; the per-state
     arrays (``labels``/``collided`` per K, (n, R); the driver's ``student`` choices) and the planner's threshold."""
+    from tqdm import tqdm
+
     from agents.checkpoint import load_sb3
     from av_gym.seeds import config_seeds
 
@@ -185,8 +187,10 @@ def collect(run_dir: Path, model_name: str, driver: str, episodes: int, n_envs: 
     chosen, unseen = [], []
     obs = venv.play(iter(config_seeds("validation", episodes, first, "--first")))
     B = venv.num_envs
+    bar = tqdm(desc="label_noise: decision states labelled", unit="state", leave=False)  # minutes on real runs
     while not venv.idle.all():
         rows = np.nonzero(~venv.idle)[0]
+        bar.update(len(rows))
         for K in samples:
             got = [lab(rows, obs) for lab in labellers[K]]
             labels[K].append(np.stack(got, axis=1))
@@ -198,6 +202,7 @@ def collect(run_dir: Path, model_name: str, driver: str, episodes: int, n_envs: 
         chosen.append(student[rows])
         unseen.append(_unseen(venv.engine, rows))
         obs, _, _, _ = venv.step(actions)
+    bar.close()
     venv.close()
     states = {"labels": {K: np.concatenate(v) for K, v in labels.items()},
               "collided": {K: np.concatenate(v).astype(int) for K, v in collided.items()},
