@@ -220,6 +220,15 @@ def test_the_screen_fits_a_form_on_a_runs_aggregate_and_refuses_what_it_cannot_b
     assert [r["labels"] for r in rows] == [labels, labels] and rows[1]["set"][0] == "agent.net_arch=[32,32,32]"
     assert rows[1]["parameters"] != rows[0]["parameters"]
     assert all(0 <= r["val_success"] <= 1 and r["val_episodes"] == 2 for r in rows)
+    # half the run's 2 episodes held out of a fit on a falling step, no drive: the held-out states are scored
+    # after every epoch and are not fitted (their count and the fitted ones' make the run's labels)
+    main([str(ckpt), "--refits", "1", "--epochs", "3", "--episodes", "0", "--holdout", "0.5", "--lr-end", "1e-5",
+          "--out", str(tmp_path / "held.json")])
+    held = json.loads((tmp_path / "held.json").read_text())
+    lr0 = float(cfg.agent.fit_lr)
+    assert 0 < held["held_labels"] < labels and "val_success" not in held
+    assert [c["lr"] for c in held["curve"]] == pytest.approx([lr0, 0.5 * (lr0 + 1e-5), 1e-5])
+    assert held["held_accuracy"] == held["curve"][-1]["held"] and 0 <= held["held_accuracy"] <= 1
     for bad, needle in ((["--set", "agent.no_such_field=1"], "--set takes agent.<field>=<value>"),
                         (["--set", "agent.disagree_weight=0.5"], "disagree_weight")):
         with pytest.raises(ConfigError, match=needle):

@@ -44,36 +44,109 @@ def student_config(run_dir: Path, overrides: list[str]) -> dict:
     return plain
 
 
-def screen(run_dir: Path, overrides: list[str], refits: int, epochs: int, episodes: int, seed: int) -> dict:
+def screen(run_dir: Path, overrides: list[str], refits: int, epochs: int, episodes: int, seed: int,
+           holdout: float = 0.0, lr_end: float | None = None) -> dict:
     """Fit the form ``overrides`` on ``run_dir``'s aggregate and validate it; the row (labels, fit accuracy,
-    validation collision and success, process CPU seconds of the fit and of the validation)."""
+    validation collision and success, process CPU seconds of the fit and of the validation). ``holdout``: that
+    share of the aggregate's episodes is kept out of the fit and scored after each refit (or epoch), so a fit is
+    told from memorisation; ``lr_end``: the step falls from agent.fit_lr to it over all epochs (cosine, one refit
+    an epoch: Adam's state carried on). ``episodes`` 0: no validation drive."""
     from agents.batched_vec_env import BatchedLeftTurnVecEnv
     from agents.ppo import make_ppo
-    from conf.commands import TrainOptions
-    from train.dagger import STATE_MEMBER, _operating_point, _validation, fit, unpack_rounds
+    from train.dagger import STATE_MEMBER, unpack_rounds
 
     cfg = student_config(run_dir, overrides)
     agent, plain = cfg["agent"], [cfg["env"], cfg["sensors"], cfg["shield"]]
     data = _aggregate(run_dir / "latest.zip", STATE_MEMBER, unpack_rounds)
+    fitted, held = _split(data, holdout, seed)
     repeat, actions = int(agent["action_repeat"]), str(agent["actions"])
     env = BatchedLeftTurnVecEnv(*plain, 2, action_repeat=repeat, actions=actions,
                                 timeout_is_terminal=bool(agent["timeout_is_terminal"]), pool=0)
     model = make_ppo(env, agent, seed=seed, tensorboard_log=None, device="cpu")
     env.close()
     t0 = time.process_time()
-    for k in range(refits):
-        accuracy = fit(model, data, epochs, int(agent["fit_batch"]), float(agent["fit_lr"]), seed * 1000 + k,
-                       float(agent.get("disagree_weight", 1.0)))
+    curve = _fit_curve(model, agent, fitted, held, refits, epochs, seed, lr_end)
     t1 = time.process_time()
+    row = {"run": str(run_dir), "set": overrides, "labels": len(data.labels), "refits": refits, "epochs": epochs,
+           "seed": seed, "parameters": sum(p.numel() for p in model.policy.parameters()),
+           "fit_accuracy": curve[-1]["fit"], "val_episodes": episodes, "fit_cpu_s": round(t1 - t0, 1)}
+    if held is not None:
+        row.update(holdout=holdout, held_labels=len(held.labels), held_accuracy=curve[-1]["held"], lr_end=lr_end,
+                   curve=curve)
+    if episodes > 0:
+        row["val_collision"], row["val_success"] = _drive(model, agent, plain, episodes)
+        row["val_cpu_s"] = round(time.process_time() - t1, 1)
+    return row
+
+
+def _split(data, holdout: float, seed: int):
+    """The aggregate, or (with ``holdout`` > 0) its states outside and inside a held-out share of its episodes
+    (train/observation_ceiling.py tells the episodes apart)."""
+    import numpy as np
+
+    from train.dagger import Round
+    from train.observation_ceiling import elapsed_column, episode_ids, holdout_mask
+
+    if holdout == 0:
+        return data, None
+    turn = {"turn": np.stack([o["turn"] for o in data.obs])} if "turn" in data.obs[0] else {}
+    elapsed = elapsed_column(turn)
+    mask = holdout_mask(episode_ids(elapsed), holdout, seed)
+
+    def part(keep) -> Round:
+        idx = np.flatnonzero(keep)
+        return Round(obs=[data.obs[i] for i in idx], labels=[data.labels[i] for i in idx],
+                     returns=[data.returns[i] for i in idx], targets=[data.targets[i] for i in idx] if data.targets
+                     else [])
+    return part(~mask), part(mask)
+
+
+def _fit_curve(model, agent: dict, fitted, held, refits: int, epochs: int, seed: int,
+               lr_end: float | None) -> list[dict]:
+    """DAgger's refit ``refits`` times ``epochs`` epochs (with ``lr_end``: one epoch a refit on a cosine step);
+    after each, the accuracy on the fitted labels and on ``held`` (None: not scored)."""
+    import math
+
+    from train.dagger import fit
+
+    lr0, total = float(agent["fit_lr"]), refits * epochs
+    plan = ([(epochs, lr0, seed * 1000 + k) for k in range(refits)] if lr_end is None else
+            [(1, lr_end + 0.5 * (lr0 - lr_end) * (1 + math.cos(math.pi * e / max(total - 1, 1))), seed * 1000 + e)
+             for e in range(total)])
+    curve = []
+    for n, lr, stream in plan:
+        accuracy = fit(model, fitted, n, int(agent["fit_batch"]), lr, stream,
+                       float(agent.get("disagree_weight", 1.0)))
+        curve.append({"epochs": n * (len(curve) + 1), "lr": lr, "fit": round(accuracy, 4),
+                      "held": round(accuracy_on(model, held), 4) if held is not None else None})
+    return curve
+
+
+def accuracy_on(model, data, chunk: int = 4096) -> float:
+    """The share of ``data``'s labels that ``model`` (its most likely choice) matches."""
+    import numpy as np
+    import torch as th
+
+    x = {k: np.stack([o[k] for o in data.obs]) for k in data.obs[0]}
+    hits = 0
+    with th.no_grad():
+        for i in range(0, len(data.labels), chunk):
+            obs = model.policy.obs_to_tensor({k: v[i:i + chunk] for k, v in x.items()})[0]
+            choice = model.policy.get_distribution(obs).distribution.probs.argmax(1).cpu().numpy()
+            hits += int(np.sum(choice == np.asarray(data.labels[i:i + chunk])))
+    return hits / len(data.labels)
+
+
+def _drive(model, agent: dict, plain: list, episodes: int) -> tuple[float, float]:
+    """Validation (collision, success) on ``episodes`` validation episodes on the batch, at agent.go_threshold."""
     from agents.dagger import DaggerParams
+    from conf.commands import TrainOptions
+    from train.dagger import _operating_point, _validation
 
     _operating_point(DaggerParams.from_mapping(agent, where="agent"))(model, True)
-    validation = _validation(TrainOptions(eval_n=episodes), plain, repeat, actions, True)
-    collision, success = validation(model)
-    return {"run": str(run_dir), "set": overrides, "labels": len(data.labels), "refits": refits, "epochs": epochs,
-            "seed": seed, "parameters": sum(p.numel() for p in model.policy.parameters()),
-            "fit_accuracy": round(accuracy, 4), "val_episodes": episodes, "val_collision": collision,
-            "val_success": success, "fit_cpu_s": round(t1 - t0, 1), "val_cpu_s": round(time.process_time() - t1, 1)}
+    validation = _validation(TrainOptions(eval_n=episodes), plain, int(agent["action_repeat"]),
+                             str(agent["actions"]), True)
+    return validation(model)
 
 
 def _aggregate(latest: Path, member: str, unpack):
@@ -99,16 +172,24 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--set", nargs="*", default=[], help="agent.<field>=<value> overrides of the student")
     parser.add_argument("--refits", type=int, default=3, help="fits from scratch on the whole aggregate")
     parser.add_argument("--epochs", type=int, default=8, help="epochs per refit")
-    parser.add_argument("--episodes", type=int, default=200, help="validation episodes (the split's first)")
+    parser.add_argument("--episodes", type=int, default=200, help="validation episodes (the split's first); 0: none")
     parser.add_argument("--seed", type=int, default=1, help="the student's initial weights and minibatch order")
+    parser.add_argument("--holdout", type=float, default=0.0,
+                        help="share of the aggregate's episodes kept out of the fit and scored (0: none)")
+    parser.add_argument("--lr-end", type=float, default=None,
+                        help="the fit's step falls from agent.fit_lr to this over all epochs (cosine)")
     parser.add_argument("--out", default=None, help="write the row as JSON here (a file that exists is refused)")
     args = parser.parse_args(argv)
-    for name in ("refits", "epochs", "episodes"):
+    for name in ("refits", "epochs"):
         if getattr(args, name) < 1:
             parser.error(f"--{name} must be >= 1, got {getattr(args, name)}")
+    if args.episodes < 0 or not 0 <= args.holdout < 1 or args.lr_end is not None and args.lr_end <= 0:
+        parser.error(f"--episodes must be >= 0, --holdout in [0, 1), --lr-end > 0; got {args.episodes}, "
+                     f"{args.holdout}, {args.lr_end}")
     if args.out and Path(args.out).exists():
         parser.error(f"--out {args.out} exists: another screen's row; choose another file")
-    row = screen(Path(args.run_dir), list(args.set), args.refits, args.epochs, args.episodes, args.seed)
+    row = screen(Path(args.run_dir), list(args.set), args.refits, args.epochs, args.episodes, args.seed,
+                 args.holdout, args.lr_end)
     print(json.dumps(row))
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
