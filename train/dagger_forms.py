@@ -119,6 +119,8 @@ def _fit_curve(model, agent: dict, fitted, held, refits: int, epochs: int, seed:
                        float(agent.get("disagree_weight", 1.0)))
         curve.append({"epochs": n * (len(curve) + 1), "lr": lr, "fit": round(accuracy, 4),
                       "held": round(accuracy_on(model, held), 4) if held is not None else None})
+        print(f"[forms] epoch {curve[-1]['epochs']}: step {lr:.2e}, fit {curve[-1]['fit']:.4f}, held-out "
+              f"{curve[-1]['held']}", flush=True)  # a long fit's progress, one line an epoch (or refit)
     return curve
 
 
