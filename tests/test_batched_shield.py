@@ -224,8 +224,8 @@ def test_a_simulation_frequency_the_actuator_does_not_run_is_one_line():
 
 
 def test_training_on_the_batch_still_refuses_a_shield():
-    """check_batchable without ``with_shield`` (training, the DAgger replica: a shield would change the episodes
-    their labels are for) refuses it in one line."""
+    """check_batchable without ``with_shield`` (the DAgger replica: a shield would change the episodes its labels
+    are for; PPO's training batch runs the shield, tests/test_ppo_batched_shield.py) refuses it in one line."""
     from av_gym.batched.vec_env import check_batchable
     from av_gym.presets import compose_group
 
@@ -234,8 +234,8 @@ def test_training_on_the_batch_still_refuses_a_shield():
 
 
 def test_ppo_on_the_batch_refuses_an_intervention_cost_before_any_folder(tmp_path):
-    """``agent.intervention_cost`` is paid on the shield's override time, which the batch's training env does not
-    carry: `python -m train` refuses it in one line on the command line, before a run folder exists."""
+    """``agent.intervention_cost`` is paid on the shield's override time: with ``shield=none`` there is none, and
+    `python -m train` refuses it in one line on the command line, before a run folder exists."""
     import subprocess
     import sys
 
@@ -243,7 +243,7 @@ def test_ppo_on_the_batch_refuses_an_intervention_cost_before_any_folder(tmp_pat
                           "shield=none", "run_name=costed"], capture_output=True, text=True, cwd=tmp_path, timeout=300)
     lines = [line for line in res.stderr.splitlines() if line.strip()]
     assert res.returncode == 2 and len(lines) == 1, res.stderr
-    assert "agent.intervention_cost needs a shield" in lines[0] and "agent.vec_env=subproc" in lines[0]
+    assert "agent.intervention_cost=1 is paid on the shield's overrides: it needs shield=aeb" in lines[0]
     assert list(tmp_path.iterdir()) == [], "no runs/ or checkpoints/ folder for a refused command"
 
 

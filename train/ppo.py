@@ -27,8 +27,9 @@ def _env_factory(env_cfg: dict, sensors_cfg: dict, shield_cfg: dict, interventio
 def validate(cfg: DictConfig) -> list[str]:
     """What PPO's training needs beyond :class:`agents.ppo.PPOParams` (checked by the config checker), as one-line
     messages: a device torch can use here (``agent.device=cuda`` needs a GPU); with ``agent.vec_env=batched``, an
-    env, sensors and shield the batched engine can run and no ``agent.intervention_cost`` (on the command line,
-    before any folder)."""
+    env, sensors and shield the batched engine can run (its AEB shield: ``shield=aeb``), and
+    ``agent.intervention_cost`` only with a shield whose overrides it is paid on (on the command line, before any
+    folder)."""
     from agents.ppo import PPOParams
     from train.device import device_problems
 
@@ -36,14 +37,16 @@ def validate(cfg: DictConfig) -> list[str]:
     problems = device_problems(params.device)
     if problems or params.vec_env != "batched":
         return problems
+    from av_gym.batched.shield import shield_kind
     from av_gym.batched.vec_env import check_batchable
     from av_gym.errors import ConfigError
 
-    if params.intervention_cost > 0:  # paid on the shield's override time, which the batch's training env lacks
-        return ["agent.intervention_cost needs a shield: not available with agent.vec_env=batched; use "
-                "agent.vec_env=subproc"]
+    env, sensors, shield = [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
+    if params.intervention_cost > 0 and shield_kind(shield) == "none":  # the batch would pay it on nothing
+        return [f"agent.intervention_cost={params.intervention_cost:g} is paid on the shield's overrides: it needs "
+                f"shield=aeb, got shield=none (or set agent.intervention_cost=0)"]
     try:
-        check_batchable(*[OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)])
+        check_batchable(env, sensors, shield, with_shield=True)  # the training batch runs the batch's AEB shield
     except ConfigError as exc:
         # the same rollout on the per-env stack: one env per core, as many decisions per update
         per_env = max(2, params.n_steps * params.n_envs // 2)
@@ -90,12 +93,14 @@ class _Stack:
                             else timeout_is_terminal)
 
     def batched(self):
-        """The left turn's batched engine with the agent's action repeat, actions and time limit."""
+        """The left turn's batched engine with the agent's action repeat, actions, time limit and, behind its AEB
+        shield (``shield=aeb``), intervention cost."""
         from agents.batched_vec_env import BatchedLeftTurnVecEnv
 
         p = self.params
         return BatchedLeftTurnVecEnv(*self.plain, p.n_envs, action_repeat=p.action_repeat, actions=p.actions,
-                                     timeout_is_terminal=p.timeout_is_terminal)
+                                     timeout_is_terminal=p.timeout_is_terminal,
+                                     intervention_cost=float(p.intervention_cost))
 
 
 def build_envs(stack: _Stack, seed: int):
@@ -104,12 +109,8 @@ def build_envs(stack: _Stack, seed: int):
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
-    from av_gym.errors import ConfigError
-
     p = stack.params
-    if p.vec_env == "batched":  # all envs in one numpy batch (av_gym/batched/vec_env.py)
-        if p.intervention_cost > 0:
-            raise ConfigError("agent.intervention_cost needs a shield: not available with agent.vec_env=batched")
+    if p.vec_env == "batched":  # all envs in one numpy batch (av_gym/batched/vec_env.py), shield and cost included
         venv = stack.batched()
         venv.seed(seed)
         return venv

@@ -10,7 +10,8 @@ sensors of the ``turn_truth`` presets (``turn_features`` with ``source: truth``,
 tracks``, :mod:`av_gym.batched.perception`); the AEB shield ``shield=aeb`` (the improved variant, either mode,
 :mod:`av_gym.batched.shield`: each finished episode's ``info["aeb"]`` says its brake time, stop position and the
 steps it overrode); agent options ``actions`` (an action set of
-:data:`av_gym.wrappers.ACTION_SETS`, mapped by its own function), ``action_repeat``, ``timeout_is_terminal``.
+:data:`av_gym.wrappers.ACTION_SETS`, mapped by its own function), ``action_repeat``, ``timeout_is_terminal`` and,
+with the shield, ``intervention_cost`` (paid per env step of override, as :class:`av_gym.wrappers.InterventionCost`).
 Anything else (another sensor, another shield) is refused with one line naming it; it runs on the per-env stack.
 
 Auto-reset: an env whose episode ended starts its next one at once (SB3's convention: the step returns the new
@@ -43,8 +44,8 @@ PERCEIVED = ("detector", "tracker")  # with turn_features.source=tracks (av_gym.
 def check_batchable(env_cfg: dict, sensors_cfg: dict | None, shield_cfg: dict | None, *,
                     with_shield: bool = False) -> None:
     """One-line ConfigError for what the batch cannot run. ``with_shield``: the caller runs the batch's AEB shield
-    (:class:`BatchedLeftTurnBatch`: ``python -m eval``, ``gymnasium.make_vec``, the SB3 VecEnv), which then takes
-    ``shield=aeb`` as :func:`av_gym.batched.shield.check_batched_shield` allows it; other callers (training, the
+    (:class:`BatchedLeftTurnBatch`: ``python -m eval``, ``gymnasium.make_vec``, the SB3 VecEnv PPO trains on), which
+    then takes ``shield=aeb`` as :func:`av_gym.batched.shield.check_batched_shield` allows it; other callers (the
     DAgger replica, whose episodes a shield would change) refuse any shield."""
     if env_cfg.get("name") != "left_turn":
         raise ConfigError(f"agent.vec_env=batched runs env=left_turn only, got env={env_cfg.get('name')}")
@@ -67,6 +68,19 @@ def check_batchable(env_cfg: dict, sensors_cfg: dict | None, shield_cfg: dict | 
     if kind != "none":
         raise ConfigError(f"shield={kind} is not available with agent.vec_env=batched here (python -m eval "
                           f"vec_env=batched runs shield=aeb); use agent.vec_env=subproc")
+
+
+def _cost_per_step(intervention_cost: float, shielded: bool, policy_frequency: float) -> float:
+    """:class:`av_gym.wrappers.InterventionCost`'s reward per env step of override (``intervention_cost`` in
+    reward/s over the env's ``policy_frequency`` in Hz); one ConfigError line for a negative cost, or a cost without
+    a shield whose overrides it is paid on."""
+    cost = float(intervention_cost)
+    if not cost >= 0:
+        raise ConfigError(f"intervention_cost must be >= 0 (reward per second of shield override), got {cost}")
+    if cost > 0 and not shielded:
+        raise ConfigError(f"intervention_cost={cost:g} is paid on the shield's overrides: it needs shield=aeb, "
+                          f"got shield=none (or set intervention_cost=0)")
+    return cost / float(policy_frequency)
 
 
 def batch_seeds(seed, n: int) -> list:
@@ -111,12 +125,15 @@ class BatchedLeftTurnBatch:
 
     def __init__(self, env_cfg: dict, sensors_cfg: dict, shield_cfg: dict | None, n_envs: int, *,
                  action_repeat: int = 1, actions: str = "env", timeout_is_terminal: bool = False,
-                 pool: int | None = None) -> None:
+                 pool: int | None = None, intervention_cost: float = 0.0) -> None:
+        """``intervention_cost`` (reward/s, >= 0, needs the shield): the training reward term of
+        :class:`av_gym.wrappers.InterventionCost`, paid on every env step the shield overrides."""
         from av_gym.make import highway_config
 
         check_batchable(env_cfg, sensors_cfg, shield_cfg, with_shield=True)
         shield = check_batched_shield(shield_cfg, env_cfg)
         _, config = highway_config(env_cfg)
+        self._cost_per_step = _cost_per_step(intervention_cost, shield is not None, config["policy_frequency"])
         s = dict(sensors_cfg)
         features = TurnFeaturesParams.from_mapping(s.get("turn_features") or {}, "sensors.turn_features")
         self.engine = BatchedLeftTurn(n_envs, config, features, pool=max(8, n_envs // 4) if pool is None else pool)
@@ -274,8 +291,9 @@ class BatchedLeftTurnBatch:
             meta = self.action_set.act(self._actions, self._obs)
             rows = np.nonzero(active)[0]
             reward, term, trunc = self._env_step(meta, active, rows)
+            cost = self._intervention_cost(rows)  # right after the step: the shield's override of this step
             self._store(rows, self._observe(rows))
-            total += np.where(active, reward, 0.0)
+            total += np.where(active, reward - cost, 0.0)  # as InterventionCost inside ActionRepeat's sum
             self._env_return += np.where(active, reward, 0.0)
             term_all |= term & active
             trunc_all |= trunc & active
@@ -328,6 +346,15 @@ class BatchedLeftTurnBatch:
         first = over[np.isnan(self._first_override[over])]
         self._first_override[first] = e.time[first]
         return out
+
+    def _intervention_cost(self, rows: np.ndarray) -> np.ndarray:
+        """Per env, the intervention cost of the env step just taken: ``intervention_cost / policy_frequency`` in
+        the rows ``rows`` the shield overrode, 0 elsewhere (EpisodeMetrics' return, ``_env_return``, excludes it as
+        the per-env stack's does: InterventionCost wraps outside EpisodeMetrics)."""
+        cost = np.zeros(self.num_envs)
+        if self._cost_per_step > 0:
+            cost[rows[self.shield.override[rows]]] = self._cost_per_step
+        return cost
 
     def _traces_reset(self, rows) -> None:
         for r in rows:
