@@ -48,6 +48,7 @@ P_RELEASED, P_HELD = 0.02, 0.02  # prior shares of drivers released / held by th
 ACC_SIGMA = 0.3  # m/s², the spread of an observed acceleration about the IDM command of the right behaviour
 PARTICLES = 64  # behaviour particles per driver before the resampling
 SLOTS = 64  # drivers per row whose draws are fixed by their place in the road order alone
+RECHECK_STREAM = 3  # the recheck's futures: SeedSequence([seed, episode, tick, 3]) (1, 2: the tracks' streams)
 
 
 @dataclass(frozen=True)
@@ -114,6 +115,22 @@ class BeliefLookaheadParams(AgentParams):
                                                            "the covariance P projected on the heading), so GO must "
                                                            "be safe against the tracks' own error; 0: every future "
                                                            "starts at the filter's estimate")
+    merge: float = param(0.0, "m", ge=0, le=5, doc="on tracks: of two road users (confirmed or tentative tracks) "
+                                                   "whose centres are closer than this, only the one the detector "
+                                                   "updated last is in the futures (ties: the confirmed, the "
+                                                   "nearer): the tracker's twin tracks of one car, which collide "
+                                                   "with each other in the futures; 0: every track a road user")
+    recheck: int = param(0, "futures", ge=0, le=256, doc="a GO after a YIELD (or at the first decision) is taken "
+                                                         "only when this many more futures, drawn from their own "
+                                                         "streams, find GO safe too (at most threshold collide): a "
+                                                         "stricter test to start a GO than to keep one, which one "
+                                                         "lucky draw of K futures passes right after risky ones; 0: "
+                                                         "none")
+    confirm: int = param(1, "decisions", ge=1, le=10, doc="GO only once this many decisions running found GO safe "
+                                                          "(a held GO is kept while it stays safe): a GO that one "
+                                                          "draw of K futures finds safe right after risky ones is "
+                                                          "often taken back half a second later, the car braking in "
+                                                          "the crossing; 1: the decision of the moment")
 
 
 class BeliefPlanner:
@@ -135,6 +152,7 @@ class BeliefPlanner:
         self.K, self.threshold, self.seed, self.gate = int(p.samples), float(p.threshold), int(p.seed), float(p.gate)
         self.filter = DriverIntent(self.signals, floor=float(p.floor))
         self.counts: list[dict[int, np.ndarray]] = [{} for _ in range(n_rows)]
+        self.safe_run = np.zeros(n_rows, dtype=int)  # per row: decisions running that found GO safe (confirm)
         self._tables = None
         self.particles = PARTICLES
         # decisions made, and the wall-clock and CPU seconds of this process spent on them
@@ -147,6 +165,9 @@ class BeliefPlanner:
             while r >= len(self.counts):
                 self.counts.append({})
             self.counts[r] = {}
+        if len(self.counts) > len(self.safe_run):
+            self.safe_run = np.concatenate([self.safe_run, np.zeros(len(self.counts) - len(self.safe_run), int)])
+        self.safe_run[np.asarray(rows, dtype=int)] = 0
         if self.tracks is not None:
             self.tracks.reset(rows)
 
@@ -183,9 +204,10 @@ class BeliefPlanner:
         return post
 
     # ------------------------------------------------------------------------------------------- the futures
-    def go_collision(self, engine, rows) -> np.ndarray:
+    def go_collision(self, engine, rows, K: int | None = None, stream: tuple = ()) -> np.ndarray:
         """The estimated probability that GO now ends in a collision, for each of ``rows``: the share of K
-        futures (drawn as the module docstring says) whose GO play collides."""
+        futures (drawn as the module docstring says; ``K`` default ``samples``; ``stream``: more entropy appended
+        to every seed sequence, for independent futures of the same moment) whose GO play collides."""
         import time
 
         rows = np.asarray(rows, dtype=int)
@@ -194,14 +216,15 @@ class BeliefPlanner:
         start, cpu = time.perf_counter(), time.process_time()
         if self.tracks is not None:
             engine = self.tracks.current(engine)
-        f = self.futures(engine, rows)
+        K = int(K or self.K)
+        f = self.futures(engine, rows, K, stream)
         if self.tracks is not None:
-            self.tracks.fill(f, rows, self.seed, self.K)
+            self.tracks.fill(f, rows, self.seed, K, stream)
         safe = play_go_fast(f)
         self.labelled += len(rows)
         self.seconds += time.perf_counter() - start
         self.cpu_seconds += time.process_time() - cpu
-        return 1.0 - safe.reshape(len(rows), self.K).mean(axis=1)
+        return 1.0 - safe.reshape(len(rows), K).mean(axis=1)
 
     def labels(self, engine, rows) -> np.ndarray:
         """GO where the estimated collision probability of GO is at most ``threshold``, else YIELD."""
@@ -226,8 +249,24 @@ class BeliefPlanner:
             choice[final] = GO
             due &= ~final
         if due.any():
-            choice[due] = self.labels(engine, rows[due])
+            r, held = rows[due], choice[due]
+            new = self.confirmed(r, self.go_collision(engine, r), held)
+            ask = (new == GO) & (held != GO) & (int(self.params.recheck) > 0)
+            if ask.any():  # a GO to start: the futures of the recheck's own streams must find it safe too
+                p = self.go_collision(engine, r[ask], int(self.params.recheck), (RECHECK_STREAM,))
+                new[ask] = self.label_of(p)
+            choice[due] = new
         return choice
+
+    def confirmed(self, rows: np.ndarray, p: np.ndarray, held: np.ndarray) -> np.ndarray:
+        """The choices of ``rows`` at a decision with GO collision probabilities ``p``, their choices so far
+        ``held``: GO where GO is safe (:meth:`label_of`) and the row held GO or has found it safe ``confirm``
+        decisions running (this one included), else YIELD."""
+        label = self.label_of(p)
+        safe = label == GO
+        self.safe_run[rows] = np.where(safe, self.safe_run[rows] + 1, 0)
+        go = safe & ((np.asarray(held) == GO) | (self.safe_run[rows] >= int(self.params.confirm)))
+        return np.where(go, GO, YIELD).astype(np.int64)
 
     @staticmethod
     def committed(engine, rows, choice) -> np.ndarray:
@@ -244,9 +283,10 @@ class BeliefPlanner:
         v_ok = np.sqrt(2.0 * DECEL * np.maximum(-offset - MARGIN, 0.0))
         return (offset > 1.0) | ((np.asarray(choice) == GO) & (tr["speed"] > v_ok))
 
-    def futures(self, engine, rows: np.ndarray):
-        """A future engine of len(rows)·K rows: each row repeated K times, its hidden draws replaced."""
-        K = self.K
+    def futures(self, engine, rows: np.ndarray, K: int | None = None, stream: tuple = ()):
+        """A future engine of len(rows)·K rows (``K`` default ``samples``): each row repeated K times, its hidden
+        draws replaced (from ``SeedSequence([seed, episode_seed, tick, *stream])``)."""
+        K = int(K or self.K)
         T = engine.T
         if self._tables is not T:
             self._tables = T
@@ -272,7 +312,8 @@ class BeliefPlanner:
         logq = np.zeros((n, N, P))
         spawn_rngs = []
         for i, r in enumerate(rows):
-            ss = np.random.SeedSequence([self.seed, int(engine.episode_seed[r]) % 2**63, int(engine.ticks[r])])
+            ss = np.random.SeedSequence([self.seed, int(engine.episode_seed[r]) % 2**63, int(engine.ticks[r]),
+                                         *stream])
             child, spawn = ss.spawn(2)
             g = np.random.default_rng(child)
             # a fixed width of draws per stream, so that a driver's draws depend on its place in the road order

@@ -42,7 +42,7 @@ from av_gym.estimation.turn_features import ACC_SCALE
 from av_gym.sensors.turn_signal import node_index
 from av_gym.sim.batched import Traffic
 
-__all__ = ["SPEED_CLASSES", "SPAWN_S", "TrackBelief", "UnseenTraffic"]
+__all__ = ["SPEED_CLASSES", "SPAWN_S", "TrackBelief", "UnseenTraffic", "twins"]
 
 SPAWN_S = 5.0  # m along the approach where a spawn enters (IntersectionEnv._spawn_vehicle: longitudinal + 5)
 SPEED_CLASSES = 3  # spawn speeds per cohort: the middles of equal-probability slices of the spawn speed's normal
@@ -350,7 +350,8 @@ class TrackBelief:
         t.acc[rows, sl] = acc
         full_conf, full_tent, full_ghost = (np.zeros((B, M + 2), bool) for _ in range(3))
         full_conf[rows, sl], full_tent[rows, sl] = conf, tent
-        full_ghost[rows, sl] = self._ghosts(t, rows, pos, users, seen[..., 1])
+        full_ghost[rows, sl] = self._ghosts(t, rows, pos, users, seen[..., 1]) | twins(pos, users, seen[..., 1],
+                                                                                     float(self.params.merge))
         self.along = np.zeros((B, M + 2, 2, 2))
         self.along[rows, sl] = along_heading(cov, h)
         obs = engine.observed(t, engine.time, engine.ticks, engine.episode_seed)
@@ -394,32 +395,32 @@ class TrackBelief:
             raise ValueError("TrackBelief: read() the rows at this step before deciding")
         return self.engine
 
-    def fill(self, f, rows: np.ndarray, seed: int, K: int) -> None:
+    def fill(self, f, rows: np.ndarray, seed: int, K: int, stream: tuple = ()) -> None:
         """Spread the tracks' start in the future engine ``f`` (:meth:`BeliefPlanner.futures` of ``rows``) by their
         filter's error (``track_spread``) and add the unseen drivers to it."""
         if not len(rows):
             return
         e = self.engine
         if float(self.params.track_spread) > 0:
-            self._spread(f, rows, seed, K)
+            self._spread(f, rows, seed, K, stream)
         if self.unseen is None:
             return
         gens = [np.random.default_rng(np.random.SeedSequence([int(seed), int(e.episode_seed[r]) % 2**63,
-                                                               int(e.ticks[r]), 1])) for r in rows]
+                                                               int(e.ticks[r]), 1, *stream])) for r in rows]
         t = e.traffic
         users = np.stack([t.x[rows], t.y[rows]], axis=-1)
         self.unseen.fill(f, rows, users, t.alive[rows], gens, K)
 
-    def _spread(self, f, rows: np.ndarray, seed: int, K: int) -> None:
+    def _spread(self, f, rows: np.ndarray, seed: int, K: int, stream: tuple = ()) -> None:
         """Move each moving road user of ``rows``' K futures (``f``'s rows, row-major, before the unseen drivers
         join) ``track_spread`` times a draw of its filter's error along its heading: place (m) and speed (m/s)
         jointly normal with the covariance :func:`along_heading` gives; a speed is kept at or above 0. Draws from
-        ``SeedSequence([seed, episode_seed, tick, 2])``."""
+        ``SeedSequence([seed, episode_seed, tick, 2, *stream])``."""
         e = self.engine
         N = e.traffic.N
         z = np.stack([np.random.default_rng(np.random.SeedSequence([int(seed), int(e.episode_seed[r]) % 2**63,
-                                                                    int(e.ticks[r]), 2])).standard_normal((K, N, 2))
-                      for r in rows])  # (n, K, N, 2)
+                                                                    int(e.ticks[r]), 2, *stream]))
+                      .standard_normal((K, N, 2)) for r in rows])  # (n, K, N, 2)
         t = e.traffic
         moving = t.alive[rows] & ~t.ego[rows] & ~t.crashed[rows]  # a standing track stays where it is
         # a Cholesky factor of each 2x2 covariance (a zero one where the slot holds no track)
@@ -437,6 +438,21 @@ class TrackBelief:
         ft.y[:, :N] += ds.reshape(n * K, N) * np.sin(h)
         ft.v[:, :N] = np.where(np.repeat(moving, K, axis=0), np.maximum(ft.v[:, :N] + dv.reshape(n * K, N), 0.0),
                                ft.v[:, :N])
+
+
+def twins(pos: np.ndarray, users: np.ndarray, missed: np.ndarray, radius: float) -> np.ndarray:
+    """(n, M): the road users (``users`` (n, M); ``pos`` (n, M, >=2) their x, y in m) with another one closer than
+    ``radius`` (m) that the detector updated more recently (``missed`` (n, M): detector frames since their last
+    update), or as recently and earlier in the order (the confirmed tracks come first, nearest first): the second
+    track of one car, left out of the futures (one car there, not two that collide with each other)."""
+    if radius <= 0:
+        return np.zeros(users.shape, bool)
+    d = np.hypot(pos[:, :, None, 0] - pos[:, None, :, 0], pos[:, :, None, 1] - pos[:, None, :, 1])
+    idx = np.arange(users.shape[1])
+    better = (missed[:, None, :] < missed[:, :, None]) | ((missed[:, None, :] == missed[:, :, None])
+                                                          & (idx[None, :] < idx[:, None])[None])
+    close = users[:, :, None] & users[:, None, :] & (d < radius) & (idx[:, None] != idx[None, :])[None]
+    return (close & better).any(axis=2)
 
 
 def along_heading(cov: np.ndarray, h: np.ndarray) -> np.ndarray:

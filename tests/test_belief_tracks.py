@@ -384,3 +384,109 @@ def test_track_spread_leaves_a_standing_track_in_place():
     assert f.traffic.crashed[i, slot].all()
     np.testing.assert_allclose(f.traffic.x[i, slot], 2.0, atol=1e-9)
     np.testing.assert_allclose(f.traffic.y[i, slot], 2.0, atol=1e-9)
+
+
+def _twin_tracks(venv, r: int, second: tuple, missed: tuple = (1, 0)) -> None:
+    """Row ``r``'s tracker holds two confirmed tracks, ids 7 and 8: an oncoming one at (-2, -25) m, 9 m/s north, and
+    ``second`` ``(x, y, vx, vy)``, the detector having last updated them ``missed`` frames ago."""
+    trk, p, e = venv.perception.tracker, venv.perception, venv.engine
+    _coasting_track(venv, r, (-2.0, -25.0, 0.0, 9.0), missed[0])
+    trk.n[r] = 2
+    for name in ("P", "t", "length", "width", "heading", "hits", "confirmed"):
+        getattr(trk, name)[r, 1] = getattr(trk, name)[r, 0]
+    trk.x[r, 1] = np.array(second, float)[:, None]
+    rate = venv.perception.detector.params.rate_hz
+    trk.t_update[r, 1], trk.id[r, 1] = trk.fused_at[r] - missed[1] / rate, 8
+    s = int(e.ego_slot([r])[0])
+    ego = np.array([[e.traffic.x[r, s], e.traffic.y[r, s]]])
+    p.last_tracks[[r]] = tracks_observation(*trk.tracks([r]), ego, p.max_tracks)
+
+
+def test_twin_tracks_of_one_car_are_one_road_user():
+    """Two confirmed tracks 1.2 m apart (the tracker's twin of one car): with ``merge`` 2 m only the one the
+    detector updated last (id 8) starts the futures, the other keeps its place among the described tracks; with
+    ``merge`` 0 both do. Two tracks 6 m apart (two cars of a lane) are two road users with ``merge`` 2."""
+    for merge, second, alive in ((2.0, (-2.5, -23.9, 0.0, 9.0), [8]), (0.0, (-2.5, -23.9, 0.0, 9.0), [7, 8]),
+                                 (2.0, (-2.0, -19.0, 0.0, 9.0), [7, 8])):
+        venv, planner, obs, rows = _batch([420_001, 420_002], 45, BeliefLookaheadParams(
+            samples=4, unseen=0.0, merge=merge))
+        for r in rows:
+            _twin_tracks(venv, int(r), second)
+        _, tracks = _decide_on(venv, planner, rows, obs)
+        t = tracks.engine.traffic
+        for r in rows:
+            futures = t.alive[r] & ~t.ego[r]
+            assert sorted(t.vid[r, futures] - 1) == alive, (merge, second)
+            assert (t.alive[r] | tracks.ghost[r]).sum() == 3  # the ego and both tracks, one perhaps left out
+
+
+def test_of_twins_updated_together_the_confirmed_nearer_one_stays():
+    """agents.track_prior.twins: of road users within the radius the one the detector updated last stays; at a
+    tie the earlier in the order (the confirmed ones first, nearest first); a lone one and non-users are kept."""
+    from agents.track_prior import twins
+
+    pos = np.array([[[0.0, 0.0], [1.0, 0.0], [0.5, 0.5], [10.0, 0.0], [10.5, 0.0]]])
+    users = np.array([[True, True, True, True, False]])
+    missed = np.array([[1, 0, 0, 0, 0]])
+    np.testing.assert_array_equal(twins(pos, users, missed, 2.0), [[True, False, True, False, False]])
+    np.testing.assert_array_equal(twins(pos, users, missed, 0.0), np.zeros((1, 5), bool))
+
+
+def _decide_with(planner, p_of, choice, step=0) -> np.ndarray:
+    """``planner.decide`` for rows 0..n-1 holding ``choice``, GO's collision probabilities given by ``p_of(rows,
+    K, stream)`` instead of the futures (commit never: the engine is not read)."""
+    planner.go_collision = lambda engine, rows, K=None, stream=(): p_of(np.asarray(rows), K, stream)
+    rows = np.arange(len(choice))
+    return planner.decide(None, rows, np.asarray(choice), np.full(len(choice), step))
+
+
+def test_confirm_starts_a_go_only_after_decisions_running_found_it_safe():
+    """``confirm`` 2: a row whose GO is safe at one decision after a risky one still yields; safe at the next too,
+    it goes; a held GO stays while safe and is taken back at the first risky decision, after which it needs two
+    safe decisions again. ``confirm`` 1 goes at the first safe decision."""
+    seq = [np.array(p) for p in ([1.0, 0.0], [0.0, 0.0], [0.0, 0.5], [0.0, 0.0], [0.0, 0.0])]
+    want = {2: [[YIELD, YIELD], [YIELD, GO], [GO, YIELD], [GO, YIELD], [GO, GO]],
+            1: [[YIELD, GO], [GO, GO], [GO, YIELD], [GO, GO], [GO, GO]]}
+    for confirm, expected in want.items():
+        planner = BeliefPlanner(BeliefLookaheadParams(confirm=confirm), n_rows=2)
+        planner.reset(np.arange(2))
+        choice = np.full(2, YIELD)
+        for p, w in zip(seq, expected):
+            choice = _decide_with(planner, lambda rows, K, stream, p=p: p[rows], choice)
+            assert choice.tolist() == w, (confirm, p)
+        planner.reset([0])
+        assert _decide_with(planner, lambda rows, K, stream: np.zeros(len(rows)), np.array([YIELD, GO]))[0] == (
+            GO if confirm == 1 else YIELD)
+
+
+def test_recheck_starts_a_go_only_when_its_own_futures_find_it_safe_too():
+    """``recheck`` 16: a GO to start (after a YIELD) asks 16 more futures of the recheck's own stream; GO only if
+    they are safe too. A held GO is not rechecked. Without ``recheck`` one draw decides."""
+    calls = []
+
+    def p_of(rows, K, stream):
+        calls.append((K, stream, rows.tolist()))
+        return np.where(np.asarray(stream == (3,)) & (rows == 1), 0.5, 0.0)
+
+    planner = BeliefPlanner(BeliefLookaheadParams(recheck=16), n_rows=3)
+    out = _decide_with(planner, p_of, [YIELD, YIELD, GO])
+    assert out.tolist() == [GO, YIELD, GO]
+    assert calls == [(None, (), [0, 1, 2]), (16, (3,), [0, 1])]
+    calls.clear()
+    plain = BeliefPlanner(BeliefLookaheadParams(), n_rows=3)
+    assert _decide_with(plain, p_of, [YIELD, YIELD, GO]).tolist() == [GO, GO, GO]
+    assert calls == [(None, (), [0, 1, 2])]
+
+
+def test_the_recheck_draws_other_futures_of_the_same_moment(tracked):
+    """The recheck's futures (``stream`` (3,)) are drawn from other streams than the decision's: other routes and
+    behaviours for the same road users, other unseen drivers; the decision's own stream reproduces itself."""
+    venv, planner, obs, rows = tracked
+    e = venv.engine
+    p = copy.deepcopy(planner, {id(venv.perception): venv.perception, id(e): e, id(planner.tracks.engine): None})
+    p.read(e, rows, obs["intent"][rows])
+    start = p.tracks.current(e)
+    a, b, c = (p.futures(start, rows, 8, s) for s in ((), (), (3,)))
+    np.testing.assert_array_equal(a.traffic.delta, b.traffic.delta)
+    drivers = a.traffic.alive & ~a.traffic.ego
+    assert drivers.any() and (a.traffic.delta[drivers] != c.traffic.delta[drivers]).all()
