@@ -9,7 +9,8 @@ it is taken apart for the car hit (the "culprit"): its track against the simulat
 acceleration, heading, closest lane, the planner's destination probabilities against the true route, the true
 set-point and regulation hold), and GO's collision probability again with one attribute of that track replaced by the
 simulator's (position and heading, speed, acceleration, lane): which part of the behaviour model made the planner go.
-Prints one JSON line per episode."""
+Prints one JSON line per episode, a collision with its ``cause`` (:func:`cause`), and a last line counting the
+causes. The choices are the planner's own (``decide``: ``commit``, ``confirm``, ``recheck`` as set)."""
 
 from __future__ import annotations
 
@@ -120,6 +121,47 @@ def _blame(planner, engine, r: int) -> dict:
     return out
 
 
+def _flip(decisions: list, go_s: float) -> bool:
+    """Whether the GO decided at ``go_s`` s came right after a decision that found GO unsafe (or was the first)."""
+    times = [d[0] for d in decisions]
+    k = times.index(round(go_s, 1)) if round(go_s, 1) in times else -1
+    return (k == 0 and go_s == 0.0) or (k > 0 and decisions[k - 1][1] != decisions[k][1])
+
+
+def _blamed(blame: dict) -> str | None:
+    """What made GO unsafe at a GO taken back (:func:`_blame`): twin tracks of one car, a track off its car's place
+    or lane (the tracker's ghost), a standing track, or real cars (None)."""
+    slots = [v for k, v in blame.items() if k.startswith("slot")]
+    vids = [v["true_vid"] for v in slots if v["true_vid"] is not None]
+    if len(vids) != len(set(vids)):
+        return "twin tracks of one car"
+    if any(v["true_dist_m"] > 1.5 or v["lane"] != v["lane_true"] for v in slots):
+        return "a track off its car's place or lane"
+    if any(v["stands"] for v in slots):
+        return "a standing track"
+    return None
+
+
+def cause(record: dict) -> str:
+    """One cause per collision, from what the planner believed: hit waiting (no GO), a car without a track at the
+    last GO, a track whose true state would have made GO unsafe, what the futures blamed at the GO taken back
+    (twins, ghost, standing), a GO right after an unsafe decision taken back, or real cars on good tracks."""
+    if record["last_go_s"] is None:
+        return "hit waiting (no GO)"
+    culprit = record["culprit"] or {}
+    if any(v is None for v in culprit.values()):
+        return "hit car without a track at the last GO"
+    if any(v["p_swapped"]["all"] > 0.05 for v in culprit.values()):
+        return "hit car's track off its true state at the last GO"
+    after = [b for t, b in record["taken_back"] if t > record["last_go_s"]]
+    blamed = _blamed(after[-1]) if after else None
+    if blamed:
+        return f"GO taken back for {blamed}"
+    if after and _flip(record["decisions"], record["last_go_s"]):
+        return "GO after an unsafe decision, taken back"
+    return "GO taken back for real cars on good tracks" if after else "GO kept"
+
+
 def main() -> None:
     from agents.belief import BeliefPlanner
     from av_gym.batched.vec_env import BatchedLeftTurnBatch, meta_actions
@@ -144,14 +186,15 @@ def main() -> None:
     history = [[] for _ in range(B)]  # (time s, choice, p) per decision
     last_go = [None] * B
     takeback = [[] for _ in range(B)]  # (time s, _blame) at each GO taken back
+    causes: dict[str, int] = {}
     while not venv.idle.all():
         rows = np.flatnonzero(~venv.idle)
         planner.read(engine, rows, obs["intent"][rows])
         due = rows[k[rows] % int(params.repeat) == 0]
         if len(due):
-            p = planner.go_collision(engine, due)
+            p = planner.go_collision(engine, due)  # the decision's own draws again: the same p decide() sees
             before = choice[due].copy()
-            choice[due] = planner.label_of(p)
+            choice[rows] = planner.decide(engine, rows, choice[rows], k[rows])
             for r, pr in zip(due, p):
                 history[r].append((round(float(engine.time[r]), 1), int(choice[r]), round(float(pr), 3)))
                 if choice[r] == GO:
@@ -166,11 +209,16 @@ def main() -> None:
             t = engine.traffic
             hit = [int(t.vid[r, j]) for j in np.flatnonzero(t.alive[r] & t.crashed[r] & ~t.ego[r])]
             go = last_go[r]
-            print(json.dumps({"seed": infos[r]["seed"], "collision": bool(m["collision"]),
-                              "success": bool(m["success"]), "end_s": round(float(engine.time[r]), 1), "hit": hit,
-                              "last_go_s": None if go is None else round(go[0], 1),
-                              "culprit": None if go is None else {v: go[1].get(v) for v in hit},
-                              "decisions": history[r][-8:], "taken_back": takeback[r][-2:]}), flush=True)
+            record = {"seed": infos[r]["seed"], "collision": bool(m["collision"]), "success": bool(m["success"]),
+                      "end_s": round(float(engine.time[r]), 1), "hit": hit,
+                      "last_go_s": None if go is None else round(go[0], 1),
+                      "culprit": None if go is None else {v: go[1].get(v) for v in hit},
+                      "decisions": history[r][-8:], "taken_back": takeback[r][-2:]}
+            if record["collision"]:
+                record["cause"] = cause(record)
+                causes[record["cause"]] = causes.get(record["cause"], 0) + 1
+            print(json.dumps(record), flush=True)
+    print(json.dumps({"causes": dict(sorted(causes.items(), key=lambda kv: -kv[1]))}), flush=True)
 
 
 if __name__ == "__main__":
