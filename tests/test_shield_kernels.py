@@ -189,3 +189,49 @@ def test_the_along_path_kernel_is_along_many_and_profile_speeds():
         np.testing.assert_array_equal(dist, want, err_msg=f"trial {trial}", strict=True)
         for m in range(M):
             np.testing.assert_array_equal(speed[m], profile_speeds(want[m], t, v[m]), err_msg=f"trial {trial}")
+
+
+def test_the_driven_ttc_kernel_is_the_poses_then_the_footprint_test():
+    """predict.driven_ttc (one compiled call: kernels.driven_ttc) equals what the shield computed before it, the
+    ego's poses along its driven path (DrivenPath.poses at profile_speeds) then footprint_ttc, bit for bit, and the
+    numpy references of both (poses_numpy, footprint_ttc_numpy): the same first hit (time and other), on the ego's
+    route and on other paths, from before, inside and past the driven tables, accelerating, braking to a stop and
+    standing, with margins and the rear rule, others placed so that first hits fall all over the horizon."""
+    from av_gym.envs.left_turn import ROUTE, UnprotectedLeftTurnEnv
+    from av_gym.shields import predict
+    from av_gym.shields.aeb import _route_tables
+    from av_gym.shields.conflicts import ConflictModel
+    from av_gym.shields.predict import driven_ttc, profile_speeds
+
+    env = UnprotectedLeftTurnEnv()
+    env.reset(seed=3)
+    net = env.unwrapped.road.network
+    model = ConflictModel(net)
+    paths = [_route_tables([net.get_lane(i) for i in ROUTE])[1]] * 4
+    paths += [model.driven(seq) for a in net.graph for b in net.graph[a] for i in range(len(net.graph[a][b]))
+              for seq, _ in model.hypotheses((a, b, i))][::7]
+    rng = np.random.default_rng(19)
+    hits = set()
+    for trial in range(400):
+        path = paths[rng.integers(len(paths))]
+        K = int(rng.integers(1, 81))
+        t = 0.1 * np.arange(1, K + 1)
+        v, a = float(rng.choice([0.0, rng.uniform(0.0, 14.0)])), float(rng.choice([0.0, -4.0, 1.5]))
+        ds = np.maximum.accumulate(np.maximum(v * t + 0.5 * a * t**2, 0.0))
+        s0 = float(rng.uniform(-5.0, path.route.length + 10.0)) if trial % 5 else path.s_start
+        M = int(rng.integers(1, 5))
+        ego_xy, _ = path.poses_numpy(s0, ds, profile_speeds(ds, t, v))
+        meet = rng.integers(0, K, M)  # each other near the ego's pose at a random slice, drifting there
+        oxy = ego_xy[meet][None] + rng.normal(0.0, 2.0, (1, M, 2)) + rng.normal(0.0, 1.0, (1, M, 2)) * \
+            (np.arange(K)[:, None, None] - meet[None, :, None])
+        oh = rng.uniform(-np.pi, np.pi, (1, M)) + np.zeros((K, 1))
+        size, margin = rng.uniform(2.0, 6.0, (M, 2)), (0.0, 0.3, 0.6)[trial % 3]
+        rear = rng.random(M) < 0.5 if trial % 2 else False
+        got = driven_ttc(path, s0, ds, t, (5.0, 2.0), oxy, oh, size, margin, rear)
+        before = predict.footprint_ttc(*path.poses(s0, ds, profile_speeds(ds, t, v)), (5.0, 2.0), oxy, oh, size, t,
+                                       margin, rear)
+        reference = predict.footprint_ttc_numpy(*path.poses_numpy(s0, ds, profile_speeds(ds, t, v)), (5.0, 2.0),
+                                                oxy, oh, size, t, margin, rear)
+        assert got == before == reference, trial
+        hits.add(got[0])
+    assert len(hits) > 30 and np.inf in hits  # first hits all over the horizon, and misses

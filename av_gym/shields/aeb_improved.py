@@ -13,8 +13,8 @@ from av_gym.sensors.base import sensor_rng
 from av_gym.sensors.turn_signal import DRIVER_DRAWS, DriverDraws, first_sighting, intended_signal, reported
 from av_gym.shields.conflicts import ConflictModel
 from av_gym.estimation.driver_intent import DriverIntent
-from av_gym.shields.predict import (LaneHypotheses, cruise_profile, footprint_ttc, go_profile, object_predict,
-                                    profile_speeds, setpoint_steps)
+from av_gym.shields.predict import (LaneHypotheses, cruise_profile, driven_ttc, go_profile, object_predict,
+                                    setpoint_steps)
 from av_gym.shields.aeb_base import AEBShield
 from av_gym.shields.aeb_params import BRAKE, MONITOR, STOP_SPEED, WARN, ImprovedParams
 
@@ -214,8 +214,8 @@ class ImprovedAEB(AEBShield):
         h_o = sc.obj_h if h_o is None else h_o
         size_o = sc.size if size_o is None else size_o
         rear_o = sc.rear if rear_o is None else rear_o
-        xy, h = self.driven.poses(sc.s0, ds[:n], profile_speeds(ds[:n], sc.t_long[:n], sc.v))
-        return footprint_ttc(xy, h, sc.ego["size"], xy_o[:n], h_o[:n], size_o, sc.t_long[:n], margin, rear_o)
+        return driven_ttc(self.driven, sc.s0, ds[:n], sc.t_long[:n], sc.ego["size"], xy_o[:n], h_o[:n], size_o,
+                          margin, rear_o)
 
     def _at_trigger_point(self, sc: SimpleNamespace) -> bool:
         """The stop-line trigger: the front bumper within the stopping distance (+ one decision period and
@@ -345,11 +345,9 @@ class ImprovedAEB(AEBShield):
             return float("inf")
         obj_xy, obj_h, owner, turn = self._accel_predict(others, lanes, braking, t_long, intent,
                                                          self.p.emergency_accel_time)
-        v, s0 = ego["speed"], ego["s"]
-        xy, h = self.driven.poses(s0, ds[:n], profile_speeds(ds[:n], t_long[:n], v))
         size_b = np.asarray(others[owner, 5:7], dtype=float).reshape(-1, 2)
-        ttc, _ = footprint_ttc(xy, h, ego["size"], obj_xy[:n], obj_h[:n], size_b, t_long[:n], 0.0,
-                               turn | self.p.ignore_rear)
+        ttc, _ = driven_ttc(self.driven, ego["s"], ds[:n], t_long[:n], ego["size"], obj_xy[:n], obj_h[:n], size_b,
+                            0.0, turn | self.p.ignore_rear)
         return ttc
 
     def _release_objects(self, ego: dict, others: np.ndarray, owner: np.ndarray, obj_xy: np.ndarray,
@@ -411,9 +409,8 @@ class ImprovedAEB(AEBShield):
         xs, vs = self.actuator.profile(v, a, t_long[-1] + 1e-9, self.sim_dt)
         ds = xs[ticks - 1::ticks][: len(t_long)]
         stopped = vs[ticks - 1::ticks][: len(t_long)] <= 0.0
-        xy, h = self.driven.poses(s0, ds, profile_speeds(ds, t_long[: len(ds)], v))
-        ttc, _ = footprint_ttc(xy, h, ego["size"], obj_xy[: len(ds)], obj_h[: len(ds)], size, t_long[: len(ds)],
-                               self.p.margin, rear)
+        ttc, _ = driven_ttc(self.driven, s0, ds, t_long[: len(ds)], ego["size"], obj_xy[: len(ds)],
+                            obj_h[: len(ds)], size, self.p.margin, rear)
         if not np.isfinite(ttc):
             return False
         k = int(round(ttc / self.p.step)) - 1

@@ -296,6 +296,40 @@ def footprint_hit(ego_xy, ego_h, length, width, oxy, oh, osize, reach, rear):
     return -1, -1
 
 
+@numba.njit(cache=True, inline="always")
+def _path_speed(d, prev_d, t, prev_t):
+    """:func:`av_gym.shields.predict.profile_speeds`' one element: ``(d - prev_d) / np.maximum(t - prev_t, 1e-9)``
+    floored by ``np.maximum(., 0.0)`` (m/s; numpy's maximum keeps its first argument where it is NaN or equal)."""
+    step = t - prev_t
+    vk = (d - prev_d) / (step if step >= 1e-9 or step != step else 1e-9)
+    return vk if vk >= 0.0 or vk != vk else 0.0
+
+
+@numba.njit(cache=True)
+def driven_ttc(data, route, limits, bins, grid_table, path_id, s0, ds, t, length, width, oxy, oh, osize, reach,
+               rear, need):
+    """The ego's first footprint hit driving the distance profile ``ds`` (K,, m, at the times ``t`` (K,, s)) along
+    the driven path ``path_id`` of the :class:`Store` from route position ``s0`` (m): its speeds by finite
+    differences (:func:`av_gym.shields.predict.profile_speeds`), its poses (:func:`driven_poses`, one look-up) and
+    :func:`footprint_hit` against ``oxy`` (K, M, 2), ``oh`` (K, M), ``osize`` (M, 2) with ``reach`` and ``rear``
+    (M,), in one call. Returns (missing speed bins, slice k, other m): where bins are missing (``need[0, i]`` set,
+    as :func:`driven_poses`) nothing is tested and (count, -1, -1) comes back; (0, -1, -1) for no hit. K >= 1."""
+    K = ds.shape[0]
+    d2, v2 = np.empty((1, K)), np.empty((1, K))
+    prev_d, prev_t = 0.0, 0.0
+    for k in range(K):
+        d2[0, k] = ds[k]
+        v2[0, k] = _path_speed(ds[k], prev_d, t[k], prev_t)
+        prev_d, prev_t = ds[k], t[k]
+    ids, start = np.full(1, path_id, dtype=np.int64), np.full(1, s0)
+    xy, hh = np.empty((1, K, 2)), np.empty((1, K))
+    missing = driven_poses(data, route, limits, bins, grid_table, ids, start, d2, v2, xy, hh, need)
+    if missing:
+        return missing, -1, -1
+    k, m = footprint_hit(xy[0], hh[0], length, width, oxy, oh, osize, reach, rear)
+    return 0, k, m
+
+
 # ----------------------------------------------------------------------------------------------- brake actuator
 @numba.njit(cache=True)
 def brake_profile(v0, a_before, n, dt, decel, delay, jerk):
@@ -469,8 +503,6 @@ def along_profiles(v, a, t, accel_time):
                 ta = stop if stop < ta else ta  # np.minimum: the first where equal (the same value)
             s = v[m] * ta + 0.5 * a[m] * (ta * ta)
             d = s + (v[m] + a[m] * ta) * (t[k] - ta)
-            step = t[k] - prev_t
-            vk = (d - prev_d) / (step if step >= 1e-9 else 1e-9)
-            dist[m, k], speed[m, k] = d, (vk if vk >= 0.0 or vk != vk else 0.0)  # np.maximum's rule
+            dist[m, k], speed[m, k] = d, _path_speed(d, prev_d, t[k], prev_t)
             prev_d, prev_t = d, t[k]
     return dist, speed
