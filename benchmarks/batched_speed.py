@@ -5,6 +5,7 @@ and the numpy step (with the pairwise kernels: the engine before the compiled st
     python benchmarks/batched_speed.py [--sizes 1 4 16 64 256 1024] [--seconds 4] [--out docs/batched_speed.png]
     python benchmarks/batched_speed.py --sizes 256 1024 --seconds 6        # the sizes the targets name, ~2 min
     python benchmarks/batched_speed.py --profile 256                       # one batch step, profiled
+    python benchmarks/batched_speed.py --ppo 1024 --agent ppo_turn_shielded # PPO learn, per env vs batch, shielded
 
 Env steps per CPU-second on one core (``time.process_time``: robust to other jobs sharing the cores; numpy's
 elementwise maths is single-threaded), both producing ``obs["turn"]`` (TurnFeatures, source=truth) every policy
@@ -114,11 +115,12 @@ def profile(config: dict, B: int, steps: int = 200) -> None:
         stats.sort_stats("tottime").print_stats(25)
 
 
-def ppo_rate(batched: bool, decisions: int) -> tuple[float, float]:
-    """``agent=ppo_turn`` (GO/YIELD, action repeat 5, its hyperparameters; no cloning) in SB3's ``learn``: env steps
-    per second of wall clock and per CPU-second of this process and its children. Per-env: ``train/ppo.py``'s
-    stack, 2 subprocess envs × 256 decisions per rollout (today's ``python -m train agent=ppo_turn``); batched: 64
-    envs × 8 (the same 512-decision rollout, so the same update cost)."""
+def ppo_rate(batched: bool, decisions: int, agent_name: str = "ppo_turn") -> tuple[float, float]:
+    """``agent=<agent_name>`` (ppo_turn: GO/YIELD, action repeat 5, its hyperparameters; ppo_turn_shielded: the
+    same behind the AEB shield with its intervention cost; no cloning) in SB3's ``learn``: env steps per second of
+    wall clock and per CPU-second of this process and its children. Per-env: ``train/ppo.py``'s stack, 2 subprocess
+    envs × 256 decisions per rollout (``python -m train agent=ppo_turn agent.vec_env=subproc``); batched: 64 envs ×
+    8 (the same 512-decision rollout, so the same update cost)."""
     import functools
     import resource
 
@@ -134,17 +136,19 @@ def ppo_rate(batched: bool, decisions: int) -> tuple[float, float]:
     import torch
 
     with initialize_config_module("conf", version_base="1.3"):
-        cfg = compose("train", overrides=["agent=ppo_turn"])
+        cfg = compose("train", overrides=[f"agent={agent_name}"])
     torch.set_num_threads(int(cfg.train.torch_threads))  # as python -m train
     plain = [OC.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
     agent = OC.to_container(cfg.agent, resolve=True)
+    cost = float(agent["intervention_cost"])
     if batched:
         agent.update(n_envs=64, n_steps=8)
-        venv = BatchedLeftTurnVecEnv(*plain, 64, action_repeat=5, actions="go_yield", timeout_is_terminal=True)
+        venv = BatchedLeftTurnVecEnv(*plain, 64, action_repeat=5, actions="go_yield", timeout_is_terminal=True,
+                                     intervention_cost=cost)
         venv.seed(0)
     else:
         agent.update(n_envs=2, n_steps=256)
-        venv = make_vec_env(functools.partial(_env_factory, *plain, 0.0, 5, "go_yield", timeout_is_terminal=True),
+        venv = make_vec_env(functools.partial(_env_factory, *plain, cost, 5, "go_yield", timeout_is_terminal=True),
                             n_envs=2, seed=0, vec_env_cls=SubprocVecEnv, vec_env_kwargs={"start_method": "fork"})
     model = make_ppo(venv, agent, seed=0, tensorboard_log=None, device="cpu")
 
@@ -169,6 +173,8 @@ def main() -> None:
     parser.add_argument("--out", default="runs/benchmarks/batched_speed.png",
                         help="the plot (a tool writes into docs/ only when told to)")
     parser.add_argument("--ppo", type=int, default=0, help="also time PPO learn for this many decisions per path")
+    parser.add_argument("--agent", choices=["ppo_turn", "ppo_turn_shielded"], default="ppo_turn",
+                        help="the agent --ppo trains (ppo_turn_shielded: with the AEB shield and its cost)")
     parser.add_argument("--profile", type=number(int, low=1, high=4096), default=None,
                         help="profile batch steps at this B on both paths instead of timing them")
     args = parser.parse_args()
@@ -177,9 +183,9 @@ def main() -> None:
         return
     if args.ppo:
         print(f"load average: {load()}")
-        print("| ppo_turn learn | env steps/s (wall) | env steps / CPU-s |\n|---|---:|---:|")
+        print(f"| {args.agent} learn | env steps/s (wall) | env steps / CPU-s |\n|---|---:|---:|")
         for on_batch in (False, True):
-            wall, per_cpu = ppo_rate(on_batch, args.ppo)
+            wall, per_cpu = ppo_rate(on_batch, args.ppo, args.agent)
             name = "batched, 64 envs x 8" if on_batch else "per-env, 2 subprocess envs x 256"
             print(f"| {name} | {wall:.0f} | {per_cpu:.0f} |", flush=True)
         print(f"load average: {load()}")
