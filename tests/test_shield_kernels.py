@@ -126,8 +126,10 @@ def _objects_on_lanes(rng: np.random.Generator, net, M: int):
 
 
 def test_the_conflict_kernel_chooses_the_references_hypotheses():
-    """ConflictModel.predict with the compiled choice of hypotheses (kernels.conflict_hypotheses) and with its
-    Python reference (ConflictModel._select): the same positions, headings, owners, map flags and probabilities,
+    """ConflictModel.predict in one compiled call (kernels.conflict_predict: the compiled choice of hypotheses,
+    kernels.conflict_hypotheses, then the profiles, the driven-path look-ups and the constant-velocity objects) and
+    with the Python reference of the choice (ConflictModel._select, then along_many and the look-ups one call
+    each): the same positions, headings, owners, map flags and probabilities,
     bit for bit (the kernel takes numpy's hypot and arctan2 and computes np.dot's 2-vector sum as this machine's
     BLAS does, fused or not), on random road users on and off the intersection's lanes, some exactly at the
     thresholds (0.5 m/s, 30° off the lane), with and without indicator readings (some ruling a turn out, so

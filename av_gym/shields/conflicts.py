@@ -311,13 +311,13 @@ class ConflictModel:
             cv.append(m)
         return paths, None, starts, rows, v_on, a_on, owner, prob, cv
 
-    def _select_compiled(self, others: np.ndarray, lane_indices: list, accels: np.ndarray,
-                         intent: np.ndarray | None):
-        """:meth:`_select` in one compiled call (:func:`av_gym.shields.kernels.conflict_hypotheses`: the same floats,
-        with numpy's hypot, arctan2 and 2-vector dot as this machine's numpy computes them), on this road network's
-        lane registry (:class:`_Lanes`); None for a lane other than straight or circular, or a numpy whose 2-vector
-        dot the kernel cannot reproduce (the reference serves those)."""
-        from av_gym.shields.kernels import DOT_FUSED, conflict_hypotheses
+    def _kernel_inputs(self, others: np.ndarray, lane_indices: list, accels: np.ndarray,
+                       intent: np.ndarray | None) -> tuple | None:
+        """The arguments :func:`av_gym.shields.kernels.conflict_hypotheses` and ``conflict_predict`` share, from
+        ``others`` onwards to ``fused``, on this road network's lane registry (:class:`_Lanes`), and the registry;
+        None for a lane other than straight or circular, or a numpy whose 2-vector dot the kernel cannot reproduce
+        (the reference serves those)."""
+        from av_gym.shields.kernels import DOT_FUSED
 
         if DOT_FUSED is None:  # a BLAS whose 2-vector dot is neither sum: the reference
             return None
@@ -326,10 +326,6 @@ class ConflictModel:
         if lane_row is None:
             return None
         M = len(others)
-        n_max = int(reg.hyp_n[lane_row[lane_row >= 0]].sum()) if M else 0
-        hyp, starts, rows, owner = np.empty(n_max, np.int64), np.empty(n_max), np.empty(n_max, np.int64), \
-            np.empty(n_max, np.int64)
-        prob, v_on, a_on, cv = np.empty(n_max), np.empty(M), np.empty(M), np.empty(M, np.int64)
         if intent is None:  # no reading of anyone: uniform weights
             intent = np.full((M, 3), np.nan)
         others = np.ascontiguousarray(others, dtype=float)
@@ -337,13 +333,55 @@ class ConflictModel:
         speeds = np.hypot(others[:, 2], others[:, 3])
         centre = reg.lanes[lane_row, 1:3] if len(reg.lanes) else np.zeros((M, 2))  # row -1: any, unread
         phis = np.arctan2(others[:, 1] - centre[:, 1], others[:, 0] - centre[:, 0])
-        n, n_on, n_cv = conflict_hypotheses(
-            others, speeds, phis, lane_row, reg.lanes, reg.hyp_off, reg.hyp_n, reg.hyp_turn,
-            np.ascontiguousarray(intent, dtype=float), np.ascontiguousarray(accels, dtype=float), float(self.min_p),
-            float(self.on_lane), float(np.radians(30)), DOT_FUSED, hyp, starts, rows, owner, prob, v_on, a_on, cv)
+        return reg, (others, speeds, phis, lane_row, reg.lanes, reg.hyp_off, reg.hyp_n, reg.hyp_turn,
+                     np.ascontiguousarray(intent, dtype=float), np.ascontiguousarray(accels, dtype=float),
+                     float(self.min_p), float(self.on_lane), float(np.radians(30)), DOT_FUSED)
+
+    def _select_compiled(self, others: np.ndarray, lane_indices: list, accels: np.ndarray,
+                         intent: np.ndarray | None):
+        """:meth:`_select` in one compiled call (:func:`av_gym.shields.kernels.conflict_hypotheses`: the same floats,
+        with numpy's hypot, arctan2 and 2-vector dot as this machine's numpy computes them); None where
+        :meth:`_kernel_inputs` is."""
+        from av_gym.shields.kernels import conflict_hypotheses
+
+        inputs = self._kernel_inputs(others, lane_indices, accels, intent)
+        if inputs is None:
+            return None
+        reg, args = inputs
+        M, lane_row = len(others), args[3]
+        n_max = int(reg.hyp_n[lane_row[lane_row >= 0]].sum()) if M else 0
+        hyp, starts, rows, owner = np.empty(n_max, np.int64), np.empty(n_max), np.empty(n_max, np.int64), \
+            np.empty(n_max, np.int64)
+        prob, v_on, a_on, cv = np.empty(n_max), np.empty(M), np.empty(M), np.empty(M, np.int64)
+        n, n_on, n_cv = conflict_hypotheses(*args, hyp, starts, rows, owner, prob, v_on, a_on, cv)
         hyp = hyp[:n]
         paths = [reg.paths[h] for h in hyp.tolist()]
         return paths, reg.ids[hyp], starts[:n], rows[:n], v_on[:n_on], a_on[:n_on], owner[:n], prob[:n], cv[:n_cv]
+
+    def _predict_compiled(self, others: np.ndarray, lane_indices: list, accels: np.ndarray, t: np.ndarray,
+                          intent: np.ndarray | None) -> tuple | None:
+        """:meth:`predict` in one compiled call (:func:`av_gym.shields.kernels.conflict_predict`: the choice of
+        hypotheses, their along-path profiles, the driven-path look-ups and the constant-velocity objects, each the
+        kernel :meth:`predict` composes otherwise), calling again after simulating the speed bins it reads for the
+        first time; None where :meth:`_kernel_inputs` is."""
+        from av_gym.shields.kernels import conflict_predict
+        from av_gym.shields.predict import DRIVEN_SPEEDS, _store
+
+        inputs = self._kernel_inputs(others, lane_indices, accels, intent)
+        if inputs is None:
+            return None
+        reg, args = inputs
+        lane_row = args[3]
+        need = np.zeros((int(reg.hyp_n[lane_row[lane_row >= 0]].sum()), len(DRIVEN_SPEEDS)), dtype=np.bool_)
+        st = _store()
+        while True:
+            missing, hyp, *out = conflict_predict(*args, reg.ids, t, float(self.accel_time), st.data, st.route,
+                                                  st.limits, st.bins, st.grid_table, need)
+            if not missing:
+                return tuple(out)
+            for h, i in zip(*np.nonzero(need)):  # the speed bins the look-ups read, simulated lazily as the reference
+                reg.paths[hyp[h]]._table(int(i))
+            need[:] = False
 
     def predict(self, others: np.ndarray, lane_indices: list, accels: np.ndarray, t: np.ndarray,
                 intent: np.ndarray | None = None):
@@ -353,14 +391,19 @@ class ConflictModel:
         :data:`av_gym.estimation.driver_intent.TURNS`) from the object's indicator readings, a NaN row where there are
         none.
 
-        Which hypotheses each object gets is chosen in one compiled call (:func:`av_gym.shields.kernels.
-        conflict_hypotheses`; ``CONFLICT_KERNEL = False``: :meth:`_select`, the Python reference), every map
-        hypothesis is placed on its driven path in one compiled call (:func:`av_gym.shields.predict.driven_poses`;
-        ``DrivenPath.kernel = False``: one numpy look-up at a time, the reference), the distance and speed profiles of
-        all objects computed at once (the shield's cost)."""
+        All of it in one compiled call (:meth:`_predict_compiled`), which composes the kernels of the steps: which
+        hypotheses each object gets (:func:`av_gym.shields.kernels.conflict_hypotheses`; ``CONFLICT_KERNEL =
+        False``: :meth:`_select`, the Python reference), the distance and speed profiles of all objects
+        (``along_profiles``; the reference: :meth:`along_many`), every map hypothesis on its driven path
+        (:func:`av_gym.shields.predict.driven_poses`; ``DrivenPath.kernel = False``: one numpy look-up at a time, the
+        reference), the constant-velocity objects (``object_predict``)."""
         from av_gym.shields.predict import DrivenPath, driven_poses, object_predict, profile_speeds
 
-        t = np.asarray(t, dtype=float)
+        t = np.ascontiguousarray(t, dtype=float)
+        if CONFLICT_KERNEL and DrivenPath.kernel:  # all of it in one compiled call
+            out = self._predict_compiled(others, lane_indices, accels, t, intent)
+            if out is not None:
+                return out
         chosen = self._select_compiled(others, lane_indices, accels, intent) if CONFLICT_KERNEL else None
         paths, ids, starts, rows, v_on, a_on, owner, prob, cv = chosen or self._select(others, lane_indices, accels,
                                                                                       intent)

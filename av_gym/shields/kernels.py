@@ -506,3 +506,57 @@ def along_profiles(v, a, t, accel_time):
             dist[m, k], speed[m, k] = d, _path_speed(d, prev_d, t[k], prev_t)
             prev_d, prev_t = d, t[k]
     return dist, speed
+
+
+@numba.njit(cache=True, error_model="numpy")  # as conflict_hypotheses: weights summing to 0 give NaN
+def conflict_predict(others, speeds, phis, lane_row, lanes, hyp_off, hyp_n, hyp_turn, intent, accels, min_p,
+                     on_lane, max_dh, fused, hyp_ids, t, accel_time, data, route, limits, bins, grid_table, need):
+    """:meth:`av_gym.shields.conflicts.ConflictModel.predict` in one call: the hypotheses
+    (:func:`conflict_hypotheses`, same arguments), the distances and speeds along them (:func:`along_profiles` at
+    the times ``t`` (K,, s) with ``accel_time`` s), every map hypothesis on its driven path (:func:`driven_poses` on
+    the :class:`Store` ``data`` ... ``grid_table``, path ids ``hyp_ids`` per hypothesis index) and the
+    constant-velocity objects (:func:`av_gym.shields.predict.object_predict`: ``p + v t``), in the reference's
+    order: the map hypotheses, then the constant-velocity objects.
+
+    Returns (missing speed bins, hypothesis index per map hypothesis, positions (K, H, 2) m, headings (K, H) rad,
+    owner (H,), is a map hypothesis (H,), probability (H,)). Where speed bins are missing (``need[h, i]`` set for
+    map hypothesis h, as :func:`driven_poses`) only the count and the hypothesis indices are meaningful: the caller
+    simulates those bins and calls again."""
+    M, K = others.shape[0], t.shape[0]
+    n_max = 0
+    for m in range(M):
+        if lane_row[m] >= 0:
+            n_max += hyp_n[lane_row[m]]
+    hyp, starts, rows, owner_map = np.empty(n_max, np.int64), np.empty(n_max), np.empty(n_max, np.int64), \
+        np.empty(n_max, np.int64)
+    prob_map, v_on, a_on, cv = np.empty(n_max), np.empty(M), np.empty(M), np.empty(M, np.int64)
+    n, n_on, n_cv = conflict_hypotheses(others, speeds, phis, lane_row, lanes, hyp_off, hyp_n, hyp_turn, intent,
+                                        accels, min_p, on_lane, max_dh, fused, hyp, starts, rows, owner_map,
+                                        prob_map, v_on, a_on, cv)
+    H = n + n_cv
+    xy, hh = np.empty((K, H, 2)), np.empty((K, H))
+    owner, is_map, prob = np.empty(H, np.int64), np.empty(H, np.bool_), np.empty(H)
+    if n:
+        dist, v_path = along_profiles(v_on[:n_on], a_on[:n_on], t, accel_time)
+        ds, sp = np.empty((n, K)), np.empty((n, K))
+        ids = np.empty(n, np.int64)
+        for h in range(n):  # dist[rows], v_path[rows]: each hypothesis its object's profiles
+            ds[h] = dist[rows[h]]
+            sp[h] = v_path[rows[h]]
+            ids[h] = hyp_ids[hyp[h]]
+        pxy, phh = np.empty((n, K, 2)), np.empty((n, K))
+        missing = driven_poses(data, route, limits, bins, grid_table, ids, starts[:n], ds, sp, pxy, phh, need)
+        if missing:
+            return missing, hyp[:n], xy, hh, owner, is_map, prob
+        for h in range(n):
+            for k in range(K):
+                xy[k, h, 0], xy[k, h, 1], hh[k, h] = pxy[h, k, 0], pxy[h, k, 1], phh[h, k]
+            owner[h], is_map[h], prob[h] = owner_map[h], True, prob_map[h]
+    for c in range(n_cv):
+        m, h = cv[c], n + c
+        for k in range(K):
+            xy[k, h, 0] = others[m, 0] + others[m, 2] * t[k]
+            xy[k, h, 1] = others[m, 1] + others[m, 3] * t[k]
+            hh[k, h] = others[m, 4]
+        owner[h], is_map[h], prob[h] = m, False, 1.0
+    return 0, hyp[:n], xy, hh, owner, is_map, prob
