@@ -54,7 +54,7 @@ def test_reference_holds_the_named_agents_and_a_name_means_one_folder():
                          "seeds/dagger_turn_perceived/s3", "seeds/dagger_turn_perceived/s4",
                          "seeds/dagger_turn_perceived/s5", "seeds/dagger_turn_perceived_batch/s2",
                          "seeds/dagger_turn_perceived_batch/s3", "seeds/dagger_turn_perceived_batch/s4",
-                         "seeds/dagger_turn_soft/s1",
+                         "seeds/dagger_turn_perceived_batch/s5", "seeds/dagger_turn_soft/s1",
                          "seeds/dagger_turn_soft/s3",
                          "seeds/pilotnet/s1", "seeds/pilotnet/s2", "seeds/pilotnet/s3",
                          "seeds/pilotnet/s4", "seeds/ppo_turn/s2", "seeds/ppo_turn/s3",
