@@ -69,12 +69,21 @@ def _hide_changes(engine, rows, max_range: float, tracks: np.ndarray) -> int:
     return touched
 
 
-def test_decisions_do_not_read_the_hidden_traffic(tracked):
+@pytest.fixture(scope="module")
+def tracked_shipped():
+    """The batch of ``tracked`` with belief_tracks' own options (conf/agent/belief_tracks.yaml) at 8 futures."""
+    shipped = BeliefLookaheadParams(samples=8, tentative="road_user", track_heading="detected", ghost=2, merge=2.0)
+    return _batch(list(range(410_000, 410_000 + B)), 30, shipped)
+
+
+@pytest.mark.parametrize("which", ["tracked", "tracked_shipped"])
+def test_decisions_do_not_read_the_hidden_traffic(which, request):
     """The same tracks, observations and ego give the same decisions, bit for bit, after the simulator's hidden
     traffic changed: the vehicles without a confirmed track (beyond the detector's range, occluded, or not yet
     confirmed) removed or moved, every driver's route, IDM draws, regulation hold and the rows' future spawns
-    re-drawn. The planner on truth, which reads the vehicles, moves."""
-    venv, planner, obs, rows = tracked
+    re-drawn. The planner on truth, which reads the vehicles, moves. With the kind's defaults and with
+    belief_tracks' options (tentative tracks, detected heading, ghosts, twins)."""
+    venv, planner, obs, rows = request.getfixturevalue(which)
     engine = venv.engine
     shared = {id(venv.perception): venv.perception, id(engine): engine, id(planner.tracks.engine): None}
     again, truth = copy.deepcopy(planner, shared), BeliefPlanner(planner.params, n_rows=B)
