@@ -250,7 +250,7 @@ class BeliefPlanner:
             due &= ~final
         if due.any():
             r, held = rows[due], choice[due]
-            new = self.confirmed(r, self.go_collision(engine, r))
+            new = self.confirmed(r, self.labels(engine, r))
             ask = (new == GO) & (held != GO) & (int(self.params.recheck) > 0)
             if ask.any():  # a GO to start: the futures of the recheck's own streams must find it safe too
                 p = self.go_collision(engine, r[ask], int(self.params.recheck), (RECHECK_STREAM,))
@@ -258,11 +258,11 @@ class BeliefPlanner:
             choice[due] = new
         return choice
 
-    def confirmed(self, rows: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """The choices of ``rows`` at a decision with GO collision probabilities ``p``: GO where GO is safe
-        (:meth:`label_of`) at this decision and the ``confirm`` - 1 before it, else YIELD (a held GO stays while it
-        is safe: it was started so)."""
-        safe = self.label_of(p) == GO
+    def confirmed(self, rows: np.ndarray, label: np.ndarray) -> np.ndarray:
+        """The choices of ``rows`` at a decision whose planner labels (:meth:`labels`) are ``label``: GO where GO
+        is safe at this decision and the ``confirm`` - 1 before it, else YIELD (a held GO stays while it is safe: it
+        was started so)."""
+        safe = np.asarray(label) == GO
         self.safe_run[rows] = np.where(safe, self.safe_run[rows] + 1, 0)
         return np.where(safe & (self.safe_run[rows] >= int(self.params.confirm)), GO, YIELD).astype(np.int64)
 
