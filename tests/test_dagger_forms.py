@@ -229,6 +229,12 @@ def test_the_screen_fits_a_form_on_a_runs_aggregate_and_refuses_what_it_cannot_b
     assert 0 < held["held_labels"] < labels and "val_success" not in held
     assert [c["lr"] for c in held["curve"]] == pytest.approx([lr0, 0.5 * (lr0 + 1e-5), 1e-5])
     assert held["held_accuracy"] == held["curve"][-1]["held"] and 0 <= held["held_accuracy"] <= 1
+    # the observation's ceiling on the same aggregate: its 2 episodes found from the elapsed time, every state read
+    from train.observation_ceiling import main as ceiling_main
+
+    ceiling_main([str(ckpt), "--queries", "5", "--k", "1", "--out", str(tmp_path / "ceiling.json")])
+    ceiling = json.loads((tmp_path / "ceiling.json").read_text())
+    assert ceiling["states"] == labels and ceiling["episodes"] == 2 and ceiling["neighbours"]["queries"] == 5
     for bad, needle in ((["--set", "agent.no_such_field=1"], "--set takes agent.<field>=<value>"),
                         (["--set", "agent.disagree_weight=0.5"], "disagree_weight")):
         with pytest.raises(ConfigError, match=needle):
