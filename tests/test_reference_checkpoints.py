@@ -61,7 +61,7 @@ def test_reference_holds_the_named_agents_and_a_name_means_one_folder():
                          "seeds/ppo_turn/s4", "seeds/ppo_turn/s5", "seeds/ppo_turn_perceived/s2",
                          "seeds/ppo_turn_perceived/s3", "seeds/ppo_turn_perceived/s4", "seeds/ppo_turn_perceived/s5",
                          "seeds/ppo_turn_shielded/s2", "seeds/ppo_turn_shielded/s3",
-                         "seeds/ppo_turn_shielded/s4"]
+                         "seeds/ppo_turn_shielded/s4", "seeds/ppo_turn_shielded/s5"]
 
 
 @pytest.mark.parametrize("name", SB3_REFS + SEED_REFS)
