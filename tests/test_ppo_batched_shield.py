@@ -209,8 +209,9 @@ def test_cloning_through_the_shield_on_the_batch_gives_the_per_env_demonstration
 
     Seeds 500000-500004: the next one, 500005, splits in the shield itself (measured: at 10.1 s the per-env shield
     brakes, TTC 1.9 s, for 2 s; the batch's, on the same ego and road users to 1e-4, monitors; the first 100 env
-    steps equal): a split of the batch's shield from the per-env one, not of this training env (its cause not
-    traced; tests/test_batched_shield.py measures such splits at 0-3 per 1,000 test episodes)."""
+    steps equal): a split of the batch's shield from the per-env one, not of this training env (traced in
+    docs/shield.md, "On the batch": a heading one ulp apart puts a set-off car's speed one ulp under the conflict
+    model's 0.5 m/s; tests/test_batched_shield.py measures such splits at 0-3 per 1,000 test episodes)."""
     from stable_baselines3 import PPO
 
     from train.ppo import _env_factory, make_teacher, pretrain_from_teacher
