@@ -365,7 +365,7 @@ class ConflictModel:
         kernel :meth:`predict` composes otherwise), calling again after simulating the speed bins it reads for the
         first time; None where :meth:`_kernel_inputs` is."""
         from av_gym.shields.kernels import conflict_predict
-        from av_gym.shields.predict import DRIVEN_SPEEDS, _store
+        from av_gym.shields.predict import DRIVEN_SPEEDS, _store, simulating_bins
 
         inputs = self._kernel_inputs(others, lane_indices, accels, intent)
         if inputs is None:
@@ -374,14 +374,10 @@ class ConflictModel:
         lane_row = args[3]
         need = np.zeros((int(reg.hyp_n[lane_row[lane_row >= 0]].sum()), len(DRIVEN_SPEEDS)), dtype=np.bool_)
         st = _store()
-        while True:
-            missing, hyp, *out = conflict_predict(*args, reg.ids, t, float(self.accel_time), st.data, st.route,
-                                                  st.limits, st.bins, st.grid_table, need)
-            if not missing:
-                return tuple(out)
-            for h, i in zip(*np.nonzero(need)):  # the speed bins the look-ups read, simulated lazily as the reference
-                reg.paths[hyp[h]]._table(int(i))
-            need[:] = False
+        out = simulating_bins(lambda: conflict_predict(*args, reg.ids, t, float(self.accel_time), st.data, st.route,
+                                                       st.limits, st.bins, st.grid_table, need),
+                              need, lambda h, out: reg.paths[out[1][h]])  # out[1]: the hypothesis indices
+        return tuple(out[2:])
 
     def predict(self, others: np.ndarray, lane_indices: list, accels: np.ndarray, t: np.ndarray,
                 intent: np.ndarray | None = None):

@@ -258,6 +258,20 @@ def _store():
     return _STORE
 
 
+def simulating_bins(call, need: np.ndarray, path_of):
+    """The return of ``call()``, a kernel on the :func:`_store` that sets ``need[h, i]`` for each speed bin ``i``
+    its look-up ``h`` reads and the store lacks, and returns their count (first, where it returns a tuple): called
+    again until none is missing, the flagged bins simulated in between, lazily as the reference
+    (``path_of(h, out)``: look-up ``h``'s DrivenPath, ``out`` the last return)."""
+    while True:
+        out = call()
+        if not (out[0] if isinstance(out, tuple) else out):
+            return out
+        for h, i in zip(*np.nonzero(need)):
+            path_of(h, out)._table(int(i))
+        need[:] = False
+
+
 def driven_poses(paths: list, s0: np.ndarray, ds: np.ndarray, speeds: np.ndarray, ids: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray]:
     """:meth:`DrivenPath.poses` of H look-ups at once: ``paths`` (H DrivenPaths, repeats allowed), route positions
@@ -279,10 +293,8 @@ def driven_poses(paths: list, s0: np.ndarray, ds: np.ndarray, speeds: np.ndarray
     xy, hh = np.empty((H, K, 2)), np.empty((H, K))
     st = _store()
     need = np.zeros((H, len(DRIVEN_SPEEDS)), dtype=np.bool_)
-    while kernel(st.data, st.route, st.limits, st.bins, st.grid_table, ids, s0, ds, speeds, xy, hh, need):
-        for m, i in zip(*np.nonzero(need)):  # simulate the speed bins the look-ups read, lazily as the reference
-            paths[m]._table(int(i))
-        need[:] = False
+    simulating_bins(lambda: kernel(st.data, st.route, st.limits, st.bins, st.grid_table, ids, s0, ds, speeds, xy, hh,
+                                   need), need, lambda m, _: paths[m])
     return xy, hh
 
 
@@ -432,14 +444,9 @@ def driven_ttc(path: DrivenPath, s0: float, ds: np.ndarray, t: np.ndarray, ego_s
 
         args = _footprint_args(ego_size, others_xy, others_heading, others_size, margin, ignore_rear)
         st, need = _store(), np.zeros((1, len(DRIVEN_SPEEDS)), dtype=np.bool_)
-        while True:
-            missing, k, m = kernel(st.data, st.route, st.limits, st.bins, st.grid_table, path.store_id, float(s0),
-                                   ds, t, *args, need)
-            if not missing:
-                return (float("inf"), -1) if k < 0 else (float(t[k]), int(m))
-            for i in np.flatnonzero(need[0]):  # the speed bins the look-up reads, simulated lazily as the reference
-                path._table(int(i))
-            need[:] = False
+        _, k, m = simulating_bins(lambda: kernel(st.data, st.route, st.limits, st.bins, st.grid_table, path.store_id,
+                                                 float(s0), ds, t, *args, need), need, lambda h, _: path)
+        return (float("inf"), -1) if k < 0 else (float(t[k]), int(m))
     xy, h = path.poses(s0, ds, profile_speeds(ds, t, 0.0))  # v0 is read only for an empty ds
     return footprint_ttc(xy, h, ego_size, others_xy, others_heading, others_size, t, margin, ignore_rear)
 
