@@ -38,13 +38,14 @@ def validate(cfg: DictConfig) -> list[str]:
     if problems or params.vec_env != "batched":
         return problems
     from av_gym.batched.shield import shield_kind
-    from av_gym.batched.vec_env import check_batchable
+    from av_gym.batched.vec_env import check_batchable, intervention_cost_problem
     from av_gym.errors import ConfigError
 
     env, sensors, shield = [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
-    if params.intervention_cost > 0 and shield_kind(shield) == "none":  # the batch would pay it on nothing
-        return [f"agent.intervention_cost={params.intervention_cost:g} is paid on the shield's overrides: it needs "
-                f"shield=aeb, got shield=none (or set agent.intervention_cost=0)"]
+    problem = intervention_cost_problem(float(params.intervention_cost), shield_kind(shield) != "none",
+                                        "agent.intervention_cost")
+    if problem:  # the batch would pay it on nothing
+        return [problem]
     try:
         check_batchable(env, sensors, shield, with_shield=True)  # the training batch runs the batch's AEB shield
     except ConfigError as exc:

@@ -70,16 +70,25 @@ def check_batchable(env_cfg: dict, sensors_cfg: dict | None, shield_cfg: dict | 
                           f"vec_env=batched runs shield=aeb); use agent.vec_env=subproc")
 
 
+def intervention_cost_problem(cost: float, shielded: bool, field: str = "intervention_cost") -> str | None:
+    """One line on an intervention cost (reward/s) the batch cannot pay, naming ``field``: a negative one, or one
+    without a shield whose overrides it is paid on; None if it can."""
+    if not cost >= 0:
+        return f"{field} must be >= 0 (reward per second of shield override), got {cost}"
+    if cost > 0 and not shielded:
+        return (f"{field}={cost:g} is paid on the shield's overrides: it needs shield=aeb, got shield=none (or set "
+                f"{field}=0)")
+    return None
+
+
 def _cost_per_step(intervention_cost: float, shielded: bool, policy_frequency: float) -> float:
     """:class:`av_gym.wrappers.InterventionCost`'s reward per env step of override (``intervention_cost`` in
-    reward/s over the env's ``policy_frequency`` in Hz); one ConfigError line for a negative cost, or a cost without
-    a shield whose overrides it is paid on."""
+    reward/s over the env's ``policy_frequency`` in Hz); a ConfigError with :func:`intervention_cost_problem`'s
+    line."""
     cost = float(intervention_cost)
-    if not cost >= 0:
-        raise ConfigError(f"intervention_cost must be >= 0 (reward per second of shield override), got {cost}")
-    if cost > 0 and not shielded:
-        raise ConfigError(f"intervention_cost={cost:g} is paid on the shield's overrides: it needs shield=aeb, "
-                          f"got shield=none (or set intervention_cost=0)")
+    problem = intervention_cost_problem(cost, shielded)
+    if problem:
+        raise ConfigError(problem)
     return cost / float(policy_frequency)
 
 
