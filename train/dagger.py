@@ -366,7 +366,6 @@ def disagreement_weights(model, data: Round, weight: float, chunk: int = 4096) -
     drives with) differs from the teacher's label, 1 where they agree. Why: after a few rounds the student agrees
     with the teacher on ~90 % of its own states, and a plain mean spends nine tenths of each step on states it
     already gets right; the rest carry the collisions (docs/dagger.md, "Learning curve")."""
-    import torch as th
     from gymnasium import spaces
 
     from av_gym.errors import ConfigError
@@ -374,13 +373,21 @@ def disagreement_weights(model, data: Round, weight: float, chunk: int = 4096) -
     if not isinstance(model.action_space, spaces.Discrete):
         raise ConfigError(f"agent.disagree_weight={weight:g} needs discrete choices to disagree on; the student's "
                           f"actions are {model.action_space}")
+    return np.where(student_choices(model, data, chunk) != np.asarray(data.labels), float(weight), 1.0)
+
+
+def student_choices(model, data: Round, chunk: int = 4096) -> np.ndarray:
+    """The discrete student ``model``'s most likely choice (the one it drives with) on each of ``data``'s states,
+    ``chunk`` states per forward pass."""
+    import torch as th
+
     x = {k: np.stack([o[k] for o in data.obs]) for k in data.obs[0]}
     choices = []
     with th.no_grad():
         for i in range(0, len(data.labels), chunk):
             obs = model.policy.obs_to_tensor({k: v[i:i + chunk] for k, v in x.items()})[0]
             choices.append(model.policy.get_distribution(obs).distribution.probs.argmax(1).cpu().numpy())
-    return np.where(np.concatenate(choices) != np.asarray(data.labels), float(weight), 1.0)
+    return np.concatenate(choices)
 
 
 def aggregate(total: Round, new: Round) -> None:

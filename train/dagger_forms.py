@@ -57,7 +57,7 @@ def screen(run_dir: Path, overrides: list[str], refits: int, epochs: int, episod
 
     cfg = student_config(run_dir, overrides)
     agent, plain = cfg["agent"], [cfg["env"], cfg["sensors"], cfg["shield"]]
-    data = _aggregate(run_dir / "latest.zip", STATE_MEMBER, unpack_rounds)
+    data = read_aggregate(run_dir / "latest.zip", STATE_MEMBER, unpack_rounds)
     fitted, held = _split(data, holdout, seed)
     repeat, actions = int(agent["action_repeat"]), str(agent["actions"])
     env = BatchedLeftTurnVecEnv(*plain, 2, action_repeat=repeat, actions=actions,
@@ -124,19 +124,13 @@ def _fit_curve(model, agent: dict, fitted, held, refits: int, epochs: int, seed:
     return curve
 
 
-def accuracy_on(model, data, chunk: int = 4096) -> float:
+def accuracy_on(model, data) -> float:
     """The share of ``data``'s labels that ``model`` (its most likely choice) matches."""
     import numpy as np
-    import torch as th
 
-    x = {k: np.stack([o[k] for o in data.obs]) for k in data.obs[0]}
-    hits = 0
-    with th.no_grad():
-        for i in range(0, len(data.labels), chunk):
-            obs = model.policy.obs_to_tensor({k: v[i:i + chunk] for k, v in x.items()})[0]
-            choice = model.policy.get_distribution(obs).distribution.probs.argmax(1).cpu().numpy()
-            hits += int(np.sum(choice == np.asarray(data.labels[i:i + chunk])))
-    return hits / len(data.labels)
+    from train.dagger import student_choices
+
+    return float(np.mean(student_choices(model, data) == np.asarray(data.labels)))
 
 
 def _drive(model, agent: dict, plain: list, episodes: int) -> tuple[float, float]:
@@ -151,7 +145,7 @@ def _drive(model, agent: dict, plain: list, episodes: int) -> tuple[float, float
     return validation(model)
 
 
-def _aggregate(latest: Path, member: str, unpack):
+def read_aggregate(latest: Path, member: str, unpack):
     """The labelled states DAgger saved in ``latest`` (one line if it holds none)."""
     import zipfile
 

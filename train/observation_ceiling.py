@@ -119,18 +119,12 @@ def _vote(votes: np.ndarray) -> np.ndarray:
 def load_states(run_dir: Path) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """The aggregate of ``run_dir``'s latest.zip as arrays per observation key, and its labels."""
     import io
-    import zipfile
 
     from train.dagger import STATE_MEMBER
+    from train.dagger_forms import read_aggregate
 
-    latest = run_dir / "latest.zip"
-    if not latest.is_file():
-        raise ConfigError(f"{latest} does not exist: run_dir must be a DAgger run's checkpoint folder")
-    with zipfile.ZipFile(latest) as z:
-        if STATE_MEMBER not in z.namelist():
-            raise ConfigError(f"{latest} holds no DAgger aggregate ({STATE_MEMBER}): not a DAgger run's latest.zip")
-        npz = np.load(io.BytesIO(z.read(STATE_MEMBER)))
-        return {k[len("obs:"):]: npz[k] for k in npz.files if k.startswith("obs:")}, npz["labels"]
+    npz = read_aggregate(run_dir / "latest.zip", STATE_MEMBER, lambda raw: np.load(io.BytesIO(raw)))
+    return {k[len("obs:"):]: npz[k] for k in npz.files if k.startswith("obs:")}, npz["labels"]
 
 
 def elapsed_column(obs: dict[str, np.ndarray]) -> np.ndarray:
