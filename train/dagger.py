@@ -430,6 +430,21 @@ def save_round(model, path: Path, data: Round, state: dict) -> Path:
     return save_model_atomic(model, path, rng_extra={"dagger": state}, members={STATE_MEMBER: pack_rounds(data)})
 
 
+def read_aggregate(latest: Path, unpack):
+    """The labelled states :func:`save_round` wrote into ``latest`` (a DAgger run's latest.zip), as ``unpack`` reads
+    their raw ``.npz`` bytes (:func:`unpack_rounds`: a :class:`Round`); one line if it holds none."""
+    import zipfile
+
+    from av_gym.errors import ConfigError
+
+    if not latest.is_file():
+        raise ConfigError(f"{latest} does not exist: run_dir must be a DAgger run's checkpoint folder")
+    with zipfile.ZipFile(latest) as z:
+        if STATE_MEMBER not in z.namelist():
+            raise ConfigError(f"{latest} holds no DAgger aggregate ({STATE_MEMBER}): not a DAgger run's latest.zip")
+        return unpack(z.read(STATE_MEMBER))
+
+
 def load_round(model, path: Path) -> tuple[Round, dict]:
     """The state :func:`save_round` wrote into ``path``, loaded into ``model`` (its policy and optimizer, and the
     global RNG states); one line for a checkpoint that is damaged or was written before DAgger saved its rounds."""

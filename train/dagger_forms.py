@@ -53,11 +53,11 @@ def screen(run_dir: Path, overrides: list[str], refits: int, epochs: int, episod
     an epoch: Adam's state carried on). ``episodes`` 0: no validation drive."""
     from agents.batched_vec_env import BatchedLeftTurnVecEnv
     from agents.ppo import make_ppo
-    from train.dagger import STATE_MEMBER, unpack_rounds
+    from train.dagger import read_aggregate, unpack_rounds
 
     cfg = student_config(run_dir, overrides)
     agent, plain = cfg["agent"], [cfg["env"], cfg["sensors"], cfg["shield"]]
-    data = read_aggregate(run_dir / "latest.zip", STATE_MEMBER, unpack_rounds)
+    data = read_aggregate(run_dir / "latest.zip", unpack_rounds)
     fitted, held = _split(data, holdout, seed)
     repeat, actions = int(agent["action_repeat"]), str(agent["actions"])
     env = BatchedLeftTurnVecEnv(*plain, 2, action_repeat=repeat, actions=actions,
@@ -143,18 +143,6 @@ def _drive(model, agent: dict, plain: list, episodes: int) -> tuple[float, float
     validation = _validation(TrainOptions(eval_n=episodes), plain, int(agent["action_repeat"]),
                              str(agent["actions"]), True)
     return validation(model)
-
-
-def read_aggregate(latest: Path, member: str, unpack):
-    """The labelled states DAgger saved in ``latest`` (one line if it holds none)."""
-    import zipfile
-
-    if not latest.is_file():
-        raise ConfigError(f"{latest} does not exist: run_dir must be a DAgger run's checkpoint folder")
-    with zipfile.ZipFile(latest) as z:
-        if member not in z.namelist():
-            raise ConfigError(f"{latest} holds no DAgger aggregate ({member}): not a DAgger run's latest.zip")
-        return unpack(z.read(member))
 
 
 def main(argv: list[str] | None = None) -> None:

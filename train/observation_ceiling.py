@@ -120,10 +120,9 @@ def load_states(run_dir: Path) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """The aggregate of ``run_dir``'s latest.zip as arrays per observation key, and its labels."""
     import io
 
-    from train.dagger import STATE_MEMBER
-    from train.dagger_forms import read_aggregate
+    from train.dagger import read_aggregate
 
-    npz = read_aggregate(run_dir / "latest.zip", STATE_MEMBER, lambda raw: np.load(io.BytesIO(raw)))
+    npz = read_aggregate(run_dir / "latest.zip", lambda raw: np.load(io.BytesIO(raw)))
     return {k[len("obs:"):]: npz[k] for k in npz.files if k.startswith("obs:")}, npz["labels"]
 
 
