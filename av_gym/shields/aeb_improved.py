@@ -318,19 +318,25 @@ class ImprovedAEB(AEBShield):
         mod[:, 2:4] = 0.5 * direction
         sub_lanes = [lanes[i] for i in idx]
         sub_intent = None if intent is None else intent[idx]
+        # Marked as following their lanes: the conflict model's own speed test (>= 0.5 m/s) would meet this
+        # 0.5 m/s start across a rounding (its hypot is one ulp under 0.5 for ~1.4 % of headings, and a car's
+        # heading one ulp apart between two stacks then picked its lanes or a straight line).
         xy, h, owner, turn = self._accel_predict(mod, sub_lanes, self.p.setoff_accel * direction, t_long,
-                                                 sub_intent, 3.0)
+                                                 sub_intent, 3.0, follow=True)
         return xy, h, idx[owner], np.asarray(others[idx[owner], 5:7], dtype=float).reshape(-1, 2), \
             turn | self.p.ignore_rear
 
-    def _accel_predict(self, others, lanes, accels, t_long, intent, accel_time):
+    def _accel_predict(self, others, lanes, accels, t_long, intent, accel_time, follow: bool = False):
         """The conflict model's path hypotheses (same ones, same order) with each road user keeping the
-        acceleration ``accels`` (M, 2, world frame; along its path) for ``accel_time`` s, never reversing."""
+        acceleration ``accels`` (M, 2, world frame; along its path) for ``accel_time`` s, never reversing;
+        ``follow``: every road user on a lane takes its lane hypotheses whatever its speed
+        (:meth:`ConflictModel.predict`'s ``follow``)."""
         model = self._conflicts
         saved = model.accel_time
         model.accel_time = accel_time
         try:
-            obj_xy, obj_h, owner, turn, _ = model.predict(others, lanes, accels, t_long, intent)
+            obj_xy, obj_h, owner, turn, _ = model.predict(others, lanes, accels, t_long, intent,
+                                                          np.ones(len(others), bool) if follow else None)
         finally:
             model.accel_time = saved
         return obj_xy, obj_h, owner, turn

@@ -192,7 +192,8 @@ class ConflictModel:
     then its speed (``accel_time`` 0, the default: constant speed; measured, docs/shield.md: 1.5 s parked the ego in
     the box more often), on the path highway-env's route-following controller actually drives (:meth:`driven`). An
     object off the map (farther than ``on_lane`` m from its lane, or heading more than 30° off it) or standing
-    still gets the constant-velocity hypothesis instead.
+    still (under 0.5 m/s, unless :meth:`predict`'s ``follow`` marks it) gets the constant-velocity hypothesis
+    instead.
 
     Compared with constant velocity (the improved shield's old default) it sees the car that turns across or into
     the ego's path; compared with the ``map`` model it drops the straight-line hypothesis of a car that follows a
@@ -272,7 +273,8 @@ class ConflictModel:
             by_seq[key] = [self.driven(seq) for seq, _ in self.hypotheses(lane_index)]
         return by_seq[key]
 
-    def _select(self, others: np.ndarray, lane_indices: list, accels: np.ndarray, intent: np.ndarray | None):
+    def _select(self, others: np.ndarray, lane_indices: list, accels: np.ndarray, intent: np.ndarray | None,
+                follow: np.ndarray | None = None):
         """The hypotheses of :meth:`predict`, one object at a time (the Python reference of :meth:`_select_compiled`):
         per map hypothesis its driven path, store id (None: looked up later), start (m along the lane), the object's
         place among those on the map and its row, probability; per object on the map its speed (m/s) and
@@ -288,7 +290,7 @@ class ConflictModel:
         for m, lane_index in enumerate(lane_indices):
             speed = float(speeds_all[m])
             lane = net.get_lane(lane_index) if lane_index is not None else None
-            if lane is not None and speed >= 0.5:
+            if lane is not None and (speed >= 0.5 or (follow is not None and follow[m])):
                 s0, lat = lane.local_coordinates(others[m, 0:2])
                 s0, lat = float(s0), float(lat)
                 dh = abs((float(lane.heading_at(s0)) - others[m, 4] + np.pi) % (2 * np.pi) - np.pi)
@@ -312,7 +314,7 @@ class ConflictModel:
         return paths, None, starts, rows, v_on, a_on, owner, prob, cv
 
     def _kernel_inputs(self, others: np.ndarray, lane_indices: list, accels: np.ndarray,
-                       intent: np.ndarray | None) -> tuple | None:
+                       intent: np.ndarray | None, follow: np.ndarray | None = None) -> tuple | None:
         """The arguments :func:`av_gym.shields.kernels.conflict_hypotheses` and ``conflict_predict`` share, from
         ``others`` onwards to ``fused``, on this road network's lane registry (:class:`_Lanes`), and the registry;
         None for a lane other than straight or circular, or a numpy whose 2-vector dot the kernel cannot reproduce
@@ -335,16 +337,17 @@ class ConflictModel:
         phis = np.arctan2(others[:, 1] - centre[:, 1], others[:, 0] - centre[:, 0])
         return reg, (others, speeds, phis, lane_row, reg.lanes, reg.hyp_off, reg.hyp_n, reg.hyp_turn,
                      np.ascontiguousarray(intent, dtype=float), np.ascontiguousarray(accels, dtype=float),
-                     float(self.min_p), float(self.on_lane), float(np.radians(30)), DOT_FUSED)
+                     float(self.min_p), float(self.on_lane), float(np.radians(30)), DOT_FUSED,
+                     np.zeros(M, np.bool_) if follow is None else np.ascontiguousarray(follow, dtype=np.bool_))
 
     def _select_compiled(self, others: np.ndarray, lane_indices: list, accels: np.ndarray,
-                         intent: np.ndarray | None):
+                         intent: np.ndarray | None, follow: np.ndarray | None = None):
         """:meth:`_select` in one compiled call (:func:`av_gym.shields.kernels.conflict_hypotheses`: the same floats,
         with numpy's hypot, arctan2 and 2-vector dot as this machine's numpy computes them); None where
         :meth:`_kernel_inputs` is."""
         from av_gym.shields.kernels import conflict_hypotheses
 
-        inputs = self._kernel_inputs(others, lane_indices, accels, intent)
+        inputs = self._kernel_inputs(others, lane_indices, accels, intent, follow)
         if inputs is None:
             return None
         reg, args = inputs
@@ -359,7 +362,7 @@ class ConflictModel:
         return paths, reg.ids[hyp], starts[:n], rows[:n], v_on[:n_on], a_on[:n_on], owner[:n], prob[:n], cv[:n_cv]
 
     def _predict_compiled(self, others: np.ndarray, lane_indices: list, accels: np.ndarray, t: np.ndarray,
-                          intent: np.ndarray | None) -> tuple | None:
+                          intent: np.ndarray | None, follow: np.ndarray | None = None) -> tuple | None:
         """:meth:`predict` in one compiled call (:func:`av_gym.shields.kernels.conflict_predict`: the choice of
         hypotheses, their along-path profiles, the driven-path look-ups and the constant-velocity objects, each the
         kernel :meth:`predict` composes otherwise), calling again after simulating the speed bins it reads for the
@@ -367,7 +370,7 @@ class ConflictModel:
         from av_gym.shields.kernels import conflict_predict
         from av_gym.shields.predict import DRIVEN_SPEEDS, _store, simulating_bins
 
-        inputs = self._kernel_inputs(others, lane_indices, accels, intent)
+        inputs = self._kernel_inputs(others, lane_indices, accels, intent, follow)
         if inputs is None:
             return None
         reg, args = inputs
@@ -380,12 +383,15 @@ class ConflictModel:
         return tuple(out[2:])
 
     def predict(self, others: np.ndarray, lane_indices: list, accels: np.ndarray, t: np.ndarray,
-                intent: np.ndarray | None = None):
+                intent: np.ndarray | None = None, follow: np.ndarray | None = None):
         """Positions (K, M', 2), headings (K, M'), owner (M',), whether each is a map hypothesis (M',) and its
         probability (M',) over the hypotheses of ``others`` (M, 7) on ``lane_indices`` (None = off the map),
         ``accels`` (M, 2) m/s² world frame; ``intent`` (M, 3) the weight of each turn (right, straight, left:
         :data:`av_gym.estimation.driver_intent.TURNS`) from the object's indicator readings, a NaN row where there are
-        none.
+        none; ``follow`` (M,) bool: objects that take their lane hypotheses at any speed above 0 (the AEB shield's
+        set-off rule marks the standing cars it predicts setting off along their lanes from 0.5 m/s: a speed
+        test would meet that 0.5 across a rounding, ``hypot(0.5 cos h, 0.5 sin h)`` is one ulp under 0.5 for
+        ~1.4 % of headings), None: none.
 
         All of it in one compiled call (:meth:`_predict_compiled`), which composes the kernels of the steps: which
         hypotheses each object gets (:func:`av_gym.shields.kernels.conflict_hypotheses`; ``CONFLICT_KERNEL =
@@ -397,12 +403,12 @@ class ConflictModel:
 
         t = np.ascontiguousarray(t, dtype=float)
         if CONFLICT_KERNEL and DrivenPath.kernel:  # all of it in one compiled call
-            out = self._predict_compiled(others, lane_indices, accels, t, intent)
+            out = self._predict_compiled(others, lane_indices, accels, t, intent, follow)
             if out is not None:
                 return out
-        chosen = self._select_compiled(others, lane_indices, accels, intent) if CONFLICT_KERNEL else None
+        chosen = self._select_compiled(others, lane_indices, accels, intent, follow) if CONFLICT_KERNEL else None
         paths, ids, starts, rows, v_on, a_on, owner, prob, cv = chosen or self._select(others, lane_indices, accels,
-                                                                                      intent)
+                                                                                      intent, follow)
         xs, hs, is_map = [], [], [True] * len(paths)
         if len(paths):
             if CONFLICT_KERNEL:  # distances and path speeds (objects, K) in one compiled call

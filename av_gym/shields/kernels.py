@@ -426,12 +426,12 @@ def _stock_heading(lanes, k, s):
 
 @numba.njit(cache=True, error_model="numpy")  # weights that sum to 0 give NaN, as numpy's, not an exception
 def conflict_hypotheses(others, speeds, phis, lane_row, lanes, hyp_off, hyp_n, hyp_turn, intent, accels, min_p,
-                        on_lane, max_dh, fused, out_hyp, out_s0, out_row, out_owner, out_prob, v_on, a_on, cv):
+                        on_lane, max_dh, fused, follow, out_hyp, out_s0, out_row, out_owner, out_prob, v_on, a_on, cv):
     """:meth:`av_gym.shields.conflicts.ConflictModel.predict`'s choice of hypotheses for the objects ``others``
     (M, 7) on the lane rows ``lane_row`` (M,; -1 off the map) of ``lanes`` (``speeds``: numpy's hypot of their
     velocities, ``phis``: numpy's arctan2 of each from its lane's centre where circular; ``fused``:
-    :data:`DOT_FUSED`): an object at >= 0.5 m/s within
-    ``on_lane`` m of its lane and ``max_dh`` rad of its heading gets the lane's hypotheses ``hyp_off[k]`` ..
+    :data:`DOT_FUSED`): an object at >= 0.5 m/s (or marked in ``follow`` (M,), at any speed > 0: the
+    :meth:`~av_gym.shields.conflicts.ConflictModel.predict` argument) within ``on_lane`` m of its lane and ``max_dh`` rad of its heading gets the lane's hypotheses ``hyp_off[k]`` ..
     ``+ hyp_n[k]`` (``hyp_turn``: each one's turn, -1 / 0 / +1), weighted by its indicator readings ``intent`` (M, 3;
     a NaN in a row: never read, uniform weights), normalised, those below ``min_p`` dropped when any is; every other
     object the constant-velocity hypothesis.
@@ -445,7 +445,7 @@ def conflict_hypotheses(others, speeds, phis, lane_row, lanes, hyp_off, hyp_n, h
     for m in range(others.shape[0]):
         k = lane_row[m]
         speed = speeds[m]
-        if k < 0 or not speed >= 0.5:
+        if k < 0 or not (speed >= 0.5 or follow[m]):
             cv[n_cv] = m
             n_cv += 1
             continue
@@ -510,7 +510,8 @@ def along_profiles(v, a, t, accel_time):
 
 @numba.njit(cache=True, error_model="numpy")  # as conflict_hypotheses: weights summing to 0 give NaN
 def conflict_predict(others, speeds, phis, lane_row, lanes, hyp_off, hyp_n, hyp_turn, intent, accels, min_p,
-                     on_lane, max_dh, fused, hyp_ids, t, accel_time, data, route, limits, bins, grid_table, need):
+                     on_lane, max_dh, fused, follow, hyp_ids, t, accel_time, data, route, limits, bins, grid_table,
+                     need):
     """:meth:`av_gym.shields.conflicts.ConflictModel.predict` in one call: the hypotheses
     (:func:`conflict_hypotheses`, same arguments), the distances and speeds along them (:func:`along_profiles` at
     the times ``t`` (K,, s) with ``accel_time`` s), every map hypothesis on its driven path (:func:`driven_poses` on
@@ -531,8 +532,8 @@ def conflict_predict(others, speeds, phis, lane_row, lanes, hyp_off, hyp_n, hyp_
         np.empty(n_max, np.int64)
     prob_map, v_on, a_on, cv = np.empty(n_max), np.empty(M), np.empty(M), np.empty(M, np.int64)
     n, n_on, n_cv = conflict_hypotheses(others, speeds, phis, lane_row, lanes, hyp_off, hyp_n, hyp_turn, intent,
-                                        accels, min_p, on_lane, max_dh, fused, hyp, starts, rows, owner_map,
-                                        prob_map, v_on, a_on, cv)
+                                        accels, min_p, on_lane, max_dh, fused, follow, hyp, starts, rows,
+                                        owner_map, prob_map, v_on, a_on, cv)
     H = n + n_cv
     xy, hh = np.empty((K, H, 2)), np.empty((K, H))
     owner, is_map, prob = np.empty(H, np.int64), np.empty(H, np.bool_), np.empty(H)
