@@ -112,6 +112,9 @@ class _Decider:
             self.kind = "lookahead"
             self.k = np.zeros(n, dtype=int)  # Lookahead._t
             self.choice = np.full(n, YIELD)  # Lookahead._choice
+        elif hasattr(policy, "act_rows"):  # keeps its own memory per row (agents/recurrent.py: a hidden state)
+            self.kind = "rows"
+            policy.start_rows(n)
         else:
             raise ConfigError(f"policy {type(policy).__name__} cannot run with vec_env=batched; use vec_env=subproc")
 
@@ -120,6 +123,8 @@ class _Decider:
 
         if self.kind == "ppo":
             self.k[rows], self.held[rows] = 0, 0
+        elif self.kind == "rows":
+            self.policy.reset_rows(rows)
         elif self.kind == "lookahead":
             self.k[rows], self.choice[rows] = 0, YIELD
         elif self.kind == "belief_lookahead":
@@ -146,6 +151,8 @@ class _Decider:
                 self.choice[ask] = oracle_labels(self.engine, ask)[0]
             self.k[rows] += 1
             out[rows] = meta_actions(self.choice[rows], obs["turn"][rows])
+        elif self.kind == "rows":
+            out[rows] = self.policy.act_rows(obs, rows)
         elif self.kind == "belief_lookahead":  # BeliefLookahead.act for every row: every reading, then the decisions
             self.planner.read(self.engine, rows, obs["intent"][rows])
             self.choice[rows] = self.planner.decide(self.engine, rows, self.choice[rows], self.k[rows])

@@ -704,8 +704,10 @@ def _say_interrupted(done: int, latest: Path, run_name: str) -> None:
                    f"start the run again (train.overwrite=true to reuse run_name={run_name})", file=sys.stderr)
 
 
-def _validation(options: TrainOptions, plain: list, repeat: int, actions: str, batched: bool):
-    """``model -> (collision, success)`` on ``train.eval_n`` episodes of the validation split from ``train.eval_seed`` (None if 0)."""
+def _validation(options: TrainOptions, plain: list, repeat: int, actions: str, batched: bool,
+                policy_of: Callable[[Any], Any] | None = None):
+    """``model -> (collision, success)`` on ``train.eval_n`` episodes of the validation split from ``train.eval_seed`` (None if 0);
+    ``policy_of(model)``: the policy that drives them (default: the SB3 model's, every ``repeat`` steps)."""
     from av_gym.seeds import config_seeds
 
     n = options.eval_n
@@ -718,7 +720,8 @@ def _validation(options: TrainOptions, plain: list, repeat: int, actions: str, b
 
         from eval.batched import play_on
 
-        rows = play_on(*plain, SB3Policy(model, repeat, actions), seeds, min(n, 128), "val", batched)
+        policy = policy_of(model) if policy_of is not None else SB3Policy(model, repeat, actions)
+        rows = play_on(*plain, policy, seeds, min(n, 128), "val", batched)
         return (float(np.mean([r["collision"] for r in rows])),
                 float(np.mean([r["success"] if "success" in r else r["lap_completed"] for r in rows])))
     return run
