@@ -42,10 +42,13 @@ from av_gym.estimation.turn_features import ACC_SCALE
 from av_gym.sensors.turn_signal import node_index
 from av_gym.sim.batched import Traffic
 
-__all__ = ["SPEED_CLASSES", "SPAWN_S", "TrackBelief", "UnseenTraffic", "twins"]
+__all__ = ["SPEED_CLASSES", "SPAWN_S", "DetectedMotion", "TrackBelief", "UnseenTraffic", "twins"]
 
 SPAWN_S = 5.0  # m along the approach where a spawn enters (IntersectionEnv._spawn_vehicle: longitudinal + 5)
 SPEED_CLASSES = 3  # spawn speeds per cohort: the middles of equal-probability slices of the spawn speed's normal
+FIT_SLOTS = 256  # track ids kept per row by DetectedMotion (id mod this: ids live far fewer births than that)
+FIT_GATE = 2.0  # m: the detection that updated a track is the nearest one to its updated place, within this
+FIT_MIN = 3  # detector frames a least-squares line needs (two give no check on a noisy pair)
 
 
 def lane_kinds(T) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -238,6 +241,74 @@ class UnseenTraffic:
         t.rpos[fr, slot], t.vid[fr, slot] = 0, 0
 
 
+class DetectedMotion:
+    """The planner's own view of each track's motion (``track_fit``), for the B rows of a batch: the detector's
+    velocities (m/s, world frame; sd ``sigma_vel`` each, unbiased) of the frames that updated a track, kept per track
+    id, and a least-squares line through their components along the track's heading over the last ``window`` s:
+    its value now (the speed) and its slope (the acceleration). The constant-velocity filter weighs the same
+    readings against its model and so trails a car that accelerates (0.2 s x a in steady state); the line does not.
+    The tracker does not say which detection updated which track: the nearest detection to the track's updated
+    place, within ``FIT_GATE`` (its update moved it most of the way there)."""
+
+    def __init__(self, n_rows: int, window: float, rate_hz: float) -> None:
+        self.window = float(window)
+        depth = int(np.ceil(self.window * float(rate_hz) + 1e-9)) + 1  # frames a window can hold
+        self.id = np.full((int(n_rows), FIT_SLOTS), -1)
+        self.t = np.full((int(n_rows), FIT_SLOTS, depth), -np.inf)  # s, newest first
+        self.v = np.zeros((int(n_rows), FIT_SLOTS, depth, 2))
+
+    def reset(self, rows) -> None:
+        """New episodes in ``rows``: no track seen."""
+        self.id[np.asarray(rows, dtype=int)] = -1
+
+    def record(self, rows: np.ndarray, ids: np.ndarray, updated: np.ndarray, places: np.ndarray,
+               detections: np.ndarray, now: np.ndarray) -> None:
+        """One detector frame fused at times ``now`` (s, (n,)) in ``rows``: the tracks ``ids`` (n, K) that it
+        ``updated`` (n, K), at their updated ``places`` (n, K, 2) m, get the velocity of their nearest detection
+        (``detections`` (n, D, >=5) ``[present, x, y, vx, vy, ...]``, world frame) within ``FIT_GATE``."""
+        det = np.asarray(detections, dtype=float)
+        d = np.hypot(places[:, :, None, 0] - det[:, None, :, 1], places[:, :, None, 1] - det[:, None, :, 2])
+        d = np.where((det[:, None, :, 0] > 0) & updated[..., None], d, np.inf)
+        if d.shape[-1] == 0:
+            return
+        j = np.argmin(d, axis=-1)
+        b, k = np.nonzero(np.take_along_axis(d, j[..., None], -1)[..., 0] <= FIT_GATE)
+        if not len(b):
+            return
+        r, tid = np.asarray(rows)[b], ids[b, k]
+        s = tid % FIT_SLOTS
+        fresh = self.id[r, s] != tid  # a new track in this slot: its history starts now
+        self.id[r, s] = tid
+        self.t[r[fresh], s[fresh]] = -np.inf
+        t = np.asarray(now, dtype=float)[b]
+        again = self.t[r, s, 0] == t  # the same frame read twice: its reading replaced, not added
+        keep = np.where(again[:, None], self.t[r, s][:, 1:], self.t[r, s][:, :-1])
+        vkeep = np.where(again[:, None, None], self.v[r, s][:, 1:], self.v[r, s][:, :-1])
+        self.t[r, s] = np.concatenate([t[:, None], keep], axis=1)
+        self.v[r, s] = np.concatenate([det[b, j[b, k], 3:5][:, None], vkeep], axis=1)
+
+    def estimate(self, rows: np.ndarray, ids: np.ndarray, heading: np.ndarray, now: np.ndarray) -> tuple:
+        """(speed m/s, acceleration m/s², whether there is a line) (n, M) for the tracks ``ids`` (n, M) of ``rows``
+        along ``heading`` (n, M) rad at times ``now`` (n,) s: the least-squares line of the detected velocities'
+        components along the heading against time over the last ``window`` s, at ``now`` and its slope; a line
+        needs ``FIT_MIN`` frames."""
+        rows = np.asarray(rows, dtype=int)[:, None]
+        s = ids % FIT_SLOTS
+        dt = self.t[rows, s] - np.asarray(now, dtype=float)[:, None, None]  # (n, M, depth) s, <= 0
+        w = ((self.id[rows, s] == ids)[..., None] & (dt >= -self.window - 1e-9)).astype(float)
+        v = self.v[rows, s]
+        u = v[..., 0] * np.cos(heading)[..., None] + v[..., 1] * np.sin(heading)[..., None]
+        dt = np.where(w > 0, dt, 0.0)
+        n = w.sum(axis=-1)
+        safe_n = np.maximum(n, 1.0)
+        mt, mu = (w * dt).sum(axis=-1) / safe_n, (w * u).sum(axis=-1) / safe_n
+        stt = (w * (dt - mt[..., None]) ** 2).sum(axis=-1)
+        stu = (w * (dt - mt[..., None]) * (u - mu[..., None])).sum(axis=-1)
+        ok = (n >= FIT_MIN) & (stt > 1e-9)
+        a = np.where(ok, stu / np.where(ok, stt, 1.0), 0.0)
+        return np.where(ok, mu - a * mt, 0.0), a, ok
+
+
 class TrackBelief:
     """The planner's road on tracks for the rows of a batch with a
     :class:`~av_gym.batched.perception.BatchedPerception`: :meth:`read` (every env step, after the observation)
@@ -255,10 +326,14 @@ class TrackBelief:
         self.ghost = None  # (B, N) its slots whose track the detector has missed while in view (not in the futures)
         self.along = None  # (B, N, 2, 2) its slots' filter covariance of (place, speed) along their heading
         self._ticks = None
+        fit = float(getattr(params, "track_fit", 0.0))
+        self.motion = DetectedMotion(n_rows, fit, float(perception.detector.params.rate_hz)) if fit > 0 else None
 
     def reset(self, rows) -> None:
         if self.unseen is not None:
             self.unseen.reset(rows)
+        if self.motion is not None:
+            self.motion.reset(rows)
 
     def _tracks(self, rows: np.ndarray) -> tuple:
         """The tracker's tracks of ``rows`` as ``obs["tracks"]`` orders them (confirmed and finite, nearest the
@@ -299,6 +374,8 @@ class TrackBelief:
         :meth:`current`; returns it with only the confirmed tracks alive (the road users ``obs["intent"]``
         describes, nearest first, for :meth:`BeliefPlanner.read`). Updates the unseen traffic of ``rows``."""
         rows = np.asarray(rows, dtype=int)
+        if self.motion is not None and len(rows):
+            self._record(engine, rows)
         obs, conf, tent, ghost = self._observed(engine, rows, np.asarray(intent))
         self.engine, self._ticks, self.tent, self.ghost = obs, engine.ticks.copy(), tent, ghost
         if self.unseen is not None and len(rows):
@@ -336,6 +413,12 @@ class TrackBelief:
         acc = np.zeros(pos.shape[:2])
         acc[:, :m] = intent[:, :m, 0] * ACC_SCALE
         acc = np.where(conf, acc, 0.0)
+        if self.motion is not None:
+            # the planner's own line through the detected velocities, where it has one: its speed only (its slope is
+            # noisier than the features' acceleration: benchmarks/belief_tracks_motion.py)
+            now = engine.ticks[rows] / engine.config["simulation_frequency"]
+            v_fit, _, fitted = self.motion.estimate(rows, ids, h, now)
+            speed = np.where(fitted & users, v_fit, speed)
         # the constant-velocity filter's speed trails an accelerating car by track_lag s times its acceleration
         speed = speed + float(self.params.track_lag) * acc
         t.x[rows, sl], t.y[rows, sl], t.h[rows, sl] = x, y, h
@@ -356,6 +439,21 @@ class TrackBelief:
         self.along[rows, sl] = along_heading(cov, h)
         obs = engine.observed(t, engine.time, engine.ticks, engine.episode_seed)
         return obs, full_conf, full_tent, full_ghost
+
+    def _record(self, engine, rows: np.ndarray) -> None:
+        """Where the tracker fused a detector frame now in ``rows``: each track it updated gets its detection's
+        velocity (:class:`DetectedMotion`)."""
+        p = self.perception
+        now = engine.ticks[rows] / engine.config["simulation_frequency"]
+        fused = np.abs(p.tracker.fused_at[rows] - now) < 1e-9
+        if not fused.any():
+            return
+        r, now = rows[fused], now[fused]
+        tracks, _ = p.tracker.tracks(r)
+        live = np.arange(tracks.shape[1])[None] < p.tracker.n[r][:, None]
+        updated = live & (np.abs(p.tracker.t_update[r][:, : tracks.shape[1]] - now[:, None]) < 1e-9)
+        self.motion.record(r, p.tracker.id[r][:, : tracks.shape[1]], updated, tracks[..., :2],
+                           p.last_detections[r], now)
 
     def _ghosts(self, t, rows: np.ndarray, pos: np.ndarray, users: np.ndarray, missed: np.ndarray) -> np.ndarray:
         """(n, M): the road users of ``rows`` the detector has missed in the last ``ghost`` frames although their
@@ -499,6 +597,8 @@ class EnvTracks:
         self.heading = np.array([[tr.heading for tr in mtt._tracks]], dtype=float).reshape(1, -1)
         self.P = np.array([tr.kf.P for tr in mtt._tracks], dtype=float).reshape(1, -1, 4, 4)
         self.last_tracks = self.wrapper._last[None]
+        space = self.detector.observation_space[self.detector.key]  # the rows the tracker fused, as the batch has them
+        self.last_detections = np.clip(self.detector._rows, space.low, space.high)[None]
 
     def tracks(self, rows) -> tuple[np.ndarray, np.ndarray]:
         """(1, K, 7) tracks in the tracker's order and which are confirmed (BatchedTracker.tracks' layout)."""

@@ -76,7 +76,15 @@ def tracked_shipped():
     return _batch(list(range(410_000, 410_000 + B)), 30, shipped)
 
 
-@pytest.mark.parametrize("which", ["tracked", "tracked_shipped"])
+@pytest.fixture(scope="module")
+def tracked_fit():
+    """The batch of ``tracked`` with belief_tracks' options and ``track_fit`` (each track's own line)."""
+    fit = BeliefLookaheadParams(samples=8, tentative="road_user", track_heading="detected", ghost=2, merge=2.0,
+                                track_fit=0.5)
+    return _batch(list(range(410_000, 410_000 + B)), 30, fit)
+
+
+@pytest.mark.parametrize("which", ["tracked", "tracked_shipped", "tracked_fit"])
 def test_decisions_do_not_read_the_hidden_traffic(which, request):
     """The same tracks, observations and ego give the same decisions, bit for bit, after the simulator's hidden
     traffic changed: the vehicles without a confirmed track (beyond the detector's range, occluded, or not yet
@@ -179,16 +187,18 @@ def test_unseen_drivers_thin_as_the_tracker_confirms(hits, miss):
         np.testing.assert_allclose(fresh.density(np.array([0]))[0][fresh.on_lane], fresh.rate)
 
 
-def test_the_per_env_agent_on_tracks_decides_as_the_batch():
+@pytest.mark.parametrize("options", [{}, {"track_fit": 0.5, "track_heading": "detected"}])
+def test_the_per_env_agent_on_tracks_decides_as_the_batch(options):
     """belief_lookahead@turn_perceived per env (its one-row view of the env's own tracker, agents.track_prior
     EnvTracks) gives the batch's GO collision probabilities for the same episodes, decision by decision: the same
-    tracks, the same unseen traffic, the same draws."""
+    tracks, the same unseen traffic, the same draws; with ``track_fit`` the same detections for each track's line
+    (which moves some track's speed off its filter's)."""
     from agents.belief import BeliefLookahead
     from av_gym.make import make_env
     from av_gym.wrappers import meta_action
 
     seeds, sensors = [400_100, 400_101, 400_102], compose_group("sensors", "turn_perceived")
-    params = BeliefLookaheadParams(samples=4)
+    params = BeliefLookaheadParams(samples=4, **options)
     venv = BatchedLeftTurnBatch({"name": "left_turn"}, sensors, None, len(seeds), pool=0)
     bobs = venv.play(iter(seeds))
     batch = BeliefPlanner(params, n_rows=len(seeds), perception=venv.perception)
@@ -211,6 +221,13 @@ def test_the_per_env_agent_on_tracks_decides_as_the_batch():
     for on_batch, per_env in compared:
         np.testing.assert_array_equal(on_batch, per_env)
     assert any(0.0 < p.mean() < 1.0 for p, _ in compared)
+    if options:
+        t = batch.tracks.engine.traffic
+        pos = batch.tracks._tracks(rows)[0]
+        h = t.h[:, 1: pos.shape[1] + 1]
+        filt = pos[..., 2] * np.cos(h) + pos[..., 3] * np.sin(h)
+        moved = t.alive[:, 1: pos.shape[1] + 1] & (np.abs(t.v[:, 1: pos.shape[1] + 1] - np.maximum(filt, 0)) > 0.05)
+        assert moved.any(), "track_fit must move some track's speed off its filter's"
 
 
 def test_a_track_standing_in_the_way_stays_there():
@@ -499,3 +516,72 @@ def test_the_recheck_draws_other_futures_of_the_same_moment(tracked):
     np.testing.assert_array_equal(a.traffic.delta, b.traffic.delta)
     drivers = a.traffic.alive & ~a.traffic.ego
     assert drivers.any() and (a.traffic.delta[drivers] != c.traffic.delta[drivers]).all()
+
+
+def test_detected_motion_is_a_line_through_the_detected_velocities():
+    """``track_fit``'s own view of a track's motion: the detections nearest each updated track, their velocities
+    along the track's heading, a least-squares line over the last ``window`` s: at now it gives the speed and its
+    slope the acceleration of a car accelerating at 3 m/s² exactly (the filter trails it); older frames, frames the
+    track was not updated in, another car's and a clutter detection are left out, a frame read twice counts once;
+    two frames give no line; a new track in the same slot starts afresh."""
+    from agents.track_prior import FIT_SLOTS, DetectedMotion
+
+    m = DetectedMotion(2, 0.5, 10.0)
+    h = 0.3
+    u = np.array([np.cos(h), np.sin(h)])
+    for k in range(11):
+        t = 0.1 * k
+        v = (2.0 + 3.0 * t) if k >= 4 else 20.0  # frames older than the window say 20 m/s: left out
+        place = np.array([5.0, 1.0]) + (0.0 if k % 2 else 0.3)
+        det = np.zeros((1, 4, 9))
+        det[0, 0, :5] = [1, *(place + 0.4), *(v * u)]  # the track's own, 0.57 m off its updated place
+        det[0, 1, :5] = [1, *(place + 6.0), *(-9.0 * u)]  # another car's, farther
+        det[0, 2, :5] = [0, *(place + 0.1), 30.0, 30.0]  # a row not present: never taken, however near
+        det[0, 3, :5] = [1, 60.0, 60.0, 0.0, 0.0]  # clutter
+        updated = np.array([[True, k != 9]])  # the second track is missed at k = 9
+        for _ in range(2 if k == 10 else 1):  # the last frame read twice counts once
+            m.record(np.array([0]), np.array([[5, 6]]), updated, np.stack([place, place + 6.0])[None], det,
+                     np.array([t]))
+    speed, acc, ok = m.estimate(np.array([0, 1]), np.array([[5, 6], [5, 6]]), np.full((2, 2), h), np.array([1.0, 1.0]))
+    np.testing.assert_allclose(speed[0, 0], 5.0, atol=1e-9)
+    np.testing.assert_allclose(acc[0, 0], 3.0, atol=1e-9)
+    np.testing.assert_allclose(speed[0, 1], -9.0, atol=1e-9)  # backwards along the heading
+    assert ok[0].all() and not ok[1].any()  # row 1 has seen nothing
+    assert (m.t[0, 5] == 1.0).sum() == 1  # the frame read twice is one reading
+    short = DetectedMotion(1, 0.15, 10.0)
+    short.id, short.t, short.v = m.id[:1], m.t[:1, :, : short.t.shape[-1]], m.v[:1, :, : short.t.shape[-1]]
+    assert not short.estimate(np.array([0]), np.array([[5]]), np.full((1, 1), h), np.array([1.0]))[2].any()
+    det = np.zeros((1, 1, 9))
+    det[0, 0, :5] = [1, 5.0, 1.0, 1.0, 0.0]
+    m.record(np.array([0]), np.array([[5 + FIT_SLOTS]]), np.array([[True]]), np.array([[[5.0, 1.0]]]), det,
+             np.array([1.1]))
+    assert not m.estimate(np.array([0]), np.array([[5 + FIT_SLOTS]]), np.zeros((1, 1)), np.array([1.1]))[2].any()
+
+
+def test_a_car_pulling_away_that_the_filter_has_standing_drives_on_its_detected_speed():
+    """An oncoming confirmed track whose filter has it standing (0.5 m/s: below ``stopped``, so it stays put, out
+    of the ego's way) while its detections of the last 0.5 s say it is pulling away (6 → 7.5 m/s at 5 m/s²): with
+    ``track_fit`` 0.5 its futures start at 8 m/s and every GO future meets it (YIELD); without, it stands (GO)."""
+    out = {}
+    for fit in (0.5, 0.0):
+        venv, planner, obs, rows = _batch([420_001, 420_002], 45, BeliefLookaheadParams(samples=16, unseen=0.0,
+                                                                                       track_fit=fit))
+        e = venv.engine
+        for r in rows:
+            _only_track(venv, int(r), (-2.0, -25.0, 0.0, 0.5))
+            venv.perception.last_detections[r] = 0.0  # this step's frame holds nothing near it
+        p = copy.deepcopy(planner, {id(venv.perception): venv.perception, id(e): e, id(planner.tracks.engine): None})
+        now = e.ticks[rows] / e.config["simulation_frequency"]
+        if fit:
+            for back in (0.4, 0.3, 0.2, 0.1):
+                det = np.zeros((len(rows), 1, 9))
+                det[:, 0, :5] = [1.0, -2.0, -25.0, 0.0, 8.0 - 5.0 * back]
+                p.tracks.motion.record(rows, np.full((len(rows), 1), 7), np.ones((len(rows), 1), bool),
+                                       np.tile([[[-2.0, -25.0]]], (len(rows), 1, 1)), det, now - back)
+        out[fit] = _decide(p, e, rows, {"intent": np.zeros_like(obs["intent"])})
+        t = p.tracks.engine.traffic
+        slot = np.argmax(t.alive[rows] & ~t.ego[rows], axis=1)
+        np.testing.assert_allclose(t.v[rows, slot], 8.0 if fit else 0.5, atol=1e-9)
+        assert t.crashed[rows, slot].tolist() == [not fit] * len(rows)
+    np.testing.assert_array_equal(planner.label_of(out[0.5]), np.full(2, YIELD))
+    np.testing.assert_array_equal(planner.label_of(out[0.0]), np.full(2, GO))
