@@ -105,6 +105,10 @@ class EvalCommand(Command):
     vec_env: Literal["subproc", "batched"] = param("subproc", doc="subproc: per-env stacks (n_envs worker processes); "
                                                                   "batched: the left turn's batched engine, n_envs "
                                                                   "episodes stepped together (eval/batched.py)")
+    workers: int = param(1, "processes", ge=1, le=PROCESSES_MAX, doc="vec_env=batched: processes sharing the "
+                                                                      "episodes, each a batch of n_envs on its own "
+                                                                      "contiguous part of the seeds (1 = this "
+                                                                      "process); the same rows whatever workers")
     paths: EvalPaths = param(EvalPaths())
     out_dir: str = param("runs/eval", doc="results.csv and results.md (eval.yaml: Hydra's run folder)")
     progress_bar: bool = param(True)
@@ -118,6 +122,9 @@ class EvalCommand(Command):
         if self.vec_env == "subproc" and self.n_envs > PROCESSES_MAX:
             return [f"@n_envs must be at most {PROCESSES_MAX} with @vec_env=subproc (a process each), got "
                     f"{self.n_envs}; vec_env=batched takes up to 1024"]
+        if self.vec_env == "subproc" and self.workers > 1:
+            return [f"@workers={self.workers} runs only with @vec_env=batched (its batches in that many processes); "
+                    f"with vec_env=subproc, @n_envs is the number of processes"]
         return []
 
 

@@ -180,6 +180,9 @@ def _evaluate(cfg: DictConfig, command: EvalCommand) -> list[dict]:
     title = (f"{env_name} ({env_cfg.get('mode', '')}), {command.episodes} episodes of the {split} split "
              f"(seeds {seeds.start}..{seeds.stop - 1})")
     title = title.replace(" ()", "")
+    if command.vec_env == "batched" and command.workers > 1:  # what ran, for the summary (the rows are the same)
+        workers = min(command.workers, command.episodes)
+        title += f", on the batch in {workers} worker processes of {command.n_envs} episodes each"
     rows = []
     ran = {p.label: p.spec for p in plans if _is_path(p.spec)}  # trained agents: the checkpoint they resolved to
     for label, path in ran.items():
@@ -217,7 +220,8 @@ def _run_agent(plan, command: EvalCommand, env_cfg: dict, seeds: range, rows: li
         from eval.batched import run_episodes_batched
 
         env.close()
-        run_episodes_batched(env_cfg, plan, policy, seeds, command.n_envs, plan.label, progress=progress, out=rows)
+        run_episodes_batched(env_cfg, plan, policy, seeds, command.n_envs, plan.label, progress=progress, out=rows,
+                             workers=command.workers, checkpoints=str(checkpoints))
     elif command.n_envs > 1:
         env.close()
         job = EpisodeJob(env_cfg, plan.sensors, plan.shield, plan.spec, env_name, str(checkpoints), plan.label)

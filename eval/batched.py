@@ -5,7 +5,9 @@ Episode ``seed`` is the episode ``reset(seed=seed)`` of the per-env stack gives 
 generator seeded with it), the policy decides as it does there (every env step at 10 Hz; a trained go/yield
 checkpoint asked every ``action_repeat`` steps, its held choice mapped to a meta-action at every step), and the row
 is ``EpisodeMetrics``' row: rows equal to ``vec_env=subproc``'s within the engine's equivalence (tests and
-docs/performance.md). Rows come back in seed order.
+docs/performance.md). Rows come back in seed order. ``workers=N`` plays the seeds in N contiguous parts, each a batch
+of ``n_envs`` in its own spawned process, and merges the rows back in seed order: the same rows (a row on the batch
+depends on its seed only, not on its row, its batch or the episodes beside it), in about 1/N of the wall-clock time.
 
 What runs: ``env=left_turn`` in either mode (traffic; ``env.mode=ccftap`` with its ``env.ccftap.*`` case) and with
 either action type, without a shield or behind ``shield=aeb`` / ``agent+aeb`` (the improved AEB shield in either
@@ -22,7 +24,9 @@ else (another shield or variant, the shield's second opinion ``aeb_belief``, the
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
@@ -172,17 +176,135 @@ class _Decider:
         return out
 
 
-def run_episodes_batched(env_cfg: dict, plan, policy, seeds: Iterable[int], n_envs: int, label: str,
-                         progress: bool = True, out: list | None = None) -> list[dict]:
+def run_episodes_batched(env_cfg: dict, plan, policy, seeds: Sequence[int], n_envs: int, label: str,
+                         progress: bool = True, out: list | None = None, workers: int = 1,
+                         checkpoints: str = "checkpoints") -> list[dict]:
     """:func:`eval.runner.run_episodes` on the batched engine: one row per seed, ``{"agent", "episode", "seed",
     **episode_metrics}``, in the order of ``seeds`` (each appended to ``out``, if given, once every earlier seed's
-    row is in)."""
+    row is in). ``workers`` > 1: :func:`play_batched_workers` (``checkpoints``: where the workers resolve the
+    plan's agent, as this process did for ``policy``)."""
     from eval.runner import _single_threaded_torch
 
     check_batched_plan(plan, env_cfg)
     _single_threaded_torch()
     sensors = NO_OBS_SENSORS if plan_kind(plan) == "always_proceed" else plan.sensors
+    if workers > 1:
+        job = BatchedJob(env_cfg, plan, sensors, str(checkpoints), label)
+        return play_batched_workers(job, seeds, n_envs, workers, progress, out)
     return play_batched(env_cfg, sensors, plan.shield, policy, seeds, n_envs, label, progress, out)
+
+
+@dataclass(frozen=True)
+class BatchedJob:
+    """What a worker process needs to play part of an agent's episodes on its own batch as this process would
+    (plain, picklable): the env, the agent's plan (:class:`eval.agents.AgentPlan`: spec, sensors, shield), the
+    sensors the batch runs it with, where its checkpoint is found, its label."""
+
+    env: dict
+    plan: Any
+    sensors: dict
+    checkpoints: str
+    label: str
+
+
+_WORKER: dict = {}  # in a worker process: its job, policy and the queue its rows go back on
+
+
+def _init_batched_worker(job: BatchedJob, rows) -> None:
+    import contextlib
+    import io
+
+    from eval.agents import make_eval_env, resolve_agent
+    from eval.runner import _single_threaded_torch, guard_worker
+
+    guard_worker()
+    env = make_eval_env(job.env, job.plan.sensors, job.plan.shield)
+    with contextlib.redirect_stdout(io.StringIO()):  # the parent already said which checkpoint it uses
+        _, policy = resolve_agent(job.plan.spec, env, job.env["name"], job.checkpoints)
+    env.close()
+    _single_threaded_torch()
+    _WORKER.update(job=job, policy=policy, rows=rows)
+
+
+class _Sent:
+    """``out`` for :func:`play_batched` in a worker: each row, as its episode ends in seed order, onto the queue."""
+
+    def __init__(self, queue) -> None:
+        self.queue = queue
+
+    def append(self, row: dict) -> None:
+        self.queue.put(row)
+
+
+def _play_chunk(seeds: Sequence[int], n_envs: int) -> int:
+    """A worker's part: ``seeds`` on one batch of ``n_envs``; its rows go back on the queue; returns their count."""
+    job = _WORKER["job"]
+    return len(play_batched(job.env, job.sensors, job.plan.shield, _WORKER["policy"], seeds, n_envs, job.label,
+                            progress=False, out=_Sent(_WORKER["rows"])))
+
+
+def chunks(seeds: Sequence[int], k: int) -> list[Sequence[int]]:
+    """``seeds`` in ``k`` contiguous parts of sizes within one of each other, in order (none empty)."""
+    n = len(seeds)
+    return [seeds[i * n // k:(i + 1) * n // k] for i in range(k) if (i + 1) * n // k > i * n // k]
+
+
+def play_batched_workers(job: BatchedJob, seeds: Sequence[int], n_envs: int, workers: int, progress: bool = True,
+                         out: list | None = None) -> list[dict]:
+    """``seeds`` on the batched engine in ``workers`` spawned processes, each playing one contiguous part of them
+    (:func:`chunks`) on its own batch of ``n_envs``; the rows merged back in the order of ``seeds`` (an episode's
+    row depends on its seed only, not on its row or batch: docs/performance.md), each appended to ``out`` once
+    every earlier seed's row is in. A worker's failure, Ctrl-C or SIGTERM stops every worker at once
+    (:func:`eval.runner._stop`) and is raised here; ``out`` keeps the rows of the seeds before the first
+    missing one."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    from eval.runner import _stop
+
+    parts = chunks(seeds, max(1, int(workers)))
+    ctx = multiprocessing.get_context("spawn")  # as eval.runner's pool: a fork copies torch's threads half-made
+    queue = ctx.Queue()
+    rows: list[dict] = []
+    with ProcessPoolExecutor(max_workers=len(parts), mp_context=ctx, initializer=_init_batched_worker,
+                             initargs=(job, queue)) as pool, \
+            tqdm(total=len(seeds), desc=f"eval {job.label} (batched, {len(parts)} workers)", unit="ep",
+                 disable=not progress, leave=False) as bar:
+        try:
+            futures = [pool.submit(_play_chunk, part, n_envs) for part in parts]
+            _merge(queue, futures, seeds, rows, out, bar)
+            for future in futures:  # every part played whole
+                future.result()
+        except BaseException:  # Ctrl-C, SIGTERM, a failed worker: stop the others now, not after their parts
+            _stop(pool)
+            raise
+    return rows
+
+
+def _merge(queue, futures: list, seeds: Sequence[int], rows: list, out: list | None, bar) -> None:
+    """The workers' rows off ``queue`` into ``rows`` (and ``out``) in the order of ``seeds``, renumbered; raises a
+    worker's exception as soon as its part fails."""
+    import queue as queues
+
+    waiting: dict[int, dict] = {}
+    quiet = 0.0  # s without a row since every part ended: its last rows are still in the queue's pipe, or lost
+    while len(rows) < len(seeds):
+        try:
+            row = queue.get(timeout=0.5)
+        except queues.Empty:
+            for future in futures:
+                if future.done() and future.exception() is not None:
+                    raise future.exception()
+            quiet = quiet + 0.5 if all(f.done() for f in futures) else 0.0
+            if quiet > 30:
+                raise RuntimeError(f"the workers ended without the rows of {len(seeds) - len(rows)} seeds")
+            continue
+        waiting[row["seed"]] = row
+        bar.update()
+        while len(rows) < len(seeds) and int(seeds[len(rows)]) in waiting:
+            rows.append({**waiting.pop(int(seeds[len(rows)])), "episode": len(rows)})
+            if out is not None:
+                out.append(rows[-1])
 
 
 def play_on(env_cfg: dict, sensors: dict, shield: dict, policy, seeds: Iterable[int], n_envs: int, label: str,
