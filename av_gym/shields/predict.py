@@ -150,33 +150,48 @@ class DrivenPath:
         self.store_id = -1  # its row in the kernel's store (av_gym.shields.kernels.Store), once registered
 
     def _simulate(self, v: float) -> tuple[np.ndarray, ...]:
+        """The controller driven at constant speed ``v`` (m/s) every ``dt`` s from ``s_start`` until the route
+        position passes ``s_end``: per step the distance driven, x, y, heading and route position (m, rad).
+
+        highway-env's formulas in its order of operations, one float at a time (each step's numbers as the stock
+        controller's, bit for bit; a bin's ~100-2,400 steps are most of a new path's cost): the lanes' own
+        ``local_coordinates`` and ``heading_at`` (numpy's 2-vector dot inside), the angle functions through
+        :mod:`av_gym.sim.fmath` (Python's math where it equals numpy here, else numpy's ufunc), the position
+        as two floats (the array update's element-wise products and sums)."""
+        from av_gym.sim import fmath
+
         lanes, starts = self.route.lanes, self.route.starts
         k = int(np.clip(np.searchsorted(starts, self.s_start, side="right") - 1, 0, len(lanes) - 1))
         pos = np.array(lanes[k].position(self.s_start - starts[k], 0.0), dtype=float)
+        x, y = float(pos[0]), float(pos[1])
         h = float(lanes[k].heading_at(self.s_start - starts[k]))
-        d, ds, xs, ys, hs, ss = self.s_start, [], [], [], [], []
+        d, rows = self.s_start, []
         vz = v if abs(v) > 1e-2 else 1e-2
+        asin, atan, tan, cos, sin, clip = fmath.asin, fmath.atan, fmath.tan, fmath.cos, fmath.sin, fmath.clip
+        lateral_gain, slip_gain, step = -self.KP_LATERAL, self.LENGTH / 2 / vz, v * self.dt
+        pursuit, last, max_steer, quarter = v * self.TAU_PURSUIT, len(lanes) - 1, self.MAX_STEERING, np.pi / 4
+        lane, switch_at = lanes[k], lanes[k].length - self.LANE_SWITCH
         while True:
-            s_l, lat = lanes[k].local_coordinates(pos)
-            if s_l > lanes[k].length - self.LANE_SWITCH and k < len(lanes) - 1:  # follow_road (after_end)
+            s_l, lat = lane.local_coordinates(pos)
+            if s_l > switch_at and k < last:  # follow_road (after_end)
                 k += 1
-                s_l, lat = lanes[k].local_coordinates(pos)
+                lane, switch_at = lanes[k], lanes[k].length - self.LANE_SWITCH
+                s_l, lat = lane.local_coordinates(pos)
             s_route = starts[k] + s_l
-            ds.append(d), xs.append(pos[0]), ys.append(pos[1]), hs.append(h), ss.append(s_route)
+            rows.append((d, x, y, h, s_route))
             if s_route >= self.s_end:
                 break
-            fut = lanes[k].heading_at(s_l + v * self.TAU_PURSUIT)
-            # np.clip's value for one float, at a tenth of its cost (~10^5 clips per path and speed bin)
-            heading_cmd = np.arcsin(min(max(-self.KP_LATERAL * lat / vz, -1.0), 1.0))
-            ref = fut + min(max(heading_cmd, -np.pi / 4), np.pi / 4)
+            ref = lane.heading_at(s_l + pursuit) + clip(asin(clip(lateral_gain * lat / vz, -1.0, 1.0)), -quarter,
+                                                        quarter)
             rate = self.KP_HEADING * ((ref - h + np.pi) % (2 * np.pi) - np.pi)
-            slip = np.arcsin(min(max(self.LENGTH / 2 / vz * rate, -1.0), 1.0))
-            steer = min(max(np.arctan(2 * np.tan(slip)), -self.MAX_STEERING), self.MAX_STEERING)
-            beta = np.arctan(0.5 * np.tan(steer))
-            pos = pos + v * self.dt * np.array([np.cos(h + beta), np.sin(h + beta)])
-            h += v * np.sin(beta) / (self.LENGTH / 2) * self.dt
-            d += v * self.dt
-        return np.array(ds), np.array(xs), np.array(ys), np.unwrap(np.array(hs)), np.array(ss)
+            steer = clip(atan(2 * tan(asin(clip(slip_gain * rate, -1.0, 1.0)))), -max_steer, max_steer)
+            beta = atan(0.5 * tan(steer))
+            x, y = x + step * cos(h + beta), y + step * sin(h + beta)
+            pos = np.array((x, y))
+            h += v * sin(beta) / (self.LENGTH / 2) * self.dt
+            d += step
+        ds, xs, ys, hs, ss = np.array(rows, dtype=float).T
+        return ds.copy(), xs.copy(), ys.copy(), np.unwrap(hs), ss.copy()
 
     def _table(self, i: int) -> tuple[np.ndarray, ...]:
         if i not in self._tables:
