@@ -204,6 +204,51 @@ def test_the_engine_takes_a_brake_plan_per_tick_on_both_paths(env):
     assert (e.traffic.v[rows, e.ego_slot(rows)] < 1.0).any()  # the brakes acted
 
 
+def test_the_batch_gives_each_shield_the_per_env_objects_and_accelerations(monkeypatch):
+    """Ground-truth mode: the road users' state rows and EMA accelerations the batch computes for all rows at once
+    (``_Kinematics``, remembered per vehicle id) are, at every decision, bit for bit what the per-env shield's own
+    ``_objects`` and ``_accelerations`` compute on the row (its dicts keyed by the vehicle objects), across spawns,
+    departures, the engine's compaction of its slots (vehicles change slot) and new episodes in a row. Fails with
+    the memory kept per slot instead of per vehicle, or an EMA not dropped for a vehicle that left."""
+    from av_gym.shields.aeb_base import AEBShield
+
+    venv = _venv(3)
+    row_shield = type(venv.shield.shields[0])
+    own_objects, own_accels = row_shield._objects, row_shield._accelerations
+    seen = {"decisions": 0, "moving": 0}
+
+    def bits(a):
+        return np.ascontiguousarray(a, dtype=float).view(np.int64)
+
+    def objects(self, ego):
+        got, ref = own_objects(self, ego), AEBShield._objects(self, ego)
+        assert np.array_equal(bits(got[0]), bits(ref[0])) and got[1] == ref[1] and got[2] == ref[2]
+        return got
+
+    def accelerations(self, keys, velocities, t):
+        got, ref = own_accels(self, keys, velocities, t), AEBShield._accelerations(self, keys, velocities, t)
+        assert np.array_equal(bits(got), bits(ref)), (t, got, ref)
+        seen["decisions"] += 1
+        seen["moving"] += int((np.abs(ref) > 1e-3).any())
+        return got
+
+    monkeypatch.setattr(row_shield, "_objects", objects)
+    monkeypatch.setattr(row_shield, "_accelerations", accelerations)
+    venv.play(iter([VALIDATION + k for k in range(5)]))
+    e, moved, where = venv.engine, 0, {}
+    rng = np.random.default_rng(0)
+    for _ in range(400):
+        if venv.idle.all():
+            break
+        venv.step(rng.integers(1, 3, 3))
+        t = e.traffic
+        for r, slot in zip(*np.nonzero(t.alive)):
+            moved += where.get(t.vid[r, slot], slot) != slot
+            where[t.vid[r, slot]] = slot
+    assert venv.idle.all() and seen["decisions"] > 300 and seen["moving"] > 100
+    assert moved > 0  # the engine compacted slots under live vehicles: the memory followed the vehicles
+
+
 # ----------------------------------------------------------------------------------------------- refusals
 @pytest.mark.parametrize("shield, needle", [
     ("aeb_paper", "shield.variant=paper is not available with agent.vec_env=batched"),

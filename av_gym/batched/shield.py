@@ -121,6 +121,10 @@ class RowEnv(gym.Env):
         self.road = _Road(network)
         self.vehicle: _Vehicle | None = None
         self._by_vid: dict[int, _Vehicle] = {}
+        # the shield's road-user rows and accelerations, set by the batch before each decision (None: computed by
+        # the shield's own code, perceived mode)
+        self.objects: np.ndarray | None = None
+        self.accels: np.ndarray | None = None
 
     def cruise_action(self):
         return self.template.cruise_action()
@@ -197,6 +201,91 @@ class _Tracks:
 
 
 # ----------------------------------------------------------------------------------------------- the batch
+def _row_shield_class():
+    """ImprovedAEB on a :class:`RowEnv` whose road users' state rows and accelerations the batch computed for all
+    rows at once (ground-truth mode: :class:`_Kinematics`); where it did not (perceived mode: tracks) the per-env
+    code runs."""
+    from av_gym.shields.aeb_improved import ImprovedAEB
+
+    class RowAEB(ImprovedAEB):
+        def _objects(self, ego: dict) -> tuple[np.ndarray, list, list]:
+            view = self.env
+            if view.objects is None:
+                return super()._objects(ego)
+            vehicles = [v for v in view.road.vehicles if v is not view.vehicle]
+            self._lanes = [v.lane_index for v in vehicles]
+            return view.objects, vehicles, list(range(len(vehicles)))
+
+        def _accelerations(self, keys: list, velocities: np.ndarray, t: float) -> np.ndarray:
+            view = self.env
+            return super()._accelerations(keys, velocities, t) if view.accels is None else view.accels
+
+    return RowAEB
+
+
+class _Kinematics:
+    """What the per-env shield's ``_objects`` and ``_accelerations`` compute in ground-truth mode, for every row
+    at once from the engine's arrays (the ego's slot among the others): each road user's state row
+    ``[x, y, vx, vy, heading, length, width]`` (velocity ``speed * [cos, sin](heading)``, the same products), and
+    the finite-difference accelerations low-passed by the EMA, remembered per vehicle id (the engine's slots move
+    when it compacts them) and forgotten, as the per-env shield's dicts drop a key, once that vehicle is not there
+    at a decision. Element by element the per-env shield's operations: the same numbers."""
+
+    def __init__(self, B: int, alpha: float) -> None:
+        self.alpha = float(alpha)
+        self.prev_t = np.full(B, np.nan)  # s, the row's last decision (NaN: none this episode)
+        # per row, the vehicles of its last decision (-1: none; one empty slot to start: argmax needs a column),
+        # their velocities (m/s) and EMAs (m/s²)
+        self.vid = np.full((B, 1), -1, dtype=np.int64)
+        self.prev_v, self.ema, self.has_ema = np.zeros((B, 1, 2)), np.zeros((B, 1, 2)), np.zeros((B, 1), bool)
+
+    def reset(self, rows: np.ndarray) -> None:
+        """New episodes in ``rows``: nothing remembered (the per-env shield's reset)."""
+        self.prev_t[rows], self.vid[rows] = np.nan, -1
+
+    def update(self, engine, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The decision of the envs ``rows`` now: every slot's state row (n, S, 7) and its acceleration (n, S, 2)
+        (zero where the shield has none), the memory moved on to this decision."""
+        t = engine.traffic
+        alive, h, v = t.alive[rows], t.h[rows], t.v[rows]
+        state = np.empty((*alive.shape, 7))
+        state[..., 0], state[..., 1] = t.x[rows], t.y[rows]
+        state[..., 2], state[..., 3] = v * np.cos(h), v * np.sin(h)
+        state[..., 4], state[..., 5], state[..., 6] = h, LENGTH, WIDTH
+        vel, now = state[..., 2:4], engine.ticks[rows] / float(engine.config["simulation_frequency"])
+        vid = np.where(alive, t.vid[rows], -1)
+        same = (vid[:, :, None] == self.vid[rows][:, None, :]) & (vid[:, :, None] >= 0)  # (n, S, last's slots)
+        match, j = same.any(axis=2), same.argmax(axis=2)  # in the last decision, and its slot there
+        prev_v = np.take_along_axis(self.prev_v[rows], j[..., None], axis=1)
+        known = match & np.take_along_axis(self.has_ema[rows], j, axis=1)
+        ema = np.where(known[..., None], np.take_along_axis(self.ema[rows], j[..., None], axis=1), 0.0)
+        dt = now - self.prev_t[rows]
+        ok = dt > 1e-9  # the per-env ``if dt and dt > 1e-9`` (no decision before: NaN)
+        seen = match & ok[:, None]
+        with np.errstate(invalid="ignore", divide="ignore"):  # rows without a previous decision: not used
+            raw = (vel - prev_v) / dt[:, None, None]
+        alpha = self.alpha
+        ema = np.where(seen[..., None], alpha * raw + (1 - alpha) * ema, ema)
+        has = np.where(ok[:, None], match, known)
+        out = np.where(has[..., None], ema, 0.0)
+        self._keep(rows, vid, vel, out, has)
+        self.prev_t[rows] = now
+        return state, out
+
+    def _keep(self, rows: np.ndarray, vid: np.ndarray, vel: np.ndarray, ema: np.ndarray, has: np.ndarray) -> None:
+        """This decision's vehicles of ``rows`` for the next one (the memory widened to the engine's slots)."""
+        S = vid.shape[1]
+        if S > self.vid.shape[1]:
+            grow = S - self.vid.shape[1]
+            B = len(self.vid)
+            self.vid = np.concatenate([self.vid, np.full((B, grow), -1, np.int64)], axis=1)
+            self.prev_v = np.concatenate([self.prev_v, np.zeros((B, grow, 2))], axis=1)
+            self.ema = np.concatenate([self.ema, np.zeros((B, grow, 2))], axis=1)
+            self.has_ema = np.concatenate([self.has_ema, np.zeros((B, grow), bool)], axis=1)
+        self.vid[rows] = -1
+        self.vid[rows, :S], self.prev_v[rows, :S], self.ema[rows, :S], self.has_ema[rows, :S] = vid, vel, ema, has
+
+
 class BatchedShield:
     """``shield=aeb`` for every env of ``engine``: per env the per-env shield deciding on its :class:`RowEnv`;
     :meth:`decide` before a step (the applied actions), :meth:`brake_plan` for the engine's step, :meth:`after`
@@ -204,8 +293,6 @@ class BatchedShield:
     overrode)."""
 
     def __init__(self, engine, params: ImprovedParams) -> None:
-        from av_gym.shields.aeb_improved import ImprovedAEB
-
         self.e, self.p = engine, params
         B = engine.B
         cfg = {k: v for k, v in engine.config.items() if k != "observation"}
@@ -216,13 +303,16 @@ class BatchedShield:
         route = LanePath([network.get_lane(i) for i in ROUTE])
         self.views = [RowEnv(engine, r, template, network, route) for r in range(B)]
         self.shields = []
+        row_shield = _row_shield_class()
         for view in self.views:
-            s = ImprovedAEB(view, dataclasses.replace(params, mode="ground_truth"))
+            s = row_shield(view, dataclasses.replace(params, mode="ground_truth"))
             s.p = params  # the section's mode: its perception is the batch's (_Tracks)
             if params.mode == "perceived":
                 s.detector, s.tracker = _Tracks(), _Tracks()
             self.shields.append(s)
         self.perception = _shield_perception(engine, params) if params.mode == "perceived" else None
+        # ground truth: the road users' rows and accelerations for all rows at once (perceived: the tracks')
+        self.kinematics = _Kinematics(B, params.accel_alpha) if params.mode == "ground_truth" else None
         self.override = np.zeros(B, bool)
         self.steps = np.zeros(B, dtype=int)
         self.overrides: list[list[int]] = [[] for _ in range(B)]
@@ -234,6 +324,8 @@ class BatchedShield:
         if self.perception is not None:
             self.perception.detector.reset(rows, self.e.episode_seed[rows])
             self.perception.tracker.reset(rows)
+        if self.kinematics is not None:
+            self.kinematics.reset(rows)
         for r in rows.tolist():
             self.shields[r].reset()
             self.override[r], self.steps[r], self.overrides[r] = False, 0, []
@@ -247,6 +339,8 @@ class BatchedShield:
             self.views[r].refresh()
         if self.perception is not None:
             self._perceive(rows)
+        else:
+            self._kinematics(rows)
         applied = np.array(actions, copy=True)
         for r in rows.tolist():
             s = self.shields[r]
@@ -259,6 +353,18 @@ class BatchedShield:
                 applied[r] = np.asarray(s._throttle_cut(action)).reshape(-1)[0]
         self.steps[rows] += 1
         return applied
+
+    def _kinematics(self, rows: np.ndarray) -> None:
+        """Each row's road users (its alive slots but the ego's, in road order) and their accelerations, the ego's
+        first, for its shield's ``_objects`` and ``_accelerations`` (:class:`_Kinematics`, all rows at once)."""
+        state, accel = self.kinematics.update(self.e, rows)
+        t = self.e.traffic
+        alive, ego = t.alive[rows], t.ego[rows]
+        for n, r in enumerate(rows.tolist()):
+            view = self.views[r]
+            others = alive[n] & ~ego[n]
+            view.objects = state[n, others]
+            view.accels = np.concatenate([accel[n, ego[n]], accel[n, others]])
 
     def _env_action(self, a):
         """One env's action as the per-env env takes it: a meta-action int, or the continuous (1,) float32."""
