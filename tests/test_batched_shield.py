@@ -205,17 +205,18 @@ def test_the_engine_takes_a_brake_plan_per_tick_on_both_paths(env):
 
 
 def test_the_batch_gives_each_shield_the_per_env_objects_and_accelerations(monkeypatch):
-    """Ground-truth mode: the road users' state rows and EMA accelerations the batch computes for all rows at once
-    (``_Kinematics``, remembered per vehicle id) are, at every decision, bit for bit what the per-env shield's own
-    ``_objects`` and ``_accelerations`` compute on the row (its dicts keyed by the vehicle objects), across spawns,
+    """Ground-truth mode: the road users' state rows, EMA accelerations and follower mask the batch computes for all
+    rows at once (``_Kinematics``, remembered per vehicle id; ``_followers``) are, at every decision, bit for bit
+    what the per-env shield's own ``_objects``, ``_accelerations`` and ``_relevant`` compute on the row (its dicts keyed by the vehicle objects), across spawns,
     departures, the engine's compaction of its slots (vehicles change slot) and new episodes in a row. Fails with
     the memory kept per slot instead of per vehicle, or an EMA not dropped for a vehicle that left."""
     from av_gym.shields.aeb_base import AEBShield
+    from av_gym.shields.aeb_improved import ImprovedAEB
 
     venv = _venv(3)
     row_shield = type(venv.shield.shields[0])
-    own_objects, own_accels = row_shield._objects, row_shield._accelerations
-    seen = {"decisions": 0, "moving": 0}
+    own_objects, own_accels, own_relevant = row_shield._objects, row_shield._accelerations, row_shield._relevant
+    seen = {"decisions": 0, "moving": 0, "followers": 0}
 
     def bits(a):
         return np.ascontiguousarray(a, dtype=float).view(np.int64)
@@ -232,6 +233,13 @@ def test_the_batch_gives_each_shield_the_per_env_objects_and_accelerations(monke
         seen["moving"] += int((np.abs(ref) > 1e-3).any())
         return got
 
+    def relevant(self, ego, others):
+        got, ref = own_relevant(self, ego, others), ImprovedAEB._relevant(self, ego, others)
+        assert np.array_equal(got, ref)
+        seen["followers"] += int((~ref).sum())
+        return got
+
+    monkeypatch.setattr(row_shield, "_relevant", relevant)
     monkeypatch.setattr(row_shield, "_objects", objects)
     monkeypatch.setattr(row_shield, "_accelerations", accelerations)
     venv.play(iter([VALIDATION + k for k in range(5)]))
@@ -245,7 +253,7 @@ def test_the_batch_gives_each_shield_the_per_env_objects_and_accelerations(monke
         for r, slot in zip(*np.nonzero(t.alive)):
             moved += where.get(t.vid[r, slot], slot) != slot
             where[t.vid[r, slot]] = slot
-    assert venv.idle.all() and seen["decisions"] > 300 and seen["moving"] > 100
+    assert venv.idle.all() and seen["decisions"] > 300 and seen["moving"] > 100 and seen["followers"] > 0
     assert moved > 0  # the engine compacted slots under live vehicles: the memory followed the vehicles
 
 

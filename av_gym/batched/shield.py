@@ -125,6 +125,7 @@ class RowEnv(gym.Env):
         # the shield's own code, perceived mode)
         self.objects: np.ndarray | None = None
         self.accels: np.ndarray | None = None
+        self.relevant: np.ndarray | None = None
 
     def cruise_action(self):
         return self.template.cruise_action()
@@ -220,6 +221,10 @@ def _row_shield_class():
             view = self.env
             return super()._accelerations(keys, velocities, t) if view.accels is None else view.accels
 
+        def _relevant(self, ego: dict, others: np.ndarray) -> np.ndarray:
+            view = self.env
+            return super()._relevant(ego, others) if view.relevant is None else view.relevant
+
     return RowAEB
 
 
@@ -284,6 +289,19 @@ class _Kinematics:
             self.has_ema = np.concatenate([self.has_ema, np.zeros((B, grow), bool)], axis=1)
         self.vid[rows] = -1
         self.vid[rows, :S], self.prev_v[rows, :S], self.ema[rows, :S], self.has_ema[rows, :S] = vid, vel, ema, has
+
+
+def _followers(state: np.ndarray, ego: np.ndarray) -> np.ndarray:
+    """ImprovedAEB._relevant's follower test for every slot of every row at once: (n, S) bool, a road user in the
+    ego's lane behind it, heading within 45° of the ego's (``state`` (n, S, 7) :class:`_Kinematics`' rows, ``ego``
+    (n,) the ego's slot); the per-env shield's element-wise operations in its order."""
+    at = np.arange(len(ego))
+    x, y, h = state[at, ego, 0][:, None], state[at, ego, 1][:, None], state[at, ego, 4][:, None]
+    c, s = np.cos(h), np.sin(h)
+    rel_x, rel_y = state[..., 0] - x, state[..., 1] - y
+    x_rel, y_rel = rel_x * c + rel_y * s, -rel_x * s + rel_y * c
+    same_dir = np.abs((state[..., 4] - h + np.pi) % (2 * np.pi) - np.pi) < np.radians(45)
+    return same_dir & (x_rel < -0.5 * LENGTH) & (np.abs(y_rel) < 2.5)
 
 
 class BatchedShield:
@@ -360,10 +378,11 @@ class BatchedShield:
         state, accel = self.kinematics.update(self.e, rows)
         t = self.e.traffic
         alive, ego = t.alive[rows], t.ego[rows]
+        relevant = ~_followers(state, self.e.ego_slot(rows))
         for n, r in enumerate(rows.tolist()):
             view = self.views[r]
             others = alive[n] & ~ego[n]
-            view.objects = state[n, others]
+            view.objects, view.relevant = state[n, others], relevant[n, others]
             view.accels = np.concatenate([accel[n, ego[n]], accel[n, others]])
 
     def _env_action(self, a):
