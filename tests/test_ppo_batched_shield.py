@@ -207,16 +207,15 @@ def test_cloning_through_the_shield_on_the_batch_gives_the_per_env_demonstration
     its intervention cost (the returns the critic is fitted to): the same labelled decisions, teacher outcomes and
     fit as the per-env stack's demonstrations (``clone_teacher``'s ``stack.one``) on the same seeds.
 
-    Seeds 500000-500004: the next one, 500005, splits in the shield itself (measured: at 10.1 s the per-env shield
-    brakes, TTC 1.9 s, for 2 s; the batch's, on the same ego and road users to 1e-4, monitors; the first 100 env
-    steps equal): a split of the batch's shield from the per-env one, not of this training env (traced in
-    docs/shield.md, "On the batch": a heading one ulp apart puts a set-off car's speed one ulp under the conflict
-    model's 0.5 m/s; tests/test_batched_shield.py measures such splits at 0-3 per 1,000 test episodes)."""
+    Seeds 500000-500005: 500005 split in the shield itself before the set-off rule marked its cars as lane-following
+    (at 10.1 s the per-env shield braked, TTC 1.9 s, for 2 s, the batch's monitored: a heading one ulp apart put a
+    set-off car's 0.5 m/s one ulp under the conflict model's speed test, docs/shield.md; tests/test_setoff_lanes.py);
+    with it, this comparison fails on the old code."""
     from stable_baselines3 import PPO
 
     from train.ppo import _env_factory, make_teacher, pretrain_from_teacher
 
-    plain, seeds = _shielded_config()[:3], range(500000, 500005)
+    plain, seeds = _shielded_config()[:3], range(500000, 500006)
     teacher = make_teacher("gap_acceptance", "go_yield", "left_turn", 5)
     per_env = _env_factory(*plain, COST, 5, "go_yield", timeout_is_terminal=False)
     batch = _training_batch(4, COST)
