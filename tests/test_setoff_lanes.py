@@ -111,4 +111,3 @@ def test_follow_marks_only_the_cars_it_names_and_keeps_the_off_lane_test(shield,
         mark = None if follow is None else np.array(follow)
         _, _, owner, is_map, _ = model.predict(obj, [BOX_LANE], np.zeros((1, 2)), T, None, mark)
         assert int(is_map.sum()) == map_hyps and len(owner) == max(map_hyps, 1), (follow, obj[0, :4])
-
