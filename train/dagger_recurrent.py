@@ -1,6 +1,6 @@
 """The recurrent student (agents/recurrent.py) fitted offline on a DAgger run's aggregate, whole episodes in decision
 order: ``python -m train.dagger_recurrent checkpoints/<run> [--holdout 0.1] [--epochs 12] [--lr-end 1e-5]
-[--hidden 64] [--episodes 300] [--seed 1] [--out runs/x.json] [--save checkpoints/<name>/student.pt]``.
+[--hidden 64] [--set agent.attention_dim=128 ...] [--episodes 300] [--seed 1] [--out runs/x.json] [--save checkpoints/<name>/student.pt]``.
 
 The question (docs/dagger.md, "Student forms"): does the decision history hold more about the planner's label than
 the observation of the decision, whose memory features already summarise every indicator reading? DAgger stores its
@@ -158,15 +158,16 @@ def _epoch(student, data: Episodes, opt, order: np.ndarray, batch_episodes: int)
 
 
 def screen(run_dir: Path, hidden: int, epochs: int, lr_end: float, holdout: float, episodes: int, seed: int,
-           batch_episodes: int = 10, save: Path | None = None) -> dict:
+           batch_episodes: int = 10, save: Path | None = None, overrides: list[str] | None = None) -> dict:
     """Fit a recurrent student (``hidden`` 0: without its GRU) on ``run_dir``'s aggregate, score it on the held-out
-    episodes and drive it on ``episodes`` validation episodes; the row (module docstring)."""
+    episodes and drive it on ``episodes`` validation episodes; the row (module docstring). ``overrides``: the
+    run's ``agent.*`` fields changed as ``dagger_forms --set`` changes them (the encoder's and the head's sizes)."""
     import torch as th
 
     from agents.recurrent import RecurrentForm, RecurrentStudent, save_student
     from train.dagger_forms import student_config
 
-    cfg = student_config(run_dir, [])
+    cfg = student_config(run_dir, list(overrides or []))
     agent = cfg["agent"]
     data = load_episodes(run_dir)
     fitted, held = split_episodes(data, holdout, seed)
@@ -179,6 +180,7 @@ def screen(run_dir: Path, hidden: int, epochs: int, lr_end: float, holdout: floa
     student = RecurrentStudent(form)
     curve = fit(student, fitted, held, epochs, batch_episodes, float(agent["fit_lr"]), lr_end, seed)
     row = {"run": str(run_dir), "form": "gru" if hidden else "feed-forward", "hidden": hidden, "seed": seed,
+           "set": list(overrides or []),
            "parameters": sum(p.numel() for p in student.parameters()), "labels": int(len(data.labels)),
            "episodes_fitted": int(len(fitted.index)), "epochs": epochs, "lr_end": lr_end,
            "fit_accuracy": curve[-1]["fit"], "fit_cpu_s": round(sum(c["fit_cpu_s"] for c in curve), 1),
@@ -214,6 +216,8 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     parser = ToolParser(prog="python -m train.dagger_recurrent", description=__doc__.split("\n\n")[0])
     parser.add_argument("run_dir", help="checkpoints/<run_name>/ of a DAgger run (its latest.zip and config.yaml)")
+    parser.add_argument("--set", nargs="*", default=[], help="agent.<field>=<value> overrides of the encoder and "
+                        "head (agent.attention_dim, agent.attention_heads, agent.net_arch), as dagger_forms --set")
     parser.add_argument("--hidden", type=int, default=64, help="the GRU's state size; 0: no GRU (the control)")
     parser.add_argument("--epochs", type=int, default=12, help="passes over the fitted episodes")
     parser.add_argument("--lr-end", type=float, default=1e-5, help="the step at the last epoch (cosine from fit_lr)")
@@ -233,7 +237,7 @@ def main(argv: list[str] | None = None) -> None:
         if getattr(args, name) and Path(getattr(args, name)).exists():
             parser.error(f"--{name} {getattr(args, name)} exists: another fit's; choose another file")
     row = screen(Path(args.run_dir), args.hidden, args.epochs, args.lr_end, args.holdout, args.episodes, args.seed,
-                 args.batch_episodes, Path(args.save) if args.save else None)
+                 args.batch_episodes, Path(args.save) if args.save else None, list(args.set))
     print(json.dumps({k: v for k, v in row.items() if k != "curve"}))
     if args.out:
         write_text_atomic(Path(args.out), json.dumps(row, indent=1) + "\n")
