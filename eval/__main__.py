@@ -214,14 +214,19 @@ def _run_agent(plan, command: EvalCommand, env_cfg: dict, seeds: range, rows: li
     from eval.runner import EpisodeJob, run_episodes, run_episodes_parallel
 
     env_name, checkpoints, progress = env_cfg["name"], command.paths.checkpoints, command.progress_bar
+    if command.vec_env == "batched" and command.workers > 1:  # each worker builds the agent: none needed here
+        from eval.batched import run_episodes_batched
+
+        run_episodes_batched(env_cfg, plan, None, seeds, command.n_envs, plan.label, progress=progress, out=rows,
+                             workers=command.workers, checkpoints=str(checkpoints))
+        return
     env = make_eval_env(env_cfg, plan.sensors, plan.shield)
     _, policy = resolve_agent(plan.spec, env, env_name, checkpoints)
     if command.vec_env == "batched":  # n_envs episodes stepped together
         from eval.batched import run_episodes_batched
 
         env.close()
-        run_episodes_batched(env_cfg, plan, policy, seeds, command.n_envs, plan.label, progress=progress, out=rows,
-                             workers=command.workers, checkpoints=str(checkpoints))
+        run_episodes_batched(env_cfg, plan, policy, seeds, command.n_envs, plan.label, progress=progress, out=rows)
     elif command.n_envs > 1:
         env.close()
         job = EpisodeJob(env_cfg, plan.sensors, plan.shield, plan.spec, env_name, str(checkpoints), plan.label)

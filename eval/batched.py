@@ -181,8 +181,8 @@ def run_episodes_batched(env_cfg: dict, plan, policy, seeds: Sequence[int], n_en
                          checkpoints: str = "checkpoints") -> list[dict]:
     """:func:`eval.runner.run_episodes` on the batched engine: one row per seed, ``{"agent", "episode", "seed",
     **episode_metrics}``, in the order of ``seeds`` (each appended to ``out``, if given, once every earlier seed's
-    row is in). ``workers`` > 1: :func:`play_batched_workers` (``checkpoints``: where the workers resolve the
-    plan's agent, as this process did for ``policy``)."""
+    row is in). ``workers`` > 1: :func:`play_batched_workers`, each worker building the plan's agent itself
+    (``checkpoints``: where it resolves it; ``policy`` is not used and may be None)."""
     from eval.runner import _single_threaded_torch
 
     check_batched_plan(plan, env_cfg)
@@ -218,12 +218,15 @@ def _init_batched_worker(job: BatchedJob, rows) -> None:
     from eval.runner import _single_threaded_torch, guard_worker
 
     guard_worker()
-    env = make_eval_env(job.env, job.plan.sensors, job.plan.shield)
-    with contextlib.redirect_stdout(io.StringIO()):  # the parent already said which checkpoint it uses
-        _, policy = resolve_agent(job.plan.spec, env, job.env["name"], job.checkpoints)
-    env.close()
+    _WORKER.update(job=job, rows=rows)
+    try:
+        env = make_eval_env(job.env, job.plan.sensors, job.plan.shield)
+        with contextlib.redirect_stdout(io.StringIO()):  # the parent already said which checkpoint it uses
+            _, _WORKER["policy"] = resolve_agent(job.plan.spec, env, job.env["name"], job.checkpoints)
+        env.close()
+    except Exception as exc:  # raised by the worker's part, so that the parent says it (a failed initializer
+        _WORKER["failed"] = exc  # only breaks the pool, without the reason)
     _single_threaded_torch()
-    _WORKER.update(job=job, policy=policy, rows=rows)
 
 
 class _Sent:
@@ -238,6 +241,8 @@ class _Sent:
 
 def _play_chunk(seeds: Sequence[int], n_envs: int) -> int:
     """A worker's part: ``seeds`` on one batch of ``n_envs``; its rows go back on the queue; returns their count."""
+    if "failed" in _WORKER:
+        raise _WORKER["failed"]
     job = _WORKER["job"]
     return len(play_batched(job.env, job.sensors, job.plan.shield, _WORKER["policy"], seeds, n_envs, job.label,
                             progress=False, out=_Sent(_WORKER["rows"])))

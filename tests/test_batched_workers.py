@@ -41,6 +41,25 @@ def test_two_workers_give_the_rows_of_one_process():
     assert sum(r["interventions"] for r in one) > 0  # the shield acted in these episodes
 
 
+@pytest.mark.slow  # two spawned workers: ~15 CPU-s
+def test_a_worker_that_cannot_build_the_env_is_said_by_the_parent():
+    """A worker's failure (here an env value that only building the env checks: this function's own check looks
+    at what the batch can run, the command line's check at the rest) comes back as the worker's own exception, not
+    as a broken pool without the reason, and no row is made up."""
+    from tests.test_batched_shield import _plan
+
+    from av_gym.params import ParamError
+    from eval.batched import run_episodes_batched
+
+    plan, env, _ = _plan("always_proceed+aeb")
+    env.close()
+    got: list[dict] = []
+    with pytest.raises(ParamError, match=r"env.duration must be a number in \(0, 600\], got -1"):
+        run_episodes_batched({**conf("env", "left_turn"), "duration": -1}, plan, None,
+                             range(VALIDATION, VALIDATION + 2), 1, "a", progress=False, out=got, workers=2)
+    assert got == []
+
+
 @pytest.mark.parametrize("argv, needle", [
     (["workers=2"], "workers=2 runs only with vec_env=batched"),
     (["workers=0", "vec_env=batched"], "workers must be an integer in [1, 64]"),
