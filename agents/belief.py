@@ -90,6 +90,12 @@ class BeliefLookaheadParams(AgentParams):
     stopped: float = param(1.0, "m/s", ge=0, doc="on tracks: a track slower than this is taken to stay where it is "
                                                  "in the futures, as a crashed car does (the tracks carry no crash "
                                                  "flag); 0: every track drives on")
+    stopped_scope: Literal["anywhere", "off_approach"] = param(
+        "anywhere", doc="on tracks: where ``stopped`` holds a standing track in place: anywhere, or only off the "
+                        "approach lanes (off_approach: in the junction or on an exit, a crashed or blocked car); a "
+                        "track standing on its approach waits at its line, and the futures' regulation and IDM "
+                        "release it (a car the filter had standing at its line pulled away into the ego's GO in 3 "
+                        "of 13 collisions on validation seeds 1,500,000-1,500,599)")
     tentative: Literal["ignore", "road_user"] = param(
         "ignore", doc="on tracks: a tentative track (fewer than the tracker's min_hits detections) is nobody, as the "
                       "features show it (ignore), or a road user in the futures (road_user)")

@@ -326,6 +326,7 @@ class TrackBelief:
         self.ghost = None  # (B, N) its slots whose track the detector has missed while in view (not in the futures)
         self.along = None  # (B, N, 2, 2) its slots' filter covariance of (place, speed) along their heading
         self._ticks = None
+        self.lane_kind = lane_kinds(e.T)[0]  # per lane id: 0 approach, 1 crossing, 2 exit
         fit = float(getattr(params, "track_fit", 0.0))
         self.motion = DetectedMotion(n_rows, fit, float(perception.detector.params.rate_hz)) if fit > 0 else None
 
@@ -423,10 +424,15 @@ class TrackBelief:
         speed = speed + float(self.params.track_lag) * acc
         t.x[rows, sl], t.y[rows, sl], t.h[rows, sl] = x, y, h
         t.v[rows, sl] = t.target[rows, sl] = np.maximum(speed, 0.0)
-        # the tracks carry no crash flag: a road user standing still is taken to stay where it is (a crashed car
-        # does; one held at a line is released later than the futures would have it go)
-        t.crashed[rows, sl] = users & (speed < float(self.params.stopped))
         lane = engine.T.closest(x, y, h)
+        # the tracks carry no crash flag: a road user standing still is taken to stay where it is (a crashed car
+        # does; one held at a line is released later than the futures would have it go), with stopped_scope
+        # off_approach only off the approach lanes: one standing on its approach waits at its line, and the
+        # futures' regulation and IDM release it as the simulator's would
+        standing = users & (speed < float(self.params.stopped))
+        if getattr(self.params, "stopped_scope", "anywhere") == "off_approach":
+            standing &= self.lane_kind[lane] != 0
+        t.crashed[rows, sl] = standing
         t.lane[rows, sl] = t.tlane[rows, sl] = np.where(users, lane, 0)
         t.route[rows, sl, 0] = np.where(users, lane, -1)
         t.vid[rows, sl] = ids + 1
