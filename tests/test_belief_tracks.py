@@ -78,9 +78,10 @@ def tracked_shipped():
 
 @pytest.fixture(scope="module")
 def tracked_fit():
-    """The batch of ``tracked`` with belief_tracks' options and ``track_fit`` (each track's own line)."""
+    """The batch of ``tracked`` with belief_tracks' options, ``track_fit`` (each track's own line) and
+    ``stopped_scope`` off_approach."""
     fit = BeliefLookaheadParams(samples=8, tentative="road_user", track_heading="detected", ghost=2, merge=2.0,
-                                track_fit=0.5)
+                                track_fit=0.5, stopped_scope="off_approach")
     return _batch(list(range(410_000, 410_000 + B)), 30, fit)
 
 
