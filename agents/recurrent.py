@@ -1,5 +1,5 @@
 """A recurrent GO/YIELD student: the DAgger students' per-decision features and road-user encoder, a GRU over the
-episode's decisions on top (issue 48, item 2). CleanRL-style: the whole model, its driver and its checkpoint here.
+episode's decisions on top. CleanRL-style: the whole model, its driver and its checkpoint here.
 
 Why a GRU: the feed-forward students see one decision's observation; the planner they imitate keeps a belief per
 driver over every indicator reading so far (agents/belief.py), of which ``turn_truth_memory`` hands them a
