@@ -92,10 +92,11 @@ class BeliefLookaheadParams(AgentParams):
                                                  "flag); 0: every track drives on")
     stopped_scope: Literal["anywhere", "off_approach"] = param(
         "anywhere", doc="on tracks: where ``stopped`` holds a standing track in place: anywhere, or only off the "
-                        "approach lanes (off_approach: in the junction or on an exit, a crashed or blocked car); a "
-                        "track standing on its approach waits at its line, and the futures' regulation and IDM "
-                        "release it (a car the filter had standing at its line pulled away into the ego's GO in 3 "
-                        "of 13 collisions on validation seeds 1,500,000-1,500,599)")
+                        "approach lanes and the first 5 m of a crossing lane (off_approach: inside the junction or "
+                        "on an exit, a crashed or blocked car); a track standing there waits at its stop line, and "
+                        "the futures' regulation and IDM release it (cars standing at their line at the last GO "
+                        "pulled away into the ego: validation seeds 1,500,000-1,500,599, benchmarks/"
+                        "belief_tracks_diagnose.py)")
     tentative: Literal["ignore", "road_user"] = param(
         "ignore", doc="on tracks: a tentative track (fewer than the tracker's min_hits detections) is nobody, as the "
                       "features show it (ignore), or a road user in the futures (road_user)")

@@ -48,6 +48,7 @@ SPAWN_S = 5.0  # m along the approach where a spawn enters (IntersectionEnv._spa
 SPEED_CLASSES = 3  # spawn speeds per cohort: the middles of equal-probability slices of the spawn speed's normal
 FIT_SLOTS = 256  # track ids kept per row by DetectedMotion (id mod this: ids live far fewer births than that)
 FIT_GATE = 2.0  # m: the detection that updated a track is the nearest one to its updated place, within this
+LINE_ZONE = 5.0  # m into a crossing lane: a car standing there waits at its stop line (its front past it)
 FIT_MIN = 3  # detector frames a least-squares line needs (two give no check on a noisy pair)
 
 
@@ -427,11 +428,13 @@ class TrackBelief:
         lane = engine.T.closest(x, y, h)
         # the tracks carry no crash flag: a road user standing still is taken to stay where it is (a crashed car
         # does; one held at a line is released later than the futures would have it go), with stopped_scope
-        # off_approach only off the approach lanes: one standing on its approach waits at its line, and the
-        # futures' regulation and IDM release it as the simulator's would
+        # off_approach only off the approach lanes and the crossing lanes' first LINE_ZONE m: one standing there
+        # waits at its line, and the futures' regulation and IDM release it as the simulator's would
         standing = users & (speed < float(self.params.stopped))
         if getattr(self.params, "stopped_scope", "anywhere") == "off_approach":
-            standing &= self.lane_kind[lane] != 0
+            along, _ = engine.T.local(lane, x, y)
+            kind = self.lane_kind[lane]
+            standing &= ~((kind == 0) | ((kind == 1) & (along < LINE_ZONE)))
         t.crashed[rows, sl] = standing
         t.lane[rows, sl] = t.tlane[rows, sl] = np.where(users, lane, 0)
         t.route[rows, sl, 0] = np.where(users, lane, -1)

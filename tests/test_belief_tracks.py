@@ -589,12 +589,12 @@ def test_a_car_pulling_away_that_the_filter_has_standing_drives_on_its_detected_
 
 
 def test_a_track_standing_at_its_line_drives_off_with_stopped_scope_off_approach():
-    """``stopped_scope`` off_approach: a confirmed track standing on its approach lane (waiting at its line) is a
-    driver the futures' regulation and IDM release, not a car that stays put; one standing inside the junction
-    stays put as with ``anywhere``. Released, the one at its line crosses the ego's turn in some futures."""
+    """``stopped_scope`` off_approach: a confirmed track standing on its approach lane or just past its stop line
+    (waiting there) is a driver the futures' regulation and IDM release, not a car that stays put; one standing
+    inside the junction stays put as with ``anywhere``. Released, the one at its line crosses the ego's turn in some futures."""
     out = {}
     for scope, place, stands in (("anywhere", (-2.0, -16.0), True), ("off_approach", (-2.0, -16.0), False),
-                                 ("off_approach", (2.0, 2.0), True)):
+                                 ("off_approach", (-2.0, -9.0), False), ("off_approach", (2.0, 2.0), True)):
         venv, planner, obs, rows = _batch([420_001, 420_002], 45, BeliefLookaheadParams(samples=16, unseen=0.0,
                                                                                        stopped_scope=scope))
         e = venv.engine
@@ -604,6 +604,6 @@ def test_a_track_standing_at_its_line_drives_off_with_stopped_scope_off_approach
         out[scope, place] = _decide(p, e, rows, {"intent": np.zeros_like(obs["intent"])})
         t = p.tracks.engine.traffic
         slot = np.argmax(t.alive[rows] & ~t.ego[rows], axis=1)
-        assert p.tracks.lane_kind[t.lane[rows, slot]].tolist() == [0 if place[1] < -10 else 1] * len(rows)
+        assert p.tracks.lane_kind[t.lane[rows, slot]].tolist() == [0 if place[1] < -12 else 1] * len(rows)
         assert t.crashed[rows, slot].tolist() == [stands] * len(rows), (scope, place)
     assert (out["off_approach", (-2.0, -16.0)] > out["anywhere", (-2.0, -16.0)]).all()
