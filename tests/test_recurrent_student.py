@@ -5,6 +5,8 @@ episodes are read in decision order (and refused out of order) with the held-out
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -138,3 +140,53 @@ def test_the_held_out_episodes_are_those_dagger_forms_keeps_out():
     forms = holdout_mask(episode_ids(data.obs["turn"][:, TIME]), 0.2, 3)  # train/dagger_forms.py's _split
     assert sorted(held.index[held.valid]) == list(np.flatnonzero(forms))
     assert sorted(fitted.index[fitted.valid]) == list(np.flatnonzero(~forms))
+
+
+def _median_p_go(student: RecurrentStudent, env, seed: int, decisions: int = 20) -> float:
+    """The median P(GO) of ``student`` over the first ``decisions`` of episode ``seed`` of ``env`` (held at IDLE, up
+    to its end)."""
+    import torch as th
+
+    obs, _ = env.reset(seed=seed)
+    h, p = student.initial_state(1), []
+    with th.no_grad():
+        for _ in range(decisions):
+            x = {k: th.as_tensor(np.asarray(obs[k], np.float32)[None]) for k in ("turn", "intent")}
+            logits, h = student.step(x, h)
+            p.append(float(th.softmax(logits, -1)[0, GO]))
+            for _ in range(student.form.action_repeat):
+                obs, _, terminated, truncated, _ = env.step(1)
+                if terminated or truncated:
+                    return float(np.median(p))
+    return float(np.median(p))
+
+
+@pytest.mark.slow
+def test_the_recurrent_student_drives_the_same_episodes_on_the_batch_as_per_env():
+    """Real left-turn episodes (turn_truth_memory), two rows for six seeds so that rows restart: every episode's
+    outcome on the batch (one hidden state per row) as on the per-env stack (one policy, reset per episode)."""
+    import torch as th
+
+    from av_gym.presets import compose_group
+    from eval.agents import make_eval_env
+    from eval.batched import play_batched
+    from eval.runner import run_episodes
+    from tests.conftest import conf
+
+    env_cfg, sensors = conf("env", "left_turn"), compose_group("sensors", "turn_truth_memory")
+    shield = {"name": "none", "kind": "none"}
+    env = make_eval_env(env_cfg, sensors, shield)
+    th.manual_seed(3)
+    obs = {k: np.asarray(v)[None] for k, v in env.observation_space.sample().items()}
+    student = RecurrentStudent(RecurrentForm.of_observations(obs, attention_dim=16, hidden=16, net_arch=(16,)))
+    # untrained, its P(GO) stays within ~1e-3 of one value: at that value's median GO and YIELD both occur
+    student.form = replace(student.form, go_threshold=_median_p_go(student, env, seed=999_999))
+    seeds = list(range(1_000_000, 1_000_006))
+    try:
+        per_env = run_episodes(env, RecurrentPolicy(student), seeds, "gru", progress=False)
+    finally:
+        env.close()
+    batch = play_batched(env_cfg, sensors, shield, RecurrentPolicy(student), seeds, 2, "gru", progress=False)
+    keys = ("collision", "success", "length", "truncated")
+    assert [[r[k] for k in keys] for r in batch] == [[r[k] for k in keys] for r in per_env]
+    assert len({(r["length"], r["success"]) for r in batch}) > 1  # the student's choices shaped the episodes
