@@ -188,7 +188,8 @@ def test_unseen_drivers_thin_as_the_tracker_confirms(hits, miss):
         np.testing.assert_allclose(fresh.density(np.array([0]))[0][fresh.on_lane], fresh.rate)
 
 
-@pytest.mark.parametrize("options", [{}, {"track_fit": 0.5, "track_heading": "detected"}])
+@pytest.mark.parametrize("options", [{}, {"track_fit": 0.5, "track_heading": "detected",
+                                          "stopped_scope": "off_approach", "confirm": 2}])
 def test_the_per_env_agent_on_tracks_decides_as_the_batch(options):
     """belief_lookahead@turn_perceived per env (its one-row view of the env's own tracker, agents.track_prior
     EnvTracks) gives the batch's GO collision probabilities for the same episodes, decision by decision: the same
