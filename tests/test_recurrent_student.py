@@ -14,21 +14,12 @@ from agents.recurrent import RecurrentForm, RecurrentPolicy, RecurrentStudent, l
 from av_gym.errors import ConfigError
 from av_gym.estimation.turn_features import EGO_FEATURES, OBJECT_FEATURES
 from av_gym.wrappers import GO, YIELD
+from tests.test_dagger import _one_torch_thread  # noqa: F401 (the fixture: one torch thread, as train)
 from train.dagger_recurrent import Episodes, accuracy, episode_index, fit, split_episodes
 
 N_OBJECTS, LAG, PERIOD = 2, 3, 0.025  # objects in the toy observation; the label's lag (decisions); time step
 TURN_DIM = len(EGO_FEATURES) + len(OBJECT_FEATURES) * N_OBJECTS
 CUE, TIME = EGO_FEATURES.index("speed"), EGO_FEATURES.index("time")
-
-
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    import torch
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 def _lag_task(n_episodes: int, seed: int, length: int = 10) -> Episodes:
