@@ -129,7 +129,7 @@ def drive(plain, split: str, n: int, B: int) -> tuple[float, float, float]:
     class _Never:  # the teacher drives: the student's choice is recorded, never executed
         @staticmethod
         def predict(obs, deterministic=True):
-            return np.zeros(len(next(iter(obs.values())))), None
+            return np.zeros(len(next(iter(obs.values()))), np.int64), None
 
     venv = BatchedLeftTurnVecEnv(*plain, B, action_repeat=5, actions="go_yield", timeout_is_terminal=True, pool=0)
     t0 = time.perf_counter()

@@ -394,3 +394,12 @@ def test_a_growing_dagger_run_drives_its_rounds_sizes(tmp_path):
     assert [int(r["episodes"]) for r in rows] == [1, 2, 4]
     labels = [int(r["labels"]) for r in rows]
     assert labels[0] > 0 and labels[1] > labels[0] and labels[2] > labels[1]
+
+
+def test_the_oracle_drives_its_own_labels_on_the_batch():
+    """benchmarks/oracle_labels.py --drive: the teacher drives (round 0's form) with a stand-in student whose
+    recorded choices must be actions of the env's space (float zeros were refused by check_actions)."""
+    bench = _benchmark()
+    collision, success, _ = bench.drive(bench.stacks(), "validation", 4, 4)
+    assert 0.0 <= collision <= 1.0 and success > 0.0  # the oracle arrives in ~92 % of episodes
+    assert collision + success <= 1.0
