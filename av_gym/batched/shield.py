@@ -292,16 +292,12 @@ class _Kinematics:
 
 
 def _followers(state: np.ndarray, ego: np.ndarray) -> np.ndarray:
-    """ImprovedAEB._relevant's follower test for every slot of every row at once: (n, S) bool, a road user in the
-    ego's lane behind it, heading within 45° of the ego's (``state`` (n, S, 7) :class:`_Kinematics`' rows, ``ego``
-    (n,) the ego's slot); the per-env shield's element-wise operations in its order."""
+    """ImprovedAEB._relevant's follower test for every slot of every row at once: (n, S) bool (``state`` (n, S, 7)
+    :class:`_Kinematics`' rows, ``ego`` (n,) the ego's slot)."""
+    from av_gym.shields.aeb_improved import followers
+
     at = np.arange(len(ego))
-    x, y, h = state[at, ego, 0][:, None], state[at, ego, 1][:, None], state[at, ego, 4][:, None]
-    c, s = np.cos(h), np.sin(h)
-    rel_x, rel_y = state[..., 0] - x, state[..., 1] - y
-    x_rel, y_rel = rel_x * c + rel_y * s, -rel_x * s + rel_y * c
-    same_dir = np.abs((state[..., 4] - h + np.pi) % (2 * np.pi) - np.pi) < np.radians(45)
-    return same_dir & (x_rel < -0.5 * LENGTH) & (np.abs(y_rel) < 2.5)
+    return followers(state[at, ego, 0:2], state[at, ego, 4], LENGTH, state)
 
 
 class BatchedShield:

@@ -19,6 +19,20 @@ from av_gym.shields.aeb_base import AEBShield
 from av_gym.shields.aeb_params import BRAKE, MONITOR, STOP_SPEED, WARN, ImprovedParams
 
 
+def followers(xy, heading, length: float, others: np.ndarray) -> np.ndarray:
+    """(..., M) bool: the road users ``others`` (..., M, 7) ``[x, y, vx, vy, heading, ...]`` following an ego at
+    ``xy`` (..., 2) m with ``heading`` (...) rad and ``length`` m in its lane: behind it, within 2.5 m of its axis,
+    heading within 45° of its heading. One ego (the per-env shield) or one per row of a batch, element by element
+    the same operations."""
+    xy = np.asarray(xy)
+    h = heading if np.ndim(heading) == 0 else np.asarray(heading)[..., None]
+    c, s = np.cos(h), np.sin(h)
+    rel_x, rel_y = others[..., 0] - xy[..., 0:1], others[..., 1] - xy[..., 1:2]
+    x_rel, y_rel = rel_x * c + rel_y * s, -rel_x * s + rel_y * c
+    same_dir = np.abs((others[..., 4] - h + np.pi) % (2 * np.pi) - np.pi) < np.radians(45)
+    return same_dir & (x_rel < -0.5 * length) & (np.abs(y_rel) < 2.5)
+
+
 class ImprovedAEB(AEBShield):
     """``improved``: our design (module docstring); parameters :class:`ImprovedParams`."""
 
@@ -113,12 +127,7 @@ class ImprovedAEB(AEBShield):
         """Mask of objects that matter: not a vehicle following the ego in its lane."""
         if not len(others):
             return np.zeros(0, dtype=bool)
-        c, s = np.cos(ego["heading"]), np.sin(ego["heading"])
-        rel = others[:, 0:2] - ego["xy"]
-        x_rel, y_rel = rel[:, 0] * c + rel[:, 1] * s, -rel[:, 0] * s + rel[:, 1] * c
-        same_dir = np.abs((others[:, 4] - ego["heading"] + np.pi) % (2 * np.pi) - np.pi) < np.radians(45)
-        follower = same_dir & (x_rel < -0.5 * ego["size"][0]) & (np.abs(y_rel) < 2.5)
-        return ~follower
+        return ~followers(ego["xy"], ego["heading"], ego["size"][0], others)
 
     def _horizon(self, s0: float, ds: np.ndarray, t: np.ndarray) -> float:
         """Time (s) until the ego's centre has passed the end of the turn (the conflict zone is cleared) under the
