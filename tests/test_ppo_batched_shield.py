@@ -124,6 +124,7 @@ def _roll(n: int, seed: int, go: float, cost: float = COST):
     return split, cost_paid, alike
 
 
+@pytest.mark.slow  # real shielded episodes batch vs per env, ~20 CPU-s: over the fast suite's per-test budget
 @pytest.mark.parametrize("seed, go", [(300, 0.8), (1_000_000, 1.0)])
 def test_the_shielded_training_batch_rolls_out_as_the_per_env_stack(seed, go):
     """Rewards with the intervention cost, ends, observations and the shield's overrides per episode equal to the
@@ -136,6 +137,7 @@ def test_the_shielded_training_batch_rolls_out_as_the_per_env_stack(seed, go):
     assert (cost_paid > 0.25).sum() >= 3, cost_paid  # >= 2.5 s of override in at least 3 episodes
 
 
+@pytest.mark.slow  # real shielded episodes batch vs per env, ~20 CPU-s: over the fast suite's per-test budget
 def test_a_cost_dropped_on_the_batch_is_caught():
     """The comparison sees the cost: the batch without it splits from the costed per-env stack in the rewards."""
     split, _, _ = _roll(6, 300, 0.8, cost=0.0)
@@ -202,6 +204,7 @@ def test_ppo_trains_with_the_shield_on_the_batch(tmp_path):
     assert sum(e.value for e in acc.Scalars("episode/interventions")) > 0  # 20 s episodes: all end by 40 decisions
 
 
+@pytest.mark.slow  # real shielded episodes batch vs per env, ~20 CPU-s: over the fast suite's per-test budget
 def test_cloning_through_the_shield_on_the_batch_gives_the_per_env_demonstrations():
     """``agent.init`` clones the gap-acceptance rule from episodes on the training batch, through its shield and with
     its intervention cost (the returns the critic is fitted to): the same labelled decisions, teacher outcomes and
