@@ -147,6 +147,18 @@ class BeliefLookaheadParams(AgentParams):
                                                           "draw of K futures finds safe right after risky ones is "
                                                           "often taken back half a second later, the car braking in "
                                                           "the crossing; 1: the decision of the moment")
+    confirm_risk: float = param(0.0, ge=0, le=1, doc="with ``confirm`` > 1: a decision counts towards the run of "
+                                                     "decisions that found GO safe when GO's collision probability "
+                                                     "there was at most this (or ``threshold``, the larger): a GO "
+                                                     "is still held after a clearly risky decision, not after a "
+                                                     "marginal one; 0: only safe decisions count (``confirm`` as "
+                                                     "it is), 1: every decision but the episode's first counts")
+    confirm_after: int = param(0, "env steps", ge=0, le=10, doc="with ``confirm`` > 1: a row whose GO is safe "
+                                                               "but not yet confirmed decides again this many env "
+                                                               "steps later, not at its next regular decision "
+                                                               "(``repeat``), so the confirmation takes that long "
+                                                               "instead of half a second; 0: at the regular "
+                                                               "decision")
 
 
 class BeliefPlanner:
@@ -169,6 +181,7 @@ class BeliefPlanner:
         self.filter = DriverIntent(self.signals, floor=float(p.floor))
         self.counts: list[dict[int, np.ndarray]] = [{} for _ in range(n_rows)]
         self.safe_run = np.zeros(n_rows, dtype=int)  # per row: decisions running that found GO safe (confirm)
+        self.confirm_at = np.full(n_rows, -1)  # per row: the env step of its early confirming decision, -1: none
         self._tables = None
         self.particles = PARTICLES
         # decisions made, and the wall-clock and CPU seconds of this process spent on them
@@ -182,8 +195,11 @@ class BeliefPlanner:
                 self.counts.append({})
             self.counts[r] = {}
         if len(self.counts) > len(self.safe_run):
-            self.safe_run = np.concatenate([self.safe_run, np.zeros(len(self.counts) - len(self.safe_run), int)])
+            grow = len(self.counts) - len(self.safe_run)
+            self.safe_run = np.concatenate([self.safe_run, np.zeros(grow, int)])
+            self.confirm_at = np.concatenate([self.confirm_at, np.full(grow, -1)])
         self.safe_run[np.asarray(rows, dtype=int)] = 0
+        self.confirm_at[np.asarray(rows, dtype=int)] = -1
         if self.tracks is not None:
             self.tracks.reset(rows)
 
@@ -254,9 +270,11 @@ class BeliefPlanner:
     def decide(self, engine, rows, choice: np.ndarray, step: np.ndarray) -> np.ndarray:
         """The held choices (GO / YIELD) of ``rows`` after this env step (``choice``, ``step``: the rows' held
         choices and env steps since their episode began): every ``repeat`` steps the rows decide again unless their
-        choice is final (``commit``: never; once GO; or once past the stop line or too fast to stop before it)."""
+        choice is final (``commit``: never; once GO; or once past the stop line or too fast to stop before it), and
+        ``confirm_after`` steps after a GO found safe but not yet confirmed."""
         rows, choice = np.asarray(rows, dtype=int), np.array(choice, copy=True)
-        due = np.asarray(step) % int(self.params.repeat) == 0
+        step = np.broadcast_to(np.asarray(step), rows.shape)
+        due = (step % int(self.params.repeat) == 0) | (self.confirm_at[rows] == step)
         if self.params.commit == "go":
             due &= choice != GO
         elif self.params.commit == "stop" and due.any():
@@ -266,7 +284,10 @@ class BeliefPlanner:
             due &= ~final
         if due.any():
             r, held = rows[due], choice[due]
-            new = self.confirmed(r, self.labels(engine, r))
+            p = self.go_collision(engine, r)
+            new = self.confirmed(r, p)
+            early = (new != GO) & (self.label_of(p) == GO) & (int(self.params.confirm_after) > 0)
+            self.confirm_at[r] = np.where(early, step[due] + int(self.params.confirm_after), -1)
             ask = (new == GO) & (held != GO) & (int(self.params.recheck) > 0)
             if ask.any():  # a GO to start: the futures of the recheck's own streams must find it safe too
                 p = self.go_collision(engine, r[ask], int(self.params.recheck), (RECHECK_STREAM,))
@@ -274,12 +295,13 @@ class BeliefPlanner:
             choice[due] = new
         return choice
 
-    def confirmed(self, rows: np.ndarray, label: np.ndarray) -> np.ndarray:
-        """The choices of ``rows`` at a decision whose planner labels (:meth:`labels`) are ``label``: GO where GO
-        is safe at this decision and the ``confirm`` - 1 before it, else YIELD (a held GO stays while it is safe: it
-        was started so)."""
-        safe = np.asarray(label) == GO
-        self.safe_run[rows] = np.where(safe, self.safe_run[rows] + 1, 0)
+    def confirmed(self, rows: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """The choices of ``rows`` at a decision whose GO collision probabilities (:meth:`go_collision`) are
+        ``p``: GO where GO is safe at this decision and the ``confirm`` - 1 before it counted (safe, or at most
+        ``confirm_risk``), else YIELD (a held GO stays while it is safe: it was started so)."""
+        safe = self.label_of(p) == GO
+        counts = np.asarray(p) <= max(self.threshold, float(self.params.confirm_risk)) + 1e-12
+        self.safe_run[rows] = np.where(counts, self.safe_run[rows] + 1, 0)
         return np.where(safe & (self.safe_run[rows] >= int(self.params.confirm)), GO, YIELD).astype(np.int64)
 
     @staticmethod

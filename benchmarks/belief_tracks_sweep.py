@@ -7,7 +7,8 @@ Plays ``--episodes`` validation seeds from ``--seed`` (default 1,000,000) with :
 on ``sensors=turn_perceived`` (``--set key=value``: BeliefLookaheadParams fields, e.g. ``unseen=2 samples=32``),
 ``--n-envs`` at a time, and prints one JSON line: the point, collision and success rates, the seeds that collided
 and those that did not arrive (for paired comparisons of points on the same seeds), wall and CPU seconds and the
-load."""
+load; ``--rows PATH`` writes every episode's row besides (its seed and EpisodeMetrics: outcome, length, ...; CSV,
+never over an existing file), to see episode by episode what changed between two points."""
 
 from __future__ import annotations
 
@@ -55,7 +56,10 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=SPLITS["validation"].start)
     ap.add_argument("--n-envs", type=int, default=300)
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--rows", default=None, metavar="PATH", help="every episode's row as CSV (a new file)")
     args = ap.parse_args()
+    if args.rows and Path(args.rows).exists():
+        fail(f"--rows {args.rows} exists: choose another file (results are never overwritten)")
     seeds = range(args.seed, args.seed + args.episodes)
     if args.episodes < 1 or seeds[0] not in SPLITS["validation"] or seeds[-1] not in SPLITS["validation"]:
         fail(f"--seed/--episodes must stay in the validation split {SPLITS['validation']}")
@@ -64,6 +68,10 @@ def main() -> None:
     rows = play_batched({"name": "left_turn"}, compose_group("sensors", "turn_perceived"), None,
                         BeliefLookahead(None, params), list(seeds), args.n_envs, "belief_tracks", progress=False)
     n = len(rows)
+    if args.rows:
+        from av_gym.atomic import csv_text, write_text_atomic
+
+        write_text_atomic(args.rows, csv_text(rows), "--rows")
     print(json.dumps({"point": point, "episodes": n, "seed": args.seed,
                       "collision": sum(r["collision"] for r in rows) / n, "success": sum(r["success"] for r in rows) / n,
                       "collided": [r["seed"] for r in rows if r["collision"]],

@@ -155,7 +155,7 @@ def test_commit_says_which_choices_are_asked_again(scene, commit):
     engine, _, rows = scene
     planner = BeliefPlanner(BeliefLookaheadParams(samples=4, commit=commit), n_rows=B)
     asked = []
-    planner.labels = lambda engine, r: asked.append(np.asarray(r).copy()) or np.full(len(r), YIELD)
+    planner.go_collision = lambda engine, r, K=None, stream=(): asked.append(np.asarray(r).copy()) or np.ones(len(r))
     choice = np.where(np.arange(len(rows)) % 2 == 0, GO, YIELD)
     after = planner.decide(engine, rows, choice, np.zeros(len(rows), int))
     held = rows[choice == GO]

@@ -4,6 +4,7 @@ prior over the road users it has not confirmed, and read nothing else of the sim
 from __future__ import annotations
 
 import copy
+import dataclasses
 import itertools
 
 import numpy as np
@@ -43,6 +44,16 @@ def tracked():
 def _decide(planner, engine, rows, obs) -> np.ndarray:
     planner.read(engine, rows, obs["intent"][rows])
     return planner.go_collision(engine, rows)
+
+
+def _choose(planner, engine, rows, obs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The choices of a fresh ``planner`` for ``rows`` after reading ``obs``: at a regular decision (env step 30;
+    ``confirm`` 2 holds every GO), the steps of the early decisions it asks for (-1: none), and the choices at
+    step 32 (only the rows decided early there can go)."""
+    planner.read(engine, rows, obs["intent"][rows])
+    first = planner.decide(engine, rows, np.full(len(rows), YIELD), np.full(len(rows), 30))
+    early = planner.confirm_at[rows].copy()
+    return first, early, planner.decide(engine, rows, first, np.full(len(rows), 32))
 
 
 def _hide_changes(engine, rows, max_range: float, tracks: np.ndarray) -> int:
@@ -91,17 +102,27 @@ def test_decisions_do_not_read_the_hidden_traffic(which, request):
     traffic changed: the vehicles without a confirmed track (beyond the detector's range, occluded, or not yet
     confirmed) removed or moved, every driver's route, IDM draws, regulation hold and the rows' future spawns
     re-drawn. The planner on truth, which reads the vehicles, moves. With the kind's defaults and with
-    belief_tracks' options (tentative tracks, detected heading, ghosts, twins)."""
+    belief_tracks' options (tentative tracks, detected heading, ghosts, twins); the choices also with ``confirm``,
+    ``confirm_risk`` and ``confirm_after`` (its early decisions)."""
     venv, planner, obs, rows = request.getfixturevalue(which)
     engine = venv.engine
     shared = {id(venv.perception): venv.perception, id(engine): engine, id(planner.tracks.engine): None}
-    again, truth = copy.deepcopy(planner, shared), BeliefPlanner(planner.params, n_rows=B)
+    again, truth = copy.deepcopy(planner, dict(shared)), BeliefPlanner(planner.params, n_rows=B)
     truth_again = copy.deepcopy(truth)
+    # with the confirmation options: a regular decision, then the early one it asks for (confirm_after)
+    confirming = [copy.deepcopy(planner, dict(shared)) for _ in range(2)]  # a memo each: two planners
+    for c in confirming:
+        c.params = dataclasses.replace(c.params, confirm=2, confirm_after=2, confirm_risk=0.5)
     p_before, truth_before = _decide(planner, engine, rows, obs), _decide(truth, engine, rows, obs)
+    chose_before = _choose(confirming[0], engine, rows, obs)
     assert _hide_changes(engine, rows, venv.perception.detector.max_range, venv.perception.last_tracks[rows]) > 0
     rerandomise(engine, rows, seed=11)
     p_after, truth_after = _decide(again, engine, rows, obs), _decide(truth_again, engine, rows, obs)
     np.testing.assert_array_equal(p_before, p_after)
+    for before, after in zip(chose_before, _choose(confirming[1], engine, rows, obs)):
+        np.testing.assert_array_equal(before, after)
+    first, early, second = chose_before
+    assert (first == YIELD).all() and (early == 32).any() and (second == GO).any()
     assert (truth_before != truth_after).any(), "the planner on truth reads the vehicles: it must move"
     assert 0.0 < p_before.mean() < 1.0  # neither always GO nor always YIELD
 
@@ -189,12 +210,14 @@ def test_unseen_drivers_thin_as_the_tracker_confirms(hits, miss):
 
 
 @pytest.mark.parametrize("options", [{}, {"track_fit": 0.5, "track_heading": "detected",
-                                          "stopped_scope": "off_approach", "confirm": 2}])
+                                          "stopped_scope": "off_approach", "confirm": 2},
+                                     {"confirm": 2, "confirm_after": 2, "confirm_risk": 0.9, "threshold": 0.5}])
 def test_the_per_env_agent_on_tracks_decides_as_the_batch(options):
     """belief_lookahead@turn_perceived per env (its one-row view of the env's own tracker, agents.track_prior
-    EnvTracks) gives the batch's GO collision probabilities for the same episodes, decision by decision: the same
-    tracks, the same unseen traffic, the same draws; with ``track_fit`` the same detections for each track's line
-    (which moves some track's speed off its filter's)."""
+    EnvTracks) gives the batch's GO collision probabilities for the same episodes, decision by decision, and the
+    same choices at every step (``confirm_after``'s early decisions too): the same tracks, the same unseen traffic,
+    the same draws; with ``track_fit`` the same detections for each track's line (which moves some track's speed
+    off its filter's)."""
     from agents.belief import BeliefLookahead
     from av_gym.make import make_env
     from av_gym.wrappers import meta_action
@@ -207,10 +230,13 @@ def test_the_per_env_agent_on_tracks_decides_as_the_batch(options):
     envs = [make_env({"name": "left_turn"}, sensors, None) for _ in seeds]
     obs = [e.reset(seed=s)[0] for e, s in zip(envs, seeds)]
     agents = [BeliefLookahead(e, params) for e in envs]
-    rows, compared = np.arange(len(seeds)), []
+    rows, compared, held, early = np.arange(len(seeds)), [], np.full(len(seeds), YIELD), False
     for k in range(16):
         batch.read(venv.engine, rows, bobs["intent"])
         choices = [a.act(o) for a, o in zip(agents, obs)]  # reads, and decides every `repeat` steps
+        before, held = held, batch.decide(venv.engine, rows, held, np.full(len(seeds), k))
+        assert held.tolist() == [a._choice for a in agents], k
+        early |= k % 5 != 0 and (held != before).any()
         if k % 5 == 0:
             per_env = [a.planner.go_collision(a.planner.tracks.engine, [0])[0] for a in agents]
             compared.append((batch.go_collision(venv.engine, rows), np.array(per_env)))
@@ -223,7 +249,8 @@ def test_the_per_env_agent_on_tracks_decides_as_the_batch(options):
     for on_batch, per_env in compared:
         np.testing.assert_array_equal(on_batch, per_env)
     assert any(0.0 < p.mean() < 1.0 for p, _ in compared)
-    if options:
+    assert early == ("confirm_after" in options), "confirm_after's early decisions must move a choice"
+    if "track_fit" in options:
         t = batch.tracks.engine.traffic
         pos = batch.tracks._tracks(rows)[0]
         h = t.h[:, 1: pos.shape[1] + 1]
@@ -485,6 +512,41 @@ def test_confirm_starts_a_go_only_after_decisions_running_found_it_safe():
         planner.reset([0])
         assert _decide_with(planner, lambda rows, K, stream: np.zeros(len(rows)), np.array([YIELD, GO]))[0] == (
             GO if confirm == 1 else YIELD)
+
+
+def test_confirm_risk_counts_a_marginal_decision_but_not_a_risky_one():
+    """``confirm`` 2 with ``confirm_risk`` 0.2: a safe decision right after one at GO collision probability 0.125 (a
+    marginal one, 2 of 16 futures) goes, right after one at 0.5 it still yields; without ``confirm_risk`` both
+    yield (only safe decisions count)."""
+    seq = [np.array([0.125, 0.5]), np.array([0.0, 0.0])]
+    for risk, want in ((0.2, [GO, YIELD]), (0.0, [YIELD, YIELD])):
+        planner = BeliefPlanner(BeliefLookaheadParams(confirm=2, confirm_risk=risk), n_rows=2)
+        planner.reset(np.arange(2))
+        choice = np.full(2, YIELD)
+        for p in seq:
+            choice = _decide_with(planner, lambda rows, K, stream, p=p: p[rows], choice)
+        assert choice.tolist() == want, risk
+
+
+def test_confirm_after_confirms_a_safe_go_sooner():
+    """``confirm`` 2 with ``confirm_after`` 2: a GO found safe at step 5 (after a risky decision at 0) is decided
+    again at step 7, not 10, and goes if still safe there (row 0); found risky there (row 1), the row waits for its
+    regular decision at 10. No decision between (step 6). Without ``confirm_after`` the GO waits for step 10."""
+    p_at = {0: [1.0, 1.0], 5: [0.0, 0.0], 7: [0.0, 0.5], 10: [0.0, 0.0]}
+    for after, want in ((2, {7: [GO, YIELD], 10: [GO, YIELD]}), (0, {7: [YIELD, YIELD], 10: [GO, GO]})):
+        planner = BeliefPlanner(BeliefLookaheadParams(confirm=2, confirm_after=after), n_rows=2)
+        planner.reset(np.arange(2))
+        choice, asked = np.full(2, YIELD), []
+        for step in range(11):
+            def p_of(rows, K, stream, step=step):
+                asked.append((step, rows.tolist()))
+                return np.asarray(p_at[step])[rows]
+
+            choice = _decide_with(planner, p_of, choice, step)
+            if step in want:
+                assert choice.tolist() == want[step], (after, step)
+        early = [(7, [0, 1])] if after else []
+        assert asked == [(0, [0, 1]), (5, [0, 1]), *early, (10, [0, 1])], after
 
 
 def test_recheck_starts_a_go_only_when_its_own_futures_find_it_safe_too():

@@ -1,0 +1,137 @@
+"""Where ``confirm`` costs the planner on tracks its arrivals (docs/dagger.md, "What sensing costs"): validation
+episodes only.
+
+    python benchmarks/belief_tracks_confirm.py --seeds 1700003 1700017 --set confirm=2 stopped_scope=off_approach
+
+Plays each seed with :class:`agents.belief.BeliefPlanner` on ``sensors=turn_perceived`` (``--set``:
+BeliefLookaheadParams fields) as ``eval.batched`` drives it, and prints one JSON line per episode: its outcome,
+every decision (time s, GO's collision probability, the choice) and, at each decision that found GO safe right
+after one that did not (a *flip*: where ``confirm`` 2 holds a GO that ``confirm`` 1 takes), what made that earlier
+decision unsafe: each road user without which its futures were safer (GO's collision probability without it),
+with its distance from the ego (m), its speed (m/s), whether the track was tentative, the kind of its lane
+(approach, crossing, exit) and, on an approach, its time to the stop line at its speed (s); and whether the unseen
+traffic's prior alone made it unsafe. The last line counts the flips by the blamed road user's kind."""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # the checkout's agents/ and eval/
+from belief_tracks_sweep import fail, planner_point  # noqa: E402  (this folder is sys.path[0] when run as a script)
+
+LANE_KINDS = ("approach", "crossing", "exit")
+
+
+def _without(planner, engine, r: int, j: int | None) -> float:
+    """GO's collision probability for row ``r`` without road user slot ``j`` of the futures' start (None: without
+    the unseen traffic's prior)."""
+    saved, unseen = planner.tracks.engine, planner.tracks.unseen
+    try:
+        if j is None:
+            planner.tracks.unseen = None
+        else:
+            e = copy.copy(saved)
+            e.traffic = saved.traffic.subset(np.arange(saved.B))
+            e.traffic.alive[r, j] = False
+            planner.tracks.engine = e
+        return float(planner.go_collision(engine, np.array([r]))[0])
+    finally:
+        planner.tracks.engine, planner.tracks.unseen = saved, unseen
+
+
+def blame(planner, engine, r: int, p: float) -> dict:
+    """What made GO unsafe for row ``r`` (GO's collision probability ``p``): the unseen prior's share and each road
+    user whose removal lowers it."""
+    te = planner.tracks.engine
+    t = te.traffic
+    ex, ey = t.x[r, 0], t.y[r, 0]
+    out = {"p": round(p, 3), "p_no_unseen": round(_without(planner, engine, r, None), 3), "users": []}
+    for j in np.flatnonzero(t.alive[r] & ~t.ego[r]):
+        q = _without(planner, engine, r, int(j))
+        if q >= p:
+            continue
+        kind = int(planner.tracks.lane_kind[t.lane[r, j]])
+        v = float(t.v[r, j])
+        lane = t.lane[r, j]
+        s_now = engine.T.local(np.array([lane]), t.x[r, j:j + 1], t.y[r, j:j + 1])[0][0]
+        to_line = float(engine.T.length[lane] - s_now)  # an approach lane ends at its stop line
+        out["users"].append({"p_without": round(q, 3), "d_ego_m": round(float(np.hypot(t.x[r, j] - ex,
+                                                                                         t.y[r, j] - ey)), 1),
+                             "v": round(v, 2), "tentative": bool(planner.tracks.tent[r, j]),
+                             "lane": LANE_KINDS[kind],
+                             "to_line_s": round(to_line / max(v, 0.1), 1) if kind == 0 else None})
+    return out
+
+
+def blamed_kind(b: dict) -> str:
+    """One word for a flip's earlier unsafe decision: the road user whose removal lowers GO's collision probability
+    most (its lane kind, tentative or not, near or far on its approach), or the unseen prior."""
+    if not b["users"]:
+        return "unseen prior" if b["p_no_unseen"] < b["p"] else "nobody alone"
+    u = min(b["users"], key=lambda x: x["p_without"])
+    near = "" if u["lane"] != "approach" else (" < 3 s" if (u["to_line_s"] or 0) < 3 else " >= 3 s")
+    return f"{'tentative' if u['tentative'] else 'confirmed'} on {u['lane']}{near}"
+
+
+def main() -> None:
+    from agents.belief import BeliefPlanner
+    from av_gym.batched.vec_env import BatchedLeftTurnBatch, meta_actions
+    from av_gym.presets import compose_group
+    from av_gym.seeds import SPLITS
+    from av_gym.wrappers import GO, YIELD
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, nargs="+", required=True)
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
+    args = ap.parse_args()
+    if any(s not in SPLITS["validation"] for s in args.seeds):
+        fail(f"--seeds must be in the validation split {SPLITS['validation']}")
+    point, params = planner_point(args.set)
+    B = len(args.seeds)
+    venv = BatchedLeftTurnBatch({"name": "left_turn"}, compose_group("sensors", "turn_perceived"), None, B, pool=0)
+    obs = venv.play(iter(args.seeds))
+    planner = BeliefPlanner(params, n_rows=B, perception=venv.perception)
+    planner.reset(np.arange(B))
+    engine = venv.engine
+    choice, k = np.full(B, YIELD), np.zeros(B, dtype=int)
+    history = [[] for _ in range(B)]  # (time s, p, choice) per decision
+    pending: list = [None] * B  # the blame of each row's last decision, when it found GO unsafe
+    flips = [[] for _ in range(B)]
+    kinds: dict[str, int] = {}
+    while not venv.idle.all():
+        rows = np.flatnonzero(~venv.idle)
+        planner.read(engine, rows, obs["intent"][rows])
+        due = rows[(k[rows] % int(params.repeat) == 0) | (planner.confirm_at[rows] == k[rows])]
+        p = planner.go_collision(engine, due) if len(due) else np.zeros(0)  # the decision's own draws
+        held = choice[due].copy()
+        choice[rows] = planner.decide(engine, rows, choice[rows], k[rows])
+        for r, pr, h in zip(due, p, held):
+            history[r].append((round(float(engine.time[r]), 1), round(float(pr), 3), int(choice[r])))
+            if pr > planner.threshold and h != GO:
+                pending[r] = blame(planner, engine, int(r), float(pr))
+            elif pending[r] is not None and h != GO:
+                flips[r].append({"t": round(float(engine.time[r]), 1), "before": pending[r]})
+                name = blamed_kind(pending[r])
+                kinds[name] = kinds.get(name, 0) + 1
+                pending[r] = None
+            else:
+                pending[r] = None
+        k[rows] += 1
+        obs, _, done, infos = venv.step(meta_actions(choice, obs["turn"]))
+        for r in np.flatnonzero(done):
+            m = infos[r]["episode_metrics"]
+            print(json.dumps({"seed": infos[r]["seed"], "collision": bool(m["collision"]),
+                              "success": bool(m["success"]), "end_s": round(float(engine.time[r]), 1),
+                              "decisions": history[r], "flips": flips[r]}), flush=True)
+    print(json.dumps({"point": point, "flips_by_blamed": dict(sorted(kinds.items(), key=lambda kv: -kv[1]))}),
+          flush=True)
+
+
+if __name__ == "__main__":
+    main()
