@@ -78,6 +78,11 @@ class DaggerParams(PPOParams):
                     "sensors, e.g. turn_perceived), the oracle on a batched replica of the same episodes (left turn, "
                     "teacher kind lookahead) | per_env: the teacher on the per-env stack, one state at a time | "
                     "auto: batched on the batch, replica on the per-env left turn with the oracle, else per_env")
+    workers: int = param(1, ge=1, le=64, doc="labelling processes (vec_env=batched): each round's episode seeds in "
+                                             "this many contiguous parts, each driven and labelled on its own "
+                                             "batch of n_envs in a spawned process holding the round's student, "
+                                             "merged back into the aggregate one process gives (a row's episode "
+                                             "depends on its seed only); 1: in this process")
     train_seed: int = param(600_000, ge=0, doc="first seed of the episodes the rounds drive, in the train split "
                                                "(av_gym/seeds.py; + 50,000 x seed, folded into the split): away from "
                                                "the demonstrations (500,000+) and PPO's streams (seed + steps)")

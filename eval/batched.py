@@ -211,21 +211,18 @@ _WORKER: dict = {}  # in a worker process: its job, policy and the queue its row
 
 
 def _init_batched_worker(job: BatchedJob, rows) -> None:
+    """A worker's set-up (:class:`eval.runner.WorkerPool`): the job's agent, built once; its rows go on ``rows``."""
     import contextlib
     import io
 
     from eval.agents import make_eval_env, resolve_agent
-    from eval.runner import _single_threaded_torch, guard_worker
+    from eval.runner import _single_threaded_torch
 
-    guard_worker()
     _WORKER.update(job=job, rows=rows)
-    try:
-        env = make_eval_env(job.env, job.plan.sensors, job.plan.shield)
-        with contextlib.redirect_stdout(io.StringIO()):  # the parent already said which checkpoint it uses
-            _, _WORKER["policy"] = resolve_agent(job.plan.spec, env, job.env["name"], job.checkpoints)
-        env.close()
-    except Exception as exc:  # raised by the worker's part, so that the parent says it (a failed initializer
-        _WORKER["failed"] = exc  # only breaks the pool, without the reason)
+    env = make_eval_env(job.env, job.plan.sensors, job.plan.shield)
+    with contextlib.redirect_stdout(io.StringIO()):  # the parent already said which checkpoint it uses
+        _, _WORKER["policy"] = resolve_agent(job.plan.spec, env, job.env["name"], job.checkpoints)
+    env.close()
     _single_threaded_torch()
 
 
@@ -241,8 +238,6 @@ class _Sent:
 
 def _play_chunk(seeds: Sequence[int], n_envs: int) -> int:
     """A worker's part: ``seeds`` on one batch of ``n_envs``; its rows go back on the queue; returns their count."""
-    if "failed" in _WORKER:
-        raise _WORKER["failed"]
     job = _WORKER["job"]
     return len(play_batched(job.env, job.sensors, job.plan.shield, _WORKER["policy"], seeds, n_envs, job.label,
                             progress=False, out=_Sent(_WORKER["rows"])))
@@ -263,26 +258,20 @@ def play_batched_workers(job: BatchedJob, seeds: Sequence[int], n_envs: int, wor
     (:func:`eval.runner._stop`) and is raised here; ``out`` keeps the rows of the seeds before the first
     missing one."""
     import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
 
-    from eval.runner import _stop
+    from eval.runner import WorkerPool
 
     parts = chunks(seeds, max(1, int(workers)))
-    ctx = multiprocessing.get_context("spawn")  # as eval.runner's pool: a fork copies torch's threads half-made
-    queue = ctx.Queue()
+    queue = multiprocessing.get_context("spawn").Queue()  # the workers' context (WorkerPool spawns)
     rows: list[dict] = []
-    with ProcessPoolExecutor(max_workers=len(parts), mp_context=ctx, initializer=_init_batched_worker,
-                             initargs=(job, queue)) as pool, \
+    # leaving on Ctrl-C, SIGTERM or a failed worker stops the others now, not after their parts (WorkerPool)
+    with WorkerPool(len(parts), _init_batched_worker, (job, queue)) as pool, \
             tqdm(total=len(seeds), desc=f"eval {job.label} (batched, {len(parts)} workers)", unit="ep",
                  disable=not progress, leave=False) as bar:
-        try:
-            futures = [pool.submit(_play_chunk, part, n_envs) for part in parts]
-            _merge(queue, futures, seeds, rows, out, bar)
-            for future in futures:  # every part played whole
-                future.result()
-        except BaseException:  # Ctrl-C, SIGTERM, a failed worker: stop the others now, not after their parts
-            _stop(pool)
-            raise
+        futures = [pool.submit(_play_chunk, part, n_envs) for part in parts]
+        _merge(queue, futures, seeds, rows, out, bar)
+        for future in futures:  # every part played whole
+            future.result()
     return rows
 
 

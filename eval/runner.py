@@ -131,7 +131,6 @@ def guard_worker() -> None:
 
 
 def _init_worker(job: EpisodeJob) -> None:
-    guard_worker()
     from eval.agents import make_eval_env, resolve_agent
 
     env = make_eval_env(job.env, job.sensors, job.shield)
@@ -149,36 +148,27 @@ def run_episodes_parallel(job: EpisodeJob, seeds: Iterable[int], n_envs: int, pr
                           out: list | None = None) -> list[dict]:
     """:func:`run_episodes` over ``n_envs`` worker processes, each building ``job``'s env and policy once; rows
     in the order of ``seeds``, identical to the in-process ones (and appended to ``out`` as they come)."""
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-
     from collections import deque
     from itertools import islice
 
     total = len(seeds) if hasattr(seeds, "__len__") else None
-    # spawn, not fork: the parent may hold torch's thread pool and open renderers, which a fork copies half-made.
-    ctx = multiprocessing.get_context("spawn")
     workers = max(1, min(n_envs, total if total is not None else n_envs))
     rows = []
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
-                             initargs=(job,)) as pool, \
+    with WorkerPool(workers, _init_worker, (job,)) as pool, \
             tqdm(total=total, desc=f"eval {job.label}", unit="ep", disable=not progress, leave=False) as bar:
         # A bounded window of episodes in flight, not one future per seed up front (pool.map submits them all:
-        # episodes=10**12 would exhaust memory before the first ran). Rows come back in seed order.
+        # episodes=10**12 would exhaust memory before the first ran). Rows come back in seed order. Ctrl-C,
+        # SIGTERM or a failed episode leave the pool at once (WorkerPool), not after the queue.
         it = iter(seeds)
-        try:
-            pending = deque((int(s), pool.submit(_run_one, int(s))) for s in islice(it, 4 * workers))
-            while pending:
-                seed, future = pending.popleft()
-                rows.append({"agent": job.label, "episode": len(rows), "seed": seed, **future.result()})
-                if out is not None:
-                    out.append(rows[-1])
-                bar.update()
-                for s in islice(it, 1):
-                    pending.append((int(s), pool.submit(_run_one, int(s))))
-        except BaseException:  # Ctrl-C, SIGTERM, a failed episode: stop the workers now, not after the queue
-            _stop(pool)
-            raise
+        pending = deque((int(s), pool.submit(_run_one, int(s))) for s in islice(it, 4 * workers))
+        while pending:
+            seed, future = pending.popleft()
+            rows.append({"agent": job.label, "episode": len(rows), "seed": seed, **future.result()})
+            if out is not None:
+                out.append(rows[-1])
+            bar.update()
+            for s in islice(it, 1):
+                pending.append((int(s), pool.submit(_run_one, int(s))))
     return rows
 
 
@@ -192,3 +182,66 @@ def _stop(pool) -> None:
             process.terminate()
     for process in processes:
         process.join(timeout=5)
+
+
+_SET_UP_FAILED: list = []  # in a worker process: the exception its set-up raised, if any
+
+
+def _set_up(setup: Callable, args: tuple) -> None:
+    """A worker's initializer: :func:`guard_worker`, then ``setup(*args)``, whose exception is kept for the first
+    task to raise (a failed initializer only breaks the pool, without the reason)."""
+    guard_worker()
+    try:
+        setup(*args)
+    except Exception as exc:
+        _SET_UP_FAILED.append(exc)
+
+
+def _call(fn: Callable, *args):
+    if _SET_UP_FAILED:
+        raise _SET_UP_FAILED[0]
+    return fn(*args)
+
+
+class WorkerPool:
+    """``n`` spawned worker processes, each set up once by ``setup(*args)`` (module-level, picklable), for tasks
+    ``fn(*args)`` run there (:meth:`submit`, :meth:`parts`). Spawned, not forked: a fork copies torch's threads
+    half-made. Each worker leaves Ctrl-C to the parent and dies with it (:func:`guard_worker`); a set-up error
+    comes back as the exception of the worker's first task. Used as a context manager, or closed by
+    :meth:`close`: leaving on an exception (a worker's, Ctrl-C, SIGTERM as KeyboardInterrupt) ends every worker at
+    once (:func:`_stop`), not after its task."""
+
+    def __init__(self, n: int, setup: Callable, args: tuple = ()) -> None:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        self.n = int(n)
+        self.pool = ProcessPoolExecutor(max_workers=self.n, mp_context=multiprocessing.get_context("spawn"),
+                                        initializer=_set_up, initargs=(setup, args))
+
+    def submit(self, fn: Callable, *args):
+        """``fn(*args)`` in a worker: its future."""
+        return self.pool.submit(_call, fn, *args)
+
+    def parts(self, fn: Callable, parts: list, *args) -> list:
+        """``fn(part, *args)`` for every part at once, one worker each; their results in the order of ``parts``.
+        A part's exception stops the others (:func:`_stop`) and is raised here."""
+        futures = [self.submit(fn, part, *args) for part in parts]
+        try:
+            return [future.result() for future in futures]
+        except BaseException:
+            _stop(self.pool)
+            raise
+
+    def close(self, failed: bool = False) -> None:
+        """Let the workers end (``failed``: end them now, what is running included)."""
+        if failed:
+            _stop(self.pool)
+        else:
+            self.pool.shutdown(wait=True)
+
+    def __enter__(self) -> WorkerPool:
+        return self
+
+    def __exit__(self, kind, *_) -> None:
+        self.close(failed=kind is not None)

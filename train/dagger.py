@@ -49,7 +49,7 @@ from omegaconf import DictConfig, OmegaConf
 from conf.commands import TrainCommand, TrainOptions
 
 ROUND_FIELDS = ("round", "driver", "episodes", "labels", "wall_s", "label_s", "agreement", "drive_success",
-                "drive_collision", "fit_accuracy", "val_success", "val_collision")
+                "drive_collision", "fit_accuracy", "val_success", "val_collision", "fit_s")
 STATE_MEMBER = "av_gym_dagger.npz"  # the aggregate's labelled states, inside latest.zip
 
 
@@ -96,6 +96,9 @@ def validate(cfg: DictConfig) -> list[str]:
     except ConfigError as exc:
         return [str(exc).replace("agent.init", "agent.teacher")]
     batched = agent.vec_env == "batched"
+    if int(agent.get("workers", 1)) > 1 and not batched:
+        return [f"agent.workers={agent.workers} needs agent.vec_env=batched (each labelling process drives its part "
+                f"of a round on a batch of its own); got agent.vec_env={agent.vec_env}: use agent.workers=1"]
     if agent.labeller == "batched" and not batched:
         return ["agent.labeller=batched needs agent.vec_env=batched (the oracle runs on the batched engine)"]
     if agent.labeller == "per_env" and batched:
@@ -158,11 +161,17 @@ class Round:
     agree: list = field(default_factory=list)  # the student's own choice equals the label (or 1 - |error|)
     targets: list = field(default_factory=list)  # agent.targets=go_safe: the P(GO) fitted, per decision (else empty)
     outcomes: list = field(default_factory=list)  # (collision, success) per episode
-    label_s: float = 0.0  # wall seconds spent labelling
+    seeds: list = field(default_factory=list)  # per episode on the batch: its seed (in the order of outcomes)
+    lengths: list = field(default_factory=list)  # per episode on the batch: its decisions
+    label_s: float = 0.0  # seconds spent labelling (summed over the labelling processes, agent.workers)
 
-    def close(self, steps: list[list], info: dict, gamma: float, targets: list | None = None) -> None:
+    def close(self, steps: list[list], info: dict, gamma: float, targets: list | None = None,
+              seed: int | None = None) -> None:
         """Add one finished episode: ``steps`` as [obs, label, agree, reward] per decision, ``info`` its last,
-        ``targets`` the P(GO) to fit at each decision (agent.targets=go_safe)."""
+        ``targets`` the P(GO) to fit at each decision (agent.targets=go_safe), ``seed`` its episode seed."""
+        if seed is not None:
+            self.seeds.append(int(seed))
+            self.lengths.append(len(steps))
         self.obs += [s[0] for s in steps]
         self.targets += targets or []
         self.labels += [s[1] for s in steps]
@@ -262,9 +271,122 @@ def drive_batched(venv, model, labeller: BatchedLabels, seeds, teacher_drives: b
         for r in rows:
             episode[r][-1].append(float(rewards[r]))
             if done[r]:
-                out.close(episode[r], infos[r], gamma, targets[r] if soft else None)
+                out.close(episode[r], infos[r], gamma, targets[r] if soft else None, infos[r]["seed"])
                 episode[r], targets[r] = [], []
     return out
+
+
+# ------------------------------------------------------------------------------------------------------ labelling processes
+@dataclass(frozen=True)
+class LabelJob:
+    """What a labelling process needs to drive and label part of a round as this process would (plain, picklable):
+    the env, sensors and shield, the agent's config (the student's network, the teacher, the batch), the run's
+    seed, the labeller (:func:`labeller_of`: batched or rule) and torch's intra-op threads."""
+
+    env: dict
+    sensors: dict
+    shield: dict
+    agent: dict
+    seed: int
+    how: str
+    torch_threads: int
+
+
+_PART: dict = {}  # in a labelling process: its batch, student and labeller
+
+
+def _set_up_labeller(job: LabelJob) -> None:
+    """A labelling process's set-up (:class:`eval.runner.WorkerPool`): its batch of ``agent.n_envs``, the teacher's
+    labeller, and a student of the run's network (its weights come with each part)."""
+    import torch
+
+    from agents.batched_vec_env import BatchedLeftTurnVecEnv
+    from agents.ppo import make_ppo
+    from train.imitation import make_teacher
+
+    torch.set_num_threads(job.torch_threads)  # as the parent: a batch's matmul sums alike
+    a = job.agent
+    repeat, actions = int(a["action_repeat"]), str(a["actions"])
+    venv = BatchedLeftTurnVecEnv(job.env, job.sensors, job.shield, int(a["n_envs"]), action_repeat=repeat,
+                                 actions=actions, timeout_is_terminal=bool(a["timeout_is_terminal"]), pool=0)
+    teacher = make_teacher(str(a["teacher"]), actions, str(job.env["name"]), repeat)
+    _PART.update(venv=venv, model=make_ppo(venv, a, seed=job.seed, tensorboard_log=None, device=a["device"]),
+                 labels=BatchedLabels(venv, teacher, job.how == "batched", float(a["label_margin"])),
+                 gamma=float(a["gamma"]), soft=a["targets"] == "go_safe")
+
+
+def _drive_part(seeds: list[int], teacher_drives: bool, weights: dict) -> Round:
+    """A labelling process's part of a round: ``seeds`` driven and labelled on its batch (:func:`drive_batched`),
+    by the teacher or by the student of ``weights`` (the parent's policy's state dict)."""
+    _PART["model"].policy.load_state_dict(weights)
+    return drive_batched(_PART["venv"], _PART["model"], _PART["labels"], seeds, teacher_drives, _PART["gamma"],
+                         _PART["soft"])
+
+
+def labelling_pool(cfg: DictConfig, command: TrainCommand, how: str, workers: int):
+    """``workers`` labelling processes for :func:`drive_parts` (:class:`eval.runner.WorkerPool`), each set up
+    once for the run."""
+    from eval.runner import WorkerPool
+
+    plain = [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
+    job = LabelJob(*plain, OmegaConf.to_container(cfg.agent, resolve=True), command.seed, how,
+                   command.train.torch_threads)
+    return WorkerPool(workers, _set_up_labeller, (job,))
+
+
+def drive_parts(pool, model, seeds: list[int], teacher_drives: bool, width: int) -> Round:
+    """The round's ``seeds`` in ``pool.n`` contiguous parts (:func:`eval.batched.chunks`), each driven and
+    labelled in its own labelling process by the student ``model`` as it is now (or the teacher), merged
+    (:func:`merge_parts`) into the round that one batch of ``width`` rows gives."""
+    from eval.batched import chunks
+
+    weights = {k: v.detach().cpu().clone() for k, v in model.policy.state_dict().items()}
+    parts = pool.parts(_drive_part, chunks(seeds, pool.n), teacher_drives, weights)
+    return merge_parts(parts, seeds, width)
+
+
+def merge_parts(parts: list[Round], seeds: list[int], width: int) -> Round:
+    """The parts' episodes as one :class:`Round`, in the order in which one batch of ``width`` rows playing
+    ``seeds`` ends them (:func:`batch_order`): the aggregate, its order and the round's metrics those of one
+    process, since an episode on the batch depends on its seed only (not on its row, its batch or the episodes
+    beside it); ``label_s`` summed over the parts. A seed no part played, or played twice, is a RuntimeError."""
+    where: dict[int, tuple] = {}  # seed -> (part, first decision, decisions, episode)
+    for part in parts:
+        starts = np.concatenate([[0], np.cumsum(part.lengths, dtype=np.int64)])
+        for n, seed in enumerate(part.seeds):
+            where[seed] = (part, int(starts[n]), int(part.lengths[n]), n)
+    missing = [int(s) for s in seeds if int(s) not in where]
+    if missing or len(where) != len(seeds) or sum(len(p.seeds) for p in parts) != len(seeds):
+        raise RuntimeError(f"the labelling processes played {sum(len(p.seeds) for p in parts)} episodes for the "
+                           f"round's {len(seeds)} seeds ({len(missing)} missing, first {missing[:3]})")
+    out = Round(label_s=sum(p.label_s for p in parts))
+    for i in batch_order([where[int(s)][2] for s in seeds], width):
+        part, a, length, n = where[int(seeds[i])]
+        for name in ("obs", "labels", "agree", "returns", "targets"):  # targets: empty unless agent.targets=go_safe
+            getattr(out, name).extend(getattr(part, name)[a:a + length])
+        out.outcomes.append(part.outcomes[n])
+        out.seeds.append(int(seeds[i]))
+        out.lengths.append(length)
+    return out
+
+
+def batch_order(lengths: list[int], width: int) -> list[int]:
+    """The order in which one batch of ``width`` rows ends episodes of ``lengths`` decisions handed to it in order
+    as rows come free (``BatchedLeftTurnVecEnv.play``: the first ``width`` to rows 0, 1, ...; then each row whose
+    episode ended, lowest row first, the next one): their indices by the decision at which each ends, lower rows
+    first within a decision, as :func:`drive_batched` closes them."""
+    import heapq
+
+    heap = [(lengths[i], i, i) for i in range(min(width, len(lengths)))]  # (decision it ends at, row, episode)
+    heapq.heapify(heap)
+    order, following = [], len(heap)
+    while heap:
+        end, row, i = heapq.heappop(heap)
+        order.append(i)
+        if following < len(lengths):  # the row's next episode, from the decision after this one's last
+            heapq.heappush(heap, (end + lengths[following], row, following))
+            following += 1
+    return order
 
 
 def drive_per_env(env, model, teacher, seeds, teacher_drives: bool, gamma: float) -> Round:
@@ -481,6 +603,14 @@ class _Run:
     drive: Callable[[list, bool], Round]  # (seeds, teacher drives) → the round's labelled states
     how: str  # the labeller (labeller_of)
     validation: Callable | None  # model → (collision, success) on the validation seeds; None without
+    pool: Any = None  # agent.workers > 1: the labelling processes (eval.runner.WorkerPool)
+
+    def close(self, failed: bool) -> None:
+        """Close the stacks and end the labelling processes (``failed``: at once, a part in progress included)."""
+        for e in self.stacks:
+            e.close()
+        if self.pool is not None:
+            self.pool.close(failed)
 
 
 def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path, command: TrainCommand | None = None) -> Path:
@@ -539,14 +669,15 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path, command: TrainC
             done = k + 1
             shift(run.model, False)
             _print_round(row, new, run.validation is not None)
-    except KeyboardInterrupt:
-        _say_interrupted(done, latest, command.run_name)
+    except BaseException as exc:  # Ctrl-C, SIGTERM, an error: the labelling processes end now
+        run.close(failed=True)
+        if isinstance(exc, KeyboardInterrupt):
+            _say_interrupted(done, latest, command.run_name)
         raise
     finally:
         signal.signal(signal.SIGTERM, previous)
         writer.close()
-        for e in run.stacks:
-            e.close()
+    run.close(failed=False)
     write_text_atomic(run_dir / "rounds.csv", _csv(rows))
     shift(run.model, True)
     path = save_model_atomic(run.model, ckpt_dir / "model.zip")
@@ -565,7 +696,7 @@ def _build(cfg: DictConfig, command: TrainCommand, params, resume: bool) -> _Run
     repeat, actions = int(params.action_repeat), str(params.actions)
     teacher = make_teacher(params.teacher, actions, str(cfg.env.name), repeat)
     how = labeller_of(cfg)
-    gamma, n_envs = float(params.gamma), int(params.n_envs)
+    gamma, n_envs, pool = float(params.gamma), int(params.n_envs), None
     if how in ("batched", "rule"):
         from agents.batched_vec_env import BatchedLeftTurnVecEnv
 
@@ -589,6 +720,9 @@ def _build(cfg: DictConfig, command: TrainCommand, params, resume: bool) -> _Run
     elif how == "per_env":
         drive = lambda seeds, by_teacher: drive_per_env(env, model, teacher, seeds, by_teacher,  # noqa: E731
                                                         gamma)
+    elif int(params.workers) > 1:  # the labelling in processes of their own, each with its own batch
+        pool = labelling_pool(cfg, command, how, int(params.workers))
+        drive = lambda seeds, by_teacher: drive_parts(pool, model, seeds, by_teacher, n_envs)  # noqa: E731
     else:
         labels = BatchedLabels(env, teacher, how == "batched", params.label_margin)
         soft = params.targets == "go_safe"
@@ -603,7 +737,7 @@ def _build(cfg: DictConfig, command: TrainCommand, params, resume: bool) -> _Run
 
             at_fit_boundary(model, saved_config(params.init_from, str(cfg.env.name)))
     validation = _validation(command.train, plain, repeat, actions, how in ("batched", "rule"))
-    return _Run(model, stacks, drive, how, validation)
+    return _Run(model, stacks, drive, how, validation, pool)
 
 
 def saved_config(spec: str, scenario: str) -> dict:
@@ -656,14 +790,16 @@ def _round(run: _Run, params, data: Round, k: int, first: int, seed: int, t_star
     if at_tau:
         shift(run.model, False)
     aggregate(data, new)
+    t_fit = time.perf_counter()
     accuracy = fit(run.model, data, int(params.fit_epochs), int(params.fit_batch), float(params.fit_lr),
                    seed * 1000 + k, float(params.disagree_weight))
+    fit_s = time.perf_counter() - t_fit
     coll, succ = np.mean(new.outcomes, axis=0)
     row = {"round": k, "driver": "teacher" if by_teacher else "student", "episodes": len(new.outcomes),
            "labels": len(data.labels), "wall_s": round(time.time() - t_start, 1),
            "label_s": round(new.label_s, 1), "agreement": float(np.mean(new.agree)),
            "drive_success": float(succ), "drive_collision": float(coll), "fit_accuracy": accuracy,
-           "val_success": np.nan, "val_collision": np.nan}
+           "val_success": np.nan, "val_collision": np.nan, "fit_s": round(fit_s, 1)}
     shift(run.model, True)  # validated and saved at the operating point
     if run.validation is not None:
         row["val_collision"], row["val_success"] = run.validation(run.model)

@@ -40,8 +40,9 @@ from av_gym.atomic import LOCK, OwnedFolders, lock_holder
 from av_gym.errors import ConfigError
 
 SECTIONS = ("env", "sensors", "shield", "agent")
-# What may differ on resume: how long to train (PPO's steps, DAgger's rounds) and where, not what is trained.
-RESUME_MAY_CHANGE = ("agent.total_timesteps", "agent.rounds", "agent.device")
+# What may differ on resume: how long to train (PPO's steps, DAgger's rounds) and where, not what is trained
+# (DAgger's labelling processes give the aggregate of one).
+RESUME_MAY_CHANGE = ("agent.total_timesteps", "agent.rounds", "agent.device", "agent.workers")
 LATEST, FINAL = "latest.zip", "model.zip"  # what a resume continues; what a finished run leaves (every trainer)
 
 _held = OwnedFolders()  # the checkpoint folders this process trains
