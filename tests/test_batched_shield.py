@@ -205,25 +205,32 @@ def test_the_engine_takes_a_brake_plan_per_tick_on_both_paths(env):
 
 
 def test_the_batch_gives_each_shield_the_per_env_objects_and_accelerations(monkeypatch):
-    """Ground-truth mode: the road users' state rows, EMA accelerations and follower mask the batch computes for all
-    rows at once (``_Kinematics``, remembered per vehicle id; ``_followers``) are, at every decision, bit for bit
-    what the per-env shield's own ``_objects``, ``_accelerations`` and ``_relevant`` compute on the row (its dicts keyed by the vehicle objects), across spawns,
-    departures, the engine's compaction of its slots (vehicles change slot) and new episodes in a row. Fails with
-    the memory kept per slot instead of per vehicle, or an EMA not dropped for a vehicle that left."""
+    """Ground-truth mode: the road users' state rows, EMA accelerations, follower mask, indicator turn weights and
+    recently-moved flags the batch computes for all rows at once (``_Kinematics``, remembered per vehicle id;
+    ``_followers``; ``_Channel``, each row's generator drawn in the per-env order; ``_Moved``) are, at every
+    decision, bit for bit what the per-env shield's own ``_objects``, ``_accelerations``, ``_relevant``, ``_intent``
+    and ``_recently_moved`` compute on the row (its dicts keyed by the vehicle objects, its own generator), across
+    spawns, departures, the engine's compaction of its slots (vehicles change slot) and new episodes in a row. Fails
+    with the memory kept per slot instead of per vehicle, an EMA not dropped for a vehicle that left, the first
+    sightings' draws taken after the readings' or the channel's counts shared across rows' posteriors."""
     from av_gym.shields.aeb_base import AEBShield
     from av_gym.shields.aeb_improved import ImprovedAEB
 
     venv = _venv(3)
     row_shield = type(venv.shield.shields[0])
     own_objects, own_accels, own_relevant = row_shield._objects, row_shield._accelerations, row_shield._relevant
-    seen = {"decisions": 0, "moving": 0, "followers": 0}
+    own_intent, own_recent = row_shield._intent, row_shield._recently_moved
+    seen = {"decisions": 0, "moving": 0, "followers": 0, "read": 0, "recent": 0}
 
     def bits(a):
         return np.ascontiguousarray(a, dtype=float).view(np.int64)
 
     def objects(self, ego):
-        got, ref = own_objects(self, ego), AEBShield._objects(self, ego)
-        assert np.array_equal(bits(got[0]), bits(ref[0])) and got[1] == ref[1] and got[2] == ref[2]
+        got, lanes = own_objects(self, ego), self._lanes
+        self.env.refresh()  # the whole row, as the per-env env holds it (the batch's view reads its ego alone)
+        ref = AEBShield._objects(self, ego)
+        assert np.array_equal(bits(got[0]), bits(ref[0])) and got[1] == [v.vid for v in ref[1]] and got[2] == ref[2]
+        assert lanes == self._lanes
         return got
 
     def accelerations(self, keys, velocities, t):
@@ -239,6 +246,26 @@ def test_the_batch_gives_each_shield_the_per_env_objects_and_accelerations(monke
         seen["followers"] += int((~ref).sum())
         return got
 
+    def vehicles(self, keys):  # the row's vehicles of the batch's keys (their ids), as the per-env shield keys them
+        return [self.env._by_vid[k] for k in keys]
+
+    def intent(self, others, keys):
+        got, ref = own_intent(self, others, keys), ImprovedAEB._intent(self, others, vehicles(self, keys))
+        assert got.shape == ref.shape and np.array_equal(bits(got), bits(ref)), (got, ref)
+        seen["read"] += int(np.isfinite(ref).all(axis=1).sum())
+        return got
+
+    def recently_moved(self, others, t):
+        got, keys = own_recent(self, others, t), self._keys
+        self._keys = vehicles(self, keys)
+        ref = ImprovedAEB._recently_moved(self, others, t)
+        self._keys = keys
+        assert np.array_equal(got, ref)
+        seen["recent"] += int(ref.sum())
+        return got
+
+    monkeypatch.setattr(row_shield, "_intent", intent)
+    monkeypatch.setattr(row_shield, "_recently_moved", recently_moved)
     monkeypatch.setattr(row_shield, "_relevant", relevant)
     monkeypatch.setattr(row_shield, "_objects", objects)
     monkeypatch.setattr(row_shield, "_accelerations", accelerations)
@@ -254,6 +281,7 @@ def test_the_batch_gives_each_shield_the_per_env_objects_and_accelerations(monke
             moved += where.get(t.vid[r, slot], slot) != slot
             where[t.vid[r, slot]] = slot
     assert venv.idle.all() and seen["decisions"] > 300 and seen["moving"] > 100 and seen["followers"] > 0
+    assert seen["read"] > 300 and seen["recent"] > 100  # drivers read (weights, not NaN), cars that moved lately
     assert moved > 0  # the engine compacted slots under live vehicles: the memory followed the vehicles
 
 

@@ -38,7 +38,11 @@ from av_gym.batched.left_turn import tables
 from av_gym.envs.lane_path import LanePath
 from av_gym.envs.left_turn import ROUTE, UnprotectedLeftTurnEnv
 from av_gym.errors import ConfigError
+from av_gym.estimation.driver_intent import DriverIntent
 from av_gym.params import ParamError
+from av_gym.sensors.base import episode_rng
+from av_gym.sensors.turn_signal import (DRIVER_DRAWS, DriverDraws, first_sighting, node_index, reported,
+                                        route_origin, turn_signal)
 from av_gym.shields.aeb_params import BRAKE, STOP_SPEED, ImprovedParams
 from av_gym.sim.fast_network import FastRoadNetwork
 from av_gym.sim.batched import LENGTH, WIDTH
@@ -126,6 +130,11 @@ class RowEnv(gym.Env):
         self.objects: np.ndarray | None = None
         self.accels: np.ndarray | None = None
         self.relevant: np.ndarray | None = None
+        self.lanes: list = []  # their lane indices and keys (vehicle ids), with ``objects``
+        self.keys: list = []
+        # the indicator channel's turn weights of the kept road users, and who moved lately (ground-truth mode)
+        self.intent: np.ndarray | None = None
+        self.recent: np.ndarray | None = None
 
     def cruise_action(self):
         return self.template.cruise_action()
@@ -143,10 +152,12 @@ class RowEnv(gym.Env):
         self.refresh()
         return {}, {}
 
-    def refresh(self) -> None:
-        """Every alive vehicle of the row, in road order, as the shield reads it now."""
+    def refresh(self, ego_only: bool = False) -> None:
+        """Every alive vehicle of the row, in road order, as the shield reads it now; ``ego_only``: the ego alone
+        (``road.vehicles`` then holds only it), where the batch hands the shield its road users' rows, lanes and keys
+        (ground-truth mode: :meth:`BatchedShield._kinematics`)."""
         e, t, r = self.e, self.e.traffic, self.row
-        slots = np.flatnonzero(t.alive[r])
+        slots = np.flatnonzero(t.alive[r] & t.ego[r] if ego_only else t.alive[r])
         index = e.T.index
         by_vid, vehicles, known = {}, [], self._by_vid
         # the row's numbers as Python floats and ints at once (the same values as one element at a time)
@@ -163,7 +174,8 @@ class RowEnv(gym.Env):
             vehicles.append(v)
             if ego:
                 self._ego(v, r, i)
-        self._by_vid, self.road.vehicles = by_vid, vehicles
+        # ego alone: the vehicles read before keep their objects (a full read later updates the same ones)
+        self._by_vid, self.road.vehicles = {**known, **by_vid} if ego_only else by_vid, vehicles
 
     def _ego(self, v: _Vehicle, r: int, i: int) -> None:
         """The ego's own state: velocity, last commanded steering and acceleration, set-point, lane."""
@@ -213,9 +225,8 @@ def _row_shield_class():
             view = self.env
             if view.objects is None:
                 return super()._objects(ego)
-            vehicles = [v for v in view.road.vehicles if v is not view.vehicle]
-            self._lanes = [v.lane_index for v in vehicles]
-            return view.objects, vehicles, list(range(len(vehicles)))
+            self._lanes = view.lanes
+            return view.objects, view.keys, list(range(len(view.keys)))
 
         def _accelerations(self, keys: list, velocities: np.ndarray, t: float) -> np.ndarray:
             view = self.env
@@ -224,6 +235,14 @@ def _row_shield_class():
         def _relevant(self, ego: dict, others: np.ndarray) -> np.ndarray:
             view = self.env
             return super()._relevant(ego, others) if view.relevant is None else view.relevant
+
+        def _intent(self, others: np.ndarray, keys: list) -> np.ndarray | None:
+            view = self.env
+            return super()._intent(others, keys) if view.intent is None else view.intent
+
+        def _recently_moved(self, others: np.ndarray, t: float) -> np.ndarray | None:
+            view = self.env
+            return super()._recently_moved(others, t) if view.recent is None else view.recent
 
     return RowAEB
 
@@ -291,6 +310,98 @@ class _Kinematics:
         self.vid[rows, :S], self.prev_v[rows, :S], self.ema[rows, :S], self.has_ema[rows, :S] = vid, vel, ema, has
 
 
+class _Channel:
+    """ImprovedAEB's own indicator channel and Bayes filter (``_intent``, ground-truth mode) for every row at once:
+    per row its own generator (``episode_rng(seed, "aeb_signals")``, the per-env shield's stream) drawn as the
+    per-env shield draws it (per decision the first sightings' ``DRIVER_DRAWS`` uniforms per new driver in reading
+    order, then one per reading: one ``uniform(size=...)`` call gives the numbers of the two), the per-driver draws
+    and reading counts in arrays by vehicle id (unique in the process, so a new episode needs no clearing), the
+    intended indicator from each slot's lane and route (``intended_signal``'s rule), and each row's turn weights
+    from its kept drivers' counts in one :meth:`DriverIntent.weights` per row (the per-env grouping: a matrix
+    product's last bit may depend on how many rows it has)."""
+
+    def __init__(self, engine, params: ImprovedParams) -> None:
+        self.e, self.p = engine, params.signal_channel
+        T = engine.T
+        self.origin = np.array([route_origin(f, t) for f, t, _ in T.index])
+        self.dest = np.array([node_index(t, "o") for _, t, _ in T.index])
+        self.draws = DriverDraws()
+        self.counts = np.zeros((64, 3), dtype=np.int64)  # readings right, none, left per vehicle id
+        self.beliefs = DriverIntent(self.p)
+        self.rngs: list = [None] * engine.B
+
+    def reset(self, rows: np.ndarray) -> None:
+        for r in rows.tolist():
+            self.rngs[r] = episode_rng(int(self.e.episode_seed[r]), "aeb_signals")
+
+    def _intended(self, rows: np.ndarray) -> np.ndarray:
+        """(n, S) :func:`intended_signal` of every slot: its lane's approach and its route's last lane's exit."""
+        t = self.e.traffic
+        route = t.route[rows]
+        last = np.where(route[..., 2] >= 0, route[..., 2], np.where(route[..., 1] >= 0, route[..., 1], route[..., 0]))
+        return turn_signal(self.origin[t.lane[rows]], np.where(last >= 0, self.dest[last], -1))
+
+    def _read(self, rows: np.ndarray, vid: np.ndarray, in_range: np.ndarray) -> None:
+        """This decision's readings of the drivers ``in_range`` (n, S) of the envs ``rows``, counted."""
+        known = self.draws.get(vid)[0]
+        fresh = in_range & ~known
+        n_fresh, n_read = (DRIVER_DRAWS * fresh.sum(axis=1)).tolist(), in_range.sum(axis=1).tolist()
+        first, seen = [], []
+        for r, f, k in zip(rows.tolist(), n_fresh, n_read):
+            if k:
+                u = self.rngs[r].uniform(size=f + k)
+                first.append(u[:f])
+                seen.append(u[f:])
+        if not seen:
+            return
+        if fresh.any():
+            self.draws.keep(vid[fresh], *first_sighting(np.concatenate(first).reshape(-1, DRIVER_DRAWS), self.p))
+        _, indicates, wrong = self.draws.get(vid[in_range])
+        readings = reported(self._intended(rows)[in_range], indicates, wrong, np.concatenate(seen), self.p)
+        ids = vid[in_range]
+        if ids.max() >= len(self.counts):
+            self.counts = np.concatenate([self.counts, np.zeros((max(len(self.counts), ids.max() + 1), 3),
+                                                                  np.int64)])
+        self.counts[ids, np.where(readings < 0, 0, np.where(readings == 0, 1, 2))] += 1
+
+    def weights(self, rows: np.ndarray, state: np.ndarray, kept: np.ndarray, ego: np.ndarray) -> list[np.ndarray]:
+        """Per env of ``rows``, the turn weights (its kept road users in road order, 3) of ``_intent`` after this
+        decision's readings: ``state`` (n, S, 7) every slot's row, ``kept`` (n, S) the relevant road users, ``ego``
+        (n,) the ego's slot; NaN rows for drivers never read."""
+        t = self.e.traffic
+        vid = t.vid[rows]
+        at = np.arange(len(rows))
+        dx, dy = state[..., 0] - state[at, ego, 0][:, None], state[..., 1] - state[at, ego, 1][:, None]
+        self._read(rows, vid, kept & (dx * dx + dy * dy <= self.p.max_range**2))  # np.square(.).sum(): the same
+        ever = self.draws.get(vid)[0] & kept
+        out = []
+        for n in range(len(rows)):
+            w = np.full((int(kept[n].sum()), 3), np.nan)
+            mine = ever[n][kept[n]]
+            if mine.any():
+                w[mine] = self.beliefs.weights(self.counts[vid[n][ever[n]]])
+            out.append(w)
+        return out
+
+
+class _Moved:
+    """ImprovedAEB's ``_recently_moved`` for every row at once: when each vehicle id was last faster than
+    ``setoff_speed`` (s; -inf: never), in an array by vehicle id (unique in the process)."""
+
+    def __init__(self, params: ImprovedParams) -> None:
+        self.speed, self.window = float(params.setoff_speed), float(params.setoff_recent)
+        self.at = np.full(64, -np.inf)
+
+    def recent(self, vid: np.ndarray, state: np.ndarray, others: np.ndarray, now: np.ndarray) -> np.ndarray:
+        """(n, S): the road users ``others`` that were faster than ``setoff_speed`` within ``setoff_recent`` s of
+        ``now`` (n,) s, those moving now recorded first (the per-env order)."""
+        if vid.max(initial=0) >= len(self.at):
+            self.at = np.concatenate([self.at, np.full(max(len(self.at), vid.max() + 1), -np.inf)])
+        fast = others & (np.hypot(state[..., 2], state[..., 3]) >= self.speed)
+        self.at[vid[fast]] = np.broadcast_to(now[:, None], fast.shape)[fast]
+        return others & (now[:, None] - self.at[vid] <= self.window + 1e-9)
+
+
 def _followers(state: np.ndarray, ego: np.ndarray) -> np.ndarray:
     """ImprovedAEB._relevant's follower test for every slot of every row at once: (n, S) bool (``state`` (n, S, 7)
     :class:`_Kinematics`' rows, ``ego`` (n,) the ego's slot)."""
@@ -327,6 +438,10 @@ class BatchedShield:
         self.perception = _shield_perception(engine, params) if params.mode == "perceived" else None
         # ground truth: the road users' rows and accelerations for all rows at once (perceived: the tracks')
         self.kinematics = _Kinematics(B, params.accel_alpha) if params.mode == "ground_truth" else None
+        truth = params.mode == "ground_truth"
+        self.channel = _Channel(engine, params) if truth and params.target_model == "conflict" and params.signals \
+            else None
+        self.moved = _Moved(params) if truth and params.setoff_speed > 0 else None
         self.override = np.zeros(B, bool)
         self.steps = np.zeros(B, dtype=int)
         self.overrides: list[list[int]] = [[] for _ in range(B)]
@@ -340,6 +455,8 @@ class BatchedShield:
             self.perception.tracker.reset(rows)
         if self.kinematics is not None:
             self.kinematics.reset(rows)
+        if self.channel is not None:
+            self.channel.reset(rows)
         for r in rows.tolist():
             self.shields[r].reset()
             self.override[r], self.steps[r], self.overrides[r] = False, 0, []
@@ -349,8 +466,9 @@ class BatchedShield:
         (meta-actions, or the continuous command in [-1, 1]); returns the actions applied (the throttle cut while
         braking) and sets :attr:`override`."""
         rows = np.asarray(rows, dtype=int)
+        light = self.kinematics is not None  # its road users from _kinematics: each view reads its ego alone
         for r in rows.tolist():
-            self.views[r].refresh()
+            self.views[r].refresh(ego_only=light)
         if self.perception is not None:
             self._perceive(rows)
         else:
@@ -372,14 +490,21 @@ class BatchedShield:
         """Each row's road users (its alive slots but the ego's, in road order) and their accelerations, the ego's
         first, for its shield's ``_objects`` and ``_accelerations`` (:class:`_Kinematics`, all rows at once)."""
         state, accel = self.kinematics.update(self.e, rows)
-        t = self.e.traffic
-        alive, ego = t.alive[rows], t.ego[rows]
-        relevant = ~_followers(state, self.e.ego_slot(rows))
+        e, t = self.e, self.e.traffic
+        alive, ego, slot = t.alive[rows], t.ego[rows], e.ego_slot(rows)
+        relevant = ~_followers(state, slot)
+        others = alive & ~ego
+        now = e.ticks[rows] / float(e.config["simulation_frequency"])
+        recent = self.moved.recent(t.vid[rows], state, others, now) if self.moved is not None else None
+        intent = self.channel.weights(rows, state, others & relevant, slot) if self.channel is not None else None
+        index, lanes, vids = e.T.index, t.lane[rows], t.vid[rows]
         for n, r in enumerate(rows.tolist()):
-            view = self.views[r]
-            others = alive[n] & ~ego[n]
-            view.objects, view.relevant = state[n, others], relevant[n, others]
-            view.accels = np.concatenate([accel[n, ego[n]], accel[n, others]])
+            view, mine = self.views[r], others[n]
+            view.objects, view.relevant = state[n, mine], relevant[n, mine]
+            view.lanes, view.keys = [index[k] for k in lanes[n, mine].tolist()], vids[n, mine].tolist()
+            view.accels = np.concatenate([accel[n, ego[n]], accel[n, mine]])
+            view.recent = None if recent is None else recent[n, mine]
+            view.intent = None if intent is None else intent[n]
 
     def _env_action(self, a):
         """One env's action as the per-env env takes it: a meta-action int, or the continuous (1,) float32."""
@@ -428,7 +553,7 @@ class BatchedShield:
                 continue
             e = self.e
             if e.traffic.v[r, e.ego_slot([r])[0]] < STOP_SPEED:
-                self.views[r].refresh()
+                self.views[r].refresh(ego_only=self.kinematics is not None)
                 s._stop_position = s._front_past_line()
 
     def episode(self, r: int) -> dict:

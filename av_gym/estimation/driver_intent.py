@@ -80,7 +80,13 @@ class DriverIntent:
         out = np.full((len(keys), 3), np.nan)
         rows = [i for i, k in enumerate(keys) if k in self.counts]
         if rows:
-            marginal = self.posterior([self.counts[keys[i]] for i in rows]).reshape(-1, 3, 3).sum(axis=2)
-            marginal /= marginal.max(axis=1, keepdims=True)  # the T prior is uniform: no division by it needed
-            out[rows] = np.maximum(marginal, self.floor)
+            out[rows] = self.weights([self.counts[keys[i]] for i in rows])
         return out
+
+    def weights(self, counts) -> np.ndarray:
+        """:meth:`turn_weights`' rows for drivers read ``counts`` (N, 3: readings -1, 0, +1; N >= 1) times: (N, 3),
+        in one :meth:`posterior` of those N (a matrix product's last bit may depend on N, so callers keep
+        :meth:`turn_weights`' grouping: one call per decision with that decision's drivers)."""
+        marginal = self.posterior(counts).reshape(-1, 3, 3).sum(axis=2)
+        marginal /= marginal.max(axis=1, keepdims=True)  # the T prior is uniform: no division by it needed
+        return np.maximum(marginal, self.floor)
