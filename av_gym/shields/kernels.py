@@ -178,24 +178,44 @@ def driven_poses(data, route, limits, bins, grid_table, ids, s0, ds, speeds, xy,
 
     First every speed bin a look-up will read is checked: where one is not simulated yet, ``need[m, i]`` is set,
     nothing is computed, and the number of such bins is returned (the caller simulates them and calls again, so
-    bins are simulated lazily, the same ones as the reference's); 0 when done.
+    bins are simulated lazily, the same ones as the reference's); 0 when done (:func:`_missing_bins`,
+    :func:`_lookups`, which :func:`conflict_predict` calls with one profile per road user for its hypotheses)."""
+    H = ds.shape[0]
+    f = _bin_fractions(speeds, grid_table, bins.shape[1])
+    rows = np.arange(H)
+    missing = _missing_bins(bins, limits, ids, s0, ds, f, rows, need)
+    if missing:
+        return missing
+    _lookups(data, route, limits, bins, ids, s0, ds, f, rows, xy, hh)
+    return 0
 
-    The fractional bin ``np.clip(np.interp(speed, grid, arange(B)), 0, B - 1)`` as numpy computes it. Per bin,
-    the start distance ``d0`` (the reference's scalar ``np.interp`` on the bin's route positions, which are not
-    sorted where the simulated car switches lanes: numpy's search from guess 0 exactly) is computed once; the
-    distance and route-position searches carry their guess from slice to slice (both tables are sorted, so the
-    index found is the same from any guess)."""
-    H, K = ds.shape
-    B = bins.shape[1]
-    f = np.empty((H, K))
-    missing = 0
-    for m in range(H):
-        p = ids[m]
-        if s0[m] + (ds[m, K - 1] if K else 0.0) < limits[p, 0]:
-            continue
+
+@numba.njit(cache=True)
+def _bin_fractions(speeds, grid_table, B):
+    """(R, K) the fractional speed bin ``np.clip(np.interp(speed, grid, arange(B)), 0, B - 1)`` of each of
+    ``speeds`` (R, K) m/s, as numpy computes it."""
+    R, K = speeds.shape
+    f = np.empty((R, K))
+    for m in range(R):
         for k in range(K):
             f[m, k] = _bin_index(speeds[m, k], grid_table, B)
-            lo = int(math.floor(f[m, k]))
+    return f
+
+
+@numba.njit(cache=True)
+def _missing_bins(bins, limits, ids, s0, ds, f, rows, need):
+    """:func:`driven_poses`' check: the speed bins look-up m (profile row ``rows[m]`` of ``ds`` and the bin
+    fractions ``f``) reads that its path lacks, flagged in ``need[m]``; their count (look-ups wholly before their
+    path's table read none)."""
+    H, K = ids.shape[0], ds.shape[1]
+    B = bins.shape[1]
+    missing = 0
+    for m in range(H):
+        p, q = ids[m], rows[m]
+        if s0[m] + (ds[q, K - 1] if K else 0.0) < limits[p, 0]:
+            continue
+        for k in range(K):
+            lo = int(math.floor(f[q, k]))
             hi = min(lo + 1, B - 1)
             if bins[p, lo, 1] == 0 and not need[m, lo]:
                 need[m, lo] = True
@@ -203,27 +223,39 @@ def driven_poses(data, route, limits, bins, grid_table, ids, s0, ds, speeds, xy,
             if bins[p, hi, 1] == 0 and not need[m, hi]:
                 need[m, hi] = True
                 missing += 1
-    if missing:
-        return missing
+    return missing
+
+
+@numba.njit(cache=True)
+def _lookups(data, route, limits, bins, ids, s0, ds, f, rows, xy, hh):
+    """:func:`driven_poses`' look-ups, every bin present: look-up m from ``s0[m]`` along the distances ``ds[rows[m]]``
+    with the bin fractions ``f[rows[m]]`` (rows: the look-ups of one road user's hypotheses share its profile).
+
+    Per bin, the start distance ``d0`` (the reference's scalar ``np.interp`` on the bin's route positions, which are
+    not sorted where the simulated car switches lanes: numpy's search from guess 0 exactly) is computed once; the
+    distance and route-position searches carry their guess from slice to slice (both tables are sorted, so the
+    index found is the same from any guess)."""
+    H, K = ids.shape[0], ds.shape[1]
+    B = bins.shape[1]
     d0s = np.empty(B)
     have = np.zeros(B, dtype=np.bool_)
     guess = np.zeros(B, dtype=np.int64)
     for m in range(H):
-        p = ids[m]
+        p, q = ids[m], rows[m]
         ro, rn, sm = route[p, 0], route[p, 1], s0[m]
         s_start, r_len = limits[p, 0], limits[p, 1]
         rg = 0
-        if sm + (ds[m, K - 1] if K else 0.0) < s_start:  # the whole prediction before the table
+        if sm + (ds[q, K - 1] if K else 0.0) < s_start:  # the whole prediction before the table
             for k in range(K):
-                x, y, h, rg = _route_pose(data, ro, rn, r_len, sm + ds[m, k], rg)
+                x, y, h, rg = _route_pose(data, ro, rn, r_len, sm + ds[q, k], rg)
                 xy[m, k, 0], xy[m, k, 1], hh[m, k] = x, y, h
             continue
         have[:] = False
         guess[:] = 0
         for k in range(K):
-            lo = int(math.floor(f[m, k]))
+            lo = int(math.floor(f[q, k]))
             hi = min(lo + 1, B - 1)
-            w = f[m, k] - lo
+            w = f[q, k] - lo
             ax, ay, ah = 0.0, 0.0, 0.0
             for r in range(2):
                 i = lo if r == 0 else hi
@@ -239,7 +271,7 @@ def driven_poses(data, route, limits, bins, grid_table, ids, s0, ds, speeds, xy,
                         j0 = _search(sm, data, bo + 4 * bn, bn, 0) if sm == sm and bn > 1 else 0
                         d0s[i] = _at(sm, j0, data, bo + 4 * bn, bo, bn) + (past if not (0.0 > past) else 0.0)
                     have[i] = True
-                d = d0s[i] + ds[m, k]
+                d = d0s[i] + ds[q, k]
                 if d >= s_start and d <= d_last:  # on the driven table
                     j = _search(d, data, bo, bn, guess[i]) if bn > 1 else 0
                     guess[i] = max(j, 0)
@@ -255,7 +287,6 @@ def driven_poses(data, route, limits, bins, grid_table, ids, s0, ds, speeds, xy,
                 ay += wi * y
                 ah += wi * h
             xy[m, k, 0], xy[m, k, 1], hh[m, k] = ax, ay, ah
-    return 0
 
 
 # ----------------------------------------------------------------------------------------------- footprint test
@@ -539,16 +570,16 @@ def conflict_predict(others, speeds, phis, lane_row, lanes, hyp_off, hyp_n, hyp_
     owner, is_map, prob = np.empty(H, np.int64), np.empty(H, np.bool_), np.empty(H)
     if n:
         dist, v_path = along_profiles(v_on[:n_on], a_on[:n_on], t, accel_time)
-        ds, sp = np.empty((n, K)), np.empty((n, K))
         ids = np.empty(n, np.int64)
-        for h in range(n):  # dist[rows], v_path[rows]: each hypothesis its object's profiles
-            ds[h] = dist[rows[h]]
-            sp[h] = v_path[rows[h]]
+        for h in range(n):
             ids[h] = hyp_ids[hyp[h]]
+        # driven_poses with each hypothesis on its road user's profiles (rows), their bin fractions once per road user
+        f = _bin_fractions(v_path, grid_table, bins.shape[1])
         pxy, phh = np.empty((n, K, 2)), np.empty((n, K))
-        missing = driven_poses(data, route, limits, bins, grid_table, ids, starts[:n], ds, sp, pxy, phh, need)
+        missing = _missing_bins(bins, limits, ids, starts[:n], dist, f, rows[:n], need)
         if missing:
             return missing, hyp[:n], xy, hh, owner, is_map, prob
+        _lookups(data, route, limits, bins, ids, starts[:n], dist, f, rows[:n], pxy, phh)
         for h in range(n):
             for k in range(K):
                 xy[k, h, 0], xy[k, h, 1], hh[k, h] = pxy[h, k, 0], pxy[h, k, 1], phh[h, k]
