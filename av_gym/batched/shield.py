@@ -156,14 +156,18 @@ class RowEnv(gym.Env):
         """Every alive vehicle of the row, in road order, as the shield reads it now; ``ego_only``: the ego alone
         (``road.vehicles`` then holds only it), where the batch hands the shield its road users' rows, lanes and keys
         (ground-truth mode: :meth:`BatchedShield._kinematics`)."""
-        e, t, r = self.e, self.e.traffic, self.row
+        t, r = self.e.traffic, self.row
         slots = np.flatnonzero(t.alive[r] & t.ego[r] if ego_only else t.alive[r])
-        index = e.T.index
-        by_vid, vehicles, known = {}, [], self._by_vid
         # the row's numbers as Python floats and ints at once (the same values as one element at a time)
-        columns = zip(slots.tolist(), t.vid[r, slots].tolist(), t.x[r, slots].tolist(), t.y[r, slots].tolist(),
+        self.read(zip(slots.tolist(), t.vid[r, slots].tolist(), t.x[r, slots].tolist(), t.y[r, slots].tolist(),
                       t.v[r, slots].tolist(), t.h[r, slots].tolist(), t.lane[r, slots].tolist(),
-                      t.route[r, slots].tolist(), t.ego[r, slots].tolist())
+                      t.route[r, slots].tolist(), t.ego[r, slots].tolist()), ego_only)
+
+    def read(self, columns, ego_only: bool = False) -> None:
+        """The vehicles of ``columns`` (per vehicle: slot, id, x, y, speed, heading, lane id, route lane ids, is the
+        ego; Python numbers, road order) as :meth:`refresh` reads them."""
+        index, r = self.e.T.index, self.row
+        by_vid, vehicles, known = {}, [], self._by_vid
         for i, vid, x, y, speed, heading, lane, route, ego in columns:
             v = known.get(vid) or _Vehicle(vid)
             v.position = np.array([x, y])
@@ -466,9 +470,11 @@ class BatchedShield:
         (meta-actions, or the continuous command in [-1, 1]); returns the actions applied (the throttle cut while
         braking) and sets :attr:`override`."""
         rows = np.asarray(rows, dtype=int)
-        light = self.kinematics is not None  # its road users from _kinematics: each view reads its ego alone
-        for r in rows.tolist():
-            self.views[r].refresh(ego_only=light)
+        if self.kinematics is not None:  # its road users from _kinematics: each view reads its ego alone
+            self._read_egos(rows)
+        else:
+            for r in rows.tolist():
+                self.views[r].refresh()
         if self.perception is not None:
             self._perceive(rows)
         else:
@@ -485,6 +491,20 @@ class BatchedShield:
                 applied[r] = np.asarray(s._throttle_cut(action)).reshape(-1)[0]
         self.steps[rows] += 1
         return applied
+
+    def _read_egos(self, rows: np.ndarray) -> None:
+        """:meth:`RowEnv.refresh` with ``ego_only`` for the envs ``rows``, their egos' numbers read for all at once."""
+        t = self.e.traffic
+        slot = self.e.ego_slot(rows)
+        columns = zip(slot.tolist(), t.vid[rows, slot].tolist(), t.x[rows, slot].tolist(), t.y[rows, slot].tolist(),
+                      t.v[rows, slot].tolist(), t.h[rows, slot].tolist(), t.lane[rows, slot].tolist(),
+                      t.route[rows, slot].tolist(), t.alive[rows, slot].tolist())
+        for r, (i, vid, x, y, speed, heading, lane, route, alive) in zip(rows.tolist(), columns):
+            view = self.views[r]
+            if alive:
+                view.read([(i, vid, x, y, speed, heading, lane, route, True)], ego_only=True)
+            else:  # no ego on the road (refresh finds none)
+                view.refresh(ego_only=True)
 
     def _kinematics(self, rows: np.ndarray) -> None:
         """Each row's road users (its alive slots but the ego's, in road order) and their accelerations, the ego's
