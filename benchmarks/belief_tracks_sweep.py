@@ -3,7 +3,7 @@ costs": how belief_tracks' parameters were chosen).
 
     python benchmarks/belief_tracks_sweep.py --episodes 300 --set tentative=road_user
 
-Plays ``--episodes`` validation seeds from ``--seed`` (default 1,000,000) with :class:`agents.belief.BeliefLookahead`
+Plays ``--episodes`` validation seeds from ``--seed`` (default 1,000,000; or the ``--seeds`` listed) with :class:`agents.belief.BeliefLookahead`
 on ``sensors=turn_perceived`` (``--set key=value``: BeliefLookaheadParams fields, e.g. ``unseen=2 samples=32``),
 ``--n-envs`` at a time, and prints one JSON line: the point, collision and success rates, the seeds that collided
 and those that did not arrive (for paired comparisons of points on the same seeds), wall and CPU seconds and the
@@ -56,13 +56,15 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=SPLITS["validation"].start)
     ap.add_argument("--n-envs", type=int, default=300)
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--seeds", type=int, nargs="+", default=None, help="these validation seeds instead of --seed and "
+                    "--episodes (e.g. the episodes two points ended differently)")
     ap.add_argument("--rows", default=None, metavar="PATH", help="every episode's row as CSV (a new file)")
     args = ap.parse_args()
     if args.rows and Path(args.rows).exists():
         fail(f"--rows {args.rows} exists: choose another file (results are never overwritten)")
-    seeds = range(args.seed, args.seed + args.episodes)
-    if args.episodes < 1 or seeds[0] not in SPLITS["validation"] or seeds[-1] not in SPLITS["validation"]:
-        fail(f"--seed/--episodes must stay in the validation split {SPLITS['validation']}")
+    seeds = args.seeds or range(args.seed, args.seed + args.episodes)
+    if len(seeds) < 1 or any(s not in SPLITS["validation"] for s in (min(seeds), max(seeds))):
+        fail(f"--seed/--episodes/--seeds must stay in the validation split {SPLITS['validation']}")
     point, params = planner_point(args.set)
     t0, c0 = time.time(), time.process_time()
     rows = play_batched({"name": "left_turn"}, compose_group("sensors", "turn_perceived"), None,
@@ -72,7 +74,7 @@ def main() -> None:
         from av_gym.atomic import csv_text, write_text_atomic
 
         write_text_atomic(args.rows, csv_text(rows), "--rows")
-    print(json.dumps({"point": point, "episodes": n, "seed": args.seed,
+    print(json.dumps({"point": point, "episodes": n, "seed": seeds[0],
                       "collision": sum(r["collision"] for r in rows) / n, "success": sum(r["success"] for r in rows) / n,
                       "collided": [r["seed"] for r in rows if r["collision"]],
                       "not_arrived": [r["seed"] for r in rows if not r["success"]], "wall_s": round(time.time() - t0, 1),
