@@ -530,8 +530,9 @@ def test_confirm_risk_counts_a_marginal_decision_but_not_a_risky_one():
 
 def test_confirm_after_confirms_a_safe_go_sooner():
     """``confirm`` 2 with ``confirm_after`` 2: a GO found safe at step 5 (after a risky decision at 0) is decided
-    again at step 7, not 10, and goes if still safe there (row 0); found risky there (row 1), the row waits for its
-    regular decision at 10. No decision between (step 6). Without ``confirm_after`` the GO waits for step 10."""
+    again at step 7, not 10, and goes if still safe there (the first row); found risky there (the second), it waits
+    for its regular decision at 10. No decision between (step 6). Without ``confirm_after`` the GO waits for step
+    10."""
     p_at = {0: [1.0, 1.0], 5: [0.0, 0.0], 7: [0.0, 0.5], 10: [0.0, 0.0]}
     for after, want in ((2, {7: [GO, YIELD], 10: [GO, YIELD]}), (0, {7: [YIELD, YIELD], 10: [GO, GO]})):
         planner = BeliefPlanner(BeliefLookaheadParams(confirm=2, confirm_after=after), n_rows=2)
