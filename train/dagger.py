@@ -20,9 +20,12 @@ fine-tune it. The teacher is any agent of a TEACHERS kind (``agent.teacher``). T
   replica of their episodes, which the oracle labels all at once (:func:`drive_replica`); else one stack, the
   teacher labelling one state at a time.
 
+On the batch, ``agent.workers=N`` drives and labels each round's seeds in N spawned processes, one contiguous part
+each (:func:`drive_parts`), merged into the aggregate one process gives (:func:`merge_parts`).
+
 Per round: a progress line, TensorBoard scalars (``run_dir/tb/<name>``), ``rounds.csv`` (labels, wall-clock, the
-student's agreement with the teacher on its own states, its success/collision while driving and on the validation
-seeds) and an atomic ``latest.zip``; ``best.zip`` holds the best validation (success - collision); ``model.zip``
+seconds spent labelling and refitting, the student's agreement with the teacher on its own states, its
+success/collision while driving and on the validation seeds) and an atomic ``latest.zip``; ``best.zip`` holds the best validation (success - collision); ``model.zip``
 the last round.
 
 Resumable at round granularity (a stopped run restarted at round 0 and overwrote its files):
