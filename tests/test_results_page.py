@@ -164,3 +164,17 @@ def test_a_lane_keeping_folder_gets_pilotnets_line_over_seeds_for_its_metrics(tm
     assert 0.04 < lo < 0.06 < hi < 0.08
     headline = _rows(quoted_block(text, "the page"), "| pilotnet, IQM of 5 seeds")[0]
     assert headline[1:5] == ["lane keeping, layout B", "test", "5", "5 \u00d7 20"]
+
+
+def test_seeds_driven_from_another_sensor_preset_are_their_own_method(tmp_path):
+    """The truth student and its seed 2, each also driven from perceived features (``@turn_perceived``), in one
+    folder: two methods of two seeds each, the preset's rows never averaged into the plain student's line."""
+    results = tmp_path / "results"
+    seed2 = "checkpoints/reference/seeds/dagger_turn/s2"
+    _seeds_folder(results, "lt", {"dagger_turn": [0] * 4, seed2: [0] * 4, "dagger_turn@turn_perceived": [1] * 4,
+                                  seed2 + "@turn_perceived": [1, 1, 0, 0]})
+    section = page(load_all(results))
+    section = section[section.index("## lt"):]
+    assert _rows(section, "| dagger_turn, mean of 2 seeds")[0][3].startswith("0.000 [")
+    assert _rows(section, "| dagger_turn@turn_perceived, mean of 2 seeds")[0][3].startswith("0.750 [")
+    assert len(_rows(section, "| dagger_turn@turn_perceived, IQM of 2 seeds")) == 1
