@@ -14,7 +14,6 @@ causes. The choices are the planner's own (``decide``: ``commit``, ``confirm``, 
 
 from __future__ import annotations
 
-import argparse
 import copy
 import json
 import sys
@@ -23,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # the checkout's agents/ and eval/
-from belief_tracks_sweep import fail, planner_point  # noqa: E402  (this folder is sys.path[0] when run as a script)
+from belief_tracks_sweep import traced_batch  # noqa: E402  (this folder is sys.path[0] when run as a script)
 
 SWAPS = {"pos": ("x", "y", "h"), "v": ("v", "target"), "acc": ("acc",), "lane": ("lane", "tlane", "route0")}
 
@@ -163,24 +162,11 @@ def cause(record: dict) -> str:
 
 
 def main() -> None:
-    from agents.belief import BeliefPlanner
-    from av_gym.batched.vec_env import BatchedLeftTurnBatch, meta_actions
-    from av_gym.presets import compose_group
-    from av_gym.seeds import SPLITS
+    from av_gym.batched.vec_env import meta_actions
     from av_gym.wrappers import GO, YIELD
 
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", type=int, nargs="+", required=True)
-    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
-    args = ap.parse_args()
-    if any(s not in SPLITS["validation"] for s in args.seeds):
-        fail(f"--seeds must be in the validation split {SPLITS['validation']}")
-    point, params = planner_point(args.set)
-    B = len(args.seeds)
-    venv = BatchedLeftTurnBatch({"name": "left_turn"}, compose_group("sensors", "turn_perceived"), None, B, pool=0)
-    obs = venv.play(iter(args.seeds))
-    planner = BeliefPlanner(params, n_rows=B, perception=venv.perception)
-    planner.reset(np.arange(B))
+    point, params, venv, obs, planner = traced_batch(__doc__.splitlines()[0])
+    B = venv.num_envs
     engine = venv.engine
     choice, k = np.full(B, YIELD), np.zeros(B, dtype=int)
     history = [[] for _ in range(B)]  # (time s, choice, p) per decision

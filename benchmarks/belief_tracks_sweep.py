@@ -45,6 +45,32 @@ def planner_point(pairs: list[str]):
         fail(str(exc).splitlines()[0])
 
 
+def traced_batch(description: str):
+    """The set-up the tracing tools share (belief_tracks_diagnose, belief_tracks_confirm): ``--seeds`` (validation
+    seeds, one batch row each) and ``--set``; returns (the point's mapping, its params, the batch, its first
+    observations, a BeliefPlanner reset on every row)."""
+    import numpy as np
+
+    from agents.belief import BeliefPlanner
+    from av_gym.batched.vec_env import BatchedLeftTurnBatch
+    from av_gym.presets import compose_group
+    from av_gym.seeds import SPLITS
+
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("--seeds", type=int, nargs="+", required=True)
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
+    args = ap.parse_args()
+    if any(s not in SPLITS["validation"] for s in args.seeds):
+        fail(f"--seeds must be in the validation split {SPLITS['validation']}")
+    point, params = planner_point(args.set)
+    B = len(args.seeds)
+    venv = BatchedLeftTurnBatch({"name": "left_turn"}, compose_group("sensors", "turn_perceived"), None, B, pool=0)
+    obs = venv.play(iter(args.seeds))
+    planner = BeliefPlanner(params, n_rows=B, perception=venv.perception)
+    planner.reset(np.arange(B))
+    return point, params, venv, obs, planner
+
+
 def main() -> None:
     from agents.belief import BeliefLookahead
     from av_gym.presets import compose_group
