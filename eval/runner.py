@@ -226,8 +226,13 @@ class WorkerPool:
     def parts(self, fn: Callable, parts: list, *args) -> list:
         """``fn(part, *args)`` for every part at once, one worker each; their results in the order of ``parts``.
         A part's exception stops the others (:func:`_stop`) and is raised here."""
+        from concurrent.futures import FIRST_EXCEPTION, wait
+
         futures = [self.submit(fn, part, *args) for part in parts]
-        try:
+        try:  # the first part to fail stops the others at once, not after the parts before it have finished
+            done, _ = wait(futures, return_when=FIRST_EXCEPTION)
+            for future in (f for f in futures if f in done and f.exception() is not None):
+                raise future.exception()
             return [future.result() for future in futures]
         except BaseException:
             _stop(self.pool)

@@ -498,12 +498,12 @@ class BatchedShield:
         slot = self.e.ego_slot(rows)
         columns = zip(slot.tolist(), t.vid[rows, slot].tolist(), t.x[rows, slot].tolist(), t.y[rows, slot].tolist(),
                       t.v[rows, slot].tolist(), t.h[rows, slot].tolist(), t.lane[rows, slot].tolist(),
-                      t.route[rows, slot].tolist(), t.alive[rows, slot].tolist())
+                      t.route[rows, slot].tolist(), (t.alive[rows, slot] & t.ego[rows, slot]).tolist())
         for r, (i, vid, x, y, speed, heading, lane, route, alive) in zip(rows.tolist(), columns):
             view = self.views[r]
             if alive:
                 view.read([(i, vid, x, y, speed, heading, lane, route, True)], ego_only=True)
-            else:  # no ego on the road (refresh finds none)
+            else:  # no ego on the road (argmax's slot 0 is then no ego; refresh finds none)
                 view.refresh(ego_only=True)
 
     def _kinematics(self, rows: np.ndarray) -> None:
