@@ -41,7 +41,7 @@ from av_gym.errors import ConfigError
 from av_gym.estimation.driver_intent import DriverIntent
 from av_gym.params import ParamError
 from av_gym.sensors.base import episode_rng
-from av_gym.sensors.turn_signal import (DRIVER_DRAWS, DriverDraws, first_sighting, node_index, reported,
+from av_gym.sensors.turn_signal import (DRIVER_DRAWS, DriverDraws, first_sighting, fit_ids, node_index, reported,
                                         route_origin, turn_signal)
 from av_gym.shields.aeb_params import BRAKE, STOP_SPEED, ImprovedParams
 from av_gym.sim.fast_network import FastRoadNetwork
@@ -363,9 +363,7 @@ class _Channel:
         _, indicates, wrong = self.draws.get(vid[in_range])
         readings = reported(self._intended(rows)[in_range], indicates, wrong, np.concatenate(seen), self.p)
         ids = vid[in_range]
-        if ids.max() >= len(self.counts):
-            self.counts = np.concatenate([self.counts, np.zeros((max(len(self.counts), ids.max() + 1), 3),
-                                                                  np.int64)])
+        self.counts = fit_ids(self.counts, ids, 0)
         self.counts[ids, np.where(readings < 0, 0, np.where(readings == 0, 1, 2))] += 1
 
     def weights(self, rows: np.ndarray, state: np.ndarray, kept: np.ndarray, ego: np.ndarray) -> list[np.ndarray]:
@@ -399,8 +397,7 @@ class _Moved:
     def recent(self, vid: np.ndarray, state: np.ndarray, others: np.ndarray, now: np.ndarray) -> np.ndarray:
         """(n, S): the road users ``others`` that were faster than ``setoff_speed`` within ``setoff_recent`` s of
         ``now`` (n,) s, those moving now recorded first (the per-env order)."""
-        if vid.max(initial=0) >= len(self.at):
-            self.at = np.concatenate([self.at, np.full(max(len(self.at), vid.max() + 1), -np.inf)])
+        self.at = fit_ids(self.at, vid, -np.inf)
         fast = others & (np.hypot(state[..., 2], state[..., 3]) >= self.speed)
         self.at[vid[fast]] = np.broadcast_to(now[:, None], fast.shape)[fast]
         return others & (now[:, None] - self.at[vid] <= self.window + 1e-9)

@@ -120,6 +120,17 @@ def draws_needed(in_range: np.ndarray, new: np.ndarray) -> np.ndarray:
     return np.where(in_range, 1 + DRIVER_DRAWS * new, 0)
 
 
+def fit_ids(array: np.ndarray, ids: np.ndarray, fill) -> np.ndarray:
+    """``array`` (indexed by driver row or vehicle id along its first axis) long enough to index ``ids``: itself,
+    or a copy grown with ``fill`` to at least twice its length (a growing id costs amortised O(1))."""
+    top = int(np.max(ids, initial=-1))
+    if top < len(array):
+        return array
+    grown = np.full((max(top + 1, 2 * len(array), 64), *array.shape[1:]), fill, dtype=array.dtype)
+    grown[: len(array)] = array
+    return grown
+
+
 class DriverDraws:
     """The channel's per-driver draws (does the driver indicate? the wrong side?), made at a driver's first reading
     and kept for the episode: arrays by driver row, one representation for the per-env sensor, the batched stack
@@ -143,12 +154,8 @@ class DriverDraws:
     def get(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(drawn already, indicates, indicates the wrong side) of the drivers ``rows`` (any shape)."""
         rows = np.asarray(rows, dtype=int)
-        if rows.size and rows.max() >= len(self.known):
-            size = max(int(rows.max()) + 1, 2 * len(self.known), 64)
-            for name in ("known", "indicates", "wrong"):
-                grown = np.zeros(size, bool)
-                grown[: len(getattr(self, name))] = getattr(self, name)
-                setattr(self, name, grown)
+        self.known, self.indicates, self.wrong = (fit_ids(a, rows, False)
+                                                  for a in (self.known, self.indicates, self.wrong))
         return self.known[rows], self.indicates[rows], self.wrong[rows]
 
     def keep(self, rows: np.ndarray, indicates: np.ndarray, wrong: np.ndarray) -> None:
