@@ -274,14 +274,8 @@ class BeliefPlanner:
         ``confirm_after`` steps after a GO found safe but not yet confirmed."""
         rows, choice = np.asarray(rows, dtype=int), np.array(choice, copy=True)
         step = np.broadcast_to(np.asarray(step), rows.shape)
-        due = (step % int(self.params.repeat) == 0) | (self.confirm_at[rows] == step)
-        if self.params.commit == "go":
-            due &= choice != GO
-        elif self.params.commit == "stop" and due.any():
-            final = np.zeros(len(rows), bool)
-            final[due] = self.committed(engine, rows[due], choice[due])
-            choice[final] = GO
-            due &= ~final
+        due, final = self.live(engine, rows, choice, step)
+        choice[final] = GO
         if due.any():
             r, held = rows[due], choice[due]
             p = self.go_collision(engine, r)
@@ -294,6 +288,20 @@ class BeliefPlanner:
                 new[ask] = self.label_of(p)
             choice[due] = new
         return choice
+
+    def live(self, engine, rows: np.ndarray, choice: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(due, final) masks over ``rows`` at env steps ``step`` (their held choices ``choice``): which rows decide
+        now (every ``repeat`` steps, or at their early confirming step) and whose GO is final instead (``commit``:
+        go, once GO; stop, once the ego is past the line or too fast to stop before it); a final row does not
+        decide."""
+        due = (step % int(self.params.repeat) == 0) | (self.confirm_at[rows] == step)
+        final = np.zeros(len(rows), bool)
+        if self.params.commit == "go":
+            due &= choice != GO
+        elif self.params.commit == "stop" and due.any():
+            final[due] = self.committed(engine, rows[due], choice[due])
+            due &= ~final
+        return due, final
 
     def confirmed(self, rows: np.ndarray, p: np.ndarray) -> np.ndarray:
         """The choices of ``rows`` at a decision whose GO collision probabilities (:meth:`go_collision`) are

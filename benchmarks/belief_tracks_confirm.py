@@ -10,7 +10,10 @@ after one that did not (a *flip*: where ``confirm`` 2 holds a GO that ``confirm`
 decision unsafe: each road user without which its futures were safer (GO's collision probability without it),
 with its distance from the ego (m), its speed (m/s), whether the track was tentative, the kind of its lane
 (approach, crossing, exit) and, on an approach, its time to the stop line at its speed (s); and whether the unseen
-traffic's prior alone made it unsafe. The last line counts the flips by the blamed road user's kind."""
+traffic's prior alone made it unsafe; and each such road user's track against its simulator vehicle (its detections
+so far, its filter's speed sd, the true speed, and GO's collision probability with the track's state the
+simulator's). Only live decisions are logged (a row whose GO ``commit`` made final decides nothing). The last line
+counts the flips by the blamed road user's kind and by whether its true state would have made GO safe."""
 
 from __future__ import annotations
 
@@ -22,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # the checkout's agents/ and eval/
+from belief_tracks_diagnose import SWAPS, _match, _swapped  # noqa: E402
 from belief_tracks_sweep import traced_batch  # noqa: E402  (this folder is sys.path[0] when run as a script)
 
 LANE_KINDS = ("approach", "crossing", "exit")
@@ -51,10 +55,14 @@ def blame(planner, engine, r: int, p: float) -> dict:
     t = te.traffic
     ex, ey = t.x[r, 0], t.y[r, 0]
     out = {"p": round(p, 3), "p_no_unseen": round(_without(planner, engine, r, None), 3), "users": []}
+    matched = _match(te, engine, r)
+    tracker = planner.tracks.perception.tracker
     for j in np.flatnonzero(t.alive[r] & ~t.ego[r]):
         q = _without(planner, engine, r, int(j))
         if q >= p:
             continue
+        i, dist = matched.get(int(j), (-1, np.inf))
+        k = np.flatnonzero(tracker.id[r, : tracker.n[r]] == t.vid[r, j] - 1)
         kind = int(planner.tracks.lane_kind[t.lane[r, j]])
         v = float(t.v[r, j])
         lane = t.lane[r, j]
@@ -64,7 +72,16 @@ def blame(planner, engine, r: int, p: float) -> dict:
                                                                                          t.y[r, j] - ey)), 1),
                              "v": round(v, 2), "tentative": bool(planner.tracks.tent[r, j]),
                              "lane": LANE_KINDS[kind],
-                             "to_line_s": round(to_line / max(v, 0.1), 1) if kind == 0 else None})
+                             "to_line_s": round(to_line / max(v, 0.1), 1) if kind == 0 else None,
+                             # the track against its simulator vehicle: its detections so far, its filter's speed
+                             # sd along its heading (m/s), the true speed, and GO's collision probability with the
+                             # track's whole state (place, heading, speed, acceleration, lane) the simulator's
+                             "hits": int(tracker.hits[r, k[0]]) if len(k) else None,
+                             "sd_v": round(float(np.sqrt(max(planner.tracks.along[r, j, 1, 1], 0.0))), 2),
+                             "v_true": round(float(engine.traffic.v[r, i]), 2) if i >= 0 else None,
+                             "err_m": round(dist, 2),
+                             "p_true_state": round(_swapped(planner, engine, r, int(j), i, sum(SWAPS.values(), ())),
+                                                   3) if i >= 0 else None})
     return out
 
 
@@ -76,6 +93,19 @@ def blamed_kind(b: dict) -> str:
     u = min(b["users"], key=lambda x: x["p_without"])
     near = "" if u["lane"] != "approach" else (" < 3 s" if (u["to_line_s"] or 0) < 3 else " >= 3 s")
     return f"{'tentative' if u['tentative'] else 'confirmed'} on {u['lane']}{near}"
+
+
+def state_kind(b: dict, threshold: float) -> str:
+    """Whether the road user most to blame for a flip's earlier unsafe decision was unsafe by its track's error:
+    with its track's state the simulator's, GO was safe there (a track off its car), or still unsafe (the car
+    itself); young: a track of at most 4 detections."""
+    if not b["users"]:
+        return "no road user"
+    u = min(b["users"], key=lambda x: x["p_without"])
+    if u["p_true_state"] is None:
+        return "no car matched"
+    age = "young" if (u["hits"] or 0) <= 4 else "older"
+    return f"{age} track, {'safe' if u['p_true_state'] <= threshold + 1e-12 else 'unsafe'} with its true state"
 
 
 def main() -> None:
@@ -90,10 +120,12 @@ def main() -> None:
     pending: list = [None] * B  # the blame of each row's last decision, when it found GO unsafe
     flips = [[] for _ in range(B)]
     kinds: dict[str, int] = {}
+    states: dict[str, int] = {}
     while not venv.idle.all():
         rows = np.flatnonzero(~venv.idle)
         planner.read(engine, rows, obs["intent"][rows])
-        due = rows[(k[rows] % int(params.repeat) == 0) | (planner.confirm_at[rows] == k[rows])]
+        live, _ = planner.live(engine, rows, choice[rows], k[rows])
+        due = rows[live]  # the rows that decide now (a row whose GO ``commit`` made final does not)
         p = planner.go_collision(engine, due) if len(due) else np.zeros(0)  # the decision's own draws
         held = choice[due].copy()
         choice[rows] = planner.decide(engine, rows, choice[rows], k[rows])
@@ -105,6 +137,8 @@ def main() -> None:
                 flips[r].append({"t": round(float(engine.time[r]), 1), "before": pending[r]})
                 name = blamed_kind(pending[r])
                 kinds[name] = kinds.get(name, 0) + 1
+                name = state_kind(pending[r], planner.threshold)
+                states[name] = states.get(name, 0) + 1
                 pending[r] = None
             else:
                 pending[r] = None
@@ -115,8 +149,8 @@ def main() -> None:
             print(json.dumps({"seed": infos[r]["seed"], "collision": bool(m["collision"]),
                               "success": bool(m["success"]), "end_s": round(float(engine.time[r]), 1),
                               "decisions": history[r], "flips": flips[r]}), flush=True)
-    print(json.dumps({"point": point, "flips_by_blamed": dict(sorted(kinds.items(), key=lambda kv: -kv[1]))}),
-          flush=True)
+    print(json.dumps({"point": point, "flips_by_blamed": dict(sorted(kinds.items(), key=lambda kv: -kv[1])),
+                      "flips_by_state": dict(sorted(states.items(), key=lambda kv: -kv[1]))}), flush=True)
 
 
 if __name__ == "__main__":
