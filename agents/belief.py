@@ -82,6 +82,14 @@ class BeliefLookaheadParams(AgentParams):
                                                 "process's (agents/track_prior.py: the approach lanes out of range, "
                                                 "behind confirmed tracks or not yet confirmed, thinned where the "
                                                 "sensor looked); 0: what is not confirmed is taken for nobody")
+    unseen_ahead: int = param(0, "detector frames", ge=0, le=20, doc="on tracks: a place of the unseen traffic's "
+                                                                  "prior that was in view at the last detector "
+                                                                  "frame keeps a driver only if the detector would "
+                                                                  "miss it in this many frames more (miss_rate ** "
+                                                                  "this): the frames before the next decision (5 "
+                                                                  "at 10 Hz and 2 Hz decisions), which sees such a "
+                                                                  "driver and takes the GO back while the ego can "
+                                                                  "stop; 0: only the frames so far")
     track_acc_sigma: float = param(1.6, "m/s²", ge=0, doc="on tracks: the error of a track's acceleration as the "
                                                          "intent features measure it (sd 1.59 m/s² against the "
                                                          "simulator's, 19,286 readings of 40 validation episodes), "

@@ -101,7 +101,8 @@ class UnseenTraffic:
     driver of that cohort, present, is still unconfirmed (:meth:`look` after every detector frame) and the draws of
     such drivers into the planner's futures (:meth:`fill`)."""
 
-    def __init__(self, engine, detector, tracker, n_rows: int, scale: float = 1.0, tentative: str = "ignore") -> None:
+    def __init__(self, engine, detector, tracker, n_rows: int, scale: float = 1.0, tentative: str = "ignore",
+                 ahead: int = 0) -> None:
         T = self.T = engine.T
         kind, origin, dest = lane_kinds(T)
         self.approach = np.array([int(np.flatnonzero((kind == 0) & (origin == o))[0]) for o in range(4)])
@@ -130,6 +131,10 @@ class UnseenTraffic:
         self.hits = max(1, int(tracker.min_hits))
         # q[k]: P(unconfirmed and k consecutive detections so far | a driver of the cohort is there)
         self.q = np.zeros((self.hits, int(n_rows), *self.s.shape))
+        # the cohort places in view at the last detector frame, and what a driver there keeps of its density by
+        # the next decision: missed in each of ``ahead`` more frames (miss_rate ** ahead)
+        self.seen = np.zeros((int(n_rows), *self.s.shape), bool)
+        self.ahead = self.miss ** int(ahead)
         self.step = np.full(int(n_rows), -1)
         self.reset(np.arange(int(n_rows)))
 
@@ -138,6 +143,7 @@ class UnseenTraffic:
         rows = np.asarray(rows, dtype=int)
         self.q[:, rows] = 0.0
         self.q[0, rows] = 1.0
+        self.seen[rows] = False
         self.step[rows] = -1
 
     def age(self, rows: np.ndarray, steps: np.ndarray) -> None:
@@ -174,11 +180,14 @@ class UnseenTraffic:
         for k in range(1, self.hits):
             new[k] = np.where(seen, (1.0 - self.miss) * q[k - 1], 0.0)
         self.q[:, rows] = new
+        self.seen[rows] = seen
 
     def density(self, rows: np.ndarray) -> np.ndarray:
         """(n, 4, C, A): the probability that a driver of each cohort is there and not among the road users the
-        planner already has (the confirmed tracks; also the tentative ones with ``tentative: road_user``)."""
+        planner already has (the confirmed tracks; also the tentative ones with ``tentative: road_user``), and, at a
+        place in view at the last frame, still missed in ``unseen_ahead`` more frames (by the next decision)."""
         q = self.q[0, rows] if self.tentative == "road_user" else self.q[:, rows].sum(axis=0)
+        q = np.where(self.seen[rows], q * self.ahead, q)
         return np.where(self.on_lane[None], np.clip(self.rate * q, 0.0, 1.0), 0.0)
 
     def draws(self, rows: np.ndarray, users: np.ndarray, users_alive: np.ndarray, gens: list, K: int) -> tuple:
@@ -321,7 +330,8 @@ class TrackBelief:
         e = perception.e
         self.tentative = str(params.tentative)
         self.unseen = UnseenTraffic(e, perception.detector.params, perception.tracker.params, n_rows,
-                                    float(params.unseen), self.tentative) if float(params.unseen) > 0 else None
+                                    float(params.unseen), self.tentative, int(getattr(params, "unseen_ahead", 0))
+                                    ) if float(params.unseen) > 0 else None
         self.engine = None  # the futures' start (ego, confirmed [and tentative] tracks), all rows
         self.tent = None  # (B, N) its slots that hold a tentative track
         self.ghost = None  # (B, N) its slots whose track the detector has missed while in view (not in the futures)

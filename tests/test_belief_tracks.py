@@ -89,10 +89,10 @@ def tracked_shipped():
 
 @pytest.fixture(scope="module")
 def tracked_fit():
-    """The batch of ``tracked`` with belief_tracks' options, ``track_fit`` (each track's own line) and
-    ``stopped_scope`` off_approach."""
+    """The batch of ``tracked`` with belief_tracks' options, ``track_fit`` (each track's own line),
+    ``stopped_scope`` off_approach and ``unseen_ahead`` 5."""
     fit = BeliefLookaheadParams(samples=8, tentative="road_user", track_heading="detected", ghost=2, merge=2.0,
-                                track_fit=0.5, stopped_scope="off_approach")
+                                track_fit=0.5, stopped_scope="off_approach", unseen_ahead=5)
     return _batch(list(range(410_000, 410_000 + B)), 30, fit)
 
 
@@ -209,8 +209,33 @@ def test_unseen_drivers_thin_as_the_tracker_confirms(hits, miss):
         np.testing.assert_allclose(fresh.density(np.array([0]))[0][fresh.on_lane], fresh.rate)
 
 
+def test_unseen_ahead_thins_the_places_in_view_by_the_frames_to_the_next_decision():
+    """With ``unseen_ahead`` n a place in view at the last detector frame keeps miss_rate ** n of the density the
+    looks so far give (a driver there still missed in n more frames); a place out of view then keeps all of it, and
+    a fresh row (no frame yet) the spawn process's."""
+    from types import SimpleNamespace
+
+    from av_gym.batched.left_turn import BatchedLeftTurn
+
+    engine = BatchedLeftTurn(1, {})
+    det = SimpleNamespace(max_range=80.0, fov_deg=360.0, miss_rate=0.25, occlusion=False)
+    base = UnseenTraffic(engine, det, SimpleNamespace(min_hits=2), 1, tentative="road_user")
+    ahead = UnseenTraffic(engine, det, SimpleNamespace(min_hits=2), 1, tentative="road_user", ahead=3)
+    np.testing.assert_allclose(ahead.density(np.array([0])), base.density(np.array([0])))
+    half = np.zeros((1, *base.s.shape), bool)
+    half[:, :2] = True  # approaches 0 and 1 in view, 2 and 3 not
+    for u in (base, ahead):
+        u.look(np.array([0]), np.ones_like(half))
+        u.look(np.array([0]), half)
+    want, got = base.density(np.array([0]))[0], ahead.density(np.array([0]))[0]
+    on = base.on_lane
+    assert (want[on] > 0).all()
+    np.testing.assert_allclose(got[:2][on[:2]], want[:2][on[:2]] * 0.25**3, rtol=1e-12)
+    np.testing.assert_array_equal(got[2:], want[2:])
+
+
 @pytest.mark.parametrize("options", [{}, {"track_fit": 0.5, "track_heading": "detected",
-                                          "stopped_scope": "off_approach", "confirm": 2},
+                                          "stopped_scope": "off_approach", "confirm": 2, "unseen_ahead": 5},
                                      {"confirm": 2, "confirm_after": 2, "confirm_risk": 0.9, "threshold": 0.5}])
 def test_the_per_env_agent_on_tracks_decides_as_the_batch(options):
     """belief_lookahead@turn_perceived per env (its one-row view of the env's own tracker, agents.track_prior
