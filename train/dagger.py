@@ -279,12 +279,12 @@ def drive_batched(venv, model, labeller: BatchedLabels, seeds, teacher_drives: b
     return out
 
 
-# ------------------------------------------------------------------------------------------------------ labelling processes
+# ------------------------------------------------------------------------------------------------------ labelling on the batch
 @dataclass(frozen=True)
 class LabelJob:
-    """What a labelling process needs to drive and label part of a round as this process would (plain, picklable):
-    the env, sensors and shield, the agent's config (the student's network, the teacher, the batch), the run's
-    seed, the labeller (:func:`labeller_of`: batched or rule) and torch's intra-op threads."""
+    """What drives and labels a round's episodes on the batch, as plain picklable values (a labelling process
+    gets it from the parent): the env, sensors and shield, the agent's config (the student's network, the teacher,
+    the batch), the run's seed, the labeller (:func:`labeller_of`: batched or rule) and torch's intra-op threads."""
 
     env: dict
     sensors: dict
@@ -294,46 +294,83 @@ class LabelJob:
     how: str
     torch_threads: int
 
+    @classmethod
+    def of(cls, cfg: DictConfig, command: TrainCommand, how: str) -> LabelJob:
+        """The job of the run ``cfg`` / ``command`` with the labeller ``how``."""
+        plain = [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
+        return cls(*plain, OmegaConf.to_container(cfg.agent, resolve=True), command.seed, how,
+                   command.train.torch_threads)
 
-_PART: dict = {}  # in a labelling process: its batch, student and labeller
+    def batch(self, rows: int):
+        """A :class:`~agents.batched_vec_env.BatchedLeftTurnVecEnv` of ``rows`` rows with the agent's actions."""
+        from agents.batched_vec_env import BatchedLeftTurnVecEnv
+
+        a = self.agent
+        return BatchedLeftTurnVecEnv(self.env, self.sensors, self.shield, rows, action_repeat=int(a["action_repeat"]),
+                                     actions=str(a["actions"]), timeout_is_terminal=bool(a["timeout_is_terminal"]),
+                                     pool=0)
+
+    def student(self, venv):
+        """A fresh student of the run's network and seed on ``venv``'s spaces (:func:`agents.ppo.make_ppo`)."""
+        from agents.ppo import make_ppo
+
+        return make_ppo(venv, self.agent, seed=self.seed, tensorboard_log=None, device=self.agent["device"])
+
+
+@dataclass
+class BatchLabelling:
+    """What drives and labels a round's episodes in one process (:func:`drive_batched`): the batch of
+    ``agent.n_envs`` rows, the student on it and the teacher's labeller; the parent's with ``agent.workers=1``,
+    each labelling process's otherwise (:func:`batch_labelling` builds both)."""
+
+    venv: Any
+    model: Any
+    labels: BatchedLabels
+    gamma: float
+    soft: bool  # agent.targets=go_safe: the planner's share of safe GO futures kept beside each label
+
+    def drive(self, seeds: list[int], teacher_drives: bool) -> Round:
+        """The episodes ``seeds``, labelled, driven by the teacher or by the student as it is now."""
+        return drive_batched(self.venv, self.model, self.labels, seeds, teacher_drives, self.gamma, self.soft)
+
+
+def batch_labelling(job: LabelJob) -> BatchLabelling:
+    """The batch, the teacher's labeller and a fresh student of the run's network and seed, for ``job``."""
+    from train.imitation import make_teacher
+
+    a = job.agent
+    venv = job.batch(int(a["n_envs"]))
+    teacher = make_teacher(str(a["teacher"]), str(a["actions"]), str(job.env["name"]), int(a["action_repeat"]))
+    return BatchLabelling(venv, job.student(venv), BatchedLabels(venv, teacher, job.how == "batched",
+                                                                 float(a["label_margin"])),
+                          float(a["gamma"]), a["targets"] == "go_safe")
+
+
+_PART: dict = {}  # in a labelling process: its BatchLabelling
 
 
 def _set_up_labeller(job: LabelJob) -> None:
-    """A labelling process's set-up (:class:`eval.runner.WorkerPool`): its batch of ``agent.n_envs``, the teacher's
-    labeller, and a student of the run's network (its weights come with each part)."""
+    """A labelling process's set-up (:class:`eval.runner.WorkerPool`): its :func:`batch_labelling`, whose student
+    gets the parent's weights with each part."""
     import torch
 
-    from agents.batched_vec_env import BatchedLeftTurnVecEnv
-    from agents.ppo import make_ppo
-    from train.imitation import make_teacher
-
     torch.set_num_threads(job.torch_threads)  # as the parent: a batch's matmul sums alike
-    a = job.agent
-    repeat, actions = int(a["action_repeat"]), str(a["actions"])
-    venv = BatchedLeftTurnVecEnv(job.env, job.sensors, job.shield, int(a["n_envs"]), action_repeat=repeat,
-                                 actions=actions, timeout_is_terminal=bool(a["timeout_is_terminal"]), pool=0)
-    teacher = make_teacher(str(a["teacher"]), actions, str(job.env["name"]), repeat)
-    _PART.update(venv=venv, model=make_ppo(venv, a, seed=job.seed, tensorboard_log=None, device=a["device"]),
-                 labels=BatchedLabels(venv, teacher, job.how == "batched", float(a["label_margin"])),
-                 gamma=float(a["gamma"]), soft=a["targets"] == "go_safe")
+    _PART["labelling"] = batch_labelling(job)
 
 
 def _drive_part(seeds: list[int], teacher_drives: bool, weights: dict) -> Round:
     """A labelling process's part of a round: ``seeds`` driven and labelled on its batch (:func:`drive_batched`),
     by the teacher or by the student of ``weights`` (the parent's policy's state dict)."""
-    _PART["model"].policy.load_state_dict(weights)
-    return drive_batched(_PART["venv"], _PART["model"], _PART["labels"], seeds, teacher_drives, _PART["gamma"],
-                         _PART["soft"])
+    labelling = _PART["labelling"]
+    labelling.model.policy.load_state_dict(weights)
+    return labelling.drive(seeds, teacher_drives)
 
 
-def labelling_pool(cfg: DictConfig, command: TrainCommand, how: str, workers: int):
+def labelling_pool(job: LabelJob, workers: int):
     """``workers`` labelling processes for :func:`drive_parts` (:class:`eval.runner.WorkerPool`), each set up
     once for the run."""
     from eval.runner import WorkerPool
 
-    plain = [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
-    job = LabelJob(*plain, OmegaConf.to_container(cfg.agent, resolve=True), command.seed, how,
-                   command.train.torch_threads)
     return WorkerPool(workers, _set_up_labeller, (job,))
 
 
@@ -689,48 +726,14 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path, command: TrainC
 
 
 def _build(cfg: DictConfig, command: TrainCommand, params, resume: bool) -> _Run:
-    """The teacher, the stacks the labeller needs (the batch, one per-env stack, or n_envs of them beside a
-    batched replica), the student (from ``agent.init_from`` on a fresh run) and the validation."""
-    from agents.ppo import make_ppo
-    from av_gym.make import make_training_env
-    from train.imitation import make_teacher
-
-    plain = [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
-    repeat, actions = int(params.action_repeat), str(params.actions)
-    teacher = make_teacher(params.teacher, actions, str(cfg.env.name), repeat)
+    """The student, what drives and labels its rounds (:func:`labeller_of`: on the batch, :func:`_on_the_batch`;
+    else one per-env stack, or ``n_envs`` of them beside a batched replica), the student from ``agent.init_from``
+    on a fresh run, and the validation."""
     how = labeller_of(cfg)
-    gamma, n_envs, pool = float(params.gamma), int(params.n_envs), None
     if how in ("batched", "rule"):
-        from agents.batched_vec_env import BatchedLeftTurnVecEnv
-
-        stacks = [BatchedLeftTurnVecEnv(*plain, n_envs, action_repeat=repeat, actions=actions,
-                                        timeout_is_terminal=params.timeout_is_terminal, pool=0)]
-    else:  # the per-env training stack: one for the per-env teacher, n_envs in lockstep with the replica
-        stacks = [make_training_env(*plain, 0.0, repeat, actions, timeout_is_terminal=params.timeout_is_terminal)
-                  for _ in range(n_envs if how == "replica" else 1)]
-    env = stacks[0]
-    model = make_ppo(env, OmegaConf.to_container(cfg.agent, resolve=True), seed=command.seed, tensorboard_log=None,
-                     device=cfg.agent.device)
-    if how == "replica":
-        from agents.batched_vec_env import BatchedLeftTurnVecEnv
-
-        replica = BatchedLeftTurnVecEnv(plain[0], replica_sensors(cfg.sensors), plain[2], n_envs,
-                                        action_repeat=repeat, actions=actions,
-                                        timeout_is_terminal=params.timeout_is_terminal, pool=0)
-        labels = BatchedLabels(replica, teacher, True, params.label_margin)
-        drive = lambda seeds, by_teacher: drive_replica(stacks, replica, model, labels, seeds,  # noqa: E731
-                                                        by_teacher, gamma)
-    elif how == "per_env":
-        drive = lambda seeds, by_teacher: drive_per_env(env, model, teacher, seeds, by_teacher,  # noqa: E731
-                                                        gamma)
-    elif int(params.workers) > 1:  # the labelling in processes of their own, each with its own batch
-        pool = labelling_pool(cfg, command, how, int(params.workers))
-        drive = lambda seeds, by_teacher: drive_parts(pool, model, seeds, by_teacher, n_envs)  # noqa: E731
+        model, stacks, drive, pool = _on_the_batch(LabelJob.of(cfg, command, how), int(params.workers))
     else:
-        labels = BatchedLabels(env, teacher, how == "batched", params.label_margin)
-        soft = params.targets == "go_safe"
-        drive = lambda seeds, by_teacher: drive_batched(env, model, labels, seeds, by_teacher,  # noqa: E731
-                                                        gamma, soft)
+        (model, stacks, drive), pool = _per_env(cfg, command, params, how), None
     if params.init_from and not resume:  # a student to go on from (a DAgger run or a PPO policy of the same spaces)
         from train.imitation import load_weights
 
@@ -739,8 +742,51 @@ def _build(cfg: DictConfig, command: TrainCommand, params, resume: bool) -> _Run
             from train.operating_point import at_fit_boundary
 
             at_fit_boundary(model, saved_config(params.init_from, str(cfg.env.name)))
-    validation = _validation(command.train, plain, repeat, actions, how in ("batched", "rule"))
+    plain = [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
+    validation = _validation(command.train, plain, int(params.action_repeat), str(params.actions),
+                             how in ("batched", "rule"))
     return _Run(model, stacks, drive, how, validation, pool)
+
+
+def _on_the_batch(job: LabelJob, workers: int) -> tuple[Any, list, Callable[[list, bool], Round], Any]:
+    """The student, the stacks to close, the round's driver and the labelling processes (None: none) on the batch:
+    with ``workers`` = 1 this process's :func:`batch_labelling`; else the labelling processes drive and label
+    (:func:`drive_parts`) and this process only fits and validates the student, built on a batch of one row for the
+    spaces SB3 builds a policy from (never stepped: no batch of ``n_envs``, no teacher)."""
+    if workers > 1:
+        model, width = job.student(job.batch(1)), int(job.agent["n_envs"])
+        pool = labelling_pool(job, workers)
+        return model, [], lambda seeds, by_teacher: drive_parts(pool, model, seeds, by_teacher, width), pool
+    labelling = batch_labelling(job)
+    return labelling.model, [labelling.venv], labelling.drive, None
+
+
+def _per_env(cfg: DictConfig, command: TrainCommand, params, how: str) -> tuple[Any, list, Callable]:
+    """The student, its per-env stacks and the round's driver for the labellers off the batch: ``replica`` (the
+    student on ``n_envs`` per-env stacks, the oracle on a batched replica of their episodes) or ``per_env`` (the
+    teacher on one stack, one state at a time)."""
+    from agents.ppo import make_ppo
+    from av_gym.make import make_training_env
+    from train.imitation import make_teacher
+
+    plain = [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
+    repeat, actions = int(params.action_repeat), str(params.actions)
+    teacher = make_teacher(params.teacher, actions, str(cfg.env.name), repeat)
+    gamma, n_envs = float(params.gamma), int(params.n_envs)
+    stacks = [make_training_env(*plain, 0.0, repeat, actions, timeout_is_terminal=params.timeout_is_terminal)
+              for _ in range(n_envs if how == "replica" else 1)]
+    env = stacks[0]
+    model = make_ppo(env, OmegaConf.to_container(cfg.agent, resolve=True), seed=command.seed, tensorboard_log=None,
+                     device=cfg.agent.device)
+    if how == "per_env":
+        return model, stacks, lambda seeds, by_teacher: drive_per_env(env, model, teacher, seeds, by_teacher, gamma)
+    from agents.batched_vec_env import BatchedLeftTurnVecEnv
+
+    replica = BatchedLeftTurnVecEnv(plain[0], replica_sensors(cfg.sensors), plain[2], n_envs, action_repeat=repeat,
+                                    actions=actions, timeout_is_terminal=params.timeout_is_terminal, pool=0)
+    labels = BatchedLabels(replica, teacher, True, params.label_margin)
+    return model, stacks, lambda seeds, by_teacher: drive_replica(stacks, replica, model, labels, seeds, by_teacher,
+                                                                  gamma)
 
 
 def saved_config(spec: str, scenario: str) -> dict:
