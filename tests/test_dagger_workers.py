@@ -59,6 +59,42 @@ def test_workers_are_refused_off_the_batch_and_below_one():
         DaggerParams.from_mapping({"workers": 0}, where="agent")
 
 
+def test_the_parent_of_labelling_processes_builds_only_the_student_it_fits(monkeypatch):
+    """With agent.workers=2 the labelling processes drive and label: the parent builds no teacher and no batch of
+    agent.n_envs rows (its student's spaces come from one row), and hands the processes the run's job; with
+    agent.workers=1 it builds the batch it drives and the teacher's labeller."""
+    import eval.runner
+    import train.imitation
+    from agents.dagger import DaggerParams
+    from conf.commands import TrainCommand
+    from omegaconf import OmegaConf
+    from tests.test_dagger import _cfg
+    from train.dagger import LabelJob, _build
+
+    teachers: list = []
+    make_teacher = train.imitation.make_teacher
+    monkeypatch.setattr(train.imitation, "make_teacher", lambda *a: teachers.append(a) or make_teacher(*a))
+
+    class Pool:  # the labelling processes, not started: what the parent hands them
+        def __init__(self, n: int, setup, args: tuple) -> None:
+            self.n, self.args = n, args
+
+        def close(self, failed: bool) -> None:
+            pass
+    monkeypatch.setattr(eval.runner, "WorkerPool", Pool)
+    for workers in (2, 1):
+        cfg = _cfg("agent=dagger_turn", "agent.n_envs=16", f"agent.workers={workers}", "agent.extractor=mlp",
+                   "agent.net_arch=[8]", "train.eval_n=0")
+        params = DaggerParams.from_mapping(OmegaConf.to_container(cfg.agent, resolve=True), where="agent")
+        run = _build(cfg, TrainCommand.of(cfg), params, resume=False)
+        if workers == 2:
+            assert teachers == [] and run.stacks == [] and run.model.env.num_envs == 1
+            assert run.pool.n == 2 and run.pool.args == (LabelJob.of(cfg, TrainCommand.of(cfg), "batched"),)
+        else:
+            assert len(teachers) == 1 and run.pool is None and [s.num_envs for s in run.stacks] == [16]
+            assert run.model.env is run.stacks[0]
+
+
 def _tiny(tmp_path: Path, name: str, workers: int) -> tuple:
     """Two rounds of the learning curve's form (the planner's labels, memory features) on 3 rows: 8 episodes, then
     12; the aggregate (latest.zip) and the rounds' rows without their timings."""
