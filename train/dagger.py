@@ -279,7 +279,7 @@ def drive_batched(venv, model, labeller: BatchedLabels, seeds, teacher_drives: b
     return out
 
 
-# ------------------------------------------------------------------------------------------------------ labelling on the batch
+# --------------------------------------------------------------------------------------------- labelling on the batch
 @dataclass(frozen=True)
 class LabelJob:
     """What drives and labels a round's episodes on the batch, as plain picklable values (a labelling process
