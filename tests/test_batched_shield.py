@@ -285,6 +285,43 @@ def test_the_batch_gives_each_shield_the_per_env_objects_and_accelerations(monke
     assert moved > 0  # the engine compacted slots under live vehicles: the memory followed the vehicles
 
 
+def test_the_batch_predicts_each_shields_conflicts_as_the_shield_does(monkeypatch):
+    """Ground-truth mode: the conflict model's paths of every decision's kept road users, which the batch computes
+    for all its rows in one compiled call (``ConflictModel.predict_rows``), are at every decision bit for bit the
+    row's shield's own ``ConflictModel.predict`` (positions, headings, owners, map flags, probabilities), across
+    turn weights read and unread, constant-velocity and lane hypotheses and new episodes in a row;
+    a decision whose speed bins are not simulated yet falls back to the shield's own call. Fails if a row reads
+    another row's road users, lanes, accelerations or weights, or the flat buffers are cut at the wrong place."""
+    from av_gym.shields.aeb_improved import ImprovedAEB
+
+    venv = _venv(2)
+    row_shield = type(venv.shield.shields[0])
+    own = row_shield._scene_conflicts
+    seen = {"served": 0, "own": 0, "map": 0, "cv": 0, "weighted": 0}
+
+    def scene_conflicts(self, others, lanes, a_others, t_long, intent):
+        served = self.env.predicted is not None
+        got, ref = own(self, others, lanes, a_others, t_long, intent), \
+            ImprovedAEB._scene_conflicts(self, others, lanes, a_others, t_long, intent)
+        for a, b in zip(got, ref):
+            assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+        seen["served" if served else "own"] += 1
+        seen["map"] += int(ref[3].sum())
+        seen["cv"] += int((~ref[3]).sum())
+        seen["weighted"] += int(intent is not None and np.isfinite(intent).all(axis=1).any())
+        return got
+
+    monkeypatch.setattr(row_shield, "_scene_conflicts", scene_conflicts)
+    venv.play(iter([VALIDATION + k for k in range(2, 5)]))
+    rng = np.random.default_rng(0)
+    for _ in range(400):
+        if venv.idle.all():
+            break
+        venv.step(rng.integers(1, 3, 2))
+    assert venv.idle.all() and seen["served"] > 200, seen  # "own": new speed bins (most in a fresh process)
+    assert seen["map"] > 1000 and seen["cv"] > 50 and seen["weighted"] > 100, seen
+
+
 # ----------------------------------------------------------------------------------------------- refusals
 @pytest.mark.parametrize("shield, needle", [
     ("aeb_paper", "shield.variant=paper is not available with agent.vec_env=batched"),

@@ -14,6 +14,11 @@ What the batch does itself:
   (:class:`~av_gym.batched.perception.BatchedDetector` on each env's ``episode_rng(seed, "aeb_detector")``, the
   per-env shield's stream, and :class:`~av_gym.batched.perception.BatchedTracker`, the per-env
   ``MultiObjectTracker``'s arithmetic); each env's shield reads its confirmed tracks.
+- **the conflict model's prediction** (ground-truth mode): what each row's shield asks the conflict model first in a
+  decision (its kept road users' path hypotheses) for all rows in one compiled call
+  (:meth:`~av_gym.shields.conflicts.ConflictModel.predict_rows`: each row :func:`~av_gym.shields.kernels.
+  conflict_predict` on its own inputs, the same floats as the shield's own call), handed to the shield as its road
+  users' rows are; the rules that predict again (set-off, release, emergency) call the model themselves.
 - **the brake actuator**: the per-env shield patches the ego's ``act`` so that every 20 Hz tick ends with the
   actuator's acceleration. On the batch the engine's step takes that acceleration per tick as the ego's commanded
   one (:meth:`BatchedShield.brake_plan`, (frames, B), handed to ``BatchedLeftTurn.step``; the engine's
@@ -44,6 +49,7 @@ from av_gym.sensors.base import episode_rng
 from av_gym.sensors.turn_signal import (DRIVER_DRAWS, DriverDraws, first_sighting, fit_ids, node_index, reported,
                                         route_origin, turn_signal)
 from av_gym.shields.aeb_params import BRAKE, STOP_SPEED, ImprovedParams
+from av_gym.shields.conflicts import ConflictModel
 from av_gym.sim.fast_network import FastRoadNetwork
 from av_gym.sim.batched import LENGTH, WIDTH
 
@@ -135,6 +141,8 @@ class RowEnv(gym.Env):
         # the indicator channel's turn weights of the kept road users, and who moved lately (ground-truth mode)
         self.intent: np.ndarray | None = None
         self.recent: np.ndarray | None = None
+        # the conflict model's paths of the kept road users (ConflictModel.predict's tuple), None: the shield's own
+        self.predicted: tuple | None = None
 
     def cruise_action(self):
         return self.template.cruise_action()
@@ -247,6 +255,12 @@ def _row_shield_class():
         def _recently_moved(self, others: np.ndarray, t: float) -> np.ndarray | None:
             view = self.env
             return super()._recently_moved(others, t) if view.recent is None else view.recent
+
+        def _scene_conflicts(self, others, lanes, a_others, t_long, intent) -> tuple:
+            view = self.env
+            if view.predicted is None:
+                return super()._scene_conflicts(others, lanes, a_others, t_long, intent)
+            return view.predicted
 
     return RowAEB
 
@@ -443,6 +457,12 @@ class BatchedShield:
         self.channel = _Channel(engine, params) if truth and params.target_model == "conflict" and params.signals \
             else None
         self.moved = _Moved(params) if truth and params.setoff_speed > 0 else None
+        # the conflict model's prediction for all rows at once (ground truth: the batch has the road users' rows)
+        self.conflicts = ConflictModel(network, min_p=params.hypothesis_min_p) \
+            if truth and params.target_model == "conflict" else None
+        from av_gym.shields.aeb_improved import long_times
+
+        self.t_long = long_times(params)  # s, the shields' long prediction
         self.override = np.zeros(B, bool)
         self.steps = np.zeros(B, dtype=int)
         self.overrides: list[list[int]] = [[] for _ in range(B)]
@@ -515,6 +535,7 @@ class BatchedShield:
         recent = self.moved.recent(t.vid[rows], state, others, now) if self.moved is not None else None
         intent = self.channel.weights(rows, state, others & relevant, slot) if self.channel is not None else None
         index, lanes, vids = e.T.index, t.lane[rows], t.vid[rows]
+        predicted = self._predict(state, others & relevant, lanes, accel, intent)
         for n, r in enumerate(rows.tolist()):
             view, mine = self.views[r], others[n]
             view.objects, view.relevant = state[n, mine], relevant[n, mine]
@@ -522,6 +543,23 @@ class BatchedShield:
             view.accels = np.concatenate([accel[n, ego[n]], accel[n, mine]])
             view.recent = None if recent is None else recent[n, mine]
             view.intent = None if intent is None else intent[n]
+            view.predicted = predicted[n]
+
+    def _predict(self, state: np.ndarray, kept: np.ndarray, lanes: np.ndarray, accel: np.ndarray,
+                 intent: list | None) -> list:
+        """Per decision the conflict model's paths of its kept road users (``kept`` (n, S): relevant, not the ego;
+        ``state`` (n, S, 7), ``lanes`` (n, S) lane ids, ``accel`` (n, S, 2) m/s², ``intent`` per decision its kept
+        road users' turn weights or None), what its shield's ``_predict_scene`` asks the conflict model, for all
+        decisions in one compiled call (:meth:`ConflictModel.predict_rows`; None for a decision it does not serve:
+        the shield's own call)."""
+        if self.conflicts is None:
+            return [None] * len(kept)
+        index = self.e.T.index
+        row_off = np.concatenate([[0], np.cumsum(kept.sum(axis=1))])
+        weights = None if intent is None else np.concatenate([w.reshape(-1, 3) for w in intent]) if len(intent) \
+            else np.zeros((0, 3))
+        return self.conflicts.predict_rows(state[kept], row_off, [index[k] for k in lanes[kept].tolist()],
+                                           accel[kept], self.t_long, weights)
 
     def _env_action(self, a):
         """One env's action as the per-env env takes it: a meta-action int, or the continuous (1,) float32."""

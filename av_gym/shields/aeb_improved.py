@@ -33,6 +33,12 @@ def followers(xy, heading, length: float, others: np.ndarray) -> np.ndarray:
     return same_dir & (x_rel < -0.5 * length) & (np.abs(y_rel) < 2.5)
 
 
+def long_times(p: ImprovedParams) -> np.ndarray:
+    """The times (s) of the shield's long prediction: every ``step`` up to the longer of ``horizon_max`` and
+    ``4 + horizon_min`` s."""
+    return p.step * np.arange(1, int(round(max(p.horizon_max, 4.0 + p.horizon_min) / p.step)) + 1)
+
+
 class ImprovedAEB(AEBShield):
     """``improved``: our design (module docstring); parameters :class:`ImprovedParams`."""
 
@@ -191,7 +197,7 @@ class ImprovedAEB(AEBShield):
         recent = recent[keep] if recent is not None else None
         others, a_others = others[keep], a_others[keep]
         p = self.p
-        t_long = p.step * np.arange(1, int(round(max(p.horizon_max, 4.0 + p.horizon_min) / p.step)) + 1)
+        t_long = long_times(p)
         lanes, intent = None, None
         if self.p.target_model == "map":
             lanes = [lane for lane, k in zip(self._lanes, keep) if k]
@@ -202,7 +208,7 @@ class ImprovedAEB(AEBShield):
         elif self.p.target_model == "conflict":
             lanes = [lane for lane, k in zip(self._lanes, keep) if k]
             intent = self._intent(others, [k for k, kept in zip(self._keys, keep) if kept])
-            obj_xy, obj_h, owner, turn, _ = self._conflicts.predict(others, lanes, a_others, t_long, intent)
+            obj_xy, obj_h, owner, turn, _ = self._scene_conflicts(others, lanes, a_others, t_long, intent)
             rear = turn | self.p.ignore_rear
         else:
             obj_xy, obj_h = object_predict(others, t_long, a_others if self.p.target_model == "ca" else None)
@@ -214,6 +220,13 @@ class ImprovedAEB(AEBShield):
             idx=np.flatnonzero(keep)[owner], size=np.asarray(others[owner, 5:7], dtype=float).reshape(-1, 2),
             v=ego["speed"], a=ego["accel"], s0=ego["s"],
             front_to_line=self.stop_line_s - (ego["s"] + 0.5 * ego["size"][0]))
+
+    def _scene_conflicts(self, others: np.ndarray, lanes: list, a_others: np.ndarray, t_long: np.ndarray,
+                         intent: np.ndarray | None) -> tuple:
+        """The conflict model's paths of the scene's kept road users (:meth:`ConflictModel.predict`: positions
+        (K, H, 2) m, headings (K, H) rad, owner, is a map hypothesis, probability); the batch hands its shields
+        these for all envs at once (:meth:`ConflictModel.predict_rows`)."""
+        return self._conflicts.predict(others, lanes, a_others, t_long, intent)
 
     def _ttc_of(self, sc: SimpleNamespace, ds: np.ndarray, n: int, margin: float, xy_o=None, h_o=None,
                 size_o=None, rear_o=None) -> tuple[float, int]:

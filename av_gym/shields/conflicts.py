@@ -382,6 +382,42 @@ class ConflictModel:
                               need, lambda h, out: reg.paths[out[1][h]])  # out[1]: the hypothesis indices
         return tuple(out[2:])
 
+    def predict_rows(self, others: np.ndarray, row_off: np.ndarray, lane_indices: list, accels: np.ndarray,
+                     t: np.ndarray, intent: np.ndarray | None = None) -> list:
+        """:meth:`predict` (no ``follow``) of many decisions in one compiled call
+        (:func:`av_gym.shields.kernels.conflict_predict_rows`): decision r's road users are rows ``row_off[r]`` ..
+        ``row_off[r + 1]`` of ``others`` (M, 7), ``lane_indices`` (M), ``accels`` (M, 2) m/s² and ``intent``
+        (M, 3; None: no readings), ``t`` (K,) s shared. Per decision :meth:`predict`'s tuple (the same floats as
+        its own call), or None where the kernel does not serve it (a speed bin not simulated yet, a lane it cannot
+        read, a kernel switched off): the caller's :meth:`predict` then does, simulating what is missing as the
+        reference does."""
+        from av_gym.shields.kernels import conflict_predict_rows
+        from av_gym.shields.predict import DrivenPath, _store
+
+        R = len(row_off) - 1
+        inputs = self._kernel_inputs(others, lane_indices, accels, intent) \
+            if CONFLICT_KERNEL and DrivenPath.kernel else None
+        if inputs is None:
+            return [None] * R
+        reg, args = inputs
+        lane_row, t = args[3], np.ascontiguousarray(t, dtype=float)
+        # room per decision: each road user's lane hypotheses, or its one constant-velocity hypothesis
+        room = np.where(lane_row >= 0, reg.hyp_n[lane_row], 1) if len(reg.hyp_n) else np.ones(len(lane_row))
+        h_off = np.concatenate([[0], np.cumsum(np.maximum(room, 1))])[np.asarray(row_off)].astype(np.int64)
+        K, n_all = len(t), int(h_off[-1])
+        xy, hh, prob = np.empty(2 * K * n_all), np.empty(K * n_all), np.empty(n_all)
+        owner, is_map, n_h = np.empty(n_all, np.int64), np.empty(n_all, np.bool_), np.empty(R, np.int64)
+        st = _store()
+        conflict_predict_rows(np.asarray(row_off, dtype=np.int64), *args, reg.ids, t, float(self.accel_time),
+                              st.data, st.route, st.limits, st.bins, st.grid_table, h_off, xy, hh, owner, is_map,
+                              prob, n_h)
+        out = []
+        for o, H in zip(h_off.tolist(), n_h.tolist()):  # each decision's blocks of the flat buffers
+            out.append(None if H < 0 else (xy[2 * K * o: 2 * K * (o + H)].reshape(K, H, 2),
+                                           hh[K * o: K * (o + H)].reshape(K, H), owner[o: o + H], is_map[o: o + H],
+                                           prob[o: o + H]))
+        return out
+
     def predict(self, others: np.ndarray, lane_indices: list, accels: np.ndarray, t: np.ndarray,
                 intent: np.ndarray | None = None, follow: np.ndarray | None = None):
         """Positions (K, M', 2), headings (K, M'), owner (M',), whether each is a map hypothesis (M',) and its

@@ -592,3 +592,40 @@ def conflict_predict(others, speeds, phis, lane_row, lanes, hyp_off, hyp_n, hyp_
             hh[k, h] = others[m, 4]
         owner[h], is_map[h], prob[h] = m, False, 1.0
     return 0, hyp[:n], xy, hh, owner, is_map, prob
+
+
+@numba.njit(cache=True, error_model="numpy")  # as conflict_predict
+def conflict_predict_rows(row_off, others, speeds, phis, lane_row, lanes, hyp_off, hyp_n, hyp_turn, intent, accels,
+                          min_p, on_lane, max_dh, fused, follow, hyp_ids, t, accel_time, data, route, limits, bins,
+                          grid_table, h_off, xy, hh, owner, is_map, prob, n_h):
+    """:func:`conflict_predict` of many decisions in one call: decision r's road users are rows ``row_off[r]`` ..
+    ``row_off[r + 1]`` of ``others``, ``speeds``, ``phis``, ``lane_row``, ``intent``, ``accels`` and ``follow`` (the
+    other arguments as :func:`conflict_predict`'s, shared). Each decision is :func:`conflict_predict` on its own
+    slices (the same floats as its own call); its H hypotheses are written from ``h_off[r]`` into the flat buffers:
+    ``xy`` from ``2 K h_off[r]`` and ``hh`` from ``K h_off[r]`` as (K, H, 2) and (K, H) blocks, ``owner``,
+    ``is_map``, ``prob`` from ``h_off[r]`` (``h_off[r + 1] - h_off[r]``: at least H, each road user's lane
+    hypotheses or one). ``n_h[r]``: its H, or -1 where a speed bin it reads is not simulated yet (nothing written:
+    the caller's own :meth:`~av_gym.shields.conflicts.ConflictModel.predict` simulates it, lazily as the reference)."""
+    K, n_bins = t.shape[0], bins.shape[1]
+    for r in range(row_off.shape[0] - 1):
+        a, b = row_off[r], row_off[r + 1]
+        n_max = 0
+        for m in range(a, b):
+            if lane_row[m] >= 0:
+                n_max += hyp_n[lane_row[m]]
+        need = np.zeros((n_max, n_bins), np.bool_)
+        missing, _, pxy, phh, pown, pmap, pprob = conflict_predict(
+            others[a:b], speeds[a:b], phis[a:b], lane_row[a:b], lanes, hyp_off, hyp_n, hyp_turn, intent[a:b],
+            accels[a:b], min_p, on_lane, max_dh, fused, follow[a:b], hyp_ids, t, accel_time, data, route, limits,
+            bins, grid_table, need)
+        if missing:
+            n_h[r] = -1
+            continue
+        H, o = pown.shape[0], h_off[r]
+        n_h[r] = H
+        for k in range(K):
+            for h in range(H):
+                j = o * K + k * H + h
+                xy[2 * j], xy[2 * j + 1], hh[j] = pxy[k, h, 0], pxy[k, h, 1], phh[k, h]
+        for h in range(H):
+            owner[o + h], is_map[o + h], prob[o + h] = pown[h], pmap[h], pprob[h]
