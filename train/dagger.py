@@ -301,7 +301,7 @@ class LabelJob:
         return cls(*plain, OmegaConf.to_container(cfg.agent, resolve=True), command.seed, how,
                    command.train.torch_threads)
 
-    def batch(self, rows: int):
+    def batch(self, rows: int) -> Any:
         """A :class:`~agents.batched_vec_env.BatchedLeftTurnVecEnv` of ``rows`` rows with the agent's actions."""
         from agents.batched_vec_env import BatchedLeftTurnVecEnv
 
@@ -310,7 +310,7 @@ class LabelJob:
                                      actions=str(a["actions"]), timeout_is_terminal=bool(a["timeout_is_terminal"]),
                                      pool=0)
 
-    def student(self, venv):
+    def student(self, venv: Any) -> Any:
         """A fresh student of the run's network and seed on ``venv``'s spaces (:func:`agents.ppo.make_ppo`)."""
         from agents.ppo import make_ppo
 
@@ -366,7 +366,7 @@ def _drive_part(seeds: list[int], teacher_drives: bool, weights: dict) -> Round:
     return labelling.drive(seeds, teacher_drives)
 
 
-def labelling_pool(job: LabelJob, workers: int):
+def labelling_pool(job: LabelJob, workers: int) -> Any:
     """``workers`` labelling processes for :func:`drive_parts` (:class:`eval.runner.WorkerPool`), each set up
     once for the run."""
     from eval.runner import WorkerPool
