@@ -140,7 +140,7 @@ class ImprovedAEB(AEBShield):
         distance profile ``ds`` at times ``t``, plus one slice, clipped to [horizon_min, horizon_max]."""
         reached = s0 + ds >= self.clear_s
         h = t[int(np.argmax(reached))] + self.p.step if reached.any() else self.p.horizon_max
-        return float(np.clip(h, self.p.horizon_min, self.p.horizon_max))
+        return float(min(max(h, self.p.horizon_min), self.p.horizon_max))  # np.clip's value, without its ~3.5 us
 
     def _decide_improved(self, ego, others, a_others, t, in_turn: bool = True):
         """Outside the turn window (``in_turn`` False: far up the approach, or past the turn) only the emergency
