@@ -454,6 +454,7 @@ SCRIPT_ARGS = {
     "benchmarks/belief_tracks_sweep.py": ["--episodes", "1", "--n-envs", "1"],
     "benchmarks/belief_tracks_diagnose.py": ["--seeds", "1000000", "--set", "samples=2"],
     "benchmarks/belief_tracks_confirm.py": ["--seeds", "1000000", "--set", "samples=2"],
+    "benchmarks/belief_tracks_state.py": ["--seeds", "1000000", "--set", "samples=2"],
     "benchmarks/belief_tracks_motion.py": ["--episodes", "1", "--fit", "0.5", "--set", "samples=2"],
     "benchmarks/partition.py": [PARTITION_CSV, "--resamples", "10"],
     "benchmarks/pilotnet_inference.py": ["--frames", "20"],
