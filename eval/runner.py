@@ -112,6 +112,7 @@ def guard_worker() -> None:
     if parent is None:
         return
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _bars_lock_of_this_process()
     if sys.platform.startswith("linux"):
         import ctypes
 
@@ -128,6 +129,22 @@ def guard_worker() -> None:
             return
         if os.getppid() != os_parent:  # the parent died before prctl took effect
             os._exit(1)
+
+
+def _bars_lock_of_this_process() -> None:
+    """tqdm's bars in this worker lock with a thread lock, not tqdm's default multiprocessing RLock.
+
+    Why: in a spawned process that RLock is a named POSIX semaphore, registered with multiprocessing's resource
+    tracker and released only by an orderly exit. A worker's first bar (even a disabled one: ``play_batched``'s
+    ``progress=False``) creates it, and the stop path ends workers by SIGTERM or ``terminate()`` mid-task, so the
+    tracker found one semaphore per worker when the run ended and printed "There appear to be N leaked semaphore
+    objects". A worker draws no bar (the parent draws the run's), so its own threads are all the lock has to
+    order."""
+    import threading
+
+    from tqdm import tqdm as bars
+
+    bars.set_lock(threading.RLock())
 
 
 def _init_worker(job: EpisodeJob) -> None:

@@ -1,4 +1,5 @@
-"""eval.runner.WorkerPool.parts: the first part to fail is raised at once, not after the parts before it finish."""
+"""eval.runner.WorkerPool: the first part to fail is raised at once, not after the parts before it finish; a pool
+stopped by SIGTERM leaves nothing behind for multiprocessing's resource tracker to warn about."""
 import time
 
 import pytest
@@ -32,3 +33,70 @@ def test_a_later_part_that_fails_is_raised_before_an_earlier_slow_part_ends():
 def test_parts_come_back_in_the_order_given():
     with WorkerPool(2, _nothing) as pool:
         assert pool.parts(_part, [("a", 0.5), ("b", 0.0)]) == ["a", "b"]
+
+
+STOPPED = '''
+import sys
+import time
+from pathlib import Path
+
+from av_gym.errors import run_cli
+from eval.runner import WorkerPool
+
+
+def _nothing():
+    pass
+
+
+def _drive(marker):
+    from tqdm import tqdm
+
+    with tqdm(total=1, disable=True):  # an eval worker's bar: play_batched(progress=False)
+        Path(marker).touch()
+        time.sleep(120)
+
+
+def main():
+    with WorkerPool(2, _nothing) as pool:
+        pool.parts(_drive, [sys.argv[1] + "/running.0", sys.argv[1] + "/running.1"])
+
+
+if __name__ == "__main__":
+    run_cli(main)
+'''
+
+
+@pytest.mark.slow  # a command with two spawned workers, stopped by SIGTERM (~1 s each)
+@pytest.mark.parametrize("sent_to", ["group", "parent"])
+def test_a_pool_stopped_by_sigterm_leaves_no_leaked_semaphore(tmp_path, sent_to):
+    """SIGTERM to the command's process group (``timeout``, a scheduler: the workers die of it too) or to the parent
+    alone (it ends the workers, :func:`eval.runner._stop`) while both workers are in a task that made a progress bar:
+    exit 130 and nothing from multiprocessing's resource tracker on stderr. Fails with tqdm's default lock in the
+    workers (a named semaphore that a killed worker never releases: "There appear to be 2 leaked semaphore
+    objects")."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    script = tmp_path / "stopped.py"
+    script.write_text(STOPPED)
+    proc = subprocess.Popen([sys.executable, str(script), str(tmp_path)], cwd=root, text=True, start_new_session=True,
+                            env={**os.environ, "PYTHONPATH": str(root)}, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 90
+        while not all((tmp_path / f"running.{k}").exists() for k in (0, 1)):
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate(timeout=30)
+            time.sleep(0.1)
+        if sent_to == "group":
+            os.killpg(proc.pid, signal.SIGTERM)
+        else:
+            proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)  # until the resource tracker, which holds stderr too, has ended
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, err
+    assert "leaked" not in err and "resource_tracker" not in err, err
