@@ -176,7 +176,8 @@ def main() -> None:
     while not venv.idle.all():
         rows = np.flatnonzero(~venv.idle)
         planner.read(engine, rows, obs["intent"][rows])
-        due = rows[k[rows] % int(params.repeat) == 0]
+        live, _ = planner.live(engine, rows, choice[rows], k[rows])
+        due = rows[live]  # the rows that decide now (confirm_after's early ones too; not those commit made final)
         if len(due):
             p = planner.go_collision(engine, due)  # the decision's own draws again: the same p decide() sees
             before = choice[due].copy()
