@@ -237,3 +237,80 @@ def test_the_driven_ttc_kernel_is_the_poses_then_the_footprint_test():
         assert got == before == reference, trial
         hits.add(got[0])
     assert len(hits) > 30 and np.inf in hits  # first hits all over the horizon, and misses
+
+
+def _decisions(net, rng: np.random.Generator, sizes: tuple[int, ...], own: int):
+    """Road users of ``len(sizes)`` decisions for ConflictModel.predict_rows, ``sizes[r]`` in decision r (0: none),
+    on and off the intersection's lanes, standing and moving at most 3 m/s, some with indicator readings; decision
+    ``own``'s last road user alone drives 11 m/s along an approach lane towards the box, so its driven paths read
+    speed bins no other decision reads. Concatenated as predict_rows takes them: others (M, 7), lane indices,
+    accelerations (M, 2) m/s², turn weights (M, 3), row offsets (len(sizes) + 1,)."""
+    others, lanes = _objects_on_lanes(rng, net, sum(sizes))
+    speed = np.hypot(others[:, 2], others[:, 3])
+    others[:, 2:4] *= np.minimum(1.0, 3.0 / np.maximum(speed, 1e-9))[:, None]  # standing ones stay standing
+    row_off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    m = row_off[own + 1] - 1
+    lanes[m] = ("o1", "ir1", 0)
+    lane = net.get_lane(lanes[m])
+    h = lane.heading_at(lane.length - 5.0)
+    others[m] = (*lane.position(lane.length - 5.0, 0.0), 11.0 * np.cos(h), 11.0 * np.sin(h), h, 5.0, 2.0)
+    intent = rng.dirichlet(np.ones(3), len(others)) * rng.choice([1.0, 0.0], (len(others), 3), p=[0.8, 0.2])
+    intent[(rng.random(len(others)) < 0.3) | (intent.sum(1) == 0)] = np.nan
+    return others, lanes, rng.normal(0.0, 2.0, (len(others), 2)), intent, row_off
+
+
+def _own_calls(model, decisions, t: np.ndarray, rows) -> list:
+    """ConflictModel.predict of each decision in ``rows`` on its own slices (simulating the speed bins it reads)."""
+    others, lanes, accels, intent, row_off = decisions
+    return [model.predict(others[a:b], lanes[a:b], accels[a:b], t, intent[a:b])
+            for a, b in (row_off[r: r + 2] for r in rows)]
+
+
+def _assert_bit_equal(got: tuple, want: tuple, what: str) -> None:
+    """Positions, headings, owners, map flags and probabilities: the same dtype, shape and bytes."""
+    assert len(got) == len(want) == 5, what
+    for a, b in zip(got, want):
+        assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), what
+
+
+@pytest.fixture
+def fresh_paths(monkeypatch):
+    """A fresh store of driven-path tables and fresh driven paths (no speed bin simulated yet), this test's only."""
+    import weakref
+
+    from av_gym.envs.left_turn import UnprotectedLeftTurnEnv
+    from av_gym.shields import conflicts, predict
+
+    monkeypatch.setattr(predict, "_STORE", None)
+    monkeypatch.setattr(conflicts, "_DRIVEN", {})
+    monkeypatch.setattr(conflicts, "_BY_NETWORK", weakref.WeakKeyDictionary())
+    env = UnprotectedLeftTurnEnv()
+    env.reset(seed=3)
+    return env.unwrapped.road.network
+
+
+SIZES = (3, 0, 4, 2, 2)  # road users per decision: one decision without any
+
+
+def test_the_rows_kernel_is_each_decisions_own_call_and_leaves_missing_speed_bins_to_it(fresh_paths):
+    """ConflictModel.predict_rows (kernels.conflict_predict_rows: many decisions in one call) gives each decision
+    exactly its own ConflictModel.predict (positions, headings, owners, map flags, probabilities, bit for bit),
+    decisions of different sizes and one without road users; a decision reading a speed bin that is not simulated
+    yet gets None (its shield's own call simulates it) and the decisions after it are still their own. Fails if
+    a decision reads another's road users, lanes, accelerations or weights, or the flat buffers are cut wrongly."""
+    from av_gym.shields.conflicts import ConflictModel
+
+    model, t = ConflictModel(fresh_paths, min_p=0.1), 0.1 * np.arange(1, 81)
+    decisions = _decisions(fresh_paths, np.random.default_rng(23), SIZES, own=3)
+    args = (decisions[0], decisions[4], decisions[1], decisions[2], t, decisions[3])
+    want = _own_calls(model, decisions, t, [0, 1, 2, 4])  # all but decision 3's speed bins simulated
+    got = model.predict_rows(*args)
+    assert [g is None for g in got] == [False, False, False, True, False]
+    for r, w in zip([0, 1, 2, 4], want):
+        _assert_bit_equal(got[r], w, f"decision {r}")
+    want.insert(3, _own_calls(model, decisions, t, [3])[0])  # now simulated: the kernel serves it too
+    got = model.predict_rows(*args)
+    for r, (g, w) in enumerate(zip(got, want)):
+        _assert_bit_equal(g, w, f"decision {r}")
+    assert sum(int(w[3].sum()) for w in want) > 5 and sum(int((~w[3]).sum()) for w in want) > 2  # map and cv
+
