@@ -10,9 +10,11 @@ after one that did not (a *flip*: where ``confirm`` 2 holds a GO that ``confirm`
 decision unsafe: each road user without which its futures were safer (GO's collision probability without it),
 with its distance from the ego (m), its speed (m/s), whether the track was tentative, the kind of its lane
 (approach, crossing, exit) and, on an approach, its time to the stop line at its speed (s); and whether the unseen
-traffic's prior alone made it unsafe; and each such road user's track against its simulator vehicle (its detections
-so far, its filter's speed sd, the true speed, and GO's collision probability with the track's state the
-simulator's). Only live decisions are logged (a row whose GO ``commit`` made final decides nothing). The last line
+traffic's prior alone made it unsafe; and each such road user's track against the simulator vehicle within
+``--match`` m (default 3) of it (its detections so far, its filter's speed sd, the true speed, the distance to the
+nearest vehicle, and GO's collision probability with the track's true state: belief_tracks_truth.py, the state
+belief_tracks_state.py plays with, so the set-point is the true speed, not the simulator's hidden one). Only live
+decisions are logged (``BeliefPlanner.live``: a row ``commit`` has made final decides nothing). The last line
 counts the flips by the blamed road user's kind and by whether its true state would have made GO safe."""
 
 from __future__ import annotations
@@ -25,8 +27,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # the checkout's agents/ and eval/
-from belief_tracks_diagnose import SWAPS, _match, _swapped  # noqa: E402
 from belief_tracks_sweep import traced_batch  # noqa: E402  (this folder is sys.path[0] when run as a script)
+from belief_tracks_truth import go_with_true_state, nearest_cars  # noqa: E402
 
 LANE_KINDS = ("approach", "crossing", "exit")
 
@@ -48,20 +50,22 @@ def _without(planner, engine, r: int, j: int | None) -> float:
         planner.tracks.engine, planner.tracks.unseen = saved, unseen
 
 
-def blame(planner, engine, r: int, p: float) -> dict:
+def blame(planner, engine, r: int, p: float, radius: float) -> dict:
     """What made GO unsafe for row ``r`` (GO's collision probability ``p``): the unseen prior's share and each road
-    user whose removal lowers it."""
+    user whose removal lowers it, with its track against the simulator vehicle within ``radius`` m of it."""
     te = planner.tracks.engine
     t = te.traffic
     ex, ey = t.x[r, 0], t.y[r, 0]
     out = {"p": round(p, 3), "p_no_unseen": round(_without(planner, engine, r, None), 3), "users": []}
-    matched = _match(te, engine, r)
+    nearest = nearest_cars(te, engine, r)
     tracker = planner.tracks.perception.tracker
     for j in np.flatnonzero(t.alive[r] & ~t.ego[r]):
         q = _without(planner, engine, r, int(j))
         if q >= p:
             continue
-        i, dist = matched.get(int(j), (-1, np.inf))
+        i, dist = nearest.get(int(j), (-1, None))
+        i = i if dist is not None and dist <= radius else -1
+        p_true = go_with_true_state(planner, engine, r, int(j), i) if i >= 0 else None
         k = np.flatnonzero(tracker.id[r, : tracker.n[r]] == t.vid[r, j] - 1)
         kind = int(planner.tracks.lane_kind[t.lane[r, j]])
         v = float(t.v[r, j])
@@ -74,14 +78,16 @@ def blame(planner, engine, r: int, p: float) -> dict:
                              "lane": LANE_KINDS[kind],
                              "to_line_s": round(to_line / max(v, 0.1), 1) if kind == 0 else None,
                              # the track against its simulator vehicle: its detections so far, its filter's speed
-                             # sd along its heading (m/s), the true speed, and GO's collision probability with the
-                             # track's whole state (place, heading, speed, acceleration, lane) the simulator's
+                             # sd along its heading (m/s), the true speed, the distance to the nearest vehicle (m),
+                             # and GO's collision probability with the track's state (belief_tracks_truth: place,
+                             # heading, speed, acceleration, lane) that of the vehicle within ``radius``
                              "hits": int(tracker.hits[r, k[0]]) if len(k) else None,
                              "sd_v": round(float(np.sqrt(max(planner.tracks.along[r, j, 1, 1], 0.0))), 2),
                              "v_true": round(float(engine.traffic.v[r, i]), 2) if i >= 0 else None,
-                             "err_m": round(dist, 2),
-                             "p_true_state": round(_swapped(planner, engine, r, int(j), i, sum(SWAPS.values(), ())),
-                                                   3) if i >= 0 else None})
+                             "err_m": round(dist, 2) if dist is not None else None,
+                             "p_true_state": round(p_true, 3) if p_true is not None else None,
+                             "safe_true_state": (bool(p_true <= planner.threshold + 1e-12)
+                                                 if p_true is not None else None)})
     return out
 
 
@@ -95,24 +101,24 @@ def blamed_kind(b: dict) -> str:
     return f"{'tentative' if u['tentative'] else 'confirmed'} on {u['lane']}{near}"
 
 
-def state_kind(b: dict, threshold: float) -> str:
+def state_kind(b: dict) -> str:
     """Whether the road user most to blame for a flip's earlier unsafe decision was unsafe by its track's error:
     with its track's state the simulator's, GO was safe there (a track off its car), or still unsafe (the car
     itself); young: a track of at most 4 detections."""
     if not b["users"]:
         return "no road user"
     u = min(b["users"], key=lambda x: x["p_without"])
-    if u["p_true_state"] is None:
+    if u["safe_true_state"] is None:
         return "no car matched"
     age = "young" if (u["hits"] or 0) <= 4 else "older"
-    return f"{age} track, {'safe' if u['p_true_state'] <= threshold + 1e-12 else 'unsafe'} with its true state"
+    return f"{age} track, {'safe' if u['safe_true_state'] else 'unsafe'} with its true state"
 
 
 def main() -> None:
     from av_gym.batched.vec_env import meta_actions
     from av_gym.wrappers import GO, YIELD
 
-    point, params, venv, obs, planner = traced_batch(__doc__.splitlines()[0])
+    point, params, venv, obs, planner, args = traced_batch(__doc__.splitlines()[0], match=True)
     B = venv.num_envs
     engine = venv.engine
     choice, k = np.full(B, YIELD), np.zeros(B, dtype=int)
@@ -125,19 +131,19 @@ def main() -> None:
         rows = np.flatnonzero(~venv.idle)
         planner.read(engine, rows, obs["intent"][rows])
         live, _ = planner.live(engine, rows, choice[rows], k[rows])
-        due = rows[live]  # the rows that decide now (a row whose GO ``commit`` made final does not)
+        due = rows[live]  # the rows that decide now (a row ``commit`` has made final does not)
         p = planner.go_collision(engine, due) if len(due) else np.zeros(0)  # the decision's own draws
         held = choice[due].copy()
         choice[rows] = planner.decide(engine, rows, choice[rows], k[rows])
         for r, pr, h in zip(due, p, held):
             history[r].append((round(float(engine.time[r]), 1), round(float(pr), 3), int(choice[r])))
             if pr > planner.threshold and h != GO:
-                pending[r] = blame(planner, engine, int(r), float(pr))
+                pending[r] = blame(planner, engine, int(r), float(pr), args.match)
             elif pending[r] is not None and h != GO:
                 flips[r].append({"t": round(float(engine.time[r]), 1), "before": pending[r]})
                 name = blamed_kind(pending[r])
                 kinds[name] = kinds.get(name, 0) + 1
-                name = state_kind(pending[r], planner.threshold)
+                name = state_kind(pending[r])
                 states[name] = states.get(name, 0) + 1
                 pending[r] = None
             else:

@@ -165,7 +165,7 @@ def main() -> None:
     from av_gym.batched.vec_env import meta_actions
     from av_gym.wrappers import GO, YIELD
 
-    point, params, venv, obs, planner = traced_batch(__doc__.splitlines()[0])
+    point, params, venv, obs, planner, _ = traced_batch(__doc__.splitlines()[0])
     B = venv.num_envs
     engine = venv.engine
     choice, k = np.full(B, YIELD), np.zeros(B, dtype=int)

@@ -6,9 +6,10 @@ episodes only.
 
 Plays each seed with :class:`agents.belief.BeliefPlanner` on ``sensors=turn_perceived`` (``--set``:
 BeliefLookaheadParams fields) as ``eval.batched`` drives it, except that before every step's decisions each road
-user the planner has (a confirmed or tentative track) within ``--match`` m of a simulator vehicle takes that
-vehicle's place, heading, speed (also as its set-point, as a track's), acceleration and lane: the tracks as a
-perfect filter would give them; which road users there are (confirmation, misses, ghosts, twins), the standing
+user the planner has (a confirmed or tentative track) within ``--match`` m (default 3) of a simulator vehicle takes
+that vehicle's place, heading, speed (also as its set-point, as a track's), acceleration and lane
+(belief_tracks_truth.py, the true state belief_tracks_confirm.py uses too): the tracks as a perfect filter would
+give them; which road users there are (confirmation, misses, ghosts, twins), the standing
 rule's flag and everything hidden (routes, set-points, IDM draws) stay the planner's. Not a policy (it reads the
 simulator): the gap between it and the planner on the same seeds is what any state refinement can buy. Prints one
 JSON line as belief_tracks_sweep.py does, plus the road-user states replaced."""
@@ -25,39 +26,16 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # the checkout's agents/ and eval/
 from belief_tracks_sweep import traced_batch  # noqa: E402  (this folder is sys.path[0] when run as a script)
-
-STATE = ("x", "y", "h", "v", "acc", "lane", "tlane")
-
-
-def true_states(tracks_engine, engine, rows: np.ndarray, radius: float) -> int:
-    """Give every road user of ``rows`` in ``tracks_engine`` (the futures' start) the state of the nearest
-    simulator vehicle of ``engine`` within ``radius`` m (its set-point its speed, its route's first lane its lane);
-    returns how many were replaced."""
-    t, s = tracks_engine.traffic, engine.traffic
-    done = 0
-    for r in rows:
-        others = np.flatnonzero(s.alive[r] & ~s.ego[r])
-        users = np.flatnonzero(t.alive[r] & ~t.ego[r])
-        if not len(others) or not len(users):
-            continue
-        d = np.hypot(t.x[r, users][:, None] - s.x[r, others][None], t.y[r, users][:, None] - s.y[r, others][None])
-        near = d.min(axis=1) <= radius
-        j, i = users[near], others[np.argmin(d, axis=1)[near]]
-        for name in STATE:
-            getattr(t, name)[r, j] = getattr(s, name)[r, i]
-        t.target[r, j] = np.maximum(s.v[r, i], 0.0)
-        t.route[r, j, 0] = s.lane[r, i]
-        done += len(j)
-    return done
+from belief_tracks_truth import true_states  # noqa: E402
 
 
 def main() -> None:
     from av_gym.batched.vec_env import meta_actions
     from av_gym.wrappers import YIELD
 
-    sys.argv, radius = _radius(sys.argv)
     t0, c0 = time.time(), time.process_time()
-    point, params, venv, obs, planner = traced_batch(__doc__.splitlines()[0])
+    point, params, venv, obs, planner, args = traced_batch(__doc__.splitlines()[0], match=True)
+    radius = args.match
     B, engine = venv.num_envs, venv.engine
     choice, k = np.full(B, YIELD), np.zeros(B, dtype=int)
     rows_out, replaced = [], 0
@@ -72,20 +50,12 @@ def main() -> None:
             m = infos[r]["episode_metrics"]
             rows_out.append((infos[r]["seed"], bool(m["collision"]), bool(m["success"])))
     n = len(rows_out)
-    print(json.dumps({"point": point, "state": "true", "match_m": radius, "episodes": n,
+    print(json.dumps({"point": point, "state": "true", "match_m": radius if np.isfinite(radius) else None, "episodes": n,
                       "collision": sum(c for _, c, _ in rows_out) / n, "success": sum(s for _, _, s in rows_out) / n,
                       "collided": sorted(s for s, c, _ in rows_out if c),
                       "not_arrived": sorted(s for s, _, a in rows_out if not a), "replaced": replaced,
                       "wall_s": round(time.time() - t0, 1), "cpu_s": round(time.process_time() - c0, 1),
                       "load": os.getloadavg()[0]}))
-
-
-def _radius(argv: list[str]) -> tuple[list[str], float]:
-    """``--match M`` (m, default 3) taken out of ``argv`` (traced_batch parses the rest)."""
-    if "--match" not in argv:
-        return argv, 3.0
-    k = argv.index("--match")
-    return argv[:k] + argv[k + 2:], float(argv[k + 1])
 
 
 if __name__ == "__main__":

@@ -45,20 +45,28 @@ def planner_point(pairs: list[str]):
         fail(str(exc).splitlines()[0])
 
 
-def traced_batch(description: str):
-    """The set-up the tracing tools share (belief_tracks_diagnose, belief_tracks_confirm): ``--seeds`` (validation
-    seeds, one batch row each) and ``--set``; returns (the point's mapping, its params, the batch, its first
-    observations, a BeliefPlanner reset on every row)."""
+def traced_batch(description: str, match: bool = False):
+    """The set-up the tracing tools share (belief_tracks_diagnose, _confirm, _state): ``--seeds`` (validation
+    seeds, one batch row each), ``--set`` and, with ``match``, ``--match M`` (m, default
+    belief_tracks_truth.MATCH_M: the radius within which a track is a simulator vehicle's); returns (the point's
+    mapping, its params, the batch, its first observations, a BeliefPlanner reset on every row, the parsed
+    arguments)."""
     import numpy as np
 
     from agents.belief import BeliefPlanner
     from av_gym.batched.vec_env import BatchedLeftTurnBatch
     from av_gym.presets import compose_group
     from av_gym.seeds import SPLITS
+    from conf.cli import ToolParser, number
 
-    ap = argparse.ArgumentParser(description=description)
+    ap = ToolParser(description=description)
     ap.add_argument("--seeds", type=int, nargs="+", required=True)
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
+    if match:
+        from belief_tracks_truth import MATCH_M
+
+        ap.add_argument("--match", type=number(float, low=0.0), default=MATCH_M, metavar="M",
+                        help="match radius (m): a track within it of a simulator vehicle is that vehicle's")
     args = ap.parse_args()
     if any(s not in SPLITS["validation"] for s in args.seeds):
         fail(f"--seeds must be in the validation split {SPLITS['validation']}")
@@ -68,7 +76,7 @@ def traced_batch(description: str):
     obs = venv.play(iter(args.seeds))
     planner = BeliefPlanner(params, n_rows=B, perception=venv.perception)
     planner.reset(np.arange(B))
-    return point, params, venv, obs, planner
+    return point, params, venv, obs, planner, args
 
 
 def main() -> None:
