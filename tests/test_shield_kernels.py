@@ -314,3 +314,30 @@ def test_the_rows_kernel_is_each_decisions_own_call_and_leaves_missing_speed_bin
         _assert_bit_equal(g, w, f"decision {r}")
     assert sum(int(w[3].sum()) for w in want) > 5 and sum(int((~w[3]).sum()) for w in want) > 2  # map and cv
 
+
+
+@pytest.mark.parametrize("short", [1, 0])
+def test_a_decision_with_more_hypotheses_than_its_block_is_left_to_its_own_call(fresh_paths, monkeypatch, short):
+    """The rows kernel writes each decision into a block of the flat buffers sized in Python (kernels do not check
+    bounds): a decision whose hypotheses outgrow its block (here one ``short``er than them) gets None, as a missing
+    speed bin does (its shield's own call serves it), instead of spilling into the next decision's block; one that
+    fills its block exactly is served. The others are their own calls bit for bit."""
+    from av_gym.shields import conflicts
+    from av_gym.shields.conflicts import ConflictModel
+
+    model, t = ConflictModel(fresh_paths, min_p=0.1), 0.1 * np.arange(1, 81)
+    decisions = _decisions(fresh_paths, np.random.default_rng(29), SIZES, own=3)
+    want = _own_calls(model, decisions, t, range(len(SIZES)))
+    blocks = conflicts._row_blocks
+
+    def smaller(reg, lane_row, row_off):
+        size = np.diff(blocks(reg, lane_row, row_off))
+        size[2] = len(want[2][2]) - short  # decision 2's block: its hypotheses, less ``short``
+        return np.concatenate([[0], np.cumsum(size)]).astype(np.int64)
+
+    monkeypatch.setattr(conflicts, "_row_blocks", smaller)
+    got = model.predict_rows(decisions[0], decisions[4], decisions[1], decisions[2], t, decisions[3])
+    assert [g is None for g in got] == [False, False, bool(short), False, False]
+    for r, (g, w) in enumerate(zip(got, want)):
+        if g is not None:
+            _assert_bit_equal(g, w, f"decision {r}")

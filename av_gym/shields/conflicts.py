@@ -182,6 +182,15 @@ def _lanes_of(model: "ConflictModel") -> _Lanes:
     return reg
 
 
+def _row_blocks(reg: _Lanes, lane_row: np.ndarray, row_off: np.ndarray) -> np.ndarray:
+    """Where each decision's block of :meth:`ConflictModel.predict_rows`' flat buffers starts, in hypotheses
+    ((R + 1,): the last, their total), decision r's road users rows ``row_off[r]`` .. ``row_off[r + 1]`` on lane
+    rows ``lane_row`` of ``reg``: room for each road user's lane hypotheses, or its one constant-velocity
+    hypothesis (the kernel leaves a decision that outgrows its block to the caller)."""
+    room = np.where(lane_row >= 0, reg.hyp_n[lane_row], 1) if len(reg.hyp_n) else np.ones(len(lane_row))
+    return np.concatenate([[0], np.cumsum(np.maximum(room, 1))])[row_off].astype(np.int64)
+
+
 class ConflictModel:
     """Every road user's possible paths across the ego's: one hypothesis per way the road network lets
     it continue from the lane it is on (:class:`av_gym.shields.predict.LaneHypotheses`: straight, left, right at
@@ -394,21 +403,20 @@ class ConflictModel:
         from av_gym.shields.kernels import conflict_predict_rows
         from av_gym.shields.predict import DrivenPath, _store
 
+        row_off = np.asarray(row_off, dtype=np.int64)
         R = len(row_off) - 1
         inputs = self._kernel_inputs(others, lane_indices, accels, intent) \
             if CONFLICT_KERNEL and DrivenPath.kernel else None
         if inputs is None:
             return [None] * R
         reg, args = inputs
-        lane_row, t = args[3], np.ascontiguousarray(t, dtype=float)
-        # room per decision: each road user's lane hypotheses, or its one constant-velocity hypothesis
-        room = np.where(lane_row >= 0, reg.hyp_n[lane_row], 1) if len(reg.hyp_n) else np.ones(len(lane_row))
-        h_off = np.concatenate([[0], np.cumsum(np.maximum(room, 1))])[np.asarray(row_off)].astype(np.int64)
+        t = np.ascontiguousarray(t, dtype=float)
+        h_off = _row_blocks(reg, args[3], row_off)
         K, n_all = len(t), int(h_off[-1])
         xy, hh, prob = np.empty(2 * K * n_all), np.empty(K * n_all), np.empty(n_all)
         owner, is_map, n_h = np.empty(n_all, np.int64), np.empty(n_all, np.bool_), np.empty(R, np.int64)
         st = _store()
-        conflict_predict_rows(np.asarray(row_off, dtype=np.int64), *args, reg.ids, t, float(self.accel_time),
+        conflict_predict_rows(row_off, *args, reg.ids, t, float(self.accel_time),
                               st.data, st.route, st.limits, st.bins, st.grid_table, h_off, xy, hh, owner, is_map,
                               prob, n_h)
         out = []

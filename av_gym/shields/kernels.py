@@ -603,9 +603,10 @@ def conflict_predict_rows(row_off, others, speeds, phis, lane_row, lanes, hyp_of
     other arguments as :func:`conflict_predict`'s, shared). Each decision is :func:`conflict_predict` on its own
     slices (the same floats as its own call); its H hypotheses are written from ``h_off[r]`` into the flat buffers:
     ``xy`` from ``2 K h_off[r]`` and ``hh`` from ``K h_off[r]`` as (K, H, 2) and (K, H) blocks, ``owner``,
-    ``is_map``, ``prob`` from ``h_off[r]`` (``h_off[r + 1] - h_off[r]``: at least H, each road user's lane
-    hypotheses or one). ``n_h[r]``: its H, or -1 where a speed bin it reads is not simulated yet (nothing written:
-    the caller's own :meth:`~av_gym.shields.conflicts.ConflictModel.predict` simulates it, lazily as the reference)."""
+    ``is_map``, ``prob`` from ``h_off[r]`` (its block, ``h_off[r + 1] - h_off[r]``: at least H, each road user's
+    lane hypotheses or one). ``n_h[r]``: its H, or -1 where a speed bin it reads is not simulated yet or its H
+    outgrows its block (nothing written: the caller's own :meth:`~av_gym.shields.conflicts.ConflictModel.predict`
+    serves it, simulating missing bins lazily as the reference)."""
     K, n_bins = t.shape[0], bins.shape[1]
     for r in range(row_off.shape[0] - 1):
         a, b = row_off[r], row_off[r + 1]
@@ -618,10 +619,10 @@ def conflict_predict_rows(row_off, others, speeds, phis, lane_row, lanes, hyp_of
             others[a:b], speeds[a:b], phis[a:b], lane_row[a:b], lanes, hyp_off, hyp_n, hyp_turn, intent[a:b],
             accels[a:b], min_p, on_lane, max_dh, fused, follow[a:b], hyp_ids, t, accel_time, data, route, limits,
             bins, grid_table, need)
-        if missing:
+        H, o = pown.shape[0], h_off[r]
+        if missing or H > h_off[r + 1] - o:  # numba does not check bounds: a row outgrowing its block is not written
             n_h[r] = -1
             continue
-        H, o = pown.shape[0], h_off[r]
         n_h[r] = H
         for k in range(K):
             for h in range(H):
