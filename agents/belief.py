@@ -299,9 +299,11 @@ class BeliefPlanner:
 
     def live(self, engine, rows: np.ndarray, choice: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(due, final) masks over ``rows`` at env steps ``step`` (their held choices ``choice``): which rows decide
-        now (every ``repeat`` steps, or at their early confirming step) and whose GO is final instead (``commit``:
-        go, once GO; stop, once the ego is past the line or too fast to stop before it); a final row does not
-        decide."""
+        now (every ``repeat`` steps, or at their early confirming step), and which of those are made GO for good
+        instead of deciding (``final``). Under ``commit: go`` a row holding GO is simply not due (``final`` stays
+        all False: its GO is kept, not set); under ``commit: stop`` a due row is final once the ego is over 1 m past
+        the stop line, whatever it held (a YIELD there becomes GO), or holds GO too fast to stop before the line
+        (:meth:`committed`). Neither kind decides."""
         due = (step % int(self.params.repeat) == 0) | (self.confirm_at[rows] == step)
         final = np.zeros(len(rows), bool)
         if self.params.commit == "go":
