@@ -330,7 +330,7 @@ class TrackBelief:
         e = perception.e
         self.tentative = str(params.tentative)
         self.unseen = UnseenTraffic(e, perception.detector.params, perception.tracker.params, n_rows,
-                                    float(params.unseen), self.tentative, int(getattr(params, "unseen_ahead", 0))
+                                    float(params.unseen), self.tentative, int(params.unseen_ahead)
                                     ) if float(params.unseen) > 0 else None
         self.engine = None  # the futures' start (ego, confirmed [and tentative] tracks), all rows
         self.tent = None  # (B, N) its slots that hold a tentative track
@@ -338,7 +338,7 @@ class TrackBelief:
         self.along = None  # (B, N, 2, 2) its slots' filter covariance of (place, speed) along their heading
         self._ticks = None
         self.lane_kind = lane_kinds(e.T)[0]  # per lane id: 0 approach, 1 crossing, 2 exit
-        fit = float(getattr(params, "track_fit", 0.0))
+        fit = float(params.track_fit)
         self.motion = DetectedMotion(n_rows, fit, float(perception.detector.params.rate_hz)) if fit > 0 else None
 
     def reset(self, rows) -> None:
