@@ -42,14 +42,17 @@ import csv
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from conf.commands import TrainCommand, TrainOptions
+
+if TYPE_CHECKING:
+    from agents.dagger import DaggerParams
 
 ROUND_FIELDS = ("round", "driver", "episodes", "labels", "wall_s", "label_s", "agreement", "drive_success",
                 "drive_collision", "fit_accuracy", "val_success", "val_collision", "fit_s")
@@ -283,8 +286,9 @@ def drive_batched(venv, model, labeller: BatchedLabels, seeds, teacher_drives: b
 @dataclass(frozen=True)
 class LabelJob:
     """What drives and labels a round's episodes on the batch, as plain picklable values (a labelling process
-    gets it from the parent): the env, sensors and shield, the agent's config (the student's network, the teacher,
-    the batch), the run's seed, the labeller (:func:`labeller_of`: batched or rule) and torch's intra-op threads."""
+    gets it from the parent; :func:`_build` builds every labeller's student, stacks and validation from it): the env,
+    sensors and shield, the agent's config (the student's network, the teacher, the batch), the run's seed, the
+    labeller (:func:`labeller_of`) and torch's intra-op threads."""
 
     env: dict
     sensors: dict
@@ -316,6 +320,14 @@ class LabelJob:
 
         return make_ppo(venv, self.agent, seed=self.seed, tensorboard_log=None, device=self.agent["device"])
 
+    def teacher(self) -> Any:
+        """The run's teacher (agent.teacher) at the agent's actions and action repeat
+        (:func:`train.imitation.make_teacher`)."""
+        from train.imitation import make_teacher
+
+        a = self.agent
+        return make_teacher(str(a["teacher"]), str(a["actions"]), str(self.env["name"]), int(a["action_repeat"]))
+
 
 @dataclass
 class BatchLabelling:
@@ -336,11 +348,9 @@ class BatchLabelling:
 
 def batch_labelling(job: LabelJob) -> BatchLabelling:
     """The batch, the teacher's labeller and a fresh student of the run's network and seed, for ``job``."""
-    from train.imitation import make_teacher
-
     a = job.agent
     venv = job.batch(int(a["n_envs"]))
-    teacher = make_teacher(str(a["teacher"]), str(a["actions"]), str(job.env["name"]), int(a["action_repeat"]))
+    teacher = job.teacher()
     return BatchLabelling(venv, job.student(venv), BatchedLabels(venv, teacher, job.how == "batched",
                                                                  float(a["label_margin"])),
                           float(a["gamma"]), a["targets"] == "go_safe")
@@ -725,15 +735,15 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path, command: TrainC
     return path
 
 
-def _build(cfg: DictConfig, command: TrainCommand, params, resume: bool) -> _Run:
+def _build(cfg: DictConfig, command: TrainCommand, params: DaggerParams, resume: bool) -> _Run:
     """The student, what drives and labels its rounds (:func:`labeller_of`: on the batch, :func:`_on_the_batch`;
     else one per-env stack, or ``n_envs`` of them beside a batched replica), the student from ``agent.init_from``
-    on a fresh run, and the validation."""
-    how = labeller_of(cfg)
-    if how in ("batched", "rule"):
-        model, stacks, drive, pool = _on_the_batch(LabelJob.of(cfg, command, how), int(params.workers))
+    on a fresh run, and the validation, all from the run's one :class:`LabelJob`."""
+    job = LabelJob.of(cfg, command, labeller_of(cfg))
+    if job.how in ("batched", "rule"):
+        model, stacks, drive, pool = _on_the_batch(job, int(params.workers))
     else:
-        (model, stacks, drive), pool = _per_env(cfg, command, params, how), None
+        (model, stacks, drive), pool = _per_env(job, cfg, params), None
     if params.init_from and not resume:  # a student to go on from (a DAgger run or a PPO policy of the same spaces)
         from train.imitation import load_weights
 
@@ -742,10 +752,9 @@ def _build(cfg: DictConfig, command: TrainCommand, params, resume: bool) -> _Run
             from train.operating_point import at_fit_boundary
 
             at_fit_boundary(model, saved_config(params.init_from, str(cfg.env.name)))
-    plain = [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
-    validation = _validation(command.train, plain, int(params.action_repeat), str(params.actions),
-                             how in ("batched", "rule"))
-    return _Run(model, stacks, drive, how, validation, pool)
+    validation = _validation(command.train, [job.env, job.sensors, job.shield], int(params.action_repeat),
+                             str(params.actions), job.how in ("batched", "rule"))
+    return _Run(model, stacks, drive, job.how, validation, pool)
 
 
 def _on_the_batch(job: LabelJob, workers: int) -> tuple[Any, list, Callable[[list, bool], Round], Any]:
@@ -761,29 +770,22 @@ def _on_the_batch(job: LabelJob, workers: int) -> tuple[Any, list, Callable[[lis
     return labelling.model, [labelling.venv], labelling.drive, None
 
 
-def _per_env(cfg: DictConfig, command: TrainCommand, params, how: str) -> tuple[Any, list, Callable]:
-    """The student, its per-env stacks and the round's driver for the labellers off the batch: ``replica`` (the
-    student on ``n_envs`` per-env stacks, the oracle on a batched replica of their episodes) or ``per_env`` (the
-    teacher on one stack, one state at a time)."""
-    from agents.ppo import make_ppo
+def _per_env(job: LabelJob, cfg: DictConfig, params: DaggerParams) -> tuple[Any, list, Callable]:
+    """The student, its per-env stacks and the round's driver for the labellers off the batch (``job.how``):
+    ``replica`` (the student on ``n_envs`` per-env stacks, the oracle on a batched replica of their episodes, with
+    the sensors of :func:`replica_sensors`) or ``per_env`` (the teacher on one stack, one state at a time)."""
     from av_gym.make import make_training_env
-    from train.imitation import make_teacher
 
-    plain = [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
-    repeat, actions = int(params.action_repeat), str(params.actions)
-    teacher = make_teacher(params.teacher, actions, str(cfg.env.name), repeat)
+    teacher = job.teacher()
     gamma, n_envs = float(params.gamma), int(params.n_envs)
-    stacks = [make_training_env(*plain, 0.0, repeat, actions, timeout_is_terminal=params.timeout_is_terminal)
-              for _ in range(n_envs if how == "replica" else 1)]
+    stacks = [make_training_env(job.env, job.sensors, job.shield, 0.0, int(params.action_repeat), str(params.actions),
+                                timeout_is_terminal=params.timeout_is_terminal)
+              for _ in range(n_envs if job.how == "replica" else 1)]
     env = stacks[0]
-    model = make_ppo(env, OmegaConf.to_container(cfg.agent, resolve=True), seed=command.seed, tensorboard_log=None,
-                     device=cfg.agent.device)
-    if how == "per_env":
+    model = job.student(env)
+    if job.how == "per_env":
         return model, stacks, lambda seeds, by_teacher: drive_per_env(env, model, teacher, seeds, by_teacher, gamma)
-    from agents.batched_vec_env import BatchedLeftTurnVecEnv
-
-    replica = BatchedLeftTurnVecEnv(plain[0], replica_sensors(cfg.sensors), plain[2], n_envs, action_repeat=repeat,
-                                    actions=actions, timeout_is_terminal=params.timeout_is_terminal, pool=0)
+    replica = replace(job, sensors=replica_sensors(cfg.sensors)).batch(n_envs)
     labels = BatchedLabels(replica, teacher, True, params.label_margin)
     return model, stacks, lambda seeds, by_teacher: drive_replica(stacks, replica, model, labels, seeds, by_teacher,
                                                                   gamma)
