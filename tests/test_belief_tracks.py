@@ -696,3 +696,88 @@ def test_a_track_standing_at_its_line_drives_off_with_stopped_scope_off_approach
         assert p.tracks.lane_kind[t.lane[rows, slot]].tolist() == [0 if place[1] < -12 else 1] * len(rows)
         assert t.crashed[rows, slot].tolist() == [stands] * len(rows), (scope, place)
     assert (out["off_approach", (-2.0, -16.0)] > out["anywhere", (-2.0, -16.0)]).all()
+
+
+def _tracing_tools(monkeypatch) -> tuple:
+    """benchmarks/belief_tracks_truth.py, _confirm.py and _sweep.py as the scripts import each other (their folder
+    on sys.path)."""
+    import importlib
+    from pathlib import Path
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    return tuple(importlib.import_module(f"belief_tracks_{m}") for m in ("truth", "confirm", "sweep"))
+
+
+def _read_copy(venv, planner, obs, rows):
+    """A copy of ``planner`` that has read the last observation (the module's fixture stays as it is)."""
+    p = copy.deepcopy(planner, {id(venv.perception): venv.perception, id(venv.engine): venv.engine,
+                                id(planner.tracks.engine): None})
+    p.read(venv.engine, rows, obs["intent"][rows])
+    return p
+
+
+def test_a_tracks_true_state_is_its_car_within_the_match_radius_with_its_speed_as_set_point(tracked_shipped,
+                                                                                             monkeypatch):
+    """belief_tracks_truth.true_states (belief_tracks_state.py's tracks, belief_tracks_confirm.py's p_true_state):
+    a road user within 3 m of a simulator vehicle takes its place, heading, speed, acceleration and lane, its
+    set-point the true speed (not the simulator's hidden one) and its route's first lane its lane; one farther than
+    3 m from every vehicle keeps its track's state."""
+    truth, _, _ = _tracing_tools(monkeypatch)
+    venv, planner, obs, rows = tracked_shipped
+    sim = copy.copy(venv.engine)
+    sim.traffic = venv.engine.traffic.subset(np.arange(venv.engine.B))
+    sim.traffic.target[:] = sim.traffic.v + 5.0  # a hidden set-point unlike any speed: it must not reach a track
+    te = copy.copy(_read_copy(venv, planner, obs, rows).tracks.engine)
+    te.traffic = te.traffic.subset(np.arange(te.B))
+    t, s = te.traffic, sim.traffic
+    near = {int(r): truth.nearest_cars(te, sim, int(r)) for r in rows}
+    matched = [(r, j, i) for r in near for j, (i, d) in near[r].items() if d <= 3.0]
+    far = [(r, j) for r in near for j, (i, d) in near[r].items() if d > 3.0]
+    assert matched and far
+    far_state = [(t.x[r, j], t.v[r, j], t.target[r, j]) for r, j in far]
+    assert truth.true_states(te, sim, rows, 3.0) == len(matched)
+    for r, j, i in matched:
+        for name in ("x", "y", "h", "v", "acc", "lane", "tlane"):
+            assert getattr(t, name)[r, j] == getattr(s, name)[r, i], name
+        assert t.target[r, j] == max(s.v[r, i], 0.0) != s.target[r, i]
+        assert t.route[r, j, 0] == s.lane[r, i]
+    assert [(t.x[r, j], t.v[r, j], t.target[r, j]) for r, j in far] == far_state
+
+
+def test_the_confirm_trace_judges_a_blamed_track_by_the_car_within_match_only(tracked_shipped, monkeypatch):
+    """belief_tracks_confirm.blame: a blamed road user with no vehicle within ``--match`` m gets no true state
+    (p_true_state, safe_true_state None; the nearest vehicle's distance still in err_m), one within gets GO's
+    collision probability with belief_tracks_truth's state; with no radius the far one is judged by a car metres
+    away. Its record is plain JSON (no Infinity)."""
+    import json
+
+    truth, confirm, _ = _tracing_tools(monkeypatch)
+    venv, planner, obs, rows = tracked_shipped
+    p = _read_copy(venv, planner, obs, rows)
+    engine = venv.engine
+    far = [int(r) for r in rows if any(d > 3.0 for _, d in truth.nearest_cars(p.tracks.engine, engine, r).values())]
+    go = dict(zip(far, p.go_collision(engine, np.array(far))))
+    by = {r: confirm.blame(p, engine, r, float(go[r]), 3.0) for r in far if go[r] > 0}
+    blamed_far = [r for r, b in by.items() if any(u["err_m"] > 3.0 for u in b["users"])]
+    assert blamed_far
+    for u, unbounded in zip([u for r in blamed_far for u in by[r]["users"]],
+                            [u for r in blamed_far for u in confirm.blame(p, engine, r, float(go[r]), np.inf)["users"]]):
+        assert (u["p_true_state"] is None) == (u["safe_true_state"] is None) == (u["err_m"] > 3.0)
+        assert unbounded["p_true_state"] is not None
+        if u["err_m"] <= 3.0:
+            assert u["p_true_state"] == unbounded["p_true_state"]
+            assert u["safe_true_state"] == (u["p_true_state"] <= p.threshold)
+    json.dumps(list(by.values()), allow_nan=False)
+
+
+@pytest.mark.parametrize("match, why", [([], "expected one argument"), (["x"], "'x'"), (["-1"], "'-1'")])
+def test_a_bad_match_radius_is_one_error_line(match, why, monkeypatch, capsys):
+    """``--match`` of belief_tracks_state.py / _confirm.py without a value, not a number or negative: one
+    ``error:`` line naming the flag, exit status 2, before any batch is built."""
+    _, _, sweep = _tracing_tools(monkeypatch)
+    monkeypatch.setattr("sys.argv", ["belief_tracks_state.py", "--seeds", "1000000", "--match", *match])
+    with pytest.raises(SystemExit) as out:
+        sweep.traced_batch("test", match=True)
+    err = capsys.readouterr().err.strip()
+    assert out.value.code == 2 and len(err.splitlines()) == 1
+    assert err.startswith("error: ") and "--match" in err and why in err
