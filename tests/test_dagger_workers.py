@@ -61,8 +61,8 @@ def test_workers_are_refused_off_the_batch_and_below_one():
 
 def test_the_parent_of_labelling_processes_builds_only_the_student_it_fits(monkeypatch):
     """With agent.workers=2 the labelling processes drive and label: the parent builds no teacher and no batch of
-    agent.n_envs rows (its student's spaces come from one row), and hands the processes the run's job; with
-    agent.workers=1 it builds the batch it drives and the teacher's labeller."""
+    agent.n_envs rows (its student's spaces come from one row, a stack the run closes), and hands the processes the
+    run's job; with agent.workers=1 it builds the batch it drives and the teacher's labeller."""
     import eval.runner
     import train.imitation
     from agents.dagger import DaggerParams
@@ -88,7 +88,8 @@ def test_the_parent_of_labelling_processes_builds_only_the_student_it_fits(monke
         params = DaggerParams.from_mapping(OmegaConf.to_container(cfg.agent, resolve=True), where="agent")
         run = _build(cfg, TrainCommand.of(cfg), params, resume=False)
         if workers == 2:
-            assert teachers == [] and run.stacks == [] and run.model.env.num_envs == 1
+            assert teachers == [] and [s.num_envs for s in run.stacks] == [1]
+            assert run.model.env is run.stacks[0]
             assert run.pool.n == 2 and run.pool.args == (LabelJob.of(cfg, TrainCommand.of(cfg), "batched"),)
         else:
             assert len(teachers) == 1 and run.pool is None and [s.num_envs for s in run.stacks] == [16]

@@ -761,11 +761,11 @@ def _on_the_batch(job: LabelJob, workers: int) -> tuple[Any, list, Callable[[lis
     """The student, the stacks to close, the round's driver and the labelling processes (None: none) on the batch:
     with ``workers`` = 1 this process's :func:`batch_labelling`; else the labelling processes drive and label
     (:func:`drive_parts`) and this process only fits and validates the student, built on a batch of one row for the
-    spaces SB3 builds a policy from (never stepped: no batch of ``n_envs``, no teacher)."""
+    spaces SB3 builds a policy from (never stepped, closed with the run: no batch of ``n_envs``, no teacher)."""
     if workers > 1:
-        model, width = job.student(job.batch(1)), int(job.agent["n_envs"])
-        pool = labelling_pool(job, workers)
-        return model, [], lambda seeds, by_teacher: drive_parts(pool, model, seeds, by_teacher, width), pool
+        one_row, width = job.batch(1), int(job.agent["n_envs"])
+        model, pool = job.student(one_row), labelling_pool(job, workers)
+        return model, [one_row], lambda seeds, by_teacher: drive_parts(pool, model, seeds, by_teacher, width), pool
     labelling = batch_labelling(job)
     return labelling.model, [labelling.venv], labelling.drive, None
 
