@@ -102,6 +102,8 @@ def guard_worker() -> None:
       each. Linux's ``prctl(PR_SET_PDEATHSIG, SIGKILL)`` has the kernel kill this process when its parent dies;
       if the parent died before the call, this process exits now. Elsewhere (no prctl) the parent's own clean-up
       on SIGINT/SIGTERM still ends them.
+    - Its progress bars lock with a thread lock (:func:`_bars_lock_of_this_process`), so a worker ended by SIGTERM
+      or ``terminate()`` leaves no semaphore behind.
 
     A no-op in the main process: only processes started by ``multiprocessing`` are workers."""
     import multiprocessing
@@ -136,10 +138,10 @@ def _bars_lock_of_this_process() -> None:
 
     Why: in a spawned process that RLock is a named POSIX semaphore, registered with multiprocessing's resource
     tracker and released only by an orderly exit. A worker's first bar (even a disabled one: ``play_batched``'s
-    ``progress=False``) creates it, and the stop path ends workers by SIGTERM or ``terminate()`` mid-task, so the
-    tracker found one semaphore per worker when the run ended and printed "There appear to be N leaked semaphore
-    objects". A worker draws no bar (the parent draws the run's), so its own threads are all the lock has to
-    order."""
+    ``progress=False``) creates it, and the stop path ends workers by SIGTERM or ``terminate()`` mid-task, so with
+    that lock the tracker would find one semaphore per worker when the run ends and print "There appear to be N
+    leaked semaphore objects". A worker draws no bar (the parent draws the run's), so its own threads are all the
+    lock has to order."""
     import threading
 
     from tqdm import tqdm as bars
