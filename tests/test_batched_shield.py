@@ -303,6 +303,7 @@ def test_the_batch_predicts_each_shields_conflicts_as_the_shield_does(monkeypatc
         served = self.env.predicted is not None
         got, ref = own(self, others, lanes, a_others, t_long, intent), \
             ImprovedAEB._scene_conflicts(self, others, lanes, a_others, t_long, intent)
+        assert len(got) == len(ref) == 5
         for a, b in zip(got, ref):
             assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
         seen["served" if served else "own"] += 1

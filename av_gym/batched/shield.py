@@ -48,6 +48,7 @@ from av_gym.params import ParamError
 from av_gym.sensors.base import episode_rng
 from av_gym.sensors.turn_signal import (DRIVER_DRAWS, DriverDraws, first_sighting, fit_ids, node_index, reported,
                                         route_origin, turn_signal)
+from av_gym.shields.aeb_improved import ImprovedAEB, followers, long_times
 from av_gym.shields.aeb_params import BRAKE, STOP_SPEED, ImprovedParams
 from av_gym.shields.conflicts import ConflictModel
 from av_gym.sim.fast_network import FastRoadNetwork
@@ -141,8 +142,10 @@ class RowEnv(gym.Env):
         # the indicator channel's turn weights of the kept road users, and who moved lately (ground-truth mode)
         self.intent: np.ndarray | None = None
         self.recent: np.ndarray | None = None
-        # the conflict model's paths of the kept road users (ConflictModel.predict's tuple), None: the shield's own
+        # the conflict model's paths of the kept road users (ConflictModel.predict's tuple), None: the shield's own,
+        # and how many road users the batch kept for it
         self.predicted: tuple | None = None
+        self.predicted_n = 0
 
     def cruise_action(self):
         return self.template.cruise_action()
@@ -230,7 +233,6 @@ def _row_shield_class():
     """ImprovedAEB on a :class:`RowEnv` whose road users' state rows and accelerations the batch computed for all
     rows at once (ground-truth mode: :class:`_Kinematics`); where it did not (perceived mode: tracks) the per-env
     code runs."""
-    from av_gym.shields.aeb_improved import ImprovedAEB
 
     class RowAEB(ImprovedAEB):
         def _objects(self, ego: dict) -> tuple[np.ndarray, list, list]:
@@ -256,10 +258,14 @@ def _row_shield_class():
             view = self.env
             return super()._recently_moved(others, t) if view.recent is None else view.recent
 
-        def _scene_conflicts(self, others, lanes, a_others, t_long, intent) -> tuple:
+        def _scene_conflicts(self, others: np.ndarray, lanes: list, a_others: np.ndarray, t_long: np.ndarray,
+                             intent: np.ndarray | None) -> tuple:
             view = self.env
             if view.predicted is None:
                 return super()._scene_conflicts(others, lanes, a_others, t_long, intent)
+            if len(others) != view.predicted_n:  # the batch predicted another set of road users than it keeps
+                raise RuntimeError(f"row {view.row}: the batch predicted {view.predicted_n} road users, the shield "
+                                   f"keeps {len(others)}")
             return view.predicted
 
     return RowAEB
@@ -420,8 +426,6 @@ class _Moved:
 def _followers(state: np.ndarray, ego: np.ndarray) -> np.ndarray:
     """ImprovedAEB._relevant's follower test for every slot of every row at once: (n, S) bool (``state`` (n, S, 7)
     :class:`_Kinematics`' rows, ``ego`` (n,) the ego's slot)."""
-    from av_gym.shields.aeb_improved import followers
-
     at = np.arange(len(ego))
     return followers(state[at, ego, 0:2], state[at, ego, 4], LENGTH, state)
 
@@ -460,8 +464,6 @@ class BatchedShield:
         # the conflict model's prediction for all rows at once (ground truth: the batch has the road users' rows)
         self.conflicts = ConflictModel(network, min_p=params.hypothesis_min_p) \
             if truth and params.target_model == "conflict" else None
-        from av_gym.shields.aeb_improved import long_times
-
         self.t_long = long_times(params)  # s, the shields' long prediction
         self.override = np.zeros(B, bool)
         self.steps = np.zeros(B, dtype=int)
@@ -533,9 +535,10 @@ class BatchedShield:
         others = alive & ~ego
         now = e.ticks[rows] / float(e.config["simulation_frequency"])
         recent = self.moved.recent(t.vid[rows], state, others, now) if self.moved is not None else None
-        intent = self.channel.weights(rows, state, others & relevant, slot) if self.channel is not None else None
+        kept = others & relevant
+        intent = self.channel.weights(rows, state, kept, slot) if self.channel is not None else None
         index, lanes, vids = e.T.index, t.lane[rows], t.vid[rows]
-        predicted = self._predict(state, others & relevant, lanes, accel, intent)
+        predicted, n_kept = self._predict(state, kept, lanes, accel, intent), kept.sum(axis=1).tolist()
         for n, r in enumerate(rows.tolist()):
             view, mine = self.views[r], others[n]
             view.objects, view.relevant = state[n, mine], relevant[n, mine]
@@ -543,10 +546,10 @@ class BatchedShield:
             view.accels = np.concatenate([accel[n, ego[n]], accel[n, mine]])
             view.recent = None if recent is None else recent[n, mine]
             view.intent = None if intent is None else intent[n]
-            view.predicted = predicted[n]
+            view.predicted, view.predicted_n = predicted[n], n_kept[n]
 
     def _predict(self, state: np.ndarray, kept: np.ndarray, lanes: np.ndarray, accel: np.ndarray,
-                 intent: list | None) -> list:
+                 intent: list[np.ndarray] | None) -> list[tuple | None]:
         """Per decision the conflict model's paths of its kept road users (``kept`` (n, S): relevant, not the ego;
         ``state`` (n, S, 7), ``lanes`` (n, S) lane ids, ``accel`` (n, S, 2) m/s², ``intent`` per decision its kept
         road users' turn weights or None), what its shield's ``_predict_scene`` asks the conflict model, for all
@@ -556,8 +559,9 @@ class BatchedShield:
             return [None] * len(kept)
         index = self.e.T.index
         row_off = np.concatenate([[0], np.cumsum(kept.sum(axis=1))])
-        weights = None if intent is None else np.concatenate([w.reshape(-1, 3) for w in intent]) if len(intent) \
-            else np.zeros((0, 3))
+        weights = None
+        if intent is not None:  # each decision's (its kept road users, 3) weights, one after the other
+            weights = np.concatenate([w.reshape(-1, 3) for w in intent]) if len(intent) else np.zeros((0, 3))
         return self.conflicts.predict_rows(state[kept], row_off, [index[k] for k in lanes[kept].tolist()],
                                            accel[kept], self.t_long, weights)
 

@@ -182,6 +182,16 @@ def _lanes_of(model: "ConflictModel") -> _Lanes:
     return reg
 
 
+def _store_arrays() -> tuple[np.ndarray, ...]:
+    """The kernels' store of driven-path tables as the conflict kernels take it (data, route, limits, bins,
+    grid_table: :class:`av_gym.shields.kernels.Store`), read at each call (simulating a speed bin can grow ``data``
+    into a new array)."""
+    from av_gym.shields.predict import _store
+
+    st = _store()
+    return st.data, st.route, st.limits, st.bins, st.grid_table
+
+
 def _row_blocks(reg: _Lanes, lane_row: np.ndarray, row_off: np.ndarray) -> np.ndarray:
     """Where each decision's block of :meth:`ConflictModel.predict_rows`' flat buffers starts, in hypotheses
     ((R + 1,): the last, their total), decision r's road users rows ``row_off[r]`` .. ``row_off[r + 1]`` on lane
@@ -377,7 +387,7 @@ class ConflictModel:
         kernel :meth:`predict` composes otherwise), calling again after simulating the speed bins it reads for the
         first time; None where :meth:`_kernel_inputs` is."""
         from av_gym.shields.kernels import conflict_predict
-        from av_gym.shields.predict import DRIVEN_SPEEDS, _store, simulating_bins
+        from av_gym.shields.predict import DRIVEN_SPEEDS, simulating_bins
 
         inputs = self._kernel_inputs(others, lane_indices, accels, intent, follow)
         if inputs is None:
@@ -385,9 +395,8 @@ class ConflictModel:
         reg, args = inputs
         lane_row = args[3]
         need = np.zeros((int(reg.hyp_n[lane_row[lane_row >= 0]].sum()), len(DRIVEN_SPEEDS)), dtype=np.bool_)
-        st = _store()
-        out = simulating_bins(lambda: conflict_predict(*args, reg.ids, t, float(self.accel_time), st.data, st.route,
-                                                       st.limits, st.bins, st.grid_table, need),
+        out = simulating_bins(lambda: conflict_predict(*args, reg.ids, t, float(self.accel_time), *_store_arrays(),
+                                                       need),
                               need, lambda h, out: reg.paths[out[1][h]])  # out[1]: the hypothesis indices
         return tuple(out[2:])
 
@@ -401,7 +410,7 @@ class ConflictModel:
         read, a kernel switched off): the caller's :meth:`predict` then does, simulating what is missing as the
         reference does."""
         from av_gym.shields.kernels import conflict_predict_rows
-        from av_gym.shields.predict import DrivenPath, _store
+        from av_gym.shields.predict import DrivenPath
 
         row_off = np.asarray(row_off, dtype=np.int64)
         R = len(row_off) - 1
@@ -415,10 +424,8 @@ class ConflictModel:
         K, n_all = len(t), int(h_off[-1])
         xy, hh, prob = np.empty(2 * K * n_all), np.empty(K * n_all), np.empty(n_all)
         owner, is_map, n_h = np.empty(n_all, np.int64), np.empty(n_all, np.bool_), np.empty(R, np.int64)
-        st = _store()
-        conflict_predict_rows(row_off, *args, reg.ids, t, float(self.accel_time),
-                              st.data, st.route, st.limits, st.bins, st.grid_table, h_off, xy, hh, owner, is_map,
-                              prob, n_h)
+        conflict_predict_rows(row_off, *args, reg.ids, t, float(self.accel_time), *_store_arrays(), h_off, xy, hh,
+                              owner, is_map, prob, n_h)
         out = []
         for o, H in zip(h_off.tolist(), n_h.tolist()):  # each decision's blocks of the flat buffers
             out.append(None if H < 0 else (xy[2 * K * o: 2 * K * (o + H)].reshape(K, H, 2),

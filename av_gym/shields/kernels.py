@@ -539,6 +539,17 @@ def along_profiles(v, a, t, accel_time):
     return dist, speed
 
 
+@numba.njit(cache=True)
+def lane_hypotheses(lane_row, hyp_n, a, b):
+    """The most map hypotheses road users ``a`` .. ``b`` can have: the lane hypotheses of each one on a lane row
+    (``lane_row`` >= 0; ``hyp_n`` per row), none for one off the map."""
+    n = 0
+    for m in range(a, b):
+        if lane_row[m] >= 0:
+            n += hyp_n[lane_row[m]]
+    return n
+
+
 @numba.njit(cache=True, error_model="numpy")  # as conflict_hypotheses: weights summing to 0 give NaN
 def conflict_predict(others, speeds, phis, lane_row, lanes, hyp_off, hyp_n, hyp_turn, intent, accels, min_p,
                      on_lane, max_dh, fused, follow, hyp_ids, t, accel_time, data, route, limits, bins, grid_table,
@@ -555,10 +566,7 @@ def conflict_predict(others, speeds, phis, lane_row, lanes, hyp_off, hyp_n, hyp_
     map hypothesis h, as :func:`driven_poses`) only the count and the hypothesis indices are meaningful: the caller
     simulates those bins and calls again."""
     M, K = others.shape[0], t.shape[0]
-    n_max = 0
-    for m in range(M):
-        if lane_row[m] >= 0:
-            n_max += hyp_n[lane_row[m]]
+    n_max = lane_hypotheses(lane_row, hyp_n, 0, M)
     hyp, starts, rows, owner_map = np.empty(n_max, np.int64), np.empty(n_max), np.empty(n_max, np.int64), \
         np.empty(n_max, np.int64)
     prob_map, v_on, a_on, cv = np.empty(n_max), np.empty(M), np.empty(M), np.empty(M, np.int64)
@@ -610,11 +618,7 @@ def conflict_predict_rows(row_off, others, speeds, phis, lane_row, lanes, hyp_of
     K, n_bins = t.shape[0], bins.shape[1]
     for r in range(row_off.shape[0] - 1):
         a, b = row_off[r], row_off[r + 1]
-        n_max = 0
-        for m in range(a, b):
-            if lane_row[m] >= 0:
-                n_max += hyp_n[lane_row[m]]
-        need = np.zeros((n_max, n_bins), np.bool_)
+        need = np.zeros((lane_hypotheses(lane_row, hyp_n, a, b), n_bins), np.bool_)
         missing, _, pxy, phh, pown, pmap, pprob = conflict_predict(
             others[a:b], speeds[a:b], phis[a:b], lane_row[a:b], lanes, hyp_off, hyp_n, hyp_turn, intent[a:b],
             accels[a:b], min_p, on_lane, max_dh, fused, follow[a:b], hyp_ids, t, accel_time, data, route, limits,
