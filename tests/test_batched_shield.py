@@ -323,6 +323,26 @@ def test_the_batch_predicts_each_shields_conflicts_as_the_shield_does(monkeypatc
     assert seen["map"] > 1000 and seen["cv"] > 50 and seen["weighted"] > 100, seen
 
 
+def test_a_row_whose_prediction_is_for_other_road_users_than_its_shield_keeps_is_refused(monkeypatch):
+    """The batch's prediction of a decision is for the road users it kept; a shield keeping another number of them
+    (the batch and the shield out of step) stops with a RuntimeError naming the row instead of reading another set's
+    paths."""
+    from av_gym.batched.shield import BatchedShield
+
+    venv = _venv(1)
+    kinematics = BatchedShield._kinematics
+
+    def out_of_step(self, rows):
+        kinematics(self, rows)
+        for r in rows.tolist():
+            self.views[r].predicted_n += 1
+
+    monkeypatch.setattr(BatchedShield, "_kinematics", out_of_step)
+    venv.play(iter([VALIDATION]))
+    with pytest.raises(RuntimeError, match=r"row 0: the batch predicted \d+ road users, the shield keeps \d+"):
+        for _ in range(100):
+            venv.step(np.array([1]))
+
 # ----------------------------------------------------------------------------------------------- refusals
 @pytest.mark.parametrize("shield, needle", [
     ("aeb_paper", "shield.variant=paper is not available with agent.vec_env=batched"),
