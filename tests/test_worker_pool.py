@@ -66,6 +66,29 @@ if __name__ == "__main__":
 '''
 
 
+def _wait_until_both_workers_run(proc, folder, timeout_s: float) -> None:
+    """Until both of ``proc``'s workers are in their task (their marker files in ``folder``); a command that exits
+    first, or is still starting them after ``timeout_s`` seconds (then ended by SIGKILL to its group), fails the test
+    with its exit status and the end of its stderr."""
+    import os
+    import signal
+    import subprocess
+
+    deadline = time.monotonic() + timeout_s
+    while not all((folder / f"running.{k}").exists() for k in (0, 1)):
+        if proc.poll() is not None or time.monotonic() > deadline:
+            still_running = proc.poll() is None
+            if still_running:
+                os.killpg(proc.pid, signal.SIGKILL)
+            try:
+                err = proc.communicate(timeout=30)[1]
+            except subprocess.TimeoutExpired:
+                err = "(its stderr stayed open 30 s after it ended)"
+            pytest.fail(f"the workers were not both running after {timeout_s:.0f} s "
+                        f"({'still starting' if still_running else f'exit {proc.returncode}'}): {err[-2000:]}")
+        time.sleep(0.1)
+
+
 @pytest.mark.slow  # a command with two spawned workers, stopped by SIGTERM (~1 s each)
 @pytest.mark.parametrize("sent_to", ["group", "parent"])
 def test_a_pool_stopped_by_sigterm_leaves_no_leaked_semaphore(tmp_path, sent_to):
@@ -86,10 +109,7 @@ def test_a_pool_stopped_by_sigterm_leaves_no_leaked_semaphore(tmp_path, sent_to)
     proc = subprocess.Popen([sys.executable, str(script), str(tmp_path)], cwd=root, text=True, start_new_session=True,
                             env={**os.environ, "PYTHONPATH": str(root)}, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
-        deadline = time.monotonic() + 90
-        while not all((tmp_path / f"running.{k}").exists() for k in (0, 1)):
-            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate(timeout=30)
-            time.sleep(0.1)
+        _wait_until_both_workers_run(proc, tmp_path, 90.0)
         if sent_to == "group":
             os.killpg(proc.pid, signal.SIGTERM)
         else:
