@@ -23,21 +23,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # the checkout's agents/ and eval/
 from belief_tracks_sweep import traced_batch  # noqa: E402  (this folder is sys.path[0] when run as a script)
+from belief_tracks_truth import nearest_cars  # noqa: E402
 
+# per attribute, the simulator's hidden set-point with the speed: which part of the behaviour model made the planner
+# go (belief_tracks_truth's true state, what a filter could know, leaves the set-point the track's speed)
 SWAPS = {"pos": ("x", "y", "h"), "v": ("v", "target"), "acc": ("acc",), "lane": ("lane", "tlane", "route0")}
-
-
-def _match(tracks_engine, engine, r: int) -> dict:
-    """Track slot -> (true slot, distance m) for row ``r``: the nearest simulator vehicle of each road user the
-    planner has."""
-    t, s = tracks_engine.traffic, engine.traffic
-    out = {}
-    others = np.flatnonzero(s.alive[r] & ~s.ego[r])
-    for j in np.flatnonzero(t.alive[r] & ~t.ego[r]):
-        d = np.hypot(s.x[r, others] - t.x[r, j], s.y[r, others] - t.y[r, j])
-        if len(d):
-            out[int(j)] = (int(others[np.argmin(d)]), float(d.min()))
-    return out
 
 
 def _swapped(planner, engine, r: int, j: int, i: int, what: tuple) -> float:
@@ -65,7 +55,7 @@ def _snapshot(planner, engine, r: int) -> dict:
     te = planner.tracks.engine
     t, s = te.traffic, engine.traffic
     out = {}
-    for j, (i, dist) in _match(te, engine, r).items():
+    for j, (i, dist) in nearest_cars(te, engine, r).items():
         probs = planner.turn_probabilities([r], t.vid[[r]])[0, j]
         origin = planner._origin[t.lane[r, j]]
         cand = ((origin + np.array([-1, 2, 1])) % 4).tolist()
@@ -95,7 +85,7 @@ def _blame(planner, engine, r: int) -> dict:
         out["no_unseen"] = round(float(planner.go_collision(engine, np.array([r]))[0]), 3)
     finally:
         planner.tracks.unseen = unseen
-    matched = _match(saved, engine, r)
+    matched = nearest_cars(saved, engine, r)
     tent = planner.tracks.tent
     for j in np.flatnonzero(saved.traffic.alive[r] & ~saved.traffic.ego[r]):
         e = copy.copy(saved)
@@ -108,9 +98,10 @@ def _blame(planner, engine, r: int) -> dict:
             planner.tracks.engine = saved
         if p < base:
             t = saved.traffic
-            i, dist = matched.get(int(j), (-1, np.inf))
+            i, dist = matched.get(int(j), (-1, None))  # None: no simulator vehicle in the row at all
             out[f"slot{int(j)}"] = {"p_without": round(p, 3), "tentative": bool(tent[r, j]),
-                                   "true_dist_m": round(dist, 2), "v_track": round(float(t.v[r, j]), 2),
+                                   "true_dist_m": None if dist is None else round(dist, 2),
+                                   "v_track": round(float(t.v[r, j]), 2),
                                    "v_true": round(float(s.v[r, i]), 2) if i >= 0 else None,
                                    "acc_track": round(float(t.acc[r, j]), 2), "lane": int(t.lane[r, j]),
                                    "lane_true": int(s.lane[r, i]) if i >= 0 else None,
@@ -134,7 +125,7 @@ def _blamed(blame: dict) -> str | None:
     vids = [v["true_vid"] for v in slots if v["true_vid"] is not None]
     if len(vids) != len(set(vids)):
         return "twin tracks of one car"
-    if any(v["true_dist_m"] > 1.5 or v["lane"] != v["lane_true"] for v in slots):
+    if any(v["true_dist_m"] is None or v["true_dist_m"] > 1.5 or v["lane"] != v["lane_true"] for v in slots):
         return "a track off its car's place or lane"
     if any(v["stands"] for v in slots):
         return "a standing track"

@@ -50,7 +50,8 @@ def main() -> None:
             m = infos[r]["episode_metrics"]
             rows_out.append((infos[r]["seed"], bool(m["collision"]), bool(m["success"])))
     n = len(rows_out)
-    print(json.dumps({"point": point, "state": "true", "match_m": radius if np.isfinite(radius) else None, "episodes": n,
+    print(json.dumps({"point": point, "state": "true", "match_m": radius if np.isfinite(radius) else None,
+                      "episodes": n,
                       "collision": sum(c for _, c, _ in rows_out) / n, "success": sum(s for _, _, s in rows_out) / n,
                       "collided": sorted(s for s, c, _ in rows_out if c),
                       "not_arrived": sorted(s for s, _, a in rows_out if not a), "replaced": replaced,

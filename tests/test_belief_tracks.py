@@ -760,8 +760,8 @@ def test_the_confirm_trace_judges_a_blamed_track_by_the_car_within_match_only(tr
     by = {r: confirm.blame(p, engine, r, float(go[r]), 3.0) for r in far if go[r] > 0}
     blamed_far = [r for r, b in by.items() if any(u["err_m"] > 3.0 for u in b["users"])]
     assert blamed_far
-    for u, unbounded in zip([u for r in blamed_far for u in by[r]["users"]],
-                            [u for r in blamed_far for u in confirm.blame(p, engine, r, float(go[r]), np.inf)["users"]]):
+    unbounded_users = [u for r in blamed_far for u in confirm.blame(p, engine, r, float(go[r]), np.inf)["users"]]
+    for u, unbounded in zip([u for r in blamed_far for u in by[r]["users"]], unbounded_users):
         assert (u["p_true_state"] is None) == (u["safe_true_state"] is None) == (u["err_m"] > 3.0)
         assert unbounded["p_true_state"] is not None
         if u["err_m"] <= 3.0:
