@@ -263,9 +263,9 @@ def _row_shield_class():
             view = self.env
             if view.predicted is None:
                 return super()._scene_conflicts(others, lanes, a_others, t_long, intent)
-            if len(others) != view.predicted_n:  # the batch predicted another set of road users than it keeps
-                raise RuntimeError(f"row {view.row}: the batch predicted {view.predicted_n} road users, the shield "
-                                   f"keeps {len(others)}")
+            if len(others) != view.predicted_n:  # the batch's prediction is for another set of road users than it keeps
+                raise RuntimeError(f"row {view.row}: the batch's prediction holds {view.predicted_n} road users, "
+                                   f"the shield keeps {len(others)}")
             return view.predicted
 
     return RowAEB
