@@ -187,7 +187,8 @@ class UnseenTraffic:
         planner already has (the confirmed tracks; also the tentative ones with ``tentative: road_user``), and, at a
         place in view at the last frame, still missed in ``unseen_ahead`` more frames (by the next decision)."""
         q = self.q[0, rows] if self.tentative == "road_user" else self.q[:, rows].sum(axis=0)
-        q = np.where(self.seen[rows], q * self.ahead, q)
+        if self.ahead < 1.0:  # unseen_ahead > 0 (off: every place keeps its density)
+            q = np.where(self.seen[rows], q * self.ahead, q)
         return np.where(self.on_lane[None], np.clip(self.rate * q, 0.0, 1.0), 0.0)
 
     def draws(self, rows: np.ndarray, users: np.ndarray, users_alive: np.ndarray, gens: list, K: int) -> tuple:

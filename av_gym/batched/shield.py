@@ -538,7 +538,8 @@ class BatchedShield:
         kept = others & relevant
         intent = self.channel.weights(rows, state, kept, slot) if self.channel is not None else None
         index, lanes, vids = e.T.index, t.lane[rows], t.vid[rows]
-        predicted, n_kept = self._predict(state, kept, lanes, accel, intent), kept.sum(axis=1).tolist()
+        n_kept = kept.sum(axis=1)
+        predicted = self._predict(state, kept, n_kept, lanes, accel, intent)
         for n, r in enumerate(rows.tolist()):
             view, mine = self.views[r], others[n]
             view.objects, view.relevant = state[n, mine], relevant[n, mine]
@@ -546,19 +547,19 @@ class BatchedShield:
             view.accels = np.concatenate([accel[n, ego[n]], accel[n, mine]])
             view.recent = None if recent is None else recent[n, mine]
             view.intent = None if intent is None else intent[n]
-            view.predicted, view.predicted_n = predicted[n], n_kept[n]
+            view.predicted, view.predicted_n = predicted[n], int(n_kept[n])
 
-    def _predict(self, state: np.ndarray, kept: np.ndarray, lanes: np.ndarray, accel: np.ndarray,
-                 intent: list[np.ndarray] | None) -> list[tuple | None]:
+    def _predict(self, state: np.ndarray, kept: np.ndarray, n_kept: np.ndarray, lanes: np.ndarray,
+                 accel: np.ndarray, intent: list[np.ndarray] | None) -> list[tuple | None]:
         """Per decision the conflict model's paths of its kept road users (``kept`` (n, S): relevant, not the ego;
-        ``state`` (n, S, 7), ``lanes`` (n, S) lane ids, ``accel`` (n, S, 2) m/s², ``intent`` per decision its kept
+        ``n_kept`` (n,) how many per decision; ``state`` (n, S, 7), ``lanes`` (n, S) lane ids, ``accel`` (n, S, 2) m/s², ``intent`` per decision its kept
         road users' turn weights or None), what its shield's ``_predict_scene`` asks the conflict model, for all
         decisions in one compiled call (:meth:`ConflictModel.predict_rows`; None for a decision it does not serve:
         the shield's own call)."""
         if self.conflicts is None:
             return [None] * len(kept)
         index = self.e.T.index
-        row_off = np.concatenate([[0], np.cumsum(kept.sum(axis=1))])
+        row_off = np.concatenate([[0], np.cumsum(n_kept)])
         weights = None
         if intent is not None:  # each decision's (its kept road users, 3) weights, one after the other
             weights = np.concatenate([w.reshape(-1, 3) for w in intent]) if len(intent) else np.zeros((0, 3))
