@@ -26,11 +26,38 @@ class ToolParser(argparse.ArgumentParser):
         self.exit(2, f"error: {self.prog}: {message}\n")
 
 
+_NAMES = {int: "integer", float: "number", str: "name"}
+_ONE = {int: "an integer", float: "a number", str: "a name"}  # a single value's noun, with its article
+
+
+def _bounds(low: float | None, high: float | None) -> str:
+    """What ``low``/``high`` (inclusive, either may be None) allow, for a message: ``in [1, 64]``, ``>= 0``, or ''."""
+    if low is not None and high is not None:
+        return f"in [{low}, {high}]"
+    return f">= {low}" if low is not None else (f"<= {high}" if high is not None else "")
+
+
+def _item(part: str, text: str, kind: Callable[[str], Any], low: float | None, high: float | None,
+          choices: list | None) -> Any:
+    """One item ``part`` of the list ``text`` converted by ``kind`` and checked; a bad one is one message naming it."""
+    name = _NAMES.get(kind, getattr(kind, "__name__", "value"))
+    try:
+        value = kind(part)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a list of {name}s like [1,2], got {part!r} in {text!r}") from None
+    if isinstance(value, float) and value != value:
+        raise argparse.ArgumentTypeError(f"{part!r} is not a number")
+    if (low is not None and value < low) or (high is not None and value > high):
+        raise argparse.ArgumentTypeError(f"each value must be {_bounds(low, high)}, got {part!r}")
+    if choices is not None and value not in choices:
+        raise argparse.ArgumentTypeError(f"each value must be one of {choices}, got {part!r}")
+    return value
+
+
 def items(kind: Callable[[str], Any] = str, *, low: float | None = None, high: float | None = None,
           choices: list | None = None) -> Callable[[str], list]:
     """An argparse ``type`` for a list: ``[a,b]`` (Hydra's syntax) or ``a,b``; each item converted by ``kind`` and
     checked against ``low``/``high`` (inclusive) or ``choices``."""
-    name = {int: "integer", float: "number", str: "name"}.get(kind, getattr(kind, "__name__", "value"))
 
     def parse(text: str) -> list:
         body = text.strip()
@@ -39,35 +66,30 @@ def items(kind: Callable[[str], Any] = str, *, low: float | None = None, high: f
         parts = [p.strip().strip("'\"") for p in body.split(",") if p.strip()]
         if not parts:
             raise argparse.ArgumentTypeError(f"expected a list like [a,b], got {text!r}")
-        out = []
-        for part in parts:
-            try:
-                value = kind(part)
-            except ValueError:
-                raise argparse.ArgumentTypeError(f"expected a list of {name}s like [1,2], got {part!r} in {text!r}") \
-                    from None
-            if isinstance(value, float) and value != value:
-                raise argparse.ArgumentTypeError(f"{part!r} is not a number")
-            if (low is not None and value < low) or (high is not None and value > high):
-                raise argparse.ArgumentTypeError(f"each value must be in [{low}, {high}], got {part!r}")
-            if choices is not None and value not in choices:
-                raise argparse.ArgumentTypeError(f"each value must be one of {choices}, got {part!r}")
-            out.append(value)
-        return out
+        return [_item(part, text, kind, low, high, choices) for part in parts]
 
-    parse.__name__ = f"list of {name}s"
+    parse.__name__ = f"list of {_NAMES.get(kind, getattr(kind, '__name__', 'value'))}s"
     return parse
 
 
 def number(kind: Callable[[str], Any] = int, *, low: float | None = None,
            high: float | None = None) -> Callable[[str], Any]:
-    """An argparse ``type`` for one number, checked against ``low``/``high`` (inclusive)."""
-    parse_list = items(kind, low=low, high=high)
+    """An argparse ``type`` for one number, checked against ``low``/``high`` (inclusive). A bad value is one message
+    for one value, with what it may be: ``expected an integer in [1, 64], got '0'``."""
+    expected = " ".join(filter(None, (_ONE.get(kind, "a value"), _bounds(low, high))))
 
     def parse(text: str) -> Any:
-        if "," in text or text.strip().startswith("["):
-            raise argparse.ArgumentTypeError(f"expected one value, got {text!r}")
-        return parse_list(text)[0]
+        body = text.strip().strip("'\"")
+        if "," in body or body.startswith("["):
+            raise argparse.ArgumentTypeError(f"expected one value ({expected}), got {text!r}")
+        try:
+            value = kind(body)
+        except ValueError:
+            value = None
+        if value is None or (isinstance(value, float) and value != value) or \
+                (low is not None and value < low) or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
+        return value
 
     parse.__name__ = {int: "integer", float: "number"}.get(kind, "value")
     return parse

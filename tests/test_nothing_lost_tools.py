@@ -200,10 +200,10 @@ def test_the_operating_point_shows_progress(capsys):
 
 # ------------------------------------------------------------------------------------ eval.interventions: eval's guards
 @pytest.mark.parametrize("argv, needle", [
-    (["--window", "-1"], "argument --window: each value must be in [0.1, 600.0], got '-1'"),
-    (["--window", "nan"], "argument --window: 'nan' is not a number"),
-    (["--workers", "0"], "argument --workers: each value must be in [1, 64], got '0'"),
-    (["--episodes", "0"], "argument --episodes: each value must be in [1, 100000], got '0'"),
+    (["--window", "-1"], "argument --window: expected a number in [0.1, 600.0], got '-1'"),
+    (["--window", "nan"], "argument --window: expected a number in [0.1, 600.0], got 'nan'"),
+    (["--workers", "0"], "argument --workers: expected an integer in [1, 64], got '0'"),
+    (["--episodes", "0"], "argument --episodes: expected an integer in [1, 100000], got '0'"),
     (["--seed", "-3"], "--seed=-3 with 100 episodes leaves split 'validation' (seeds 1000000..1999999)"),
     (["--seed", "1999990"], "--seed=1999990 with 100 episodes leaves split 'validation'"),  # into the test split
     (["--seed", "1000"], "--seed=1000 with 100 episodes leaves split 'validation'"),  # a train seed

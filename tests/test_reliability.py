@@ -506,8 +506,8 @@ def test_a_sweep_runs_every_cell_and_reports_the_failed_ones(tmp_path):
                                                     "is a file, not a folder"),
     (["-m", "eval.ccftap", "--dts", "1e9"], "argument --dts: each value must be in [-30, 30], got '1e9'"),
     (["-m", "eval.ccftap", "--ego", "[0,15]"], "argument --ego: each value must be in [1, 100], got '0'"),
-    (["-m", "eval.ccftap", "--workers", "0"], "argument --workers: each value must be in [1, 64], got '0'"),
-    (["-m", "eval.ccftap", "--seed", "4294967296"], "argument --seed: each value must be in [0, 2147483647]"),
+    (["-m", "eval.ccftap", "--workers", "0"], "argument --workers: expected an integer in [1, 64], got '0'"),
+    (["-m", "eval.ccftap", "--seed", "4294967296"], "argument --seed: expected an integer in [0, 2147483647]"),
     (["-m", "eval.curves", "docs", "--out", "README.md/c.png"], "argument --out=README.md/c.png: 'README.md' is a "
                                                                 "file, not a folder"),
     (["-m", "eval.curves", "README.md"], "argument tb_dirs: README.md is not a folder"),
