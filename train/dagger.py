@@ -25,8 +25,8 @@ each (:func:`drive_parts`), merged into the aggregate one process gives (:func:`
 
 Per round: a progress line, TensorBoard scalars (``run_dir/tb/<name>``), ``rounds.csv`` (labels, wall-clock, the
 seconds spent labelling and refitting, the student's agreement with the teacher on its own states, its
-success/collision while driving and on the validation seeds) and an atomic ``latest.zip``; ``best.zip`` holds the best validation (success - collision); ``model.zip``
-the last round.
+success/collision while driving and on the validation seeds) and an atomic ``latest.zip``; ``best.zip`` holds the
+best validation (success - collision); ``model.zip`` the last round.
 
 Resumable at round granularity (a stopped run restarted at round 0 and overwrote its files):
 ``latest.zip`` is the whole state at the end of the last finished round, in one file replaced at once: the
@@ -315,10 +315,8 @@ class LabelJob:
                                      pool=0)
 
     def student(self, venv: Any) -> Any:
-        """A fresh student of the run's network and seed on ``venv``'s spaces (:func:`agents.ppo.make_ppo`)."""
-        from agents.ppo import make_ppo
-
-        return make_ppo(venv, self.agent, seed=self.seed, tensorboard_log=None, device=self.agent["device"])
+        """A fresh student of the run's network and seed on ``venv``'s spaces (:func:`student_model`)."""
+        return student_model(venv, self.agent, self.seed, str(self.agent["device"]))
 
     def teacher(self) -> Any:
         """The run's teacher (agent.teacher) at the agent's actions and action repeat
@@ -327,6 +325,20 @@ class LabelJob:
 
         a = self.agent
         return make_teacher(str(a["teacher"]), str(a["actions"]), str(self.env["name"]), int(a["action_repeat"]))
+
+
+def student_model(venv: Any, agent: dict, seed: int, device: str) -> Any:
+    """A fresh SB3 PPO of ``agent``'s network and ``seed`` on ``venv``'s spaces (:func:`agents.ppo.make_ppo`) with a
+    2-step rollout buffer: SB3 allocates ``n_steps`` x ``n_envs`` observations for PPO's buffer with the policy
+    (16.4 MB for turn_truth at 512 steps x 64 rows), which DAgger never fills (it fits the policy on its own labels
+    and never calls ``learn``). 2 steps is SB3's least for one row; the agent's ``n_steps`` and ``batch_size`` are
+    set back, so the weights and the model.zip it saves are ``make_ppo(venv, agent, ...)``'s."""
+    from agents.ppo import make_ppo
+
+    # batch_size 2 divides the 2-step buffer at any row count: no SB3 warning about a truncated mini-batch
+    model = make_ppo(venv, {**agent, "n_steps": 2, "batch_size": 2}, seed=seed, tensorboard_log=None, device=device)
+    model.n_steps, model.batch_size = int(agent["n_steps"]), int(agent["batch_size"])
+    return model
 
 
 @dataclass
@@ -893,8 +905,9 @@ def _say_interrupted(done: int, latest: Path, run_name: str) -> None:
 
 def _validation(options: TrainOptions, plain: list, repeat: int, actions: str, batched: bool,
                 policy_of: Callable[[Any], Any] | None = None):
-    """``model -> (collision, success)`` on ``train.eval_n`` episodes of the validation split from ``train.eval_seed`` (None if 0);
-    ``policy_of(model)``: the policy that drives them (default: the SB3 model's, every ``repeat`` steps)."""
+    """``model -> (collision, success)`` on ``train.eval_n`` episodes of the validation split from
+    ``train.eval_seed`` (None if 0); ``policy_of(model)``: the policy that drives them (default: the SB3 model's,
+    every ``repeat`` steps)."""
     from av_gym.seeds import config_seeds
 
     n = options.eval_n

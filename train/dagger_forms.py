@@ -52,8 +52,7 @@ def screen(run_dir: Path, overrides: list[str], refits: int, epochs: int, episod
     told from memorisation; ``lr_end``: the step falls from agent.fit_lr to it over all epochs (cosine, one refit
     an epoch: Adam's state carried on). ``episodes`` 0: no validation drive."""
     from agents.batched_vec_env import BatchedLeftTurnVecEnv
-    from agents.ppo import make_ppo
-    from train.dagger import read_aggregate, unpack_rounds
+    from train.dagger import read_aggregate, student_model, unpack_rounds
 
     cfg = student_config(run_dir, overrides)
     agent, plain = cfg["agent"], [cfg["env"], cfg["sensors"], cfg["shield"]]
@@ -62,7 +61,7 @@ def screen(run_dir: Path, overrides: list[str], refits: int, epochs: int, episod
     repeat, actions = int(agent["action_repeat"]), str(agent["actions"])
     env = BatchedLeftTurnVecEnv(*plain, 2, action_repeat=repeat, actions=actions,
                                 timeout_is_terminal=bool(agent["timeout_is_terminal"]), pool=0)
-    model = make_ppo(env, agent, seed=seed, tensorboard_log=None, device="cpu")
+    model = student_model(env, agent, seed, "cpu")
     env.close()
     t0 = time.process_time()
     curve = _fit_curve(model, agent, fitted, held, refits, epochs, seed, lr_end)
