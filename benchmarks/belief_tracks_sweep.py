@@ -45,10 +45,11 @@ def planner_point(pairs: list[str]):
         fail(str(exc).splitlines()[0])
 
 
-def traced_batch(description: str, match: bool = False):
+def traced_batch(description: str, match: bool = False, extra=None):
     """The set-up the tracing tools share (belief_tracks_diagnose, _confirm, _state): ``--seeds`` (validation
     seeds, one batch row each), ``--set`` and, with ``match``, ``--match M`` (m, default
-    belief_tracks_truth.MATCH_M: the radius within which a track is a simulator vehicle's); returns (the point's
+    belief_tracks_truth.MATCH_M: the radius within which a track is a simulator vehicle's) and what ``extra`` (a
+    function of the parser) adds; returns (the point's
     mapping, its params, the batch, its first observations, a BeliefPlanner reset on every row, the parsed
     arguments)."""
     import numpy as np
@@ -67,6 +68,8 @@ def traced_batch(description: str, match: bool = False):
 
         ap.add_argument("--match", type=number(float, low=0.0), default=MATCH_M, metavar="M",
                         help="match radius (m): a track within it of a simulator vehicle is that vehicle's")
+    if extra is not None:
+        extra(ap)
     args = ap.parse_args()
     if any(s not in SPLITS["validation"] for s in args.seeds):
         fail(f"--seeds must be in the validation split {SPLITS['validation']}")

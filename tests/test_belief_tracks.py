@@ -103,7 +103,7 @@ def test_decisions_do_not_read_the_hidden_traffic(which, request):
     confirmed) removed or moved, every driver's route, IDM draws, regulation hold and the rows' future spawns
     re-drawn. The planner on truth, which reads the vehicles, moves. With the kind's defaults and with
     belief_tracks' options (tentative tracks, detected heading, ghosts, twins); the choices also with ``confirm``,
-    ``confirm_risk`` and ``confirm_after`` (its early decisions)."""
+    ``confirm_risk`` and ``confirm_after`` (its early decisions), and with ``confirm_first``."""
     venv, planner, obs, rows = request.getfixturevalue(which)
     engine = venv.engine
     shared = {id(venv.perception): venv.perception, id(engine): engine, id(planner.tracks.engine): None}
@@ -113,14 +113,20 @@ def test_decisions_do_not_read_the_hidden_traffic(which, request):
     confirming = [copy.deepcopy(planner, dict(shared)) for _ in range(2)]  # a memo each: two planners
     for c in confirming:
         c.params = dataclasses.replace(c.params, confirm=2, confirm_after=2, confirm_risk=0.5)
+    # confirm_first: fresh planners on the same tracker (their episode's first decision is this one)
+    first_ok = [BeliefPlanner(dataclasses.replace(planner.params, confirm=2, confirm_first=True, threshold=0.5),
+                              n_rows=B, perception=venv.perception) for _ in range(2)]
     p_before, truth_before = _decide(planner, engine, rows, obs), _decide(truth, engine, rows, obs)
     chose_before = _choose(confirming[0], engine, rows, obs)
+    first_before = _choose(first_ok[0], engine, rows, obs)
     assert _hide_changes(engine, rows, venv.perception.detector.max_range, venv.perception.last_tracks[rows]) > 0
     rerandomise(engine, rows, seed=11)
     p_after, truth_after = _decide(again, engine, rows, obs), _decide(truth_again, engine, rows, obs)
     np.testing.assert_array_equal(p_before, p_after)
-    for before, after in zip(chose_before, _choose(confirming[1], engine, rows, obs)):
+    for before, after in zip(chose_before + first_before, _choose(confirming[1], engine, rows, obs)
+                             + _choose(first_ok[1], engine, rows, obs)):
         np.testing.assert_array_equal(before, after)
+    assert (first_before[0] == GO).any(), "confirm_first must let a first safe decision go"
     first, early, second = chose_before
     assert (first == YIELD).all() and (early == 32).any() and (second == GO).any()
     assert (truth_before != truth_after).any(), "the planner on truth reads the vehicles: it must move"
@@ -236,7 +242,8 @@ def test_unseen_ahead_thins_the_places_in_view_by_the_frames_to_the_next_decisio
 
 @pytest.mark.parametrize("options", [{}, {"track_fit": 0.5, "track_heading": "detected",
                                           "stopped_scope": "off_approach", "confirm": 2, "unseen_ahead": 5},
-                                     {"confirm": 2, "confirm_after": 2, "confirm_risk": 0.9, "threshold": 0.5}])
+                                     {"confirm": 2, "confirm_after": 2, "confirm_risk": 0.9, "threshold": 0.5},
+                                     {"confirm": 2, "confirm_first": True, "threshold": 0.5}])
 def test_the_per_env_agent_on_tracks_decides_as_the_batch(options):
     """belief_lookahead@turn_perceived per env (its one-row view of the env's own tracker, agents.track_prior
     EnvTracks) gives the batch's GO collision probabilities for the same episodes, decision by decision, and the
@@ -551,6 +558,22 @@ def test_confirm_risk_counts_a_marginal_decision_but_not_a_risky_one():
         for p in seq:
             choice = _decide_with(planner, lambda rows, K, stream, p=p: p[rows], choice)
         assert choice.tolist() == want, risk
+
+
+def test_confirm_first_lets_the_episodes_first_safe_decision_go():
+    """``confirm`` 2 with ``confirm_first``: the episode's first decision goes when it finds GO safe (the first row),
+    not when it finds it unsafe (the second); after that unsafe one a safe decision still waits for the next (two
+    running); a new episode (reset) starts so again. Without ``confirm_first`` the first safe decision yields."""
+    seq = [np.array([0.0, 0.5]), np.array([0.0, 0.0]), np.array([0.0, 0.0])]
+    for first, want in ((True, [[GO, YIELD], [GO, YIELD], [GO, GO]]), (False, [[YIELD, YIELD], [GO, YIELD],
+                                                                              [GO, GO]])):
+        planner = BeliefPlanner(BeliefLookaheadParams(confirm=2, confirm_first=first), n_rows=2)
+        for episode in range(2):
+            planner.reset(np.arange(2))
+            choice = np.full(2, YIELD)
+            for p, w in zip(seq, want):
+                choice = _decide_with(planner, lambda rows, K, stream, p=p: p[rows], choice)
+                assert choice.tolist() == w, (first, episode, p)
 
 
 def test_confirm_after_confirms_a_safe_go_sooner():
