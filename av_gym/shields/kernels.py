@@ -462,7 +462,8 @@ def conflict_hypotheses(others, speeds, phis, lane_row, lanes, hyp_off, hyp_n, h
     (M, 7) on the lane rows ``lane_row`` (M,; -1 off the map) of ``lanes`` (``speeds``: numpy's hypot of their
     velocities, ``phis``: numpy's arctan2 of each from its lane's centre where circular; ``fused``:
     :data:`DOT_FUSED`): an object at >= 0.5 m/s (or marked in ``follow`` (M,), at any speed > 0: the
-    :meth:`~av_gym.shields.conflicts.ConflictModel.predict` argument) within ``on_lane`` m of its lane and ``max_dh`` rad of its heading gets the lane's hypotheses ``hyp_off[k]`` ..
+    :meth:`~av_gym.shields.conflicts.ConflictModel.predict` argument) within ``on_lane`` m of its lane and
+    ``max_dh`` rad of its heading gets the lane's hypotheses ``hyp_off[k]`` ..
     ``+ hyp_n[k]`` (``hyp_turn``: each one's turn, -1 / 0 / +1), weighted by its indicator readings ``intent`` (M, 3;
     a NaN in a row: never read, uniform weights), normalised, those below ``min_p`` dropped when any is; every other
     object the constant-velocity hypothesis.
