@@ -40,7 +40,9 @@ from av_gym.estimation.tracker import _BIG, TrackerParams, TrackingModel
 from av_gym.estimation.turn_features import turn_features
 from av_gym.sensors.base import episode_rng
 from av_gym.sensors.detector import FIELDS as DETECTOR_FIELDS
-from av_gym.sensors.detector import Detector, DetectorParams, miss_chain
+from av_gym.sensors.detector import KERNELS as DETECTOR_KERNELS
+from av_gym.sensors.detector import PROBES, Detector, DetectorParams, assemble_frames, frame_draws, miss_chain
+from av_gym.sensors.kernels import detector_view_rows
 from av_gym.sim.batched import LENGTH, WIDTH
 
 
@@ -73,9 +75,8 @@ class BatchedDetector:
     """:class:`~av_gym.sensors.detector.Detector` (``frame: world``) for B envs: ``obs["detector"]`` (n,
     max_objects, 9) float32 per call of :meth:`measure`, each env's frames drawn from its own generator."""
 
-    # the per-env detector's field of view, occlusion, frame and observation space code, run on this object's
-    # attributes
-    _view, _occluded, _world_frame = Detector._view, Detector._occluded, Detector._world_frame
+    # the per-env detector's field of view, occlusion and observation space code, run on this object's attributes
+    _view, _occluded = Detector._view, Detector._occluded
     sensor_space = Detector.sensor_space
 
     def __init__(self, n_envs: int, params: DetectorParams, stream: str = "detector") -> None:
@@ -104,28 +105,64 @@ class BatchedDetector:
         self.next_frame[rows], self.frame_time[rows] = 0.0, 0.0
         self.rows[rows] = 0.0
 
-    def measure(self, rows, t: np.ndarray, ego: np.ndarray, others: list, vids: list) -> np.ndarray:
+    def measure(self, rows, t: np.ndarray, ego: np.ndarray, others: np.ndarray, vids: np.ndarray,
+                off: np.ndarray) -> np.ndarray:
         """Detector.measure for the envs ``rows`` at times ``t`` (s): ``ego`` (n, 3) ``[x, y, heading]``,
-        ``others`` per env (k, 7) ``[x, y, vx, vy, heading, length, width]`` in road order with their vehicle ids
-        ``vids`` (k,) (the miss chains' keys). Returns (n, max_objects, 9) float32."""
-        out = np.empty((len(rows), self.max_objects, len(DETECTOR_FIELDS)), np.float32)
-        for n, r in enumerate(np.asarray(rows, dtype=int).tolist()):
-            if t[n] + 1e-9 >= self.next_frame[r]:
-                self._frame(r, ego[n], others[n], vids[n])
-                self.frame_time[r] = t[n]
-                self.next_frame[r] = t[n] + 1.0 / self.rate_hz
-            out[n] = self.rows[r]
-            out[n, :, 8] = np.where(out[n, :, 0] > 0, t[n] - self.frame_time[r], 0.0)
+        ``others`` (k, 7) ``[x, y, vx, vy, heading, length, width]`` every env's road users one env after the other
+        (env n's ``off[n]:off[n + 1]``, in road order) with their vehicle ids ``vids`` (k,) (the miss chains' keys)
+        (:func:`others_state`). Returns (n, max_objects, 9) float32."""
+        rows = np.asarray(rows, dtype=int)
+        due = np.flatnonzero(t + 1e-9 >= self.next_frame[rows])
+        if len(due):
+            self._frames(rows[due], ego[due], others, vids, off, due)
+            self.frame_time[rows[due]] = t[due]
+            self.next_frame[rows[due]] = t[due] + 1.0 / self.rate_hz
+        out = self.rows[rows]
+        out[:, :, 8] = np.where(out[:, :, 0] > 0, (t - self.frame_time[rows])[:, None], 0.0)
         return np.clip(out, self.low, self.high)
 
-    def _frame(self, r: int, ego: np.ndarray, others: np.ndarray, vids: np.ndarray) -> None:
-        """Detector._frame for env ``r`` (world frame): the same code on the same draws."""
-        psi = float(ego[2])
-        keys = np.asarray(vids).astype(int).tolist()
-        det, _ = self._world_frame(self.rngs[r], self.chains[r], keys, float(ego[0]), float(ego[1]), psi, others)
-        det[:, 5] = (det[:, 5] + np.pi) % (2 * np.pi) - np.pi
-        self.rows[r] = 0.0
-        self.rows[r, : len(det), :8] = det
+    def _frames(self, rows: np.ndarray, ego: np.ndarray, others: np.ndarray, vids: np.ndarray, off: np.ndarray,
+                at: np.ndarray) -> None:
+        """Detector._frame (world frame) of the envs ``rows``, entries ``at`` of :meth:`measure`'s flat road users:
+        the per-env detector's view of every frame in one compiled call, each env's draws from its own generator in
+        the per-env order (:func:`frame_draws`), every frame's rows at once (:func:`assemble_frames`, what the
+        per-env detector runs on its one frame)."""
+        counts = np.diff(off)
+        due = np.zeros(len(counts), bool)
+        due[at] = True
+        mine = due[np.repeat(np.arange(len(counts)), counts)]
+        sub, keys = others[mine], vids[mine].astype(int).tolist()
+        sub_off = np.concatenate([[0], np.cumsum(counts[at])])
+        r, in_view, hidden = self._views(ego, sub, sub_off)
+        src, frame_of, draws, clutter_frame, clutter = [], [], [], [], []
+        for f, row in enumerate(rows.tolist()):
+            a, b = sub_off[f], sub_off[f + 1]
+            ids, d, c = frame_draws(self, self.rngs[row], self.chains[row], keys[a:b], in_view[a:b], hidden[a:b])
+            src += [a + i for i in ids]
+            frame_of += [f] * len(ids)
+            draws += d
+            clutter_frame += [f] * len(c)
+            clutter += c
+        src = np.array(src, dtype=int)
+        det, _, _ = assemble_frames(self.params, self.max_range, self.max_objects, ego, sub, src,
+                                    np.array(frame_of, dtype=int), r[src], np.array(draws).reshape(-1, 7),
+                                    np.array(clutter_frame, dtype=int), np.array(clutter).reshape(-1, 3))
+        det[..., 5] = (det[..., 5] + np.pi) % (2 * np.pi) - np.pi
+        self.rows[rows] = 0.0
+        self.rows[rows, :, :8] = det
+
+    def _views(self, ego: np.ndarray, others: np.ndarray, off: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Detector._view of each frame (ego ``ego[f]``, road users ``others[off[f]:off[f + 1]]``) at once: flat
+        ranges (m), in view, occluded; the compiled view of every frame in one call where the per-env detector
+        compiles it (``KERNELS``)."""
+        if "occlusion" in DETECTOR_KERNELS:
+            c, s = np.cos(others[:, 4]), np.sin(others[:, 4])
+            return detector_view_rows(ego[:, 0], ego[:, 1], ego[:, 2], off, others[:, 0], others[:, 1], c, s,
+                                      others[:, 5], others[:, 6], float(self.max_range), float(self.half_fov),
+                                      bool(self.occlusion), PROBES, float(self.occlusion_fraction))
+        views = [self._view(np.array([x, y]), float(psi), others[a:b]) for (x, y, psi), a, b in
+                 zip(ego.tolist(), off[:-1].tolist(), off[1:].tolist())]
+        return tuple(np.concatenate([v[i] for v in views]) if views else np.zeros(0) for i in range(3))
 
 
 class BatchedTracker:
@@ -379,20 +416,17 @@ def tracks_observation(tracks: np.ndarray, shown: np.ndarray, ego_xy: np.ndarray
     return rows
 
 
-def others_state(engine, rows: np.ndarray) -> tuple[list, list]:
-    """The detector's input per env of ``rows``: others_state (k, 7) ``[x, y, vx, vy, heading, length, width]``
-    in road order (m, m/s, rad) and the vehicles' ids (the miss chains' keys)."""
-    t = engine.traffic
-    others, vids = [], []
-    for r in np.asarray(rows, dtype=int).tolist():
-        keep = t.alive[r] & ~t.ego[r]
-        v, h = t.v[r, keep], t.h[r, keep]
-        o = np.empty((int(keep.sum()), 7))
-        o[:, 0], o[:, 1], o[:, 2], o[:, 3] = t.x[r, keep], t.y[r, keep], v * np.cos(h), v * np.sin(h)
-        o[:, 4], o[:, 5], o[:, 6] = h, LENGTH, WIDTH
-        others.append(o)
-        vids.append(t.vid[r, keep])
-    return others, vids
+def others_state(engine, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The detector's input for the envs ``rows``: every env's road users one env after the other, (k, 7) ``[x, y,
+    vx, vy, heading, length, width]`` in road order (m, m/s, rad), their vehicle ids (k,) (the miss chains' keys)
+    and each env's offset (n + 1,): env n's are ``off[n]:off[n + 1]``."""
+    t, rows = engine.traffic, np.asarray(rows, dtype=int)
+    keep = t.alive[rows] & ~t.ego[rows]
+    v, h = t.v[rows][keep], t.h[rows][keep]
+    o = np.empty((len(v), 7))
+    o[:, 0], o[:, 1], o[:, 2], o[:, 3] = t.x[rows][keep], t.y[rows][keep], v * np.cos(h), v * np.sin(h)
+    o[:, 4], o[:, 5], o[:, 6] = h, LENGTH, WIDTH
+    return o, t.vid[rows][keep], np.concatenate([[0], np.cumsum(keep.sum(axis=1))])
 
 
 class BatchedPerception:
@@ -426,8 +460,7 @@ class BatchedPerception:
         e.described = None  # the engine's truth objects are not what obs["turn"] describes here: no stale reader
         now = e.ticks[rows] / e.config["simulation_frequency"]  # sim_time: tick resolution
         ego = np.stack([tr["x"], tr["y"], tr["heading"]], axis=1)
-        others, vids = others_state(e, rows)
-        det = self.detector.measure(rows, now, ego, others, vids)
+        det = self.detector.measure(rows, now, ego, *others_state(e, rows))
         self.last_detections[rows] = det
         self.tracker.step(rows, det, now, ego[:, :2])
         tracks = tracks_observation(*self.tracker.tracks(rows), ego[:, :2], self.max_tracks)

@@ -577,8 +577,7 @@ class BatchedShield:
         tr = e.truth(rows)
         now = e.ticks[rows] / e.config["simulation_frequency"]
         ego = np.stack([tr["x"], tr["y"], tr["heading"]], axis=1)
-        others, vids = seen.others(rows)
-        det = seen.detector.measure(rows, now, ego, others, vids)
+        det = seen.detector.measure(rows, now, ego, *seen.others(rows))
         seen.tracker.step(rows, det, now, ego[:, :2])
         tracks, shown = seen.tracker.tracks(rows)
         for n, r in enumerate(rows.tolist()):

@@ -110,6 +110,51 @@ def draw_detections(rng: np.random.Generator, chain: dict, keys, in_view: np.nda
     return ids, draws
 
 
+def frame_draws(detector, rng: np.random.Generator, chain: dict, keys, in_view: np.ndarray,
+                occluded: np.ndarray) -> tuple[list[int], list[np.ndarray], list[tuple[float, float, float]]]:
+    """One frame's random draws in the detector's order: :func:`draw_detections` (``detector``'s miss rate and
+    chain), then the clutter count (Poisson, ``clutter_rate``) and per false positive its three uniforms (the
+    range's square, in [0, 1); the bearing off the heading, rad, within the field of view; the heading, rad).
+    Returns the detected vehicles' indices, their (7,) draws and the clutter's draws."""
+    ids, draws = draw_detections(rng, chain, keys, in_view, occluded, detector.miss_rate, detector.p, detector.q)
+    clutter = [(rng.random(), rng.uniform(-detector.half_fov, detector.half_fov), rng.uniform(-np.pi, np.pi))
+               for _ in range(rng.poisson(detector.params.clutter_rate))]
+    return ids, draws, clutter
+
+
+def assemble_frames(p: DetectorParams, max_range: float, max_objects: int, ego: np.ndarray, others: np.ndarray,
+                    src: np.ndarray, frame_of: np.ndarray, ranges: np.ndarray, draws: np.ndarray,
+                    clutter_frame: np.ndarray, clutter: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rows of F detector frames (world frame) from their draws (:func:`frame_draws`): ``ego`` (F, 3) each
+    frame's ego ``[x, y, psi]`` (m, rad); the detections ``src`` (m,) rows of ``others`` (k, 7), of frame
+    ``frame_of`` (m,), at range ``ranges`` (m,) m, with their draws (m, 7); the false positives of frame
+    ``clutter_frame`` (c,) with their uniforms (c, 3). Per frame its detections then its clutter, each in order,
+    sorted by range (stable) and cut at ``max_objects``: rows (F, max_objects, 8) ``[present, x, y, vx, vy, heading,
+    length, width]`` (headings not wrapped; zero rows unused), each row's index in ``others`` (-1: clutter or
+    unused) and the rows per frame (F,). Element by element the same operations whatever the number of frames."""
+    scales = np.repeat(np.array([[0.0, 0.0, p.sigma_vel, p.sigma_vel, p.sigma_heading, p.sigma_size,
+                                  p.sigma_size]]), len(src), axis=0)
+    scales[:, 0] = scales[:, 1] = p.sigma_pos0 + p.sigma_pos_k * ranges
+    det = np.empty((len(src) + len(clutter), 8))
+    det[: len(src), 0] = 1.0
+    det[: len(src), 1:] = others[src] + (0.0 + scales * draws)
+    e = ego[clutter_frame]
+    r, b = max_range * np.sqrt(clutter[:, 0]), e[:, 2] + clutter[:, 1]  # uniform over the area
+    det[len(src):] = np.stack([np.ones(len(r)), e[:, 0] + r * np.cos(b), e[:, 1] + r * np.sin(b), np.zeros(len(r)),
+                               np.zeros(len(r)), clutter[:, 2], np.full(len(r), 5.0), np.full(len(r), 2.0)], axis=1)
+    frame = np.concatenate([frame_of, clutter_frame]).astype(int)
+    rel = det[:, 1:3] - ego[frame, :2]
+    order = np.lexsort((np.sqrt(rel[:, 0] * rel[:, 0] + rel[:, 1] * rel[:, 1]), frame))  # by frame, then range
+    frame = frame[order]
+    count = np.bincount(frame, minlength=len(ego))
+    rank = np.arange(len(frame)) - (np.cumsum(count) - count)[frame]
+    shown = rank < max_objects
+    rows, kept = np.zeros((len(ego), max_objects, 8)), np.full((len(ego), max_objects), -1)
+    rows[frame[shown], rank[shown]] = det[order[shown]]
+    kept[frame[shown], rank[shown]] = np.concatenate([src, np.full(len(clutter), -1)]).astype(int)[order[shown]]
+    return rows, kept, np.minimum(count, max_objects)
+
+
 class Detector(SensorWrapper):
     """Adds ``obs["detector"]``; parameters: :class:`DetectorParams`.
 
@@ -199,31 +244,16 @@ class Detector(SensorWrapper):
         """One frame in the world frame from the ego pose ``x, y`` (m), ``psi`` (rad) and ``others`` (k, 7): the
         rows ``[present, x, y, vx, vy, heading, length, width]`` (m, 8) nearest first (at most ``max_objects``;
         headings not yet wrapped) and each row's index in ``others`` (-1: clutter). Draws from ``rng`` and steps
-        the miss chain ``chain`` (keyed by ``keys[i]``). The batch's detector (av_gym/batched/perception.py) runs
-        this on its own attributes with each env's generator and chain, so that both draw the same numbers."""
-        p = self.params
-        detections, clutter, ids = np.zeros((0, 7)), [], []
-        if len(others):
-            r, in_view, occluded = self._view(np.array([x, y]), psi, others)
-            ids, draws = draw_detections(rng, chain, keys, in_view, occluded, self.miss_rate, self.p, self.q)
-            if ids:
-                scales = np.repeat(np.array([[0.0, 0.0, p.sigma_vel, p.sigma_vel, p.sigma_heading, p.sigma_size,
-                                              p.sigma_size]]), len(ids), axis=0)
-                scales[:, 0] = scales[:, 1] = p.sigma_pos0 + p.sigma_pos_k * r[ids]
-                detections = others[ids] + (0.0 + scales * np.array(draws))
-        for _ in range(rng.poisson(p.clutter_rate)):
-            rng_r = self.max_range * np.sqrt(rng.random())  # uniform over the area
-            b = psi + rng.uniform(-self.half_fov, self.half_fov)
-            clutter.append([1.0, x + rng_r * np.cos(b), y + rng_r * np.sin(b), 0.0, 0.0, rng.uniform(-np.pi, np.pi),
-                            5.0, 2.0])
-            ids.append(-1)
-        det = np.empty((len(detections) + len(clutter), 8))
-        det[: len(detections), 0] = 1.0
-        det[: len(detections), 1:] = detections
-        det[len(detections):] = np.array(clutter, dtype=float).reshape(-1, 8)
-        rel = det[:, 1:3] - np.array([x, y])
-        order = np.argsort(np.sqrt(rel[:, 0] * rel[:, 0] + rel[:, 1] * rel[:, 1]), kind="stable")[: self.max_objects]
-        return det[order], np.array(ids, dtype=int).reshape(-1)[order]
+        the miss chain ``chain`` (keyed by ``keys[i]``): :func:`frame_draws` and :func:`assemble_frames`, which the
+        batch's detector (av_gym/batched/perception.py) runs for all its envs' frames at once, each env's draws from
+        its own generator, so that both draw and compute the same numbers."""
+        r, in_view, occluded = self._view(np.array([x, y]), psi, others) if len(others) else (np.zeros(0),) * 3
+        ids, draws, clutter = frame_draws(self, rng, chain, keys, in_view, occluded)
+        rows, kept, n = assemble_frames(self.params, self.max_range, self.max_objects, np.array([[x, y, psi]]),
+                                        others, np.array(ids, dtype=int), np.zeros(len(ids), dtype=int),
+                                        np.asarray(r)[ids], np.array(draws).reshape(-1, 7),
+                                        np.zeros(len(clutter), dtype=int), np.array(clutter).reshape(-1, 3))
+        return rows[0, : n[0]], kept[0, : n[0]]
 
     def _frame(self) -> None:
         x, y, psi, _ = ego_pose(self.env)

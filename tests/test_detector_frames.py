@@ -1,0 +1,68 @@
+"""The detector's frame arithmetic that the per-env detector runs on its one frame and the batch's detector on all its
+envs' frames at once (av_gym/sensors/detector.py ``assemble_frames``, av_gym/sensors/kernels.py
+``detector_view_rows``): F frames in one call give each frame what it gets alone, bit for bit (each step is the
+same element-wise arithmetic; the sort is stable, by frame then range). The whole stacks are compared in
+tests/test_batched_perception.py (detections bit for bit)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from av_gym.sensors.detector import PROBES, DetectorParams, assemble_frames
+from av_gym.sensors.kernels import detector_view, detector_view_rows
+
+
+def _frames(rng: np.random.Generator, counts: list[int], clutters: list[int]) -> dict:
+    """Random frames: per frame its ego, road users (k, 7), a random subset detected, and its clutter draws."""
+    ego = np.column_stack([rng.uniform(-50, 50, len(counts)), rng.uniform(-50, 50, len(counts)),
+                           rng.uniform(-np.pi, np.pi, len(counts))])
+    off = np.concatenate([[0], np.cumsum(counts)])
+    others = np.column_stack([rng.uniform(-80, 80, (off[-1], 2)), rng.normal(0, 5, (off[-1], 2)),
+                              rng.uniform(-np.pi, np.pi, off[-1]), np.full(off[-1], 5.0), np.full(off[-1], 2.0)])
+    src = np.flatnonzero(rng.random(off[-1]) < 0.8)
+    frame_of = np.searchsorted(off, src, side="right") - 1
+    # two road users of frame 0 at the same range from its ego: the stable sort keeps their order
+    others[1, 0:2] = 2 * ego[0, :2] - others[0, 0:2]
+    return {"ego": ego, "off": off, "others": others, "src": src, "frame_of": frame_of,
+            "ranges": rng.uniform(0, 60, len(src)), "draws": rng.standard_normal((len(src), 7)),
+            "clutter_frame": np.repeat(np.arange(len(clutters)), clutters),
+            "clutter": rng.random((sum(clutters), 3))}
+
+
+def test_many_frames_are_assembled_as_each_frame_alone():
+    p = DetectorParams(clutter_rate=2.0, max_objects=5)
+    f = _frames(np.random.default_rng(3), counts=[4, 0, 9, 1, 6], clutters=[1, 2, 0, 3, 0])
+    rows, kept, n = assemble_frames(p, 60.0, 5, f["ego"], f["others"], f["src"], f["frame_of"], f["ranges"],
+                                    f["draws"], f["clutter_frame"], f["clutter"])
+    total = np.bincount(f["frame_of"], minlength=5) + np.bincount(f["clutter_frame"], minlength=5)
+    assert n.tolist() == np.minimum(total, 5).tolist() and total.max() > 5  # a frame cut at max_objects
+    for i in range(len(f["ego"])):
+        mine, theirs = f["frame_of"] == i, f["clutter_frame"] == i
+        one = assemble_frames(p, 60.0, 5, f["ego"][i:i + 1], f["others"], f["src"][mine],
+                              np.zeros(int(mine.sum()), int), f["ranges"][mine], f["draws"][mine],
+                              np.zeros(int(theirs.sum()), int), f["clutter"][theirs])
+        np.testing.assert_array_equal(rows[i], one[0][0])
+        np.testing.assert_array_equal(kept[i], one[1][0])
+        assert n[i] == one[2][0]
+        d = np.hypot(*(rows[i, : n[i], 1:3] - f["ego"][i, :2]).T)
+        assert np.all(np.diff(d) >= 0)  # nearest first
+        assert np.all(rows[i, n[i]:] == 0) and np.all(kept[i, n[i]:] == -1)
+
+
+def test_the_view_of_many_frames_is_each_frames_own():
+    rng = np.random.default_rng(5)
+    f = _frames(rng, counts=[3, 0, 7, 1, 12], clutters=[0] * 5)
+    o, ego, off = f["others"], f["ego"], f["off"]
+    c, s = np.cos(o[:, 4]), np.sin(o[:, 4])
+    for occlusion in (True, False):
+        args = (60.0, np.radians(60.0), occlusion, PROBES, 0.8)
+        r, view, hidden = detector_view_rows(ego[:, 0], ego[:, 1], ego[:, 2], off, o[:, 0], o[:, 1], c, s, o[:, 5],
+                                             o[:, 6], *args)
+        for i in range(len(ego)):
+            a, b = off[i], off[i + 1]
+            one = detector_view(ego[i, 0], ego[i, 1], ego[i, 2], o[a:b, 0], o[a:b, 1], c[a:b], s[a:b], o[a:b, 5],
+                                o[a:b, 6], *args)
+            for got, want in zip((r[a:b], view[a:b], hidden[a:b]), one):
+                np.testing.assert_array_equal(got, want)
+        assert view.any() and not view.all()
+        assert hidden.any() == occlusion
