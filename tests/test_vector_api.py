@@ -73,6 +73,7 @@ def test_vector_entry_point_is_the_batched_engine() -> None:
      "sensors.tracker needs sensors.detector.frame=world"),
     ({"sensors": "turn_truth", "shield": "aeb_paper"}, "shield.variant=paper is not available with the batched engine"),
     ({"sensors": "turn_truth", "render_mode": "rgb_array"}, "render_mode is not available"),
+    ({"checkpoint": "dagger_turn"}, "checkpoint= is not available with the batched engine"),  # was a TypeError
 ])
 def test_vector_entry_point_refuses_in_one_line(kwargs, says) -> None:
     with pytest.raises(ConfigError) as err:
