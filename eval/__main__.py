@@ -97,7 +97,7 @@ def given_sensors_problem(plan, given: dict) -> str | None:
 def _check_plans(plans: list, command: EvalCommand, env_cfg: dict, given: dict) -> None:
     """Each agent's checkpoint (if any) and the sensors it runs with (``given``: the command line's preset);
     with ``vec_env=batched``, what the batched engine cannot run, before any folder."""
-    from eval.agents import check_plan, check_sensor_overrides
+    from eval.agents import check_plan, check_preset_space, check_sensor_overrides
 
     for plan in plans:
         problem = given_sensors_problem(plan, given)
@@ -105,6 +105,7 @@ def _check_plans(plans: list, command: EvalCommand, env_cfg: dict, given: dict) 
             raise ConfigError(problem)
         check_plan(plan, env_cfg["name"])
         check_sensor_overrides(plan, env_cfg)  # a trained agent's sensors with the command line's on top
+        check_preset_space(plan, env_cfg)  # agent@preset: the preset gives the observations it was trained on
         if command.vec_env == "batched":
             from eval.batched import check_batched_plan
 

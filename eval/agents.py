@@ -22,8 +22,9 @@ from av_gym.errors import ConfigError
 from av_gym.references import reference_root
 from conf.presets import compose_group  # noqa: F401 - used here and imported from here by tests and tools
 
-__all__ = ["AgentPlan", "available_agents", "check_plan", "compose_group", "find_checkpoint", "install_opinion",
-           "load_agent_config", "make_eval_env", "plan_agent", "resolve_agent", "sensor_overrides", "sensors_summary"]
+__all__ = ["AgentPlan", "available_agents", "check_plan", "check_preset_space", "compose_group", "find_checkpoint",
+           "install_opinion", "load_agent_config", "make_eval_env", "plan_agent", "resolve_agent", "sensor_overrides",
+           "sensors_summary"]
 
 
 def load_agent_config(name: str) -> dict[str, Any]:
@@ -314,25 +315,42 @@ def _with_overrides(label: str, base: dict, overrides: dict[str, Any]) -> dict:
     return out
 
 
+def observation_space(env_cfg: Any, sensors: dict) -> gym.Space:
+    """The observation space of the per-env stack ``env_cfg`` + ``sensors`` (built, read and closed)."""
+    from av_gym.make import make_env
+
+    env = make_env(env_cfg, sensors, None)
+    try:
+        return env.observation_space
+    finally:
+        env.close()
+
+
+def check_preset_space(plan: AgentPlan, env_cfg: Any) -> None:
+    """Refuse (one line, before any episode) ``agent@preset`` for a trained agent whose checkpoint was trained on
+    sensors of another observation space (its config.yaml's): its policy's own check comes when it is loaded, after
+    the agents listed before it have run and written their rows."""
+    agent, _, preset = plan.label.partition("+")[0].partition("@")
+    own = saved_config(Path(plan.spec)).get("sensors") if preset and plan.trained_sensors is not None else None
+    if not own:
+        return
+    given, trained = observation_space(env_cfg, plan.sensors), observation_space(env_cfg, own)
+    if given != trained:
+        raise ConfigError(f"agent {plan.label!r}: @{preset} gives observations {describe_space(given)}, but it was "
+                          f"trained on sensors={own.get('name')}, {describe_space(trained)}; drive it from a preset "
+                          f"with that observation space ({agent}@{own.get('name')}, or {agent} alone)")
+
+
 def check_sensor_overrides(plan: AgentPlan, env_cfg: Any) -> None:
     """Refuse (one line naming the field) command-line sensor overrides that change the observation space a
     trained agent was trained on: its env is built with and without them and the spaces compared."""
     if plan.trained_sensors is None or not plan.sensor_overrides:
         return
-    from av_gym.make import make_env
-
-    def space(sensors: dict) -> gym.Space:
-        env = make_env(env_cfg, sensors, None)
-        try:
-            return env.observation_space
-        finally:
-            env.close()
-
-    trained = space(plan.trained_sensors)
-    if space(plan.sensors) == trained:
+    trained = observation_space(env_cfg, plan.trained_sensors)
+    if observation_space(env_cfg, plan.sensors) == trained:
         return
     for path, value in plan.sensor_overrides.items():  # name the first override that changes it on its own
-        alone = space(_with_overrides(plan.label, plan.trained_sensors, {path: value}))
+        alone = observation_space(env_cfg, _with_overrides(plan.label, plan.trained_sensors, {path: value}))
         if alone != trained:
             raise ConfigError(f"sensors.{path}={value!r} changes the observation space of agent {plan.label!r} "
                               f"from {describe_space(trained)} to {describe_space(alone)}; a trained agent can only run with "
