@@ -804,3 +804,20 @@ def test_a_bad_match_radius_is_one_error_line(match, why, monkeypatch, capsys):
     err = capsys.readouterr().err.strip()
     assert out.value.code == 2 and len(err.splitlines()) == 1
     assert err.startswith("error: ") and "--match" in err and why in err
+
+
+def test_the_lost_arrivals_trace_joins_a_cars_readings_over_its_tracks_only(monkeypatch):
+    """belief_tracks_lost.carried_counts: each track's indicator readings are joined with those of the other tracks
+    matched to the same car (a car's track born again), not with another car's; a track matched to no car keeps
+    its own; the planner's own readings are left as they were."""
+    import importlib
+    from pathlib import Path
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    lost = importlib.import_module("belief_tracks_lost")
+    planner = BeliefPlanner(BeliefLookaheadParams(), n_rows=1)
+    own = {1: np.array([0, 0, 3]), 2: np.array([1, 0, 0]), 3: np.array([0, 2, 0]), 4: np.array([0, 1, 1])}
+    planner.counts[0] = {v: c.copy() for v, c in own.items()}
+    joined = lost.carried_counts(planner, 0, {1: 10, 2: 10, 3: 11})
+    assert {v: c.tolist() for v, c in joined.items()} == {1: [1, 0, 3], 2: [1, 0, 3], 3: [0, 2, 0], 4: [0, 1, 1]}
+    assert all((planner.counts[0][v] == c).all() for v, c in own.items())
