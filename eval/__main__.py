@@ -200,8 +200,9 @@ def _evaluate(cfg: DictConfig, command: EvalCommand) -> list[dict]:
             raise
         # each agent's rows as soon as it is done: an evaluation interrupted or failing later keeps what it measured
         write_results(rows, out_dir, env_name, title, split=split)
+    shields = {p.label: p.shield for p in plans if (p.shield or {}).get("kind", "none") != "none"}
     table = write_results(rows, out_dir, env_name, title, sensors={p.label: p.sensors for p in plans},
-                          checkpoints=ran, split=split)
+                          checkpoints=ran, split=split, shields=shields)
     print(f"\n{title}\n\n{table}\n")
     print(f"[eval] per-episode rows: {out_dir}/results.csv   summary: {out_dir}/results.md")
     _figures(plans, command, env_cfg, seeds.start)

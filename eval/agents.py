@@ -280,14 +280,14 @@ def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:
     return out
 
 
-def sensor_overrides(sensors: dict | None) -> dict[str, Any]:
+def sensor_overrides(sensors: dict | None, group: str = "sensors") -> dict[str, Any]:
     """The command line's ``sensors.*`` changes: every field of the composed ``sensors`` that differs from (or is
     not in) the shipped preset it names, as ``{"cameras.night": True}``. Works for sweeps too (each job composes
-    its own ``sensors``), and needs no access to the raw command line."""
+    its own ``sensors``), and needs no access to the raw command line. ``group="shield"``: a shield's."""
     if not sensors or not sensors.get("name"):
         return {}
     try:
-        shipped = _flatten(compose_group("sensors", str(sensors["name"])))
+        shipped = _flatten(compose_group(group, str(sensors["name"])))
     except ConfigError:  # a preset that is not shipped (a hand-made dict): nothing to compare with
         return {}
     return {k: v for k, v in _flatten(sensors).items() if k != "name" and (k not in shipped or shipped[k] != v)}
@@ -375,7 +375,7 @@ def plan_agent(spec: str, env_name: str, sensors: dict, shield: dict, checkpoint
     base, _, shield_name = str(spec).partition("+")
     base, _, preset = base.partition("@")
     base, latest = split_latest(base)
-    if shield_name:
+    if shield_name and (shield or {}).get("name") != shield_name:  # the command line's own, with its overrides
         shield = compose_group("shield", shield_name)
     forced = compose_group("sensors", preset) if preset else None
     overrides = sensor_overrides(sensors)  # before `sensors` is replaced by an agent's own preset below
@@ -403,11 +403,12 @@ def plan_agent(spec: str, env_name: str, sensors: dict, shield: dict, checkpoint
     return AgentPlan(str(spec), base, forced or sensors, shield)
 
 
-def sensors_summary(sensors: dict | None) -> str:
-    """One line: the preset name and every field that differs from the shipped preset (``cameras: night=True``)."""
+def sensors_summary(sensors: dict | None, group: str = "sensors") -> str:
+    """One line: the preset name and every field that differs from the shipped preset (``cameras: night=True``);
+    ``group="shield"``: a shield's (``aeb with mode='perceived'``)."""
     if not sensors:
         return "none"
     name = sensors.get("name", "?")
-    changed = sensor_overrides(sensors)
+    changed = sensor_overrides(sensors, group)
     return f"{name}" + (f" with {', '.join(f'{k}={v!r}' for k, v in changed.items())}" if changed else
                         " (as shipped)")

@@ -49,6 +49,15 @@ def sensors_section(sensors: Mapping[str, dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def shields_section(shields: Mapping[str, dict]) -> str:
+    """Markdown: per agent, the shield it ran behind (its preset and the fields that differ from it): a shield from
+    the command line's ``shield=`` is not in the agent's label, as ``+aeb`` is."""
+    from eval.agents import sensors_summary
+
+    return "\n".join(["## Shield each agent ran behind", ""]
+                     + [f"- `{label}`: {sensors_summary(cfg, 'shield')}" for label, cfg in shields.items()]) + "\n"
+
+
 def checkpoints_section(checkpoints: Mapping[str, str]) -> str:
     """Markdown: the checkpoint each trained agent ran (a name like ``ppo_turn`` resolves to the newest local run
     of that config, so the table alone does not say which policy it measured)."""
@@ -58,10 +67,11 @@ def checkpoints_section(checkpoints: Mapping[str, str]) -> str:
 
 def write_results(rows: list[dict], out_dir: str | Path, scenario: str, title: str,
                   sensors: Mapping[str, dict] | None = None, checkpoints: Mapping[str, str] | None = None,
-                  split: str | None = None) -> str:
+                  split: str | None = None, shields: Mapping[str, dict] | None = None) -> str:
     """Write ``results.csv`` (every episode, every metric) and ``results.md`` (with, given ``sensors`` = agent
-    label → the sensors config it ran with and ``checkpoints`` = label → the checkpoint a trained agent loaded,
-    sections stating them); returns the Markdown table."""
+    label → the sensors config it ran with, ``shields`` = label → the shield config of each shielded agent and
+    ``checkpoints`` = label → the checkpoint a trained agent loaded, sections stating them); returns the Markdown
+    table."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if split is not None:  # every row says which seed split it came from (av_gym/seeds.py)
@@ -76,7 +86,8 @@ def write_results(rows: list[dict], out_dir: str | Path, scenario: str, title: s
                f"(av_gym/metrics/kinds.py): Wilson for rates, a seeded bootstrap for counts, durations and other "
                f"non-negative quantities, Student t for signed ones.\n\n{table}\n"
                + (f"\n{checkpoints_section(checkpoints)}" if checkpoints else "")
-               + (f"\n{sensors_section(sensors)}" if sensors else ""))
+               + (f"\n{sensors_section(sensors)}" if sensors else "")
+               + (f"\n{shields_section(shields)}" if shields else ""))
     # both files replaced together or neither (a full disk could leave results.csv torn, results.md stale)
     write_texts_atomic({out / "results.csv": text.getvalue(), out / "results.md": summary}, field="out_dir")
     return table

@@ -39,3 +39,51 @@ def test_an_agent_at_a_preset_of_its_own_observation_space_still_passes_the_chec
     plans = _plans(cfg, command)
     _check_plans(plans, command, _plain(cfg.env), _plain(cfg.sensors))
     assert [p.sensors["name"] for p in plans] == ["turn_perceived", "turn_truth_memory", "turn_perceived"]
+
+
+def test_a_shielded_agent_keeps_the_command_lines_fields_of_its_shield():
+    """``agents=[always_proceed+aeb] shield=aeb shield.mode=perceived`` ran the shipped aeb (mode ground_truth):
+    ``+aeb`` composed the preset afresh and dropped the command line's fields of that same preset. Another preset
+    on the command line is still the other agents' only."""
+    from conf.check import check_command_line
+    from conf.commands import EvalCommand
+    from eval.__main__ import _plans
+
+    (cfg,) = check_command_line("eval", ["vec_env=batched", "agents=[always_proceed+aeb,gap_acceptance,lookahead+aeb]",
+                                         "shield=aeb", "shield.mode=perceived", "shield.ttc_brake=2.0"])
+    plans = _plans(cfg, EvalCommand.of(cfg))
+    assert [(p.shield["name"], p.shield["mode"], p.shield["ttc_brake"]) for p in plans] == [
+        ("aeb", "perceived", 2.0)] * 3
+    (cfg,) = check_command_line("eval", ["agents=[always_proceed+aeb,gap_acceptance]", "shield=aeb_paper"])
+    assert [p.shield["name"] for p in _plans(cfg, EvalCommand.of(cfg))] == ["aeb", "aeb_paper"]
+
+
+def test_the_shield_section_names_each_shielded_agents_preset_and_changed_fields(tmp_path):
+    from conf.presets import compose_group
+    from eval.report import write_results
+
+    perceived = {**compose_group("shield", "aeb"), "mode": "perceived"}
+    rows = [{"agent": a, "episode": 0, "seed": 1000000, "collision": 0.0, "success": 1.0} for a in ("x", "y+aeb")]
+    write_results(rows, tmp_path, "left_turn", "t", shields={"x": perceived, "y+aeb": compose_group("shield", "aeb")})
+    assert (tmp_path / "results.md").read_text().endswith(
+        "## Shield each agent ran behind\n\n- `x`: aeb with mode='perceived'\n- `y+aeb`: aeb (as shipped)\n")
+    write_results(rows, tmp_path, "left_turn", "t")
+    assert "Shield" not in (tmp_path / "results.md").read_text()
+
+
+@pytest.mark.slow  # ~4 s: two evaluation episodes through python -m eval's main
+def test_results_md_says_which_shield_each_agent_ran_behind(tmp_path, monkeypatch):
+    """A shield from the command line (``shield=aeb shield.mode=perceived``) is in no label: the rows of
+    ``always_proceed`` behind it were told from unshielded ones by nothing in results.csv or results.md."""
+    import sys
+
+    from eval import __main__ as eval_main
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["eval", "agents=[always_proceed,gap_acceptance+aeb_paper]", "shield=aeb",
+                                      "shield.mode=perceived", "episodes=1", "out_dir=out", "progress_bar=false",
+                                      "hydra.run.dir=hydra"])
+    eval_main.main()
+    md = (tmp_path / "out" / "results.md").read_text()
+    assert md.split("## Shield each agent ran behind\n\n")[1] == (
+        "- `always_proceed`: aeb with mode='perceived'\n- `gap_acceptance+aeb_paper`: aeb_paper (as shipped)\n")

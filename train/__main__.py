@@ -143,27 +143,28 @@ def _brief_evaluation(cfg: DictConfig, command: TrainCommand, folders: Folders, 
     seeds = validation_seeds(options, n)
     baselines = list(BASELINES[env_name]) if options.baseline == "auto" else [options.baseline]
     specs = [str(folders.ckpt_dir), *baselines] if model_path else [str(cfg.agent.name)]
-    rows, ran_with = [], {}  # ran_with: label → the sensors it ran with, stated in results.md
+    rows, ran_with, shields = [], {}, {}  # label → the sensors it ran with / the shield it ran behind, in results.md
     title = f"{command.run_name}: brief evaluation, {n} episodes of the validation split (seeds {seeds.start}.." \
             f"{seeds.stop - 1})"
     try:  # rows are appended episode by episode
         for spec in specs:
-            _evaluate_spec(cfg, command, folders, spec, seeds, rows, ran_with)
+            _evaluate_spec(cfg, command, folders, spec, seeds, rows, ran_with, shields)
     except KeyboardInterrupt:
         if rows:
             write_results(rows, run_dir, env_name, f"{title} (interrupted after {len(rows)} episodes)",
-                          sensors=ran_with, split="validation")
+                          sensors=ran_with, split="validation", shields=shields)
         print(f"[train] interrupted during the brief evaluation: {len(rows)} episodes measured"
               + (f", in {run_dir}/results.csv" if rows else ""), file=sys.stderr)
         raise
-    table = write_results(rows, run_dir, env_name, title, sensors=ran_with, split="validation")
+    table = write_results(rows, run_dir, env_name, title, sensors=ran_with, split="validation", shields=shields)
     print(f"\n[train] brief evaluation on {n} validation seeds ({seeds.start}..{seeds.stop - 1}):\n\n{table}\n")
 
 
 def _evaluate_spec(cfg: DictConfig, command: TrainCommand, folders: Folders, spec: str, seeds: range, rows: list,
-                   ran_with: dict) -> None:
+                   ran_with: dict, shields: dict) -> None:
     """One agent of the brief evaluation: on the batch when it trained there, else in worker processes (from ~10
-    episodes each: a worker costs a few seconds to start) or in this one; appends its rows to ``rows``."""
+    episodes each: a worker costs a few seconds to start) or in this one; appends its rows to ``rows``, its sensors
+    to ``ran_with`` and its shield (if any) to ``shields``, by label."""
     from av_gym.make import make_env
     from eval.agents import plan_agent, resolve_agent
     from eval.runner import EpisodeJob, run_episodes, run_episodes_parallel
@@ -174,6 +175,8 @@ def _evaluate_spec(cfg: DictConfig, command: TrainCommand, folders: Folders, spe
     plan = plan_agent(spec, env_name, sensors, shield, checkpoints)
     label = str(cfg.agent.name) if spec == str(folders.ckpt_dir) else plan.label
     ran_with[label] = plan.sensors
+    if (plan.shield or {}).get("kind", "none") != "none":
+        shields[label] = plan.shield
     n_envs = min(options.eval_n_envs, n // 10)
     if cfg.agent.get("vec_env") == "batched":  # trained on the batch: evaluated there too, all at once
         from eval.batched import run_episodes_batched
