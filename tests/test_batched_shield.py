@@ -343,6 +343,24 @@ def test_a_row_whose_prediction_is_for_other_road_users_than_its_shield_keeps_is
         for _ in range(100):
             venv.step(np.array([1]))
 
+def test_the_channels_posteriors_for_all_envs_are_each_envs_own_call():
+    """The indicator channel's turn weights of every env's drivers read so far, computed for all envs at once
+    (``_Channel._posteriors``: the envs with as many drivers in one stacked product (S, m, 3)), are bit for bit each
+    env's own ``DriverIntent.weights`` call on its drivers (the per-env shield's grouping), on random counts of 0-8
+    drivers per env. Fails with all envs' drivers in one (N, 3) product (its last bits depend on the row count) or
+    an env's drivers one off."""
+    channel = _venv(1).shield.channel
+    rng = np.random.default_rng(0)
+    per_env = rng.integers(0, 9, 300)
+    counts = rng.integers(0, 40, (int(per_env.sum()), 3))
+    got = channel._posteriors(counts, per_env)
+    start = np.cumsum(per_env) - per_env
+    for a, m in zip(start.tolist(), per_env.tolist()):
+        if m:
+            want = channel.beliefs.weights(counts[a:a + m])
+            assert np.array_equal(got[a:a + m].view(np.int64), want.view(np.int64)), (a, m)
+
+
 # ----------------------------------------------------------------------------------------------- refusals
 @pytest.mark.parametrize("shield, needle", [
     ("aeb_paper", "shield.variant=paper is not available with agent.vec_env=batched"),

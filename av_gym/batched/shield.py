@@ -396,13 +396,20 @@ class _Channel:
         dx, dy = state[..., 0] - state[at, ego, 0][:, None], state[..., 1] - state[at, ego, 1][:, None]
         self._read(rows, vid, kept & (dx * dx + dy * dy <= self.p.max_range**2))  # np.square(.).sum(): the same
         ever = self.draws.get(vid)[0] & kept
-        out = []
-        for n in range(len(rows)):
-            w = np.full((int(kept[n].sum()), 3), np.nan)
-            mine = ever[n][kept[n]]
-            if mine.any():
-                w[mine] = self.beliefs.weights(self.counts[vid[n][ever[n]]])
-            out.append(w)
+        out = np.full((int(kept.sum()), 3), np.nan)  # every env's kept road users, one env after the other
+        out[ever[kept]] = self._posteriors(self.counts[vid[ever]], ever.sum(axis=1))
+        return np.split(out, np.cumsum(kept.sum(axis=1))[:-1]) if len(rows) else []
+
+    def _posteriors(self, counts: np.ndarray, per_env: np.ndarray) -> np.ndarray:
+        """``DriverIntent.weights`` of each env's drivers read so far as the per-env shield groups them (one call
+        per decision with that decision's drivers): ``counts`` (N, 3) every env's drivers one env after the other,
+        ``per_env`` (n,) how many are each env's. The envs with as many drivers are one stack (S, m, 3): a stacked
+        product multiplies group by group, so each env gets the numbers of its own call."""
+        out = np.empty((len(counts), 3))
+        start = np.cumsum(per_env) - per_env
+        for m in np.unique(per_env[per_env > 0]).tolist():
+            at = (start[per_env == m][:, None] + np.arange(m)).reshape(-1)
+            out[at] = self.beliefs.weights(counts[at].reshape(-1, m, 3)).reshape(-1, 3)
         return out
 
 
@@ -552,8 +559,8 @@ class BatchedShield:
     def _predict(self, state: np.ndarray, kept: np.ndarray, n_kept: np.ndarray, lanes: np.ndarray,
                  accel: np.ndarray, intent: list[np.ndarray] | None) -> list[tuple | None]:
         """Per decision the conflict model's paths of its kept road users (``kept`` (n, S): relevant, not the ego;
-        ``n_kept`` (n,) how many per decision; ``state`` (n, S, 7), ``lanes`` (n, S) lane ids, ``accel`` (n, S, 2) m/s², ``intent`` per decision its kept
-        road users' turn weights or None), what its shield's ``_predict_scene`` asks the conflict model, for all
+        ``n_kept`` (n,) how many per decision; ``state`` (n, S, 7), ``lanes`` (n, S) lane ids, ``accel`` (n, S, 2)
+        m/s², ``intent`` per decision its kept road users' turn weights or None), what its shield's ``_predict_scene`` asks the conflict model, for all
         decisions in one compiled call (:meth:`ConflictModel.predict_rows`; None for a decision it does not serve:
         the shield's own call)."""
         if self.conflicts is None:

@@ -68,10 +68,13 @@ class DriverIntent:
             self.counts[k] = (right + (r < 0), none + (r == 0), left + (r > 0))
 
     def posterior(self, counts: np.ndarray) -> np.ndarray:
-        """``P(T, D | readings)`` (N, 9: T-major, 3 turns × 3 kinds) after ``counts`` (N, 3) readings of -1, 0, +1."""
-        log_post = np.asarray(counts, dtype=float).reshape(-1, 3) @ self._log_lik + self._log_prior
-        post = np.exp(log_post - log_post.max(axis=1, keepdims=True))
-        return post / post.sum(axis=1, keepdims=True)
+        """``P(T, D | readings)`` (N, 9: T-major, 3 turns × 3 kinds) after ``counts`` (N, 3) readings of -1, 0, +1;
+        a stack (S, N, 3) of such groups gives (S, N, 9), each group the numbers it gets alone (a stacked product
+        multiplies group by group: the same (N, 3) @ (3, 9) product each)."""
+        counts = np.asarray(counts, dtype=float)
+        log_post = (counts if counts.ndim == 3 else counts.reshape(-1, 3)) @ self._log_lik + self._log_prior
+        post = np.exp(log_post - log_post.max(axis=-1, keepdims=True))
+        return post / post.sum(axis=-1, keepdims=True)
 
     def turn_weights(self, keys: Sequence[Hashable]) -> np.ndarray:
         """``P(readings | T)`` (len(keys), 3) for T = right, straight, left (:data:`TURNS`), each row scaled to a
@@ -86,7 +89,9 @@ class DriverIntent:
     def weights(self, counts) -> np.ndarray:
         """:meth:`turn_weights`' rows for drivers read ``counts`` (N, 3: readings -1, 0, +1; N >= 1) times: (N, 3),
         in one :meth:`posterior` of those N (a matrix product's last bit may depend on N, so callers keep
-        :meth:`turn_weights`' grouping: one call per decision with that decision's drivers)."""
-        marginal = self.posterior(counts).reshape(-1, 3, 3).sum(axis=2)
-        marginal /= marginal.max(axis=1, keepdims=True)  # the T prior is uniform: no division by it needed
+        :meth:`turn_weights`' grouping: one call per decision with that decision's drivers, or a stack (S, N, 3) of
+        S decisions' groups of N, giving (S, N, 3))."""
+        post = self.posterior(counts)
+        marginal = post.reshape(*post.shape[:-1], 3, 3).sum(axis=-1)
+        marginal /= marginal.max(axis=-1, keepdims=True)  # the T prior is uniform: no division by it needed
         return np.maximum(marginal, self.floor)
