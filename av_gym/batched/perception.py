@@ -300,19 +300,33 @@ class BatchedTracker:
         cost = self._cost(rows, zs, nz, ranges)
         matched = np.zeros(cost.shape[:2], bool)
         used = np.zeros(cost.shape[::2], bool)
-        mb, mk, md = [], [], []
-        for b in np.flatnonzero((self.n[rows] > 0) & (nz > 0)).tolist():
-            c = cost[b, : self.n[rows[b]], : nz[b]]
-            i, j = linear_sum_assignment(c)
-            ok = c[i, j] < _BIG
-            mb += [b] * int(ok.sum())
-            mk += i[ok].tolist()
-            md += j[ok].tolist()
-        mb, mk, md = np.array(mb, dtype=int), np.array(mk, dtype=int), np.array(md, dtype=int)
+        mb, mk, md = self._assign(cost, self.n[rows], nz)
         if len(mb):
             self._update(rows[mb], mk, zs[mb, md], det[mb, md], ranges[mb, md], t[mb])
             matched[mb, mk], used[mb, md] = True, True
         self._manage(rows, t, det, zs, nz, ranges, matched, used)
+
+    def _assign(self, cost: np.ndarray, n_tracks: np.ndarray, nz: np.ndarray) -> tuple[np.ndarray, ...]:
+        """MultiObjectTracker._associate's matches in the cost matrices ``cost`` (n, K, D) of envs with
+        ``n_tracks`` (n,) tracks and ``nz`` (n,) detections: (env, track, detection), by env then track.
+        ``linear_sum_assignment`` per env where gated pairs (cost < ``_BIG``) compete for a track or a detection;
+        in an env where none does, exactly its gated pairs, which the assignment keeps too: it pairs min(tracks,
+        detections) and a pair at ``_BIG`` costs more than all gated ones together (each <= ``gate``), so it
+        keeps as many gated pairs as it can, here all of them."""
+        gated = cost < _BIG
+        clash = (gated.sum(axis=2) > 1).any(axis=1) | (gated.sum(axis=1) > 1).any(axis=1)
+        if self.params.gate * max(cost.shape[1:], default=0) >= _BIG:  # the argument above needs gated sums < _BIG
+            clash[:] = True
+        mb, mk, md = np.nonzero(gated & ~clash[:, None, None])
+        parts = [(mb, mk, md)]
+        for b in np.flatnonzero(clash & (n_tracks > 0) & (nz > 0)).tolist():
+            c = cost[b, : n_tracks[b], : nz[b]]
+            i, j = linear_sum_assignment(c)
+            ok = c[i, j] < _BIG
+            parts.append((np.full(int(ok.sum()), b), i[ok], j[ok]))
+        mb, mk, md = (np.concatenate(x).astype(int) for x in zip(*parts))
+        order = np.argsort(mb, kind="stable")
+        return mb[order], mk[order], md[order]
 
     def _manage(self, rows: np.ndarray, t: np.ndarray, det: np.ndarray, zs: np.ndarray, nz: np.ndarray,
                 ranges: np.ndarray, matched: np.ndarray, used: np.ndarray) -> None:
@@ -332,11 +346,12 @@ class BatchedTracker:
         key = np.where(survive, np.arange(K)[None], np.inf)  # survivors in order, then births in detection order
         order = np.argsort(key, axis=1, kind="stable")
         n_keep = survive.sum(axis=1)
+        moved = np.flatnonzero((order != np.arange(K)[None]).any(axis=1))  # the others keep their slots
         for name in self._PER_TRACK:
             a = getattr(self, name)
-            sub = a[rows]
-            idx = order.reshape(order.shape + (1,) * (sub.ndim - 2))
-            a[rows] = np.take_along_axis(sub, idx, axis=1)
+            sub = a[rows[moved]]
+            idx = order[moved].reshape((len(moved), K) + (1,) * (sub.ndim - 2))
+            a[rows[moved]] = np.take_along_axis(sub, idx, axis=1)
         self.n[rows] = n_keep
         b, j = np.nonzero(born)
         if len(b):
