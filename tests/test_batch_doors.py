@@ -87,3 +87,14 @@ def test_results_md_says_which_shield_each_agent_ran_behind(tmp_path, monkeypatc
     md = (tmp_path / "out" / "results.md").read_text()
     assert md.split("## Shield each agent ran behind\n\n")[1] == (
         "- `always_proceed`: aeb with mode='perceived'\n- `gap_acceptance+aeb_paper`: aeb_paper (as shipped)\n")
+
+
+@pytest.mark.parametrize("shield", ["aeb_paper", "aeb_belief"])
+def test_dagger_on_the_batch_names_the_shield_it_was_given_and_what_it_runs(shield, tmp_path, monkeypatch, capsys):
+    """``python -m train agent=dagger_turn shield=aeb_paper`` said ``shield=aeb is not available ... (python -m eval
+    vec_env=batched runs shield=aeb)``: another preset than the one given, and it read as the allowed one."""
+    monkeypatch.chdir(tmp_path)
+    line = check_line("train", ["agent=dagger_turn", f"shield={shield}"], monkeypatch, capsys)
+    assert line.startswith(f"error: shield={shield} is not available with agent.vec_env=batched here (this batch runs "
+                           f"without a shield: shield=none;"), line
+    assert list(tmp_path.iterdir()) == []

@@ -65,9 +65,10 @@ def check_batchable(env_cfg: dict, sensors_cfg: dict | None, shield_cfg: dict | 
         check_batched_shield(shield_cfg, env_cfg)
         return
     kind = shield_kind(shield_cfg)
-    if kind != "none":
-        raise ConfigError(f"shield={kind} is not available with agent.vec_env=batched here (python -m eval "
-                          f"vec_env=batched runs shield=aeb); use agent.vec_env=subproc")
+    if kind != "none":  # the preset's name: shield=aeb_paper said shield=aeb, which reads as the allowed one
+        raise ConfigError(f"shield={(shield_cfg or {}).get('name', kind)} is not available with agent.vec_env=batched "
+                          f"here (this batch runs without a shield: shield=none; python -m eval vec_env=batched and "
+                          f"PPO's training batch run shield=aeb); use agent.vec_env=subproc")
 
 
 def intervention_cost_problem(cost: float, shielded: bool, field: str = "intervention_cost") -> str | None:
