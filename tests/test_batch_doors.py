@@ -1,6 +1,6 @@
-"""What a probe of the batch from a user's view found (issue 47 item 3: every left-turn agent x sensors x shield
-through ``python -m eval vec_env=batched``, ``gymnasium.make_vec`` and ``python -m train agent.vec_env=batched``):
-each door closed here, one line before anything runs or is written."""
+"""What the batch runs and refuses, tried from a user's side (every left-turn agent x sensors x shield through
+``python -m eval vec_env=batched``, ``gymnasium.make_vec`` and ``python -m train agent.vec_env=batched``): each
+refusal one line before anything runs or is written, and results.md says what ran."""
 
 from __future__ import annotations
 
