@@ -339,7 +339,8 @@ def test_a_row_whose_prediction_is_for_other_road_users_than_its_shield_keeps_is
 
     monkeypatch.setattr(BatchedShield, "_kinematics", out_of_step)
     venv.play(iter([VALIDATION]))
-    with pytest.raises(RuntimeError, match=r"^row [0]: the batch's prediction holds \d+ road users, the shield keeps \d+"):
+    refused = r"^row [0]: the batch's prediction holds \d+ road users, the shield keeps \d+"
+    with pytest.raises(RuntimeError, match=refused):
         for _ in range(100):
             venv.step(np.array([1]))
 

@@ -560,9 +560,9 @@ class BatchedShield:
                  accel: np.ndarray, intent: list[np.ndarray] | None) -> list[tuple | None]:
         """Per decision the conflict model's paths of its kept road users (``kept`` (n, S): relevant, not the ego;
         ``n_kept`` (n,) how many per decision; ``state`` (n, S, 7), ``lanes`` (n, S) lane ids, ``accel`` (n, S, 2)
-        m/s², ``intent`` per decision its kept road users' turn weights or None), what its shield's ``_predict_scene`` asks the conflict model, for all
-        decisions in one compiled call (:meth:`ConflictModel.predict_rows`; None for a decision it does not serve:
-        the shield's own call)."""
+        m/s², ``intent`` per decision its kept road users' turn weights or None), what its shield's
+        ``_predict_scene`` asks the conflict model, for all decisions in one compiled call
+        (:meth:`ConflictModel.predict_rows`; None for a decision it does not serve: the shield's own call)."""
         if self.conflicts is None:
             return [None] * len(kept)
         index = self.e.T.index
