@@ -50,13 +50,13 @@ def left_turn(**kwargs: Any) -> gym.Env:
 
 def left_turn_vector(num_envs: int, *, env: Mapping | None = None, sensors: Any = None, shield: Any = None,
                      config: Mapping | None = None, render_mode: str | None = None, actions: str = "env",
-                     action_repeat: int = 1, checkpoint: str | Path | None = None) -> gym.vector.VectorEnv:
+                     action_repeat: int = 1, **make_only: Any) -> gym.vector.VectorEnv:
     """``vector_entry_point`` of ``av_gym/UnprotectedLeftTurn-v0``: the batched engine (all envs in one numpy
     batch, :mod:`av_gym.batched.vec_env`), what ``gymnasium.make_vec(id, n)`` gives when no
     ``vectorization_mode`` is named. It runs the ``turn_truth`` and ``turn_perceived`` sensors, without a shield or
-    with ``shield="aeb"`` (:mod:`av_gym.batched.shield`); anything else (``config=``, ``render_mode=``,
-    ``checkpoint=``, another shield) is refused in one line (``vectorization_mode="sync"`` or ``"async"`` runs every
-    stack)."""
+    with ``shield="aeb"`` (:mod:`av_gym.batched.shield`); anything else (``config=``, ``render_mode=``, another
+    shield, ``make_only``: a keyword of :func:`make` the batch does not take, ``checkpoint=`` or ``record_metrics=``)
+    is refused in one line (``vectorization_mode="sync"`` or ``"async"`` runs every stack)."""
     import numbers
 
     from av_gym.batched.vec_env import BatchedLeftTurnVectorEnv, check_batchable
@@ -70,9 +70,10 @@ def left_turn_vector(num_envs: int, *, env: Mapping | None = None, sensors: Any 
         raise ConfigError(f"config= is not available with the batched engine (give env={{...}}); {other}")
     if render_mode is not None:
         raise ConfigError(f"render_mode is not available with the batched engine; {other}")
-    if checkpoint is not None:  # gym.make's keyword: the per-env stack and agent-side wrappers the agent trained on
-        raise ConfigError(f"checkpoint= is not available with the batched engine (give sensors=, shield=, actions=, "
-                          f"action_repeat=); {other}")
+    given = sorted(k for k, v in make_only.items() if v is not None)
+    if given:  # make()'s keywords reach here through make_vec: named, with the modes that run them
+        raise ConfigError(f"{'=, '.join(given)}= {'is' if len(given) == 1 else 'are'} not available with the batched "
+                          f"engine (it takes env=, sensors=, shield=, actions=, action_repeat=); {other}")
     if sensors is None:
         raise ConfigError(f"the batched engine needs sensors=\"turn_truth\" or \"turn_perceived\" (it computes the "
                           f"turn features, not the privileged state); {other}")

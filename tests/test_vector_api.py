@@ -73,7 +73,10 @@ def test_vector_entry_point_is_the_batched_engine() -> None:
      "sensors.tracker needs sensors.detector.frame=world"),
     ({"sensors": "turn_truth", "shield": "aeb_paper"}, "shield.variant=paper is not available with the batched engine"),
     ({"sensors": "turn_truth", "render_mode": "rgb_array"}, "render_mode is not available"),
-    ({"checkpoint": "dagger_turn"}, "checkpoint= is not available with the batched engine"),  # was a TypeError
+    # make()'s keywords that only a per-env stack takes, named with the engine's own keywords
+    ({"checkpoint": "dagger_turn"}, "checkpoint= is not available with the batched engine (it takes env=, sensors="),
+    ({"sensors": "turn_truth", "record_metrics": False}, "record_metrics= is not available with the batched engine"),
+    ({"checkpoint": "dagger_turn", "record_metrics": True}, "checkpoint=, record_metrics= are not available"),
 ])
 def test_vector_entry_point_refuses_in_one_line(kwargs, says) -> None:
     with pytest.raises(ConfigError) as err:
