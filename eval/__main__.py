@@ -194,19 +194,30 @@ def _evaluate(cfg: DictConfig, command: EvalCommand) -> list[dict]:
         except KeyboardInterrupt:
             if rows:
                 write_results(rows, out_dir, env_name, f"{title} (interrupted after {len(rows)} episodes)",
-                              split=split)
+                              **_ran_with(plans, ran, split, rows))
                 print(f"[eval] interrupted: the {len(rows)} episodes measured are in {out_dir}/results.csv",
                       file=sys.stderr)
             raise
         # each agent's rows as soon as it is done: an evaluation interrupted or failing later keeps what it measured
-        write_results(rows, out_dir, env_name, title, split=split)
-    shields = {p.label: p.shield for p in plans if (p.shield or {}).get("kind", "none") != "none"}
-    table = write_results(rows, out_dir, env_name, title, sensors={p.label: p.sensors for p in plans},
-                          checkpoints=ran, split=split, shields=shields)
+        write_results(rows, out_dir, env_name, title, **_ran_with(plans, ran, split, rows))
+    table = write_results(rows, out_dir, env_name, title, **_ran_with(plans, ran, split, rows))
     print(f"\n{title}\n\n{table}\n")
     print(f"[eval] per-episode rows: {out_dir}/results.csv   summary: {out_dir}/results.md")
     _figures(plans, command, env_cfg, seeds.start)
     return rows
+
+
+def _ran_with(plans: list, checkpoints: dict, split: str, rows: list[dict]) -> dict:
+    """``write_results``' keywords for every results.md, an interrupted or failing evaluation's included: the
+    sensors, checkpoint and shield of each agent with rows in ``rows`` (a shield from the command line's
+    ``shield=`` is in no label, so without them its rows read as unshielded)."""
+    from av_gym.batched.shield import shield_kind
+
+    labels = {r["agent"] for r in rows}
+    kept = [p for p in plans if p.label in labels]
+    return {"sensors": {p.label: p.sensors for p in kept}, "split": split,
+            "checkpoints": {label: path for label, path in checkpoints.items() if label in labels},
+            "shields": {p.label: p.shield for p in kept if shield_kind(p.shield) != "none"}}
 
 
 def _run_agent(plan, command: EvalCommand, env_cfg: dict, seeds: range, rows: list) -> None:

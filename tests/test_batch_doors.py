@@ -89,6 +89,32 @@ def test_results_md_says_which_shield_each_agent_ran_behind(tmp_path, monkeypatc
         "- `always_proceed`: aeb with mode='perceived'\n- `gap_acceptance+aeb_paper`: aeb_paper (as shipped)\n")
 
 
+@pytest.mark.parametrize("fails_with", [KeyboardInterrupt, RuntimeError])
+def test_an_interrupted_or_failing_evals_results_md_says_which_shield_its_rows_ran_behind(fails_with, tmp_path,
+                                                                                          monkeypatch):
+    """The results.md written after each agent and on Ctrl-C names the command line's shield of the agents with rows
+    (and no agent that did not run): without it an interrupted evaluation of ``shield=aeb`` read as unshielded."""
+    import sys
+
+    from eval import __main__ as eval_main
+
+    def run_agent(plan, command, env_cfg, seeds, rows) -> None:  # one row an agent, the second agent fails
+        if rows:
+            raise fails_with("stopped")
+        rows.append({"agent": plan.label, "episode": 0, "seed": seeds.start, "collision": 0.0, "success": 1.0})
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(eval_main, "_run_agent", run_agent)
+    monkeypatch.setattr(sys, "argv", ["eval", "agents=[always_proceed,gap_acceptance]", "shield=aeb",
+                                      "shield.mode=perceived", "episodes=1", "out_dir=out", "progress_bar=false",
+                                      "hydra.run.dir=hydra"])
+    with pytest.raises((fails_with, SystemExit)):
+        eval_main.main()
+    md = (tmp_path / "out" / "results.md").read_text()
+    assert md.split("## Shield each agent ran behind\n\n")[1] == "- `always_proceed`: aeb with mode='perceived'\n"
+    assert "## Sensors each agent ran with\n\n- `always_proceed`: " in md and "gap_acceptance" not in md
+
+
 @pytest.mark.parametrize("shield", ["aeb_paper", "aeb_belief"])
 def test_dagger_on_the_batch_names_the_shield_it_was_given_and_what_it_runs(shield, tmp_path, monkeypatch, capsys):
     """``python -m train agent=dagger_turn shield=aeb_paper`` said ``shield=aeb is not available ... (python -m eval
