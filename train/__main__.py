@@ -165,6 +165,7 @@ def _evaluate_spec(cfg: DictConfig, command: TrainCommand, folders: Folders, spe
     """One agent of the brief evaluation: on the batch when it trained there, else in worker processes (from ~10
     episodes each: a worker costs a few seconds to start) or in this one; appends its rows to ``rows``, its sensors
     to ``ran_with`` and its shield (if any) to ``shields``, by label."""
+    from av_gym.batched.shield import shield_kind
     from av_gym.make import make_env
     from eval.agents import plan_agent, resolve_agent
     from eval.runner import EpisodeJob, run_episodes, run_episodes_parallel
@@ -175,7 +176,7 @@ def _evaluate_spec(cfg: DictConfig, command: TrainCommand, folders: Folders, spe
     plan = plan_agent(spec, env_name, sensors, shield, checkpoints)
     label = str(cfg.agent.name) if spec == str(folders.ckpt_dir) else plan.label
     ran_with[label] = plan.sensors
-    if (plan.shield or {}).get("kind", "none") != "none":
+    if shield_kind(plan.shield) != "none":
         shields[label] = plan.shield
     n_envs = min(options.eval_n_envs, n // 10)
     if cfg.agent.get("vec_env") == "batched":  # trained on the batch: evaluated there too, all at once
