@@ -1,5 +1,5 @@
-"""DAgger's student (train/dagger.py ``LabelJob.student``, ``student_model``): SB3's PPO without the rollout buffer it never fills, the
-same weights and the same model.zip as :func:`agents.ppo.make_ppo` builds."""
+"""DAgger's student (train/dagger.py ``LabelJob.student``, ``student_model``): SB3's PPO without the rollout buffer
+it never fills, the same weights and the same model.zip as :func:`agents.ppo.make_ppo` builds."""
 
 from __future__ import annotations
 
@@ -20,9 +20,10 @@ def _buffer_bytes(model) -> int:
 
 
 def test_the_student_has_no_rollout_buffer_of_n_steps_and_saves_make_ppos_model(tmp_path):
-    """make_ppo allocated n_steps x n_envs observations (512 x 2 rows here; 16.4 MB of address space at 64 rows)
-    in every DAgger process, never written: the student's buffer now holds 2 steps, while its weights, n_steps, batch_size and the
-    whole model.zip (the data, the policy, the optimizer) are make_ppo's, and PPO.load reads it back."""
+    """The student's rollout buffer holds 2 steps, not make_ppo's n_steps x n_envs observations (512 x 2 rows here;
+    16.4 MB of address space at 64 rows in every DAgger process, never written), while its weights, n_steps,
+    batch_size and the whole model.zip (the data, the policy, the optimizer) are make_ppo's, and PPO.load reads it
+    back."""
     from stable_baselines3 import PPO
 
     agent = {**DaggerParams().as_dict(), "actions": "go_yield", "action_repeat": 5, "extractor": "mlp",

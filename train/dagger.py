@@ -333,7 +333,9 @@ def student_model(venv: Any, agent: dict, seed: int, device: str) -> Any:
     (16.4 MB of zeros for turn_truth at 512 steps x 64 rows, measured: +16.3 MB virtual, +1.0 MB resident against
     +0.3 MB with 2 steps), which DAgger never fills (it fits the policy on its own labels and never calls
     ``learn``). 2 steps is SB3's least for one row; the agent's ``n_steps`` and ``batch_size`` are set back, so the
-    weights and the model.zip it saves are ``make_ppo(venv, agent, ...)``'s."""
+    weights and the model.zip it saves are ``make_ppo(venv, agent, ...)``'s. The object itself is for predicting
+    and fitting only: its buffer holds 2 steps while ``learn`` collects ``n_steps``, so PPO fine-tuning starts from
+    the saved model.zip (``PPO.load`` builds the ``n_steps`` buffer), never from this object."""
     from agents.ppo import make_ppo
 
     # batch_size 2 divides the 2-step buffer at any row count: no SB3 warning about a truncated mini-batch

@@ -65,7 +65,7 @@ def check_batchable(env_cfg: dict, sensors_cfg: dict | None, shield_cfg: dict | 
         check_batched_shield(shield_cfg, env_cfg)
         return
     kind = shield_kind(shield_cfg)
-    if kind != "none":  # the preset's name: shield=aeb_paper said shield=aeb, which reads as the allowed one
+    if kind != "none":  # the preset given by name (aeb_paper, not its kind aeb, which reads as the allowed one)
         raise ConfigError(f"shield={(shield_cfg or {}).get('name', kind)} is not available with agent.vec_env=batched "
                           f"here (this batch runs without a shield: shield=none; python -m eval vec_env=batched and "
                           f"PPO's training batch run shield=aeb); use agent.vec_env=subproc")
