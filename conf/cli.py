@@ -82,14 +82,10 @@ def number(kind: Callable[[str], Any] = int, *, low: float | None = None,
         body = text.strip().strip("'\"")
         if "," in body or body.startswith("["):
             raise argparse.ArgumentTypeError(f"expected one value ({expected}), got {text!r}")
-        try:
-            value = kind(body)
-        except ValueError:
-            value = None
-        if value is None or (isinstance(value, float) and value != value) or \
-                (low is not None and value < low) or (high is not None and value > high):
-            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
-        return value
+        try:  # a list item's checks; one message for a lone value, whatever the item's says
+            return _item(body, text, kind, low, high, None)
+        except argparse.ArgumentTypeError:
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
 
     parse.__name__ = {int: "integer", float: "number"}.get(kind, "value")
     return parse
