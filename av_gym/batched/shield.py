@@ -403,8 +403,9 @@ class _Channel:
     def _posteriors(self, counts: np.ndarray, per_env: np.ndarray) -> np.ndarray:
         """``DriverIntent.weights`` of each env's drivers read so far as the per-env shield groups them (one call
         per decision with that decision's drivers): ``counts`` (N, 3) every env's drivers one env after the other,
-        ``per_env`` (n,) how many are each env's. The envs with as many drivers are one stack (S, m, 3): a stacked
-        product multiplies group by group, so each env gets the numbers of its own call."""
+        ``per_env`` (n,) how many are each env's. The envs with as many drivers are one stack (S, m, 3), one (m, 3)
+        product per env: the numbers of its own call bit for bit as observed here with numpy 2.4's OpenBLAS 0.3.31,
+        not promised by numpy (another BLAS may round a last bit apart; the tests allow for that)."""
         out = np.empty((len(counts), 3))
         start = np.cumsum(per_env) - per_env
         for m in np.unique(per_env[per_env > 0]).tolist():
