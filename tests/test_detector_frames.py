@@ -21,8 +21,6 @@ def _frames(rng: np.random.Generator, counts: list[int], clutters: list[int]) ->
                               rng.uniform(-np.pi, np.pi, off[-1]), np.full(off[-1], 5.0), np.full(off[-1], 2.0)])
     src = np.flatnonzero(rng.random(off[-1]) < 0.8)
     frame_of = np.searchsorted(off, src, side="right") - 1
-    # two road users of frame 0 at the same range from its ego: the stable sort keeps their order
-    others[1, 0:2] = 2 * ego[0, :2] - others[0, 0:2]
     return {"ego": ego, "off": off, "others": others, "src": src, "frame_of": frame_of,
             "ranges": rng.uniform(0, 60, len(src)), "draws": rng.standard_normal((len(src), 7)),
             "clutter_frame": np.repeat(np.arange(len(clutters)), clutters),
@@ -47,6 +45,24 @@ def test_many_frames_are_assembled_as_each_frame_alone():
         d = np.hypot(*(rows[i, : n[i], 1:3] - f["ego"][i, :2]).T)
         assert np.all(np.diff(d) >= 0)  # nearest first
         assert np.all(rows[i, n[i]:] == 0) and np.all(kept[i, n[i]:] == -1)
+
+
+def test_a_tie_in_range_keeps_the_detections_first_then_their_order():
+    """Two road users and a false positive at exactly 30 m from the ego (no position noise; the clutter at range
+    60 sqrt(0.25), bearing 0) and a nearer road user: nearest first, then at equal range the detections before the
+    clutter, each in its order (the per-env detector's stable sort of its detections then its clutter). Fails with
+    a sort that is not stable or that puts clutter first."""
+    p = DetectorParams(sigma_pos0=0.0, sigma_pos_k=0.0)
+    others = np.array([[0.0, 30.0, 1, 0, 0, 5, 2], [-30.0, 0.0, 0, 1, 0, 5, 2], [5.0, 0.0, 0, 0, 1, 5, 2]])
+    for src in ([0, 1, 2], [1, 0, 2]):  # the detections in either order: the rule, not one input's luck
+        src = np.array(src)
+        ego = np.zeros((1, 3))
+        ranges = np.hypot(others[src, 0], others[src, 1])
+        rows, kept, n = assemble_frames(p, 60.0, 4, ego, others, src, np.zeros(3, int), ranges, np.zeros((3, 7)),
+                                        np.zeros(1, int), np.array([[0.25, 0.0, 0.0]]))
+        ties = [i for i in src.tolist() if i != 2]
+        assert n.tolist() == [4] and kept[0].tolist() == [2, *ties, -1]
+        np.testing.assert_array_equal(rows[0, :, 1:3], np.vstack([others[[2, *ties], :2], [[30.0, 0.0]]]))
 
 
 def test_the_view_of_many_frames_is_each_frames_own():
