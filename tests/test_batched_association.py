@@ -45,3 +45,25 @@ def test_the_association_of_every_env_is_its_own_assignment():
         clash = (gated.sum(axis=2) > 1).any(axis=1) | (gated.sum(axis=1) > 1).any(axis=1)
         competing, alone = competing + int(clash.sum()), alone + int((~clash & gated.any(axis=(1, 2))).sum())
     assert competing > 100 and alone > 100  # both ways taken
+
+
+def test_the_gated_pairs_go_to_the_assignment_where_a_gated_cost_could_reach_big(monkeypatch):
+    """The shortcut (gated pairs taken as they are) rests on every gated cost being below ``_BIG`` (gate < _BIG);
+    with a gate at ``_BIG`` every env with tracks and detections goes to ``linear_sum_assignment``, with the
+    default gate only those whose gated pairs compete. Fails without the guard on the gate."""
+    import av_gym.batched.perception as perception
+
+    calls = []
+
+    def counted(c):
+        calls.append(c.shape)
+        return linear_sum_assignment(c)
+
+    monkeypatch.setattr(perception, "linear_sum_assignment", counted)
+    cost, n_tracks, nz = _costs(np.random.default_rng(1), 200, 6, 6, 0.1)
+    both = int(((n_tracks > 0) & (nz > 0)).sum())
+    for gate, expect_all in ((13.8, False), (_BIG, True)):
+        calls.clear()
+        got = list(zip(*(x.tolist() for x in BatchedTracker(1, TrackerParams(gate=gate))._assign(cost, n_tracks, nz))))
+        assert got == _per_env(cost, n_tracks, nz)
+        assert (len(calls) == both) == expect_all and 0 < len(calls) <= both

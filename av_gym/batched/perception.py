@@ -310,12 +310,14 @@ class BatchedTracker:
         """MultiObjectTracker._associate's matches in the cost matrices ``cost`` (n, K, D) of envs with
         ``n_tracks`` (n,) tracks and ``nz`` (n,) detections: (env, track, detection), by env then track.
         ``linear_sum_assignment`` per env where gated pairs (cost < ``_BIG``) compete for a track or a detection;
-        in an env where none does, exactly its gated pairs, which the assignment keeps too: it pairs min(tracks,
-        detections) and a pair at ``_BIG`` costs more than all gated ones together (each <= ``gate``), so it
-        keeps as many gated pairs as it can, here all of them."""
+        in an env where none does, exactly its gated pairs, which every optimal assignment holds: they are
+        disjoint, so an assignment of min(tracks, detections) pairs without one of them, (k, d) at cost c, pairs
+        k or d (or both) at ``_BIG``; taking (k, d) instead (and pairing their two partners, at most ``_BIG``)
+        saves at least ``_BIG - c`` > 0. That needs only c < ``_BIG`` for every pair the tracker gates
+        (c <= ``gate``), i.e. ``gate`` < ``_BIG``."""
         gated = cost < _BIG
         clash = (gated.sum(axis=2) > 1).any(axis=1) | (gated.sum(axis=1) > 1).any(axis=1)
-        if self.params.gate * max(cost.shape[1:], default=0) >= _BIG:  # the argument above needs gated sums < _BIG
+        if self.params.gate >= _BIG:  # a gated pair could cost _BIG: the argument above does not hold
             clash[:] = True
         mb, mk, md = np.nonzero(gated & ~clash[:, None, None])
         parts = [(mb, mk, md)]

@@ -20,7 +20,7 @@ y right of the ego), heading rad, size m, ``age`` s since this detector frame wa
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, Protocol
 
 import gymnasium as gym
 import numpy as np
@@ -110,7 +110,19 @@ def draw_detections(rng: np.random.Generator, chain: dict, keys, in_view: np.nda
     return ids, draws
 
 
-def frame_draws(detector, rng: np.random.Generator, chain: dict, keys, in_view: np.ndarray,
+class FrameDrawer(Protocol):
+    """What :func:`frame_draws` reads of a detector (the per-env :class:`Detector` or the batch's
+    ``BatchedDetector``): its parameters, its stationary miss rate, its miss chain's P(miss | seen) ``p`` and
+    P(seen | missed) ``q`` (:func:`miss_chain`) and half its field of view (rad)."""
+
+    params: DetectorParams
+    miss_rate: float
+    p: float
+    q: float
+    half_fov: float
+
+
+def frame_draws(detector: FrameDrawer, rng: np.random.Generator, chain: dict, keys, in_view: np.ndarray,
                 occluded: np.ndarray) -> tuple[list[int], list[np.ndarray], list[tuple[float, float, float]]]:
     """One frame's random draws in the detector's order: :func:`draw_detections` (``detector``'s miss rate and
     chain), then the clutter count (Poisson, ``clutter_rate``) and per false positive its three uniforms (the
