@@ -19,8 +19,8 @@ SB3_REFS = sorted(p.name for p in REF.iterdir() if (p / "model.zip").is_file())
 MODELS = ("model.zip", "model.pt")
 SEED_REFS = sorted(str(p.relative_to(REF)) for p in REF.glob("seeds/*/s*") if any((p / m).is_file() for m in MODELS))
 NAMED = ("dagger_turn", "dagger_turn_memory", "dagger_turn_perceived", "dagger_turn_perceived_batch",
-         "dagger_turn_soft", "pilotnet", "ppo_lane_camera", "ppo_lane_localized", "ppo_turn", "ppo_turn_perceived",
-         "ppo_turn_shielded")
+         "dagger_turn_perceived_scale", "dagger_turn_soft", "pilotnet", "ppo_lane_camera", "ppo_lane_localized",
+         "ppo_turn", "ppo_turn_perceived", "ppo_turn_shielded")
 
 
 def _env_and_policy(name: str):
@@ -54,7 +54,9 @@ def test_reference_holds_the_named_agents_and_a_name_means_one_folder():
                          "seeds/dagger_turn_perceived/s3", "seeds/dagger_turn_perceived/s4",
                          "seeds/dagger_turn_perceived/s5", "seeds/dagger_turn_perceived_batch/s2",
                          "seeds/dagger_turn_perceived_batch/s3", "seeds/dagger_turn_perceived_batch/s4",
-                         "seeds/dagger_turn_perceived_batch/s5", "seeds/dagger_turn_soft/s1",
+                         "seeds/dagger_turn_perceived_batch/s5", "seeds/dagger_turn_perceived_scale/s2",
+                         "seeds/dagger_turn_perceived_scale/s3", "seeds/dagger_turn_perceived_scale/s4",
+                         "seeds/dagger_turn_perceived_scale/s5", "seeds/dagger_turn_soft/s1",
                          "seeds/dagger_turn_soft/s3",
                          "seeds/pilotnet/s1", "seeds/pilotnet/s2", "seeds/pilotnet/s3",
                          "seeds/pilotnet/s4", "seeds/ppo_turn/s2", "seeds/ppo_turn/s3",
