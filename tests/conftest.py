@@ -37,6 +37,22 @@ def conf(group: str, name: str) -> dict:
     return shipped
 
 
+@pytest.fixture(autouse=True)
+def _root_logging_restored():
+    """A test that runs ``python -m eval`` / ``train`` in this process (``main()``) leaves Hydra's job logging on the
+    root logger: a file handler into that test's folder, which a later test's log line (TensorBoard's, at INFO) then
+    fails to open. Every test ends with the root logger's handlers and level as it found them."""
+    import logging
+
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level
+    yield
+    for handler in [h for h in root.handlers if h not in handlers]:
+        root.removeHandler(handler)
+        handler.close()
+    root.setLevel(level)
+
+
 @pytest.fixture
 def lane_cfg() -> dict:
     return conf("env", "lane_keeping")
