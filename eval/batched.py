@@ -54,6 +54,7 @@ def plan_kind(plan) -> str:
 
 def check_batched_plan(plan, env_cfg: dict) -> None:
     """One-line ConfigError for an agent the batched engine cannot evaluate (checked before any folder is made)."""
+    from av_gym.batched.shield import shield_kind
     from av_gym.batched.vec_env import check_batchable
 
     if env_cfg.get("name") != "left_turn":
@@ -63,7 +64,7 @@ def check_batched_plan(plan, env_cfg: dict) -> None:
         raise ConfigError(f"agent {plan.label!r} (kind {kind}) cannot run with vec_env=batched (it runs: "
                           f"{', '.join(KINDS)}); use vec_env=subproc")
     sensors = NO_OBS_SENSORS if kind == "always_proceed" else plan.sensors
-    if kind == "lookahead" and (plan.shield or {}).get("kind", "none") != "none" and \
+    if kind == "lookahead" and shield_kind(plan.shield) != "none" and \
             _agent_config(plan).get("plan_with_shield"):
         raise ConfigError(f"agent {plan.label!r}: lookahead with plan_with_shield=true cannot run with "
                           f"vec_env=batched (its futures on the batch are the driver's own, without the shield); "

@@ -195,12 +195,13 @@ def _apply(cfg: dict, assignments: list[str]) -> dict:
 
 def build(spec: str, env_set: list[str], shield_set: list[str], checkpoints: str = "checkpoints"):
     """``(label, env, policy)`` for an agent spec as ``python -m eval`` builds it, with overrides."""
+    from av_gym.batched.shield import shield_kind
     from eval.agents import compose_group, make_eval_env, plan_agent, resolve_agent
 
     env_cfg = _apply({"name": "left_turn"}, env_set)
     plan = plan_agent(spec, "left_turn", compose_group("sensors", "truth"), compose_group("shield", "none"),
                       checkpoints)
-    shield = _apply(plan.shield, shield_set) if plan.shield.get("kind", "none") != "none" else plan.shield
+    shield = _apply(plan.shield, shield_set) if shield_kind(plan.shield) != "none" else plan.shield
     env = make_eval_env(env_cfg, plan.sensors, shield)
     with contextlib.redirect_stdout(io.StringIO()):
         _, policy = resolve_agent(plan.spec, env, "left_turn", checkpoints)
