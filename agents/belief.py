@@ -150,6 +150,14 @@ class BeliefLookaheadParams(AgentParams):
                                                          "stricter test to start a GO than to keep one, which one "
                                                          "lucky draw of K futures passes right after risky ones; 0: "
                                                          "none")
+    recheck_pool: bool = param(False, doc="with ``recheck`` > 0: a GO to start is judged on the decision's K "
+                                          "futures and the recheck's pooled (GO when at most ``threshold`` of all "
+                                          "K + recheck collide), the recheck asked where the decision's own K could "
+                                          "still meet that; a held GO is kept on the K as before: one estimate of "
+                                          "GO's collision probability from K + recheck futures has less variance "
+                                          "than two tests that each allow none of theirs, so a GO of a small risk "
+                                          "is not held back by one unlucky future (the caution benchmarks/"
+                                          "belief_tracks_lost.py counts); False: each draw on its own")
     confirm: int = param(1, "decisions", ge=1, le=10, doc="GO only once this many decisions running found GO safe "
                                                           "(a held GO is kept while it stays safe): a GO that one "
                                                           "draw of K futures finds safe right after risky ones is "
@@ -296,13 +304,18 @@ class BeliefPlanner:
         if due.any():
             r, held = rows[due], choice[due]
             p = self.go_collision(engine, r)
-            new = self.confirmed(r, p)
-            early = (new != GO) & (self.label_of(p) == GO) & (int(self.params.confirm_after) > 0)
+            K, R = self.K, int(self.params.recheck)
+            pool = bool(self.params.recheck_pool) and R > 0
+            # pooled: a GO to start is safe at this decision where its K futures could still pass with the recheck's
+            # R all safe (the pooled share K p / (K + R) at most threshold); a held GO is kept on its K alone
+            safe = self.label_of(np.where(held != GO, p * K / (K + R), p) if pool else p) == GO
+            new = self.confirmed(r, p, safe)
+            early = (new != GO) & safe & (int(self.params.confirm_after) > 0)
             self.confirm_at[r] = np.where(early, step[due] + int(self.params.confirm_after), -1)
-            ask = (new == GO) & (held != GO) & (int(self.params.recheck) > 0)
+            ask = (new == GO) & (held != GO) & (R > 0)
             if ask.any():  # a GO to start: the futures of the recheck's own streams must find it safe too
-                p = self.go_collision(engine, r[ask], int(self.params.recheck), (RECHECK_STREAM,))
-                new[ask] = self.label_of(p)
+                p2 = self.go_collision(engine, r[ask], R, (RECHECK_STREAM,))
+                new[ask] = self.label_of((K * p[ask] + R * p2) / (K + R) if pool else p2)
             choice[due] = new
         return choice
 
@@ -322,12 +335,13 @@ class BeliefPlanner:
             due &= ~final
         return due, final
 
-    def confirmed(self, rows: np.ndarray, p: np.ndarray) -> np.ndarray:
+    def confirmed(self, rows: np.ndarray, p: np.ndarray, safe: np.ndarray | None = None) -> np.ndarray:
         """The choices of ``rows`` at a decision whose GO collision probabilities (:meth:`go_collision`) are
-        ``p``: GO where GO is safe at this decision and the ``confirm`` - 1 before it counted (safe, or at most
-        ``confirm_risk``), else YIELD (a held GO stays while it is safe: it was started so)."""
-        safe = self.label_of(p) == GO
-        counts = np.asarray(p) <= max(self.threshold, float(self.params.confirm_risk)) + 1e-12
+        ``p``: GO where GO is safe at this decision (``safe``, default ``p`` at most ``threshold``) and the
+        ``confirm`` - 1 before it counted (safe, or at most ``confirm_risk``), else YIELD (a held GO stays while it
+        is safe: it was started so)."""
+        safe = self.label_of(p) == GO if safe is None else np.asarray(safe, bool)
+        counts = safe | (np.asarray(p) <= max(self.threshold, float(self.params.confirm_risk)) + 1e-12)
         self.safe_run[rows] = np.where(counts, self.safe_run[rows] + 1, 0)
         return np.where(safe & (self.safe_run[rows] >= int(self.params.confirm)), GO, YIELD).astype(np.int64)
 

@@ -617,6 +617,28 @@ def test_recheck_starts_a_go_only_when_its_own_futures_find_it_safe_too():
     assert calls == [(None, (), [0, 1, 2])]
 
 
+def test_recheck_pool_starts_a_go_on_the_pooled_share_of_both_draws():
+    """``recheck`` 32 with ``recheck_pool`` at K 16 and threshold 0.03 (at most 1 of 48): a GO to start is asked for
+    the recheck where the decision's 16 could still pass (1 of 16 collide: rows 0, 1; 2 of 16 could not: row 2, no
+    recheck) and goes on the pooled 48 (row 0: 1 + 0 of 48; row 1: 1 + 1, YIELD); a held GO is kept on its 16 alone
+    (row 3: 1 of 16, taken back). Without the pool, 1 of 16 is unsafe and nothing is rechecked."""
+    calls = []
+    p_dec = np.array([1, 1, 2, 1]) / 16
+
+    def p_of(rows, K, stream):
+        calls.append((K, stream, rows.tolist()))
+        return np.where(rows == 1, 1 / 32, 0.0) if stream == (3,) else p_dec[rows]
+
+    held = [YIELD, YIELD, YIELD, GO]
+    planner = BeliefPlanner(BeliefLookaheadParams(recheck=32, recheck_pool=True, threshold=0.03), n_rows=4)
+    assert _decide_with(planner, p_of, held).tolist() == [GO, YIELD, YIELD, YIELD]
+    assert calls == [(None, (), [0, 1, 2, 3]), (32, (3,), [0, 1])]
+    calls.clear()
+    plain = BeliefPlanner(BeliefLookaheadParams(recheck=32, threshold=0.03), n_rows=4)
+    assert _decide_with(plain, p_of, held).tolist() == [YIELD] * 4
+    assert calls == [(None, (), [0, 1, 2, 3])]
+
+
 def test_the_recheck_draws_other_futures_of_the_same_moment(tracked):
     """The recheck's futures (``stream`` (3,)) are drawn from other streams than the decision's: other routes and
     behaviours for the same road users, other unseen drivers; the decision's own stream reproduces itself."""
