@@ -67,6 +67,7 @@ def _snapshot(planner, engine, r: int) -> dict:
             "v_track": round(float(t.v[r, j]), 2), "v_true": round(float(s.v[r, i]), 2),
             "acc_track": round(float(t.acc[r, j]), 2), "acc_true": round(float(s.acc[r, i]), 2),
             "lane_track": int(t.lane[r, j]), "lane_true": int(s.lane[r, i]), "crashed_track": bool(t.crashed[r, j]),
+            "tentative_track": bool(planner.tracks.tent[r, j]),
             "p_dest": {int(c): round(float(p), 2) for c, p in zip(cand, probs)}, "true_dest": true_dest,
             "target_true": round(float(s.target[r, i]), 2), "yielding_true": bool(s.yielding[r, i]),
             "p_swapped": {k: round(v, 3) for k, v in swaps.items()}}
