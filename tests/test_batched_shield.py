@@ -219,7 +219,7 @@ def test_the_batch_gives_each_shield_the_per_env_objects_and_accelerations(monke
 
     venv = _venv(3)
     row_shield = type(venv.shield.shields[0])
-    own_objects, own_accels, own_relevant = row_shield._objects, row_shield._accelerations, row_shield._relevant
+    own_objects, own_accels, own_relevant = row_shield._objects, row_shield._decision_accels, row_shield._relevant
     own_intent, own_recent = row_shield._intent, row_shield._recently_moved
     seen = {"decisions": 0, "moving": 0, "followers": 0, "read": 0, "recent": 0}
 
@@ -234,8 +234,9 @@ def test_the_batch_gives_each_shield_the_per_env_objects_and_accelerations(monke
         assert lanes == self._lanes
         return got
 
-    def accelerations(self, keys, velocities, t):
-        got, ref = own_accels(self, keys, velocities, t), AEBShield._accelerations(self, keys, velocities, t)
+    def accelerations(self, ego, others, keys, t):  # the ego's first, then each road user's
+        got = own_accels(self, ego, others, keys, t)
+        ref = AEBShield._accelerations(self, ["__ego__", *keys], np.vstack([ego["velocity"][None], others[:, 2:4]]), t)
         assert np.array_equal(bits(got), bits(ref)), (t, got, ref)
         seen["decisions"] += 1
         seen["moving"] += int((np.abs(ref) > 1e-3).any())
@@ -271,7 +272,7 @@ def test_the_batch_gives_each_shield_the_per_env_objects_and_accelerations(monke
     monkeypatch.setattr(row_shield, "_recently_moved", recently_moved)
     monkeypatch.setattr(row_shield, "_relevant", relevant)
     monkeypatch.setattr(row_shield, "_objects", objects)
-    monkeypatch.setattr(row_shield, "_accelerations", accelerations)
+    monkeypatch.setattr(row_shield, "_decision_accels", accelerations)
     venv.play(iter([VALIDATION + k for k in range(5)]))
     e, moved, where = venv.engine, 0, {}
     rng = np.random.default_rng(0)

@@ -242,9 +242,9 @@ def _row_shield_class():
             self._lanes = view.lanes
             return view.objects, view.keys, list(range(len(view.keys)))
 
-        def _accelerations(self, keys: list, velocities: np.ndarray, t: float) -> np.ndarray:
+        def _decision_accels(self, ego: dict, others: np.ndarray, keys: list, t: float) -> np.ndarray:
             view = self.env
-            return super()._accelerations(keys, velocities, t) if view.accels is None else view.accels
+            return super()._decision_accels(ego, others, keys, t) if view.accels is None else view.accels
 
         def _relevant(self, ego: dict, others: np.ndarray) -> np.ndarray:
             view = self.env
@@ -548,12 +548,27 @@ class BatchedShield:
         index, lanes, vids = e.T.index, t.lane[rows], t.vid[rows]
         n_kept = kept.sum(axis=1)
         predicted = self._predict(state, kept, n_kept, lanes, accel, intent)
+        # every row's road users one row after the other (boolean masks keep row-major order), each view a slice:
+        # the values of ``state[n, others[n]]`` and the like, without ~8 masked copies per row
+        n_others = others.sum(axis=1)
+        cut = np.concatenate([[0], np.cumsum(n_others)]).tolist()
+        flat_state, flat_relevant = state[others], relevant[others]
+        flat_lanes = [index[k] for k in lanes[others].tolist()]
+        flat_keys = vids[others].tolist()
+        # the shield's accelerations (N + 1, 2): each row's ego slot first, then its road users in slot order
+        with_ego = others | ego
+        row_of, slot_of = np.nonzero(with_ego)
+        order = np.argsort(row_of * (with_ego.shape[1] + 1) + np.where(ego[row_of, slot_of], 0, slot_of + 1),
+                           kind="stable")
+        flat_accel = accel[row_of[order], slot_of[order]]
+        cut_accel = np.concatenate([[0], np.cumsum(with_ego.sum(axis=1))]).tolist()
+        flat_recent = None if recent is None else recent[others]
         for n, r in enumerate(rows.tolist()):
-            view, mine = self.views[r], others[n]
-            view.objects, view.relevant = state[n, mine], relevant[n, mine]
-            view.lanes, view.keys = [index[k] for k in lanes[n, mine].tolist()], vids[n, mine].tolist()
-            view.accels = np.concatenate([accel[n, ego[n]], accel[n, mine]])
-            view.recent = None if recent is None else recent[n, mine]
+            view, a, b = self.views[r], cut[n], cut[n + 1]
+            view.objects, view.relevant = flat_state[a:b], flat_relevant[a:b]
+            view.lanes, view.keys = flat_lanes[a:b], flat_keys[a:b]
+            view.accels = flat_accel[cut_accel[n]:cut_accel[n + 1]]
+            view.recent = None if flat_recent is None else flat_recent[a:b]
             view.intent = None if intent is None else intent[n]
             view.predicted, view.predicted_n = predicted[n], int(n_kept[n])
 

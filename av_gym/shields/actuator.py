@@ -67,6 +67,20 @@ class BrakeActuator:
         return float(xs[i]), float((i + 1) * dt)
 
 
+    def stopping_bound(self, v0: float, a_before: float, dt: float) -> float:
+        """An upper bound (m) of :meth:`stopping_distance`'s distance, from the same parameters without its ticks:
+        the speed never exceeds ``v_peak`` (``a_before`` >= 0 kept for at most ``delay + dt``), the delay and the
+        jerk's ramp take at most ``delay + decel / jerk + 2 dt`` at ``v_peak`` or less, and full deceleration from
+        ``v_peak`` at most ``v_peak² / (2 decel) + 2 v_peak dt`` (a tick moves with the speed before its update);
+        grown by 1 % and 1 µm so that no rounding of either side can reach it. Lets a caller skip the ticks where
+        the distance cannot matter (the shield's stop-line trigger far from the line)."""
+        v0 = max(float(v0), 0.0)
+        v_peak = v0 + max(float(a_before), 0.0) * (self.delay + dt)
+        ramp = self.decel / self.jerk if self.jerk > 0 else 0.0
+        bound = v_peak * (self.delay + ramp + 4.0 * dt) + v_peak * v_peak / (2.0 * self.decel)
+        return 1.01 * bound + 1e-6
+
+
 class _ActuatedAct:
     """The ego's ``act`` followed by the shield's brake actuator (:meth:`AEBShield._install_actuator`). An object,
     not a closure: ``copy.deepcopy`` of the env stack (the lookahead oracle plays futures on copies) copies its

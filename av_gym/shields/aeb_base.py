@@ -351,6 +351,10 @@ class AEBShield(gym.Wrapper):
         self._ema = {k: self._ema[k] for k in keys if k in self._ema}
         return out
 
+    def _decision_accels(self, ego: dict, others: np.ndarray, keys: list, t: float) -> np.ndarray:
+        """(N + 1, 2) m/s²: the ego's EMA acceleration, then each road user's (:meth:`_accelerations`)."""
+        return self._accelerations(["__ego__", *keys], np.vstack([ego["velocity"][None], others[:, 2:4]]), t)
+
     def _front_past_line(self) -> float:
         ego = self._ego()
         return ego["s"] + 0.5 * ego["size"][0] - self.stop_line_s
@@ -367,9 +371,8 @@ class AEBShield(gym.Wrapper):
         ego = self._ego()
         others, keys, out_ids = self._objects(ego)
         self._keys = keys  # a persistent key per row of ``others`` (for a variant's own per-object memory)
-        ego_key = "__ego__"
         if hasattr(self.p, "accel_alpha"):  # the turn-window variants' EMA (TurnParams)
-            accels = self._accelerations([ego_key, *keys], np.vstack([ego["velocity"][None], others[:, 2:4]]), t)
+            accels = self._decision_accels(ego, others, keys, t)
         else:  # a variant that reads no accelerations
             accels = np.zeros((len(others) + 1, 2))
         self._prev_t = t

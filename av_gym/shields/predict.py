@@ -337,11 +337,16 @@ def cruise_profile(v0: float, a0: float, t: np.ndarray, accel_time: float = 1.0,
     return out
 
 
-def go_profile(v0: float, v_set: float, t: np.ndarray, tau: float = 0.6) -> np.ndarray:
+def go_profile(v0: float, v_set: float, t: np.ndarray, tau: float = 0.6, rise: np.ndarray | None = None
+               ) -> np.ndarray:
     """Distance (m) at times ``t`` for a first-order speed response from ``v0`` to ``v_set`` with time constant
-    ``tau`` (highway-env's cruise controller, ``TAU_ACC`` = 0.6 s): the ego setting off again after a stop."""
+    ``tau`` (highway-env's cruise controller, ``TAU_ACC`` = 0.6 s): the ego setting off again after a stop.
+    ``rise``: ``1 - exp(-t / tau)`` (K,) where the caller keeps it for its ``t`` (the same floats: it is the
+    same expression, only not evaluated again per call)."""
     t = np.asarray(t, dtype=float)
-    return v_set * t + (v0 - v_set) * tau * (1.0 - np.exp(-t / tau))
+    if rise is None:
+        rise = 1.0 - np.exp(-t / tau)
+    return v_set * t + (v0 - v_set) * tau * rise
 
 
 def setpoint_profile(v0: float, set_at, t: np.ndarray, dt: float = 0.05, tau: float = 0.6) -> np.ndarray:
@@ -429,6 +434,9 @@ def footprint_ttc(ego_xy: np.ndarray, ego_heading: np.ndarray, ego_size: tuple[f
     return (float("inf"), -1) if k < 0 else (float(t[k]), int(m))
 
 
+_HALF_DIAGONAL: dict[tuple[float, float], np.float64] = {}  # (length, width) m -> half the box's diagonal, m
+
+
 def _footprint_args(ego_size: tuple[float, float], others_xy: np.ndarray, others_heading: np.ndarray,
                     others_size: np.ndarray, margin: float, ignore_rear: bool | np.ndarray) -> tuple:
     """:func:`av_gym.shields.kernels.footprint_hit`'s arguments after the ego's poses: the ego box's length and width
@@ -436,7 +444,10 @@ def _footprint_args(ego_size: tuple[float, float], others_xy: np.ndarray, others
     each pair's reach (M,, m: numpy's hypot of the half-diagonals) and the rear rule per other (M,)."""
     length, width = ego_size[0] + 2 * margin, ego_size[1] + 2 * margin
     others_size = np.asarray(others_size, dtype=float)
-    reach = 0.5 * np.hypot(length, width) + 0.5 * np.hypot(others_size[:, 0], others_size[:, 1])
+    half = _HALF_DIAGONAL.get((length, width))
+    if half is None:  # numpy's scalar hypot, kept per box: the same float64 every call, without ~1 us a call
+        half = _HALF_DIAGONAL[(length, width)] = 0.5 * np.hypot(length, width)
+    reach = half + 0.5 * np.hypot(others_size[:, 0], others_size[:, 1])
     rear = np.asarray(ignore_rear, dtype=bool)
     # one per other (the scene's flags, usually) or one for all, without np.broadcast_to's ~3 us a call
     rear = np.ascontiguousarray(rear) if rear.shape == reach.shape else np.full(reach.shape, rear)
@@ -461,8 +472,17 @@ def driven_ttc(path: DrivenPath, s0: float, ds: np.ndarray, t: np.ndarray, ego_s
 
         args = _footprint_args(ego_size, others_xy, others_heading, others_size, margin, ignore_rear)
         st, need = _store(), np.zeros((1, len(DRIVEN_SPEEDS)), dtype=np.bool_)
-        _, k, m = simulating_bins(lambda: kernel(st.data, st.route, st.limits, st.bins, st.grid_table, path.store_id,
-                                                 float(s0), ds, t, *args, need), need, lambda h, _: path)
+
+        def call():
+            return kernel(st.data, st.route, st.limits, st.bins, st.grid_table, path.store_id, float(s0), ds, t,
+                          *args, need)
+
+        missing, k, m = call()  # simulating_bins' first call, without its closures where no bin is missing
+        if missing:  # a speed bin not simulated yet: simulated lazily, as the reference does, then called again
+            for i in np.flatnonzero(need[0]).tolist():
+                path._table(i)
+            need[:] = False
+            _, k, m = simulating_bins(call, need, lambda h, _: path)
         return (float("inf"), -1) if k < 0 else (float(t[k]), int(m))
     xy, h = path.poses(s0, ds, profile_speeds(ds, t, 0.0))  # v0 is read only for an empty ds
     return footprint_ttc(xy, h, ego_size, others_xy, others_heading, others_size, t, margin, ignore_rear)
