@@ -9,6 +9,7 @@ files."""
 
 from __future__ import annotations
 
+import contextlib
 import sys
 from pathlib import Path
 
@@ -18,6 +19,7 @@ from omegaconf import DictConfig
 from av_gym.atomic import OwnedFolders
 from av_gym.errors import ConfigError, check_folder, discard_hydra_run_dir, folder_problem, run_cli, run_hydra
 from conf.commands import EvalCommand
+from eval.meta import EvalMeta, exit_status, hydra_overrides
 
 OUT_DIRS = OwnedFolders()  # the out_dirs this process is writing
 DEFAULT_SENSORS = "truth"  # conf/eval.yaml's sensors: what an agent without sensors of its own is given
@@ -167,9 +169,6 @@ def _discard_unused_run_dir(out_dir: str) -> None:
 
 def _evaluate(cfg: DictConfig, command: EvalCommand) -> list[dict]:
     """Every agent on the same seeds, its rows written as soon as it is done, then the summary and the figures."""
-    from eval.agents import _is_path
-    from eval.report import write_results
-
     plans, env_cfg = _plans(cfg, command), _plain(cfg.env)
     problem = results_problem(command)  # before anything runs: another evaluation's results are not replaced
     if problem:
@@ -177,6 +176,32 @@ def _evaluate(cfg: DictConfig, command: EvalCommand) -> list[dict]:
     check_folder(command.out_dir, "out_dir", create=True)  # before the first episode: results need somewhere to go
     claim_out_dir(command)  # ours alone until the evaluation ends
     seeds = episode_seeds(command)
+    meta = EvalMeta(command.out_dir, _meta_settings(command, seeds), hydra_overrides())
+    try:
+        rows = _run_all(plans, command, env_cfg, seeds, meta)
+        _figures(plans, command, env_cfg, seeds.start)
+    except BaseException as exc:  # Ctrl-C or a failure: meta.json says how it ended and how many rows it kept
+        with contextlib.suppress(ConfigError):  # a meta.json that cannot be written must not hide why it ended
+            meta.end(exit_status(exc))
+        raise
+    meta.end(0)
+    return rows
+
+
+def _meta_settings(command: EvalCommand, seeds: range) -> dict:
+    """What meta.json records of the command's settings besides its command line (which holds only the
+    overrides: a default that changes would change what an old command line means)."""
+    return {"split": command.split, "seeds": [seeds.start, seeds.stop - 1], "episodes": command.episodes,
+            "agents": list(command.agents), "vec_env": command.vec_env, "n_envs": command.n_envs,
+            "workers": command.workers}
+
+
+def _run_all(plans: list, command: EvalCommand, env_cfg: dict, seeds: range, meta: EvalMeta) -> list[dict]:
+    """Every agent's episodes, results.csv / results.md (and ``meta``) written after each agent and on Ctrl-C;
+    the summary printed. Returns the rows."""
+    from eval.agents import _is_path
+    from eval.report import write_results
+
     env_name, out_dir, split = env_cfg["name"], command.out_dir, command.split
     title = (f"{env_name} ({env_cfg.get('mode', '')}), {command.episodes} episodes of the {split} split "
              f"(seeds {seeds.start}..{seeds.stop - 1})")
@@ -195,15 +220,17 @@ def _evaluate(cfg: DictConfig, command: EvalCommand) -> list[dict]:
             if rows:
                 write_results(rows, out_dir, env_name, f"{title} (interrupted after {len(rows)} episodes)",
                               **_ran_with(plans, ran, split, rows))
+                meta.episodes_written = len(rows)
                 print(f"[eval] interrupted: the {len(rows)} episodes measured are in {out_dir}/results.csv",
                       file=sys.stderr)
             raise
         # each agent's rows as soon as it is done: an evaluation interrupted or failing later keeps what it measured
         write_results(rows, out_dir, env_name, title, **_ran_with(plans, ran, split, rows))
+        meta.write(len(rows))  # rc null: still running (or killed, if it stays so)
     table = write_results(rows, out_dir, env_name, title, **_ran_with(plans, ran, split, rows))
     print(f"\n{title}\n\n{table}\n")
-    print(f"[eval] per-episode rows: {out_dir}/results.csv   summary: {out_dir}/results.md")
-    _figures(plans, command, env_cfg, seeds.start)
+    print(f"[eval] per-episode rows: {out_dir}/results.csv   summary: {out_dir}/results.md"
+          + ("" if meta.kept else f"   run: {out_dir}/meta.json"))
     return rows
 
 

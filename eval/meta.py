@@ -1,0 +1,164 @@
+"""``meta.json`` of an evaluation: what ran, from which code, when, how long and on how busy a machine, written by
+``python -m eval`` beside its results.csv and results.md (the result folders' meta.json were written by hand).
+
+The keys are the shipped result folders' (docs/results/*/meta.json, read by eval/results_page.py): ``command``
+(``python -m eval`` and the overrides as given), ``commit`` (the git HEAD of the code that ran; null outside a
+git checkout, e.g. an installed wheel or a ``git archive`` snapshot), ``started`` / ``finished`` (UTC, ISO 8601),
+``wall_s``, ``load`` (the 1-minute load average at start and end, ``"a-b"``) and ``rc`` (0; 130 on Ctrl-C; 2 on a
+ConfigError; 1 on any other failure; null while it runs or after a kill -9), then what a reader needs besides:
+the settings that chose the episodes and how they ran, the episodes written, CPU seconds and library versions.
+
+A meta.json this module did not write (no ``written_by``: a person's, with notes) is never replaced: the run
+keeps it and says so."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+from av_gym.atomic import write_text_atomic
+
+WRITTEN_BY = "python -m eval"  # the marker of a meta.json this module wrote (and may therefore replace)
+META = "meta.json"
+VERSIONED = ("numpy", "torch", "gymnasium", "highway-env", "stable-baselines3")  # what changes episodes' numbers
+
+
+def utc_now() -> str:
+    """Now in UTC, ISO 8601 to the second with a ``Z`` (the shipped meta.json's form)."""
+    return datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def load_1min() -> float | None:
+    """The 1-minute load average, or None where the system has none."""
+    try:
+        return os.getloadavg()[0]
+    except OSError:
+        return None
+
+
+def code_commit(root: Path | None = None) -> str | None:
+    """The git HEAD of the checkout this code runs from (``root``: the folder holding ``eval/``), or None when
+    that folder is not a checkout's top: an installed wheel inside a checkout's ``.venv`` would otherwise
+    report the checkout's HEAD for code it did not run."""
+    root = (root or Path(__file__).resolve().parent.parent).resolve()
+    try:
+        out = subprocess.run(["git", "-C", str(root), "rev-parse", "--show-toplevel", "HEAD"], capture_output=True,
+                             text=True, timeout=10, check=True).stdout.split()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    if len(out) != 2 or Path(out[0]).resolve() != root:
+        return None
+    return out[1]
+
+
+def versions() -> dict[str, str | None]:
+    """Python's and each library's version that shapes the episodes (None: not installed)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    found: dict[str, str | None] = {"python": sys.version.split()[0]}
+    for name in VERSIONED:
+        try:
+            found[name] = version(name)
+        except PackageNotFoundError:
+            found[name] = None
+    return found
+
+
+def command_line(overrides: list[str] | None) -> str | None:
+    """``python -m eval`` and ``overrides`` as given (shell quoting already removed, as the shipped meta.json
+    write them); None when not known (called from Python outside a Hydra job)."""
+    if overrides is None:
+        return None
+    return " ".join(["python -m eval", *overrides])
+
+
+def hydra_overrides() -> list[str] | None:
+    """The command line's arguments as given: a plain run's are ``sys.argv`` (Hydra's task overrides leave out
+    ``hydra.*`` ones such as ``hydra.run.dir``); a sweep's job's are its own cell's overrides. None outside a
+    Hydra job (a caller from Python)."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        hydra_cfg = HydraConfig.get()
+    except Exception:  # not a Hydra job (HydraConfig unset): a caller from Python
+        return None
+    return list(hydra_cfg.overrides.task) if hydra_cfg.mode == RunMode.MULTIRUN else sys.argv[1:]
+
+
+def cpu_seconds() -> float:
+    """User + system CPU seconds of this process and of its finished children (the worker processes)."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
+class EvalMeta:
+    """One evaluation's meta.json: begun when the evaluation owns its out_dir, written (atomically) each time its
+    results are, and last with the exit status. ``settings``: the command's settings a reader needs (seeds,
+    split, episodes, agents, vec_env, n_envs, workers)."""
+
+    def __init__(self, out_dir: str | Path, settings: dict, overrides: list[str] | None) -> None:
+        self.path = Path(out_dir) / META
+        self.kept = _not_ours(self.path)  # a person's meta.json: never replaced
+        self._t0, self._cpu0, self._load0 = time.monotonic(), cpu_seconds(), load_1min()
+        self.episodes_written = 0  # rows in results.csv so far
+        self.data = {"command": command_line(overrides), "commit": code_commit(), "started": utc_now(),
+                     "finished": None, "wall_s": None, "load": None, "rc": None, "cpu_s": None,
+                     "episodes_written": 0, **settings, "versions": versions(), "written_by": WRITTEN_BY}
+        if self.kept:
+            print(f"[eval] {self.path} was not written by {WRITTEN_BY}: kept as it is (this run writes none)",
+                  file=sys.stderr)
+
+    def write(self, episodes_written: int) -> Path | None:
+        """meta.json of a running evaluation (rc null) with ``episodes_written`` rows in results.csv."""
+        self.episodes_written = episodes_written
+        return self._write(None)
+
+    def end(self, rc: int) -> Path | None:
+        """meta.json of the ended evaluation, ``rc`` its exit status, with the rows written so far; nothing when
+        it failed before writing any (nothing was measured: the folder is left as it was)."""
+        if rc != 0 and self.episodes_written == 0:
+            return None
+        return self._write(rc)
+
+    def _write(self, rc: int | None) -> Path | None:
+        self.data.update({"finished": utc_now() if rc is not None else None,
+                          "wall_s": round(time.monotonic() - self._t0, 1),
+                          "load": f"{_load(self._load0)}-{_load(load_1min())}", "rc": rc,
+                          "cpu_s": round(cpu_seconds() - self._cpu0, 1), "episodes_written": self.episodes_written})
+        if self.kept:  # a person's meta.json is never replaced
+            return None
+        return write_text_atomic(self.path, json.dumps(self.data, indent=1) + "\n", field="out_dir")
+
+
+def exit_status(exc: BaseException | None) -> int:
+    """The status ``python -m eval`` exits with after ``exc`` (av_gym.errors.run_cli): 0, 130 on Ctrl-C or
+    SIGTERM, 2 on a ConfigError, 1 otherwise."""
+    from av_gym.errors import ConfigError
+
+    if exc is None:
+        return 0
+    if isinstance(exc, KeyboardInterrupt):
+        return 130
+    if isinstance(exc, SystemExit):
+        return exc.code if isinstance(exc.code, int) else 1
+    return 2 if isinstance(exc, ConfigError) else 1
+
+
+def _load(value: float | None) -> str:
+    return "?" if value is None else f"{value:.2f}"
+
+
+def _not_ours(path: Path) -> bool:
+    """True when ``path`` holds a meta.json that this module did not write (unreadable or not JSON included)."""
+    if not path.exists():
+        return False
+    try:
+        return json.loads(path.read_text()).get("written_by") != WRITTEN_BY
+    except (OSError, ValueError, AttributeError):
+        return True

@@ -1,0 +1,105 @@
+"""``python -m eval`` writes meta.json beside results.csv and results.md (eval/meta.py): the shipped result
+folders' keys, the settings that chose the episodes, the exit status also on Ctrl-C and on a failure, and never
+over a meta.json a person wrote."""
+
+from __future__ import annotations
+
+import json
+import sys
+from datetime import datetime
+
+import pytest
+
+from eval.meta import WRITTEN_BY, EvalMeta, code_commit
+
+SHIPPED_KEYS = ["command", "commit", "started", "finished", "wall_s", "load", "rc"]  # docs/results/*/meta.json
+ARGV = ["agents=[always_proceed,gap_acceptance]", "split=validation", "episodes=2", "out_dir=out",
+        "progress_bar=false", "hydra.run.dir=hydra"]
+
+
+def _eval(tmp_path, monkeypatch, fails_with=None, argv=ARGV):
+    """``python -m eval`` with ``argv`` in ``tmp_path``, each agent's episodes one stand-in row per seed (the
+    meta.json is about the run, not the episodes); the second agent raising ``fails_with`` when given."""
+    from eval import __main__ as eval_main
+
+    def run_agent(plan, command, env_cfg, seeds, rows) -> None:
+        if rows and fails_with is not None:
+            raise fails_with("stopped")
+        rows += [{"agent": plan.label, "episode": i, "seed": s, "collision": 0.0, "success": 1.0}
+                 for i, s in enumerate(seeds)]
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(eval_main, "_run_agent", run_agent)
+    monkeypatch.setattr(sys, "argv", ["eval", *argv])
+    if fails_with is None:
+        eval_main.main()
+    else:
+        with pytest.raises((fails_with, SystemExit)):
+            eval_main.main()
+    return tmp_path / "out"
+
+
+def test_eval_writes_meta_json_with_the_shipped_keys_and_what_ran(tmp_path, monkeypatch):
+    out = _eval(tmp_path, monkeypatch)
+    meta = json.loads((out / "meta.json").read_text())
+    assert list(meta)[:len(SHIPPED_KEYS)] == SHIPPED_KEYS
+    assert meta["command"] == "python -m eval " + " ".join(ARGV)
+    assert meta["commit"] == code_commit() and (meta["commit"] is None or len(meta["commit"]) == 40)
+    started, finished = (datetime.strptime(meta[k], "%Y-%m-%dT%H:%M:%SZ") for k in ("started", "finished"))
+    assert started <= finished and 0 <= meta["wall_s"] <= (finished - started).total_seconds() + 1
+    lo, hi = (float(x) for x in meta["load"].split("-"))
+    assert lo >= 0 and hi >= 0
+    assert meta["rc"] == 0 and meta["episodes_written"] == 4 and meta["cpu_s"] >= 0
+    assert (meta["split"], meta["episodes"], meta["agents"]) == ("validation", 2, ["always_proceed", "gap_acceptance"])
+    assert meta["seeds"] == [1_000_000, 1_000_001]  # the validation split's first two (av_gym/seeds.py)
+    assert (meta["vec_env"], meta["n_envs"], meta["workers"]) == ("subproc", 1, 1)  # EvalCommand's defaults
+    assert meta["versions"]["python"] == ".".join(map(str, sys.version_info[:3]))
+    assert set(meta["versions"]) >= {"numpy", "torch", "highway-env"} and meta["written_by"] == WRITTEN_BY
+    assert sorted(p.name for p in out.iterdir()) == ["meta.json", "results.csv", "results.md"]
+
+
+@pytest.mark.parametrize(("fails_with", "rc"), [(KeyboardInterrupt, 130), (RuntimeError, 1)])
+def test_an_interrupted_or_failing_eval_says_its_exit_status_and_the_rows_it_kept(fails_with, rc, tmp_path,
+                                                                                 monkeypatch):
+    out = _eval(tmp_path, monkeypatch, fails_with)
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["rc"] == rc and meta["finished"] is not None
+    assert meta["episodes_written"] == 2 == len((out / "results.csv").read_text().splitlines()) - 1
+    assert not [p for p in out.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_eval_never_replaces_a_meta_json_a_person_wrote(tmp_path):
+    """A meta.json without eval's marker (a person's, with notes) stays as it was (``overwrite=true`` replaces
+    results.csv and results.md only); one that eval wrote is replaced by the next run's."""
+    mine = '{"command": "python -m eval ...", "note": "written by hand"}\n'
+    (tmp_path / "meta.json").write_text(mine)
+    kept = EvalMeta(tmp_path, {"episodes": 2}, ["episodes=2"])
+    assert kept.kept and kept.write(2) is None and kept.end(0) is None
+    assert (tmp_path / "meta.json").read_text() == mine
+    (tmp_path / "meta.json").unlink()
+    for episodes in (2, 1):  # the second run's replaces the first's
+        meta = EvalMeta(tmp_path, {"episodes": episodes}, [f"episodes={episodes}"])
+        assert not meta.kept and meta.end(0) == tmp_path / "meta.json"
+        assert json.loads((tmp_path / "meta.json").read_text())["command"] == f"python -m eval episodes={episodes}"
+
+
+def test_a_run_that_fails_before_any_row_writes_no_meta_json(tmp_path):
+    """Nothing measured, nothing written: the folder stays as it was (a rerun is not refused for it)."""
+    meta = EvalMeta(tmp_path, {}, [])
+    assert meta.end(1) is None and not (tmp_path / "meta.json").exists()
+
+
+def test_a_refused_eval_leaves_the_meta_json_of_the_results_it_refuses_to_replace(tmp_path, monkeypatch):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "results.csv").write_text("agent,episode\n")
+    EvalMeta(out, {}, ["episodes=9"]).end(0)
+    before = (out / "meta.json").read_text()
+    with pytest.raises(SystemExit) as exit_:
+        _eval(tmp_path, monkeypatch)
+    assert exit_.value.code == 2 and (out / "meta.json").read_text() == before
+
+
+def test_the_commit_is_none_outside_a_checkouts_top(tmp_path):
+    """An installed copy inside a checkout (its .venv) would otherwise report the checkout's HEAD."""
+    assert code_commit(tmp_path) is None
