@@ -103,3 +103,23 @@ def test_a_refused_eval_leaves_the_meta_json_of_the_results_it_refuses_to_replac
 def test_the_commit_is_none_outside_a_checkouts_top(tmp_path):
     """An installed copy inside a checkout (its .venv) would otherwise report the checkout's HEAD."""
     assert code_commit(tmp_path) is None
+
+
+@pytest.mark.slow  # a real episode through python -m eval (~5 s on a loaded machine)
+def test_a_real_tiny_eval_writes_meta_json_with_its_settings(tmp_path, monkeypatch):
+    """The same, with the episodes played (no stand-in): meta.json's counts agree with results.csv."""
+    import csv
+
+    from eval import __main__ as eval_main
+
+    argv = ["agents=[always_proceed]", "episodes=1", "seed=1000007", "out_dir=out", "progress_bar=false",
+            "hydra.run.dir=hydra"]
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["eval", *argv])
+    eval_main.main()
+    meta = json.loads((tmp_path / "out" / "meta.json").read_text())
+    rows = list(csv.DictReader((tmp_path / "out" / "results.csv").open()))
+    assert meta["command"] == "python -m eval " + " ".join(argv) and meta["rc"] == 0
+    assert meta["episodes_written"] == len(rows) == 1 and int(rows[0]["seed"]) == 1000007
+    assert meta["seeds"] == [1000007, 1000007] and meta["split"] == rows[0]["split"] == "validation"
+    assert meta["wall_s"] > 0 and meta["cpu_s"] > 0
