@@ -328,20 +328,13 @@ class LabelJob:
 
 
 def student_model(venv: Any, agent: dict, seed: int, device: str) -> Any:
-    """A fresh SB3 PPO of ``agent``'s network and ``seed`` on ``venv``'s spaces (:func:`agents.ppo.make_ppo`) with a
-    2-step rollout buffer: SB3 allocates ``n_steps`` x ``n_envs`` observations for PPO's buffer with the policy
-    (16.4 MB of zeros for turn_truth at 512 steps x 64 rows, measured: +16.3 MB virtual, +1.0 MB resident against
-    +0.3 MB with 2 steps), which DAgger never fills (it fits the policy on its own labels and never calls
-    ``learn``). 2 steps is SB3's least for one row; the agent's ``n_steps`` and ``batch_size`` are set back, so the
-    weights and the model.zip it saves are ``make_ppo(venv, agent, ...)``'s. The object itself is for predicting
-    and fitting only: its buffer holds 2 steps while ``learn`` collects ``n_steps``, so PPO fine-tuning starts from
-    the saved model.zip (``PPO.load`` builds the ``n_steps`` buffer), never from this object."""
+    """A fresh SB3 PPO of ``agent``'s network and ``seed`` on ``venv``'s spaces (:func:`agents.ppo.make_ppo`), a
+    whole PPO: ``learn`` on it collects ``n_steps`` x ``n_envs`` steps. Its rollout buffer, which DAgger never
+    fills, is not shrunk: its zeros are never written, so they cost address space, not memory (measured at
+    turn_truth / turn_perceived, 512 steps x 64 rows: +8 to +12 kB resident against a 2-step buffer)."""
     from agents.ppo import make_ppo
 
-    # batch_size 2 divides the 2-step buffer at any row count: no SB3 warning about a truncated mini-batch
-    model = make_ppo(venv, {**agent, "n_steps": 2, "batch_size": 2}, seed=seed, tensorboard_log=None, device=device)
-    model.n_steps, model.batch_size = int(agent["n_steps"]), int(agent["batch_size"])
-    return model
+    return make_ppo(venv, agent, seed=seed, tensorboard_log=None, device=device)
 
 
 @dataclass
