@@ -27,7 +27,18 @@ class ToolParser(argparse.ArgumentParser):
 
 
 _NAMES = {int: "integer", float: "number", str: "name"}
-_ONE = {int: "an integer", float: "a number", str: "a name"}  # a single value's noun, with its article
+
+
+def _kind_name(kind: Callable[[str], Any]) -> str:
+    """The noun for a value of ``kind`` (``integer``, ``number``, ``name``; else the converter's name): one
+    definition for the messages and the ``__name__`` argparse shows."""
+    return _NAMES.get(kind, getattr(kind, "__name__", "value"))
+
+
+def _one(kind: Callable[[str], Any]) -> str:
+    """A single value's noun with its article: ``an integer``, ``a number``."""
+    name = _kind_name(kind)
+    return f"{'an' if name[:1].lower() in 'aeiou' else 'a'} {name}"
 
 
 def _bounds(low: float | None, high: float | None) -> str:
@@ -40,7 +51,7 @@ def _bounds(low: float | None, high: float | None) -> str:
 def _item(part: str, text: str, kind: Callable[[str], Any], low: float | None, high: float | None,
           choices: list | None) -> Any:
     """One item ``part`` of the list ``text`` converted by ``kind`` and checked; a bad one is one message naming it."""
-    name = _NAMES.get(kind, getattr(kind, "__name__", "value"))
+    name = _kind_name(kind)
     try:
         value = kind(part)
     except ValueError:
@@ -68,7 +79,7 @@ def items(kind: Callable[[str], Any] = str, *, low: float | None = None, high: f
             raise argparse.ArgumentTypeError(f"expected a list like [a,b], got {text!r}")
         return [_item(part, text, kind, low, high, choices) for part in parts]
 
-    parse.__name__ = f"list of {_NAMES.get(kind, getattr(kind, '__name__', 'value'))}s"
+    parse.__name__ = f"list of {_kind_name(kind)}s"
     return parse
 
 
@@ -76,7 +87,7 @@ def number(kind: Callable[[str], Any] = int, *, low: float | None = None,
            high: float | None = None) -> Callable[[str], Any]:
     """An argparse ``type`` for one number, checked against ``low``/``high`` (inclusive). A bad value is one message
     for one value, with what it may be: ``expected an integer in [1, 64], got '0'``."""
-    expected = " ".join(filter(None, (_ONE.get(kind, "a value"), _bounds(low, high))))
+    expected = " ".join(filter(None, (_one(kind), _bounds(low, high))))
 
     def parse(text: str) -> Any:
         body = text.strip().strip("'\"")
@@ -87,7 +98,7 @@ def number(kind: Callable[[str], Any] = int, *, low: float | None = None,
         except argparse.ArgumentTypeError:
             raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
 
-    parse.__name__ = {int: "integer", float: "number"}.get(kind, "value")
+    parse.__name__ = _kind_name(kind)
     return parse
 
 
