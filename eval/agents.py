@@ -4,7 +4,8 @@ A spec is one of: a rule-based agent named in ``conf/agent/`` (``pid_paper``, ``
 named in ``conf/agent/`` (``ppo_turn``, ``pilotnet``), meaning its shipped reference ``checkpoints/reference/<name>/``,
 or with ``:latest`` (``ppo_turn:latest``) your newest run of it; a bare trained kind with no reference of its name
 (``ppo``) meaning your newest run of that kind for this env under ``checkpoints/`` (none: an error naming the
-references of that kind); or a path to a checkpoint folder or ``.zip``. ``@preset`` and ``+shield`` go after. Checkpoints are pickles (SB3 zips): load only those you trust."""
+references of that kind); or a path to a checkpoint folder or ``.zip``. ``@preset`` and ``+shield`` go after.
+Checkpoints are pickles (SB3 zips): load only those you trust."""
 
 from __future__ import annotations
 
@@ -353,8 +354,8 @@ def check_sensor_overrides(plan: AgentPlan, env_cfg: Any) -> None:
         alone = observation_space(env_cfg, _with_overrides(plan.label, plan.trained_sensors, {path: value}))
         if alone != trained:
             raise ConfigError(f"sensors.{path}={value!r} changes the observation space of agent {plan.label!r} "
-                              f"from {describe_space(trained)} to {describe_space(alone)}; a trained agent can only run with "
-                              f"settings that keep it")
+                              f"from {describe_space(trained)} to {describe_space(alone)}; a trained agent can only "
+                              f"run with settings that keep it")
     raise ConfigError(f"sensors overrides {sorted(plan.sensor_overrides)} together change the observation space of "
                       f"agent {plan.label!r}; a trained agent can only run with settings that keep it")
 

@@ -129,8 +129,8 @@ def _is_seed(value) -> bool:
 
 class BatchedLeftTurnBatch:
     """:class:`BatchedLeftTurn` with the training wrappers of the per-env stack (the action set's mapping,
-    ActionRepeat, TimeLimitIsTerminal, FlatDictObservation) done on the batch, behind SB3's ``VecEnv`` methods (``reset``,
-    ``step_async``/``step_wait``, ``seed``, ``get_attr`` ...), so that SB3's adapter is only the base class
+    ActionRepeat, TimeLimitIsTerminal, FlatDictObservation) done on the batch, behind SB3's ``VecEnv`` methods
+    (``reset``, ``step_async``/``step_wait``, ``seed``, ``get_attr`` ...), so that SB3's adapter is only the base class
     (:class:`av_gym_sb3.batched.BatchedLeftTurnVecEnv`)."""
 
     def __init__(self, env_cfg: dict, sensors_cfg: dict, shield_cfg: dict | None, n_envs: int, *,
