@@ -60,8 +60,9 @@ def read(path: Path) -> dict[str, dict[str, list[float]]]:
             for name, got in runs.items()}
 
 
-def plot_rounds(paths: list[str], out: str, sensors: str) -> None:
-    """The runs' validation after each round against labels and against wall-clock (s)."""
+def plot_rounds(paths: list[str], out: str, sensors: str):
+    """The runs' validation after each round against labels and against wall-clock (s); the legend below both
+    panels (ten runs' twenty entries inside one covered its lines). Returns the figure."""
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
     runs = [(name, d) for path in paths for name, d in read(Path(path)).items()]
     for k, (name, d) in enumerate(runs):
@@ -73,10 +74,14 @@ def plot_rounds(paths: list[str], out: str, sensors: str) -> None:
     axes[0].set_ylabel("share of validation episodes")
     for ax in axes:
         ax.grid(alpha=0.3)
-    axes[1].legend(fontsize=7, loc="center right")
     fig.suptitle(f"DAgger students ({sensors}) after each round, validation episodes")
     fig.tight_layout()
-    save_figure_atomic(fig, out, "--out", dpi=110)
+    # legend entries fill columns first: an even number of rows keeps each run's success and collision together
+    rows = 2 * -(-len(runs) // 5)
+    fig.legend(*axes[0].get_legend_handles_labels(), fontsize=7, loc="upper center", bbox_to_anchor=(0.5, 0.0),
+               ncol=max(1, -(-2 * len(runs) // rows)), frameon=False)
+    save_figure_atomic(fig, out, "--out", dpi=110, bbox_inches="tight")  # the canvas grown to hold the legend
+    return fig
 
 
 # ------------------------------------------------------------------------------------------- the learning curve
