@@ -45,9 +45,9 @@ view and occlusion together)."""
 class DetectorParams(Params):
     """Object detector error profile after digest 004 §10.2 (the AEB shield's own detector uses it too)."""
 
-    rate_hz: float = param(10.0, "Hz", gt=0, le=RATE_MAX_HZ, doc="detector frames, held in between: the policy rate, half the 20 Hz "
-                                                 "simulation (004 needed >= 15 fps on real video; the scene here "
-                                                 "is simpler)")
+    rate_hz: float = param(10.0, "Hz", gt=0, le=RATE_MAX_HZ,
+                           doc="detector frames, held in between: the policy rate, half the 20 Hz simulation (004 "
+                               "needed >= 15 fps on real video; the scene here is simpler)")
     max_range: float = param(60.0, "m", gt=0, doc="no vehicle detected farther out")
     fov_deg: float = param(360.0, "deg", gt=0, le=360, doc="surround perception (our choice); 120 = one front "
                                                            "camera as in paper 004")
