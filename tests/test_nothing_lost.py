@@ -243,8 +243,8 @@ def test_eval_with_an_out_dir_leaves_no_hydra_folder(tmp_path):
     """``python -m eval out_dir=X`` left an empty Hydra folder runs/eval/<env>-<time>/ beside X."""
     res = run(["-m", "eval", "agents=[always_proceed]", "episodes=1", "out_dir=X", "progress_bar=false"], tmp_path)
     assert res.returncode == 0, res.stderr[-2000:]
-    assert sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*")) == ["X", "X/results.csv",
-                                                                                 "X/results.md"]
+    assert sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*")) == ["X", "X/meta.json",
+                                                                                 "X/results.csv", "X/results.md"]
 
 
 # ------------------------------------------------------------------------------------- resume and refusals lose nothing
@@ -652,4 +652,4 @@ def test_a_command_line_that_passes_the_check_in_the_test_process_still_runs(tmp
 
     res = cli("eval", "agents=[always_proceed]", "episodes=1", "out_dir=X", "progress_bar=false", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-2000:]
-    assert sorted(p.name for p in (tmp_path / "X").iterdir()) == ["results.csv", "results.md"]
+    assert sorted(p.name for p in (tmp_path / "X").iterdir()) == ["meta.json", "results.csv", "results.md"]
