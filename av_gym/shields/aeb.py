@@ -33,8 +33,8 @@ config section ``shield`` (``kind: aeb``, ``variant: ...``) builds one through :
     for 1 s (continuous);
   * the others on every way the road network lets them continue, each hypothesis with its probability, at
     constant speed on the path highway-env's controller drives (``target_model: conflict``, the default:
-    :class:`av_gym.shields.conflicts.ConflictModel`), or constant-velocity (``cv``), constant-acceleration (``ca``), CV along each lane continuation plus the plain CV hypothesis
-    (``map``);
+    :class:`av_gym.shields.conflicts.ConflictModel`), or constant-velocity (``cv``), constant-acceleration
+    (``ca``), CV along each lane continuation plus the plain CV hypothesis (``map``);
   * footprints as oriented boxes, the ego's grown by ``margin`` m, overlap by the separating-axis test, over a
     **geometry horizon**: the time to clear the turn, clipped to [``horizon_min``, ``horizon_max``];
   * a **stop-line-aware trigger**: while a conflict is predicted, brake once the distance from the front bumper

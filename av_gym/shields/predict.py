@@ -3,9 +3,10 @@
 Pure functions on numpy arrays, SI units (m, s, rad), highway-env's world frame (x right, y down on screen; a
 left turn *decreases* the heading). Three families:
 
-- **Paper** (digest 003 §4.2–4.6): constant-acceleration (CA) prediction of positions in fixed axes, eqs. (2)–(6),
-  with the paper's literal ``A·t²`` term (``half_accel_term=False``) or the kinematic ``½·A·t²``; constant-yaw-rate
-  ego heading, eq. (9); the vehicle-size collision limits of eqs. (7)–(8) and the speed-dependent horizon map.
+- **Paper** (digest 003 §4.2–4.6): constant-acceleration (CA) prediction of positions in fixed axes, eqs.
+  (2)–(6), with the paper's literal ``A·t²`` term (``half_accel_term=False``) or the kinematic ``½·A·t²``;
+  constant-yaw-rate ego heading, eq. (9); the vehicle-size collision limits of eqs. (7)–(8) and the
+  speed-dependent horizon map.
 - **Improved**: the ego advanced along its planned route (:class:`RouteTable`) with a longitudinal profile
   (cruise, brake, go), the others constant-velocity or constant-acceleration, and oriented-box (SAT) overlap of the
   footprints with a margin (:func:`footprint_ttc`).
