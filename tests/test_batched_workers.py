@@ -22,6 +22,7 @@ def test_the_parts_are_contiguous_in_order_and_cover_every_seed():
     assert [len(p) for p in chunks(range(2), 4)] == [1, 1]  # more workers than episodes: no empty part
 
 
+@pytest.mark.slow  # two spawned workers, each importing the stack: ~30 s alone at load 2.4
 def test_two_workers_give_the_rows_of_one_process():
     """7 shielded episodes, 2 at a time: in 2 workers (parts of 3 and 4 seeds, each refilling its batch) the same
     rows, every column, in seed order and numbered as in one process; a part dropped or merged out of order fails."""

@@ -68,7 +68,8 @@ def test_the_batch_picks_its_own_oracle_for_the_perceived_student():
     assert labeller_of(_cfg("agent=dagger_turn_perceived")) == "replica"
 
 
-@pytest.mark.parametrize("teacher_drives", [False, pytest.param(True, marks=pytest.mark.slow)],
+@pytest.mark.slow  # six episodes on the batch and on per-env tracker stacks: ~12 s alone at load 2.3
+@pytest.mark.parametrize("teacher_drives", [False, True],
                          ids=["student_drives", "teacher_drives"])  # the student drives from round 0 (init_from)
 def test_a_round_on_the_batch_is_the_replica_recipes_round(teacher_drives):
     """Six training episodes, the same rows: every decision's label, the student's agreement, the discounted returns
@@ -111,6 +112,7 @@ def _round_of_a_run(*overrides: str):
             e.close()
 
 
+@pytest.mark.slow  # rounds driven on the batch with the tracker: ~11 s alone at load 2.3
 def test_drive_at_threshold_labels_the_states_the_student_meets_at_its_operating_point():
     """agent.drive_at_threshold: the rounds are driven at go_threshold (0.9) of the student's fit, from round 0 (the
     init, saved at its own 0.9, moved back to its fit's boundary first), so its labelled states and outcomes are

@@ -44,6 +44,7 @@ def runs(tmp_path: Path) -> Path:
     return tmp_path
 
 
+@pytest.mark.slow  # the figure script as a process, writing the curve and its figure: ~10 s alone at load 2.3
 def test_the_curve_keeps_every_validated_round_with_its_episodes_and_intervals(runs: Path):
     res = _run("several.csv", "checkpoints/dagger_curve_s9/rounds.csv", "--runs", "memory_s*", "dagger_curve_*",
                "--val-n", "200", "--planner", "planner.csv", "--curve", "curve.csv", "--out", "curve.png", cwd=runs)

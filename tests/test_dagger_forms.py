@@ -141,6 +141,7 @@ def test_disagree_weight_is_bounded_and_refused_for_continuous_actions():
             DaggerParams.from_mapping({"disagree_weight": bad}, where="agent")
 
 
+@pytest.mark.slow  # the figure script run twice as a process: ~15 s alone at load 2.3
 def test_a_second_training_seed_extends_the_curve_and_keeps_its_record(tmp_path):
     """--extend: the curve's rows stay as they were, the new run's validated rounds go before the planner's row;
     a run the curve already holds is refused in one line and the file is left as it was."""

@@ -646,6 +646,7 @@ def test_the_per_env_stack_computes_its_features_with_the_kernel(monkeypatch):
     assert compared > 100
 
 
+@pytest.mark.slow  # 200 episodes twice on the batch: ~10 s alone at load 2.3
 def test_a_shipped_student_decides_as_on_the_numpy_features():
     """The committed dagger_turn (trained on the numpy features) on 200 validation episodes on the batch: every
     episode's metrics identical with obs["turn"], truth and rewards compiled and in numpy (the rest compiled both

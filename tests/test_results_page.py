@@ -14,6 +14,7 @@ from eval.results_page import BEGIN, END, load_all, main, page, quoted_block
 ROOT = Path(__file__).resolve().parent.parent
 
 
+@pytest.mark.slow  # every result folder's intervals (seeded bootstraps): ~19 s alone at load 2.3
 def test_the_page_and_the_readme_block_are_what_the_result_files_give():
     """Fails when a result folder changed and the page was not regenerated, or README's numbers were typed."""
     text = page(load_all(ROOT / "docs" / "results"))
