@@ -491,6 +491,7 @@ def test_training_on_the_batch_validates_on_the_batch_and_its_last_row_is_model_
         assert abs(mean - float(rows[-1][key])) < 1e-6, f"{key}: eval.csv {rows[-1][key]} vs python -m eval {mean}"
 
 
+@pytest.mark.slow  # demonstrations on the batch and per env: ~10 s alone at load 2.4
 def test_cloning_on_the_batch_gives_the_per_env_demonstrations():
     """``agent.vec_env=batched`` clones the gap-acceptance rule from episodes on the batched engine
     (train/imitation.py pretrain_from_teacher): the same labelled decisions, discounted returns and teacher outcomes as

@@ -36,6 +36,7 @@ def test_eval_compares_checkpoint_with_baseline_on_the_same_seeds(trained):
     assert "| always_proceed | 3 |" in md and "| ppo | 3 |" in md
 
 
+@pytest.mark.slow  # python -m eval as a process, a lap with its figures: ~7.5 s alone at load 2.4
 def test_eval_lane_keeping_pid(tmp_path):
     """pid_paper declares sensors=truth (the paper's simulator CTE), so it runs even when eval's sensors differ."""
     res = run("eval", "env=lane_keeping", "sensors=gnss_imu", "agents=[pid_paper]", "episodes=2", "out_dir=out",
