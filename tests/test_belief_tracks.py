@@ -619,9 +619,10 @@ def test_recheck_starts_a_go_only_when_its_own_futures_find_it_safe_too():
 
 def test_recheck_pool_starts_a_go_on_the_pooled_share_of_both_draws():
     """``recheck`` 32 with ``recheck_pool`` at K 16 and threshold 0.03 (at most 1 of 48): a GO to start is asked for
-    the recheck where the decision's 16 could still pass (1 of 16 collide: rows 0, 1; 2 of 16 could not: row 2, no
-    recheck) and goes on the pooled 48 (row 0: 1 + 0 of 48; row 1: 1 + 1, YIELD); a held GO is kept on its 16 alone
-    (row 3: 1 of 16, taken back). Without the pool, 1 of 16 is unsafe and nothing is rechecked."""
+    the recheck where the decision's 16 could still pass (1 of 16 collide in the first two rows; 2 of 16 in the
+    third cannot, no recheck) and goes on the pooled 48 (the first 1 + 0 of 48: GO; the second 1 + 1: YIELD); a held
+    GO is kept on its 16 alone (the fourth, 1 of 16: taken back). Without the pool, 1 of 16 is unsafe and nothing is
+    rechecked."""
     calls = []
     p_dec = np.array([1, 1, 2, 1]) / 16
 
