@@ -46,6 +46,11 @@ def load_folder(folder: Path) -> dict:
         meta = json.loads((folder / "meta.json").read_text())
     except json.JSONDecodeError as exc:
         raise ValueError(f"{folder / 'meta.json'} is not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    if not isinstance(meta.get("commit"), str) or not meta["commit"]:
+        # eval's own meta.json has commit null outside a git checkout (an archive, the wheel): a shipped folder
+        # names the commit its code came from, so the page can say which code made each table
+        raise ValueError(f"{folder / 'meta.json'}: commit is {meta.get('commit')!r}; write the git commit the run's "
+                         f"code came from (e.g. the archive's `git rev-parse HEAD`)")
     with open(folder / "results.csv", newline="") as f:
         reader = csv.DictReader(f)
         raw = list(reader)

@@ -76,6 +76,17 @@ def test_a_folder_without_its_meta_or_results_is_refused_in_one_line(missing, tm
     assert not (tmp_path / "p.md").exists()
 
 
+def test_a_folder_whose_meta_names_no_commit_is_refused_in_one_line(tmp_path, capsys):
+    """eval writes commit null outside a git checkout (a snapshot, the wheel); a shipped folder names its code."""
+    results = tmp_path / "results"
+    meta = _folder(results, "lt", range(2_000_000, 2_000_004), [1, 0, 0, 0]) / "meta.json"
+    meta.write_text(json.dumps({**json.loads(meta.read_text()), "commit": None}))
+    assert main(["--results", str(results), "--out", str(tmp_path / "p.md")]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and f"{meta}: commit is None" in err[0], err
+    assert not (tmp_path / "p.md").exists()
+
+
 def _seeds_folder(root: Path, name: str, collisions: dict[str, list[int]], first: int = 2_000_000) -> Path:
     """A result folder with several agents, each row its agent's collisions on test seeds ``first``, ``first+1``..."""
     d = root / name
