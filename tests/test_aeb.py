@@ -96,6 +96,9 @@ def test_brake_actuator_delay_jerk_and_stopping_distance():
     assert vs.min() == 0.0 and np.all(np.diff(vs) <= 1e-12)  # stops, never reverses
     d, t_stop = act.stopping_distance(5.0, 0.0, dt)
     assert d == pytest.approx(xs[-1]) and 5.0**2 / 16 < d < 5.0**2 / 16 + 5.0 * 0.45
+    step = BrakeActuator(decel=8.0, delay=0.15, jerk=0.0)  # jerk 0: full deceleration at once, a short horizon
+    d0, t0 = step.stopping_distance(5.0, 0.0, dt)
+    assert 5.0**2 / 16 < d0 < d and t0 < t_stop and len(step.profile(5.0, 0.0, 3.0, dt)[0]) == 60
     with pytest.raises(ValueError, match="decel must be a number > 0, got 0.0"):
         BrakeActuator(decel=0.0)
 

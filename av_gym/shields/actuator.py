@@ -61,11 +61,12 @@ class BrakeActuator:
         if v0 <= 0:
             return 0.0, 0.0
         a_before = max(a_before, 0.0)
-        t_max = self.delay + 1.0 / max(self.jerk, 1e-6) * self.decel + (v0 + a_before * self.delay) / self.decel + 1.0
+        # jerk 0 is a step (no ramp); 1 / max(jerk, 1e-6) made its horizon ~10^8 ticks
+        ramp = 1.0 / self.jerk * self.decel if self.jerk > 0 else 0.0
+        t_max = self.delay + ramp + (v0 + a_before * self.delay) / self.decel + 1.0
         xs, vs = self.profile(v0, a_before, t_max, dt)
         i = int(np.argmax(vs <= 0.0)) if (vs <= 0.0).any() else len(vs) - 1
         return float(xs[i]), float((i + 1) * dt)
-
 
     def stopping_bound(self, v0: float, a_before: float, dt: float) -> float:
         """An upper bound (m) of :meth:`stopping_distance`'s distance, from the same parameters without its ticks:
