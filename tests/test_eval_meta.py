@@ -17,16 +17,22 @@ ARGV = ["agents=[always_proceed,gap_acceptance]", "split=validation", "episodes=
         "progress_bar=false", "hydra.run.dir=hydra"]
 
 
-def _eval(tmp_path, monkeypatch, fails_with=None, argv=ARGV):
+def _eval(tmp_path, monkeypatch, fails_with=None, argv=ARGV, midway: list | None = None):
     """``python -m eval`` with ``argv`` in ``tmp_path``, each agent's episodes one stand-in row per seed (the
-    meta.json is about the run, not the episodes); the second agent raising ``fails_with`` when given."""
+    meta.json is about the run, not the episodes); the second agent, when ``fails_with`` is given, appending
+    the meta.json it finds (the first agent's) to ``midway``, finishing one episode and raising ``fails_with``."""
     from eval import __main__ as eval_main
+
+    def row(plan, i: int, seed: int) -> dict:
+        return {"agent": plan.label, "episode": i, "seed": seed, "collision": 0.0, "success": 1.0}
 
     def run_agent(plan, command, env_cfg, seeds, rows) -> None:
         if rows and fails_with is not None:
+            if midway is not None:
+                midway.append(json.loads((tmp_path / "out" / "meta.json").read_text()))
+            rows.append(row(plan, 0, seeds[0]))  # one episode of the second agent finished, then it stops
             raise fails_with("stopped")
-        rows += [{"agent": plan.label, "episode": i, "seed": s, "collision": 0.0, "success": 1.0}
-                 for i, s in enumerate(seeds)]
+        rows += [row(plan, i, s) for i, s in enumerate(seeds)]
 
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(eval_main, "_run_agent", run_agent)
@@ -61,10 +67,16 @@ def test_eval_writes_meta_json_with_the_shipped_keys_and_what_ran(tmp_path, monk
 @pytest.mark.parametrize(("fails_with", "rc"), [(KeyboardInterrupt, 130), (RuntimeError, 1)])
 def test_an_interrupted_or_failing_eval_says_its_exit_status_and_the_rows_it_kept(fails_with, rc, tmp_path,
                                                                                  monkeypatch):
-    out = _eval(tmp_path, monkeypatch, fails_with)
+    """Ctrl-C keeps (writes) the second agent's finished episode, a failure only the first agent's rows: meta.json
+    counts the rows results.csv holds either way."""
+    midway = []
+    out = _eval(tmp_path, monkeypatch, fails_with, midway=midway)
+    # what a kill -9 during the second agent leaves: the first agent's rows counted, rc null, not finished
+    assert [(m["rc"], m["finished"], m["episodes_written"]) for m in midway] == [(None, None, 2)]
     meta = json.loads((out / "meta.json").read_text())
     assert meta["rc"] == rc and meta["finished"] is not None
-    assert meta["episodes_written"] == 2 == len((out / "results.csv").read_text().splitlines()) - 1
+    kept = 3 if fails_with is KeyboardInterrupt else 2
+    assert meta["episodes_written"] == kept == len((out / "results.csv").read_text().splitlines()) - 1
     assert not [p for p in out.iterdir() if p.name.endswith(".tmp")]
 
 
