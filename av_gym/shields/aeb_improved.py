@@ -45,7 +45,9 @@ def long_times(p: ImprovedParams) -> np.ndarray:
     key = (p.step, p.horizon_max, p.horizon_min)
     t = _LONG_TIMES.get(key)
     if t is None:
-        t = _LONG_TIMES[key] = p.step * np.arange(1, int(round(max(p.horizon_max, 4.0 + p.horizon_min) / p.step)) + 1)
+        t = p.step * np.arange(1, int(round(max(p.horizon_max, 4.0 + p.horizon_min) / p.step)) + 1)
+        t.flags.writeable = False  # shared by every decision of the process: a write would corrupt all later ones
+        _LONG_TIMES[key] = t
     return t
 
 
@@ -54,7 +56,9 @@ def _go_rise(p: ImprovedParams) -> np.ndarray:
     key = (p.step, p.horizon_max, p.horizon_min)
     rise = _GO_RISE.get(key)
     if rise is None:
-        rise = _GO_RISE[key] = 1.0 - np.exp(-np.asarray(long_times(p), dtype=float) / GO_TAU)
+        rise = 1.0 - np.exp(-np.asarray(long_times(p), dtype=float) / GO_TAU)
+        rise.flags.writeable = False  # shared, as long_times
+        _GO_RISE[key] = rise
     return rise
 
 
