@@ -144,6 +144,23 @@ class BeliefLookaheadParams(AgentParams):
                                                    "updated last is in the futures (ties: the confirmed, the "
                                                    "nearer): the tracker's twin tracks of one car, which collide "
                                                    "with each other in the futures; 0: every track a road user")
+    track_reverse: float = param(0.0, "m/s", ge=0, le=5, doc="on tracks with ``track_heading`` detected: a track "
+                                                         "whose speed along its detected heading is below minus "
+                                                         "this is a car backing up and starts its futures at that "
+                                                         "negative speed, driven by the engine's IDM as the car is "
+                                                         "(highway-env's IDM brakes past 0 into reverse where it "
+                                                         "stands closer than its desired gap: its speed is not "
+                                                         "clipped, its command only at -6 m/s²), not held standing; "
+                                                         "0: every track's speed is kept at or above 0")
+    merge_far: float = param(0.0, "m", ge=0, le=6, doc="on tracks with ``merge`` > 0: two road users closer than "
+                                                       "this (and farther than ``merge``) are twins too when their "
+                                                       "velocities agree within ``merge_agree`` and their detected "
+                                                       "headings within 0.5 rad (a car's second track trails or "
+                                                       "leads it at its speed; two cars side by side in opposite "
+                                                       "lanes do not agree, and a lane's two cars stand >= 6 m "
+                                                       "apart); 0: ``merge`` alone")
+    merge_agree: float = param(1.0, "m/s", gt=0, le=5, doc="with ``merge_far``: the largest difference of two "
+                                                           "tracks' velocity vectors for them to be one car's")
     recheck: int = param(0, "futures", ge=0, le=256, doc="a GO after a YIELD (or at the first decision) is taken "
                                                          "only when this many more futures, drawn from their own "
                                                          "streams, find GO safe too (at most threshold collide): a "

@@ -435,13 +435,18 @@ class TrackBelief:
         # the constant-velocity filter's speed trails an accelerating car by track_lag s times its acceleration
         speed = speed + float(self.params.track_lag) * acc
         t.x[rows, sl], t.y[rows, sl], t.h[rows, sl] = x, y, h
-        t.v[rows, sl] = t.target[rows, sl] = np.maximum(speed, 0.0)
+        # a car backing up (track_reverse): the engine's IDM brakes a car past 0 into reverse where it stands closer
+        # than its desired gap, its speed unclipped; its futures start backing at the speed measured, not standing
+        backing = users & (speed < -float(self.params.track_reverse)) if self.params.track_reverse > 0 \
+            else np.zeros(users.shape, bool)
+        t.v[rows, sl] = np.where(backing, speed, np.maximum(speed, 0.0))
+        t.target[rows, sl] = np.maximum(speed, 0.0)
         lane = engine.T.closest(x, y, h)
         # the tracks carry no crash flag: a road user standing still is taken to stay where it is (a crashed car
         # does; one held at a line is released later than the futures would have it go), with stopped_scope
         # off_approach only off the approach lanes and the crossing lanes' first LINE_ZONE m: one standing there
         # waits at its line, and the futures' regulation and IDM release it as the simulator's would
-        standing = users & (speed < float(self.params.stopped))
+        standing = users & (speed < float(self.params.stopped)) & ~backing
         if getattr(self.params, "stopped_scope", "anywhere") == "off_approach":
             along, _ = engine.T.local(lane, x, y)
             kind = self.lane_kind[lane]
@@ -453,8 +458,9 @@ class TrackBelief:
         t.acc[rows, sl] = acc
         full_conf, full_tent, full_ghost = (np.zeros((B, M + 2), bool) for _ in range(3))
         full_conf[rows, sl], full_tent[rows, sl] = conf, tent
-        full_ghost[rows, sl] = self._ghosts(t, rows, pos, users, seen[..., 1]) | twins(pos, users, seen[..., 1],
-                                                                                     float(self.params.merge))
+        full_ghost[rows, sl] = self._ghosts(t, rows, pos, users, seen[..., 1]) | twins(
+            pos, users, seen[..., 1], float(self.params.merge), float(self.params.merge_far),
+            float(self.params.merge_agree), seen[..., 0])
         self.along = np.zeros((B, M + 2, 2, 2))
         self.along[rows, sl] = along_heading(cov, h)
         obs = engine.observed(t, engine.time, engine.ticks, engine.episode_seed)
@@ -558,18 +564,31 @@ class TrackBelief:
                                ft.v[:, :N])
 
 
-def twins(pos: np.ndarray, users: np.ndarray, missed: np.ndarray, radius: float) -> np.ndarray:
-    """(n, M): the road users (``users`` (n, M); ``pos`` (n, M, >=2) their x, y in m) with another one closer than
-    ``radius`` (m) that the detector updated more recently (``missed`` (n, M): detector frames since their last
-    update), or as recently and earlier in the order (the confirmed tracks come first, nearest first): the second
-    track of one car, left out of the futures (one car there, not two that collide with each other)."""
+TWIN_HEADING = 0.5  # rad: the largest difference of two tracks' detected headings for ``merge_far``'s twins
+
+
+def twins(pos: np.ndarray, users: np.ndarray, missed: np.ndarray, radius: float, far: float = 0.0,
+          agree: float = 1.0, heading: np.ndarray | None = None) -> np.ndarray:
+    """(n, M): the road users (``users`` (n, M); ``pos`` (n, M, >=4) their x, y in m and vx, vy in m/s) with
+    another one closer than ``radius`` (m), or closer than ``far`` (m) with a velocity within ``agree`` (m/s, the
+    difference of the vectors) and a heading (``heading`` (n, M) rad, the detected one) within
+    :data:`TWIN_HEADING`, that the detector updated more recently (``missed`` (n, M): detector frames since their
+    last update), or as recently and earlier in the order (the confirmed tracks come first, nearest first): the
+    second track of one car, left out of the futures (one car there, not two that collide with each other)."""
     if radius <= 0:
         return np.zeros(users.shape, bool)
     d = np.hypot(pos[:, :, None, 0] - pos[:, None, :, 0], pos[:, :, None, 1] - pos[:, None, :, 1])
+    near = d < radius
+    if far > radius:
+        # a car's second track moves with it; two real cars this close move differently or collide
+        dv = np.hypot(pos[:, :, None, 2] - pos[:, None, :, 2], pos[:, :, None, 3] - pos[:, None, :, 3])
+        h = np.arctan2(pos[..., 3], pos[..., 2]) if heading is None else heading
+        dh = np.abs((h[:, :, None] - h[:, None, :] + np.pi) % (2 * np.pi) - np.pi)
+        near |= (d < far) & (dv <= agree) & (dh <= TWIN_HEADING)
     idx = np.arange(users.shape[1])
     better = (missed[:, None, :] < missed[:, :, None]) | ((missed[:, None, :] == missed[:, :, None])
                                                           & (idx[None, :] < idx[:, None])[None])
-    close = users[:, :, None] & users[:, None, :] & (d < radius) & (idx[:, None] != idx[None, :])[None]
+    close = users[:, :, None] & users[:, None, :] & near & (idx[:, None] != idx[None, :])[None]
     return (close & better).any(axis=2)
 
 
