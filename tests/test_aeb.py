@@ -3,6 +3,9 @@ variant's typed parameters, and a few deterministic CCFtap cases (the whole grid
 
 from __future__ import annotations
 
+import itertools
+import time
+
 import numpy as np
 import pytest
 
@@ -101,6 +104,38 @@ def test_brake_actuator_delay_jerk_and_stopping_distance():
     assert 5.0**2 / 16 < d0 < d and t0 < t_stop and len(step.profile(5.0, 0.0, 3.0, dt)[0]) == 60
     with pytest.raises(ValueError, match="decel must be a number > 0, got 0.0"):
         BrakeActuator(decel=0.0)
+
+
+def _stopping_distance_uncapped(act: BrakeActuator, v0: float, a_before: float, dt: float) -> tuple[float, float]:
+    """BrakeActuator.stopping_distance before its ramp was capped (the full ramp decel / jerk in the horizon)."""
+    if v0 <= 0:
+        return 0.0, 0.0
+    a_before = max(a_before, 0.0)
+    ramp = 1.0 / act.jerk * act.decel if act.jerk > 0 else 0.0
+    xs, vs = act.profile(v0, a_before, act.delay + ramp + (v0 + a_before * act.delay) / act.decel + 1.0, dt)
+    i = int(np.argmax(vs <= 0.0)) if (vs <= 0.0).any() else len(vs) - 1
+    return float(xs[i]), float((i + 1) * dt)
+
+
+def test_stopping_distance_with_a_capped_ramp_gives_the_uncapped_answers():
+    """Over a grid of speeds, accelerations before the brake, time steps and actuators (small jerks, where the cap
+    is taken, included) the answers equal the uncapped horizon's to the bit; a tiny jerk (allowed: >= 0) returns
+    at once instead of ticking ~1.6e8 times. Fails if the cap cuts the horizon before the stop."""
+    capped = 0
+    for decel, delay, jerk in itertools.product((3.0, 8.0), (0.0, 0.15, 0.5), (0.02, 0.5, 5.0, 30.0, 0.0)):
+        act = BrakeActuator(decel=decel, delay=delay, jerk=jerk)
+        for v0, a0, dt in itertools.product((0.0, 0.05, 2.0, 13.9, 35.0), (-3.0, 0.0, 2.5), (0.05, 1 / 15, 0.1)):
+            assert act.stopping_distance(v0, a0, dt) == _stopping_distance_uncapped(act, v0, a0, dt), \
+                (decel, delay, jerk, v0, a0, dt)
+            v_peak = v0 + max(a0, 0.0) * (delay + dt)
+            capped += jerk > 0 and np.sqrt(2 * v_peak / jerk) + 3 * dt < decel / jerk
+    assert capped > 100  # the grid exercises the cap, not only the old horizon
+    tiny = BrakeActuator(decel=8.0, delay=0.15, jerk=1e-6)
+    start = time.perf_counter()
+    d, t_stop = tiny.stopping_distance(30.0, 1.0, 1 / 15)
+    assert time.perf_counter() - start < 0.1
+    # at jerk 1e-6 the speed falls as jerk t² / 2: v_peak ≈ 30.2 m/s is lost after ~7.8e3 s
+    assert np.sqrt(2 * 30.0 / 1e-6) < t_stop < np.sqrt(2 * 30.3 / 1e-6) + 2.0 and d > 30.0 * t_stop / 2
 
 
 # ----------------------------------------------------------------------------------------------- CCFtap cases

@@ -61,8 +61,23 @@ class BrakeActuator:
         if v0 <= 0:
             return 0.0, 0.0
         a_before = max(a_before, 0.0)
-        # jerk 0 is a step (no ramp); 1 / max(jerk, 1e-6) made its horizon ~10^8 ticks
-        ramp = 1.0 / self.jerk * self.decel if self.jerk > 0 else 0.0
+        # The horizon must reach the stop, no more. jerk 0 is a step (no ramp). A tiny jerk made the full ramp
+        # decel / jerk huge (jerk 1e-6: ~1.6e8 ticks), though the car stops long before it: the ramp is capped at
+        # sqrt(2 v_peak / jerk) + 3 dt, which covers the stop. Why (real arithmetic): the speed after the delay
+        # is at most v_peak = v0 + a_before (delay + dt) (the delay's ticks end before delay + dt). Tick k after
+        # the delay brakes at least min(decel, jerk s) for every s in [k dt, (k + 1) dt) (its deceleration is
+        # the ramp's at the tick's end, the delay's rounding at most 1e-9 s against it). When the cap is the
+        # smaller, jerk s < decel up to s = sqrt(2 v_peak / jerk), so the speed lost by then is at least
+        # jerk s² / 2 = v_peak: standstill within delay + sqrt(2 v_peak / jerk) + 3 dt (one tick of delay
+        # rounding, one for the partial tick, one against the 1e-9), inside the capped horizon (whose
+        # v / decel + 1 s slack is kept). Otherwise the cap is not taken and the horizon is the one before. Either
+        # way the ticks up to the stop are the same (brake_profile's ticks do not depend on their count), so
+        # every answer is unchanged (tests/test_aeb.py checks a grid against the uncapped horizon).
+        if self.jerk > 0:
+            v_peak = v0 + a_before * (self.delay + dt)
+            ramp = min(1.0 / self.jerk * self.decel, float(np.sqrt(2.0 * v_peak / self.jerk)) + 3.0 * dt)
+        else:
+            ramp = 0.0
         t_max = self.delay + ramp + (v0 + a_before * self.delay) / self.decel + 1.0
         xs, vs = self.profile(v0, a_before, t_max, dt)
         i = int(np.argmax(vs <= 0.0)) if (vs <= 0.0).any() else len(vs) - 1
