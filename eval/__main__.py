@@ -19,7 +19,7 @@ from omegaconf import DictConfig
 from av_gym.atomic import OwnedFolders
 from av_gym.errors import ConfigError, check_folder, discard_hydra_run_dir, folder_problem, run_cli, run_hydra
 from conf.commands import EvalCommand
-from eval.meta import EvalMeta, exit_status, hydra_overrides
+from eval.meta import EvalMeta, exit_status, hand_written_problem, hydra_overrides
 
 OUT_DIRS = OwnedFolders()  # the out_dirs this process is writing
 DEFAULT_SENSORS = "truth"  # conf/eval.yaml's sensors: what an agent without sensors of its own is given
@@ -294,11 +294,12 @@ def _figures(plans: list, command: EvalCommand, env_cfg: dict, first_seed: int) 
 
 
 def results_problem(command: EvalCommand) -> str | None:
-    """An ``out_dir`` inside the shipped references is refused; one that holds an evaluation's results is not
-    written over unless ``overwrite=true``. The default out_dir, Hydra's run folder, is new."""
+    """An ``out_dir`` inside the shipped references, or holding a meta.json that eval did not write, is refused;
+    one that holds an evaluation's results is not written over unless ``overwrite=true``. The default out_dir,
+    Hydra's run folder, is new."""
     from av_gym.references import shipped_problem
 
-    problem = shipped_problem(command.out_dir, "out_dir")  # overwrite=true or not
+    problem = shipped_problem(command.out_dir, "out_dir") or hand_written_problem(command.out_dir)  # overwrite or not
     if problem:
         return problem
     held = [name for name in ("results.csv", "results.md") if (Path(command.out_dir) / name).exists()]

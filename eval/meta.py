@@ -8,8 +8,9 @@ git checkout, e.g. an installed wheel or a ``git archive`` snapshot), ``started`
 ConfigError; 1 on any other failure; null while it runs or after a kill -9), then what a reader needs besides:
 the settings that chose the episodes and how they ran, the episodes written, CPU seconds and library versions.
 
-A meta.json this module did not write (no ``written_by``: a person's, with notes) is never replaced: the run
-keeps it and says so."""
+A meta.json this module did not write (no ``written_by``: a person's, with notes) is never replaced: ``python -m
+eval`` refuses such an out_dir before any episode runs (:func:`hand_written_problem`), and :class:`EvalMeta` keeps
+one that appears there all the same."""
 
 from __future__ import annotations
 
@@ -134,6 +135,18 @@ class EvalMeta:
         if self.kept:  # a person's meta.json is never replaced
             return None
         return write_text_atomic(self.path, json.dumps(self.data, indent=1) + "\n", field="out_dir")
+
+
+def hand_written_problem(out_dir: str | Path) -> str | None:
+    """One line refusing ``out_dir`` when it holds a meta.json that this module did not write (a person's, or not
+    JSON): results written beside it would leave it describing a run that is not theirs, ``overwrite=true`` or
+    not; None when there is none or it is eval's own (replaced by the next run's)."""
+    path = Path(out_dir) / META
+    if not _not_ours(path):
+        return None
+    return (f"out_dir={out_dir} holds {path}, which {WRITTEN_BY} did not write (no \"written_by\": "
+            f"\"{WRITTEN_BY}\"); results there would not be the run it describes: move or delete it, or pick "
+            f"another out_dir")
 
 
 def exit_status(exc: BaseException | None) -> int:

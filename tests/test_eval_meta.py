@@ -10,7 +10,7 @@ from datetime import datetime
 
 import pytest
 
-from eval.meta import WRITTEN_BY, EvalMeta, code_commit
+from eval.meta import WRITTEN_BY, EvalMeta, code_commit, hand_written_problem
 
 SHIPPED_KEYS = ["command", "commit", "started", "finished", "wall_s", "load", "rc"]  # docs/results/*/meta.json
 ARGV = ["agents=[always_proceed,gap_acceptance]", "split=validation", "episodes=2", "out_dir=out",
@@ -93,6 +93,34 @@ def test_eval_never_replaces_a_meta_json_a_person_wrote(tmp_path):
         meta = EvalMeta(tmp_path, {"episodes": episodes}, [f"episodes={episodes}"])
         assert not meta.kept and meta.end(0) == tmp_path / "meta.json"
         assert json.loads((tmp_path / "meta.json").read_text())["command"] == f"python -m eval episodes={episodes}"
+
+
+def test_eval_refuses_an_out_dir_with_a_hand_written_meta_json_before_any_episode(tmp_path, monkeypatch, capsys):
+    """Results beside a person's meta.json would leave it describing another run: ``overwrite=true`` is refused in
+    one line naming the file and what to do, before any episode; the folder stays as it was (without results
+    too, or with a meta.json that is not JSON). A meta.json eval wrote is replaced by ``overwrite=true``."""
+    out = tmp_path / "out"
+    out.mkdir()
+    mine = '{"command": "python -m eval ...", "note": "written by hand"}\n'
+    (out / "meta.json").write_text(mine)
+    (out / "results.csv").write_text("agent,episode\n")
+    with pytest.raises(SystemExit) as exit_:
+        _eval(tmp_path, monkeypatch, argv=[*ARGV, "overwrite=true"])  # _eval's stand-in episodes would write rows
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exit_.value.code == 2 and len(err) == 1, err
+    assert "out_dir=out holds out/meta.json" in err[0] and "move or delete it" in err[0]
+    assert (out / "meta.json").read_text() == mine and (out / "results.csv").read_text() == "agent,episode\n"
+    (out / "results.csv").unlink()
+    assert "move or delete it" in hand_written_problem(out)  # no results: refused all the same
+    (out / "meta.json").write_text("notes, not JSON\n")
+    assert "move or delete it" in hand_written_problem(out)
+    (out / "meta.json").unlink()
+    assert hand_written_problem(out) is None
+    EvalMeta(out, {"episodes": 9}, ["episodes=9"]).end(0)  # eval's own: no refusal, replaced by the next run's
+    assert hand_written_problem(out) is None
+    _eval(tmp_path, monkeypatch, argv=[*ARGV, "overwrite=true"])
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["command"] == "python -m eval " + " ".join([*ARGV, "overwrite=true"]) and meta["episodes_written"] == 4
 
 
 def test_a_run_that_fails_before_any_row_writes_no_meta_json(tmp_path):
