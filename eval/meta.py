@@ -2,11 +2,12 @@
 ``python -m eval`` beside its results.csv and results.md (the result folders' meta.json were written by hand).
 
 The keys are the shipped result folders' (docs/results/*/meta.json, read by eval/results_page.py): ``command``
-(``python -m eval`` and the overrides as given), ``commit`` (the git HEAD of the code that ran; null outside a
-git checkout, e.g. an installed wheel or a ``git archive`` snapshot), ``started`` / ``finished`` (UTC, ISO 8601),
-``wall_s``, ``load`` (the 1-minute load average at start and end, ``"a-b"``) and ``rc`` (0; 130 on Ctrl-C; 2 on a
-ConfigError; 1 on any other failure; null while it runs or after a kill -9), then what a reader needs besides:
-the settings that chose the episodes and how they ran, the episodes written, CPU seconds and library versions.
+(``python -m eval`` and the overrides as given), ``commit`` (the git HEAD of the code that ran, or the commit a
+``git archive`` snapshot of it carries; null otherwise, e.g. in an installed wheel), ``started`` / ``finished``
+(UTC, ISO 8601), ``wall_s``, ``load`` (the 1-minute load average at start and end, ``"a-b"``) and ``rc`` (0; 130
+on Ctrl-C; 2 on a ConfigError; 1 on any other failure; null while it runs or after a kill -9), then what a reader
+needs besides: the settings that chose the episodes and how they ran, the episodes written, CPU seconds and library
+versions.
 
 A meta.json this module did not write (no ``written_by``: a person's, with notes) is never replaced: ``python -m
 eval`` refuses such an out_dir before any episode runs (:func:`hand_written_problem`), and :class:`EvalMeta` keeps
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import time
@@ -26,6 +28,7 @@ from av_gym.atomic import write_text_atomic
 
 WRITTEN_BY = "python -m eval"  # the marker of a meta.json this module wrote (and may therefore replace)
 META = "meta.json"
+ARCHIVE_COMMIT = "archive_commit.txt"  # in eval/: a git archive's commit (.gitattributes export-subst)
 VERSIONED = ("numpy", "torch", "gymnasium", "highway-env", "stable-baselines3")  # what changes episodes' numbers
 
 
@@ -43,18 +46,30 @@ def load_1min() -> float | None:
 
 
 def code_commit(root: Path | None = None) -> str | None:
-    """The git HEAD of the checkout this code runs from (``root``: the folder holding ``eval/``), or None when
-    that folder is not a checkout's top: an installed wheel inside a checkout's ``.venv`` would otherwise
-    report the checkout's HEAD for code it did not run."""
+    """The git HEAD of the checkout this code runs from (``root``: the folder holding ``eval/``); outside a
+    checkout's top, the commit a ``git archive`` snapshot carries (:func:`archived_commit`), else None: an
+    installed wheel inside a checkout's ``.venv`` would otherwise report the checkout's HEAD for code it did not
+    run."""
     root = (root or Path(__file__).resolve().parent.parent).resolve()
     try:
         out = subprocess.run(["git", "-C", str(root), "rev-parse", "--show-toplevel", "HEAD"], capture_output=True,
                              text=True, timeout=10, check=True).stdout.split()
     except (OSError, subprocess.SubprocessError):
-        return None
+        return archived_commit(root)
     if len(out) != 2 or Path(out[0]).resolve() != root:
-        return None
+        return archived_commit(root)
     return out[1]
+
+
+def archived_commit(root: Path) -> str | None:
+    """The commit ``git archive`` wrote into ``root``/eval/archive_commit.txt (``export-subst`` in .gitattributes
+    turns its ``$Format:%H$`` into the archived commit's hash), or None where it holds anything but a 40-hex hash:
+    the placeholder itself in a checkout, or in a wheel built from one, whose code may differ from any commit."""
+    try:
+        text = (Path(root) / "eval" / ARCHIVE_COMMIT).read_text().strip()
+    except OSError:
+        return None
+    return text if re.fullmatch(r"[0-9a-f]{40}", text) else None
 
 
 def versions() -> dict[str, str | None]:

@@ -4,13 +4,17 @@ over a meta.json a person wrote."""
 
 from __future__ import annotations
 
+import io
 import json
+import shutil
+import subprocess
 import sys
+import tarfile
 from datetime import datetime
 
 import pytest
 
-from eval.meta import WRITTEN_BY, EvalMeta, code_commit, hand_written_problem
+from eval.meta import WRITTEN_BY, EvalMeta, archived_commit, code_commit, hand_written_problem
 
 SHIPPED_KEYS = ["command", "commit", "started", "finished", "wall_s", "load", "rc"]  # docs/results/*/meta.json
 ARGV = ["agents=[always_proceed,gap_acceptance]", "split=validation", "episodes=2", "out_dir=out",
@@ -142,6 +146,28 @@ def test_a_refused_eval_leaves_the_meta_json_of_the_results_it_refuses_to_replac
 
 def test_the_commit_is_none_outside_a_checkouts_top(tmp_path):
     """An installed copy inside a checkout (its .venv) would otherwise report the checkout's HEAD."""
+    assert code_commit(tmp_path) is None
+
+
+def test_a_git_archive_snapshot_names_its_commit(tmp_path):
+    """``git archive`` fills eval/archive_commit.txt (.gitattributes export-subst): code_commit of the extracted
+    snapshot (no checkout there) is HEAD's hash; in the checkout the file holds the placeholder, read as no
+    commit. Fails without the export-subst line (the snapshot's file is the placeholder: None)."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    if shutil.which("git") is None:
+        pytest.skip("git is not installed")
+    head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True)
+    if head.returncode != 0:
+        pytest.skip("the tests do not run from a git checkout")
+    archive = subprocess.run(["git", "-C", str(root), "archive", "HEAD", "eval", ".gitattributes"],
+                             capture_output=True, check=True).stdout
+    with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
+        tar.extractall(tmp_path, **({"filter": "data"} if hasattr(tarfile, "data_filter") else {}))
+    assert code_commit(tmp_path) == head.stdout.strip()
+    assert archived_commit(root) is None  # the checkout's own file: the placeholder
+    (tmp_path / "eval" / "archive_commit.txt").write_text("$Format:%H$\n")  # a wheel built from a checkout
     assert code_commit(tmp_path) is None
 
 
