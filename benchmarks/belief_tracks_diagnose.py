@@ -74,6 +74,40 @@ def _snapshot(planner, engine, r: int) -> dict:
     return out
 
 
+def _untracked(planner, engine, r: int, radius: float = 4.0) -> dict:
+    """The simulator's cars of row ``r`` that no road user of the futures' start is within ``radius`` m of, at a GO:
+    where each is (range m and bearing rad from the ego's heading; the kind of its lane, 0 approach, 1 crossing, 2
+    exit; its speed), whether a track left out of the futures (a ghost or a twin) is within ``radius`` of it, and
+    whether the detector's view of the places as the car knows them (range, field of view, occlusion by the
+    confirmed tracks) sees it now (the unseen prior's test)."""
+    from agents.track_prior import in_view, lane_kinds
+
+    te, s = planner.tracks.engine, engine.traffic
+    t = te.traffic
+    users = np.flatnonzero(t.alive[r] & ~t.ego[r])
+    left_out = np.flatnonzero(planner.tracks.ghost[r]) if planner.tracks.ghost is not None else np.zeros(0, int)
+    e = int(engine.ego_slot([r])[0])
+    ex, ey, eh = s.x[r, e], s.y[r, e], s.h[r, e]
+    kinds = lane_kinds(engine.T)[0]
+    det = planner.tracks.perception.detector.params
+    ego = np.array([[t.x[r, 0], t.y[r, 0], t.h[r, 0]]])
+    occ = np.stack([t.x[r], t.y[r], t.h[r], np.full(t.N, 5.0), np.full(t.N, 2.0)], axis=-1)[None]
+    out = {}
+    for i in np.flatnonzero(s.alive[r] & ~s.ego[r]):
+        near = lambda slots: bool(len(slots)) and bool(  # noqa: E731
+            (np.hypot(t.x[r, slots] - s.x[r, i], t.y[r, slots] - s.y[r, i]) <= radius).any())
+        if near(users):
+            continue
+        seen = in_view(np.array([[s.x[r, i]]]), np.array([[s.y[r, i]]]), ego, occ, (t.alive[r] & ~t.ego[r])[None],
+                       float(det.max_range), float(np.radians(det.fov_deg) / 2), bool(det.occlusion))
+        out[int(s.vid[r, i])] = {
+            "range_m": round(float(np.hypot(s.x[r, i] - ex, s.y[r, i] - ey)), 1),
+            "bearing_rad": round(float(np.angle(np.exp(1j * (np.arctan2(s.y[r, i] - ey, s.x[r, i] - ex) - eh)))), 2),
+            "lane_kind": int(kinds[s.lane[r, i]]), "v": round(float(s.v[r, i]), 2), "left_out_track": near(left_out),
+            "in_view": bool(seen[0, 0])}
+    return out
+
+
 def _blame(planner, engine, r: int) -> dict:
     """At a GO taken back: GO's collision probability for row ``r`` without each road user the planner has (and
     without the unseen traffic), for those whose removal lowers it: which road user made the futures collide."""
@@ -177,7 +211,8 @@ def main() -> None:
             for r, pr in zip(due, p):
                 history[r].append((round(float(engine.time[r]), 1), int(choice[r]), round(float(pr), 3)))
                 if choice[r] == GO:
-                    last_go[r] = (float(engine.time[r]), _snapshot(planner, engine, int(r)))
+                    last_go[r] = (float(engine.time[r]), _snapshot(planner, engine, int(r)),
+                                  _untracked(planner, engine, int(r)))
             for r, b in zip(due, before):
                 if b == GO and choice[r] != GO:
                     takeback[r].append((round(float(engine.time[r]), 1), _blame(planner, engine, int(r))))
@@ -192,6 +227,7 @@ def main() -> None:
                       "end_s": round(float(engine.time[r]), 1), "hit": hit,
                       "last_go_s": None if go is None else round(go[0], 1),
                       "culprit": None if go is None else {v: go[1].get(v) for v in hit},
+                      "untracked": None if go is None else {v: go[2][v] for v in hit if v in go[2]},
                       "decisions": history[r][-8:], "taken_back": takeback[r][-2:]}
             if record["collision"]:
                 record["cause"] = cause(record)

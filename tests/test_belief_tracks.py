@@ -90,9 +90,11 @@ def tracked_shipped():
 @pytest.fixture(scope="module")
 def tracked_fit():
     """The batch of ``tracked`` with belief_tracks' options, ``track_fit`` (each track's own line),
-    ``stopped_scope`` off_approach and ``unseen_ahead`` 5."""
+    ``stopped_scope`` off_approach, ``unseen_ahead`` 5, ``track_reverse`` (backing tracks) and ``merge_far``
+    (twins moving together)."""
     fit = BeliefLookaheadParams(samples=8, tentative="road_user", track_heading="detected", ghost=2, merge=2.0,
-                                track_fit=0.5, stopped_scope="off_approach", unseen_ahead=5)
+                                track_fit=0.5, stopped_scope="off_approach", unseen_ahead=5, track_reverse=0.5,
+                                merge_far=3.5)
     return _batch(list(range(410_000, 410_000 + B)), 30, fit)
 
 
