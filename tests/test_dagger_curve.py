@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from _in_process import run_script
 from av_gym.metrics.stats import wilson_ci
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -21,6 +22,10 @@ HEADER = "round,driver,episodes,labels,wall_s,label_s,agreement,drive_success,dr
 
 def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, str(SCRIPT), *args], cwd=cwd, capture_output=True, text=True, timeout=120)
+
+
+def _run_here(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return run_script(SCRIPT, *args, cwd=cwd)  # in this process: a fresh interpreter's start-up is most of a run
 
 
 @pytest.fixture
@@ -72,7 +77,7 @@ def test_the_curve_refuses_a_test_split_planner_and_an_existing_csv(runs: Path, 
         (runs / "planner.csv").write_text(text.replace(",validation\n", ",test\n"))
     else:
         (runs / "curve.csv").write_text("the record\n")
-    res = _run("several.csv", "--planner", "planner.csv", "--curve", "curve.csv", "--out", "c.png", cwd=runs)
+    res = _run_here("several.csv", "--planner", "planner.csv", "--curve", "curve.csv", "--out", "c.png", cwd=runs)
     lines = [line for line in res.stderr.splitlines() if line.strip()]
     assert res.returncode == 2 and len(lines) == 1 and needle in lines[0], res.stderr
     assert not (runs / "c.png").exists()

@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import csv
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+
+from _in_process import run_script
 
 ROOT = Path(__file__).resolve().parent.parent
 SCRIPT = ROOT / "docs" / "make_dagger_figure.py"
@@ -20,7 +21,7 @@ LATER = "2,student,22,1300,3,1,0.7,0.8,0.1,0.9,0.8133,0.04\n"
 
 
 def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(SCRIPT), *args], cwd=cwd, capture_output=True, text=True, timeout=120)
+    return run_script(SCRIPT, *args, cwd=cwd)  # in this process: a fresh interpreter's start-up is most of a run
 
 
 @pytest.fixture
