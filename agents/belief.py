@@ -124,6 +124,11 @@ class BeliefLookaheadParams(AgentParams):
                                                        "accelerating at a by 0.20 s x a in steady state (the "
                                                        "default tracker at 10 Hz, 10-60 m of range); 0: the "
                                                        "filter's speed")
+    track_lag_up: bool = param(False, doc="with ``track_lag`` > 0: the lag is added only where the measured "
+                                          "acceleration is positive (a car pulling away, faster than its filter "
+                                          "says; the car the collision replays find tracked 1.5 m/s slow when "
+                                          "released at +6 m/s²); a braking one keeps its filter's speed, the "
+                                          "faster and so the more cautious one; False: both ways")
     track_fit: float = param(0.0, "s", ge=0, le=2, doc="on tracks: a track's speed (along its heading) is the "
                                                       "value now of the planner's own least-squares line through "
                                                       "the detector's velocities of the frames that updated it in "

@@ -433,7 +433,8 @@ class TrackBelief:
             v_fit, _, fitted = self.motion.estimate(rows, ids, h, now)
             speed = np.where(fitted & users, v_fit, speed)
         # the constant-velocity filter's speed trails an accelerating car by track_lag s times its acceleration
-        speed = speed + float(self.params.track_lag) * acc
+        # (track_lag_up: only for a car pulling away; a braking car's filter speed is the cautious one)
+        speed = speed + float(self.params.track_lag) * (np.maximum(acc, 0.0) if self.params.track_lag_up else acc)
         t.x[rows, sl], t.y[rows, sl], t.h[rows, sl] = x, y, h
         # a car backing up (track_reverse): the engine's IDM brakes a car past 0 into reverse where it stands closer
         # than its desired gap, its speed unclipped; its futures start backing at the speed measured, not standing

@@ -3,6 +3,7 @@ whose motion agrees with the first (``merge_far``, ``merge_agree``)."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 
 import numpy as np
@@ -10,6 +11,7 @@ import pytest
 
 from agents.belief import BeliefLookaheadParams
 from agents.track_prior import twins
+from av_gym.estimation.turn_features import ACC_SCALE
 from tests.test_belief_tracks import _batch, _coasting_track, _decide_on, _twin_tracks
 
 
@@ -89,3 +91,21 @@ def test_twin_tracks_three_metres_apart_are_one_road_user_with_merge_far(driven)
         t = tracks.engine.traffic
         for r in rows:
             assert sorted(t.vid[r, t.alive[r] & ~t.ego[r]] - 1) == alive, far
+
+
+def test_track_lag_up_speeds_up_a_car_pulling_away_but_not_a_braking_one(driven):
+    """With ``track_lag`` 0.2 and ``track_lag_up`` a described track measured at +3 m/s² starts 0.6 m/s faster than
+    its filter's 6 m/s, one measured at -3 m/s² at the filter's 6 m/s (without ``track_lag_up``: 5.4 m/s)."""
+    venv, planner, obs, rows = driven
+    for r in rows:
+        _coasting_track(venv, int(r), (-2.0, -25.0, 0.0, 6.0), 0)
+    for acc, up, v in ((3.0, True, 6.6), (-3.0, True, 6.0), (-3.0, False, 5.4)):
+        intent = np.zeros_like(obs["intent"])
+        intent[:, 0, 0] = acc / ACC_SCALE  # the nearest described track's measured acceleration
+        e = venv.engine
+        p = copy.deepcopy(_with(planner, track_lag=0.2, track_lag_up=up),
+                          {id(venv.perception): venv.perception, id(e): e, id(planner.tracks.engine): None})
+        p.read(e, rows, intent[rows])
+        t = p.tracks.engine.traffic
+        slot = np.argmax(t.alive[rows] & ~t.ego[rows], axis=1)
+        np.testing.assert_allclose(t.v[rows, slot], v, rtol=1e-6, err_msg=f"{acc} {up}")
