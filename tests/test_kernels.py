@@ -429,12 +429,12 @@ def _numpy_draws(g, ops) -> list:
 
 
 def test_kernel_draws_are_the_generators_own_stream():
-    """The spawn kernels' draws (kernels.standard_normal, bounded, choice2, next_double) on 3,000 seeded PCG64
+    """The spawn kernels' draws (kernels.standard_normal, bounded, choice2, next_double) on 1,000 seeded PCG64
     generators give numpy's values and leave numpy's states (the 32-bit buffer included), rounds of kernel draws
     interleaved with numpy calls on the same generators (a Python ``integers`` leaves half a 64-bit output in the
-    buffer that the kernel's next 32-bit draw must use). The ziggurat's tail (|x| > its r) is drawn too.
-    Mutation: choice2's shuffle taking ``== 1`` for the swap fails it."""
-    n = 3000
+    buffer that the kernel's next 32-bit draw must use). The ziggurat's tail (|x| > its r) is drawn too (5 of
+    these 12,000 normals). Mutation: choice2's shuffle taking ``== 1`` for the swap fails it."""
+    n = 1000
     ours = [np.random.default_rng(s) for s in range(n)]
     ref = [np.random.default_rng(s) for s in range(n)]
     out, want = np.zeros((n, 4 * len(_OPS))), np.zeros((n, 4 * len(_OPS)))
