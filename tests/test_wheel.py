@@ -12,6 +12,7 @@ line)."""
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -109,5 +110,8 @@ def test_the_wheel_works_from_a_project_with_shadowing_packages(venv, user_folde
     (results,) = (user_folder / "runs" / "eval").glob("*/results.csv")
     assert results.read_text().count("ppo_turn") == 2 and results.read_text().count("gap_acceptance") == 2
     assert str(Path(ref)) in res.stdout  # the wheel's shipped reference
+    # the wheel carries eval/archive_commit.txt; built from a checkout, it holds the placeholder: no commit claimed
+    assert (Path(harness) / "eval" / "archive_commit.txt").read_text().strip() == "$Format:%H$"
+    assert json.loads((results.parent / "meta.json").read_text())["commit"] is None
     passed.append("console script with a named agent")
     assert len(passed) == 4
