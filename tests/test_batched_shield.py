@@ -214,9 +214,11 @@ def test_the_batch_gives_each_shield_the_per_env_objects_and_accelerations(monke
     of its slots (vehicles change slot) and new episodes in a row. Fails with the memory kept per slot instead of
     per vehicle, an EMA not dropped for a vehicle that left, the first sightings' draws taken after the readings'
     or the channel's counts shared across rows' posteriors."""
+    from av_gym.batched import shield as batched_shield
     from av_gym.shields.aeb_base import AEBShield
     from av_gym.shields.aeb_improved import ImprovedAEB
 
+    monkeypatch.setattr(batched_shield, "SCREEN_CHECK", True)  # the screened rows' own decisions run (and read) too
     venv = _venv(3)
     row_shield = type(venv.shield.shields[0])
     own_objects, own_accels, own_relevant = row_shield._objects, row_shield._decision_accels, row_shield._relevant
@@ -296,8 +298,10 @@ def test_the_batch_predicts_each_shields_conflicts_as_the_shield_does(monkeypatc
     turn weights read and unread, constant-velocity and lane hypotheses and new episodes in a row;
     a decision whose speed bins are not simulated yet falls back to the shield's own call. Fails if a row reads
     another row's road users, lanes, accelerations or weights, or the flat buffers are cut at the wrong place."""
+    from av_gym.batched import shield as batched_shield
     from av_gym.shields.aeb_improved import ImprovedAEB
 
+    monkeypatch.setattr(batched_shield, "SCREEN_CHECK", True)  # the screened rows' own decisions run (and read) too
     venv = _venv(2)
     row_shield = type(venv.shield.shields[0])
     own = row_shield._scene_conflicts
@@ -446,3 +450,34 @@ def test_eval_on_the_batch_records_the_shield_it_ran(tmp_path):
     rows = list(csv.DictReader(open(tmp_path / "out" / "results.csv")))
     assert {r["agent"] for r in rows} == {"always_proceed+aeb"}
     assert sum(float(r["interventions"]) for r in rows) > 0
+
+
+def test_the_screened_decisions_are_each_rows_own(monkeypatch):
+    """BatchedShield._screen decides the rows whose own decision is MONITOR with no conflict for all rows at once
+    (the route position, profile, horizon and first TTC in arrays and one compiled call): with SCREEN_CHECK each
+    screened row's own ``_decide`` runs from the same state and must give the same decision (MONITOR, inf, the
+    same horizon, no target, the same turn-window flag) and move its state as the screen does, over episodes with
+    FASTER / SLOWER / IDLE proposed (check_action's set-point profiles), before, in and after the turn window.
+    Fails if the screen's horizon, route lane or time differ from the row's, or it screens a row whose own decision
+    is not MONITOR with an infinite TTC."""
+    from av_gym.batched import shield as batched_shield
+
+    monkeypatch.setattr(batched_shield, "SCREEN_CHECK", True)
+    seen = {"screened": 0, "active": 0, "setpoint": 0}
+    check = batched_shield._check_screened
+
+    def counted(shield, horizon, active, route_k, now):
+        check(shield, horizon, active, route_k, now)
+        seen["screened"] += 1
+        seen["active"] += int(active)
+        seen["setpoint"] += int(shield._proposed in (0, 2))  # SLOWER, FASTER: under check_action, setpoint_steps
+
+    monkeypatch.setattr(batched_shield, "_check_screened", counted)
+    venv = _venv(3)
+    venv.play(iter([VALIDATION + k for k in range(3)]))
+    rng = np.random.default_rng(5)
+    for _ in range(400):
+        if venv.idle.all():
+            break
+        venv.step(rng.integers(0, 3, 3))
+    assert venv.idle.all() and seen["screened"] > 100 and seen["active"] > 30 and seen["setpoint"] > 30, seen

@@ -341,3 +341,68 @@ def test_a_decision_with_more_hypotheses_than_its_block_is_left_to_its_own_call(
     for r, (g, w) in enumerate(zip(got, want)):
         if g is not None:
             _assert_bit_equal(g, w, f"decision {r}")
+
+
+def test_the_driven_ttc_rows_kernel_is_each_decisions_own_driven_ttc():
+    """kernels.driven_ttc_rows (the batch's first TTC of many decisions in one call, BatchedShield._screen) gives
+    each decision exactly predict.driven_ttc on its own slices of flat buffers laid out as ConflictModel.predict_rows
+    writes them (each decision a block, its hypotheses first, slack after): the same first hit (slice and
+    hypothesis) or none, for decisions with several hypotheses, none, no slice, or not served (n_h -1: nothing
+    tested), random route positions, speeds, horizons, margins, sizes and rear flags. Fails if a decision reads
+    another's block, sizes, reach or flags, or its slices are cut wrongly."""
+    from av_gym.envs.left_turn import ROUTE, UnprotectedLeftTurnEnv
+    from av_gym.shields.aeb import _route_tables
+    from av_gym.shields.kernels import driven_ttc_rows
+    from av_gym.shields.predict import DRIVEN_SPEEDS, _footprint_args, _store, driven_ttc, profile_speeds
+
+    env = UnprotectedLeftTurnEnv()
+    env.reset(seed=3)
+    net = env.unwrapped.road.network
+    path = _route_tables([net.get_lane(i) for i in ROUTE])[1]
+    path._register()
+    t, K = 0.1 * np.arange(1, 81), 80
+    rng = np.random.default_rng(31)
+    hits, misses = 0, 0
+    for trial in range(30):
+        R = 6
+        n_h = rng.integers(0, 5, R)
+        n_h[int(rng.integers(0, R))] = 0  # a decision without hypotheses
+        h_off = np.concatenate([[0], np.cumsum(n_h + rng.integers(0, 3, R))]).astype(np.int64)  # slack after each
+        s0 = rng.uniform(path.s_start - 20.0, path.route.length, R)
+        v, a = rng.uniform(0.0, 6.0, R), rng.choice([0.0, -3.0, 1.0], R)
+        ds = np.maximum.accumulate(np.maximum(v[:, None] * t + 0.5 * a[:, None] * t ** 2, 0.0), axis=1)
+        n = rng.integers(1, 81, R)
+        n[int(rng.integers(0, R))] = 0  # a decision with no slice
+        total = int(h_off[-1])
+        xy, hh = rng.normal(0.0, 50.0, 2 * K * total), rng.uniform(-np.pi, np.pi, K * total)  # slack: anything
+        for r in range(R):  # each hypothesis near the decision's ego pose at a random slice, drifting there
+            o, H = int(h_off[r]), int(n_h[r])
+            ego_xy, _ = path.poses_numpy(s0[r], ds[r], profile_speeds(ds[r], t, v[r]))
+            meet = rng.integers(0, K, H)
+            block = ego_xy[meet][None] + rng.normal(0.0, 2.0, (1, H, 2)) + rng.normal(0.0, 1.0, (1, H, 2)) * \
+                (np.arange(K)[:, None, None] - meet[None, :, None])
+            xy[2 * K * o: 2 * K * (o + H)] = block.reshape(-1)
+        osize, rear = rng.uniform(2.0, 6.0, (total, 2)), rng.random(total) < 0.4
+        n_h[int(rng.integers(0, R))] = -1  # a decision not served
+        margin = float(rng.choice([0.0, 0.4]))
+        length, width, fxy, fhh, osize, reach, rear = _footprint_args((5.0, 2.0), xy, hh, osize, margin, rear)
+        st = _store()
+        need = np.zeros((R, len(DRIVEN_SPEEDS)), dtype=np.bool_)
+        for _ in range(2):  # a speed bin not simulated yet: flagged, nothing tested; simulated, then called again
+            missing, k, m = driven_ttc_rows(st.data, st.route, st.limits, st.bins, st.grid_table, path.store_id, s0,
+                                            ds, n, t, length, width, fxy, fhh, h_off, n_h, osize, reach, rear, need)
+            for i in np.flatnonzero(need.any(axis=0)).tolist():
+                path._table(i)
+            need[:] = False
+        assert not missing.any()
+        for r, (o, H) in enumerate(zip(h_off.tolist(), n_h.tolist())):
+            if H < 0:
+                assert (k[r], m[r]) == (-1, -1)
+                continue
+            obj_xy, obj_h = xy[2 * K * o: 2 * K * (o + H)].reshape(K, H, 2), hh[K * o: K * (o + H)].reshape(K, H)
+            want = driven_ttc(path, float(s0[r]), ds[r, :n[r]], t[:n[r]], (5.0, 2.0), obj_xy[:n[r]], obj_h[:n[r]],
+                              osize[o: o + H], margin, rear[o: o + H])
+            got = (float("inf"), -1) if k[r] < 0 else (float(t[k[r]]), int(m[r]))
+            assert got == want, (trial, r)
+            hits, misses = hits + (k[r] >= 0), misses + (k[r] < 0)
+    assert hits > 20 and misses > 20, (hits, misses)

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping
+from types import SimpleNamespace
 
 import gymnasium as gym
 import numpy as np
@@ -48,13 +49,16 @@ from av_gym.params import ParamError
 from av_gym.sensors.base import episode_rng
 from av_gym.sensors.turn_signal import (DRIVER_DRAWS, DriverDraws, first_sighting, fit_ids, node_index, reported,
                                         route_origin, turn_signal)
-from av_gym.shields.aeb_improved import ImprovedAEB, followers, long_times
-from av_gym.shields.aeb_params import BRAKE, STOP_SPEED, ImprovedParams
+from av_gym.shields.aeb_improved import GO_TAU, ImprovedAEB, _go_rise, followers, long_times
+from av_gym.shields.aeb_params import BRAKE, MONITOR, STOP_SPEED, ImprovedParams
 from av_gym.shields.conflicts import ConflictModel
+from av_gym.shields.predict import setpoint_steps
 from av_gym.sim.fast_network import FastRoadNetwork
 from av_gym.sim.batched import LENGTH, WIDTH
 
 SIM_HZ = 20  # the engine's commanded acceleration clamps a standstill at v / 0.05 s, the actuator at v / sim_dt
+SCREEN = True  # False: every row's decision by its shield's own code (BatchedShield._screen; A/B checks, tests)
+SCREEN_CHECK = False  # True: each screened row's own decision runs too and must be the screen's (tests)
 
 
 def shield_kind(shield_cfg: Mapping | None) -> str:
@@ -477,6 +481,7 @@ class BatchedShield:
         self.steps = np.zeros(B, dtype=int)
         self.overrides: list[list[int]] = [[] for _ in range(B)]
         self._brake_from: np.ndarray | None = None
+        self._flat: tuple | None = None  # this decision's prediction buffers for the screen (:meth:`_predict`)
 
     def reset(self, rows) -> None:
         """New episodes in the envs ``rows`` (after the engine started them): the per-env shield's reset."""
@@ -507,7 +512,11 @@ class BatchedShield:
         else:
             self._kinematics(rows)
         applied = np.array(actions, copy=True)
-        for r in rows.tolist():
+        screened = self._screen(rows, actions)
+        for n, r in enumerate(rows.tolist()):
+            if screened is not None and screened[n]:  # decided by the screen: MONITOR, its state moved on
+                self.override[r] = False
+                continue
             s = self.shields[r]
             action = self._env_action(actions[r])
             s._proposed = action
@@ -579,6 +588,7 @@ class BatchedShield:
         m/s², ``intent`` per decision its kept road users' turn weights or None), what its shield's
         ``_predict_scene`` asks the conflict model, for all decisions in one compiled call
         (:meth:`ConflictModel.predict_rows`; None for a decision it does not serve: the shield's own call)."""
+        self._flat = None
         if self.conflicts is None:
             return [None] * len(kept)
         index = self.e.T.index
@@ -586,8 +596,102 @@ class BatchedShield:
         weights = None
         if intent is not None:  # each decision's (its kept road users, 3) weights, one after the other
             weights = np.concatenate([w.reshape(-1, 3) for w in intent]) if len(intent) else np.zeros((0, 3))
-        return self.conflicts.predict_rows(state[kept], row_off, [index[k] for k in lanes[kept].tolist()],
-                                           accel[kept], self.t_long, weights)
+        others = state[kept]
+        flat = self.conflicts.predict_rows_flat(others, row_off, [index[k] for k in lanes[kept].tolist()],
+                                                accel[kept], self.t_long, weights)
+        if flat is not None:  # for the screen (:meth:`_screen`): the kept road users' sizes by decision
+            self._flat = (row_off, others[:, 5:7], flat)
+        return self.conflicts.split_rows(flat, len(self.t_long), len(kept))
+
+    def _screen(self, rows: np.ndarray, actions: np.ndarray) -> np.ndarray | None:
+        """(n,) bool: the decisions of the envs ``rows`` that are MONITOR by the row's own rules, decided here for
+        all rows at once, their shields' state moved on as their own ``_decide`` moves it (None: none screened).
+
+        Which: ground-truth mode on the batch's prediction, discrete actions, not latched, and the first test of
+        ImprovedAEB._decide_improved finds no conflict (the ego carrying on, its TTC against the kept road users'
+        hypotheses infinite) while the set-off rule cannot act (outside it, or not at the stop-line trigger point).
+        The row's code then returns ``(MONITOR, inf, horizon, -1, active, False)`` having changed only its route
+        lane hint (``_ego``), ``_lanes``, ``_keys``, ``_prev_t`` and ``target_xy``: these are set here. The same
+        floats by construction: the route position from the row's own ``LanePath.locate``, the profile, horizon
+        and front-to-line distance element by element as the row computes them (the profile under a FASTER /
+        SLOWER the row's own :func:`setpoint_steps`), the TTC by :func:`~av_gym.shields.kernels.driven_ttc_rows`
+        (each row the row's :func:`driven_ttc` kernel on its slices), the trigger point by the row's own
+        ``_at_trigger_point``. With :data:`SCREEN_CHECK` each screened row's own ``_decide`` runs too and must agree.
+        Why: ~80 % of the decisions end here, and the rows' Python around the first TTC was most of their cost."""
+        flat, self._flat = self._flat, None
+        if not SCREEN or flat is None or self.e.continuous or not len(rows):
+            return None
+        from av_gym.shields.kernels import driven_ttc_rows
+        from av_gym.shields.predict import DRIVEN_SPEEDS, FOOTPRINT_KERNEL, DrivenPath, _footprint_args, _store
+
+        p, e, t = self.p, self.e, self.e.traffic
+        first = self.shields[int(rows[0])]
+        driven, route = first.driven, first.route
+        if not (DrivenPath.kernel and FOOTPRINT_KERNEL and driven._register() >= 0):
+            return None
+        row_off, kept_size, (h_off, n_h, xy, hh, owner, is_map, _) = flat
+        slot = e.ego_slot(rows)
+        speed, set_speed, accel = t.v[rows, slot], t.target[rows, slot], t.acc[rows, slot]
+        now = e.ticks[rows] / float(e.config["simulation_frequency"])
+        cand = (t.alive[rows, slot] & t.ego[rows, slot]) & (n_h >= 0)
+        # the ego's route position as the row's _ego reads it (its own LanePath.locate from its own hint)
+        route_k, s_lane = np.zeros(len(rows), np.int64), np.zeros(len(rows))
+        names = self.views[int(rows[0])].action_type.actions
+        steps_of = {"FASTER": 1, "SLOWER": -1}
+        setpoint = {}  # n -> FASTER (+1) / SLOWER (-1) repeated under check_action
+        for n in np.flatnonzero(cand).tolist():
+            r = int(rows[n])
+            sh, view = self.shields[r], self.views[r]
+            if sh._latched or sh.route is not route or sh.driven is not driven:
+                cand[n] = False
+                continue
+            route_k[n], s_lane[n], _ = view.route.locate(view.vehicle.position, sh._route_k)
+            if p.check_action:
+                step = steps_of.get(names.get(int(actions[r])))
+                if step is not None:
+                    setpoint[n] = step
+        s0 = route.starts[route_k] + s_lane
+        front_to_line = first.stop_line_s - (s0 + 0.5 * LENGTH)
+        active = (s0 < first.clear_s) & (front_to_line <= p.activation_distance)
+        # the ego carrying on (ImprovedAEB._continue_profile): go_profile's expression, or setpoint_steps
+        t_long, rise = self.t_long, _go_rise(p)
+        ds = set_speed[:, None] * t_long[None, :] + ((speed - set_speed) * GO_TAU)[:, None] * rise[None, :]
+        for n, step in setpoint.items():
+            ds[n] = setpoint_steps(float(speed[n]), self.views[int(rows[n])].vehicle.target_speeds, step, t_long,
+                                   dt=first.sim_dt)
+        # ImprovedAEB._horizon, element by element
+        reached = s0[:, None] + ds >= first.clear_s
+        h = np.where(reached.any(axis=1), t_long[np.argmax(reached, axis=1)] + p.step, p.horizon_max)
+        horizon = np.minimum(np.maximum(h, p.horizon_min), p.horizon_max)
+        n_slices = np.rint(horizon / p.step).astype(np.int64)
+        # the first TTC (ImprovedAEB._ttc_of with the scene's hypotheses and p.margin) of every candidate at once
+        row_of = np.repeat(np.arange(len(rows)), np.diff(h_off))
+        valid = np.arange(int(h_off[-1])) - h_off[row_of] < n_h[row_of]
+        osize, rear = np.zeros((len(valid), 2)), np.zeros(len(valid), bool)
+        osize[valid] = kept_size[row_off[row_of[valid]] + owner[valid]]
+        rear[valid] = is_map[valid] | p.ignore_rear
+        length, width, xy, hh, osize, reach, rear = _footprint_args((float(LENGTH), float(WIDTH)), xy, hh, osize,
+                                                                    p.margin, rear)
+        st, need = _store(), np.zeros((len(rows), len(DRIVEN_SPEEDS)), dtype=np.bool_)
+        missing, k, _ = driven_ttc_rows(st.data, st.route, st.limits, st.bins, st.grid_table, driven.store_id, s0,
+                                        np.ascontiguousarray(ds), n_slices, t_long, length, width, xy, hh, h_off,
+                                        np.where(cand, n_h, -1), osize, reach, rear, need)
+        quiet = cand & (missing == 0) & (k < 0)
+        setoff_rule = p.setoff_speed > 0 and p.target_model == "conflict"
+        for n in np.flatnonzero(quiet & active & (front_to_line >= 0)).tolist() if setoff_rule else []:
+            sc = SimpleNamespace(in_turn=True, front_to_line=float(front_to_line[n]), v=float(speed[n]),
+                                 a=float(accel[n]))
+            if self.shields[int(rows[n])]._at_trigger_point(sc):  # the set-off rule may act: the row decides
+                quiet[n] = False
+        for n in np.flatnonzero(quiet).tolist():
+            r = int(rows[n])
+            sh, view = self.shields[r], self.views[r]
+            sh._proposed = self._env_action(actions[r])
+            if SCREEN_CHECK:
+                _check_screened(sh, float(horizon[n]), bool(active[n]), int(route_k[n]), float(now[n]))
+            sh._route_k, sh._lanes, sh._keys, sh._prev_t = int(route_k[n]), view.lanes, view.keys, float(now[n])
+            sh.target_xy = np.full(2, np.nan)
+        return quiet
 
     def _env_action(self, a):
         """One env's action as the per-env env takes it: a meta-action int, or the continuous (1,) float32."""
@@ -644,6 +748,16 @@ class BatchedShield:
         info = self.shields[r]._make_info(0, float("inf"), 0.0, -1, False, False, None)
         return {"brake_time": info["aeb_brake_time"], "stop_position": info["aeb_stop_position"],
                 "overrides": list(self.overrides[r])}
+
+
+def _check_screened(shield, horizon: float, active: bool, route_k: int, now: float) -> None:
+    """:data:`SCREEN_CHECK`: the row's own decision from the state the screen found is the screen's, and moves its
+    state as the screen does (an AssertionError naming what differs)."""
+    got = shield._decide()
+    want = (MONITOR, float("inf"), horizon, -1, active, False)
+    assert got == want and shield._route_k == route_k and shield._prev_t == now, \
+        f"screened row {shield.env.row}: its own decision {got}, route lane {shield._route_k}, time " \
+        f"{shield._prev_t}; the screen's {want}, {route_k}, {now}"
 
 
 def _shield_perception(engine, params: ImprovedParams):

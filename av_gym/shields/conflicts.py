@@ -409,6 +409,29 @@ class ConflictModel:
         its own call), or None where the kernel does not serve it (a speed bin not simulated yet, a lane it cannot
         read, a kernel switched off): the caller's :meth:`predict` then does, simulating what is missing as the
         reference does."""
+        return self.split_rows(self.predict_rows_flat(others, row_off, lane_indices, accels, t, intent), len(t),
+                               len(row_off) - 1)
+
+    @staticmethod
+    def split_rows(flat: tuple | None, K: int, R: int) -> list:
+        """:meth:`predict_rows_flat`'s buffers as :meth:`predict_rows`' per-decision tuples (views, no copies), for
+        ``K`` times and ``R`` decisions."""
+        if flat is None:
+            return [None] * R
+        h_off, n_h, xy, hh, owner, is_map, prob = flat
+        out = []
+        for o, H in zip(h_off.tolist(), n_h.tolist()):  # each decision's blocks of the flat buffers
+            out.append(None if H < 0 else (xy[2 * K * o: 2 * K * (o + H)].reshape(K, H, 2),
+                                           hh[K * o: K * (o + H)].reshape(K, H), owner[o: o + H], is_map[o: o + H],
+                                           prob[o: o + H]))
+        return out
+
+    def predict_rows_flat(self, others: np.ndarray, row_off: np.ndarray, lane_indices: list, accels: np.ndarray,
+                          t: np.ndarray, intent: np.ndarray | None = None) -> tuple | None:
+        """:meth:`predict_rows`' flat buffers: ``(h_off (R + 1,), n_h (R,), xy, hh, owner, is_map, prob)``, decision
+        r's H = ``n_h[r]`` hypotheses (-1: not served) from hypothesis ``h_off[r]`` on (``xy`` a (K, H, 2) block from
+        ``2 K h_off[r]``, ``hh`` (K, H) from ``K h_off[r]``; :func:`~av_gym.shields.kernels.conflict_predict_rows`);
+        None where the kernels are switched off or cannot read the lanes."""
         from av_gym.shields.kernels import conflict_predict_rows
         from av_gym.shields.predict import DrivenPath
 
@@ -417,7 +440,7 @@ class ConflictModel:
         inputs = self._kernel_inputs(others, lane_indices, accels, intent) \
             if CONFLICT_KERNEL and DrivenPath.kernel else None
         if inputs is None:
-            return [None] * R
+            return None
         reg, args = inputs
         t = np.ascontiguousarray(t, dtype=float)
         h_off = _row_blocks(reg, args[3], row_off)
@@ -426,12 +449,7 @@ class ConflictModel:
         owner, is_map, n_h = np.empty(n_all, np.int64), np.empty(n_all, np.bool_), np.empty(R, np.int64)
         conflict_predict_rows(row_off, *args, reg.ids, t, float(self.accel_time), *_store_arrays(), h_off, xy, hh,
                               owner, is_map, prob, n_h)
-        out = []
-        for o, H in zip(h_off.tolist(), n_h.tolist()):  # each decision's blocks of the flat buffers
-            out.append(None if H < 0 else (xy[2 * K * o: 2 * K * (o + H)].reshape(K, H, 2),
-                                           hh[K * o: K * (o + H)].reshape(K, H), owner[o: o + H], is_map[o: o + H],
-                                           prob[o: o + H]))
-        return out
+        return h_off, n_h, xy, hh, owner, is_map, prob
 
     def predict(self, others: np.ndarray, lane_indices: list, accels: np.ndarray, t: np.ndarray,
                 intent: np.ndarray | None = None, follow: np.ndarray | None = None):

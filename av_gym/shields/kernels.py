@@ -361,6 +361,30 @@ def driven_ttc(data, route, limits, bins, grid_table, path_id, s0, ds, t, length
     return 0, k, m
 
 
+@numba.njit(cache=True)
+def driven_ttc_rows(data, route, limits, bins, grid_table, path_id, s0, ds, n, t, length, width, xy, hh, h_off, n_h,
+                    osize, reach, rear, need):
+    """:func:`driven_ttc` of R decisions in one call, each on its own slices (the same floats as its own call):
+    decision r drives ``ds[r, :n[r]]`` (m) at ``t[:n[r]]`` (s) from route position ``s0[r]`` (m) along path
+    ``path_id`` against its ``n_h[r]`` hypotheses from ``h_off[r]`` of :func:`conflict_predict_rows`' flat buffers
+    (``xy`` a (K, H, 2) block from ``2 K h_off[r]``, ``hh`` (K, H) from ``K h_off[r]``; ``osize`` (., 2), ``reach``
+    and ``rear`` per hypothesis, aligned with them), its flags of missing speed bins in ``need[r]``. Returns per
+    decision (missing speed bins, slice k, hypothesis m) as :func:`driven_ttc`; (0, -1, -1) for no slice or no
+    hypothesis (the caller's ``(inf, -1)``), and nothing tested for a decision with ``n_h[r] < 0``."""
+    R, K = ds.shape[0], t.shape[0]
+    missing, ks, ms = np.zeros(R, np.int64), np.full(R, -1, np.int64), np.full(R, -1, np.int64)
+    for r in range(R):
+        H, o, nr = n_h[r], h_off[r], n[r]
+        if H <= 0 or nr <= 0:
+            continue
+        oxy = xy[2 * K * o: 2 * K * (o + H)].reshape(K, H, 2)
+        ohh = hh[K * o: K * (o + H)].reshape(K, H)
+        missing[r], ks[r], ms[r] = driven_ttc(data, route, limits, bins, grid_table, path_id, s0[r], ds[r, :nr],
+                                              t[:nr], length, width, oxy[:nr], ohh[:nr], osize[o: o + H],
+                                              reach[o: o + H], rear[o: o + H], need[r: r + 1])
+    return missing, ks, ms
+
+
 # ----------------------------------------------------------------------------------------------- brake actuator
 @numba.njit(cache=True)
 def brake_profile(v0, a_before, n, dt, decel, delay, jerk):
