@@ -287,8 +287,10 @@ def test_tiny_train_then_eval_loads_the_checkpoint(tmp_path):
 
 
 def test_bad_pilotnet_input_is_one_line_naming_the_field(tmp_path):
-    res = _run("train", "agent=pilotnet", "env=lane_keeping", f"agent.demos={tmp_path}/missing.npz",
-               "train.progress_bar=false", cwd=tmp_path)
+    from conftest import cli  # the command-line check in this process; a real process only if it passes
+
+    res = cli("train", "agent=pilotnet", "env=lane_keeping", f"agent.demos={tmp_path}/missing.npz",
+              "train.progress_bar=false", cwd=tmp_path)
     lines = [line for line in res.stderr.splitlines() if line.strip()]
     assert res.returncode == 2 and len(lines) == 1 and "agent.demos: no such file" in lines[0], res.stderr[-2000:]
     assert not (tmp_path / "checkpoints").exists()

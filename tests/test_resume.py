@@ -60,8 +60,9 @@ def test_kill_9_then_resume_reaches_the_same_total_without_tensorboard_duplicate
 
 
 def test_resume_without_a_checkpoint_is_a_clear_error(tmp_path):
-    res = subprocess.run([sys.executable, "-m", "train", *ARGS, "run_name=nothing", "train.resume=true"],
-                         cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    from conftest import cli  # the command-line check in this process; a real process only if it passes
+
+    res = cli("train", *ARGS, "run_name=nothing", "train.resume=true", cwd=tmp_path)
     assert res.returncode == 2 and "train.resume=true but" in res.stderr and "Traceback" not in res.stderr
 
 

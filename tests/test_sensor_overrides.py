@@ -74,7 +74,10 @@ def run_eval(*overrides: str, cwd: Path) -> subprocess.CompletedProcess:
 
 
 def test_cli_refuses_a_space_changing_override_in_one_line(tmp_path):
-    res = run_eval("sensors.cameras.height=80", cwd=tmp_path)
+    from conftest import cli  # the command-line check in this process; a real process only if it passes
+
+    res = cli("eval", "env=lane_keeping", f"agents=[{PILOTNET}]", "sensors=cameras", "progress_bar=false",
+              "plots=false", "sensors.cameras.height=80", cwd=tmp_path)
     lines = [line for line in res.stderr.splitlines() if line.strip()]
     assert res.returncode == 2 and len(lines) == 1, res.stderr[-2000:]
     assert lines[0].startswith("error: sensors.cameras.height=80 changes the observation space"), lines[0]
