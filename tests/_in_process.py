@@ -1,4 +1,4 @@
-"""A checkout's script (``python docs/x.py ...``) run in the test's own process, as a subprocess would run it:
+"""A checkout's script (``python <script>.py ...``) run in the test's own process, as a subprocess would run it:
 its exit status, stdout and stderr in a :class:`subprocess.CompletedProcess`.
 
 Why not a subprocess: every fresh interpreter imports the library again (``conf.cli`` alone pulls in the whole
