@@ -127,6 +127,18 @@ def test_eval_refuses_an_out_dir_with_a_hand_written_meta_json_before_any_episod
     assert meta["command"] == "python -m eval " + " ".join([*ARGV, "overwrite=true"]) and meta["episodes_written"] == 4
 
 
+def test_every_shipped_result_folder_is_refused_as_an_out_dir():
+    """A docs/results folder's meta.json copied from an eval run keeps eval's ``written_by`` unless it is taken out,
+    and then ``python -m eval out_dir=docs/results/X overwrite=true`` would replace the shipped results (and add
+    results.md beside them): every shipped meta.json must read as a person's. Fails when one carries the marker."""
+    from pathlib import Path
+
+    metas = sorted((Path(__file__).resolve().parents[1] / "docs" / "results").glob("*/meta.json"))
+    assert metas
+    replaceable = [str(m.parent.name) for m in metas if hand_written_problem(m.parent) is None]
+    assert not replaceable, f"docs/results folders eval would write over (drop \"written_by\"): {replaceable}"
+
+
 def test_a_run_that_fails_before_any_row_writes_no_meta_json(tmp_path):
     """Nothing measured, nothing written: the folder stays as it was (a rerun is not refused for it)."""
     meta = EvalMeta(tmp_path, {}, [])
