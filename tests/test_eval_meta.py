@@ -129,7 +129,7 @@ def test_eval_refuses_an_out_dir_with_a_hand_written_meta_json_before_any_episod
 
 def test_every_shipped_result_folder_is_refused_as_an_out_dir():
     """A docs/results folder's meta.json copied from an eval run keeps eval's ``written_by`` unless it is taken out,
-    and then ``python -m eval out_dir=docs/results/X overwrite=true`` would replace the shipped results (and add
+    and then ``python -m eval out_dir=<a docs/results folder> overwrite=true`` would replace the shipped results (and add
     results.md beside them): every shipped meta.json must read as a person's. Fails when one carries the marker."""
     from pathlib import Path
 
