@@ -421,6 +421,9 @@ class TrackBelief:
             # it, negative where the filter's velocity points backwards (a car braking to a halt, backing)
             h = np.where(users, seen[..., 0], h)
             speed = vx * np.cos(h) + vy * np.sin(h)
+        # a car backing up is told by the filter's own speed along the heading, before track_lag / track_fit: a
+        # car braking hard to a halt (0.8 m/s at -6 m/s², lag 0.2 s: -0.4 m/s) is not backing, it is stopping
+        measured = speed
         # the acceleration the intent features measure, for the described tracks (nearest first, as obs["intent"])
         m = min(intent.shape[1], M)
         acc = np.zeros(pos.shape[:2])
@@ -438,9 +441,10 @@ class TrackBelief:
         t.x[rows, sl], t.y[rows, sl], t.h[rows, sl] = x, y, h
         # a car backing up (track_reverse): the engine's IDM brakes a car past 0 into reverse where it stands closer
         # than its desired gap, its speed unclipped; its futures start backing at the speed measured, not standing
-        backing = users & (speed < -float(self.params.track_reverse)) if self.params.track_reverse > 0 \
+        backing = users & (measured < -float(self.params.track_reverse)) if self.params.track_reverse > 0 \
             else np.zeros(users.shape, bool)
-        t.v[rows, sl] = np.where(backing, speed, np.maximum(speed, 0.0))
+        # a backing car starts at its measured speed: lag and fit model a car's forward speed changes
+        t.v[rows, sl] = np.where(backing, measured, np.maximum(speed, 0.0))
         t.target[rows, sl] = np.maximum(speed, 0.0)
         lane = engine.T.closest(x, y, h)
         # the tracks carry no crash flag: a road user standing still is taken to stay where it is (a crashed car

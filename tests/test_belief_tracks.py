@@ -417,6 +417,26 @@ def test_an_accelerating_track_starts_at_the_filters_speed_plus_its_lag():
     np.testing.assert_allclose(speeds[0.2], 6.6, rtol=1e-6)
 
 
+@pytest.mark.parametrize("vy, backs", [(0.8, False), (-1.5, True)])
+def test_track_reverse_reads_the_measured_speed_before_the_lag(vy, backs):
+    """``track_reverse`` 0.3 with ``track_lag`` 0.2: a track braking hard (0.8 m/s along its detected heading,
+    measured at -6 m/s²: -0.4 m/s with the lag) is stopping, not backing, and starts its futures at 0; a track
+    whose filter speed along its heading is -1.5 m/s backs, at that measured speed (the lag not added)."""
+    venv, planner, obs, rows = _batch([420_001, 420_002], 45, BeliefLookaheadParams(
+        samples=4, unseen=0.0, track_heading="detected", track_lag=0.2, track_reverse=0.3))
+    for r in rows:
+        _coasting_track(venv, int(r), (2.0, 2.0, 0.0, vy), 0, heading=np.pi / 2)
+    intent = np.zeros_like(obs["intent"])
+    intent[:, 0, 0] = -6.0 / ACC_SCALE
+    p = copy.deepcopy(planner, {id(venv.perception): venv.perception, id(venv.engine): venv.engine,
+                                id(planner.tracks.engine): None})
+    _decide(p, venv.engine, rows, {"intent": intent})
+    t = p.tracks.engine.traffic
+    slot = np.argmax(t.alive[rows] & ~t.ego[rows], axis=1)
+    np.testing.assert_allclose(t.acc[rows, slot], -6.0, rtol=1e-6)
+    np.testing.assert_allclose(t.v[rows, slot], vy if backs else 0.0, atol=1e-9)
+
+
 def _futures_start(venv, planner, rows, obs) -> tuple:
     """The future engine of ``rows`` (K futures each, row-major) as ``go_collision`` starts to play it (not
     played), and the engine its futures start from."""
