@@ -150,7 +150,8 @@ class BeliefLookaheadParams(AgentParams):
                                                    "nearer): the tracker's twin tracks of one car, which collide "
                                                    "with each other in the futures; 0: every track a road user")
     track_reverse: float = param(0.0, "m/s", ge=0, le=5, doc="on tracks with ``track_heading`` detected: a track "
-                                                         "whose speed along its detected heading is below minus "
+                                                         "whose filter's speed along its detected heading (before "
+                                                         "``track_lag`` and ``track_fit``) is below minus "
                                                          "this is a car backing up and starts its futures at that "
                                                          "negative speed, driven by the engine's IDM as the car is "
                                                          "(highway-env's IDM brakes past 0 into reverse where it "
@@ -204,6 +205,19 @@ class BeliefLookaheadParams(AgentParams):
                                            "planner on truth made, 3 of 24 at the truth's first GO were this "
                                            "one: benchmarks/belief_tracks_lost.py); False: it needs ``confirm`` "
                                            "decisions like any other GO")
+    committed_choice: bool = param(False, doc="once the ego is past the stop line (by more than "
+                                              "``committed_from``), a decision that would YIELD there chooses "
+                                              "between carrying on (GO's plan) and stopping (YIELD's: set-point 0, "
+                                              "held to the episode's end, standing in the junction), each judged on "
+                                              "the same K futures (the decision's own draws): it carries on where "
+                                              "GO's collision share is lower than stopping's. Past the line a YIELD "
+                                              "brakes the car into the crossing lane (the screen's collision "
+                                              "replays, validation seeds 1,930,000-1,930,499: 10 of 12 a GO taken "
+                                              "back at the next decision, the ego hit 0.7-12.6 s later braking or "
+                                              "standing there); False: YIELD is always the stop")
+    committed_from: float = param(0.0, "m", ge=0, le=20, doc="with ``committed_choice``: how far the ego's front "
+                                                            "must be past the stop line (stop_line_offset) for the "
+                                                            "choice between carrying on and stopping")
 
 
 class BeliefPlanner:
@@ -287,6 +301,16 @@ class BeliefPlanner:
         """The estimated probability that GO now ends in a collision, for each of ``rows``: the share of K
         futures (drawn as the module docstring says; ``K`` default ``samples``; ``stream``: more entropy appended
         to every seed sequence, for independent futures of the same moment) whose GO play collides."""
+        return self._plan_collision(engine, rows, K, stream, play_go_fast)
+
+    def stop_collision(self, engine, rows, K: int | None = None, stream: tuple = ()) -> np.ndarray:
+        """:meth:`go_collision` for the plan of stopping (YIELD past the stop line: the lowest set-point, held to
+        the episode's end) on the same futures (the same ``K`` and ``stream`` draw the same ones)."""
+        return self._plan_collision(engine, rows, K, stream, play_stop_fast)
+
+    def _plan_collision(self, engine, rows, K: int | None, stream: tuple, play) -> np.ndarray:
+        """The share of K futures of each of ``rows`` that ``play`` (a function of the future engine: which of its
+        rows end without a collision) finds colliding."""
         import time
 
         rows = np.asarray(rows, dtype=int)
@@ -299,7 +323,7 @@ class BeliefPlanner:
         f = self.futures(engine, rows, K, stream)
         if self.tracks is not None:
             self.tracks.fill(f, rows, self.seed, K, stream)
-        safe = play_go_fast(f)
+        safe = play(f)
         self.labelled += len(rows)
         self.seconds += time.perf_counter() - start
         self.cpu_seconds += time.process_time() - cpu
@@ -338,8 +362,26 @@ class BeliefPlanner:
             if ask.any():  # a GO to start: the futures of the recheck's own streams must find it safe too
                 p2 = self.go_collision(engine, r[ask], R, (RECHECK_STREAM,))
                 new[ask] = self.label_of((K * p[ask] + R * p2) / (K + R) if pool else p2)
+            if self.params.committed_choice:
+                new = self.carry_on(engine, r, p, new)
             choice[due] = new
         return choice
+
+    def carry_on(self, engine, rows: np.ndarray, p: np.ndarray, new: np.ndarray) -> np.ndarray:
+        """``committed_choice``: the choices ``new`` of ``rows`` (GO collision probabilities ``p`` at this
+        decision) with GO where the row would YIELD past the stop line (by more than ``committed_from``) and
+        stopping there collides in more of the same futures than carrying on."""
+        back = np.flatnonzero(np.asarray(new) != GO)
+        if len(back) == 0:
+            return new
+        past = engine.truth(rows[back])["stop_line_offset"] > float(self.params.committed_from)
+        back = back[past]
+        if len(back) == 0:
+            return new
+        new = np.array(new, copy=True)
+        p_stop = self.stop_collision(engine, rows[back])  # the decision's own K futures and stream
+        new[back] = np.where(np.asarray(p)[back] < p_stop - 1e-12, GO, new[back])
+        return new
 
     def live(self, engine, rows: np.ndarray, choice: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(due, final) masks over ``rows`` at env steps ``step`` (their held choices ``choice``): which rows decide
@@ -535,12 +577,23 @@ def play_go_fast(f) -> np.ndarray:
     step, to the episode's end): :func:`agents.batched_oracle.play_go` without its features and margins. GO's
     meta-action needs only the ego's set-point (GO asks for the top one; meta_action: FASTER below it, SLOWER
     above, IDLE at it), so no feature is computed."""
+    return play_set_point_fast(f, float(f.speeds[-1]))
+
+
+def play_stop_fast(f) -> np.ndarray:
+    """:func:`play_go_fast` for stopping: the lowest set-point (0 m/s) held to the episode's end, what YIELD asks
+    for once the ego is past the stop line (meta_actions: no speed stops it before the line there)."""
+    return play_set_point_fast(f, float(f.speeds[0]))
+
+
+def play_set_point_fast(f, top: float) -> np.ndarray:
+    """Whether each row of the future engine ``f`` ends without a collision when the ego asks for the set-point
+    ``top`` (m/s) at every env step to the episode's end (FASTER below it, SLOWER above, IDLE at it)."""
     from av_gym.sim.batched import FASTER, IDLE, SLOWER
 
     safe = np.ones(f.B, bool)
     idx = np.arange(f.B)  # the rows of the original future that ``f`` still holds
     live = np.ones(f.B, bool)  # the rows of ``f`` still playing
-    top = float(f.speeds[-1])
     while live.any():
         n = f.B
         sp = f.traffic.target[np.arange(n), f.ego_slot()]

@@ -56,6 +56,14 @@ def _choose(planner, engine, rows, obs) -> tuple[np.ndarray, np.ndarray, np.ndar
     return first, early, planner.decide(engine, rows, first, np.full(len(rows), 32))
 
 
+def _stop_and_choose(planner, engine, rows, obs) -> tuple[np.ndarray, np.ndarray]:
+    """The stop plan's collision shares of ``rows`` after reading ``obs``, and the choices of the rows holding GO
+    at a regular decision (env step 30)."""
+    planner.read(engine, rows, obs["intent"][rows])
+    return planner.stop_collision(engine, rows), planner.decide(engine, rows, np.full(len(rows), GO),
+                                                                np.full(len(rows), 30))
+
+
 def _hide_changes(engine, rows, max_range: float, tracks: np.ndarray) -> int:
     """Every other vehicle the car has no confirmed track of (farther than ``max_range`` from the ego, or more than
     4 m from every track of ``tracks`` (n, M, 8), ``obs["tracks"]``): every other one removed, the rest moved 4 m
@@ -105,7 +113,8 @@ def test_decisions_do_not_read_the_hidden_traffic(which, request):
     confirmed) removed or moved, every driver's route, IDM draws, regulation hold and the rows' future spawns
     re-drawn. The planner on truth, which reads the vehicles, moves. With the kind's defaults and with
     belief_tracks' options (tentative tracks, detected heading, ghosts, twins); the choices also with ``confirm``,
-    ``confirm_risk`` and ``confirm_after`` (its early decisions), and with ``confirm_first``."""
+    ``confirm_risk`` and ``confirm_after`` (its early decisions), and with ``confirm_first``; with
+    ``committed_choice`` the stop plan's futures and the choices of rows holding GO."""
     venv, planner, obs, rows = request.getfixturevalue(which)
     engine = venv.engine
     shared = {id(venv.perception): venv.perception, id(engine): engine, id(planner.tracks.engine): None}
@@ -118,13 +127,22 @@ def test_decisions_do_not_read_the_hidden_traffic(which, request):
     # confirm_first: fresh planners on the same tracker (their episode's first decision is this one)
     first_ok = [BeliefPlanner(dataclasses.replace(planner.params, confirm=2, confirm_first=True, threshold=0.5),
                               n_rows=B, perception=venv.perception) for _ in range(2)]
+    # committed_choice: the stop plan's futures, and the choices of rows holding GO
+    committed = [copy.deepcopy(planner, dict(shared)) for _ in range(2)]
+    for c in committed:
+        c.params = dataclasses.replace(c.params, committed_choice=True)
     p_before, truth_before = _decide(planner, engine, rows, obs), _decide(truth, engine, rows, obs)
+    stop_before = _stop_and_choose(committed[0], engine, rows, obs)
     chose_before = _choose(confirming[0], engine, rows, obs)
     first_before = _choose(first_ok[0], engine, rows, obs)
     assert _hide_changes(engine, rows, venv.perception.detector.max_range, venv.perception.last_tracks[rows]) > 0
     rerandomise(engine, rows, seed=11)
     p_after, truth_after = _decide(again, engine, rows, obs), _decide(truth_again, engine, rows, obs)
     np.testing.assert_array_equal(p_before, p_after)
+    for before, after in zip(stop_before, _stop_and_choose(committed[1], engine, rows, obs)):
+        np.testing.assert_array_equal(before, after)
+    if which == "tracked":  # the ego waits at its line: with the kind's defaults some stop futures collide
+        assert 0.0 < stop_before[0].mean() < 1.0
     for before, after in zip(chose_before + first_before, _choose(confirming[1], engine, rows, obs)
                              + _choose(first_ok[1], engine, rows, obs)):
         np.testing.assert_array_equal(before, after)

@@ -1,0 +1,92 @@
+"""``committed_choice`` (agents/belief.py): past the stop line, a decision that would YIELD chooses between carrying
+on and stopping, each judged on the same futures."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from agents.belief import BeliefLookaheadParams, BeliefPlanner
+from av_gym.batched.vec_env import BatchedLeftTurnBatch, meta_actions
+from av_gym.presets import compose_group
+from av_gym.wrappers import GO, YIELD
+from tests.test_belief_tracks import _coasting_track
+
+
+class _Offsets:
+    """An engine whose ego is ``offset`` m past the stop line per row (all :meth:`BeliefPlanner.carry_on` reads)."""
+
+    def __init__(self, offset) -> None:
+        self.offset = np.asarray(offset, float)
+
+    def truth(self, rows) -> dict:
+        return {"stop_line_offset": self.offset[np.asarray(rows)]}
+
+
+def _planner(asked: list, p_go, p_stop, **options) -> BeliefPlanner:
+    """A planner whose GO / stop collision shares are given per row instead of played; ``asked`` gets the rows of
+    every stop question."""
+    planner = BeliefPlanner(BeliefLookaheadParams(**options), n_rows=len(p_go))
+    planner.reset(np.arange(len(p_go)))
+    planner.go_collision = lambda engine, rows, K=None, stream=(): np.asarray(p_go)[np.asarray(rows)]
+
+    def stop(engine, rows, K=None, stream=()):
+        asked.append(np.asarray(rows).tolist())
+        return np.asarray(p_stop)[np.asarray(rows)]
+
+    planner.stop_collision = stop
+    return planner
+
+
+def test_past_the_line_a_yield_carries_on_where_stopping_collides_more():
+    """Rows holding GO: past the line (3 m) with GO at 0.25 and stopping at 0.5: carries on; past it with stopping
+    at 0.125: stops (YIELD); at equal shares: stops; before the line (-5 m): YIELD whatever stopping's share (not
+    asked); GO safe past the line: GO (not asked); a held YIELD past the line at 0.25 against 0.5: goes. Off:
+    every decision as the planner without the option, no stop question asked."""
+    p_go = [0.25, 0.25, 0.25, 0.25, 0.0, 0.25]
+    p_stop = [0.5, 0.125, 0.25, 1.0, 1.0, 0.5]
+    engine = _Offsets([3.0, 3.0, 3.0, -5.0, 3.0, 3.0])
+    held = np.array([GO, GO, GO, GO, GO, YIELD])
+    step = np.zeros(len(held), int)
+    asked: list = []
+    on = _planner(asked, p_go, p_stop, committed_choice=True)
+    assert on.decide(engine, np.arange(6), held, step).tolist() == [GO, YIELD, YIELD, YIELD, GO, GO]
+    assert asked == [[0, 1, 2, 5]]
+    asked.clear()
+    off = _planner(asked, p_go, p_stop)
+    assert off.decide(engine, np.arange(6), held, step).tolist() == [YIELD, YIELD, YIELD, YIELD, GO, YIELD]
+    assert asked == []
+    # committed_from: only a row farther past the line than this chooses
+    far = _planner(asked, p_go, p_stop, committed_choice=True, committed_from=4.0)
+    assert far.decide(engine, np.arange(6), held, step).tolist() == [YIELD, YIELD, YIELD, YIELD, GO, YIELD]
+    assert asked == []
+
+
+@pytest.mark.slow  # ~2.5 s: the batch on tracks driven 40 steps into the junction
+def test_a_go_taken_back_inside_the_junction_carries_on_on_its_futures():
+    """On tracks, the ego 2-4 m past its stop line at 9 m/s under GO, one confirmed oncoming track 15 m south of the
+    junction's centre at 9 m/s. In the first row GO collides in 3 of 16 futures (taken back without the option) and
+    stopping in 8 of the same 16: with ``committed_choice`` it carries on; in the second GO collides in 2 and
+    stopping in 1: it stops either way."""
+    venv = BatchedLeftTurnBatch({"name": "left_turn"}, compose_group("sensors", "turn_perceived"), None, 2, pool=0)
+    obs = venv.play(iter([420_001, 420_002]))
+    rows, e = np.arange(2), venv.engine
+    planner = BeliefPlanner(BeliefLookaheadParams(samples=16, unseen=0.0), n_rows=2, perception=venv.perception)
+    while (e.truth(rows)["stop_line_offset"] <= 2.0).any():
+        planner.read(e, rows, obs["intent"])
+        obs, _, _, _ = venv.step(meta_actions(np.full(2, GO), obs["turn"]))
+    for r in rows:
+        _coasting_track(venv, int(r), (-2.0, -15.0, 0.0, 9.0), 0)
+    choices, shares = {}, None
+    for on in (False, True):
+        p = copy.deepcopy(planner, {id(venv.perception): venv.perception, id(e): e, id(planner.tracks.engine): None})
+        p.params = BeliefLookaheadParams(samples=16, unseen=0.0, committed_choice=on)
+        p.read(e, rows, np.zeros_like(obs["intent"]))
+        if on:
+            shares = (p.go_collision(e, rows), p.stop_collision(e, rows))
+        choices[on] = p.decide(e, rows, np.full(2, GO), np.zeros(2, int)).tolist()
+    np.testing.assert_array_equal(shares[0], [3 / 16, 2 / 16])
+    np.testing.assert_array_equal(shares[1], [8 / 16, 1 / 16])
+    assert choices == {False: [YIELD, YIELD], True: [GO, YIELD]}
