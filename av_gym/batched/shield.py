@@ -603,6 +603,7 @@ class BatchedShield:
             self._flat = (row_off, others[:, 5:7], flat)
         return self.conflicts.split_rows(flat, len(self.t_long), len(kept))
 
+    # long: one pass over the rows in the order of the row's own _decide; each step's arrays feed the next
     def _screen(self, rows: np.ndarray, actions: np.ndarray) -> np.ndarray | None:
         """(n,) bool: the decisions of the envs ``rows`` that are MONITOR by the row's own rules, decided here for
         all rows at once, their shields' state moved on as their own ``_decide`` moves it (None: none screened).
