@@ -218,6 +218,11 @@ class BeliefLookaheadParams(AgentParams):
     committed_from: float = param(0.0, "m", ge=0, le=20, doc="with ``committed_choice``: how far the ego's front "
                                                             "must be past the stop line (stop_line_offset) for the "
                                                             "choice between carrying on and stopping")
+    committed_margin: float = param(0.0, ge=0, le=1, doc="with ``committed_choice``: carry on where GO's collision "
+                                                         "share is below stopping's plus this (0: strictly lower, "
+                                                         "a tie stops; 0.01 at K 16: a tie carries on, both plans "
+                                                         "colliding in as many futures, the ego out of the crossing "
+                                                         "lane sooner)")
 
 
 class BeliefPlanner:
@@ -370,7 +375,8 @@ class BeliefPlanner:
     def carry_on(self, engine, rows: np.ndarray, p: np.ndarray, new: np.ndarray) -> np.ndarray:
         """``committed_choice``: the choices ``new`` of ``rows`` (GO collision probabilities ``p`` at this
         decision) with GO where the row would YIELD past the stop line (by more than ``committed_from``) and
-        stopping there collides in more of the same futures than carrying on."""
+        stopping there collides in more of the same futures than carrying on (``committed_margin``: or in fewer by
+        less than this)."""
         back = np.flatnonzero(np.asarray(new) != GO)
         if len(back) == 0:
             return new
@@ -380,7 +386,8 @@ class BeliefPlanner:
             return new
         new = np.array(new, copy=True)
         p_stop = self.stop_collision(engine, rows[back])  # the decision's own K futures and stream
-        new[back] = np.where(np.asarray(p)[back] < p_stop - 1e-12, GO, new[back])
+        margin = float(self.params.committed_margin)
+        new[back] = np.where(np.asarray(p)[back] - p_stop < margin - 1e-12, GO, new[back])
         return new
 
     def live(self, engine, rows: np.ndarray, choice: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

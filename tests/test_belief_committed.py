@@ -42,9 +42,10 @@ def _planner(asked: list, p_go, p_stop, **options) -> BeliefPlanner:
 
 def test_past_the_line_a_yield_carries_on_where_stopping_collides_more():
     """Rows holding GO: past the line (3 m) with GO at 0.25 and stopping at 0.5: carries on; past it with stopping
-    at 0.125: stops (YIELD); at equal shares: stops; before the line (-5 m): YIELD whatever stopping's share (not
-    asked); GO safe past the line: GO (not asked); a held YIELD past the line at 0.25 against 0.5: goes. Off:
-    every decision as the planner without the option, no stop question asked."""
+    at 0.125: stops (YIELD); at equal shares: stops (with ``committed_margin`` 0.01 carries on); before the line
+    (-5 m): YIELD whatever stopping's share (not asked); GO safe past the line: GO (not asked); a held YIELD past
+    the line at 0.25 against 0.5: goes. Off: every decision as the planner without the option, no stop question
+    asked."""
     p_go = [0.25, 0.25, 0.25, 0.25, 0.0, 0.25]
     p_stop = [0.5, 0.125, 0.25, 1.0, 1.0, 0.5]
     engine = _Offsets([3.0, 3.0, 3.0, -5.0, 3.0, 3.0])
@@ -58,6 +59,10 @@ def test_past_the_line_a_yield_carries_on_where_stopping_collides_more():
     off = _planner(asked, p_go, p_stop)
     assert off.decide(engine, np.arange(6), held, step).tolist() == [YIELD, YIELD, YIELD, YIELD, GO, YIELD]
     assert asked == []
+    # committed_margin 0.01: a tie carries on too
+    assert _planner(asked, p_go, p_stop, committed_choice=True, committed_margin=0.01).decide(
+        engine, np.arange(6), held, step).tolist() == [GO, YIELD, GO, YIELD, GO, GO]
+    asked.clear()
     # committed_from: only a row farther past the line than this chooses
     far = _planner(asked, p_go, p_stop, committed_choice=True, committed_from=4.0)
     assert far.decide(engine, np.arange(6), held, step).tolist() == [YIELD, YIELD, YIELD, YIELD, GO, YIELD]
