@@ -198,21 +198,39 @@ def pytest_configure(config):
     """Under ``pytest -n N`` with numba's cache empty (a fresh checkout: CI), fill it first in two processes
     (tests/_numba_warmup.py), so that the workers load the kernels instead of each compiling the same ones at
     once. Measured on 7 kernel-heavy test files, -n 2, an empty cache, load ~3: 329 s wall / 390 CPU-s without,
-    137 s of warm-up + 138 s of tests / 350 CPU-s with. A filled cache (a checkout that ran them) skips it."""
+    137 s of warm-up + 138 s of tests / 350 CPU-s with. A filled cache (a checkout that ran them) skips it, as do
+    the workers, ``--collect-only`` and ``--help`` (nothing runs a kernel there)."""
     workers = config.getoption("numprocesses", default=None)
-    if hasattr(config, "workerinput") or workers in (None, 0, "0") or not _numba_cache_empty():
+    if hasattr(config, "workerinput") or workers in (None, 0, "0") or config.getoption("collectonly", False) \
+            or config.getoption("help", False) or not _numba_cache_empty():
         return
+    import tempfile
+    import time
+
     print("numba's cache is empty: compiling the kernels once before the workers start (tests/_numba_warmup.py)",
           file=sys.stderr)
     script = Path(__file__).resolve().with_name("_numba_warmup.py")
-    procs = [subprocess.Popen([sys.executable, str(script), part], stdout=subprocess.DEVNULL,
-                              stderr=subprocess.DEVNULL) for part in ("batch", "per_env")]
-    for proc in procs:  # a failed or slow warm-up only leaves the compiling to the workers, as without it
+    # one deadline for both parts (they run at once): a hung part may cost WARMUP_S, not WARMUP_S per part
+    deadline = time.monotonic() + WARMUP_S
+    logs = {part: tempfile.TemporaryFile() for part in ("batch", "per_env")}  # a file: a pipe could fill and block
+    procs = {part: subprocess.Popen([sys.executable, str(script), part], stdout=subprocess.DEVNULL, stderr=log)
+             for part, log in logs.items()}
+    for part, proc in procs.items():  # a failed or slow warm-up only leaves the compiling to the workers
         try:
-            proc.wait(timeout=600)
+            rc = proc.wait(timeout=max(deadline - time.monotonic(), 0.0))
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+            rc = f"stopped after {WARMUP_S} s"
+        if rc != 0:  # said, not hidden: a warm-up that no longer runs would silently stop warming anything
+            logs[part].seek(0)
+            last = (logs[part].read().decode(errors="replace").strip().splitlines() or [""])[-1]
+            print(f"numba warm-up {part!r} failed ({rc}){': ' + last[:200] if last else ''} (its kernels compile "
+                  f"in the workers)", file=sys.stderr)
+        logs[part].close()
+
+
+WARMUP_S = 600  # s, the most the warm-up may take (137 s measured on 2 cores at load ~3)
 
 
 def _numba_cache_empty() -> bool:
