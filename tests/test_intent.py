@@ -70,7 +70,7 @@ def test_acceleration_rows_follow_the_vehicles_own_acceleration():
     those 0.5 s (highway-env's IDM command), wherever that was firm (|a| > 1 m/s² throughout, one sign)."""
     env = _env()
     agree = firm = 0
-    for seed in range(3):
+    for seed in (0, 2):  # 46 and 78 firm rows in their 20 s (seed 1: 15, left out for time)
         env.reset(seed=seed)
         features = find_wrapper(env, TurnFeatures)
         past: list[dict] = []
