@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from av_gym.errors import run_cli
+from conftest import cli
 
 REFERENCE = resources.files("conf").parent / "checkpoints" / "reference" / "ppo_turn"
 
@@ -88,10 +89,10 @@ def test_a_damaged_checkpoint_is_refused_by_the_loaders_too(tmp_path):
 
 
 def test_a_damaged_checkpoint_end_to_end(tmp_path):
-    """The whole command: one line, exit 2, no run folder left."""
+    """The whole command: one line, exit 2, no run folder left (its command-line check in this process, as
+    conftest.cli runs it: a refusal there is the command's; what passes runs as a process)."""
     folder = damaged(tmp_path / "empty", "empty")
-    res = subprocess.run([sys.executable, "-m", "eval", f"agents=[{folder}]", "episodes=1", "progress_bar=false"],
-                         cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    res = cli("eval", f"agents=[{folder}]", "episodes=1", "progress_bar=false", cwd=tmp_path)
     lines = [line for line in res.stderr.splitlines() if line.strip()]
     assert res.returncode == 2 and len(lines) == 1 and "is empty (0 bytes)" in lines[0], res.stderr[-2000:]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty"]

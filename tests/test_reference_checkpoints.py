@@ -66,7 +66,10 @@ def test_reference_holds_the_named_agents_and_a_name_means_one_folder():
                          "seeds/ppo_turn_shielded/s4", "seeds/ppo_turn_shielded/s5"]
 
 
-@pytest.mark.parametrize("name", SB3_REFS + SEED_REFS)
+# the extra seeds are the named agents' kinds again (~0.15 s each to load and build an env): the named SB3 ones and
+# one PilotNet seed (its model.pt: the kind SB3_REFS lacks) run in the fast suite, the other seeds in the slow one
+@pytest.mark.parametrize("name", SB3_REFS + [pytest.param(s, marks=() if s == "seeds/pilotnet/s1" else pytest.mark.slow)
+                                             for s in SEED_REFS])
 def test_a_reference_checkpoint_has_its_command_and_fits_its_env(name):
     command = (REF / name / "COMMAND").read_text()
     assert "python -m train" in command

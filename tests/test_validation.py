@@ -4,6 +4,7 @@ nothing written) is in test_cli.py, the Params checker itself in test_params.py.
 
 from __future__ import annotations
 
+import functools
 from importlib import resources
 
 import pytest
@@ -33,10 +34,30 @@ SHIPPED = ([("train", [f"env={e}"]) for e in options("env")]
 
 
 def composed(command: str, overrides: list[str]) -> dict:
+    """The checked config of ``python -m <command> <overrides>`` as plain containers: a copy the test may change."""
+    import copy
+
+    return copy.deepcopy(_composed(command, tuple(overrides)))
+
+
+@functools.lru_cache(maxsize=None)
+def _composed(command: str, overrides: tuple[str, ...]) -> dict:
+    # Hydra's composition costs ~0.3 s a config; several tests compose the same one
     from omegaconf import OmegaConf
 
-    (cfg,) = check_command_line(command, overrides)
+    (cfg,) = check_command_line(command, list(overrides))
     return OmegaConf.to_container(cfg, resolve=True)
+
+
+# One shipped option per kind of section has each of its leaves given a wrong type in the fast suite (each agent kind's
+# first preset, both scenarios, the sensors presets that hold every sensor and every turn feature, the plain and the
+# second-opinion shield, eval's config); the other presets repeat those Params (~0.5 s each) and are slow.
+EVERY_FIELD_FAST = {("train", ("env=lane_keeping",)), ("train", ("env=left_turn",)), ("eval", ()),
+                    *(("train", (f"agent={a}", "env=left_turn")) for a in (
+                        "always_proceed", "belief_lookahead", "dagger_turn", "gap_acceptance", "lookahead",
+                        "pid_paper", "pilotnet")),
+                    ("train", ("sensors=full", "agent=always_proceed")), ("train", ("sensors=turn_perceived_memory",)),
+                    ("train", ("shield=aeb",)), ("train", ("shield=aeb_belief",))}
 
 
 @pytest.mark.parametrize("command, overrides", SHIPPED)
@@ -58,7 +79,8 @@ def set_at(cfg: dict, path: tuple, value) -> None:
     cfg[path[-1]] = value
 
 
-@pytest.mark.parametrize("command, overrides", SHIPPED)
+@pytest.mark.parametrize("command, overrides", [
+    pytest.param(c, o, marks=() if (c, tuple(o)) in EVERY_FIELD_FAST else pytest.mark.slow) for c, o in SHIPPED])
 def test_every_field_refuses_a_value_of_the_wrong_type_naming_the_field(command, overrides):
     """No field goes unchecked: each leaf of each shipped option, given a value of the wrong type, is refused by
     a message that starts with its dotted name."""
