@@ -47,9 +47,17 @@ def unit_of(module: str) -> str:
     return parts[0] if parts[0] != "av_gym" or len(parts) == 1 else f"av_gym.{parts[1]}"
 
 
+@functools.lru_cache(maxsize=None)
+def import_nodes(path: Path) -> tuple[ast.Import | ast.ImportFrom, ...]:
+    """Every import statement of one file (parsed once a process: the floor and the circle checks read the same
+    ~140 files, ~2 s a pass)."""
+    return tuple(node for node in ast.walk(ast.parse(path.read_text(), str(path)))
+                 if isinstance(node, (ast.Import, ast.ImportFrom)))
+
+
 def imported_modules(path: Path, root: Path) -> list[str]:
     names: list[str] = []
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+    for node in import_nodes(path):
         if isinstance(node, ast.Import):
             names += [alias.name for alias in node.names]
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
@@ -158,7 +166,7 @@ def module_graph(root: Path | None = None) -> dict[str, set[str]]:
         for path in sorted((root / package).rglob("*.py")):
             src = module_of(path.relative_to(root))
             graph.setdefault(src, set())
-            for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            for node in import_nodes(path):
                 if isinstance(node, ast.Import):
                     names = [alias.name for alias in node.names]
                 elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
