@@ -11,6 +11,7 @@ from pathlib import Path
 
 from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
+from test_imports import import_nodes
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("av_gym", "av_gym_sb3", "av_gym_harness", "agents", "conf", "train", "eval")  # this repository's own
@@ -29,7 +30,7 @@ def third_party_imports(folders: tuple[str, ...]) -> dict[str, set[str]]:
     found: dict[str, set[str]] = {}
     for folder in folders:
         for path in (ROOT / folder).rglob("*.py"):
-            for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            for node in import_nodes(path):  # parsed once a process, shared with test_imports.py
                 if isinstance(node, ast.Import):
                     names = [a.name for a in node.names]
                 elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
