@@ -215,12 +215,12 @@ def play(args, parts: frozenset) -> dict:
         finally:
             if planner.tracks is not None:
                 planner.tracks.unseen = unseen
-        if len(due) and planner.tracks is not None:
-            st = statuses(planner, engine, due, args.match)
+        if len(due):
+            st = statuses(planner, engine, due, args.match) if planner.tracks is not None else {}
             for r in due:
-                at_last[r] = st[int(r)]
+                at_last[r] = st.get(int(r), {})
                 if choice[r] == GO and before[r] != GO:
-                    at_go[r], went[r] = st[int(r)], True
+                    at_go[r], went[r] = at_last[r], True
         k[rows] += 1
         obs, _, done, infos = venv.step(meta_actions(choice, obs["turn"]))
         for r in np.flatnonzero(done):
