@@ -377,6 +377,7 @@ def test_growing_rounds_are_bounded_by_the_aggregate_they_hold(tmp_path, monkeyp
     assert not any(tmp_path.iterdir())
 
 
+@pytest.mark.slow  # ~3.5 CPU-s (3 rounds of training); the sizes and seeds themselves are checked fast above
 def test_a_growing_dagger_run_drives_its_rounds_sizes(tmp_path):
     """End to end (the batched oracle, 3 rounds from 1 episode, x 2 a round): rounds.csv counts 1, 2 and 4
     episodes and the labels grow with them."""

@@ -234,7 +234,8 @@ def test_point_in_box_kernel_is_the_numpy_one_on_its_edges():
 PAIRWISE = {"front", "collisions", "conflicts", "closest", "ttc", "idm"}
 
 
-@pytest.mark.parametrize("env", [{}, {"mode": "ccftap"}])
+# traffic in the fast suite (spawns, pool resets, yields, crashes); CCFtap's whole runs (~1 CPU-s) in the slow one
+@pytest.mark.parametrize("env", [{}, pytest.param({"mode": "ccftap"}, marks=pytest.mark.slow)])
 def test_batch_with_kernels_is_the_batch_without(monkeypatch, env):
     """Whole runs (spawns, resets through the pool, yields, crashes, TTC) with the pairwise kernels: every state
     array equal at every step. (The fused tick, which also moves the transcendental maths of steering and
