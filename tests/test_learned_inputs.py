@@ -107,7 +107,7 @@ def test_intervention_cost_charges_shield_overrides():
     base = make_env(conf("env", "left_turn"), conf("sensors", "truth"), conf("shield", "aeb"))
     costly = InterventionCost(make_env(conf("env", "left_turn"), conf("sensors", "truth"), conf("shield", "aeb")),
                               cost=2.0)
-    for seed in range(30):
+    for seed in range(1, 30):  # seed 0 (81 steps) has no override; seed 1 has 37
         base.reset(seed=seed)
         costly.reset(seed=seed)
         overrides, diff, done = 0, 0.0, False
@@ -120,7 +120,7 @@ def test_intervention_cost_charges_shield_overrides():
         if overrides:
             assert diff == pytest.approx(2.0 * overrides / 10)
             return
-    pytest.fail("the shield never intervened in 30 seeds")
+    pytest.fail("the shield never intervened in seeds 1-29")
 
 
 def test_lane_features_from_truth_match_the_privileged_state():
@@ -238,9 +238,10 @@ def _go_yield_future(env, obs, go_from: int, steps: int = 400) -> tuple[list, di
     return out, obs
 
 
-@pytest.mark.parametrize("sensors, shield, mode", [("turn_truth", "none", None),
-                                                   ("turn_truth", "aeb", "ground_truth"),
-                                                   ("turn_perceived", "aeb", "perceived")])
+@pytest.mark.parametrize("sensors, shield, mode", [
+    ("turn_truth", "none", None), ("turn_truth", "aeb", "ground_truth"),
+    # ~5 CPU-s (the tracker and the perceived shield, three futures): the copied shield and actuator stay fast above
+    pytest.param("turn_perceived", "aeb", "perceived", marks=pytest.mark.slow)])
 def test_a_deep_copy_of_the_stack_plays_the_real_future_and_leaves_the_original_untouched(sensors, shield, mode):
     """What the lookahead oracle relies on (``go_is_safe``): a deep copy of the whole stack (sensors, tracker,
     shield and its brake actuator included) steps exactly as the original would, and copying does not disturb
@@ -308,9 +309,9 @@ def test_dagger_rounds_let_the_student_drive_and_the_teacher_label_its_states():
     teach = lambda seeds, rounds: pretrain_from_teacher(  # noqa: E731
         model, make(), make_teacher("gap_acceptance", "go_yield"), seeds, gamma=0.95, epochs=5, batch_size=64,
         dagger_rounds=rounds, log=lambda msg: None)
-    teacher_only = teach(range(2), 0)  # the teacher drives seeds 0, 1
-    stats = teach(range(4), 1)  # the teacher drives seeds 0, 1; the student 2, 3, and the teacher labels its states
-    assert stats["episodes"] == 4 and not np.isnan(stats["student_success"])
+    teacher_only = teach(range(1), 0)  # the teacher drives seed 0
+    stats = teach(range(2), 1)  # the teacher drives seed 0; the student 1, and the teacher labels its states
+    assert stats["episodes"] == 2 and not np.isnan(stats["student_success"])
     assert np.isnan(teacher_only["student_success"])
     assert stats["decisions"] > teacher_only["decisions"]  # the student's states were labelled and added
 
