@@ -235,7 +235,8 @@ def test_batched_ccftap_ends_as_the_per_env_env():
         assert te2 and not crash2, ends  # waited, went after the target: arrived with the target passed
 
 
-@pytest.mark.parametrize("mode", ["traffic", "ccftap"])
+# CCFtap keeps continuous actions in the fast suite; in traffic (12 episodes, ~2.5 CPU-s) they are the slow suite's
+@pytest.mark.parametrize("mode", [pytest.param("traffic", marks=pytest.mark.slow), "ccftap"])
 def test_batched_continuous_actions_match_per_env_stack_for_5_s(mode):
     """env.action=continuous (RouteFollowingVehicle: commanded acceleration, route-following steering; a
     ControlledVehicle, so the regulation may set its unused target speed, which obs["turn"]'s set-point reads):
@@ -268,7 +269,9 @@ def _ppo_turn_config(*overrides):
     return [OmegaConf.to_container(c, resolve=True) for c in (cfg.env, cfg.sensors, cfg.shield)]
 
 
-@pytest.mark.parametrize("sensors", ["turn_truth", "turn_truth_memory"])
+# the fast suite's case is the memory preset: the same obs["turn"] and obs["intent"] plus the turn beliefs over
+# them; the plain preset (~3 CPU-s more) is the slow suite's
+@pytest.mark.parametrize("sensors", [pytest.param("turn_truth", marks=pytest.mark.slow), "turn_truth_memory"])
 def test_vec_env_matches_the_training_stack(sensors):
     """BatchedLeftTurnVecEnv against train/ppo.py's per-env stack for agent=ppo_turn (GO/YIELD at 2 Hz, action
     repeat 5, obs turn + intent with the noisy turn signals; with memory, the turn beliefs), same seeds and choices:

@@ -121,7 +121,7 @@ def test_fast_kinematics_matches_highway_env_observation(make, turn_cfg):
     env = make(turn_cfg)
     u = env.unwrapped
     steps = 0
-    for seed in range(3):
+    for seed in range(1):  # one whole episode: every step's observation compared (> 50 steps, asserted)
         env.reset(seed=seed)
         stock = KinematicObservation(u, **{k: v for k, v in u.config["observation"].items() if k != "type"})
         done = False
@@ -176,7 +176,11 @@ def test_left_turn_spawn_rate_is_per_second(make, turn_cfg):
     assert attempts > 150 and spawned / attempts <= 0.06 + 3 * np.sqrt(0.06 * 0.94 / attempts)
 
 
-@pytest.mark.parametrize("ego_kmh, target_kmh", list(itertools.product((10, 15, 20), (30, 45, 60))))
+# the grid's diagonal (slowest ego with slowest target ... fastest with fastest) in the fast suite, the other six
+# cases (~0.5 CPU-s each, the same code at other speeds) in the slow one
+@pytest.mark.parametrize("ego_kmh, target_kmh", [
+    (e, t) if (e, t) in ((10, 30), (15, 45), (20, 60)) else pytest.param(e, t, marks=pytest.mark.slow)
+    for e, t in itertools.product((10, 15, 20), (30, 45, 60))])
 def test_ccftap_dt0_collides_and_large_dt_does_not(make, ego_kmh, target_kmh):
     for dt, expect in ((0.0, True), (-3.0, False), (3.0, False)):
         env = make(ccftap_cfg(ego_kmh, target_kmh, dt))

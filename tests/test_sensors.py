@@ -226,8 +226,15 @@ def test_sensors_never_change_the_truth():
     assert [t["cte"] for t in plain] == [t["cte"] for t in sensed]
 
 
-@pytest.mark.parametrize("preset", ["truth", "gnss_imu", "lidar", "cameras", "detector", "full"])
-@pytest.mark.parametrize("scenario", ["lane_keeping", "left_turn"])
+PRESETS = ["truth", "gnss_imu", "lidar", "cameras", "detector", "full"]
+
+
+# Every preset on the lap, and on the left turn its two kinds (truth; full: every sensor at once); the left turn's
+# single-sensor presets (~3.3 CPU-s together) are the slow suite's.
+@pytest.mark.parametrize("scenario, preset", [
+    *[("lane_keeping", p) for p in PRESETS],
+    *[("left_turn", p) if p in ("truth", "full") else pytest.param("left_turn", p, marks=pytest.mark.slow)
+      for p in PRESETS]])
 def test_presets_pass_check_env(preset, scenario):
     cfg = compose_cfg(f"env={scenario}", f"sensors={preset}")
     env = make_env(cfg.env, cfg.sensors, cfg.shield, record_metrics=False)
