@@ -118,10 +118,24 @@ def test_train_the_camera_lane_keeper_with_a_narrow_cnn(tmp_path):
     ("eval", ["shield=aeb", "+shield.detector.sigma_vel=-1"], "shield.detector.sigma_vel must be a number >= 0"),
 ])
 def test_bad_input_gives_one_line_and_exit_code_2(tmp_path, module, overrides, needle):
-    # the command-line check in this process (conftest.cli); two cases as a user runs them, in a new process
-    runner = run if overrides in (["env.mode=rush_hour"], ["n_envs=0"]) else cli
-    res = runner(module, *overrides, "progress_bar=false" if module == "eval" else "train.progress_bar=false",
-                 cwd=tmp_path)
+    # the command-line check in this process (conftest.cli); test_bad_input_in_a_new_process runs two as a user does
+    quiet = "progress_bar=false" if module == "eval" else "train.progress_bar=false"
+    refused_in_one_line(cli(module, *overrides, quiet, cwd=tmp_path), needle, tmp_path)
+
+
+@pytest.mark.parametrize("module, overrides, needle", [
+    ("eval", ["n_envs=0"], "n_envs must be an integer in [1, 1024], got 0"),
+    # a second interpreter (~5 s) says nothing the eval case does not: slow
+    pytest.param("train", ["env.mode=rush_hour"], "env.mode must be one of ['traffic', 'ccftap']",
+                 marks=pytest.mark.slow),
+])
+def test_bad_input_in_a_new_process(tmp_path, module, overrides, needle):
+    quiet = "progress_bar=false" if module == "eval" else "train.progress_bar=false"
+    refused_in_one_line(run(module, *overrides, quiet, cwd=tmp_path), needle, tmp_path)
+
+
+def refused_in_one_line(res, needle: str, tmp_path) -> None:
+    """Exit status 2, one line on stderr holding ``needle``, no traceback, nothing written in ``tmp_path``."""
     assert res.returncode == 2, res.stderr[-2000:]
     lines = [line for line in res.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and needle in lines[0] and "Traceback" not in res.stderr, res.stderr[-2000:]
