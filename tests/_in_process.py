@@ -44,3 +44,13 @@ def run_script(script: Path, *args: str, cwd: Path) -> CompletedProcess:
         err.write(f"{code}\n")
         code = 1
     return CompletedProcess([sys.executable, str(script), *args], code, out.getvalue(), err.getvalue())
+
+
+def guarded_worker(queue) -> None:
+    """A multiprocessing target that runs :func:`eval.runner.guard_worker` and says it is alive. Here, in a module
+    of the standard library's imports only: a forkserver child imports the target's module, and a test module's
+    imports (the registry, SB3, torch) cost its start ~4 s."""
+    from eval.runner import guard_worker
+
+    guard_worker()
+    queue.put("alive")

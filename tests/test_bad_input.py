@@ -22,7 +22,6 @@ import numpy as np
 import pytest
 
 from av_gym.errors import run_cli
-from conftest import cli
 
 REFERENCE = resources.files("conf").parent / "checkpoints" / "reference" / "ppo_turn"
 
@@ -91,6 +90,8 @@ def test_a_damaged_checkpoint_is_refused_by_the_loaders_too(tmp_path):
 def test_a_damaged_checkpoint_end_to_end(tmp_path):
     """The whole command: one line, exit 2, no run folder left (its command-line check in this process, as
     conftest.cli runs it: a refusal there is the command's; what passes runs as a process)."""
+    from conftest import cli
+
     folder = damaged(tmp_path / "empty", "empty")
     res = cli("eval", f"agents=[{folder}]", "episodes=1", "progress_bar=false", cwd=tmp_path)
     lines = [line for line in res.stderr.splitlines() if line.strip()]

@@ -31,13 +31,21 @@ def locked_by_another(folder: Path, pid: int = 4242) -> int:
 
 
 # ------------------------------------------------------------------------------------ train and the shipped references
-@pytest.mark.parametrize("where", [
+WHERE = [
     ["paths.checkpoints={root}/..", "run_name=reference"],  # run_name=reference: every shipped agent
     ["paths.checkpoints={root}", "run_name=ppo_turn"],  # one shipped agent
     ["paths.checkpoints={root}/../..", "run_name={parent}"],  # the folder that holds them
     ["run_name={parent}", "paths.runs={root}/../.."],  # a log folder (train.overwrite=true clears it) that holds them
-])
-@pytest.mark.parametrize("flags", [[], ["train.overwrite=true"], ["train.resume=true"]])
+]
+FLAGS = [[], ["train.overwrite=true"], ["train.resume=true"]]
+
+
+# fast: every folder with train.overwrite=true (the flag that deleted them) and one folder with each flag; the
+# other 6 pairs (~0.2 s of Hydra each) are slow
+@pytest.mark.parametrize("where, flags", [
+    pytest.param(w, f, marks=() if f == ["train.overwrite=true"] or w is WHERE[1] else pytest.mark.slow,
+                 id=f"where{i}-{f[0] if f else 'no_flag'}")
+    for f in FLAGS for i, w in enumerate(WHERE)])
 def test_train_never_writes_the_shipped_references(where, flags, shipped, tmp_path, monkeypatch, capsys, released):
     """``run_name=reference train.overwrite=true`` deleted every shipped reference (exit 0), and
     ``paths.checkpoints=checkpoints/reference run_name=ppo_turn`` replaced ppo_turn; the refusal without the flag

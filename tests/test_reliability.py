@@ -605,22 +605,17 @@ def test_the_quick_mixed_soak_is_clean(tmp_path, monkeypatch, capsys):
     assert "| exceptions | 0 | PASS (none) |" in text and "48 of 48" in text
 
 
-def _guarded_worker(queue) -> None:
-    from eval.runner import guard_worker
-
-    guard_worker()
-    queue.put("alive")
-
-
 @pytest.mark.parametrize("method", ["fork", "forkserver"])
 def test_guarded_worker_lives_under_every_start_method(method):
     """A forkserver worker's OS parent is the forkserver, not multiprocessing's parent: the guard once took that
     for a dead parent and exited silently, so every SubprocVecEnv (SB3 starts its workers by forkserver) died."""
     import multiprocessing
 
+    from _in_process import guarded_worker
+
     ctx = multiprocessing.get_context(method)
     queue = ctx.Queue()
-    worker = ctx.Process(target=_guarded_worker, args=(queue,))
+    worker = ctx.Process(target=guarded_worker, args=(queue,))
     worker.start()
     worker.join(60)
     assert worker.exitcode == 0 and queue.get(timeout=5) == "alive"
