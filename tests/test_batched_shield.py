@@ -453,23 +453,24 @@ def test_eval_on_the_batch_records_the_shield_it_ran(tmp_path):
 
 
 def test_the_screened_decisions_are_each_rows_own(monkeypatch):
-    """BatchedShield._screen decides the rows whose own decision is MONITOR with no conflict for all rows at once
-    (the route position, profile, horizon and first TTC in arrays and one compiled call): with SCREEN_CHECK each
-    screened row's own ``_decide`` runs from the same state and must give the same decision (MONITOR, inf, the
-    same horizon, no target, the same turn-window flag) and move its state as the screen does, over episodes with
-    FASTER / SLOWER / IDLE proposed (check_action's set-point profiles), before, in and after the turn window.
-    Fails if the screen's horizon, route lane or time differ from the row's, or it screens a row whose own decision
-    is not MONITOR with an infinite TTC."""
+    """BatchedShield._screen decides the rows whose own decision is MONITOR with no conflict or a warning for all
+    rows at once (the route position, profile, horizon and first TTC in arrays and compiled calls): with
+    SCREEN_CHECK each screened row's own ``_decide`` runs from the same state and must give the same decision
+    (stage, TTC, horizon, target, turn-window flag) and move its route lane and time as the screen does, over
+    episodes with FASTER / SLOWER / IDLE proposed (check_action's set-point profiles), before, in and after the turn
+    window. Fails if the screen's stage, TTC, target, horizon, route lane or time differ from the row's, or it
+    screens a row whose own decision is another (a brake, an emergency test)."""
     from av_gym.batched import shield as batched_shield
 
     monkeypatch.setattr(batched_shield, "SCREEN_CHECK", True)
-    seen = {"screened": 0, "active": 0, "setpoint": 0}
+    seen = {"screened": 0, "active": 0, "setpoint": 0, "warn": 0}
     check = batched_shield._check_screened
 
-    def counted(shield, horizon, active, route_k, now):
-        check(shield, horizon, active, route_k, now)
+    def counted(shield, want, route_k, now):
+        check(shield, want, route_k, now)
         seen["screened"] += 1
-        seen["active"] += int(active)
+        seen["active"] += int(want[4])
+        seen["warn"] += int(np.isfinite(want[1]))
         seen["setpoint"] += int(shield._proposed in (0, 2))  # SLOWER, FASTER: under check_action, setpoint_steps
 
     monkeypatch.setattr(batched_shield, "_check_screened", counted)
@@ -481,3 +482,4 @@ def test_the_screened_decisions_are_each_rows_own(monkeypatch):
             break
         venv.step(rng.integers(0, 3, 3))
     assert venv.idle.all() and seen["screened"] > 100 and seen["active"] > 30 and seen["setpoint"] > 30, seen
+    assert seen["warn"] > 20, seen  # a conflict later than ttc_brake, away from the trigger point: a warning

@@ -50,7 +50,7 @@ from av_gym.sensors.base import episode_rng
 from av_gym.sensors.turn_signal import (DRIVER_DRAWS, DriverDraws, first_sighting, fit_ids, node_index, reported,
                                         route_origin, turn_signal)
 from av_gym.shields.aeb_improved import GO_TAU, ImprovedAEB, _go_rise, followers, long_times
-from av_gym.shields.aeb_params import BRAKE, MONITOR, STOP_SPEED, ImprovedParams
+from av_gym.shields.aeb_params import BRAKE, MONITOR, STOP_SPEED, WARN, ImprovedParams
 from av_gym.shields.conflicts import ConflictModel
 from av_gym.shields.predict import setpoint_steps
 from av_gym.sim.fast_network import FastRoadNetwork
@@ -457,6 +457,7 @@ class BatchedShield:
         if engine.config.get("fast", True):  # the per-env env's own (UnprotectedLeftTurnEnv._reset): its lanes' floats
             network = FastRoadNetwork.from_network(network)
         route = LanePath([network.get_lane(i) for i in ROUTE])
+        self.route = route  # the ego's LanePath, shared by every row's view
         self.views = [RowEnv(engine, r, template, network, route) for r in range(B)]
         self.shields = []
         row_shield = _row_shield_class()
@@ -514,7 +515,7 @@ class BatchedShield:
         applied = np.array(actions, copy=True)
         screened = self._screen(rows, actions)
         for n, r in enumerate(rows.tolist()):
-            if screened is not None and screened[n]:  # decided by the screen: MONITOR, its state moved on
+            if screened is not None and screened[n]:  # the screen decided it (no brake), its state moved on
                 self.override[r] = False
                 continue
             s = self.shields[r]
@@ -603,96 +604,143 @@ class BatchedShield:
             self._flat = (row_off, others[:, 5:7], flat)
         return self.conflicts.split_rows(flat, len(self.t_long), len(kept))
 
-    # long: one pass over the rows in the order of the row's own _decide; each step's arrays feed the next
     def _screen(self, rows: np.ndarray, actions: np.ndarray) -> np.ndarray | None:
-        """(n,) bool: the decisions of the envs ``rows`` that are MONITOR by the row's own rules, decided here for
-        all rows at once, their shields' state moved on as their own ``_decide`` moves it (None: none screened).
+        """(n,) bool: the decisions of the envs ``rows`` that end, by the row's own rules, in MONITOR with no
+        conflict or in a warning, decided here for all rows at once, their shields' state moved on as their own
+        ``_decide`` moves it (None: none screened).
 
         Which: ground-truth mode on the batch's prediction, discrete actions, not latched, and the first test of
-        ImprovedAEB._decide_improved finds no conflict (the ego carrying on, its TTC against the kept road users'
-        hypotheses infinite) while the set-off rule cannot act (outside it, or not at the stop-line trigger point).
-        The row's code then returns ``(MONITOR, inf, horizon, -1, active, False)`` having changed only its route
-        lane hint (``_ego``), ``_lanes``, ``_keys``, ``_prev_t`` and ``target_xy``: these are set here. The same
-        floats by construction: the route position from the row's own ``LanePath.locate``, the profile, horizon
-        and front-to-line distance element by element as the row computes them (the profile under a FASTER /
-        SLOWER the row's own :func:`setpoint_steps`), the TTC by :func:`~av_gym.shields.kernels.driven_ttc_rows`
-        (each row the row's :func:`driven_ttc` kernel on its slices), the trigger point by the row's own
-        ``_at_trigger_point``. With :data:`SCREEN_CHECK` each screened row's own ``_decide`` runs too and must agree.
-        Why: ~80 % of the decisions end here, and the rows' Python around the first TTC was most of their cost."""
+        ImprovedAEB._decide_improved (the ego carrying on, its TTC against the kept road users' hypotheses) finds
+
+        - no conflict (TTC infinite) while the set-off rule cannot act (outside it, or not at the stop-line trigger
+          point): the row returns ``(MONITOR, inf, horizon, -1, active, False)``;
+        - a conflict later than ``ttc_brake`` (so no emergency test) with the ego not at the stop-line trigger point
+          (the set-off rule is asked only with no conflict): ``_warn_or_brake`` returns ``(WARN if active or TTC <=
+          warn_ttc else MONITOR, TTC, horizon, its target, active, False)``.
+
+        The row's code changes only its route lane hint (``_ego``), ``_lanes``, ``_keys``, ``_prev_t`` and
+        ``target_xy`` then: these are set here. The same floats by construction (:meth:`_screen_egos`,
+        :meth:`_screen_ttc`, :meth:`_screen_trigger`). With :data:`SCREEN_CHECK` each screened row's own
+        ``_decide`` runs too and must agree. Why: ~95 % of the decisions end here, and the rows' Python around the
+        first TTC was most of their cost."""
         flat, self._flat = self._flat, None
         if not SCREEN or flat is None or self.e.continuous or not len(rows):
             return None
-        from av_gym.shields.kernels import driven_ttc_rows
-        from av_gym.shields.predict import DRIVEN_SPEEDS, FOOTPRINT_KERNEL, DrivenPath, _footprint_args, _store
+        from av_gym.shields.predict import FOOTPRINT_KERNEL, DrivenPath
 
-        p, e, t = self.p, self.e, self.e.traffic
         first = self.shields[int(rows[0])]
-        driven, route = first.driven, first.route
-        if not (DrivenPath.kernel and FOOTPRINT_KERNEL and driven._register() >= 0):
+        if not (DrivenPath.kernel and FOOTPRINT_KERNEL and first.driven._register() >= 0):
             return None
-        row_off, kept_size, (h_off, n_h, xy, hh, owner, is_map, _) = flat
+        shields = [self.shields[r] for r in rows.tolist()]
+        g = self._screen_egos(rows, actions, shields, flat[2][1])
+        missing, k, m = self._screen_ttc(g, flat, first)
+        p = self.p
+        ttc = np.where(k >= 0, self.t_long[np.maximum(k, 0)], np.inf)
+        quiet = g.cand & (missing == 0) & (k < 0)
+        warn = g.cand & (missing == 0) & (k >= 0) & (ttc > p.ttc_brake)
+        # the stop-line trigger point: a warning's _warn_or_brake asks it, a quiet row's set-off rule (if on)
+        setoff_rule = p.setoff_speed > 0 and p.target_model == "conflict"
+        ask = (warn | (quiet & setoff_rule)) & g.active & (g.front_to_line >= 0)
+        decided = (quiet | warn) & ~self._screen_trigger(g, ask, shields, first)
+        stage = np.where(warn & (g.active | (ttc <= p.warn_ttc)), WARN, MONITOR)
+        self._screen_apply(rows, actions, shields, g, decided, stage, ttc, np.where(warn, m, -1), flat)
+        return decided
+
+    def _screen_egos(self, rows: np.ndarray, actions: np.ndarray, shields: list, n_h: np.ndarray) -> SimpleNamespace:
+        """:meth:`_screen`'s candidates (``cand`` (n,): an ego on the road, the batch's prediction, not latched) and
+        per decision what the row's own ``_ego``, ``_is_active``, ``_continue_profile`` and ``_horizon`` compute:
+        ``route_k``, ``s0`` (m), ``speed`` (m/s), ``accel`` (m/s²), ``now`` (s), ``front_to_line`` (m), ``active``,
+        ``ds`` (n, K) m, ``horizon`` (s), ``n_slices``. The route position by :meth:`LanePath.locate_rows` from each
+        row's own hint (the method's walk and floats), the profile, horizon and front-to-line distance element by
+        element as the row computes them (under a FASTER / SLOWER the row's own :func:`setpoint_steps`)."""
+        p, e, t = self.p, self.e, self.e.traffic
+        first = shields[0]
+        route, driven = first.route, first.driven
         slot = e.ego_slot(rows)
-        speed, set_speed, accel = t.v[rows, slot], t.target[rows, slot], t.acc[rows, slot]
-        now = e.ticks[rows] / float(e.config["simulation_frequency"])
-        cand = (t.alive[rows, slot] & t.ego[rows, slot]) & (n_h >= 0)
-        # the ego's route position as the row's _ego reads it (its own LanePath.locate from its own hint)
-        route_k, s_lane = np.zeros(len(rows), np.int64), np.zeros(len(rows))
-        names = self.views[int(rows[0])].action_type.actions
-        steps_of = {"FASTER": 1, "SLOWER": -1}
-        setpoint = {}  # n -> FASTER (+1) / SLOWER (-1) repeated under check_action
-        for n in np.flatnonzero(cand).tolist():
-            r = int(rows[n])
-            sh, view = self.shields[r], self.views[r]
-            if sh._latched or sh.route is not route or sh.driven is not driven:
-                cand[n] = False
-                continue
-            route_k[n], s_lane[n], _ = view.route.locate(view.vehicle.position, sh._route_k)
-            if p.check_action:
-                step = steps_of.get(names.get(int(actions[r])))
-                if step is not None:
-                    setpoint[n] = step
-        s0 = route.starts[route_k] + s_lane
-        front_to_line = first.stop_line_s - (s0 + 0.5 * LENGTH)
-        active = (s0 < first.clear_s) & (front_to_line <= p.activation_distance)
+        g = SimpleNamespace(speed=t.v[rows, slot], accel=t.acc[rows, slot],
+                            now=e.ticks[rows] / float(e.config["simulation_frequency"]))
+        set_speed = t.target[rows, slot]
+        g.cand = (t.alive[rows, slot] & t.ego[rows, slot]) & (n_h >= 0) & np.array(
+            [not sh._latched and sh.route is route and sh.driven is driven for sh in shields], dtype=bool)
+        at = np.flatnonzero(g.cand)
+        g.route_k, s_lane = np.zeros(len(rows), np.int64), np.zeros(len(rows))
+        hint = np.array([shields[n]._route_k for n in at.tolist()], dtype=np.int64)
+        g.route_k[at], s_lane[at], _ = self.route.locate_rows(t.x[rows[at], slot[at]], t.y[rows[at], slot[at]], hint)
+        g.s0 = route.starts[g.route_k] + s_lane
+        g.front_to_line = first.stop_line_s - (g.s0 + 0.5 * LENGTH)
+        g.active = (g.s0 < first.clear_s) & (g.front_to_line <= p.activation_distance)
         # the ego carrying on (ImprovedAEB._continue_profile): go_profile's expression, or setpoint_steps
         t_long, rise = self.t_long, _go_rise(p)
-        ds = set_speed[:, None] * t_long[None, :] + ((speed - set_speed) * GO_TAU)[:, None] * rise[None, :]
-        for n, step in setpoint.items():
-            ds[n] = setpoint_steps(float(speed[n]), self.views[int(rows[n])].vehicle.target_speeds, step, t_long,
-                                   dt=first.sim_dt)
+        g.ds = set_speed[:, None] * t_long[None, :] + ((g.speed - set_speed) * GO_TAU)[:, None] * rise[None, :]
+        if p.check_action:  # FASTER (+1) / SLOWER (-1) repeated
+            names = self.views[int(rows[0])].action_type.actions
+            step = {a: 1 if name == "FASTER" else -1 for a, name in names.items() if name in ("FASTER", "SLOWER")}
+            for n in at.tolist():
+                s = step.get(int(actions[rows[n]]))
+                if s is not None:
+                    g.ds[n] = setpoint_steps(float(g.speed[n]), self.views[int(rows[n])].vehicle.target_speeds, s,
+                                             t_long, dt=first.sim_dt)
         # ImprovedAEB._horizon, element by element
-        reached = s0[:, None] + ds >= first.clear_s
+        reached = g.s0[:, None] + g.ds >= first.clear_s
         h = np.where(reached.any(axis=1), t_long[np.argmax(reached, axis=1)] + p.step, p.horizon_max)
-        horizon = np.minimum(np.maximum(h, p.horizon_min), p.horizon_max)
-        n_slices = np.rint(horizon / p.step).astype(np.int64)
-        # the first TTC (ImprovedAEB._ttc_of with the scene's hypotheses and p.margin) of every candidate at once
-        row_of = np.repeat(np.arange(len(rows)), np.diff(h_off))
+        g.horizon = np.minimum(np.maximum(h, p.horizon_min), p.horizon_max)
+        g.n_slices = np.rint(g.horizon / p.step).astype(np.int64)
+        return g
+
+    def _screen_ttc(self, g: SimpleNamespace, flat: tuple, first) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The first TTC of every candidate at once (ImprovedAEB._ttc_of with the scene's hypotheses and
+        ``p.margin``): per decision (missing speed bins, slice, hypothesis) of
+        :func:`~av_gym.shields.kernels.driven_ttc_rows` (each row the row's :func:`driven_ttc` kernel on its slices
+        of :meth:`ConflictModel.predict_rows_flat`'s buffers ``flat``)."""
+        from av_gym.shields.kernels import driven_ttc_rows
+        from av_gym.shields.predict import DRIVEN_SPEEDS, _footprint_args, _store
+
+        p = self.p
+        row_off, kept_size, (h_off, n_h, xy, hh, owner, is_map, _) = flat
+        row_of = np.repeat(np.arange(len(g.cand)), np.diff(h_off))
         valid = np.arange(int(h_off[-1])) - h_off[row_of] < n_h[row_of]
         osize, rear = np.zeros((len(valid), 2)), np.zeros(len(valid), bool)
         osize[valid] = kept_size[row_off[row_of[valid]] + owner[valid]]
         rear[valid] = is_map[valid] | p.ignore_rear
         length, width, xy, hh, osize, reach, rear = _footprint_args((float(LENGTH), float(WIDTH)), xy, hh, osize,
                                                                     p.margin, rear)
-        st, need = _store(), np.zeros((len(rows), len(DRIVEN_SPEEDS)), dtype=np.bool_)
-        missing, k, _ = driven_ttc_rows(st.data, st.route, st.limits, st.bins, st.grid_table, driven.store_id, s0,
-                                        np.ascontiguousarray(ds), n_slices, t_long, length, width, xy, hh, h_off,
-                                        np.where(cand, n_h, -1), osize, reach, rear, need)
-        quiet = cand & (missing == 0) & (k < 0)
-        setoff_rule = p.setoff_speed > 0 and p.target_model == "conflict"
-        for n in np.flatnonzero(quiet & active & (front_to_line >= 0)).tolist() if setoff_rule else []:
-            sc = SimpleNamespace(in_turn=True, front_to_line=float(front_to_line[n]), v=float(speed[n]),
-                                 a=float(accel[n]))
-            if self.shields[int(rows[n])]._at_trigger_point(sc):  # the set-off rule may act: the row decides
-                quiet[n] = False
-        for n in np.flatnonzero(quiet).tolist():
+        st, need = _store(), np.zeros((len(g.cand), len(DRIVEN_SPEEDS)), dtype=np.bool_)
+        return driven_ttc_rows(st.data, st.route, st.limits, st.bins, st.grid_table, first.driven.store_id, g.s0,
+                               np.ascontiguousarray(g.ds), g.n_slices, self.t_long, length, width, xy, hh, h_off,
+                               np.where(g.cand, n_h, -1), osize, reach, rear, need)
+
+    def _screen_trigger(self, g: SimpleNamespace, ask: np.ndarray, shields: list, first) -> np.ndarray:
+        """(n,) bool: of the decisions ``ask`` (in the turn window, not past the line), those at the stop-line
+        trigger point (the row's own ``_at_trigger_point``). Beyond :meth:`BrakeActuator.stopping_bounds` (the
+        per-row upper bound, for all rows at once, the same floats) plus one decision period and ``stop_margin``
+        the answer is False without the ticks, as the row's own; the rest ask their row."""
+        p = self.p
+        at = np.zeros(len(ask), bool)
+        reach = first.actuator.stopping_bounds(g.speed, g.accel, first.sim_dt) + (g.speed * p.step + p.stop_margin)
+        for n in np.flatnonzero(ask & ~(g.front_to_line > reach)).tolist():
+            sc = SimpleNamespace(in_turn=True, front_to_line=float(g.front_to_line[n]), v=float(g.speed[n]),
+                                 a=float(g.accel[n]))
+            at[n] = shields[n]._at_trigger_point(sc)
+        return at
+
+    def _screen_apply(self, rows: np.ndarray, actions: np.ndarray, shields: list, g: SimpleNamespace,
+                      decided: np.ndarray, stage: np.ndarray, ttc: np.ndarray, hit: np.ndarray, flat: tuple) -> None:
+        """The state of the ``decided`` rows moved on as their own ``_decide`` moves it: route lane, road users'
+        lanes and keys, decision time, and ``target_xy`` (the road user of hypothesis ``hit`` (n,; -1: none) of the
+        row's block of ``flat``, NaN for none)."""
+        h_off, owner = flat[2][0], flat[2][4]
+        for n in np.flatnonzero(decided).tolist():
             r = int(rows[n])
-            sh, view = self.shields[r], self.views[r]
+            sh, view = shields[n], self.views[r]
+            target = -1
+            if hit[n] >= 0:  # ImprovedAEB's sc.idx[target]: the kept road user's row among all the row's road users
+                target = int(np.flatnonzero(view.relevant)[owner[h_off[n] + hit[n]]])
             sh._proposed = self._env_action(actions[r])
             if SCREEN_CHECK:
-                _check_screened(sh, float(horizon[n]), bool(active[n]), int(route_k[n]), float(now[n]))
-            sh._route_k, sh._lanes, sh._keys, sh._prev_t = int(route_k[n]), view.lanes, view.keys, float(now[n])
-            sh.target_xy = np.full(2, np.nan)
-        return quiet
+                want = (int(stage[n]), float(ttc[n]), float(g.horizon[n]), target, bool(g.active[n]), False)
+                _check_screened(sh, want, int(g.route_k[n]), float(g.now[n]))
+            sh._route_k, sh._lanes, sh._keys, sh._prev_t = int(g.route_k[n]), view.lanes, view.keys, float(g.now[n])
+            sh.target_xy = view.objects[target, 0:2].copy() if target >= 0 else np.full(2, np.nan)
 
     def _env_action(self, a):
         """One env's action as the per-env env takes it: a meta-action int, or the continuous (1,) float32."""
@@ -751,11 +799,11 @@ class BatchedShield:
                 "overrides": list(self.overrides[r])}
 
 
-def _check_screened(shield, horizon: float, active: bool, route_k: int, now: float) -> None:
-    """:data:`SCREEN_CHECK`: the row's own decision from the state the screen found is the screen's, and moves its
-    state as the screen does (an AssertionError naming what differs)."""
+def _check_screened(shield, want: tuple, route_k: int, now: float) -> None:
+    """:data:`SCREEN_CHECK`: the row's own decision from the state the screen found is the screen's ``want``
+    (stage, TTC s, horizon s, target, active, infeasible), and moves its state as the screen does (an AssertionError
+    naming what differs)."""
     got = shield._decide()
-    want = (MONITOR, float("inf"), horizon, -1, active, False)
     assert got == want and shield._route_k == route_k and shield._prev_t == now, \
         f"screened row {shield.env.row}: its own decision {got}, route lane {shield._route_k}, time " \
         f"{shield._prev_t}; the screen's {want}, {route_k}, {now}"

@@ -96,6 +96,15 @@ class BrakeActuator:
         bound = v_peak * (self.delay + ramp + 4.0 * dt) + v_peak * v_peak / (2.0 * self.decel)
         return 1.01 * bound + 1e-6
 
+    def stopping_bounds(self, v0: np.ndarray, a_before: np.ndarray, dt: float) -> np.ndarray:
+        """:meth:`stopping_bound` of many states at once (``v0`` m/s, ``a_before`` m/s², same shape): the same
+        operations element by element, the same floats (the batch's shield asks it for all rows at once)."""
+        v0 = np.maximum(np.asarray(v0, dtype=float), 0.0)
+        v_peak = v0 + np.maximum(np.asarray(a_before, dtype=float), 0.0) * (self.delay + dt)
+        ramp = self.decel / self.jerk if self.jerk > 0 else 0.0
+        bound = v_peak * (self.delay + ramp + 4.0 * dt) + v_peak * v_peak / (2.0 * self.decel)
+        return 1.01 * bound + 1e-6
+
 
 class _ActuatedAct:
     """The ego's ``act`` followed by the shield's brake actuator (:meth:`AEBShield._install_actuator`). An object,

@@ -479,6 +479,30 @@ def _stock_heading(lanes, k, s):
     return lanes[k, 7]
 
 
+@numba.njit(cache=True)
+def locate_rows(lanes, lengths, closed, hint, x, y, phi, fused, out_k, out_s, out_lat):
+    """:meth:`av_gym.envs.lane_path.LanePath.locate` of R points (``x``, ``y`` (R,) m) from their hint lanes
+    ``hint`` (R,) on a path of the lane rows ``lanes`` (L, 8; :func:`_stock_local`'s layout) of lengths ``lengths``
+    (L,) m, ``closed`` a loop; ``phi`` (R, L): numpy's ``arctan2`` of each point from each lane's centre (read for
+    the circular lanes). The same walk from the hint and the same floats as the method's
+    ``local_coordinates`` calls; writes each point's lane, s on it (m) and lateral offset (m)."""
+    n = lanes.shape[0]
+    for r in range(x.shape[0]):
+        k = hint[r]
+        s, lat = _stock_local(lanes, k, x[r], y[r], phi[r, k], fused)
+        step = 1 if s > lengths[k] else -1 if s < 0 else 0
+        if step != 0:
+            for _ in range(n):
+                nxt = k + step
+                if not closed and not 0 <= nxt < n:
+                    break
+                k = nxt % n
+                s, lat = _stock_local(lanes, k, x[r], y[r], phi[r, k], fused)
+                if (step > 0 and s <= lengths[k]) or (step < 0 and s >= 0):
+                    break
+        out_k[r], out_s[r], out_lat[r] = k, s, lat
+
+
 @numba.njit(cache=True, error_model="numpy")  # weights that sum to 0 give NaN, as numpy's, not an exception
 def conflict_hypotheses(others, speeds, phis, lane_row, lanes, hyp_off, hyp_n, hyp_turn, intent, accels, min_p,
                         on_lane, max_dh, fused, follow, out_hyp, out_s0, out_row, out_owner, out_prob, v_on, a_on, cv):
