@@ -1,6 +1,6 @@
 """The batch shield's screen (``BatchedShield._screen``: the rows whose own decision ends quiet or in a warning,
-decided for all rows at once) and its all-rows helpers, against the per-row code they stand for: ``LanePath.
-locate_rows`` against ``LanePath.locate`` point by point, ``BrakeActuator.stopping_bounds`` against
+decided for all rows at once) and its all-rows helpers, against the per-row code they stand for: ``locate_rows``
+(av_gym/shields/locate_rows.py) against ``LanePath.locate`` point by point, ``BrakeActuator.stopping_bounds`` against
 ``stopping_bound``, and the whole state of every row's shield with the screen off and on, step by step."""
 
 from __future__ import annotations
@@ -9,6 +9,8 @@ import struct
 
 import numpy as np
 import pytest
+
+from av_gym.shields.locate_rows import locate_rows
 
 VALIDATION = 1_000_000
 
@@ -38,7 +40,7 @@ def _left_turn_route():
 
 @pytest.mark.parametrize("which", ["left_turn", "closed"])
 def test_locate_rows_is_locate_point_by_point(which):
-    """``LanePath.locate_rows`` (one compiled call for many points) gives each point what ``locate`` gives it from
+    """``locate_rows`` (one compiled call for many points) gives each point what ``locate`` gives it from
     the same hint, bit for bit (lane, s, lateral offset): points near and far from the path, every hint, walks
     forward and backward, off either end of an open route and round a closed loop. Fails with a hint ignored, the
     walk's direction or stop rule changed, a loop not wrapped, or an arc's angle not numpy's."""
@@ -53,7 +55,7 @@ def test_locate_rows_is_locate_point_by_point(which):
                                                               rng.normal(0.0, 1.5, 300).tolist())]
     xy = np.vstack([rng.uniform(lo, hi, (500, 2)), np.array(on)])
     hint = rng.integers(0, n, len(xy))
-    k, s, lat = path.locate_rows(xy[:, 0], xy[:, 1], hint)
+    k, s, lat = locate_rows(path, xy[:, 0], xy[:, 1], hint)
     walked = {"forward": 0, "backward": 0, "stayed": 0}
     for i in range(len(xy)):
         want = path.locate(xy[i], int(hint[i]))
@@ -63,7 +65,7 @@ def test_locate_rows_is_locate_point_by_point(which):
         d = (d + n // 2) % n - n // 2 if path.closed else d  # round a loop: the shorter way
         walked["stayed" if d == 0 else "forward" if d > 0 else "backward"] += 1
     assert min(walked.values()) > 30, walked
-    empty = path.locate_rows(np.zeros(0), np.zeros(0), np.zeros(0, int))
+    empty = locate_rows(path, np.zeros(0), np.zeros(0), np.zeros(0, int))
     assert [len(a) for a in empty] == [0, 0, 0]
 
 

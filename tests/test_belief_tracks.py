@@ -106,7 +106,9 @@ def tracked_fit():
     return _batch(list(range(410_000, 410_000 + B)), 30, fit)
 
 
-@pytest.mark.parametrize("which", ["tracked", "tracked_shipped", "tracked_fit"])
+# the shipped preset's options fast; the kind's defaults and every option slow (~2.4 s each on idle cores)
+@pytest.mark.parametrize("which", [pytest.param("tracked", marks=pytest.mark.slow), "tracked_shipped",
+                                   pytest.param("tracked_fit", marks=pytest.mark.slow)])
 def test_decisions_do_not_read_the_hidden_traffic(which, request):
     """The same tracks, observations and ego give the same decisions, bit for bit, after the simulator's hidden
     traffic changed: the vehicles without a confirmed track (beyond the detector's range, occluded, or not yet
@@ -260,10 +262,14 @@ def test_unseen_ahead_thins_the_places_in_view_by_the_frames_to_the_next_decisio
     np.testing.assert_array_equal(got[2:], want[2:])
 
 
-@pytest.mark.parametrize("options", [{}, {"track_fit": 0.5, "track_heading": "detected",
-                                          "stopped_scope": "off_approach", "confirm": 2, "unseen_ahead": 5},
-                                     {"confirm": 2, "confirm_after": 2, "confirm_risk": 0.9, "threshold": 0.5},
-                                     {"confirm": 2, "confirm_first": True, "threshold": 0.5}])
+# one case fast (the preset's kind of options); the others slow (~1.9 s each on idle cores)
+@pytest.mark.parametrize("options", [pytest.param({}, marks=pytest.mark.slow),
+                                     {"track_fit": 0.5, "track_heading": "detected",
+                                      "stopped_scope": "off_approach", "confirm": 2, "unseen_ahead": 5},
+                                     pytest.param({"confirm": 2, "confirm_after": 2, "confirm_risk": 0.9,
+                                                   "threshold": 0.5}, marks=pytest.mark.slow),
+                                     pytest.param({"confirm": 2, "confirm_first": True, "threshold": 0.5},
+                                                  marks=pytest.mark.slow)])
 def test_the_per_env_agent_on_tracks_decides_as_the_batch(options):
     """belief_lookahead@turn_perceived per env (its one-row view of the env's own tracker, agents.track_prior
     EnvTracks) gives the batch's GO collision probabilities for the same episodes, decision by decision, and the

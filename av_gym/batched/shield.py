@@ -52,6 +52,7 @@ from av_gym.sensors.turn_signal import (DRIVER_DRAWS, DriverDraws, first_sightin
 from av_gym.shields.aeb_improved import GO_TAU, ImprovedAEB, _go_rise, followers, long_times
 from av_gym.shields.aeb_params import BRAKE, MONITOR, STOP_SPEED, WARN, ImprovedParams
 from av_gym.shields.conflicts import ConflictModel
+from av_gym.shields.locate_rows import locate_rows
 from av_gym.shields.predict import setpoint_steps
 from av_gym.sim.fast_network import FastRoadNetwork
 from av_gym.sim.batched import LENGTH, WIDTH
@@ -650,9 +651,10 @@ class BatchedShield:
         """:meth:`_screen`'s candidates (``cand`` (n,): an ego on the road, the batch's prediction, not latched) and
         per decision what the row's own ``_ego``, ``_is_active``, ``_continue_profile`` and ``_horizon`` compute:
         ``route_k``, ``s0`` (m), ``speed`` (m/s), ``accel`` (m/s²), ``now`` (s), ``front_to_line`` (m), ``active``,
-        ``ds`` (n, K) m, ``horizon`` (s), ``n_slices``. The route position by :meth:`LanePath.locate_rows` from each
-        row's own hint (the method's walk and floats), the profile, horizon and front-to-line distance element by
-        element as the row computes them (under a FASTER / SLOWER the row's own :func:`setpoint_steps`)."""
+        ``ds`` (n, K) m, ``horizon`` (s), ``n_slices``. The route position by
+        :func:`~av_gym.shields.locate_rows.locate_rows` from each row's own hint (the method's walk and floats), the
+        profile, horizon and front-to-line distance element by element as the row computes them (under a FASTER /
+        SLOWER the row's own :func:`setpoint_steps`)."""
         p, e, t = self.p, self.e, self.e.traffic
         first = shields[0]
         route, driven = first.route, first.driven
@@ -665,7 +667,7 @@ class BatchedShield:
         at = np.flatnonzero(g.cand)
         g.route_k, s_lane = np.zeros(len(rows), np.int64), np.zeros(len(rows))
         hint = np.array([shields[n]._route_k for n in at.tolist()], dtype=np.int64)
-        g.route_k[at], s_lane[at], _ = self.route.locate_rows(t.x[rows[at], slot[at]], t.y[rows[at], slot[at]], hint)
+        g.route_k[at], s_lane[at], _ = locate_rows(self.route, t.x[rows[at], slot[at]], t.y[rows[at], slot[at]], hint)
         g.s0 = route.starts[g.route_k] + s_lane
         g.front_to_line = first.stop_line_s - (g.s0 + 0.5 * LENGTH)
         g.active = (g.s0 < first.clear_s) & (g.front_to_line <= p.activation_distance)
