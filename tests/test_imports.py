@@ -9,6 +9,8 @@ import ast
 import functools
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("av_gym", "av_gym_sb3", "agents", "conf", "train", "eval", "av_gym_harness")
 
@@ -127,6 +129,7 @@ def test_the_checker_sees_lazy_and_upward_imports(tmp_path):
     assert FLOORS["av_gym.envs"] > FLOORS["av_gym.estimation"]
 
 
+@pytest.mark.slow  # a fresh interpreter (~5 s idle): an end-to-end check
 def test_the_library_loads_no_harness_and_no_rl_stack(tmp_path):
     """In a fresh interpreter, from a folder holding packages named like the harness's: ``gym.make`` with a
     sensors preset and a shield, a shipped agent's env by name and ``gymnasium.make_vec`` on the batch import

@@ -313,10 +313,11 @@ def test_eval_never_writes_into_a_shipped_reference(overwrite, shipped, tmp_path
 
 
 # ------------------------------------------------------------------------------------- Hydra's files under a size limit
+@pytest.mark.slow  # the same hydra_files_whole around both commands' Hydra, each a process under a limit (~6 s idle)
 @pytest.mark.parametrize("argv", [
     ["eval", "agents=[always_proceed]", "episodes=1", "progress_bar=false"],
-    pytest.param(["train", "agent=always_proceed", "train.eval_episodes=0", "run_name=R"], marks=pytest.mark.slow),
-])  # the same hydra_files_whole around both commands' Hydra: train's process (~6 CPU-s) is slow
+    ["train", "agent=always_proceed", "train.eval_episodes=0", "run_name=R"],
+])
 def test_hydra_files_that_cannot_be_written_are_one_line_and_nothing_is_left(argv, tmp_path):
     """Under ``ulimit -f 1`` Hydra's config save was a traceback and left a torn ``.hydra`` folder. One line,
     exit 2, and the working folder as it was (no run folder, no checkpoints folder, no lock)."""

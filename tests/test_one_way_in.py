@@ -95,6 +95,7 @@ print("loaded:", sorted(m for m in sys.modules if m.split(".")[0] in ("conf", "a
 """
 
 
+@pytest.mark.slow  # a fresh interpreter (~6 s idle): an end-to-end check
 def test_a_users_own_opinion_works_from_user_code_without_the_harness(tmp_path):
     for name in ("conf", "agents", "train", "eval"):
         (tmp_path / name).mkdir()
