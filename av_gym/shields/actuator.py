@@ -90,17 +90,19 @@ class BrakeActuator:
         ``v_peak`` at most ``v_peak² / (2 decel) + 2 v_peak dt`` (a tick moves with the speed before its update);
         grown by 1 % and 1 µm so that no rounding of either side can reach it. Lets a caller skip the ticks where
         the distance cannot matter (the shield's stop-line trigger far from the line)."""
-        v0 = max(float(v0), 0.0)
-        v_peak = v0 + max(float(a_before), 0.0) * (self.delay + dt)
-        ramp = self.decel / self.jerk if self.jerk > 0 else 0.0
-        bound = v_peak * (self.delay + ramp + 4.0 * dt) + v_peak * v_peak / (2.0 * self.decel)
-        return 1.01 * bound + 1e-6
+        v_peak = max(float(v0), 0.0) + max(float(a_before), 0.0) * (self.delay + dt)
+        return self._bound_at_peak(v_peak, dt)
 
     def stopping_bounds(self, v0: np.ndarray, a_before: np.ndarray, dt: float) -> np.ndarray:
         """:meth:`stopping_bound` of many states at once (``v0`` m/s, ``a_before`` m/s², same shape): the same
         operations element by element, the same floats (the batch's shield asks it for all rows at once)."""
         v0 = np.maximum(np.asarray(v0, dtype=float), 0.0)
         v_peak = v0 + np.maximum(np.asarray(a_before, dtype=float), 0.0) * (self.delay + dt)
+        return self._bound_at_peak(v_peak, dt)
+
+    def _bound_at_peak(self, v_peak, dt: float):
+        """:meth:`stopping_bound`'s bound (m) from its peak speed ``v_peak`` (m/s; a float or an array, element by
+        element): one expression for the per-row and the all-rows bound, so that they stay the same floats."""
         ramp = self.decel / self.jerk if self.jerk > 0 else 0.0
         bound = v_peak * (self.delay + ramp + 4.0 * dt) + v_peak * v_peak / (2.0 * self.decel)
         return 1.01 * bound + 1e-6
