@@ -20,10 +20,21 @@ never a policy):
   acceleration the behaviour posterior weighs): of each road user matched to a vehicle (as ``users`` matches);
 - ``all``: every one of them, and the lane the simulator's.
 
+Besides the sensed parts, two things the planner on truth has that the planner on tracks does not (named on their
+own, or with ``all``: ``all,intent,crash`` is everything the truth has):
+
+- ``intent``: the intent filter's indicator readings kept per car, not per track id: each reading the planner takes
+  on a described track (``obs["intent"]``) goes to the car that track matches (as ``users`` matches) and, at the
+  decision, every matched track (and a car ``users`` added) carries its car's readings, so a re-born track keeps
+  them; a track of no car keeps its own;
+- ``crash``: each matched road user's (and each added car's) crash flag is the simulator's, instead of the standing
+  rule on its speed (a track of no car keeps the rule).
+
 A road user whose pose changed takes the closest lane of its new pose (with position and heading both true, the
 simulator's lane); one whose speed or lane changed has the standing rule (``stopped``, ``stopped_scope``) applied
-again. The intent filter (indicator readings on the tracks the features describe) and everything hidden (routes,
-set-points, IDM draws) stay the planner's. ``none``: the planner as it is (the paired baseline, the same
+again (with ``crash``: the simulator's flag). Without ``intent`` the intent filter (indicator readings on the
+tracks the features describe, by track id) stays the planner's; everything hidden (routes, set-points, IDM draws)
+always does. ``none``: the planner as it is (the paired baseline, the same
 machinery). Prints and writes (``--out``, a new file) one JSON object: rates, the collided and not-arrived seeds,
 and per collision its class: hit waiting (no GO in the episode) or hit after a GO, and the car hit as the planner
 had it at the last GO started (or, hit waiting, at the last decision): confirmed / tentative / left out (a ghost or
@@ -46,19 +57,22 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # the checkout'
 from belief_tracks_sweep import fail, planner_point  # noqa: E402  (this folder is sys.path[0] as a script)
 from belief_tracks_truth import MATCH_M  # noqa: E402
 
-PARTS = ("users", "prior", "position", "velocity", "heading", "acc")
+PARTS = ("users", "prior", "position", "velocity", "heading", "acc")  # the sensed parts (``all``: these and lane)
+BESIDES = ("intent", "crash")  # what the truth has besides the sensed parts (not in ``all``; named with it)
+ADDED = 100_000  # a car ``users`` adds is road user ADDED + its simulator vid (no track id is that large)
 
 
 def parts_of(spec: str) -> frozenset:
-    """``--truth`` (comma-separated parts of :data:`PARTS`, ``all`` or ``none``) as a set of parts; ``all`` adds
-    the simulator's lane."""
+    """``--truth`` (comma-separated parts of :data:`PARTS` and :data:`BESIDES`, ``all`` or ``none``) as a set of
+    parts; ``all`` is every sensed part and the simulator's lane (``all,intent,crash``: everything the truth has)."""
     names = [s for s in spec.split(",") if s]
-    bad = [s for s in names if s not in PARTS + ("all", "none")]
+    bad = [s for s in names if s not in PARTS + BESIDES + ("all", "none")]
     if bad or not names:
-        fail(f"--truth takes a comma list of {', '.join(PARTS)}, all or none; got {spec!r}")
+        fail(f"--truth takes a comma list of {', '.join(PARTS + BESIDES)}, all or none; got {spec!r}")
+    out = {n for n in names if n not in ("all", "none")}
     if "all" in names:
-        return frozenset(PARTS + ("lane",))
-    return frozenset(n for n in names if n != "none")
+        out |= set(PARTS) | {"lane"}
+    return frozenset(out)
 
 
 def match_users(te, engine, r: int, radius: float, left_out: np.ndarray) -> dict[int, int]:
@@ -97,17 +111,36 @@ def standing(params, T, lane_kind: np.ndarray, lane, x, y, v) -> np.ndarray:
     return out
 
 
-def with_truth(planner, engine, rows: np.ndarray, parts: frozenset, radius: float) -> None:
-    """The futures' start of ``rows`` (``planner.tracks.engine``) with ``parts`` the simulator's, in place."""
+def all_pairs(planner, engine, rows: np.ndarray, radius: float) -> dict[int, dict[int, int]]:
+    """Per row of ``rows``, :func:`match_users` on the futures' start as the planner read it (before any part is
+    given from the truth)."""
+    tb = planner.tracks
+    te = tb.engine
+    out = {}
+    for r in rows:
+        r = int(r)
+        left_out = tb.ghost[r] if tb.ghost is not None else np.zeros(te.traffic.N, bool)
+        out[r] = match_users(te, engine, r, radius, left_out)
+    return out
+
+
+def with_truth(planner, engine, rows: np.ndarray, parts: frozenset, radius: float,
+               pairs_of: dict[int, dict[int, int]] | None = None) -> None:
+    """The futures' start of ``rows`` (``planner.tracks.engine``) with ``parts`` the simulator's, in place
+    (``pairs_of``: :func:`all_pairs` of this reading, computed here when not given; ``intent`` is
+    :class:`CarReadings`', not this)."""
     tb = planner.tracks
     te = tb.engine
     t, s, T = te.traffic, engine.traffic, engine.T
     state = parts & {"position", "velocity", "heading", "acc", "lane"}
+    if pairs_of is None:
+        pairs_of = all_pairs(planner, engine, rows, radius)
     for r in rows:
         r = int(r)
+        pairs = pairs_of[r]
         left_out = tb.ghost[r] if tb.ghost is not None else np.zeros(t.N, bool)
-        pairs = match_users(te, engine, r, radius, left_out)
         changed: list[int] = []
+        added: dict[int, int] = {}  # simulator slot -> the slot ``users`` added it in
         if "users" in parts:
             keep = np.zeros(t.N, bool)
             keep[list(pairs.values())] = True
@@ -120,6 +153,8 @@ def with_truth(planner, engine, rows: np.ndarray, parts: frozenset, radius: floa
                     t.grow(1)
                     for name in ("tent", "ghost"):
                         setattr(tb, name, np.concatenate([getattr(tb, name), np.zeros((te.B, 1), bool)], 1))
+                    # the filter's covariance per slot (track_spread): a car from the truth has no error
+                    tb.along = np.concatenate([tb.along, np.zeros((te.B, 1, 2, 2))], 1)
                     free = [t.N - 1]
                 j = int(free[0])
                 for name in ("x", "y", "h", "v", "acc", "lane", "tlane"):
@@ -128,10 +163,11 @@ def with_truth(planner, engine, rows: np.ndarray, parts: frozenset, radius: floa
                 t.route[r, j] = -1
                 t.route[r, j, 0] = s.lane[r, i]
                 t.alive[r, j], t.plain[r, j], t.yielding[r, j], t.mdp[r, j] = True, False, False, False
-                t.rpos[r, j], t.vid[r, j] = 0, 100_000 + int(s.vid[r, i])  # no indicator reading attached
+                t.rpos[r, j], t.vid[r, j] = 0, ADDED + int(s.vid[r, i])  # no reading attached (intent: its car's)
                 t.delta[r, j] = 4.0
                 tb.tent[r, j], tb.ghost[r, j] = False, False
                 changed.append(j)
+                added[int(i)] = j
         if state:
             for i, j in pairs.items():
                 if not t.alive[r, j]:
@@ -150,9 +186,67 @@ def with_truth(planner, engine, rows: np.ndarray, parts: frozenset, radius: floa
                     t.lane[r, j] = t.tlane[r, j] = t.route[r, j, 0] = T.closest(
                         np.array([t.x[r, j]]), np.array([t.y[r, j]]), np.array([t.h[r, j]]))[0]
                 changed.append(j)
-        if changed and (parts - {"acc", "prior"}):
+        if changed and (parts - {"acc", "prior", "intent", "crash"}):
             j = np.array(changed)
             t.crashed[r, j] = standing(planner.params, T, tb.lane_kind, t.lane[r, j], t.x[r, j], t.y[r, j], t.v[r, j])
+        if "crash" in parts:
+            for i, j in list(pairs.items()) + list(added.items()):
+                if t.alive[r, j]:
+                    t.crashed[r, j] = s.crashed[r, i]
+
+
+class CarReadings:
+    """``intent``: the planner's indicator readings kept per simulator car rather than per track id. Around each
+    :meth:`BeliefPlanner.read`, :meth:`before` and :meth:`after` move what the read added to each described track
+    (its readings' counts) to the car the track matches; :meth:`lend` gives the planner, for its decision, counts
+    in which every matched track (and every car ``users`` added) carries its car's; :meth:`restore` puts the
+    planner's own per-track counts back before the next read."""
+
+    def __init__(self, n_rows: int) -> None:
+        self.cars: list[dict[int, np.ndarray]] = [{} for _ in range(n_rows)]  # per row: simulator vid -> counts
+        self.own: list[dict[int, np.ndarray]] = [{} for _ in range(n_rows)]  # per row: the planner's own counts
+        self._was: dict[int, dict[int, np.ndarray]] = {}
+
+    def before(self, planner, rows: np.ndarray) -> None:
+        """Just before the read of ``rows``: what the planner's own counts hold."""
+        self._was = {int(r): {v: c.copy() for v, c in planner.counts[r].items()} for r in rows}
+
+    def after(self, planner, engine, rows: np.ndarray, pairs_of: dict[int, dict[int, int]]) -> None:
+        """Just after the read, before any part is given from the truth: each track's new readings to its car."""
+        te, s = planner.tracks.engine.traffic, engine.traffic
+        for r in rows:
+            r = int(r)
+            self.own[r] = planner.counts[r]
+            car_of = {int(te.vid[r, j]): int(s.vid[r, i]) for i, j in pairs_of[r].items()}
+            was = self._was.get(r, {})
+            for v, c in planner.counts[r].items():
+                new = c - was.get(v, 0)
+                if v in car_of and new.any():
+                    self.cars[r].setdefault(car_of[v], np.zeros(3, dtype=int))[:] += new
+
+    def lend(self, planner, engine, rows: np.ndarray, pairs_of: dict[int, dict[int, int]]) -> None:
+        """For the decision of ``rows`` (after the truth's parts): the per-car counts on the road users."""
+        te, s = planner.tracks.engine.traffic, engine.traffic
+        for r in rows:
+            r = int(r)
+            counts = dict(self.own[r])
+            for i, j in pairs_of[r].items():
+                counts.pop(int(te.vid[r, j]), None)
+            for i, j in pairs_of[r].items():
+                if te.alive[r, j] and int(te.vid[r, j]) < ADDED:
+                    car = self.cars[r].get(int(s.vid[r, i]))
+                    if car is not None:
+                        counts[int(te.vid[r, j])] = car
+            for j in np.flatnonzero(te.alive[r] & (te.vid[r] >= ADDED)):
+                car = self.cars[r].get(int(te.vid[r, j]) - ADDED)
+                if car is not None:
+                    counts[int(te.vid[r, j])] = car
+            planner.counts[r] = counts
+
+    def restore(self, planner, rows: np.ndarray) -> None:
+        """The planner's own per-track counts back (its next read adds to them)."""
+        for r in rows:
+            planner.counts[int(r)] = self.own[int(r)]
 
 
 def statuses(planner, engine, rows: np.ndarray, radius: float) -> dict[int, dict[int, str]]:
@@ -200,11 +294,19 @@ def play(args, parts: frozenset) -> dict:
     at_go: list[dict] = [{} for _ in range(B)]  # the cars as the planner had them at the last GO started
     at_last: list[dict] = [{} for _ in range(B)]  # ... at the last decision
     episodes, collisions = [], []
+    readings = CarReadings(B) if "intent" in parts else None
     while not venv.idle.all():
         rows = np.flatnonzero(~venv.idle)
+        if readings is not None:
+            readings.before(planner, rows)
         planner.read(engine, rows, obs["intent"][rows])
         if parts:
-            with_truth(planner, engine, rows, parts, args.match)
+            pairs_of = all_pairs(planner, engine, rows, args.match)
+            if readings is not None:
+                readings.after(planner, engine, rows, pairs_of)
+            with_truth(planner, engine, rows, parts, args.match, pairs_of)
+            if readings is not None:
+                readings.lend(planner, engine, rows, pairs_of)
         due = rows[planner.live(engine, rows, choice[rows], k[rows])[0]]
         before = choice.copy()
         unseen = planner.tracks.unseen if planner.tracks is not None else None
@@ -215,6 +317,8 @@ def play(args, parts: frozenset) -> dict:
         finally:
             if planner.tracks is not None:
                 planner.tracks.unseen = unseen
+            if readings is not None:
+                readings.restore(planner, rows)
         if len(due):
             st = statuses(planner, engine, due, args.match) if planner.tracks is not None else {}
             for r in due:
@@ -269,7 +373,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seed", type=int, default=1_931_000)
     ap.add_argument("--episodes", type=int, default=500)
-    ap.add_argument("--truth", default="none", help=f"comma list of {', '.join(PARTS)}, all or none")
+    ap.add_argument("--truth", default="none", help=f"comma list of {', '.join(PARTS + BESIDES)}, all or none")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
     ap.add_argument("--on-truth", action="store_true", help="the planner on the simulator's vehicles (sensors "
                     "turn_truth; --truth none): the reference, on the same seeds")

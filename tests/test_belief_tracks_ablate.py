@@ -45,7 +45,10 @@ def test_each_car_takes_its_nearest_track_one_track_per_car(ablate):
 
 @pytest.mark.parametrize("spec, parts", [("velocity", {"velocity"}), ("users,prior", {"users", "prior"}),
                                          ("none", set()), ("all", {"users", "prior", "position", "velocity",
-                                                                   "heading", "acc", "lane"})])
+                                                                   "heading", "acc", "lane"}),
+                                         ("intent", {"intent"}), ("crash,velocity", {"crash", "velocity"}),
+                                         ("all,intent,crash", {"users", "prior", "position", "velocity", "heading",
+                                                               "acc", "lane", "intent", "crash"})])
 def test_the_parts_named(ablate, spec, parts):
     assert ablate.parts_of(spec) == parts
 
@@ -80,3 +83,74 @@ def test_with_truth_gives_the_futures_start_the_simulators_cars(ablate):
                 cars += 1
             assert len(users) == (s.alive[r] & ~s.ego[r]).sum()  # one road user per car, no other
     assert cars > 0
+
+
+def _readers(track_vids, car_vids, alive=None):
+    """A one-row planner stand-in (its counts and its futures' start holding road users ``track_vids``) and a
+    simulator engine stand-in holding cars ``car_vids`` (slot 0 the ego in both)."""
+    n = len(track_vids)
+    te = SimpleNamespace(vid=np.array([track_vids]), alive=np.ones((1, n), bool) if alive is None else alive)
+    planner = SimpleNamespace(counts=[{}], tracks=SimpleNamespace(engine=SimpleNamespace(traffic=te)))
+    return planner, SimpleNamespace(traffic=SimpleNamespace(vid=np.array([car_vids])))
+
+
+def test_intent_readings_follow_the_car_across_a_reborn_track(ablate):
+    """A car (vid 42) read twice "+1" on track 5, then once "0" on its re-born track 9: at the decision track 9
+    carries all three of the car's readings; a track of no car keeps its own; a car ``users`` added (road user
+    ADDED + 42) carries the car's; restore puts the planner's own per-track counts back."""
+    readings = ablate.CarReadings(1)
+    planner, sim = _readers([0, 5, 7], [0, 42])
+    rows = np.array([0])
+    readings.before(planner, rows)
+    planner.counts[0][5] = np.array([0, 0, 2])
+    planner.counts[0][7] = np.array([1, 0, 0])  # a track of no car
+    readings.after(planner, sim, rows, {0: {1: 1}})
+    np.testing.assert_array_equal(readings.cars[0][42], [0, 0, 2])
+    readings.restore(planner, rows)
+    planner.tracks.engine.traffic.vid[0, 1] = 9  # the car's track re-born
+    readings.before(planner, rows)
+    planner.counts[0][9] = np.array([0, 1, 0])
+    readings.after(planner, sim, rows, {0: {1: 1}})
+    readings.lend(planner, sim, rows, {0: {1: 1}})
+    np.testing.assert_array_equal(planner.counts[0][9], [0, 1, 2])
+    np.testing.assert_array_equal(planner.counts[0][7], [1, 0, 0])
+    readings.restore(planner, rows)
+    np.testing.assert_array_equal(planner.counts[0][9], [0, 1, 0])  # the planner's own again
+    # the car from the truth (users) in slot 2, the track of no car gone
+    planner.tracks.engine.traffic.vid[0, 2] = ablate.ADDED + 42
+    planner.tracks.engine.traffic.alive[0, 1] = False
+    readings.lend(planner, sim, rows, {0: {}})
+    np.testing.assert_array_equal(planner.counts[0][ablate.ADDED + 42], [0, 1, 2])
+
+
+@pytest.mark.slow
+def test_users_grows_the_spread_with_the_traffic(ablate):
+    """A futures' start with no free slot for the cars ``users`` adds (cut to the ego and one track) grows its
+    filter covariances with it: with track_spread > 0 the futures draw and every car from the truth starts at its
+    place (no error); ``crash`` gives each road user its car's crash flag."""
+    venv, planner, obs, rows = _batch([420_001, 420_002], 45, BeliefLookaheadParams(
+        samples=4, tentative="road_user", track_heading="detected", ghost=2, merge=2.0, track_spread=1.0))
+    engine, s = venv.engine, venv.engine.traffic
+    planner.read(engine, rows, obs["intent"][rows])
+    tb = planner.tracks
+    t = tb.engine.traffic
+    for name in t.FIELDS:
+        setattr(t, name, getattr(t, name)[:, :2])
+    t.N = 2
+    tb.tent, tb.ghost, tb.along = tb.tent[:, :2], tb.ghost[:, :2], tb.along[:, :2]
+    assert (s.alive[rows] & ~s.ego[rows]).sum(axis=1).max() > 1  # more cars than the slot left
+    pairs_of = ablate.all_pairs(planner, engine, rows, 3.0)
+    ablate.with_truth(planner, engine, rows, frozenset({"users", "crash"}), 3.0, pairs_of)
+    t = tb.engine.traffic
+    assert tb.along.shape[1] == t.N > 2
+    assert np.isfinite(planner.go_collision(engine, rows)).all()
+    flags = 0
+    for r in rows:
+        car = {int(v): bool(c) for v, c in zip(s.vid[r], s.crashed[r])}
+        for i, j in pairs_of[int(r)].items():
+            assert t.crashed[r, j] == s.crashed[r, i]
+            flags += 1
+        for j in np.flatnonzero(t.alive[r] & (t.vid[r] >= ablate.ADDED)):
+            assert t.crashed[r, j] == car[int(t.vid[r, j]) - ablate.ADDED]
+            flags += 1
+    assert flags == (s.alive[rows] & ~s.ego[rows]).sum()  # every car, matched or added
