@@ -54,6 +54,7 @@ from av_gym.shields.aeb_params import BRAKE, MONITOR, STOP_SPEED, WARN, Improved
 from av_gym.shields.conflicts import ConflictModel
 from av_gym.shields.locate_rows import locate_rows
 from av_gym.shields.predict import setpoint_steps
+from av_gym.shields.setoff_rows import box_lanes, predict_rows_following, setoff_slow, setoff_start
 from av_gym.sim.fast_network import FastRoadNetwork
 from av_gym.sim.batched import LENGTH, WIDTH
 
@@ -483,7 +484,8 @@ class BatchedShield:
         self.steps = np.zeros(B, dtype=int)
         self.overrides: list[list[int]] = [[] for _ in range(B)]
         self._brake_from: np.ndarray | None = None
-        self._flat: tuple | None = None  # this decision's prediction buffers for the screen (:meth:`_predict`)
+        self._flat: SimpleNamespace | None = None  # this decision's kept road users and prediction for the screen
+        self.in_box = box_lanes(engine.T.index)  # per engine lane id: through the box (the set-off rule's lanes)
 
     def reset(self, rows) -> None:
         """New episodes in the envs ``rows`` (after the engine started them): the per-env shield's reset."""
@@ -559,6 +561,8 @@ class BatchedShield:
         index, lanes, vids = e.T.index, t.lane[rows], t.vid[rows]
         n_kept = kept.sum(axis=1)
         predicted = self._predict(state, kept, n_kept, lanes, accel, intent)
+        if self._flat is not None and recent is not None:  # the set-off rule's ``recent`` for the screen
+            self._flat.recent = recent[kept]
         # every row's road users one row after the other (boolean masks keep row-major order), each view a slice:
         # the values of ``state[n, others[n]]`` and the like, without ~8 masked copies per row
         n_others = others.sum(axis=1)
@@ -601,8 +605,9 @@ class BatchedShield:
         others = state[kept]
         flat = self.conflicts.predict_rows_flat(others, row_off, [index[k] for k in lanes[kept].tolist()],
                                                 accel[kept], self.t_long, weights)
-        if flat is not None:  # for the screen (:meth:`_screen`): the kept road users' sizes by decision
-            self._flat = (row_off, others[:, 5:7], flat)
+        if flat is not None:  # for the screen (:meth:`_screen`): the kept road users by decision, and the buffers
+            self._flat = SimpleNamespace(row_off=row_off, others=others, lane=lanes[kept], weights=weights,
+                                         buffers=flat, recent=None)
         return self.conflicts.split_rows(flat, len(self.t_long), len(kept))
 
     def _screen(self, rows: np.ndarray, actions: np.ndarray) -> np.ndarray | None:
@@ -617,7 +622,10 @@ class BatchedShield:
           point): the row returns ``(MONITOR, inf, horizon, -1, active, False)``;
         - a conflict later than ``ttc_brake`` (so no emergency test) with the ego not at the stop-line trigger point
           (the set-off rule is asked only with no conflict): ``_warn_or_brake`` returns ``(WARN if active or TTC <=
-          warn_ttc else MONITOR, TTC, horizon, its target, active, False)``.
+          warn_ttc else MONITOR, TTC, horizon, its target, active, False)``;
+        - no conflict at the stop-line trigger point while the set-off rule finds nothing (:meth:`_screen_setoff`:
+          no standing road user in the box that moved lately, or none of their set-off hypotheses met within
+          ``setoff_horizon``): the quiet row's MONITOR too.
 
         The row's code changes only its route lane hint (``_ego``), ``_lanes``, ``_keys``, ``_prev_t`` and
         ``target_xy`` then: these are set here. The same floats by construction (:meth:`_screen_egos`,
@@ -633,7 +641,7 @@ class BatchedShield:
         if not (DrivenPath.kernel and FOOTPRINT_KERNEL and first.driven._register() >= 0):
             return None
         shields = [self.shields[r] for r in rows.tolist()]
-        g = self._screen_egos(rows, actions, shields, flat[2][1])
+        g = self._screen_egos(rows, actions, shields, flat.buffers[1])
         missing, k, m = self._screen_ttc(g, flat, first)
         p = self.p
         ttc = np.where(k >= 0, self.t_long[np.maximum(k, 0)], np.inf)
@@ -642,7 +650,10 @@ class BatchedShield:
         # the stop-line trigger point: a warning's _warn_or_brake asks it, a quiet row's set-off rule (if on)
         setoff_rule = p.setoff_speed > 0 and p.target_model == "conflict"
         ask = (warn | (quiet & setoff_rule)) & g.active & (g.front_to_line >= 0)
-        decided = (quiet | warn) & ~self._screen_trigger(g, ask, shields, first)
+        at = self._screen_trigger(g, ask, shields, first)
+        decided = (quiet | warn) & ~at
+        if setoff_rule:  # a quiet row at the trigger point whose set-off rule finds nothing: MONITOR as well
+            decided |= self._screen_setoff(g, quiet & at, flat, first)
         stage = np.where(warn & (g.active | (ttc <= p.warn_ttc)), WARN, MONITOR)
         self._screen_apply(rows, actions, shields, g, decided, stage, ttc, np.where(warn, m, -1), flat)
         return decided
@@ -689,27 +700,68 @@ class BatchedShield:
         g.n_slices = np.rint(g.horizon / p.step).astype(np.int64)
         return g
 
-    def _screen_ttc(self, g: SimpleNamespace, flat: tuple, first) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _screen_ttc(self, g: SimpleNamespace, flat: SimpleNamespace, first) -> tuple[np.ndarray, ...]:
         """The first TTC of every candidate at once (ImprovedAEB._ttc_of with the scene's hypotheses and
-        ``p.margin``): per decision (missing speed bins, slice, hypothesis) of
-        :func:`~av_gym.shields.kernels.driven_ttc_rows` (each row the row's :func:`driven_ttc` kernel on its slices
-        of :meth:`ConflictModel.predict_rows_flat`'s buffers ``flat``)."""
+        ``p.margin``): per decision (missing speed bins, slice, hypothesis) of :meth:`_rows_ttc` on
+        :meth:`ConflictModel.predict_rows_flat`'s buffers (``flat.buffers``)."""
+        n_h = np.where(g.cand, flat.buffers[1], -1)
+        return self._rows_ttc(g.s0, g.ds, g.n_slices, flat.buffers, n_h, flat.others[:, 5:7], flat.row_off, first)
+
+    def _rows_ttc(self, s0: np.ndarray, ds: np.ndarray, n: np.ndarray, buffers: tuple, n_h: np.ndarray,
+                  size: np.ndarray, row_off: np.ndarray, first) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """ImprovedAEB._ttc_of (margin ``p.margin``) of R decisions at once: decision r's ego from route position
+        ``s0[r]`` (m) on the profile ``ds[r, :n[r]]`` (m) against its ``n_h[r]`` hypotheses (-1: none tested) of
+        the flat prediction ``buffers`` (``(h_off, n_h, xy, hh, owner, is_map, prob)``, owners rows of ``size``
+        (., 2) m from ``row_off[r]``), by :func:`~av_gym.shields.kernels.driven_ttc_rows` (each decision the
+        row's :func:`driven_ttc` kernel on its slices). Per decision (missing speed bins, slice, hypothesis)."""
         from av_gym.shields.kernels import driven_ttc_rows
         from av_gym.shields.predict import DRIVEN_SPEEDS, _footprint_args, _store
 
         p = self.p
-        row_off, kept_size, (h_off, n_h, xy, hh, owner, is_map, _) = flat
-        row_of = np.repeat(np.arange(len(g.cand)), np.diff(h_off))
+        h_off, _, xy, hh, owner, is_map, _ = buffers
+        row_of = np.repeat(np.arange(len(s0)), np.diff(h_off))
         valid = np.arange(int(h_off[-1])) - h_off[row_of] < n_h[row_of]
         osize, rear = np.zeros((len(valid), 2)), np.zeros(len(valid), bool)
-        osize[valid] = kept_size[row_off[row_of[valid]] + owner[valid]]
+        osize[valid] = size[row_off[row_of[valid]] + owner[valid]]
         rear[valid] = is_map[valid] | p.ignore_rear
         length, width, xy, hh, osize, reach, rear = _footprint_args((float(LENGTH), float(WIDTH)), xy, hh, osize,
                                                                     p.margin, rear)
-        st, need = _store(), np.zeros((len(g.cand), len(DRIVEN_SPEEDS)), dtype=np.bool_)
-        return driven_ttc_rows(st.data, st.route, st.limits, st.bins, st.grid_table, first.driven.store_id, g.s0,
-                               np.ascontiguousarray(g.ds), g.n_slices, self.t_long, length, width, xy, hh, h_off,
-                               np.where(g.cand, n_h, -1), osize, reach, rear, need)
+        st, need = _store(), np.zeros((len(s0), len(DRIVEN_SPEEDS)), dtype=np.bool_)
+        return driven_ttc_rows(st.data, st.route, st.limits, st.bins, st.grid_table, first.driven.store_id, s0,
+                               np.ascontiguousarray(ds), n, self.t_long, length, width, xy, hh, h_off, n_h, osize,
+                               reach, rear, need)
+
+    def _screen_setoff(self, g: SimpleNamespace, which: np.ndarray, flat: SimpleNamespace, first) -> np.ndarray:
+        """(n,) bool: of the quiet decisions ``which`` at the stop-line trigger point, those whose set-off rule
+        finds nothing, so that the row returns MONITOR as a quiet one: no kept road user the rule predicts
+        (:func:`~av_gym.shields.setoff_rows.setoff_slow`: standing on a lane through the box, moving lately), or
+        the ego carrying on for ``setoff_horizon`` s meets none of their set-off hypotheses
+        (:meth:`ImprovedAEB._setoff_stop`'s TTC infinite; :func:`~av_gym.shields.setoff_rows.
+        predict_rows_following` with ``_accel_predict``'s arguments, :meth:`_rows_ttc`). A decision whose
+        prediction is not served (a speed bin missing) or that would brake is left to its row."""
+        p, out = self.p, np.zeros(len(which), bool)
+        if not which.any() or flat.recent is None:
+            return out
+        row_of = np.repeat(np.arange(len(which)), np.diff(flat.row_off))
+        slow = setoff_slow(flat.others, self.in_box[flat.lane], flat.recent, p.setoff_speed) & which[row_of]
+        n_slow = np.bincount(row_of[slow], minlength=len(which))
+        out[which & (n_slow == 0)] = True
+        at = np.flatnonzero(which & (n_slow > 0))
+        if not len(at):
+            return out
+        mod, accels = setoff_start(flat.others[slow], p.setoff_accel)
+        row_off = np.concatenate([[0], np.cumsum(n_slow[at])])
+        index = self.e.T.index
+        buffers = predict_rows_following(self.conflicts, mod, row_off, [index[k] for k in flat.lane[slow].tolist()],
+                                         accels, self.t_long, None if flat.weights is None else flat.weights[slow],
+                                         3.0)  # ImprovedAEB._setoff_predict's 3 s of setoff_accel
+        if buffers is None:
+            return out
+        n_h = buffers[1]
+        n_set = np.minimum(g.n_slices[at], int(round(p.setoff_horizon / p.step)))
+        missing, k, _ = self._rows_ttc(g.s0[at], g.ds[at], n_set, buffers, n_h, mod[:, 5:7], row_off, first)
+        out[at[(n_h >= 0) & (missing == 0) & (k < 0)]] = True
+        return out
 
     def _screen_trigger(self, g: SimpleNamespace, ask: np.ndarray, shields: list, first) -> np.ndarray:
         """(n,) bool: of the decisions ``ask`` (in the turn window, not past the line), those at the stop-line
@@ -726,11 +778,12 @@ class BatchedShield:
         return at
 
     def _screen_apply(self, rows: np.ndarray, actions: np.ndarray, shields: list, g: SimpleNamespace,
-                      decided: np.ndarray, stage: np.ndarray, ttc: np.ndarray, hit: np.ndarray, flat: tuple) -> None:
+                      decided: np.ndarray, stage: np.ndarray, ttc: np.ndarray, hit: np.ndarray,
+                      flat: SimpleNamespace) -> None:
         """The state of the ``decided`` rows moved on as their own ``_decide`` moves it: route lane, road users'
         lanes and keys, decision time, and ``target_xy`` (the road user of hypothesis ``hit`` (n,; -1: none) of the
         row's block of ``flat``, NaN for none)."""
-        h_off, owner = flat[2][0], flat[2][4]
+        h_off, owner = flat.buffers[0], flat.buffers[4]
         for n in np.flatnonzero(decided).tolist():
             r = int(rows[n])
             sh, view = shields[n], self.views[r]
