@@ -189,3 +189,105 @@ def test_the_screen_moves_every_shields_state_on_three_envs_at_once(monkeypatch)
     rng = np.random.default_rng(5)
     seen = _side_by_side(monkeypatch, [VALIDATION + k for k in range(3)], 3, lambda step, n: rng.integers(0, 3, n))
     assert seen["quiet"] > 200 and seen["warn"] > 40 and seen["own"] > 50 and seen["targets"] > 100, seen
+
+
+# ----------------------------------------------------------------------------------------------- the stage and set-off
+def _screened_counts(monkeypatch, shield: dict, seeds: list[int], action_of, classify) -> dict:
+    """``seeds`` on a batch of ``len(seeds)`` envs under ``shield`` with SCREEN_CHECK (each screened row's own
+    ``_decide`` runs too and must agree), actions ``action_of(step, n)``; ``classify(want)`` names each screened
+    decision's class (None: not counted). Returns the count per class, and ``setoff_screened`` (quiet rows at the
+    trigger point the screen decided: no road user the set-off rule predicts, or none of its hypotheses met),
+    ``setoff_predicted`` (of those, the rule's prediction made for all rows at once) and ``setoff_brakes`` (the
+    set-off rule's brakes, decided by their rows)."""
+    from av_gym.batched import shield as batched_shield
+    from tests.test_batched_shield import _venv
+
+    monkeypatch.setattr(batched_shield, "SCREEN_CHECK", True)
+    seen = {"setoff_screened": 0, "setoff_predicted": 0, "setoff_brakes": 0}
+    check, setoff, predict = batched_shield._check_screened, batched_shield.BatchedShield._screen_setoff, \
+        batched_shield.predict_rows_following
+
+    def counted(sh, want, route_k, now):
+        check(sh, want, route_k, now)
+        name = classify(want)
+        if name is not None:
+            seen[name] = seen.get(name, 0) + 1
+
+    def setoff_counted(self, g, which, flat, first):
+        got = setoff(self, g, which, flat, first)
+        seen["setoff_screened"] += int(got.sum())
+        return got
+
+    def predict_counted(model, others, row_off, *args):
+        got = predict(model, others, row_off, *args)
+        seen["setoff_predicted"] += int((got[1] >= 0).sum()) if got is not None else 0
+        return got
+
+    monkeypatch.setattr(batched_shield, "_check_screened", counted)
+    monkeypatch.setattr(batched_shield.BatchedShield, "_screen_setoff", setoff_counted)
+    monkeypatch.setattr(batched_shield, "predict_rows_following", predict_counted)
+    venv = _venv(len(seeds), shield=shield)
+    row_shield = type(venv.shield.shields[0])
+    stop = row_shield._setoff_stop
+
+    def stop_counted(self, sc, found, t):
+        got = stop(self, sc, found, t)
+        seen["setoff_brakes"] += int(got is not None)
+        return got
+
+    monkeypatch.setattr(row_shield, "_setoff_stop", stop_counted)
+    venv.play(iter(seeds))
+    for step in range(400):
+        if venv.idle.all():
+            break
+        venv.step(action_of(step, len(seeds)))
+    assert venv.idle.all()
+    return seen
+
+
+def _short_window(warn_k: int = 24) -> tuple[dict, float]:
+    """The ``aeb`` preset with the turn window cut to 10 m before the stop line (most of the approach outside it)
+    and ``warn_ttc`` exactly the prediction's time ``warn_k`` (s): a TTC can equal it."""
+    from av_gym.batched.shield import check_batched_shield
+    from av_gym.presets import compose_group
+    from av_gym.shields.aeb_improved import long_times
+
+    shield = dict(compose_group("shield", "aeb"), activation_distance=10.0)
+    shield["warn_ttc"] = float(long_times(check_batched_shield(shield))[warn_k])
+    return shield, shield["warn_ttc"]
+
+
+def _actions_of_row(row: int, width: int = 12):
+    """Random FASTER / SLOWER / IDLE per step as row ``row`` of a batch of ``width`` drew them (the search that found
+    these seeds played 12 seeds at once, default_rng(5)): the same episode on a batch of one."""
+    rng = np.random.default_rng(5)
+    return lambda step, n: rng.integers(0, 3, width)[row: row + 1]
+
+
+def test_outside_the_turn_window_the_screened_stage_is_the_rows_own_on_both_sides_of_warn_ttc(monkeypatch):
+    """Outside the turn window a conflict later than ``ttc_brake`` is a warning only at TTC <= ``warn_ttc``, else
+    MONITOR with that TTC (_warn_or_brake): with the window cut short (10 m) and ``warn_ttc`` exactly one of the
+    prediction's times, every screened decision is its row's own (SCREEN_CHECK), and the screened decisions outside
+    the window have TTCs under, at and over ``warn_ttc`` (seed 1,000,008). Fails with the screen's stage rule
+    dropped (a warning for every conflict) or its ``<=`` as ``<``."""
+    shield, warn = _short_window()
+
+    def side(want):
+        if want[4] or not np.isfinite(want[1]):
+            return None
+        return "under" if want[1] < warn else "at" if want[1] == warn else "over"
+
+    seen = _screened_counts(monkeypatch, shield, [VALIDATION + 8], _actions_of_row(8), side)
+    assert seen.get("under", 0) > 0 and seen.get("at", 0) > 0 and seen.get("over", 0) > 0, seen
+
+
+def test_the_screen_decides_the_trigger_points_quiet_rows_whose_setoff_rule_finds_nothing(monkeypatch):
+    """At the stop-line trigger point with no conflict the row's set-off rule predicts the standing road users in
+    the box that moved lately setting off: the screen decides the rows where it finds none or meets none of their
+    hypotheses (their prediction for all such rows at once), and leaves its brakes to their rows; with SCREEN_CHECK
+    every screened row is its row's own decision (seed 1,000,003, the short window of the test above: set-off
+    brakes, and rows the rule predicts without braking). Fails with a set-off brake screened as MONITOR (the TTC's
+    horizon or margin changed, another decision's hypotheses read) or the rule's prediction changed."""
+    shield, _ = _short_window()
+    seen = _screened_counts(monkeypatch, shield, [VALIDATION + 3], _actions_of_row(3), lambda want: None)
+    assert seen["setoff_screened"] > 10 and seen["setoff_predicted"] > seen["setoff_brakes"] > 0, seen
