@@ -82,3 +82,50 @@ def test_the_view_of_many_frames_is_each_frames_own():
                 np.testing.assert_array_equal(got, want)
         assert view.any() and not view.all()
         assert hidden.any() == occlusion
+
+
+def _draw_twins(params, seeds: list[int]):
+    """Two batch detectors of the same parameters, their envs reset to the same episode seeds."""
+    from av_gym.batched.perception import BatchedDetector
+
+    twins = [BatchedDetector(len(seeds), params) for _ in range(2)]
+    for d in twins:
+        d.reset(np.arange(len(seeds)), seeds)
+    return twins
+
+
+def test_the_compiled_draws_are_the_per_frame_draws_of_each_envs_generator(monkeypatch):
+    """BatchedDetector._draws_compiled (one compiled call per frame, kernels.frame_draws_span, miss chains in arrays
+    by vehicle id) against _draws (detector.frame_draws per frame, the per-env detector's code and dict chains): over
+    40 rounds of random frames of random envs (road users from a small pool of ids, so chains run on over frames,
+    bursty misses, occlusion, heavy clutter that overflows the clutter buffer, drawn on in Python), the same
+    detections, draws, clutter, bit for bit, and each env's generator left in the same state; then new episodes in
+    half the envs reusing the same vehicle ids (their chains start afresh, as a new dict). Fails with a chain state
+    read across episodes or envs, a branch's probability swapped, or a draw out of order."""
+    from av_gym.batched.perception import BatchedDetector
+
+    monkeypatch.setattr(BatchedDetector, "_clutter_room", lambda self, frames: 2)  # the Python overflow path too
+    p = DetectorParams(miss_rate=0.3, burst_length=3.0, clutter_rate=1.5, fov_deg=120.0)
+    B = 6
+    ref, new = _draw_twins(p, [11, 12, 13, 14, 15, 16])
+    rng = np.random.default_rng(7)
+    drawn, overflows = 0, 0
+    for step in range(40):
+        if step == 20:  # new episodes in half the envs: the same vehicle ids meet fresh chains
+            for d in (ref, new):
+                d.reset(np.array([0, 2, 4]), [21, 22, 23])
+        rows = np.flatnonzero(rng.random(B) < 0.7)
+        counts = rng.integers(0, 7, len(rows))
+        off = np.concatenate([[0], np.cumsum(counts)])
+        vids = np.concatenate([100 * (r + 1) + rng.choice(8, c, replace=False) for r, c in zip(rows, counts)] or
+                              [np.zeros(0, np.int64)]).astype(np.int64)
+        in_view, hidden = rng.random(off[-1]) < 0.8, rng.random(off[-1]) < 0.2
+        want = ref._draws(rows, vids, in_view, hidden, off)
+        got = new._draws_compiled(rows, vids, in_view, hidden, off)
+        for a, b in zip(want, got):
+            assert a.shape == b.shape and a.astype(float).tobytes() == b.astype(float).tobytes(), step
+        drawn += len(want[0])
+        overflows += int(len(want[4]) > 2)
+    for r in range(B):
+        assert ref.rngs[r].bit_generator.state == new.rngs[r].bit_generator.state, r
+    assert drawn > 50 and overflows > 3

@@ -325,7 +325,7 @@ def test_detections_with_kernels_are_the_numpy_detections(params):
 
 
 def test_kernels_are_on_by_default():
-    assert lid.KERNELS == {"cast", "points"} and det.KERNELS == {"occlusion"}
+    assert lid.KERNELS == {"cast", "points"} and det.KERNELS == {"occlusion", "draws"}
 
 
 # --------------------------------------------------------------------------------------------- the roadside world

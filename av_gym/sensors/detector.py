@@ -35,10 +35,12 @@ FIELDS = ("present", "x", "y", "vx", "vy", "heading", "length", "width", "age")
 BOUND = 1e4
 PROBES = np.linspace(0.05, 0.95, 9)
 """Where along a vehicle's bearing interval occlusion is tested (fractions of the interval)."""
-KERNELS = {"occlusion"}
+KERNELS = {"occlusion", "draws"}
 """Which parts run as numba kernels (:mod:`av_gym.sensors.kernels`, bit-identical to the numpy code here, which
 stays as their reference): ``occlusion`` :meth:`Detector._occluded` and :meth:`Detector._view` (ranges, field of
-view and occlusion together)."""
+view and occlusion together); ``draws`` the batch's detector's draws, one compiled call per frame
+(:func:`~av_gym.sensors.kernels.frame_draws_span`; the per-env detector and the batch's reference draw with
+:func:`frame_draws`)."""
 
 
 @dataclass(frozen=True)

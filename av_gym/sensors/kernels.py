@@ -290,3 +290,48 @@ def detector_view_rows(ex, ey, psi, off, x, y, c, s, length, width, max_range, h
                                                   width[a:b], max_range, half_fov, occlusion, probes, fraction)
             r[a:b], in_view[a:b], hidden[a:b] = r_f, view_f, hidden_f
     return r, in_view, hidden
+
+
+@numba.njit(cache=True)
+def frame_draws_span(rng, state, owner, token, keys, in_view, hidden, a, b, miss_rate, p, q, clutter_rate, half_fov,
+                     frame, src, frame_of, draws, n, clutter, clutter_frame, n_c):
+    """:func:`av_gym.sensors.detector.frame_draws` of one frame (the road users ``a`` .. ``b`` of the flat columns
+    ``keys`` (vehicle ids), ``in_view``, ``hidden``) in one compiled call: the same draws from ``rng`` (numba's
+    ``np.random.Generator`` methods are numpy's algorithms on the generator's own bit generator, so its state moves
+    as numpy's calls move it) in the same order: per road user in view its miss chain's uniform (a first sight
+    against ``miss_rate``, then P(miss | seen) ``p``, P(seen | missed) ``q``), seven standard normals per detection;
+    then the clutter count (Poisson, ``clutter_rate``) and per false positive its three uniforms (the range's square;
+    the bearing in [-``half_fov``, ``half_fov``) rad; the heading in [-pi, pi) rad).
+
+    The miss chains by vehicle id: ``state[key]`` missed last frame, valid where ``owner[key]`` is this episode's
+    ``token`` (else a first sight, as the per-env detector's empty dict at an episode's start). Appends detection
+    ``n`` on: its row ``src`` (index in the flat columns), ``frame_of`` = ``frame`` and its (7,) ``draws``; the
+    clutter from ``n_c`` on into ``clutter`` (c, 3) and ``clutter_frame``. Returns (detections, clutter rows, -1),
+    or, where the clutter does not fit in ``clutter``, (detections, ``n_c``, its count) with its uniforms not drawn
+    (the caller draws them in the same order)."""
+    for i in range(a, b):
+        if not in_view[i]:
+            continue
+        key = keys[i]
+        if owner[key] != token:
+            missing = rng.random() < miss_rate
+        elif state[key]:
+            missing = rng.random() >= q
+        else:
+            missing = rng.random() < p
+        owner[key], state[key] = token, missing
+        if missing or hidden[i]:
+            continue
+        for j in range(7):
+            draws[n, j] = rng.standard_normal()
+        src[n], frame_of[n] = i, frame
+        n += 1
+    count = rng.poisson(clutter_rate)
+    if n_c + count > clutter.shape[0]:
+        return n, n_c, count
+    for j in range(n_c, n_c + count):
+        clutter[j, 0] = rng.random()
+        clutter[j, 1] = rng.uniform(-half_fov, half_fov)
+        clutter[j, 2] = rng.uniform(-math.pi, math.pi)
+        clutter_frame[j] = frame
+    return n, n_c + count, -1

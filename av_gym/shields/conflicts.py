@@ -430,9 +430,10 @@ class ConflictModel:
                           t: np.ndarray, intent: np.ndarray | None = None) -> tuple | None:
         """:meth:`predict_rows`' flat buffers: ``(h_off (R + 1,), n_h (R,), xy, hh, owner, is_map, prob)``, decision
         r's H = ``n_h[r]`` hypotheses (-1: not served) from hypothesis ``h_off[r]`` on (``xy`` a (K, H, 2) block from
-        ``2 K h_off[r]``, ``hh`` (K, H) from ``K h_off[r]``; :func:`~av_gym.shields.kernels.conflict_predict_rows`);
-        None where the kernels are switched off or cannot read the lanes."""
-        from av_gym.shields.kernels import conflict_predict_rows
+        ``2 K h_off[r]``, ``hh`` (K, H) from ``K h_off[r]``; :func:`av_gym.shields.conflict_rows.
+        conflict_predict_rows`, :func:`~av_gym.shields.kernels.conflict_predict_rows` without its per-decision
+        copies); None where the kernels are switched off or cannot read the lanes."""
+        from av_gym.shields.conflict_rows import conflict_predict_rows
         from av_gym.shields.predict import DrivenPath
 
         row_off = np.asarray(row_off, dtype=np.int64)
