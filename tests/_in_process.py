@@ -54,3 +54,51 @@ def guarded_worker(queue) -> None:
 
     guard_worker()
     queue.put("alive")
+
+
+def run_command(module: str, *overrides: str, cwd: Path) -> CompletedProcess:
+    """``python -m <module> <overrides>`` (``train`` or ``eval``) in ``cwd``, in this process: ``<module>/__main__.py:
+    main()`` with its own ``sys.argv``; exit status, stdout and stderr as :func:`run_script` gives them. Afterwards
+    the working folder, ``sys.argv``, torch's thread count (train sets its own), the root logger (Hydra's job log)
+    and the run folders and out_dirs the command locked for its process are as they were.
+
+    Why: a fresh interpreter imports torch, SB3, highway-env and the registry again (~9 CPU-s, and ~3.5 more for
+    ``torch._dynamo``, which the first optimizer imports), work that a test worker has already done."""
+    import importlib
+    import logging
+
+    import torch
+
+    entry = importlib.import_module(f"{module}.__main__")
+    out, err = io.StringIO(), io.StringIO()
+    argv, here, threads = sys.argv[:], os.getcwd(), torch.get_num_threads()
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level
+    code: int | str | None = 0
+    try:
+        os.chdir(cwd)
+        sys.argv = [f"{module}/__main__.py", *overrides]
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                entry.main()
+            except SystemExit as exc:
+                code = exc.code
+    finally:
+        from eval.__main__ import OUT_DIRS
+        from train.run_folder import release_all
+
+        release_all()
+        OUT_DIRS.release_all()
+        os.chdir(here)
+        sys.argv = argv
+        torch.set_num_threads(threads)
+        for handler in [h for h in root.handlers if h not in handlers]:
+            root.removeHandler(handler)
+            handler.close()
+        root.setLevel(level)
+    if code is None:
+        code = 0
+    elif not isinstance(code, int):
+        err.write(f"{code}\n")
+        code = 1
+    return CompletedProcess([sys.executable, "-m", module, *overrides], code, out.getvalue(), err.getvalue())

@@ -172,6 +172,8 @@ def trained(tmp_path_factory, request):
 
     from filelock import FileLock
 
+    from _in_process import run_command
+
     root = tmp_path_factory.getbasetemp()
     # the session's folder, above each xdist worker's own (xdist's worker_id fixture is missing under -p no:xdist)
     root = root.parent if hasattr(request.config, "workerinput") else root
@@ -183,8 +185,11 @@ def trained(tmp_path_factory, request):
             # would step the batch 8 times as often), one rollout and one update, and clones the gap-acceptance
             # rule first (one episode): every part runs once; nothing here needs a policy that learnt anything
             fast = [o for o in FAST_PPO if not o.startswith(("agent.n_envs=", "agent.n_steps=", "agent.total_"))]
-            res = run("train", *fast, "agent.n_envs=8", "agent.n_steps=8", "agent.total_timesteps=64",
-                      "agent.init_episodes=1", "agent.init_epochs=1", "train.eval_every=0", "run_name=tiny", cwd=cwd)
+            # in this process (a fresh interpreter's imports cost ~9-12 CPU-s more than the run's own work); the
+            # command as a process: every slow test that runs train (tests/test_cli.py, test_ppo_batched_shield.py)
+            res = run_command("train", *fast, "agent.n_envs=8", "agent.n_steps=8", "agent.total_timesteps=64",
+                              "agent.init_episodes=1", "agent.init_epochs=1", "train.eval_every=0", "run_name=tiny",
+                              cwd=cwd)
             assert res.returncode == 0, res.stderr[-3000:]
             saved.write_text(json.dumps({"args": res.args, "stdout": res.stdout, "stderr": res.stderr}))
         out = json.loads(saved.read_text())
