@@ -660,7 +660,9 @@ class BatchedLeftTurn:
         geo = np.array([LENGTH, WIDTH, self.conflict_s, ONCOMING_NEAR_EDGE_X, batched.EXIT_DISTANCE])
         state = batched._contiguous(self.traffic, "x", "y", "h", "v", "steer", "acc", "target", *extra, "ego",
                                     "crashed", "lane")
-        return (self.T.arr, self.T.rules, self.route, self.route_starts, geo, np.asarray(rows, dtype=np.int64),
+        # rows contiguous: a strided selection (rows[::2]) would compile a second specialization of the kernel
+        return (self.T.arr, self.T.rules, self.route, self.route_starts, geo,
+                np.ascontiguousarray(rows, dtype=np.int64),
                 *state, self._route_k, self.time, self.arrived_time)
 
     def _truth_dict(self, columns: np.ndarray) -> dict:
