@@ -7,6 +7,7 @@ tests/test_shield_kernels.py's (predict_rows runs this kernel)."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from tests.test_shield_kernels import _decisions, fresh_paths  # noqa: F401 -- fresh_paths: a fixture
 
@@ -39,6 +40,9 @@ def _run(kernel, args: tuple, fill: float) -> list[np.ndarray]:
     return out
 
 
+# ~19 s in the fast suite (both kernels compiled, speed bins simulated): slow; tests/test_shield_kernels.py's rows
+# test (each decision its own ConflictModel.predict, through this kernel) keeps the claim in the fast suite
+@pytest.mark.slow
 def test_the_direct_rows_kernel_writes_the_per_decision_kernels_bytes(fresh_paths):  # noqa: F811
     """Random decisions (sizes 0-9, standing, moving, off the map, with and without indicator readings; one whose
     road user reads speed bins not simulated yet; one whose block is a hypothesis too small): every flat buffer
