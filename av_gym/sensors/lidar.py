@@ -169,9 +169,10 @@ def _ray_boxes(o: np.ndarray, u: np.ndarray, corners: np.ndarray) -> tuple[np.nd
 
 
 def _per_object(height: float | np.ndarray, n: int) -> np.ndarray:
-    """One height per object, ``(n,)`` float (a scalar repeated, or an array broadcast), contiguous."""
+    """One height per object, ``(n,)`` float (a scalar repeated, or an array broadcast), contiguous and writable
+    (a read-only array would compile a second specialization of the compiled cast)."""
     height = np.asarray(height, dtype=float)
-    return np.full(n, float(height)) if height.ndim == 0 else np.ascontiguousarray(np.broadcast_to(height, (n,)))
+    return np.full(n, float(height)) if height.ndim == 0 else np.array(np.broadcast_to(height, (n,)))
 
 
 def _cast_kernel(origin_xy: np.ndarray, angles: np.ndarray, tan_e: np.ndarray, cos_e: np.ndarray, mount_height: float,
