@@ -50,7 +50,7 @@ from av_gym.sensors.base import episode_rng
 from av_gym.sensors.turn_signal import (DRIVER_DRAWS, DriverDraws, first_sighting, fit_ids, node_index, reported,
                                         route_origin, turn_signal)
 from av_gym.shields.aeb_improved import GO_TAU, ImprovedAEB, _go_rise, followers, long_times
-from av_gym.shields.aeb_params import BRAKE, MONITOR, STOP_SPEED, WARN, ImprovedParams
+from av_gym.shields.aeb_params import BRAKE, MONITOR, SETOFF_ACCEL_TIME, STOP_SPEED, WARN, ImprovedParams
 from av_gym.shields.conflicts import ConflictModel
 from av_gym.shields.locate_rows import locate_rows
 from av_gym.shields.predict import setpoint_steps
@@ -754,7 +754,7 @@ class BatchedShield:
         index = self.e.T.index
         buffers = predict_rows_following(self.conflicts, mod, row_off, [index[k] for k in flat.lane[slow].tolist()],
                                          accels, self.t_long, None if flat.weights is None else flat.weights[slow],
-                                         3.0)  # ImprovedAEB._setoff_predict's 3 s of setoff_accel
+                                         SETOFF_ACCEL_TIME)
         if buffers is None:
             return out
         n_h = buffers[1]

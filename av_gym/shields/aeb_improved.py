@@ -16,7 +16,7 @@ from av_gym.estimation.driver_intent import DriverIntent
 from av_gym.shields.predict import (LaneHypotheses, cruise_profile, driven_ttc, go_profile, object_predict,
                                     setpoint_steps)
 from av_gym.shields.aeb_base import AEBShield
-from av_gym.shields.aeb_params import BRAKE, MONITOR, STOP_SPEED, WARN, ImprovedParams
+from av_gym.shields.aeb_params import BRAKE, MONITOR, SETOFF_ACCEL_TIME, STOP_SPEED, WARN, ImprovedParams
 
 
 def followers(xy, heading, length: float, others: np.ndarray) -> np.ndarray:
@@ -361,7 +361,7 @@ class ImprovedAEB(AEBShield):
     def _setoff_predict(self, others, lanes, t_long, intent, recent):
         """Positions (K, H, 2), headings (K, H), owners (H,: rows of ``others``), sizes (H, 2) and rear flags (H,)
         of the path hypotheses of every road user slower than ``setoff_speed`` on a lane through the box, setting
-        off from 0.5 m/s at ``setoff_accel`` (for 3 s); None when there is none."""
+        off from 0.5 m/s at ``setoff_accel`` (for :data:`SETOFF_ACCEL_TIME` s); None when there is none."""
         box = np.array([lane is not None and str(lane[0]).startswith("ir") for lane in lanes], dtype=bool)
         speed = np.hypot(others[:, 2], others[:, 3]) if len(others) else np.zeros(0)
         slow = box & (speed < self.p.setoff_speed) & recent
@@ -377,7 +377,7 @@ class ImprovedAEB(AEBShield):
         # 0.5 m/s start across a rounding (its hypot is one ulp under 0.5 for ~1.4 % of headings, and a car's
         # heading one ulp apart between two stacks then picked its lanes or a straight line).
         xy, h, owner, turn = self._accel_predict(mod, sub_lanes, self.p.setoff_accel * direction, t_long,
-                                                 sub_intent, 3.0, follow=True)
+                                                 sub_intent, SETOFF_ACCEL_TIME, follow=True)
         return xy, h, idx[owner], np.asarray(others[idx[owner], 5:7], dtype=float).reshape(-1, 2), \
             turn | self.p.ignore_rear
 

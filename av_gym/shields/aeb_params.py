@@ -17,6 +17,7 @@ from av_gym.sensors.turn_signal import TurnSignalsParams
 
 
 STOP_SPEED = 0.1  # m/s, standstill (as av_gym.metrics.left_turn.STOP_SPEED)
+SETOFF_ACCEL_TIME = 3.0  # s, how long the set-off rule's standing road user keeps setoff_accel (both stacks read it)
 
 
 _NO_ACCEL = np.zeros(2)  # an object's acceleration before its second sighting (never written to)
