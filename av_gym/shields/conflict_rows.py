@@ -29,10 +29,10 @@ from av_gym.shields.kernels import (_at, _bin_fractions, _missing_bins, _search,
 @numba.njit(cache=True, inline="always")
 def _route_pose_direct(data, ro, rn, r_len, s, guess):
     """:func:`av_gym.shields.kernels._route_pose`, the same floats, without its cos and sin where the arc length is
-    on the route (``extra`` 0): there ``x + 0 cos(h)`` is ``x`` (for ``x`` not 0, where +0 and -0 could differ in
-    sign, and ``h`` finite), so they are not computed. Why: most hypotheses of road users on the approach lanes lie
-    wholly before their driven table, on the route's centreline: two of these calls per slice were a third of the
-    rows kernel's time (captured calls replayed, the same bytes)."""
+    on the route (``extra`` 0): there ``x + 0 cos(h)`` is ``x`` (for ``x`` and ``y`` not 0, where +0 and -0 could
+    differ in sign, and ``h`` finite), so they are not computed. Why: most hypotheses of road users on the approach
+    lanes lie wholly before their driven table, on the route's centreline: two of these calls per slice were a third
+    of the rows kernel's time (captured calls replayed, the same bytes)."""
     sc = min(max(s, 0.0), r_len)
     j = _search(sc, data, ro, rn, guess) if sc == sc and rn > 1 else 0
     x = _at(sc, j, data, ro, ro + rn, rn)

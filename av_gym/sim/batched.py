@@ -284,7 +284,8 @@ class Traffic:
         self.lane, self.tlane = z(int), z(int)
         self.route = np.full((B, N, 3), -1)  # lane ids of the planned route; route[rpos:] is what is left
         self.rpos = z(int)
-        self.vid = z(int)  # a vehicle's identity (per env, from 1), kept through compaction: sensors key on it
+        # a vehicle's identity, unique in the process (_VEHICLE_IDS), kept through compaction: sensors key on it
+        self.vid = z(int)
         if self.road_steps is None:
             self.road_steps = np.zeros(B, dtype=int)
 
