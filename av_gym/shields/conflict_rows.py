@@ -6,8 +6,8 @@ Why a second rows kernel beside :func:`av_gym.shields.kernels.conflict_predict_r
 per decision, looks its hypotheses up into an (H, K, 2) array, copies that into the (K, H, 2) result, and the rows
 kernel copies the result once more into the flat buffers: two copies of every position and heading and ~20 small
 allocations per decision, on every decision of every tick. Here the scratch is allocated once per call, sized for
-its largest decision, and the look-ups (:func:`_lookups_direct`: :func:`~av_gym.shields.kernels._lookups` whose
-poses on the route's centreline skip a cos and a sin that add 0) write into a transposed view of the decision's
+its largest decision, and the look-ups (:func:`~av_gym.shields.kernels._lookups` with ``direct``: its poses on
+the route's centreline skip a cos and a sin that add exactly 0) write into a transposed view of the decision's
 block of the flat buffers, the constant-velocity hypotheses likewise. Every float is computed by the same
 operations in the same order as :func:`~av_gym.shields.kernels.conflict_predict` (the hypotheses, the profiles, the
 speed-bin fractions, the missing-bin check, the look-ups, ``p + v t``), so each decision is its own call bit for
@@ -17,89 +17,11 @@ kernel and :meth:`~av_gym.shields.conflicts.ConflictModel.predict`).
 
 from __future__ import annotations
 
-import math
-
 import numba
 import numpy as np
 
-from av_gym.shields.kernels import (_at, _bin_fractions, _missing_bins, _search, along_profiles, conflict_hypotheses,
+from av_gym.shields.kernels import (_bin_fractions, _lookups, _missing_bins, along_profiles, conflict_hypotheses,
                                     lane_hypotheses)
-
-
-@numba.njit(cache=True, inline="always")
-def _route_pose_direct(data, ro, rn, r_len, s, guess):
-    """:func:`av_gym.shields.kernels._route_pose`, the same floats, without its cos and sin where the arc length is
-    on the route (``extra`` 0): there ``x + 0 cos(h)`` is ``x`` (for ``x`` and ``y`` not 0, where +0 and -0 could
-    differ in sign, and ``h`` finite), so they are not computed. Why: most hypotheses of road users on the approach
-    lanes lie wholly before their driven table, on the route's centreline: two of these calls per slice were a third
-    of the rows kernel's time (captured calls replayed, the same bytes)."""
-    sc = min(max(s, 0.0), r_len)
-    j = _search(sc, data, ro, rn, guess) if sc == sc and rn > 1 else 0
-    x = _at(sc, j, data, ro, ro + rn, rn)
-    y = _at(sc, j, data, ro, ro + 2 * rn, rn)
-    h = _at(sc, j, data, ro, ro + 3 * rn, rn)
-    extra = s - sc
-    if extra == 0.0 and x != 0.0 and y != 0.0 and math.isfinite(h):
-        return x, y, h, max(j, 0)
-    return x + extra * math.cos(h), y + extra * math.sin(h), h, max(j, 0)
-
-
-@numba.njit(cache=True)
-def _lookups_direct(data, route, limits, bins, ids, s0, ds, f, rows, xy, hh):
-    """:func:`av_gym.shields.kernels._lookups` (the same arguments, the same floats) with
-    :func:`_route_pose_direct` for the poses on the route's centreline."""
-    H, K = ids.shape[0], ds.shape[1]
-    B = bins.shape[1]
-    d0s = np.empty(B)
-    have = np.zeros(B, dtype=np.bool_)
-    guess = np.zeros(B, dtype=np.int64)
-    for m in range(H):
-        p, q = ids[m], rows[m]
-        ro, rn, sm = route[p, 0], route[p, 1], s0[m]
-        s_start, r_len = limits[p, 0], limits[p, 1]
-        rg = 0
-        if sm + (ds[q, K - 1] if K else 0.0) < s_start:  # the whole prediction before the table
-            for k in range(K):
-                x, y, h, rg = _route_pose_direct(data, ro, rn, r_len, sm + ds[q, k], rg)
-                xy[m, k, 0], xy[m, k, 1], hh[m, k] = x, y, h
-            continue
-        have[:] = False
-        guess[:] = 0
-        for k in range(K):
-            lo = int(math.floor(f[q, k]))
-            hi = min(lo + 1, B - 1)
-            w = f[q, k] - lo
-            ax, ay, ah = 0.0, 0.0, 0.0
-            for r in range(2):
-                i = lo if r == 0 else hi
-                if r == 1 and hi == lo:
-                    break
-                bo, bn = bins[p, i, 0], bins[p, i, 1]
-                d_last = data[bo + bn - 1]
-                if not have[i]:
-                    if sm <= s_start:
-                        d0s[i] = sm
-                    else:
-                        past = sm - data[bo + 5 * bn - 1]
-                        j0 = _search(sm, data, bo + 4 * bn, bn, 0) if sm == sm and bn > 1 else 0
-                        d0s[i] = _at(sm, j0, data, bo + 4 * bn, bo, bn) + (past if not (0.0 > past) else 0.0)
-                    have[i] = True
-                d = d0s[i] + ds[q, k]
-                if d >= s_start and d <= d_last:  # on the driven table
-                    j = _search(d, data, bo, bn, guess[i]) if bn > 1 else 0
-                    guess[i] = max(j, 0)
-                    x = _at(d, j, data, bo, bo + bn, bn)
-                    y = _at(d, j, data, bo, bo + 2 * bn, bn)
-                    h = _at(d, j, data, bo, bo + 3 * bn, bn)
-                else:  # the centreline before it, shifted one for one after it
-                    arg = d if d < s_start else d - d_last + data[bo + 5 * bn - 1]
-                    x, y, h, rg = _route_pose_direct(data, ro, rn, r_len, arg, rg)
-                # the reference's weight of bin i: where(lo == i, 1 - w, 0) + where(hi == i, w, 0)
-                wi = ((1.0 - w) if lo == i else 0.0) + (w if hi == i else 0.0)
-                ax += wi * x
-                ay += wi * y
-                ah += wi * h
-            xy[m, k, 0], xy[m, k, 1], hh[m, k] = ax, ay, ah
 
 
 @numba.njit(cache=True, error_model="numpy")  # as conflict_predict: weights summing to 0 give NaN
@@ -145,8 +67,8 @@ def conflict_predict_rows(row_off, others, speeds, phis, lane_row, lanes, hyp_of
                 n_h[r] = -1
                 continue
             # the map hypotheses' look-ups straight into the block, as (H, K, 2) / (H, K) views of it
-            _lookups_direct(data, route, limits, bins, ids[:n], starts[:n], dist, f, rows[:n],
-                            bxy[:, :n].transpose((1, 0, 2)), bhh[:, :n].transpose())
+            _lookups(data, route, limits, bins, ids[:n], starts[:n], dist, f, rows[:n],
+                     bxy[:, :n].transpose((1, 0, 2)), bhh[:, :n].transpose(), True)
             for h in range(n):
                 owner[o + h], is_map[o + h], prob[o + h] = own[h], True, pr[h]
         for c in range(n_cv):  # the constant-velocity objects: p + v t (object_predict)

@@ -151,15 +151,23 @@ def _at(x, j, data, xo, fo, n):
 
 
 @numba.njit(cache=True, inline="always")
-def _route_pose(data, ro, rn, r_len, s, guess):
+def _route_pose(data, ro, rn, r_len, s, guess, direct):
     """RouteTable.poses for one arc length: (x, y, heading, the search's index for the next guess). The route's
-    arc lengths are sorted, so the index (one search for the three columns) does not depend on the guess."""
+    arc lengths are sorted, so the index (one search for the three columns) does not depend on the guess.
+
+    ``direct``: on the route (``extra`` 0) the cos and sin are not computed where they add exactly 0: ``x + 0
+    cos(h)`` is ``x`` for ``x`` and ``y`` not 0 (where +0 and -0 could differ in sign) and ``h`` finite; the same
+    floats. Why: most hypotheses of road users on the approach lanes lie wholly before their driven table, on the
+    route's centreline, and these two calls per slice were a third of the batch's rows kernel
+    (av_gym/shields/conflict_rows.py); the per-env stack keeps them (``direct`` False)."""
     sc = min(max(s, 0.0), r_len)
     j = _search(sc, data, ro, rn, guess) if sc == sc and rn > 1 else 0
     x = _at(sc, j, data, ro, ro + rn, rn)
     y = _at(sc, j, data, ro, ro + 2 * rn, rn)
     h = _at(sc, j, data, ro, ro + 3 * rn, rn)
     extra = s - sc
+    if direct and extra == 0.0 and x != 0.0 and y != 0.0 and math.isfinite(h):
+        return x, y, h, max(j, 0)
     return x + extra * math.cos(h), y + extra * math.sin(h), h, max(j, 0)
 
 
@@ -186,7 +194,7 @@ def driven_poses(data, route, limits, bins, grid_table, ids, s0, ds, speeds, xy,
     missing = _missing_bins(bins, limits, ids, s0, ds, f, rows, need)
     if missing:
         return missing
-    _lookups(data, route, limits, bins, ids, s0, ds, f, rows, xy, hh)
+    _lookups(data, route, limits, bins, ids, s0, ds, f, rows, xy, hh, False)
     return 0
 
 
@@ -227,7 +235,7 @@ def _missing_bins(bins, limits, ids, s0, ds, f, rows, need):
 
 
 @numba.njit(cache=True)
-def _lookups(data, route, limits, bins, ids, s0, ds, f, rows, xy, hh):
+def _lookups(data, route, limits, bins, ids, s0, ds, f, rows, xy, hh, direct):
     """:func:`driven_poses`' look-ups, every bin present: look-up m from ``s0[m]`` along the distances ``ds[rows[m]]``
     with the bin fractions ``f[rows[m]]`` (rows: the look-ups of one road user's hypotheses share its profile).
 
@@ -247,7 +255,7 @@ def _lookups(data, route, limits, bins, ids, s0, ds, f, rows, xy, hh):
         rg = 0
         if sm + (ds[q, K - 1] if K else 0.0) < s_start:  # the whole prediction before the table
             for k in range(K):
-                x, y, h, rg = _route_pose(data, ro, rn, r_len, sm + ds[q, k], rg)
+                x, y, h, rg = _route_pose(data, ro, rn, r_len, sm + ds[q, k], rg, direct)
                 xy[m, k, 0], xy[m, k, 1], hh[m, k] = x, y, h
             continue
         have[:] = False
@@ -280,7 +288,7 @@ def _lookups(data, route, limits, bins, ids, s0, ds, f, rows, xy, hh):
                     h = _at(d, j, data, bo, bo + 3 * bn, bn)
                 else:  # the centreline before it, shifted one for one after it
                     arg = d if d < s_start else d - d_last + data[bo + 5 * bn - 1]
-                    x, y, h, rg = _route_pose(data, ro, rn, r_len, arg, rg)
+                    x, y, h, rg = _route_pose(data, ro, rn, r_len, arg, rg, direct)
                 # the reference's weight of bin i: where(lo == i, 1 - w, 0) + where(hi == i, w, 0)
                 wi = ((1.0 - w) if lo == i else 0.0) + (w if hi == i else 0.0)
                 ax += wi * x
@@ -636,7 +644,7 @@ def conflict_predict(others, speeds, phis, lane_row, lanes, hyp_off, hyp_n, hyp_
         missing = _missing_bins(bins, limits, ids, starts[:n], dist, f, rows[:n], need)
         if missing:
             return missing, hyp[:n], xy, hh, owner, is_map, prob
-        _lookups(data, route, limits, bins, ids, starts[:n], dist, f, rows[:n], pxy, phh)
+        _lookups(data, route, limits, bins, ids, starts[:n], dist, f, rows[:n], pxy, phh, False)
         for h in range(n):
             for k in range(K):
                 xy[k, h, 0], xy[k, h, 1], hh[k, h] = pxy[h, k, 0], pxy[h, k, 1], phh[h, k]
