@@ -197,13 +197,15 @@ def _screened_counts(monkeypatch, shield: dict, seeds: list[int], action_of, cla
     ``_decide`` runs too and must agree), actions ``action_of(step, n)``; ``classify(want)`` names each screened
     decision's class (None: not counted). Returns the count per class, and ``setoff_screened`` (quiet rows at the
     trigger point the screen decided: no road user the set-off rule predicts, or none of its hypotheses met),
-    ``setoff_predicted`` (of those, the rule's prediction made for all rows at once) and ``setoff_brakes`` (the
-    set-off rule's brakes, decided by their rows)."""
+    ``setoff_predicted`` (of those, the rule's prediction made for all rows at once), ``setoff_met_none`` (rows
+    screened through that prediction: served, none of its hypotheses met) and ``setoff_brakes`` (the set-off rule's
+    brakes, decided by their rows)."""
     from av_gym.batched import shield as batched_shield
+    from av_gym.shields.setoff_rows import setoff_slow
     from tests.test_batched_shield import _venv
 
     monkeypatch.setattr(batched_shield, "SCREEN_CHECK", True)
-    seen = {"setoff_screened": 0, "setoff_predicted": 0, "setoff_brakes": 0}
+    seen = {"setoff_screened": 0, "setoff_predicted": 0, "setoff_met_none": 0, "setoff_brakes": 0}
     check, setoff, predict = batched_shield._check_screened, batched_shield.BatchedShield._screen_setoff, \
         batched_shield.predict_rows_following
 
@@ -216,6 +218,11 @@ def _screened_counts(monkeypatch, shield: dict, seeds: list[int], action_of, cla
     def setoff_counted(self, g, which, flat, first):
         got = setoff(self, g, which, flat, first)
         seen["setoff_screened"] += int(got.sum())
+        if got.any():  # of them, the rows with a road user the rule predicts: decided through its prediction
+            row_of = np.repeat(np.arange(len(which)), np.diff(flat.row_off))
+            slow = setoff_slow(flat.others, self.in_box[flat.lane], flat.recent, self.p.setoff_speed)
+            n_slow = np.bincount(row_of[slow & which[row_of]], minlength=len(which))
+            seen["setoff_met_none"] += int((got & (n_slow > 0)).sum())
         return got
 
     def predict_counted(model, others, row_off, *args):
@@ -291,3 +298,5 @@ def test_the_screen_decides_the_trigger_points_quiet_rows_whose_setoff_rule_find
     shield, _ = _short_window()
     seen = _screened_counts(monkeypatch, shield, [VALIDATION + 3], _actions_of_row(3), lambda want: None)
     assert seen["setoff_screened"] > 10 and seen["setoff_predicted"] > seen["setoff_brakes"] > 0, seen
+    assert seen["setoff_met_none"] > 0, seen  # some rows decided through the all-rows prediction, not only the
+    # rows without a road user the rule predicts
