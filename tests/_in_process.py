@@ -18,32 +18,43 @@ from pathlib import Path
 from subprocess import CompletedProcess
 
 
-def run_script(script: Path, *args: str, cwd: Path) -> CompletedProcess:
-    """``python script *args`` in ``cwd``, in this process: exit status (``SystemExit``'s code, 0 when it returns),
-    stdout and stderr as text. ``sys.argv``, ``sys.path``, the working folder and matplotlib's open figures are
-    as they were afterwards."""
+def _call(main, argv: list[str], cwd: Path, args: list[str]) -> CompletedProcess:
+    """``main()`` with ``sys.argv`` = ``argv`` in ``cwd``, in this process: exit status (``SystemExit``'s code, 0
+    when it returns; ``sys.exit("message")`` printed to stderr, status 1), stdout and stderr as text, reported as the
+    process ``args``. ``sys.argv`` and the working folder are as they were afterwards."""
     out, err = io.StringIO(), io.StringIO()
-    argv, path, here = sys.argv[:], sys.path[:], os.getcwd()
+    saved_argv, here = sys.argv[:], os.getcwd()
     code: int | str | None = 0
     try:
         os.chdir(cwd)
-        sys.argv = [str(script), *args]
+        sys.argv = argv
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             try:
-                runpy.run_path(str(script), run_name="__main__")
+                main()
             except SystemExit as exc:
                 code = exc.code
     finally:
         os.chdir(here)
-        sys.argv, sys.path[:] = argv, path
-        if "matplotlib.pyplot" in sys.modules:
-            sys.modules["matplotlib.pyplot"].close("all")
+        sys.argv = saved_argv
     if code is None:
         code = 0
-    elif not isinstance(code, int):  # sys.exit("message"): printed to stderr, status 1
+    elif not isinstance(code, int):
         err.write(f"{code}\n")
         code = 1
-    return CompletedProcess([sys.executable, str(script), *args], code, out.getvalue(), err.getvalue())
+    return CompletedProcess(args, code, out.getvalue(), err.getvalue())
+
+
+def run_script(script: Path, *args: str, cwd: Path) -> CompletedProcess:
+    """``python script *args`` in ``cwd``, in this process (:func:`_call`). ``sys.argv``, ``sys.path``, the working
+    folder and matplotlib's open figures are as they were afterwards."""
+    path = sys.path[:]
+    try:
+        return _call(lambda: runpy.run_path(str(script), run_name="__main__"), [str(script), *args], cwd,
+                     [sys.executable, str(script), *args])
+    finally:
+        sys.path[:] = path
+        if "matplotlib.pyplot" in sys.modules:
+            sys.modules["matplotlib.pyplot"].close("all")
 
 
 def guarded_worker(queue) -> None:
@@ -70,35 +81,19 @@ def run_command(module: str, *overrides: str, cwd: Path) -> CompletedProcess:
     import torch
 
     entry = importlib.import_module(f"{module}.__main__")
-    out, err = io.StringIO(), io.StringIO()
-    argv, here, threads = sys.argv[:], os.getcwd(), torch.get_num_threads()
+    threads = torch.get_num_threads()
     root = logging.getLogger()
     handlers, level = list(root.handlers), root.level
-    code: int | str | None = 0
     try:
-        os.chdir(cwd)
-        sys.argv = [f"{module}/__main__.py", *overrides]
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            try:
-                entry.main()
-            except SystemExit as exc:
-                code = exc.code
+        return _call(entry.main, [f"{module}/__main__.py", *overrides], cwd, [sys.executable, "-m", module, *overrides])
     finally:
         from eval.__main__ import OUT_DIRS
         from train.run_folder import release_all
 
         release_all()
         OUT_DIRS.release_all()
-        os.chdir(here)
-        sys.argv = argv
         torch.set_num_threads(threads)
         for handler in [h for h in root.handlers if h not in handlers]:
             root.removeHandler(handler)
             handler.close()
         root.setLevel(level)
-    if code is None:
-        code = 0
-    elif not isinstance(code, int):
-        err.write(f"{code}\n")
-        code = 1
-    return CompletedProcess([sys.executable, "-m", module, *overrides], code, out.getvalue(), err.getvalue())
