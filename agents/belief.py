@@ -90,11 +90,13 @@ class BeliefLookaheadParams(AgentParams):
                                                                   "at 10 Hz and 2 Hz decisions), which sees such a "
                                                                   "driver and takes the GO back while the ego can "
                                                                   "stop; 0: only the frames so far")
-    track_acc_sigma: float = param(1.6, "m/s²", ge=0, doc="on tracks: the error of a track's acceleration as the "
-                                                         "intent features measure it (sd 1.59 m/s² against the "
-                                                         "simulator's, 19,286 readings of 40 validation episodes), "
-                                                         "added in quadrature to the model's 0.3 in the behaviour "
-                                                         "posterior")
+    track_acc_sigma: float = param(1.6, "m/s²", ge=0, doc="on tracks: the weight of a track's measured "
+                                                         "acceleration in the behaviour posterior, as an sd added "
+                                                         "in quadrature to the model's 0.3 in the likelihood "
+                                                         "(smaller: the measurement counts for more); a setting, "
+                                                         "not a measurement: the default is the intent features' "
+                                                         "measured error (sd 1.59 m/s² against the simulator's, "
+                                                         "19,286 readings of 40 validation episodes)")
     stopped: float = param(1.0, "m/s", ge=0, doc="on tracks: a track slower than this is taken to stay where it is "
                                                  "in the futures, as a crashed car does (the tracks carry no crash "
                                                  "flag); 0: every track drives on")
