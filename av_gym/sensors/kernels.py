@@ -292,16 +292,75 @@ def detector_view_rows(ex, ey, psi, off, x, y, c, s, length, width, max_range, h
     return r, in_view, hidden
 
 
+_LOGGAM_A = np.array([8.333333333333333e-02, -2.777777777777778e-03, 7.936507936507937e-04, -5.952380952380952e-04,
+                      8.417508417508418e-04, -1.917526917526918e-03, 6.410256410256410e-03, -2.955065359477124e-02,
+                      1.796443723688307e-01, -1.39243221690590e+00])
+"""The coefficients of numpy's ``random_loggam`` (numpy/random/src/distributions/distributions.c)."""
+
+
+@numba.njit(cache=True)
+def _loggam(x):
+    """numpy's ``random_loggam(x)``: log Γ(x) (x > 0) by its series, the argument shifted up to 7, in its order of
+    operations (which :func:`poisson`'s acceptance test compares against)."""
+    if x == 1.0 or x == 2.0:
+        return 0.0
+    n = int(7 - x) if x < 7.0 else 0
+    x0 = x + n
+    x2 = (1.0 / x0) * (1.0 / x0)
+    gl0 = _LOGGAM_A[9]
+    for k in range(8, -1, -1):
+        gl0 *= x2
+        gl0 += _LOGGAM_A[k]
+    gl = gl0 / x0 + 0.5 * 1.8378770664093453 + (x0 - 0.5) * math.log(x0) - x0
+    if x < 7.0:
+        for _ in range(n):
+            gl -= math.log(x0 - 1.0)
+            x0 -= 1.0
+    return gl
+
+
+@numba.njit(cache=True)
+def poisson(rng, lam):
+    """``rng.poisson(lam)`` as numpy's ``Generator`` draws it (``lam`` >= 0, the mean): the same count and the same
+    uniforms taken from ``rng``'s bit generator. Below 10 numba's own ``Generator.poisson`` (numpy's product of
+    uniforms, none drawn for 0); from 10 on Hörmann's PTRS transformed rejection written here after numpy's
+    ``random_poisson_ptrs``: numba 0.68's port takes the candidate with ``int()``, which truncates, where numpy takes
+    ``floor``, so a candidate in (-1, 0) is 0 there and may be accepted where numpy rejects it and draws on (about
+    one draw in 3e4-1e5 at lam 10-12, and every later draw of that generator then differs; measured: numba 0.68.1 /
+    numpy 2.4.6, seed 1, first at draw 33,172 for lam 10 and 120,863 for lam 12). ``rng.random()`` is numpy's
+    ``next_double``, the uniform numpy's sampler draws."""
+    if lam < 10.0:
+        return rng.poisson(lam)
+    slam, loglam = math.sqrt(lam), math.log(lam)
+    b = 0.931 + 2.53 * slam
+    a = -0.059 + 0.02483 * b
+    invalpha = 1.1239 + 1.1328 / (b - 3.4)
+    vr = 0.9277 - 3.6224 / (b - 2)
+    while True:
+        u = rng.random() - 0.5
+        v = rng.random()
+        us = 0.5 - abs(u)
+        k = np.floor((2 * a / us + b) * u + lam + 0.43)  # a float: -inf where us = 0, rejected as numpy's k < 0
+        if us >= 0.07 and v <= vr:
+            return np.int64(k)
+        if k < 0 or (us < 0.013 and v > us):
+            continue
+        if math.log(v) + math.log(invalpha) - math.log(a / (us * us) + b) <= -lam + k * loglam - _loggam(k + 1):
+            return np.int64(k)
+
+
 @numba.njit(cache=True)
 def frame_draws_span(rng, state, owner, token, keys, in_view, hidden, a, b, miss_rate, p, q, clutter_rate, half_fov,
                      frame, src, frame_of, draws, n, clutter, clutter_frame, n_c):
     """:func:`av_gym.sensors.detector.frame_draws` of one frame (the road users ``a`` .. ``b`` of the flat columns
     ``keys`` (vehicle ids), ``in_view``, ``hidden``) in one compiled call: the same draws from ``rng`` (numba's
     ``np.random.Generator`` methods are numpy's algorithms on the generator's own bit generator, so its state moves
-    as numpy's calls move it) in the same order: per road user in view its miss chain's uniform (a first sight
-    against ``miss_rate``, then P(miss | seen) ``p``, P(seen | missed) ``q``), seven standard normals per detection;
-    then the clutter count (Poisson, ``clutter_rate``) and per false positive its three uniforms (the range's square;
-    the bearing in [-``half_fov``, ``half_fov``) rad; the heading in [-pi, pi) rad).
+    as numpy's calls move it; the Poisson count by :func:`poisson`) in the same order: per road user in view its
+    miss chain's uniform (a first sight against ``miss_rate``, then P(miss | seen) ``p``, P(seen | missed) ``q``),
+    seven standard normals per detection; then the clutter count (Poisson, ``clutter_rate``) and per false positive
+    its three uniforms (the range's square; the bearing in [-``half_fov``, ``half_fov``) rad; the heading in
+    [-pi, pi) rad). :mod:`av_gym.sensors.draws_check` checks these draws against numpy's once per process before
+    the batch's detector uses this kernel.
 
     The miss chains by vehicle id: ``state[key]`` missed last frame, valid where ``owner[key]`` is this episode's
     ``token`` (else a first sight, as the per-env detector's empty dict at an episode's start). Appends detection
@@ -326,7 +385,7 @@ def frame_draws_span(rng, state, owner, token, keys, in_view, hidden, a, b, miss
             draws[n, j] = rng.standard_normal()
         src[n], frame_of[n] = i, frame
         n += 1
-    count = rng.poisson(clutter_rate)
+    count = poisson(rng, clutter_rate)
     if n_c + count > clutter.shape[0]:
         return n, n_c, count
     for j in range(n_c, n_c + count):
