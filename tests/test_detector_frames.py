@@ -2,11 +2,13 @@
 envs' frames at once (av_gym/sensors/detector.py ``assemble_frames``, av_gym/sensors/kernels.py
 ``detector_view_rows``): F frames in one call give each frame what it gets alone, bit for bit (each step is the
 same element-wise arithmetic; the sort is stable, by frame then range). The whole stacks are compared in
-tests/test_batched_perception.py (detections bit for bit)."""
+tests/test_batched_perception.py (detections bit for bit). The batch's compiled draws are the per-env detector's
+numpy draws, and the first-use check (av_gym/sensors/draws_check.py) that falls back to those where they are not."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from av_gym.sensors.detector import PROBES, DetectorParams, assemble_frames
 from av_gym.sensors.kernels import detector_view, detector_view_rows
@@ -129,3 +131,143 @@ def test_the_compiled_draws_are_the_per_frame_draws_of_each_envs_generator(monke
     for r in range(B):
         assert ref.rngs[r].bit_generator.state == new.rngs[r].bit_generator.state, r
     assert drawn > 50 and overflows > 3
+
+
+def _measure_twice(detector, seeds: list[int]) -> np.ndarray:
+    """Two detector frames (t = 0 and 0.1 s) of ``detector`` for envs reset to ``seeds``: random road users of a
+    small pool of ids around each ego (so a miss chain steps), every second one ahead; the (2, B, max_objects, 9)
+    observations."""
+    rng = np.random.default_rng(9)
+    detector.reset(np.arange(len(seeds)), seeds)
+    out = []
+    for t in (0.0, 0.1):
+        counts = rng.integers(2, 8, len(seeds))
+        f = _frames(rng, counts.tolist(), [0] * len(seeds))
+        vids = np.concatenate([100 * (r + 1) + np.arange(c) for r, c in enumerate(counts)]).astype(np.int64)
+        out.append(detector.measure(np.arange(len(seeds)), np.full(len(seeds), t), f["ego"], f["others"], vids,
+                                    f["off"]))
+    return np.stack(out)
+
+
+def test_the_compiled_draws_pass_their_check_here_and_the_batch_draws_with_them(monkeypatch):
+    """draws_check.compiled_draws, on its first call of the process, runs the compiled draws against numpy's
+    (draws_differ: None here) and the batch's detector then draws with the kernel, no warning, "draws" kept; the
+    check's frames call the kernel with the batch's argument types (one compiled specialization for both)."""
+    import warnings
+
+    from av_gym.batched.perception import BatchedDetector
+    from av_gym.sensors import detector, draws_check, kernels
+
+    monkeypatch.setattr(draws_check, "_RESULT", [])  # as in a fresh process
+    monkeypatch.setattr(detector, "KERNELS", set(detector.KERNELS))
+    used = []
+    compiled = BatchedDetector._draws_compiled
+    monkeypatch.setattr(BatchedDetector, "_draws_compiled", lambda self, *a: used.append(1) or compiled(self, *a))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a failed check's warning would raise here
+        obs = _measure_twice(BatchedDetector(3, DetectorParams(clutter_rate=12.0)), [5, 6, 7])
+    assert draws_check._RESULT == [None] and "draws" in detector.KERNELS and len(used) == 2
+    assert (obs[..., 0] > 0).sum() > 20  # detections and clutter drawn
+    assert len(kernels.frame_draws_span.signatures) == 1
+
+
+def _one_ulp_on_first_normal(kernel):
+    def wrong(*args):
+        out = kernel(*args)
+        if out[0] > args[18]:  # a detection drawn in this call: its first normal one float up
+            args[17][args[18], 0] = np.nextafter(args[17][args[18], 0], np.inf)
+        return out
+    return wrong
+
+
+def _one_ulp_on_a_bearing(kernel):
+    def wrong(*args):
+        out = kernel(*args)
+        if out[2] < 0 and out[1] > args[21]:  # clutter drawn in this call: its first bearing one float up
+            args[19][args[21], 1] = np.nextafter(args[19][args[21], 1], np.inf)
+        return out
+    return wrong
+
+
+def _extra_uniform_from_mean_10(kernel):
+    def wrong(*args):
+        if args[12] >= 10.0:  # a sampler that takes one more uniform where numpy switches to PTRS
+            args[0].random()
+        return kernel(*args)
+    return wrong
+
+
+def _extra_uniform_at_the_end(kernel):
+    from av_gym.sensors import draws_check
+
+    def wrong(*args):
+        out = kernel(*args)
+        if args[14] == draws_check.FRAMES - 1:  # every draw returned right, the generator moved on further
+            args[0].random()
+        return out
+    return wrong
+
+
+@pytest.mark.parametrize("perturb, reason", [
+    (_one_ulp_on_first_normal, "frame 0: the standard normals"),
+    (_one_ulp_on_a_bearing, "frame 3: the clutter's uniform(-half_fov, half_fov)"),
+    (_extra_uniform_from_mean_10, "frame 5: "),
+    (_extra_uniform_at_the_end, "the generators' states after all draws"),
+])
+def test_a_compiled_draw_that_differs_fails_the_check_and_the_batch_draws_with_numpy(monkeypatch, perturb, reason):
+    """With the compiled draws perturbed (one float one step off, one uniform too many: what another numba's or
+    numpy's sampler could do), the check names the first draw that differs; compiled_draws is False, drops "draws"
+    from the detector's KERNELS, warns once in one line (the numpy and numba versions, the draw), and the batch's
+    detector draws with numpy (detector.frame_draws, never the kernel): its frames equal those of the unperturbed
+    compiled draws, which equal the per-env detector's (test_the_compiled_draws_are_the_per_frame_draws_of_each_
+    envs_generator; whole episodes in test_a_fallen_back_batch_detects_as_the_per_env_stack)."""
+    import warnings
+
+    from av_gym.batched.perception import BatchedDetector
+    from av_gym.sensors import detector, draws_check, kernels
+
+    want = _measure_twice(BatchedDetector(3, DetectorParams(clutter_rate=12.0)), [5, 6, 7])
+    monkeypatch.setattr(draws_check, "_RESULT", [])
+    monkeypatch.setattr(detector, "KERNELS", set(detector.KERNELS))
+    monkeypatch.setattr(kernels, "frame_draws_span", perturb(kernels.frame_draws_span))
+    monkeypatch.setattr(BatchedDetector, "_draws_compiled", lambda *a: pytest.fail("the kernel drew"))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        got = _measure_twice(BatchedDetector(3, DetectorParams(clutter_rate=12.0)), [5, 6, 7])
+        assert not draws_check.compiled_draws()  # decided once: no second check, no second warning
+    assert draws_check._RESULT[0].startswith(reason) and "draws" not in detector.KERNELS
+    assert [str(w.message).count("\n") for w in caught] == [0] and caught[0].category is RuntimeWarning
+    assert f"numpy {np.__version__}, numba " in str(caught[0].message) and reason in str(caught[0].message)
+    np.testing.assert_array_equal(got, want)
+
+
+def test_a_fallen_back_batch_detects_as_the_per_env_stack(monkeypatch):
+    """With the compiled draws perturbed (the check fails, the batch draws with numpy), two envs on one batch give
+    the per-env stack's detections (make_env's Detector on each env's own generator) on every step of their first
+    20, heavy clutter (12 per frame: PTRS counts) and bursty misses included."""
+    import warnings
+
+    from av_gym.batched.perception import BatchedDetector
+    from av_gym.batched.vec_env import BatchedLeftTurnBatch
+    from av_gym.sensors import detector, draws_check, kernels
+    from tests.test_batched_perception import ENV, _actions, _sensors, per_env
+
+    monkeypatch.setattr(draws_check, "_RESULT", [])
+    monkeypatch.setattr(detector, "KERNELS", set(detector.KERNELS))
+    monkeypatch.setattr(kernels, "frame_draws_span", _one_ulp_on_first_normal(kernels.frame_draws_span))
+    monkeypatch.setattr(BatchedDetector, "_draws_compiled", lambda *a: pytest.fail("the kernel drew"))
+    sensors, seeds, steps = _sensors(clutter_rate=12.0, miss_rate=0.3, burst_length=3.0), [3, 4], 20
+    venv = BatchedLeftTurnBatch(ENV, {**sensors, "observe": ["detector"]}, None, len(seeds), pool=0)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        got = [venv.play(iter(seeds))["detector"].copy()]
+        for a in np.stack([_actions(s) for s in seeds], axis=1)[:steps]:
+            obs, _, ended, _ = venv.step(a)
+            assert not ended.any()
+            got.append(obs["detector"].copy())
+    assert draws_check._RESULT[0] is not None and len(caught) == 1
+    assert (np.stack(got)[..., 0] > 0).sum() > 200  # rows present: detections and clutter
+    for i, seed in enumerate(seeds):
+        want = [o["detector"] for o, _ in per_env(seed, sensors, steps)]
+        assert len(want) == steps + 1
+        np.testing.assert_array_equal(np.stack(want), np.stack(got)[:, i], err_msg=str(seed))

@@ -42,6 +42,7 @@ from av_gym.sensors.base import episode_rng
 from av_gym.sensors.detector import FIELDS as DETECTOR_FIELDS
 from av_gym.sensors.detector import KERNELS as DETECTOR_KERNELS
 from av_gym.sensors.detector import PROBES, Detector, DetectorParams, assemble_frames, frame_draws, miss_chain
+from av_gym.sensors.draws_check import compiled_draws
 from av_gym.sensors.kernels import detector_view_rows, frame_draws_span
 from av_gym.sim.batched import LENGTH, WIDTH
 
@@ -140,7 +141,7 @@ class BatchedDetector:
         sub = others[mine]
         sub_off = np.concatenate([[0], np.cumsum(counts[at])])
         r, in_view, hidden = self._views(ego, sub, sub_off)
-        draw = self._draws_compiled if "draws" in DETECTOR_KERNELS else self._draws
+        draw = self._draws_compiled if compiled_draws() else self._draws  # "draws" in KERNELS, checked once
         src, frame_of, draws, clutter_frame, clutter = draw(rows, vids[mine], in_view, hidden, sub_off)
         det, _, _ = assemble_frames(self.params, self.max_range, self.max_objects, ego, sub, src, frame_of, r[src],
                                     draws, clutter_frame, clutter)

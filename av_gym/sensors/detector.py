@@ -40,7 +40,8 @@ KERNELS = {"occlusion", "draws"}
 stays as their reference): ``occlusion`` :meth:`Detector._occluded` and :meth:`Detector._view` (ranges, field of
 view and occlusion together); ``draws`` the batch's detector's draws, one compiled call per frame
 (:func:`~av_gym.sensors.kernels.frame_draws_span`; the per-env detector and the batch's reference draw with
-:func:`frame_draws`)."""
+:func:`frame_draws`), dropped at its first use in a process where its draws are not numpy's
+(:func:`av_gym.sensors.draws_check.compiled_draws`)."""
 
 
 @dataclass(frozen=True)
