@@ -107,6 +107,41 @@ def test_every_continuation_is_a_hypothesis_and_a_turn_signal_prunes_straight(ne
     np.testing.assert_allclose(xy[:, 0], full[:, left])
 
 
+def test_a_reading_that_weighs_every_continuation_zero_leaves_them_uniform(network):
+    """Indicator weights that are 0 for every turn a lane continues to (a reading that rules out all of them, as a
+    caller's hard 0/1 weights can; DriverIntent floors its own at 0.02) say nothing about which continuation: the
+    weights are uniform, as without a reading, not 0/0 (a NaN probability and a RuntimeWarning before), in the
+    Python reference (ConflictModel._select) and the kernel alike: a car on the approach read [0, 0, 0], and one in
+    the box on its left turn read right-or-straight only."""
+    import warnings
+
+    from av_gym.shields import conflicts
+
+    t = 0.1 * np.arange(1, 21)
+    in_box = network.get_lane(("ir3", "il0", 0))
+    x, y = in_box.position(2.0, 0.0)
+    h = in_box.heading_at(2.0)
+    others = np.vstack([_on_approach(network), [[x, y, 6.0 * np.cos(h), 6.0 * np.sin(h), h, 5.0, 2.0]]])
+    lanes = [("o3", "ir3", 0), ("ir3", "il0", 0)]
+    intent = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 0.0]])
+    model = ConflictModel(network, min_p=0.1)
+    assert [turn for _, turn in model.hypotheses(lanes[1])] == [1.0]  # the box's left turn: left only
+    outs = []
+    for kernel in (True, False):
+        conflicts.CONFLICT_KERNEL = kernel
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")
+                outs.append(model.predict(others, lanes, np.zeros((2, 2)), t, intent))
+        finally:
+            conflicts.CONFLICT_KERNEL = True
+    for got, want in zip(*outs):
+        np.testing.assert_array_equal(got, want, strict=True)
+    _, _, owner, is_map, p = outs[0]
+    assert owner.tolist() == [0, 0, 0, 1] and is_map.all()
+    assert p.tolist() == [1 / 3, 1 / 3, 1 / 3, 1.0]
+
+
 def test_standing_or_off_the_map_objects_get_constant_velocity(network):
     model = ConflictModel(network)
     t = 0.1 * np.arange(1, 11)

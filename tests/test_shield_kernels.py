@@ -161,7 +161,7 @@ def test_the_conflict_kernel_chooses_the_references_hypotheses():
                 outs.append(model.predict(others, lane_indices, accels, t, intent))
             finally:
                 conflicts.CONFLICT_KERNEL = True
-        for got, want in zip(*outs):  # NaN == NaN here (weights that rule out every continuation)
+        for got, want in zip(*outs):  # weights that rule out every continuation: uniform in both (test_conflicts)
             np.testing.assert_array_equal(got, want, err_msg=f"trial {trial}", strict=True)
         is_map, prob = outs[0][3], outs[0][4]
         seen["map"] += int(is_map.sum())

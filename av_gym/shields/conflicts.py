@@ -101,12 +101,15 @@ _BY_NETWORK: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 def _turn_weights(hyps: list, intent_row: np.ndarray | None) -> list[float]:
     """Each lane continuation's probability: weighted by the turn its indicator reading gives (``intent_row``:
-    right, straight, left, :data:`av_gym.estimation.driver_intent.TURNS`), normalised; uniform without a reading."""
+    right, straight, left, :data:`av_gym.estimation.driver_intent.TURNS`), normalised; uniform without a reading,
+    and uniform where the reading weighs every continuation 0 (it rules out each turn the lane can take, so it
+    cannot say which of them: 0/0 would give NaN probabilities)."""
     n_h = len(hyps)
     if intent_row is None:
         return [1.0 / n_h] * n_h
     p = np.array([intent_row[int(turn) + 1] for _, turn in hyps]) / n_h
-    return (p / p.sum()).tolist()
+    total = p.sum()
+    return [1.0 / n_h] * n_h if total == 0 else (p / total).tolist()
 
 
 CONFLICT_KERNEL = True

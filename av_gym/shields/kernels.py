@@ -511,7 +511,7 @@ def locate_rows(lanes, lengths, closed, hint, x, y, phi, fused, out_k, out_s, ou
         out_k[r], out_s[r], out_lat[r] = k, s, lat
 
 
-@numba.njit(cache=True, error_model="numpy")  # weights that sum to 0 give NaN, as numpy's, not an exception
+@numba.njit(cache=True, error_model="numpy")  # a division by 0 gives inf or NaN, as numpy's, not an exception
 def conflict_hypotheses(others, speeds, phis, lane_row, lanes, hyp_off, hyp_n, hyp_turn, intent, accels, min_p,
                         on_lane, max_dh, fused, follow, out_hyp, out_s0, out_row, out_owner, out_prob, v_on, a_on, cv):
     """:meth:`av_gym.shields.conflicts.ConflictModel.predict`'s choice of hypotheses for the objects ``others``
@@ -554,7 +554,7 @@ def conflict_hypotheses(others, speeds, phis, lane_row, lanes, hyp_off, hyp_n, h
                 p[j] = intent[m, int(hyp_turn[off + j]) + 1] / nh
                 total = p[j] if j == 0 else total + p[j]
             for j in range(nh):
-                p[j] = p[j] / total
+                p[j] = p[j] / total if total != 0 else 1.0 / nh  # every continuation weighed 0: uniform
         else:
             for j in range(nh):
                 p[j] = 1.0 / nh
@@ -607,7 +607,7 @@ def lane_hypotheses(lane_row, hyp_n, a, b):
     return n
 
 
-@numba.njit(cache=True, error_model="numpy")  # as conflict_hypotheses: weights summing to 0 give NaN
+@numba.njit(cache=True, error_model="numpy")  # as conflict_hypotheses
 def conflict_predict(others, speeds, phis, lane_row, lanes, hyp_off, hyp_n, hyp_turn, intent, accels, min_p,
                      on_lane, max_dh, fused, follow, hyp_ids, t, accel_time, data, route, limits, bins, grid_table,
                      need):
