@@ -7,6 +7,7 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from tests.test_shield_kernels import fresh_paths  # noqa: F401 -- the fixture: a store no other test simulated into
 
@@ -113,3 +114,57 @@ def test_the_rows_prediction_leaves_a_decision_with_a_missing_speed_bin_to_its_o
     buffers = predict_rows_following(model, mod, np.concatenate([[0], np.cumsum(n_slow)]),
                                      [index[k] for k in lane[slow].tolist()], accels, t, intent[slow], 3.0)
     assert (buffers[1][n_slow > 0] == -1).all() and (buffers[1][n_slow == 0] == 0).all(), (buffers[1], n_slow)
+
+
+
+def _capped_counts(monkeypatch, horizon: float) -> dict:
+    """Seed 1,000,003 under the short-window shield (tests/test_batched_screen.py) with ``setoff_horizon`` =
+    ``horizon`` s and SCREEN_CHECK (each row the screen decides also decides itself, and both must agree): the TTCs
+    of the set-off rule's brakes (the row's own ImprovedAEB._setoff_stop), and its calls whose prediction meets the
+    ego only beyond the cap (no brake, the TTC over the whole horizon finite), all and those made while checking a
+    row the screen decided; with _screened_counts' counts."""
+    from av_gym.batched import shield as batched_shield
+    from av_gym.shields.aeb_improved import ImprovedAEB
+    from tests.test_batched_screen import VALIDATION, _actions_of_row, _screened_counts, _short_window
+
+    shield, _ = _short_window()
+    shield["setoff_horizon"] = horizon
+    seen = {"brake_ttcs": [], "capped": 0, "capped_screened": 0}
+    checking = []
+    check, stop = batched_shield._check_screened, ImprovedAEB._setoff_stop
+
+    def check_marked(sh, want, route_k, now):
+        checking.append(True)
+        try:
+            check(sh, want, route_k, now)
+        finally:
+            checking.pop()
+
+    def stop_seen(self, sc, setoff, t):
+        got = stop(self, sc, setoff, t)
+        whole, _ = self._ttc_of(sc, sc.ds_cruise, sc.n, self.p.margin, *setoff[:2], *setoff[3:])
+        if got is not None:
+            seen["brake_ttcs"].append(float(got[1]))
+        elif np.isfinite(whole):
+            seen["capped"] += 1
+            seen["capped_screened"] += int(bool(checking))
+        return got
+
+    monkeypatch.setattr(batched_shield, "_check_screened", check_marked)
+    monkeypatch.setattr(ImprovedAEB, "_setoff_stop", stop_seen)
+    counts = _screened_counts(monkeypatch, shield, [VALIDATION + 3], _actions_of_row(3), lambda want: None)
+    return {**seen, **counts}
+
+
+@pytest.mark.slow  # ~4 CPU-s: one shielded episode with every screened decision checked
+def test_the_setoff_horizon_caps_the_rule_alike_in_the_screen_and_the_rows_own_decision(monkeypatch):
+    """``setoff_horizon`` (2 s here, the aeb preset's 3 s never binds on this episode): the set-off rule counts a
+    conflict with a setting-off car only within it. On seed 1,000,003 (short window) the rule brakes at TTC <= 2 s,
+    and at a decision whose prediction meets the ego only later (within the whole horizon, beyond 2 s) the row's own
+    decision does not brake and the batch's screen (its n_set = min(n_slices, setoff_horizon / step)) decides the
+    row quiet too (SCREEN_CHECK: the same decision). Fails with the cap dropped from ImprovedAEB._setoff_stop (a
+    brake beyond 2 s, or the screen's MONITOR unlike the row's brake) or from the screen (no row it decides is
+    capped: it leaves them to their rows)."""
+    seen = _capped_counts(monkeypatch, 2.0)
+    assert seen["brake_ttcs"] and max(seen["brake_ttcs"]) <= 2.0, seen
+    assert seen["capped_screened"] > 0 and seen["setoff_brakes"] > 0, seen
