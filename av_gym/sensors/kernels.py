@@ -322,15 +322,23 @@ def _loggam(x):
 @numba.njit(cache=True)
 def poisson(rng, lam):
     """``rng.poisson(lam)`` as numpy's ``Generator`` draws it (``lam`` >= 0, the mean): the same count and the same
-    uniforms taken from ``rng``'s bit generator. Below 10 numba's own ``Generator.poisson`` (numpy's product of
-    uniforms, none drawn for 0); from 10 on Hörmann's PTRS transformed rejection written here after numpy's
-    ``random_poisson_ptrs``: numba 0.68's port takes the candidate with ``int()``, which truncates, where numpy takes
-    ``floor``, so a candidate in (-1, 0) is 0 there and may be accepted where numpy rejects it and draws on (about
-    one draw in 3e4-1e5 at lam 10-12, and every later draw of that generator then differs; measured: numba 0.68.1 /
-    numpy 2.4.6, seed 1, first at draw 33,172 for lam 10 and 120,863 for lam 12). ``rng.random()`` is numpy's
-    ``next_double``, the uniform numpy's sampler draws."""
+    uniforms taken from ``rng``'s bit generator, written here after numpy's ``random_poisson``: none drawn for 0,
+    the product of uniforms below 10, Hörmann's PTRS transformed rejection from 10 on. Why not numba's own
+    ``Generator.poisson``: its PTRS takes the candidate with ``int()``, which truncates, where numpy takes ``floor``,
+    so a candidate in (-1, 0) is 0 there and may be accepted where numpy rejects it and draws on (about one draw in
+    3e4-1e5 at lam 10-12, and every later draw of that generator then differs; measured: numba 0.68.1 / numpy
+    2.4.6, seed 1, first at draw 33,172 for lam 10 and 120,863 for lam 12). ``rng.random()`` is numpy's
+    ``next_double``, the uniform numpy's samplers draw."""
     if lam < 10.0:
-        return rng.poisson(lam)
+        if lam == 0:
+            return np.int64(0)
+        enlam, count, prod = math.exp(-lam), 0, 1.0
+        while True:
+            prod *= rng.random()
+            if prod > enlam:
+                count += 1
+            else:
+                return np.int64(count)
     slam, loglam = math.sqrt(lam), math.log(lam)
     b = 0.931 + 2.53 * slam
     a = -0.059 + 0.02483 * b
