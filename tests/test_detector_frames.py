@@ -208,7 +208,14 @@ def _extra_uniform_at_the_end(kernel):
     return wrong
 
 
+def _raises(kernel):
+    def wrong(*args):
+        raise RuntimeError("cannot compile\nthis kernel")  # as a numba whose typing refuses it
+    return wrong
+
+
 @pytest.mark.parametrize("perturb, reason", [
+    (_raises, "the kernel raised RuntimeError: cannot compile"),
     (_one_ulp_on_first_normal, "frame 0: the standard normals"),
     (_one_ulp_on_a_bearing, "frame 3: the clutter's uniform(-half_fov, half_fov)"),
     (_extra_uniform_from_mean_10, "frame 5: "),
@@ -216,11 +223,12 @@ def _extra_uniform_at_the_end(kernel):
 ])
 def test_a_compiled_draw_that_differs_fails_the_check_and_the_batch_draws_with_numpy(monkeypatch, perturb, reason):
     """With the compiled draws perturbed (one float one step off, one uniform too many: what another numba's or
-    numpy's sampler could do), the check names the first draw that differs; compiled_draws is False, drops "draws"
-    from the detector's KERNELS, warns once in one line (the numpy and numba versions, the draw), and the batch's
-    detector draws with numpy (detector.frame_draws, never the kernel): its frames equal those of the unperturbed
-    compiled draws, which equal the per-env detector's (test_the_compiled_draws_are_the_per_frame_draws_of_each_
-    envs_generator; whole episodes in test_a_fallen_back_batch_detects_as_the_per_env_stack)."""
+    numpy's sampler could do; or a kernel that raises, as on a numba that cannot compile it), the check names the
+    first draw that differs; compiled_draws is False, drops "draws" from the detector's KERNELS, warns once in one
+    line (the numpy and numba versions, the draw), and the batch's detector draws with numpy (detector.frame_draws,
+    never the kernel): its frames equal those of the unperturbed compiled draws, which equal the per-env detector's
+    (test_the_compiled_draws_are_the_per_frame_draws_of_each_envs_generator; whole episodes in
+    test_a_fallen_back_batch_detects_as_the_per_env_stack)."""
     import warnings
 
     from av_gym.batched.perception import BatchedDetector

@@ -41,11 +41,16 @@ _RESULT: list[str | None] = []  # once per process: [None] agreed, [reason] diff
 def compiled_draws() -> bool:
     """Whether the batch's detector draws with the compiled kernel: ``"draws"`` in the detector's ``KERNELS``, and
     the kernel's draws equal numpy's here (:func:`draws_differ`, run on the first call of the process; on a
-    difference ``"draws"`` is dropped from ``KERNELS`` and one warning says why)."""
+    difference, or an exception from the kernel, ``"draws"`` is dropped from ``KERNELS`` and one warning says
+    why)."""
     if "draws" not in _detector.KERNELS:
         return False
     if not _RESULT:
-        _RESULT.append(draws_differ())
+        try:
+            _RESULT.append(draws_differ())
+        except Exception as e:  # e.g. a numba that cannot compile the kernel: numpy's draws still serve
+            first = (str(e).strip().splitlines() or [""])[0]
+            _RESULT.append(f"the kernel raised {type(e).__name__}: {first}")
         if _RESULT[0] is not None:
             _detector.KERNELS.discard("draws")
             warnings.warn(f"the detector's compiled draws differ from numpy's (numpy {np.__version__}, numba "
