@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from av_gym.sensors.detector import PROBES, DetectorParams, assemble_frames
+from av_gym.sensors.detector import PROBES, DetectorParams, assemble_frames, contiguous_columns
 from av_gym.sensors.kernels import detector_view, detector_view_rows
 
 
@@ -72,14 +72,16 @@ def test_the_view_of_many_frames_is_each_frames_own():
     f = _frames(rng, counts=[3, 0, 7, 1, 12], clutters=[0] * 5)
     o, ego, off = f["others"], f["ego"], f["off"]
     c, s = np.cos(o[:, 4]), np.sin(o[:, 4])
+    # contiguous columns, as the detectors pass them (one compiled specialization: detector.contiguous_columns)
+    ex, ey, epsi = contiguous_columns(ego, (0, 1, 2))
+    x, y, length, width = contiguous_columns(o, (0, 1, 5, 6))
     for occlusion in (True, False):
         args = (60.0, np.radians(60.0), occlusion, PROBES, 0.8)
-        r, view, hidden = detector_view_rows(ego[:, 0], ego[:, 1], ego[:, 2], off, o[:, 0], o[:, 1], c, s, o[:, 5],
-                                             o[:, 6], *args)
+        r, view, hidden = detector_view_rows(ex, ey, epsi, off, x, y, c, s, length, width, *args)
         for i in range(len(ego)):
             a, b = off[i], off[i + 1]
-            one = detector_view(ego[i, 0], ego[i, 1], ego[i, 2], o[a:b, 0], o[a:b, 1], c[a:b], s[a:b], o[a:b, 5],
-                                o[a:b, 6], *args)
+            one = detector_view(ex[i], ey[i], epsi[i], x[a:b], y[a:b], c[a:b], s[a:b], length[a:b], width[a:b],
+                                *args)
             for got, want in zip((r[a:b], view[a:b], hidden[a:b]), one):
                 np.testing.assert_array_equal(got, want)
         assert view.any() and not view.all()

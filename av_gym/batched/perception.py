@@ -41,7 +41,8 @@ from av_gym.estimation.turn_features import turn_features
 from av_gym.sensors.base import episode_rng
 from av_gym.sensors.detector import FIELDS as DETECTOR_FIELDS
 from av_gym.sensors.detector import KERNELS as DETECTOR_KERNELS
-from av_gym.sensors.detector import PROBES, Detector, DetectorParams, assemble_frames, frame_draws, miss_chain
+from av_gym.sensors.detector import (PROBES, Detector, DetectorParams, assemble_frames, contiguous_columns,
+                                   frame_draws, miss_chain)
 from av_gym.sensors.draws_check import compiled_draws
 from av_gym.sensors.kernels import detector_view_rows, frame_draws_span
 from av_gym.sim.batched import LENGTH, WIDTH
@@ -209,9 +210,12 @@ class BatchedDetector:
         compiles it (``KERNELS``)."""
         if "occlusion" in DETECTOR_KERNELS:
             c, s = np.cos(others[:, 4]), np.sin(others[:, 4])
-            return detector_view_rows(ego[:, 0], ego[:, 1], ego[:, 2], off, others[:, 0], others[:, 1], c, s,
-                                      others[:, 5], others[:, 6], float(self.max_range), float(self.half_fov),
-                                      bool(self.occlusion), PROBES, float(self.occlusion_fraction))
+            # contiguous columns: the per-env detector's layout, one specialization of the kernels (detector.py)
+            ex, ey, epsi = contiguous_columns(ego, (0, 1, 2))
+            x, y, length, width = contiguous_columns(others, (0, 1, 5, 6))
+            return detector_view_rows(ex, ey, epsi, off, x, y, c, s, length, width, float(self.max_range),
+                                      float(self.half_fov), bool(self.occlusion), PROBES,
+                                      float(self.occlusion_fraction))
         views = [self._view(np.array([x, y]), float(psi), others[a:b]) for (x, y, psi), a, b in
                  zip(ego.tolist(), off[:-1].tolist(), off[1:].tolist())]
         return tuple(np.concatenate([v[i] for v in views]) if views else np.zeros(0) for i in range(3))

@@ -85,6 +85,13 @@ def miss_chain(miss_rate: float, burst_length: float | None) -> tuple[float, flo
     return (q * miss_rate / (1.0 - miss_rate) if miss_rate > 0 else 0.0), q
 
 
+def contiguous_columns(rows: np.ndarray, cols: tuple[int, ...]) -> list[np.ndarray]:
+    """Columns of ``rows`` (n, k) as contiguous 1-D copies (the same values): a column slice is strided ('A' layout
+    to numba) unless n <= 1 (then numpy flags it contiguous, 'C'), so slices would compile the detector's kernels
+    twice, once per layout, depending on how many road users a frame has."""
+    return [np.ascontiguousarray(rows[:, c]) for c in cols]
+
+
 def draw_detections(rng: np.random.Generator, chain: dict, keys, in_view: np.ndarray, occluded: np.ndarray,
                     miss_rate: float, p: float, q: float) -> tuple[list[int], list[np.ndarray]]:
     """One frame's random draws for the vehicles in view, in the order the detector makes them: each vehicle's
@@ -220,9 +227,9 @@ class Detector(SensorWrapper):
         if n < 2:
             return np.zeros(n, dtype=bool)
         if "occlusion" in KERNELS:
-            return _kernels.occluded(float(ego_xy[0]), float(ego_xy[1]), others[:, 0], others[:, 1],
-                                     np.cos(others[:, 4]), np.sin(others[:, 4]), others[:, 5], others[:, 6], PROBES,
-                                     float(self.occlusion_fraction))
+            x, y, length, width = contiguous_columns(others, (0, 1, 5, 6))
+            return _kernels.occluded(float(ego_xy[0]), float(ego_xy[1]), x, y, np.cos(others[:, 4]),
+                                     np.sin(others[:, 4]), length, width, PROBES, float(self.occlusion_fraction))
         corners = box_corners(others[:, :2], others[:, 4], others[:, 5], others[:, 6]) - ego_xy  # (N, 4, 2)
         bearings = np.arctan2(corners[..., 1], corners[..., 0])
         centre = np.arctan2(others[:, 1] - ego_xy[1], others[:, 0] - ego_xy[0])
@@ -243,10 +250,11 @@ class Detector(SensorWrapper):
     def _view(self, ego_xy: np.ndarray, psi: float, others: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per other vehicle: range (m), in view (within ``max_range`` and the field of view), occluded."""
         if "occlusion" in KERNELS:  # the three in one compiled pass
+            x, y, length, width = contiguous_columns(others, (0, 1, 5, 6))
             return _kernels.detector_view(
-                float(ego_xy[0]), float(ego_xy[1]), float(psi), others[:, 0], others[:, 1], np.cos(others[:, 4]),
-                np.sin(others[:, 4]), others[:, 5], others[:, 6], float(self.max_range), float(self.half_fov),
-                bool(self.occlusion), PROBES, float(self.occlusion_fraction))
+                float(ego_xy[0]), float(ego_xy[1]), float(psi), x, y, np.cos(others[:, 4]), np.sin(others[:, 4]),
+                length, width, float(self.max_range), float(self.half_fov), bool(self.occlusion), PROBES,
+                float(self.occlusion_fraction))
         rel = others[:, :2] - ego_xy
         r = np.sqrt(rel[:, 0] * rel[:, 0] + rel[:, 1] * rel[:, 1])  # np.linalg.norm(rel, axis=1), faster
         bearing = np.arctan2(rel[:, 1], rel[:, 0]) - psi
