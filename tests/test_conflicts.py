@@ -91,6 +91,7 @@ def _on_approach(network, speed=8.0):
 def test_every_continuation_is_a_hypothesis_and_a_turn_signal_prunes_straight(network):
     model = ConflictModel(network, min_p=0.1)
     t = 0.1 * np.arange(1, 41)
+    t.flags.writeable = False  # as the shield hands it (long_times): the kernels' own specialization
     others = _on_approach(network)
     lanes = [("o3", "ir3", 0)]
     xy, h, owner, is_map, p = model.predict(others, lanes, np.zeros((1, 2)), t)
@@ -118,6 +119,7 @@ def test_a_reading_that_weighs_every_continuation_zero_leaves_them_uniform(netwo
     from av_gym.shields import conflicts
 
     t = 0.1 * np.arange(1, 21)
+    t.flags.writeable = False  # as the shield hands it (long_times): the kernels' own specialization
     in_box = network.get_lane(("ir3", "il0", 0))
     x, y = in_box.position(2.0, 0.0)
     h = in_box.heading_at(2.0)
@@ -145,6 +147,7 @@ def test_a_reading_that_weighs_every_continuation_zero_leaves_them_uniform(netwo
 def test_standing_or_off_the_map_objects_get_constant_velocity(network):
     model = ConflictModel(network)
     t = 0.1 * np.arange(1, 11)
+    t.flags.writeable = False  # as the shield hands it (long_times): the kernels' own specialization
     standing = _on_approach(network, speed=0.0)
     off_map = _on_approach(network)
     off_map[0, 0:2] += np.array([0.0, 6.0])  # 6 m to the side of its lane

@@ -11,6 +11,13 @@ import pytest
 from av_gym.shields.predict import footprint_ttc, footprint_ttc_numpy
 
 
+def _times(t: np.ndarray) -> np.ndarray:
+    """A time grid (s) as the shield hands it to its kernels: read-only (aeb_improved.long_times), so that a test
+    calls the specialization the shield compiles (numba types read-only arrays apart), not one of its own."""
+    t.flags.writeable = False
+    return t
+
+
 def _scene(rng: np.random.Generator, K: int, M: int):
     """An ego path and M others drifting over K slices, most of them first meeting the ego somewhere in the
     horizon (the first hit's slice spread over it), a few overlapping from the start."""
@@ -99,7 +106,7 @@ def test_the_setpoint_kernel_is_the_reference_with_mdpvehicles_set_points(speeds
     top, rng = len(ego.target_speeds) - 1, np.random.default_rng(11)
     halfway = 0.5 * (ego.target_speeds[:-1] + ego.target_speeds[1:])
     starts = np.concatenate([rng.uniform(0.0, 1.2 * ego.target_speeds[-1], 150), ego.target_speeds, halfway])
-    t = 0.1 * np.arange(1, 81)
+    t = _times(0.1 * np.arange(1, 81))
     for v0 in starts:
         for step in (1, -1):
             want = setpoint_profile(v0, lambda v: float(ego.index_to_speed(  # noqa: B023
@@ -142,7 +149,7 @@ def test_the_conflict_kernel_chooses_the_references_hypotheses():
     env.reset(seed=3)
     net = env.unwrapped.road.network
     rng = np.random.default_rng(7)
-    t = 0.1 * np.arange(1, 81)
+    t = _times(0.1 * np.arange(1, 81))
     seen = {"dropped": 0, "cv": 0, "map": 0}
     for trial in range(300):
         model = ConflictModel(net, min_p=(0.1, 0.3)[trial % 2], accel_time=(0.0, 1.5)[trial % 3 == 0])
@@ -183,7 +190,7 @@ def test_the_along_path_kernel_is_along_many_and_profile_speeds():
         M = int(rng.integers(1, 30))
         v = rng.choice([0.0, 0.5, 3.0, rng.uniform(0.0, 14.0)], M) + rng.uniform(0.0, 1.0, M) * (trial % 2)
         a = rng.choice([0.0, -6.0, 2.0, rng.normal(0.0, 3.0)], M)
-        t = 0.1 * np.arange(1, 81) if trial % 5 else np.sort(rng.choice(0.1 * np.arange(1, 30), 40))
+        t = _times(0.1 * np.arange(1, 81) if trial % 5 else np.sort(rng.choice(0.1 * np.arange(1, 30), 40)))
         model = ConflictModel.__new__(ConflictModel)
         model.accel_time = (0.0, 1.5, 3.0)[trial % 3]
         dist, speed = along_profiles(v, a, t, model.accel_time)
@@ -217,7 +224,7 @@ def test_the_driven_ttc_kernel_is_the_poses_then_the_footprint_test():
     for trial in range(400):
         path = paths[rng.integers(len(paths))]
         K = int(rng.integers(1, 81))
-        t = 0.1 * np.arange(1, K + 1)
+        t = _times(0.1 * np.arange(1, K + 1))
         v, a = float(rng.choice([0.0, rng.uniform(0.0, 14.0)])), float(rng.choice([0.0, -4.0, 1.5]))
         ds = np.maximum.accumulate(np.maximum(v * t + 0.5 * a * t**2, 0.0))
         s0 = float(rng.uniform(-5.0, path.route.length + 10.0)) if trial % 5 else path.s_start
@@ -300,7 +307,7 @@ def test_the_rows_kernel_is_each_decisions_own_call_and_leaves_missing_speed_bin
     a decision reads another's road users, lanes, accelerations or weights, or the flat buffers are cut wrongly."""
     from av_gym.shields.conflicts import ConflictModel
 
-    model, t = ConflictModel(fresh_paths, min_p=0.1), 0.1 * np.arange(1, 81)
+    model, t = ConflictModel(fresh_paths, min_p=0.1), _times(0.1 * np.arange(1, 81))
     decisions = _decisions(fresh_paths, np.random.default_rng(23), SIZES, own=3)
     args = (decisions[0], decisions[4], decisions[1], decisions[2], t, decisions[3])
     want = _own_calls(model, decisions, t, [0, 1, 2, 4])  # all but decision 3's speed bins simulated
@@ -325,7 +332,7 @@ def test_a_decision_with_more_hypotheses_than_its_block_is_left_to_its_own_call(
     from av_gym.shields import conflicts
     from av_gym.shields.conflicts import ConflictModel
 
-    model, t = ConflictModel(fresh_paths, min_p=0.1), 0.1 * np.arange(1, 81)
+    model, t = ConflictModel(fresh_paths, min_p=0.1), _times(0.1 * np.arange(1, 81))
     decisions = _decisions(fresh_paths, np.random.default_rng(29), SIZES, own=3)
     want = _own_calls(model, decisions, t, range(len(SIZES)))
     blocks = conflicts._row_blocks
@@ -360,7 +367,7 @@ def test_the_driven_ttc_rows_kernel_is_each_decisions_own_driven_ttc():
     net = env.unwrapped.road.network
     path = _route_tables([net.get_lane(i) for i in ROUTE])[1]
     path._register()
-    t, K = 0.1 * np.arange(1, 81), 80
+    t, K = _times(0.1 * np.arange(1, 81)), 80
     rng = np.random.default_rng(31)
     hits, misses = 0, 0
     for trial in range(30):
