@@ -399,7 +399,9 @@ class Traffic:
         active = np.ones(B, bool) if active is None else np.ascontiguousarray(active, dtype=bool)
         meta = np.full(B, -1) if meta is None else np.ascontiguousarray(meta, dtype=np.int64).reshape(B)
         cmd = np.full(B, np.nan) if ego_acceleration is None else np.asarray(ego_acceleration, dtype=float)
-        cmd = np.ascontiguousarray(np.broadcast_to(cmd, (int(frames), B)))
+        # a copy, contiguous and writable: a per-tick plan already (frames, B) would pass through as broadcast_to's
+        # read-only view and compile a second specialization of kernels.advance (the same floats either way)
+        cmd = np.array(np.broadcast_to(cmd, (int(frames), B)), order="C")
         ticks, time, arrived = clocks if clocks is not None else (np.zeros(B, dtype=int), np.zeros(B), np.zeros(B))
         T = self.tables
         kernels.advance(T.arr, T.rules, *_contiguous(self, *_TICK_STATE), active, meta, np.asarray(speeds, float),
