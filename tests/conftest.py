@@ -238,6 +238,10 @@ def pytest_configure(config):
 
 
 WARMUP_S = 600  # s, the most the warm-up may take (137 s measured on 2 cores at load ~3)
+# Not lowered for tests: numba's LLVM level (NUMBA_OPT). Measured on a fresh clone (-n 2, empty cache, load ~3.3-4):
+# the warm-up's parts took 97 / 115 CPU-s at the default 3 and 99 / 116 at 1, the whole command 774 / 785 CPU-s:
+# LLVM is ~20 / 33 CPU-s of those parts (its lock's time), numba's own typing and lowering the rest. (Had it paid,
+# its kernels would need their own cache folder: numba's cache index keys on signature, CPU and bytecode, not level.)
 
 
 def _numba_cache_empty() -> bool:
