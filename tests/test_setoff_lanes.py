@@ -16,6 +16,7 @@ from conftest import conf
 
 BOX_LANE = ("ir3", "il0", 0)  # the left turn from the east through the box
 T = 0.1 * np.arange(1, 31)  # s: the set-off rule's 3 s
+T.flags.writeable = False  # as the shield hands its time grids to the kernels: their specialization, not a second
 
 
 def _speed(h: float) -> float:
