@@ -556,7 +556,9 @@ def advance(lt, lanes, x, y, h, v, target, steer, acc, delta, alive, ego, plain,
     for b in range(B):
         if not active[b]:
             continue
-        n_used = 0  # the slots after the last live one: nobody (no vehicle enters or leaves during the ticks)
+        # the slots after the last live one: nobody (no vehicle enters or leaves during the ticks); np.int64, not
+        # a literal 0, or _act_row and _collide_row compile once more for Literal[int](0) while n_used is typed
+        n_used = np.int64(0)
         for j in range(N):
             if alive[b, j]:
                 n_used = j + 1
@@ -1205,8 +1207,9 @@ def spawn_tries(fns, states, rows, start, p, lt, lanes, prior, fl, alive, ego, p
     for k in range(start, rows.shape[0]):
         u = fns[2](states[k])
         if u <= p:
-            added = _spawn_one(fns, states[k], lt, lanes, prior, rows[k], 0.0, 1.0, 1.0, p, False, u, fl, alive, ego,
-                               plain, mdp, flags, it, route, next_id + n, lb, pending)
+            # np.bool_, not a literal: numba compiles a callee once per literal value it is called with
+            added = _spawn_one(fns, states[k], lt, lanes, prior, rows[k], 0.0, 1.0, 1.0, p, np.bool_(False), u, fl,
+                               alive, ego, plain, mdp, flags, it, route, next_id + n, lb, pending)
             if added < 0:
                 return n, k
             n += added
@@ -1222,8 +1225,8 @@ def spawn_initial(fns, states, starts, p, lt, lanes, prior, fl, alive, ego, plai
     n = 0
     for b in range(states.shape[0]):
         for k in range(starts.shape[0]):
-            n += _spawn_one(fns, states[b], lt, lanes, prior, b, starts[k], 1.0, 1.0, p, False, np.nan, fl, alive,
-                            ego, plain, mdp, flags, it, route, next_id + n, lb, np.empty(9))
+            n += _spawn_one(fns, states[b], lt, lanes, prior, b, starts[k], 1.0, 1.0, p, np.bool_(False), np.nan, fl,
+                            alive, ego, plain, mdp, flags, it, route, next_id + n, lb, np.empty(9))
     return n
 
 
@@ -1237,8 +1240,8 @@ def spawn_challengers(fns, states, lt, lanes, prior, fl, alive, ego, plain, mdp,
     lb = np.empty((lt.shape[0], 2))
     n = 0
     for b in range(states.shape[0]):
-        n += _spawn_one(fns, states[b], lt, lanes, prior, b, 60.0, 0.1, 0.0, 1.0, True, np.nan, fl, alive, ego,
-                        plain, mdp, flags, it, route, next_id + n, lb, np.empty(9))
+        n += _spawn_one(fns, states[b], lt, lanes, prior, b, 60.0, 0.1, 0.0, 1.0, np.bool_(True), np.nan, fl, alive,
+                        ego, plain, mdp, flags, it, route, next_id + n, lb, np.empty(9))
         ego_s[b] = 60.0 + 5.0 * (1.0 + 1.0 * standard_normal(fns, states[b]))  # normal(loc=1): loc + scale * z
         ego_id[b] = next_id + n
         n += 1
