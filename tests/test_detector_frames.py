@@ -251,6 +251,47 @@ def test_a_compiled_draw_that_differs_fails_the_check_and_the_batch_draws_with_n
     np.testing.assert_array_equal(got, want)
 
 
+def _truncating_ptrs(rng, lam):
+    """numba 0.68's own ``Generator.poisson`` from lam 10: numpy's PTRS with the candidate truncated by int(), where
+    numpy floors it (a candidate in (-1, 0) becomes 0 and may be accepted where numpy draws again)."""
+    import math
+
+    from av_gym.sensors.kernels import _loggam
+
+    slam, loglam = math.sqrt(lam), math.log(lam)
+    b = 0.931 + 2.53 * slam
+    a = -0.059 + 0.02483 * b
+    invalpha, vr = 1.1239 + 1.1328 / (b - 3.4), 0.9277 - 3.6224 / (b - 2)
+    while True:
+        u, v = rng.random() - 0.5, rng.random()
+        us = 0.5 - abs(u)
+        k = int((2 * a / us + b) * u + lam + 0.43)
+        if us >= 0.07 and v <= vr:
+            return k
+        if k < 0 or (us < 0.013 and v > us):
+            continue
+        if math.log(v) + math.log(invalpha) - math.log(a / (us * us) + b) <= -lam + k * loglam - _loggam(k + 1.0):
+            return k
+
+
+def test_a_poisson_sampler_that_truncates_fails_the_check(monkeypatch):
+    """PTRS's rare branch (about one draw in 3e4-1e5 at mean 10) is beyond the check's frames; its own Poisson
+    draws at mean 10 on draws_check.POISSON_SEEDS reach it: with the sampler numba 0.68 ships (truncating) in place of
+    kernels.poisson the check fails there, drops "draws" and warns."""
+    import warnings
+
+    from av_gym.sensors import detector, draws_check, kernels
+
+    monkeypatch.setattr(draws_check, "_RESULT", [])
+    monkeypatch.setattr(detector, "KERNELS", set(detector.KERNELS))
+    monkeypatch.setattr(kernels, "poisson", _truncating_ptrs)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert not draws_check.compiled_draws()
+    assert draws_check._RESULT[0].startswith("the Poisson count at mean 10 (generator 16, draw ")
+    assert "draws" not in detector.KERNELS and len(caught) == 1
+
+
 def test_a_fallen_back_batch_detects_as_the_per_env_stack(monkeypatch):
     """With the compiled draws perturbed (the check fails, the batch draws with numpy), two envs on one batch give
     the per-env stack's detections (make_env's Detector on each env's own generator) on every step of their first

@@ -300,8 +300,9 @@ _LOGGAM_A = np.array([8.333333333333333e-02, -2.777777777777778e-03, 7.936507936
 
 @numba.njit(cache=True)
 def _loggam(x):
-    """numpy's ``random_loggam(x)``: log Γ(x) (x > 0) by its series, the argument shifted up to 7, in its order of
-    operations (which :func:`poisson`'s acceptance test compares against)."""
+    """numpy's ``random_loggam(x)``: log Γ(x) (x > 0) by its series, the argument shifted up to 7 (which
+    :func:`poisson`'s acceptance test compares against; the same floats as numpy 2.4.6's own on x = 1 .. 200,000,
+    compared against the wheel's library)."""
     if x == 1.0 or x == 2.0:
         return 0.0
     n = int(7 - x) if x < 7.0 else 0
@@ -319,7 +320,7 @@ def _loggam(x):
     return gl
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")  # a division by us = 0 gives inf, as in numpy's C, not an exception
 def poisson(rng, lam):
     """``rng.poisson(lam)`` as numpy's ``Generator`` draws it (``lam`` >= 0, the mean): the same count and the same
     uniforms taken from ``rng``'s bit generator, written here after numpy's ``random_poisson``: none drawn for 0,
@@ -348,7 +349,7 @@ def poisson(rng, lam):
         u = rng.random() - 0.5
         v = rng.random()
         us = 0.5 - abs(u)
-        k = np.floor((2 * a / us + b) * u + lam + 0.43)  # a float: -inf where us = 0, rejected as numpy's k < 0
+        k = np.floor((2 * a / us + b) * u + lam + 0.43)  # a float: us = 0 only at u = -0.5, so -inf, rejected (k < 0)
         if us >= 0.07 and v <= vr:
             return np.int64(k)
         if k < 0 or (us < 0.013 and v > us):
