@@ -9,8 +9,10 @@ readings on the batch:
 - **detector**: env i draws from ``episode_rng(episode_seed_i, "detector")``, the per-env detector's generator,
   the same draws in the same order (per vehicle in view, in road order: its miss chain's draw, then seven normals
   when detected; then the clutter count and each clutter's three draws), so its detections are the per-env ones
-  bit for bit. The draws are a Python loop per env (one generator each: they cannot be drawn for the batch at once
-  and stay the same numbers); the field of view and occlusion are the per-env detector's own code
+  bit for bit. Each env's frame is drawn in one compiled call on its own generator
+  (:func:`av_gym.sensors.kernels.frame_draws_span`; one generator each: they cannot be drawn for the batch at once
+  and stay the same numbers), once :func:`av_gym.sensors.draws_check.compiled_draws` has found its draws numpy's,
+  else with the per-env code (:func:`av_gym.sensors.detector.frame_draws`); the field of view and occlusion are the per-env detector's own code
   (:meth:`Detector._view`, its numba kernel).
 - **tracker**: the constant-velocity Kalman filter of :class:`~av_gym.estimation.tracker.MultiObjectTracker` over
   arrays of every track of every env (predict and update as stacked matrix products, filterpy's formulas in
