@@ -12,8 +12,8 @@ readings on the batch:
   bit for bit. Each env's frame is drawn in one compiled call on its own generator
   (:func:`av_gym.sensors.kernels.frame_draws_span`; one generator each: they cannot be drawn for the batch at once
   and stay the same numbers), once :func:`av_gym.sensors.draws_check.compiled_draws` has found its draws numpy's,
-  else with the per-env code (:func:`av_gym.sensors.detector.frame_draws`); the field of view and occlusion are the per-env detector's own code
-  (:meth:`Detector._view`, its numba kernel).
+  else with the per-env code (:func:`av_gym.sensors.detector.frame_draws`); the field of view and occlusion are
+  the per-env detector's own code (:meth:`Detector._view`, its numba kernel).
 - **tracker**: the constant-velocity Kalman filter of :class:`~av_gym.estimation.tracker.MultiObjectTracker` over
   arrays of every track of every env (predict and update as stacked matrix products, filterpy's formulas in
   filterpy's order: Joseph-form covariance update), the same gates (Euclidean ``max_distance``, squared Mahalanobis
