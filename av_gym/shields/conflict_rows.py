@@ -68,7 +68,7 @@ def conflict_predict_rows(row_off, others, speeds, phis, lane_row, lanes, hyp_of
                 continue
             # the map hypotheses' look-ups straight into the block, as (H, K, 2) / (H, K) views of it
             _lookups(data, route, limits, bins, ids[:n], starts[:n], dist, f, rows[:n],
-                     bxy[:, :n].transpose((1, 0, 2)), bhh[:, :n].transpose(), True)
+                     bxy[:, :n].transpose((1, 0, 2)), bhh[:, :n].transpose(), np.bool_(True))
             for h in range(n):
                 owner[o + h], is_map[o + h], prob[o + h] = own[h], True, pr[h]
         for c in range(n_cv):  # the constant-velocity objects: p + v t (object_predict)

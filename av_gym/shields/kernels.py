@@ -194,7 +194,10 @@ def driven_poses(data, route, limits, bins, grid_table, ids, s0, ds, speeds, xy,
     missing = _missing_bins(bins, limits, ids, s0, ds, f, rows, need)
     if missing:
         return missing
-    _lookups(data, route, limits, bins, ids, s0, ds, f, rows, xy, hh, False)
+    # views typed 'A' and a non-literal bool, as conflict_rows' direct call passes (strided block views, True):
+    # numba compiles _lookups once per layout and per literal value, so otherwise twice (~15 CPU-s of compiling)
+    _lookups(data, route, limits, bins, ids, s0, ds, f, rows, xy[:, :xy.shape[1]], hh[:, :hh.shape[1]],
+             np.bool_(False))
     return 0
 
 
@@ -644,7 +647,8 @@ def conflict_predict(others, speeds, phis, lane_row, lanes, hyp_off, hyp_n, hyp_
         missing = _missing_bins(bins, limits, ids, starts[:n], dist, f, rows[:n], need)
         if missing:
             return missing, hyp[:n], xy, hh, owner, is_map, prob
-        _lookups(data, route, limits, bins, ids, starts[:n], dist, f, rows[:n], pxy, phh, False)
+        _lookups(data, route, limits, bins, ids, starts[:n], dist, f, rows[:n], pxy[:, :K], phh[:, :K],
+                 np.bool_(False))  # 'A' views, a non-literal bool: one specialization of _lookups (driven_poses)
         for h in range(n):
             for k in range(K):
                 xy[k, h, 0], xy[k, h, 1], hh[k, h] = pxy[h, k, 0], pxy[h, k, 1], phh[h, k]
