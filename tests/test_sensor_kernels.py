@@ -328,13 +328,15 @@ def test_detections_with_kernels_are_the_numpy_detections(params):
 def test_the_compiled_poisson_draws_numpys_counts(lam):
     """kernels.poisson (the batch detector's clutter count) gives numpy's Generator.poisson counts and leaves the
     generator in numpy's state, below numpy's switch to PTRS at 10 (the product of uniforms) and from it on, up to
-    beyond the detector's largest clutter_rate (100). Seeds 16, 69, 103: where numba 0.68's own Generator.poisson
-    (its PTRS truncating the candidate with int() where numpy floors it) first differs from numpy at lam 10, at
-    draws 224, 115 and 13: this test fails with it (checked by hand)."""
-    for seed in (16, 69, 103):
+    beyond the detector's largest clutter_rate (100). draws_check.POISSON_SEEDS (16, 69, 103): where numba 0.68's
+    own Generator.poisson (its PTRS truncating the candidate with int() where numpy floors it) first differs from
+    numpy at lam 10, at draws 224, 115 and 13: this test fails with it (checked by hand)."""
+    from av_gym.sensors.draws_check import POISSON_DRAWS, POISSON_SEEDS
+
+    for seed in POISSON_SEEDS:
         ours, theirs = np.random.default_rng(seed), np.random.default_rng(seed)
-        got = [kernels.poisson(ours, lam) for _ in range(400)]
-        assert got == theirs.poisson(lam, 400).tolist(), seed
+        got = [kernels.poisson(ours, lam) for _ in range(POISSON_DRAWS)]
+        assert got == theirs.poisson(lam, POISSON_DRAWS).tolist(), seed
         assert ours.bit_generator.state == theirs.bit_generator.state, seed
 
 
