@@ -32,6 +32,18 @@ def test_check_env_passes(env_id, config):
     check_env(env.unwrapped, skip_render_check=True)
 
 
+def test_an_action_array_the_caller_reuses_is_recorded_per_step():
+    """highway-env puts the caller's action object into ``info``; one array reused for every step (a constant
+    STRAIGHT, an agent's output buffer) would rewrite every earlier step's record."""
+    env = gym.make("av_gym/LaneKeepingLap-v0")
+    env.reset(seed=0)
+    action = np.zeros(env.action_space.shape, env.action_space.dtype)
+    *_, first = env.step(action)
+    action[:] = env.action_space.high
+    *_, second = env.step(action)
+    assert np.all(first["action"] == 0) and np.all(second["action"] == env.action_space.high)
+
+
 def test_importing_av_gym_registers_both_envs():
     assert set(av_gym.ENV_IDS.values()) <= set(gym.registry)
 

@@ -199,6 +199,8 @@ class ScenarioMixin:
 
     def _info(self, obs, action=None) -> dict:
         info = super()._info(obs, action)
+        if isinstance(action, np.ndarray):  # highway-env stores the caller's array itself: a user re-using one action
+            info["action"] = action.copy()  # array (or a buffer of infos) would see every step's record change with it
         info["truth"] = truth = Truth()
         truth.data = self.truth()  # the dict itself, not copied key by key
         return info
