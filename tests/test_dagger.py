@@ -227,6 +227,8 @@ class _Spaces(gym.Env):
         self.observation_space, self.action_space = observation_space, action_space
 
 
+# ppo_turn's rollout is 64 envs x 8 steps; built on this one-env stand-in, SB3 warns that 8 < its mini-batch of 128
+@pytest.mark.filterwarnings("ignore:You have specified a mini-batch size:UserWarning")
 def test_init_from_starts_ppo_from_the_students_network_and_refuses_a_misfit():
     """``agent.init_from=checkpoints/reference/dagger_turn``: a fresh PPO of ppo_turn's config acts as the DAgger
     student on its own decisions (PPO fine-tuning starts where DAgger ended); a checkpoint of other spaces (the lane
