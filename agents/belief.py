@@ -225,6 +225,19 @@ class BeliefLookaheadParams(AgentParams):
                                                          "a tie stops; 0.01 at K 16: a tie carries on, both plans "
                                                          "colliding in as many futures, the ego out of the crossing "
                                                          "lane sooner)")
+    track_margin: float = param(0.0, "m", ge=0, le=3, doc="a clearance the futures demand: a future counts as a "
+                                                         "collision of the ego where another road user comes within "
+                                                         "this of the ego's box (the box grown by it on every side, "
+                                                         "av_gym/sim/kernels._near_ego_row), not only where the boxes "
+                                                         "touch: a near miss in the model is a miss to avoid, so a "
+                                                         "GO must be safe against tracks a little off their true "
+                                                         "place and speed (chance-constrained planning's answer to "
+                                                         "state error, which a probability threshold, counting "
+                                                         "futures, cannot express). The real episode's collision "
+                                                         "test and the others' pairs are unchanged; 0: contact only")
+    track_margin_rate: float = param(0.0, "m/s", ge=0, le=3, doc="the margin grows by this per second into the "
+                                                                "future (``track_margin`` + this x t): a track's "
+                                                                "speed error times the time; 0: constant")
 
 
 class BeliefPlanner:
@@ -494,6 +507,8 @@ class BeliefPlanner:
         t.delta = np.where(m, delta.reshape(n * K, N), t.delta)
         t.target = np.where(m, target.reshape(n * K, N), t.target)
         t.yielding = np.where(m, hold.reshape(n * K, N), t.yielding)
+        t.ego_margin = float(self.params.track_margin)
+        f.margin_plan = (float(self.params.track_margin), float(self.params.track_margin_rate))
         return f
 
     def _behaviour_prior(self, spawn: SpawnPrior, g: np.random.Generator, shape: tuple) -> tuple:
@@ -603,8 +618,15 @@ def play_set_point_fast(f, top: float) -> np.ndarray:
     safe = np.ones(f.B, bool)
     idx = np.arange(f.B)  # the rows of the original future that ``f`` still holds
     live = np.ones(f.B, bool)  # the rows of ``f`` still playing
+    # the clearance margin (m) and its growth (m/s) of BeliefPlanner.futures; every row starts at once, so the time
+    # into the future is one number for all
+    margin, rate = getattr(f, "margin_plan", (f.traffic.ego_margin, 0.0))
+    elapsed = 0.0  # s
     while live.any():
         n = f.B
+        if rate > 0.0:
+            f.traffic.ego_margin = margin + rate * elapsed
+        elapsed += 1.0 / f.config["policy_frequency"]
         sp = f.traffic.target[np.arange(n), f.ego_slot()]
         meta = np.where(top > sp + 1e-3, FASTER, np.where(top < sp - 1e-3, SLOWER, IDLE))
         _, terminated, truncated = f.step(meta, active=live)  # the ended rows wait as they are

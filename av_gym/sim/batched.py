@@ -266,6 +266,9 @@ class Traffic:
     B: int
     N: int = 24
     road_steps: np.ndarray = field(default=None)
+    # m: a planner's futures count the ego crashed where another road user comes within this of its box
+    # (kernels._near_ego_row; agents/belief.py, ``track_margin``); 0, every real engine's: the contact test only
+    ego_margin: float = 0.0
 
     def __post_init__(self) -> None:
         B, N = self.B, self.N
@@ -328,7 +331,8 @@ class Traffic:
     def subset(self, rows) -> "Traffic":
         """A new Traffic with the rows ``rows`` of this one (copies)."""
         rows = np.asarray(rows, dtype=int)
-        out = Traffic(self.tables, len(rows), N=self.N, road_steps=self.road_steps[rows].copy())
+        out = Traffic(self.tables, len(rows), N=self.N, road_steps=self.road_steps[rows].copy(),
+                      ego_margin=self.ego_margin)
         for name in self.FIELDS:
             setattr(out, name, getattr(self, name)[rows].copy())
         return out
@@ -336,7 +340,8 @@ class Traffic:
     @staticmethod
     def concat(a: "Traffic", b: "Traffic") -> "Traffic":
         n = max(a.N, b.N)
-        out = Traffic(a.tables, a.B + b.B, N=n, road_steps=np.concatenate([a.road_steps, b.road_steps]))
+        out = Traffic(a.tables, a.B + b.B, N=n, road_steps=np.concatenate([a.road_steps, b.road_steps]),
+                      ego_margin=a.ego_margin)
         out.put(np.arange(a.B), a)
         out.put(a.B + np.arange(b.B), b)
         return out
@@ -404,8 +409,12 @@ class Traffic:
         cmd = np.array(np.broadcast_to(cmd, (int(frames), B)), order="C")
         ticks, time, arrived = clocks if clocks is not None else (np.zeros(B, dtype=int), np.zeros(B), np.zeros(B))
         T = self.tables
+        prm = _TICK_PARAMS
+        if self.ego_margin != 0.0:  # the same float64 array, one compiled signature, the margin's entry set
+            prm = _TICK_PARAMS.copy()
+            prm[kernels.P_EGO_MARGIN] = float(self.ego_margin)
         kernels.advance(T.arr, T.rules, *_contiguous(self, *_TICK_STATE), active, meta, np.asarray(speeds, float),
-                        cmd, int(frames), float(dt), int(1 / dt / 2), REG_TIMES, _TICK_PARAMS, ticks, time, arrived)
+                        cmd, int(frames), float(dt), int(1 / dt / 2), REG_TIMES, prm, ticks, time, arrived)
 
     def act(self, ego_action: np.ndarray | None = None, speeds: np.ndarray = EGO_TARGET_SPEEDS,
             ego_acceleration: np.ndarray | None = None) -> None:
@@ -533,6 +542,9 @@ class Traffic:
             self._enforce_road_rules(reg)
         self._kinematics(dt)
         self._collisions(dt)
+        if self.ego_margin != 0.0:  # a planner's future: a near miss of the ego is a crash (kernels._near_ego_row)
+            kernels.near_ego(*_contiguous(self, "x", "y", "h", "alive", "ego", "crashed"), LENGTH, WIDTH,
+                             float(self.ego_margin))
 
     def _kinematics(self, dt: float) -> None:
         """Vehicle.clip_actions + Vehicle.step (kinematic bicycle) + on_state_update (closest lane)."""
@@ -655,7 +667,7 @@ class Traffic:
 _TICK_STATE = ("x", "y", "h", "v", "target", "steer", "acc", "delta", "alive", "ego", "plain", "mdp", "crashed",
                "yielding", "impact_x", "impact_y", "has_impact", "lane", "tlane", "route", "rpos", "road_steps")
 _TICK_PARAMS = np.array([VEHICLE_LENGTH, LENGTH, WIDTH, COMFORT_ACC_MAX, COMFORT_ACC_MIN, ACC_MAX, DISTANCE_WANTED,
-                         TIME_WANTED, TAU_PURSUIT, KP_LATERAL, KP_HEADING, KP_A, MAX_STEERING, EXIT_DISTANCE])
+                         TIME_WANTED, TAU_PURSUIT, KP_LATERAL, KP_HEADING, KP_A, MAX_STEERING, EXIT_DISTANCE, 0.0])
 
 
 def _contiguous(t: Traffic, *names: str) -> list[np.ndarray]:

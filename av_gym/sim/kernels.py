@@ -305,6 +305,37 @@ def _collide_row(b, x, y, h, v, alive, dt, length, width, crashed, has_impact, i
 
 
 @numba.njit(cache=True, error_model="numpy")
+def near_ego(x, y, h, alive, ego, crashed, length, width, margin):
+    """:func:`_near_ego_row` for every env (the numpy tick's counterpart of kernels.advance's test)."""
+    ca, cb = np.empty((4, 2)), np.empty((4, 2))
+    for b in range(x.shape[0]):
+        _near_ego_row(b, x, y, h, alive, ego, crashed, length, width, margin, ca, cb, x.shape[1])
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _near_ego_row(b, x, y, h, alive, ego, crashed, length, width, margin, ca, cb, N):
+    """A planner's clearance margin (m) in its futures: the ego of env b crashes where another live road user's
+    ``length`` x ``width`` box touches the ego's box grown by ``margin`` on every side (a near miss the planner
+    avoids as it avoids a contact). Only the ego's flag is set: the other road user drives on, and pairs of others
+    keep :func:`_collide_row`'s contact test. ``ca``, ``cb``: (4, 2) scratch. Written here, not taken from a
+    library, because it must run inside the compiled tick, frame by frame, as the contact test does."""
+    hl, hw = length / 2, width / 2
+    reach = math.sqrt((hl + margin) ** 2 + (hw + margin) ** 2) + math.sqrt(hl * hl + hw * hw)
+    for e in range(N):
+        if not (alive[b, e] and ego[b, e]) or crashed[b, e]:
+            continue
+        ce, se = math.cos(h[b, e]), math.sin(h[b, e])
+        box_corners(x[b, e], y[b, e], ce, se, hl + margin, hw + margin, ca)
+        for j in range(N):
+            if j == e or not alive[b, j] or not _within(x[b, j] - x[b, e], y[b, j] - y[b, e], reach):
+                continue
+            box_corners(x[b, j], y[b, j], math.cos(h[b, j]), math.sin(h[b, j]), hl, hw, cb)
+            if boxes_overlap(ca, cb):
+                crashed[b, e] = True
+                break
+
+
+@numba.njit(cache=True, error_model="numpy")
 def conflicts(px, py, ph, alive, length, width):
     """The regulation's pairwise test (Traffic._enforce_road_rules): pair i < j of live vehicles conflicts if at
     some prediction time both centres are within ``length`` (np.hypot) and utils.rotated_rectangles_intersect of
@@ -529,8 +560,9 @@ def _idm_with(b, i, f, s_i, s_f, ci, si, cf, sf, v, target, delta, lane, speed_l
 # Traffic.act + Traffic.step for every env, frame after frame, in one call (Traffic.advance): the same formulas as
 # the numpy code of av_gym/sim/batched.py in the same order of operations, env by env (envs never interact, so
 # stepping env b's frames before env b+1's changes nothing). Constants: one float array, indices below.
+# P_EGO_MARGIN (m): a planner's futures only (Traffic.ego_margin); 0, the real engine's, skips its test
 (P_VEHICLE_LENGTH, P_LENGTH, P_WIDTH, P_COMFORT_MAX, P_COMFORT_MIN, P_ACC_MAX, P_DISTANCE, P_TIME, P_TAU, P_KP_LAT,
- P_KP_HEAD, P_KP_A, P_MAX_STEER, P_EXIT_DISTANCE) = range(14)
+ P_KP_HEAD, P_KP_A, P_MAX_STEER, P_EXIT_DISTANCE, P_EGO_MARGIN) = range(15)
 SLOWER, FASTER = 0, 2
 
 
@@ -553,6 +585,7 @@ def advance(lt, lanes, x, y, h, v, target, steer, acc, delta, alive, ego, plain,
     cly = np.array([-prm[P_WIDTH] / 2, prm[P_WIDTH] / 2, prm[P_WIDTH] / 2, -prm[P_WIDTH] / 2, -prm[P_WIDTH] / 2])
     pa, pb, nrm, dist = np.empty((5, 2)), np.empty((5, 2)), np.empty((8, 2)), np.empty(8)
     ch, sh = np.empty(N), np.empty(N)
+    ca, cb = np.empty((4, 2)), np.empty((4, 2))
     for b in range(B):
         if not active[b]:
             continue
@@ -573,6 +606,9 @@ def advance(lt, lanes, x, y, h, v, target, steer, acc, delta, alive, ego, plain,
                             dt, prm, lb, ch, sh)
             _collide_row(b, x, y, h, v, alive, dt, prm[P_LENGTH], prm[P_WIDTH], crashed, has_impact, impact_x,
                          impact_y, clx, cly, pa, pb, nrm, dist, n_used)
+            if prm[P_EGO_MARGIN] > 0.0:
+                _near_ego_row(b, x, y, h, alive, ego, crashed, prm[P_LENGTH], prm[P_WIDTH], prm[P_EGO_MARGIN], ca,
+                              cb, n_used)
             ticks[b] += 1
             if math.isnan(arrived_time[b]) and _arrived(lt, lanes, b, x, y, ego, lane, prm[P_EXIT_DISTANCE]):
                 arrived_time[b] = time[b]

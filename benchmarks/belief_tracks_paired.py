@@ -1,0 +1,91 @@
+"""Two points of benchmarks/belief_tracks_sweep.py on the same seeds, compared episode by episode.
+
+    python benchmarks/belief_tracks_paired.py /tmp/preset.csv /tmp/candidate.csv
+
+Reads the two ``--rows`` CSVs (one row per episode: its seed, collision, success) and prints one JSON line: each
+point's collision and success rates, the exchanges (episodes that collided / arrived under only one of the two),
+the exact McNemar p of each (a two-sided binomial test of the discordant pairs at 1/2: scipy.stats.binomtest), and
+success - collision of the second minus the first with a paired 95 % BCa bootstrap interval (scipy.stats.bootstrap
+over the per-episode differences, a seeded generator)."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+
+import numpy as np
+
+BOOTSTRAP_SEED = 0  # the same two files give the same interval
+RESAMPLES = 10_000
+
+
+def fail(message: str) -> None:
+    """One ``error:`` line on stderr, exit status 2 (bad input)."""
+    print(f"error: {message}", file=sys.stderr)
+    sys.exit(2)
+
+
+def outcomes(path: str) -> dict[int, tuple[bool, bool]]:
+    """seed -> (collision, success) of a sweep's ``--rows`` file."""
+    try:
+        with open(path, newline="") as fh:
+            return {int(r["seed"]): (_flag(r["collision"]), _flag(r["success"])) for r in csv.DictReader(fh)}
+    except (OSError, KeyError, ValueError) as exc:
+        fail(f"{path}: a sweep --rows CSV with seed, collision and success columns is needed ({exc})")
+
+
+def _flag(text: str) -> bool:
+    """A row's flag: True / False or a number (0 false)."""
+    if text.strip().lower() in ("true", "false"):
+        return text.strip().lower() == "true"
+    return float(text) != 0.0
+
+
+def mcnemar(only_a: int, only_b: int) -> float:
+    """The exact two-sided McNemar p of ``only_a`` against ``only_b`` discordant pairs (1.0 when there are none)."""
+    from scipy.stats import binomtest
+
+    n = only_a + only_b
+    return 1.0 if n == 0 else float(binomtest(only_a, n, 0.5).pvalue)
+
+
+def compare(a: dict[int, tuple[bool, bool]], b: dict[int, tuple[bool, bool]]) -> dict:
+    """The paired comparison of point ``b`` against point ``a`` on the seeds both played."""
+    from scipy.stats import bootstrap
+
+    seeds = sorted(set(a) & set(b))
+    if not seeds:
+        fail("the two files share no seed")
+    ca, sa = (np.array([a[s][k] for s in seeds]) for k in (0, 1))
+    cb, sb = (np.array([b[s][k] for s in seeds]) for k in (0, 1))
+    d = (sb.astype(float) - cb) - (sa.astype(float) - ca)  # per episode: b's success - collision minus a's
+    if np.all(d == d[0]):
+        lo = hi = float(d[0])
+    else:
+        res = bootstrap((d,), np.mean, confidence_level=0.95, n_resamples=RESAMPLES, method="BCa",
+                        random_state=np.random.default_rng(BOOTSTRAP_SEED))
+        lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
+    n = len(seeds)
+    out = {"episodes": n}
+    for name, c, s in (("a", ca, sa), ("b", cb, sb)):
+        out[name] = {"collision": round(c.mean(), 4), "success": round(s.mean(), 4),
+                     "s_minus_c": round(s.mean() - c.mean(), 4)}
+    for what, x, y in (("collided", ca, cb), ("arrived", sa, sb)):
+        only_a, only_b = int((x & ~y).sum()), int((~x & y).sum())
+        out[what] = {"only_a": only_a, "only_b": only_b, "mcnemar_p": round(mcnemar(only_a, only_b), 4)}
+    out["b_minus_a_s_minus_c"] = {"mean": round(float(d.mean()), 4), "lo": round(lo, 4), "hi": round(hi, 4)}
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("a", help="the first point's --rows CSV (e.g. the preset)")
+    ap.add_argument("b", help="the second point's --rows CSV (e.g. a candidate)")
+    args = ap.parse_args()
+    print(json.dumps(compare(outcomes(args.a), outcomes(args.b))))
+
+
+if __name__ == "__main__":
+    main()
