@@ -12,7 +12,7 @@ from av_gym.batched.vec_env import BatchedLeftTurnBatch, meta_actions
 from av_gym.errors import ConfigError
 from av_gym.sim import batched
 from av_gym.sim.batched import WIDTH, Traffic
-from av_gym.wrappers import YIELD
+from av_gym.wrappers import GO, YIELD
 
 SENSORS = {"name": "turn_truth", "turn_signals": {}, "turn_features": {"source": "truth"}, "turn_intent": {},
            "observe": ["turn", "intent"]}
@@ -62,18 +62,24 @@ def test_a_half_metre_near_miss_crashes_the_ego_at_margin_1_not_at_0(tables, pat
     assert not run(0.4).any()  # a margin short of the gap: no crash
 
 
-def test_the_margin_reaches_the_futures_not_the_real_engine():
+@pytest.fixture(scope="module")
+def scene():
+    """B episodes 25 env steps at the line under YIELD, traffic crossing; planners reading every indicator: no
+    margin, 1.5 m at every decision, 1.5 m for a GO to start only."""
     venv = BatchedLeftTurnBatch({"name": "left_turn"}, SENSORS, None, B, pool=0)
     obs = venv.play(iter(range(1_200_000, 1_200_000 + B)))
-    plain = BeliefPlanner(BeliefLookaheadParams(samples=8), n_rows=B)
-    wide = BeliefPlanner(BeliefLookaheadParams(samples=8, track_margin=1.5), n_rows=B)
-    for _ in range(25):  # at the line, traffic crossing, both planners reading every indicator
+    planners = [BeliefPlanner(BeliefLookaheadParams(samples=8, **kw), n_rows=B) for kw in (
+        {}, {"track_margin": 1.5}, {"track_margin": 1.5, "track_margin_scope": "start"})]
+    for _ in range(25):
         live = np.nonzero(~venv.idle)[0]
-        for p in (plain, wide):
+        for p in planners:
             p.read(venv.engine, live, obs["intent"][live])
         obs, _, _, _ = venv.step(meta_actions(np.full(B, YIELD), obs["turn"]))
-    rows = np.nonzero(~venv.idle)[0]
-    engine = venv.engine
+    return venv.engine, planners, np.nonzero(~venv.idle)[0]
+
+
+def test_the_margin_reaches_the_futures_not_the_real_engine(scene):
+    engine, (plain, wide, _), rows = scene
     before = {name: getattr(engine.traffic, name).copy() for name in Traffic.FIELDS}
     p0, p1 = plain.go_collision(engine, rows), wide.go_collision(engine, rows)
     for name, value in before.items():  # the real engine: untouched, its margin 0
@@ -83,6 +89,15 @@ def test_the_margin_reaches_the_futures_not_the_real_engine():
     assert (p1 >= p0).all() and (p1 > p0).any(), (p0, p1)
     f = wide.futures(engine, rows[:2], 2)
     assert f.traffic.ego_margin == 1.5 and f.keep([0]).traffic.ego_margin == 1.5
+
+
+def test_scope_start_keeps_a_held_go_on_contact_alone(scene):
+    engine, (plain, wide, start), rows = scene
+    held = np.where(np.arange(len(rows)) % 2 == 0, GO, YIELD)
+    p = start._decision_collision(engine, rows, held)
+    p0, p1 = plain.go_collision(engine, rows), wide.go_collision(engine, rows)
+    np.testing.assert_array_equal(p, np.where(held == GO, p0, p1))
+    assert (p0 != p1)[held == YIELD].any()  # the starting rows did get the margin
 
 
 def test_a_bad_margin_is_one_clear_error():
