@@ -18,6 +18,15 @@ from av_gym.make import make_env
 os.environ["PYTHONPATH"] = os.pathsep.join(
     [str(Path(__file__).resolve().parents[1]), *filter(None, [os.environ.get("PYTHONPATH")])])
 
+# One OpenMP / BLAS thread per test process (torch, MKL, numpy's OpenBLAS), as `python -m train` runs torch
+# (train.torch_threads=1); a user's own setting wins. Why: `pytest -n auto` already keeps every core busy with one
+# worker each, and a second thread per process only spins waiting for a core. Measured (4 torch-heavy files, one
+# process, the other core busy, load ~2.5): 134-140 CPU-s with the default 2 threads, 46-48 with one.
+# Set here, before anything imports torch: the xdist workers and every command a test starts inherit it.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+if "torch" in sys.modules:  # imported already (a plugin): the variable is read when torch loads
+    sys.modules["torch"].set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
+
 
 def conf(group: str, name: str) -> dict:
     """A config section exactly as shipped in conf/ (tests build envs the way the CLI does); a sensor without a
