@@ -10,8 +10,6 @@ import numpy as np
 import pytest
 import yaml
 
-from av_gym.make import make_env
-
 # `python -m train` / `python -m eval` in a subprocess started from another folder (tmp_path): an install puts only
 # av_gym on sys.path, the harness packages are the checkout's (pyproject's pythonpath does this for pytest itself).
 # A documented command runs without it (tests/test_documented_commands.py: _run), as a user runs it.
@@ -122,6 +120,10 @@ class Scripted:
 
 @pytest.fixture
 def make():
+    # imported here, not at the top: pytest's own process under -n imports this file only to start the numba
+    # warm-up (pytest_configure), and av_gym.make's imports (highway-env, gymnasium's envs) cost ~3 CPU-s first
+    from av_gym.make import make_env
+
     return make_env
 
 
@@ -255,7 +257,8 @@ WARMUP_S = 600  # s, the most the warm-up may take (137 s measured on 2 cores at
 
 def _numba_cache_empty() -> bool:
     """No numba index file where the kernels' cache goes (NUMBA_CACHE_DIR, else beside av_gym's sources)."""
-    import av_gym
+    from importlib.util import find_spec
 
-    where = os.environ.get("NUMBA_CACHE_DIR") or str(Path(av_gym.__file__).resolve().parent)
+    # found, not imported: this runs before the warm-up starts, and every CPU-second here delays it
+    where = os.environ.get("NUMBA_CACHE_DIR") or str(Path(find_spec("av_gym").origin).resolve().parent)
     return not any(Path(where).rglob("*.nbi"))
