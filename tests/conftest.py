@@ -212,12 +212,16 @@ def zeros_action(_k, _obs):
 
 
 # ----------------------------------------------------------------------------------------------- numba's cache
+_WARMUP: dict = {}  # the numba warm-up under way in pytest's own process (-n): its parts' processes and logs
+
+
 def pytest_configure(config):
     """Under ``pytest -n N`` with numba's cache empty (a fresh checkout: CI), fill it first in two processes
     (tests/_numba_warmup.py), so that the workers load the kernels instead of each compiling the same ones at
     once. Measured on 7 kernel-heavy test files, -n 2, an empty cache, load ~3: 329 s wall / 390 CPU-s without,
     137 s of warm-up + 138 s of tests / 350 CPU-s with. A filled cache (a checkout that ran them) skips it, as do
-    the workers, ``--collect-only`` and ``--help`` (nothing runs a kernel there)."""
+    the workers, ``--collect-only`` and ``--help`` (nothing runs a kernel there). Started here, waited for in
+    :func:`pytest_collection`: the workers start and collect meanwhile."""
     workers = config.getoption("numprocesses", default=None)
     if hasattr(config, "workerinput") or workers in (None, 0, "0") or config.getoption("collectonly", False) \
             or config.getoption("help", False) or not _numba_cache_empty():
@@ -225,27 +229,47 @@ def pytest_configure(config):
     import tempfile
     import time
 
-    print("numba's cache is empty: compiling the kernels once before the workers start (tests/_numba_warmup.py)",
+    print("numba's cache is empty: compiling the kernels once before the tests start (tests/_numba_warmup.py)",
           file=sys.stderr)
     script = Path(__file__).resolve().with_name("_numba_warmup.py")
     # one deadline for both parts (they run at once): a hung part may cost WARMUP_S, not WARMUP_S per part
-    deadline = time.monotonic() + WARMUP_S
+    _WARMUP["deadline"] = time.monotonic() + WARMUP_S
     logs = {part: tempfile.TemporaryFile() for part in ("batch", "per_env")}  # a file: a pipe could fill and block
-    procs = {part: subprocess.Popen([sys.executable, str(script), part], stdout=subprocess.DEVNULL, stderr=log)
-             for part, log in logs.items()}
-    for part, proc in procs.items():  # a failed or slow warm-up only leaves the compiling to the workers
-        try:
-            rc = proc.wait(timeout=max(deadline - time.monotonic(), 0.0))
+    _WARMUP["parts"] = {part: (subprocess.Popen([sys.executable, str(script), part], stdout=subprocess.DEVNULL,
+                                                stderr=log), log) for part, log in logs.items()}
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection(session):
+    """The numba warm-up's end, waited for before any test runs. Here, not in :func:`pytest_configure`: under -n
+    this process collects nothing, and xdist has started its workers (pytest_sessionstart), which import and
+    collect the test files (~17 CPU-s each, no kernel compiled) while the warm-up compiles, on the cores that its
+    shorter part leaves idle. Measured on a fresh clone (-n 2, empty cache): see the commit that made it."""
+    _end_warmup(wait=True)
+
+
+def pytest_unconfigure(config):
+    """A session that ends before its collection (a usage error, ^C) leaves no warm-up running."""
+    _end_warmup(wait=False)
+
+
+def _end_warmup(wait: bool) -> None:
+    """Wait for (``wait``) or stop the warm-up's parts; a part that failed or ran past the deadline is said."""
+    import time
+
+    for part, (proc, log) in _WARMUP.pop("parts", {}).items():  # a failed or slow warm-up only leaves the
+        try:  # compiling to the workers
+            rc = proc.wait(timeout=max(_WARMUP["deadline"] - time.monotonic(), 0.0) if wait else 0.0)
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
-            rc = f"stopped after {WARMUP_S} s"
+            rc = f"stopped after {WARMUP_S} s" if wait else "stopped: the session ended first"
         if rc != 0:  # said, not hidden: a warm-up that no longer runs would silently stop warming anything
-            logs[part].seek(0)
-            last = (logs[part].read().decode(errors="replace").strip().splitlines() or [""])[-1]
+            log.seek(0)
+            last = (log.read().decode(errors="replace").strip().splitlines() or [""])[-1]
             print(f"numba warm-up {part!r} failed ({rc}){': ' + last[:200] if last else ''} (its kernels compile "
                   f"in the workers)", file=sys.stderr)
-        logs[part].close()
+        log.close()
 
 
 WARMUP_S = 600  # s, the most the warm-up may take (137 s measured on 2 cores at load ~3)
