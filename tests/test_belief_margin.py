@@ -11,7 +11,8 @@ from agents.belief import BeliefLookaheadParams, BeliefPlanner
 from av_gym.batched.vec_env import BatchedLeftTurnBatch, meta_actions
 from av_gym.errors import ConfigError
 from av_gym.sim import batched
-from av_gym.sim.batched import WIDTH, Traffic
+from av_gym.sim import kernels
+from av_gym.sim.batched import LENGTH, WIDTH, Traffic
 from av_gym.wrappers import GO, YIELD
 
 SENSORS = {"name": "turn_truth", "turn_signals": {}, "turn_features": {"source": "truth"}, "turn_intent": {},
@@ -19,17 +20,19 @@ SENSORS = {"name": "turn_truth", "turn_signals": {}, "turn_features": {"source":
 B = 12
 
 
-def _side_by_side(tables, gap: float, margin: float) -> Traffic:
+def _side_by_side(tables, gap: float, margin: float, ahead: bool = False, turn: float = 0.0) -> Traffic:
     """Two rows of three standing cars, no controller (plain): slot 0 the ego, slot 1 beside it with ``gap`` m
-    between the boxes' long sides, slot 2 beside slot 1 at the same gap (a pair of others); the real engine's
-    traffic but for ``margin``."""
+    between the boxes' long sides (``ahead``: in front of it, ``gap`` m between bumpers), slot 2 beyond slot 1 at
+    the same gap (a pair of others); every car's heading the lane's plus ``turn`` rad, the row laid out along it.
+    The real engine's traffic but for ``margin``."""
     t = Traffic(tables, 2, N=3, ego_margin=margin)
     x0, y0, h0 = tables.pose(0, 20.0)
-    nx, ny = -np.sin(h0), np.cos(h0)  # the lane's left normal
+    h = h0 + turn
+    ux, uy = (np.cos(h), np.sin(h)) if ahead else (-np.sin(h), np.cos(h))  # along the row
+    step = (LENGTH if ahead else WIDTH) + gap
     for j in range(3):
-        off = j * (WIDTH + gap)
         t.alive[:, j], t.plain[:, j], t.ego[:, j] = True, True, j == 0
-        t.x[:, j], t.y[:, j], t.h[:, j] = x0 + off * nx, y0 + off * ny, h0
+        t.x[:, j], t.y[:, j], t.h[:, j] = x0 + j * step * ux, y0 + j * step * uy, h
     t.lane[:] = t.tlane[:] = tables.closest(t.x.ravel(), t.y.ravel(), t.h.ravel()).reshape(2, 3)
     return t
 
@@ -43,9 +46,11 @@ def tables():
 
 
 @pytest.mark.parametrize("path", ["tick", "numpy"])
-def test_a_half_metre_near_miss_crashes_the_ego_at_margin_1_not_at_0(tables, path):
+@pytest.mark.parametrize("ahead, turn", [(False, 0.0), (True, 0.0), (False, 0.6), (True, -0.9)])
+def test_a_half_metre_near_miss_crashes_the_ego_at_margin_1_not_at_0(tables, path, ahead, turn):
+    """Beside or ahead of the ego, the row along the lane or turned off it (the box's rotation, both ways)."""
     def run(margin: float) -> np.ndarray:
-        t = _side_by_side(tables, 0.5, margin)
+        t = _side_by_side(tables, 0.5, margin, ahead, turn)
         if path == "tick":
             t.advance(1 / 15, 3)
         else:
@@ -60,6 +65,8 @@ def test_a_half_metre_near_miss_crashes_the_ego_at_margin_1_not_at_0(tables, pat
     # the ego only: its neighbour, and the pair of others 0.5 m apart, keep the contact test
     assert near[:, 0].all() and not near[:, 1:].any(), near
     assert not run(0.4).any()  # a margin short of the gap: no crash
+    # a future's margin never reaches an engine of margin 0 run after it (the shared tick parameters)
+    assert not run(0.0).any() and batched._TICK_PARAMS[kernels.P_EGO_MARGIN] == 0.0
 
 
 @pytest.fixture(scope="module")
