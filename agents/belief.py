@@ -225,7 +225,9 @@ class BeliefLookaheadParams(AgentParams):
                                                          "a tie stops; 0.01 at K 16: a tie carries on, both plans "
                                                          "colliding in as many futures, the ego out of the crossing "
                                                          "lane sooner)")
-    track_margin: float = param(0.0, "m", ge=0, le=3, doc="a clearance the futures demand: a future counts as a "
+    # at most 1.5 m: from 2 m on the grown box reaches every car passing in the adjacent opposite lane (4 m lanes,
+    # 2 m wide cars) and a follower queued at highway-env's 2 m gap, so every future would "collide"
+    track_margin: float = param(0.0, "m", ge=0, le=1.5, doc="a clearance the futures demand: a future counts as a "
                                                          "collision of the ego where another road user comes within "
                                                          "this of the ego's box (the box grown by it on every side, "
                                                          "av_gym/sim/kernels._near_ego_row), not only where the boxes "
@@ -235,9 +237,6 @@ class BeliefLookaheadParams(AgentParams):
                                                          "state error, which a probability threshold, counting "
                                                          "futures, cannot express). The real episode's collision "
                                                          "test and the others' pairs are unchanged; 0: contact only")
-    track_margin_rate: float = param(0.0, "m/s", ge=0, le=3, doc="the margin grows by this per second into the "
-                                                                "future (``track_margin`` + this x t): a track's "
-                                                                "speed error times the time; 0: constant")
     track_margin_scope: Literal["every", "start"] = param(
         "every", doc="where the agent's decisions demand the margin: every decision's futures (every), or only a "
                      "GO to start, a held GO kept on contact alone (start: a GO taken back for a near miss brakes "
@@ -324,7 +323,7 @@ class BeliefPlanner:
 
     # ------------------------------------------------------------------------------------------- the futures
     def go_collision(self, engine, rows, K: int | None = None, stream: tuple = (),
-                     margin: tuple[float, float] | None = None) -> np.ndarray:
+                     margin: float | None = None) -> np.ndarray:
         """The estimated probability that GO now ends in a collision, for each of ``rows``: the share of K
         futures (drawn as the module docstring says; ``K`` default ``samples``; ``stream``: more entropy appended
         to every seed sequence, for independent futures of the same moment) whose GO play collides."""
@@ -336,7 +335,7 @@ class BeliefPlanner:
         return self._plan_collision(engine, rows, K, stream, play_stop_fast)
 
     def _plan_collision(self, engine, rows, K: int | None, stream: tuple, play,
-                        margin: tuple[float, float] | None = None) -> np.ndarray:
+                        margin: float | None = None) -> np.ndarray:
         """The share of K futures of each of ``rows`` that ``play`` (a function of the future engine: which of its
         rows end without a collision) finds colliding."""
         import time
@@ -403,7 +402,7 @@ class BeliefPlanner:
             return self.go_collision(engine, rows)
         p, kept = np.empty(len(rows)), np.asarray(held) == GO
         if kept.any():
-            p[kept] = self.go_collision(engine, rows[kept], margin=(0.0, 0.0))
+            p[kept] = self.go_collision(engine, rows[kept], margin=0.0)
         if (~kept).any():
             p[~kept] = self.go_collision(engine, rows[~kept])
         return p
@@ -468,10 +467,10 @@ class BeliefPlanner:
         return (offset > 1.0) | ((np.asarray(choice) == GO) & (tr["speed"] > v_ok))
 
     def futures(self, engine, rows: np.ndarray, K: int | None = None, stream: tuple = (),
-                margin: tuple[float, float] | None = None):
+                margin: float | None = None):
         """A future engine of len(rows)·K rows (``K`` default ``samples``): each row repeated K times, its hidden
         draws replaced (from ``SeedSequence([seed, episode_seed, tick, *stream])``); ``margin``: the clearance
-        margin (m) and its growth (m/s) the futures demand, default ``track_margin`` and ``track_margin_rate``."""
+        margin (m) the futures demand, default ``track_margin``."""
         K = int(K or self.K)
         T = engine.T
         if self._tables is not T:
@@ -530,9 +529,7 @@ class BeliefPlanner:
         t.delta = np.where(m, delta.reshape(n * K, N), t.delta)
         t.target = np.where(m, target.reshape(n * K, N), t.target)
         t.yielding = np.where(m, hold.reshape(n * K, N), t.yielding)
-        # the clearance margin (m) and its growth (m/s) the futures demand (play_set_point_fast grows it)
-        m0, rate = (self.params.track_margin, self.params.track_margin_rate) if margin is None else margin
-        t.ego_margin, f.margin_plan = float(m0), (float(m0), float(rate))
+        t.ego_margin = float(self.params.track_margin if margin is None else margin)  # the futures' clearance (m)
         return f
 
     def _behaviour_prior(self, spawn: SpawnPrior, g: np.random.Generator, shape: tuple) -> tuple:
@@ -642,15 +639,8 @@ def play_set_point_fast(f, top: float) -> np.ndarray:
     safe = np.ones(f.B, bool)
     idx = np.arange(f.B)  # the rows of the original future that ``f`` still holds
     live = np.ones(f.B, bool)  # the rows of ``f`` still playing
-    # the clearance margin (m) and its growth (m/s) of BeliefPlanner.futures; every row starts at once, so the time
-    # into the future is one number for all
-    margin, rate = getattr(f, "margin_plan", (f.traffic.ego_margin, 0.0))
-    elapsed = 0.0  # s
     while live.any():
         n = f.B
-        if rate > 0.0:
-            f.traffic.ego_margin = margin + rate * elapsed
-        elapsed += 1.0 / f.config["policy_frequency"]
         sp = f.traffic.target[np.arange(n), f.ego_slot()]
         meta = np.where(top > sp + 1e-3, FASTER, np.where(top < sp - 1e-3, SLOWER, IDLE))
         _, terminated, truncated = f.step(meta, active=live)  # the ended rows wait as they are
