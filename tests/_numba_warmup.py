@@ -47,14 +47,12 @@ def _per_env(env_id: str, kw: dict) -> None:
     env.close()
 
 
-# Why this split (CPU-s of each stage compiled alone into an empty cache, in order, load ~2.3): the batched engine
-# on ground truth 80, then its perception 10, then the shield on the batch 49 (with perception: 1 more), the cameras
-# 20, the LiDAR 5; memory, CCFtap and continuous actions < 1 each once the engine is cached. The engine is the
-# critical path, so one part compiles the engine and its perception, and the other the shield (per env first: it
-# needs no engine kernel) and the rasters meanwhile, reaching the batch's own shield kernels last, when the engine
-# is most likely cached (a kernel both parts reach before the other has cached it is compiled twice, not missed).
-# Both parts at once into an empty cache, 2 cores, load ~1.5: 87 s wall before this split (batch 80 CPU-s,
-# per_env 63), 78 s with it and the LiDAR in per_env (63 / 74); the LiDAR (~5) then moved to balance them.
+# Why this split: the batched engine is the longest chain (ground truth alone ~80 CPU-s compiled into an empty cache),
+# so one part compiles the engine (perceived first, then ground truth and its variants) and then the fog cameras'
+# depth painting; the other the AEB shield per env (it needs no engine kernel), the cameras' rasters, the LiDAR and
+# the perceived stack, per env and shielded on the batch last, when the engine's kernels are most likely cached (a
+# kernel both parts reach before the other has cached it is compiled twice, not missed). Both parts at once into an
+# empty cache in a fresh clone (-n 2, load ~2): batch 61, per_env 69 CPU-s.
 def batch() -> None:
     """The batched engine: perceived sensors, ground truth, memory features, CCFtap and continuous actions; then the
     cameras' depth painting in fog (per env; it balances the parts). Perceived first: its
@@ -69,8 +67,8 @@ def batch() -> None:
 
 def _foggy_cameras() -> dict:
     """The shipped cameras in fog: fog and night paint with a depth buffer (raster.paint_depth), kernels the clear
-    cameras never compile (test_camera's weather tests compiled them in a worker: ~4 CPU-s). The per_env part is
-    the longer one (~111 against ~97 CPU-s alone), so they go here."""
+    cameras never compile (test_camera's weather tests compiled them in a worker: ~4 CPU-s); in the batch part,
+    the shorter one with them."""
     from av_gym.presets import compose_group
 
     sensors = compose_group("sensors", "cameras")
