@@ -522,6 +522,8 @@ def test_side_tools_refuse_bad_flags_in_one_line(argv, needle, monkeypatch, caps
     monkeypatch.chdir(ROOT)
     if argv[0] == "-m":
         monkeypatch.setattr(sys, "argv", [argv[1], *argv[2:]])
+        # not imported yet, as under `python -m` (runpy warns when an earlier test left the module in sys.modules)
+        monkeypatch.delitem(sys.modules, argv[1], raising=False)
         target = lambda: runpy.run_module(argv[1], run_name="__main__", alter_sys=False)  # noqa: E731
     else:
         monkeypatch.setattr(sys, "argv", argv)
