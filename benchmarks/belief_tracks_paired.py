@@ -5,8 +5,8 @@
 Reads the two ``--rows`` CSVs (one row per episode: its seed, collision, success) and prints one JSON line: each
 point's collision and success rates, the exchanges (episodes that collided / arrived under only one of the two),
 the exact McNemar p of each (a two-sided binomial test of the discordant pairs at 1/2: scipy.stats.binomtest), and
-success - collision of the second minus the first with a paired 95 % BCa bootstrap interval (scipy.stats.bootstrap
-over the per-episode differences, a seeded generator)."""
+success - collision of the second minus the first with a paired 95 % BCa bootstrap interval over the per-episode
+differences (av_gym.metrics.stats.bootstrap_ci, a seeded generator)."""
 
 from __future__ import annotations
 
@@ -53,7 +53,7 @@ def mcnemar(only_a: int, only_b: int) -> float:
 
 def compare(a: dict[int, tuple[bool, bool]], b: dict[int, tuple[bool, bool]]) -> dict:
     """The paired comparison of point ``b`` against point ``a`` on the seeds both played."""
-    from scipy.stats import bootstrap
+    from av_gym.metrics.stats import bootstrap_ci
 
     seeds = sorted(set(a) & set(b))
     if not seeds:
@@ -61,12 +61,7 @@ def compare(a: dict[int, tuple[bool, bool]], b: dict[int, tuple[bool, bool]]) ->
     ca, sa = (np.array([a[s][k] for s in seeds]) for k in (0, 1))
     cb, sb = (np.array([b[s][k] for s in seeds]) for k in (0, 1))
     d = (sb.astype(float) - cb) - (sa.astype(float) - ca)  # per episode: b's success - collision minus a's
-    if np.all(d == d[0]):
-        lo = hi = float(d[0])
-    else:
-        res = bootstrap((d,), np.mean, confidence_level=0.95, n_resamples=RESAMPLES, method="BCa",
-                        random_state=np.random.default_rng(BOOTSTRAP_SEED))
-        lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
+    _, lo, hi = bootstrap_ci(d, 0.95, BOOTSTRAP_SEED, RESAMPLES)
     n = len(seeds)
     out = {"episodes": n}
     for name, c, s in (("a", ca, sa), ("b", cb, sb)):

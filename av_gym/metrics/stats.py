@@ -72,10 +72,11 @@ def wilson_ci(successes: int, n: int, confidence: float = 0.95) -> tuple[float, 
     return float(p), float(lo), float(hi)
 
 
-def bootstrap_ci(x: ArrayLike, confidence: float = 0.95, seed: int = BOOTSTRAP_SEED) -> tuple[float, float, float]:
+def bootstrap_ci(x: ArrayLike, confidence: float = 0.95, seed: int = BOOTSTRAP_SEED,
+                 resamples: int = BOOTSTRAP_RESAMPLES) -> tuple[float, float, float]:
     """Mean and a bootstrap interval ``(mean, lo, hi)`` of a quantity that cannot be negative (or is otherwise
     bounded by its episodes' values): scipy's BCa bootstrap of the mean over resampled episodes, from a generator
-    seeded with ``seed``. Its bounds are means of resampled episodes, so they lie in [min, max] of the data: never
+    seeded with ``seed`` (``resamples`` resampled means). Its bounds are means of resampled episodes, so they lie in [min, max] of the data: never
     negative for a non-negative quantity, exactly [0, 0] when every episode is 0. NaNs are ignored; no data gives
     NaNs, one value (or all equal) gives ``(v, v, v)``."""
     confidence = _check_confidence(confidence)
@@ -87,11 +88,11 @@ def bootstrap_ci(x: ArrayLike, confidence: float = 0.95, seed: int = BOOTSTRAP_S
     lo_data, hi_data = float(a.min()), float(a.max())
     if lo_data == hi_data:  # no spread: nothing to resample (BCa's acceleration would divide by zero)
         return mean, lo_data, hi_data
-    res = _st.bootstrap((a,), np.mean, confidence_level=confidence, n_resamples=BOOTSTRAP_RESAMPLES,
+    res = _st.bootstrap((a,), np.mean, confidence_level=confidence, n_resamples=resamples,
                         method="BCa", random_state=np.random.default_rng(seed))
     lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
     if not (math.isfinite(lo) and math.isfinite(hi)):  # BCa undefined (e.g. one odd value): plain percentiles
-        res = _st.bootstrap((a,), np.mean, confidence_level=confidence, n_resamples=BOOTSTRAP_RESAMPLES,
+        res = _st.bootstrap((a,), np.mean, confidence_level=confidence, n_resamples=resamples,
                             method="percentile", random_state=np.random.default_rng(seed))
         lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
     # A resampled mean cannot leave [min, max]; the clip only removes rounding in scipy's interpolation.
