@@ -1,12 +1,14 @@
 """Two points of benchmarks/belief_tracks_sweep.py on the same seeds, compared episode by episode.
 
-    python benchmarks/belief_tracks_paired.py /tmp/preset.csv /tmp/candidate.csv
+    python benchmarks/belief_tracks_paired.py /tmp/preset.csv /tmp/candidate.csv [--out /tmp/pair.json]
 
-Reads the two ``--rows`` CSVs (one row per episode: its seed, collision, success) and prints one JSON line: each
-point's collision and success rates, the exchanges (episodes that collided / arrived under only one of the two),
-the exact McNemar p of each (a two-sided binomial test of the discordant pairs at 1/2: scipy.stats.binomtest), and
-success - collision of the second minus the first with a paired 95 % BCa bootstrap interval over the per-episode
-differences (av_gym.metrics.stats.bootstrap_ci, a seeded generator)."""
+Reads the two ``--rows`` CSVs (one row per episode: its seed, collision, success; both files the same seeds, each
+once: an episode played under one point only has no pair) and prints one JSON line: each point's collision and
+success rates, the exchanges (episodes that collided / arrived under only one of the two), the exact McNemar p of
+each (a two-sided binomial test of the discordant pairs at 1/2: scipy.stats.binomtest; printed to two significant
+figures, ``--out`` writes the same JSON with its full value), and success - collision of the second minus the first
+with a paired 95 % BCa bootstrap interval over the per-episode differences (av_gym.metrics.stats.bootstrap_ci, a
+seeded generator)."""
 
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ import argparse
 import csv
 import json
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -28,12 +31,16 @@ def fail(message: str) -> None:
 
 
 def outcomes(path: str) -> dict[int, tuple[bool, bool]]:
-    """seed -> (collision, success) of a sweep's ``--rows`` file."""
+    """seed -> (collision, success) of a sweep's ``--rows`` file (each seed once)."""
     try:
         with open(path, newline="") as fh:
-            return {int(r["seed"]): (_flag(r["collision"]), _flag(r["success"])) for r in csv.DictReader(fh)}
+            rows = [(int(r["seed"]), (_flag(r["collision"]), _flag(r["success"]))) for r in csv.DictReader(fh)]
     except (OSError, KeyError, ValueError) as exc:
         fail(f"{path}: a sweep --rows CSV with seed, collision and success columns is needed ({exc})")
+    out = dict(rows)
+    if len(out) != len(rows):
+        fail(f"{path}: {len(rows) - len(out)} seeds appear more than once (one row per episode is needed)")
+    return out
 
 
 def _flag(text: str) -> bool:
@@ -51,13 +58,19 @@ def mcnemar(only_a: int, only_b: int) -> float:
     return 1.0 if n == 0 else float(binomtest(only_a, n, 0.5).pvalue)
 
 
-def compare(a: dict[int, tuple[bool, bool]], b: dict[int, tuple[bool, bool]]) -> dict:
-    """The paired comparison of point ``b`` against point ``a`` on the seeds both played."""
+def compare(a: dict[int, tuple[bool, bool]], b: dict[int, tuple[bool, bool]], names: tuple[str, str] = ("a", "b"),
+            ) -> dict:
+    """The paired comparison of point ``b`` against point ``a``, which must have played the same seeds (``names``:
+    the two files, for the error); each McNemar p unrounded."""
     from av_gym.metrics.stats import bootstrap_ci
 
-    seeds = sorted(set(a) & set(b))
+    a_lacks, b_lacks = len(set(b) - set(a)), len(set(a) - set(b))
+    if a_lacks or b_lacks:  # an episode of one point only has no pair: leaving it out would hide it
+        fail(f"the two files must hold the same seeds: {names[0]} lacks {a_lacks} of {names[1]}'s, {names[1]} lacks "
+             f"{b_lacks} of {names[0]}'s (a paired test needs each episode under both points)")
+    seeds = sorted(a)
     if not seeds:
-        fail("the two files share no seed")
+        fail("the two files hold no episode")
     ca, sa = (np.array([a[s][k] for s in seeds]) for k in (0, 1))
     cb, sb = (np.array([b[s][k] for s in seeds]) for k in (0, 1))
     d = (sb.astype(float) - cb) - (sa.astype(float) - ca)  # per episode: b's success - collision minus a's
@@ -69,17 +82,39 @@ def compare(a: dict[int, tuple[bool, bool]], b: dict[int, tuple[bool, bool]]) ->
                      "s_minus_c": round(s.mean() - c.mean(), 4)}
     for what, x, y in (("collided", ca, cb), ("arrived", sa, sb)):
         only_a, only_b = int((x & ~y).sum()), int((~x & y).sum())
-        out[what] = {"only_a": only_a, "only_b": only_b, "mcnemar_p": round(mcnemar(only_a, only_b), 4)}
+        out[what] = {"only_a": only_a, "only_b": only_b, "mcnemar_p": mcnemar(only_a, only_b)}
     out["b_minus_a_s_minus_c"] = {"mean": round(float(d.mean()), 4), "lo": round(lo, 4), "hi": round(hi, 4)}
     return out
+
+
+def printed(result: dict) -> str:
+    """:func:`compare`'s result as one JSON line, each McNemar p to two significant figures (a JSON number: 2.0e-05,
+    0.31, 1.0), not rounded to decimals (a p of 2e-05 is not 0)."""
+    shown = json.loads(json.dumps(result))
+    marks = {}
+    for what in ("collided", "arrived"):
+        marks[f"@{what}@"] = f"{result[what]['mcnemar_p']:#.2g}"
+        shown[what]["mcnemar_p"] = f"@{what}@"
+    line = json.dumps(shown)
+    for mark, number in marks.items():
+        line = line.replace(f'"{mark}"', number)
+    return line
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("a", help="the first point's --rows CSV (e.g. the preset)")
     ap.add_argument("b", help="the second point's --rows CSV (e.g. a candidate)")
+    ap.add_argument("--out", default=None, metavar="PATH", help="the result as JSON, p unrounded (a new file)")
     args = ap.parse_args()
-    print(json.dumps(compare(outcomes(args.a), outcomes(args.b))))
+    if args.out and Path(args.out).exists():
+        fail(f"--out {args.out} exists: choose another file (results are never overwritten)")
+    result = compare(outcomes(args.a), outcomes(args.b), (args.a, args.b))
+    if args.out:
+        from av_gym.atomic import write_text_atomic
+
+        write_text_atomic(args.out, json.dumps(result) + "\n", "--out")
+    print(printed(result))
 
 
 if __name__ == "__main__":
