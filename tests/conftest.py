@@ -6,9 +6,7 @@ import sys
 from importlib import resources
 from pathlib import Path
 
-import numpy as np
 import pytest
-import yaml
 
 # `python -m train` / `python -m eval` in a subprocess started from another folder (tmp_path): an install puts only
 # av_gym on sys.path, the harness packages are the checkout's (pyproject's pythonpath does this for pytest itself).
@@ -20,10 +18,15 @@ os.environ["PYTHONPATH"] = os.pathsep.join(
 # (train.torch_threads=1); a user's own setting wins. Why: `pytest -n auto` already keeps every core busy with one
 # worker each, and a second thread per process only spins waiting for a core. Measured (4 torch-heavy files, one
 # process, the other core busy, load ~2.5): 134-140 CPU-s with the default 2 threads, 46-48 with one.
-# Set here, before anything imports torch: the xdist workers and every command a test starts inherit it.
+# Set here, before numpy is imported below (OpenBLAS reads it once, as numpy loads: pytest's own process, which runs
+# the tests under -p no:xdist, kept OpenBLAS's default threads while numpy came first) and before anything imports
+# torch: the xdist workers and every command a test starts inherit it.
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 if "torch" in sys.modules:  # imported already (a plugin): the variable is read when torch loads
     sys.modules["torch"].set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
+
+import numpy as np  # noqa: E402  (after OMP_NUM_THREADS: see above)
+import yaml  # noqa: E402
 
 
 def conf(group: str, name: str) -> dict:
