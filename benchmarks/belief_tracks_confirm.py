@@ -28,14 +28,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # the checkout's agents/ and eval/
 from belief_tracks_sweep import traced_batch  # noqa: E402  (this folder is sys.path[0] when run as a script)
-from belief_tracks_truth import go_with_true_state, nearest_cars  # noqa: E402
+from belief_tracks_truth import decision_p, go_with_true_state, nearest_cars  # noqa: E402
 
 LANE_KINDS = ("approach", "crossing", "exit")
 
 
-def _without(planner, engine, r: int, j: int | None) -> float:
-    """GO's collision probability for row ``r`` without road user slot ``j`` of the futures' start (None: without
-    the unseen traffic's prior)."""
+def _without(planner, engine, r: int, j: int | None, held: int) -> float:
+    """GO's collision probability for row ``r`` (holding ``held``: belief_tracks_truth.decision_p) without road user
+    slot ``j`` of the futures' start (None: without the unseen traffic's prior)."""
     saved, unseen = planner.tracks.engine, planner.tracks.unseen
     try:
         if j is None:
@@ -45,27 +45,28 @@ def _without(planner, engine, r: int, j: int | None) -> float:
             e.traffic = saved.traffic.subset(np.arange(saved.B))
             e.traffic.alive[r, j] = False
             planner.tracks.engine = e
-        return float(planner.go_collision(engine, np.array([r]))[0])
+        return float(decision_p(planner, engine, r, held)[0])
     finally:
         planner.tracks.engine, planner.tracks.unseen = saved, unseen
 
 
-def blame(planner, engine, r: int, p: float, radius: float) -> dict:
-    """What made GO unsafe for row ``r`` (GO's collision probability ``p``): the unseen prior's share and each road
-    user whose removal lowers it, with its track against the simulator vehicle within ``radius`` m of it."""
+def blame(planner, engine, r: int, p: float, radius: float, held: int = 0) -> dict:
+    """What made GO unsafe for row ``r`` (GO's collision probability ``p`` at a decision of a row holding ``held``,
+    default YIELD: belief_tracks_truth.decision_p): the unseen prior's share and each road user whose removal lowers
+    it, with its track against the simulator vehicle within ``radius`` m of it."""
     te = planner.tracks.engine
     t = te.traffic
     ex, ey = t.x[r, 0], t.y[r, 0]
-    out = {"p": round(p, 3), "p_no_unseen": round(_without(planner, engine, r, None), 3), "users": []}
+    out = {"p": round(p, 3), "p_no_unseen": round(_without(planner, engine, r, None, held), 3), "users": []}
     nearest = nearest_cars(te, engine, r)
     tracker = planner.tracks.perception.tracker
     for j in np.flatnonzero(t.alive[r] & ~t.ego[r]):
-        q = _without(planner, engine, r, int(j))
+        q = _without(planner, engine, r, int(j), held)
         if q >= p:
             continue
         i, dist = nearest.get(int(j), (-1, None))
         i = i if dist is not None and dist <= radius else -1
-        p_true = go_with_true_state(planner, engine, r, int(j), i) if i >= 0 else None
+        p_true = go_with_true_state(planner, engine, r, int(j), i, held) if i >= 0 else None
         k = np.flatnonzero(tracker.id[r, : tracker.n[r]] == t.vid[r, j] - 1)
         kind = int(planner.tracks.lane_kind[t.lane[r, j]])
         v = float(t.v[r, j])
@@ -132,13 +133,13 @@ def main() -> None:
         planner.read(engine, rows, obs["intent"][rows])
         live, _ = planner.live(engine, rows, choice[rows], k[rows])
         due = rows[live]  # the rows that decide now (a row ``commit`` has made final does not)
-        p = planner.go_collision(engine, due) if len(due) else np.zeros(0)  # the decision's own draws
         held = choice[due].copy()
+        p = decision_p(planner, engine, due, held) if len(due) else np.zeros(0)  # the decision's own draws and p
         choice[rows] = planner.decide(engine, rows, choice[rows], k[rows])
         for r, pr, h in zip(due, p, held):
             history[r].append((round(float(engine.time[r]), 1), round(float(pr), 3), int(choice[r])))
             if pr > planner.threshold and h != GO:
-                pending[r] = blame(planner, engine, int(r), float(pr), args.match)
+                pending[r] = blame(planner, engine, int(r), float(pr), args.match, int(h))
             elif pending[r] is not None and h != GO:
                 flips[r].append({"t": round(float(engine.time[r]), 1), "before": pending[r]})
                 name = blamed_kind(pending[r])

@@ -23,16 +23,16 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # the checkout's agents/ and eval/
 from belief_tracks_sweep import traced_batch  # noqa: E402  (this folder is sys.path[0] when run as a script)
-from belief_tracks_truth import nearest_cars  # noqa: E402
+from belief_tracks_truth import decision_p, nearest_cars  # noqa: E402
 
 # per attribute, the simulator's hidden set-point with the speed: which part of the behaviour model made the planner
 # go (belief_tracks_truth's true state, what a filter could know, leaves the set-point the track's speed)
 SWAPS = {"pos": ("x", "y", "h"), "v": ("v", "target"), "acc": ("acc",), "lane": ("lane", "tlane", "route0")}
 
 
-def _swapped(planner, engine, r: int, j: int, i: int, what: tuple) -> float:
-    """GO's collision probability for row ``r`` with the track slot ``j``'s ``what`` replaced by the simulator's
-    vehicle ``i``'s."""
+def _swapped(planner, engine, r: int, j: int, i: int, what: tuple, held: int) -> float:
+    """GO's collision probability for row ``r`` (holding ``held`` at the decision: belief_tracks_truth.decision_p)
+    with the track slot ``j``'s ``what`` replaced by the simulator's vehicle ``i``'s."""
     saved = planner.tracks.engine
     e = copy.copy(saved)
     e.traffic = saved.traffic.subset(np.arange(saved.B))
@@ -44,14 +44,14 @@ def _swapped(planner, engine, r: int, j: int, i: int, what: tuple) -> float:
             getattr(t, name)[r, j] = getattr(s, name)[r, i]
     planner.tracks.engine = e
     try:
-        return float(planner.go_collision(engine, np.array([r]))[0])
+        return float(decision_p(planner, engine, r, held)[0])
     finally:
         planner.tracks.engine = saved
 
 
-def _snapshot(planner, engine, r: int) -> dict:
-    """Every road user of row ``r`` at a GO decision: the track against its simulator vehicle, and GO's collision
-    probability with each attribute swapped for the truth."""
+def _snapshot(planner, engine, r: int, held: int) -> dict:
+    """Every road user of row ``r`` at a GO decision (``held``: the choice it held before it): the track against its
+    simulator vehicle, and GO's collision probability with each attribute swapped for the truth."""
     te = planner.tracks.engine
     t, s = te.traffic, engine.traffic
     out = {}
@@ -60,8 +60,8 @@ def _snapshot(planner, engine, r: int) -> dict:
         origin = planner._origin[t.lane[r, j]]
         cand = ((origin + np.array([-1, 2, 1])) % 4).tolist()
         true_dest = int(planner._dest[s.route[r, i, 2]]) if s.route[r, i, 2] >= 0 else -1
-        swaps = {k: _swapped(planner, engine, r, j, i, v) for k, v in SWAPS.items()}
-        swaps["all"] = _swapped(planner, engine, r, j, i, sum(SWAPS.values(), ()))
+        swaps = {k: _swapped(planner, engine, r, j, i, v, held) for k, v in SWAPS.items()}
+        swaps["all"] = _swapped(planner, engine, r, j, i, sum(SWAPS.values(), ()), held)
         out[int(s.vid[r, i])] = {
             "pos_err_m": round(dist, 2), "h_err_rad": round(float(np.angle(np.exp(1j * (t.h[r, j] - s.h[r, i])))), 3),
             "v_track": round(float(t.v[r, j]), 2), "v_true": round(float(s.v[r, i]), 2),
@@ -109,15 +109,18 @@ def _untracked(planner, engine, r: int, radius: float = 4.0) -> dict:
 
 
 def _blame(planner, engine, r: int) -> dict:
-    """At a GO taken back: GO's collision probability for row ``r`` without each road user the planner has (and
-    without the unseen traffic), for those whose removal lowers it: which road user made the futures collide."""
+    """At a GO taken back: GO's collision probability for row ``r`` (judged as a held GO: belief_tracks_truth.
+    decision_p) without each road user the planner has (and without the unseen traffic), for those whose removal
+    lowers it: which road user made the futures collide."""
+    from av_gym.wrappers import GO
+
     saved, unseen = planner.tracks.engine, planner.tracks.unseen
-    base = float(planner.go_collision(engine, np.array([r]))[0])
+    base = float(decision_p(planner, engine, r, GO)[0])
     s = engine.traffic
     out = {"p": round(base, 3)}
     planner.tracks.unseen = None
     try:
-        out["no_unseen"] = round(float(planner.go_collision(engine, np.array([r]))[0]), 3)
+        out["no_unseen"] = round(float(decision_p(planner, engine, r, GO)[0]), 3)
     finally:
         planner.tracks.unseen = unseen
     matched = nearest_cars(saved, engine, r)
@@ -128,7 +131,7 @@ def _blame(planner, engine, r: int) -> dict:
         e.traffic.alive[r, j] = False
         planner.tracks.engine = e
         try:
-            p = float(planner.go_collision(engine, np.array([r]))[0])
+            p = float(decision_p(planner, engine, r, GO)[0])
         finally:
             planner.tracks.engine = saved
         if p < base:
@@ -205,13 +208,13 @@ def main() -> None:
         live, _ = planner.live(engine, rows, choice[rows], k[rows])
         due = rows[live]  # the rows that decide now (confirm_after's early ones too; not those commit made final)
         if len(due):
-            p = planner.go_collision(engine, due)  # the decision's own draws again: the same p decide() sees
             before = choice[due].copy()
+            p = decision_p(planner, engine, due, before)  # the decision's own draws again: the same p decide() sees
             choice[rows] = planner.decide(engine, rows, choice[rows], k[rows])
-            for r, pr in zip(due, p):
+            for r, pr, b in zip(due, p, before):
                 history[r].append((round(float(engine.time[r]), 1), int(choice[r]), round(float(pr), 3)))
                 if choice[r] == GO:
-                    last_go[r] = (float(engine.time[r]), _snapshot(planner, engine, int(r)),
+                    last_go[r] = (float(engine.time[r]), _snapshot(planner, engine, int(r), int(b)),
                                   _untracked(planner, engine, int(r)))
             for r, b in zip(due, before):
                 if b == GO and choice[r] != GO:

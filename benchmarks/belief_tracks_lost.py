@@ -37,7 +37,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # the checkout's agents/ and eval/
 from belief_tracks_sweep import traced_batch  # noqa: E402  (this folder is sys.path[0] when run as a script)
-from belief_tracks_truth import nearest_cars, true_states  # noqa: E402
+from belief_tracks_truth import decision_p, nearest_cars, true_states  # noqa: E402
 
 SAME_EGO_M = 0.01  # m: the two egos stand at the same place
 
@@ -71,9 +71,10 @@ def truth_first_go(seeds: list[int]) -> dict[int, tuple]:
     return out
 
 
-def _p(planner, engine, r: int, traffic=None, unseen: bool = True, counts: dict | None = None) -> float:
-    """GO's collision probability for row ``r`` with the futures' start's traffic ``traffic`` (default the
-    planner's), with or without the unseen prior, with the indicator readings ``counts`` (default the planner's)."""
+def _p(planner, engine, r: int, held: int, traffic=None, unseen: bool = True, counts: dict | None = None) -> float:
+    """GO's collision probability for row ``r`` (holding ``held`` at the decision: belief_tracks_truth.decision_p)
+    with the futures' start's traffic ``traffic`` (default the planner's), with or without the unseen prior, with
+    the indicator readings ``counts`` (default the planner's)."""
     tb = planner.tracks
     saved, saved_unseen, saved_counts = tb.engine, tb.unseen, planner.counts[r]
     try:
@@ -82,7 +83,7 @@ def _p(planner, engine, r: int, traffic=None, unseen: bool = True, counts: dict 
             tb.engine.traffic = traffic
         tb.unseen = tb.unseen if unseen else None
         planner.counts[r] = saved_counts if counts is None else counts
-        return float(planner.go_collision(engine, np.array([r]))[0])
+        return float(decision_p(planner, engine, r, held)[0])
     finally:
         tb.engine, tb.unseen, planner.counts[r] = saved, saved_unseen, saved_counts
 
@@ -104,9 +105,9 @@ def carried_counts(planner, r: int, car_of: dict) -> dict:
     return {v: (by_car[car_of[v]].copy() if v in car_of else c) for v, c in planner.counts[r].items()}
 
 
-def cause(planner, engine, r: int, p: float, car_of: dict, radius: float) -> str:
+def cause(planner, engine, r: int, p: float, car_of: dict, radius: float, held: int) -> str:
     """The first counterfactual (module docstring) under which GO is safe at row ``r``'s decision (GO's collision
-    probability ``p``)."""
+    probability ``p``, the row holding ``held`` before it)."""
     thr = planner.threshold + 1e-12
     if p <= thr:
         return "caution"
@@ -114,25 +115,25 @@ def cause(planner, engine, r: int, p: float, car_of: dict, radius: float) -> str
     users = np.flatnonzero(t.alive[r] & ~t.ego[r])
     matched = nearest_cars(planner.tracks.engine, engine, r, radius)
     phantom = np.array([j for j in users if int(j) not in matched], dtype=int)
-    if len(phantom) and _p(planner, engine, r, _without(planner, r, phantom)) <= thr:
+    if len(phantom) and _p(planner, engine, r, held, _without(planner, r, phantom)) <= thr:
         return "phantom track"
     tent = np.flatnonzero(planner.tracks.tent[r] & t.alive[r])
-    if len(tent) and _p(planner, engine, r, _without(planner, r, tent)) <= thr:
+    if len(tent) and _p(planner, engine, r, held, _without(planner, r, tent)) <= thr:
         return "tentative track"
-    if planner.tracks.unseen is not None and _p(planner, engine, r, unseen=False) <= thr:
+    if planner.tracks.unseen is not None and _p(planner, engine, r, held, unseen=False) <= thr:
         return "unseen prior"
-    if _p(planner, engine, r, counts=carried_counts(planner, r, car_of)) <= thr:
+    if _p(planner, engine, r, held, counts=carried_counts(planner, r, car_of)) <= thr:
         return "readings lost at a re-birth"
     exact = t.subset(np.arange(planner.tracks.engine.B))
     e = copy.copy(planner.tracks.engine)
     e.traffic = exact
     true_states(e, engine, [r], radius)
-    if _p(planner, engine, r, exact) <= thr:
+    if _p(planner, engine, r, held, exact) <= thr:
         return "track states"
     saved = planner.params
     planner.params = dataclasses.replace(saved, track_acc_sigma=0.0)
     try:
-        if _p(planner, engine, r, exact) <= thr:
+        if _p(planner, engine, r, held, exact) <= thr:
             return "acceleration's error"
     finally:
         planner.params = saved
@@ -177,14 +178,15 @@ def main() -> None:
         match_cars(planner, engine, rows, car_of, args.match, rebirths)
         live, _ = planner.live(engine, rows, choice[rows], k[rows])
         due = rows[live]
-        p = planner.go_collision(engine, due) if len(due) else np.zeros(0)
+        held = choice[due].copy()
+        p = decision_p(planner, engine, due, held) if len(due) else np.zeros(0)  # decide()'s own p
         choice[rows] = planner.decide(engine, rows, choice[rows], k[rows])
-        for r, pr in zip(due, p):
+        for r, pr, h in zip(due, p, held):
             go = truth[seed_of[r]][0]
             now = round(float(engine.time[r]), 1)
             if go is None or choice[r] == GO or not go[0] <= now <= go[0] + args.window:
                 continue
-            c = cause(planner, engine, int(r), float(pr), car_of[r], args.match)
+            c = cause(planner, engine, int(r), float(pr), car_of[r], args.match, int(h))
             causes[r].append((now, round(float(pr), 3), c))
             if now == go[0]:
                 s = engine.ego_slot(np.array([r]))[0]

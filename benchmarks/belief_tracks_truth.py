@@ -51,15 +51,23 @@ def true_states(tracks_engine, engine, rows: np.ndarray, radius: float = MATCH_M
     return done
 
 
-def go_with_true_state(planner, engine, r: int, j: int, i: int) -> float:
-    """GO's collision probability for row ``r`` with track slot ``j``'s state that of simulator vehicle ``i``
-    (:func:`give_true_state`); the planner's own futures' start is left as it was."""
+def decision_p(planner, engine, rows, held) -> np.ndarray:
+    """GO's collision probability of ``rows`` (their held choices ``held``) as the planner's ``decide()`` judges it at
+    a decision: its own :meth:`~agents.belief.BeliefPlanner._decision_collision`, not ``go_collision`` (which would
+    demand ``track_margin`` of a held GO that ``track_margin_scope`` start judges on contact alone). The tracing
+    tools ask every GO collision probability, counterfactual or not, through this."""
+    return planner._decision_collision(engine, np.asarray(rows, dtype=int).reshape(-1), np.asarray(held).reshape(-1))
+
+
+def go_with_true_state(planner, engine, r: int, j: int, i: int, held: int) -> float:
+    """GO's collision probability for row ``r`` (holding ``held``, :func:`decision_p`) with track slot ``j``'s state
+    that of simulator vehicle ``i`` (:func:`give_true_state`); the planner's own futures' start is left as it was."""
     saved = planner.tracks.engine
     e = copy.copy(saved)
     e.traffic = saved.traffic.subset(np.arange(saved.B))
     give_true_state(e.traffic, engine.traffic, r, j, i)
     planner.tracks.engine = e
     try:
-        return float(planner.go_collision(engine, np.array([r]))[0])
+        return float(decision_p(planner, engine, r, held)[0])
     finally:
         planner.tracks.engine = saved
