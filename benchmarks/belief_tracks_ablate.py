@@ -64,15 +64,23 @@ ADDED = 100_000  # a car ``users`` adds is road user ADDED + its simulator vid (
 
 def parts_of(spec: str) -> frozenset:
     """``--truth`` (comma-separated parts of :data:`PARTS` and :data:`BESIDES`, ``all`` or ``none``) as a set of
-    parts; ``all`` is every sensed part and the simulator's lane (``all,intent,crash``: everything the truth has)."""
+    parts; ``all`` is every sensed part and the simulator's lane (``all,intent,crash``: everything the truth has).
+    A part after a ``-`` is taken out (``all,crash,-velocity``: a leave-one-out); taking out ``position`` or
+    ``heading`` takes out the simulator's lane too (it is the lane of the true pose)."""
     names = [s for s in spec.split(",") if s]
+    drop = {s[1:] for s in names if s.startswith("-")}
+    names = [s for s in names if not s.startswith("-")]
     bad = [s for s in names if s not in PARTS + BESIDES + ("all", "none")]
+    bad += [s for s in drop if s not in PARTS + BESIDES]
     if bad or not names:
-        fail(f"--truth takes a comma list of {', '.join(PARTS + BESIDES)}, all or none; got {spec!r}")
+        fail(f"--truth takes a comma list of {', '.join(PARTS + BESIDES)}, all or none (a part after '-' taken "
+             f"out); got {spec!r}")
     out = {n for n in names if n not in ("all", "none")}
     if "all" in names:
         out |= set(PARTS) | {"lane"}
-    return frozenset(out)
+    if drop & {"position", "heading"}:
+        drop = drop | {"lane"}
+    return frozenset(out - drop)
 
 
 def match_users(te, engine, r: int, radius: float, left_out: np.ndarray) -> dict[int, int]:
@@ -373,7 +381,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seed", type=int, default=1_931_000)
     ap.add_argument("--episodes", type=int, default=500)
-    ap.add_argument("--truth", default="none", help=f"comma list of {', '.join(PARTS + BESIDES)}, all or none")
+    ap.add_argument("--truth", default="none", help=f"comma list of {', '.join(PARTS + BESIDES)}, all or none; "
+                                                           "-part takes one out")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
     ap.add_argument("--on-truth", action="store_true", help="the planner on the simulator's vehicles (sensors "
                     "turn_truth; --truth none): the reference, on the same seeds")

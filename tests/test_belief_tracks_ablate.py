@@ -48,7 +48,11 @@ def test_each_car_takes_its_nearest_track_one_track_per_car(ablate):
                                                                    "heading", "acc", "lane"}),
                                          ("intent", {"intent"}), ("crash,velocity", {"crash", "velocity"}),
                                          ("all,intent,crash", {"users", "prior", "position", "velocity", "heading",
-                                                               "acc", "lane", "intent", "crash"})])
+                                                               "acc", "lane", "intent", "crash"}),
+                                         ("all,crash,-velocity", {"users", "prior", "position", "heading", "acc",
+                                                                  "lane", "crash"}),
+                                         ("all,crash,-heading", {"users", "prior", "position", "velocity", "acc",
+                                                                 "crash"})])
 def test_the_parts_named(ablate, spec, parts):
     assert ablate.parts_of(spec) == parts
 
@@ -56,6 +60,10 @@ def test_the_parts_named(ablate, spec, parts):
 def test_a_bad_part_is_one_error_line(ablate, capsys):
     with pytest.raises(SystemExit) as out:
         ablate.parts_of("speed")
+    err = capsys.readouterr().err.strip()
+    assert out.value.code == 2 and len(err.splitlines()) == 1 and "--truth" in err and "velocity" in err
+    with pytest.raises(SystemExit) as out:
+        ablate.parts_of("all,-speed")
     err = capsys.readouterr().err.strip()
     assert out.value.code == 2 and len(err.splitlines()) == 1 and "--truth" in err and "velocity" in err
 
