@@ -2,6 +2,7 @@
 "Where the planner on tracks loses"): validation (screen) episodes only.
 
     python benchmarks/belief_tracks_ablate.py --seed 1931000 --episodes 500 --truth velocity --out /tmp/v.json
+    python benchmarks/belief_tracks_ablate.py --seed 1947000 --truth=all,crash,-velocity --out /tmp/lo.json
     python benchmarks/belief_tracks_ablate.py --table /tmp/none.json /tmp/v.json ...
 
 Plays the episodes with :class:`agents.belief.BeliefPlanner` on ``sensors=turn_perceived`` (``--set``:
@@ -65,19 +66,22 @@ ADDED = 100_000  # a car ``users`` adds is road user ADDED + its simulator vid (
 def parts_of(spec: str) -> frozenset:
     """``--truth`` (comma-separated parts of :data:`PARTS` and :data:`BESIDES`, ``all`` or ``none``) as a set of
     parts; ``all`` is every sensed part and the simulator's lane (``all,intent,crash``: everything the truth has).
-    A part after a ``-`` is taken out (``all,crash,-velocity``: a leave-one-out); taking out ``position`` or
-    ``heading`` takes out the simulator's lane too (it is the lane of the true pose)."""
+    A part after a ``-`` is taken out of ``all`` (``all,crash,-velocity``: a leave-one-out; without ``all`` it is
+    refused); taking out ``position`` or ``heading`` takes out the simulator's lane too (it is the lane of
+    the true pose), ``-lane`` the lane alone."""
     names = [s for s in spec.split(",") if s]
     drop = {s[1:] for s in names if s.startswith("-")}
     names = [s for s in names if not s.startswith("-")]
     bad = [s for s in names if s not in PARTS + BESIDES + ("all", "none")]
-    bad += [s for s in drop if s not in PARTS + BESIDES]
+    bad += [f"-{s}" for s in drop if s not in PARTS + BESIDES + ("lane",)]
     if bad or not names:
-        fail(f"--truth takes a comma list of {', '.join(PARTS + BESIDES)}, all or none (a part after '-' taken "
-             f"out); got {spec!r}")
+        fail(f"--truth takes a comma list of {', '.join(PARTS + BESIDES)}, all or none, and -part to take one of "
+             f"them out; got {spec!r}")
     out = {n for n in names if n not in ("all", "none")}
     if "all" in names:
         out |= set(PARTS) | {"lane"}
+    if drop and "all" not in names:  # a leave-one-out is of all; naming a part and taking it out names nothing
+        fail(f"--truth {spec!r}: -part takes a part out of all (e.g. all,crash,-velocity)")
     if drop & {"position", "heading"}:
         drop = drop | {"lane"}
     return frozenset(out - drop)

@@ -51,6 +51,7 @@ def test_each_car_takes_its_nearest_track_one_track_per_car(ablate):
                                                                "acc", "lane", "intent", "crash"}),
                                          ("all,crash,-velocity", {"users", "prior", "position", "heading", "acc",
                                                                   "lane", "crash"}),
+                                         ("all,-lane", {"users", "prior", "position", "velocity", "heading", "acc"}),
                                          ("all,crash,-heading", {"users", "prior", "position", "velocity", "acc",
                                                                  "crash"})])
 def test_the_parts_named(ablate, spec, parts):
@@ -62,6 +63,11 @@ def test_a_bad_part_is_one_error_line(ablate, capsys):
         ablate.parts_of("speed")
     err = capsys.readouterr().err.strip()
     assert out.value.code == 2 and len(err.splitlines()) == 1 and "--truth" in err and "velocity" in err
+    for spec in ("all,-speed", "crash,-velocity", "velocity,-velocity"):  # a part out of what is not in
+        with pytest.raises(SystemExit) as out:
+            ablate.parts_of(spec)
+        err = capsys.readouterr().err.strip()
+        assert out.value.code == 2 and len(err.splitlines()) == 1 and "--truth" in err
     with pytest.raises(SystemExit) as out:
         ablate.parts_of("all,-speed")
     err = capsys.readouterr().err.strip()

@@ -68,6 +68,17 @@ def test_the_counts_the_exact_p_and_the_intervals_sign(clear_case, tmp_path, mon
     assert diff["mean"] == 0.235 and 0 < diff["lo"] < diff["mean"] < diff["hi"]  # b clearly better: the sign known
 
 
+def test_an_existing_out_file_is_refused_and_kept(clear_case, tmp_path, monkeypatch, capsys):
+    a, b = clear_case
+    out = tmp_path / "pair.json"
+    out.write_text("an earlier result\n")
+    with pytest.raises(SystemExit) as end:
+        _run(monkeypatch, a, b, "--out", str(out))
+    err = capsys.readouterr()
+    assert end.value.code == 2 and err.out == "" and "--out" in err.err and len(err.err.strip().splitlines()) == 1
+    assert out.read_text() == "an earlier result\n"
+
+
 def test_no_exchange_is_p_one(tmp_path, monkeypatch, capsys):
     same = _rows(tmp_path / "a.csv", {1_944_003}, set(SEEDS[10:]))
     again = _rows(tmp_path / "b.csv", {1_944_003}, set(SEEDS[10:]))
