@@ -1,12 +1,17 @@
 from __future__ import annotations
 
-import os
-import subprocess
 import sys
-from importlib import resources
-from pathlib import Path
 
-import pytest
+# Before any other import of this file: whether numpy came before the conftest (a plugin such as pytest-randomly
+# imports it first; OpenBLAS then keeps its default threads, whatever is set below)
+NUMPY_BEFORE_CONFTEST = "numpy" in sys.modules
+
+import os  # noqa: E402
+import subprocess  # noqa: E402
+from importlib import resources  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
 
 # `python -m train` / `python -m eval` in a subprocess started from another folder (tmp_path): an install puts only
 # av_gym on sys.path, the harness packages are the checkout's (pyproject's pythonpath does this for pytest itself).
@@ -21,7 +26,11 @@ os.environ["PYTHONPATH"] = os.pathsep.join(
 # Set here, before numpy is imported below (OpenBLAS reads it once, as numpy loads: pytest's own process, which runs
 # the tests under -p no:xdist, kept OpenBLAS's default threads while numpy came first) and before anything imports
 # torch: the xdist workers and every command a test starts inherit it.
-os.environ.setdefault("OMP_NUM_THREADS", "1")
+# What tests/test_blas_threads.py may assert: only where this file chose the count (here, or in the pytest process
+# that started this xdist worker: the marker is inherited with the count) and numpy loaded after this file began.
+if "OMP_NUM_THREADS" not in os.environ:
+    os.environ["OMP_NUM_THREADS"] = os.environ["AV_GYM_TESTS_SET_OMP"] = "1"
+OMP_SET_HERE = os.environ.get("AV_GYM_TESTS_SET_OMP") == os.environ["OMP_NUM_THREADS"] and not NUMPY_BEFORE_CONFTEST
 if "torch" in sys.modules:  # imported already (a plugin): the variable is read when torch loads
     sys.modules["torch"].set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
 

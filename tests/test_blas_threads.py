@@ -37,10 +37,15 @@ def _numpy_openblas_threads() -> int | None:
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/maps")
 def test_numpys_openblas_runs_the_threads_conftest_set():
+    from conftest import OMP_SET_HERE
+
+    if not OMP_SET_HERE:
+        pytest.skip("OMP_NUM_THREADS came from the user, or numpy was loaded (by a plugin) before the conftest")
     if "OPENBLAS_NUM_THREADS" in os.environ or "GOTO_NUM_THREADS" in os.environ:
         pytest.skip("the user set OpenBLAS's own thread variable, which wins over OMP_NUM_THREADS")
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("one core: OpenBLAS runs one thread whatever the variable says, nothing to tell apart")
     threads = _numpy_openblas_threads()
     if threads is None:
         pytest.skip("numpy is not on a loaded OpenBLAS here")
-    cores = len(os.sched_getaffinity(0))  # OpenBLAS runs no more threads than the process has cores
-    assert threads == min(int(os.environ["OMP_NUM_THREADS"]), cores), (threads, os.environ["OMP_NUM_THREADS"], cores)
+    assert threads == 1, threads
