@@ -329,10 +329,11 @@ class BeliefPlanner:
         to every seed sequence, for independent futures of the same moment) whose GO play collides."""
         return self._plan_collision(engine, rows, K, stream, play_go_fast, margin)
 
-    def stop_collision(self, engine, rows, K: int | None = None, stream: tuple = ()) -> np.ndarray:
+    def stop_collision(self, engine, rows, K: int | None = None, stream: tuple = (),
+                       margin: float | None = None) -> np.ndarray:
         """:meth:`go_collision` for the plan of stopping (YIELD past the stop line: the lowest set-point, held to
         the episode's end) on the same futures (the same ``K`` and ``stream`` draw the same ones)."""
-        return self._plan_collision(engine, rows, K, stream, play_stop_fast)
+        return self._plan_collision(engine, rows, K, stream, play_stop_fast, margin)
 
     def _plan_collision(self, engine, rows, K: int | None, stream: tuple, play,
                         margin: float | None = None) -> np.ndarray:
@@ -390,7 +391,7 @@ class BeliefPlanner:
                 p2 = self.go_collision(engine, r[ask], R, (RECHECK_STREAM,))
                 new[ask] = self.label_of((K * p[ask] + R * p2) / (K + R) if pool else p2)
             if self.params.committed_choice:
-                new = self.carry_on(engine, r, p, new)
+                new = self.carry_on(engine, r, p, new, held)
             choice[due] = new
         return choice
 
@@ -407,11 +408,13 @@ class BeliefPlanner:
             p[~kept] = self.go_collision(engine, rows[~kept])
         return p
 
-    def carry_on(self, engine, rows: np.ndarray, p: np.ndarray, new: np.ndarray) -> np.ndarray:
+    def carry_on(self, engine, rows: np.ndarray, p: np.ndarray, new: np.ndarray,
+                 held: np.ndarray | None = None) -> np.ndarray:
         """``committed_choice``: the choices ``new`` of ``rows`` (GO collision probabilities ``p`` at this
-        decision) with GO where the row would YIELD past the stop line (by more than ``committed_from``) and
-        stopping there collides in more of the same futures than carrying on (``committed_margin``: or in fewer by
-        less than this)."""
+        decision, :meth:`_decision_collision` of the held choices ``held``) with GO where the row would YIELD past
+        the stop line (by more than ``committed_from``) and stopping there collides in more of the same futures
+        than carrying on (``committed_margin``: or in fewer by less than this). Stopping is judged as ``p`` was:
+        under ``track_margin_scope`` start a row holding GO on contact alone."""
         back = np.flatnonzero(np.asarray(new) != GO)
         if len(back) == 0:
             return new
@@ -420,7 +423,15 @@ class BeliefPlanner:
         if len(back) == 0:
             return new
         new = np.array(new, copy=True)
-        p_stop = self.stop_collision(engine, rows[back])  # the decision's own K futures and stream
+        # the decision's own K futures and stream, with the clearance margin where p had it
+        p_stop = np.empty(len(back))
+        contact = np.zeros(len(back), bool)
+        if self.params.track_margin_scope == "start" and held is not None:
+            contact = np.asarray(held)[back] == GO
+        for on_contact, margin in ((False, None), (True, 0.0)):
+            part = contact == on_contact
+            if part.any():
+                p_stop[part] = self.stop_collision(engine, rows[back][part], margin=margin)
         margin = float(self.params.committed_margin)
         new[back] = np.where(np.asarray(p)[back] - p_stop < margin - 1e-12, GO, new[back])
         return new

@@ -32,7 +32,7 @@ def _planner(asked: list, p_go, p_stop, **options) -> BeliefPlanner:
     planner.reset(np.arange(len(p_go)))
     planner.go_collision = lambda engine, rows, K=None, stream=(): np.asarray(p_go)[np.asarray(rows)]
 
-    def stop(engine, rows, K=None, stream=()):
+    def stop(engine, rows, K=None, stream=(), margin=None):
         asked.append(np.asarray(rows).tolist())
         return np.asarray(p_stop)[np.asarray(rows)]
 
@@ -67,6 +67,30 @@ def test_past_the_line_a_yield_carries_on_where_stopping_collides_more():
     far = _planner(asked, p_go, p_stop, committed_choice=True, committed_from=4.0)
     assert far.decide(engine, np.arange(6), held, step).tolist() == [YIELD, YIELD, YIELD, YIELD, GO, YIELD]
     assert asked == []
+
+
+def test_under_margin_scope_start_stopping_is_judged_as_the_held_go_was():
+    """``track_margin_scope`` start judges a held GO on contact alone; past the line, stopping must be judged so
+    too (contact against contact), a YIELD held before on the margin. Row 0 holds GO: GO collides in 0.25 of the
+    futures on contact, stopping in 0.125 on contact and 0.5 with the margin: it stops (carrying on against the
+    margin's 0.5 would have gone). Row 1 holds YIELD: GO 0.6 with the margin against stopping's 0.5 with it: it
+    stops; its GO's 0.25 on contact would have gone against 0.5."""
+    p_go = {None: np.array([0.6, 0.6]), 0.0: np.array([0.25, 0.25])}
+    p_stop = {None: np.array([0.5, 0.5]), 0.0: np.array([0.125, 0.125])}
+    asked: list = []
+    planner = BeliefPlanner(BeliefLookaheadParams(committed_choice=True, track_margin=0.5,
+                                                  track_margin_scope="start"), n_rows=2)
+    planner.reset(np.arange(2))
+    planner.go_collision = lambda engine, rows, K=None, stream=(), margin=None: p_go[margin][np.asarray(rows)]
+
+    def stop(engine, rows, K=None, stream=(), margin=None):
+        asked.append((np.asarray(rows).tolist(), margin))
+        return p_stop[margin][np.asarray(rows)]
+
+    planner.stop_collision = stop
+    held = np.array([GO, YIELD])
+    assert planner.decide(_Offsets([3.0, 3.0]), np.arange(2), held, np.zeros(2, int)).tolist() == [YIELD, YIELD]
+    assert sorted(asked, key=str) == sorted([([0], 0.0), ([1], None)], key=str)
 
 
 @pytest.mark.slow  # ~2.5 s: the batch on tracks driven 40 steps into the junction
