@@ -15,6 +15,9 @@ never a policy):
   ``--match`` m (confirmed, tentative, or a ghost left out; one track per vehicle, nearest pairs first), kept at its
   tracked state; tracks of no vehicle (twins, ghosts, false ones) are removed; vehicles with no track (unconfirmed,
   missed, out of range, occluded) are added at their true state;
+- ``users_missing``, ``users_extra``: each half of ``users`` alone (not in ``all``; ``all,-users,users_missing``):
+  the cars without a road user added (a ghost or twin matched to a car brought back), or the road users of no car
+  removed;
 - ``prior``: the prior over unconfirmed road users (agents/track_prior.py UnseenTraffic) is not added to the futures
   (with ``users`` the truth describes them all; its looks are still counted);
 - ``position`` (x, y), ``velocity`` (speed, also as set-point, as a track's), ``heading``, ``acc`` (the measured
@@ -60,6 +63,7 @@ from belief_tracks_truth import MATCH_M  # noqa: E402
 
 PARTS = ("users", "prior", "position", "velocity", "heading", "acc")  # the sensed parts (``all``: these and lane)
 BESIDES = ("intent", "crash")  # what the truth has besides the sensed parts (not in ``all``; named with it)
+HALVES = ("users_missing", "users_extra")  # the two halves of ``users``, each named on its own
 ADDED = 100_000  # a car ``users`` adds is road user ADDED + its simulator vid (no track id is that large)
 
 
@@ -72,11 +76,11 @@ def parts_of(spec: str) -> frozenset:
     names = [s for s in spec.split(",") if s]
     drop = {s[1:] for s in names if s.startswith("-")}
     names = [s for s in names if not s.startswith("-")]
-    bad = [s for s in names if s not in PARTS + BESIDES + ("all", "none")]
+    bad = [s for s in names if s not in PARTS + BESIDES + HALVES + ("all", "none")]
     bad += [f"-{s}" for s in drop if s not in PARTS + BESIDES + ("lane",)]
     if bad or not names:
-        fail(f"--truth takes a comma list of {', '.join(PARTS + BESIDES)}, all or none, and -part to take one of "
-             f"them out; got {spec!r}")
+        fail(f"--truth takes a comma list of {', '.join(PARTS + BESIDES + HALVES)}, all or none, and -part to "
+             f"take one of them out; got {spec!r}")
     out = {n for n in names if n not in ("all", "none")}
     if "all" in names:
         out |= set(PARTS) | {"lane"}
@@ -153,10 +157,15 @@ def with_truth(planner, engine, rows: np.ndarray, parts: frozenset, radius: floa
         left_out = tb.ghost[r] if tb.ghost is not None else np.zeros(t.N, bool)
         changed: list[int] = []
         added: dict[int, int] = {}  # simulator slot -> the slot ``users`` added it in
-        if "users" in parts:
+        missing = bool(parts & {"users", "users_missing"})
+        if missing or parts & {"users", "users_extra"}:
             keep = np.zeros(t.N, bool)
             keep[list(pairs.values())] = True
-            t.alive[r] = (t.alive[r] | left_out) & (keep | t.ego[r])
+            if missing:  # a ghost or twin matched to a car is that car's road user again
+                t.alive[r] |= left_out & keep
+            if parts & {"users", "users_extra"}:  # the road users of no car go
+                t.alive[r] &= keep | t.ego[r]
+        if missing:
             for i in np.flatnonzero(s.alive[r] & ~s.ego[r]):
                 if int(i) in pairs:
                     continue
@@ -385,7 +394,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seed", type=int, default=1_931_000)
     ap.add_argument("--episodes", type=int, default=500)
-    ap.add_argument("--truth", default="none", help=f"comma list of {', '.join(PARTS + BESIDES)}, all or none; "
+    ap.add_argument("--truth", default="none", help=f"comma list of {', '.join(PARTS + BESIDES + HALVES)}, all or none; "
                                                            "-part takes one out")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
     ap.add_argument("--on-truth", action="store_true", help="the planner on the simulator's vehicles (sensors "

@@ -52,6 +52,9 @@ def test_each_car_takes_its_nearest_track_one_track_per_car(ablate):
                                          ("all,crash,-velocity", {"users", "prior", "position", "heading", "acc",
                                                                   "lane", "crash"}),
                                          ("all,-lane", {"users", "prior", "position", "velocity", "heading", "acc"}),
+                                         ("all,crash,-users,users_extra", {"users_extra", "prior", "position",
+                                                                           "velocity", "heading", "acc", "lane",
+                                                                           "crash"}),
                                          ("all,crash,-heading", {"users", "prior", "position", "velocity", "acc",
                                                                  "crash"})])
 def test_the_parts_named(ablate, spec, parts):
@@ -97,6 +100,40 @@ def test_with_truth_gives_the_futures_start_the_simulators_cars(ablate):
                 cars += 1
             assert len(users) == (s.alive[r] & ~s.ego[r]).sum()  # one road user per car, no other
     assert cars > 0
+    # each half of ``users`` alone: the cars without a road user added, or the road users of no car removed (a
+    # false track put 60 m from the ego, where no car is); both together are ``users``
+    def read_with_a_false_track():
+        planner.read(engine, rows, obs["intent"][rows])
+        t = planner.tracks.engine.traffic
+        j = int(np.flatnonzero(~t.alive[rows[0]] & ~t.ego[rows[0]])[0])
+        e = int(np.flatnonzero(t.ego[rows[0]])[0])
+        t.alive[rows[0], j], t.x[rows[0], j], t.y[rows[0], j] = True, t.x[rows[0], e] + 60.0, t.y[rows[0], e] + 60.0
+        assert np.hypot(s.x[rows[0]] - t.x[rows[0], j], s.y[rows[0]] - t.y[rows[0], j])[s.alive[rows[0]]].min() > 10
+        return copy.deepcopy(t)
+
+    halves = {}
+    for parts in ("none", "users_missing", "users_extra", "users_missing,users_extra", "users"):
+        own = read_with_a_false_track()
+        ablate.with_truth(planner, engine, rows, ablate.parts_of(parts), 3.0)
+        halves[parts] = copy.deepcopy(planner.tracks.engine.traffic)
+    for name in ("alive", "x", "y", "v"):
+        np.testing.assert_array_equal(getattr(halves["users"], name), getattr(halves["users_missing,users_extra"],
+                                                                                name))
+    added = removed = 0
+    for r in rows:
+        was = set(np.flatnonzero(own.alive[r] & ~own.ego[r]))
+        assert set(np.flatnonzero(halves["none"].alive[r] & ~halves["none"].ego[r])) == was
+        t = halves["users_missing"]  # every car has its road user; every road user the tracks had stays
+        now = np.flatnonzero(t.alive[r] & ~t.ego[r])
+        assert was <= set(now)
+        for i in np.flatnonzero(s.alive[r] & ~s.ego[r]):
+            assert np.hypot(t.x[r, now] - s.x[r, i], t.y[r, now] - s.y[r, i]).min() <= 3.0
+        added += len(now) - len(was)
+        t = halves["users_extra"]  # only the road users of a car remain, none added
+        now = set(np.flatnonzero(t.alive[r] & ~t.ego[r]))
+        assert now <= was and now <= set(np.flatnonzero(halves["users"].alive[r]))
+        removed += len(was - now)
+    assert added > 0 and removed > 0, (added, removed)
 
 
 def _readers(track_vids, car_vids, alive=None):
