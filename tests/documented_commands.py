@@ -452,6 +452,8 @@ SCRIPT_ARGS = {
     "benchmarks/odometry.py": ["--scans", "20", "--repeats", "1"],
     "benchmarks/oracle_labels.py": ["--quick"],
     "benchmarks/belief_tracks_sweep.py": ["--episodes", "1", "--n-envs", "1"],
+    "benchmarks/belief_tracks_ablate.py": ["--episodes", "1", "--seed", "1000000", "--truth=all,crash,-users",
+                                           "--out", "{tmp}/ablate.json", "--set", "samples=2"],
     "benchmarks/belief_tracks_diagnose.py": ["--seeds", "1000000", "--set", "samples=2"],
     "benchmarks/belief_tracks_confirm.py": ["--seeds", "1000000", "--set", "samples=2"],
     "benchmarks/belief_tracks_state.py": ["--seeds", "1000000", "--set", "samples=2"],
