@@ -91,14 +91,9 @@ def printed(result: dict) -> str:
     """:func:`compare`'s result as one JSON line, each McNemar p to two significant figures (a JSON number: 2.0e-05,
     0.31, 1.0), not rounded to decimals (a p of 2e-05 is not 0)."""
     shown = json.loads(json.dumps(result))
-    marks = {}
-    for what in ("collided", "arrived"):
-        marks[f"@{what}@"] = f"{result[what]['mcnemar_p']:#.2g}"
-        shown[what]["mcnemar_p"] = f"@{what}@"
-    line = json.dumps(shown)
-    for mark, number in marks.items():
-        line = line.replace(f'"{mark}"', number)
-    return line
+    for what in ("collided", "arrived"):  # a float of two significant figures: json writes 2.1e-05 as it is
+        shown[what]["mcnemar_p"] = float(f"{result[what]['mcnemar_p']:.2g}")
+    return json.dumps(shown)
 
 
 def main() -> None:
