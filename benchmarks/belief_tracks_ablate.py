@@ -44,7 +44,10 @@ and per collision its class: hit waiting (no GO in the episode) or hit after a G
 had it at the last GO started (or, hit waiting, at the last decision): confirmed / tentative / left out (a ghost or
 twin) / unseen (no road user of the futures' start within ``--match`` m). ``--table`` prints the markdown table of
 several such files, paired against the first. ``--on-truth``: the planner on the simulator's vehicles (sensors
-turn_truth) on the same seeds, the reference the parts add up to."""
+turn_truth) on the same seeds, the reference the parts add up to. ``--seeds``: these seeds instead (a replay of the
+collided ones); ``--why``: per car hit that was not a confirmed road user at that decision, why it was missing
+(:class:`SensorHistory`, :func:`why_cause`: never in view, occluded, its tentative track died on a miss, its
+confirmed track deleted after coasting, held by the tracker but left out by the planner)."""
 
 from __future__ import annotations
 
@@ -272,7 +275,8 @@ class CarReadings:
 
 def statuses(planner, engine, rows: np.ndarray, radius: float) -> dict[int, dict[int, str]]:
     """Per row, simulator vid -> how the planner had that car at this decision: the nearest road user within
-    ``radius`` m of it confirmed, tentative, left out (a ghost or twin), or none (unseen)."""
+    ``radius`` m of it confirmed, tentative, remembered (``recall``: agents/track_memory.py), left out (a ghost or
+    twin), or none (unseen)."""
     tb = planner.tracks
     t, s = tb.engine.traffic, engine.traffic
     out = {}
@@ -287,9 +291,98 @@ def statuses(planner, engine, rows: np.ndarray, radius: float) -> dict[int, dict
                 row[int(s.vid[r, i])] = "unseen"
                 continue
             j = int(users[np.argmin(d)])
+            kept = getattr(tb, "remembered", None)
             row[int(s.vid[r, i])] = ("left out" if left_out[j] and not t.alive[r, j] else
+                                     "remembered" if kept is not None and kept[r, j] else
                                      "tentative" if tb.tent[r, j] else "confirmed")
         out[r] = row
+    return out
+
+
+WHY_DET_M = 2.5  # m: a detection within this of a car's true place is that car's (the detector's sd <= 1.1 m)
+
+
+class SensorHistory:
+    """``--why``: per row, per simulator vid, one entry per detector frame the tracker fused: [time s, view (0 out of
+    range or field of view, 1 occluded, 2 in view: the detector's own view), detected (a detection within
+    :data:`WHY_DET_M`), the tracker's track within ``radius`` m (0 none, 1 tentative, 2 confirmed) and its id, the
+    planner's status (:func:`statuses`), range m, lane kind (0 approach, 1 crossing, 2 exit)]. A measurement: it
+    reads the simulator, never a policy."""
+
+    def __init__(self, n_rows: int, radius: float) -> None:
+        self.log: list[dict[int, list]] = [{} for _ in range(n_rows)]
+        self.radius = radius
+
+    def frame(self, planner, engine, rows: np.ndarray) -> None:
+        from av_gym.batched.perception import others_state
+
+        p, tb = planner.tracks.perception, planner.tracks
+        now = engine.ticks[rows] / engine.config["simulation_frequency"]
+        rows = rows[np.abs(p.tracker.fused_at[rows] - now) < 1e-9]
+        if not len(rows):
+            return
+        t = engine.traffic
+        slot = engine.ego_slot(rows)
+        ego = np.stack([t.x[rows, slot], t.y[rows, slot], t.h[rows, slot]], axis=1)
+        others, vids, off = others_state(engine, rows)
+        rng, in_view, hidden = p.detector._views(ego, others, off) if len(others) else (np.zeros(0),) * 3
+        st = statuses(planner, engine, rows, self.radius)
+        tracks, shown = p.tracker.tracks(rows)
+        for b, r in enumerate(rows.tolist()):
+            live = np.arange(tracks.shape[1]) < p.tracker.n[r]
+            det = p.last_detections[r]
+            det = det[det[:, 0] > 0]
+            for i in range(off[b], off[b + 1]):
+                v = int(vids[i])
+                x, y = others[i, 0], others[i, 1]
+                seen = bool(len(det)) and float(np.hypot(det[:, 1] - x, det[:, 2] - y).min()) <= WHY_DET_M
+                d = np.where(live, np.hypot(tracks[b, :, 0] - x, tracks[b, :, 1] - y), np.inf)
+                k = int(np.argmin(d)) if len(d) else -1
+                held = k >= 0 and d[k] <= self.radius
+                kind = (2 if shown[b, k] else 1) if held else 0
+                lane = engine.T.closest(np.array([x]), np.array([y]), np.array([others[i, 4]]))[0]
+                self.log[r].setdefault(v, []).append([
+                    round(float(engine.ticks[r] / engine.config["simulation_frequency"]), 2),
+                    0 if not in_view[i] else 1 if hidden[i] else 2, seen, kind,
+                    int(p.tracker.id[r, k]) if held else -1, st[r].get(v, "?"), round(float(rng[i]), 1),
+                    int(tb.lane_kind[lane])])
+
+    def why(self, r: int, vid: int, t_go: float) -> dict:
+        """The cause the car ``vid`` of row ``r`` was not a confirmed road user of the planner at ``t_go`` (s, the
+        last GO started or the last decision): its frames up to then, summarised (:func:`why_cause`)."""
+        h = [e for e in self.log[r].get(vid, []) if e[0] <= t_go + 1e-9]
+        return why_cause(h)
+
+
+def why_cause(h: list) -> dict:
+    """One cause from a car's frames ``h`` (SensorHistory entries up to the decision): ``never in view`` (out of
+    range or field of view at every frame; ``occluded`` where it was at some), else at the decision's frame ``not in
+    view now`` with the track it last had (``confirmed deleted`` / ``tentative died`` / ``never tracked``) or, in view,
+    ``tentative died`` (its last tracker track tentative and gone: deleted on a miss, its next detection a new
+    track), ``confirmed deleted``, ``held, not a road user`` (the tracker holds it, the planner has it as nobody:
+    ghost, twin, off by more than the match radius), ``never tracked``; with the frames since it was last in view,
+    detected, held by a track, and its range and lane kind at the decision."""
+    if not h:
+        return {"cause": "not on the map"}
+    last = h[-1]
+    ever_view = [e for e in h if e[1] == 2]
+    tracked = [e for e in h if e[3] > 0]
+    conf = [e for e in h if e[3] == 2]
+    out = {"status": last[5], "range_m": last[6], "lane_kind": last[7], "frames": len(h),
+           "in_view_frames": len(ever_view), "detected_frames": sum(bool(e[2]) for e in h),
+           "tracked_frames": len(tracked), "confirmed_frames": len(conf),
+           "since_in_view_s": round(last[0] - ever_view[-1][0], 1) if ever_view else None,
+           "since_tracked_s": round(last[0] - tracked[-1][0], 1) if tracked else None}
+    had = "confirmed deleted" if conf else "tentative died" if tracked else "never tracked"
+    if not ever_view:
+        cause = "never in view: occluded" if any(e[1] == 1 for e in h) else "never in view: out of range/fov"
+    elif last[1] != 2:
+        cause = f"not in view now ({'occluded' if last[1] == 1 else 'out of range/fov'}), {had}"
+    elif last[3] > 0:
+        cause = "held by the tracker, not a road user of the planner"
+    else:
+        cause = f"in view, {had}"
+    out["cause"] = cause
     return out
 
 
@@ -301,7 +394,7 @@ def play(args, parts: frozenset) -> dict:
     from av_gym.wrappers import GO, YIELD
 
     point, params = planner_point(args.set)
-    seeds = list(range(args.seed, args.seed + args.episodes))
+    seeds = list(args.seeds) if getattr(args, "seeds", None) else list(range(args.seed, args.seed + args.episodes))
     t0, c0 = time.time(), time.process_time()
     B = len(seeds)
     sensors = "turn_truth" if args.on_truth else "turn_perceived"
@@ -316,11 +409,15 @@ def play(args, parts: frozenset) -> dict:
     at_last: list[dict] = [{} for _ in range(B)]  # ... at the last decision
     episodes, collisions = [], []
     readings = CarReadings(B) if "intent" in parts else None
+    history = SensorHistory(B, args.match) if getattr(args, "why", False) else None
+    t_at = np.zeros(B)  # s: the last GO started (or, without one, the last decision)
     while not venv.idle.all():
         rows = np.flatnonzero(~venv.idle)
         if readings is not None:
             readings.before(planner, rows)
         planner.read(engine, rows, obs["intent"][rows])
+        if history is not None:
+            history.frame(planner, engine, rows)
         if parts:
             pairs_of = all_pairs(planner, engine, rows, args.match)
             if readings is not None:
@@ -344,8 +441,11 @@ def play(args, parts: frozenset) -> dict:
             st = statuses(planner, engine, due, args.match) if planner.tracks is not None else {}
             for r in due:
                 at_last[r] = st.get(int(r), {})
+                if not went[r]:
+                    t_at[r] = engine.ticks[r] / engine.config["simulation_frequency"]
                 if choice[r] == GO and before[r] != GO:
                     at_go[r], went[r] = at_last[r], True
+                    t_at[r] = engine.ticks[r] / engine.config["simulation_frequency"]
         k[rows] += 1
         obs, _, done, infos = venv.step(meta_actions(choice, obs["turn"]))
         for r in np.flatnonzero(done):
@@ -357,6 +457,10 @@ def play(args, parts: frozenset) -> dict:
                 known = at_go[r] if went[r] else at_last[r]
                 collisions.append({"seed": int(infos[r]["seed"]), "class": "after GO" if went[r] else "waiting",
                                    "hit": {v: known.get(v, "not on the map") for v in hit}})
+                if history is not None:
+                    collisions[-1]["why"] = {v: history.why(int(r), v, float(t_at[r])) for v in hit
+                                             if known.get(v) != "confirmed"}
+                    collisions[-1]["t_decision"] = round(float(t_at[r]), 2)
     n = len(episodes)
     return {"point": point, "truth": ["planner on truth"] if args.on_truth else sorted(parts), "match_m": args.match,
             "episodes": n, "seed": args.seed, "collision": sum(c for _, c, _ in episodes) / n,
@@ -402,6 +506,10 @@ def main() -> None:
     ap.add_argument("--match", type=float, default=MATCH_M, metavar="M", help="match radius (m), > 0")
     ap.add_argument("--out", default=None, metavar="PATH", help="the JSON object besides (a new file)")
     ap.add_argument("--table", nargs="+", default=None, metavar="PATH", help="print the table of these results")
+    ap.add_argument("--seeds", nargs="+", type=int, default=None, help="these validation seeds instead of --seed / "
+                    "--episodes (a replay of collided ones)")
+    ap.add_argument("--why", action="store_true", help="per collision with a car that was not a confirmed road user "
+                    "of the planner, why it was missing (SensorHistory: the car's frames in view, detected, tracked)")
     args = ap.parse_args()
     if args.table:
         print(table(args.table))
@@ -410,7 +518,11 @@ def main() -> None:
         fail(f"--out {args.out} exists: choose another file (results are never overwritten)")
     if args.episodes < 1 or not (args.match > 0):
         fail("--episodes must be >= 1 and --match > 0 (m)")
-    if args.seed not in SPLITS["validation"] or args.seed + args.episodes - 1 not in SPLITS["validation"]:
+    if args.seeds:
+        if any(x not in SPLITS["validation"] for x in args.seeds) or len(set(args.seeds)) != len(args.seeds):
+            fail(f"--seeds must be distinct seeds of the validation split {SPLITS['validation']}")
+        args.seed, args.episodes = min(args.seeds), len(args.seeds)
+    elif args.seed not in SPLITS["validation"] or args.seed + args.episodes - 1 not in SPLITS["validation"]:
         fail(f"--seed/--episodes must stay in the validation split {SPLITS['validation']}")
     parts = parts_of(args.truth)
     if args.on_truth and parts:

@@ -205,3 +205,29 @@ def test_users_grows_the_spread_with_the_traffic(ablate):
             assert t.crashed[r, j] == car[int(t.vid[r, j]) - ablate.ADDED]
             flags += 1
     assert flags == (s.alive[rows] & ~s.ego[rows]).sum()  # every car, matched or added
+
+
+def _frame(t, view, detected=False, kind=0, status="unseen"):
+    """A SensorHistory entry: [time s, view (0 out, 1 occluded, 2 in view), detected, track kind, track id, the
+    planner's status, range m, lane kind]."""
+    return [t, view, detected, kind, 5 if kind else -1, status, 40.0, 0]
+
+
+def test_why_names_the_cause_a_car_was_missing(ablate):
+    """``--why``'s cause from a car's frames: never in view (out of range / occluded), its track died in view
+    (tentative or confirmed), out of view now after a confirmed track, held by the tracker but nobody to the planner,
+    and the frames since it was last in view and tracked."""
+    why = ablate.why_cause
+    assert why([])["cause"] == "not on the map"
+    assert why([_frame(0.0, 0), _frame(0.1, 0)])["cause"] == "never in view: out of range/fov"
+    assert why([_frame(0.0, 0), _frame(0.1, 1)])["cause"] == "never in view: occluded"
+    died = [_frame(0.0, 2, True, 1, "tentative"), _frame(0.1, 2, False, 0)]
+    got = why(died)
+    assert got["cause"] == "in view, tentative died" and got["since_tracked_s"] == 0.1
+    assert got["detected_frames"] == 1 and got["in_view_frames"] == 2
+    coasted = [_frame(0.0, 2, True, 2, "confirmed")] + [_frame(0.1 * k, 1, False, 2, "confirmed") for k in (1, 2)] \
+        + [_frame(0.3, 1)]
+    got = why(coasted)
+    assert got["cause"] == "not in view now (occluded), confirmed deleted" and got["since_in_view_s"] == 0.3
+    assert why([_frame(0.0, 2, True, 2, "left out")])["cause"] == "held by the tracker, not a road user of the planner"
+    assert why([_frame(0.0, 2, False, 0)])["cause"] == "in view, never tracked"
