@@ -396,16 +396,23 @@ class BeliefPlanner:
         return choice
 
     def _decision_collision(self, engine, rows: np.ndarray, held: np.ndarray) -> np.ndarray:
-        """:meth:`go_collision` of ``rows`` at a decision (``held``: their held choices), the rows holding GO
-        judged without the clearance margin under ``track_margin_scope`` start (the same futures: a row's draws do
-        not depend on the batch it is in)."""
-        if self.params.track_margin_scope == "every":
-            return self.go_collision(engine, rows)
+        """:meth:`go_collision` of ``rows`` at a decision (``held``: their held choices), judged as
+        :meth:`_held_scoped` says."""
+        return self._held_scoped(self.go_collision, engine, rows, held)
+
+    def _held_scoped(self, collision, engine, rows: np.ndarray, held: np.ndarray | None) -> np.ndarray:
+        """``collision`` (:meth:`go_collision` or :meth:`stop_collision`: which plan is played) of ``rows`` at a
+        decision whose held choices are ``held``: under ``track_margin_scope`` start the rows holding GO are judged
+        without the clearance margin (on contact alone), the others with it (the same futures either way: a row's
+        draws do not depend on the batch it is in); under ``every`` (or ``held`` None) all with it. The one split
+        that both the decision's GO and ``committed_choice``'s stopping use, so the two are judged alike."""
+        if self.params.track_margin_scope == "every" or held is None:
+            return collision(engine, rows)
         p, kept = np.empty(len(rows)), np.asarray(held) == GO
         if kept.any():
-            p[kept] = self.go_collision(engine, rows[kept], margin=0.0)
+            p[kept] = collision(engine, rows[kept], margin=0.0)
         if (~kept).any():
-            p[~kept] = self.go_collision(engine, rows[~kept])
+            p[~kept] = collision(engine, rows[~kept])
         return p
 
     def carry_on(self, engine, rows: np.ndarray, p: np.ndarray, new: np.ndarray,
@@ -424,14 +431,8 @@ class BeliefPlanner:
             return new
         new = np.array(new, copy=True)
         # the decision's own K futures and stream, with the clearance margin where p had it
-        p_stop = np.empty(len(back))
-        contact = np.zeros(len(back), bool)
-        if self.params.track_margin_scope == "start" and held is not None:
-            contact = np.asarray(held)[back] == GO
-        for on_contact, margin in ((False, None), (True, 0.0)):
-            part = contact == on_contact
-            if part.any():
-                p_stop[part] = self.stop_collision(engine, rows[back][part], margin=margin)
+        p_stop = self._held_scoped(self.stop_collision, engine, rows[back],
+                                   None if held is None else np.asarray(held)[back])
         margin = float(self.params.committed_margin)
         new[back] = np.where(np.asarray(p)[back] - p_stop < margin - 1e-12, GO, new[back])
         return new

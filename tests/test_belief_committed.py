@@ -119,3 +119,25 @@ def test_a_go_taken_back_inside_the_junction_carries_on_on_its_futures():
     np.testing.assert_array_equal(shares[0], [3 / 16, 2 / 16])
     np.testing.assert_array_equal(shares[1], [8 / 16, 1 / 16])
     assert choices == {False: [YIELD, YIELD], True: [GO, YIELD]}
+
+
+def test_stopping_and_go_are_asked_on_the_same_split():
+    """Under ``track_margin_scope`` start, rows past the line that would YIELD: the stop question is asked of the
+    same rows with the same margins as the decision's GO question (held GO on contact, held YIELD with the margin),
+    for any mix of held choices: the one split serves both (a stop question asked all with the margin fails)."""
+    held = np.array([GO, YIELD, YIELD, GO, GO])
+    asked: dict = {"go": [], "stop": []}
+
+    def share(kind):
+        def ask(engine, rows, K=None, stream=(), margin=None):
+            asked[kind] += [(int(r), margin) for r in np.asarray(rows)]
+            return np.full(len(rows), 0.75)
+        return ask
+
+    planner = BeliefPlanner(BeliefLookaheadParams(committed_choice=True, track_margin=0.5,
+                                                  track_margin_scope="start"), n_rows=len(held))
+    planner.reset(np.arange(len(held)))
+    planner.go_collision, planner.stop_collision = share("go"), share("stop")
+    planner.decide(_Offsets(np.full(len(held), 3.0)), np.arange(len(held)), held, np.zeros(len(held), int))
+    assert sorted(asked["go"], key=str) == sorted(asked["stop"], key=str)
+    assert sorted(asked["go"], key=str) == sorted([(0, 0.0), (1, None), (2, None), (3, 0.0), (4, 0.0)], key=str)
