@@ -3,6 +3,9 @@ atomic on POSIX within a file system). A crash or a full disk at any point leave
 complete file, never a torn one, and no temporary file behind (a full disk left ``results.csv`` cut at
 row 10 and ``.latest.<pid>.tmp`` files).
 
+A result that must be a new file (a benchmark's ``--out``) is linked into place instead (:func:`new_path`,
+:func:`write_text_new`): a file that appeared at that path meanwhile is kept, and the write refused.
+
 A write that fails (``OSError``: no space, quota, permissions) raises :class:`WriteFailed`, a
 :class:`~av_gym.errors.ConfigError`: one line at the command line naming the file, what the system said and that
 the previous version is intact.
@@ -52,6 +55,45 @@ def atomic_path(path: str | Path, field: str = "") -> Iterator[Path]:
     except BaseException:
         _remove(tmp)
         raise
+
+
+class FileExists(ConfigError):
+    """A new file's path is taken (a result is never overwritten); the file there is intact."""
+
+
+@contextlib.contextmanager
+def new_path(path: str | Path, field: str = "") -> Iterator[Path]:
+    """:func:`atomic_path` for a file that must not exist: the temporary file, flushed to disk, is hard-linked to
+    ``path`` (``os.link`` fails when ``path`` exists, so a file that appeared after any earlier check of the
+    caller's is kept, never replaced; ``os.replace`` would replace it), then its temporary name is removed. A taken
+    ``path`` raises :class:`FileExists`, one line naming ``field``; another ``OSError`` :class:`WriteFailed`; either
+    way no temporary file is left."""
+    path = Path(path)
+    tmp = temporary_name(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        yield tmp
+        with open(tmp, "rb") as f:
+            os.fsync(f.fileno())
+        try:
+            os.link(tmp, path)
+        except FileExistsError:
+            raise FileExists(f"{field + ' ' if field else ''}{path} exists: choose another file (results are never "
+                             "overwritten)") from None
+    except OSError as exc:
+        reason = os.strerror(exc.errno) if exc.errno else str(exc)
+        named = f"{field}: " if field else ""
+        raise WriteFailed(f"{named}cannot write {path}: {reason} (nothing was written)") from None
+    finally:
+        _remove(tmp)
+
+
+def write_text_new(path: str | Path, text: str, field: str = "") -> Path:
+    """``path``'s text as a new file, atomically, never replacing one (see :func:`new_path`)."""
+    with new_path(path, field) as tmp:
+        with open(tmp, "w") as f:
+            f.write(text)
+    return Path(path)
 
 
 def _remove(tmp: Path) -> None:

@@ -529,9 +529,15 @@ def main() -> None:
         fail("--on-truth takes --truth none (its road users are the simulator's)")
     result = play(args, parts)
     text = json.dumps(result)
-    if args.out:
-        Path(args.out).write_text(text + "\n")
-    print(text)
+    print(text)  # first: a refused --out below loses no run
+    if args.out:  # linked into place: a file that appeared at --out since the check above is kept, not replaced
+        from av_gym.atomic import write_text_new
+        from av_gym.errors import ConfigError
+
+        try:
+            write_text_new(args.out, text + "\n", "--out")
+        except ConfigError as exc:
+            fail(str(exc))
 
 
 if __name__ == "__main__":

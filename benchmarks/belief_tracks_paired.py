@@ -105,10 +105,14 @@ def main() -> None:
     if args.out and Path(args.out).exists():
         fail(f"--out {args.out} exists: choose another file (results are never overwritten)")
     result = compare(outcomes(args.a), outcomes(args.b), (args.a, args.b))
-    if args.out:
-        from av_gym.atomic import write_text_atomic
+    if args.out:  # linked into place: a file that appeared at --out since the check above is kept, not replaced
+        from av_gym.atomic import write_text_new
+        from av_gym.errors import ConfigError
 
-        write_text_atomic(args.out, json.dumps(result) + "\n", "--out")
+        try:
+            write_text_new(args.out, json.dumps(result) + "\n", "--out")
+        except ConfigError as exc:
+            fail(str(exc))
     print(printed(result))
 
 

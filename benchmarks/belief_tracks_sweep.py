@@ -107,10 +107,14 @@ def main() -> None:
     rows = play_batched({"name": "left_turn"}, compose_group("sensors", "turn_perceived"), None,
                         BeliefLookahead(None, params), list(seeds), args.n_envs, "belief_tracks", progress=False)
     n = len(rows)
-    if args.rows:
-        from av_gym.atomic import csv_text, write_text_atomic
+    if args.rows:  # linked into place: a file that appeared at --rows since the check above is kept, not replaced
+        from av_gym.atomic import csv_text, write_text_new
+        from av_gym.errors import ConfigError
 
-        write_text_atomic(args.rows, csv_text(rows), "--rows")
+        try:
+            write_text_new(args.rows, csv_text(rows), "--rows")
+        except ConfigError as exc:
+            fail(str(exc))
     print(json.dumps({"point": point, "episodes": n, "seed": seeds[0],
                       "collision": sum(r["collision"] for r in rows) / n, "success": sum(r["success"] for r in rows) / n,
                       "collided": [r["seed"] for r in rows if r["collision"]],

@@ -252,13 +252,14 @@ def _args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def _write(args: argparse.Namespace, rows: list[dict], states: dict) -> None:
-    from av_gym.atomic import atomic_path, csv_text, write_text_atomic
+    from av_gym.atomic import csv_text, new_path, write_text_new
 
+    # linked into place (av_gym.atomic.new_path): a file that appeared since _args' check is kept, not replaced
     if args.out:
-        write_text_atomic(args.out, csv_text(rows), "--out")
+        write_text_new(args.out, csv_text(rows), "--out")
     if args.states:
         arrays = {f"{k}_K{K}": v for k in ("labels", "collided") for K, v in states[k].items()}
-        with atomic_path(args.states, "--states") as tmp, open(tmp, "wb") as f:
+        with new_path(args.states, "--states") as tmp, open(tmp, "wb") as f:
             np.savez_compressed(f, student=states["student"], unseen=states["unseen"], **arrays)
 
 

@@ -106,3 +106,28 @@ def test_a_seed_twice_in_one_file_is_refused(tmp_path, monkeypatch, capsys):
         _run(monkeypatch, a, b)
     err = capsys.readouterr().err
     assert end.value.code == 2 and err.startswith("error: ") and "1 seeds appear more than once" in err
+
+
+def test_an_out_file_that_appears_after_the_check_is_kept(clear_case, tmp_path, monkeypatch, capsys):
+    """Another run writes --out after the script checked it and before the script's write (here: the moment the
+    temporary file is named): that file is kept whole, the script refuses in one line, and leaves no temporary
+    file. (An os.replace into place overwrote it.)"""
+    import av_gym.atomic
+
+    a, b = clear_case
+    out = tmp_path / "pair.json"
+    named = av_gym.atomic.temporary_name
+
+    def raced(path):
+        if path == out and not out.exists():
+            out.write_text("another run's result\n")
+        return named(path)
+
+    monkeypatch.setattr(av_gym.atomic, "temporary_name", raced)
+    with pytest.raises(SystemExit) as end:
+        _run(monkeypatch, a, b, "--out", str(out))
+    err = capsys.readouterr()
+    assert end.value.code == 2 and err.out == "" and len(err.err.strip().splitlines()) == 1, err
+    assert "--out" in err.err and "exists" in err.err
+    assert out.read_text() == "another run's result\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.csv", "b.csv", "pair.json"]
