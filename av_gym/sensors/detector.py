@@ -71,10 +71,11 @@ class DetectorParams(Params):
     frame: Literal["world", "ego"] = param("world", doc="world, or ego (x forward, y right of the ego)")
 
     def relations(self) -> list[str]:
-        if self.burst_length is not None and self.miss_rate > 0:
-            if self.miss_rate / self.burst_length / (1.0 - self.miss_rate) > 1.0:  # the chain's entry probability
-                need = self.miss_rate / (1 - self.miss_rate)
-                return [f"@miss_rate {self.miss_rate} needs @burst_length >= {need:.2f} frames"]
+        """The miss chain's entry probability P(miss | seen) (:func:`miss_chain`, the one formula the detectors
+        use) must be a probability: a stationary ``miss_rate`` m needs runs of at least m / (1 - m) frames."""
+        if miss_chain(self.miss_rate, self.burst_length)[0] > 1.0:
+            need = self.miss_rate / (1 - self.miss_rate)
+            return [f"@miss_rate {self.miss_rate} needs @burst_length >= {need:.2f} frames"]
         return []
 
 
