@@ -169,6 +169,23 @@ class BeliefLookaheadParams(AgentParams):
                                                        "apart); 0: ``merge`` alone")
     merge_agree: float = param(1.0, "m/s", gt=0, le=5, doc="with ``merge_far``: the largest difference of two "
                                                            "tracks' velocity vectors for them to be one car's")
+    pack: bool = param(False, doc="on tracks: the futures' start has its road users packed into the first slots "
+                                  "before the futures run (Traffic.compact, order kept). The engine assumes its live "
+                                  "slots come first: every step trims the slots past the most road users any row "
+                                  "holds plus 2 (Traffic.trim) and spawns at the slot after a row's live count, so a "
+                                  "road user read into a later slot (a tentative track, after the 16 described "
+                                  "slots; a remembered car) left the futures after their first policy step; False: "
+                                  "as read (the measured presets)")
+    recall: float = param(0.0, "s", ge=0, le=10, doc="on tracks: a car whose track the tracker dropped (a "
+                                                     "tentative one on its first miss, a confirmed one after "
+                                                     "max_coast without a detection) stays a road user of the "
+                                                     "futures, as a tentative track is, at its last state predicted "
+                                                     "on at constant velocity, until a track or detection comes "
+                                                     "within 4 m of that place, a detector frame after its death "
+                                                     "sees nothing there (in range, field of view, not behind a "
+                                                     "track updated then), or this many s have passed "
+                                                     "(agents/track_memory.py: the planner's own memory, from the "
+                                                     "tracker's tracks and the detections); 0: none")
     recheck: int = param(0, "futures", ge=0, le=256, doc="a GO after a YIELD (or at the first decision) is taken "
                                                          "only when this many more futures, drawn from their own "
                                                          "streams, find GO safe too (at most threshold collide): a "

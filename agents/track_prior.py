@@ -37,6 +37,7 @@ import copy
 import numpy as np
 from scipy.stats import norm
 
+from agents.track_memory import TrackMemory
 from av_gym.batched.left_turn import SPAWN_CLEAR
 from av_gym.estimation.turn_features import ACC_SCALE
 from av_gym.sensors.turn_signal import node_index
@@ -341,12 +342,20 @@ class TrackBelief:
         self.lane_kind = lane_kinds(e.T)[0]  # per lane id: 0 approach, 1 crossing, 2 exit
         fit = float(params.track_fit)
         self.motion = DetectedMotion(n_rows, fit, float(perception.detector.params.rate_hz)) if fit > 0 else None
+        recall = float(getattr(params, "recall", 0.0))
+        det = perception.detector.params
+        # the planner's own memory of the cars whose track the tracker dropped (agents/track_memory.py)
+        self.memory = TrackMemory(n_rows, recall, float(det.max_range), float(np.radians(det.fov_deg) / 2),
+                                  bool(det.occlusion), float(det.rate_hz)) if recall > 0 else None
+        self.remembered = None  # (B, N) the futures' start's slots that hold a remembered car
 
     def reset(self, rows) -> None:
         if self.unseen is not None:
             self.unseen.reset(rows)
         if self.motion is not None:
             self.motion.reset(rows)
+        if self.memory is not None:
+            self.memory.reset(rows)
 
     def _tracks(self, rows: np.ndarray) -> tuple:
         """The tracker's tracks of ``rows`` as ``obs["tracks"]`` orders them (confirmed and finite, nearest the
@@ -389,6 +398,11 @@ class TrackBelief:
         rows = np.asarray(rows, dtype=int)
         if self.motion is not None and len(rows):
             self._record(engine, rows)
+        if self.memory is not None and len(rows):
+            slot = engine.ego_slot(rows)
+            src = engine.traffic
+            ego = np.stack([src.x[rows, slot], src.y[rows, slot], src.h[rows, slot]], axis=1)  # the ego's own pose
+            self.memory.update(self.perception, rows, ego, engine.ticks[rows] / engine.config["simulation_frequency"])
         obs, conf, tent, ghost = self._observed(engine, rows, np.asarray(intent))
         self.engine, self._ticks, self.tent, self.ghost = obs, engine.ticks.copy(), tent, ghost
         if self.unseen is not None and len(rows):
@@ -404,6 +418,17 @@ class TrackBelief:
         """The observed engine (ego in slot 0, then the tracks) and its confirmed / tentative / ghost slot masks."""
         src, B = engine.traffic, engine.B
         pos, ids, conf, tent, seen, cov = self._tracks(rows)
+        kept = np.zeros(conf.shape, bool)
+        if self.memory is not None:
+            # the remembered cars after the tracks: road users as a tentative track is (no readings, not described)
+            now = engine.ticks[rows] / engine.config["simulation_frequency"]
+            m_pos, m_ids, m_alive, m_seen = self.memory.users(rows, now, self.perception.tracker.fused_at[rows])
+            pos, ids = np.concatenate([pos, m_pos], axis=1), np.concatenate([ids, m_ids], axis=1)
+            conf, kept = np.concatenate([conf, np.zeros_like(m_alive)], axis=1), np.concatenate(
+                [kept, m_alive], axis=1)
+            tent = np.concatenate([tent, m_alive], axis=1)
+            seen = np.concatenate([seen, m_seen], axis=1)
+            cov = np.concatenate([cov, np.zeros(m_pos.shape[:2] + (4, 4))], axis=1)
         M = pos.shape[1]
         t = Traffic(engine.T, B, N=M + 2)
         t.road_steps[:] = src.road_steps
@@ -463,6 +488,8 @@ class TrackBelief:
         t.acc[rows, sl] = acc
         full_conf, full_tent, full_ghost = (np.zeros((B, M + 2), bool) for _ in range(3))
         full_conf[rows, sl], full_tent[rows, sl] = conf, tent
+        self.remembered = np.zeros((B, M + 2), bool)
+        self.remembered[rows, sl] = kept
         full_ghost[rows, sl] = self._ghosts(t, rows, pos, users, seen[..., 1]) | twins(
             pos, users, seen[..., 1], float(self.params.merge), float(self.params.merge_far),
             float(self.params.merge_agree), seen[..., 0])
@@ -532,6 +559,11 @@ class TrackBelief:
         e = self.engine
         if float(self.params.track_spread) > 0:
             self._spread(f, rows, seed, K, stream)
+        if getattr(self.params, "pack", False):
+            # the engine assumes its live slots come first: each step trims the slots past the most any row holds
+            # (Traffic.trim) and spawns at the slot after a row's live count, so a road user read into a later slot
+            # (a tentative track after the described block, a remembered car) would leave after the first step
+            f.traffic.compact()
         if self.unseen is None:
             return
         gens = [np.random.default_rng(np.random.SeedSequence([int(seed), int(e.episode_seed[r]) % 2**63,
