@@ -271,10 +271,11 @@ def pytest_cmdline_main(config):
     controller ignores the channel's end) leaves at once, without the interpreter's teardown: that (numba's
     compiled libraries, torch, ~1,300 tests' objects) took ~3 s of wall after the last test, the controller waiting
     for both workers, with the cores otherwise idle (fresh-clone fast suite, -n 2). Only after a session that ended
-    normally: a worker that failed earlier exits as usual, so xdist sees and reports it."""
+    normally: a worker that failed earlier exits as usual, so xdist sees and reports it; and not under coverage.py,
+    whose data a process writes as it exits."""
     outcome = yield
     output = getattr(config, "workeroutput", None)
-    if output is not None and "exitstatus" in output and outcome.excinfo is None:
+    if output is not None and "exitstatus" in output and outcome.excinfo is None and "coverage" not in sys.modules:
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(int(outcome.get_result() or 0))
