@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from agents.detector_view import in_view
+
 __all__ = ["MEMORY_GATE", "MEMORY_SLOTS", "TrackMemory"]
 
 MEMORY_GATE = 4.0  # m: a track or detection this close to a remembered car's predicted place is that car's
@@ -65,8 +67,6 @@ class TrackMemory:
     def update(self, perception, rows: np.ndarray, ego: np.ndarray, now: np.ndarray) -> None:
         """The readings of ``rows`` at times ``now`` (s, (n,)), the ego poses ``ego`` (n, 3) ``[x, y, heading]``:
         tracks that vanished since the last reading remembered; remembered cars dropped by the rules above."""
-        from agents.track_prior import in_view
-
         rows = np.asarray(rows, dtype=int)
         if not len(rows):
             return

@@ -37,6 +37,7 @@ import copy
 import numpy as np
 from scipy.stats import norm
 
+from agents.detector_view import in_view
 from agents.track_memory import TrackMemory
 from av_gym.batched.left_turn import SPAWN_CLEAR
 from av_gym.estimation.turn_features import ACC_SCALE
@@ -65,35 +66,6 @@ def lane_kinds(T) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         else:
             kind.append(2), origin.append(-1), dest.append(node_index(t, "o"))
     return np.array(kind), np.array(origin), np.array(dest)
-
-
-def in_view(px: np.ndarray, py: np.ndarray, ego: np.ndarray, occluders: np.ndarray, present: np.ndarray,
-            max_range: float, half_fov: float, occlusion: bool) -> np.ndarray:
-    """Whether the places ``px``, ``py`` (m; (n, ...) or broadcastable to it) are within ``max_range`` (m) and the
-    field of view ``half_fov`` (rad each side) of the ego poses ``ego`` (n, 3) ``[x, y, heading]``, and (with
-    ``occlusion``) not behind a nearer occluder: ``occluders`` (n, M, 5) ``[x, y, heading, length, width]``,
-    ``present`` (n, M); a place is behind one when its bearing is within the half-width the box shows across the
-    line of sight and it is farther (the detector's view, its occlusion by the road users the car knows)."""
-    extra = (1,) * (max(np.ndim(px), np.ndim(py)) - 1)
-    col = lambda a: a.reshape((len(ego),) + extra)  # noqa: E731
-    dx, dy = px - col(ego[:, 0]), py - col(ego[:, 1])
-    r = np.hypot(dx, dy)
-    bearing = np.arctan2(dy, dx)
-    rel = (bearing - col(ego[:, 2]) + np.pi) % (2 * np.pi) - np.pi
-    seen = (r <= max_range) & (np.abs(rel) <= half_fov)
-    if occlusion and occluders.shape[1]:
-        ox, oy = occluders[..., 0] - ego[:, 0, None], occluders[..., 1] - ego[:, 1, None]
-        od = np.hypot(ox, oy)
-        ob = np.arctan2(oy, ox)
-        theta = occluders[..., 2] - ob
-        # the half-width the box shows across the line of sight, as an angle at its distance
-        half = 0.5 * (np.abs(occluders[..., 3] * np.sin(theta)) + np.abs(occluders[..., 4] * np.cos(theta)))
-        ang = np.arctan2(half, np.maximum(od, 1e-6))
-        for m in np.flatnonzero(present.any(axis=0)).tolist():
-            diff = (bearing - col(ob[:, m]) + np.pi) % (2 * np.pi) - np.pi
-            hidden = (np.abs(diff) <= col(ang[:, m])) & (r > col(od[:, m]))
-            seen = seen & ~(hidden & col(present[:, m]))
-    return seen
 
 
 class UnseenTraffic:
@@ -417,18 +389,7 @@ class TrackBelief:
     def _observed(self, engine, rows: np.ndarray, intent: np.ndarray) -> tuple:
         """The observed engine (ego in slot 0, then the tracks) and its confirmed / tentative / ghost slot masks."""
         src, B = engine.traffic, engine.B
-        pos, ids, conf, tent, seen, cov = self._tracks(rows)
-        kept = np.zeros(conf.shape, bool)
-        if self.memory is not None:
-            # the remembered cars after the tracks: road users as a tentative track is (no readings, not described)
-            now = engine.ticks[rows] / engine.config["simulation_frequency"]
-            m_pos, m_ids, m_alive, m_seen = self.memory.users(rows, now, self.perception.tracker.fused_at[rows])
-            pos, ids = np.concatenate([pos, m_pos], axis=1), np.concatenate([ids, m_ids], axis=1)
-            conf, kept = np.concatenate([conf, np.zeros_like(m_alive)], axis=1), np.concatenate(
-                [kept, m_alive], axis=1)
-            tent = np.concatenate([tent, m_alive], axis=1)
-            seen = np.concatenate([seen, m_seen], axis=1)
-            cov = np.concatenate([cov, np.zeros(m_pos.shape[:2] + (4, 4))], axis=1)
+        pos, ids, conf, tent, seen, cov, kept = self._with_memory(engine, rows, *self._tracks(rows))
         M = pos.shape[1]
         t = Traffic(engine.T, B, N=M + 2)
         t.road_steps[:] = src.road_steps
@@ -497,6 +458,21 @@ class TrackBelief:
         self.along[rows, sl] = along_heading(cov, h)
         obs = engine.observed(t, engine.time, engine.ticks, engine.episode_seed)
         return obs, full_conf, full_tent, full_ghost
+
+    def _with_memory(self, engine, rows: np.ndarray, pos, ids, conf, tent, seen, cov) -> tuple:
+        """The tracks' arrays (as :meth:`_tracks` gives them) with the remembered cars (``recall``) after the tracks,
+        as road users a tentative track is (no readings, not described), and the mask of those remembered slots."""
+        kept = np.zeros(conf.shape, bool)
+        if self.memory is None:
+            return pos, ids, conf, tent, seen, cov, kept
+        now = engine.ticks[rows] / engine.config["simulation_frequency"]
+        m_pos, m_ids, m_alive, m_seen = self.memory.users(rows, now, self.perception.tracker.fused_at[rows])
+        pos, ids = np.concatenate([pos, m_pos], axis=1), np.concatenate([ids, m_ids], axis=1)
+        conf, kept = np.concatenate([conf, np.zeros_like(m_alive)], axis=1), np.concatenate([kept, m_alive], axis=1)
+        tent = np.concatenate([tent, m_alive], axis=1)
+        seen = np.concatenate([seen, m_seen], axis=1)
+        cov = np.concatenate([cov, np.zeros(m_pos.shape[:2] + (4, 4))], axis=1)
+        return pos, ids, conf, tent, seen, cov, kept
 
     def _record(self, engine, rows: np.ndarray) -> None:
         """Where the tracker fused a detector frame now in ``rows``: each track it updated gets its detection's

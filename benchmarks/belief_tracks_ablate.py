@@ -386,6 +386,20 @@ def why_cause(h: list) -> dict:
     return out
 
 
+def collision_record(engine, r: int, seed: int, went: bool, known: dict, history, t_at: float) -> dict:
+    """The collision of row ``r`` (episode ``seed``): its class (hit after a GO, or waiting), each car hit as the
+    planner had it (``known``: at the last GO started, or at the last decision) and, with ``history`` (``--why``),
+    why each car hit that was not a confirmed road user was missing at ``t_at`` (s)."""
+    tr = engine.traffic
+    hit = [int(tr.vid[r, j]) for j in np.flatnonzero(tr.alive[r] & tr.crashed[r] & ~tr.ego[r])]
+    record = {"seed": seed, "class": "after GO" if went else "waiting",
+              "hit": {v: known.get(v, "not on the map") for v in hit}}
+    if history is not None:
+        record["why"] = {v: history.why(r, v, t_at) for v in hit if known.get(v) != "confirmed"}
+        record["t_decision"] = round(t_at, 2)
+    return record
+
+
 def play(args, parts: frozenset) -> dict:
     """The episodes of ``args`` with ``parts`` the simulator's (:func:`with_truth`): the JSON object."""
     from agents.belief import BeliefPlanner
@@ -452,15 +466,9 @@ def play(args, parts: frozenset) -> dict:
             m = infos[r]["episode_metrics"]
             episodes.append((int(infos[r]["seed"]), bool(m["collision"]), bool(m["success"])))
             if m["collision"]:
-                tr = engine.traffic
-                hit = [int(tr.vid[r, j]) for j in np.flatnonzero(tr.alive[r] & tr.crashed[r] & ~tr.ego[r])]
                 known = at_go[r] if went[r] else at_last[r]
-                collisions.append({"seed": int(infos[r]["seed"]), "class": "after GO" if went[r] else "waiting",
-                                   "hit": {v: known.get(v, "not on the map") for v in hit}})
-                if history is not None:
-                    collisions[-1]["why"] = {v: history.why(int(r), v, float(t_at[r])) for v in hit
-                                             if known.get(v) != "confirmed"}
-                    collisions[-1]["t_decision"] = round(float(t_at[r]), 2)
+                collisions.append(collision_record(engine, int(r), int(infos[r]["seed"]), bool(went[r]), known,
+                                                   history, float(t_at[r])))
     n = len(episodes)
     return {"point": point, "truth": ["planner on truth"] if args.on_truth else sorted(parts), "match_m": args.match,
             "episodes": n, "seed": args.seed, "collision": sum(c for _, c, _ in episodes) / n,
@@ -498,8 +506,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seed", type=int, default=1_931_000)
     ap.add_argument("--episodes", type=int, default=500)
-    ap.add_argument("--truth", default="none", help=f"comma list of {', '.join(PARTS + BESIDES + HALVES)}, all or none; "
-                                                           "-part takes one out")
+    ap.add_argument("--truth", default="none",
+                    help=f"comma list of {', '.join(PARTS + BESIDES + HALVES)}, all or none; -part takes one out")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
     ap.add_argument("--on-truth", action="store_true", help="the planner on the simulator's vehicles (sensors "
                     "turn_truth; --truth none): the reference, on the same seeds")
