@@ -71,6 +71,18 @@ def test_a_dropped_track_is_remembered_and_predicted_on_out_of_view():
     assert not alive.any()  # more than recall s since its track died
 
 
+def test_reset_forgets_the_remembered_cars_and_the_last_reading():
+    """A new episode (``reset``): a car remembered out of view is forgotten, and a track of the last reading that the
+    new episode's first reading lacks is not taken for a dropped one."""
+    mem, trk = _memory(recall=3.0), _Tracker()
+    _reading(mem, trk, 0.0, [(7, 80.0, 0.0, -10.0, 0.0), (8, 90.0, 0.0, -10.0, 0.0)])
+    _, _, alive, _ = _reading(mem, trk, 0.1, [(8, 89.0, 0.0, -10.0, 0.0)])
+    assert alive[0].sum() == 1  # 7 remembered (80 m out: beyond the 50 m range)
+    mem.reset([0])
+    _, _, alive, _ = _reading(mem, trk, 0.0, [])  # the new episode's clock starts again
+    assert not alive.any()
+
+
 def test_a_look_that_sees_nothing_forgets_it_and_the_frame_it_died_in_does_not():
     """A car 20 m out, in plain view: its track vanished in this frame (the miss that deleted it) and it is kept;
     the next frame, in view again with no detection there, forgets it."""
