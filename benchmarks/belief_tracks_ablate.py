@@ -471,12 +471,20 @@ def play(args, parts: frozenset) -> dict:
                                                    history, float(t_at[r])))
     n = len(episodes)
     return {"point": point, "truth": ["planner on truth"] if args.on_truth else sorted(parts), "match_m": args.match,
-            "episodes": n, "seed": args.seed, "collision": sum(c for _, c, _ in episodes) / n,
+            "episodes": n, "seed": args.seed, "seeds": seeds, "collision": sum(c for _, c, _ in episodes) / n,
             "success": sum(s for _, _, s in episodes) / n,
             "collided": sorted(s for s, c, _ in episodes if c),
             "not_arrived": sorted(s for s, _, a in episodes if not a), "collisions": collisions,
             "wall_s": round(time.time() - t0, 1), "cpu_s": round(time.process_time() - c0, 1),
             "load": os.getloadavg()[0]}
+
+
+def played(run: dict) -> set[int]:
+    """The seeds a :func:`play` result ran: its ``seeds`` (``--seeds`` may scatter them), or, in a file written
+    before that field, ``seed`` .. ``seed + episodes - 1``."""
+    if "seeds" in run:
+        return set(run["seeds"])
+    return set(range(run["seed"], run["seed"] + run["episodes"]))
 
 
 def table(paths: list[str]) -> str:
@@ -489,8 +497,7 @@ def table(paths: list[str]) -> str:
              "|---|---|---|---|---|---|---|"]
     for run in runs:
         c, c0 = set(run["collided"]), set(base["collided"])
-        a = set(range(run["seed"], run["seed"] + run["episodes"])) - set(run["not_arrived"])
-        a0 = set(range(base["seed"], base["seed"] + base["episodes"])) - set(base["not_arrived"])
+        a, a0 = played(run) - set(run["not_arrived"]), played(base) - set(base["not_arrived"])
         cls = [x["class"] for x in run["collisions"]]
         hit = [v for x in run["collisions"] for v in x["hit"].values()]
         kinds = "/".join(str(hit.count(k)) for k in ("confirmed", "tentative", "left out", "unseen"))

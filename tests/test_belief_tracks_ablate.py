@@ -231,3 +231,21 @@ def test_why_names_the_cause_a_car_was_missing(ablate):
     assert got["cause"] == "not in view now (occluded), confirmed deleted" and got["since_in_view_s"] == 0.3
     assert why([_frame(0.0, 2, True, 2, "left out")])["cause"] == "held by the tracker, not a road user of the planner"
     assert why([_frame(0.0, 2, False, 0)])["cause"] == "in view, never tracked"
+
+
+def test_the_table_pairs_scattered_seeds(ablate, tmp_path):
+    """``--table`` on runs of scattered ``--seeds`` (a replay): the arrived episodes come from the seeds each run
+    played, not ``seed .. seed + episodes``; a file written before the ``seeds`` field falls back to that range."""
+    import json
+
+    def run(path, played, not_arrived, **extra):
+        doc = {"truth": [], "collision": 0.0, "success": 0.5, "collided": [], "not_arrived": not_arrived,
+               "collisions": [], "seed": min(played), "episodes": len(played), **extra}
+        (tmp_path / path).write_text(json.dumps(doc))
+        return str(tmp_path / path)
+
+    base = run("base.json", [1_949_010, 1_949_500], [1_949_500], seeds=[1_949_010, 1_949_500])
+    other = run("other.json", [1_949_010, 1_949_500], [1_949_010], seeds=[1_949_010, 1_949_500])
+    old = run("old.json", [1_949_010, 1_949_011], [1_949_010])
+    rows = ablate.table([base, other, old]).splitlines()[2:]
+    assert [r.split("|")[5].strip() for r in rows] == ["0 / 0", "1 / 1", "1 / 1"]
