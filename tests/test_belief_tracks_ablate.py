@@ -249,3 +249,27 @@ def test_the_table_pairs_scattered_seeds(ablate, tmp_path):
     old = run("old.json", [1_949_010, 1_949_011], [1_949_010])
     rows = ablate.table([base, other, old]).splitlines()[2:]
     assert [r.split("|")[5].strip() for r in rows] == ["0 / 0", "1 / 1", "1 / 1"]
+
+
+def test_the_sensor_history_records_the_detectors_view_per_car(ablate, monkeypatch):
+    """``--why``'s recorder (SensorHistory.frame) at a fused frame: each simulator car gets the detector's own view
+    of it (0 out of range or field of view, 1 occluded, 2 in view) and range as the detector's ``_views`` gives them
+    (patched: a known hidden car), under its vid."""
+    from av_gym.batched.perception import others_state
+
+    venv, planner, obs, rows = _batch([420_001], 20, BeliefLookaheadParams(samples=4))
+    e = venv.engine
+    planner.read(e, rows, obs["intent"][rows])
+    venv.perception.tracker.fused_at[rows] = e.ticks[rows] / e.config["simulation_frequency"]  # a frame fused now
+    _, vids, off = others_state(e, rows)
+    n = int(off[-1])
+    assert n >= 3
+    code = np.arange(n) % 3  # out of view, occluded (in range and field, hidden), in view
+    monkeypatch.setattr(venv.perception.detector, "_views",
+                        lambda ego, others, o: (10.0 + np.arange(n), code > 0, code == 1))
+    history = ablate.SensorHistory(1, ablate.MATCH_M)
+    history.frame(planner, e, rows)
+    got = {v: history.log[int(rows[0])][int(v)] for v in vids}
+    assert [len(h) for h in got.values()] == [1] * n
+    assert [h[0][1] for h in got.values()] == code.tolist()
+    assert [h[0][6] for h in got.values()] == (10.0 + np.arange(n)).tolist()
