@@ -311,6 +311,7 @@ class SensorHistory:
 
     def __init__(self, n_rows: int, radius: float) -> None:
         self.log: list[dict[int, list]] = [{} for _ in range(n_rows)]
+        self.tracks: list[dict[float, frozenset]] = [{} for _ in range(n_rows)]  # per frame (s): the tracker's ids
         self.radius = radius
 
     def frame(self, planner, engine, rows: np.ndarray) -> None:
@@ -332,6 +333,7 @@ class SensorHistory:
             live = np.arange(tracks.shape[1]) < p.tracker.n[r]
             det = p.last_detections[r]
             det = det[det[:, 0] > 0]
+            self.tracks[r][round(float(now_of(engine, r)), 2)] = frozenset(p.tracker.id[r, : len(live)][live].tolist())
             for i in range(off[b], off[b + 1]):
                 v = int(vids[i])
                 x, y = others[i, 0], others[i, 1]
@@ -342,7 +344,7 @@ class SensorHistory:
                 kind = (2 if shown[b, k] else 1) if held else 0
                 lane = engine.T.closest(np.array([x]), np.array([y]), np.array([others[i, 4]]))[0]
                 self.log[r].setdefault(v, []).append([
-                    round(float(engine.ticks[r] / engine.config["simulation_frequency"]), 2),
+                    round(float(now_of(engine, r)), 2),
                     0 if not in_view[i] else 1 if hidden[i] else 2, seen, kind,
                     int(p.tracker.id[r, k]) if held else -1, st[r].get(v, "?"), round(float(rng[i]), 1),
                     int(tb.lane_kind[lane])])
@@ -351,15 +353,22 @@ class SensorHistory:
         """The cause the car ``vid`` of row ``r`` was not a confirmed road user of the planner at ``t_go`` (s, the
         last GO started or the last decision): its frames up to then, summarised (:func:`why_cause`)."""
         h = [e for e in self.log[r].get(vid, []) if e[0] <= t_go + 1e-9]
-        return why_cause(h)
+        return why_cause(h, self.tracks[r].get(h[-1][0], frozenset()) if h else frozenset())
 
 
-def why_cause(h: list) -> dict:
+def now_of(engine, r: int) -> float:
+    """Row ``r``'s clock (s)."""
+    return engine.ticks[r] / engine.config["simulation_frequency"]
+
+
+def why_cause(h: list, track_ids: frozenset = frozenset()) -> dict:
     """One cause from a car's frames ``h`` (SensorHistory entries up to the decision): ``never in view`` (out of
     range or field of view at every frame; ``occluded`` where it was at some), else at the decision's frame ``not in
-    view now`` with the track it last had (``confirmed deleted`` / ``tentative died`` / ``never tracked``) or, in view,
-    ``tentative died`` (its last tracker track tentative and gone: deleted on a miss, its next detection a new
-    track), ``confirmed deleted``, ``held, not a road user`` (the tracker holds it, the planner has it as nobody:
+    view now`` with the track it last had (``confirmed deleted`` / ``confirmed drifted off`` / ``tentative died`` /
+    ``never tracked``) or, in view, ``tentative died`` (its last tracker track tentative and gone: deleted on a miss,
+    its next detection a new track), ``confirmed deleted`` (its last confirmed track's id not among ``track_ids``, the
+    tracker's at the last frame of ``h``), ``confirmed drifted off`` (that track still held, more than the match
+    radius off the car), ``held, not a road user`` (the tracker holds it, the planner has it as nobody:
     ghost, twin, off by more than the match radius), ``never tracked``; with the frames since it was last in view,
     detected, held by a track, and its range and lane kind at the decision."""
     if not h:
@@ -373,7 +382,8 @@ def why_cause(h: list) -> dict:
            "tracked_frames": len(tracked), "confirmed_frames": len(conf),
            "since_in_view_s": round(last[0] - ever_view[-1][0], 1) if ever_view else None,
            "since_tracked_s": round(last[0] - tracked[-1][0], 1) if tracked else None}
-    had = "confirmed deleted" if conf else "tentative died" if tracked else "never tracked"
+    had = ("confirmed drifted off" if conf[-1][4] in track_ids else "confirmed deleted") if conf else \
+        "tentative died" if tracked else "never tracked"
     if not ever_view:
         cause = "never in view: occluded" if any(e[1] == 1 for e in h) else "never in view: out of range/fov"
     elif last[1] != 2:

@@ -227,8 +227,16 @@ def test_why_names_the_cause_a_car_was_missing(ablate):
     assert got["detected_frames"] == 1 and got["in_view_frames"] == 2
     coasted = [_frame(0.0, 2, True, 2, "confirmed")] + [_frame(0.1 * k, 1, False, 2, "confirmed") for k in (1, 2)] \
         + [_frame(0.3, 1)]
-    got = why(coasted)
+    got = why(coasted)  # its track (id 5) no longer among the tracker's: deleted
     assert got["cause"] == "not in view now (occluded), confirmed deleted" and got["since_in_view_s"] == 0.3
+    assert why(coasted, frozenset({4, 6}))["cause"] == "not in view now (occluded), confirmed deleted"
+    # the tracker still holds track 5, more than the match radius off the car
+    assert why(coasted, frozenset({5}))["cause"] == "not in view now (occluded), confirmed drifted off"
+    history = ablate.SensorHistory(1, ablate.MATCH_M)  # why() hands why_cause the ids of the decision's frame
+    history.log[0][9] = coasted
+    history.tracks[0].update({0.2: frozenset(), 0.3: frozenset({5})})
+    assert history.why(0, 9, 0.3)["cause"].endswith("confirmed drifted off")
+    assert history.why(0, 9, 0.2)["cause"].endswith("confirmed deleted")
     assert why([_frame(0.0, 2, True, 2, "left out")])["cause"] == "held by the tracker, not a road user of the planner"
     assert why([_frame(0.0, 2, False, 0)])["cause"] == "in view, never tracked"
 
@@ -273,3 +281,6 @@ def test_the_sensor_history_records_the_detectors_view_per_car(ablate, monkeypat
     assert [len(h) for h in got.values()] == [1] * n
     assert [h[0][1] for h in got.values()] == code.tolist()
     assert [h[0][6] for h in got.values()] == (10.0 + np.arange(n)).tolist()
+    trk = venv.perception.tracker  # and the tracker's track ids at that frame
+    held = trk.id[int(rows[0]), : int(trk.n[int(rows[0])])].tolist()
+    assert list(history.tracks[int(rows[0])].values()) == [frozenset(held)]
