@@ -96,6 +96,19 @@ def write_text_new(path: str | Path, text: str, field: str = "") -> Path:
     return Path(path)
 
 
+def write_new_or_exit(path: str | Path, text: str, field: str = "") -> Path:
+    """:func:`write_text_new` as a script's last step: refused (a file there) or failed, one ``error:`` line on
+    stderr and exit status 2 (the scripts' ``fail``). A script prints its result before calling it where the run
+    is costly, so that a refused write loses nothing."""
+    import sys
+
+    try:
+        return write_text_new(path, text, field)
+    except ConfigError as exc:
+        print(f"error: {' '.join(str(exc).split())}", file=sys.stderr)
+        sys.exit(2)
+
+
 def _remove(tmp: Path) -> None:
     with contextlib.suppress(OSError):
         tmp.unlink()

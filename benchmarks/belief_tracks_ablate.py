@@ -556,13 +556,9 @@ def main() -> None:
     text = json.dumps(result)
     print(text)  # first: a refused --out below loses no run
     if args.out:  # linked into place: a file that appeared at --out since the check above is kept, not replaced
-        from av_gym.atomic import write_text_new
-        from av_gym.errors import ConfigError
+        from av_gym.atomic import write_new_or_exit
 
-        try:
-            write_text_new(args.out, text + "\n", "--out")
-        except ConfigError as exc:
-            fail(str(exc))
+        write_new_or_exit(args.out, text + "\n", "--out")
 
 
 if __name__ == "__main__":

@@ -106,13 +106,9 @@ def main() -> None:
         fail(f"--out {args.out} exists: choose another file (results are never overwritten)")
     result = compare(outcomes(args.a), outcomes(args.b), (args.a, args.b))
     if args.out:  # linked into place: a file that appeared at --out since the check above is kept, not replaced
-        from av_gym.atomic import write_text_new
-        from av_gym.errors import ConfigError
+        from av_gym.atomic import write_new_or_exit
 
-        try:
-            write_text_new(args.out, json.dumps(result) + "\n", "--out")
-        except ConfigError as exc:
-            fail(str(exc))
+        write_new_or_exit(args.out, json.dumps(result) + "\n", "--out")
     print(printed(result))
 
 

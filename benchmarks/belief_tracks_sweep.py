@@ -107,19 +107,15 @@ def main() -> None:
     rows = play_batched({"name": "left_turn"}, compose_group("sensors", "turn_perceived"), None,
                         BeliefLookahead(None, params), list(seeds), args.n_envs, "belief_tracks", progress=False)
     n = len(rows)
-    if args.rows:  # linked into place: a file that appeared at --rows since the check above is kept, not replaced
-        from av_gym.atomic import csv_text, write_text_new
-        from av_gym.errors import ConfigError
-
-        try:
-            write_text_new(args.rows, csv_text(rows), "--rows")
-        except ConfigError as exc:
-            fail(str(exc))
     print(json.dumps({"point": point, "episodes": n, "seed": seeds[0],
                       "collision": sum(r["collision"] for r in rows) / n, "success": sum(r["success"] for r in rows) / n,
                       "collided": [r["seed"] for r in rows if r["collision"]],
                       "not_arrived": [r["seed"] for r in rows if not r["success"]], "wall_s": round(time.time() - t0, 1),
                       "cpu_s": round(time.process_time() - c0, 1), "load": os.getloadavg()[0]}))
+    if args.rows:  # after the summary (a refused --rows loses no run); linked in: a file there since the check is kept
+        from av_gym.atomic import csv_text, write_new_or_exit
+
+        write_new_or_exit(args.rows, csv_text(rows), "--rows")
 
 
 if __name__ == "__main__":

@@ -57,3 +57,48 @@ def test_label_noise_keeps_an_out_or_states_file_that_appeared_after_its_check(t
             ln._write(args, [{"K": 1, "agreement": 1.0}], states)
         assert taken.read_text() == "another run's result\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.file", "states.file"]
+
+
+def test_label_noise_writes_neither_file_when_one_is_taken(tmp_path):
+    """--out free, --states taken since _args' check: neither is written (not the table without its states)."""
+    import argparse
+
+    from tests.test_label_noise import ln
+
+    taken = tmp_path / "states.npz"
+    taken.write_text("another run's states\n")
+    args = argparse.Namespace(out=str(tmp_path / "table.csv"), states=str(taken))
+    states = {"student": np.zeros(1), "unseen": np.zeros(1), "labels": {}, "collided": {}}
+    with pytest.raises(FileExists, match="--states "):
+        ln._write(args, [{"K": 1, "agreement": 1.0}], states)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["states.npz"]
+
+
+def test_the_sweep_prints_its_summary_before_a_refused_rows(tmp_path, monkeypatch, capsys):
+    """benchmarks/belief_tracks_sweep.py: a --rows file that appeared while the episodes ran is kept and the write
+    refused in one line, after the run's summary was printed (the run is not lost)."""
+    import json
+    import runpy
+    import sys
+
+    import eval.batched
+    from tests.documented_commands import ROOT
+
+    rows = tmp_path / "rows.csv"
+    seeds = [1_949_010, 1_949_500]
+
+    def played(*args, **kwargs):  # the episodes (stand-in); another run writes --rows meanwhile
+        rows.write_text("another run's rows\n")
+        return [{"seed": s, "collision": s == seeds[0], "success": s != seeds[0]} for s in args[4]]
+
+    monkeypatch.setattr(eval.batched, "play_batched", played)
+    script = ROOT / "benchmarks" / "belief_tracks_sweep.py"
+    monkeypatch.setattr(sys, "argv", [str(script), "--seeds", *map(str, seeds), "--rows", str(rows)])
+    with pytest.raises(SystemExit) as end:
+        runpy.run_path(str(script), run_name="__main__")
+    out = capsys.readouterr()
+    assert end.value.code == 2 and len(out.err.strip().splitlines()) == 1 and "--rows" in out.err
+    summary = json.loads(out.out)
+    assert summary["collided"] == [seeds[0]] and summary["episodes"] == 2
+    assert rows.read_text() == "another run's rows\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rows.csv"]
