@@ -252,9 +252,14 @@ def _args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def _write(args: argparse.Namespace, rows: list[dict], states: dict) -> None:
-    from av_gym.atomic import csv_text, new_path, write_text_new
+    from av_gym.atomic import FileExists, csv_text, new_path, write_text_new
 
-    # linked into place (av_gym.atomic.new_path): a file that appeared since _args' check is kept, not replaced
+    # both still free before either is written (one that appeared since _args' check would leave half a pair);
+    # each linked into place (av_gym.atomic.new_path): a file that appears meanwhile is kept, not replaced
+    for name in ("out", "states"):
+        if getattr(args, name) and Path(getattr(args, name)).exists():
+            raise FileExists(f"--{name} {getattr(args, name)} exists: choose another file (results are never "
+                             "overwritten; nothing was written)")
     if args.out:
         write_text_new(args.out, csv_text(rows), "--out")
     if args.states:
