@@ -1,7 +1,7 @@
 """The tracing tools' main loops (benchmarks/belief_tracks_diagnose.py, _confirm.py, _lost.py) hand each what-if
 (``_snapshot``, ``blame``, ``cause``) the choice the row held BEFORE the decision, as the decision's own p was judged
 (belief_tracks_truth.decision_p: under ``track_margin_scope`` start a held GO on contact alone). The helpers are
-tested in tests/test_belief_tracks_tracing.py; this runs each main loop on two validation episodes.
+tested in tests/test_belief_tracks_tracing.py; this runs each main loop on one validation episode.
 
 The planner's ``decide`` is scripted here to flip every due row's choice (its own ``live`` says which rows are due),
 so the choice after a decision always differs from the one held before it: a loop that handed a what-if the choice
