@@ -42,10 +42,8 @@ def atomic_path(path: str | Path, field: str = "") -> Iterator[Path]:
     path = Path(path)
     tmp = temporary_name(path)
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        yield tmp
-        with open(tmp, "rb") as f:
-            os.fsync(f.fileno())
+        yield _beside(path, tmp)
+        _flush(tmp)
         os.replace(tmp, path)
     except OSError as exc:
         _remove(tmp)
@@ -71,10 +69,8 @@ def new_path(path: str | Path, field: str = "") -> Iterator[Path]:
     path = Path(path)
     tmp = temporary_name(path)
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        yield tmp
-        with open(tmp, "rb") as f:
-            os.fsync(f.fileno())
+        yield _beside(path, tmp)
+        _flush(tmp)
         try:
             os.link(tmp, path)
         except FileExistsError:
@@ -107,6 +103,18 @@ def write_new_or_exit(path: str | Path, text: str, field: str = "") -> Path:
     except ConfigError as exc:
         print(f"error: {' '.join(str(exc).split())}", file=sys.stderr)
         sys.exit(2)
+
+
+def _beside(path: Path, tmp: Path) -> Path:
+    """``tmp``, its folder (``path``'s) made first."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return tmp
+
+
+def _flush(tmp: Path) -> None:
+    """The written temporary file's bytes on disk before it takes the result's name."""
+    with open(tmp, "rb") as f:
+        os.fsync(f.fileno())
 
 
 def _remove(tmp: Path) -> None:
