@@ -318,8 +318,9 @@ class SensorHistory:
         from av_gym.batched.perception import others_state
 
         p, tb = planner.tracks.perception, planner.tracks
-        now = engine.ticks[rows] / engine.config["simulation_frequency"]
-        rows = rows[np.abs(p.tracker.fused_at[rows] - now) < 1e-9]
+        now = now_of(engine, rows)
+        fused = np.abs(p.tracker.fused_at[rows] - now) < 1e-9
+        rows, now = rows[fused], now[fused]
         if not len(rows):
             return
         t = engine.traffic
@@ -333,7 +334,8 @@ class SensorHistory:
             live = np.arange(tracks.shape[1]) < p.tracker.n[r]
             det = p.last_detections[r]
             det = det[det[:, 0] > 0]
-            self.tracks[r][round(float(now_of(engine, r)), 2)] = frozenset(p.tracker.id[r, : len(live)][live].tolist())
+            t_frame = round(float(now[b]), 2)
+            self.tracks[r][t_frame] = frozenset(p.tracker.id[r, : len(live)][live].tolist())
             for i in range(off[b], off[b + 1]):
                 v = int(vids[i])
                 x, y = others[i, 0], others[i, 1]
@@ -344,8 +346,7 @@ class SensorHistory:
                 kind = (2 if shown[b, k] else 1) if held else 0
                 lane = engine.T.closest(np.array([x]), np.array([y]), np.array([others[i, 4]]))[0]
                 self.log[r].setdefault(v, []).append([
-                    round(float(now_of(engine, r)), 2),
-                    0 if not in_view[i] else 1 if hidden[i] else 2, seen, kind,
+                    t_frame, 0 if not in_view[i] else 1 if hidden[i] else 2, seen, kind,
                     int(p.tracker.id[r, k]) if held else -1, st[r].get(v, "?"), round(float(rng[i]), 1),
                     int(tb.lane_kind[lane])])
 
@@ -356,9 +357,9 @@ class SensorHistory:
         return why_cause(h, self.tracks[r].get(h[-1][0], frozenset()) if h else frozenset())
 
 
-def now_of(engine, r: int) -> float:
-    """Row ``r``'s clock (s)."""
-    return engine.ticks[r] / engine.config["simulation_frequency"]
+def now_of(engine, rows):
+    """The clock (s) of row ``rows`` (an int) or of each of ``rows`` (an array)."""
+    return engine.ticks[rows] / engine.config["simulation_frequency"]
 
 
 def why_cause(h: list, track_ids: frozenset = frozenset()) -> dict:
@@ -466,10 +467,10 @@ def play(args, parts: frozenset) -> dict:
             for r in due:
                 at_last[r] = st.get(int(r), {})
                 if not went[r]:
-                    t_at[r] = engine.ticks[r] / engine.config["simulation_frequency"]
+                    t_at[r] = now_of(engine, r)
                 if choice[r] == GO and before[r] != GO:
                     at_go[r], went[r] = at_last[r], True
-                    t_at[r] = engine.ticks[r] / engine.config["simulation_frequency"]
+                    t_at[r] = now_of(engine, r)
         k[rows] += 1
         obs, _, done, infos = venv.step(meta_actions(choice, obs["turn"]))
         for r in np.flatnonzero(done):
