@@ -5,7 +5,8 @@ costs": how belief_tracks' parameters were chosen).
 
 Plays ``--episodes`` validation seeds from ``--seed`` (default 1,000,000; or the ``--seeds`` listed) with :class:`agents.belief.BeliefLookahead`
 on ``sensors=turn_perceived`` (``--set key=value``: BeliefLookaheadParams fields, e.g. ``unseen=2 samples=32``),
-``--n-envs`` at a time, and prints one JSON line: the point, collision and success rates, the seeds that collided
+``--n-envs`` at a time, and prints one JSON line: the point, the seeds played (``seeds``: a ``--seeds`` list may
+scatter them, so ``seed`` .. ``seed + episodes`` is not the run), collision and success rates, the seeds that collided
 and those that did not arrive (for paired comparisons of points on the same seeds), wall and CPU seconds and the
 load; ``--rows PATH`` writes every episode's row besides (its seed and EpisodeMetrics: outcome, length, ...; CSV,
 never over an existing file), to see episode by episode what changed between two points."""
@@ -107,7 +108,7 @@ def main() -> None:
     rows = play_batched({"name": "left_turn"}, compose_group("sensors", "turn_perceived"), None,
                         BeliefLookahead(None, params), list(seeds), args.n_envs, "belief_tracks", progress=False)
     n = len(rows)
-    print(json.dumps({"point": point, "episodes": n, "seed": seeds[0],
+    print(json.dumps({"point": point, "episodes": n, "seed": seeds[0], "seeds": list(seeds),
                       "collision": sum(r["collision"] for r in rows) / n, "success": sum(r["success"] for r in rows) / n,
                       "collided": [r["seed"] for r in rows if r["collision"]],
                       "not_arrived": [r["seed"] for r in rows if not r["success"]], "wall_s": round(time.time() - t0, 1),
