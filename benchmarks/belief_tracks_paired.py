@@ -105,11 +105,11 @@ def main() -> None:
     if args.out and Path(args.out).exists():
         fail(f"--out {args.out} exists: choose another file (results are never overwritten)")
     result = compare(outcomes(args.a), outcomes(args.b), (args.a, args.b))
+    print(printed(result), flush=True)  # first: a print cut short (Ctrl-C, a closed pipe) leaves no unseen --out
     if args.out:  # linked into place: a file that appeared at --out since the check above is kept, not replaced
         from av_gym.atomic import write_new_or_exit
 
         write_new_or_exit(args.out, json.dumps(result) + "\n", "--out")
-    print(printed(result))
 
 
 if __name__ == "__main__":

@@ -111,7 +111,8 @@ def test_a_seed_twice_in_one_file_is_refused(tmp_path, monkeypatch, capsys):
 def test_an_out_file_that_appears_after_the_check_is_kept(clear_case, tmp_path, monkeypatch, capsys):
     """Another run writes --out after the script checked it and before the script's write (here: the moment the
     temporary file is named): that file is kept whole, the script refuses in one line, and leaves no temporary
-    file. (An os.replace into place overwrote it.)"""
+    file. (An os.replace into place overwrote it.) The result was printed first, whole: the line a free --out
+    prints, never part of one."""
     import av_gym.atomic
 
     a, b = clear_case
@@ -127,7 +128,29 @@ def test_an_out_file_that_appears_after_the_check_is_kept(clear_case, tmp_path, 
     with pytest.raises(SystemExit) as end:
         _run(monkeypatch, a, b, "--out", str(out))
     err = capsys.readouterr()
-    assert end.value.code == 2 and err.out == "" and len(err.err.strip().splitlines()) == 1, err
+    assert end.value.code == 2 and len(err.err.strip().splitlines()) == 1, err
     assert "--out" in err.err and "exists" in err.err
     assert out.read_text() == "another run's result\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.csv", "b.csv", "pair.json"]
+    monkeypatch.setattr(av_gym.atomic, "temporary_name", named)
+    _run(monkeypatch, a, b, "--out", str(tmp_path / "free.json"))
+    assert err.out == capsys.readouterr().out and json.loads(err.out)["episodes"] == 200
+
+
+def test_a_print_cut_short_leaves_no_out_file(clear_case, tmp_path, monkeypatch):
+    """The table is printed, and flushed, before --out is written: a print that fails (a closed pipe; a Ctrl-C there
+    the same) leaves no file the user never saw the numbers of. (Written first, pair.json stayed; printed without
+    the flush, the closed pipe showed only at exit, after the write.)"""
+
+    class Closed:  # buffered, as a pipe's stdout is: the failure comes at the flush
+        def write(self, text):
+            return len(text)
+
+        def flush(self):
+            raise BrokenPipeError(32, "Broken pipe")
+
+    a, b = clear_case
+    monkeypatch.setattr(sys, "stdout", Closed())
+    with pytest.raises(BrokenPipeError):
+        _run(monkeypatch, a, b, "--out", str(tmp_path / "pair.json"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.csv", "b.csv"]
