@@ -59,6 +59,22 @@ class FileExists(ConfigError):
     """A new file's path is taken (a result is never overwritten); the file there is intact."""
 
 
+def taken(path: str | Path, field: str = "") -> FileExists:
+    """The refusal of a new file whose ``path`` is taken: one line naming ``field`` (the flag that gave it)."""
+    return FileExists(f"{field + ' ' if field else ''}{path} exists: choose another file (results are never "
+                      "overwritten)")
+
+
+def new_paths(*paths: tuple[str | Path | None, str]) -> None:
+    """Raise :func:`taken` for the first of ``paths`` (``(path, field)`` pairs; a None or empty path is not asked
+    for) that exists, before any is written: a caller writing several new files checks them all first, so one taken
+    since its earlier check leaves none written, not half a set. Each is still written by :func:`new_path` (a file
+    that appears after this check is kept)."""
+    for path, field in paths:
+        if path and Path(path).exists():
+            raise taken(path, field)
+
+
 @contextlib.contextmanager
 def new_path(path: str | Path, field: str = "") -> Iterator[Path]:
     """:func:`atomic_path` for a file that must not exist: the temporary file, flushed to disk, is hard-linked to
@@ -74,8 +90,7 @@ def new_path(path: str | Path, field: str = "") -> Iterator[Path]:
         try:
             os.link(tmp, path)
         except FileExistsError:
-            raise FileExists(f"{field + ' ' if field else ''}{path} exists: choose another file (results are never "
-                             "overwritten)") from None
+            raise taken(path, field) from None
     except OSError as exc:
         reason = os.strerror(exc.errno) if exc.errno else str(exc)
         named = f"{field}: " if field else ""

@@ -245,21 +245,21 @@ def _args(argv: list[str] | None) -> argparse.Namespace:
         ap.error(f"--repeats must be >= 2 (agreement is between replicates), got {args.repeats}")
     if min(args.samples) < 1 or args.samples[0] != min(args.samples):
         ap.error(f"--samples must be >= 1 with the labels' K first and smallest, got {args.samples}")
-    for name in ("out", "states"):
-        if getattr(args, name) and Path(getattr(args, name)).exists():
-            ap.error(f"--{name} {getattr(args, name)} exists: choose another file (results are never overwritten)")
+    from av_gym.atomic import FileExists, new_paths
+
+    try:  # before the episodes (minutes); _write asks again before writing either
+        new_paths((args.out, "--out"), (args.states, "--states"))
+    except FileExists as exc:
+        ap.error(str(exc))
     return args
 
 
 def _write(args: argparse.Namespace, rows: list[dict], states: dict) -> None:
-    from av_gym.atomic import FileExists, csv_text, new_path, write_text_new
+    from av_gym.atomic import csv_text, new_path, new_paths, write_text_new
 
     # both still free before either is written (one that appeared since _args' check would leave half a pair);
     # each linked into place (av_gym.atomic.new_path): a file that appears meanwhile is kept, not replaced
-    for name in ("out", "states"):
-        if getattr(args, name) and Path(getattr(args, name)).exists():
-            raise FileExists(f"--{name} {getattr(args, name)} exists: choose another file (results are never "
-                             "overwritten; nothing was written)")
+    new_paths((args.out, "--out"), (args.states, "--states"))
     if args.out:
         write_text_new(args.out, csv_text(rows), "--out")
     if args.states:

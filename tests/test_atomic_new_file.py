@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from av_gym.atomic import FileExists, WriteFailed, new_path, write_text_new
+from av_gym.atomic import FileExists, WriteFailed, new_path, new_paths, write_text_new
 
 
 def test_a_new_file_is_written_whole_and_no_temporary_file_is_left(tmp_path):
@@ -72,6 +72,46 @@ def test_label_noise_writes_neither_file_when_one_is_taken(tmp_path):
     with pytest.raises(FileExists, match="--states "):
         ln._write(args, [{"K": 1, "agreement": 1.0}], states)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["states.npz"]
+
+
+def _new_path_refusal(path, field: str) -> str:
+    """What :func:`new_path` says when ``path`` (taken) is linked into place for ``field``."""
+    with pytest.raises(FileExists) as refused:
+        with new_path(path, field) as tmp:
+            tmp.write_text("ours\n")
+    return str(refused.value)
+
+
+def test_new_paths_refuses_before_writing_any_in_new_paths_words(tmp_path):
+    """new_paths: every (path, field) checked before any write (a None path not asked for); a taken one refused
+    in the one line new_path gives that file, the file kept."""
+    free, taken = tmp_path / "table.csv", tmp_path / "states.npz"
+    taken.write_text("another run's states\n")
+    assert new_paths((free, "--out"), (None, "--rows"), ("", "--plot")) is None
+    with pytest.raises(FileExists) as refused:
+        new_paths((free, "--out"), (taken, "--states"))
+    assert str(refused.value) == _new_path_refusal(taken, "--states")
+    assert taken.read_text() == "another run's states\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["states.npz"]
+
+
+def test_label_noise_refuses_a_taken_file_in_new_paths_words(tmp_path, capsys):
+    """benchmarks/label_noise.py's two refusals of a taken --states (at parsing, and _write's check before
+    writing either file) say what av_gym.atomic.new_path says of it: one text, not copies that drift ('nothing was
+    written' in one of them only)."""
+    import argparse
+
+    from tests.test_label_noise import ln
+
+    taken = tmp_path / "states.npz"
+    taken.write_text("another run's states\n")
+    said = _new_path_refusal(taken, "--states")
+    with pytest.raises(FileExists) as refused:
+        ln._write(argparse.Namespace(out=str(tmp_path / "table.csv"), states=str(taken)), [], {})
+    assert str(refused.value) == said
+    with pytest.raises(SystemExit) as stop:
+        ln.main(["--states", str(taken)])
+    assert stop.value.code == 2 and capsys.readouterr().err.strip().splitlines()[-1].endswith(said)
 
 
 def test_the_sweep_prints_its_summary_before_a_refused_rows(tmp_path, monkeypatch, capsys):
