@@ -366,9 +366,10 @@ def why_cause(h: list, track_ids: frozenset = frozenset()) -> dict:
     """One cause from a car's frames ``h`` (SensorHistory entries up to the decision): ``never in view`` (out of
     range or field of view at every frame; ``occluded`` where it was at some), else at the decision's frame ``not in
     view now`` with the track it last had (``confirmed deleted`` / ``confirmed drifted off`` / ``tentative died`` /
-    ``never tracked``) or, in view, ``tentative died`` (its last tracker track tentative and gone: deleted on a miss,
-    its next detection a new track), ``confirmed deleted`` (its last confirmed track's id not among ``track_ids``, the
-    tracker's at the last frame of ``h``), ``confirmed drifted off`` (that track still held, more than the match
+    ``tentative drifted off`` / ``never tracked``) or, in view, ``tentative died`` (its last tracker track tentative
+    and gone: deleted on a miss, its next detection a new track), ``tentative drifted off`` (that tentative track's
+    id still among ``track_ids``, more than the match radius off the car), ``confirmed deleted`` (its last confirmed
+    track's id not among ``track_ids``, the tracker's at the last frame of ``h``), ``confirmed drifted off`` (that track still held, more than the match
     radius off the car), ``held, not a road user`` (the tracker holds it, the planner has it as nobody:
     ghost, twin, off by more than the match radius), ``never tracked``; with the frames since it was last in view,
     detected, held by a track, and its range and lane kind at the decision."""
@@ -383,8 +384,11 @@ def why_cause(h: list, track_ids: frozenset = frozenset()) -> dict:
            "tracked_frames": len(tracked), "confirmed_frames": len(conf),
            "since_in_view_s": round(last[0] - ever_view[-1][0], 1) if ever_view else None,
            "since_tracked_s": round(last[0] - tracked[-1][0], 1) if tracked else None}
+    # the car's last track of the kind it reached: gone from the tracker at the decision's frame (deleted; a
+    # tentative one on its first miss: died), or still held there, more than the match radius off the car
     had = ("confirmed drifted off" if conf[-1][4] in track_ids else "confirmed deleted") if conf else \
-        "tentative died" if tracked else "never tracked"
+        ("tentative drifted off" if tracked[-1][4] in track_ids else "tentative died") if tracked else \
+        "never tracked"
     if not ever_view:
         cause = "never in view: occluded" if any(e[1] == 1 for e in h) else "never in view: out of range/fov"
     elif last[1] != 2:

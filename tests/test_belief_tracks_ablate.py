@@ -225,6 +225,11 @@ def test_why_names_the_cause_a_car_was_missing(ablate):
     got = why(died)
     assert got["cause"] == "in view, tentative died" and got["since_tracked_s"] == 0.1
     assert got["detected_frames"] == 1 and got["in_view_frames"] == 2
+    # its tentative track (id 5) still held by the tracker at the decision's frame, off the car: not died
+    assert why(died, frozenset({5}))["cause"] == "in view, tentative drifted off"
+    assert why(died, frozenset({4}))["cause"] == "in view, tentative died"
+    gone = [_frame(0.0, 2, True, 1, "tentative"), _frame(0.1, 1, False, 0)]
+    assert why(gone, frozenset({5}))["cause"] == "not in view now (occluded), tentative drifted off"
     coasted = [_frame(0.0, 2, True, 2, "confirmed")] + [_frame(0.1 * k, 1, False, 2, "confirmed") for k in (1, 2)] \
         + [_frame(0.3, 1)]
     got = why(coasted)  # its track (id 5) no longer among the tracker's: deleted
