@@ -364,15 +364,15 @@ def now_of(engine, rows):
 
 def why_cause(h: list, track_ids: frozenset = frozenset()) -> dict:
     """One cause from a car's frames ``h`` (SensorHistory entries up to the decision): ``never in view`` (out of
-    range or field of view at every frame; ``occluded`` where it was at some), else at the decision's frame ``not in view now``
-    with the track it last had (``confirmed deleted`` / ``confirmed drifted off`` / ``tentative died`` / ``tentative
-    drifted off`` / ``never tracked``) or, in view, ``tentative died`` (its last tracker track tentative and gone:
-    deleted on a miss, its next detection a new track), ``tentative drifted off`` (that tentative track's id still among
-    ``track_ids``, more than the match radius off the car), ``confirmed deleted`` (its last confirmed track's id not
-    among ``track_ids``, the tracker's at the last frame of ``h``), ``confirmed drifted off`` (that track still held,
-    more than the match radius off the car), ``held, not a road user`` (the tracker holds it, the planner has it as
-    nobody: ghost, twin, off by more than the match radius), ``never tracked``; with the frames since it was last in
-    view, detected, held by a track, and its range and lane kind at the decision."""
+    range or field of view at every frame; ``occluded`` where it was at some), else at the decision's frame ``not in
+    view now`` with the track it last had (``confirmed deleted`` / ``confirmed drifted off`` / ``tentative died`` /
+    ``tentative drifted off`` / ``never tracked``) or, in view, ``tentative died`` (its last tracker track tentative
+    and gone: deleted on a miss, its next detection a new track), ``tentative drifted off`` (that tentative track's
+    id still among ``track_ids``, more than the match radius off the car), ``confirmed deleted`` (its last confirmed
+    track's id not among ``track_ids``, the tracker's at the last frame of ``h``), ``confirmed drifted off`` (that
+    track still held, more than the match radius off the car), ``held, not a road user`` (the tracker holds it, the
+    planner has it as nobody: ghost, twin, off by more than the match radius), ``never tracked``; with the frames
+    since it was last in view, detected, held by a track, and its range and lane kind at the decision."""
     if not h:
         return {"cause": "not on the map"}
     last = h[-1]
