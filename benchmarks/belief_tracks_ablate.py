@@ -370,9 +370,9 @@ def why_cause(h: list, track_ids: frozenset = frozenset()) -> dict:
     and gone: deleted on a miss, its next detection a new track), ``tentative drifted off`` (that tentative track's
     id still among ``track_ids``, more than the match radius off the car), ``confirmed deleted`` (its last confirmed
     track's id not among ``track_ids``, the tracker's at the last frame of ``h``), ``confirmed drifted off`` (that
-    track still held, more than the match radius off the car), ``held, not a road user`` (the tracker holds it, the
-    planner has it as nobody: ghost, twin, off by more than the match radius), ``never tracked``; with the frames
-    since it was last in view, detected, held by a track, and its range and lane kind at the decision."""
+    track still held, more than the match radius off the car), ``held, not a road user`` (a track within the match
+    radius of it at that frame, in view or not now, and the planner has it as nobody: ghost, twin, off by more than
+    the match radius), ``never tracked``; with the frames since it was last in view, detected, held by a track, and its range and lane kind at the decision."""
     if not h:
         return {"cause": "not on the map"}
     last = h[-1]
@@ -391,10 +391,11 @@ def why_cause(h: list, track_ids: frozenset = frozenset()) -> dict:
         "never tracked"
     if not ever_view:
         cause = "never in view: occluded" if any(e[1] == 1 for e in h) else "never in view: out of range/fov"
+    elif last[3] > 0:  # a track within the match radius of the car at the decision's frame, in view or not
+        now = "" if last[1] == 2 else f"not in view now ({'occluded' if last[1] == 1 else 'out of range/fov'}), "
+        cause = f"{now}held by the tracker, not a road user of the planner"
     elif last[1] != 2:
         cause = f"not in view now ({'occluded' if last[1] == 1 else 'out of range/fov'}), {had}"
-    elif last[3] > 0:
-        cause = "held by the tracker, not a road user of the planner"
     else:
         cause = f"in view, {had}"
     out["cause"] = cause

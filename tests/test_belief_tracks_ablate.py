@@ -239,10 +239,15 @@ def test_why_names_the_cause_a_car_was_missing(ablate):
     assert why(coasted, frozenset({5}))["cause"] == "not in view now (occluded), confirmed drifted off"
     history = ablate.SensorHistory(1, ablate.MATCH_M)  # why() hands why_cause the ids of the decision's frame
     history.log[0][9] = coasted
-    history.tracks[0].update({0.2: frozenset(), 0.3: frozenset({5})})
+    history.tracks[0][0.3] = frozenset({5})
     assert history.why(0, 9, 0.3)["cause"].endswith("confirmed drifted off")
-    assert history.why(0, 9, 0.2)["cause"].endswith("confirmed deleted")
+    history.tracks[0][0.3] = frozenset()
+    assert history.why(0, 9, 0.3)["cause"].endswith("confirmed deleted")
     assert why([_frame(0.0, 2, True, 2, "left out")])["cause"] == "held by the tracker, not a road user of the planner"
+    # occluded now, its confirmed track (id 5) still within the match radius: held, not drifted off
+    held = [_frame(0.0, 2, True, 2, "confirmed"), _frame(0.1, 1, False, 2, "left out")]
+    assert why(held, frozenset({5}))["cause"] == \
+        "not in view now (occluded), held by the tracker, not a road user of the planner"
     assert why([_frame(0.0, 2, False, 0)])["cause"] == "in view, never tracked"
 
 
