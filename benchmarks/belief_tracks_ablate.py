@@ -372,7 +372,8 @@ def why_cause(h: list, track_ids: frozenset = frozenset()) -> dict:
     track's id not among ``track_ids``, the tracker's at the last frame of ``h``), ``confirmed drifted off`` (that
     track still held, more than the match radius off the car), ``held, not a road user`` (a track within the match
     radius of it at that frame, in view or not now, and the planner has it as nobody: ghost, twin, off by more than
-    the match radius), ``never tracked``; with the frames since it was last in view, detected, held by a track, and its range and lane kind at the decision."""
+    the match radius), ``never tracked``; with the frames since it was last in view, detected, held by a track, and
+    its range and lane kind at the decision."""
     if not h:
         return {"cause": "not on the map"}
     last = h[-1]
