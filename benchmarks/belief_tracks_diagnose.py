@@ -10,7 +10,12 @@ acceleration, heading, closest lane, the planner's destination probabilities aga
 set-point and regulation hold), and GO's collision probability again with one attribute of that track replaced by the
 simulator's (position and heading, speed, acceleration, lane): which part of the behaviour model made the planner go.
 Prints one JSON line per episode, a collision with its ``cause`` (:func:`cause`), and a last line counting the
-causes. The choices are the planner's own (``decide``: ``commit``, ``confirm``, ``recheck`` as set)."""
+causes. The choices are the planner's own (``decide``: ``commit``, ``confirm``, ``recheck`` as set). Each record also
+has, for each car hit, the road user or left-out track nearest it at the last GO (``held_by``: its distance, whether
+left out as a ghost or twin, tentative, its coast in detector frames, its speed and heading error) and the last GO
+started's collision probability against the threshold (``go_started``: with the recheck's and the pooled share);
+with ``--paths`` the last GO's own futures traced (``predicted``: where they put each car hit at the time of the hit,
+how many of them collided, how many with it)."""
 
 from __future__ import annotations
 
@@ -108,6 +113,101 @@ def _untracked(planner, engine, r: int, radius: float = 4.0) -> dict:
     return out
 
 
+def _held_by(planner, engine, r: int) -> dict:
+    """Per simulator car of row ``r`` (its vid) at a decision: the nearest road user of the futures' start or track
+    left out of them (a ghost or twin, ``planner.tracks.ghost``) that the planner read, as the planner had it: its
+    distance from the car (m), the futures' vid (the tracker's id + 1), whether it was left out or tentative, its
+    coast (detector frames since a detection last updated that track: 0 updated in this frame) and its speed and
+    heading error against the car's (m/s, rad). A measurement: it reads the simulator."""
+    tb = planner.tracks
+    te, s = tb.engine.traffic, engine.traffic
+    left_out = tb.ghost[r] if tb.ghost is not None else np.zeros(te.N, bool)
+    users = np.flatnonzero((te.alive[r] | left_out) & ~te.ego[r])
+    p = tb.perception
+    tracker_ids = p.tracker.id[r, : int(p.tracker.n[r])]
+    rate = float(p.detector.params.rate_hz)
+    out = {}
+    for i in np.flatnonzero(s.alive[r] & ~s.ego[r]):
+        if not len(users):
+            out[int(s.vid[r, i])] = None
+            continue
+        d = np.hypot(te.x[r, users] - s.x[r, i], te.y[r, users] - s.y[r, i])
+        j = int(users[np.argmin(d)])
+        k = np.flatnonzero(tracker_ids == int(te.vid[r, j]) - 1)
+        coast = int(np.rint((p.tracker.fused_at[r] - p.tracker.t_update[r, k[0]]) * rate)) if len(k) else None
+        out[int(s.vid[r, i])] = {
+            "dist_m": round(float(d.min()), 2), "track_vid": int(te.vid[r, j]), "left_out": bool(left_out[j]),
+            "tentative": bool(tb.tent[r, j]), "coast_frames": coast,
+            "v_err": round(float(te.v[r, j] - s.v[r, i]), 2),
+            "h_err_rad": round(float(np.angle(np.exp(1j * (te.h[r, j] - s.h[r, i])))), 3)}
+    return out
+
+
+def _future_paths(planner, engine, r: int) -> dict:
+    """The decision's own K futures of row ``r`` (:meth:`~agents.belief.BeliefPlanner.go_collision`'s: the same
+    seeds, the tracks' fill) with GO played to their end as ``play_go_fast`` plays it, traced: the time (s since the
+    decision), per policy step each road user's place (vid -> (K, steps, 2) m, NaN where it is gone), and per
+    future whether the ego collided and which road users' vids crashed with it."""
+    from av_gym.sim.batched import FASTER, IDLE, SLOWER
+
+    e = planner.tracks.current(engine)
+    K = planner.K
+    f = planner.futures(e, np.array([r]), K)
+    planner.tracks.fill(f, np.array([r]), planner.seed, K)
+    top = float(f.speeds[-1])
+    live = np.ones(f.B, bool)
+    places: dict[int, list] = {}
+    steps = 0
+    while live.any() and steps < 400:
+        sp = f.traffic.target[np.arange(f.B), f.ego_slot()]
+        meta = np.where(top > sp + 1e-3, FASTER, np.where(top < sp - 1e-3, SLOWER, IDLE))
+        _, terminated, truncated = f.step(meta, active=live)
+        live &= ~(terminated | truncated)
+        steps += 1
+        t = f.traffic
+        for k in range(f.B):
+            for j in np.flatnonzero(t.alive[k] & ~t.ego[k]):
+                places.setdefault(int(t.vid[k, j]), {}).setdefault(k, {})[steps] = (float(t.x[k, j]),
+                                                                                     float(t.y[k, j]))
+    t = f.traffic
+    ego = f.ego_slot()
+    crashed = t.crashed[np.arange(f.B), ego]
+    with_ = [sorted(int(v) for v in t.vid[k][t.crashed[k] & t.alive[k] & ~t.ego[k]]) if crashed[k] else []
+             for k in range(f.B)]
+    dt = 1.0 / float(f.config["policy_frequency"])
+    return {"dt": dt, "places": places, "collided": crashed.tolist(), "with": with_}
+
+
+def _predicted(paths: dict, track_vid: int, elapsed: float, true_xy: tuple) -> dict:
+    """Where the futures (``paths``, :func:`_future_paths` at the last GO) put the road user ``track_vid``
+    ``elapsed`` s after that GO, against the car's true place ``true_xy`` (m) then: how many futures still hold it
+    there, the nearest and median distance (m) of their places from the true one, and in how many futures the ego
+    collided, with that road user among those crashed."""
+    step = int(round(elapsed / paths["dt"]))
+    per = paths["places"].get(int(track_vid), {})
+    at = [xy[step] for xy in per.values() if step in xy]
+    d = [float(np.hypot(x - true_xy[0], y - true_xy[1])) for x, y in at]
+    return {"elapsed_s": round(elapsed, 1), "futures_holding": len(at),
+            "nearest_m": round(min(d), 1) if d else None, "median_m": round(float(np.median(d)), 1) if d else None,
+            "futures_collided": int(sum(paths["collided"])),
+            "futures_hit_by_it": sum(int(track_vid) in w for w in paths["with"])}
+
+
+def _started(planner, engine, r: int, p: float, now: float) -> dict:
+    """A GO started in row ``r`` at ``now`` s, its GO collision probability ``p`` on the decision's K futures: with
+    ``recheck`` the recheck's own R futures' (``p_recheck``) and, with ``recheck_pool``, the pooled share decide()
+    held against ``threshold``."""
+    from agents.belief import RECHECK_STREAM
+
+    K, R = planner.K, int(planner.params.recheck)
+    out = {"t_s": round(now, 1), "p": round(p, 4), "threshold": planner.threshold}
+    if R > 0:
+        p2 = float(planner.go_collision(engine, [r], R, (RECHECK_STREAM,))[0])
+        out["p_recheck"] = round(p2, 4)
+        out["pooled"] = round((K * p + R * p2) / (K + R), 4) if planner.params.recheck_pool else None
+    return out
+
+
 def _blame(planner, engine, r: int) -> dict:
     """At a GO taken back: GO's collision probability for row ``r`` (judged as a held GO: belief_tracks_truth.
     decision_p) without each road user the planner has (and without the unseen traffic), for those whose removal
@@ -194,13 +294,16 @@ def main() -> None:
     from av_gym.batched.vec_env import meta_actions
     from av_gym.wrappers import GO, YIELD
 
-    point, params, venv, obs, planner, _ = traced_batch(__doc__.splitlines()[0])
+    point, params, venv, obs, planner, args = traced_batch(__doc__.splitlines()[0], extra=lambda ap: ap.add_argument(
+        "--paths", action="store_true", help="trace the last GO's own futures: where they put each car hit at the "
+        "time of the hit, and how many of them collided with it (_future_paths; 16 futures played per GO)"))
     B = venv.num_envs
     engine = venv.engine
     choice, k = np.full(B, YIELD), np.zeros(B, dtype=int)
     history = [[] for _ in range(B)]  # (time s, choice, p) per decision
     last_go = [None] * B
     takeback = [[] for _ in range(B)]  # (time s, _blame) at each GO taken back
+    started: list[dict | None] = [None] * B  # the last GO started (_started)
     causes: dict[str, int] = {}
     while not venv.idle.all():
         rows = np.flatnonzero(~venv.idle)
@@ -215,7 +318,10 @@ def main() -> None:
                 history[r].append((round(float(engine.time[r]), 1), int(choice[r]), round(float(pr), 3)))
                 if choice[r] == GO:
                     last_go[r] = (float(engine.time[r]), _snapshot(planner, engine, int(r), int(b)),
-                                  _untracked(planner, engine, int(r)))
+                                  _untracked(planner, engine, int(r)), _held_by(planner, engine, int(r)),
+                                  _future_paths(planner, engine, int(r)) if args.paths else None)
+                    if b != GO:  # a GO started: its p on the K futures and, asked, the recheck's pooled with it
+                        started[r] = _started(planner, engine, int(r), float(pr), float(engine.time[r]))
             for r, b in zip(due, before):
                 if b == GO and choice[r] != GO:
                     takeback[r].append((round(float(engine.time[r]), 1), _blame(planner, engine, int(r))))
@@ -231,7 +337,15 @@ def main() -> None:
                       "last_go_s": None if go is None else round(go[0], 1),
                       "culprit": None if go is None else {v: go[1].get(v) for v in hit},
                       "untracked": None if go is None else {v: go[2][v] for v in hit if v in go[2]},
-                      "decisions": history[r][-8:], "taken_back": takeback[r][-2:]}
+                      "decisions": history[r][-8:], "taken_back": takeback[r][-2:],
+                      "go_started": started[r],
+                      "held_by": None if go is None else {v: go[3].get(v) for v in hit}}
+            if go is not None and go[4] is not None and m["collision"]:
+                record["predicted"] = {
+                    v: _predicted(go[4], go[3][v]["track_vid"], float(engine.time[r]) - go[0],
+                                  (float(t.x[r, j]), float(t.y[r, j])))
+                    for v, j in zip(hit, np.flatnonzero(t.alive[r] & t.crashed[r] & ~t.ego[r]))
+                    if go[3].get(v) is not None}
             if record["collision"]:
                 record["cause"] = cause(record)
                 causes[record["cause"]] = causes.get(record["cause"], 0) + 1

@@ -53,3 +53,23 @@ def test_the_tracing_tools_p_is_decides_p(margin_start, monkeypatch):
     for n, (r, h) in enumerate(zip(rows.tolist(), held.tolist())):  # the counterfactuals with nothing changed
         assert diagnose._swapped(p, engine, r, 0, 0, (), h) == decided[n], (r, h)
         assert lost._p(p, engine, r, h) == decided[n], (r, h)
+
+
+def test_the_traced_futures_are_the_decisions_own(margin_start, monkeypatch):
+    """belief_tracks_diagnose._future_paths plays the decision's own K futures (the same draws, the tracks' fill):
+    its futures that collide are go_collision's share, row by row; _predicted reads where they put a road user
+    ``elapsed`` s on against a true place."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    diagnose = importlib.import_module("belief_tracks_diagnose")
+    venv, planner, obs, rows = margin_start
+    p, engine = _read_copy(venv, planner, obs, rows), venv.engine
+    shares = p.go_collision(engine, rows)
+    traced = [diagnose._future_paths(p, engine, int(r)) for r in rows]
+    np.testing.assert_array_equal([sum(t["collided"]) / p.K for t in traced], shares)
+    assert 0 < shares.max(), shares  # rows whose futures collide: the count is not trivially 0 = 0
+    assert all(not w for t in traced for w, c in zip(t["with"], t["collided"]) if not c)  # only a collided one's
+    paths = {"dt": 0.1, "places": {7: {0: {3: (1.0, 0.0)}, 1: {3: (4.0, 0.0)}, 2: {2: (9.0, 9.0)}}},
+             "collided": [True, False, False], "with": [[7], [], []]}
+    got = diagnose._predicted(paths, 7, 0.3, (0.0, 0.0))
+    assert got == {"elapsed_s": 0.3, "futures_holding": 2, "nearest_m": 1.0, "median_m": 2.5, "futures_collided": 1,
+                   "futures_hit_by_it": 1}
