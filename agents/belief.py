@@ -34,6 +34,7 @@ import gymnasium as gym
 import numpy as np
 
 from agents.registry import AgentKind, AgentParams
+from agents.track_prior import SLOTS  # drivers per row whose draws are fixed by their place in the road order alone
 from av_gym.estimation.driver_intent import DriverIntent
 from av_gym.params import param
 from av_gym.sensors.turn_signal import TurnSignalsParams
@@ -47,7 +48,6 @@ SPEED_LIMIT = 10.0  # every lane's: a driver the regulation releases takes it as
 P_RELEASED, P_HELD = 0.02, 0.02  # prior shares of drivers released / held by the regulation (validation states)
 ACC_SIGMA = 0.3  # m/s², the spread of an observed acceleration about the IDM command of the right behaviour
 PARTICLES = 64  # behaviour particles per driver before the resampling
-SLOTS = 64  # drivers per row whose draws are fixed by their place in the road order alone
 RECHECK_STREAM = 3  # the recheck's futures: SeedSequence([seed, episode, tick, 3]) (1, 2: the tracks' streams)
 
 
@@ -169,13 +169,6 @@ class BeliefLookaheadParams(AgentParams):
                                                        "apart); 0: ``merge`` alone")
     merge_agree: float = param(1.0, "m/s", gt=0, le=5, doc="with ``merge_far``: the largest difference of two "
                                                            "tracks' velocity vectors for them to be one car's")
-    pack: bool = param(False, doc="on tracks: the futures' start has its road users packed into the first slots "
-                                  "before the futures run (Traffic.compact, order kept). The engine assumes its live "
-                                  "slots come first: every step trims the slots past the most road users any row "
-                                  "holds plus 2 (Traffic.trim) and spawns at the slot after a row's live count, so a "
-                                  "road user read into a later slot (a tentative track, after the 16 described "
-                                  "slots; a remembered car) left the futures after their first policy step; False: "
-                                  "as read (the measured presets)")
     recall: float = param(0.0, "s", ge=0, le=10, doc="on tracks: a car whose track the tracker dropped (a "
                                                      "tentative one on its first miss, a confirmed one after "
                                                      "max_coast without a detection) stays a road user of the "

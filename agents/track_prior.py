@@ -44,12 +44,13 @@ from av_gym.estimation.turn_features import ACC_SCALE
 from av_gym.sensors.turn_signal import node_index
 from av_gym.sim.batched import Traffic
 
-__all__ = ["SPEED_CLASSES", "SPAWN_S", "DetectedMotion", "TrackBelief", "UnseenTraffic", "twins"]
+__all__ = ["SLOTS", "SPEED_CLASSES", "SPAWN_S", "DetectedMotion", "TrackBelief", "UnseenTraffic", "twins"]
 
 SPAWN_S = 5.0  # m along the approach where a spawn enters (IntersectionEnv._spawn_vehicle: longitudinal + 5)
 SPEED_CLASSES = 3  # spawn speeds per cohort: the middles of equal-probability slices of the spawn speed's normal
 FIT_SLOTS = 256  # track ids kept per row by DetectedMotion (id mod this: ids live far fewer births than that)
 FIT_GATE = 2.0  # m: the detection that updated a track is the nearest one to its updated place, within this
+SLOTS = 64  # road users per row whose draws (the futures', the spread's) are fixed by their slot alone, whatever N
 LINE_ZONE = 5.0  # m into a crossing lane: a car standing there waits at its stop line (its front past it)
 FIT_MIN = 3  # detector frames a least-squares line needs (two give no check on a noisy pair)
 
@@ -384,7 +385,23 @@ class TrackBelief:
         shown.traffic.alive = obs.traffic.alive & ~tent
         # a ghost keeps its place among the described tracks (obs["intent"]'s order) but is nobody in the futures
         obs.traffic.alive = obs.traffic.alive & ~ghost
+        self._pack()
         return shown
+
+    def _pack(self) -> None:
+        """Pack the futures' start's road users into the first slots of every row, their order kept (the ego, the
+        confirmed tracks nearest first, the tentative ones, the remembered cars), and its per-slot masks and
+        covariances with them. The engine assumes its live slots come first: every step trims the slots past the
+        most road users any row holds plus 2 (Traffic.trim) and a spawn (the engine's, the unseen prior's) takes the
+        slot after a row's live count, so a road user after a gap (a tentative track after the described block, a
+        ghost's hole) left the futures or was overwritten. Packed before any draw, a road user's draws depend on its
+        place in this order alone: the batch and a one-row view of an env (EnvTracks) lay it in the same slot."""
+        t = self.engine.traffic
+        order = np.argsort(~t.alive, axis=1, kind="stable")  # Traffic.compact's order
+        t.compact()
+        self.tent, self.ghost, self.remembered = (np.take_along_axis(a, order, axis=1)
+                                                  for a in (self.tent, self.ghost, self.remembered))
+        self.along = np.take_along_axis(self.along, order[..., None, None], axis=1)
 
     def _observed(self, engine, rows: np.ndarray, intent: np.ndarray) -> tuple:
         """The observed engine (ego in slot 0, then the tracks) and its confirmed / tentative / ghost slot masks."""
@@ -535,10 +552,11 @@ class TrackBelief:
         e = self.engine
         if float(self.params.track_spread) > 0:
             self._spread(f, rows, seed, K, stream)
-        if getattr(self.params, "pack", False):
-            # the engine assumes its live slots come first: each step trims the slots past the most any row holds
-            # (Traffic.trim) and spawns at the slot after a row's live count, so a road user read into a later slot
-            # (a tentative track after the described block, a remembered car) would leave after the first step
+        alive = f.traffic.alive
+        if (alive[:, 1:] > alive[:, :-1]).any():
+            # a gap the read's packing did not leave: a tool's edit of the start after the read (the ablation's
+            # truth parts, the confirm trace's road user left out) must not leave a road user to the first step's
+            # trim or under the unseen drivers, who join at each row's live count
             f.traffic.compact()
         if self.unseen is None:
             return
@@ -552,12 +570,14 @@ class TrackBelief:
         """Move each moving road user of ``rows``' K futures (``f``'s rows, row-major, before the unseen drivers
         join) ``track_spread`` times a draw of its filter's error along its heading: place (m) and speed (m/s)
         jointly normal with the covariance :func:`along_heading` gives; a speed is kept at or above 0. Draws from
-        ``SeedSequence([seed, episode_seed, tick, 2, *stream])``."""
+        ``SeedSequence([seed, episode_seed, tick, 2, *stream])``, a fixed width of them per future (``SLOTS``), so a
+        road user's draws depend on its slot alone, not on how many slots the batch holds."""
         e = self.engine
         N = e.traffic.N
+        W = max(N, SLOTS)
         z = np.stack([np.random.default_rng(np.random.SeedSequence([int(seed), int(e.episode_seed[r]) % 2**63,
                                                                     int(e.ticks[r]), 2, *stream]))
-                      .standard_normal((K, N, 2)) for r in rows])  # (n, K, N, 2)
+                      .standard_normal((K, W, 2))[:, :N] for r in rows])  # (n, K, N, 2)
         t = e.traffic
         moving = t.alive[rows] & ~t.ego[rows] & ~t.crashed[rows]  # a standing track stays where it is
         # a Cholesky factor of each 2x2 covariance (a zero one where the slot holds no track)

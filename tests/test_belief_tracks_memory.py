@@ -130,7 +130,7 @@ def test_the_remembered_car_is_a_road_user_of_the_futures_start():
     from agents.track_prior import TrackBelief
     from tests.test_belief_tracks import _batch, _only_track
 
-    base = BeliefLookaheadParams(samples=4, unseen=0.0, tentative="road_user", pack=True)
+    base = BeliefLookaheadParams(samples=4, unseen=0.0, tentative="road_user")
     venv, planner, obs, rows = _batch([420_001], 10, base)
     r = int(rows[0])
     e = venv.engine
@@ -160,35 +160,58 @@ def test_the_remembered_car_is_a_road_user_of_the_futures_start():
 
 
 @pytest.mark.parametrize("unseen", [0.0, 1.0])
-def test_pack_keeps_a_road_user_read_into_a_late_slot_in_the_futures(unseen: float):
+def test_a_tentative_road_user_is_packed_into_the_futures_start_and_stays(unseen: float):
     """A tentative track standing in the ego's path inside the junction (a road user with ``tentative:
-    road_user``) sits after the 16 described slots: as read, the futures' first step trims it away (Traffic.trim
-    keeps the slots up to the most road users a row holds) and GO looks safe; packed (``pack``), every future
-    collides with it, as with the same car confirmed (slot 1). Also with the unseen prior on (the preset's, the
-    kind's default 1.0), whose drivers join at each future's live count after the compaction."""
+    road_user``), read after the 16 described slots, is packed into slot 1 of the futures' start, as the same car
+    confirmed is, and every future of GO collides with it, as with the car confirmed. Left in its slot after the
+    described block (before the packing), the futures' first step trimmed it away (Traffic.trim keeps the slots up
+    to the most road users a row holds) and GO looked safe (0 of 16 colliding). Also with the unseen prior on (the
+    preset's, the kind's default 1.0), whose drivers join at each future's live count."""
     from agents.belief import BeliefLookaheadParams
     from tests.test_belief_tracks import _batch, _only_track
 
     out = {}
-    for pack, confirmed in ((False, False), (True, False), (False, True)):
-        params = BeliefLookaheadParams(samples=16, unseen=unseen, tentative="road_user", pack=pack)
+    for confirmed in (False, True):
+        params = BeliefLookaheadParams(samples=16, unseen=unseen, tentative="road_user")
         venv, planner, obs, rows = _batch([420_001, 420_002], 45, params)
         for r in rows:
             _only_track(venv, int(r), (2.0, 5.0, 0.0, -0.2))  # 10 m ahead of the ego, standing
         venv.perception.tracker.confirmed[rows, 0] = confirmed
         planner.read(venv.engine, rows, obs["intent"][rows])
-        users = np.flatnonzero(planner.tracks.engine.traffic.alive[rows[0]])
-        assert users[-1] == (1 if confirmed else 17)  # the described block holds 16 slots
-        out[pack, confirmed] = planner.go_collision(venv.engine, rows)
-    np.testing.assert_array_equal(out[False, True], [1.0, 1.0])
-    np.testing.assert_array_equal(out[True, False], [1.0, 1.0])
-    if unseen == 0.0:  # with the prior on, its drivers may collide too
-        np.testing.assert_array_equal(out[False, False], [0.0, 0.0])
+        tb = planner.tracks
+        for r in rows:
+            assert np.flatnonzero(tb.engine.traffic.alive[r]).tolist() == [0, 1]  # the ego, then the car
+            assert tb.tent[r].tolist() == [False, not confirmed] + [False] * (tb.engine.traffic.N - 2)
+        out[confirmed] = planner.go_collision(venv.engine, rows)
+    np.testing.assert_array_equal(out[True], [1.0, 1.0])
+    np.testing.assert_array_equal(out[False], [1.0, 1.0])
+
+
+def test_a_road_user_an_edit_moved_behind_a_gap_stays_in_the_futures():
+    """A tool that edits the futures' start after the read (the ablation's truth parts, the confirm trace's road
+    user left out) may leave a gap: the confirmed car standing in the ego's path moved from slot 1 to a late slot
+    still collides in every future of GO (the futures are packed before the unseen drivers join); left behind the
+    gap, the first step's trim dropped it and GO looked safe."""
+    from agents.belief import BeliefLookaheadParams
+    from av_gym.sim.batched import Traffic
+    from tests.test_belief_tracks import _batch, _only_track
+
+    venv, planner, obs, rows = _batch([420_001, 420_002], 45, BeliefLookaheadParams(samples=16, unseen=0.0))
+    for r in rows:
+        _only_track(venv, int(r), (2.0, 5.0, 0.0, -0.2))  # 10 m ahead of the ego, standing
+    planner.read(venv.engine, rows, obs["intent"][rows])
+    t = planner.tracks.engine.traffic
+    late = t.N - 1
+    assert late > 4 and not t.alive[rows, late].any()
+    for name in Traffic.FIELDS:
+        getattr(t, name)[rows, late] = getattr(t, name)[rows, 1]
+    t.alive[rows, 1] = False
+    np.testing.assert_array_equal(planner.go_collision(venv.engine, rows), [1.0, 1.0])
 
 
 def test_decisions_with_recall_do_not_read_the_hidden_traffic():
     """Near the stop line, the one confirmed track of each row (a car standing in the ego's path, at a simulator
-    vehicle's place) vanishes: with ``recall`` (and ``pack``) the planner keeps it and every future of GO collides;
+    vehicle's place) vanishes: with ``recall`` the planner keeps it and every future of GO collides;
     without, none does. The same tracks, observations and ego then give the same GO collision probabilities, bit for
     bit, after the simulator's vehicles (none with a track now) were removed or moved and every hidden draw
     re-drawn (tests/test_belief_tracks.py's check): the memory reads the tracker, never the cars."""
@@ -199,7 +222,7 @@ def test_decisions_with_recall_do_not_read_the_hidden_traffic():
     from tests.test_belief_tracks import _batch, _hide_changes, _only_track
 
     params = BeliefLookaheadParams(samples=16, unseen=0.0, tentative="road_user", track_heading="detected",
-                                   ghost=2, merge=2.0, pack=True, recall=3.0)
+                                   ghost=2, merge=2.0, recall=3.0)
     venv, planner, obs, rows = _batch([420_001, 420_002], 45, params)
     e = venv.engine
     t = e.traffic
