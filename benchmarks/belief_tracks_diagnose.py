@@ -116,9 +116,10 @@ def _untracked(planner, engine, r: int, radius: float = 4.0) -> dict:
 def _held_by(planner, engine, r: int) -> dict:
     """Per simulator car of row ``r`` (its vid) at a decision: the nearest road user of the futures' start or track
     left out of them (a ghost or twin, ``planner.tracks.ghost``) that the planner read, as the planner had it: its
-    distance from the car (m), the futures' vid (the tracker's id + 1), whether it was left out or tentative, its
-    coast (detector frames since a detection last updated that track: 0 updated in this frame) and its speed and
-    heading error against the car's (m/s, rad). A measurement: it reads the simulator."""
+    distance from the car (m), the nearest road user's of the futures (m; a twin kept for the car), the futures' vid
+    (the tracker's id + 1), whether it was left out or tentative, its coast (detector frames since a detection last
+    updated that track: 0 updated in this frame) and its speed and heading error against the car's (m/s, rad). A
+    measurement: it reads the simulator."""
     tb = planner.tracks
     te, s = tb.engine.traffic, engine.traffic
     left_out = tb.ghost[r] if tb.ghost is not None else np.zeros(te.N, bool)
@@ -135,8 +136,11 @@ def _held_by(planner, engine, r: int) -> dict:
         j = int(users[np.argmin(d)])
         k = np.flatnonzero(tracker_ids == int(te.vid[r, j]) - 1)
         coast = int(np.rint((p.tracker.fused_at[r] - p.tracker.t_update[r, k[0]]) * rate)) if len(k) else None
+        alive = te.alive[r, users]
+        near = float(d[alive].min()) if alive.any() else None  # the nearest road user in the futures (a kept twin)
         out[int(s.vid[r, i])] = {
             "dist_m": round(float(d.min()), 2), "track_vid": int(te.vid[r, j]), "left_out": bool(left_out[j]),
+            "road_user_m": None if near is None else round(near, 2),
             "tentative": bool(tb.tent[r, j]), "coast_frames": coast,
             "v_err": round(float(te.v[r, j] - s.v[r, i]), 2),
             "h_err_rad": round(float(np.angle(np.exp(1j * (te.h[r, j] - s.h[r, i])))), 3)}
@@ -322,6 +326,7 @@ def main() -> None:
                                   _future_paths(planner, engine, int(r)) if args.paths else None)
                     if b != GO:  # a GO started: its p on the K futures and, asked, the recheck's pooled with it
                         started[r] = _started(planner, engine, int(r), float(pr), float(engine.time[r]))
+                        started[r]["held_by"] = last_go[r][3]
             for r, b in zip(due, before):
                 if b == GO and choice[r] != GO:
                     takeback[r].append((round(float(engine.time[r]), 1), _blame(planner, engine, int(r))))
@@ -338,7 +343,8 @@ def main() -> None:
                       "culprit": None if go is None else {v: go[1].get(v) for v in hit},
                       "untracked": None if go is None else {v: go[2][v] for v in hit if v in go[2]},
                       "decisions": history[r][-8:], "taken_back": takeback[r][-2:],
-                      "go_started": started[r],
+                      "go_started": None if started[r] is None else {
+                          **started[r], "held_by": {v: started[r]["held_by"].get(v) for v in hit}},
                       "held_by": None if go is None else {v: go[3].get(v) for v in hit}}
             if go is not None and go[4] is not None and m["collision"]:
                 record["predicted"] = {
