@@ -49,6 +49,7 @@ P_RELEASED, P_HELD = 0.02, 0.02  # prior shares of drivers released / held by th
 ACC_SIGMA = 0.3  # m/s², the spread of an observed acceleration about the IDM command of the right behaviour
 PARTICLES = 64  # behaviour particles per driver before the resampling
 RECHECK_STREAM = 3  # the recheck's futures: SeedSequence([seed, episode, tick, 3]) (1, 2: the tracks' streams)
+KEEP_STREAM = 4  # keep_recheck's futures: SeedSequence([seed, episode, tick, 4])
 
 
 @dataclass(frozen=True)
@@ -193,6 +194,18 @@ class BeliefLookaheadParams(AgentParams):
                                           "than two tests that each allow none of theirs, so a GO of a small risk "
                                           "is not held back by one unlucky future (the caution benchmarks/"
                                           "belief_tracks_lost.py counts); False: each draw on its own")
+    keep_recheck: int = param(0, "futures", ge=0, le=256, doc="a held GO whose decision's K futures find it unsafe "
+                                                              "(more than ``threshold`` collide) is taken back only "
+                                                              "where the pooled share of those K and this many more, "
+                                                              "drawn from their own stream, is above ``threshold`` "
+                                                              "too (asked where the K could still pass so): a GO is "
+                                                              "kept as ``recheck_pool`` starts one, on one estimate "
+                                                              "from K + this futures, not dropped for one unlucky "
+                                                              "future of 16; a GO taken back brakes the car in the "
+                                                              "crossing, where 12 of 14 collisions after a GO were "
+                                                              "hit (validation 1,953,000-1,953,999, benchmarks/"
+                                                              "belief_tracks_diagnose.py; two at 1 of 16); 0: a "
+                                                              "held GO is kept on its K alone")
     confirm: int = param(1, "decisions", ge=1, le=10, doc="GO only once this many decisions running found GO safe "
                                                           "(a held GO is kept while it stays safe): a GO that one "
                                                           "draw of K futures finds safe right after risky ones is "
@@ -400,10 +413,31 @@ class BeliefPlanner:
             if ask.any():  # a GO to start: the futures of the recheck's own streams must find it safe too
                 p2 = self.go_collision(engine, r[ask], R, (RECHECK_STREAM,))
                 new[ask] = self.label_of((K * p[ask] + R * p2) / (K + R) if pool else p2)
+            if int(self.params.keep_recheck) > 0:
+                new = self.kept(engine, r, p, new, held)
             if self.params.committed_choice:
                 new = self.carry_on(engine, r, p, new, held)
             choice[due] = new
         return choice
+
+    def kept(self, engine, rows: np.ndarray, p: np.ndarray, new: np.ndarray, held: np.ndarray) -> np.ndarray:
+        """``keep_recheck``: the choices ``new`` of ``rows`` (GO collision probabilities ``p`` on the decision's K
+        futures, held choices ``held``) with a held GO kept where ``new`` takes it back but the pooled share of the
+        K and ``keep_recheck`` more futures (:data:`KEEP_STREAM`, judged as a held GO is) is at most ``threshold``;
+        a kept GO's run of safe decisions (``confirm``) is kept whole."""
+        K, R = self.K, int(self.params.keep_recheck)
+        # only where the K alone could still pass with all R safe: K p / (K + R) at most threshold
+        back = np.flatnonzero((np.asarray(held) == GO) & (np.asarray(new) != GO)
+                              & (np.asarray(p) * K / (K + R) <= self.threshold + 1e-12))
+        if len(back) == 0:
+            return new
+        margin = 0.0 if self.params.track_margin_scope == "start" else None  # a held GO's futures, as p's
+        p2 = self.go_collision(engine, rows[back], R, (KEEP_STREAM,), margin=margin)
+        keep = back[self.label_of((K * np.asarray(p)[back] + R * p2) / (K + R)) == GO]
+        new = np.array(new, copy=True)
+        new[keep] = GO
+        self.safe_run[rows[keep]] = np.maximum(self.safe_run[rows[keep]], int(self.params.confirm))
+        return new
 
     def _decision_collision(self, engine, rows: np.ndarray, held: np.ndarray) -> np.ndarray:
         """:meth:`go_collision` of ``rows`` at a decision (``held``: their held choices), judged as
