@@ -44,7 +44,7 @@ from av_gym.estimation.turn_features import ACC_SCALE
 from av_gym.sensors.turn_signal import node_index
 from av_gym.sim.batched import Traffic
 
-__all__ = ["SLOTS", "SPEED_CLASSES", "SPAWN_S", "DetectedMotion", "TrackBelief", "UnseenTraffic", "twins"]
+__all__ = ["SLOTS", "SPEED_CLASSES", "SPAWN_S", "DetectedMotion", "TrackBelief", "UnseenTraffic", "ego_pose", "twins"]
 
 SPAWN_S = 5.0  # m along the approach where a spawn enters (IntersectionEnv._spawn_vehicle: longitudinal + 5)
 SPEED_CLASSES = 3  # spawn speeds per cohort: the middles of equal-probability slices of the spawn speed's normal
@@ -53,6 +53,14 @@ FIT_GATE = 2.0  # m: the detection that updated a track is the nearest one to it
 SLOTS = 64  # road users per row whose draws (the futures', the spread's) are fixed by their slot alone, whatever N
 LINE_ZONE = 5.0  # m into a crossing lane: a car standing there waits at its stop line (its front past it)
 FIT_MIN = 3  # detector frames a least-squares line needs (two give no check on a noisy pair)
+
+
+def ego_pose(engine, rows) -> np.ndarray:
+    """(n, 3) the ego's own pose ``[x m, y m, heading rad]`` in ``rows`` of ``engine`` (from its ego slot): what the
+    car knows of itself, from which the detector looks."""
+    rows = np.asarray(rows, dtype=int)
+    t, slot = engine.traffic, engine.ego_slot(rows)
+    return np.stack([t.x[rows, slot], t.y[rows, slot], t.h[rows, slot]], axis=1)
 
 
 def lane_kinds(T) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -372,14 +380,12 @@ class TrackBelief:
         if self.motion is not None and len(rows):
             self._record(engine, rows)
         if self.memory is not None and len(rows):
-            slot = engine.ego_slot(rows)
-            src = engine.traffic
-            ego = np.stack([src.x[rows, slot], src.y[rows, slot], src.h[rows, slot]], axis=1)  # the ego's own pose
-            self.memory.update(self.perception, rows, ego, engine.ticks[rows] / engine.config["simulation_frequency"])
+            self.memory.update(self.perception, rows, ego_pose(engine, rows),
+                               engine.ticks[rows] / engine.config["simulation_frequency"])
         obs, conf, tent, ghost = self._observed(engine, rows, np.asarray(intent))
         self.engine, self._ticks, self.tent, self.ghost = obs, engine.ticks.copy(), tent, ghost
         if self.unseen is not None and len(rows):
-            self._look(engine, rows, obs)
+            self._look(engine, rows)
         shown = copy.copy(obs)
         shown.traffic = copy.copy(obs.traffic)
         shown.traffic.alive = obs.traffic.alive & ~tent
@@ -468,7 +474,7 @@ class TrackBelief:
         full_conf[rows, sl], full_tent[rows, sl] = conf, tent
         self.remembered = np.zeros((B, M + 2), bool)
         self.remembered[rows, sl] = kept
-        full_ghost[rows, sl] = self._ghosts(t, rows, pos, users, seen[..., 1]) | twins(
+        full_ghost[rows, sl] = self._ghosts(ego_pose(engine, rows), pos, users, seen[..., 1]) | twins(
             pos, users, seen[..., 1], float(self.params.merge), float(self.params.merge_far),
             float(self.params.merge_agree), seen[..., 0])
         self.along = np.zeros((B, M + 2, 2, 2))
@@ -506,23 +512,23 @@ class TrackBelief:
         self.motion.record(r, p.tracker.id[r][:, : tracks.shape[1]], updated, tracks[..., :2],
                            p.last_detections[r], now)
 
-    def _ghosts(self, t, rows: np.ndarray, pos: np.ndarray, users: np.ndarray, missed: np.ndarray) -> np.ndarray:
-        """(n, M): the road users of ``rows`` the detector has missed in the last ``ghost`` frames although their
-        place is in view now (in range, in the field of view, not behind a road user detected in this frame).
+    def _ghosts(self, ego: np.ndarray, pos: np.ndarray, users: np.ndarray, missed: np.ndarray) -> np.ndarray:
+        """(n, M): the road users of n rows (the ego's poses ``ego`` (n, 3), :func:`ego_pose`) the detector has
+        missed in the last ``ghost`` frames although their place is in view now (in range, in the field of view, not
+        behind a road user detected in this frame).
         A car there is missed with ``miss_rate`` a frame (0.1: twice in a row 1 %): such a track is what the
         tracker coasts on after its car left the constant-velocity path (a turn: the car's detections start a new
         track), for up to ``max_coast``, straight on into lanes the car never takes."""
         k = int(self.params.ghost)
-        if k <= 0 or not len(rows):
+        if k <= 0 or not len(ego):
             return np.zeros(users.shape, bool)
         det = self.perception.detector.params
-        ego = np.stack([t.x[rows, 0], t.y[rows, 0], t.h[rows, 0]], axis=1)
         occ = np.concatenate([pos[..., :2], pos[..., 4:7]], axis=-1)
         seen = in_view(pos[..., 0], pos[..., 1], ego, occ, users & (missed == 0), float(det.max_range),
                        float(np.radians(det.fov_deg) / 2), bool(det.occlusion))
         return users & (missed >= k) & seen
 
-    def _look(self, engine, rows: np.ndarray, obs) -> None:
+    def _look(self, engine, rows: np.ndarray) -> None:
         """Age ``rows``' cohorts to this policy step and, where the tracker fused a detector frame now, count a
         look at every cohort place in view."""
         u, p = self.unseen, self.perception
@@ -532,11 +538,9 @@ class TrackBelief:
         if not fused.any():
             return
         r = rows[fused]
-        t = obs.traffic
-        ego = np.stack([t.x[r, 0], t.y[r, 0], t.h[r, 0]], axis=1)
         pos, _, conf, _, _, _ = self._tracks(r)
         occ = np.concatenate([pos[..., :2], pos[..., 4:7]], axis=-1)
-        u.look(r, u.in_view(ego, occ, conf))
+        u.look(r, u.in_view(ego_pose(engine, r), occ, conf))
 
     def current(self, engine):
         """The engine :meth:`read` built at this step (the futures' start)."""
