@@ -75,10 +75,20 @@ def _runnable_blocks() -> list:
     return params
 
 
+def _user_env() -> dict[str, str]:
+    """The environment a user's command has: this process's less what tests/conftest.py adds for every test's
+    subprocesses, ``PYTHONPATH`` (a user has only the editable install's own paths) and its ``OMP_NUM_THREADS=1``
+    (its marker ``AV_GYM_TESTS_SET_OMP`` says it chose the count; a count the user set stays, as it would for
+    their own command): the thread count is what the documents' commands run with, not the test process's."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    if env.get("AV_GYM_TESTS_SET_OMP") is not None and env.get("AV_GYM_TESTS_SET_OMP") == env.get("OMP_NUM_THREADS"):
+        del env["OMP_NUM_THREADS"], env["AV_GYM_TESTS_SET_OMP"]
+    return env
+
+
 def _run(argv: list[str], tmp: Path) -> subprocess.CompletedProcess:
     """``argv`` as a user runs it: ``python ...`` from the checkout, a console script (tensorboard, av-gym-*) from a
-    folder of the user's own (``tmp``), and neither with ``PYTHONPATH`` (which tests/conftest.py sets for every
-    test's subprocesses; a user has only the editable install's own paths)."""
+    folder of the user's own (``tmp``), and neither in the test process's environment (:func:`_user_env`)."""
     if argv[0] == "python":
         argv, cwd = [sys.executable, *argv[1:]], ROOT
     else:
@@ -89,8 +99,21 @@ def _run(argv: list[str], tmp: Path) -> subprocess.CompletedProcess:
             argv = [str(env_bin / argv[0]), *argv[1:]]
         cwd = tmp / "user_folder"
         cwd.mkdir(exist_ok=True)
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    return subprocess.run(argv, cwd=cwd, capture_output=True, text=True, timeout=600, env=env)
+    return subprocess.run(argv, cwd=cwd, capture_output=True, text=True, timeout=600, env=_user_env())
+
+
+@pytest.mark.parametrize("user_set", [None, "3"])
+def test_a_documented_command_runs_with_the_users_thread_count(user_set, monkeypatch, tmp_path):
+    """The command's OMP_NUM_THREADS is the user's (none, or the one they set before running the tests), never the
+    1 tests/conftest.py chose for the test processes (with its marker)."""
+    if user_set is None:
+        monkeypatch.setenv("OMP_NUM_THREADS", "1")
+        monkeypatch.setenv("AV_GYM_TESTS_SET_OMP", "1")
+    else:
+        monkeypatch.setenv("OMP_NUM_THREADS", user_set)
+        monkeypatch.delenv("AV_GYM_TESTS_SET_OMP", raising=False)
+    res = _run(["python", "-c", "import os; print(os.environ.get('OMP_NUM_THREADS'))"], tmp_path)
+    assert res.returncode == 0 and res.stdout.strip() == str(user_set), res.stderr
 
 
 @pytest.mark.parametrize("commands", _runnable_blocks())
