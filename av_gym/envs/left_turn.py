@@ -117,6 +117,11 @@ class LeftTurnParams(ScenarioParams):
         lo, hi = self.acceleration_range
         if not lo < hi:  # the continuous action -1..1 maps linearly onto [lo, hi]: an empty range divides by zero
             return [f"@acceleration_range must be [min, max] with min < max (m/s²), got [{lo:g}, {hi:g}]"]
+        speeds = self.target_speeds_kmh
+        if not all(a < b for a, b in zip(speeds, speeds[1:])):
+            # highway-env's SLOWER/FASTER step down/up this list by index: out of order, FASTER slows the ego down
+            return [f"@target_speeds_kmh must be strictly increasing [SLOWER, IDLE, FASTER] set-points (km/h), got "
+                    f"[{', '.join(f'{v:g}' for v in speeds)}]"]
         return super().relations()
 
 
