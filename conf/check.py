@@ -138,7 +138,25 @@ def problems(cfg: Mapping, command: str) -> list[str]:
     found += check(settings_cls, {k: v for k, v in settings.items() if k not in unknown}, "", what=what)
     if not found and command == "train":
         found += _agent_sensor_problems(cfg.get("agent"), cfg.get("sensors"))
+        found += _own_preset_problems(cfg.get("agent"), cfg.get("sensors"), _default_option(command, "sensors"))
     return found
+
+
+def _own_preset_problems(agent: Any, sensors: Any, default: str | None) -> list[str]:
+    """A rule-based agent that names its own sensors preset (``agent.sensors``: gap_acceptance's turn_truth) runs
+    on it, whatever ``sensors=`` says: another preset given would be recorded in config.yaml but not run, so it is
+    refused. The command's ``default`` preset is no choice (eval's rule: eval/__main__.py given_sensors_problem)."""
+    from agents.registry import AGENT_KINDS
+
+    if not isinstance(agent, Mapping) or not isinstance(sensors, Mapping) or not agent.get("sensors"):
+        return []
+    kind = AGENT_KINDS.get(agent.get("kind")) if agent.get("kind") in AGENT_KINDS else None
+    own, name, label = agent["sensors"], sensors.get("name"), agent.get("name")
+    if kind is None or kind.trained() or name in (own, default):
+        return []
+    return [f"sensors={name}: agent {label} is rule-based and runs on its own sensors preset ({own}), so "
+            f"sensors={name} would not reach it; evaluate it from {name} with eval's agents=[{label}@{name}], or "
+            f"leave sensors= out"]
 
 
 def _agent_sensor_problems(agent: Any, sensors: Any) -> list[str]:
@@ -338,6 +356,14 @@ def _groups(command: str) -> list[str]:
     shipped = yaml.safe_load((resources.files("conf") / f"{command}.yaml").read_text())
     return [next(iter(d)) for d in shipped.get("defaults", []) if isinstance(d, dict) and
             not next(iter(d)).startswith(("override", "/"))]
+
+
+def _default_option(command: str, group: str) -> str | None:
+    """The option of ``group`` the command's defaults list picks (``train``, ``sensors`` → ``truth``)."""
+    import yaml
+
+    shipped = yaml.safe_load((resources.files("conf") / f"{command}.yaml").read_text())
+    return next((d[group] for d in shipped.get("defaults", []) if isinstance(d, dict) and group in d), None)
 
 
 def _check_path(cfg: Any, key: str, command: str) -> None:

@@ -81,19 +81,23 @@ def _batched_sensors(plan, env_cfg: dict):
     return dataclasses.replace(plan, sensors=dict(NO_OBS_SENSORS))
 
 
-def given_sensors_problem(plan, given: dict) -> str | None:
+def given_sensors_problem(plan, given: dict, default: str = DEFAULT_SENSORS) -> str | None:
     """A trained agent runs on the sensors it was trained with (its checkpoint's config.yaml), with the command
-    line's ``sensors.*`` overrides on top; a ``sensors=<preset>`` of another name would not reach it, so it is
-    refused (run, the table would say nothing of the preset asked for) with what does: ``agent@preset``. The
-    default preset is no choice."""
-    own = (plan.trained_sensors or {}).get("name")
+    line's ``sensors.*`` overrides on top; a rule-based agent that names its own preset (``gap_acceptance``:
+    turn_truth) runs on that. A ``sensors=<preset>`` of another name would not reach either, so it is refused (run,
+    the table would say nothing of the preset asked for, and ``-m sensors=a,b`` would give the same rows twice)
+    with what does: ``agent@preset``. The ``default`` preset (the command's own config's: what an agent without
+    sensors of its own is given) is no choice."""
+    trained = (plan.trained_sensors or {}).get("name")
+    own = trained or plan.own_sensors
     name = given.get("name")
-    if own is None or "@" in plan.label or name in (own, DEFAULT_SENSORS):
+    if own is None or "@" in plan.label or name in (own, default):
         return None
     agent, plus, shield = plan.label.partition("+")
-    return (f"sensors={name}: agent {plan.label!r} runs on the sensors it was trained with ({own}), so sensors={name} "
-            f"would not reach it; drive it from {name} with agents=[{agent}@{name}{plus}{shield}] (the same "
-            f"observation space), or leave sensors= out")
+    why, same = ("the sensors it was trained with", " (the same observation space)") if trained else \
+        ("its own sensors preset", "")
+    return (f"sensors={name}: agent {plan.label!r} runs on {why} ({own}), so sensors={name} would not reach it; "
+            f"drive it from {name} with agents=[{agent}@{name}{plus}{shield}]{same}, or leave sensors= out")
 
 
 def _check_plans(plans: list, command: EvalCommand, env_cfg: dict, given: dict) -> None:

@@ -261,7 +261,9 @@ class AgentPlan:
     """What one agent spec needs: the label in tables, the sensors and shield configs its env is built with, and
     the spec to hand to :func:`resolve_agent` once that env exists. For a trained agent, ``trained_sensors`` are
     the sensors it was trained on (its checkpoint's, or the ``@preset``) and ``sensor_overrides`` the command
-    line's ``sensors.*`` changes applied on top of them to give ``sensors`` (dotted path → value)."""
+    line's ``sensors.*`` changes applied on top of them to give ``sensors`` (dotted path → value). For a rule-based
+    agent, ``own_sensors`` is the preset it names for itself (its config's ``sensors:``), which it runs on whatever
+    ``sensors=`` says, unless driven from another with ``agent@preset``."""
 
     label: str
     spec: str
@@ -269,6 +271,7 @@ class AgentPlan:
     shield: dict
     trained_sensors: dict | None = None
     sensor_overrides: dict = field(default_factory=dict)
+    own_sensors: str | None = None
 
 
 def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:
@@ -401,7 +404,9 @@ def plan_agent(spec: str, env_name: str, sensors: dict, shield: dict, checkpoint
         path = find_checkpoint(cfg["kind"], env_name, checkpoints, name=None if base == cfg["kind"] else base,
                                latest=latest)
         return trained_plan(str(path), path)
-    return AgentPlan(str(spec), base, forced or sensors, shield)
+    if forced:
+        return AgentPlan(str(spec), base, forced, shield)
+    return AgentPlan(str(spec), base, sensors, shield, own_sensors=cfg.get("sensors"))
 
 
 def sensors_summary(sensors: dict | None, group: str = "sensors") -> str:

@@ -38,8 +38,9 @@ def test_eval_compares_checkpoint_with_baseline_on_the_same_seeds(trained):
 
 @pytest.mark.slow  # python -m eval as a process, a lap with its figures: ~7.5 s alone at load 2.4
 def test_eval_lane_keeping_pid(tmp_path):
-    """pid_paper declares sensors=truth (the paper's simulator CTE), so it runs even when eval's sensors differ."""
-    res = run("eval", "env=lane_keeping", "sensors=gnss_imu", "agents=[pid_paper]", "episodes=2", "out_dir=out",
+    """pid_paper declares sensors=truth (the paper's simulator CTE) and laps on it; another sensors= is refused,
+    as it would not reach it (tests/test_rule_agent_sensors.py)."""
+    res = run("eval", "env=lane_keeping", "agents=[pid_paper]", "episodes=2", "out_dir=out",
               "progress_bar=false", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     rows = list(csv.DictReader(open(tmp_path / "out" / "results.csv")))

@@ -1,0 +1,63 @@
+"""A rule-based agent that names its own sensors preset (``gap_acceptance``, ``lookahead``: turn_truth) runs on it:
+a ``sensors=<other>`` on the command line would not reach it, so eval (per env and on the batch) and train refuse
+it in one line with what does (``agent@preset``), as they do for a trained agent; the command's default preset is
+no choice (prober R, W1)."""
+
+from __future__ import annotations
+
+import pytest
+
+from av_gym.presets import compose_group
+from conf.check import _default_option, _own_preset_problems
+from eval.__main__ import given_sensors_problem
+from eval.agents import plan_agent
+from tests.test_bad_input import check_line
+
+NONE = {"name": "none"}
+
+
+def _plan(spec: str, sensors: dict):
+    return plan_agent(spec, "left_turn", sensors, NONE, "checkpoints")
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["agents=[gap_acceptance]", "sensors=turn_perceived"],
+     "sensors=turn_perceived: agent 'gap_acceptance' runs on its own sensors preset (turn_truth), so "
+     "sensors=turn_perceived would not reach it; drive it from turn_perceived with "
+     "agents=[gap_acceptance@turn_perceived], or leave sensors= out"),
+    (["agents=[always_proceed,lookahead+aeb]", "sensors=turn_perceived", "vec_env=batched"],
+     "agent 'lookahead+aeb' runs on its own sensors preset (turn_truth), so sensors=turn_perceived would not reach "
+     "it; drive it from turn_perceived with agents=[lookahead@turn_perceived+aeb]"),
+    (["env=lane_keeping", "agents=[pid_paper]", "sensors=gnss_imu"],  # its own is the default preset, truth
+     "agent 'pid_paper' runs on its own sensors preset (truth), so sensors=gnss_imu would not reach it"),
+])
+def test_eval_refuses_a_preset_a_rule_agent_would_not_run_on(tmp_path, monkeypatch, capsys, argv, says):
+    monkeypatch.chdir(tmp_path)
+    line = check_line("eval", [*argv, "episodes=1"], monkeypatch, capsys)
+    assert says in line, line
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("spec, given", [("gap_acceptance", "turn_truth"), ("gap_acceptance", "truth"),
+                                         ("gap_acceptance@turn_perceived", "turn_perceived"),
+                                         ("gap_acceptance@turn_perceived", "cameras"), ("always_proceed", "cameras")])
+def test_eval_runs_its_own_preset_the_default_and_agent_at_preset(spec, given):
+    sensors = compose_group("sensors", given)
+    assert given_sensors_problem(_plan(spec, sensors), sensors) is None
+
+
+def test_train_refuses_it_too_and_accepts_the_default(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    line = check_line("train", ["agent=gap_acceptance", "sensors=turn_perceived"], monkeypatch, capsys)
+    assert line == ("error: sensors=turn_perceived: agent gap_acceptance is rule-based and runs on its own sensors "
+                    "preset (turn_truth), so sensors=turn_perceived would not reach it; evaluate it from "
+                    "turn_perceived with eval's agents=[gap_acceptance@turn_perceived], or leave sensors= out"), line
+    assert not any(tmp_path.iterdir())
+    agent = {"name": "gap_acceptance", "kind": "gap_acceptance", "sensors": "turn_truth"}
+    default = _default_option("train", "sensors")
+    assert default == "truth"
+    for name in (default, "turn_truth"):
+        assert _own_preset_problems(agent, {"name": name}, default) == []
+    assert _own_preset_problems({"name": "ppo_turn", "kind": "ppo", "sensors": "turn_truth"}, {"name": "cameras"},
+                                default) == []  # a trained kind trains on what it is given
+
