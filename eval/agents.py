@@ -297,9 +297,10 @@ def sensor_overrides(sensors: dict | None, group: str = "sensors") -> dict[str, 
     return {k: v for k, v in _flatten(sensors).items() if k != "name" and (k not in shipped or shipped[k] != v)}
 
 
-def _with_overrides(label: str, base: dict, overrides: dict[str, Any]) -> dict:
-    """``base`` sensors (a trained agent's) with the command line's ``overrides`` applied. An override of a sensor
-    the agent's stack does not have would add an observation key, so it is refused."""
+def _with_overrides(label: str, base: dict, overrides: dict[str, Any], whose: str = "it was trained with") -> dict:
+    """``base`` sensors (a trained agent's, or the ``@preset`` of a rule-based one: ``whose`` says which) with the
+    command line's ``overrides`` applied. An override of a sensor the agent's stack does not have would add an
+    observation key, so it is refused."""
     import copy
 
     out = copy.deepcopy(base)
@@ -307,7 +308,7 @@ def _with_overrides(label: str, base: dict, overrides: dict[str, Any]) -> dict:
         keys = path.split(".")
         if len(keys) > 1 and not isinstance(out.get(keys[0]), dict):
             have = [k for k, v in out.items() if isinstance(v, dict)]
-            raise ConfigError(f"sensors.{path}={value!r}: agent {label!r} runs on the sensors it was trained with "
+            raise ConfigError(f"sensors.{path}={value!r}: agent {label!r} runs on the sensors {whose} "
                               f"({base.get('name')!r}: {have}), which have no {keys[0]!r}; that would change its "
                               f"observation space")
         node = out
@@ -375,7 +376,9 @@ def plan_agent(spec: str, env_name: str, sensors: dict, shield: dict, checkpoint
     that changes its observation space by :func:`check_sensor_overrides` (which needs the env config).
 
     ``agent@preset`` runs the agent on another sensors preset than its own (``ppo_turn@turn_perceived``: a policy
-    trained on privileged objects, driven from tracked detections); the observation spaces must match."""
+    trained on privileged objects, driven from tracked detections); the observation spaces must match. A rule-based
+    agent's ``@preset`` gets the command line's overrides as a trained agent's sensors do
+    (``gap_acceptance@turn_perceived sensors=turn_perceived sensors.detector.miss_rate=0.5``)."""
     base, _, shield_name = str(spec).partition("+")
     base, _, preset = base.partition("@")
     base, latest = split_latest(base)
@@ -404,8 +407,8 @@ def plan_agent(spec: str, env_name: str, sensors: dict, shield: dict, checkpoint
         path = find_checkpoint(cfg["kind"], env_name, checkpoints, name=None if base == cfg["kind"] else base,
                                latest=latest)
         return trained_plan(str(path), path)
-    if forced:
-        return AgentPlan(str(spec), base, forced, shield)
+    if forced:  # the command line's sensors.* overrides reach a rule-based agent's @preset as a trained one's
+        return AgentPlan(str(spec), base, _with_overrides(str(spec), forced, overrides, f"@{preset} gives"), shield)
     return AgentPlan(str(spec), base, sensors, shield, own_sensors=cfg.get("sensors"))
 
 

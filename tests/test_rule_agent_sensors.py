@@ -1,7 +1,8 @@
 """A rule-based agent that names its own sensors preset (``gap_acceptance``, ``lookahead``: turn_truth) runs on it:
 a ``sensors=<other>`` on the command line would not reach it, so eval (per env and on the batch) and train refuse
 it in one line with what does (``agent@preset``), as they do for a trained agent; the command's default preset is
-no choice (prober R, W1)."""
+no choice. Its ``@preset`` gets the command line's ``sensors.*`` overrides as a trained agent's sensors do, and
+results.md's summary says so (prober R, W1 and W2)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import pytest
 from av_gym.presets import compose_group
 from conf.check import _default_option, _own_preset_problems
 from eval.__main__ import given_sensors_problem
-from eval.agents import plan_agent
+from eval.agents import plan_agent, sensors_summary
 from tests.test_bad_input import check_line
 
 NONE = {"name": "none"}
@@ -61,3 +62,15 @@ def test_train_refuses_it_too_and_accepts_the_default(tmp_path, monkeypatch, cap
     assert _own_preset_problems({"name": "ppo_turn", "kind": "ppo", "sensors": "turn_truth"}, {"name": "cameras"},
                                 default) == []  # a trained kind trains on what it is given
 
+
+def test_an_agent_at_preset_gets_the_command_lines_overrides():
+    sensors = compose_group("sensors", "turn_perceived")
+    sensors["detector"]["miss_rate"] = 0.5
+    plan = _plan("gap_acceptance@turn_perceived", sensors)
+    assert plan.sensors["detector"]["miss_rate"] == 0.5
+    assert sensors_summary(plan.sensors) == "turn_perceived with detector.miss_rate=0.5"
+    night = compose_group("sensors", "cameras")
+    night["cameras"]["night"] = True
+    with pytest.raises(Exception, match=r"^sensors\.cameras\.night=True: agent 'gap_acceptance@turn_perceived' runs "
+                                        r"on the sensors @turn_perceived gives .*which have no 'cameras'"):
+        _plan("gap_acceptance@turn_perceived", night)
