@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import pytest
 
+from av_gym.errors import ConfigError
 from av_gym.presets import compose_group
 from conf.check import _default_option, _own_preset_problems
 from eval.__main__ import given_sensors_problem
@@ -71,6 +72,6 @@ def test_an_agent_at_preset_gets_the_command_lines_overrides():
     assert sensors_summary(plan.sensors) == "turn_perceived with detector.miss_rate=0.5"
     night = compose_group("sensors", "cameras")
     night["cameras"]["night"] = True
-    with pytest.raises(Exception, match=r"^sensors\.cameras\.night=True: agent 'gap_acceptance@turn_perceived' runs "
+    with pytest.raises(ConfigError, match=r"^sensors\.cameras\.night=True: agent 'gap_acceptance@turn_perceived' runs "
                                         r"on the sensors @turn_perceived gives .*which have no 'cameras'"):
         _plan("gap_acceptance@turn_perceived", night)
