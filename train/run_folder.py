@@ -84,8 +84,9 @@ def resume_problem(saved: Mapping, cfg: Mapping, config_path: Path) -> str | Non
 def ownership_problem(ckpt_dir: Path, runs_dir: Path | None, resume: bool, overwrite: bool,
                       cfg: Mapping | None = None) -> str | None:
     """Why this command may not write ``ckpt_dir`` (and ``runs_dir``, the run's log folder), or None. The shipped
-    references are refused first, whatever the flags (``train.overwrite=true`` would clear them)."""
-    problem = shipped_problem_of(ckpt_dir, runs_dir)
+    references are refused first, and a checkpoint folder holding what is not a run's, whatever the flags
+    (``train.overwrite=true`` would clear them)."""
+    problem = shipped_problem_of(ckpt_dir, runs_dir) or foreign_problem(ckpt_dir, resume)
     if problem:
         return problem
     name = ckpt_dir.name
@@ -127,6 +128,30 @@ def ownership_problem(ckpt_dir: Path, runs_dir: Path | None, resume: bool, overw
     if logs:
         return (f"run_name={name}: {runs_dir} already holds a run's logs ({', '.join(logs[:3])}"
                 f"{' ...' if len(logs) > 3 else ''}); pick another run_name, or replace it with train.overwrite=true")
+    return None
+
+
+def is_run_config(path: Path) -> bool:
+    """Whether ``path`` is a training run's config (a YAML mapping with env and agent sections): what every run
+    writes first, beside its checkpoints (config.yaml) and, through Hydra, in its log folder (.hydra/config.yaml)."""
+    import yaml
+
+    try:
+        saved = yaml.safe_load(path.read_text())
+    except (yaml.YAMLError, OSError, UnicodeDecodeError):
+        return False
+    return isinstance(saved, Mapping) and all(isinstance(saved.get(k), Mapping) for k in ("env", "agent"))
+
+
+def foreign_problem(ckpt_dir: Path, resume: bool) -> str | None:
+    """A folder of the run that holds files but no run's config (a user's project): a run would write its files
+    among them and ``train.overwrite=true`` delete them all, so it is refused whatever the flags (a resume's
+    checkpoint folder is checked by its own ``latest.zip`` and config.yaml instead)."""
+    held = [] if resume else _contents(ckpt_dir)
+    if held and not is_run_config(ckpt_dir / "config.yaml"):
+        return (f"paths.checkpoints/run_name={ckpt_dir}: holds files that are not a training run's "
+                f"({', '.join(held[:3])}{' ...' if len(held) > 3 else ''}; no run's config.yaml), which a run "
+                f"never writes among or clears; pick another run_name")
     return None
 
 
