@@ -152,11 +152,14 @@ def test_a_run_that_is_not_ours_is_refused_with_nothing_written(argv, needle, tm
 
 
 def test_runs_folder_of_another_run_is_refused(tmp_path, monkeypatch, capsys, released):
-    """Its TensorBoard curves would go into the same folder as the first run's."""
+    """Its TensorBoard curves would go into the same folder as the first run's (a run's log folder: Hydra's
+    .hydra/config.yaml of a training job, its tb/)."""
     monkeypatch.chdir(tmp_path)
     (tmp_path / "runs" / "R" / "tb").mkdir(parents=True)
+    (tmp_path / "runs" / "R" / ".hydra").mkdir()
+    (tmp_path / "runs" / "R" / ".hydra" / "config.yaml").write_text("env: {name: lane_keeping}\nagent: {name: ppo}\n")
     line = check_line("train", [*LANE, "run_name=R"], monkeypatch, capsys)
-    assert "runs/R already holds a run's logs (tb)" in line, line
+    assert "runs/R already holds a run's logs (.hydra, tb)" in line and "train.overwrite=true" in line, line
     assert not (tmp_path / "checkpoints").exists()
 
 

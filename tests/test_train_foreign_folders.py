@@ -1,8 +1,9 @@
 """``python -m train`` never writes among, or with ``train.overwrite=true`` clears, files that are not a run's: a
-checkpoint folder (``paths.checkpoints/run_name``) without a run's config.yaml. The prober's reproduction (issue 47,
-R's D1): ``run_name=proj train.overwrite=true`` emptied a project folder. Refused in one line by the command-line
-check, before Hydra writes anything; a run's own folder is still replaced with the flag
-(tests/test_reliability.py: test_resume_and_overwrite_are_allowed_and_hold_the_lock)."""
+checkpoint folder (``paths.checkpoints/run_name``) without a run's config.yaml, or a log folder (``hydra.run.dir``,
+by default ``paths.runs/run_name``) without a run's ``.hydra/config.yaml``. The prober's two reproductions (issue 47,
+R's D1 and D2): ``run_name=proj train.overwrite=true`` emptied a project folder, and ``hydra.run.dir=.`` replaced the
+user's results.md (and with the flag deleted their scripts). Each is refused in one line by the command-line check,
+before Hydra writes anything; a run's own folders are still replaced with the flag."""
 
 from __future__ import annotations
 
@@ -34,3 +35,39 @@ def test_a_checkpoint_folder_that_is_not_a_run_is_refused(flags, tmp_path, monke
     assert "paths.checkpoints/run_name=" in line and "not a training run's (precious.txt, sub;" in line, line
     assert "overwrite" not in line and "resume" not in line, line
     assert snapshot(tmp_path / "ckpts" / "proj") == before and not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize("flags", FLAGS, ids=["no_flag", "overwrite"])
+def test_a_hydra_run_dir_of_the_users_is_refused(flags, tmp_path, monkeypatch, capsys, released):
+    """D2: ``hydra.run.dir=.`` in the user's folder (their results.md and files): refused with or without the flag,
+    naming hydra.run.dir; nothing written there, no checkpoint folder made."""
+    monkeypatch.chdir(_project(tmp_path / "myproj"))
+    (tmp_path / "myproj" / "results.md").write_text("# my results\n")
+    before = snapshot(tmp_path)
+    line = check_line("train", [*RULE, f"paths.checkpoints={tmp_path / 'ckpts'}", "hydra.run.dir=.", *flags],
+                      monkeypatch, capsys)
+    assert line.startswith("error: hydra.run.dir=.: holds files that are not a training run's logs (precious.txt, "
+                           "results.md, sub;"), line
+    assert "pick another hydra.run.dir" in line and "overwrite" not in line, line
+    assert snapshot(tmp_path) == before and not (tmp_path / "ckpts").exists()
+
+
+def test_a_runs_own_folders_are_still_taken(tmp_path, monkeypatch, capsys, released):
+    """What the refusals leave open: a new hydra.run.dir; a log folder of a run (its .hydra/config.yaml) refused
+    without the flag, with the advice to pick another hydra.run.dir or overwrite, and taken with the flag."""
+    from train import __main__ as train_main
+
+    monkeypatch.chdir(tmp_path)
+    ckpts = f"paths.checkpoints={tmp_path / 'ckpts'}"
+    monkeypatch.setattr("sys.argv", ["train", *RULE, ckpts, "run_name=A", f"hydra.run.dir={tmp_path / 'new'}"])
+    train_main._check_command_line()
+    logs = tmp_path / "logs"
+    (logs / ".hydra").mkdir(parents=True)
+    (logs / ".hydra" / "config.yaml").write_text("env: {name: left_turn}\nagent: {name: always_proceed}\n")
+    (logs / "results.md").write_text("# a run's\n")
+    line = check_line("train", [*RULE, ckpts, "run_name=B", f"hydra.run.dir={logs}"], monkeypatch, capsys)
+    assert "already holds a run's logs (.hydra, results.md)" in line, line
+    assert "pick another hydra.run.dir, or replace it with train.overwrite=true" in line, line
+    monkeypatch.setattr("sys.argv", ["train", *RULE, ckpts, "run_name=B", f"hydra.run.dir={logs}",
+                                     "train.overwrite=true"])
+    train_main._check_command_line()

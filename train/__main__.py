@@ -206,13 +206,33 @@ def _report(folders: Folders, model_path: Path | None) -> dict:
     return where
 
 
-def claim_run(cfg: DictConfig, command: TrainCommand, ckpt_dir: Path, runs_dir: Path | None) -> None:
+def claim_run(cfg: DictConfig, command: TrainCommand, ckpt_dir: Path, runs_dir: Path | None,
+              runs_flag: str = "paths.runs/run_name") -> None:
     """The run's folders for this process alone (train/run_folder.py): refused if they hold another run (unless
-    resuming or overwriting), if a resume does not match the run's config.yaml, or if another process trains it."""
+    resuming or overwriting) or what is not a run's, if a resume does not match the run's config.yaml, or if
+    another process trains it."""
     from train.run_folder import claim
 
     claim(ckpt_dir, runs_dir, command.train.resume, command.train.overwrite,
-          {k: OmegaConf.to_container(cfg[k], resolve=True) for k in ("env", "sensors", "shield", "agent")})
+          {k: OmegaConf.to_container(cfg[k], resolve=True) for k in ("env", "sensors", "shield", "agent")}, runs_flag)
+
+
+def run_dir_of(cfg: DictConfig, command: TrainCommand, argv: list[str]) -> tuple[Path | None, str]:
+    """The folder Hydra will write this run's logs in, and what gave it: ``hydra.run.dir`` as ``argv`` gives it
+    (resolved against the run's config; None when it names a value only the running job has), else
+    ``paths.runs/run_name`` (conf/train.yaml's ``hydra.run.dir``). ``hydra.run.dir=.`` is the user's own folder."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from omegaconf.errors import OmegaConfBaseException
+
+    given = [o for o in OverridesParser.create().parse_overrides([a for a in argv if not a.startswith("-")])
+             if o.key_or_group == "hydra.run.dir" and not o.is_delete()]
+    if not given:
+        return Path(command.paths.runs) / command.run_name, "paths.runs/run_name"
+    node = OmegaConf.create({**OmegaConf.to_container(cfg, resolve=False), "_run_dir": given[-1].value()})
+    try:
+        return Path(str(node._run_dir)), "hydra.run.dir"
+    except OmegaConfBaseException:  # ${hydra:...}: only the job has it
+        return None, "hydra.run.dir"
 
 
 def _check_command_line() -> None:
@@ -237,7 +257,7 @@ def _check_command_line() -> None:
         # lock is held by this process until it exits (a sweep's jobs each claim their own -j<n> folder)
         cfg, command = configs[0], commands[0]
         claim_run(cfg, command, Path(command.paths.checkpoints) / command.run_name,
-                  Path(command.paths.runs) / command.run_name)
+                  *run_dir_of(cfg, command, sys.argv[1:]))
 
 
 @hydra.main(config_path="pkg://conf", config_name="train", version_base="1.3")

@@ -82,14 +82,15 @@ def resume_problem(saved: Mapping, cfg: Mapping, config_path: Path) -> str | Non
 
 
 def ownership_problem(ckpt_dir: Path, runs_dir: Path | None, resume: bool, overwrite: bool,
-                      cfg: Mapping | None = None) -> str | None:
-    """Why this command may not write ``ckpt_dir`` (and ``runs_dir``, the run's log folder), or None. The shipped
-    references are refused first, and a checkpoint folder holding what is not a run's, whatever the flags
-    (``train.overwrite=true`` would clear them)."""
-    problem = shipped_problem_of(ckpt_dir, runs_dir) or foreign_problem(ckpt_dir, resume)
+                      cfg: Mapping | None = None, runs_flag: str = "paths.runs/run_name") -> str | None:
+    """Why this command may not write ``ckpt_dir`` (and ``runs_dir``, the run's log folder, given by
+    ``runs_flag``), or None. The shipped references are refused first, and folders holding what is not a run's,
+    whatever the flags (``train.overwrite=true`` would clear them)."""
+    problem = shipped_problem_of(ckpt_dir, runs_dir) or foreign_problem(ckpt_dir, runs_dir, resume, runs_flag)
     if problem:
         return problem
     name = ckpt_dir.name
+    other = "hydra.run.dir" if runs_flag == "hydra.run.dir" else "run_name"
     if resume:
         latest = ckpt_dir / LATEST
         if not latest.is_file():
@@ -127,7 +128,7 @@ def ownership_problem(ckpt_dir: Path, runs_dir: Path | None, resume: bool, overw
     logs = _contents(runs_dir, ignore=()) if runs_dir is not None else []
     if logs:
         return (f"run_name={name}: {runs_dir} already holds a run's logs ({', '.join(logs[:3])}"
-                f"{' ...' if len(logs) > 3 else ''}); pick another run_name, or replace it with train.overwrite=true")
+                f"{' ...' if len(logs) > 3 else ''}); pick another {other}, or replace it with train.overwrite=true")
     return None
 
 
@@ -143,15 +144,21 @@ def is_run_config(path: Path) -> bool:
     return isinstance(saved, Mapping) and all(isinstance(saved.get(k), Mapping) for k in ("env", "agent"))
 
 
-def foreign_problem(ckpt_dir: Path, resume: bool) -> str | None:
-    """A folder of the run that holds files but no run's config (a user's project): a run would write its files
-    among them and ``train.overwrite=true`` delete them all, so it is refused whatever the flags (a resume's
-    checkpoint folder is checked by its own ``latest.zip`` and config.yaml instead)."""
+def foreign_problem(ckpt_dir: Path, runs_dir: Path | None, resume: bool, runs_flag: str) -> str | None:
+    """A folder of the run that holds files but no run's config (a user's project, ``hydra.run.dir=.``): a run
+    would write its files among them and ``train.overwrite=true`` delete them all, so it is refused whatever the
+    flags (a resume's checkpoint folder is checked by its own ``latest.zip`` and config.yaml instead)."""
     held = [] if resume else _contents(ckpt_dir)
     if held and not is_run_config(ckpt_dir / "config.yaml"):
         return (f"paths.checkpoints/run_name={ckpt_dir}: holds files that are not a training run's "
                 f"({', '.join(held[:3])}{' ...' if len(held) > 3 else ''}; no run's config.yaml), which a run "
                 f"never writes among or clears; pick another run_name")
+    logs = _contents(runs_dir, ignore=()) if runs_dir is not None else []
+    if logs and not is_run_config(runs_dir / ".hydra" / "config.yaml"):
+        other = "hydra.run.dir (an empty or new folder)" if runs_flag == "hydra.run.dir" else "run_name"
+        return (f"{runs_flag}={runs_dir}: holds files that are not a training run's logs ({', '.join(logs[:3])}"
+                f"{' ...' if len(logs) > 3 else ''}; no run's .hydra/config.yaml), which a run never writes among "
+                f"or clears; pick another {other}")
     return None
 
 
@@ -194,15 +201,16 @@ def finished_problem(ckpt_dir: Path) -> str | None:
 
 
 def claim(ckpt_dir: str | Path, runs_dir: str | Path | None, resume: bool, overwrite: bool,
-          cfg: Mapping | None = None) -> Path:
-    """Check that this command may write the run (:func:`ownership_problem`), then take its lock for the life of
-    this process (or until :func:`release`). Raises :class:`ConfigError` with one line; a refused claim leaves
-    nothing behind. Claiming a folder this process already holds returns at once."""
+          cfg: Mapping | None = None, runs_flag: str = "paths.runs/run_name") -> Path:
+    """Check that this command may write the run (:func:`ownership_problem`; ``runs_flag``: what gave
+    ``runs_dir``), then take its lock for the life of this process (or until :func:`release`). Raises
+    :class:`ConfigError` with one line; a refused claim leaves nothing behind. Claiming a folder this process
+    already holds returns at once."""
     ckpt_dir = Path(ckpt_dir)
     if ckpt_dir in _held:
         return ckpt_dir
     runs_dir = Path(runs_dir) if runs_dir is not None else None
-    problem = ownership_problem(ckpt_dir, runs_dir, resume, overwrite, cfg)
+    problem = ownership_problem(ckpt_dir, runs_dir, resume, overwrite, cfg, runs_flag)
     if problem:
         raise ConfigError(problem)
     try:
@@ -215,7 +223,7 @@ def claim(ckpt_dir: str | Path, runs_dir: str | Path | None, resume: bool, overw
         raise ConfigError(f"paths.checkpoints: cannot write {ckpt_dir}: {os.strerror(exc.errno or errno.EIO)}") \
             from None
     # Checked again under the lock: two commands started together both passed the check above.
-    problem = ownership_problem(ckpt_dir, runs_dir, resume, overwrite, cfg)
+    problem = ownership_problem(ckpt_dir, runs_dir, resume, overwrite, cfg, runs_flag)
     if problem:
         release(ckpt_dir)
         raise ConfigError(problem)
