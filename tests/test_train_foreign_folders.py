@@ -1,9 +1,9 @@
 """``python -m train`` never writes among, or with ``train.overwrite=true`` clears, files that are not a run's: a
 checkpoint folder (``paths.checkpoints/run_name``) without a run's config.yaml, or a log folder (``hydra.run.dir``,
-by default ``paths.runs/run_name``) without a run's ``.hydra/config.yaml``. The prober's two reproductions (issue 47,
-R's D1 and D2): ``run_name=proj train.overwrite=true`` emptied a project folder, and ``hydra.run.dir=.`` replaced the
-user's results.md (and with the flag deleted their scripts). Each is refused in one line by the command-line check,
-before Hydra writes anything; a run's own folders are still replaced with the flag."""
+by default ``paths.runs/run_name``) without a run's ``.hydra/config.yaml``. What a user lost: ``run_name=proj
+train.overwrite=true`` emptied a project folder, and ``hydra.run.dir=.`` replaced the user's results.md (and with the
+flag deleted their scripts). Each is refused in one line by the command-line check, before Hydra writes anything; a
+run's own folders are still replaced with the flag."""
 
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ def _project(folder):
 
 @pytest.mark.parametrize("flags", FLAGS, ids=["no_flag", "overwrite"])
 def test_a_checkpoint_folder_that_is_not_a_run_is_refused(flags, tmp_path, monkeypatch, capsys, released):
-    """D1: ``paths.checkpoints=<dir> run_name=proj`` where proj/ is the user's: refused with or without the flag,
+    """``paths.checkpoints=<dir> run_name=proj`` where proj/ is the user's: refused with or without the flag,
     the advice no flag (the flag would empty it); nothing in it changed."""
     monkeypatch.chdir(tmp_path)
     before = snapshot(_project(tmp_path / "ckpts" / "proj"))
@@ -39,7 +39,7 @@ def test_a_checkpoint_folder_that_is_not_a_run_is_refused(flags, tmp_path, monke
 
 @pytest.mark.parametrize("flags", FLAGS, ids=["no_flag", "overwrite"])
 def test_a_hydra_run_dir_of_the_users_is_refused(flags, tmp_path, monkeypatch, capsys, released):
-    """D2: ``hydra.run.dir=.`` in the user's folder (their results.md and files): refused with or without the flag,
+    """``hydra.run.dir=.`` in the user's folder (their results.md and files): refused with or without the flag,
     naming hydra.run.dir; nothing written there, no checkpoint folder made."""
     monkeypatch.chdir(_project(tmp_path / "myproj"))
     (tmp_path / "myproj" / "results.md").write_text("# my results\n")
