@@ -26,8 +26,9 @@ def _single_threaded_torch() -> None:
     # A multi-threaded matmul may sum in a different order from one run to the next (and from one process to
     # another), which changes a network's action in the last bit; one thread makes it the same everywhere.
     # Evaluation networks are small, so nothing is lost, and torch's default (one thread per core, OMP_NUM_THREADS
-    # if set) spins on a busy machine: the figures' lap of PilotNet on the cameras ran at ~7 steps/s instead of
-    # ~340 with 2 threads on 2 cores shared with one other job (load ~2; eval of 2 laps, n_envs=2: 105 s → 38 s).
+    # if set) spins on a busy machine: with 2 threads on 2 cores shared with other jobs (load 2-3) the figures'
+    # lap of PilotNet on the cameras ran at ~7 steps/s instead of ~340 (docs/sensors.md's eval, 2 laps,
+    # n_envs=2, OMP_NUM_THREADS unset: 105 CPU-s before this was called for that lap, 41 after).
     if "torch" in sys.modules:
         sys.modules["torch"].set_num_threads(1)
 
