@@ -34,7 +34,7 @@ import gymnasium as gym
 import numpy as np
 
 from agents.registry import AgentKind, AgentParams
-from agents.track_prior import SLOTS  # drivers per row whose draws are fixed by their place in the road order alone
+from agents.track_prior import draw_width  # SLOTS draws per stream: a driver's draws fixed by its place alone
 from av_gym.estimation.driver_intent import DriverIntent
 from av_gym.params import param
 from av_gym.sensors.turn_signal import TurnSignalsParams
@@ -559,7 +559,7 @@ class BeliefPlanner:
             g = np.random.default_rng(child)
             # a fixed width of draws per stream, so that a driver's draws depend on its place in the road order
             # only, not on how many slots this batch happens to hold (the batch and a one-row view agree)
-            W = max(N, SLOTS)
+            W = draw_width(N)
             u[i], u_b[i] = g.random((K, W))[:, :N], g.random((K, W))[:, :N]
             delta[i], target[i], hold[i], logq[i] = (a[:N] for a in self._behaviour_prior(engine.prior, g, (W, P)))
             spawn_rngs += [np.random.Generator(np.random.PCG64(s)) for s in spawn.spawn(K)]

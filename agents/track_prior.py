@@ -44,7 +44,8 @@ from av_gym.estimation.turn_features import ACC_SCALE
 from av_gym.sensors.turn_signal import node_index
 from av_gym.sim.batched import Traffic
 
-__all__ = ["SLOTS", "SPEED_CLASSES", "SPAWN_S", "DetectedMotion", "TrackBelief", "UnseenTraffic", "ego_pose", "twins"]
+__all__ = ["SLOTS", "SPEED_CLASSES", "SPAWN_S", "DetectedMotion", "TrackBelief", "UnseenTraffic", "draw_width",
+           "ego_pose", "twins"]
 
 SPAWN_S = 5.0  # m along the approach where a spawn enters (IntersectionEnv._spawn_vehicle: longitudinal + 5)
 SPEED_CLASSES = 3  # spawn speeds per cohort: the middles of equal-probability slices of the spawn speed's normal
@@ -53,6 +54,18 @@ FIT_GATE = 2.0  # m: the detection that updated a track is the nearest one to it
 SLOTS = 64  # road users per row whose draws (the futures', the spread's) are fixed by their slot alone, whatever N
 LINE_ZONE = 5.0  # m into a crossing lane: a car standing there waits at its stop line (its front past it)
 FIT_MIN = 3  # detector frames a least-squares line needs (two give no check on a noisy pair)
+
+
+def draw_width(N: int) -> int:
+    """The draws per future a stream gives (``SLOTS``) for a futures' start of ``N`` slots, so that a road user's
+    draws depend on its slot alone. A start of more slots would need wider streams, which would change every draw
+    of the narrower starts: refused rather than widened. The batch's start on tracks holds at most 42 slots (the
+    ego, 16 described tracks, the tracker's 16, 8 remembered cars, 1 spare: TrackBelief._observed)."""
+    if N > SLOTS:
+        raise ValueError(f"the futures' start holds {N} slots, more than SLOTS = {SLOTS} whose draws are fixed by "
+                         f"their slot alone (the batch's start on tracks holds at most 42); raise SLOTS in "
+                         f"agents/track_prior.py")
+    return SLOTS
 
 
 def ego_pose(engine, rows) -> np.ndarray:
@@ -578,7 +591,7 @@ class TrackBelief:
         road user's draws depend on its slot alone, not on how many slots the batch holds."""
         e = self.engine
         N = e.traffic.N
-        W = max(N, SLOTS)
+        W = draw_width(N)
         z = np.stack([np.random.default_rng(np.random.SeedSequence([int(seed), int(e.episode_seed[r]) % 2**63,
                                                                     int(e.ticks[r]), 2, *stream]))
                       .standard_normal((K, W, 2))[:, :N] for r in rows])  # (n, K, N, 2)
