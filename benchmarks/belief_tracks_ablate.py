@@ -547,7 +547,9 @@ def main() -> None:
         print(table(args.table))
         return
     if args.out and Path(args.out).exists():
-        fail(f"--out {args.out} exists: choose another file (results are never overwritten)")
+        from av_gym.atomic import taken
+
+        fail(str(taken(args.out, "--out")))
     if args.episodes < 1 or not (args.match > 0):
         fail("--episodes must be >= 1 and --match > 0 (m)")
     if args.seeds:

@@ -103,7 +103,9 @@ def main() -> None:
     ap.add_argument("--out", default=None, metavar="PATH", help="the result as JSON, p unrounded (a new file)")
     args = ap.parse_args()
     if args.out and Path(args.out).exists():
-        fail(f"--out {args.out} exists: choose another file (results are never overwritten)")
+        from av_gym.atomic import taken
+
+        fail(str(taken(args.out, "--out")))
     result = compare(outcomes(args.a), outcomes(args.b), (args.a, args.b))
     print(printed(result), flush=True)  # first: a print cut short (Ctrl-C, a closed pipe) leaves no unseen --out
     if args.out:  # linked into place: a file that appeared at --out since the check above is kept, not replaced

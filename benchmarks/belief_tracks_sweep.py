@@ -99,7 +99,9 @@ def main() -> None:
     ap.add_argument("--rows", default=None, metavar="PATH", help="every episode's row as CSV (a new file)")
     args = ap.parse_args()
     if args.rows and Path(args.rows).exists():
-        fail(f"--rows {args.rows} exists: choose another file (results are never overwritten)")
+        from av_gym.atomic import taken
+
+        fail(str(taken(args.rows, "--rows")))
     seeds = args.seeds or range(args.seed, args.seed + args.episodes)
     if len(seeds) < 1 or any(s not in SPLITS["validation"] for s in (min(seeds), max(seeds))):
         fail(f"--seed/--episodes/--seeds must stay in the validation split {SPLITS['validation']}")
