@@ -110,8 +110,24 @@ def _claim_folders(cfg: DictConfig, command: TrainCommand) -> Folders:
         removed = clear_for_overwrite(ckpt_dir, run_dir)
         if removed:
             print(f"[train] train.overwrite=true: removed the previous run's {len(removed)} files and folders")
-    write_text_atomic(ckpt_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
+    write_text_atomic(ckpt_dir / "config.yaml", OmegaConf.to_yaml(config_as_ran(cfg), resolve=True))
     return Folders(run_dir, ckpt_dir)
+
+
+def config_as_ran(cfg: DictConfig) -> DictConfig:
+    """The run's config as the agent runs it, for config.yaml: a rule-based agent that names its own sensors preset
+    (``agent.sensors``: gap_acceptance's turn_truth) runs on it when ``sensors=`` is the command's default
+    (conf/check.py _own_preset_problems lets that pass), so the sensors recorded are the ones it ran with (the brief
+    evaluation's ``plan.sensors``: eval.agents.plan_agent), not the default it never saw."""
+    if _kind(cfg) is None or _kind(cfg).trained() or not cfg.agent.get("sensors"):
+        return cfg
+    from eval.agents import plan_agent
+
+    sensors, shield = (OmegaConf.to_container(c, resolve=True) for c in (cfg.sensors, cfg.shield))
+    plan = plan_agent(str(cfg.agent.name), str(cfg.env.name), sensors, shield, str(cfg.paths.checkpoints))
+    ran = OmegaConf.to_container(cfg, resolve=True)
+    ran["sensors"] = plan.sensors
+    return OmegaConf.create(ran)
 
 
 def _train_agent(cfg: DictConfig, command: TrainCommand, folders: Folders) -> Path | None:
