@@ -1,0 +1,57 @@
+"""A rule-based agent with a sensors preset of its own (``gap_acceptance``, ``lookahead``: turn_truth), listed
+without ``@`` while ``sensors=`` is eval's default, runs on its preset as shipped: the command line's ``sensors.*``
+overrides would not reach it (results.md said ``turn_truth (as shipped)``), so eval refuses them in one line with
+what does (``agent@preset``, which gets them since 83c38ce). Train's brief evaluation of its baselines plans them as
+before (``plan_agent`` itself does not refuse)."""
+
+from __future__ import annotations
+
+import pytest
+
+from av_gym.presets import compose_group
+from eval.__main__ import given_sensors_problem
+from eval.agents import plan_agent, sensors_summary
+from tests.test_bad_input import check_line
+
+NONE = {"name": "none"}
+
+
+def _truth_with_miss_rate() -> dict:
+    """eval's default preset with ``+sensors.turn_signals.miss_rate=0.5`` on the command line."""
+    sensors = compose_group("sensors", "truth")
+    sensors["turn_signals"] = {"miss_rate": 0.5}
+    return sensors
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["agents=[gap_acceptance]"],
+     "error: sensors.turn_signals.miss_rate=0.5: agent 'gap_acceptance' runs on its own sensors preset (turn_truth) "
+     "as shipped, so these overrides would not reach it; give them to it with agents=[gap_acceptance@turn_truth] "
+     "sensors=turn_truth sensors.turn_signals.miss_rate=0.5, or leave them out"),
+    (["agents=[lookahead+aeb]", "vec_env=batched"],
+     "agent 'lookahead+aeb' runs on its own sensors preset (turn_truth) as shipped, so these overrides would not "
+     "reach it; give them to it with agents=[lookahead@turn_truth+aeb] sensors=turn_truth"),
+])
+def test_eval_refuses_overrides_its_own_preset_would_drop(tmp_path, monkeypatch, capsys, argv, says):
+    monkeypatch.chdir(tmp_path)
+    line = check_line("eval", [*argv, "+sensors.turn_signals.miss_rate=0.5", "episodes=1"], monkeypatch, capsys)
+    assert says in line, line
+    assert not any(tmp_path.iterdir())
+
+
+def test_the_advised_agent_at_preset_gets_the_override():
+    sensors = compose_group("sensors", "turn_truth")
+    sensors["turn_signals"]["miss_rate"] = 0.5
+    plan = plan_agent("gap_acceptance@turn_truth", "left_turn", sensors, NONE, "checkpoints")
+    assert given_sensors_problem(plan, sensors) is None
+    assert sensors_summary(plan.sensors) == "turn_truth with turn_signals.miss_rate=0.5"
+
+
+def test_plan_agent_itself_still_plans_it_as_shipped():
+    """What train's brief evaluation calls for its baselines: no refusal there, the agent's own preset."""
+    sensors = _truth_with_miss_rate()
+    plan = plan_agent("gap_acceptance", "left_turn", sensors, NONE, "checkpoints")
+    assert sensors_summary(plan.sensors) == "turn_truth (as shipped)"
+    assert given_sensors_problem(plan, sensors).startswith("sensors.turn_signals.miss_rate=0.5: ")
+    plain = plan_agent("always_proceed", "left_turn", sensors, NONE, "checkpoints")  # no preset of its own: gets it
+    assert given_sensors_problem(plain, sensors) is None
