@@ -145,18 +145,63 @@ def problems(cfg: Mapping, command: str) -> list[str]:
 def _own_preset_problems(agent: Any, sensors: Any, default: str | None) -> list[str]:
     """A rule-based agent that names its own sensors preset (``agent.sensors``: gap_acceptance's turn_truth) runs
     on it, whatever ``sensors=`` says: another preset given would be recorded in config.yaml but not run, so it is
-    refused. The command's ``default`` preset is no choice (eval's rule: eval/__main__.py given_sensors_problem)."""
+    refused. The command's ``default`` preset is no choice (eval's rule: eval/__main__.py given_sensors_problem),
+    but its ``sensors.*`` overrides are refused as eval refuses them (:func:`dropped_overrides_problem`)."""
     from agents.registry import AGENT_KINDS
 
     if not isinstance(agent, Mapping) or not isinstance(sensors, Mapping) or not agent.get("sensors"):
         return []
     kind = AGENT_KINDS.get(agent.get("kind")) if agent.get("kind") in AGENT_KINDS else None
     own, name, label = agent["sensors"], sensors.get("name"), agent.get("name")
-    if kind is None or kind.trained() or name in (own, default):
+    if kind is None or kind.trained() or name == own:
         return []
+    if name == default:  # no choice of preset, but its sensors.* overrides would not reach the agent's own either
+        return [line] if (line := dropped_overrides_problem(str(label), str(own), dict(sensors))) else []
     return [f"sensors={name}: agent {label} is rule-based and runs on its own sensors preset ({own}), so "
             f"sensors={name} would not reach it; evaluate it from {name} with eval's agents=[{label}@{name}], or "
             f"leave sensors= out"]
+
+
+def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:
+    """Nested mapping → ``{"a.b.c": leaf}`` (lists are leaves)."""
+    if not isinstance(d, Mapping):
+        return {prefix: d}
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        out.update(_flatten(v, f"{prefix}.{k}" if prefix else str(k)))
+    return out
+
+
+def sensor_overrides(sensors: Mapping | None, group: str = "sensors") -> dict[str, Any]:
+    """The command line's ``sensors.*`` changes: every field of the composed ``sensors`` that differs from (or is
+    not in) the shipped preset it names, as ``{"cameras.night": True}``. Works for sweeps too (each job composes
+    its own ``sensors``), and needs no access to the raw command line. ``group="shield"``: a shield's. Here, below
+    eval, so that train's command-line check uses it too (tests/test_imports.py)."""
+    from av_gym.presets import compose_group
+
+    if not sensors or not sensors.get("name"):
+        return {}
+    try:
+        shipped = _flatten(compose_group(group, str(sensors["name"])))
+    except ConfigError:  # a preset that is not shipped (a hand-made dict): nothing to compare with
+        return {}
+    return {k: v for k, v in _flatten(sensors).items() if k != "name" and (k not in shipped or shipped[k] != v)}
+
+
+def dropped_overrides_problem(label: str, own: str, given: Mapping) -> str | None:
+    """A rule-based agent with a preset of its own, run without ``@`` while ``sensors=`` is the command's default,
+    runs on that preset as shipped: the command line's ``sensors.*`` overrides (in ``given``, the composed default
+    preset) would not reach it (results.md would say ``turn_truth (as shipped)``), so they are refused with what
+    does (``agent@own``, which gets them). Eval's check and train's (:func:`_own_preset_problems`) share it; train's
+    brief evaluation of its baselines (``plan_agent``) does not refuse."""
+    changed = sensor_overrides(given)
+    if not changed:
+        return None
+    agent, plus, shield = label.partition("+")
+    given_line = " ".join(f"sensors.{k}={v!r}" for k, v in changed.items())
+    return (f"{given_line}: agent {label!r} runs on its own sensors preset ({own}) as shipped, so these overrides "
+            f"would not reach it; give them to it with agents=[{agent}@{own}{plus}{shield}] sensors={own} "
+            f"{given_line}, or leave them out")
 
 
 def _agent_sensor_problems(agent: Any, sensors: Any) -> list[str]:

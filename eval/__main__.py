@@ -18,6 +18,7 @@ from omegaconf import DictConfig
 
 from av_gym.atomic import OwnedFolders
 from av_gym.errors import ConfigError, check_folder, discard_hydra_run_dir, folder_problem, run_cli, run_hydra
+from conf.check import dropped_overrides_problem
 from conf.commands import EvalCommand
 from eval.meta import EvalMeta, exit_status, hand_written_problem, hydra_overrides
 
@@ -88,36 +89,19 @@ def given_sensors_problem(plan, given: dict, default: str = DEFAULT_SENSORS) -> 
     the table would say nothing of the preset asked for, and ``-m sensors=a,b`` would give the same rows twice)
     with what does: ``agent@preset``. The ``default`` preset (the command's own config's: what an agent without
     sensors of its own is given) is no choice, but its ``sensors.*`` overrides would not reach a rule-based agent's
-    own preset either, so they are refused (:func:`_dropped_overrides_problem`)."""
+    own preset either, so they are refused (:func:`conf.check.dropped_overrides_problem`)."""
     trained = (plan.trained_sensors or {}).get("name")
     own = trained or plan.own_sensors
     name = given.get("name")
     if own is None or "@" in plan.label or name == own:
         return None
     if name == default:
-        return None if trained else _dropped_overrides_problem(plan.label, own, given)
+        return None if trained else dropped_overrides_problem(plan.label, own, given)
     agent, plus, shield = plan.label.partition("+")
     why, same = ("the sensors it was trained with", " (the same observation space)") if trained else \
         ("its own sensors preset", "")
     return (f"sensors={name}: agent {plan.label!r} runs on {why} ({own}), so sensors={name} would not reach it; "
             f"drive it from {name} with agents=[{agent}@{name}{plus}{shield}]{same}, or leave sensors= out")
-
-
-def _dropped_overrides_problem(label: str, own: str, given: dict) -> str | None:
-    """A rule-based agent with a preset of its own, listed without ``@``, runs on that preset as shipped when
-    ``sensors=`` is the default: the command line's ``sensors.*`` overrides would not reach it (results.md would
-    say ``turn_truth (as shipped)``), so they are refused with what does (``agent@own``, which gets them). Only
-    here, where the user listed the agent: train's brief evaluation of its baselines runs them as before."""
-    from eval.agents import sensor_overrides
-
-    changed = sensor_overrides(given)
-    if not changed:
-        return None
-    agent, plus, shield = label.partition("+")
-    given_line = " ".join(f"sensors.{k}={v!r}" for k, v in changed.items())
-    return (f"{given_line}: agent {label!r} runs on its own sensors preset ({own}) as shipped, so these overrides "
-            f"would not reach it; give them to it with agents=[{agent}@{own}{plus}{shield}] sensors={own} "
-            f"{given_line}, or leave them out")
 
 
 def _check_plans(plans: list, command: EvalCommand, env_cfg: dict, given: dict) -> None:

@@ -21,6 +21,7 @@ from agents.configs import KIND_DEFAULT, available_agents, kind_default, shipped
 from agents.registry import AGENT_KINDS, OPINIONS, agent_params, opinion_problems, trained_kinds
 from av_gym.errors import ConfigError
 from av_gym.references import reference_root
+from conf.check import sensor_overrides  # noqa: F401 - moved below eval (train checks overrides too); used here
 from conf.presets import compose_group  # noqa: F401 - used here and imported from here by tests and tools
 
 __all__ = ["AgentPlan", "available_agents", "check_plan", "check_preset_space", "compose_group", "find_checkpoint",
@@ -272,29 +273,6 @@ class AgentPlan:
     trained_sensors: dict | None = None
     sensor_overrides: dict = field(default_factory=dict)
     own_sensors: str | None = None
-
-
-def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:
-    """Nested mapping → ``{"a.b.c": leaf}`` (lists are leaves)."""
-    if not isinstance(d, dict):
-        return {prefix: d}
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        out.update(_flatten(v, f"{prefix}.{k}" if prefix else str(k)))
-    return out
-
-
-def sensor_overrides(sensors: dict | None, group: str = "sensors") -> dict[str, Any]:
-    """The command line's ``sensors.*`` changes: every field of the composed ``sensors`` that differs from (or is
-    not in) the shipped preset it names, as ``{"cameras.night": True}``. Works for sweeps too (each job composes
-    its own ``sensors``), and needs no access to the raw command line. ``group="shield"``: a shield's."""
-    if not sensors or not sensors.get("name"):
-        return {}
-    try:
-        shipped = _flatten(compose_group(group, str(sensors["name"])))
-    except ConfigError:  # a preset that is not shipped (a hand-made dict): nothing to compare with
-        return {}
-    return {k: v for k, v in _flatten(sensors).items() if k != "name" and (k not in shipped or shipped[k] != v)}
 
 
 def _with_overrides(label: str, base: dict, overrides: dict[str, Any], whose: str = "it was trained with") -> dict:

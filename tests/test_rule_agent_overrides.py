@@ -2,7 +2,8 @@
 without ``@`` while ``sensors=`` is eval's default, runs on its preset as shipped: the command line's ``sensors.*``
 overrides would not reach it (results.md said ``turn_truth (as shipped)``), so eval refuses them in one line with
 what does (``agent@preset``, which gets them since 83c38ce). Train's brief evaluation of its baselines plans them as
-before (``plan_agent`` itself does not refuse)."""
+before (``plan_agent`` itself does not refuse). Train refuses the same at its command line, with the same line
+(conf.check.dropped_overrides_problem, which both import)."""
 
 from __future__ import annotations
 
@@ -55,3 +56,35 @@ def test_plan_agent_itself_still_plans_it_as_shipped():
     assert given_sensors_problem(plan, sensors).startswith("sensors.turn_signals.miss_rate=0.5: ")
     plain = plan_agent("always_proceed", "left_turn", sensors, NONE, "checkpoints")  # no preset of its own: gets it
     assert given_sensors_problem(plain, sensors) is None
+
+
+def test_train_refuses_them_too_with_evals_line(tmp_path, monkeypatch, capsys):
+    """``python -m train agent=gap_acceptance +sensors.turn_signals.miss_rate=0.5`` ran on turn_truth as shipped;
+    now refused at the command line with eval's line (one helper: conf.check.dropped_overrides_problem)."""
+    monkeypatch.chdir(tmp_path)
+    line = check_line("train", ["agent=gap_acceptance", "+sensors.turn_signals.miss_rate=0.5"], monkeypatch, capsys)
+    assert line == (
+        "error: sensors.turn_signals.miss_rate=0.5: agent 'gap_acceptance' runs on its own sensors preset "
+        "(turn_truth) as shipped, so these overrides would not reach it; give them to it with "
+        "agents=[gap_acceptance@turn_truth] sensors=turn_truth sensors.turn_signals.miss_rate=0.5, or leave them out"
+    ), line
+    assert not any(tmp_path.iterdir())
+
+
+def test_train_still_takes_a_trained_agents_overrides_and_a_plain_rule_agent():
+    """A trained kind trains on what it is given (overrides included); a rule-based agent on the default preset
+    with no overrides, or on its own preset with them, is not refused."""
+    from conf.check import _default_option, _own_preset_problems, check_command_line
+
+    (cfg,) = check_command_line("train", ["agent=ppo", "sensors=gnss_imu", "sensors.gnss.sigma=7.5"])
+    assert cfg["sensors"]["gnss"]["sigma"] == 7.5
+    default = _default_option("train", "sensors")
+    gnss = compose_group("sensors", "gnss_imu")
+    gnss["gnss"]["sigma"] = 7.5
+    assert _own_preset_problems({"name": "ppo", "kind": "ppo", "sensors": "gnss_imu"}, gnss, default) == []
+    gap = {"name": "gap_acceptance", "kind": "gap_acceptance", "sensors": "turn_truth"}
+    assert _own_preset_problems(gap, compose_group("sensors", default), default) == []
+    own = compose_group("sensors", "turn_truth")
+    own["turn_signals"]["miss_rate"] = 0.5
+    assert _own_preset_problems(gap, own, default) == []
+    assert _own_preset_problems(gap, _truth_with_miss_rate(), default) != []
