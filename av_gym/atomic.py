@@ -22,6 +22,7 @@ import contextlib
 import os
 from collections.abc import Iterator
 from pathlib import Path
+from typing import NoReturn
 
 from av_gym.errors import ConfigError
 
@@ -111,13 +112,26 @@ def write_new_or_exit(path: str | Path, text: str, field: str = "") -> Path:
     """:func:`write_text_new` as a script's last step: refused (a file there) or failed, one ``error:`` line on
     stderr and exit status 2 (the scripts' ``fail``). A script prints its result before calling it where the run
     is costly, so that a refused write loses nothing."""
-    import sys
-
     try:
         return write_text_new(path, text, field)
     except ConfigError as exc:
-        print(f"error: {' '.join(str(exc).split())}", file=sys.stderr)
-        sys.exit(2)
+        _exit_with(exc)
+
+
+def new_paths_or_exit(*paths: tuple[str | Path | None, str]) -> None:
+    """:func:`new_paths` as a script's first step, before its run: a taken path is one ``error:`` line on stderr
+    and exit status 2 (the scripts' ``fail``)."""
+    try:
+        new_paths(*paths)
+    except ConfigError as exc:
+        _exit_with(exc)
+
+
+def _exit_with(exc: ConfigError) -> NoReturn:
+    import sys
+
+    print(f"error: {' '.join(str(exc).split())}", file=sys.stderr)
+    sys.exit(2)
 
 
 def _beside(path: Path, tmp: Path) -> Path:

@@ -546,10 +546,9 @@ def main() -> None:
     if args.table:
         print(table(args.table))
         return
-    if args.out and Path(args.out).exists():
-        from av_gym.atomic import taken
+    from av_gym.atomic import new_paths_or_exit
 
-        fail(str(taken(args.out, "--out")))
+    new_paths_or_exit((args.out, "--out"))  # before the run: a taken path loses none of it
     if args.episodes < 1 or not (args.match > 0):
         fail("--episodes must be >= 1 and --match > 0 (m)")
     if args.seeds:

@@ -16,7 +16,6 @@ import argparse
 import csv
 import json
 import sys
-from pathlib import Path
 
 import numpy as np
 
@@ -102,10 +101,9 @@ def main() -> None:
     ap.add_argument("b", help="the second point's --rows CSV (e.g. a candidate)")
     ap.add_argument("--out", default=None, metavar="PATH", help="the result as JSON, p unrounded (a new file)")
     args = ap.parse_args()
-    if args.out and Path(args.out).exists():
-        from av_gym.atomic import taken
+    from av_gym.atomic import new_paths_or_exit
 
-        fail(str(taken(args.out, "--out")))
+    new_paths_or_exit((args.out, "--out"))  # before the run: a taken path loses none of it
     result = compare(outcomes(args.a), outcomes(args.b), (args.a, args.b))
     print(printed(result), flush=True)  # first: a print cut short (Ctrl-C, a closed pipe) leaves no unseen --out
     if args.out:  # linked into place: a file that appeared at --out since the check above is kept, not replaced

@@ -98,10 +98,9 @@ def main() -> None:
                     "--episodes (e.g. the episodes two points ended differently)")
     ap.add_argument("--rows", default=None, metavar="PATH", help="every episode's row as CSV (a new file)")
     args = ap.parse_args()
-    if args.rows and Path(args.rows).exists():
-        from av_gym.atomic import taken
+    from av_gym.atomic import new_paths_or_exit
 
-        fail(str(taken(args.rows, "--rows")))
+    new_paths_or_exit((args.rows, "--rows"))  # before the run: a taken path loses none of it
     seeds = args.seeds or range(args.seed, args.seed + args.episodes)
     if len(seeds) < 1 or any(s not in SPLITS["validation"] for s in (min(seeds), max(seeds))):
         fail(f"--seed/--episodes/--seeds must stay in the validation split {SPLITS['validation']}")
