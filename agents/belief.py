@@ -206,6 +206,25 @@ class BeliefLookaheadParams(AgentParams):
                                                               "hit (validation 1,953,000-1,953,999, benchmarks/"
                                                               "belief_tracks_diagnose.py; two at 1 of 16); 0: a "
                                                               "held GO is kept on its K alone")
+    start_brake: float = param(0.0, "m/s²", ge=0, le=10, doc="a GO to start (after a YIELD, or the first) is "
+                                                          "taken only where at most ``threshold`` of its futures "
+                                                          "(the decision's K and the recheck's, pooled as "
+                                                          "``recheck_pool`` says) collide or make another road "
+                                                          "user brake harder than this that does not brake so hard "
+                                                          "when the ego stops instead (the same future played with "
+                                                          "set-point 0): the safe-braking criterion of MOBIL "
+                                                          "(Kesting, Treiber, Helbing 2007, b_safe), a gap the ego "
+                                                          "takes only where nobody must brake hard or yield for it. "
+                                                          "Why: the GOs taken back before collisions had counted on "
+                                                          "a car yielding or braking hard for the ego (validation "
+                                                          "1,953,000-1,953,999, benchmarks/belief_tracks_takeback.py"
+                                                          "), which the real car, or its track half a second later, "
+                                                          "did not; a held GO is judged as before; 0: off")
+    start_brake_share: float = param(0.0, ge=0, le=1, doc="with ``start_brake``: a GO starts where at most this "
+                                                          "share of its futures (pooled as the collisions are) "
+                                                          "force such a brake, the collisions judged as before; "
+                                                          "0: a forced brake counts as a collision against "
+                                                          "``threshold``")
     confirm: int = param(1, "decisions", ge=1, le=10, doc="GO only once this many decisions running found GO safe "
                                                           "(a held GO is kept while it stays safe): a GO that one "
                                                           "draw of K futures finds safe right after risky ones is "
@@ -413,6 +432,8 @@ class BeliefPlanner:
             if ask.any():  # a GO to start: the futures of the recheck's own streams must find it safe too
                 p2 = self.go_collision(engine, r[ask], R, (RECHECK_STREAM,))
                 new[ask] = self.label_of((K * p[ask] + R * p2) / (K + R) if pool else p2)
+            if float(self.params.start_brake) > 0:
+                new = self.unforced(engine, r, new, held)
             if int(self.params.keep_recheck) > 0:
                 new = self.kept(engine, r, p, new, held)
             if self.params.committed_choice:
@@ -438,6 +459,52 @@ class BeliefPlanner:
         new[keep] = GO
         self.safe_run[rows[keep]] = np.maximum(self.safe_run[rows[keep]], int(self.params.confirm))
         return new
+
+    def unforced(self, engine, rows: np.ndarray, new: np.ndarray, held: np.ndarray) -> np.ndarray:
+        """``start_brake``: the choices ``new`` of ``rows`` (held choices ``held``) with a GO to start kept only
+        where the share of its futures that collide or force a hard brake (:meth:`forced_share`: the decision's K,
+        and with ``recheck`` the recheck's own, pooled under ``recheck_pool``) is at most ``threshold``."""
+        start = np.flatnonzero((np.asarray(new) == GO) & (np.asarray(held) != GO))
+        if len(start) == 0:
+            return new
+        K, R = self.K, int(self.params.recheck)
+        c, q = self.forced_share(engine, rows[start], K, ())
+        if R > 0:
+            c2, q2 = self.forced_share(engine, rows[start], R, (RECHECK_STREAM,))
+            pool = lambda a, a2: (K * a + R * a2) / (K + R) if self.params.recheck_pool else np.maximum(a, a2)  # noqa
+            c, q = pool(c, c2), pool(q, q2)
+        share = float(self.params.start_brake_share)
+        ok = self.label_of(c + q) == GO if share == 0 else q <= share + 1e-12
+        new = np.array(new, copy=True)
+        new[start] = np.where(ok, new[start], YIELD)
+        return new
+
+    def forced_share(self, engine, rows: np.ndarray, K: int, stream: tuple = ()) -> tuple[np.ndarray, np.ndarray]:
+        """The shares of K futures of each of ``rows`` (:meth:`go_collision`'s draws for ``K`` and ``stream``) in
+        which GO collides, and in which it does not but some road user brakes harder than ``start_brake`` (m/s²)
+        while it brakes less hard in the same future when the ego stops at once (set-point 0): a brake the ego's GO
+        forces on it."""
+        import time
+
+        rows = np.asarray(rows, dtype=int)
+        start, cpu = time.perf_counter(), time.process_time()
+        e = self.tracks.current(engine) if self.tracks is not None else engine
+
+        def drawn():  # the same futures each call: every draw from the decision's own seed sequences
+            f = self.futures(e, rows, K, stream)
+            if self.tracks is not None:
+                self.tracks.fill(f, rows, self.seed, K, stream)
+            return f
+
+        f = drawn()
+        safe, a_go = play_min_acc(f, float(f.speeds[-1]))
+        _, a_stop = play_min_acc(drawn(), float(f.speeds[0]))
+        b = float(self.params.start_brake)
+        forced = ((a_go < -b) & (a_stop >= -b)).any(axis=1)
+        self.seconds += time.perf_counter() - start
+        self.cpu_seconds += time.process_time() - cpu
+        n = len(rows)
+        return (~safe).reshape(n, K).mean(axis=1), (safe & forced).reshape(n, K).mean(axis=1)
 
     def _decision_collision(self, engine, rows: np.ndarray, held: np.ndarray) -> np.ndarray:
         """:meth:`go_collision` of ``rows`` at a decision (``held``: their held choices), judged as
@@ -709,6 +776,35 @@ def play_set_point_fast(f, top: float) -> np.ndarray:
                 keep = np.nonzero(live)[0]
                 idx, f, live = idx[keep], f.keep(keep), np.ones(len(keep), bool)
     return safe
+
+
+def play_min_acc(f, top: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`play_set_point_fast` of the future engine ``f`` at set-point ``top`` (m/s), also returning each road
+    user's hardest command (the lowest ``traffic.acc``, m/s²; +inf where it never drove uncrashed) over the play,
+    (B, N) in the slots of ``f``'s start, followed by vid (slots shift as vehicles leave); the ego and the vehicles
+    that enter later are left out (+inf)."""
+    from av_gym.sim.batched import FASTER, IDLE, SLOWER
+
+    t = f.traffic
+    vids = np.where(t.alive & ~t.ego, t.vid, -1)  # (B, N) the start's road users
+    low = np.full(vids.shape, np.inf)
+    safe = np.ones(f.B, bool)
+    live = np.ones(f.B, bool)
+    rows = np.arange(f.B)
+    while live.any():
+        sp = f.traffic.target[rows, f.ego_slot()]
+        meta = np.where(top > sp + 1e-3, FASTER, np.where(top < sp - 1e-3, SLOWER, IDLE))
+        _, terminated, truncated = f.step(meta, active=live)
+        t = f.traffic
+        driving = t.alive & ~t.ego & ~t.crashed & live[:, None]
+        same = (t.vid[:, :, None] == vids[:, None, :]) & driving[:, :, None] & (vids[:, None, :] >= 0)
+        low = np.minimum(low, np.where(same, t.acc[:, :, None], np.inf).min(axis=1))
+        ended = (terminated | truncated) & live
+        if ended.any():
+            e = np.flatnonzero(ended)
+            safe[e] = ~t.crashed[e, f.ego_slot(e)]
+            live &= ~ended
+    return safe, low
 
 
 def described(engine, rows) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
