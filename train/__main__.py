@@ -97,17 +97,22 @@ def _claim_folders(cfg: DictConfig, command: TrainCommand) -> Folders:
     """The run's folders, ours alone (a lock), resumable, or refused; cleared first with train.overwrite; the
     resolved config.yaml beside the checkpoints."""
     from train.checkpoint import write_text_atomic
-    from train.run_folder import clear_for_overwrite, release_all
+    from train.run_folder import clear_for_overwrite, job_folder_problem, release_all
 
-    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    run_dir, sweep = Path(HydraConfig.get().runtime.output_dir), HydraConfig.get().mode == RunMode.MULTIRUN
     ckpt_dir = Path(command.paths.checkpoints) / command.run_name
-    if HydraConfig.get().mode == RunMode.MULTIRUN:  # jobs of a sweep started in the same second share run_name
+    if sweep:  # jobs of a sweep started in the same second share run_name
         ckpt_dir = ckpt_dir.with_name(f"{ckpt_dir.name}-j{HydraConfig.get().job.num}")
     check_folder(ckpt_dir, "paths.checkpoints")  # one line, not a traceback, if it cannot be
+    # the job's folder, known only now for a sweep's job or a ${hydra:...} run dir: before anything is written
+    flag = "hydra.sweep.dir" if sweep else "hydra.run.dir"
+    problem = job_folder_problem(run_dir, ckpt_dir, command.train.resume, command.train.overwrite, flag)
+    if problem:
+        raise ConfigError(problem)
     claim_run(cfg, command, ckpt_dir, None)  # before config.yaml is written
     release_all(keep=ckpt_dir)
     if command.train.overwrite and not command.train.resume:
-        removed = clear_for_overwrite(ckpt_dir, run_dir)
+        removed = clear_for_overwrite(ckpt_dir, run_dir, flag)
         if removed:
             print(f"[train] train.overwrite=true: removed the previous run's {len(removed)} files and folders")
     write_text_atomic(ckpt_dir / "config.yaml", OmegaConf.to_yaml(config_as_ran(cfg), resolve=True))

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 import shutil
 from collections.abc import Mapping
 from pathlib import Path
@@ -49,6 +50,89 @@ _held = OwnedFolders()  # the checkpoint folders this process trains
 # What works for a run stopped before its first checkpoint: nothing of it is worth keeping, so it is cleared.
 RESTART = ("start it again with train.overwrite=true (its config.yaml and logs are removed), or pick another "
            "run_name")
+
+
+# What a run writes, and so all that train.overwrite=true removes. In its checkpoint folder: config.yaml
+# (train/__main__.py), the lock, every trainer's checkpoints (latest.zip, best.zip and best.json, model.zip or the
+# kind's own file: _checkpoint_names), DAgger's rounds.csv, an older run's latest.rng. In its log folder: Hydra's
+# record (.hydra, the job log *.log, a sweep's multirun.yaml), TensorBoard (tb), the periodic evaluation's eval.csv
+# and videos, DAgger's rounds.csv, PilotNet's demos.npz, the brief evaluation's results, a sweep job's error.txt.
+# Anything else there is the user's (notes, plots, a sub-folder): overwrite refuses rather than delete it or leave
+# it among a new run's files (overwrite_problem).
+CKPT_NAMES = frozenset({"config.yaml", LATEST, FINAL, "best.zip", "best.json", "rounds.csv", "latest.rng", LOCK})
+LOG_NAMES = frozenset({".hydra", "multirun.yaml", "tb", "videos", "eval.csv", "rounds.csv", "results.csv",
+                       "results.md", "demos.npz", "error.txt"})
+_TEMPORARY = re.compile(r"\.(.+)\.\d+\.tmp")  # av_gym.atomic.temporary_name: a write cut short (kill -9) leaves it
+
+
+def _checkpoint_names() -> frozenset[str]:
+    """:data:`CKPT_NAMES` and each trained kind's final checkpoint file (``model.pt`` of PilotNet)."""
+    from agents.registry import AGENT_KINDS, trained_kinds
+
+    return CKPT_NAMES | {AGENT_KINDS.get(kind).checkpoint for kind in trained_kinds()}
+
+
+def _a_runs(name: str, names: frozenset[str], logs: bool) -> bool:
+    """Whether a run writes ``name`` in a folder of ``names`` (``logs``: a log folder, where Hydra's job log
+    ``<job>.log`` is too), a temporary file of one of them included."""
+    temporary = _TEMPORARY.fullmatch(name)
+    base = temporary.group(1) if temporary else name
+    return base in names or (logs and base.endswith(".log"))
+
+
+def not_a_runs(folder: Path, logs: bool, also: frozenset[str] = frozenset()) -> list[str]:
+    """The names in ``folder`` (a run's checkpoint folder, or with ``logs`` its log folder) that no run writes:
+    the user's. ``also``: more names a run writes there (the other folder's, when both are one folder)."""
+    names = (LOG_NAMES if logs else _checkpoint_names()) | also
+    return [name for name in _contents(folder, ignore=()) if not _a_runs(name, names, logs)]
+
+
+def _listed(names: list[str]) -> str:
+    return f"{', '.join(names[:3])}{' ...' if len(names) > 3 else ''}"
+
+
+def _inside(outer: Path, inner: Path) -> frozenset[str]:
+    """The name in ``outer`` on the way to ``inner`` when one of the run's folders holds the other
+    (``hydra.run.dir=out paths.checkpoints=out/ckpt``): the run's own, neither the user's nor cleared as logs."""
+    outer, inner = outer.resolve(), inner.resolve()
+    return frozenset({inner.relative_to(outer).parts[0]}) if outer in inner.parents else frozenset()
+
+
+def overwrite_problem(ckpt_dir: Path, runs_dir: Path | None, runs_flag: str = "paths.runs/run_name") -> str | None:
+    """``train.overwrite=true`` removes only what a run writes (:data:`CKPT_NAMES`, :data:`LOG_NAMES`): a run's
+    folder that holds anything else (a user's notes.md, a plot, a sub-folder) is refused with nothing deleted,
+    rather than cleared or kept among the new run's files (which a later overwrite would then have to judge)."""
+    same = runs_dir is not None and runs_dir.resolve() == ckpt_dir.resolve()  # paths.runs=paths.checkpoints
+    found = [(ckpt_dir, "paths.checkpoints/run_name", not_a_runs(
+        ckpt_dir, logs=same, also=_checkpoint_names() if same else _inside(ckpt_dir, runs_dir or ckpt_dir)))]
+    if runs_dir is not None and not same:
+        found.append((runs_dir, runs_flag, not_a_runs(runs_dir, logs=True, also=_inside(runs_dir, ckpt_dir))))
+    for folder, flag, odd in found:
+        if odd:
+            return (f"train.overwrite=true: {flag}={folder} holds files a training run does not write "
+                    f"({_listed(odd)}), and overwrite removes only a run's own (checkpoints, config.yaml, logs, "
+                    f"TensorBoard, .hydra); nothing was deleted: move them out of it, or pick another "
+                    f"{flag if flag.startswith('hydra') else 'run_name'}")
+    return None
+
+
+def job_folder_problem(run_dir: Path, ckpt_dir: Path, resume: bool, overwrite: bool, flag: str) -> str | None:
+    """The folder Hydra made for this job (``hydra.run.dir``, a sweep job's ``hydra.sweep.dir``/``subdir``),
+    checked in the job before anything of the run is written in it: only there is it known for a ``-m`` job or a
+    ``${hydra:...}`` run dir (the command-line check sees the others first). Hydra's own files aside (``.hydra/``,
+    the job log, a sweep's multirun.yaml: written before the job starts), it may hold only a run's logs, and those
+    only to resume or overwrite them: a user's files are refused whatever the flags, as the command line does."""
+    same = run_dir.resolve() == ckpt_dir.resolve()  # paths.runs=paths.checkpoints: a run's checkpoints are its too
+    hydras = (".hydra", "multirun.yaml", LOCK, *_inside(run_dir, ckpt_dir))  # LOCK: paths.runs=paths.checkpoints
+    held = [name for name in _contents(run_dir, ignore=hydras) if not name.endswith(".log")]
+    odd = [name for name in held if not _a_runs(name, LOG_NAMES | (_checkpoint_names() if same else set()), True)]
+    if odd:
+        return (f"{flag}={run_dir}: holds files that are not a training run's logs ({_listed(odd)}), which a run "
+                f"never writes among or clears; pick another {flag} (an empty or new folder)")
+    if held and not (resume or overwrite):
+        return (f"{flag}={run_dir}: already holds a run's logs ({_listed(held)}); pick another {flag}, or replace "
+                f"it with train.overwrite=true")
+    return None
 
 
 def _contents(folder: Path, ignore: tuple[str, ...] = (LOCK,)) -> list[str]:
@@ -113,7 +197,7 @@ def ownership_problem(ckpt_dir: Path, runs_dir: Path | None, resume: bool, overw
                     return problem
         return finished_problem(ckpt_dir)
     if overwrite:
-        return None
+        return overwrite_problem(ckpt_dir, runs_dir, runs_flag)
     held = _contents(ckpt_dir)
     if dead_start(ckpt_dir):
         return f"run_name={name}: {ckpt_dir} holds a run that stopped before its first checkpoint (only " \
@@ -251,21 +335,25 @@ def discard_if_unstarted(ckpt_dir: Path) -> bool:
     return True
 
 
-def clear_for_overwrite(ckpt_dir: Path, run_dir: Path | None) -> list[str]:
+def clear_for_overwrite(ckpt_dir: Path, run_dir: Path | None, runs_flag: str = "hydra.run.dir") -> list[str]:
     """``train.overwrite=true``: delete the previous run's files (checkpoints; logs and TensorBoard except the
-    ``.hydra/`` and log Hydra just wrote for this job). Only under the run's lock. Returns what was removed."""
+    ``.hydra/`` and log Hydra just wrote for this job), and only those (:func:`overwrite_problem`, checked again
+    here: nothing is deleted when either folder holds what a run does not write). Only under the run's lock.
+    Returns what was removed."""
     if ckpt_dir not in _held:
         raise RuntimeError(f"clear_for_overwrite({ckpt_dir}) without holding its lock")
-    problem = shipped_problem_of(ckpt_dir, run_dir)  # Hydra's run folder too (hydra.run.dir is the user's)
-    if problem:
+    problem = shipped_problem_of(ckpt_dir, run_dir) or overwrite_problem(ckpt_dir, run_dir, runs_flag)
+    if problem:  # Hydra's run folder too (hydra.run.dir is the user's)
         raise ConfigError(problem)
     removed = []
-    for folder, keep in ((ckpt_dir, (LOCK,)), (run_dir, (".hydra",))):
+    for folder, keep, logs in ((ckpt_dir, (LOCK,), False), (run_dir, (".hydra",), True)):
         if folder is None:
             continue
+        names = LOG_NAMES if logs else _checkpoint_names()
+        keep = (*keep, *_inside(folder, run_dir if folder == ckpt_dir else ckpt_dir)) if run_dir else keep
         for name in _contents(folder, ignore=keep):
             path = folder / name
-            if folder == run_dir and path.suffix == ".log":
+            if (folder == run_dir and path.suffix == ".log") or not _a_runs(name, names, logs):
                 continue
             shutil.rmtree(path) if path.is_dir() and not path.is_symlink() else path.unlink()
             removed.append(str(path))
