@@ -225,6 +225,12 @@ class BeliefLookaheadParams(AgentParams):
                                                           "force such a brake, the collisions judged as before; "
                                                           "0: a forced brake counts as a collision against "
                                                           "``threshold``")
+    start_brake_yield: bool = param(False, doc="with ``start_brake``: a road user the regulation holds (yielding) "
+                                               "in GO's play and not when the ego stops counts as a forced brake "
+                                               "too, whatever its deceleration: a car standing at its line held "
+                                               "for the ego's GO brakes at 0 m/s², and four of the takebacks before "
+                                               "a collision were such a car pulling away (benchmarks/"
+                                               "belief_tracks_takeback.py); False: decelerations alone")
     confirm: int = param(1, "decisions", ge=1, le=10, doc="GO only once this many decisions running found GO safe "
                                                           "(a held GO is kept while it stays safe): a GO that one "
                                                           "draw of K futures finds safe right after risky ones is "
@@ -497,10 +503,12 @@ class BeliefPlanner:
             return f
 
         f = drawn()
-        safe, a_go = play_min_acc(f, float(f.speeds[-1]))
-        _, a_stop = play_min_acc(drawn(), float(f.speeds[0]))
+        safe, a_go, y_go = play_min_acc(f, float(f.speeds[-1]))
+        _, a_stop, y_stop = play_min_acc(drawn(), float(f.speeds[0]))
         b = float(self.params.start_brake)
         forced = ((a_go < -b) & (a_stop >= -b)).any(axis=1)
+        if self.params.start_brake_yield:
+            forced |= (y_go & ~y_stop).any(axis=1)
         self.seconds += time.perf_counter() - start
         self.cpu_seconds += time.process_time() - cpu
         n = len(rows)
@@ -778,16 +786,17 @@ def play_set_point_fast(f, top: float) -> np.ndarray:
     return safe
 
 
-def play_min_acc(f, top: float) -> tuple[np.ndarray, np.ndarray]:
+def play_min_acc(f, top: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`play_set_point_fast` of the future engine ``f`` at set-point ``top`` (m/s), also returning each road
-    user's hardest command (the lowest ``traffic.acc``, m/s²; +inf where it never drove uncrashed) over the play,
-    (B, N) in the slots of ``f``'s start, followed by vid (slots shift as vehicles leave); the ego and the vehicles
-    that enter later are left out (+inf)."""
+    user's hardest command (the lowest ``traffic.acc``, m/s²; +inf where it never drove uncrashed) over the play
+    and whether the regulation held it (``yielding``) after any step, each (B, N) in the slots of ``f``'s start,
+    followed by vid (slots shift as vehicles leave); the ego and the vehicles that enter later are left out (+inf,
+    False)."""
     from av_gym.sim.batched import FASTER, IDLE, SLOWER
 
     t = f.traffic
     vids = np.where(t.alive & ~t.ego, t.vid, -1)  # (B, N) the start's road users
-    low = np.full(vids.shape, np.inf)
+    low, held = np.full(vids.shape, np.inf), np.zeros(vids.shape, bool)
     safe = np.ones(f.B, bool)
     live = np.ones(f.B, bool)
     rows = np.arange(f.B)
@@ -799,12 +808,13 @@ def play_min_acc(f, top: float) -> tuple[np.ndarray, np.ndarray]:
         driving = t.alive & ~t.ego & ~t.crashed & live[:, None]
         same = (t.vid[:, :, None] == vids[:, None, :]) & driving[:, :, None] & (vids[:, None, :] >= 0)
         low = np.minimum(low, np.where(same, t.acc[:, :, None], np.inf).min(axis=1))
+        held |= (same & t.yielding[:, :, None]).any(axis=1)
         ended = (terminated | truncated) & live
         if ended.any():
             e = np.flatnonzero(ended)
             safe[e] = ~t.crashed[e, f.ego_slot(e)]
             live &= ~ended
-    return safe, low
+    return safe, low, held
 
 
 def described(engine, rows) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

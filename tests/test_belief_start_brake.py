@@ -34,10 +34,11 @@ def test_play_min_acc_is_each_road_users_hardest_command():
     fork = lambda: venv.engine.fork(rows, 2, rngs=[np.random.default_rng(7 + i) for i in range(2 * len(rows))])  # noqa
     f = fork()
     top = float(f.speeds[-1])
-    safe, low = play_min_acc(f, top)
+    safe, low, held = play_min_acc(f, top)
     ref = fork()
     t0 = ref.traffic
     start = [{int(v): np.inf for v in t0.vid[k][t0.alive[k] & ~t0.ego[k]]} for k in range(ref.B)]
+    yielded = [set() for _ in range(ref.B)]
     live, ref_safe = np.ones(ref.B, bool), np.ones(ref.B, bool)
     while live.any():
         sp = ref.traffic.target[np.arange(ref.B), ref.ego_slot()]
@@ -48,6 +49,8 @@ def test_play_min_acc_is_each_road_users_hardest_command():
             for j in np.flatnonzero(t.alive[k] & ~t.ego[k] & ~t.crashed[k]):
                 if int(t.vid[k, j]) in start[k]:
                     start[k][int(t.vid[k, j])] = min(start[k][int(t.vid[k, j])], float(t.acc[k, j]))
+                    if t.yielding[k, j]:
+                        yielded[k].add(int(t.vid[k, j]))
         ended = np.flatnonzero((term | trunc) & live)
         ref_safe[ended] = ~t.crashed[ended, ref.ego_slot(ended)]
         live &= ~(term | trunc)
@@ -57,8 +60,10 @@ def test_play_min_acc_is_each_road_users_hardest_command():
         for j in range(t0.N):
             want = start[k].get(int(t0.vid[k, j])) if t0.alive[k, j] and not t0.ego[k, j] else None
             assert low[k, j] == (np.inf if want is None else want), (k, j)
+            assert held[k, j] == (want is not None and int(t0.vid[k, j]) in yielded[k]), (k, j)
             braked += want is not None and want < -1.0
     assert braked > 0  # some road user braked in these futures: the minimum is not trivially the start's
+    assert held.any()  # and some were held by the regulation: the hold is not trivially False
     np.testing.assert_array_equal(safe, ref_safe)
 
 
@@ -80,11 +85,20 @@ def test_a_brake_forced_by_the_go_is_counted_apart_from_collisions(monkeypatch):
     go = np.array([[-6.0, inf], [-6.0, -1.0], [-6.0, inf], [-4.9, inf]])  # 4 futures, 2 road users
     stop = np.array([[-1.0, inf], [-1.0, -1.0], [-6.0, inf], [-1.0, inf]])
     safe = np.array([False, True, True, True])
-    monkeypatch.setattr(belief, "play_min_acc", lambda f, top: (safe, go) if top > 0 else (np.ones(4, bool), stop))
+    # held by the regulation: in future 3 the second road user in GO's play only, in future 2 in both plays
+    y_go = np.array([[False, False], [False, False], [True, False], [False, True]])
+    y_stop = np.array([[False, False], [False, False], [True, False], [False, False]])
+    monkeypatch.setattr(belief, "play_min_acc", lambda f, top: (safe, go, y_go) if top > 0
+                        else (np.ones(4, bool), stop, y_stop))
     c, q = planner.forced_share(None, np.array([0]), 4)
     # future 0 collides (its forced brake not counted twice); 1 forced; 2 brakes as hard when stopping; 3 mildly
     np.testing.assert_allclose(c, [0.25])
     np.testing.assert_allclose(q, [0.25])
+    # start_brake_yield: future 3's hold, which the GO alone brings, is forced too; future 2's is not
+    planner.params = BeliefLookaheadParams(samples=4, start_brake=5.0, start_brake_yield=True)
+    c, q = planner.forced_share(None, np.array([0]), 4)
+    np.testing.assert_allclose(c, [0.25])
+    np.testing.assert_allclose(q, [0.5])
 
 
 K, R = 16, 48
