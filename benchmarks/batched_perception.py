@@ -68,9 +68,9 @@ def main() -> None:
     args = parser.parse_args()
 
     from eval.batched import check_batched_plan, play_batched
-    from eval.runner import _single_threaded_torch, run_episodes
+    from eval.runner import single_threaded_torch, run_episodes
 
-    _single_threaded_torch()
+    single_threaded_torch()
     env_cfg, plan, policy, label = setup(args.agent)
     check_batched_plan(plan, env_cfg)
 

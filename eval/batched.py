@@ -184,10 +184,10 @@ def run_episodes_batched(env_cfg: dict, plan, policy, seeds: Sequence[int], n_en
     **episode_metrics}``, in the order of ``seeds`` (each appended to ``out``, if given, once every earlier seed's
     row is in). ``workers`` > 1: :func:`play_batched_workers`, each worker building the plan's agent itself
     (``checkpoints``: where it resolves it; ``policy`` is not used and may be None)."""
-    from eval.runner import _single_threaded_torch
+    from eval.runner import single_threaded_torch
 
     check_batched_plan(plan, env_cfg)
-    _single_threaded_torch()
+    single_threaded_torch()
     sensors = NO_OBS_SENSORS if plan_kind(plan) == "always_proceed" else plan.sensors
     if workers > 1:
         job = BatchedJob(env_cfg, plan, sensors, str(checkpoints), label)
@@ -217,14 +217,14 @@ def _init_batched_worker(job: BatchedJob, rows) -> None:
     import io
 
     from eval.agents import make_eval_env, resolve_agent
-    from eval.runner import _single_threaded_torch
+    from eval.runner import single_threaded_torch
 
     _WORKER.update(job=job, rows=rows)
     env = make_eval_env(job.env, job.plan.sensors, job.plan.shield)
     with contextlib.redirect_stdout(io.StringIO()):  # the parent already said which checkpoint it uses
         _, _WORKER["policy"] = resolve_agent(job.plan.spec, env, job.env["name"], job.checkpoints)
     env.close()
-    _single_threaded_torch()
+    single_threaded_torch()
 
 
 class _Sent:

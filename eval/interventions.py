@@ -198,7 +198,7 @@ def build(spec: str, env_set: list[str], shield_set: list[str], checkpoints: str
     intra-op pool left at one thread, as for ``python -m eval``'s episodes."""
     from av_gym.batched.shield import shield_kind
     from eval.agents import compose_group, make_eval_env, plan_agent, resolve_agent
-    from eval.runner import _single_threaded_torch
+    from eval.runner import single_threaded_torch
 
     env_cfg = _apply({"name": "left_turn"}, env_set)
     plan = plan_agent(spec, "left_turn", compose_group("sensors", "truth"), compose_group("shield", "none"),
@@ -208,9 +208,9 @@ def build(spec: str, env_set: list[str], shield_set: list[str], checkpoints: str
     with contextlib.redirect_stdout(io.StringIO()):
         _, policy = resolve_agent(plan.spec, env, "left_turn", checkpoints)
     # Each worker (and the parent, with --workers 1) builds its agent here: torch on one thread, as python -m
-    # eval's episodes (eval.runner._single_threaded_torch): a default pool spins on busy shared cores (~7 steps/s
+    # eval's episodes (eval.runner.single_threaded_torch): a default pool spins on busy shared cores (~7 steps/s
     # instead of ~340 for PilotNet) and may sum a network's matmuls in another order than the evaluated episodes.
-    _single_threaded_torch()
+    single_threaded_torch()
     return plan.label, env, policy
 
 

@@ -34,10 +34,10 @@ def record_lap(env, policy, seed: int, video: bool = False, desc: str | None = N
     from tqdm import tqdm
 
     from av_gym.sensors.camera import CameraSpec, render_view
-    from eval.runner import _single_threaded_torch
+    from eval.runner import single_threaded_torch
 
     spec = CameraSpec()
-    _single_threaded_torch()  # as the evaluated lap (eval.runner): the same actions, and no spinning pool
+    single_threaded_torch()  # as the evaluated lap (eval.runner): the same actions, and no spinning pool
     obs, info = env.reset(seed=int(seed))
     policy.reset()
     trace = {"progress": [], "cte": [], "steering": [], "frames": []}
@@ -245,7 +245,7 @@ def turn_videos(env_cfg, plans, out_dir: str | Path, first_seed: int, checkpoint
     import cv2
 
     from eval.agents import make_eval_env, resolve_agent
-    from eval.runner import _single_threaded_torch
+    from eval.runner import single_threaded_torch
 
     paths = []
     for plan in plans:
@@ -253,7 +253,7 @@ def turn_videos(env_cfg, plans, out_dir: str | Path, first_seed: int, checkpoint
               f"turn_{_slug(plan.label)}.webm", flush=True)
         env = make_eval_env(env_cfg, plan.sensors, plan.shield, render_mode="rgb_array")
         _, policy = resolve_agent(plan.spec, env, env_cfg["name"], checkpoints)
-        _single_threaded_torch()  # as the evaluated episode (eval.runner): the same actions, and no spinning pool
+        single_threaded_torch()  # as the evaluated episode (eval.runner): the same actions, and no spinning pool
         obs, _ = env.reset(seed=int(first_seed))
         policy.reset()
         frames, done, t = [], False, 0.0

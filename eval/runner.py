@@ -20,7 +20,7 @@ from tqdm import tqdm
 from agents import Policy
 
 
-def _single_threaded_torch() -> None:
+def single_threaded_torch() -> None:
     """torch's intra-op pool to one thread, in any process that drives a policy for an evaluation (a worker, the
     parent, the figures' extra lap): call it after the policy is built, before it acts."""
     # A multi-threaded matmul may sum in a different order from one run to the next (and from one process to
@@ -38,7 +38,7 @@ def run_episodes(env: gym.Env, policy: Policy, seeds: Iterable[int], label: str,
     """One row per seed: ``{"agent", "episode", "seed", **info["episode_metrics"]}``. ``env`` must be wrapped in
     :class:`av_gym.metrics.recorder.EpisodeMetrics` (as :func:`av_gym.make.make_env` does). Each row is also
     appended to ``out`` (if given) as its episode ends, so that a caller interrupted half-way keeps them."""
-    _single_threaded_torch()
+    single_threaded_torch()
     # Seeds are drawn one by one, never listed: episodes=10**12 is a long run, not a MemoryError before the first.
     total = len(seeds) if hasattr(seeds, "__len__") else None
     rows = []
@@ -160,7 +160,7 @@ def _init_worker(job: EpisodeJob) -> None:
     env = make_eval_env(job.env, job.sensors, job.shield)
     with contextlib.redirect_stdout(io.StringIO()):  # the parent already said which checkpoint it uses
         _, policy = resolve_agent(job.spec, env, job.env_name, job.checkpoints)
-    _single_threaded_torch()
+    single_threaded_torch()
     _WORKER.update(env=env, policy=policy)
 
 

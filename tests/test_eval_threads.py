@@ -1,5 +1,5 @@
 """The laps ``python -m eval`` drives again for its figures (``eval.plots``) act with torch on one thread, as the
-evaluated episodes do (``eval.runner._single_threaded_torch``). With ``n_envs > 1`` the episodes run in worker
+evaluated episodes do (``eval.runner.single_threaded_torch``). With ``n_envs > 1`` the episodes run in worker
 processes and the parent never set it: the figures' lap then ran torch's default pool (one thread per core), which
 spins on a busy machine (PilotNet on the cameras: ~7 steps/s instead of ~340 on 2 shared cores) and may sum a
 network's matmuls in another order than the evaluated lap did."""

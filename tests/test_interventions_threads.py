@@ -1,5 +1,5 @@
 """``python -m eval.interventions`` drives its agent with torch on one thread, as ``python -m eval``'s episodes do
-(``eval.runner._single_threaded_torch``): its workers and, with ``--workers 1``, the parent build the agent in
+(``eval.runner.single_threaded_torch``): its workers and, with ``--workers 1``, the parent build the agent in
 ``eval.interventions.build`` (the pool's initializer ``_init`` calls it). Unpinned, torch's default pool (one thread
 per core) spins on a busy machine (PilotNet on the cameras: ~7 steps/s instead of ~340 on 2 shared cores) and may sum
 a network's matmuls in another order than the evaluated episodes did."""
