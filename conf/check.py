@@ -138,28 +138,56 @@ def problems(cfg: Mapping, command: str) -> list[str]:
     found += check(settings_cls, {k: v for k, v in settings.items() if k not in unknown}, "", what=what)
     if not found and command == "train":
         found += _agent_sensor_problems(cfg.get("agent"), cfg.get("sensors"))
-        found += _own_preset_problems(cfg.get("agent"), cfg.get("sensors"), _default_option(command, "sensors"))
+        found += _own_preset_problems(cfg.get("agent"), cfg.get("sensors"), default_sensors(command))
     return found
 
 
 def _own_preset_problems(agent: Any, sensors: Any, default: str | None) -> list[str]:
-    """A rule-based agent that names its own sensors preset (``agent.sensors``: gap_acceptance's turn_truth) runs
-    on it, whatever ``sensors=`` says: another preset given would be recorded in config.yaml but not run, so it is
-    refused. The command's ``default`` preset is no choice (eval's rule: eval/__main__.py given_sensors_problem),
-    but its ``sensors.*`` overrides are refused as eval refuses them (:func:`dropped_overrides_problem`)."""
+    """Train's side of :func:`own_sensors_problem`: a rule-based agent that names its own sensors preset
+    (``agent.sensors``: gap_acceptance's turn_truth) runs on it, whatever ``sensors=`` says (config.yaml records it:
+    train.__main__.config_as_ran). A trained kind trains on the sensors it is given."""
     from agents.registry import AGENT_KINDS
 
     if not isinstance(agent, Mapping) or not isinstance(sensors, Mapping) or not agent.get("sensors"):
         return []
     kind = AGENT_KINDS.get(agent.get("kind")) if agent.get("kind") in AGENT_KINDS else None
-    own, name, label = agent["sensors"], sensors.get("name"), agent.get("name")
-    if kind is None or kind.trained() or name == own:
+    if kind is None or kind.trained():
         return []
-    if name == default:  # no choice of preset, but its sensors.* overrides would not reach the agent's own either
-        return [line] if (line := dropped_overrides_problem(str(label), str(own), dict(sensors))) else []
-    return [f"sensors={name}: agent {label} is rule-based and runs on its own sensors preset ({own}), so "
-            f"sensors={name} would not reach it; evaluate it from {name} with eval's agents=[{label}@{name}], or "
-            f"leave sensors= out"]
+    line = own_sensors_problem(str(agent.get("name")), str(agent["sensors"]), dict(sensors), default, "train")
+    return [line] if line else []
+
+
+def own_sensors_problem(label: str, own: str | None, given: Mapping, default: str | None, command: str,
+                        trained: bool = False) -> str | None:
+    """The one rule, worded once, for an agent that runs on sensors of its own (``own``: a trained agent's, from
+    its checkpoint or ``@preset``; a rule-based agent's own preset, gap_acceptance's turn_truth) while the command
+    line gives ``sensors=`` (``given``, composed, ``default``: the command's own preset, :func:`default_sensors`):
+
+    - its own preset: it runs on it with the command line's ``sensors.*`` overrides, so nothing to refuse;
+    - the default preset: no choice of the user's; a trained agent gets the overrides on top of its own sensors,
+      a rule-based agent would run on its own preset as shipped, so its overrides are refused;
+    - another preset would not reach it (the table would say nothing of the preset asked for, and ``-m
+      sensors=a,b`` would give the same rows twice), so it is refused.
+
+    Each refusal ends with what ``command`` accepts instead: eval's ``agents=[agent@preset]``; train (no ``@``
+    form: a rule-based agent runs on its own preset there) ``sensors=<own>``, which gets the overrides."""
+    name = given.get("name")
+    if own is None or name == own:
+        return None
+    agent, plus, shield = label.partition("+")
+    if name == default:
+        changed = sensor_overrides(given)
+        if trained or not changed:
+            return None
+        given_line = " ".join(f"sensors.{k}={v!r}" for k, v in changed.items())
+        where = f"agents=[{agent}@{own}{plus}{shield}] sensors={own}" if command == "eval" else f"sensors={own}"
+        return (f"{given_line}: agent {label!r} runs on its own sensors preset ({own}) as shipped, so these "
+                f"overrides would not reach it; give them to it with {where} {given_line}, or leave them out")
+    why = "the sensors it was trained with" if trained else "its own sensors preset"
+    fix = (f"drive it from {name} with agents=[{agent}@{name}{plus}{shield}]"
+           f"{' (the same observation space)' if trained else ''}, or leave sensors= out" if command == "eval" else
+           f"train runs it on {own}: leave sensors= out, or give sensors={own} (its sensors.* overrides reach it)")
+    return f"sensors={name}: agent {label!r} runs on {why} ({own}), so sensors={name} would not reach it; {fix}"
 
 
 def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:
@@ -186,22 +214,6 @@ def sensor_overrides(sensors: Mapping | None, group: str = "sensors") -> dict[st
     except ConfigError:  # a preset that is not shipped (a hand-made dict): nothing to compare with
         return {}
     return {k: v for k, v in _flatten(sensors).items() if k != "name" and (k not in shipped or shipped[k] != v)}
-
-
-def dropped_overrides_problem(label: str, own: str, given: Mapping) -> str | None:
-    """A rule-based agent with a preset of its own, run without ``@`` while ``sensors=`` is the command's default,
-    runs on that preset as shipped: the command line's ``sensors.*`` overrides (in ``given``, the composed default
-    preset) would not reach it (results.md would say ``turn_truth (as shipped)``), so they are refused with what
-    does (``agent@own``, which gets them). Eval's check and train's (:func:`_own_preset_problems`) share it; train's
-    brief evaluation of its baselines (``plan_agent``) does not refuse."""
-    changed = sensor_overrides(given)
-    if not changed:
-        return None
-    agent, plus, shield = label.partition("+")
-    given_line = " ".join(f"sensors.{k}={v!r}" for k, v in changed.items())
-    return (f"{given_line}: agent {label!r} runs on its own sensors preset ({own}) as shipped, so these overrides "
-            f"would not reach it; give them to it with agents=[{agent}@{own}{plus}{shield}] sensors={own} "
-            f"{given_line}, or leave them out")
 
 
 def _agent_sensor_problems(agent: Any, sensors: Any) -> list[str]:
@@ -401,6 +413,13 @@ def _groups(command: str) -> list[str]:
     shipped = yaml.safe_load((resources.files("conf") / f"{command}.yaml").read_text())
     return [next(iter(d)) for d in shipped.get("defaults", []) if isinstance(d, dict) and
             not next(iter(d)).startswith(("override", "/"))]
+
+
+def default_sensors(command: str) -> str | None:
+    """The sensors preset ``python -m <command>`` gives when ``sensors=`` is left out (its defaults list in
+    conf/<command>.yaml: ``truth``): what an agent without sensors of its own runs on, and no choice of the user's
+    (:func:`own_sensors_problem`). Read here alone, for train and eval."""
+    return _default_option(command, "sensors")
 
 
 def _default_option(command: str, group: str) -> str | None:

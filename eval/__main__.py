@@ -18,12 +18,11 @@ from omegaconf import DictConfig
 
 from av_gym.atomic import OwnedFolders
 from av_gym.errors import ConfigError, check_folder, discard_hydra_run_dir, folder_problem, run_cli, run_hydra
-from conf.check import dropped_overrides_problem
+from conf.check import default_sensors, own_sensors_problem
 from conf.commands import EvalCommand
 from eval.meta import EvalMeta, exit_status, hand_written_problem, hydra_overrides
 
 OUT_DIRS = OwnedFolders()  # the out_dirs this process is writing
-DEFAULT_SENSORS = "truth"  # conf/eval.yaml's sensors: what an agent without sensors of its own is given
 
 
 def _check(cfg: DictConfig) -> EvalCommand:
@@ -74,7 +73,7 @@ def _batched_sensors(plan, env_cfg: dict):
     if env_cfg.get("name") != "left_turn" or plan_kind(plan) != "always_proceed":
         return plan  # refused or run as planned: check_batched_plan
     given = plan.sensors or {}
-    if given.get("name") != DEFAULT_SENSORS or sensor_overrides(given):
+    if given.get("name") != default_sensors("eval") or sensor_overrides(given):
         try:  # what the batch can run, on the sensors chosen (check_batched_plan skips them for always_proceed)
             check_batchable(env_cfg, given, plan.shield, with_shield=True)
         except ConfigError as exc:
@@ -82,26 +81,16 @@ def _batched_sensors(plan, env_cfg: dict):
     return dataclasses.replace(plan, sensors=dict(NO_OBS_SENSORS))
 
 
-def given_sensors_problem(plan, given: dict, default: str = DEFAULT_SENSORS) -> str | None:
+def given_sensors_problem(plan, given: dict) -> str | None:
     """A trained agent runs on the sensors it was trained with (its checkpoint's config.yaml), with the command
     line's ``sensors.*`` overrides on top; a rule-based agent that names its own preset (``gap_acceptance``:
-    turn_truth) runs on that. A ``sensors=<preset>`` of another name would not reach either, so it is refused (run,
-    the table would say nothing of the preset asked for, and ``-m sensors=a,b`` would give the same rows twice)
-    with what does: ``agent@preset``. The ``default`` preset (the command's own config's: what an agent without
-    sensors of its own is given) is no choice, but its ``sensors.*`` overrides would not reach a rule-based agent's
-    own preset either, so they are refused (:func:`conf.check.dropped_overrides_problem`)."""
+    turn_truth) runs on that. Whether ``sensors=`` (``given``) reaches it is :func:`conf.check.own_sensors_problem`'s
+    rule, which train's check shares; ``agent@preset`` has chosen its preset already."""
     trained = (plan.trained_sensors or {}).get("name")
-    own = trained or plan.own_sensors
-    name = given.get("name")
-    if own is None or "@" in plan.label or name == own:
+    if "@" in plan.label:
         return None
-    if name == default:
-        return None if trained else dropped_overrides_problem(plan.label, own, given)
-    agent, plus, shield = plan.label.partition("+")
-    why, same = ("the sensors it was trained with", " (the same observation space)") if trained else \
-        ("its own sensors preset", "")
-    return (f"sensors={name}: agent {plan.label!r} runs on {why} ({own}), so sensors={name} would not reach it; "
-            f"drive it from {name} with agents=[{agent}@{name}{plus}{shield}]{same}, or leave sensors= out")
+    return own_sensors_problem(plan.label, trained or plan.own_sensors, given, default_sensors("eval"), "eval",
+                               trained=bool(trained))
 
 
 def _check_plans(plans: list, command: EvalCommand, env_cfg: dict, given: dict) -> None:

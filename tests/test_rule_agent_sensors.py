@@ -1,7 +1,7 @@
 """A rule-based agent that names its own sensors preset (``gap_acceptance``, ``lookahead``: turn_truth) runs on it:
 a ``sensors=<other>`` on the command line would not reach it, so eval (per env and on the batch) and train refuse
-it in one line with what does (``agent@preset``), as they do for a trained agent; the command's default preset is
-no choice. Its ``@preset`` gets the command line's ``sensors.*`` overrides as a trained agent's sensors do, and
+it in one line with what each accepts (eval: ``agent@preset``; train, which has no ``@`` form: ``sensors=<its own>``),
+as they do for a trained agent; the command's default preset is no choice (one rule: conf.check.own_sensors_problem). Its ``@preset`` gets the command line's ``sensors.*`` overrides as a trained agent's sensors do, and
 results.md's summary says so (prober R, W1 and W2)."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 
 from av_gym.errors import ConfigError
 from av_gym.presets import compose_group
-from conf.check import _default_option, _own_preset_problems
+from conf.check import _own_preset_problems, default_sensors
 from eval.__main__ import given_sensors_problem
 from eval.agents import plan_agent, sensors_summary
 from tests.test_bad_input import check_line
@@ -51,13 +51,14 @@ def test_eval_runs_its_own_preset_the_default_and_agent_at_preset(spec, given):
 def test_train_refuses_it_too_and_accepts_the_default(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     line = check_line("train", ["agent=gap_acceptance", "sensors=turn_perceived"], monkeypatch, capsys)
-    assert line == ("error: sensors=turn_perceived: agent gap_acceptance is rule-based and runs on its own sensors "
-                    "preset (turn_truth), so sensors=turn_perceived would not reach it; evaluate it from "
-                    "turn_perceived with eval's agents=[gap_acceptance@turn_perceived], or leave sensors= out"), line
+    assert line == ("error: sensors=turn_perceived: agent 'gap_acceptance' runs on its own sensors preset "
+                    "(turn_truth), so sensors=turn_perceived would not reach it; train runs it on turn_truth: leave "
+                    "sensors= out, or give sensors=turn_truth (its sensors.* overrides reach it)"), line
+    assert "@" not in line  # eval's agents=[x@preset]: train has no such form
     assert not any(tmp_path.iterdir())
     agent = {"name": "gap_acceptance", "kind": "gap_acceptance", "sensors": "turn_truth"}
-    default = _default_option("train", "sensors")
-    assert default == "truth"
+    default = default_sensors("train")
+    assert default == "truth" == default_sensors("eval")
     for name in (default, "turn_truth"):
         assert _own_preset_problems(agent, {"name": name}, default) == []
     assert _own_preset_problems({"name": "ppo_turn", "kind": "ppo", "sensors": "turn_truth"}, {"name": "cameras"},
