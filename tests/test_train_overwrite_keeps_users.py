@@ -141,6 +141,35 @@ def test_a_jobs_folder_of_a_run_is_refused_without_a_flag_and_cleared_with_overw
     assert sorted(p.name for p in logs.iterdir()) == [".hydra", "__main__.log"]
 
 
+def test_a_plain_runs_folder_the_command_line_checked_is_resumed_with_the_users_notes(tmp_path, monkeypatch,
+                                                                                      released):
+    """``run_name=R train.resume=true`` of a run whose runs/R/ the user added notes to: the command line saw R's
+    .hydra/config.yaml and let it pass (a resume deletes nothing), so the job does not refuse it; a sweep job's
+    folder like it (never checked before Hydra wrote there) is refused."""
+    from conf.check import check_command_line
+    from conf.commands import TrainCommand
+    from tests.test_reliability import LANE, a_run
+    from train import __main__ as train_main
+
+    monkeypatch.chdir(tmp_path)
+    (a_run(tmp_path, "R", LANE) / "model.zip").unlink()  # stopped: resumable
+    logs = tmp_path / "runs" / "R"
+    (logs / ".hydra").mkdir(parents=True)
+    (logs / ".hydra" / "config.yaml").write_text(RUN_CONFIG)
+    (logs / "notes.md").write_text("mine\n")
+    argv = [*LANE, "run_name=R", "train.resume=true"]
+    monkeypatch.setattr(sys, "argv", ["train", *argv])
+    train_main._check_command_line()
+    (cfg,) = check_command_line("train", argv)
+    _job(monkeypatch, logs, sweep=False)
+    train_main._claim_folders(cfg, TrainCommand.of(cfg))
+    assert (logs / "notes.md").read_text() == "mine\n"
+    train_main._LINE_CHECKED.clear()  # a sweep's job: its command line checked no folder
+    _job(monkeypatch, logs, sweep=True)
+    with pytest.raises(ConfigError, match="not a training run's logs \\(notes.md\\)"):
+        train_main._claim_folders(cfg, TrainCommand.of(cfg))
+
+
 def _train(argv: list[str], cwd: Path) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
     return subprocess.run([sys.executable, "-m", "train", *argv, *RULE, "train.progress_bar=false"], cwd=cwd,

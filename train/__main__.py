@@ -104,11 +104,13 @@ def _claim_folders(cfg: DictConfig, command: TrainCommand) -> Folders:
     if sweep:  # jobs of a sweep started in the same second share run_name
         ckpt_dir = ckpt_dir.with_name(f"{ckpt_dir.name}-j{HydraConfig.get().job.num}")
     check_folder(ckpt_dir, "paths.checkpoints")  # one line, not a traceback, if it cannot be
-    # the job's folder, known only now for a sweep's job or a ${hydra:...} run dir: before anything is written
+    # the job's folder, known only now for a sweep's job or a ${hydra:...} run dir: checked before anything is
+    # written (one the command line checked is not: it saw the folder before Hydra wrote .hydra/ in it)
     flag = "hydra.sweep.dir" if sweep else "hydra.run.dir"
-    problem = job_folder_problem(run_dir, ckpt_dir, command.train.resume, command.train.overwrite, flag)
-    if problem:
-        raise ConfigError(problem)
+    if run_dir.resolve() not in _LINE_CHECKED:
+        problem = job_folder_problem(run_dir, ckpt_dir, command.train.resume, command.train.overwrite, flag)
+        if problem:
+            raise ConfigError(problem)
     claim_run(cfg, command, ckpt_dir, None)  # before config.yaml is written
     release_all(keep=ckpt_dir)
     if command.train.overwrite and not command.train.resume:
@@ -256,12 +258,19 @@ def run_dir_of(cfg: DictConfig, command: TrainCommand, argv: list[str]) -> tuple
         return None, "hydra.run.dir"
 
 
+# The log folder the command-line check of a plain run checked (train.run_folder.ownership_problem), before Hydra
+# wrote its .hydra/ there: the job does not check it again (train.run_folder.job_folder_problem, for the folders
+# only a job knows, cannot tell a run's .hydra/ from the one Hydra has just written).
+_LINE_CHECKED: set[Path] = set()
+
+
 def _check_command_line() -> None:
     """The command line composed and checked once per config (conf/check.py), where the checkpoints go, and for a
     plain run the run's folders claimed: all before Hydra makes a folder."""
     from conf.check import check_command_line
 
     commands = []
+    _LINE_CHECKED.clear()
 
     def check(cfg: DictConfig) -> None:  # its fields were checked by check_command_line
         command = _check_needs(cfg)
@@ -277,8 +286,10 @@ def _check_command_line() -> None:
         # before Hydra writes runs/<run_name>/.hydra: a run that is not ours is refused with nothing written; the
         # lock is held by this process until it exits (a sweep's jobs each claim their own -j<n> folder)
         cfg, command = configs[0], commands[0]
-        claim_run(cfg, command, Path(command.paths.checkpoints) / command.run_name,
-                  *run_dir_of(cfg, command, sys.argv[1:]))
+        run_dir, runs_flag = run_dir_of(cfg, command, sys.argv[1:])
+        claim_run(cfg, command, Path(command.paths.checkpoints) / command.run_name, run_dir, runs_flag)
+        if run_dir is not None:
+            _LINE_CHECKED.add(run_dir.resolve())
 
 
 @hydra.main(config_path="pkg://conf", config_name="train", version_base="1.3")

@@ -20,6 +20,11 @@
 - the shipped references (:func:`av_gym.references.reference_root`) are neither a run's folder nor inside one, nor
   held by one (``run_name=reference``, ``paths.checkpoints=checkpoints/reference``, ``paths.runs=.``), whatever
   ``train.resume``/``train.overwrite`` say: ``train.overwrite=true`` would clear them;
+- ``train.overwrite=true`` removes only what a run writes (:data:`CKPT_NAMES`, :data:`LOG_NAMES`): a run's folder
+  that also holds a user's files (notes, plots, a sub-folder) is refused with nothing deleted
+  (:func:`overwrite_problem`), and a folder holding files but no run's config is never written into, whatever the
+  flags (:func:`foreign_problem`); the folder Hydra makes for a ``-m`` job or a ``${hydra:...}`` run dir is known
+  only in the job, and checked there before the job writes (:func:`job_folder_problem`);
 - a refusal gives only advice that works: a finished run is not told to resume; a run of a trained kind stopped
   before its first checkpoint (its folder holds only config.yaml) is told that ``train.overwrite=true`` starts it
   again.
