@@ -1,8 +1,9 @@
 """A rule-based agent that names its own sensors preset (``gap_acceptance``, ``lookahead``: turn_truth) runs on it:
 a ``sensors=<other>`` on the command line would not reach it, so eval (per env and on the batch) and train refuse
-it in one line with what each accepts (eval: ``agent@preset``; train, which has no ``@`` form: ``sensors=<its own>``),
-as they do for a trained agent; the command's default preset is no choice (one rule: conf.check.own_sensors_problem). Its ``@preset`` gets the command line's ``sensors.*`` overrides as a trained agent's sensors do, and
-results.md's summary says so (prober R, W1 and W2)."""
+it in one line with what each accepts (eval: ``agent@preset``; train, which has no ``@`` form: ``sensors=<its
+own>``), as they do for a trained agent; the command's default preset is no choice (one rule:
+conf.check.own_sensors_problem). Its ``@preset`` gets the command line's ``sensors.*`` overrides as a trained
+agent's sensors do, and results.md's summary says so (prober R, W1 and W2)."""
 
 from __future__ import annotations
 
