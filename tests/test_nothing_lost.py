@@ -464,10 +464,10 @@ def results_copy(tmp_path):
     assert len(per_agent) == 5 and all(len(rows) == 1000 for rows in per_agent.values())
     kept = {line for rows in per_agent.values() for line in rows[:100]}
     csv_file.write_text(header + "".join(line for line in lines if line in kept))
-    from eval.results_page import BEGIN, END
+    from eval.results_page import BEGIN, END, PAGE_HEAD
 
     (tmp_path / "README.md").write_text("# title\n\n" + BEGIN + "\nold\n" + END + "\n\nthe rest\n" * 2000)
-    (tmp_path / "page.md").write_text("old page\n")
+    (tmp_path / "page.md").write_text(PAGE_HEAD + "old page\n")  # a page the tool wrote: it may replace it
     return root
 
 
