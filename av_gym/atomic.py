@@ -200,6 +200,21 @@ def save_figure_atomic(fig, path: str | Path, field: str = "", **kwargs) -> Path
     return path
 
 
+def save_figure_new(fig, path: str | Path, field: str = "", **kwargs) -> Path:
+    """:func:`save_figure_atomic` for a figure that must be a new file (:func:`new_path`): a file at ``path``, there
+    before or appeared meanwhile, is kept and the save refused (:class:`FileExists`, one line naming ``field``)."""
+    path = Path(path)
+    kwargs.setdefault("format", path.suffix.lstrip(".") or "png")
+    with new_path(path, field) as tmp:
+        fig.savefig(tmp, **kwargs)
+    return path
+
+
+def save_figure(fig, path: str | Path, field: str = "", overwrite: bool = False, **kwargs) -> Path:
+    """:func:`save_figure_atomic` where the user asked to replace (``overwrite``), else :func:`save_figure_new`."""
+    return (save_figure_atomic if overwrite else save_figure_new)(fig, path, field, **kwargs)
+
+
 def _exchange(a: Path, b: Path) -> bool:
     """Swap the folders ``a`` and ``b`` in one step (Linux ``renameat2(RENAME_EXCHANGE)``); False where the system
     or the file system cannot (the caller falls back to two renames)."""

@@ -128,3 +128,22 @@ def out_file_problem(path: str, flag: str) -> str | None:
     parent = str(Path(path).parent)
     problem = out_folder_problem(parent, flag)
     return problem.replace(f"{flag}={parent}:", f"{flag}={path}:", 1) if problem else None
+
+
+def out_figure_problem(path: str, flag: str, overwrite: bool | None = None) -> str | None:
+    """:func:`out_file_problem` for a figure, checked before the work: also a suffix matplotlib cannot write
+    (``--out t.csv`` was a traceback after the run), and unless ``overwrite``, a file already there (a figure or
+    anyone's file is never replaced unasked; ``overwrite`` None: the tool has no ``--overwrite`` to offer)."""
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    problem = out_file_problem(path, flag)
+    if problem:
+        return problem
+    formats = sorted(FigureCanvasBase.get_supported_filetypes())
+    suffix = Path(path).suffix.lstrip(".").lower()
+    if suffix not in formats:
+        return f"{flag}={path}: a figure's suffix must be one of {formats} (matplotlib's formats), got {suffix!r}"
+    if not overwrite and Path(path).exists():
+        remedy = " or give --overwrite" if overwrite is not None else ""
+        return f"{flag}={path}: exists; choose another file{remedy} (a file is never replaced unasked)"
+    return None

@@ -7,9 +7,11 @@ Each ``results.csv`` is what ``python -m eval`` writes (one row per episode); ev
 point with 95 % Wilson intervals on both axes. ``--point`` adds a point measured elsewhere (label=collision,success).
 ``--rule-sweep`` first evaluates the gap-acceptance rule (``conf/agent/gap_acceptance.yaml``'s miss distance) at each
 ``t_gap`` (s) on ``--episodes`` seeds from ``--seed`` and adds the rule's curve; its rows go beside the PNG
-(``<out>.rule_sweep.csv``; given back as a results file, those rows draw the curve without re-running it). ``--relabel
-agent=label`` renames an agent of the rows. The sweep plays on the batched engine (``--n-envs`` episodes at a time; the per-env rows
-within the engine's equivalence, docs/performance.md), so 500 episodes per threshold cost about a minute. Labels with the same name before ``#`` (``ppo_turn#s1``) are drawn in one colour, their
+(``<out>.rule_sweep.csv``; given back as a results file, those rows draw the curve without re-running it). A file at
+``--out`` or at its sweep file is replaced only with ``--overwrite`` (checked before any episode, as is the figure's
+suffix). ``--relabel agent=label`` renames an agent of the rows. The sweep plays on the batched engine (``--n-envs``
+episodes at a time; the per-env rows within the engine's equivalence, docs/performance.md), so 500 episodes per
+threshold cost about a minute. Labels with the same name before ``#`` (``ppo_turn#s1``) are drawn in one colour, their
 mean as a larger marker.
 """
 
@@ -22,8 +24,8 @@ import numpy as np
 
 from av_gym.metrics.stats import wilson_ci
 from av_gym.seeds import SPLITS
-from av_gym.atomic import csv_text, save_figure_atomic, write_text_atomic
-from conf.cli import Extend, ToolParser, items
+from av_gym.atomic import csv_text, save_figure, write_text_atomic, write_text_new
+from conf.cli import ToolParser, items, number, out_figure_problem
 
 
 def read_rows(paths: list[str]) -> list[dict]:
@@ -69,7 +71,7 @@ def points(rows: list[dict]) -> dict[str, tuple]:
 ZOOM = (0.12, 0.6)  # the zoom panel: collision <= 0.12 and success >= 0.6, where the learned drivers crowd
 
 
-def plot(pts: dict[str, tuple], rule: list[str], out: Path, title: str) -> None:
+def plot(pts: dict[str, tuple], rule: list[str], out: Path, title: str, overwrite: bool = False) -> None:
     """The whole plane on the left; on the right the crowded corner of low collision and high success (ZOOM), each
     agent's name written where it can be read (in the left panel only the points outside that corner are named)."""
     import matplotlib
@@ -122,7 +124,7 @@ def plot(pts: dict[str, tuple], rule: list[str], out: Path, title: str) -> None:
                                        color="0.5", lw=0.8))
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
-    save_figure_atomic(fig, out, "--out", dpi=110)  # whole or as it was
+    save_figure(fig, out, "--out", overwrite, dpi=110)  # whole or as it was; a file there kept unless --overwrite
     plt.close(fig)
 
 
@@ -132,14 +134,24 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", required=True, type=Path)
     parser.add_argument("--point", action="append", default=[], help='"label=collision,success"')
     parser.add_argument("--rule-sweep", default=[], type=items(float, low=0), help="t_gap values (s), [2,4,8]")
-    parser.add_argument("--episodes", type=int, default=300)
+    parser.add_argument("--episodes", type=number(int, low=1), default=300, help="seeds per t_gap, >= 1")
     parser.add_argument("--seed", type=int, default=SPLITS["validation"].start,
                         help="first seed of the rule sweep (default: the validation split's first, av_gym/seeds.py)")
-    parser.add_argument("--n-envs", type=int, default=250, help="episodes stepped together in the rule sweep")
+    parser.add_argument("--n-envs", type=number(int, low=1), default=250,
+                        help="episodes stepped together in the rule sweep, >= 1")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace --out (and with --rule-sweep its .rule_sweep.csv) if there")
     parser.add_argument("--relabel", action="append", default=[],
                         help='"agent in results.csv=label" (repeatable): e.g. seeds of one run as "ppo_turn#s1"')
     parser.add_argument("--title", default="Left turn in traffic: safety vs progress")
     args = parser.parse_args(argv)
+    sweep_csv = args.out.with_suffix(".rule_sweep.csv")
+    problem = out_figure_problem(str(args.out), "--out", args.overwrite)  # before any row is read or played
+    if not problem and args.rule_sweep and sweep_csv.exists() and not args.overwrite:
+        problem = (f"--out={args.out}: its sweep file {sweep_csv} exists; choose another --out or give --overwrite "
+                   f"(a file is never replaced unasked)")
+    if problem:
+        parser.error(f"argument {problem}")
     rows = read_rows(args.results)
     relabel = dict(r.split("=", 1) for r in args.relabel)
     for r in rows:
@@ -150,9 +162,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.rule_sweep:
         swept = rule_sweep(args.rule_sweep, args.episodes, args.seed,
                            args.n_envs)
-        sweep_csv = args.out.with_suffix(".rule_sweep.csv")
         sweep_csv.parent.mkdir(parents=True, exist_ok=True)
-        write_text_atomic(sweep_csv, csv_text(swept), "--out")
+        (write_text_atomic if args.overwrite else write_text_new)(sweep_csv, csv_text(swept), "--out")
         rule = list(dict.fromkeys(r["agent"] for r in swept))  # the new sweep replaces any rule rows read back
         rows = [r for r in rows if not r["agent"].startswith("gap_acceptance t_gap=")]
         rows += [{k: str(v) for k, v in r.items()} for r in swept]
@@ -163,7 +174,7 @@ def main(argv: list[str] | None = None) -> None:
         pts[label] = (c, s, (c, c), (s, s), 0)
     for label, (c, s, _, _, n) in pts.items():
         print(f"{label:40s} n={n:4d}  collision {c:.3f}  success {s:.3f}")
-    plot(pts, rule, args.out, args.title)
+    plot(pts, rule, args.out, args.title, args.overwrite)
     print(f"[tradeoff] {args.out}")
 
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+import conf.cli  # noqa: F401  (the conf package imports in ~2 s: paid at collection, not by the first test)
 from tests.test_results_page import _folder
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -63,3 +64,59 @@ def test_results_page_keeps_a_users_file_and_regenerates_its_own_page(results, t
     assert main(["--results", str(results), "--out", str(page)]) == 0
     assert page.read_text().startswith(PAGE_HEAD) and "an older page" not in page.read_text()
     assert main(["--results", str(results), "--out", str(page), "--check"]) == 0
+
+
+# ------------------------------------------------------------------------ eval.tradeoff
+def _tradeoff(argv: list[str], capsys) -> tuple[int, str]:
+    from eval.tradeoff import main
+
+    try:
+        main(argv)
+    except SystemExit as exc:
+        return int(exc.code or 0), capsys.readouterr().err
+    return 0, capsys.readouterr().err
+
+
+@pytest.fixture
+def rows_csv(tmp_path) -> Path:
+    path = tmp_path / "results.csv"
+    path.write_text("agent,collision,success\n" + "a,0,1\na,1,0\nb,0,0\n")
+    return path
+
+
+def test_tradeoff_keeps_a_figure_and_a_sweep_there_unless_overwrite(rows_csv, tmp_path, capsys):
+    """``--out t.png`` replaced the user's t.png, and ``--rule-sweep`` the committed 5,000-row sweep beside it."""
+    out = tmp_path / "t.png"
+    assert _tradeoff([str(rows_csv), "--out", str(out)], capsys)[0] == 0 and out.stat().st_size > 0
+    before = _digest(out)
+    code, err = _tradeoff([str(rows_csv), "--out", str(out), "--title", "another"], capsys)
+    assert code == 2 and f"--out={out}: exists; choose another file or give --overwrite" in _one_line(err), err
+    assert _digest(out) == before
+    sweep = tmp_path / "s.rule_sweep.csv"
+    sweep.write_text("the committed sweep\n")
+    code, err = _tradeoff([str(rows_csv), "--out", str(tmp_path / "s.png"), "--rule-sweep", "2", "--episodes", "1",
+                           "--n-envs", "1"], capsys)
+    assert code == 2 and f"its sweep file {sweep} exists" in _one_line(err), err
+    assert sweep.read_text() == "the committed sweep\n" and not (tmp_path / "s.png").exists()
+    code, err = _tradeoff([str(rows_csv), "--out", str(out), "--title", "another", "--overwrite"], capsys)
+    assert code == 0 and _digest(out) != before
+
+
+@pytest.mark.parametrize("flag, value, needle", [
+    ("--episodes", "-5", "argument --episodes: expected an integer >= 1, got '-5'"),
+    ("--episodes", "0", "argument --episodes: expected an integer >= 1, got '0'"),
+    ("--n-envs", "0", "argument --n-envs: expected an integer >= 1, got '0'"),
+    ("--out", "t.csv", "a figure's suffix must be one of"),
+])
+def test_tradeoff_refuses_bad_numbers_and_suffixes_before_any_work(flag, value, needle, rows_csv, tmp_path, capsys,
+                                                                   monkeypatch):
+    """``--episodes -5`` and ``--n-envs 0`` ran an empty sweep (rc 0); ``--out t.csv`` was matplotlib's traceback
+    after the work."""
+    import eval.tradeoff
+
+    monkeypatch.setattr(eval.tradeoff, "rule_sweep", lambda *a: pytest.fail("the sweep ran"))
+    argv = [str(rows_csv), "--out", str(tmp_path / "t.png"), "--rule-sweep", "2"]
+    argv += [flag, str(tmp_path / value) if flag == "--out" else value]
+    code, err = _tradeoff(argv, capsys)
+    assert code == 2 and needle in _one_line(err), err
+    assert not list(tmp_path.glob("t.*png")) and not list(tmp_path.glob("*.rule_sweep.csv"))
