@@ -35,7 +35,9 @@ footprint minus the lane's near edge, until the target's rear has passed the tur
 the oncoming lane then); time to exit (s). Writes ``results.csv`` (one row per case and agent, ``agent``
 column), ``results.md`` (aggregates per agent, variant and mode, and per-case grids), ``grid.png`` (every case
 coloured by outcome, one row of panels per agent when there are several) and ``timeline.png`` (speed, predicted
-TTC and stage over time for one case).
+TTC and stage over time for one case). A ``--out`` that already holds any of these is refused before any run
+(another run's results, or someone's files), unless ``--overwrite``; a value repeated in a grid flag is refused
+too (its cases would be run and counted twice).
 
     python -m eval.ccftap                                    # all four variants × both modes, 2 workers
     python -m eval.ccftap --variants improved --modes ground_truth --out runs/ccftap/gt
@@ -398,6 +400,9 @@ def _ccftap_bounds() -> dict[str, dict]:
             for f in dataclasses.fields(CCFtapParams)}
 
 
+OUTPUTS = ("results.csv", "results.md", "grid.png", "timeline.png")  # what a run writes in --out
+
+
 class _Refused(Exception):
     """A bad flag found once the arguments are parsed: ``error: <message>``, exit status 2."""
 
@@ -409,6 +414,16 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"argument {out_folder_problem(a.out, '--out')}")
     if len(a.plot_case) != 3:
         p.error(f"argument --plot-case: expected [ego km/h, target km/h, dt], got {a.plot_case}")
+    for flag, values in (("--ego", a.ego), ("--target", a.target), ("--dts", a.dts), ("--variants", a.variants),
+                         ("--modes", a.modes)):  # a repeat would run and count its cases twice
+        repeated = next((v for i, v in enumerate(values) if v in values[:i]), None)
+        if repeated is not None:
+            shown = f"{repeated:g}" if isinstance(repeated, float) else repeated
+            p.error(f"argument {flag}: {shown} is given twice; give each value once")
+    held = [name for name in OUTPUTS if a.out is not None and (Path(a.out) / name).exists()]
+    if held and not a.overwrite:  # another run's results, or the user's files: before any run
+        p.error(f"argument --out={a.out} already holds {', '.join(held)}; pick another --out, or replace them with "
+                f"--overwrite")
     try:
         _ccftap(a, argv)
     except _Refused as exc:
@@ -442,6 +457,7 @@ def _parser() -> ToolParser:
     p.add_argument("--plot-case", default=[15.0, 45.0, 0.0], type=items(float),
                    help="ego km/h, target km/h, dt for timeline.png: [15,45,0]")
     p.add_argument("--out", default=None, help="output folder (default runs/ccftap/<time>)")
+    p.add_argument("--overwrite", action="store_true", help=f"replace the {', '.join(OUTPUTS)} --out already holds")
     return p
 
 

@@ -6,9 +6,9 @@ with bursty misses (``--miss-rates``, mean miss run ``--burst-length`` frames) f
 tracks are scored against the true vehicles within the detector's range (:class:`av_gym.metrics.tracking.
 TrackingScore`: Hungarian matching, 2 m gate): recall, precision, F1, position RMSE, and the recovered-miss rate
 (true vehicles the detector missed that frame but the tracker still reports). Writes ``tracking.md`` and
-``tracking.csv``.
+``tracking.csv``; a ``--out`` that holds either is refused before any episode unless ``--overwrite``.
 
-    python -m eval.tracking --episodes 20 --out docs/tracking
+    python -m eval.tracking --episodes 20 --out docs/tracking --overwrite
 """
 
 from __future__ import annotations
@@ -19,8 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from av_gym.atomic import csv_text, write_text_atomic
-from conf.cli import Extend, ToolParser, items
+from av_gym.atomic import csv_text, write_texts_atomic
+from conf.cli import ToolParser, items, number, out_folder_problem
+
+OUTPUTS = ("tracking.md", "tracking.csv")  # what a run writes in --out
 
 
 def run(miss_rate: float, burst_length: float | None, episodes: int, seed: int, detector_overrides: dict,
@@ -75,11 +77,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--miss-rates", default=[0.1, 0.3, 0.5], type=items(float, low=0, high=1),
                    help="detector miss rates, [0.1,0.3]")
     p.add_argument("--burst-length", type=float, default=5.0, help="mean miss run, frames (0 = independent)")
-    p.add_argument("--episodes", type=int, default=20)
+    p.add_argument("--episodes", type=number(int, low=1), default=20, help="episodes per miss rate, >= 1")
     p.add_argument("--seed", type=int, default=1000)
     p.add_argument("--out", default=None, help="output folder (default runs/tracking/<time>)")
+    p.add_argument("--overwrite", action="store_true", help=f"replace the {' and '.join(OUTPUTS)} --out holds")
     a = p.parse_args(argv)
     out = Path(a.out or f"runs/tracking/{time.strftime('%Y%m%d-%H%M%S')}")
+    held = [name for name in OUTPUTS if (out / name).exists()]
+    problem = out_folder_problem(out, "--out") or (held and not a.overwrite and (
+        f"--out={out} already holds {', '.join(held)}; pick another --out, or replace them with --overwrite"))
+    if problem:  # before any episode: the committed 20-episode tables were replaced by a 1-episode run
+        p.error(f"argument {problem}")
     out.mkdir(parents=True, exist_ok=True)
     burst = a.burst_length if a.burst_length > 0 else None
     from av_gym.shields.aeb import ImprovedAEB
@@ -103,13 +111,13 @@ def main(argv: list[str] | None = None) -> int:
             "recovered_miss_rate", "objects (tp+fn)"]
     table = markdown_table(rows, cols)
     cmd = "python -m eval.tracking " + " ".join(argv if argv is not None else sys.argv[1:])
-    write_text_atomic(out / "tracking.md",
+    write_texts_atomic({out / "tracking.md":
         f"# Tracking before/after the Kalman tracker\n\n`{cmd}`: {a.episodes} traffic episodes from seed {a.seed} "
         f"(always-proceed ego, detector defaults (DetectorParams): 60 m range, σ = 0.3 m + 0.01·r, "
         f"clutter 0.2/frame, occlusion on), misses bursty with mean run {a.burst_length:g} frames; tracker as in "
         f"conf/shield/aeb.yaml. Scored every 0.1 s against the true vehicles within range, Hungarian matching, "
-        f"2 m gate. Wall time {time.time() - t_start:.0f} s.\n\n{table}\n", "--out")
-    write_text_atomic(out / "tracking.csv", csv_text([{k: r[k] for k in cols} for r in rows], cols), "--out")
+        f"2 m gate. Wall time {time.time() - t_start:.0f} s.\n\n{table}\n",
+        out / "tracking.csv": csv_text([{k: r[k] for k in cols} for r in rows], cols)}, "--out")  # both or neither
     print(table)
     print(f"[tracking] wrote {out}/tracking.md, tracking.csv")
     return 0

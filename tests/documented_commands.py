@@ -146,7 +146,7 @@ KNOWN: dict[str, str] = {
     "python -m eval.ccftap --agents [always_proceed,ppo_turn,ppo_turn_shielded] --variants [none,improved] "
     "--modes [ground_truth]": "run",
     "python -m eval env=left_turn agents=[always_proceed,always_proceed+aeb] episodes=200": "run",
-    "python -m eval.ccftap --out docs/ccftap": "run",
+    "python -m eval.ccftap --out docs/ccftap --overwrite": "run",
     "python -m eval.tracking --episodes 20": "run",
     "python -m eval.interventions --agents [always_proceed+aeb] --episodes 100": "run",
     "python -m eval env=lane_keeping agents=[pid_paper,pid_gnss,pid_localized] episodes=5": "run",
@@ -156,7 +156,7 @@ KNOWN: dict[str, str] = {
     "python -m train run_name=my-run agent.total_timesteps=200000 train.resume=true": RESUME,
     # docs/shield.md
     "python -m eval env=left_turn env.mode=ccftap agents=[always_proceed+aeb_paper] episodes=1": "run",
-    "python -m eval.tracking --episodes 20 --out docs/tracking": "run",
+    "python -m eval.tracking --episodes 20 --out docs/tracking --overwrite": "run",
     # docs/sensors.md
     "python -m eval env=lane_keeping env.track=A agents=[checkpoints/reference/pilotnet] sensors=cameras "
     "episodes=20 n_envs=2": "run",
@@ -426,8 +426,9 @@ CONSOLE_SCRIPTS = {"av-gym-train": "train", "av-gym-eval": "eval"}  # pyproject 
 OUT_FLAG = {"eval.ccftap": "--out", "eval.tracking": "--out", "eval.interventions": "--out",
             "eval.localization": "--out-dir", "eval.tradeoff": "--out", "train.pid_search": "--out"}
 TOOL_ARGS = {
-    "eval.ccftap": [("--ego", ["20"]), ("--target", ["60"]), ("--dts", ["0"]), ("--workers", ["1"])],
-    "eval.tracking": [("--episodes", ["1"]), ("--miss-rates", ["0.3"])],
+    "eval.ccftap": [("--ego", ["20"]), ("--target", ["60"]), ("--dts", ["0"]), ("--workers", ["1"]),
+                    ("--overwrite", [])],  # a block's commands share one --out
+    "eval.tracking": [("--episodes", ["1"]), ("--miss-rates", ["0.3"]), ("--overwrite", [])],
     "eval.interventions": [("--episodes", ["1"]), ("--overwrite", [])],  # a block's commands share one --out
     "eval.localization": [("--lap-seeds", ["100"]), ("--turn-seeds", ["100"]), ("--pid-seeds", ["100"])],
     "eval.tradeoff": [("--episodes", ["4"]), ("--n-envs", ["4"])],

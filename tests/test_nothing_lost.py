@@ -541,7 +541,7 @@ def test_ccftap_on_a_full_disk_is_one_line_and_no_empty_png(how, tmp_path, monke
             no_space()
         monkeypatch.setattr(matplotlib.figure.Figure, "savefig", half)
     code = main(["--ego", "[20]", "--target", "[60]", "--dts", "[0]", "--workers", "1", "--variants", "[none]",
-                 "--plot-case", "[20,60,0]", "--out", str(out)])
+                 "--plot-case", "[20,60,0]", "--out", str(out), "--overwrite"])  # the previous grid may be replaced
     err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert code == 2 and len(err) == 1 and err[0].startswith("error: --out: cannot write ") and \
         "No space left on device" in err[0], err

@@ -120,3 +120,74 @@ def test_tradeoff_refuses_bad_numbers_and_suffixes_before_any_work(flag, value, 
     code, err = _tradeoff(argv, capsys)
     assert code == 2 and needle in _one_line(err), err
     assert not list(tmp_path.glob("t.*png")) and not list(tmp_path.glob("*.rule_sweep.csv"))
+
+
+# ------------------------------------------------------------------------ eval.ccftap
+CASE = ["--agents", "[always_proceed]", "--variants", "[none]", "--modes", "[ground_truth]", "--ego", "[10]",
+        "--target", "[30]", "--dts", "[0]", "--workers", "1"]
+
+
+def _ccftap(argv: list[str], capsys) -> tuple[int, str]:
+    from eval.ccftap import main
+
+    try:
+        code = main(argv)
+    except SystemExit as exc:
+        code = int(exc.code or 0)
+    return code, capsys.readouterr().err
+
+
+def test_ccftap_keeps_a_folders_results_unless_overwrite(tmp_path, capsys, monkeypatch):
+    """``--out cc`` replaced the user's cc/results.md (rc 0); eval.interventions refuses the same."""
+    import eval.ccftap
+
+    out = tmp_path / "cc"
+    out.mkdir()
+    (out / "results.md").write_text("my results\n")
+    (out / "notes.txt").write_text("my notes\n")
+    monkeypatch.setattr(eval.ccftap, "_run_tasks", lambda *a: pytest.fail("the grid ran"))
+    code, err = _ccftap([*CASE, "--out", str(out)], capsys)
+    assert code == 2 and f"argument --out={out} already holds results.md; pick another --out, or replace them " \
+                         "with --overwrite" in _one_line(err), err
+    assert (out / "results.md").read_text() == "my results\n" and sorted(p.name for p in out.iterdir()) == \
+        ["notes.txt", "results.md"]
+    monkeypatch.undo()
+    code, err = _ccftap([*CASE, "--out", str(out), "--overwrite"], capsys)
+    assert code == 0 and (out / "results.md").read_text() != "my results\n" and (out / "notes.txt").exists()
+
+
+@pytest.mark.parametrize("flag, value, shown", [("--ego", "[10,10]", "10"), ("--target", "30,45,30", "30"),
+                                                ("--dts", "[0,0.0]", "0"), ("--variants", "[none,none]", "none"),
+                                                ("--modes", "[ground_truth,ground_truth]", "ground_truth")])
+def test_ccftap_refuses_a_repeated_grid_value(flag, value, shown, tmp_path, capsys, monkeypatch):
+    """``--ego '[10,10]'`` ran 66 cases instead of 33 and counted each twice (rc 0)."""
+    import eval.ccftap
+
+    monkeypatch.setattr(eval.ccftap, "_run_tasks", lambda *a: pytest.fail("the grid ran"))
+    argv = [*CASE, flag, value, "--out", str(tmp_path / "cc")]
+    code, err = _ccftap(argv, capsys)
+    assert code == 2 and f"argument {flag}: {shown} is given twice; give each value once" in _one_line(err), err
+    assert not (tmp_path / "cc").exists()
+
+
+# ------------------------------------------------------------------------ eval.tracking
+def test_tracking_keeps_the_tables_there_unless_overwrite(tmp_path, capsys, monkeypatch):
+    """``--episodes 1 --out docs/tracking`` replaced the committed 20-episode tracking.md/csv (rc 0)."""
+    import eval.tracking
+
+    out = tmp_path / "tracking"
+    out.mkdir()
+    (out / "tracking.csv").write_text("the measured table\n")
+    real_run = eval.tracking.run
+    monkeypatch.setattr(eval.tracking, "run", lambda *a: pytest.fail("an episode ran"))
+    for argv, needle in ((["--out", str(out)], f"argument --out={out} already holds tracking.csv; pick another "
+                                               "--out, or replace them with --overwrite"),
+                         (["--out", str(tmp_path / "new"), "--episodes", "0"],
+                          "argument --episodes: expected an integer >= 1, got '0'")):
+        with pytest.raises(SystemExit) as exc:
+            eval.tracking.main(["--miss-rates", "0.3", *argv])
+        assert exc.value.code == 2 and needle in _one_line(capsys.readouterr().err)
+    assert (out / "tracking.csv").read_text() == "the measured table\n" and not (tmp_path / "new").exists()
+    monkeypatch.setattr(eval.tracking, "run", real_run)
+    assert eval.tracking.main(["--miss-rates", "0.3", "--episodes", "1", "--out", str(out), "--overwrite"]) == 0
+    assert (out / "tracking.csv").read_text().startswith("miss_rate,") and (out / "tracking.md").is_file()
