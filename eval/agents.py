@@ -164,9 +164,9 @@ def _checkpoint_file(path: Path, env_name: str) -> tuple[str, Path]:
     else:
         model_path = path
         kind = next((k for k in loadable if Path(_checkpoint_name(k)).suffix == path.suffix), None)
-        if kind is None:
-            raise ConfigError(f"checkpoint {str(path)!r}: unknown file type; expected one of "
-                              f"{[_checkpoint_name(k) for k in loadable]}")
+        if kind is None:  # each file name once (several kinds share model.zip)
+            raise ConfigError(f"checkpoint {str(path)!r}: unknown file type; expected a checkpoint folder or one of "
+                              f"{list(dict.fromkeys(_checkpoint_name(k) for k in loadable))}")
     if not model_path.is_file():
         raise ConfigError(f"checkpoint {str(model_path)!r} does not exist")
     if model_path.suffix == ".zip":  # empty, truncated or corrupt: one line now, not a traceback from SB3 later
@@ -358,6 +358,9 @@ def plan_agent(spec: str, env_name: str, sensors: dict, shield: dict, checkpoint
     agent's ``@preset`` gets the command line's overrides as a trained agent's sensors do
     (``gap_acceptance@turn_perceived sensors=turn_perceived sensors.detector.miss_rate=0.5``)."""
     base, _, shield_name = str(spec).partition("+")
+    if "@" in shield_name:  # ppo_turn+aeb@turn_perceived: the preset would be read as part of the shield's name
+        shield_name, _, late = shield_name.partition("@")
+        raise ConfigError(f"agent {spec!r}: @preset goes before +shield: {base}@{late}+{shield_name}")
     base, _, preset = base.partition("@")
     base, latest = split_latest(base)
     if shield_name and (shield or {}).get("name") != shield_name:  # the command line's own, with its overrides
