@@ -503,8 +503,9 @@ class BeliefPlanner:
             return f
 
         f = drawn()
-        safe, a_go, y_go = play_min_acc(f, float(f.speeds[-1]))
-        _, a_stop, y_stop = play_min_acc(drawn(), float(f.speeds[0]))
+        safe, a_go, y_go, steps = play_min_acc(f, float(f.speeds[-1]))
+        # stopping over the same window: a stopped ego's future runs to the time limit, the GO's ends on arrival
+        _, a_stop, y_stop, _ = play_min_acc(drawn(), float(f.speeds[0]), steps)
         b = float(self.params.start_brake)
         forced = ((a_go < -b) & (a_stop >= -b)).any(axis=1)
         if self.params.start_brake_yield:
@@ -786,35 +787,41 @@ def play_set_point_fast(f, top: float) -> np.ndarray:
     return safe
 
 
-def play_min_acc(f, top: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def play_min_acc(f, top: float, horizon: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """:func:`play_set_point_fast` of the future engine ``f`` at set-point ``top`` (m/s), also returning each road
     user's hardest command (the lowest ``traffic.acc``, m/s²; +inf where it never drove uncrashed) over the play
     and whether the regulation held it (``yielding``) after any step, each (B, N) in the slots of ``f``'s start,
     followed by vid (slots shift as vehicles leave); the ego and the vehicles that enter later are left out (+inf,
-    False)."""
+    False); and the policy steps played. ``horizon``: stop after this many steps (the rows still playing count as
+    uncrashed)."""
     from av_gym.sim.batched import FASTER, IDLE, SLOWER
 
     t = f.traffic
     vids = np.where(t.alive & ~t.ego, t.vid, -1)  # (B, N) the start's road users
     low, held = np.full(vids.shape, np.inf), np.zeros(vids.shape, bool)
     safe = np.ones(f.B, bool)
-    live = np.ones(f.B, bool)
-    rows = np.arange(f.B)
-    while live.any():
-        sp = f.traffic.target[rows, f.ego_slot()]
+    idx = np.arange(f.B)  # the rows of the original future that ``f`` still holds
+    live = np.ones(f.B, bool)  # the rows of ``f`` still playing
+    steps = 0
+    while live.any() and (horizon is None or steps < horizon):
+        steps += 1
+        sp = f.traffic.target[np.arange(f.B), f.ego_slot()]
         meta = np.where(top > sp + 1e-3, FASTER, np.where(top < sp - 1e-3, SLOWER, IDLE))
         _, terminated, truncated = f.step(meta, active=live)
-        t = f.traffic
+        t, v = f.traffic, vids[idx]
         driving = t.alive & ~t.ego & ~t.crashed & live[:, None]
-        same = (t.vid[:, :, None] == vids[:, None, :]) & driving[:, :, None] & (vids[:, None, :] >= 0)
-        low = np.minimum(low, np.where(same, t.acc[:, :, None], np.inf).min(axis=1))
-        held |= (same & t.yielding[:, :, None]).any(axis=1)
+        same = (t.vid[:, :, None] == v[:, None, :]) & driving[:, :, None] & (v[:, None, :] >= 0)
+        low[idx] = np.minimum(low[idx], np.where(same, t.acc[:, :, None], np.inf).min(axis=1))
+        held[idx] |= (same & t.yielding[:, :, None]).any(axis=1)
         ended = (terminated | truncated) & live
         if ended.any():
             e = np.flatnonzero(ended)
-            safe[e] = ~t.crashed[e, f.ego_slot(e)]
+            safe[idx[e]] = ~t.crashed[e, f.ego_slot(e)]
             live &= ~ended
-    return safe, low, held
+            if 0 < live.sum() <= f.B // 2:  # drop the ended rows once they are half, as play_set_point_fast does
+                keep = np.flatnonzero(live)
+                idx, f, live = idx[keep], f.keep(keep), np.ones(len(keep), bool)
+    return safe, low, held, steps
 
 
 def described(engine, rows) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

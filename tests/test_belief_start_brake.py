@@ -34,13 +34,14 @@ def test_play_min_acc_is_each_road_users_hardest_command():
     fork = lambda: venv.engine.fork(rows, 2, rngs=[np.random.default_rng(7 + i) for i in range(2 * len(rows))])  # noqa
     f = fork()
     top = float(f.speeds[-1])
-    safe, low, held = play_min_acc(f, top)
+    safe, low, held, steps = play_min_acc(f, top)
     ref = fork()
     t0 = ref.traffic
     start = [{int(v): np.inf for v in t0.vid[k][t0.alive[k] & ~t0.ego[k]]} for k in range(ref.B)]
     yielded = [set() for _ in range(ref.B)]
-    live, ref_safe = np.ones(ref.B, bool), np.ones(ref.B, bool)
+    live, ref_safe, ref_steps = np.ones(ref.B, bool), np.ones(ref.B, bool), 0
     while live.any():
+        ref_steps += 1
         sp = ref.traffic.target[np.arange(ref.B), ref.ego_slot()]
         meta = np.where(top > sp + 1e-3, FASTER, np.where(top < sp - 1e-3, SLOWER, IDLE))
         _, term, trunc = ref.step(meta, active=live)
@@ -65,6 +66,10 @@ def test_play_min_acc_is_each_road_users_hardest_command():
     assert braked > 0  # some road user braked in these futures: the minimum is not trivially the start's
     assert held.any()  # and some were held by the regulation: the hold is not trivially False
     np.testing.assert_array_equal(safe, ref_safe)
+    assert steps == ref_steps
+    # a horizon stops the play there: the lowest command over those steps only
+    _, low3, _, three = play_min_acc(fork(), top, 3)
+    assert three == 3 and (low3 >= low).all() and (low3 > low).any()
 
 
 class _Future:
@@ -88,12 +93,18 @@ def test_a_brake_forced_by_the_go_is_counted_apart_from_collisions(monkeypatch):
     # held by the regulation: in future 3 the second road user in GO's play only, in future 2 in both plays
     y_go = np.array([[False, False], [False, False], [True, False], [False, True]])
     y_stop = np.array([[False, False], [False, False], [True, False], [False, False]])
-    monkeypatch.setattr(belief, "play_min_acc", lambda f, top: (safe, go, y_go) if top > 0
-                        else (np.ones(4, bool), stop, y_stop))
+    horizons = []
+
+    def play(f, top, horizon=None):
+        horizons.append(horizon)
+        return (safe, go, y_go, 40) if top > 0 else (np.ones(4, bool), stop, y_stop, 40)
+
+    monkeypatch.setattr(belief, "play_min_acc", play)
     c, q = planner.forced_share(None, np.array([0]), 4)
     # future 0 collides (its forced brake not counted twice); 1 forced; 2 brakes as hard when stopping; 3 mildly
     np.testing.assert_allclose(c, [0.25])
     np.testing.assert_allclose(q, [0.25])
+    assert horizons == [None, 40]  # stopping played over the GO play's steps, not to the time limit
     # start_brake_yield: future 3's hold, which the GO alone brings, is forced too; future 2's is not
     planner.params = BeliefLookaheadParams(samples=4, start_brake=5.0, start_brake_yield=True)
     c, q = planner.forced_share(None, np.array([0]), 4)
