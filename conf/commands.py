@@ -36,7 +36,9 @@ class Command(Params):
 class TrainOptions(Params):
     """``train.*``: checkpoints, the evaluations during and after training, progress."""
 
-    checkpoint_every: int = param(8000, "env steps", ge=1, doc="between atomic checkpoints (latest.zip, RNG states inside)")
+    checkpoint_every: int = param(8000, "env steps", ge=1, doc="between atomic checkpoints (latest.zip, RNG states "
+                                                                "inside), at rollout boundaries: PPO's decisions x "
+                                                                "agent.action_repeat (eval_every counts decisions)")
     resume: bool = param(False, doc="continue an interrupted run from checkpoints/<run_name>/latest.zip (PPO: to "
                                     "the same total steps; DAgger: from the next round); the run's config.yaml "
                                     "must match this one, and a finished run (its model.zip) is refused")

@@ -40,38 +40,88 @@ class EpisodeMetricsCallback(BaseCallback):
         return True
 
 
+def steps_text(decisions: int, action_repeat: int = 1) -> str:
+    """SB3's step counter (``num_timesteps``: agent decisions, summed over the envs) in words: ``"N env steps"``
+    when each decision is one env step, else ``"N decisions (M env steps)"`` (``agent.action_repeat`` env steps per
+    decision: 5 on the left turn)."""
+    if action_repeat == 1:
+        return f"{decisions} env steps"
+    return f"{decisions} decisions ({decisions * action_repeat} env steps)"
+
+
 class AtomicCheckpointCallback(BaseCallback):
-    """Checkpoints at rollout boundaries, at least ``every`` env steps apart: ``latest.zip`` (policy, optimizer,
-    step counter, and inside it the RNG states and the logger values not yet written to TensorBoard), atomically. At a boundary the parameters, the step counter and the pending log values are consistent, so a
-    resumed run repeats no update and loses no TensorBoard point.
+    """Checkpoints at rollout boundaries, at least ``every`` env steps apart (SB3 counts decisions: each is
+    ``action_repeat`` env steps, converted here and only here): ``latest.zip`` (policy, optimizer, step counter, and
+    inside it the RNG states and the logger values not yet written to TensorBoard), atomically. At a boundary the
+    parameters, the step counter and the pending log values are consistent, so a resumed run repeats no update and
+    loses no TensorBoard point.
 
-    :meth:`save` may also be called mid-rollout (on SIGINT/SIGTERM): parameters do not change while a rollout is
-    collected, so it saves the state of the last boundary and the half-collected rollout is simply redone."""
+    On SIGINT/SIGTERM (:meth:`interrupt`, installed by :func:`train.ppo.learn`): during a rollout the parameters are
+    those of the last boundary, so :meth:`save` saves that boundary (unless already saved) and the half-collected
+    rollout is redone; during an update (from a rollout's end to the next one's start: SB3's log dump and
+    ``train()``) the parameters and Adam's moments are part-way, so the stop waits for the update to end and the
+    next boundary is saved (a second signal stops at once and keeps the last ``latest.zip``). :attr:`saved_at` is
+    the step ``latest.zip`` holds (None: none yet)."""
 
-    def __init__(self, folder: Path, every: int) -> None:
+    def __init__(self, folder: Path, every: int, action_repeat: int = 1) -> None:
         super().__init__()
-        self.folder, self.every = Path(folder), int(every)
+        self.folder, self.every, self.repeat = Path(folder), int(every), int(action_repeat)
         self._boundary = 0
         self._pending: dict = {}
-        self._last_save = None
+        self._last_save = 0
+        self._updating = False  # between a rollout's end and the next one's start: parameters part-way
+        self._stop: int | None = None  # the signal whose stop waits for the update in progress to end
+        self.saved_at: int | None = None
 
     def _on_training_start(self) -> None:
         self._boundary = self._last_save = self.num_timesteps
+        self.saved_at = self.num_timesteps if (self.folder / "latest.zip").is_file() else None  # a resume's
 
-    def _on_rollout_start(self) -> None:
+    def _at_boundary(self) -> None:
+        """The consistent state to save from now on: this step, the log values the last update left pending."""
+        self._updating = False
         self._boundary = self.num_timesteps
         self._pending = {"name_to_value": dict(self.logger.name_to_value),
                          "name_to_count": dict(self.logger.name_to_count),
                          "name_to_excluded": dict(self.logger.name_to_excluded)}
-        if self.every > 0 and self.num_timesteps - self._last_save >= self.every:
+        if self._stop is not None:  # a signal came during the update that has just ended
             self.save()
+            raise KeyboardInterrupt
+
+    def _on_rollout_start(self) -> None:
+        self._at_boundary()
+        if self.every > 0 and (self.num_timesteps - self._last_save) * self.repeat >= self.every:
+            self.save()
+
+    def _on_rollout_end(self) -> None:
+        self._updating = True  # SB3 dumps the logs and runs train() before the next rollout starts
+
+    def _on_training_end(self) -> None:
+        self._at_boundary()  # after the last update: a signal during the final evaluation saves this state
 
     def _on_step(self) -> bool:
         return True
 
-    def save(self) -> None:
+    def interrupt(self, signum: int, frame) -> None:
+        """SIGINT/SIGTERM handler: KeyboardInterrupt now, or, the first time during an update, at the next
+        boundary (after saving it)."""
+        if self._updating and self._stop is None:
+            self._stop = signum
+            print("[train] signal received during a PPO update: stopping when it ends, at the next rollout "
+                  "boundary (a second signal stops now and keeps the last checkpoint)", flush=True)
+            return
+        raise KeyboardInterrupt
+
+    def save(self) -> bool:
+        """Save the last boundary's state to ``latest.zip``; False (nothing written) during an update, whose
+        parameters are part-way. A boundary already saved is not saved again (its RNG states were the boundary's
+        own; a rollout's draws since have advanced them)."""
         from train.checkpoint import save_model_atomic
 
+        if self._updating:
+            return False
+        if self.saved_at == self._boundary:
+            return True
         steps = self.model.num_timesteps
         self.model.num_timesteps = self._boundary
         try:  # the RNG states inside latest.zip: one file, replaced at once (a pair of files could tear)
@@ -81,7 +131,8 @@ class AtomicCheckpointCallback(BaseCallback):
                 stale.unlink()
         finally:
             self.model.num_timesteps = steps
-        self._last_save = self._boundary
+        self._last_save = self.saved_at = self._boundary
+        return True
 
 
 class FiniteGuard(BaseCallback):

@@ -58,11 +58,17 @@ def validate(cfg: DictConfig) -> list[str]:
 
 
 def _tensorboard_logger(folder: Path, purge_step: int | None):
-    """SB3 logger writing TensorBoard events to ``folder``. When resuming, ``purge_step`` makes TensorBoard drop
-    what the killed run logged after its last checkpoint, so curves continue with neither a gap nor a duplicate."""
+    """SB3 logger writing TensorBoard events to ``folder``. When resuming, what the killed run logged at steps >=
+    ``purge_step`` (after its last checkpoint) is cut out of its event files (:func:`train.tb_events.truncate_events`:
+    every reader, raw ones too, sees each step once), and the new writer's ``purge_step`` marks the restart as
+    TensorBoard expects."""
     from stable_baselines3.common.logger import Logger, TensorBoardOutputFormat
     from torch.utils.tensorboard import SummaryWriter
 
+    from train.tb_events import truncate_events
+
+    if purge_step:  # before the new writer opens its file: only the killed run's files are cut
+        truncate_events(folder, purge_step)
     fmt = TensorBoardOutputFormat(str(folder))
     if purge_step:
         fmt.writer.close()
@@ -160,7 +166,10 @@ def resume_model(latest: Path, venv, params) -> tuple[Any, dict]:
     except ValueError as exc:  # SB3's check that the spaces match the env
         raise ConfigError(f"checkpoint {latest} does not fit this env/sensors config: {exc}") from None
     saved = load_rng_state(latest)  # inside the zip (older runs: latest.rng beside it)
-    print(f"[train] resuming {latest} at {model.num_timesteps} of {params.total_timesteps} env steps")
+    from train.callbacks import steps_text
+
+    print(f"[train] resuming {latest} at {steps_text(model.num_timesteps, params.action_repeat)} of "
+          f"agent.total_timesteps={params.total_timesteps}")
     return model, saved
 
 
@@ -226,7 +235,7 @@ def _callbacks(cfg: DictConfig, command: TrainCommand, stack: _Stack, ckpt_dir: 
 
     p, scenario, options = stack.params, str(cfg.env.name), command.train
     resume = options.resume
-    checkpoint = AtomicCheckpointCallback(ckpt_dir, options.checkpoint_every)
+    checkpoint = AtomicCheckpointCallback(ckpt_dir, options.checkpoint_every, p.action_repeat)  # in env steps
     guard = FiniteGuard(float(p.learning_rate), ckpt_dir / "latest.zip",
                         p.init_lr if p.init and not resume else None)
     callbacks = [guard, EpisodeMetricsCallback(scenario), checkpoint]
@@ -254,13 +263,15 @@ def _callbacks(cfg: DictConfig, command: TrainCommand, stack: _Stack, ckpt_dir: 
 
 def learn(model, venv, params, callbacks: list, guard, checkpoint, progress_bar: bool, run_name: str) -> None:
     """PPO up to ``agent.total_timesteps`` (rounded up to whole rollouts). A NaN inside an update is said in one
-    line; SIGINT and SIGTERM save a checkpoint before exiting."""
+    line; SIGINT and SIGTERM save a checkpoint of a rollout boundary before exiting (one during an update stops at
+    the next boundary: :meth:`train.callbacks.AtomicCheckpointCallback.interrupt`) and say which step it holds."""
     import signal
 
     from av_gym.errors import ConfigError
-    from train.callbacks import nonfinite_parameter
+    from train.callbacks import nonfinite_parameter, steps_text
 
-    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM behaves like Ctrl-C
+    # SIGTERM behaves like Ctrl-C; neither stops an update half-way (its half-updated state is no boundary)
+    previous = {s: signal.signal(s, checkpoint.interrupt) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         remaining = params.total_timesteps - int(model.num_timesteps)
         # SB3 collects whole rollouts (n_steps x n_envs) until the total is reached: ask for that rounded-up total,
@@ -269,7 +280,7 @@ def learn(model, venv, params, callbacks: list, guard, checkpoint, progress_bar:
         rounded = -(-remaining // rollout) * rollout
         if rounded != remaining:
             print(f"[train] agent.total_timesteps={params.total_timesteps}: PPO trains whole rollouts of "
-                  f"n_steps x n_envs = {rollout} steps, so {int(model.num_timesteps) + rounded}")
+                  f"n_steps x n_envs = {rollout} decisions, so {int(model.num_timesteps) + rounded}")
         if rounded > 0:
             model.learn(total_timesteps=rounded, callback=callbacks, reset_num_timesteps=False,
                         progress_bar=progress_bar)
@@ -284,15 +295,18 @@ def learn(model, venv, params, callbacks: list, guard, checkpoint, progress_bar:
         if checkpoint.model is not None:  # learning had started
             checkpoint.save()
         latest = checkpoint.folder / "latest.zip"
-        if latest.is_file():  # name only what exists
-            print(f"[train] interrupted at {model.num_timesteps} env steps; checkpoint {latest} (continue with "
+        if latest.is_file() and checkpoint.saved_at is not None:  # name only what exists, at the step it holds
+            at, held = (steps_text(n, params.action_repeat) for n in (model.num_timesteps, checkpoint.saved_at))
+            print(f"[train] interrupted at {at}; checkpoint {latest} holds {held} (continue from there with "
                   f"run_name={run_name} train.resume=true)")
         else:
-            print(f"[train] interrupted before PPO's first rollout: nothing was kept (no latest.zip); start the run "
-                  f"again (train.overwrite=true to reuse run_name={run_name})")
+            print(f"[train] interrupted at {steps_text(model.num_timesteps, params.action_repeat)}, before any "
+                  f"checkpoint: nothing was kept (no latest.zip); start the run again (train.overwrite=true to reuse "
+                  f"run_name={run_name})")
         raise
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
         try:
             venv.close()
         except (EOFError, BrokenPipeError, ConnectionResetError):  # workers already gone after a signal
@@ -309,6 +323,7 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path, command: TrainComm
     from stable_baselines3 import PPO
 
     from agents.ppo import PPOParams
+    from train.callbacks import steps_text
     from train.checkpoint import save_model_atomic
 
     t0 = time.time()
@@ -336,6 +351,5 @@ def train_ppo(cfg: DictConfig, ckpt_dir: Path, run_dir: Path, command: TrainComm
     learn(model, venv, params, callbacks, guard, checkpoint, command.train.progress_bar, command.run_name)
     guard.check("the last PPO update")  # model.zip only from finite parameters
     path = save_model_atomic(model, ckpt_dir / "model.zip")
-    env_steps = f" ({model.num_timesteps * params.action_repeat} env steps)" if params.action_repeat > 1 else ""
-    print(f"[train] {model.num_timesteps} steps{env_steps} in {time.time() - t0:.0f} s")
+    print(f"[train] {steps_text(model.num_timesteps, params.action_repeat)} in {time.time() - t0:.0f} s")
     return path
