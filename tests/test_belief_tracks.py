@@ -286,6 +286,9 @@ def _preset(name: str) -> dict:
                                      pytest.param({"confirm": 2, "confirm_after": 2, "confirm_risk": 0.9,
                                                    "threshold": 0.5}, marks=pytest.mark.slow),
                                      pytest.param({"confirm": 2, "confirm_first": True, "threshold": 0.5},
+                                                  marks=pytest.mark.slow),
+                                     pytest.param({"start_brake": 5.0, "start_brake_yield": True, "recheck": 8,
+                                                   "recheck_pool": True, "threshold": 0.5},
                                                   marks=pytest.mark.slow)])
 def test_the_per_env_agent_on_tracks_decides_as_the_batch(options):
     """belief_lookahead@turn_perceived per env (its one-row view of the env's own tracker, agents.track_prior
