@@ -59,26 +59,26 @@ def _plans(cfg: DictConfig, command: EvalCommand) -> list:
 
 
 def _batched_sensors(plan, env_cfg: dict):
-    """``plan`` as the batch runs it: ``always_proceed`` reads no observation and runs on the batch's own features
-    (:data:`eval.batched.NO_OBS_SENSORS`), which results.md then records; the sensors it was given are what ran
-    only on the per-env stack. Sensors chosen for it that the batch cannot run (``sensors=cameras``) are refused
-    rather than recorded as run; the default preset (what every agent without sensors of its own is given) is
-    not a choice, and is replaced."""
+    """``plan`` as the batch runs it (:func:`eval.batched.batch_sensors`), which results.md then records:
+    ``always_proceed`` reads no observation, and runs on the sensors chosen for it (as the per-env stack does), or
+    with the command's default preset (no choice, and no form on the batch) on the batch's own features. Sensors
+    chosen for it that the batch cannot run (``sensors=cameras``, overrides of the default) are refused rather than
+    recorded as run."""
     import dataclasses
 
     from av_gym.batched.vec_env import check_batchable
     from eval.agents import sensor_overrides
-    from eval.batched import NO_OBS_SENSORS, plan_kind
+    from eval.batched import batch_sensors, plan_kind
 
     if env_cfg.get("name") != "left_turn" or plan_kind(plan) != "always_proceed":
         return plan  # refused or run as planned: check_batched_plan
     given = plan.sensors or {}
     if given.get("name") != default_sensors("eval") or sensor_overrides(given):
-        try:  # what the batch can run, on the sensors chosen (check_batched_plan skips them for always_proceed)
+        try:  # what the batch can run, on the sensors chosen
             check_batchable(env_cfg, given, plan.shield, with_shield=True)
         except ConfigError as exc:
             raise ConfigError(f"agent {plan.label!r}: {str(exc).replace('agent.vec_env=', 'vec_env=')}") from None
-    return dataclasses.replace(plan, sensors=dict(NO_OBS_SENSORS))
+    return dataclasses.replace(plan, sensors=dict(batch_sensors(plan, env_cfg)))
 
 
 def given_sensors_problem(plan, given: dict) -> str | None:

@@ -12,7 +12,7 @@ depends on its seed only, not on its row, its batch or the episodes beside it), 
 What runs: ``env=left_turn`` in either mode (traffic; ``env.mode=ccftap`` with its ``env.ccftap.*`` case) and with
 either action type, without a shield or behind ``shield=aeb`` / ``agent+aeb`` (the improved AEB shield in either
 mode, :mod:`av_gym.batched.shield`: the per-env shield's decisions on every row), and the agents
-``always_proceed`` (it reads no observation: it runs on the batch whatever the sensors), ``gap_acceptance``, the
+``always_proceed`` (it reads no observation; its sensors: :func:`batch_sensors`), ``gap_acceptance``, the
 ``lookahead`` oracle (its GO futures played for every env that decides, all at once, by
 :mod:`agents.batched_oracle`: the per-env oracle's decisions, ~20x its labels per second) and PPO / DAgger
 checkpoints on the batch's sensors: ``turn_truth`` (turn features from truth, turn signals, intent) and
@@ -35,6 +35,22 @@ from av_gym.errors import ConfigError
 
 KINDS = ("always_proceed", "gap_acceptance", "lookahead", "belief_lookahead", "ppo", "dagger")
 NO_OBS_SENSORS = {"name": "turn_truth", "turn_features": {"source": "truth"}, "observe": ["turn"]}
+
+
+def batch_sensors(plan, env_cfg: dict) -> dict:
+    """The sensors the batch runs ``plan`` with: its own; ``always_proceed``, which reads no observation, on the
+    sensors it was given when the batch runs them (``sensors=turn_perceived``: both engines run, and results.md
+    records, the preset asked for), else on the batch's own features (:data:`NO_OBS_SENSORS`: the command's default
+    preset ``truth`` has no form on the batch)."""
+    from av_gym.batched.vec_env import check_batchable
+
+    if plan_kind(plan) != "always_proceed":
+        return plan.sensors
+    try:
+        check_batchable(env_cfg, plan.sensors or {}, None, with_shield=False)
+    except ConfigError:
+        return NO_OBS_SENSORS
+    return plan.sensors
 
 
 def plan_kind(plan) -> str:
@@ -63,7 +79,7 @@ def check_batched_plan(plan, env_cfg: dict) -> None:
     if kind not in KINDS:
         raise ConfigError(f"agent {plan.label!r} (kind {kind}) cannot run with vec_env=batched (it runs: "
                           f"{', '.join(KINDS)}); use vec_env=subproc")
-    sensors = NO_OBS_SENSORS if kind == "always_proceed" else plan.sensors
+    sensors = batch_sensors(plan, env_cfg)
     if kind == "lookahead" and shield_kind(plan.shield) != "none" and \
             _agent_config(plan).get("plan_with_shield"):
         raise ConfigError(f"agent {plan.label!r}: lookahead with plan_with_shield=true cannot run with "
@@ -188,7 +204,7 @@ def run_episodes_batched(env_cfg: dict, plan, policy, seeds: Sequence[int], n_en
 
     check_batched_plan(plan, env_cfg)
     single_threaded_torch()
-    sensors = NO_OBS_SENSORS if plan_kind(plan) == "always_proceed" else plan.sensors
+    sensors = batch_sensors(plan, env_cfg)
     if workers > 1:
         job = BatchedJob(env_cfg, plan, sensors, str(checkpoints), label)
         return play_batched_workers(job, seeds, n_envs, workers, progress, out)
