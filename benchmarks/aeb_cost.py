@@ -18,7 +18,6 @@ from pathlib import Path  # noqa: E402
 # a script in the checkout: the harness packages (conf, agents, train, eval) are the checkout's, beside this folder
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import argparse
 import os
 import time
 
@@ -58,11 +57,14 @@ def time_decisions(shield, n: int) -> float:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--vehicles", type=int, default=20)
+    from conf.cli import ToolParser, number
+
+    ap = ToolParser(prog="benchmarks/aeb_cost.py", description=__doc__.splitlines()[0])
+    ap.add_argument("--vehicles", type=number(int, low=0), default=20, help="other road users on the map, >= 0")
     ap.add_argument("--seed", type=int, default=1000)
-    ap.add_argument("--n", type=int, default=50)
-    ap.add_argument("--repeat", type=int, default=5)
+    # each time is a mean over --n decisions and the table a median over --repeat of them: 0 divided by zero
+    ap.add_argument("--n", type=number(int, low=1), default=50, help="decisions per timing, >= 1")
+    ap.add_argument("--repeat", type=number(int, low=1), default=5, help="timings per model (median), >= 1")
     a = ap.parse_args()
     rows = []
     # the shipped default (conflict model, indicators read) and the models and options it is compared with

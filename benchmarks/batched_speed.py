@@ -2,7 +2,7 @@
 with obs["turn"], truth and rewards in numpy (the step before those kernels: ``batched.OBSERVE_KERNELS`` left out)
 and the numpy step (with the pairwise kernels: the engine before the compiled step), interleaved in one process.
 
-    python benchmarks/batched_speed.py [--sizes 1 4 16 64 256 1024] [--seconds 4] [--out docs/batched_speed.png]
+    python benchmarks/batched_speed.py [--sizes 1 4 16 64 256 1024] [--seconds 4] [--out runs/speed.png] # a new file
     python benchmarks/batched_speed.py --sizes 256 1024 --seconds 6        # the sizes the targets name, ~2 min
     python benchmarks/batched_speed.py --profile 256                       # one batch step, profiled
     python benchmarks/batched_speed.py --ppo 1024 --agent ppo_turn_shielded # PPO learn, per env vs batch, shielded
@@ -37,7 +37,9 @@ from av_gym.batched.left_turn import BatchedLeftTurn
 from av_gym.estimation.turn_features import TurnFeatures
 from av_gym.make import highway_config
 from av_gym.sim import batched
-from conf.cli import Extend, ToolParser, items, number
+from av_gym.atomic import save_figure_new
+from av_gym.errors import ConfigError
+from conf.cli import Extend, ToolParser, items, number, out_figure_problem
 
 # the numpy step (the pairwise kernels only), the compiled step with obs["turn"], truth and rewards in numpy (before
 # their kernels), the compiled step
@@ -169,15 +171,23 @@ def main() -> None:
     # 4096 envs hold ~40 MB of state; more says nothing new about the batch's scaling
     parser.add_argument("--sizes", type=items(int, low=1, high=4096), nargs="+", action=Extend,
                         default=[1, 4, 16, 64, 256, 1024], help="batch sizes, [1,16,256]")
-    parser.add_argument("--seconds", type=float, default=4.0)
-    parser.add_argument("--out", default="runs/benchmarks/batched_speed.png",
-                        help="the plot (a tool writes into docs/ only when told to)")
-    parser.add_argument("--ppo", type=int, default=0, help="also time PPO learn for this many decisions per path")
+    parser.add_argument("--seconds", type=float, default=4.0, help="CPU seconds per path and size, > 0")
+    parser.add_argument("--out", default=None,
+                        help="the plot, a new file (default runs/benchmarks/batched_speed_<time>.png; a tool writes "
+                             "into docs/ only when told to)")
+    parser.add_argument("--ppo", type=number(int, low=0), default=0,
+                        help="also time PPO learn for this many decisions per path")
     parser.add_argument("--agent", choices=["ppo_turn", "ppo_turn_shielded"], default="ppo_turn",
                         help="the agent --ppo trains (ppo_turn_shielded: with the AEB shield and its cost)")
     parser.add_argument("--profile", type=number(int, low=1, high=4096), default=None,
                         help="profile batch steps at this B on both paths instead of timing them")
     args = parser.parse_args()
+    if not args.seconds > 0:  # the rates divide by it (-1 was a ZeroDivisionError traceback); NaN is not > 0
+        parser.error(f"argument --seconds: expected a number > 0, got {args.seconds:g}")
+    args.out = args.out or f"runs/benchmarks/batched_speed_{time.strftime('%Y%m%d-%H%M%S')}.png"
+    problem = not (args.profile or args.ppo) and out_figure_problem(args.out, "--out")
+    if problem:  # before minutes of timing: a taken or unwritable --out, or a suffix matplotlib cannot write
+        parser.error(f"argument {problem}")
     if args.profile:
         profile(highway_config({"name": "left_turn"})[1], args.profile)
         return
@@ -211,31 +221,30 @@ def main() -> None:
               + " | ".join(f"{rates[name] / ref:.1f}" for name in PATHS)
               + f" | {rates['compiled step'] / rates['numpy step']:.2f}"
               + f" | {rates['compiled step'] / rates['compiled step, numpy obs']:.2f} | {mem:.0f} |")
-    try:
-        import matplotlib
+    import matplotlib
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
 
-        fig, ax = plt.subplots(figsize=(5.5, 3.6))
-        sizes = [r[0] for r in rows]
-        for name in PATHS:
-            ax.plot(sizes, [r[1][name] for r in rows], "o-", label=f"batched, {name}")
-        ax.axhline(ref, color="grey", ls="--", label="per-env fast stack")
-        ax.axhline(100 * ref, color="tab:red", ls=":", label="100x target")
-        ax.set_xscale("log", base=2)
-        ax.set_yscale("log")
-        ax.set_xlabel("environments per batch B")
-        ax.set_ylabel("env steps / CPU-second (1 core)")
-        ax.set_title("left turn + obs['turn']")
-        ax.legend(fontsize=8)
-        fig.tight_layout()
-        os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-        fig.savefig(args.out, dpi=120)
-        print(f"\nplot: {args.out}")
-    except ImportError:
-        print("matplotlib not installed: no plot")
-
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    sizes = [r[0] for r in rows]
+    for name in PATHS:
+        ax.plot(sizes, [r[1][name] for r in rows], "o-", label=f"batched, {name}")
+    ax.axhline(ref, color="grey", ls="--", label="per-env fast stack")
+    ax.axhline(100 * ref, color="tab:red", ls=":", label="100x target")
+    ax.set_xscale("log", base=2)
+    ax.set_yscale("log")
+    ax.set_xlabel("environments per batch B")
+    ax.set_ylabel("env steps / CPU-second (1 core)")
+    ax.set_title("left turn + obs['turn']")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    try:  # a new file, whole: one that appeared during the run is kept (the table above is printed either way)
+        save_figure_new(fig, args.out, "--out", dpi=120)
+    except ConfigError as exc:
+        print(f"error: {' '.join(str(exc).split())}", file=sys.stderr)
+        sys.exit(2)
+    print(f"\nplot: {args.out}")
 
 if __name__ == "__main__":
     main()

@@ -6,15 +6,13 @@
     python benchmarks/belief_planner.py --episodes 40 --samples 16 --thresholds 0.05 --paths   # numpy vs compiled
 
 Each (K, threshold, commit) plays the same episodes (``python -m eval``'s batched loop,
-:func:`eval.batched.play_batched`); one csv row per point (``--out``), with 95 % Wilson intervals and the labels/s of the planner alone (wall-clock of
-its futures) and of the whole run. ``--paths``: each point on every engine path (the numpy step, the compiled step
-with obs["turn"], truth and rewards in numpy, the compiled step: benchmarks/batched_speed.py's PATHS), one after the
-other, with the planner's labels per CPU-second."""
+:func:`eval.batched.play_batched`); one csv row per point (``--out``, a new file), with 95 % Wilson intervals and
+the labels/s of the planner alone (wall-clock of its futures) and of the whole run. ``--paths``: each point on every
+engine path (the numpy step, the compiled step with obs["turn"], truth and rewards in numpy, the compiled step:
+benchmarks/batched_speed.py's PATHS), one after the other, with the planner's labels per CPU-second."""
 
 from __future__ import annotations
 
-import argparse
-import csv
 import itertools
 import os
 import sys
@@ -35,18 +33,25 @@ def stacks():
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from conf.cli import ToolParser, number
+
+    ap = ToolParser(prog="benchmarks/belief_planner.py", description=__doc__.splitlines()[0])
     ap.add_argument("--split", default="validation", choices=["validation", "test"])
     ap.add_argument("--first", type=int, default=None, help="first seed (default: the split's first)")
-    ap.add_argument("--episodes", type=int, default=300)
+    ap.add_argument("--episodes", type=number(int, low=1), default=300, help="episodes per point, >= 1")
     ap.add_argument("--samples", type=int, nargs="+", default=[8, 16])
     ap.add_argument("--thresholds", type=float, nargs="+", default=[0.02, 0.05, 0.1, 0.2])
     ap.add_argument("--commit", nargs="+", default=["never"], choices=["never", "stop", "go"],
                     help="when a GO is final (BeliefLookaheadParams.commit; its default: never)")
-    ap.add_argument("--n-envs", type=int, default=100)
-    ap.add_argument("--out", default=None, help="csv of the points (appended)")
+    ap.add_argument("--n-envs", type=number(int, low=1), default=100, help="episodes stepped together, >= 1")
+    ap.add_argument("--out", default=None, help="csv of the points, a new file (rewritten whole after each point)")
     ap.add_argument("--paths", action="store_true", help="each point on every engine path (batched_speed.PATHS)")
     args = ap.parse_args()
+    from av_gym.atomic import csv_text, new_paths_or_exit, write_new_or_exit, write_text_atomic
+
+    # before the run: a file there (a user's, an earlier run's points) is never appended to or replaced
+    new_paths_or_exit((args.out, "--out"))
+    points: list[dict] = []
 
     import numpy as np
 
@@ -93,13 +98,9 @@ def main() -> None:
                  "run_labels_per_cpu_s": round(planner.labelled / cpu, 1), "wall_s": round(wall, 1),
                  "load": " ".join(f"{x:.2f}" for x in os.getloadavg())}
         print(point, flush=True)
-        if args.out:
-            new = not Path(args.out).exists()
-            with open(args.out, "a", newline="") as fh:
-                w = csv.DictWriter(fh, fieldnames=list(point))
-                if new:
-                    w.writeheader()
-                w.writerow(point)
+        points.append(point)
+        if args.out:  # every point so far, whole: the first write a new file (one appeared meanwhile is kept)
+            (write_new_or_exit if len(points) == 1 else write_text_atomic)(args.out, csv_text(points), "--out")
 
 
 if __name__ == "__main__":

@@ -22,7 +22,6 @@ from pathlib import Path  # noqa: E402
 # a script in the checkout: the harness packages (conf, agents, train, eval) are the checkout's, beside this folder
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import argparse
 import gc
 import os
 import platform
@@ -434,20 +433,24 @@ def plot(r: dict, png: Path) -> None:
     b.set_xlabel("episodes done")
     b.set_ylim(bottom=0)
     fig.tight_layout()
-    tmp = png.with_name(png.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
+    from av_gym.atomic import save_figure_atomic
+
+    save_figure_atomic(fig, png, "--out", dpi=110)  # whole or as it was (this run's own figure, checked new at start)
     plt.close(fig)
-    tmp.replace(png)
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from conf.cli import ToolParser
+
+    parser = ToolParser(prog="benchmarks/soak.py", description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", type=int, default=2000)
     parser.add_argument("--agent", choices=("random", "always_proceed"), default="random")
     parser.add_argument("--shield-mode", choices=("ground_truth", "perceived"), default="perceived")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--sample-every", type=int, default=10, help="episodes between RSS samples")
-    parser.add_argument("--out", help="also write the report as Markdown here (e.g. runs/soak.md; the committed report is in docs/performance.md)")
+    parser.add_argument("--out", help="also write the report as Markdown here, a new file, and beside it "
+                                      "<stem>_samples.csv and <stem>_memory.png (e.g. runs/soak.md; the committed "
+                                      "report is in docs/performance.md)")
     parser.add_argument("--tracemalloc", action="store_true", help="list the allocations that grew (slow)")
     parser.add_argument("--quiet", action="store_true")
     parser.add_argument("--mix", action="store_true", help="many configurations and agents, short episodes: "
@@ -458,16 +461,22 @@ def main(argv: list[str] | None = None) -> int:
         args.mix, args.episodes, args.sample_every = True, 48, 8
     if args.episodes < 1:
         parser.error("--episodes must be >= 1")
+    if args.out:  # before the run: files already there (a user's, an earlier report) are never replaced
+        from av_gym.atomic import new_paths_or_exit
+
+        out = Path(args.out)
+        new_paths_or_exit((out, "--out"), *(() if args.mix else (
+            (out.with_name(out.stem + "_samples.csv"), "--out (its samples)"),
+            (out.with_name(out.stem + "_memory.png"), "--out (its memory plot)"))))
     cmd = "python benchmarks/soak.py " + " ".join(argv if argv is not None else sys.argv[1:])
     if args.mix:
         r = mix_soak(args.episodes, args.seed, max(args.sample_every, 1), not args.quiet)
         text = mix_report(r)
         print("\n" + text)
         if args.out:
-            Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-            tmp = Path(args.out).with_suffix(".tmp")
-            tmp.write_text(f"# Mixed soak\n\n`{cmd}`\n\n{text}\n")
-            tmp.replace(args.out)
+            from av_gym.atomic import write_new_or_exit
+
+            write_new_or_exit(args.out, f"# Mixed soak\n\n`{cmd}`\n\n{text}\n", "--out")
         # the quick run is too short for a memory figure after warm-up: it checks exceptions and values only
         memory_ok = args.quick or r["growth_mb"] < TARGET_GROWTH_MB
         return 0 if memory_ok and not r["errors"] and not r["nonfinite"] and r["done"] == r["episodes"] else 1
@@ -475,16 +484,17 @@ def main(argv: list[str] | None = None) -> int:
     def write(r: dict) -> None:
         if not args.out:
             return
+        from av_gym.atomic import write_text_atomic
+
         curve = ", ".join(f"{n}: {m:.0f}" for n, m in r["samples"][:: max(len(r["samples"]) // 20, 1)])
-        tmp = Path(args.out).with_suffix(".tmp")
-        tmp.write_text(f"# Soak test\n\n`{cmd}`\n\n{report(r)}\n\nRSS (MB) by episodes done: {curve}\n")
-        tmp.replace(args.out)  # a reader never sees half a report
+        # rewritten every 100 episodes, each time whole (a hidden temporary file beside it, never <stem>.tmp: a
+        # name the user may own); all three were checked new before the run
+        write_text_atomic(args.out, f"# Soak test\n\n`{cmd}`\n\n{report(r)}\n\nRSS (MB) by episodes done: "
+                                    f"{curve}\n", "--out")
         out = Path(args.out)
         rows = dict(r["times"])
-        csv = out.with_name(out.stem + "_samples.csv")
-        csv.with_suffix(".tmp").write_text("episodes,rss_mb,elapsed_s\n" + "".join(
-            f"{n},{m:.2f},{rows.get(n, float('nan')):.1f}\n" for n, m in r["samples"]))
-        csv.with_suffix(".tmp").replace(csv)
+        write_text_atomic(out.with_name(out.stem + "_samples.csv"), "episodes,rss_mb,elapsed_s\n" + "".join(
+            f"{n},{m:.2f},{rows.get(n, float('nan')):.1f}\n" for n, m in r["samples"]), "--out")
         plot(r, out.with_name(out.stem + "_memory.png"))
 
     r = soak(args.episodes, args.agent, args.shield_mode, args.seed, max(args.sample_every, 1), args.tracemalloc,

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from av_gym.atomic import save_figure_atomic
-from conf.cli import Extend, ToolParser, items, out_file_problem
+from av_gym.atomic import save_figure_new
+from conf.cli import ToolParser, out_figure_problem
 
 DEFAULT_TAGS = ("eval/success", "eval/collision", "eval/interventions", "episode/success", "episode/collision",
                 "eval/time_to_exit_s")
@@ -57,7 +57,7 @@ def plot_curves(runs: dict[str, dict[str, list[tuple[int, float]]]], tags: list[
     fig.tight_layout()
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    save_figure_atomic(fig, out, "--out", dpi=110)  # whole or as it was
+    save_figure_new(fig, out, "--out", dpi=110)  # a new file, whole; one that appeared meanwhile is kept
     plt.close(fig)
     return out
 
@@ -65,7 +65,7 @@ def plot_curves(runs: dict[str, dict[str, list[tuple[int, float]]]], tags: list[
 def main() -> None:
     parser = ToolParser(prog="python -m eval.curves", description=__doc__.splitlines()[0])
     parser.add_argument("tb_dirs", nargs="+", help="TensorBoard folders (runs/<run>/tb)")
-    parser.add_argument("--out", default="curves.png")
+    parser.add_argument("--out", default="curves.png", help="the figure, a new file (an existing one is refused)")
     parser.add_argument("--tags", nargs="+", default=None,
                         help=f"scalars to plot (default: those of {list(DEFAULT_TAGS)} the runs hold, else the "
                              "rollout/* returns SB3 writes from the first rollout on)")
@@ -73,8 +73,8 @@ def main() -> None:
     missing = [d for d in args.tb_dirs if not Path(d).is_dir()]
     if missing:
         parser.error(f"argument tb_dirs: {missing[0]} is not a folder")
-    problem = out_file_problem(args.out, "--out")
-    if problem:  # before reading any event file
+    problem = out_figure_problem(args.out, "--out")
+    if problem:  # before reading any event file: unwritable, a suffix matplotlib cannot write, or a file there
         parser.error(f"argument {problem}")
     runs = {Path(d).parent.name if Path(d).name == "tb" else Path(d).name: read_scalars(d) for d in args.tb_dirs}
     tags = args.tags

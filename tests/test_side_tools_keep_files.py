@@ -191,3 +191,79 @@ def test_tracking_keeps_the_tables_there_unless_overwrite(tmp_path, capsys, monk
     monkeypatch.setattr(eval.tracking, "run", real_run)
     assert eval.tracking.main(["--miss-rates", "0.3", "--episodes", "1", "--out", str(out), "--overwrite"]) == 0
     assert (out / "tracking.csv").read_text().startswith("miss_rate,") and (out / "tracking.md").is_file()
+
+
+# ------------------------------------------------------------------------ benchmarks/*.py and eval.curves
+@pytest.fixture(scope="module")
+def scripts() -> dict[str, dict]:
+    """Each benchmark's namespace (run as a module, not as __main__: nothing runs until its main is called)."""
+    import runpy
+
+    return {name: runpy.run_path(str(ROOT / "benchmarks" / f"{name}.py"))
+            for name in ("batched_speed", "soak", "belief_planner", "aeb_cost")}
+
+
+def _refused(main, argv: list[str], capsys, monkeypatch, script: str) -> str:
+    """``main``'s one-line refusal (exit status 2) of the command line ``argv``."""
+    monkeypatch.setattr(sys, "argv", [script, *argv])
+    with pytest.raises(SystemExit) as exc:
+        main(argv) if script == "soak.py" else main()
+    assert exc.value.code == 2, exc.value.code
+    return _one_line(capsys.readouterr().err)
+
+
+def test_the_benchmarks_keep_a_users_file(scripts, tmp_path, capsys, monkeypatch):
+    """batched_speed's --out mine.png, soak's --out mine.json and belief_planner's --out mine.csv replaced (or, for
+    the last, appended rows under) the user's file, rc 0; label_noise and belief_tracks_* refuse."""
+    mine = {name: tmp_path / name for name in ("mine.png", "mine.json", "mine.csv", "soak_memory.png")}
+    for path in mine.values():
+        path.write_text("my,csv\n")
+    for ns, name in ((scripts["batched_speed"], "per_env_rate"), (scripts["soak"], "mix_soak"),
+                     (scripts["soak"], "soak")):
+        monkeypatch.setitem(ns, name, lambda *a, **k: pytest.fail("the benchmark ran"))
+    cases = [(scripts["batched_speed"]["main"], ["--sizes", "1,2", "--seconds", "0.1", "--out", str(mine["mine.png"])],
+              "batched_speed.py", f"--out={mine['mine.png']}: exists; choose another file"),
+             (scripts["soak"]["main"], ["--quick", "--out", str(mine["mine.json"])], "soak.py",
+              f"--out {mine['mine.json']} exists: choose another file"),
+             (scripts["soak"]["main"], ["--episodes", "2", "--out", str(tmp_path / "soak.md")], "soak.py",
+              f"--out (its memory plot) {mine['soak_memory.png']} exists"),
+             (scripts["belief_planner"]["main"], ["--episodes", "2", "--out", str(mine["mine.csv"])],
+              "belief_planner.py", f"--out {mine['mine.csv']} exists: choose another file")]
+    for main, argv, script, needle in cases:
+        line = _refused(main, argv, capsys, monkeypatch, script)
+        assert line.startswith("error: ") and needle in line, line
+    assert all(path.read_text() == "my,csv\n" for path in mine.values())
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(mine)
+
+
+@pytest.mark.parametrize("script, argv, needle", [
+    ("batched_speed", ["--sizes", "1,2", "--seconds", "-1"], "argument --seconds: expected a number > 0, got -1"),
+    ("batched_speed", ["--seconds", "0"], "argument --seconds: expected a number > 0, got 0"),
+    ("batched_speed", ["--out", "{tmp}/speed.csv"], "a figure's suffix must be one of"),
+    ("aeb_cost", ["--n", "0"], "argument --n: expected an integer >= 1, got '0'"),
+    ("aeb_cost", ["--repeat", "0"], "argument --repeat: expected an integer >= 1, got '0'"),
+    ("belief_planner", ["--episodes", "0"], "argument --episodes: expected an integer >= 1, got '0'"),
+    ("belief_planner", ["--n-envs", "0"], "argument --n-envs: expected an integer >= 1, got '0'"),
+])
+def test_the_benchmarks_refuse_bad_numbers_in_one_line(script, argv, needle, scripts, tmp_path, capsys,
+                                                       monkeypatch):
+    """``batched_speed.py --seconds -1`` and ``aeb_cost.py --n 0`` were ZeroDivisionError tracebacks."""
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    line = _refused(scripts[script]["main"], argv, capsys, monkeypatch, f"{script}.py")
+    assert line.startswith("error: ") and needle in line, line
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("name, needle", [("c.png", "exists; choose another file (a file is never replaced unasked)"),
+                                          ("c.csv", "a figure's suffix must be one of")])
+def test_curves_keeps_a_figure_and_refuses_a_suffix_before_reading(name, needle, tmp_path, capsys, monkeypatch):
+    """``eval.curves ... --out c.png`` replaced the user's c.png."""
+    import eval.curves
+
+    out = tmp_path / name
+    if name.endswith(".png"):
+        out.write_text("my figure")
+    monkeypatch.setattr(eval.curves, "read_scalars", lambda d: pytest.fail("an event file was read"))
+    line = _refused(eval.curves.main, [str(tmp_path), "--out", str(out)], capsys, monkeypatch, "curves")
+    assert f"argument --out={out}: " in line and needle in line, line
+    assert [p.name for p in tmp_path.iterdir()] == ([name] if name.endswith(".png") else [])
