@@ -21,6 +21,14 @@ ARGS = ["agent=ppo", "train.eval_n=2", "agent.total_timesteps=3072", "agent.n_st
         "run_name=crash"]
 
 
+def _raw_steps(tb: Path) -> list[int]:
+    """The train/value_loss steps in the event files themselves, as raw readers (tbparse, EventFileLoader) see them."""
+    from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
+
+    return [e.step for path in sorted(tb.glob("events.*")) for e in EventFileLoader(str(path)).Load()
+            for v in e.summary.value if v.tag == "train/value_loss"]
+
+
 def _steps(model_zip: Path) -> int:
     import json
 
@@ -30,18 +38,20 @@ def _steps(model_zip: Path) -> int:
 
 @pytest.mark.slow  # two checkpoints, a kill, a resumed run to the total
 def test_kill_9_then_resume_reaches_the_same_total_without_tensorboard_duplicates(tmp_path):
-    ckpt = tmp_path / "checkpoints" / "crash"
+    ckpt, tb = tmp_path / "checkpoints" / "crash", tmp_path / "runs" / "crash" / "tb" / "ppo"
     proc = subprocess.Popen([sys.executable, "-m", "train", *ARGS], cwd=tmp_path, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 240
-    while time.time() < deadline:  # wait for the second periodic checkpoint, then kill without warning
-        if (ckpt / "latest.zip").is_file() and _steps(ckpt / "latest.zip") >= 1024:
+    while time.time() < deadline:  # wait for the second periodic checkpoint and a point logged after it, then kill
+        if ((ckpt / "latest.zip").is_file() and _steps(ckpt / "latest.zip") >= 1024
+                and max(_raw_steps(tb), default=0) > _steps(ckpt / "latest.zip")):
             break
         assert proc.poll() is None, proc.stderr.read()[-2000:]
         time.sleep(0.2)
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     killed_at = _steps(ckpt / "latest.zip")
+    assert max(_raw_steps(tb)) > killed_at  # what the resume must not show twice
     assert 1024 <= killed_at < 3072 and not (ckpt / "model.zip").exists()
     (ckpt / ".latest.99999.tmp").write_bytes(b"torn write")  # what a kill during a save leaves behind
 
@@ -51,12 +61,15 @@ def test_kill_9_then_resume_reaches_the_same_total_without_tensorboard_duplicate
     assert f"resuming" in res.stdout and _steps(ckpt / "model.zip") == 3072
     assert not list(ckpt.glob(".*.tmp"))
 
-    acc = EventAccumulator(str(tmp_path / "runs" / "crash" / "tb" / "ppo"), purge_orphaned_data=True)
+    acc = EventAccumulator(str(tb), purge_orphaned_data=True)
     acc.Reload()
     steps = [e.step for e in acc.Scalars("train/value_loss")]
     assert steps == sorted(set(steps)), "no duplicate steps"
     assert steps[-1] >= 3072 - 128 and min(b - a for a, b in zip(steps, steps[1:])) == max(
         b - a for a, b in zip(steps, steps[1:])), "one point per rollout, no gap"
+    # raw readers too: the killed run's events after its checkpoint are gone from its file (not only hidden by
+    # purge_step, which TensorBoard's readers honour)
+    assert sorted(_raw_steps(tb)) == steps, "each step once in the event files themselves"
 
 
 def test_resume_without_a_checkpoint_is_a_clear_error(tmp_path):
