@@ -398,7 +398,7 @@ def _flag(args: list[str], flag: str, *values: str) -> list[str]:
             skip -= 1
             continue
         if a == flag:
-            skip = 1
+            skip = 1 if values else 0  # a switch (--overwrite) has no value to drop with it
             continue
         out.append(a)
     return [*out, flag, *values]
