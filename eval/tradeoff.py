@@ -129,7 +129,7 @@ def plot(pts: dict[str, tuple], rule: list[str], out: Path, title: str, overwrit
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = ToolParser(description=__doc__.splitlines()[0])
+    parser = ToolParser(prog="python -m eval.tradeoff", description=__doc__.splitlines()[0])
     parser.add_argument("results", nargs="*", help="results.csv files of python -m eval")
     parser.add_argument("--out", required=True, type=Path)
     parser.add_argument("--point", action="append", default=[], help='"label=collision,success"')
