@@ -271,7 +271,7 @@ def add_gif(writer, tag: str, gif: bytes, shape: tuple[int, int], step: int) -> 
 
 
 class PeriodicEval(BaseCallback):
-    """SB3 ``EvalCallback`` for our metrics: at rollout starts, at least ``every`` env steps apart, and at the end of
+    """SB3 ``EvalCallback`` for our metrics: at rollout starts, at least ``every`` decisions apart, and at the end of
     training, runs the deterministic policy on the fixed ``seeds`` (disjoint from training) and
 
     - logs ``eval/<metric>`` (collision, success, interventions, ... from ground truth) and ``eval/score``;
@@ -279,7 +279,7 @@ class PeriodicEval(BaseCallback):
     - appends a row to ``eval.csv`` (``steps``: SB3's ``num_timesteps``, i.e. agent decisions, which are env steps
       unless ``agent.action_repeat`` > 1; wall-clock seconds since the run started; metrics): the data for "steps
       and time to reach 90 % success";
-    - every ``video_every`` env steps renders the first seed's episode into ``videos/step_<n>.gif`` and TensorBoard.
+    - every ``video_every`` decisions renders the first seed's episode into ``videos/step_<n>.gif`` and TensorBoard.
 
     ``make_env(render_mode)`` builds the evaluation stack (the training one: same sensors and shield). ``play``, if
     given, plays the episodes instead (``play(policy, seeds) -> rows``: the batched engine, where a
