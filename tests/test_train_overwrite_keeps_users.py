@@ -40,7 +40,7 @@ def _a_run(tmp_path: Path, name: str = "R") -> tuple[Path, Path]:
     (ckpt / "model.zip").write_bytes(b"PK")
     (ckpt / ".latest.zip.4242.tmp").write_bytes(b"PK")  # a write cut short: the run's too
     (logs / ".hydra" / "config.yaml").write_text(RUN_CONFIG)
-    (logs / "tb" / "events.out").write_bytes(b"ev")
+    (logs / "tb" / "events.out.tfevents.1796057912.vm.7125.0").write_bytes(b"ev")
     (logs / "results.md").write_text("# R\n")
     (logs / "__main__.log").write_text("log\n")
     return ckpt, logs
@@ -77,6 +77,45 @@ def test_clearing_removes_only_a_runs_files(tmp_path, released):
     removed = clear_for_overwrite(ckpt, logs)
     assert sorted(Path(p).name for p in removed) == [".latest.zip.4242.tmp", "config.yaml", "model.zip",
                                                       "results.md", "tb"]
+    assert sorted(p.name for p in logs.iterdir()) == [".hydra", "__main__.log"]
+
+
+@pytest.mark.parametrize("users", ["tb/my_export.csv", "tb/ppo_turn/notes.md", "videos/clip.mp4",
+                                   "videos/mine/step_00000001.gif", ".hydra/my_sweep.yaml"])
+def test_a_users_file_inside_a_runs_tb_videos_or_hydra_refuses_overwrite(users, tmp_path, monkeypatch, capsys,
+                                                                         released):
+    """``runs/R/tb/my_export.csv`` was deleted with ``tb/`` (only top-level names were judged): a sub-folder of the
+    run's logs is the run's only when every file in it is one a run writes (event files, the periodic GIFs, Hydra's
+    three yaml files). Refused at the command line and where the folders are cleared, nothing deleted; the run's own
+    files at any depth (tb/<name>/events..., a temporary of one) still let it be cleared."""
+    from train.run_folder import _held, clear_for_overwrite, job_folder_problem
+
+    monkeypatch.chdir(tmp_path)
+    ckpt, logs = _a_run(tmp_path)
+    for own in ("tb/ppo_turn/events.out.tfevents.1796057912.vm.7125.0", "tb/ppo_turn/.events.out.tfevents.1.vm.2.0"
+                ".4242.tmp", "videos/step_00000000.gif", ".hydra/hydra.yaml", ".hydra/overrides.yaml"):
+        (logs / own).parent.mkdir(parents=True, exist_ok=True)
+        (logs / own).write_bytes(b"run")
+    (logs / users).parent.mkdir(parents=True, exist_ok=True)
+    (logs / users).write_text("mine\n")
+    before = snapshot(tmp_path)
+    line = check_line("train", [*RULE, "run_name=R", "train.overwrite=true"], monkeypatch, capsys)
+    assert line.startswith("error: train.overwrite=true: paths.runs/run_name=runs/R holds files a training run does "
+                           f"not write ({users.replace('/step_00000001.gif', '')}), "), line
+    assert snapshot(tmp_path) == before
+    if not users.startswith(".hydra"):  # the job's own .hydra is Hydra's, just written: clear_for_overwrite judges it
+        assert "not a training run's logs (" + users.split("/step")[0] in \
+            job_folder_problem(logs, ckpt, False, True, "hydra.run.dir")
+    _held.take(ckpt)
+    before = snapshot(tmp_path)  # the lock file added
+    with pytest.raises(ConfigError, match="holds files a training run does not write"):
+        clear_for_overwrite(ckpt, logs)
+    assert snapshot(tmp_path) == before
+    (logs / users).unlink()
+    if users.count("/") > 1 and users.startswith("videos/"):  # a flat folder's sub-folder is the user's, empty too
+        (logs / users).parent.rmdir()
+    removed = clear_for_overwrite(ckpt, logs)
+    assert {"tb", "videos"} <= {Path(p).name for p in removed}
     assert sorted(p.name for p in logs.iterdir()) == [".hydra", "__main__.log"]
 
 

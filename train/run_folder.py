@@ -20,8 +20,9 @@
 - the shipped references (:func:`av_gym.references.reference_root`) are neither a run's folder nor inside one, nor
   held by one (``run_name=reference``, ``paths.checkpoints=checkpoints/reference``, ``paths.runs=.``), whatever
   ``train.resume``/``train.overwrite`` say: ``train.overwrite=true`` would clear them;
-- ``train.overwrite=true`` removes only what a run writes (:data:`CKPT_NAMES`, :data:`LOG_NAMES`): a run's folder
-  that also holds a user's files (notes, plots, a sub-folder) is refused with nothing deleted
+- ``train.overwrite=true`` removes only what a run writes (:data:`CKPT_NAMES`, :data:`LOG_NAMES`, and inside
+  ``tb/``, ``videos/``, ``.hydra/`` only their files: :data:`_SUB_FILES`): a run's folder that also holds a user's
+  files (notes, plots, a sub-folder, an export in ``tb/``) is refused with nothing deleted
   (:func:`overwrite_problem`), and a folder holding files but no run's config is never written into, whatever the
   flags (:func:`foreign_problem`); the folder Hydra makes for a ``-m`` job or a ``${hydra:...}`` run dir is known
   only in the job, and checked there before the job writes (:func:`job_folder_problem`);
@@ -68,6 +69,13 @@ CKPT_NAMES = frozenset({"config.yaml", LATEST, FINAL, "best.zip", "best.json", "
 LOG_NAMES = frozenset({".hydra", "multirun.yaml", "tb", "videos", "eval.csv", "rounds.csv", "results.csv",
                        "results.md", "demos.npz", "error.txt"})
 _TEMPORARY = re.compile(r"\.(.+)\.\d+\.tmp")  # av_gym.atomic.temporary_name: a write cut short (kill -9) leaves it
+# The files a run writes inside the sub-folders of LOG_NAMES (name: file pattern, sub-folders allowed): TensorBoard's
+# event files (tb/<agent name>/ of PPO and DAgger, tb/ of PilotNet; add_gif and the custom-scalar layout go into
+# them too), the periodic evaluation's GIFs (train/callbacks.py), Hydra's record of the job. A sub-folder holding
+# any other file (a user's tb/my_export.csv) is not the run's alone: overwrite refuses it rather than rmtree it.
+_SUB_FILES = {"tb": (re.compile(r"events\.out\.tfevents\..+"), True),
+              "videos": (re.compile(r"step_\d+\.gif"), False),
+              ".hydra": (re.compile(r"(config|hydra|overrides)\.yaml"), False)}
 
 
 def _checkpoint_names() -> frozenset[str]:
@@ -85,11 +93,40 @@ def _a_runs(name: str, names: frozenset[str], logs: bool) -> bool:
     return base in names or (logs and base.endswith(".log"))
 
 
+def _users_inside(folder: Path, name: str) -> list[str]:
+    """The files in the log sub-folder ``folder/name`` (``tb``, ``videos``, ``.hydra``: :data:`_SUB_FILES`) that no
+    run writes, as ``name/<path inside>``; an unreadable folder is listed as itself (it cannot be judged). [] when
+    ``name`` is no such folder."""
+    pattern, deep = _SUB_FILES.get(name, (None, False))
+    top = folder / name
+    if pattern is None or top.is_symlink() or not top.is_dir():
+        return []
+    odd: list[str] = []
+    unreadable = lambda exc: odd.append(os.path.relpath(exc.filename, folder))  # noqa: E731 - os.walk's hook
+    for here, dirs, files in os.walk(top, onerror=unreadable):  # symlinked folders: not followed, judged as files
+        links = [d for d in dirs if os.path.islink(os.path.join(here, d))]
+        entries = files + (links if deep else dirs)  # a flat folder's sub-folder is the user's
+        dirs[:] = [d for d in dirs if d not in links] if deep else []
+        for entry in entries:
+            temporary = _TEMPORARY.fullmatch(entry)
+            if not pattern.fullmatch(temporary.group(1) if temporary else entry):
+                odd.append(os.path.relpath(os.path.join(here, entry), folder))
+    return sorted(odd)
+
+
 def not_a_runs(folder: Path, logs: bool, also: frozenset[str] = frozenset()) -> list[str]:
     """The names in ``folder`` (a run's checkpoint folder, or with ``logs`` its log folder) that no run writes:
-    the user's. ``also``: more names a run writes there (the other folder's, when both are one folder)."""
+    the user's, and with ``logs`` a user's file inside a run's ``tb/``, ``videos/`` or ``.hydra/`` (as
+    ``tb/<path>``: clearing the sub-folder would delete it). ``also``: more names a run writes there (the other
+    folder's, when both are one folder)."""
     names = (LOG_NAMES if logs else _checkpoint_names()) | also
-    return [name for name in _contents(folder, ignore=()) if not _a_runs(name, names, logs)]
+    odd = []
+    for name in _contents(folder, ignore=()):
+        if not _a_runs(name, names, logs):
+            odd.append(name)
+        elif logs and name not in also:
+            odd += _users_inside(folder, name)
+    return odd
 
 
 def _listed(names: list[str]) -> str:
@@ -131,6 +168,7 @@ def job_folder_problem(run_dir: Path, ckpt_dir: Path, resume: bool, overwrite: b
     hydras = (".hydra", "multirun.yaml", LOCK, *_inside(run_dir, ckpt_dir))  # LOCK: paths.runs=paths.checkpoints
     held = [name for name in _contents(run_dir, ignore=hydras) if not name.endswith(".log")]
     odd = [name for name in held if not _a_runs(name, LOG_NAMES | (_checkpoint_names() if same else set()), True)]
+    odd += [path for name in held if name not in odd for path in _users_inside(run_dir, name)]
     if odd:
         return (f"{flag}={run_dir}: holds files that are not a training run's logs ({_listed(odd)}), which a run "
                 f"never writes among or clears; pick another {flag} (an empty or new folder)")
