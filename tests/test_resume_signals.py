@@ -11,6 +11,7 @@ import types
 from pathlib import Path
 
 import pytest
+from stable_baselines3.common.callbacks import BaseCallback
 
 ROLLOUT = 32  # decisions per rollout (n_steps x n_envs)
 
@@ -43,9 +44,33 @@ def _equal(a: dict, b: dict) -> bool:
                                                                                                  "exp_avg_sq"))
 
 
-def _run(tmp_path: Path, total: int, every: int, repeat: int = 1, signal_at_step: tuple[int, ...] = ()):
+class _Rollouts(BaseCallback):
+    """Records the global RNG states at each rollout boundary (step -> train.checkpoint.rng_state()) and those at
+    the moment it sends SIGTERM, during the rollout, once ``num_timesteps`` reaches ``signal_at`` (None: never)."""
+
+    def __init__(self, signal_at: int | None = None):
+        super().__init__()
+        self.signal_at, self.at_boundary, self.at_signal = signal_at, {}, None
+
+    def _on_rollout_start(self) -> None:
+        from train.checkpoint import rng_state
+
+        self.at_boundary[self.num_timesteps] = rng_state()
+
+    def _on_step(self) -> bool:
+        if self.signal_at is not None and self.at_signal is None and self.num_timesteps >= self.signal_at:
+            from train.checkpoint import rng_state
+
+            self.at_signal = rng_state()
+            os.kill(os.getpid(), signal.SIGTERM)
+        return True
+
+
+def _run(tmp_path: Path, total: int, every: int, repeat: int = 1, signal_at_step: tuple[int, ...] = (),
+         rollouts: _Rollouts | None = None):
     """train.ppo.learn on the tiny model to ``total`` decisions; SIGTERM sent from inside the optimizer's
-    ``step`` calls numbered ``signal_at_step`` (1-based; 6 per update: 32 / 16 x 3 epochs), i.e. mid-update.
+    ``step`` calls numbered ``signal_at_step`` (1-based; 6 per update: 32 / 16 x 3 epochs), i.e. mid-update;
+    ``rollouts`` (after the checkpoint callback) records RNG states and may signal mid-rollout.
     Returns (model, checkpoint callback, KeyboardInterrupt raised?)."""
     from train.callbacks import AtomicCheckpointCallback, FiniteGuard
     from train.ppo import _tensorboard_logger, learn
@@ -67,7 +92,8 @@ def _run(tmp_path: Path, total: int, every: int, repeat: int = 1, signal_at_step
     (tmp_path / "ckpt").mkdir(exist_ok=True)
     params = types.SimpleNamespace(total_timesteps=total, n_steps=ROLLOUT, n_envs=1, action_repeat=repeat)
     try:
-        learn(model, venv, params, [FiniteGuard(3e-4), checkpoint], FiniteGuard(3e-4), checkpoint, False, "t")
+        learn(model, venv, params, [FiniteGuard(3e-4), checkpoint, *([rollouts] if rollouts else [])],
+              FiniteGuard(3e-4), checkpoint, False, "t")
     except KeyboardInterrupt:
         return model, checkpoint, True
     return model, checkpoint, False
@@ -160,3 +186,99 @@ def test_a_resumed_runs_event_files_hold_each_step_once(tmp_path):
     steps = sorted(s for s, _ in points)
     assert steps == [512, 1024, 1536, 2048, 2560], points
     assert dict(points)[1536] == pytest.approx(2.0) and dict(points)[1024] == pytest.approx(1.0)
+
+
+def _same_rng(a: dict, b: dict) -> bool:
+    import numpy as np
+    import torch
+
+    return (a["python"] == b["python"] and all(np.array_equal(x, y) for x, y in zip(a["numpy"], b["numpy"]))
+            and torch.equal(a["torch"], b["torch"]))
+
+
+def test_a_signal_mid_rollout_saves_the_boundarys_rng_states(tmp_path):
+    """A signal half-way through the third rollout (no checkpoint yet: every=10**6) saves the boundary at 64 with
+    the RNG states taken there, not the later ones the half rollout advanced (the policy's action draws), so a
+    resume from it draws as one from a checkpoint written at the boundary. Fails if save() takes rng_state() now."""
+    from train.checkpoint import load_rng_state
+
+    rollouts = _Rollouts(signal_at=2 * ROLLOUT + ROLLOUT // 2)
+    _, checkpoint, interrupted = _run(tmp_path, 4 * ROLLOUT, every=10**6, rollouts=rollouts)
+    assert interrupted and checkpoint.saved_at == 2 * ROLLOUT
+    saved = load_rng_state(tmp_path / "ckpt" / "latest.zip")
+    assert not _same_rng(rollouts.at_signal, rollouts.at_boundary[2 * ROLLOUT]), "the half rollout drew"
+    assert _same_rng(saved, rollouts.at_boundary[2 * ROLLOUT]), "the boundary's states, not the signal's"
+    assert "logger" in saved
+
+
+def test_a_boundary_already_saved_is_not_written_again(tmp_path):
+    """every=32 decisions saves each boundary as its rollout starts; a signal in that rollout finds it saved and
+    leaves latest.zip as it is (the same file: not replaced). Fails without save()'s ``saved_at == _boundary``."""
+    latest = tmp_path / "ckpt" / "latest.zip"
+    seen = {}
+
+    class Watch(_Rollouts):
+        def _on_step(self) -> bool:
+            if self.num_timesteps >= self.signal_at and not seen:
+                seen["stat"] = latest.stat()
+            return super()._on_step()
+
+    _, checkpoint, interrupted = _run(tmp_path, 4 * ROLLOUT, every=ROLLOUT, rollouts=Watch(2 * ROLLOUT + 8))
+    assert interrupted and checkpoint.saved_at == 2 * ROLLOUT == _saved(latest)[0]
+    after = latest.stat()
+    assert (after.st_ino, after.st_mtime_ns) == (seen["stat"].st_ino, seen["stat"].st_mtime_ns), "rewritten"
+
+
+def _records(path: Path) -> list[bytes]:
+    from tensorboard.backend.event_processing.event_file_loader import RawEventFileLoader
+
+    return list(RawEventFileLoader(str(path)).Load())
+
+
+def test_a_torn_tail_is_dropped_even_with_nothing_past_the_purge_step(tmp_path):
+    """kill -9 mid-write of a point at or before the checkpoint: no whole event to cut, but the torn record is
+    still removed (a strict TFRecord reader, e.g. tf.data, fails on it), the rest kept byte for byte. Fails
+    without ``_whole`` in train.tb_events.truncate_events."""
+    from torch.utils.tensorboard import SummaryWriter
+
+    from train.tb_events import truncate_events
+
+    folder = tmp_path / "tb"
+    killed = SummaryWriter(str(folder))
+    for step in (512, 1024):
+        killed.add_scalar("train/loss", 1.0, step)
+    killed.close()
+    path = next(folder.glob("events.*"))
+    whole = path.read_bytes()
+    with open(path, "ab") as f:
+        f.write(b"\x20\x00\x00\x00\x00\x00\x00\x00torn")
+    assert truncate_events(folder, 1025) == 0  # no whole event removed
+    assert path.read_bytes() == whole
+    assert truncate_events(folder, 1025) == 0 and path.read_bytes() == whole  # a whole file is left alone
+
+
+def test_a_resumed_dagger_runs_event_files_hold_each_step_once(tmp_path):
+    """DAgger's round log (steps: label counts) resumed after the round at 200 labels, where the cut-short run had
+    logged its round at 300 and torn a record: raw readers see 100, 200, 300 (the resumed run's), 400, once each.
+    Fails when train.dagger.tensorboard_writer only passes purge_step (TensorBoard's readers alone honour it)."""
+    from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
+    from tensorboard.util.tensor_util import make_ndarray
+
+    from train.dagger import tensorboard_writer
+
+    folder = tmp_path / "tb" / "dagger"
+    killed = tensorboard_writer(folder, None)
+    for step in (100, 200, 300):
+        killed.add_scalar("dagger/agreement", 0.5, step)
+    killed.close()
+    with open(next(folder.glob("events.*")), "ab") as f:
+        f.write(b"\x20\x00\x00\x00\x00\x00\x00\x00torn")
+    resumed = tensorboard_writer(folder, 201)
+    for step in (300, 400):
+        resumed.add_scalar("dagger/agreement", 0.9, step)
+    resumed.close()
+    points = [(e.step, v.simple_value if v.HasField("simple_value") else float(make_ndarray(v.tensor)))
+              for path in sorted(folder.glob("events.*")) for e in EventFileLoader(str(path)).Load()
+              for v in e.summary.value if v.tag == "dagger/agreement"]
+    assert sorted(s for s, _ in points) == [100, 200, 300, 400], points
+    assert dict(points)[300] == pytest.approx(0.9) and dict(points)[200] == pytest.approx(0.5)

@@ -60,27 +60,37 @@ class AtomicCheckpointCallback(BaseCallback):
     those of the last boundary, so :meth:`save` saves that boundary (unless already saved) and the half-collected
     rollout is redone; during an update (from a rollout's end to the next one's start: SB3's log dump and
     ``train()``) the parameters and Adam's moments are part-way, so the stop waits for the update to end and the
-    next boundary is saved (a second signal stops at once and keeps the last ``latest.zip``). :attr:`saved_at` is
-    the step ``latest.zip`` holds (None: none yet)."""
+    next boundary is saved (a second signal stops at once and keeps the last ``latest.zip``). The RNG states saved
+    are those taken at the boundary (:meth:`_at_boundary`), not the later ones a half-collected rollout has advanced:
+    a resume from a checkpoint written mid-rollout draws what a resume from one written at the boundary would.
+    :attr:`saved_at` is the step ``latest.zip`` holds (None: none yet)."""
 
     def __init__(self, folder: Path, every: int, action_repeat: int = 1) -> None:
         super().__init__()
         self.folder, self.every, self.repeat = Path(folder), int(every), int(action_repeat)
         self._boundary = 0
         self._pending: dict = {}
+        self._rng: dict = {}  # the global RNG states at the boundary (train.checkpoint.rng_state)
         self._last_save = 0
         self._updating = False  # between a rollout's end and the next one's start: parameters part-way
         self._stop: int | None = None  # the signal whose stop waits for the update in progress to end
         self.saved_at: int | None = None
 
     def _on_training_start(self) -> None:
+        from train.checkpoint import rng_state
+
         self._boundary = self._last_save = self.num_timesteps
+        self._rng = rng_state()
         self.saved_at = self.num_timesteps if (self.folder / "latest.zip").is_file() else None  # a resume's
 
     def _at_boundary(self) -> None:
-        """The consistent state to save from now on: this step, the log values the last update left pending."""
+        """The consistent state to save from now on: this step, the log values the last update left pending, the
+        RNG states (the rollout that starts now draws from them; a mid-rollout save must not take its later ones)."""
+        from train.checkpoint import rng_state
+
         self._updating = False
         self._boundary = self.num_timesteps
+        self._rng = rng_state()
         self._pending = {"name_to_value": dict(self.logger.name_to_value),
                          "name_to_count": dict(self.logger.name_to_count),
                          "name_to_excluded": dict(self.logger.name_to_excluded)}
@@ -114,8 +124,7 @@ class AtomicCheckpointCallback(BaseCallback):
 
     def save(self) -> bool:
         """Save the last boundary's state to ``latest.zip``; False (nothing written) during an update, whose
-        parameters are part-way. A boundary already saved is not saved again (its RNG states were the boundary's
-        own; a rollout's draws since have advanced them)."""
+        parameters are part-way. A boundary already saved is not written again (``latest.zip`` already holds it)."""
         from train.checkpoint import save_model_atomic
 
         if self._updating:
@@ -125,7 +134,8 @@ class AtomicCheckpointCallback(BaseCallback):
         steps = self.model.num_timesteps
         self.model.num_timesteps = self._boundary
         try:  # the RNG states inside latest.zip: one file, replaced at once (a pair of files could tear)
-            save_model_atomic(self.model, self.folder / "latest.zip", rng_extra={"logger": self._pending})
+            # the boundary's RNG states replace the current ones in the saved record (rng_state: extra wins)
+            save_model_atomic(self.model, self.folder / "latest.zip", rng_extra={**self._rng, "logger": self._pending})
             stale = self.folder / "latest.rng"  # an older run's: the zip's own states win, and it would mislead
             if stale.exists():
                 stale.unlink()
