@@ -16,6 +16,21 @@ from av_gym_harness import PACKAGES, use_harness
 USAGE = "python -m av_gym_harness <module> [args]"
 
 
+def runnable_problem(name: str) -> str | None:
+    """Why ``python -m <name>`` cannot run the harness module ``name`` (it does not exist; it is a package without a
+    ``__main__``, where runpy ends in an ImportError traceback: ``conf``, ``agents``), or None. Imports ``name``'s
+    parent packages (what finding it takes), never ``name`` itself."""
+    try:
+        spec = importlib.util.find_spec(name)
+        if spec is not None and spec.submodule_search_locations is not None:  # a package runs its __main__
+            return None if importlib.util.find_spec(f"{name}.__main__") is not None else \
+                (f"the harness's {name!r} is a package with nothing to run (no {name}.__main__); name a module of "
+                 f"it, e.g. eval.results_page, train.export")
+    except ImportError:  # a parent that is no package (eval.results_page.x)
+        spec = None
+    return None if spec is not None else f"the harness has no module {name!r}"
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the harness module ``argv[0]`` with the arguments after it; 2 and one line when it is not one."""
     argv = sys.argv[1:] if argv is None else argv
@@ -25,12 +40,9 @@ def main(argv: list[str] | None = None) -> int:
               f"eval.results_page, train.export), got {name or 'none'!r}", file=sys.stderr)
         return 2
     use_harness()
-    try:
-        found = importlib.util.find_spec(name) is not None
-    except ImportError:  # a parent that is no package (eval.results_page.x)
-        found = False
-    if not found:
-        print(f"error: {USAGE}: the harness has no module {name!r}", file=sys.stderr)
+    problem = runnable_problem(name)
+    if problem:
+        print(f"error: {USAGE}: {problem}", file=sys.stderr)
         return 2
     sys.argv = [name, *argv[1:]]
     runpy.run_module(name, run_name="__main__", alter_sys=True)

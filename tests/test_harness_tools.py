@@ -22,6 +22,23 @@ def test_only_a_module_of_the_harness_is_run(argv, capsys):
                                                "one of the harness's (conf, agents, train, eval"), err
 
 
+@pytest.mark.parametrize("name", ["agents"])  # conf alike, but importing it (Hydra's ConfigStore) takes ~3 s
+def test_a_package_without_a_main_is_one_line(name, capsys, monkeypatch):
+    """``python -m av_gym_harness agents`` (or ``conf``) ended in runpy's ImportError traceback ("'agents' is a
+    package and cannot be directly executed"): now one line, exit 2, nothing run. A package with a __main__ (eval)
+    and a module still pass."""
+    from av_gym_harness.__main__ import runnable_problem
+
+    monkeypatch.setattr(sys, "path", list(sys.path))  # use_harness reorders it for this process
+    assert main([name]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"error: python -m av_gym_harness <module> [args]: the harness's {name!r} is a package with "
+                   f"nothing to run (no {name}.__main__); name a module of it, e.g. eval.results_page, "
+                   f"train.export"], err
+    assert runnable_problem("eval") is None and runnable_problem("eval.results_page") is None
+    assert runnable_problem("eval.nope") == "the harness has no module 'eval.nope'"
+
+
 @pytest.mark.slow  # two python processes importing the harness (~5 CPU-s)
 def test_a_side_tool_runs_from_a_project_with_its_own_eval(tmp_path):
     """From a folder holding a user's ``eval/`` package: ``python -m eval.results_page`` imports the user's,
