@@ -353,8 +353,10 @@ def dagger_cfg(*extra: str):
                                            "run_name=D", *extra])
 
 
-def dagger_run(tmp_path: Path, name: str, *extra: str, stop_at: int | None = None, monkeypatch=None):
-    """A tiny DAgger run into ``tmp_path/name``; with ``stop_at``, Ctrl-C in that round's fit."""
+def dagger_run(tmp_path: Path, name: str, *extra: str, stop_at: int | None = None, monkeypatch=None,
+               stop_in: str = "fit"):
+    """A tiny DAgger run into ``tmp_path/name``; with ``stop_at``, Ctrl-C in that round's ``stop_in``: ``"fit"``,
+    or ``"save_round"`` (after the round was logged to TensorBoard, before latest.zip holds it)."""
     import torch
     from omegaconf import OmegaConf
 
@@ -365,14 +367,14 @@ def dagger_run(tmp_path: Path, name: str, *extra: str, stop_at: int | None = Non
     ckpt.mkdir(parents=True, exist_ok=True)
     (ckpt / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
     if stop_at is not None:
-        fit, calls = train.dagger.fit, []
+        call, calls = getattr(train.dagger, stop_in), []
 
-        def interrupted(model, data, *a, **k):
+        def interrupted(*a, **k):
             calls.append(1)
             if len(calls) > stop_at:
                 raise KeyboardInterrupt
-            return fit(model, data, *a, **k)
-        monkeypatch.setattr(train.dagger, "fit", interrupted)
+            return call(*a, **k)
+        monkeypatch.setattr(train.dagger, stop_in, interrupted)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -417,8 +419,8 @@ def test_dagger_stopped_then_resumed_ends_with_the_uninterrupted_student(tmp_pat
         dagger_run(tmp_path, "cut", stop_at=0, monkeypatch=monkeypatch)  # in round 0: nothing kept, and said so
     assert "before any round finished: nothing was kept (no latest.zip)" in capsys.readouterr().err
     assert not (tmp_path / "cut" / "ckpt" / "latest.zip").exists()
-    with pytest.raises(KeyboardInterrupt):
-        dagger_run(tmp_path, "cut", "train.overwrite=true", stop_at=2, monkeypatch=monkeypatch)
+    with pytest.raises(KeyboardInterrupt):  # round 2 logged, not saved: its TensorBoard points are redone
+        dagger_run(tmp_path, "cut", "train.overwrite=true", stop_at=2, monkeypatch=monkeypatch, stop_in="save_round")
     err = capsys.readouterr().err
     assert "interrupted in round 2: rounds 0..1 are kept in" in err and "train.resume=true" in err, err
     cut = tmp_path / "cut" / "ckpt"
@@ -427,6 +429,8 @@ def test_dagger_stopped_then_resumed_ends_with_the_uninterrupted_student(tmp_pat
     assert "resuming" in capsys.readouterr().out
     a, b = (load_sb3(p, device="cpu").policy.state_dict() for p in (whole, resumed))
     assert all(torch.equal(a[k], b[k]) for k in a), "the same student"
+    # raw readers of the event files (not only TensorBoard, which honours purge_step) see each round once
+    assert _raw_dagger_steps(tmp_path / "cut") == _raw_dagger_steps(tmp_path / "whole") != []
 
     def rows(path):
         with open(path) as f:
@@ -434,6 +438,14 @@ def test_dagger_stopped_then_resumed_ends_with_the_uninterrupted_student(tmp_pat
     assert rows(cut / "rounds.csv") == rows(tmp_path / "whole" / "ckpt" / "rounds.csv")
     assert len(rows(cut / "rounds.csv")) == 3
     assert best != b"" and (cut / "best.zip").is_file()
+
+
+def _raw_dagger_steps(root: Path) -> list[int]:
+    """The dagger/agreement steps in ``root``'s event files themselves, sorted (duplicates kept)."""
+    from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
+
+    return sorted(e.step for path in (root / "run" / "tb").glob("*/events.*") for e in EventFileLoader(str(path)).Load()
+                  for v in e.summary.value if v.tag == "dagger/agreement")
 
 
 def test_a_dagger_checkpoint_without_rounds_is_not_resumed(tmp_path):
