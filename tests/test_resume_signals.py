@@ -1,7 +1,9 @@
 """What a signal leaves for a resume (train.ppo.learn with train.callbacks.AtomicCheckpointCallback), on a tiny PPO
 (CartPole, 32 decisions per rollout): a signal during an update saves the next boundary, not a half-updated state
 under the previous one's label; a second signal saves nothing part-way; checkpoint_every counts env steps; the
-messages name the step saved in decisions and env steps; a resumed run's TensorBoard files hold each step once."""
+messages name the step saved in decisions and env steps; a signal mid-rollout saves the boundary's RNG states and
+leaves a boundary already saved as it is; a resumed run's TensorBoard files (PPO's and DAgger's) hold each step once,
+and a torn last record goes even when nothing follows the checkpoint."""
 
 from __future__ import annotations
 
