@@ -14,7 +14,7 @@ for nothing. What the two share is the user's side of it:
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -119,6 +119,22 @@ def out_folder_problem(path: str | Path, flag: str, cleared: bool = False) -> st
     from av_gym.references import shipped_problem
 
     return shipped_problem(path, flag, cleared) or folder_problem(path, flag)
+
+
+def held_outputs_problem(flag: str, folder: str | Path, names: Iterable[str], overwrite: bool, *,
+                         given: str | Path | None = None, whose: str = "", elsewhere: str = "",
+                         replace: str = "--overwrite") -> str | None:
+    """The one refusal of every tool whose output folder already holds an earlier run's outputs (the files it
+    writes, ``names``, in ``folder``), checked before any work: unless ``overwrite``, ``<flag>=<folder> already
+    holds a, b<whose>; pick another <flag><elsewhere>, or replace them (it) with <replace>``; else None (nothing held, or
+    replacing them asked). ``given``: what ``flag`` was set to when ``folder`` is only where it writes beside
+    (eval.tradeoff's ``--out`` names a figure, its sweep rows lie in its folder)."""
+    held = [name for name in names if (Path(folder) / name).exists()]
+    if not held or overwrite:
+        return None
+    where = f"{flag}={folder}" if given is None else f"{flag}={given}: its folder {folder}"
+    return (f"{where} already holds {', '.join(held)}{whose}; pick another {flag}{elsewhere}, or replace "
+            f"{'it' if len(held) == 1 else 'them'} with {replace}")
 
 
 def out_file_problem(path: str, flag: str) -> str | None:

@@ -299,11 +299,11 @@ def results_problem(command: EvalCommand) -> str | None:
     problem = shipped_problem(command.out_dir, "out_dir") or hand_written_problem(command.out_dir)  # overwrite or not
     if problem:
         return problem
-    held = [name for name in ("results.csv", "results.md") if (Path(command.out_dir) / name).exists()]
-    if held and not command.overwrite:
-        return (f"out_dir={command.out_dir} already holds {' and '.join(held)} of an evaluation; pick another "
-                f"out_dir (or leave it out: a new folder under runs/eval/), or replace them with overwrite=true")
-    return None
+    from conf.cli import held_outputs_problem
+
+    return held_outputs_problem("out_dir", command.out_dir, ("results.csv", "results.md"), command.overwrite,
+                                whose=" of an evaluation", replace="overwrite=true",
+                                elsewhere=" (or leave it out: a new folder under runs/eval/)")
 
 
 def _check_command_line() -> None:

@@ -62,7 +62,7 @@ import yaml
 
 from av_gym.atomic import WriteFailed, save_figure_atomic, write_texts_atomic
 from av_gym.params import SEED_MAX
-from conf.cli import ToolParser, items, number, out_folder_problem
+from conf.cli import ToolParser, held_outputs_problem, items, number, out_folder_problem
 from conf.commands import PROCESSES_MAX
 
 EGO_KMH = (10.0, 15.0, 20.0)
@@ -420,10 +420,9 @@ def main(argv: list[str] | None = None) -> int:
         if repeated is not None:
             shown = f"{repeated:g}" if isinstance(repeated, float) else repeated
             p.error(f"argument {flag}: {shown} is given twice; give each value once")
-    held = [name for name in OUTPUTS if a.out is not None and (Path(a.out) / name).exists()]
-    if held and not a.overwrite:  # another run's results, or the user's files: before any run
-        p.error(f"argument --out={a.out} already holds {', '.join(held)}; pick another --out, or replace them with "
-                f"--overwrite")
+    held = a.out is not None and held_outputs_problem("--out", a.out, OUTPUTS, a.overwrite)
+    if held:  # another run's results, or the user's files: before any run
+        p.error(f"argument {held}")
     try:
         _ccftap(a, argv)
     except _Refused as exc:

@@ -45,7 +45,7 @@ from av_gym.seeds import SPLITS, config_seeds
 from av_gym.shields.aeb import find_shield
 from av_gym.shields.conflicts import PARTNER_TYPES, partner_type
 from eval.runner import play_episode
-from conf.cli import ToolParser, items, number, out_folder_problem
+from conf.cli import ToolParser, held_outputs_problem, items, number, out_folder_problem
 from conf.commands import PROCESSES_MAX
 
 WINDOW = 8.0  # s, default counterfactual window (module docstring)
@@ -290,11 +290,10 @@ def claim_out(out: str, overwrite: bool) -> None:
     if problem:
         raise ConfigError(problem)
     OUT_DIRS.claim(out, "--out", "another eval.interventions")
-    held = [name for name in OUTPUTS if (Path(out) / name).exists()]
-    if held and not overwrite:
+    problem = held_outputs_problem("--out", out, OUTPUTS, overwrite, whose=" of an earlier run")
+    if problem:
         OUT_DIRS.release(out)
-        raise ConfigError(f"--out={out} already holds {', '.join(held)} of an earlier run; pick another --out, or "
-                          f"replace them with --overwrite")
+        raise ConfigError(problem)
 
 
 def main(argv: list[str] | None = None) -> int:

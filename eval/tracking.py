@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from av_gym.atomic import csv_text, write_texts_atomic
-from conf.cli import ToolParser, items, number, out_folder_problem
+from conf.cli import ToolParser, held_outputs_problem, items, number, out_folder_problem
 
 OUTPUTS = ("tracking.md", "tracking.csv")  # what a run writes in --out
 
@@ -83,9 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--overwrite", action="store_true", help=f"replace the {' and '.join(OUTPUTS)} --out holds")
     a = p.parse_args(argv)
     out = Path(a.out or f"runs/tracking/{time.strftime('%Y%m%d-%H%M%S')}")
-    held = [name for name in OUTPUTS if (out / name).exists()]
-    problem = out_folder_problem(out, "--out") or (held and not a.overwrite and (
-        f"--out={out} already holds {', '.join(held)}; pick another --out, or replace them with --overwrite"))
+    problem = out_folder_problem(out, "--out") or held_outputs_problem("--out", out, OUTPUTS, a.overwrite)
     if problem:  # before any episode: the committed 20-episode tables were replaced by a 1-episode run
         p.error(f"argument {problem}")
     out.mkdir(parents=True, exist_ok=True)

@@ -25,7 +25,7 @@ import numpy as np
 from av_gym.metrics.stats import wilson_ci
 from av_gym.seeds import SPLITS
 from av_gym.atomic import csv_text, save_figure, write_text_atomic, write_text_new
-from conf.cli import ToolParser, items, number, out_figure_problem
+from conf.cli import ToolParser, held_outputs_problem, items, number, out_figure_problem
 
 
 def read_rows(paths: list[str]) -> list[dict]:
@@ -147,9 +147,9 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     sweep_csv = args.out.with_suffix(".rule_sweep.csv")
     problem = out_figure_problem(str(args.out), "--out", args.overwrite)  # before any row is read or played
-    if not problem and args.rule_sweep and sweep_csv.exists() and not args.overwrite:
-        problem = (f"--out={args.out}: its sweep file {sweep_csv} exists; choose another --out or give --overwrite "
-                   f"(a file is never replaced unasked)")
+    if not problem and args.rule_sweep:  # the sweep's rows, written beside the figure
+        problem = held_outputs_problem("--out", sweep_csv.parent, [sweep_csv.name], args.overwrite, given=args.out,
+                                       whose=" (the rule sweep's rows)")
     if problem:
         parser.error(f"argument {problem}")
     rows = read_rows(args.results)

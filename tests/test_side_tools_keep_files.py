@@ -6,9 +6,11 @@ figure suffix matplotlib cannot write are one line too, and a repeated CCFtap gr
 from __future__ import annotations
 
 import hashlib
+import re
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -96,7 +98,8 @@ def test_tradeoff_keeps_a_figure_and_a_sweep_there_unless_overwrite(rows_csv, tm
     sweep.write_text("the committed sweep\n")
     code, err = _tradeoff([str(rows_csv), "--out", str(tmp_path / "s.png"), "--rule-sweep", "2", "--episodes", "1",
                            "--n-envs", "1"], capsys)
-    assert code == 2 and f"its sweep file {sweep} exists" in _one_line(err), err
+    assert code == 2 and f"its folder {tmp_path} already holds s.rule_sweep.csv (the rule sweep's rows); pick " \
+                         "another --out, or replace it with --overwrite" in _one_line(err), err
     assert sweep.read_text() == "the committed sweep\n" and not (tmp_path / "s.png").exists()
     code, err = _tradeoff([str(rows_csv), "--out", str(out), "--title", "another", "--overwrite"], capsys)
     assert code == 0 and _digest(out) != before
@@ -147,7 +150,7 @@ def test_ccftap_keeps_a_folders_results_unless_overwrite(tmp_path, capsys, monke
     (out / "notes.txt").write_text("my notes\n")
     monkeypatch.setattr(eval.ccftap, "_run_tasks", lambda *a: pytest.fail("the grid ran"))
     code, err = _ccftap([*CASE, "--out", str(out)], capsys)
-    assert code == 2 and f"argument --out={out} already holds results.md; pick another --out, or replace them " \
+    assert code == 2 and f"argument --out={out} already holds results.md; pick another --out, or replace it " \
                          "with --overwrite" in _one_line(err), err
     assert (out / "results.md").read_text() == "my results\n" and sorted(p.name for p in out.iterdir()) == \
         ["notes.txt", "results.md"]
@@ -181,7 +184,7 @@ def test_tracking_keeps_the_tables_there_unless_overwrite(tmp_path, capsys, monk
     real_run = eval.tracking.run
     monkeypatch.setattr(eval.tracking, "run", lambda *a: pytest.fail("an episode ran"))
     for argv, needle in ((["--out", str(out)], f"argument --out={out} already holds tracking.csv; pick another "
-                                               "--out, or replace them with --overwrite"),
+                                               "--out, or replace it with --overwrite"),
                          (["--out", str(tmp_path / "new"), "--episodes", "0"],
                           "argument --episodes: expected an integer >= 1, got '0'")):
         with pytest.raises(SystemExit) as exc:
@@ -267,3 +270,48 @@ def test_curves_keeps_a_figure_and_refuses_a_suffix_before_reading(name, needle,
     line = _refused(eval.curves.main, [str(tmp_path), "--out", str(out)], capsys, monkeypatch, "curves")
     assert f"argument --out={out}: " in line and needle in line, line
     assert [p.name for p in tmp_path.iterdir()] == ([name] if name.endswith(".png") else [])
+
+
+# ------------------------------------------------------------------------ one refusal for an out folder's outputs
+HELD = re.compile(r"(argument )?(?P<flag>--out|out_dir)=\S+( \(.+\))?(: its folder \S+)? already holds (?P<held>\S+)"
+                  r"( \(.+\)| of an? [a-z ]+)?; pick another (?P=flag)( \(.+\))?, or replace it with "
+                  r"(--overwrite|overwrite=true)")
+
+
+def test_every_tool_words_an_out_folders_earlier_outputs_alike(rows_csv, tmp_path, capsys, monkeypatch):
+    """The refusal of an ``--out`` already holding a tool's outputs was written five times in four forms (R5,
+    finding 6: tradeoff's "its sweep file ... exists; choose another --out or give --overwrite", "replace them" for
+    one file); now conf.cli.held_outputs_problem words it once for ccftap, tracking, interventions, eval and
+    tradeoff. Each refused before any work, its one line in the one form, naming the file held."""
+    import eval.ccftap
+    import eval.tracking
+    from av_gym.errors import ConfigError
+    from eval.__main__ import results_problem
+    from eval.interventions import claim_out
+    from eval.tradeoff import main as tradeoff
+
+    lines = {}
+    for tool, name in (("ccftap", "grid.png"), ("tracking", "tracking.md"), ("interventions", "episodes.csv"),
+                       ("eval", "results.csv")):
+        (tmp_path / tool).mkdir()
+        (tmp_path / tool / name).write_text("an earlier run's\n")
+    monkeypatch.setattr(eval.ccftap, "_run_tasks", lambda *a: pytest.fail("the grid ran"))
+    lines["ccftap"] = _ccftap([*CASE, "--out", str(tmp_path / "ccftap")], capsys)[1]
+    monkeypatch.setattr(eval.tracking, "run", lambda *a: pytest.fail("an episode ran"))
+    with pytest.raises(SystemExit):
+        eval.tracking.main(["--out", str(tmp_path / "tracking")])
+    lines["tracking"] = capsys.readouterr().err
+    with pytest.raises(ConfigError) as refused:
+        claim_out(str(tmp_path / "interventions"), False)
+    lines["interventions"] = str(refused.value)
+    lines["eval"] = results_problem(SimpleNamespace(out_dir=str(tmp_path / "eval"), overwrite=False))
+    (tmp_path / "t.rule_sweep.csv").write_text("the committed sweep\n")
+    with pytest.raises(SystemExit):
+        tradeoff([str(rows_csv), "--out", str(tmp_path / "t.png"), "--rule-sweep", "2"])
+    lines["tradeoff"] = capsys.readouterr().err
+    held = {tool: HELD.fullmatch(_one_line(line.removeprefix("error: python -m eval." + tool + ": ")))
+            for tool, line in lines.items()}
+    assert all(held.values()), lines
+    assert {tool: match["held"] for tool, match in held.items()} == {
+        "ccftap": "grid.png", "tracking": "tracking.md", "interventions": "episodes.csv", "eval": "results.csv",
+        "tradeoff": "t.rule_sweep.csv"}
