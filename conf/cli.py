@@ -126,9 +126,9 @@ def held_outputs_problem(flag: str, folder: str | Path, names: Iterable[str], ov
                          replace: str = "--overwrite") -> str | None:
     """The one refusal of every tool whose output folder already holds an earlier run's outputs (the files it
     writes, ``names``, in ``folder``), checked before any work: unless ``overwrite``, ``<flag>=<folder> already
-    holds a, b<whose>; pick another <flag><elsewhere>, or replace them (it) with <replace>``; else None (nothing held, or
-    replacing them asked). ``given``: what ``flag`` was set to when ``folder`` is only where it writes beside
-    (eval.tradeoff's ``--out`` names a figure, its sweep rows lie in its folder)."""
+    holds a, b<whose>; pick another <flag><elsewhere>, or replace them (it: one file) with <replace>``; else None
+    (nothing held, or replacing them asked). ``given``: what ``flag`` was set to when ``folder`` is only where it
+    writes beside (eval.tradeoff's ``--out`` names a figure, its sweep rows lie in its folder)."""
     held = [name for name in names if (Path(folder) / name).exists()]
     if not held or overwrite:
         return None
