@@ -504,7 +504,9 @@ class BeliefPlanner:
 
         f = drawn()
         safe, a_go, y_go, steps = play_min_acc(f, float(f.speeds[-1]))
-        # stopping over the same window: a stopped ego's future runs to the time limit, the GO's ends on arrival
+        # stopping over the same window, future by future: a stopped ego's future runs to the time limit, the GO's
+        # ends on arrival. Each future's own GO end, not the longest of the call: a row's shares must not depend on
+        # which other rows are asked with it (per env and batch decide alike)
         _, a_stop, y_stop, _ = play_min_acc(drawn(), float(f.speeds[0]), steps)
         b = float(self.params.start_brake)
         forced = ((a_go < -b) & (a_stop >= -b)).any(axis=1)
@@ -787,13 +789,15 @@ def play_set_point_fast(f, top: float) -> np.ndarray:
     return safe
 
 
-def play_min_acc(f, top: float, horizon: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+def play_min_acc(f, top: float, horizon: int | np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`play_set_point_fast` of the future engine ``f`` at set-point ``top`` (m/s), also returning each road
     user's hardest command (the lowest ``traffic.acc``, m/s²; +inf where it never drove uncrashed) over the play
     and whether the regulation held it (``yielding``) after any step, each (B, N) in the slots of ``f``'s start,
     followed by vid (slots shift as vehicles leave); the ego and the vehicles that enter later are left out (+inf,
-    False); and the policy steps played. ``horizon``: stop after this many steps (the rows still playing count as
-    uncrashed)."""
+    False); and the policy steps each row played, (B,) (to its end, or to its horizon). ``horizon``: stop each row
+    after this many steps, one for all or (B,) one per row (the rows still playing then count as uncrashed): a
+    row's window is its own, whatever the other rows of ``f`` do."""
     from av_gym.sim.batched import FASTER, IDLE, SLOWER
 
     t = f.traffic
@@ -802,12 +806,19 @@ def play_min_acc(f, top: float, horizon: int | None = None) -> tuple[np.ndarray,
     safe = np.ones(f.B, bool)
     idx = np.arange(f.B)  # the rows of the original future that ``f`` still holds
     live = np.ones(f.B, bool)  # the rows of ``f`` still playing
+    limit = np.full(f.B, np.iinfo(np.int64).max) if horizon is None else \
+        np.broadcast_to(np.asarray(horizon, dtype=np.int64), (f.B,))  # each original row's own last step
+    played = np.zeros(f.B, dtype=np.int64)
     steps = 0
-    while live.any() and (horizon is None or steps < horizon):
+    while True:
+        live &= steps < limit[idx]  # a row past its own horizon waits as an ended one does
+        if not live.any():
+            break
         steps += 1
         sp = f.traffic.target[np.arange(f.B), f.ego_slot()]
         meta = np.where(top > sp + 1e-3, FASTER, np.where(top < sp - 1e-3, SLOWER, IDLE))
         _, terminated, truncated = f.step(meta, active=live)
+        played[idx[live]] = steps
         t, v = f.traffic, vids[idx]
         driving = t.alive & ~t.ego & ~t.crashed & live[:, None]
         same = (t.vid[:, :, None] == v[:, None, :]) & driving[:, :, None] & (v[:, None, :] >= 0)
@@ -821,7 +832,7 @@ def play_min_acc(f, top: float, horizon: int | None = None) -> tuple[np.ndarray,
             if 0 < live.sum() <= f.B // 2:  # drop the ended rows once they are half, as play_set_point_fast does
                 keep = np.flatnonzero(live)
                 idx, f, live = idx[keep], f.keep(keep), np.ones(len(keep), bool)
-    return safe, low, held, steps
+    return safe, low, held, played
 
 
 def described(engine, rows) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

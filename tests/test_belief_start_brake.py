@@ -40,11 +40,13 @@ def test_play_min_acc_is_each_road_users_hardest_command():
     start = [{int(v): np.inf for v in t0.vid[k][t0.alive[k] & ~t0.ego[k]]} for k in range(ref.B)]
     yielded = [set() for _ in range(ref.B)]
     live, ref_safe, ref_steps = np.ones(ref.B, bool), np.ones(ref.B, bool), 0
+    ref_played = np.zeros(ref.B, int)  # the steps each row played, to its own end
     while live.any():
         ref_steps += 1
         sp = ref.traffic.target[np.arange(ref.B), ref.ego_slot()]
         meta = np.where(top > sp + 1e-3, FASTER, np.where(top < sp - 1e-3, SLOWER, IDLE))
         _, term, trunc = ref.step(meta, active=live)
+        ref_played[live] = ref_steps
         t = ref.traffic
         for k in np.flatnonzero(live):
             for j in np.flatnonzero(t.alive[k] & ~t.ego[k] & ~t.crashed[k]):
@@ -66,10 +68,17 @@ def test_play_min_acc_is_each_road_users_hardest_command():
     assert braked > 0  # some road user braked in these futures: the minimum is not trivially the start's
     assert held.any()  # and some were held by the regulation: the hold is not trivially False
     np.testing.assert_array_equal(safe, ref_safe)
-    assert steps == ref_steps
+    np.testing.assert_array_equal(steps, ref_played)
+    assert steps.min() < steps.max()  # the rows end apart: a per-row count is not the longest play's
     # a horizon stops the play there: the lowest command over those steps only
     _, low3, _, three = play_min_acc(fork(), top, 3)
-    assert three == 3 and (low3 >= low).all() and (low3 > low).any()
+    assert (three == 3).all() and (low3 >= low).all() and (low3 > low).any()
+    # one horizon per row: each row's window its own (3 steps or its whole play), whatever the others' are
+    mixed = np.where(np.arange(ref.B) % 2 == 0, 3, steps)
+    _, low_m, _, played_m = play_min_acc(fork(), top, mixed)
+    np.testing.assert_array_equal(played_m, mixed)
+    np.testing.assert_array_equal(low_m[::2], low3[::2])
+    np.testing.assert_array_equal(low_m[1::2], low[1::2])
 
 
 class _Future:
@@ -94,17 +103,19 @@ def test_a_brake_forced_by_the_go_is_counted_apart_from_collisions(monkeypatch):
     y_go = np.array([[False, False], [False, False], [True, False], [False, True]])
     y_stop = np.array([[False, False], [False, False], [True, False], [False, False]])
     horizons = []
+    ends = np.array([12, 40, 25, 40])  # the steps each future's GO play took
 
     def play(f, top, horizon=None):
         horizons.append(horizon)
-        return (safe, go, y_go, 40) if top > 0 else (np.ones(4, bool), stop, y_stop, 40)
+        return (safe, go, y_go, ends) if top > 0 else (np.ones(4, bool), stop, y_stop, np.minimum(ends, 40))
 
     monkeypatch.setattr(belief, "play_min_acc", play)
     c, q = planner.forced_share(None, np.array([0]), 4)
     # future 0 collides (its forced brake not counted twice); 1 forced; 2 brakes as hard when stopping; 3 mildly
     np.testing.assert_allclose(c, [0.25])
     np.testing.assert_allclose(q, [0.25])
-    assert horizons == [None, 40]  # stopping played over the GO play's steps, not to the time limit
+    # stopping played over each future's own GO steps, not to the time limit
+    assert horizons[0] is None and horizons[1] is ends
     # start_brake_yield: future 3's hold, which the GO alone brings, is forced too; future 2's is not
     planner.params = BeliefLookaheadParams(samples=4, start_brake=5.0, start_brake_yield=True)
     c, q = planner.forced_share(None, np.array([0]), 4)
@@ -154,3 +165,26 @@ def test_only_a_go_to_start_is_held_back_by_forced_brakes(brake, share, want, mo
     # asked only of the rows starting a GO (not the held GO, not the unsafe YIELD), the K and the recheck's R
     assert asked == [([0, 1, 2], K, ()), ([0, 1, 2], R, (RECHECK_STREAM,))]
     np.testing.assert_array_equal(got, want)
+
+
+def test_a_rows_forced_share_does_not_depend_on_the_rows_asked_with_it():
+    """R5's probe, shortened: forced_share of 8 envs at once gives each row the shares it gets asked alone. Failed
+    while the stopping play ran for the longest GO future of the whole call (row 0 here: forced in 0.125 of its
+    futures in the batch, 0.25 alone): per env and batch then decided apart."""
+    from av_gym.presets import compose_group
+
+    seeds, sensors = list(range(400_100, 400_108)), compose_group("sensors", "turn_perceived")
+    venv = BatchedLeftTurnBatch({"name": "left_turn"}, sensors, None, len(seeds), pool=0)
+    obs = venv.play(iter(seeds))
+    planner = BeliefPlanner(BeliefLookaheadParams(samples=8, start_brake=5.0), n_rows=len(seeds),
+                            perception=venv.perception)
+    rows = np.arange(len(seeds))
+    for _ in range(4):  # tracks read each step, as the agent does
+        planner.read(venv.engine, rows, obs["intent"])
+        obs, _, _, _ = venv.step(meta_actions(np.full(len(seeds), YIELD), obs["turn"]))
+    planner.read(venv.engine, rows, obs["intent"])
+    c, q = planner.forced_share(venv.engine, rows, 8)
+    assert ((q > 0) & (q < 1)).any()  # some row is forced in some futures and not others: not trivially equal
+    for i in rows:
+        ci, qi = planner.forced_share(venv.engine, rows[i:i + 1], 8)
+        assert (ci[0], qi[0]) == (c[i], q[i]), i
