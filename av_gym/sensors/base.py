@@ -121,15 +121,25 @@ class SensorWrapper(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
 
     def _guarded(self, value):
         """The reading with any NaN/inf replaced (NaN → 0, ±inf → the space's bound, then clipped into it), so that
-        nothing non-finite ever reaches an agent or a network; each such reading is counted and reported in
-        ``info["sensor_faults"][key]``. A sensor's model should never produce one: this is the last line, after
-        the sensors' own checks (e.g. a GNSS fix that is not finite is dropped like one lost in an outage)."""
+        nothing non-finite ever reaches an agent or a network, then marked not usable by ``invalidate`` (a bare 0
+        must not read as a confident value, e.g. a valid GNSS fix at the origin); each such reading is counted and
+        reported in ``info["sensor_faults"][key]``. A sensor's model should never produce one: this is the last
+        line, after the sensors' own checks (e.g. a GNSS fix that is not finite is dropped like one lost in an
+        outage)."""
         bad = _count_nonfinite(value)
         if bad:
             self.faults += 1
             self._step_faults += bad
-            value = _finite(value, self.observation_space[self.key])
+            value = self.invalidate(value, _finite(value, self.observation_space[self.key]))
         return value
+
+    def invalidate(self, raw, clean):
+        """``clean`` (the finite, in-space copy of a reading ``raw`` that held NaN/inf) marked as not usable, in the
+        sensor's own terms: GNSS clears its fresh/valid flags, the detector drops the rows, the lidar reads the
+        beams as no return. This default, for sensors with no such flag (IMU, cameras, estimators), keeps
+        ``clean`` as it is: the faulty entries read 0 (or the bound for ±inf) and only
+        ``info["sensor_faults"]`` says so."""
+        return clean
 
     def step(self, action):
         self._step_faults = 0

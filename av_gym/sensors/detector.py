@@ -297,6 +297,12 @@ class Detector(SensorWrapper):
         self.truth_ids = np.full(self.max_objects, -1)
         self.truth_ids[: len(ids)] = ids
 
+    def invalidate(self, raw: np.ndarray, clean: np.ndarray) -> np.ndarray:
+        """A row that held NaN/inf (see ``SensorWrapper._guarded``) is dropped: all zeros, present = 0, as an unused
+        row, rather than a present object with a 0 put in place of the NaN."""
+        bad = ~np.all(np.isfinite(raw), axis=-1)
+        return np.where(bad[:, None], np.float32(0.0), clean).astype(np.float32)
+
     def measure(self) -> np.ndarray:
         t = sim_time(self.env)
         if t + 1e-9 >= self._next_frame:

@@ -133,6 +133,13 @@ class GNSS(SensorWrapper):
         return False
 
     # ------------------------------------------------------------------------------------------- measurement
+    def invalidate(self, raw: np.ndarray, clean: np.ndarray) -> np.ndarray:
+        """A reading that held NaN/inf (see ``SensorWrapper._guarded``) is not a fix: fresh = valid = 0, so that
+        the 0 put in place of the NaN is never read as a confident fix at the origin."""
+        out = np.array(clean, dtype=np.float32)
+        out[4] = out[5] = 0.0
+        return out
+
     def measure(self) -> np.ndarray:
         t = sim_time(self.env)
         fresh = False

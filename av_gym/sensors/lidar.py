@@ -393,6 +393,11 @@ class Lidar(SensorWrapper):
                 listeners.append(self._record_pose)
             self._record_pose(self.env.unwrapped)
 
+    def invalidate(self, raw: np.ndarray, clean: np.ndarray) -> np.ndarray:
+        """A beam that read NaN/inf (see ``SensorWrapper._guarded``) reads ``max_range``, the scan's own mark of a
+        beam with no valid return, not 0 (an obstacle touching the sensor) nor a clipped bound."""
+        return np.where(np.isfinite(raw), clean, np.float32(self.max_range)).astype(np.float32)
+
     def measure(self) -> np.ndarray:
         t = sim_time(self.env)
         if self._obs is None or t >= self._next_scan - 1e-9:
