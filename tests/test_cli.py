@@ -63,7 +63,7 @@ def test_train_ppo_on_the_full_sensor_preset(tmp_path):
     res = run("train", "agent=ppo", "sensors=full", *FAST_PPO, "agent.total_timesteps=64", "train.eval_n=0",
               "train.eval_episodes=1", "run_name=full", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
-    assert "| ppo | 1 |" in res.stdout and "[train] 64 steps" in res.stdout
+    assert "| ppo | 1 |" in res.stdout and "[train] 64 env steps" in res.stdout
 
 
 @pytest.mark.slow  # a CNN on camera images, cloned then trained, exported, reloaded twice
