@@ -66,7 +66,7 @@ def split_latest(spec: str) -> tuple[str, bool]:
 
 
 def find_checkpoint(kind: str, env_name: str, root: str | Path, name: str | None = None,
-                    latest: bool = False) -> Path:
+                    latest: bool = False, reference: str | Path | None = None) -> Path:
     """The checkpoint an agent spec means, the same on every day and in every clone:
 
     - a named agent (``name``, e.g. ``ppo_turn``) is its shipped reference, ``checkpoints/reference/<name>/``,
@@ -82,7 +82,9 @@ def find_checkpoint(kind: str, env_name: str, root: str | Path, name: str | None
 
     Reference folders are never searched or ordered by modification time: a name means one folder, and extra
     training seeds of a reference (``reference/seeds/<name>/s<seed>/``, whose configs say ``name: ppo_turn`` too)
-    are reached by their path only."""
+    are reached by their path only. The references are the harness's own (:data:`REFERENCE`, or ``reference``
+    where a test gives a stand-in), never ``<root>/reference`` of the working folder: a user's
+    ``checkpoints/reference/pilotnet`` is evaluated by its path, labelled so."""
     def matches(cfg_path: Path) -> Path | None:
         cfg = read_config_yaml(cfg_path)
         model = cfg_path.parent / _checkpoint_name(kind)
@@ -92,13 +94,14 @@ def find_checkpoint(kind: str, env_name: str, root: str | Path, name: str | None
             return model
         return None
 
-    reference = reference_folder(root)
+    reference = Path(reference) if reference is not None else REFERENCE
     if name is None and (reference / kind / "config.yaml").is_file():
         name = kind  # `pilotnet`: a kind whose reference folder bears its name is that named agent
     what = name or kind
     if name is not None and not latest:
         own = reference / name / "config.yaml"
         if own.is_file() and matches(own) is not None:
+            _note_lookalike(Path(root) / "reference" / name, reference / name)
             return matches(own)
         drives = _scenarios_of(what, kind)
         if env_name not in drives:  # no train command to suggest: train refuses it too
@@ -129,12 +132,19 @@ REFERENCE = reference_root()
 """The shipped reference checkpoints: the checkout's ``checkpoints/reference/``, or the wheel's copy."""
 
 
-def reference_folder(root: str | Path) -> Path:
-    """Where the shipped reference agents are: ``<root>/reference`` when the working folder has one (``root`` is
-    ``paths.checkpoints``, relative to it), else the package's own :data:`REFERENCE`, so that a named agent
-    (``ppo_turn``) resolves from any folder (``av-gym-eval`` in a project of yours), not only the repository's."""
-    local = Path(root) / "reference"
-    return local if local.is_dir() else REFERENCE
+def _note_lookalike(local: Path, shipped: Path) -> None:
+    """One line on stderr when the working folder holds a ``checkpoints/reference/<name>`` of its own (an export of
+    yours, say) that the name does not mean: the row is the shipped reference's, and yours is evaluated by its
+    path. In the checkout run from its root the two are one folder and nothing is said."""
+    import sys
+
+    try:
+        same = local.resolve() == shipped.resolve()
+    except OSError:
+        same = True
+    if local.is_dir() and not same:
+        print(f"[eval] note: {local}/ is not the shipped reference {local.name!r} ({shipped}/), which the name "
+              f"means; to evaluate yours pass its path: agents=[{local}]", file=sys.stderr)
 
 
 def _scenarios_of(what: str, kind: str) -> tuple[str, ...]:

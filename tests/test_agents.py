@@ -100,6 +100,8 @@ def test_a_named_agent_resolves_to_its_own_reference_folder_whatever_the_file_ti
 
     from eval.agents import find_checkpoint
 
+    ref = tmp_path / "reference"  # a stand-in for the shipped references
+
     def folder(name: str, agent_name: str, mtime: float):
         d = tmp_path / "reference" / name
         d.mkdir(parents=True)
@@ -111,9 +113,9 @@ def test_a_named_agent_resolves_to_its_own_reference_folder_whatever_the_file_ti
     own = folder("ppo_turn", "ppo_turn", 1_000.0)
     folder("ppo_turn_v2_s1", "ppo_turn", 2_000.0)  # another round of the same agent, written later by git
     folder("seeds/ppo_turn/s2", "ppo_turn", 3_000.0)  # an extra training seed (the layout that says so)
-    assert find_checkpoint("ppo", "left_turn", tmp_path, name="ppo_turn") == own
+    assert find_checkpoint("ppo", "left_turn", tmp_path, reference=ref, name="ppo_turn") == own
     with pytest.raises(ConfigError, match="you have no ppo_turn run"):  # :latest never falls back to the reference
-        find_checkpoint("ppo", "left_turn", tmp_path, name="ppo_turn", latest=True)
+        find_checkpoint("ppo", "left_turn", tmp_path, reference=ref, name="ppo_turn", latest=True)
     # a run you trained yourself does not change what the name means; ppo_turn:latest is that run (the newest)
     for i, run_name in enumerate(("old_run", "my_run")):
         run = tmp_path / run_name
@@ -121,10 +123,11 @@ def test_a_named_agent_resolves_to_its_own_reference_folder_whatever_the_file_ti
         (run / "config.yaml").write_text("env: {name: left_turn}\nagent: {kind: ppo, name: ppo_turn}\n")
         (run / "model.zip").write_bytes(b"")
         os.utime(run / "model.zip", (5_000.0 + i, 5_000.0 + i))
-    assert find_checkpoint("ppo", "left_turn", tmp_path, name="ppo_turn") == own
-    assert find_checkpoint("ppo", "left_turn", tmp_path, name="ppo_turn", latest=True) == run / "model.zip"
+    assert find_checkpoint("ppo", "left_turn", tmp_path, reference=ref, name="ppo_turn") == own
+    latest = find_checkpoint("ppo", "left_turn", tmp_path, reference=ref, name="ppo_turn", latest=True)
+    assert latest == run / "model.zip"
     with pytest.raises(ConfigError, match="no shipped reference checkpoint for 'ppo_turn_v9'.*ppo_turn_v9:latest"):
-        find_checkpoint("ppo", "left_turn", tmp_path, name="ppo_turn_v9")
+        find_checkpoint("ppo", "left_turn", tmp_path, reference=ref, name="ppo_turn_v9")
 
 
 def test_a_bare_kind_is_your_newest_run_else_an_error_naming_the_references_of_that_kind(tmp_path):
@@ -133,6 +136,8 @@ def test_a_bare_kind_is_your_newest_run_else_an_error_naming_the_references_of_t
     import os
 
     from eval.agents import find_checkpoint
+
+    ref = tmp_path / "reference"  # a stand-in for the shipped references
 
     def folder(path: str, kind: str, name: str, env: str = "left_turn", mtime: float = 1_000.0):
         d = tmp_path / path
@@ -149,15 +154,16 @@ def test_a_bare_kind_is_your_newest_run_else_an_error_naming_the_references_of_t
     folder("reference/ppo_lane_camera", "ppo", "ppo_lane_camera", env="lane_keeping")
     with pytest.raises(ConfigError, match=r"no ppo checkpoint of your own for env 'left_turn'.*a kind, not a named "
                                           r"agent.*\(ppo_turn, ppo_turn_perceived, ppo_turn_shielded\)"):
-        find_checkpoint("ppo", "left_turn", tmp_path)
+        find_checkpoint("ppo", "left_turn", tmp_path, reference=ref)
     mine = folder("my_run", "ppo", "ppo", mtime=2_000.0)
     folder("older_run", "ppo", "ppo_turn", mtime=1_500.0)
     folder("my_lap", "pilotnet", "pilotnet", env="lane_keeping", mtime=3_000.0)
-    assert find_checkpoint("ppo", "left_turn", tmp_path) == mine
-    assert find_checkpoint("pilotnet", "lane_keeping", tmp_path) == pilotnet
-    assert find_checkpoint("pilotnet", "lane_keeping", tmp_path, latest=True) == tmp_path / "my_lap" / "model.pt"
+    assert find_checkpoint("ppo", "left_turn", tmp_path, reference=ref) == mine
+    assert find_checkpoint("pilotnet", "lane_keeping", tmp_path, reference=ref) == pilotnet
+    latest = find_checkpoint("pilotnet", "lane_keeping", tmp_path, reference=ref, latest=True)
+    assert latest == tmp_path / "my_lap" / "model.pt"
     with pytest.raises(ConfigError, match=r"pilotnet drives \['lane_keeping'\], not env=left_turn"):
-        find_checkpoint("pilotnet", "left_turn", tmp_path)
+        find_checkpoint("pilotnet", "left_turn", tmp_path, reference=ref)
 
 
 def test_the_shipped_pilotnet_is_the_folder_of_its_name():
@@ -170,14 +176,13 @@ def test_latest_spec_plans_the_newest_run_and_labels_its_row(tmp_path):
     """`ppo_turn` and `ppo_turn:latest` are two rows with two labels: the reference and your newest run."""
     import shutil
 
-    from eval.agents import plan_agent
+    from eval.agents import REFERENCE, plan_agent
 
     root = tmp_path / "checkpoints"
-    shutil.copytree("checkpoints/reference/ppo_turn", root / "reference" / "ppo_turn")
-    shutil.copytree("checkpoints/reference/seeds/ppo_turn/s2", root / "my_run")
+    shutil.copytree(REFERENCE / "seeds" / "ppo_turn" / "s2", root / "my_run")
     ref = plan_agent("ppo_turn", "left_turn", {"name": "truth"}, {"name": "none"}, root)
     mine = plan_agent("ppo_turn:latest+aeb", "left_turn", {"name": "truth"}, {"name": "none"}, root)
-    assert Path(ref.spec).parent.name == "ppo_turn" and ref.label == "ppo_turn"
+    assert Path(ref.spec) == REFERENCE / "ppo_turn" / "model.zip" and ref.label == "ppo_turn"
     assert Path(mine.spec).parent.name == "my_run" and mine.label == "ppo_turn:latest+aeb"
     with pytest.raises(ConfigError, match="rule-based"):
         plan_agent("gap_acceptance:latest", "left_turn", {"name": "truth"}, {"name": "none"}, root)
