@@ -81,3 +81,19 @@ def test_a_pilotnet_run_is_not_exported_over_another_kind_or_from_a_damaged_file
     line = cli(main, [str(runs["run"]), str(tmp_path / "out")], capsys)
     assert f"{runs['run'] / 'model.pt'}: " in line, line
     assert snapshot(runs["root"]) == before and not (tmp_path / "out").exists()
+
+
+def test_an_export_into_a_reference_lookalike_of_yours_says_named_agents_do_not_read_it(runs, tmp_path, capsys):
+    """``train.export <run> checkpoints/reference/pilotnet`` in a project of yours (not the shipped folder) writes
+    the folder as any other, and says that ``agents=[pilotnet]`` still means the shipped reference (R6 finding 1:
+    it was read under that name)."""
+    from train.export import lookalike_note, main
+
+    dest = tmp_path / "proj" / "checkpoints" / "reference" / "pilotnet"
+    main([str(runs["run"]), str(dest)])
+    out = capsys.readouterr().out
+    assert (dest / "model.pt").read_bytes() == (runs["run"] / "model.pt").read_bytes()
+    assert f"is not a shipped reference ({runs['root']}/...): named agents (agents=[pilotnet]) do not read it; " \
+           f"evaluate it by its path, agents=[{dest}]" in out, out
+    assert lookalike_note(runs["root"] / "seeds" / "pilotnet" / "s3") is None  # the shipped folder: no note
+    assert lookalike_note(tmp_path / "proj" / "checkpoints" / "pilotnet_s3") is None

@@ -81,6 +81,19 @@ def reference_problem(dest: Path, new_cfg: Mapping, overwrite_reference: bool, h
     return None
 
 
+def lookalike_note(dest: Path) -> str | None:
+    """A note when ``dest`` looks like a reference's folder (``.../checkpoints/reference/<agent>``, in a project
+    of yours) but is not inside the shipped references: written as any folder (it is yours), but a named agent
+    (``agents=[pilotnet]``) always means the shipped reference, so this checkpoint is evaluated by its path."""
+    from av_gym.references import is_shipped, reference_root
+
+    parts = dest.resolve().parts[:-1]
+    if is_shipped(dest) or not any(parts[i:i + 2] == ("checkpoints", "reference") for i in range(len(parts))):
+        return None
+    return (f"{dest} is not a shipped reference ({reference_root()}/...): named agents (agents=[{dest.name}]) do "
+            f"not read it; evaluate it by its path, agents=[{dest}], its rows labelled so")
+
+
 def write_checkpoint_folder(dest: Path, files: dict[str, Callable[[Path], object] | str],
                             keep_others: bool = True) -> Path:
     """Write ``files`` (name → text, or a function writing that file's path) into ``dest``, all of them replacing
@@ -217,8 +230,8 @@ def main(argv: list[str] | None = None) -> None:
     parser = ToolParser(prog="python -m train.export", description=__doc__.split("\n\n")[0])
     parser.add_argument("run_dir", help="checkpoints/<run_name>/ of a training run (PPO, DAgger: model.zip; "
                                         "PilotNet: model.pt)")
-    parser.add_argument("dest", help="folder to write, e.g. checkpoints/<name> (checkpoints/reference/<agent>: "
-                                     f"only with {FLAG})")
+    parser.add_argument("dest", help="folder to write, e.g. checkpoints/<name> (the shipped "
+                                     f"checkpoints/reference/<agent>: only with {FLAG})")
     parser.add_argument("--best", action="store_true", help="export best.zip (the best periodic evaluation; SB3 "
                                                             "runs)")
     parser.add_argument("--command", help="the command that trained the run, written to DEST/COMMAND")
@@ -232,6 +245,9 @@ def main(argv: list[str] | None = None) -> None:
     out = export_reference(args.run_dir, args.dest, args.best, args.command, args.overwrite_reference,
                            args.overwrite)
     print(f"[export] {out} ({out.stat().st_size / 1e6:.1f} MB) and config.yaml")
+    note = lookalike_note(Path(args.dest))
+    if note:
+        print(f"[export] note: {note}")
     if not (out.parent / "COMMAND").is_file():
         print(f"[export] {out.parent}/COMMAND is missing: write the command that trained the run there "
               f"(--command), as every reference checkpoint has")
