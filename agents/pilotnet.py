@@ -25,6 +25,7 @@ Steering: one output, the normalised steering in [−1, 1] (+ = right, ±1 ↦ �
 from __future__ import annotations
 
 import pickle
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -144,8 +145,16 @@ def load_checkpoint(path: str | Path) -> dict:
     loading it cannot run code, unlike a pickle)."""
     if Path(path).is_file() and Path(path).stat().st_size == 0:  # torch says only "EOFError"
         raise ValueError(f"{path} is empty (0 bytes): a copy or download that did not finish? Re-copy it or retrain")
+    unreadable = (f"{path} is not a readable checkpoint: not a whole torch.save archive (truncated, or another "
+                  f"kind of file); re-copy it or retrain")
+    if Path(path).is_file() and not zipfile.is_zipfile(path):  # torch says "Weights only load failed" or "[Errno 22]"
+        raise ValueError(unreadable)
     try:
         ckpt = torch.load(str(path), map_location="cpu", weights_only=True)
+    except (OSError, RuntimeError, EOFError) as exc:  # a damaged member of a zip whose directory is whole
+        if not Path(path).is_file():
+            raise
+        raise ValueError(f"{unreadable} ({type(exc).__name__})") from None
     except pickle.UnpicklingError:
         raise ValueError(f"{path} holds Python objects besides tensors and plain values; refusing to unpickle it "
                          f"(weights_only=True)") from None

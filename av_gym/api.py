@@ -82,6 +82,8 @@ def left_turn_vector(num_envs: int, *, env: Mapping | None = None, sensors: Any 
     try:
         check_batchable(env_cfg, sensors_cfg, shield_cfg, with_shield=True)
     except ConfigError as exc:
+        if "agent.vec_env=batched" not in str(exc):  # a bad value (miss_rate=nan): the other modes refuse it too
+            raise
         what = str(exc).split("; use ")[0].replace("agent.vec_env=batched", "the batched engine")
         raise ConfigError(f"{what}; {other}") from None
     return BatchedLeftTurnVectorEnv(env_cfg, sensors_cfg, int(num_envs), shield_cfg, actions=actions,

@@ -470,12 +470,24 @@ def _check_path(cfg: Any, key: str, command: str) -> None:
             if isinstance(node, DictConfig) and not allowed:  # an empty section, e.g. localizer.noise: {}
                 raise ConfigError(f"{name} is not set in {section}; add a key with +{key}=<value>")
             if isinstance(node, DictConfig):
-                hint = closest_hint(part, allowed)
+                hint = closest_hint(part, allowed) or (_preset_hint(part) if where == "sensors" else "")
                 raise ConfigError(f"{name} is not a field of {section}; allowed: {allowed}{hint}"
                                   if where else f"{name} is not {section}; allowed: {allowed}{hint}")
             raise ConfigError(f"{where} is a value, not a section: cannot set {key}")
         node = node._get_node(part)  # not node[part]: that would resolve an interpolation (${hydra:...})
         done.append(part)
+
+
+def _preset_hint(sensor: str) -> str:
+    """``sensors.cameras.*`` on a preset without cameras (the default, truth, when ``sensors=`` is left out, though
+    the agent runs on cameras): name the shipped presets that have that sensor, to add as ``sensors=``."""
+    import yaml
+
+    have = sorted(p.name[:-5] for p in (resources.files("conf") / "sensors").iterdir() if p.name.endswith(".yaml")
+                  and any(isinstance(d, str) and d.startswith(f"/sensor/{sensor}@")
+                          for d in (yaml.safe_load(p.read_text()) or {}).get("defaults", [])))
+    pick = sensor if sensor in have else (have[0] if have else "")
+    return (f"; add the agent's sensors preset, e.g. sensors={pick} (presets with {sensor}: {have})" if have else "")
 
 
 def _option_of(cfg: Any, where: str) -> str:
