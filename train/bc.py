@@ -143,6 +143,14 @@ def geometric_side_label(u_centre: float, offset: float, recovery_distance: floa
 
 
 # ================================================================================================ 3. demonstrations
+def demo_cte_text(metrics: dict) -> str:
+    """A demo lap's mean |CTE| for the log: metres (SI, ``cte_mean_abs_m``), with paper 001's units beside it,
+    named (the lane is 100 units wide: av_gym/metrics/lane_keeping.py), so that no bare "units" is read as m."""
+    nan = float("nan")
+    return (f"mean |CTE| {metrics.get('cte_mean_abs_m', nan):.3f} m "
+            f"({metrics.get('cte_mean_abs_units', nan):.1f} paper units, lane = 100)")
+
+
 def collect_demos(env_cfg: dict, sensors_cfg: dict, args: PilotNetParams, log: Callable[[str], None] = print) -> dict:
     """Drive ``args.demo_laps`` perturbed expert laps with the camera rig; returns the demo arrays (see
     :func:`save_demos`). Images are clean renders: the sensors preset's camera noise is switched off here."""
@@ -191,8 +199,8 @@ def collect_demos(env_cfg: dict, sensors_cfg: dict, args: PilotNetParams, log: C
             done = terminated or truncated or (args.demo_max_steps is not None and steps >= args.demo_max_steps)
         m = info.get("episode_metrics", {})
         log(f"[bc] demo lap {lap + 1}/{args.demo_laps} (seed {seed}): {steps} steps, "
-            f"lap completed {bool(m.get('lap_completed', 0))}, mean |CTE| {m.get('cte_mean_abs_units', float('nan')):.1f} "
-            f"units with perturbations ({time.time() - t0:.0f} s)")
+            f"lap completed {bool(m.get('lap_completed', 0))}, {demo_cte_text(m)} with perturbations "
+            f"({time.time() - t0:.0f} s)")
     env.close()
     demos = {k: np.asarray(v) for k, v in rows.items()}
     demos["images"] = demos["images"].astype(np.uint8)
