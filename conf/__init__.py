@@ -31,12 +31,17 @@ def register_configs() -> None:
 
 
 def register_resolvers() -> None:
-    """``${av_gym_groups:train}``: the groups a command lets a user choose, for --help (conf/hydra/help/av_gym.yaml)."""
+    """``${av_gym_groups:train}``: the groups a command lets a user choose, for --help (conf/hydra/help/av_gym.yaml).
+    ``${av_gym_reference:dagger_turn}``: the shipped reference of that name (the checkout's or the wheel's copy,
+    :func:`av_gym.references.reference_root`), whatever folder the command runs from: a preset that starts from a
+    reference must not read a user's own ``checkpoints/reference`` (as named agents do not, eval/agents.py)."""
     from omegaconf import OmegaConf
 
+    from av_gym.references import reference_root
     from conf.commands import help_groups
 
     OmegaConf.register_new_resolver("av_gym_groups", help_groups, replace=True)
+    OmegaConf.register_new_resolver("av_gym_reference", lambda name: str(reference_root() / name), replace=True)
 
 
 register_configs()

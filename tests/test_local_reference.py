@@ -58,3 +58,14 @@ def test_in_the_checkout_the_working_folders_reference_is_the_shipped_one(monkey
     found = find_checkpoint("pilotnet", "lane_keeping", "checkpoints")
     assert found.resolve() == (REFERENCE / "pilotnet" / "model.pt").resolve()
     assert capsys.readouterr().err == ""  # the same folder (compared resolved): no note
+
+
+def test_a_preset_that_starts_from_a_reference_reads_the_shipped_one_from_any_folder(project):
+    """``dagger_turn_perceived`` starts from the truth student (``init_from``): from a user's project folder (with
+    a ``checkpoints/reference`` of its own) it is the harness's ``dagger_turn``, not a path under the working
+    folder (which was missing there, or the user's own)."""
+    from agents.registry import agent_params
+    from eval.agents import REFERENCE, load_agent_config
+
+    params = agent_params(load_agent_config("dagger_turn_perceived"))
+    assert Path(params.init_from) == REFERENCE / "dagger_turn" and Path(params.init_from).is_absolute()
