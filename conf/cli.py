@@ -66,9 +66,10 @@ def _item(part: str, text: str, kind: Callable[[str], Any], low: float | None, h
 
 
 def items(kind: Callable[[str], Any] = str, *, low: float | None = None, high: float | None = None,
-          choices: list | None = None) -> Callable[[str], list]:
+          choices: list | None = None, unique: bool = False) -> Callable[[str], list]:
     """An argparse ``type`` for a list: ``[a,b]`` (Hydra's syntax) or ``a,b``; each item converted by ``kind`` and
-    checked against ``low``/``high`` (inclusive) or ``choices``."""
+    checked against ``low``/``high`` (inclusive) or ``choices``; with ``unique``, a value given twice (as converted:
+    ``[0,0.0]``) is refused, for a list whose items are each run and counted once (a grid)."""
 
     def parse(text: str) -> list:
         body = text.strip()
@@ -77,7 +78,12 @@ def items(kind: Callable[[str], Any] = str, *, low: float | None = None, high: f
         parts = [p.strip().strip("'\"") for p in body.split(",") if p.strip()]
         if not parts:
             raise argparse.ArgumentTypeError(f"expected a list like [a,b], got {text!r}")
-        return [_item(part, text, kind, low, high, choices) for part in parts]
+        values = [_item(part, text, kind, low, high, choices) for part in parts]
+        repeated = next((v for i, v in enumerate(values) if v in values[:i]), None) if unique else None
+        if repeated is not None:
+            shown = f"{repeated:g}" if isinstance(repeated, float) else repeated
+            raise argparse.ArgumentTypeError(f"{shown} is given twice; give each value once")
+        return values
 
     parse.__name__ = f"list of {_kind_name(kind)}s"
     return parse

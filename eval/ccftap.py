@@ -414,12 +414,6 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"argument {out_folder_problem(a.out, '--out')}")
     if len(a.plot_case) != 3:
         p.error(f"argument --plot-case: expected [ego km/h, target km/h, dt], got {a.plot_case}")
-    for flag, values in (("--ego", a.ego), ("--target", a.target), ("--dts", a.dts), ("--variants", a.variants),
-                         ("--modes", a.modes)):  # a repeat would run and count its cases twice
-        repeated = next((v for i, v in enumerate(values) if v in values[:i]), None)
-        if repeated is not None:
-            shown = f"{repeated:g}" if isinstance(repeated, float) else repeated
-            p.error(f"argument {flag}: {shown} is given twice; give each value once")
     held = a.out is not None and held_outputs_problem("--out", a.out, OUTPUTS, a.overwrite)
     if held:  # another run's results, or the user's files: before any run
         p.error(f"argument {held}")
@@ -437,14 +431,14 @@ def _parser() -> ToolParser:
                    help="list of agent specs, [a,b] as for `python -m eval` (conf/agent/ name, ppo, checkpoint path, "
                         "name@sensors); default always_proceed")
     p.add_argument("--checkpoints", default="checkpoints", help="where named trained agents' checkpoints are found")
-    p.add_argument("--variants", default=list(VARIANTS), type=items(str, choices=list(VARIANTS)))
-    p.add_argument("--modes", default=list(MODES), type=items(str, choices=list(MODES)))
+    p.add_argument("--variants", default=list(VARIANTS), type=items(str, choices=list(VARIANTS), unique=True))
+    p.add_argument("--modes", default=list(MODES), type=items(str, choices=list(MODES), unique=True))
     bounds = _ccftap_bounds()  # the bounds env.ccftap.* declares (CCFtapParams): 1e9 s would hang the run
-    p.add_argument("--ego", default=list(EGO_KMH), type=items(float, **bounds["ego_speed_kmh"]),
+    p.add_argument("--ego", default=list(EGO_KMH), type=items(float, **bounds["ego_speed_kmh"], unique=True),
                    help="ego speeds, km/h, [10,15,20]")
-    p.add_argument("--target", default=list(TARGET_KMH), type=items(float, **bounds["target_speed_kmh"]),
+    p.add_argument("--target", default=list(TARGET_KMH), type=items(float, **bounds["target_speed_kmh"], unique=True),
                    help="target speeds, km/h")
-    p.add_argument("--dts", default=list(DTS), type=items(float, **bounds["dt"]), help="timing offsets, s")
+    p.add_argument("--dts", default=list(DTS), type=items(float, **bounds["dt"], unique=True), help="timing offsets, s")
     p.add_argument("--miss-rate", type=float, default=None, help="perceived mode: detector miss rate (yaml: 0.3)")
     p.add_argument("--burst-length", type=float, default=None, help="perceived mode: mean miss run, frames (yaml: 5)")
     p.add_argument("--detector-range", type=float, default=None, help="perceived mode: detector range, m")
