@@ -262,11 +262,11 @@ def test_a_torn_tail_is_dropped_even_with_nothing_past_the_purge_step(tmp_path):
 def test_a_resumed_dagger_runs_event_files_hold_each_step_once(tmp_path):
     """DAgger's round log (steps: label counts) resumed after the round at 200 labels, where the cut-short run had
     logged its round at 300 and torn a record: raw readers see 100, 200, 300 (the resumed run's), 400, once each.
-    Fails when train.dagger.tensorboard_writer only passes purge_step (TensorBoard's readers alone honour it)."""
+    Fails when train.tb_events.resumed_writer only passes purge_step (TensorBoard's readers alone honour it)."""
     from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
     from tensorboard.util.tensor_util import make_ndarray
 
-    from train.dagger import tensorboard_writer
+    from train.tb_events import resumed_writer as tensorboard_writer  # DAgger's round log opens it
 
     folder = tmp_path / "tb" / "dagger"
     killed = tensorboard_writer(folder, None)

@@ -681,6 +681,7 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path, command: TrainC
 
     from agents.dagger import DaggerParams
     from train.checkpoint import save_model_atomic, write_text_atomic
+    from train.tb_events import resumed_writer
 
     command = command or TrainCommand.of(cfg)
     t_start, latest = time.time(), ckpt_dir / "latest.zip"
@@ -696,8 +697,7 @@ def train_dagger(cfg: DictConfig, ckpt_dir: Path, run_dir: Path, command: TrainC
         data, rows, best, start = _resume(run.model, latest, ckpt_dir, params, shift)
         t_start -= float(rows[-1]["wall_s"]) if rows else 0.0  # wall-clock of the run, not of this process
     # resumed: what the cut-short round logged after the saved state goes (steps are label counts)
-    writer = tensorboard_writer(run_dir / "tb" / str(params.name),
-                                int(rows[-1]["labels"]) + 1 if resume and rows else None)
+    writer = resumed_writer(run_dir / "tb" / str(params.name), int(rows[-1]["labels"]) + 1 if resume and rows else None)
     # each training seed drives its own episodes, train_seed + 50,000 x seed + the round's offset, all in the
     # train split (av_gym/seeds.py: folded into it)
     first = int(params.train_seed) + 50_000 * command.seed
@@ -920,20 +920,6 @@ def _validation(options: TrainOptions, plain: list, repeat: int, actions: str, b
         return (float(np.mean([r["collision"] for r in rows])),
                 float(np.mean([r["success"] if "success" in r else r["lap_completed"] for r in rows])))
     return run
-
-
-def tensorboard_writer(folder: Path, purge_step: int | None):
-    """The round log's ``SummaryWriter`` on ``folder``. Resumed (``purge_step``: the saved state's label count + 1),
-    what the cut-short round logged at steps >= ``purge_step`` is first cut out of the old event files
-    (:func:`train.tb_events.truncate_events`, as :func:`train.ppo._tensorboard_logger` does: raw readers too see
-    each step once), then the writer's ``purge_step`` marks the restart for TensorBoard's own readers."""
-    from torch.utils.tensorboard import SummaryWriter
-
-    from train.tb_events import truncate_events
-
-    if purge_step:  # before the new writer opens its file: only the cut-short run's files are cut
-        truncate_events(folder, purge_step)
-    return SummaryWriter(str(folder), purge_step=purge_step)
 
 
 def _log(writer, row: dict, label_rate: float) -> None:

@@ -63,16 +63,13 @@ def _tensorboard_logger(folder: Path, purge_step: int | None):
     every reader, raw ones too, sees each step once), and the new writer's ``purge_step`` marks the restart as
     TensorBoard expects."""
     from stable_baselines3.common.logger import Logger, TensorBoardOutputFormat
-    from torch.utils.tensorboard import SummaryWriter
 
-    from train.tb_events import truncate_events
+    from train.tb_events import resumed_writer
 
-    if purge_step:  # before the new writer opens its file: only the killed run's files are cut
-        truncate_events(folder, purge_step)
     fmt = TensorBoardOutputFormat(str(folder))
-    if purge_step:
+    if purge_step:  # SB3's own writer replaced by the resumed one (its file holds only the version record)
         fmt.writer.close()
-        fmt.writer = SummaryWriter(log_dir=str(folder), purge_step=purge_step)
+        fmt.writer = resumed_writer(folder, purge_step)
     return Logger(folder=str(folder), output_formats=[fmt])
 
 

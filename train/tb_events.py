@@ -42,3 +42,15 @@ def _whole(path: Path, records: list[bytes]) -> bool:
     """Whether ``records`` (as TFRecord framing: 8-byte length, 4-byte CRC, data, 4-byte CRC) fill ``path``, i.e.
     no torn record follows them."""
     return path.stat().st_size == sum(16 + len(r) for r in records)
+
+
+def resumed_writer(folder: str | Path, purge_step: int | None):
+    """A ``SummaryWriter`` on ``folder`` for a run's TensorBoard log; resumed (``purge_step``: the first step the
+    resumed run writes again), what the interrupted run logged at steps >= ``purge_step`` is first cut out of the
+    old event files (:func:`truncate_events`: raw readers see each step once), then the writer's ``purge_step``
+    marks the restart for TensorBoard's own readers. PPO's logger (train.ppo) and DAgger's round log both open it."""
+    from torch.utils.tensorboard import SummaryWriter
+
+    if purge_step:  # before the new writer's events: only the interrupted run's are cut
+        truncate_events(folder, purge_step)
+    return SummaryWriter(str(folder), purge_step=purge_step)
