@@ -60,13 +60,12 @@ def seeds(split: str, n: int, first: int | None = None, field: str = "seed") -> 
     start = r.start if first is None else int(first)
     if n < 0:
         raise ValueError(f"the number of episodes must be >= 0, got {n}")
+    leaves = f"{field}={start} with {n} episodes leaves split {split!r} (seeds {r.start}..{r.stop - 1}); "
     if start in r and start + n > r.stop:  # the seed is fine; the episodes run past the split's end
-        raise ValueError(f"{field}={start} with {n} episodes leaves split {split!r} (seeds {r.start}..{r.stop - 1}); "
-                         f"give episodes <= {r.stop - start} (what the split leaves from {field}={start})"
+        raise ValueError(f"{leaves}give episodes <= {r.stop - start} (what the split leaves from {field}={start})"
                          + (f", or an earlier {field}" if start > r.start else ""))
     if start not in r:
-        raise ValueError(f"{field}={start} with {n} episodes leaves split {split!r} (seeds {r.start}..{r.stop - 1}); "
-                         f"give {field} in that range, or leave it out to start at {r.start}")
+        raise ValueError(f"{leaves}give {field} in that range, or leave it out to start at {r.start}")
     return range(start, start + n)
 
 
