@@ -765,19 +765,24 @@ def play_stop_fast(f) -> np.ndarray:
     return play_set_point_fast(f, float(f.speeds[0]))
 
 
-def play_set_point_fast(f, top: float) -> np.ndarray:
-    """Whether each row of the future engine ``f`` ends without a collision when the ego asks for the set-point
-    ``top`` (m/s) at every env step to the episode's end (FASTER below it, SLOWER above, IDLE at it)."""
+def set_point_meta(f, top: float) -> np.ndarray:
+    """The meta-actions, one per row of the future engine ``f``, that move the ego's set-point towards ``top``
+    (m/s): FASTER below it, SLOWER above, IDLE at it (1 mm/s apart counts as at it)."""
     from av_gym.sim.batched import FASTER, IDLE, SLOWER
 
+    sp = f.traffic.target[np.arange(f.B), f.ego_slot()]
+    return np.where(top > sp + 1e-3, FASTER, np.where(top < sp - 1e-3, SLOWER, IDLE))
+
+
+def play_set_point_fast(f, top: float) -> np.ndarray:
+    """Whether each row of the future engine ``f`` ends without a collision when the ego asks for the set-point
+    ``top`` (m/s) at every env step to the episode's end (:func:`set_point_meta`)."""
     safe = np.ones(f.B, bool)
     idx = np.arange(f.B)  # the rows of the original future that ``f`` still holds
     live = np.ones(f.B, bool)  # the rows of ``f`` still playing
     while live.any():
         n = f.B
-        sp = f.traffic.target[np.arange(n), f.ego_slot()]
-        meta = np.where(top > sp + 1e-3, FASTER, np.where(top < sp - 1e-3, SLOWER, IDLE))
-        _, terminated, truncated = f.step(meta, active=live)  # the ended rows wait as they are
+        _, terminated, truncated = f.step(set_point_meta(f, top), active=live)  # the ended rows wait as they are
         ended = (terminated | truncated) & live
         if ended.any():
             e = np.nonzero(ended)[0]
@@ -798,8 +803,6 @@ def play_min_acc(f, top: float, horizon: int | np.ndarray | None = None
     False); and the policy steps each row played, (B,) (to its end, or to its horizon). ``horizon``: stop each row
     after this many steps, one for all or (B,) one per row (the rows still playing then count as uncrashed): a
     row's window is its own, whatever the other rows of ``f`` do."""
-    from av_gym.sim.batched import FASTER, IDLE, SLOWER
-
     t = f.traffic
     vids = np.where(t.alive & ~t.ego, t.vid, -1)  # (B, N) the start's road users
     low, held = np.full(vids.shape, np.inf), np.zeros(vids.shape, bool)
@@ -815,9 +818,7 @@ def play_min_acc(f, top: float, horizon: int | np.ndarray | None = None
         if not live.any():
             break
         steps += 1
-        sp = f.traffic.target[np.arange(f.B), f.ego_slot()]
-        meta = np.where(top > sp + 1e-3, FASTER, np.where(top < sp - 1e-3, SLOWER, IDLE))
-        _, terminated, truncated = f.step(meta, active=live)
+        _, terminated, truncated = f.step(set_point_meta(f, top), active=live)
         played[idx[live]] = steps
         t, v = f.traffic, vids[idx]
         driving = t.alive & ~t.ego & ~t.crashed & live[:, None]

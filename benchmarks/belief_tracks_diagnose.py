@@ -169,7 +169,7 @@ def _future_paths(planner, engine, r: int) -> dict:
     seeds, the tracks' fill) with GO played to their end as ``play_go_fast`` plays it, traced: the time (s since the
     decision), per policy step each road user's place (vid -> (K, steps, 2) m, NaN where it is gone), and per
     future whether the ego collided and which road users' vids crashed with it."""
-    from av_gym.sim.batched import FASTER, IDLE, SLOWER
+    from agents.belief import set_point_meta
 
     e = planner.tracks.current(engine)
     K = planner.K
@@ -180,9 +180,7 @@ def _future_paths(planner, engine, r: int) -> dict:
     places: dict[int, list] = {}
     steps = 0
     while live.any() and steps < 400:
-        sp = f.traffic.target[np.arange(f.B), f.ego_slot()]
-        meta = np.where(top > sp + 1e-3, FASTER, np.where(top < sp - 1e-3, SLOWER, IDLE))
-        _, terminated, truncated = f.step(meta, active=live)
+        _, terminated, truncated = f.step(set_point_meta(f, top), active=live)
         live &= ~(terminated | truncated)
         steps += 1
         t = f.traffic

@@ -54,16 +54,14 @@ def _futures(planner, engine, r: int):
 def _played(f, steps: int) -> tuple:
     """``f`` played ``steps`` policy steps with GO's set-point (play_go_fast's meta-actions); returns it and, per
     future and road user vid, whether it was yielding / at set-point 0, or braking harder than 1 m/s², at any step."""
-    from av_gym.sim.batched import FASTER, IDLE, SLOWER
+    from agents.belief import set_point_meta
 
     top = float(f.speeds[-1])
     live = np.ones(f.B, bool)
     held: dict[int, np.ndarray] = {}
     brake: dict[int, np.ndarray] = {}
     for _ in range(steps):
-        sp = f.traffic.target[np.arange(f.B), f.ego_slot()]
-        meta = np.where(top > sp + 1e-3, FASTER, np.where(top < sp - 1e-3, SLOWER, IDLE))
-        _, term, trunc = f.step(meta, active=live)
+        _, term, trunc = f.step(set_point_meta(f, top), active=live)
         t = f.traffic
         for k in range(f.B):
             for j in np.flatnonzero(t.alive[k] & ~t.ego[k]):
