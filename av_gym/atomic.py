@@ -115,7 +115,7 @@ def write_new_or_exit(path: str | Path, text: str, field: str = "") -> Path:
     try:
         return write_text_new(path, text, field)
     except ConfigError as exc:
-        _exit_with(exc)
+        exit_with(exc)
 
 
 def new_paths_or_exit(*paths: tuple[str | Path | None, str]) -> None:
@@ -124,10 +124,13 @@ def new_paths_or_exit(*paths: tuple[str | Path | None, str]) -> None:
     try:
         new_paths(*paths)
     except ConfigError as exc:
-        _exit_with(exc)
+        exit_with(exc)
 
 
-def _exit_with(exc: ConfigError) -> NoReturn:
+def exit_with(exc: ConfigError) -> NoReturn:
+    """A script's refusal ``exc`` as one ``error:`` line on stderr (its whitespace folded), then exit status 2 (the
+    scripts' ``fail``): what :func:`write_new_or_exit` and :func:`new_paths_or_exit` end with, and what a script
+    calls on a refused write of its own (benchmarks/batched_speed.py's figure)."""
     import sys
 
     print(f"error: {' '.join(str(exc).split())}", file=sys.stderr)

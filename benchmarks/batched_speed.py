@@ -37,7 +37,7 @@ from av_gym.batched.left_turn import BatchedLeftTurn
 from av_gym.estimation.turn_features import TurnFeatures
 from av_gym.make import highway_config
 from av_gym.sim import batched
-from av_gym.atomic import save_figure_new
+from av_gym.atomic import exit_with, save_figure_new
 from av_gym.errors import ConfigError
 from conf.cli import Extend, ToolParser, items, number, out_figure_problem
 
@@ -242,8 +242,7 @@ def main() -> None:
     try:  # a new file, whole: one that appeared during the run is kept (the table above is printed either way)
         save_figure_new(fig, args.out, "--out", dpi=120)
     except ConfigError as exc:
-        print(f"error: {' '.join(str(exc).split())}", file=sys.stderr)
-        sys.exit(2)
+        exit_with(exc)
     print(f"\nplot: {args.out}")
 
 if __name__ == "__main__":
