@@ -23,7 +23,8 @@ from av_gym.params import param
 PRESETS: dict[str, dict[str, float]] = {
     "paper": {"kp": 0.75, "ki": 0.0001, "kd": 1.0},  # digest 001 Table 2, set by hand by the authors
     # `python -m train.pid_search` (grid 120 + Nelder-Mead 60, layout A, training seeds 0-4, gain margin 2):
-    # mean |CTE| 0.713 units on those laps vs 4.88 for "paper". The search drops I and D: see train/pid_search.py.
+    # mean |CTE| 0.713 paper units (lane = 100) on those laps vs 4.88 for "paper". The search drops I and D: see
+    # train/pid_search.py.
     "tuned": {"kp": 4.88591, "ki": 0.0, "kd": 0.0},
 }
 

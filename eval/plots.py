@@ -81,7 +81,17 @@ def _axes_for_lap(ax, trace: dict) -> None:
     ax.axhline(0, color="grey", lw=0.6)
     ax.set_ylim(-half - 5, half + 5)
     ax.set_xlabel("distance along the lap (m)")
-    ax.set_ylabel("CTE (units, lane = 100; + right)")
+    ax.set_ylabel("CTE (paper units: lane = 100; + right)")
+
+
+def cte_title(label: str, title: str, trace: dict) -> str:
+    """A lap's CTE figure title: mean |CTE| in metres (SI), then paper 001's units, named (the lane is 100 wide), as
+    the axis shows them, so that no bare "units" reads as metres."""
+    cte = np.asarray(trace["cte"], dtype=float)
+    u = LANE_UNITS * cte / trace["lane_width"]
+    lap = "" if trace["lap_completed"] else ", LAP NOT COMPLETED"
+    return (f"{label}: {title}\nmean |CTE| {np.abs(cte).mean():.3f} m, max {np.abs(cte).max():.2f} m; paper units "
+            f"(lane = 100): mean {np.abs(u).mean():.2f}, std {u.std():.2f}, max {np.abs(u).max():.1f}{lap}")
 
 
 def plot_cte(traces: dict[str, dict], out_dir: str | Path, title: str) -> list[Path]:
@@ -99,8 +109,7 @@ def plot_cte(traces: dict[str, dict], out_dir: str | Path, title: str) -> list[P
         fig, ax = plt.subplots(figsize=(9, 3.2))
         _axes_for_lap(ax, tr)
         ax.plot(tr["progress"], u, lw=1.2, color="tab:green")
-        ax.set_title(f"{label}: {title}\nmean |CTE| {np.abs(u).mean():.2f} units, std {u.std():.2f}, "
-                     f"max {np.abs(u).max():.1f}{'' if tr['lap_completed'] else ', LAP NOT COMPLETED'}", fontsize=9)
+        ax.set_title(cte_title(label, title, tr), fontsize=9)
         fig.tight_layout()
         paths.append(out_dir / f"cte_{_slug(label)}.png")
         save_figure_atomic(fig, paths[-1], "out_dir", dpi=110)  # whole or as it was

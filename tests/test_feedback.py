@@ -46,7 +46,8 @@ def test_pid_search_announces_its_grid_and_shows_a_bar_of_evaluations(monkeypatc
 
     def laps(env, gains, seeds):
         events.append("lap")
-        return [{"lap_completed": 1.0, "cte_mean_abs_units": gains["kp"], "steering_sign_changes_per_100m": 1.0}]
+        return [{"lap_completed": 1.0, "cte_mean_abs_units": gains["kp"], "cte_mean_abs_m": gains["kp"] / 25,
+                 "steering_sign_changes_per_100m": 1.0}]
 
     monkeypatch.setattr(pid_search, "lane_env", lambda track: Env())
     monkeypatch.setattr(pid_search, "run_laps", laps)

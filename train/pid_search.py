@@ -10,18 +10,18 @@ splits, so neither is ever seen by the search; layout B is held out.
 What is minimised, per gain triple (Kp, Ki, Kd) of the per-step PID in ``agents/pid.py`` (same anti-windup and
 clipping as the paper preset, input the true CTE as the paper's simulator gave):
 
-    J = mean over seeds of [ mean |CTE| (units, lane = 100) + osc_weight · steering sign changes per 100 m ]
+    J = mean over seeds of [ mean |CTE| (paper units, lane = 100) + osc_weight · steering sign changes per 100 m ]
 
 subject to two constraints, J = inf otherwise:
   * completion: every lap is completed;
   * gain margin: the same gains multiplied by ``--margin`` (default 2, i.e. 6 dB, the textbook minimum gain
     margin) still complete the first seed's lap without a limit cycle (at most ``--max-osc`` = 20 steering sign
     changes per 100 m; the paper PID makes about 2.5, a limit cycle 80-100).
-Why the margin: without it the optimum is P-only at Kp ≈ 7.6 (0.46 units on A), one step from the limit cycle
+Why the margin: without it the optimum is P-only at Kp ≈ 7.6 (0.46 paper units on A), one step from the limit cycle
 that starts between Kp 8 and 12 (at Kp 12 the steering reverses ~88 times per 100 m). highway-env's car steers its
 velocity directly through the slip angle (β ≈ δ/2), so proportional action alone is damped and the derivative
 term mostly adds high-frequency gain; a preset sitting on that cliff would fall off it with the first noisy CTE.
-The oscillation term (weight 0.1: one sign change per 100 m costs 0.1 units) breaks near-ties towards calm gains.
+The oscillation term (weight 0.1: one sign change per 100 m costs 0.1 paper units) breaks near-ties towards calm gains.
 
 How: (1) a grid over Kp × Ki × Kd (``--grid full``: 6 × 4 × 5 = 120 triples); (2) Nelder–Mead (scipy) from the
 best grid point, ``--refine`` function evaluations, gains clipped to >= 0. Prints the best triples, the final
@@ -90,8 +90,9 @@ def has_margin(env, gains: dict, seed: int, margin: float, max_osc: float) -> bo
 
 def search(grid: dict, seeds, track: str = "A", osc_weight: float = 0.1, refine: int = 60, margin: float = 2.0,
            max_osc: float = 20.0, log=tqdm.write, progress: bool = True) -> dict:
-    """Grid then Nelder–Mead; returns ``{"best": {kp, ki, kd}, "objective", "mean_abs_cte_units",
-    "sign_changes_per_100m", "evaluations", "top": [...]}``. ``log`` gets a line as each phase starts and ends;
+    """Grid then Nelder–Mead; returns ``{"best": {kp, ki, kd}, "objective", "mean_abs_cte_units" (paper units, lane
+    = 100), "mean_abs_cte_m", "sign_changes_per_100m", "evaluations", "top": [...]}``.
+    ``log`` gets a line as each phase starts and ends;
     ``progress``: a bar of the evaluations (each a lap per seed, ~2 s), with the best J so far."""
     from scipy.optimize import minimize
 
@@ -115,6 +116,7 @@ def search(grid: dict, seeds, track: str = "A", osc_weight: float = 0.1, refine:
         j = j if margin_ok else float("inf")
         table.append({**gains, "objective": j, "margin_ok": margin_ok,
                       "mean_abs_cte_units": float(np.mean([r["cte_mean_abs_units"] for r in rows])),
+                      "mean_abs_cte_m": float(np.mean([r["cte_mean_abs_m"] for r in rows])),
                       "sign_changes_per_100m": float(np.mean([r["steering_sign_changes_per_100m"] for r in rows])),
                       "laps_completed": float(np.mean([r["lap_completed"] for r in rows]))})
         bar.update()
@@ -139,9 +141,26 @@ def search(grid: dict, seeds, track: str = "A", osc_weight: float = 0.1, refine:
     best = min(table, key=lambda r: r["objective"])
     top = sorted(table, key=lambda r: r["objective"])[:10]
     return {"best": {k: round(best[k], 6) for k in ("kp", "ki", "kd")}, "objective": best["objective"],
-            "mean_abs_cte_units": best["mean_abs_cte_units"], "sign_changes_per_100m": best["sign_changes_per_100m"],
+            "mean_abs_cte_units": best["mean_abs_cte_units"], "mean_abs_cte_m": best["mean_abs_cte_m"],
+            "sign_changes_per_100m": best["sign_changes_per_100m"],
             "evaluations": len(table), "grid_evaluations": n_grid, "top": top, "track": track, "seeds": seeds,
             "osc_weight": osc_weight, "margin": margin, "max_osc": max_osc}
+
+
+def report_lines(res: dict) -> list[str]:
+    """The printed result of :func:`search`: the best triples' table and the best line, the mean |CTE| in metres
+    with paper 001's units named beside it (J's scale: the lane is 100 units wide), never a bare "units"."""
+    lines = ["", "| Kp | Ki | Kd | J | mean abs CTE (m) | mean abs CTE (paper units, lane = 100) | sign changes "
+             "/ 100 m | laps | margin |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in res["top"]:
+        lines.append(f"| {r['kp']:.4g} | {r['ki']:.4g} | {r['kd']:.4g} | {r['objective']:.3f} | "
+                     f"{r['mean_abs_cte_m']:.4f} | {r['mean_abs_cte_units']:.3f} | {r['sign_changes_per_100m']:.2f} | "
+                     f"{r['laps_completed']:.2f} | {'ok' if r['margin_ok'] else 'no'} |")
+    b = res["best"]
+    lines += ["", f"best: Kp {b['kp']:g}, Ki {b['ki']:g}, Kd {b['kd']:g}: mean |CTE| {res['mean_abs_cte_m']:.4f} m "
+              f"({res['mean_abs_cte_units']:.3f} paper units, lane = 100), {res['sign_changes_per_100m']:.2f} sign "
+              f"changes / 100 m ({res['evaluations']} evaluations)"]
+    return lines
 
 
 def main(argv=None) -> dict:
@@ -151,7 +170,8 @@ def main(argv=None) -> dict:
                    action=Extend, default=[0, 1, 2, 3, 4], help="seeds of the train split (av_gym/seeds.py)")
     p.add_argument("--grid", choices=sorted(GRIDS), default="full")
     p.add_argument("--refine", type=int, default=60, help="Nelder-Mead evaluations after the grid (0 = none)")
-    p.add_argument("--osc-weight", type=float, default=0.1, help="cost of one steering sign change per 100 m, units")
+    p.add_argument("--osc-weight", type=float, default=0.1,
+                   help="J's cost of one steering sign change per 100 m, in paper CTE units (lane = 100)")
     p.add_argument("--margin", type=float, default=2.0, help="gain margin required (0 = none)")
     p.add_argument("--max-osc", type=float, default=20.0, help="sign changes per 100 m that count as a limit cycle")
     p.add_argument("--out", type=Path, default=None, help="write the result as JSON here")
@@ -159,15 +179,7 @@ def main(argv=None) -> dict:
     if a.track == "B":
         p.error("layout B is the held-out evaluation layout; tune on A")
     res = search(GRIDS[a.grid], a.seeds, a.track, a.osc_weight, a.refine, a.margin, a.max_osc)
-    print("\n| Kp | Ki | Kd | J | mean abs CTE (units) | sign changes / 100 m | laps | margin |\n"
-          "|---|---|---|---|---|---|---|---|")
-    for r in res["top"]:
-        print(f"| {r['kp']:.4g} | {r['ki']:.4g} | {r['kd']:.4g} | {r['objective']:.3f} | "
-              f"{r['mean_abs_cte_units']:.3f} | {r['sign_changes_per_100m']:.2f} | {r['laps_completed']:.2f} | "
-              f"{'ok' if r['margin_ok'] else 'no'} |")
-    b = res["best"]
-    print(f"\nbest: Kp {b['kp']:g}, Ki {b['ki']:g}, Kd {b['kd']:g}: mean |CTE| {res['mean_abs_cte_units']:.3f} units, "
-          f"{res['sign_changes_per_100m']:.2f} sign changes / 100 m ({res['evaluations']} evaluations)")
+    print("\n".join(report_lines(res)))
     print(f'agents/pid.py PRESETS:  "tuned": {{"kp": {b["kp"]:g}, "ki": {b["ki"]:g}, "kd": {b["kd"]:g}}},')
     if a.out:
         write_text_atomic(a.out, json.dumps(res, indent=2), "--out")
