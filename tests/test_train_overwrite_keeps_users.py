@@ -1,9 +1,10 @@
 """``train.overwrite=true`` removes only what a run writes (its checkpoints, config.yaml, logs, TensorBoard,
 ``.hydra``): a real run's folder that also holds a user's files (notes.md, a plot, a sub-folder) was emptied whole.
 Now such a folder is refused in one line with nothing deleted, at the command line and again where the folders are
-cleared (train.run_folder.clear_for_overwrite). The folder Hydra makes for a job that only the job knows (a ``-m``
-sweep's job, a ``${hydra:...}`` run dir) is checked inside the job, before anything is written there
-(train.run_folder.job_folder_problem): a user's files refuse it, whatever the flags."""
+cleared (train.run_folder.clear_for_overwrite). The folder Hydra makes for a job that the command line cannot
+resolve (a ``-m`` sweep's job, a ``${hydra:...}`` run dir) is checked before Hydra writes there (train/job_folders.py;
+tests/test_job_folders.py) and again inside the job (train.run_folder.job_folder_problem): a user's files refuse it,
+whatever the flags."""
 
 from __future__ import annotations
 
@@ -189,6 +190,7 @@ def test_a_plain_runs_folder_the_command_line_checked_is_resumed_with_the_users_
     from conf.commands import TrainCommand
     from tests.test_reliability import LANE, a_run
     from train import __main__ as train_main
+    from train import run_folder
 
     monkeypatch.chdir(tmp_path)
     (a_run(tmp_path, "R", LANE) / "model.zip").unlink()  # stopped: resumable
@@ -203,7 +205,7 @@ def test_a_plain_runs_folder_the_command_line_checked_is_resumed_with_the_users_
     _job(monkeypatch, logs, sweep=False)
     train_main._claim_folders(cfg, TrainCommand.of(cfg))
     assert (logs / "notes.md").read_text() == "mine\n"
-    train_main._LINE_CHECKED.clear()  # a sweep's job: its command line checked no folder
+    run_folder.LINE_CHECKED.clear()  # a sweep's job: its command line checked no folder
     _job(monkeypatch, logs, sweep=True)
     with pytest.raises(ConfigError, match="not a training run's logs \\(notes.md\\)"):
         train_main._claim_folders(cfg, TrainCommand.of(cfg))
@@ -217,19 +219,18 @@ def _train(argv: list[str], cwd: Path) -> subprocess.CompletedProcess:
 
 @pytest.mark.slow  # two real processes of python -m train (a sweep of two jobs, one plain run): ~20 CPU-s
 def test_a_real_sweep_job_and_a_hydra_interpolated_run_dir_keep_the_users_files(tmp_path):
-    """``-m`` with a job's folder holding the user's files: that job is refused in one line (the sweep's report),
-    the other runs; ``hydra.run.dir=${hydra:runtime.cwd}`` in the user's folder: one line, exit 2. The user's files
-    intact, no checkpoint folder for the refused ones."""
+    """``-m`` with a job's folder holding the user's files: the sweep is refused in one line naming the job, exit 2,
+    before any job ran; ``hydra.run.dir=${hydra:runtime.cwd}`` in the user's folder: one line, exit 2. Both folders
+    byte for byte as they were: Hydra's .hydra/ and job log were written into them before the in-job check refused
+    (train/job_folders.py checks them first now); no checkpoint folder."""
     _users(tmp_path / "sweep" / "0")
     before = snapshot(tmp_path)
     done = _train(["-m", "seed=0,1", "run_name=W", "hydra.sweep.dir=sweep", "hydra/launcher=basic"], tmp_path)
-    assert done.returncode == 1, done.stderr
-    assert "error: sweep job 0 (seed=0 run_name=W " in \
-        done.stderr and "holds files that are not a training run's logs (notes.md, plots)" in done.stderr, done.stderr
-    after = snapshot(tmp_path)
-    assert {k: v for k, v in after.items() if k in before} == before
-    assert (tmp_path / "sweep" / "1" / "results.md").is_file() and not (tmp_path / "checkpoints" / "W-j0").exists()
-    assert (tmp_path / "checkpoints" / "W-j1" / "config.yaml").is_file()
+    assert done.returncode == 2, done.stderr
+    assert "error: sweep job 0 (seed=0 run_name=W " in done.stderr and "holds files that are not a training run's " \
+        "logs (notes.md, plots)" in done.stderr and "no job of the sweep was run" in done.stderr, done.stderr
+    assert snapshot(tmp_path) == before and sorted(p.name for p in (tmp_path / "sweep").iterdir()) == ["0"]
+    assert not (tmp_path / "checkpoints").exists()
     project = tmp_path / "project"
     _users(project)
     before = snapshot(project)
@@ -237,5 +238,5 @@ def test_a_real_sweep_job_and_a_hydra_interpolated_run_dir_keep_the_users_files(
     assert plain.returncode == 2, plain.stderr
     assert plain.stderr.strip().splitlines()[-1].startswith("error: hydra.run.dir="), plain.stderr
     assert "holds files that are not a training run's logs (notes.md, plots)" in plain.stderr, plain.stderr
-    assert {k: v for k, v in snapshot(project).items() if k in before} == before
+    assert snapshot(project) == before and sorted(p.name for p in project.iterdir()) == ["notes.md", "plots"]
     assert not (project / "checkpoints" / "P").exists()

@@ -97,7 +97,7 @@ def _claim_folders(cfg: DictConfig, command: TrainCommand) -> Folders:
     """The run's folders, ours alone (a lock), resumable, or refused; cleared first with train.overwrite; the
     resolved config.yaml beside the checkpoints."""
     from train.checkpoint import write_text_atomic
-    from train.run_folder import clear_for_overwrite, job_folder_problem, release_all
+    from train.run_folder import LINE_CHECKED, clear_for_overwrite, job_folder_problem, release_all
 
     run_dir, sweep = Path(HydraConfig.get().runtime.output_dir), HydraConfig.get().mode == RunMode.MULTIRUN
     ckpt_dir = Path(command.paths.checkpoints) / command.run_name
@@ -107,7 +107,7 @@ def _claim_folders(cfg: DictConfig, command: TrainCommand) -> Folders:
     # the job's folder, known only now for a sweep's job or a ${hydra:...} run dir: checked before anything is
     # written (one the command line checked is not: it saw the folder before Hydra wrote .hydra/ in it)
     flag = "hydra.sweep.dir" if sweep else "hydra.run.dir"
-    if run_dir.resolve() not in _LINE_CHECKED:
+    if run_dir.resolve() not in LINE_CHECKED:
         problem = job_folder_problem(run_dir, ckpt_dir, command.train.resume, command.train.overwrite, flag)
         if problem:
             raise ConfigError(problem)
@@ -258,19 +258,14 @@ def run_dir_of(cfg: DictConfig, command: TrainCommand, argv: list[str]) -> tuple
         return None, "hydra.run.dir"
 
 
-# The log folder the command-line check of a plain run checked (train.run_folder.ownership_problem), before Hydra
-# wrote its .hydra/ there: the job does not check it again (train.run_folder.job_folder_problem, for the folders
-# only a job knows, cannot tell a run's .hydra/ from the one Hydra has just written).
-_LINE_CHECKED: set[Path] = set()
-
-
 def _check_command_line() -> None:
     """The command line composed and checked once per config (conf/check.py), where the checkpoints go, and for a
     plain run the run's folders claimed: all before Hydra makes a folder."""
     from conf.check import check_command_line
+    from train.run_folder import LINE_CHECKED
 
     commands = []
-    _LINE_CHECKED.clear()
+    LINE_CHECKED.clear()
 
     def check(cfg: DictConfig) -> None:  # its fields were checked by check_command_line
         command = _check_needs(cfg)
@@ -289,7 +284,7 @@ def _check_command_line() -> None:
         run_dir, runs_flag = run_dir_of(cfg, command, sys.argv[1:])
         claim_run(cfg, command, Path(command.paths.checkpoints) / command.run_name, run_dir, runs_flag)
         if run_dir is not None:
-            _LINE_CHECKED.add(run_dir.resolve())
+            LINE_CHECKED.add(run_dir.resolve())
 
 
 @hydra.main(config_path="pkg://conf", config_name="train", version_base="1.3")

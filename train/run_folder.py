@@ -24,8 +24,9 @@
   ``tb/``, ``videos/``, ``.hydra/`` only their files: :data:`_SUB_FILES`): a run's folder that also holds a user's
   files (notes, plots, a sub-folder, an export in ``tb/``) is refused with nothing deleted
   (:func:`overwrite_problem`), and a folder holding files but no run's config is never written into, whatever the
-  flags (:func:`foreign_problem`); the folder Hydra makes for a ``-m`` job or a ``${hydra:...}`` run dir is known
-  only in the job, and checked there before the job writes (:func:`job_folder_problem`);
+  flags (:func:`foreign_problem`); the folder Hydra makes for a ``-m`` job or a ``${hydra:...}`` run dir, which
+  the command line cannot resolve, is checked before Hydra writes into it (train/job_folders.py, Hydra's sweep- and
+  run-level hooks) and again in the job (:func:`job_folder_problem`);
 - a refusal gives only advice that works: a finished run is not told to resume; a run of a trained kind stopped
   before its first checkpoint (its folder holds only config.yaml) is told that ``train.overwrite=true`` starts it
   again.
@@ -53,6 +54,11 @@ RESUME_MAY_CHANGE = ("agent.total_timesteps", "agent.rounds", "agent.device", "a
 LATEST, FINAL = "latest.zip", "model.zip"  # what a resume continues; what a finished run leaves (every trainer)
 
 _held = OwnedFolders()  # the checkpoint folders this process trains
+# The log folder the command-line check of a plain run checked (ownership_problem), before Hydra wrote its .hydra/
+# there (train.__main__._check_command_line): neither the run-level hook (train.job_folders) nor the job checks it
+# again (job_folder_problem, for the folders only Hydra resolves, cannot tell a run's .hydra/ from the one Hydra has
+# just written).
+LINE_CHECKED: set[Path] = set()
 # What works for a run stopped before its first checkpoint: nothing of it is worth keeping, so it is cleared.
 RESTART = ("start it again with train.overwrite=true (its config.yaml and logs are removed), or pick another "
            "run_name")
@@ -158,17 +164,21 @@ def overwrite_problem(ckpt_dir: Path, runs_dir: Path | None, runs_flag: str = "p
     return None
 
 
-def job_folder_problem(run_dir: Path, ckpt_dir: Path, resume: bool, overwrite: bool, flag: str) -> str | None:
-    """The folder Hydra made for this job (``hydra.run.dir``, a sweep job's ``hydra.sweep.dir``/``subdir``),
-    checked in the job before anything of the run is written in it: only there is it known for a ``-m`` job or a
-    ``${hydra:...}`` run dir (the command-line check sees the others first). Hydra's own files aside (``.hydra/``,
-    the job log, a sweep's multirun.yaml: written before the job starts), it may hold only a run's logs, and those
-    only to resume or overwrite them: a user's files are refused whatever the flags, as the command line does."""
+def job_folder_problem(run_dir: Path, ckpt_dir: Path, resume: bool, overwrite: bool, flag: str,
+                       hydra_wrote: bool = True) -> str | None:
+    """The folder Hydra makes for a job (``hydra.run.dir``, a sweep job's ``hydra.sweep.dir``/``subdir``), that the
+    command line cannot resolve for a ``-m`` job or a ``${hydra:...}`` run dir: checked before Hydra writes there
+    (``hydra_wrote=False``: train.job_folders, Hydra's sweep- and run-level hooks) and again in the job before
+    anything of the run is written (``hydra_wrote=True``). Hydra's own files aside (``.hydra/``, the job log, a
+    sweep's multirun.yaml), it may hold only a run's logs, and those only to resume or overwrite them: a user's
+    files are refused whatever the flags, as the command line does. Before Hydra wrote, a user's file inside
+    ``.hydra/`` is one too (after, ``.hydra/`` is the job's own)."""
     same = run_dir.resolve() == ckpt_dir.resolve()  # paths.runs=paths.checkpoints: a run's checkpoints are its too
     hydras = (".hydra", "multirun.yaml", LOCK, *_inside(run_dir, ckpt_dir))  # LOCK: paths.runs=paths.checkpoints
     held = [name for name in _contents(run_dir, ignore=hydras) if not name.endswith(".log")]
     odd = [name for name in held if not _a_runs(name, LOG_NAMES | (_checkpoint_names() if same else set()), True)]
     odd += [path for name in held if name not in odd for path in _users_inside(run_dir, name)]
+    odd += [] if hydra_wrote else _users_inside(run_dir, ".hydra")
     if odd:
         return (f"{flag}={run_dir}: holds files that are not a training run's logs ({_listed(odd)}), which a run "
                 f"never writes among or clears; pick another {flag} (an empty or new folder)")
