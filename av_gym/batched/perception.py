@@ -40,7 +40,7 @@ from av_gym.estimation.object_tracking import ObjectTrackerParams
 from av_gym.estimation.object_tracking import tracker_params as object_tracker_params
 from av_gym.estimation.tracker import _BIG, TrackerParams, TrackingModel
 from av_gym.estimation.turn_features import turn_features
-from av_gym.sensors.base import episode_rng
+from av_gym.sensors.base import episode_rng, guarded_rows
 from av_gym.sensors.detector import FIELDS as DETECTOR_FIELDS
 from av_gym.sensors.detector import KERNELS as DETECTOR_KERNELS
 from av_gym.sensors.detector import (PROBES, Detector, DetectorParams, assemble_frames, contiguous_columns,
@@ -79,8 +79,9 @@ class BatchedDetector:
     """:class:`~av_gym.sensors.detector.Detector` (``frame: world``) for B envs: ``obs["detector"]`` (n,
     max_objects, 9) float32 per call of :meth:`measure`, each env's frames drawn from its own generator."""
 
-    # the per-env detector's field of view, occlusion and observation space code, run on this object's attributes
-    _view, _occluded = Detector._view, Detector._occluded
+    # the per-env detector's field of view, occlusion, observation space and invalid-row code (a row that held
+    # NaN/inf dropped, as its guard drops it), run on this object's attributes
+    _view, _occluded, invalidate = Detector._view, Detector._occluded, Detector.invalidate
     sensor_space = Detector.sensor_space
 
     def __init__(self, n_envs: int, params: DetectorParams, stream: str = "detector") -> None:
@@ -519,6 +520,7 @@ class BatchedPerception:
         self.last_detections = np.zeros((engine.B, self.detector.max_objects, len(DETECTOR_FIELDS)), np.float32)
         self.last_tracks = np.zeros((engine.B, self.max_tracks, len(TRACK_FIELDS)), np.float32)
         self.described: tuple | None = None
+        self.faults = np.zeros(0, dtype=int)  # per row of the last observe: the detector's non-finite entries
 
     def reset(self, rows) -> None:
         """New episodes in the envs ``rows`` (after the engine started them)."""
@@ -536,6 +538,8 @@ class BatchedPerception:
         now = e.ticks[rows] / e.config["simulation_frequency"]  # sim_time: tick resolution
         ego = np.stack([tr["x"], tr["y"], tr["heading"]], axis=1)
         det = self.detector.measure(rows, now, ego, *others_state(e, rows))
+        # the per-env Detector's guard (SensorWrapper._guarded), before the tracker reads the rows, as per env
+        det, self.faults = guarded_rows(det, self.detector.sensor_space(), self.detector.invalidate)
         self.last_detections[rows] = det
         self.tracker.step(rows, det, now, ego[:, :2])
         tracks = tracks_observation(*self.tracker.tracks(rows), ego[:, :2], self.max_tracks)

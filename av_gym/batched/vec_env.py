@@ -35,6 +35,7 @@ from av_gym.batched.shield import BatchedShield, check_batched_shield, shield_ki
 from av_gym.errors import ConfigError
 from av_gym.estimation.object_tracking import BOUND as TRACK_BOUND
 from av_gym.estimation.turn_features import TurnFeaturesParams
+from av_gym.sensors.base import guarded_rows
 from av_gym.wrappers import action_set, meta_actions  # noqa: F401 - meta_actions: imported from here too
 
 SENSORS = ("name", "turn_features", "turn_signals", "turn_intent", "observe", "keep_state")
@@ -167,6 +168,7 @@ class BatchedLeftTurnBatch:
         if missing:
             raise ConfigError(f"sensors.observe lists {missing[0]!r}, which agent.vec_env=batched does not provide; "
                               f"allowed: {sorted(all_spaces)}")
+        self._spaces = all_spaces  # every reading the batch makes, observed or not: each guarded (_guarded)
         obs_space = spaces.Dict({k: all_spaces[k] for k in self.keys})
         self.repeat, self.actions, self.timeout_is_terminal = int(action_repeat), actions, bool(timeout_is_terminal)
         self.action_set = action_set(actions)
@@ -191,13 +193,19 @@ class BatchedLeftTurnBatch:
         self._overrides, self._onsets = np.zeros(n_envs, dtype=int), np.zeros(n_envs, dtype=int)
         self._first_override = np.full(n_envs, np.nan)
         self._overriding = np.zeros(n_envs, bool)
+        self._faults = np.zeros(n_envs, dtype=int)  # EpisodeMetrics' sensor_faults: non-finite entries replaced
         self._idle = np.zeros(n_envs, bool)  # no episode to play (play(): its seeds ran out)
         self._queued = False
         self.row_seed: list = [None] * n_envs  # play(): the seed of the episode each env is playing
 
     # ---------------------------------------------------------------------------------------------- observe
     def _observe(self, rows: np.ndarray, new_episode: np.ndarray | None = None, trace: bool = True) -> dict:
+        """Every env of ``rows``'s readings after an env step (``new_episode``: the first readings of new episodes),
+        each guarded as the per-env sensor guards it (:func:`av_gym.sensors.base.guarded_rows`: a NaN/inf made
+        finite and marked invalid, counted in the episode's ``sensor_faults``); the observed keys' readings."""
         e, seen = self.engine, self.perception
+        if new_episode is not None and new_episode.any():
+            self._faults[rows[new_episode]] = 0
         if seen is not None and new_episode is not None and new_episode.any():
             seen.reset(rows[new_episode])
         if self.shield is not None and new_episode is not None and new_episode.any():
@@ -205,23 +213,33 @@ class BatchedLeftTurnBatch:
             self.shield.reset(new)
             self._overrides[new], self._onsets[new], self._first_override[new], self._overriding[new] = 0, 0, np.nan, 0
         turn = e.observe(rows) if seen is None else seen.observe(rows)
-        out = {"turn": turn}
+        faults = np.zeros(len(rows), dtype=int) if seen is None else seen.faults.copy()  # the detector's, guarded
+        out = {"turn": self._guard("turn", turn, faults)}
         if seen is not None:
-            out["detector"], out["tracks"] = seen.last_detections[rows], seen.last_tracks[rows]
+            out["detector"], out["tracks"] = seen.last_detections[rows], self._guard("tracks", seen.last_tracks[rows],
+                                                                                     faults)
         if self.intent is not None:
             if new_episode is not None and new_episode.any():
                 self.intent.reset(rows[new_episode])
             signals = self.intent.signals(rows) if self.intent.sig is not None else None
-            out["intent"] = self.intent.intent(rows, signals) if seen is None else seen.intent(self.intent, rows,
-                                                                                               signals)
-            if signals is not None:
-                out["signals"] = signals
+            if signals is not None:  # guarded before the intent reads them, as TurnSignals sits below TurnIntent
+                signals = out["signals"] = self._guard("signals", signals, faults)
+            intent = self.intent.intent(rows, signals) if seen is None else seen.intent(self.intent, rows, signals)
+            out["intent"] = self._guard("intent", intent, faults)
+        self._faults[rows] += faults
         tr = e.last_truth
         ttc = e.ttc(rows) if trace else None
         for n, r in enumerate(rows if trace else ()):  # EpisodeMetrics records the truth of every step
             self._traces[r].append((tr["time"][n], tr["speed"][n], tr["collision"][n], tr["arrived"][n],
                                     tr["stop_line_offset"][n], tr["oncoming_gap"][n], ttc[n]))
         return {k: out[k] for k in self.keys}
+
+    def _guard(self, key: str, values: np.ndarray, faults: np.ndarray) -> np.ndarray:
+        """``values`` (n, ...) of reading ``key`` guarded (:func:`guarded_rows`), their non-finite entries added to
+        ``faults`` (n,)."""
+        values, counts = guarded_rows(values, self._spaces[key])
+        faults += counts
+        return values
 
     def _store(self, rows, obs: dict) -> None:
         for k in self.keys:
@@ -382,7 +400,7 @@ class BatchedLeftTurnBatch:
         row.update({"return": float(self._env_return[r]), "length": float(len(tr)),
                     "truncated": float(truncated), "override_fraction": self._overrides[r] / max(1, len(tr)),
                     "intervention": float(self._overrides[r] > 0), "interventions": float(self._onsets[r]),
-                    "first_override_s": float(self._first_override[r])})
+                    "first_override_s": float(self._first_override[r]), "sensor_faults": float(self._faults[r])})
         return row
 
     def close(self) -> None:

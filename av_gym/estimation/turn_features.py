@@ -157,17 +157,21 @@ class TurnFeatures(SensorWrapper):
     # The ego part reads info["truth"] (the ego's own state), so this wrapper hooks reset/step, not observation().
     def reset(self, *, seed=None, options=None):
         obs, info = self.env.reset(seed=seed, options=options)
-        return self._add(obs, info), info
+        self._step_faults = 0
+        obs = self._add(obs, info)
+        return obs, self._reported(info)
 
     def step(self, action):
+        self._step_faults = 0
         obs, reward, terminated, truncated, info = self.env.step(action)
-        return self._add(obs, info), reward, terminated, truncated, info
+        obs = self._add(obs, info)
+        return obs, reward, terminated, truncated, self._reported(info)
 
     def _add(self, obs: dict, info: dict) -> dict:
         truth = info["truth"]
         others = truth["others"][:, :4] if self.source == "truth" else \
             obs["tracks"][obs["tracks"][:, 0] > 0, 1:5].astype(float)
-        self._last = self.features(truth, others)
+        self._last = self._guarded(self.features(truth, others))  # no NaN/inf reaches the agent; counted in info
         return {**obs, self.key: self._last}
 
     def features(self, truth: dict, others: np.ndarray) -> np.ndarray:

@@ -43,6 +43,7 @@ METRIC_KINDS: dict[str, Kind] = {
     "intervention": "rate",  # the shield overrode at least once
     "interventions": "count",  # override onsets
     "first_override_s": "duration",
+    "sensor_faults": "count",  # non-finite sensor entries replaced (info["sensor_faults"] summed)
     # lane keeping (lane_keeping_summary)
     "cte_mean_abs_m": "nonnegative",
     "cte_rms_m": "nonnegative",

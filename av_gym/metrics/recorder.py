@@ -21,8 +21,10 @@ class EpisodeMetrics(gym.Wrapper):
     """Adds ``info["episode_metrics"]`` (a flat dict of floats, see :mod:`av_gym.metrics`) on the step that ends an
     episode, plus ``return`` and ``length`` (policy steps), ``override_fraction`` (share of steps whose action a
     safety shield overrode, ``info["shield_override"]``), ``intervention`` (1 if it overrode at least once),
-    ``interventions`` (how many times an override started: a brake held for 2 s counts once) and
-    ``first_override_s`` (time of the first override, NaN if none)."""
+    ``interventions`` (how many times an override started: a brake held for 2 s counts once),
+    ``first_override_s`` (time of the first override, NaN if none) and ``sensor_faults`` (the non-finite entries the
+    sensors' guard replaced this episode, ``info["sensor_faults"]`` summed over sensors and steps, the first
+    reading at reset included: 0 when every reading was finite)."""
 
     def __init__(self, env: gym.Env) -> None:
         super().__init__(env)
@@ -36,6 +38,7 @@ class EpisodeMetrics(gym.Wrapper):
         self._traces = {k: [] for k in TRACES[self.scenario]}
         self._return, self._length, self._overrides, self._onsets, self._overriding = 0.0, 0, 0, 0, False
         self._first_override = float("nan")
+        self._faults = _faults(info)
         self._last_truth = info["truth"]
         return obs, info
 
@@ -46,6 +49,7 @@ class EpisodeMetrics(gym.Wrapper):
             trace.append(truth[key])
         self._return += float(reward)
         self._length += 1
+        self._faults += _faults(info)
         overridden = bool(info.get("shield_override", False))
         self._overrides += int(overridden)
         self._onsets += int(overridden and not self._overriding)
@@ -71,5 +75,11 @@ class EpisodeMetrics(gym.Wrapper):
         row.update({"return": self._return, "length": float(self._length), "truncated": float(truncated),
                     "override_fraction": self._overrides / max(1, self._length),
                     "intervention": float(self._overrides > 0), "interventions": float(self._onsets),
-                    "first_override_s": self._first_override})
+                    "first_override_s": self._first_override, "sensor_faults": float(self._faults)})
         return row
+
+
+def _faults(info: dict) -> int:
+    """The non-finite entries the sensors replaced in this step's readings (``info["sensor_faults"]``: per sensor
+    key, av_gym/sensors/base.py)."""
+    return int(sum((info.get("sensor_faults") or {}).values()))

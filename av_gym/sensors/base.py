@@ -114,7 +114,9 @@ class SensorWrapper(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
         obs, info = self.env.reset(seed=seed, options=options)
         self.rng = sensor_rng(self.env, self.key)
         self.on_reset()
-        return self.observation(obs), info
+        self._step_faults = 0
+        obs = self.observation(obs)
+        return obs, self._reported(info)
 
     def observation(self, observation: dict) -> dict:
         return {**observation, self.key: self._guarded(self.measure())}
@@ -126,7 +128,7 @@ class SensorWrapper(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
         reported in ``info["sensor_faults"][key]``. A sensor's model should never produce one: this is the last
         line, after the sensors' own checks (e.g. a GNSS fix that is not finite is dropped like one lost in an
         outage)."""
-        bad = _count_nonfinite(value)
+        bad = count_nonfinite(value)
         if bad:
             self.faults += 1
             self._step_faults += bad
@@ -145,16 +147,43 @@ class SensorWrapper(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
         self._step_faults = 0
         obs, reward, terminated, truncated, info = self.env.step(action)
         obs = self.observation(obs)
-        if self._step_faults:
-            info = {**info, "sensor_faults": {**info.get("sensor_faults", {}), self.key: self._step_faults}}
-        return obs, reward, terminated, truncated, info
+        return obs, reward, terminated, truncated, self._reported(info)
+
+    def _reported(self, info: dict) -> dict:
+        """``info`` with this reading's non-finite entries, if any, under ``info["sensor_faults"][key]`` (the first
+        reading of an episode, at reset, too: EpisodeMetrics sums them into the episode's ``sensor_faults``)."""
+        if not self._step_faults:
+            return info
+        return {**info, "sensor_faults": {**info.get("sensor_faults", {}), self.key: self._step_faults}}
 
 
-def _count_nonfinite(value) -> int:
+def count_nonfinite(value) -> int:
+    """How many entries of a reading (an array, or a dict of them) are NaN or ±inf."""
     if isinstance(value, dict):
-        return sum(_count_nonfinite(v) for v in value.values())
+        return sum(count_nonfinite(v) for v in value.values())
     a = np.asarray(value)
     return int(a.size - np.count_nonzero(np.isfinite(a))) if a.dtype.kind in "fc" else 0
+
+
+def guarded_rows(values: np.ndarray, space: spaces.Box, invalidate=None) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`SensorWrapper._guarded` for a batch of readings, ``values`` (n, *space.shape) (one env's reading per
+    row, av_gym/batched): each row holding NaN/inf made finite and in ``space`` as the per-env guard makes it, then
+    ``invalidate(raw_row, clean_row)`` (the per-env sensor's :meth:`SensorWrapper.invalidate`; None: kept as it
+    is). Rows without one are returned untouched. Returns the readings and each row's count of non-finite entries
+    (n,), what the per-env sensor reports in ``info["sensor_faults"][key]``."""
+    a = np.asarray(values)
+    if a.dtype.kind not in "fc" or not len(a):
+        return values, np.zeros(len(a), dtype=int)
+    flat = a.reshape(len(a), -1)
+    counts = flat.shape[1] - np.count_nonzero(np.isfinite(flat), axis=1)
+    bad = np.flatnonzero(counts)
+    if not len(bad):
+        return values, counts
+    out = a.copy()
+    for i in bad.tolist():
+        clean = _finite(a[i], space)
+        out[i] = clean if invalidate is None else invalidate(a[i], clean)
+    return out, counts
 
 
 def _finite(value, space: spaces.Space):
