@@ -32,6 +32,21 @@ def summary_table(rows: list[dict], scenario: str) -> str:
     return markdown_table(table, ["agent", "n", *metrics])
 
 
+def faults_note(rows: list[dict]) -> str:
+    """One Markdown line naming, per agent whose episodes had any, the non-finite sensor entries the sensors' guard
+    replaced (``sensor_faults``, av_gym/sensors/base.py: made finite, marked invalid, counted) and in how many of its
+    episodes; "" when there were none (or the rows predate the column), so a clean run's page is unchanged."""
+    per: dict[str, list[float]] = {}
+    for r in rows:
+        v = r.get("sensor_faults")
+        per.setdefault(r["agent"], []).append(float(v) if isinstance(v, (int, float)) and v == v else 0.0)
+    hit = [f"`{a}` {sum(v):.0f} in {sum(x > 0 for x in v)} of {len(v)} episodes" for a, v in per.items() if sum(v)]
+    if not hit:
+        return ""
+    return ("Sensor faults (non-finite readings replaced and marked invalid, `sensor_faults` in results.csv): "
+            + "; ".join(hit) + ".\n")
+
+
 def sensors_section(sensors: Mapping[str, dict]) -> str:
     """Markdown: per agent, the sensors preset it ran with, the fields that differ from the shipped preset, and
     the full settings (YAML, folded)."""
@@ -82,9 +97,11 @@ def write_results(rows: list[dict], out_dir: str | Path, scenario: str, title: s
     writer.writeheader()
     writer.writerows(rows)
     table = summary_table(rows, scenario)
+    note = faults_note(rows)
     summary = (f"# {title}\n\nMean with 95% confidence interval over episodes, by each metric's declared kind "
                f"(av_gym/metrics/kinds.py): Wilson for rates, a seeded bootstrap for counts, durations and other "
                f"non-negative quantities, Student t for signed ones.\n\n{table}\n"
+               + (f"\n{note}" if note else "")
                + (f"\n{checkpoints_section(checkpoints)}" if checkpoints else "")
                + (f"\n{sensors_section(sensors)}" if sensors else "")
                + (f"\n{shields_section(shields)}" if shields else ""))
