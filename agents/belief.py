@@ -108,6 +108,17 @@ class BeliefLookaheadParams(AgentParams):
                         "the futures' regulation and IDM release it (cars standing at their line at the last GO "
                         "pulled away into the ego: validation seeds 1,500,000-1,500,599, benchmarks/"
                         "belief_tracks_diagnose.py)")
+    stopped_alone: float = param(0.0, "m", ge=0, le=20, doc="on tracks: a track ``stopped`` (and its scope) would "
+                                                        "hold in place stays only where another road user of the "
+                                                        "futures' start (a track that is not a ghost or a twin; "
+                                                        "not the ego) stands within this many m of it: a crash "
+                                                        "leaves two cars in contact, a car the regulation holds "
+                                                        "inside the junction stands alone, and the futures' "
+                                                        "regulation and IDM release it as the simulator's does "
+                                                        "(4 of the last GOs taken back before a collision, "
+                                                        "validation 1,953,000-1,953,999 and 1,963,000-1,963,999: "
+                                                        "such a track on its crossing lane, held in every future, "
+                                                        "the car pulling away at +6 m/s²); 0: off")
     tentative: Literal["ignore", "road_user"] = param(
         "ignore", doc="on tracks: a tentative track (fewer than the tracker's min_hits detections) is nobody, as the "
                       "features show it (ignore), or a road user in the futures (road_user)")

@@ -44,8 +44,8 @@ from av_gym.estimation.turn_features import ACC_SCALE
 from av_gym.sensors.turn_signal import node_index
 from av_gym.sim.batched import Traffic
 
-__all__ = ["SLOTS", "SPEED_CLASSES", "SPAWN_S", "DetectedMotion", "TrackBelief", "UnseenTraffic", "draw_width",
-           "ego_pose", "twins"]
+__all__ = ["SLOTS", "SPEED_CLASSES", "SPAWN_S", "DetectedMotion", "TrackBelief", "UnseenTraffic", "alone",
+           "draw_width", "ego_pose", "twins"]
 
 SPAWN_S = 5.0  # m along the approach where a spawn enters (IntersectionEnv._spawn_vehicle: longitudinal + 5)
 SPEED_CLASSES = 3  # spawn speeds per cohort: the middles of equal-probability slices of the spawn speed's normal
@@ -478,6 +478,12 @@ class TrackBelief:
             along, _ = engine.T.local(lane, x, y)
             kind = self.lane_kind[lane]
             standing &= ~((kind == 0) | ((kind == 1) & (along < LINE_ZONE)))
+        # ghosts and twins are nobody in the futures (below): neither a road user nor a crash partner
+        gone = self._ghosts(ego_pose(engine, rows), pos, users, seen[..., 1]) | twins(
+            pos, users, seen[..., 1], float(self.params.merge), float(self.params.merge_far),
+            float(self.params.merge_agree), seen[..., 0])
+        if float(getattr(self.params, "stopped_alone", 0.0)) > 0:
+            standing &= ~alone(pos, users & ~gone, float(self.params.stopped_alone))
         t.crashed[rows, sl] = standing
         t.lane[rows, sl] = t.tlane[rows, sl] = np.where(users, lane, 0)
         t.route[rows, sl, 0] = np.where(users, lane, -1)
@@ -487,9 +493,7 @@ class TrackBelief:
         full_conf[rows, sl], full_tent[rows, sl] = conf, tent
         self.remembered = np.zeros((B, M + 2), bool)
         self.remembered[rows, sl] = kept
-        full_ghost[rows, sl] = self._ghosts(ego_pose(engine, rows), pos, users, seen[..., 1]) | twins(
-            pos, users, seen[..., 1], float(self.params.merge), float(self.params.merge_far),
-            float(self.params.merge_agree), seen[..., 0])
+        full_ghost[rows, sl] = gone
         self.along = np.zeros((B, M + 2, 2, 2))
         self.along[rows, sl] = along_heading(cov, h)
         obs = engine.observed(t, engine.time, engine.ticks, engine.episode_seed)
@@ -615,6 +619,17 @@ class TrackBelief:
 
 
 TWIN_HEADING = 0.5  # rad: the largest difference of two tracks' detected headings for ``merge_far``'s twins
+
+
+def alone(pos: np.ndarray, users: np.ndarray, radius: float) -> np.ndarray:
+    """(n, M): the road users (``users`` (n, M) of the tracks' rows ``pos`` (n, M, >= 2), x and y in m) with no other
+    road user of their row within ``radius`` m, centre to centre. A crash stops both cars in contact (their centres
+    3-6 m apart): on train seeds 100-199 (the simulator's crash flag), of the steps a car stood on its crossing
+    lane past LINE_ZONE, those with another vehicle within 4 m were crashed in 100 %, those with none within 8 m
+    in 3 % (53 % of these drove off within 3 s)."""
+    d = np.hypot(pos[..., 0][:, :, None] - pos[..., 0][:, None, :], pos[..., 1][:, :, None] - pos[..., 1][:, None, :])
+    other = users[:, None, :] & ~np.eye(users.shape[1], dtype=bool)[None]
+    return users & ~(other & (d < radius)).any(axis=-1)
 
 
 def twins(pos: np.ndarray, users: np.ndarray, missed: np.ndarray, radius: float, far: float = 0.0,

@@ -98,11 +98,11 @@ def tracked_shipped():
 @pytest.fixture(scope="module")
 def tracked_fit():
     """The batch of ``tracked`` with belief_tracks' options, ``track_fit`` (each track's own line),
-    ``stopped_scope`` off_approach, ``unseen_ahead`` 5, ``track_reverse`` (backing tracks) and ``merge_far``
-    (twins moving together)."""
+    ``stopped_scope`` off_approach, ``unseen_ahead`` 5, ``track_reverse`` (backing tracks), ``merge_far``
+    (twins moving together) and ``stopped_alone`` (a standing track with nobody near drives)."""
     fit = BeliefLookaheadParams(samples=8, tentative="road_user", track_heading="detected", ghost=2, merge=2.0,
                                 track_fit=0.5, stopped_scope="off_approach", unseen_ahead=5, track_reverse=0.5,
-                                merge_far=3.5)
+                                merge_far=3.5, stopped_alone=6.0)
     return _batch(list(range(410_000, 410_000 + B)), 30, fit)
 
 
@@ -282,7 +282,8 @@ def _preset(name: str) -> dict:
                                      pytest.param({"tentative": "road_user", "recall": 3.0, "track_spread": 1.0,
                                                    "ghost": 2, "merge": 2.0}, marks=pytest.mark.slow),
                                      {"track_fit": 0.5, "track_heading": "detected",
-                                      "stopped_scope": "off_approach", "confirm": 2, "unseen_ahead": 5},
+                                      "stopped_scope": "off_approach", "confirm": 2, "unseen_ahead": 5,
+                                      "stopped_alone": 6.0},
                                      pytest.param({"confirm": 2, "confirm_after": 2, "confirm_risk": 0.9,
                                                    "threshold": 0.5}, marks=pytest.mark.slow),
                                      pytest.param({"confirm": 2, "confirm_first": True, "threshold": 0.5},
