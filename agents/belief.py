@@ -119,6 +119,18 @@ class BeliefLookaheadParams(AgentParams):
                                                         "validation 1,953,000-1,953,999 and 1,963,000-1,963,999: "
                                                         "such a track on its crossing lane, held in every future, "
                                                         "the car pulling away at +6 m/s²); 0: off")
+    stopped_release: float = param(0.0, ge=0, le=1, doc="on tracks: in this share of the futures, drawn per "
+                                                       "future and road user, a track the standing rule "
+                                                       "(``stopped``, its scope) holds in place on a crossing lane "
+                                                       "is a driver instead, the futures' regulation and IDM "
+                                                       "releasing it: the car standing inside the junction is "
+                                                       "crashed or held by the regulation, and the tracks do not "
+                                                       "tell which (train seeds 200-399, the preset: of such "
+                                                       "tracks on a car, 23 % were not crashed, 10.5 % drove off "
+                                                       "within 3 s); 4 of the last GOs taken back before a "
+                                                       "collision (validation 1,953,000-1,953,999, "
+                                                       "1,963,000-1,963,999) had such a car held in all 16 futures "
+                                                       "pull away at +6 m/s²; 0: every such track stays")
     tentative: Literal["ignore", "road_user"] = param(
         "ignore", doc="on tracks: a tentative track (fewer than the tracker's min_hits detections) is nobody, as the "
                       "features show it (ignore), or a road user in the futures (road_user)")

@@ -53,6 +53,7 @@ FIT_SLOTS = 256  # track ids kept per row by DetectedMotion (id mod this: ids li
 FIT_GATE = 2.0  # m: the detection that updated a track is the nearest one to its updated place, within this
 SLOTS = 64  # road users per row whose draws (the futures', the spread's) are fixed by their slot alone, whatever N
 LINE_ZONE = 5.0  # m into a crossing lane: a car standing there waits at its stop line (its front past it)
+RELEASE_STREAM = 5  # stopped_release's draws: SeedSequence([seed, episode, tick, 5, *stream]) (1 unseen, 2 spread)
 FIT_MIN = 3  # detector frames a least-squares line needs (two give no check on a noisy pair)
 
 
@@ -573,6 +574,8 @@ class TrackBelief:
         e = self.engine
         if float(self.params.track_spread) > 0:
             self._spread(f, rows, seed, K, stream)
+        if float(getattr(self.params, "stopped_release", 0.0)) > 0:
+            self._release(f, rows, seed, K, stream)
         alive = f.traffic.alive
         if (alive[:, 1:] > alive[:, :-1]).any():
             # a gap the read's packing did not leave: a tool's edit of the start after the read (the ablation's
@@ -586,6 +589,21 @@ class TrackBelief:
         t = e.traffic
         users = np.stack([t.x[rows], t.y[rows]], axis=-1)
         self.unseen.fill(f, rows, users, t.alive[rows], gens, K)
+
+    def _release(self, f, rows: np.ndarray, seed: int, K: int, stream: tuple = ()) -> None:
+        """In ``stopped_release`` of ``rows``' K futures (``f``'s rows, row-major, before the unseen drivers join),
+        drawn per future and road user, a track the standing rule holds on a crossing lane is a driver (not
+        crashed): the futures' regulation and IDM move it as the simulator's would a car held there and released.
+        Draws from ``SeedSequence([seed, episode_seed, tick, RELEASE_STREAM, *stream])``, a fixed width per future
+        (``SLOTS``): a road user's draw depends on its slot alone, whatever N."""
+        e = self.engine
+        t, N, W = e.traffic, e.traffic.N, draw_width(e.traffic.N)
+        u = np.stack([np.random.default_rng(np.random.SeedSequence([int(seed), int(e.episode_seed[r]) % 2**63,
+                                                                    int(e.ticks[r]), RELEASE_STREAM, *stream]))
+                      .random((K, W))[:, :N] for r in rows])  # (n, K, N)
+        held = t.alive[rows] & ~t.ego[rows] & t.crashed[rows] & (self.lane_kind[t.lane[rows]] == 1)
+        go = np.repeat(held, K, axis=0) & (u.reshape(len(rows) * K, N) < float(self.params.stopped_release))
+        f.traffic.crashed[:, :N] &= ~go
 
     def _spread(self, f, rows: np.ndarray, seed: int, K: int, stream: tuple = ()) -> None:
         """Move each moving road user of ``rows``' K futures (``f``'s rows, row-major, before the unseen drivers

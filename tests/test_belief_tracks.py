@@ -99,10 +99,11 @@ def tracked_shipped():
 def tracked_fit():
     """The batch of ``tracked`` with belief_tracks' options, ``track_fit`` (each track's own line),
     ``stopped_scope`` off_approach, ``unseen_ahead`` 5, ``track_reverse`` (backing tracks), ``merge_far``
-    (twins moving together) and ``stopped_alone`` (a standing track with nobody near drives)."""
+    (twins moving together), ``stopped_alone`` (a standing track with nobody near drives) and
+    ``stopped_release`` (one held standing drives in half the futures)."""
     fit = BeliefLookaheadParams(samples=8, tentative="road_user", track_heading="detected", ghost=2, merge=2.0,
                                 track_fit=0.5, stopped_scope="off_approach", unseen_ahead=5, track_reverse=0.5,
-                                merge_far=3.5, stopped_alone=6.0)
+                                merge_far=3.5, stopped_alone=6.0, stopped_release=0.5)
     return _batch(list(range(410_000, 410_000 + B)), 30, fit)
 
 
@@ -283,7 +284,7 @@ def _preset(name: str) -> dict:
                                                    "ghost": 2, "merge": 2.0}, marks=pytest.mark.slow),
                                      {"track_fit": 0.5, "track_heading": "detected",
                                       "stopped_scope": "off_approach", "confirm": 2, "unseen_ahead": 5,
-                                      "stopped_alone": 6.0},
+                                      "stopped_alone": 6.0, "stopped_release": 0.5},
                                      pytest.param({"confirm": 2, "confirm_after": 2, "confirm_risk": 0.9,
                                                    "threshold": 0.5}, marks=pytest.mark.slow),
                                      pytest.param({"confirm": 2, "confirm_first": True, "threshold": 0.5},
