@@ -78,26 +78,29 @@ def test_a_track_standing_alone_in_the_junction_drives_one_beside_another_stays(
 def test_stopped_release_makes_a_standing_track_a_driver_in_its_share_of_the_futures():
     """``stopped_release``: a track standing inside the junction (held by the standing rule) is a driver in about
     that share of the futures, drawn per future (0: in none; 1: in all), and released it moves; the same
-    decision's futures draw the same ones again."""
+    decision's futures draw the same ones again. One standing on an exit lane stays in every future."""
     venv, planner, obs, rows = _batch([420_001], 45, BeliefLookaheadParams(samples=8, unseen=0.0,
                                                                         stopped_scope="off_approach"))
     e = venv.engine
     driving, moved = {}, {}
     K = 64
     for share in (0.0, 0.25, 1.0):
-        _tracks(venv, int(rows[0]), [(2.0, 2.0, 0.0, 0.3)])
+        _tracks(venv, int(rows[0]), [(2.0, 2.0, 0.0, 0.3), (-2.0, 25.0, 0.0, -0.3)])  # crossing, exit lane
         p = copy.deepcopy(planner, {id(venv.perception): venv.perception, id(e): e, id(planner.tracks.engine): None})
         p.params = BeliefLookaheadParams(samples=8, unseen=0.0, stopped_scope="off_approach", stopped_release=share)
         p.tracks.params = p.params
         p.read(e, rows, np.zeros_like(obs["intent"])[rows])
         t = p.tracks.engine.traffic
-        slot = int(np.flatnonzero(t.alive[rows[0]] & ~t.ego[rows[0]])[0])
-        assert t.crashed[rows[0], slot]  # the start holds it standing; the futures decide
+        users = np.flatnonzero(t.alive[rows[0]] & ~t.ego[rows[0]])
+        kinds = p.tracks.lane_kind[t.lane[rows[0], users]]
+        assert sorted(kinds.tolist()) == [1, 2] and t.crashed[rows[0], users].all()  # both held standing at the start
+        slot, exit_slot = int(users[kinds == 1][0]), int(users[kinds == 2][0])
         runs = []
         for _ in range(2):
             f = p.futures(p.tracks.engine, rows[:1], K)
             p.tracks.fill(f, rows[:1], p.seed, K)
             runs.append(~f.traffic.crashed[:, slot])
+            assert f.traffic.crashed[:, exit_slot].all()
         np.testing.assert_array_equal(runs[0], runs[1])
         driving[share] = runs[0]
         x0, y0 = f.traffic.x[:, slot].copy(), f.traffic.y[:, slot].copy()
