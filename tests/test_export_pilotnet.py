@@ -17,6 +17,7 @@ def runs(tmp_path, monkeypatch):
     """A stand-in for checkpoints/reference/ (copies of pilotnet and ppo_turn), which the tools take for the
     shipped folder, and a finished PilotNet run (the reference's model.pt and config.yaml) beside it."""
     import av_gym.references
+    import eval.agents  # noqa: F401 - its REFERENCE is taken at import: imported first here, it kept the stand-in
 
     root = tmp_path / "reference"
     for name in ("pilotnet", "ppo_turn"):

@@ -182,11 +182,34 @@ def export_reference(run_dir: str | Path, dest: str | Path, best: bool = False, 
     with destination(run_dir, dest, cfg, "python -m train.export", overwrite, overwrite_reference,
                      bool(command)) as keep_others:
         files: dict = {name: (_sb3_writer if name == "model.zip" else _torch_writer)(src),
-                       "config.yaml": (run_dir / "config.yaml").read_text()}
+                       "config.yaml": portable_config((run_dir / "config.yaml").read_text())}
         if command:
             files["COMMAND"] = command.rstrip("\n") + "\n"
         write_checkpoint_folder(dest, files, keep_others)
     return dest / name
+
+
+def portable_config(text: str) -> str:
+    """A run's ``config.yaml`` text as an export writes it. Training writes the resolved config, so a preset's
+    ``agent.init_from: ${av_gym_reference:dagger_turn}`` (conf/agent/dagger_turn_perceived.yaml) is recorded as this
+    install's absolute path (the checkout's, or site-packages'), a path no other machine has: an ``init_from``
+    inside the shipped references (:func:`av_gym.references.is_shipped`) is written back as that interpolation,
+    which every install resolves to its own copy (conf/__init__.py). Any other text is kept byte for byte."""
+    import yaml
+    from omegaconf import OmegaConf
+
+    from av_gym.references import is_shipped, reference_root
+
+    cfg = yaml.safe_load(text)
+    agent = cfg.get("agent") if isinstance(cfg, dict) else None
+    init_from = agent.get("init_from") if isinstance(agent, dict) else None
+    if not isinstance(init_from, str) or "${" in init_from or not is_shipped(init_from):
+        return text
+    name = Path(init_from).resolve().relative_to(reference_root().resolve()).as_posix()
+    if name == ".":
+        return text
+    agent["init_from"] = f"${{av_gym_reference:{name}}}"
+    return OmegaConf.to_yaml(OmegaConf.create(cfg))  # the writer training used (train/__main__.py): same layout
 
 
 def _model_file(cfg: Mapping, best: bool) -> str:
