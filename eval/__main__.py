@@ -197,7 +197,7 @@ def _run_all(plans: list, command: EvalCommand, env_cfg: dict, seeds: range, met
     """Every agent's episodes, results.csv / results.md (and ``meta``) written after each agent and on Ctrl-C;
     the summary printed. Returns the rows."""
     from eval.agents import _is_path
-    from eval.report import write_results
+    from eval.report import faults_note, faults_total, write_results
 
     env_name, out_dir, split = env_cfg["name"], command.out_dir, command.split
     title = (f"{env_name} ({env_cfg.get('mode', '')}), {command.episodes} episodes of the {split} split "
@@ -217,15 +217,15 @@ def _run_all(plans: list, command: EvalCommand, env_cfg: dict, seeds: range, met
             if rows:
                 write_results(rows, out_dir, env_name, f"{title} (interrupted after {len(rows)} episodes)",
                               **_ran_with(plans, ran, split, rows))
-                meta.episodes_written = len(rows)
+                meta.episodes_written, meta.sensor_faults = len(rows), faults_total(rows)
                 print(f"[eval] interrupted: the {len(rows)} episodes measured are in {out_dir}/results.csv",
                       file=sys.stderr)
             raise
         # each agent's rows as soon as it is done: an evaluation interrupted or failing later keeps what it measured
         write_results(rows, out_dir, env_name, title, **_ran_with(plans, ran, split, rows))
-        meta.write(len(rows))  # rc null: still running (or killed, if it stays so)
+        meta.write(len(rows), faults_total(rows))  # rc null: still running (or killed, if it stays so)
     table = write_results(rows, out_dir, env_name, title, **_ran_with(plans, ran, split, rows))
-    print(f"\n{title}\n\n{table}\n")
+    print(f"\n{title}\n\n{table}\n" + (f"\n{faults_note(rows)}" if faults_total(rows) else ""))
     print(f"[eval] per-episode rows: {out_dir}/results.csv   summary: {out_dir}/results.md"
           + ("" if meta.kept else f"   run: {out_dir}/meta.json"))
     return rows

@@ -6,8 +6,8 @@ The keys are the shipped result folders' (docs/results/*/meta.json, read by eval
 ``git archive`` snapshot of it carries; null otherwise, e.g. in an installed wheel), ``started`` / ``finished``
 (UTC, ISO 8601), ``wall_s``, ``load`` (the 1-minute load average at start and end, ``"a-b"``) and ``rc`` (0; 130
 on Ctrl-C; 2 on a ConfigError; 1 on any other failure; null while it runs or after a kill -9), then what a reader
-needs besides: the settings that chose the episodes and how they ran, the episodes written, CPU seconds and library
-versions.
+needs besides: the settings that chose the episodes and how they ran, the episodes written and the non-finite
+sensor entries their sensors replaced (``sensor_faults``, 0 when none), CPU seconds and library versions.
 
 A meta.json this module did not write (no ``written_by``: a person's, with notes) is never replaced: ``python -m
 eval`` refuses such an out_dir before any episode runs (:func:`hand_written_problem`), and :class:`EvalMeta` keeps
@@ -123,16 +123,19 @@ class EvalMeta:
         self.kept = _not_ours(self.path)  # a person's meta.json: never replaced
         self._t0, self._cpu0, self._load0 = time.monotonic(), cpu_seconds(), load_1min()
         self.episodes_written = 0  # rows in results.csv so far
+        self.sensor_faults = 0  # their non-finite sensor entries replaced (results.csv's sensor_faults, summed)
         self.data = {"command": command_line(overrides), "commit": code_commit(), "started": utc_now(),
                      "finished": None, "wall_s": None, "load": None, "rc": None, "cpu_s": None,
-                     "episodes_written": 0, **settings, "versions": versions(), "written_by": WRITTEN_BY}
+                     "episodes_written": 0, "sensor_faults": 0, **settings, "versions": versions(),
+                     "written_by": WRITTEN_BY}
         if self.kept:
             print(f"[eval] {self.path} was not written by {WRITTEN_BY}: kept as it is (this run writes none)",
                   file=sys.stderr)
 
-    def write(self, episodes_written: int) -> Path | None:
-        """meta.json of a running evaluation (rc null) with ``episodes_written`` rows in results.csv."""
-        self.episodes_written = episodes_written
+    def write(self, episodes_written: int, sensor_faults: int = 0) -> Path | None:
+        """meta.json of a running evaluation (rc null) with ``episodes_written`` rows in results.csv, whose
+        episodes' sensors replaced ``sensor_faults`` non-finite entries in all."""
+        self.episodes_written, self.sensor_faults = episodes_written, int(sensor_faults)
         return self._write(None)
 
     def end(self, rc: int) -> Path | None:
@@ -146,7 +149,8 @@ class EvalMeta:
         self.data.update({"finished": utc_now() if rc is not None else None,
                           "wall_s": round(time.monotonic() - self._t0, 1),
                           "load": f"{_load(self._load0)}-{_load(load_1min())}", "rc": rc,
-                          "cpu_s": round(cpu_seconds() - self._cpu0, 1), "episodes_written": self.episodes_written})
+                          "cpu_s": round(cpu_seconds() - self._cpu0, 1), "episodes_written": self.episodes_written,
+                          "sensor_faults": self.sensor_faults})
         if self.kept:  # a person's meta.json is never replaced
             return None
         return write_text_atomic(self.path, json.dumps(self.data, indent=1) + "\n", field="out_dir")

@@ -32,14 +32,24 @@ def summary_table(rows: list[dict], scenario: str) -> str:
     return markdown_table(table, ["agent", "n", *metrics])
 
 
+def _faults(row: dict) -> float:
+    """An episode row's ``sensor_faults`` (0 for a row written before the column, or an empty cell)."""
+    v = row.get("sensor_faults")
+    return float(v) if isinstance(v, (int, float)) and v == v else 0.0
+
+
+def faults_total(rows: list[dict]) -> int:
+    """The non-finite sensor entries replaced over all ``rows`` (meta.json's ``sensor_faults``)."""
+    return int(sum(_faults(r) for r in rows))
+
+
 def faults_note(rows: list[dict]) -> str:
     """One Markdown line naming, per agent whose episodes had any, the non-finite sensor entries the sensors' guard
     replaced (``sensor_faults``, av_gym/sensors/base.py: made finite, marked invalid, counted) and in how many of its
     episodes; "" when there were none (or the rows predate the column), so a clean run's page is unchanged."""
     per: dict[str, list[float]] = {}
     for r in rows:
-        v = r.get("sensor_faults")
-        per.setdefault(r["agent"], []).append(float(v) if isinstance(v, (int, float)) and v == v else 0.0)
+        per.setdefault(r["agent"], []).append(_faults(r))
     hit = [f"`{a}` {sum(v):.0f} in {sum(x > 0 for x in v)} of {len(v)} episodes" for a, v in per.items() if sum(v)]
     if not hit:
         return ""

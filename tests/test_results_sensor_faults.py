@@ -6,8 +6,12 @@ episodes had any; a clean run's pages, and the shipped result folders (written b
 from __future__ import annotations
 
 import csv
+import json
 import shutil
+import sys
 from pathlib import Path
+
+import pytest
 
 from eval.report import faults_note, write_results
 from eval.results_page import load_folder, page
@@ -60,3 +64,22 @@ def test_the_results_page_notes_faults_in_the_folder_section_not_the_headline(tm
     assert f"`{agent}` 3 in 1 of " in faulty and "Sensor faults" not in clean
     head = lambda text: text[: text.index("<!-- results:end -->")]  # noqa: E731 - the README's block
     assert head(faulty) == head(clean)
+
+
+@pytest.mark.slow  # ~2.4 s: python -m eval's Hydra composition
+def test_eval_says_the_runs_sensor_faults_in_meta_json_and_on_the_terminal(tmp_path, monkeypatch, capsys):
+    from eval import __main__ as eval_main
+
+    def run_agent(plan, command, env_cfg, seeds, rows) -> None:  # stand-in episodes: the faults are the point
+        rows += [{"agent": plan.label, "episode": i, "seed": s, "collision": 0.0, "success": 1.0,
+                  "sensor_faults": 5.0 if (plan.label, i) == ("gap_acceptance", 1) else 0.0}
+                 for i, s in enumerate(seeds)]
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(eval_main, "_run_agent", run_agent)
+    monkeypatch.setattr(sys, "argv", ["eval", "agents=[always_proceed,gap_acceptance]", "split=validation",
+                                      "episodes=2", "out_dir=out", "progress_bar=false", "hydra.run.dir=hydra"])
+    eval_main.main()
+    assert json.loads((tmp_path / "out" / "meta.json").read_text())["sensor_faults"] == 5
+    note = "`gap_acceptance` 5 in 1 of 2 episodes."
+    assert note in capsys.readouterr().out and note in (tmp_path / "out" / "results.md").read_text()
