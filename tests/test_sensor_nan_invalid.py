@@ -69,3 +69,20 @@ def test_a_nan_detection_row_is_dropped(monkeypatch):
     obs, _, _, _, info = env.step(STRAIGHT)
     assert np.all(obs["detector"][0] == 0.0)  # present = 0: dropped, not an object at 12 m moving at 0 m/s
     assert info["sensor_faults"] == {"detector": 1}
+
+
+def test_a_dropped_non_finite_gnss_fix_is_counted_in_info_and_the_episode(monkeypatch):
+    """GNSS drops a fix that is not finite before the guard sees it (held, as in an outage): it is still a fault,
+    reported in info["sensor_faults"] and summed into the episode's sensor_faults (the results column)."""
+    env = make_env(conf("env", "lane_keeping"), {"name": "gnss_imu", "gnss": conf("sensor", "gnss"),
+                                                 "imu": conf("sensor", "imu")})
+    env.reset(seed=0)
+    real = GNSS._true_state
+    monkeypatch.setattr(GNSS, "_true_state", lambda self, t: real(self, t) * np.nan)
+    reported = 0
+    for _ in range(3):  # GNSS's fixes come at its own rate: three steps hold at least one
+        obs, _, _, _, info = env.step(STRAIGHT)
+        reported += info.get("sensor_faults", {}).get("gnss", 0)
+        assert np.all(np.isfinite(obs["gnss"]))
+    assert reported > 0 and reported % 4 == 0  # x, y, vx, vy of each dropped fix
+    assert env.summary()["sensor_faults"] == reported

@@ -158,6 +158,7 @@ class GNSS(SensorWrapper):
             if not np.all(np.isfinite(fix)):  # a receiver reports no fix rather than a wrong one: held, as in an outage
                 self._bias = np.where(np.isfinite(self._bias), self._bias, 0.0)
                 self.faults += 1
+                self._step_faults += int(np.count_nonzero(~np.isfinite(fix)))  # info["sensor_faults"], as the guard
                 self._fix_dropped = True
                 continue
             self._fix, self._fix_dropped = fix, False
