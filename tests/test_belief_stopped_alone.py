@@ -45,7 +45,8 @@ def _tracks(venv, r: int, tracks: list[tuple]) -> None:
 def test_a_track_standing_alone_in_the_junction_drives_one_beside_another_stays():
     """With ``stopped_scope`` off_approach a track standing inside the junction stays put (crashed in the futures);
     with ``stopped_alone`` 6 m it drives there when no other road user is within 6 m, and stays when a second
-    standing track is 5.5 m away (a crash's pair, just clear of it). Released, it moves in the futures where it stood still before."""
+    standing track is 5.5 m away (a crash's pair, just clear of it). Released, it moves in the futures where it stood
+    still before."""
     venv, planner, obs, rows = _batch([420_001], 45, BeliefLookaheadParams(samples=8, unseen=0.0,
                                                                         stopped_scope="off_approach"))
     e = venv.engine
