@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import re
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -280,6 +281,26 @@ def add_gif(writer, tag: str, gif: bytes, shape: tuple[int, int], step: int) -> 
     writer.flush()
 
 
+# What PeriodicEval.video writes in the run's videos/: step_<decisions>.gif, through a temporary
+# .step_<n>.gif.<pid>.tmp (av_gym.atomic.temporary_name) that a kill -9 mid-write leaves behind.
+VIDEO_NAME = re.compile(r"(\.)?step_(\d+)\.gif(?(1)\.\d+\.tmp)")
+
+
+def remove_videos_after(folder: Path, last_step: int) -> list[Path]:
+    """A resumed run's ``videos/``: remove the GIFs of the interrupted run's evaluations after its checkpoint
+    (``step_<n>.gif`` with ``n > last_step``, decisions, and their write leftovers), whose model is gone and whose
+    steps the resumed run evaluates again, as ``eval.csv`` keeps rows at steps <= ``last_step`` and TensorBoard's
+    events from ``last_step + 1`` are cut (train.tb_events). Nothing else in the folder is touched (a user's file,
+    a sub-folder, a GIF of a step at or before the checkpoint). Returns what was removed."""
+    removed = []
+    for path in sorted(folder.iterdir()) if folder.is_dir() else []:
+        match = VIDEO_NAME.fullmatch(path.name)
+        if match and int(match.group(2)) > last_step and path.is_file() and not path.is_symlink():
+            path.unlink()
+            removed.append(path)
+    return removed
+
+
 class PeriodicEval(BaseCallback):
     """SB3 ``EvalCallback`` for our metrics: at rollout starts, at least ``every`` decisions apart, and at the end of
     training, runs the deterministic policy on the fixed ``seeds`` (disjoint from training) and
@@ -300,7 +321,8 @@ class PeriodicEval(BaseCallback):
 
     TensorBoard's ``eval/*`` equal ``eval.csv`` row for row: each evaluation writes its scalars at its own step
     (:func:`dump_prefix`; recorded without a dump they appeared one rollout late, and the final one never), and a
-    resumed run drops the rows of evaluations after its checkpoint from ``eval.csv``, as TensorBoard purges them."""
+    resumed run drops the rows of evaluations after its checkpoint from ``eval.csv``, and their GIFs from
+    ``videos/`` (:func:`remove_videos_after`), as their TensorBoard events are cut (train.tb_events)."""
 
     def __init__(self, make_env: Callable[[str | None], gym.Env], scenario: str, seeds: Sequence[int], every: int,
                  ckpt_dir: Path, run_dir: Path, video_every: int = 0, wall_offset: float = 0.0,
@@ -320,6 +342,10 @@ class PeriodicEval(BaseCallback):
         self._last_eval = self._last_video = self.num_timesteps
         if self.num_timesteps > 0:  # a resume: evaluations after the checkpoint are of a model that is gone
             self._trim_csv(self.num_timesteps)
+            removed = remove_videos_after(self.run_dir / "videos", self.num_timesteps)
+            if removed:
+                print(f"[train] resumed at {self.num_timesteps} decisions: removed {len(removed)} videos of the "
+                      f"interrupted run's evaluations after it (videos/step_<n>.gif, n > {self.num_timesteps})")
         if self.every > 0 and self.num_timesteps == 0:  # the starting point (e.g. a cloned policy) on the curve
             self.evaluate()
 
@@ -387,6 +413,7 @@ class PeriodicEval(BaseCallback):
     def video(self, step: int) -> Path:
         """Render the first evaluation seed's episode: a GIF file and a TensorBoard image (animated)."""
         from agents.ppo import SB3Policy
+        from av_gym.atomic import atomic_path
 
         env = self.make_env("rgb_array")
         policy = SB3Policy(self.model)
@@ -406,7 +433,8 @@ class PeriodicEval(BaseCallback):
         gif = gif_bytes(frames, fps)
         path = self.run_dir / "videos" / f"step_{step:08d}.gif"
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_bytes(gif)
+        with atomic_path(path, "paths.runs") as tmp:  # a kill mid-write leaves no torn GIF under the final name
+            tmp.write_bytes(gif)
         writer = tensorboard_writer(self.logger)
         if writer is not None:
             add_gif(writer, "eval/episode", gif, frames[0].shape[:2], step)
