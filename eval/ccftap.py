@@ -582,8 +582,9 @@ def _write(a, argv: list[str] | None, plans: list, rows: list[dict], traces: dic
 
 
 def _number(value: float | None) -> float:
-    """An info value that is ``None`` until it happens, as a float (NaN: it did not happen)."""
-    return math.nan if value is None else float(value)
+    """An info value that is inf until it happens (``av_gym.shields.aeb.NOT_YET``; ``None`` too, as a caller's
+    ``info.get`` gives without a shield), as a float (NaN: it did not happen)."""
+    return math.nan if value is None or math.isinf(value) else float(value)
 
 
 if __name__ == "__main__":

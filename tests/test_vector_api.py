@@ -40,6 +40,61 @@ def test_make_vec(mode, env_id, sensors, shield) -> None:
         venv.close()
 
 
+def _leaves(info: dict, path: str = "") -> list[tuple[str, np.ndarray]]:
+    """Every batched value of a vector env's ``info`` (nested dicts walked; the ``_key`` masks left out)."""
+    out = []
+    for key, value in info.items():
+        if isinstance(value, dict):
+            out += _leaves(value, f"{path}{key}.")
+        elif not key.startswith("_"):
+            out.append((f"{path}{key}", np.asarray(value)))
+    return out
+
+
+AEB_INFO = ("aeb_stage", "aeb_ttc", "aeb_horizon", "aeb_override", "aeb_target_id", "aeb_active", "aeb_infeasible",
+            "aeb_brake_time", "aeb_stop_position", "aeb_action", "aeb_withheld")
+
+
+@pytest.mark.parametrize("mode", ["sync", "async"])
+def test_info_keeps_one_type_when_the_envs_episodes_end_at_different_steps(mode) -> None:
+    """R7 finding 1: with the shield, an env's autoreset step (NEXT_STEP: its reset's info) while the other env
+    drives gave ``aeb_action`` None beside an int, and Gymnasium's ``_add_info`` raised a TypeError (before: the
+    shield said None for "no action yet" and for an unknown brake time / stop position). Env 0 starts again 4
+    steps in, so the two envs' 1-s episodes end 4 steps apart; every step, every info value must batch into a
+    typed array (an object array only of values that are objects in each env: ``truth``, highway-env's tuples),
+    with the documented sentinels where an env just reset."""
+    from av_gym.shields.aeb import NO_ACTION, NOT_YET
+
+    venv = gym.make_vec(TURN, num_envs=2, vectorization_mode=mode, sensors="turn_truth", shield="aeb",
+                        env=SHORT[TURN])
+    try:  # not finally: see the except below
+        venv.reset(seed=[7, 8])
+        for _ in range(4):
+            venv.step(np.full(2, 2))
+        venv.reset(options={"reset_mask": np.array([True, False])})
+        ended, restarted = [], 0
+        for _ in range(24):
+            _, _, terminated, truncated, info = venv.step(np.full(2, 2))
+            ended.append(terminated | truncated)
+            for path, a in _leaves(info):  # object arrays only for values that are objects in every env
+                kinds = {type(v) for v in a} if a.dtype == object else set()
+                assert type(None) not in kinds and len(kinds) <= 1, (path, a)
+            assert all(info[k].dtype != object for k in AEB_INFO), {k: info[k] for k in AEB_INFO}
+            just_reset = np.asarray([t["time"] == 0.0 for t in info["truth"]])
+            restarted += int(just_reset.sum())
+            assert np.all((info["aeb_action"] == NO_ACTION) == just_reset)  # FASTER (2) while driving
+            assert np.all(np.isinf(info["aeb_brake_time"][just_reset]) & (info["aeb_brake_time"][just_reset] > 0))
+            assert np.all((info["aeb_stop_position"] == NOT_YET)[just_reset])
+        steps = [np.nonzero(np.array(ended)[:, i])[0] for i in range(2)]
+        assert len(steps[0]) and len(steps[1]) and steps[0][0] != steps[1][0]  # the episodes ended apart
+        assert restarted >= 2
+    except BaseException:
+        # a step that failed in _add_info leaves AsyncVectorEnv waiting for it: its plain close() blocked forever
+        venv.close(terminate=True)
+        raise
+    venv.close()
+
+
 @pytest.mark.slow  # 2-20 s each on a loaded 2-core machine
 @pytest.mark.parametrize("mode", ["sync", "async"])
 @pytest.mark.parametrize("env_id,sensors,shield", [(TURN, "turn_perceived", "aeb"), (TURN, "localized", "aeb")] + [

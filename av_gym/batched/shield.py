@@ -847,8 +847,9 @@ class BatchedShield:
                 s._stop_position = s._front_past_line()
 
     def episode(self, r: int) -> dict:
-        """Env ``r``'s episode so far: ``brake_time`` (s, first brake; None if none), ``stop_position`` (m past the
-        stop line at the first standstill under braking; None if none), ``overrides`` (the steps it braked)."""
+        """Env ``r``'s episode so far: ``brake_time`` (s, first brake; inf if none, the per-env shield's
+        ``aeb.NOT_YET``), ``stop_position`` (m past the stop line at the first standstill under braking; inf if none),
+        ``overrides`` (the steps it braked)."""
         info = self.shields[r]._make_info(0, float("inf"), 0.0, -1, False, False, None)
         return {"brake_time": info["aeb_brake_time"], "stop_position": info["aeb_stop_position"],
                 "overrides": list(self.overrides[r])}

@@ -73,11 +73,15 @@ RouteFollowingVehicle's commanded acceleration alike). The agent's set-point is 
 ``info`` each step: ``aeb_stage`` (0/1/2), ``aeb_ttc`` (s, inf when none), ``aeb_horizon`` (s), ``aeb_override``
 and ``shield_override`` (bool: the action was overridden by braking), ``aeb_target_id`` (index in the simulator's
 vehicle list minus the ego, or track id; -1), ``aeb_active``, ``aeb_infeasible`` (a conflict was predicted but
-braking would park the ego in the target's path), ``aeb_brake_time`` (s, first brake command this episode; None
-before), ``aeb_stop_position`` (m, front bumper past the stop line at the first standstill under braking; None
-before),
-``aeb_action`` (the action passed on to the env), ``aeb_withheld`` (stop-line brake decisions a second opinion
-withheld this episode: :attr:`AEBShield.opinion`, an :class:`~av_gym.shields.opinion.Opinion` its owner installs).
+braking would park the ego in the target's path), ``aeb_brake_time`` (s, first brake command this episode;
+:data:`NOT_YET` = inf before), ``aeb_stop_position`` (m, front bumper past the stop line at the first standstill
+under braking; :data:`NOT_YET` = inf before), ``aeb_action`` (the action passed on to the env: an int, or with
+continuous actions a float32 array of the action's shape; at reset :data:`NO_ACTION` = -1, or NaNs),
+``aeb_withheld`` (stop-line brake decisions a second opinion withheld this episode: :attr:`AEBShield.opinion`, an
+:class:`~av_gym.shields.opinion.Opinion` its owner installs). Every key has one type at reset and in every step,
+so ``gymnasium.make_vec(..., vectorization_mode="sync"/"async")`` batches each into a typed array whichever env
+just reset (None beside an int raised in Gymnasium's ``_add_info``); inf, not NaN, for "not yet", so that identical
+runs' infos compare equal (``check_env``).
 
 The code, by seam: the parameters (:mod:`av_gym.shields.aeb_params`), the brake actuator
 (:mod:`av_gym.shields.actuator`), the shared base and the variant registry (:mod:`av_gym.shields.aeb_base`), and
@@ -88,7 +92,7 @@ names and registers the variants, so ``av_gym.shields.aeb`` is where a caller im
 from __future__ import annotations
 
 from av_gym.shields.actuator import BrakeActuator
-from av_gym.shields.aeb_base import AEB_VARIANTS, AEBShield, _route_tables, find_shield
+from av_gym.shields.aeb_base import AEB_VARIANTS, NO_ACTION, NOT_YET, AEBShield, _route_tables, find_shield
 from av_gym.shields.aeb_params import (BRAKE, CONFIG_SECTION_KEYS, MONITOR, SHIELD_DETECTOR, STOP_SPEED,
                                       TRACKER_FOLLOWS_DETECTOR, WARN, AEBParams, BrakeParams, ImprovedParams,
                                       PaperParams, StandardParams, TurnParams)
@@ -98,6 +102,6 @@ from av_gym.shields.aeb_improved import ImprovedAEB  # isort: skip
 from av_gym.shields.aeb_standard import StandardAEB  # isort: skip
 
 __all__ = ["AEB_VARIANTS", "AEBParams", "AEBShield", "BRAKE", "BrakeActuator", "BrakeParams", "CONFIG_SECTION_KEYS",
-           "ImprovedAEB", "ImprovedParams", "MONITOR", "PaperAEB", "PaperParams", "SHIELD_DETECTOR", "STOP_SPEED",
-           "StandardAEB", "StandardParams", "TRACKER_FOLLOWS_DETECTOR", "TurnParams", "WARN", "_route_tables",
-           "find_shield"]
+           "ImprovedAEB", "ImprovedParams", "MONITOR", "NOT_YET", "NO_ACTION", "PaperAEB", "PaperParams",
+           "SHIELD_DETECTOR", "STOP_SPEED", "StandardAEB", "StandardParams", "TRACKER_FOLLOWS_DETECTOR", "TurnParams",
+           "WARN", "_route_tables", "find_shield"]

@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
@@ -22,6 +23,16 @@ from av_gym.shields.predict import DrivenPath, RouteTable
 from av_gym.shields.actuator import BrakeActuator, _ActuatedAct
 from av_gym.shields.aeb_params import _NO_ACCEL, BRAKE, CONFIG_SECTION_KEYS, MONITOR, STOP_SPEED, AEBParams
 from av_gym.shields.opinion import Opinion, check_opinion
+
+
+# ----------------------------------------------------------------------------------------------- info sentinels
+NOT_YET = math.inf
+"""``info["aeb_brake_time"]`` / ``info["aeb_stop_position"]`` before the event (s / m): a float, so that a vector env
+batches the key into a float array whichever env comes first (None raised in Gymnasium's ``_add_info``), and not
+NaN, so that two identical runs' infos compare equal (Gymnasium's ``check_env``; NaN != NaN). A time at infinity:
+the brake has not come."""
+NO_ACTION = -1
+"""``info["aeb_action"]`` (discrete actions) at reset, before any action was passed on: an int like the actions."""
 
 
 # ----------------------------------------------------------------------------------------------- shield
@@ -262,14 +273,25 @@ class AEBShield(gym.Wrapper):
         self.actuator.release()
 
     def _make_info(self, stage, ttc, horizon, target, active, infeasible, applied) -> dict:
+        """The shield's ``info`` keys (:mod:`av_gym.shields.aeb`), each with one type in every step and at reset:
+        Gymnasium's vector envs batch a key into an array typed by the first env's value, so None beside a number
+        (one env just reset, the other driving) raised a TypeError in ``_add_info`` (R7 finding 1)."""
         return {"aeb_stage": int(stage), "aeb_ttc": float(ttc), "aeb_horizon": float(horizon),
                 "aeb_override": bool(stage == BRAKE), "shield_override": bool(stage == BRAKE),
                 "aeb_target_id": int(target), "aeb_active": bool(active), "aeb_infeasible": bool(infeasible),
-                # None, not NaN, until it happens: info values must compare equal across identical runs
-                # (Gymnasium's check_env; NaN != NaN)
-                "aeb_brake_time": _or_none(self._brake_time), "aeb_stop_position": _or_none(self._stop_position),
-                "aeb_action": None if applied is None else (np.asarray(applied).tolist()),
-                "aeb_withheld": int(self.withheld)}
+                "aeb_brake_time": _or_not_yet(self._brake_time), "aeb_stop_position": _or_not_yet(self._stop_position),
+                "aeb_action": self._action_info(applied), "aeb_withheld": int(self.withheld)}
+
+    def _action_info(self, applied) -> int | np.ndarray:
+        """``info["aeb_action"]``: the action passed on to the env, an int (discrete actions; :data:`NO_ACTION`
+        before the first step) or a float32 array of the action space's shape (continuous; NaN before the first
+        step, an info the determinism check never compares)."""
+        space = self.action_space
+        if isinstance(space, gym.spaces.Discrete):
+            return NO_ACTION if applied is None else int(applied)
+        if applied is None:
+            return np.full(space.shape, np.nan, dtype=np.float32)
+        return np.asarray(applied, dtype=np.float32).reshape(space.shape)
 
     def _second_opinion_withholds(self) -> bool:
         """Whether the second opinion (if any) finds going on safe, so that a stop-line brake is withheld."""
@@ -419,6 +441,6 @@ class AEBShield(gym.Wrapper):
         return False
 
 
-def _or_none(value: float) -> float | None:
-    """``value`` as a float, ``None`` where it is NaN (not yet happened)."""
-    return None if np.isnan(value) else float(value)
+def _or_not_yet(value: float) -> float:
+    """``value`` as a float, :data:`NOT_YET` where it is NaN (not yet happened)."""
+    return NOT_YET if np.isnan(value) else float(value)
