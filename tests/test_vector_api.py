@@ -122,6 +122,41 @@ def test_vector_entry_point_is_the_batched_engine() -> None:
         venv.step(venv.action_space.sample())
 
 
+def _episode_end_infos(venv, steps: int = 14) -> list[dict]:
+    """The ``info`` of every step on which an env's episode ended (FASTER throughout, seeds 7 and 8)."""
+    venv.reset(seed=[7, 8])
+    out = []
+    for _ in range(steps):
+        _, _, terminated, truncated, info = venv.step(np.full(2, 2))
+        if np.any(terminated | truncated):
+            assert np.array_equal(info["_episode_metrics"], terminated | truncated)
+            out.append(info)
+    return out
+
+
+@pytest.mark.slow  # ~10 s: the batch's numba kernels compile on first use
+def test_the_batch_gives_the_episode_end_info_as_the_per_env_vector_env() -> None:
+    """``gymnasium.make_vec(id, n, shield="aeb")`` (the batch) batches an ended episode's ``episode_metrics`` and
+    the shield's ``aeb_brake_time`` / ``aeb_stop_position`` under the same keys, with the same dtypes and masks, as
+    ``vectorization_mode="sync"`` (it gave a list of dicts, None where an env went on)."""
+    kwargs = {"sensors": "turn_truth", "shield": "aeb", "env": SHORT[TURN]}
+    sync, batch = gym.make_vec(TURN, 2, vectorization_mode="sync", **kwargs), gym.make_vec(TURN, 2, **kwargs)
+    try:
+        want, got = _episode_end_infos(sync), _episode_end_infos(batch)
+    finally:
+        sync.close(), batch.close()
+    assert len(want) == len(got) >= 1
+    for w, g in zip(want, got):
+        ended = w["_episode_metrics"]
+        assert np.array_equal(g["_episode_metrics"], ended)
+        assert {k: a.dtype for k, a in _leaves(g["episode_metrics"])} == \
+            {k: a.dtype for k, a in _leaves(w["episode_metrics"])}
+        for key in ("aeb_brake_time", "aeb_stop_position"):  # never braked in 1 s: the sentinel in both
+            assert np.array_equal(g[f"_{key}"], ended), key  # the batch says it for the ended envs
+            assert g[key].dtype == w[key].dtype == np.float64, (key, g[key])
+            assert np.array_equal(g[key][ended], w[key][ended]) and np.all(g[key][ended] == np.inf), (key, g[key])
+
+
 @pytest.mark.parametrize("kwargs,says", [
     ({}, 'the batched engine needs sensors="turn_truth"'),
     ({"sensors": {"name": "turn_perceived", "detector": {"frame": "ego"}}},

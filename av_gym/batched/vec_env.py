@@ -433,7 +433,11 @@ class BatchedLeftTurnBatch:
 
 class BatchedLeftTurnVectorEnv(gym.vector.VectorEnv):
     """Gymnasium ``VectorEnv`` over the same batch: meta-actions (or GO/YIELD), ``obs`` as a dict of batched
-    arrays, autoreset in the same step (``info["final_obs"]`` / ``info["_final_obs"]``)."""
+    arrays, autoreset in the same step (``info["final_obs"]`` / ``info["_final_obs"]``). On the step an env's episode
+    ends, ``info`` has its end-of-episode keys as ``gymnasium.make_vec(..., vectorization_mode="sync")`` batches them
+    on that step, with a ``_key`` mask of the envs that ended: ``episode_metrics`` (a dict of float arrays, one per
+    metric) and, with the shield, ``aeb_brake_time`` / ``aeb_stop_position`` (float; inf where it did not brake /
+    stop, ``av_gym.shields.aeb.NOT_YET``)."""
 
     def __init__(self, env_cfg: dict, sensors_cfg: dict, n_envs: int, shield_cfg: dict | None = None,
                  **kwargs) -> None:
@@ -457,6 +461,17 @@ class BatchedLeftTurnVectorEnv(gym.vector.VectorEnv):
         truncated = np.array([i.get("TimeLimit.truncated", False) for i in infos])
         terminated = done & ~truncated
         final = np.array([i.get("terminal_observation") for i in infos], dtype=object)
-        info = {"final_obs": final, "_final_obs": done.copy(),
-                "episode_metrics": [i.get("episode_metrics") for i in infos]}
+        info = {"final_obs": final, "_final_obs": done.copy()}
+        for r in np.flatnonzero(done).tolist():  # Gymnasium's own batching, as the per-env stacks' vector envs
+            self._add_info(info, _episode_end(infos[r]), r)
         return obs, reward, terminated, truncated, info
+
+
+def _episode_end(row_info: dict) -> dict:
+    """A finished row's info under the per-env stack's keys (EpisodeMetrics' ``episode_metrics``; the shield's
+    ``aeb_brake_time`` / ``aeb_stop_position`` from :meth:`BatchedShield.episode`)."""
+    out = {"episode_metrics": row_info["episode_metrics"]}
+    if "aeb" in row_info:
+        out["aeb_brake_time"] = float(row_info["aeb"]["brake_time"])
+        out["aeb_stop_position"] = float(row_info["aeb"]["stop_position"])
+    return out
