@@ -77,7 +77,7 @@ def _batched_sensors(plan, env_cfg: dict):
         try:  # what the batch can run, on the sensors chosen
             check_batchable(env_cfg, given, plan.shield, with_shield=True)
         except ConfigError as exc:
-            raise ConfigError(f"agent {plan.label!r}: {str(exc).replace('agent.vec_env=', 'vec_env=')}") from None
+            raise ConfigError(f"agent {plan.given!r}: {str(exc).replace('agent.vec_env=', 'vec_env=')}") from None
     return dataclasses.replace(plan, sensors=dict(batch_sensors(plan, env_cfg)))
 
 
@@ -87,9 +87,9 @@ def given_sensors_problem(plan, given: dict) -> str | None:
     turn_truth) runs on that. Whether ``sensors=`` (``given``) reaches it is :func:`conf.check.own_sensors_problem`'s
     rule, which train's check shares; ``agent@preset`` has chosen its preset already."""
     trained = (plan.trained_sensors or {}).get("name")
-    if "@" in plan.label:
+    if "@" in plan.given:
         return None
-    return own_sensors_problem(plan.label, trained or plan.own_sensors, given, default_sensors("eval"), "eval",
+    return own_sensors_problem(plan.given, trained or plan.own_sensors, given, default_sensors("eval"), "eval",
                                trained=bool(trained))
 
 
@@ -233,8 +233,8 @@ def _run_all(plans: list, command: EvalCommand, env_cfg: dict, seeds: range, met
 
 def _ran_with(plans: list, checkpoints: dict, split: str, rows: list[dict]) -> dict:
     """``write_results``' keywords for every results.md, an interrupted or failing evaluation's included: the
-    sensors, checkpoint and shield of each agent with rows in ``rows`` (a shield from the command line's
-    ``shield=`` is in no label, so without them its rows read as unshielded)."""
+    sensors, checkpoint and shield of each agent with rows in ``rows`` (the label names the shield and the changed
+    sensor fields, :mod:`eval.labels`; these sections give every setting)."""
     from av_gym.batched.shield import shield_kind
 
     labels = {r["agent"] for r in rows}

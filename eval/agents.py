@@ -210,7 +210,7 @@ def check_plan(plan: "AgentPlan", env_name: str) -> None:
         if group == "shield" and isinstance(section, dict):  # the opinion it names is the harness's to install
             problems += opinion_problems(section.get("second_opinion", "none"))
         if problems:
-            raise ConfigError(f"agent {plan.label!r}: {problems[0]}")
+            raise ConfigError(f"agent {plan.given!r}: {problems[0]}")
 
 
 def resolve_agent(spec: str, env: gym.Env, env_name: str, checkpoints: str | Path) -> tuple[str, Policy]:
@@ -269,7 +269,8 @@ def install_opinion(env: gym.Env) -> None:
 # ----------------------------------------------------------------------------------------------- per-agent stacks
 @dataclass
 class AgentPlan:
-    """What one agent spec needs: the label in tables, the sensors and shield configs its env is built with, and
+    """What one agent spec needs: the label in tables (:func:`eval.labels.row_label`: the spec and what the
+    command line changed about how it ran), the sensors and shield configs its env is built with, and
     the spec to hand to :func:`resolve_agent` once that env exists. For a trained agent, ``trained_sensors`` are
     the sensors it was trained on (its checkpoint's, or the ``@preset``) and ``sensor_overrides`` the command
     line's ``sensors.*`` changes applied on top of them to give ``sensors`` (dotted path → value). For a rule-based
@@ -283,6 +284,10 @@ class AgentPlan:
     trained_sensors: dict | None = None
     sensor_overrides: dict = field(default_factory=dict)
     own_sensors: str | None = None
+    given: str = ""  # the spec as the command line gave it (``label`` adds what it changed): "" means ``label``
+
+    def __post_init__(self) -> None:
+        self.given = self.given or self.label
 
 
 def _with_overrides(label: str, base: dict, overrides: dict[str, Any], whose: str = "it was trained with") -> dict:
@@ -323,13 +328,13 @@ def check_preset_space(plan: AgentPlan, env_cfg: Any) -> None:
     """Refuse (one line, before any episode) ``agent@preset`` for a trained agent whose checkpoint was trained on
     sensors of another observation space (its config.yaml's): its policy's own check comes when it is loaded, after
     the agents listed before it have run and written their rows."""
-    agent, _, preset = plan.label.partition("+")[0].partition("@")
+    agent, _, preset = plan.given.partition("+")[0].partition("@")
     own = saved_config(Path(plan.spec)).get("sensors") if preset and plan.trained_sensors is not None else None
     if not own:
         return
     given, trained = observation_space(env_cfg, plan.sensors), observation_space(env_cfg, own)
     if given != trained:
-        raise ConfigError(f"agent {plan.label!r}: @{preset} gives observations {describe_space(given)}, but it was "
+        raise ConfigError(f"agent {plan.given!r}: @{preset} gives observations {describe_space(given)}, but it was "
                           f"trained on sensors={own.get('name')}, {describe_space(trained)}; drive it from a preset "
                           f"with that observation space ({agent}@{own.get('name')}, or {agent} alone)")
 
@@ -343,13 +348,13 @@ def check_sensor_overrides(plan: AgentPlan, env_cfg: Any) -> None:
     if observation_space(env_cfg, plan.sensors) == trained:
         return
     for path, value in plan.sensor_overrides.items():  # name the first override that changes it on its own
-        alone = observation_space(env_cfg, _with_overrides(plan.label, plan.trained_sensors, {path: value}))
+        alone = observation_space(env_cfg, _with_overrides(plan.given, plan.trained_sensors, {path: value}))
         if alone != trained:
-            raise ConfigError(f"sensors.{path}={value!r} changes the observation space of agent {plan.label!r} "
+            raise ConfigError(f"sensors.{path}={value!r} changes the observation space of agent {plan.given!r} "
                               f"from {describe_space(trained)} to {describe_space(alone)}; a trained agent can only "
                               f"run with settings that keep it")
     raise ConfigError(f"sensors overrides {sorted(plan.sensor_overrides)} together change the observation space of "
-                      f"agent {plan.label!r}; a trained agent can only run with settings that keep it")
+                      f"agent {plan.given!r}; a trained agent can only run with settings that keep it")
 
 
 def plan_agent(spec: str, env_name: str, sensors: dict, shield: dict, checkpoints: str | Path) -> AgentPlan:
@@ -381,8 +386,9 @@ def plan_agent(spec: str, env_name: str, sensors: dict, shield: dict, checkpoint
     def trained_plan(run_spec: str, path: Path) -> AgentPlan:
         own = forced or saved_config(path).get("sensors")
         if own is None:  # a checkpoint without its config: it runs on the sensors given
-            return AgentPlan(str(spec), run_spec, sensors, shield)
-        return AgentPlan(str(spec), run_spec, _with_overrides(str(spec), own, overrides), shield, own, overrides)
+            return _labelled(AgentPlan(str(spec), run_spec, sensors, shield), _default_preset(sensors))
+        return _labelled(AgentPlan(str(spec), run_spec, _with_overrides(str(spec), own, overrides), shield, own,
+                                   overrides), own)
 
     if base in trained_kinds() or _is_path(base):
         path = find_checkpoint(base, env_name, checkpoints, latest=latest) if base in trained_kinds() else Path(base)
@@ -390,6 +396,7 @@ def plan_agent(spec: str, env_name: str, sensors: dict, shield: dict, checkpoint
     cfg = load_agent_config(base)
     if latest and cfg.get("kind") not in trained_kinds():
         raise ConfigError(f"agent {spec!r}: {base!r} is rule-based, it has no runs; say {base}")
+    baseline = compose_group("sensors", cfg["sensors"]) if cfg.get("sensors") else _default_preset(sensors)
     if cfg.get("sensors") and (sensors or {}).get("name") != cfg["sensors"]:
         # the agent's own preset, unless the one given is that preset (then with the command line's overrides,
         # e.g. a sweep over sensors.gnss.sigma for pid_gnss)
@@ -399,8 +406,26 @@ def plan_agent(spec: str, env_name: str, sensors: dict, shield: dict, checkpoint
                                latest=latest)
         return trained_plan(str(path), path)
     if forced:  # the command line's sensors.* overrides reach a rule-based agent's @preset as a trained one's
-        return AgentPlan(str(spec), base, _with_overrides(str(spec), forced, overrides, f"@{preset} gives"), shield)
-    return AgentPlan(str(spec), base, sensors, shield, own_sensors=cfg.get("sensors"))
+        return _labelled(AgentPlan(str(spec), base, _with_overrides(str(spec), forced, overrides, f"@{preset} gives"),
+                                   shield), forced)
+    return _labelled(AgentPlan(str(spec), base, sensors, shield, own_sensors=cfg.get("sensors")), baseline)
+
+
+def _default_preset(sensors: dict | None) -> dict | None:
+    """The sensors an agent with none of its own runs on when ``sensors=`` is left out: eval's default preset, as
+    shipped (None when the caller gave none: it leaves the sensors to the env)."""
+    from conf.check import default_sensors
+
+    return None if sensors is None else compose_group("sensors", default_sensors("eval"))
+
+
+def _labelled(plan: AgentPlan, baseline: dict | None) -> AgentPlan:
+    """``plan`` with its row label (:func:`eval.labels.row_label`; ``baseline``: the sensors the bare spec runs on),
+    its spec as given kept in ``given``."""
+    from eval.labels import row_label
+
+    plan.given, plan.label = plan.label, row_label(plan.label, plan.sensors, baseline, plan.shield)
+    return plan
 
 
 def sensors_summary(sensors: dict | None, group: str = "sensors") -> str:

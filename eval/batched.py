@@ -77,12 +77,12 @@ def check_batched_plan(plan, env_cfg: dict) -> None:
         raise ConfigError(f"vec_env=batched runs env=left_turn only, got env={env_cfg.get('name')}")
     kind = plan_kind(plan)
     if kind not in KINDS:
-        raise ConfigError(f"agent {plan.label!r} (kind {kind}) cannot run with vec_env=batched (it runs: "
+        raise ConfigError(f"agent {plan.given!r} (kind {kind}) cannot run with vec_env=batched (it runs: "
                           f"{', '.join(KINDS)}); use vec_env=subproc")
     sensors = batch_sensors(plan, env_cfg)
     if kind == "lookahead" and shield_kind(plan.shield) != "none" and \
             _agent_config(plan).get("plan_with_shield"):
-        raise ConfigError(f"agent {plan.label!r}: lookahead with plan_with_shield=true cannot run with "
+        raise ConfigError(f"agent {plan.given!r}: lookahead with plan_with_shield=true cannot run with "
                           f"vec_env=batched (its futures on the batch are the driver's own, without the shield); "
                           f"use vec_env=subproc")
     try:
@@ -90,7 +90,7 @@ def check_batched_plan(plan, env_cfg: dict) -> None:
     except ConfigError as exc:
         msg = str(exc).replace("agent.vec_env=batched", "vec_env=batched").replace("agent.vec_env=subproc",
                                                                                     "vec_env=subproc")
-        raise ConfigError(f"agent {plan.label!r}: {msg}") from None
+        raise ConfigError(f"agent {plan.given!r}: {msg}") from None
 
 
 def _agent_config(plan) -> dict:

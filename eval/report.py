@@ -75,8 +75,8 @@ def sensors_section(sensors: Mapping[str, dict]) -> str:
 
 
 def shields_section(shields: Mapping[str, dict]) -> str:
-    """Markdown: per agent, the shield it ran behind (its preset and the fields that differ from it): a shield from
-    the command line's ``shield=`` is not in the agent's label, as ``+aeb`` is."""
+    """Markdown: per agent, the shield it ran behind (its preset and the fields that differ from it), which its
+    label names too (:mod:`eval.labels`: ``+aeb`` for ``shield=aeb``)."""
     from eval.agents import sensors_summary
 
     return "\n".join(["## Shield each agent ran behind", ""]

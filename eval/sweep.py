@@ -255,12 +255,16 @@ def sweep_report(root: str | Path, x: str | None = None, metric: str | None = No
                  out: str | Path | None = None, plot: bool = True) -> dict:
     """Aggregate ``root`` (a multirun folder); returns the summary rows, the Markdown table and where the files
     went."""
+    from eval.labels import swept_label
     from eval.report import HEADLINE
 
     jobs, missing = load_jobs(root)
     replicate_keys = list(REPLICATE_KEYS if replicate_keys is None else replicate_keys)
     swept = swept_keys(jobs)
     group_keys = [k for k in swept if k not in replicate_keys]
+    for job in jobs:  # an agent is one line over the swept values, which its row labels also name (eval/labels.py)
+        for r in job.rows:
+            r["agent"] = swept_label(str(r["agent"]), group_keys)
     scenarios = {j.scenario for j in jobs}
     scenario = next(iter(scenarios)) if len(scenarios) == 1 else None
     available = list(dict.fromkeys(k for j in jobs for r in j.rows for k in r if k not in ("agent", "episode",

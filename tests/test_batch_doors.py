@@ -73,8 +73,9 @@ def test_the_shield_section_names_each_shielded_agents_preset_and_changed_fields
 
 @pytest.mark.slow  # ~4 s: two evaluation episodes through python -m eval's main
 def test_results_md_says_which_shield_each_agent_ran_behind(tmp_path, monkeypatch):
-    """A shield from the command line (``shield=aeb shield.mode=perceived``) is in no label: the rows of
-    ``always_proceed`` behind it were told from unshielded ones by nothing in results.csv or results.md."""
+    """A shield from the command line (``shield=aeb shield.mode=perceived``) was in no label: the rows of
+    ``always_proceed`` behind it were told from unshielded ones by nothing in results.csv or results.md (now the
+    label says it too, eval/labels.py)."""
     import sys
 
     from eval import __main__ as eval_main
@@ -86,7 +87,8 @@ def test_results_md_says_which_shield_each_agent_ran_behind(tmp_path, monkeypatc
     eval_main.main()
     md = (tmp_path / "out" / "results.md").read_text()
     assert md.split("## Shield each agent ran behind\n\n")[1] == (
-        "- `always_proceed`: aeb with mode='perceived'\n- `gap_acceptance+aeb_paper`: aeb_paper (as shipped)\n")
+        "- `always_proceed+aeb(mode=perceived)`: aeb with mode='perceived'\n"
+        "- `gap_acceptance+aeb_paper`: aeb_paper (as shipped)\n")
 
 
 @pytest.mark.parametrize("fails_with", [KeyboardInterrupt, RuntimeError])
@@ -111,8 +113,10 @@ def test_an_interrupted_or_failing_evals_results_md_says_which_shield_its_rows_r
     with pytest.raises((fails_with, SystemExit)):
         eval_main.main()
     md = (tmp_path / "out" / "results.md").read_text()
-    assert md.split("## Shield each agent ran behind\n\n")[1] == "- `always_proceed`: aeb with mode='perceived'\n"
-    assert "## Sensors each agent ran with\n\n- `always_proceed`: " in md and "gap_acceptance" not in md
+    assert md.split("## Shield each agent ran behind\n\n")[1] == \
+        "- `always_proceed+aeb(mode=perceived)`: aeb with mode='perceived'\n"
+    assert "## Sensors each agent ran with\n\n- `always_proceed+aeb(mode=perceived)`: " in md
+    assert "gap_acceptance" not in md
 
 
 @pytest.mark.parametrize("shield", ["aeb_paper", "aeb_belief"])

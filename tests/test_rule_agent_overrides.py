@@ -98,7 +98,8 @@ def test_the_advised_train_command_runs_the_agent_with_the_overrides(monkeypatch
     with pytest.raises(Built):
         train_main._evaluate_spec(cfg, TrainCommand.of(cfg), folders, "gap_acceptance", range(1), [], ran_with, {})
     assert built[0]["turn_signals"]["miss_rate"] == 0.5 and built[0]["name"] == "turn_truth"
-    assert sensors_summary(ran_with["gap_acceptance"]) == "turn_truth with turn_signals.miss_rate=0.5"
+    assert sensors_summary(ran_with["gap_acceptance(turn_signals.miss_rate=0.5)"]) == \
+        "turn_truth with turn_signals.miss_rate=0.5"
 
 
 def test_train_still_takes_a_trained_agents_overrides_and_a_plain_rule_agent():

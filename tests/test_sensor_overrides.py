@@ -91,7 +91,7 @@ def test_results_md_states_the_sensors_each_agent_ran_with(tmp_path):
     assert res.returncode == 0, res.stderr[-3000:]
     text = (tmp_path / "out" / "results.md").read_text()
     assert "## Sensors each agent ran with" in text
-    assert f"- `{PILOTNET}`: cameras with cameras.night=True" in text
+    assert f"- `{PILOTNET}(cameras.night=True)`: cameras with cameras.night=True" in text  # label: eval/labels.py
     full = yaml.safe_load(text.split("```yaml\n")[1].split("```")[0])
     assert full["cameras"]["night"] is True
     # which policy the row measured: the checkpoint is named beside the sensors
