@@ -456,6 +456,7 @@ SCRIPT_ARGS = {
     "benchmarks/belief_tracks_ablate.py": ["--episodes", "1", "--seed", "1000000", "--truth=all,crash,-users",
                                            "--out", "{tmp}/ablate.json", "--set", "samples=2"],
     "benchmarks/belief_tracks_diagnose.py": ["--seeds", "1000000", "--set", "samples=2"],
+    "benchmarks/belief_tracks_pairs.py": ["--seeds", "1000000", "--set", "samples=2"],
     "benchmarks/belief_tracks_takeback.py": ["--seeds", "1000000", "--set", "samples=2"],
     "benchmarks/belief_tracks_confirm.py": ["--seeds", "1000000", "--set", "samples=2"],
     "benchmarks/belief_tracks_state.py": ["--seeds", "1000000", "--set", "samples=2"],

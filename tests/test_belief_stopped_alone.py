@@ -18,8 +18,8 @@ from tests.test_belief_tracks import _batch
 def test_alone_is_no_other_road_user_of_the_row_within_the_radius():
     """Centre to centre, the road user itself and the slots that hold nobody not counted, row by row."""
     pos = np.zeros((2, 3, 2))
-    pos[0, :, 0] = [0.0, 3.9, 20.0]  # row 0: a pair 3.9 m apart and one far off
-    pos[1, :, 0] = [0.0, 3.9, 7.0]  # row 1: the same pair, its second slot nobody; a third 7 m from the first
+    pos[0, :, 0] = [0.0, 3.9, 20.0]  # the first row: a pair 3.9 m apart and one far off
+    pos[1, :, 0] = [0.0, 3.9, 7.0]  # the second: that pair, its second slot nobody; a third 7 m from the first
     users = np.array([[True, True, True], [True, False, True]])
     np.testing.assert_array_equal(alone(pos, users, 4.0), [[False, False, True], [True, False, True]])
     np.testing.assert_array_equal(alone(pos, users, 7.5), [[False, False, True], [False, False, False]])
