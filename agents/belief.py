@@ -296,6 +296,18 @@ class BeliefLookaheadParams(AgentParams):
                                                          "a tie stops; 0.01 at K 16: a tie carries on, both plans "
                                                          "colliding in as many futures, the ego out of the crossing "
                                                          "lane sooner)")
+    wait_back: float = param(0.0, "m", ge=0, le=10, doc="YIELD stops this much farther before the stop line than "
+                                                       "the approach's 0.5 m (av_gym.wrappers.MARGIN): a waiting ego "
+                                                       "at its line has its front 0.7-0.9 m from it, where wrecks of "
+                                                       "the crossing traffic sliding into the south exit and a car "
+                                                       "straddling the line backing up (highway-env's IDM brakes "
+                                                       "into reverse) hit it (benchmarks/belief_tracks_waiting.py); "
+                                                       "0: at the line")
+    wait_gap: float = param(0.0, "m", ge=0, le=10, doc="YIELD also stops this far behind the nearest road user ahead "
+                                                      "of the ego (its centre within 2 m of the ego's axis, 30 m, "
+                                                      "any heading), whichever place comes first: the ego's set-point "
+                                                      "follows the stop line alone and ran into, or was backed into "
+                                                      "by, a car or a wreck standing over the line; 0: the line alone")
     # at most 1.5 m: from 2 m on the grown box reaches every car passing in the adjacent opposite lane (4 m lanes,
     # 2 m wide cars) and a follower queued at highway-env's 2 m gap, so every future would "collide"
     track_margin: float = param(0.0, "m", ge=0, le=1.5, doc="a clearance the futures demand: a future counts as a "
@@ -581,6 +593,33 @@ class BeliefPlanner:
         margin = float(self.params.committed_margin)
         new[back] = np.where(np.asarray(p)[back] - p_stop < margin - 1e-12, GO, new[back])
         return new
+
+    def yield_margin(self, engine, rows) -> np.ndarray:
+        """How far before the stop line (m, (len(rows),)) YIELD stops for ``rows``: the approach's margin plus
+        ``wait_back``, farther where a road user ahead heading the ego's way (the planner's own road users: the
+        tracks on tracks) leaves less than ``wait_gap`` before the line: there YIELD stops ``wait_gap`` behind its
+        rear."""
+        from av_gym.sim.batched import LENGTH
+        from av_gym.wrappers import MARGIN
+
+        rows = np.asarray(rows, dtype=int)
+        p = self.params
+        margin = np.full(len(rows), MARGIN + float(p.wait_back))
+        if float(p.wait_gap) <= 0 or len(rows) == 0:
+            return margin
+        e = self.tracks.current(engine) if self.tracks is not None else engine
+        t = e.traffic
+        s = e.ego_slot(rows)
+        ex, ey, eh = t.x[rows, s], t.y[rows, s], t.h[rows, s]
+        dx, dy = t.x[rows] - ex[:, None], t.y[rows] - ey[:, None]
+        ahead = np.cos(eh)[:, None] * dx + np.sin(eh)[:, None] * dy
+        lateral = -np.sin(eh)[:, None] * dx + np.cos(eh)[:, None] * dy
+        # any heading: a car held over the line, or a wreck turned across the ego's lane (2 m: two half-widths)
+        lead = t.alive[rows] & ~t.ego[rows] & (ahead > 0) & (ahead < 30.0) & (np.abs(lateral) < 2.0)
+        # the ego's front to the leader's rear (m), and the ego's front to the stop line
+        gap = np.where(lead, ahead - LENGTH, np.inf).min(axis=1)
+        d_stop = -engine.truth(rows)["stop_line_offset"]  # the ego's own state
+        return np.maximum(margin, d_stop - (gap - float(p.wait_gap)))
 
     def live(self, engine, rows: np.ndarray, choice: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(due, final) masks over ``rows`` at env steps ``step`` (their held choices ``choice``): which rows decide
@@ -910,7 +949,7 @@ class BeliefLookahead:
         self.planner.read(engine, [0], obs["intent"][None])
         self._choice = int(self.planner.decide(engine, [0], np.array([self._choice]), np.array([self._t]))[0])
         self._t += 1
-        return meta_action(self._choice, obs["turn"])
+        return meta_action(self._choice, obs["turn"], float(self.planner.yield_margin(engine, [0])[0]))
 
 
 def _on_tracks(env: gym.Env) -> bool:

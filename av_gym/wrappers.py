@@ -151,20 +151,21 @@ MARGIN = 0.5  # m, d0
 _SET_POINTS = np.array(SET_POINTS)
 
 
-def meta_actions(choice: np.ndarray, turn: np.ndarray) -> np.ndarray:
-    """The meta-actions (n,) for GO/YIELD choices (n,) given the turn features ``turn`` (n, F)."""
+def meta_actions(choice: np.ndarray, turn: np.ndarray, margin: np.ndarray | float = MARGIN) -> np.ndarray:
+    """The meta-actions (n,) for GO/YIELD choices (n,) given the turn features ``turn`` (n, F); ``margin`` (m, one
+    or (n,)): how far before the stop line YIELD stops (d0)."""
     ego = np.asarray(turn)[..., :len(EGO_FEATURES)].astype(float)  # decoded in doubles
     set_point, d_stop = TURN.decode(ego, "set_point"), TURN.decode(ego, "to_stop_line")
-    v_ok = np.sqrt(2.0 * DECEL * np.maximum(d_stop - MARGIN, 0.0))
+    v_ok = np.sqrt(2.0 * DECEL * np.maximum(d_stop - np.asarray(margin, dtype=float), 0.0))
     # YIELD: the highest set-point not above v_ok (SET_POINTS ascends from 0, so there is one)
     yield_speed = _SET_POINTS[np.searchsorted(_SET_POINTS, v_ok + 1e-6, side="right") - 1]
     wanted = np.where(np.asarray(choice) == GO, _SET_POINTS[-1], yield_speed)
     return IDLE + (wanted > set_point + 1e-3).astype(int) - (wanted < set_point - 1e-3)  # FASTER, IDLE, SLOWER
 
 
-def meta_action(choice: int, turn: np.ndarray) -> int:
+def meta_action(choice: int, turn: np.ndarray, margin: float = MARGIN) -> int:
     """:func:`meta_actions` for one env: the meta-action for ``choice`` (GO or YIELD) given its ``turn``."""
-    return int(meta_actions(np.array([int(choice)]), np.asarray(turn)[None])[0])
+    return int(meta_actions(np.array([int(choice)]), np.asarray(turn)[None], margin)[0])
 
 
 # ----------------------------------------------------------------------------------------------- action sets
