@@ -18,9 +18,9 @@ from train import job_folders
 RULE = ["agent=always_proceed", "train.eval_episodes=1"]  # a rule-based agent: nothing to train
 
 
-def _composed(overrides: list[str], mode: RunMode):
-    """The config Hydra hands its ``on_multirun_start`` / ``on_run_start`` hooks (Hydra.multirun / Hydra.run), with
-    Hydra's config loader set up as while they run."""
+def _composed(overrides: list[str], mode: RunMode, command: str = "train"):
+    """The config Hydra hands its ``on_multirun_start`` / ``on_run_start`` hooks (Hydra.multirun / Hydra.run) of
+    ``python -m <command>``, with Hydra's config loader set up as while they run."""
     from hydra import initialize_config_module
     from hydra.core.global_hydra import GlobalHydra
 
@@ -28,7 +28,7 @@ def _composed(overrides: list[str], mode: RunMode):
         GlobalHydra.instance().clear()
     context = initialize_config_module("conf", version_base="1.3")
     context.__enter__()
-    cfg = GlobalHydra.instance().config_loader().load_configuration("train", overrides, run_mode=mode)
+    cfg = GlobalHydra.instance().config_loader().load_configuration(command, overrides, run_mode=mode)
     return cfg, context
 
 
@@ -37,8 +37,8 @@ def hydra_loader():
     """Compose with Hydra's loader for the test; cleared after it."""
     contexts = []
 
-    def compose(overrides: list[str], mode: RunMode = RunMode.MULTIRUN):
-        cfg, context = _composed(overrides, mode)
+    def compose(overrides: list[str], mode: RunMode = RunMode.MULTIRUN, command: str = "train"):
+        cfg, context = _composed(overrides, mode, command)
         contexts.append(context)
         return cfg
 
@@ -123,3 +123,144 @@ def test_a_hydra_interpolated_run_dir_holding_a_users_file_is_refused_before_hyd
     assert snapshot(tmp_path) == before
     monkeypatch.setattr(run_folder, "LINE_CHECKED", run_folder.LINE_CHECKED | {tmp_path.resolve()})
     job_folders.JobFolders().on_run_start(config=cfg)
+
+
+# ------------------------------------------------------------------------------------- python -m eval, the sweep folder
+EVAL = ["agents=[always_proceed]", "episodes=1"]  # composed only: no episode runs in these tests
+
+
+@pytest.mark.parametrize("users", ["notes.md", ".hydra/notes.md"])
+def test_an_eval_sweep_job_folder_holding_a_users_file_refuses_the_sweep_before_hydra_writes(users, tmp_path, capsys,
+                                                                                           hydra_loader,
+                                                                                           monkeypatch):
+    """python -m eval -m: job 0's folder holds the user's file; its results (its default out_dir) and Hydra's record
+    would be written beside it. Refused in one line naming the job, whatever overwrite says, nothing written."""
+    from eval import job_folders as eval_job_folders
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "sweep" / "0" / users).parent.mkdir(parents=True)
+    (tmp_path / "sweep" / "0" / users).write_text("mine\n")
+    before = snapshot(tmp_path)
+    for flag in ([], ["overwrite=true"]):
+        cfg = hydra_loader([*EVAL, "seed=1000000,1000001", "hydra.sweep.dir=sweep", *flag], command="eval")
+        line = _refused(eval_job_folders.JobFolders().on_multirun_start, cfg, capsys)
+        shown = f"{' '.join(EVAL)} seed=1000000{' overwrite=True' if flag else ''}"  # as the sweeper lists them
+        assert line == (f"error: sweep job 0 ({shown}): hydra.sweep.dir={tmp_path}/"
+                        f"sweep/0: holds files that are not an evaluation's ({users}), which an evaluation never "
+                        f"writes among; pick another hydra.sweep.dir (an empty or new folder); no job of the sweep "
+                        f"was run")
+        assert snapshot(tmp_path) == before
+
+
+def _earlier_evaluation(*folders: Path) -> None:
+    """An earlier evaluation's job folder in each of ``folders``: Hydra's record, its log and its results."""
+    for folder in folders:
+        (folder / ".hydra").mkdir(parents=True)
+        (folder / ".hydra" / "config.yaml").write_text("seed: 1\n")
+        (folder / "__main__.log").write_text("log\n")
+        (folder / "results.csv").write_text("agent,episode\n")
+
+
+def test_an_eval_sweep_jobs_earlier_results_are_refused_before_hydra_writes_unless_overwrite(tmp_path, capsys,
+                                                                                          hydra_loader, monkeypatch):
+    """Job 1's folder holds an evaluation's results (an earlier sweep's job, its .hydra/ and log): refused before
+    Hydra replaces its .hydra/ (the job's own check said so only after); overwrite=true lets the sweep replace
+    them."""
+    from eval import job_folders as eval_job_folders
+
+    monkeypatch.chdir(tmp_path)
+    _earlier_evaluation(tmp_path / "sweep" / "1")
+    before = snapshot(tmp_path)
+    cfg = hydra_loader([*EVAL, "seed=1000000,1000001", "hydra.sweep.dir=sweep"], command="eval")
+    line = _refused(eval_job_folders.JobFolders().on_multirun_start, cfg, capsys)
+    assert line == (f"error: sweep job 1 ({' '.join(EVAL)} seed=1000001): hydra.sweep.dir={tmp_path}/sweep/1 already "
+                    f"holds results.csv of an evaluation; pick another hydra.sweep.dir, or replace it with "
+                    f"overwrite=true; no job of the sweep was run")
+    assert snapshot(tmp_path) == before
+    cfg = hydra_loader([*EVAL, "seed=1000000,1000001", "hydra.sweep.dir=sweep", "overwrite=true"], command="eval")
+    eval_job_folders.JobFolders().on_multirun_start(config=cfg)
+
+
+def test_an_eval_sweep_jobs_out_dir_only_the_job_resolves_is_checked_before_hydra_writes(tmp_path, capsys,
+                                                                                      hydra_loader, monkeypatch):
+    """``out_dir=res/${hydra:job.num}`` (the command line cannot resolve it) holding an earlier evaluation's results:
+    judged as the job would judge it, before any job's folder is made."""
+    from eval import job_folders as eval_job_folders
+
+    monkeypatch.chdir(tmp_path)
+    _earlier_evaluation(tmp_path / "res" / "0")
+    before = snapshot(tmp_path)
+    cfg = hydra_loader([*EVAL, "seed=1000000,1000001", "hydra.sweep.dir=sweep", "out_dir=res/${hydra:job.num}"],
+                       command="eval")
+    line = _refused(eval_job_folders.JobFolders().on_multirun_start, cfg, capsys)
+    assert line.startswith("error: sweep job 0 (") and line.endswith(
+        f"): out_dir={tmp_path}/res/0 already holds results.csv of an evaluation; pick another out_dir, or replace "
+        f"it with overwrite=true; no job of the sweep was run"), line
+    assert snapshot(tmp_path) == before and not (tmp_path / "sweep").exists()
+
+
+def test_an_eval_run_folder_holding_a_users_file_is_refused_before_hydra_writes(tmp_path, capsys, hydra_loader,
+                                                                                monkeypatch):
+    """python -m eval hydra.run.dir=<the user's folder>: results (the default out_dir) and Hydra's record would go
+    among the user's notes; refused by the run-level hook with nothing written. A new folder passes."""
+    from eval import job_folders as eval_job_folders
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "mine" / "notes.md").parent.mkdir()
+    (tmp_path / "mine" / "notes.md").write_text("mine\n")
+    before = snapshot(tmp_path)
+    cfg = hydra_loader([*EVAL, "hydra.run.dir=mine"], RunMode.RUN, command="eval")
+    line = _refused(eval_job_folders.JobFolders().on_run_start, cfg, capsys)
+    assert line == (f"error: hydra.run.dir={tmp_path}/mine: holds files that are not an evaluation's (notes.md), "
+                    f"which an evaluation never writes among; pick another hydra.run.dir (an empty or new folder)")
+    assert snapshot(tmp_path) == before
+    eval_job_folders.JobFolders().on_run_start(config=hydra_loader([*EVAL, "hydra.run.dir=new"], RunMode.RUN,
+                                                                   command="eval"))
+
+
+@pytest.mark.parametrize("command", ["train", "eval"])
+def test_a_sweep_folder_holding_an_earlier_sweeps_record_is_refused_before_hydra_replaces_it(command, tmp_path,
+                                                                                          capsys, hydra_loader,
+                                                                                          monkeypatch):
+    """hydra.sweep.dir holds an earlier sweep's multirun.yaml (Hydra writes this sweep's over it), or a user's file
+    (an earlier sweep's python -m eval.sweep table): the sweep is refused in one line naming the folder, nothing
+    written. A sweep whose every job continues or replaces its job's (train.resume/overwrite, overwrite) takes the
+    record over; a user's file it does not."""
+    from eval import job_folders as eval_job_folders
+
+    hook = (job_folders if command == "train" else eval_job_folders).JobFolders().on_multirun_start
+    args = [*(RULE if command == "train" else EVAL), "seed=0,1" if command == "train" else "seed=1000000,1000001",
+            "hydra.sweep.dir=sweep"]
+    replace = "train.overwrite=true" if command == "train" else "overwrite=true"
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "sweep" / "0").mkdir(parents=True)  # a job's folder (judged as the job's own: empty, fine)
+    (tmp_path / "sweep" / "multirun.yaml").write_text("earlier: sweep\n")
+    before = snapshot(tmp_path)
+    line = _refused(hook, hydra_loader(args, command=command), capsys)
+    assert line == (f"error: hydra.sweep.dir={tmp_path}/sweep: holds an earlier sweep's record (multirun.yaml), which "
+                    f"this sweep's would replace; pick another hydra.sweep.dir (an empty or new folder); no job of the "
+                    f"sweep was run")
+    assert snapshot(tmp_path) == before
+    hook(config=hydra_loader([*args, replace], command=command))
+
+
+@pytest.mark.parametrize("command", ["train", "eval"])
+def test_a_sweep_folder_holding_what_is_no_sweeps_is_refused_whatever_the_flags(command, tmp_path, capsys,
+                                                                                 hydra_loader, monkeypatch):
+    """A file in hydra.sweep.dir that is neither a sweep's record nor a job's folder (an earlier sweep's python -m
+    eval.sweep table, a user's notes) would end up among this sweep's: refused even when every job replaces its
+    own, nothing written."""
+    from eval import job_folders as eval_job_folders
+
+    hook = (job_folders if command == "train" else eval_job_folders).JobFolders().on_multirun_start
+    args = [*(RULE if command == "train" else EVAL), "seed=0,1" if command == "train" else "seed=1000000,1000001",
+            "hydra.sweep.dir=sweep", "train.overwrite=true" if command == "train" else "overwrite=true"]
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "sweep").mkdir()
+    (tmp_path / "sweep" / "multirun.yaml").write_text("earlier: sweep\n")
+    (tmp_path / "sweep" / "sweep.md").write_text("an earlier sweep's table\n")
+    before = snapshot(tmp_path)
+    line = _refused(hook, hydra_loader(args, command=command), capsys)
+    assert line == (f"error: hydra.sweep.dir={tmp_path}/sweep: holds what is not this sweep's (sweep.md); pick "
+                    f"another hydra.sweep.dir (an empty or new folder); no job of the sweep was run")
+    assert snapshot(tmp_path) == before
