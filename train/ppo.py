@@ -61,15 +61,15 @@ def _tensorboard_logger(folder: Path, purge_step: int | None):
     """SB3 logger writing TensorBoard events to ``folder``. When resuming, what the killed run logged at steps >=
     ``purge_step`` (after its last checkpoint) is cut out of its event files (:func:`train.tb_events.truncate_events`:
     every reader, raw ones too, sees each step once), and the new writer's ``purge_step`` marks the restart as
-    TensorBoard expects."""
+    TensorBoard expects; a folder it cannot write is one line (:func:`train.tb_events.resumed_writer`)."""
     from stable_baselines3.common.logger import Logger, TensorBoardOutputFormat
 
     from train.tb_events import resumed_writer
 
-    fmt = TensorBoardOutputFormat(str(folder))
-    if purge_step:  # SB3's own writer replaced by the resumed one (its file holds only the version record)
-        fmt.writer.close()
-        fmt.writer = resumed_writer(folder, purge_step)
+    # SB3's format on the harness's writer: its own __init__ opens a SummaryWriter whose OSError (a full disk under
+    # paths.runs) is a traceback, and which a resumed run would have to replace (leaving a file of one record)
+    fmt = TensorBoardOutputFormat.__new__(TensorBoardOutputFormat)
+    fmt.writer, fmt._is_closed = resumed_writer(folder, purge_step), False
     return Logger(folder=str(folder), output_formats=[fmt])
 
 
