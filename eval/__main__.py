@@ -20,7 +20,7 @@ from av_gym.atomic import OwnedFolders
 from av_gym.errors import ConfigError, check_folder, discard_hydra_run_dir, folder_problem, run_cli, run_hydra
 from conf.check import default_sensors, own_sensors_problem
 from conf.commands import EvalCommand
-from eval.meta import EvalMeta, exit_status, hand_written_problem, hydra_overrides
+from eval.meta import EvalMeta, exit_status, hydra_overrides
 
 OUT_DIRS = OwnedFolders()  # the out_dirs this process is writing
 
@@ -293,17 +293,11 @@ def _figures(plans: list, command: EvalCommand, env_cfg: dict, first_seed: int) 
 def results_problem(command: EvalCommand) -> str | None:
     """An ``out_dir`` inside the shipped references, or holding a meta.json that eval did not write, is refused;
     one that holds an evaluation's results is not written over unless ``overwrite=true``. The default out_dir,
-    Hydra's run folder, is new."""
-    from av_gym.references import shipped_problem
+    Hydra's job folder, was judged so by Hydra's hooks before Hydra made it (eval/job_folders.py: the same rule)."""
+    from eval.job_folders import outputs_problem
 
-    problem = shipped_problem(command.out_dir, "out_dir") or hand_written_problem(command.out_dir)  # overwrite or not
-    if problem:
-        return problem
-    from conf.cli import held_outputs_problem
-
-    return held_outputs_problem("out_dir", command.out_dir, ("results.csv", "results.md"), command.overwrite,
-                                whose=" of an evaluation", replace="overwrite=true",
-                                elsewhere=" (or leave it out: a new folder under runs/eval/)")
+    return outputs_problem(command.out_dir, command.overwrite, "out_dir",
+                           elsewhere=" (or leave it out: a new folder under runs/eval/)")
 
 
 def _check_command_line() -> None:

@@ -34,10 +34,11 @@ def evaluations(name: str) -> bool:
     return base in EVAL_NAMES or bool(FIGURE.fullmatch(base)) or base == ".hydra" or base.endswith(".log")
 
 
-def outputs_problem(folder: Path, overwrite: bool, flag: str) -> str | None:
-    """An evaluation's outputs in ``folder`` (given by ``flag``) as the job's own check judges them
-    (eval.__main__.results_problem): never the shipped references or beside a meta.json eval did not write; an
-    earlier evaluation's results only with ``overwrite=true``."""
+def outputs_problem(folder: str | Path, overwrite: bool, flag: str, elsewhere: str = "") -> str | None:
+    """Why an evaluation may not write its outputs into ``folder`` (given by ``flag``; ``elsewhere``: advice after
+    "pick another <flag>"), or None: never inside the shipped references or beside a meta.json eval did not write;
+    an earlier evaluation's results only with ``overwrite=true``. The job's own check too
+    (eval.__main__.results_problem)."""
     from av_gym.references import shipped_problem
     from conf.cli import held_outputs_problem
     from eval.meta import hand_written_problem
@@ -45,7 +46,8 @@ def outputs_problem(folder: Path, overwrite: bool, flag: str) -> str | None:
     problem = shipped_problem(folder, flag) or hand_written_problem(folder)
     if problem:
         return problem.replace(f"out_dir={folder}", f"{flag}={folder}", 1)
-    return held_outputs_problem(flag, folder, RESULTS, overwrite, whose=" of an evaluation", replace="overwrite=true")
+    return held_outputs_problem(flag, folder, RESULTS, overwrite, whose=" of an evaluation", elsewhere=elsewhere,
+                                replace="overwrite=true")
 
 
 def folder_problem(run_dir: Path, out_dir: Path, overwrite: bool, flag: str) -> str | None:
