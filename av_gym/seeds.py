@@ -52,30 +52,32 @@ def split_of(seed: int) -> str | None:
     return None
 
 
-def seeds(split: str, n: int, first: int | None = None, field: str = "seed") -> range:
+def seeds(split: str, n: int, first: int | None = None, field: str = "seed", count: str = "episodes") -> range:
     """``n`` consecutive seeds of ``split`` from ``first`` (default: the split's start). ValueError, naming
-    ``field``, when they do not all lie in the split: a reported table cannot borrow tuning seeds, and an
-    evaluation used to decide cannot peek at the test range."""
+    ``field`` (the first seed's setting) and ``count`` (the setting ``n`` came from), when they do not all lie in
+    the split: a reported table cannot borrow tuning seeds, and an evaluation used to decide cannot peek at the test
+    range."""
     r = split_range(split)
     start = r.start if first is None else int(first)
     if n < 0:
         raise ValueError(f"the number of episodes must be >= 0, got {n}")
-    leaves = f"{field}={start} with {n} episodes leaves split {split!r} (seeds {r.start}..{r.stop - 1}); "
+    named = "" if count == "episodes" else f" ({count})"
+    leaves = f"{field}={start} with {n} episodes{named} leaves split {split!r} (seeds {r.start}..{r.stop - 1}); "
     if start in r and start + n > r.stop:  # the seed is fine; the episodes run past the split's end
-        raise ValueError(f"{leaves}give episodes <= {r.stop - start} (what the split leaves from {field}={start})"
+        raise ValueError(f"{leaves}give {count} <= {r.stop - start} (what the split leaves from {field}={start})"
                          + (f", or an earlier {field}" if start > r.start else ""))
     if start not in r:
         raise ValueError(f"{leaves}give {field} in that range, or leave it out to start at {r.start}")
     return range(start, start + n)
 
 
-def config_seeds(split: str, n: int, first: int | None, field: str) -> range:
+def config_seeds(split: str, n: int, first: int | None, field: str, count: str = "episodes") -> range:
     """:func:`seeds` for a command's settings: a :class:`av_gym.errors.ConfigError` (one line, exit 2 on the
     command line) instead of a ValueError."""
     from av_gym.errors import ConfigError
 
     try:
-        return seeds(split, n, None if first is None else int(first), field=field)
+        return seeds(split, n, None if first is None else int(first), field=field, count=count)
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
 

@@ -456,6 +456,14 @@ def _default_option(command: str, group: str) -> str | None:
     return next((d[group] for d in shipped.get("defaults", []) if isinstance(d, dict) and group in d), None)
 
 
+def _no_shield_hint(key: str, section: str) -> str:
+    """A shield's fields come with its name: ``agents=[x+aeb] shield.mode=perceived`` names no shield to set them on
+    (``x+aeb`` runs the command line's ``shield=aeb`` with its fields when one is given)."""
+    if section != "shield=none":
+        return ""
+    return f" (no shield is named: give one with its fields, e.g. shield=aeb {key}=<value>; agent+aeb runs with them)"
+
+
 def _check_path(cfg: Any, key: str, command: str) -> None:
     """``key`` (dotted) must name an existing field; else one line naming the nearest section's fields."""
     from omegaconf import DictConfig
@@ -470,7 +478,8 @@ def _check_path(cfg: Any, key: str, command: str) -> None:
             if isinstance(node, DictConfig) and not allowed:  # an empty section, e.g. localizer.noise: {}
                 raise ConfigError(f"{name} is not set in {section}; add a key with +{key}=<value>")
             if isinstance(node, DictConfig):
-                hint = closest_hint(part, allowed) or (_preset_hint(part) if where == "sensors" else "")
+                hint = closest_hint(part, allowed) or (_preset_hint(part) if where == "sensors" else "") or \
+                    _no_shield_hint(key, section)
                 raise ConfigError(f"{name} is not a field of {section}; allowed: {allowed}{hint}"
                                   if where else f"{name} is not {section}; allowed: {allowed}{hint}")
             raise ConfigError(f"{where} is a value, not a section: cannot set {key}")
