@@ -596,9 +596,13 @@ class BeliefPlanner:
 
     def yield_margin(self, engine, rows) -> np.ndarray:
         """How far before the stop line (m, (len(rows),)) YIELD stops for ``rows``: the approach's margin plus
-        ``wait_back``, farther where a road user ahead heading the ego's way (the planner's own road users: the
-        tracks on tracks) leaves less than ``wait_gap`` before the line: there YIELD stops ``wait_gap`` behind its
-        rear."""
+        ``wait_back``, farther where the nearest road user ahead (the planner's own road users: the tracks on
+        tracks; any heading, its centre within 2 m of the ego's axis and less than 30 m ahead) leaves less than
+        ``wait_gap`` before the line: there YIELD stops ``wait_gap`` behind its rear (taken as ``LENGTH / 2``
+        behind its centre along the ego's axis). Measured from the distance to the line that
+        :func:`av_gym.wrappers.meta_actions` reads (``obs["turn"]``'s ``to_stop_line``, clipped at its 30 m
+        scale), so that the stop falls ``wait_gap`` behind the road user also while the ego is farther out."""
+        from av_gym.estimation.turn_features import EGO_SCALES
         from av_gym.sim.batched import LENGTH
         from av_gym.wrappers import MARGIN
 
@@ -618,7 +622,10 @@ class BeliefPlanner:
         lead = t.alive[rows] & ~t.ego[rows] & (ahead > 0) & (ahead < 30.0) & (np.abs(lateral) < 2.0)
         # the ego's front to the leader's rear (m), and the ego's front to the stop line
         gap = np.where(lead, ahead - LENGTH, np.inf).min(axis=1)
-        d_stop = -engine.truth(rows)["stop_line_offset"]  # the ego's own state
+        # the ego's own state, as meta_actions reads it: the turn features clip to_stop_line at its scale (30 m;
+        # the ego starts up to ~40 m out), so a margin from the unclipped distance stopped it up to 10 m short
+        scale = EGO_SCALES["to_stop_line"]
+        d_stop = np.clip(-engine.truth(rows)["stop_line_offset"], -scale, scale)
         return np.maximum(margin, d_stop - (gap - float(p.wait_gap)))
 
     def live(self, engine, rows: np.ndarray, choice: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -153,7 +153,8 @@ _SET_POINTS = np.array(SET_POINTS)
 
 def meta_actions(choice: np.ndarray, turn: np.ndarray, margin: np.ndarray | float = MARGIN) -> np.ndarray:
     """The meta-actions (n,) for GO/YIELD choices (n,) given the turn features ``turn`` (n, F); ``margin`` (m, one
-    or (n,)): how far before the stop line YIELD stops (d0)."""
+    or (n,)): how far before the stop line YIELD stops (d0), counted from ``turn``'s ``to_stop_line`` (which the
+    encoding clips at 30 m)."""
     ego = np.asarray(turn)[..., :len(EGO_FEATURES)].astype(float)  # decoded in doubles
     set_point, d_stop = TURN.decode(ego, "set_point"), TURN.decode(ego, "to_stop_line")
     v_ok = np.sqrt(2.0 * DECEL * np.maximum(d_stop - np.asarray(margin, dtype=float), 0.0))
