@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import Any
 
 from omegaconf import DictConfig
 
@@ -67,10 +68,23 @@ def folder_problem(run_dir: Path, out_dir: Path, overwrite: bool, flag: str) -> 
 class JobFolders(_JobFolders):
     """Checks every job's folder and out_dir of ``python -m eval`` before Hydra makes any."""
 
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self.out_dirs: dict[Path, int] = {}  # each job's out_dir, for the next: one evaluation's folder each
+        super().on_multirun_start(config, **kwargs)
+
     def run_problem(self, job: DictConfig, run_dir: Path) -> str | None:
         return _problem(job, run_dir, "hydra.run.dir")
 
     def job_problem(self, num: int, job: DictConfig, run_dir: Path) -> str | None:
+        """Also two jobs given one ``out_dir`` (``-m seed=1,2 out_dir=X``): the second found the first's results
+        there and was refused once the first had run."""
+        from conf.commands import EvalCommand
+
+        out_dir = Path(EvalCommand.of(task_section(job)).out_dir).absolute()
+        first = self.out_dirs.setdefault(out_dir, num)
+        if first != num:
+            return (f"out_dir={out_dir} is job {first}'s too: each evaluation needs a folder of its own; leave "
+                    f"out_dir out (each job's folder) or give one per job (e.g. out_dir=<folder>/${{hydra:job.num}})")
         return _problem(job, run_dir, "hydra.sweep.dir")
 
     def replaces(self, job: DictConfig) -> bool:

@@ -129,9 +129,10 @@ def test_a_hydra_interpolated_run_dir_holding_a_users_file_is_refused_before_hyd
 EVAL = ["agents=[always_proceed]", "episodes=1"]  # composed only: no episode runs in these tests
 
 
+@pytest.mark.parametrize("flag", [[], ["overwrite=true"]])
 @pytest.mark.parametrize("users", ["notes.md", ".hydra/notes.md"])
-def test_an_eval_sweep_job_folder_holding_a_users_file_refuses_the_sweep_before_hydra_writes(users, tmp_path, capsys,
-                                                                                           hydra_loader,
+def test_an_eval_sweep_job_folder_holding_a_users_file_refuses_the_sweep_before_hydra_writes(users, flag, tmp_path,
+                                                                                           capsys, hydra_loader,
                                                                                            monkeypatch):
     """python -m eval -m: job 0's folder holds the user's file; its results (its default out_dir) and Hydra's record
     would be written beside it. Refused in one line naming the job, whatever overwrite says, nothing written."""
@@ -141,15 +142,13 @@ def test_an_eval_sweep_job_folder_holding_a_users_file_refuses_the_sweep_before_
     (tmp_path / "sweep" / "0" / users).parent.mkdir(parents=True)
     (tmp_path / "sweep" / "0" / users).write_text("mine\n")
     before = snapshot(tmp_path)
-    for flag in ([], ["overwrite=true"]):
-        cfg = hydra_loader([*EVAL, "seed=1000000,1000001", "hydra.sweep.dir=sweep", *flag], command="eval")
-        line = _refused(eval_job_folders.JobFolders().on_multirun_start, cfg, capsys)
-        shown = f"{' '.join(EVAL)} seed=1000000{' overwrite=True' if flag else ''}"  # as the sweeper lists them
-        assert line == (f"error: sweep job 0 ({shown}): hydra.sweep.dir={tmp_path}/"
-                        f"sweep/0: holds files that are not an evaluation's ({users}), which an evaluation never "
-                        f"writes among; pick another hydra.sweep.dir (an empty or new folder); no job of the sweep "
-                        f"was run")
-        assert snapshot(tmp_path) == before
+    cfg = hydra_loader([*EVAL, "seed=1000000,1000001", "hydra.sweep.dir=sweep", *flag], command="eval")
+    line = _refused(eval_job_folders.JobFolders().on_multirun_start, cfg, capsys)
+    shown = f"{' '.join(EVAL)} seed=1000000{' overwrite=True' if flag else ''}"  # as the sweeper lists them
+    assert line == (f"error: sweep job 0 ({shown}): hydra.sweep.dir={tmp_path}/sweep/0: holds files that are not an "
+                    f"evaluation's ({users}), which an evaluation never writes among; pick another hydra.sweep.dir "
+                    f"(an empty or new folder); no job of the sweep was run")
+    assert snapshot(tmp_path) == before
 
 
 def _earlier_evaluation(*folders: Path) -> None:
@@ -177,6 +176,14 @@ def test_an_eval_sweep_jobs_earlier_results_are_refused_before_hydra_writes_unle
                     f"holds results.csv of an evaluation; pick another hydra.sweep.dir, or replace it with "
                     f"overwrite=true; no job of the sweep was run")
     assert snapshot(tmp_path) == before
+
+
+def test_an_eval_sweep_with_overwrite_replaces_an_earlier_evaluations_results(tmp_path, hydra_loader, monkeypatch):
+    """overwrite=true: the earlier evaluation's results in job 1's folder are the sweep's to replace."""
+    from eval import job_folders as eval_job_folders
+
+    monkeypatch.chdir(tmp_path)
+    _earlier_evaluation(tmp_path / "sweep" / "1")
     cfg = hydra_loader([*EVAL, "seed=1000000,1000001", "hydra.sweep.dir=sweep", "overwrite=true"], command="eval")
     eval_job_folders.JobFolders().on_multirun_start(config=cfg)
 
@@ -224,14 +231,12 @@ def test_a_sweep_folder_holding_an_earlier_sweeps_record_is_refused_before_hydra
                                                                                           monkeypatch):
     """hydra.sweep.dir holds an earlier sweep's multirun.yaml (Hydra writes this sweep's over it), or a user's file
     (an earlier sweep's python -m eval.sweep table): the sweep is refused in one line naming the folder, nothing
-    written. A sweep whose every job continues or replaces its job's (train.resume/overwrite, overwrite) takes the
-    record over; a user's file it does not."""
+    written (a sweep whose every job replaces its own takes the record over: the next test)."""
     from eval import job_folders as eval_job_folders
 
     hook = (job_folders if command == "train" else eval_job_folders).JobFolders().on_multirun_start
     args = [*(RULE if command == "train" else EVAL), "seed=0,1" if command == "train" else "seed=1000000,1000001",
             "hydra.sweep.dir=sweep"]
-    replace = "train.overwrite=true" if command == "train" else "overwrite=true"
     monkeypatch.chdir(tmp_path)
     (tmp_path / "sweep" / "0").mkdir(parents=True)  # a job's folder (judged as the job's own: empty, fine)
     (tmp_path / "sweep" / "multirun.yaml").write_text("earlier: sweep\n")
@@ -241,7 +246,22 @@ def test_a_sweep_folder_holding_an_earlier_sweeps_record_is_refused_before_hydra
                     f"this sweep's would replace; pick another hydra.sweep.dir (an empty or new folder); no job of the "
                     f"sweep was run")
     assert snapshot(tmp_path) == before
-    hook(config=hydra_loader([*args, replace], command=command))
+
+
+@pytest.mark.parametrize("command", ["train", "eval"])
+def test_a_sweep_whose_every_job_replaces_its_own_takes_an_earlier_sweeps_record_over(command, tmp_path,
+                                                                                     hydra_loader, monkeypatch):
+    """Every job resumes or overwrites (train.overwrite=true, overwrite=true): the sweep continues or redoes the
+    earlier one in that folder, whose record (and launcher's .submitit) it takes over."""
+    from eval import job_folders as eval_job_folders
+
+    hook = (job_folders if command == "train" else eval_job_folders).JobFolders().on_multirun_start
+    args = [*(RULE if command == "train" else EVAL), "seed=0,1" if command == "train" else "seed=1000000,1000001",
+            "hydra.sweep.dir=sweep", "train.overwrite=true" if command == "train" else "overwrite=true"]
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "sweep" / ".submitit").mkdir(parents=True)
+    (tmp_path / "sweep" / "multirun.yaml").write_text("earlier: sweep\n")
+    hook(config=hydra_loader(args, command=command))
 
 
 @pytest.mark.parametrize("command", ["train", "eval"])
@@ -264,3 +284,19 @@ def test_a_sweep_folder_holding_what_is_no_sweeps_is_refused_whatever_the_flags(
     assert line == (f"error: hydra.sweep.dir={tmp_path}/sweep: holds what is not this sweep's (sweep.md); pick "
                     f"another hydra.sweep.dir (an empty or new folder); no job of the sweep was run")
     assert snapshot(tmp_path) == before
+
+
+def test_an_eval_sweep_giving_two_jobs_one_out_dir_is_refused_before_any_runs(tmp_path, capsys, hydra_loader,
+                                                                              monkeypatch):
+    """``-m seed=a,b out_dir=X``: job 1 found job 0's results in X and was refused once job 0 had run (the command
+    line checks each job's X while it is still empty). Refused first now (one out_dir per job passes: the out_dir
+    test above, its job 1)."""
+    from eval import job_folders as eval_job_folders
+
+    monkeypatch.chdir(tmp_path)
+    cfg = hydra_loader([*EVAL, "seed=1000000,1000001", "hydra.sweep.dir=sweep", "out_dir=same"], command="eval")
+    line = _refused(eval_job_folders.JobFolders().on_multirun_start, cfg, capsys)
+    assert line == (f"error: sweep job 1 ({' '.join(EVAL)} seed=1000001 out_dir=same): out_dir={tmp_path}/same is job "
+                    f"0's too: each evaluation needs a folder of its own; leave out_dir out (each job's folder) or "
+                    f"give one per job (e.g. out_dir=<folder>/${{hydra:job.num}}); no job of the sweep was run")
+    assert not list(tmp_path.iterdir())
