@@ -132,17 +132,24 @@ REFERENCE = reference_root()
 """The shipped reference checkpoints: the checkout's ``checkpoints/reference/``, or the wheel's copy."""
 
 
+_NOTED: set[tuple[str, str]] = set()
+"""The lookalike folders already noted in this process: the command-line check and the job both find the
+checkpoint, and the note is said once."""
+
+
 def _note_lookalike(local: Path, shipped: Path) -> None:
     """One line on stderr when the working folder holds a ``checkpoints/reference/<name>`` of its own (an export of
     yours, say) that the name does not mean: the row is the shipped reference's, and yours is evaluated by its
-    path. In the checkout run from its root the two are one folder and nothing is said."""
+    path. In the checkout run from its root the two are one folder and nothing is said; said once per process."""
     import sys
 
     try:
         same = local.resolve() == shipped.resolve()
     except OSError:
         same = True
-    if local.is_dir() and not same:
+    key = (str(local), str(shipped))
+    if local.is_dir() and not same and key not in _NOTED:
+        _NOTED.add(key)
         print(f"[eval] note: {local}/ is not the shipped reference {local.name!r} ({shipped}/), which the name "
               f"means; to evaluate yours pass its path: agents=[{local}]", file=sys.stderr)
 

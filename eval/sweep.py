@@ -23,6 +23,7 @@ import numpy as np
 import yaml
 
 from av_gym.atomic import csv_text, save_figure_atomic, write_text_atomic
+from av_gym.errors import ConfigError
 from av_gym.metrics import aggregate, format_ci, interval, kind_of, markdown_table, mean_ci, wilson_ci
 from conf.cli import Extend, ToolParser, items
 
@@ -97,7 +98,7 @@ def load_jobs(root: str | Path) -> tuple[list[Job], list[Path]]:
     still running, or cancelled)."""
     root = Path(root)
     if not root.is_dir():
-        raise SystemExit(f"error: {root} is not a folder")
+        raise ConfigError(f"{root} is not a folder")
     jobs, missing = [], []
     for ov in sorted(root.glob("**/.hydra/overrides.yaml")):
         job_dir = ov.parent.parent
@@ -113,7 +114,7 @@ def load_jobs(root: str | Path) -> tuple[list[Job], list[Path]]:
         jobs.append(Job(job_dir, _parse_overrides(yaml.safe_load(ov.read_text()) or []), scenario,
                         _read_rows(results)))
     if not jobs:
-        raise SystemExit(f"error: no job under {root} has results.csv (was it a python -m train/eval -m sweep?)")
+        raise ConfigError(f"no job under {root} has results.csv (was it a python -m train/eval -m sweep?)")
     return jobs, missing
 
 
@@ -274,14 +275,14 @@ def sweep_report(root: str | Path, x: str | None = None, metric: str | None = No
     metric = metric or DEFAULT_METRIC.get(scenario, metrics[0] if metrics else None)
     for m in (metric, *metrics):
         if m not in available:
-            raise SystemExit(f"error: metric {m!r} is not in the jobs' results.csv; available: {available}")
+            raise ConfigError(f"metric {m!r} is not in the jobs' results.csv; available: {available}")
     if metric not in metrics:
         metrics = [metric, *metrics]
     if x is None:
         numeric = [k for k in group_keys if all(_sort_key(j.overrides.get(k))[0] == 0 for j in jobs)]
         x = (numeric or group_keys or [None])[0]
     elif x not in group_keys:
-        raise SystemExit(f"error: --x {x!r} was not swept (swept, not replicates: {group_keys})")
+        raise ConfigError(f"--x {x!r} was not swept (swept, not replicates: {group_keys})")
 
     summary, warnings = summarise(jobs, group_keys, replicate_keys, metrics)
     binary = {m: kind_of(m) == "rate" for m in metrics}

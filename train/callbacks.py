@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import io
+import math
 import json
 import re
 import time
@@ -301,6 +302,23 @@ def remove_videos_after(folder: Path, last_step: int) -> list[Path]:
     return removed
 
 
+def best_json(record: dict) -> str:
+    """``best.json``'s text: strict JSON, a metric without a value (NaN: no TTC in an episode set, no exit time) or an
+    unbounded one (inf) is ``null``; Python's json module would write bare ``NaN`` / ``Infinity``, which other JSON
+    readers (jq, JavaScript, most languages' parsers) refuse."""
+    clean = {k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in record.items()}
+    return json.dumps(clean, indent=1, allow_nan=False)
+
+
+def read_best_score(path: Path) -> float:
+    """The score of the best evaluation so far from ``best.json`` (``-inf`` without one, or where it is ``null``:
+    any score beats it); also a file written before ``null`` (bare ``NaN``, which Python's json reads)."""
+    if not path.is_file():
+        return -np.inf
+    value = json.loads(path.read_text())["score"]
+    return -np.inf if value is None or not math.isfinite(float(value)) else float(value)
+
+
 class PeriodicEval(BaseCallback):
     """SB3 ``EvalCallback`` for our metrics: at rollout starts, at least ``every`` decisions apart, and at the end of
     training, runs the deterministic policy on the fixed ``seeds`` (disjoint from training) and
@@ -335,8 +353,7 @@ class PeriodicEval(BaseCallback):
         self.t0 = time.time() - wall_offset
         self._env = None
         self._last_eval = self._last_video = 0
-        best = self.ckpt_dir / "best.json"
-        self.best = json.loads(best.read_text())["score"] if best.is_file() else -np.inf
+        self.best = read_best_score(self.ckpt_dir / "best.json")
 
     def _on_training_start(self) -> None:
         self._last_eval = self._last_video = self.num_timesteps
@@ -403,8 +420,7 @@ class PeriodicEval(BaseCallback):
         if means["score"] > self.best:
             self.best = means["score"]
             save_model_atomic(self.model, self.ckpt_dir / "best.zip")
-            write_text_atomic(self.ckpt_dir / "best.json", json.dumps({"score": self.best, "steps": step,
-                                                                       **means}, indent=1))
+            write_text_atomic(self.ckpt_dir / "best.json", best_json({"score": self.best, "steps": step, **means}))
         if self.video_every > 0 and (step - self._last_video >= self.video_every or step == 0):
             self._last_video = step
             self.video(step)
