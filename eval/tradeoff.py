@@ -13,11 +13,19 @@ suffix). ``--relabel agent=label`` renames an agent of the rows. The sweep plays
 episodes at a time; the per-env rows within the engine's equivalence, docs/performance.md), so 500 episodes per
 threshold cost about a minute. Labels with the same name before ``#`` (``ppo_turn#s1``) are drawn in one colour, their
 mean as a larger marker.
+
+The rows must be one seed set: an agent's seed given twice (the same run named in two files) or agents on different
+seeds (a 2,800,000+ run beside a 2,000,000+ one) are refused in one line unless ``--mixed-seeds``, since a point
+compared with another on other seeds reads as a difference of drivers. ``--named-only`` leaves out agents given by
+path (``checkpoints/reference/seeds/<agent>/s2``: the other training seeds of a results folder), one point per named
+agent. The points drawn go beside the PNG (``<out>.points.csv``: label, n, rates, 95 % intervals, seeds, files),
+and the PNG's metadata holds that file's sha256, so a figure can be checked against the rows it came from.
 """
 
 from __future__ import annotations
 
 import csv
+import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -29,13 +37,42 @@ from conf.cli import ToolParser, held_outputs_problem, items, number, out_figure
 
 
 def read_rows(paths: list[str]) -> list[dict]:
+    """Every row of each ``results.csv``, its file under ``"_file"`` (as given)."""
     rows = []
     for path in paths:
         if not Path(path).is_file():
             raise SystemExit(f"error: {path} does not exist (python -m eval writes results.csv in its out_dir)")
         with open(path, newline="") as f:
-            rows += list(csv.DictReader(f))
+            rows += [{**r, "_file": path} for r in csv.DictReader(f)]
     return rows
+
+
+def seeds_problem(rows: list[dict], mixed: bool = False) -> str:
+    """'' when every agent's rows are distinct seeds and (unless ``mixed``) all agents share one seed set; else the
+    one line saying which agent and files differ. Rows without a ``seed`` column are not checked."""
+    by_label: dict[str, dict[int, str]] = {}
+    for r in rows:
+        if r.get("seed") in (None, ""):
+            continue
+        mine = by_label.setdefault(r["agent"], {})
+        seed = int(r["seed"])
+        if seed in mine:
+            return (f"{r['agent']} has seed {seed} twice (in {mine[seed]} and {r.get('_file', '?')}): name each "
+                    "evaluation once")
+        mine[seed] = r.get("_file", "?")
+    if mixed or len(by_label) < 2:
+        return ""
+    (first, ref), *others = by_label.items()
+    for label, mine in others:
+        if set(mine) != set(ref):
+            return (f"{label} ({_span(mine)}, {sorted(set(mine.values()))[0]}) is not on the seeds of {first} "
+                    f"({_span(ref)}, {sorted(set(ref.values()))[0]}): name results of one seed set, or give "
+                    "--mixed-seeds")
+    return ""
+
+
+def _span(seeds: dict[int, str]) -> str:
+    return f"{len(seeds)} seeds {min(seeds)}-{max(seeds)}"
 
 
 def rule_sweep(t_gaps: list[float], episodes: int, seed: int, n_envs: int = 250) -> list[dict]:
@@ -68,11 +105,31 @@ def points(rows: list[dict]) -> dict[str, tuple]:
     return out
 
 
+POINT_COLUMNS = ["label", "n", "collision", "success", "collision_lo", "collision_hi", "success_lo", "success_hi",
+                 "seed_first", "seed_last", "files"]
+
+
+def point_rows(pts: dict[str, tuple], rows: list[dict]) -> list[dict]:
+    """The sidecar's rows (``<out>.points.csv``): each point as drawn (rates and 95 % Wilson bounds, full
+    precision), its seeds' first and last (blank where the rows have none) and the files its rows came from
+    (``;``-joined; ``--point`` for a point given on the command line)."""
+    out = []
+    for label, (c, s, (c_lo, c_hi), (s_lo, s_hi), n) in pts.items():
+        mine = [r for r in rows if r["agent"] == label]
+        seeds = [int(r["seed"]) for r in mine if r.get("seed") not in (None, "")]
+        files = ";".join(dict.fromkeys(r.get("_file", "") for r in mine)) if mine else "--point"
+        out.append(dict(zip(POINT_COLUMNS, [label, n, repr(float(c)), repr(float(s)), repr(float(c_lo)),
+                                            repr(float(c_hi)), repr(float(s_lo)), repr(float(s_hi)),
+                                            min(seeds) if seeds else "", max(seeds) if seeds else "", files])))
+    return out
+
+
 ZOOM = (0.12, 0.6)  # the zoom panel: collision <= 0.12 and success >= 0.6, where the learned drivers crowd
 
 
-def plot(pts: dict[str, tuple], rule: list[str], out: Path, title: str, overwrite: bool = False) -> None:
-    """The whole plane on the left; on the right the crowded corner of low collision and high success (ZOOM), each
+def plot(pts: dict[str, tuple], rule: list[str], out: Path, title: str, overwrite: bool = False,
+         metadata: dict[str, str] | None = None) -> None:
+    """``metadata``: the PNG's text fields (the sidecar's sha256). The whole plane on the left; on the right the crowded corner of low collision and high success (ZOOM), each
     agent's name written where it can be read (in the left panel only the points outside that corner are named)."""
     import matplotlib
 
@@ -85,7 +142,7 @@ def plot(pts: dict[str, tuple], rule: list[str], out: Path, title: str, overwrit
         groups.setdefault(label.split("#")[0], []).append(label)
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     if len(groups) > len(colours):  # the default cycle repeats after 10: two agents would share a colour
-        colours = [plt.get_cmap("tab20")(i) for i in range(20)]
+        colours = [plt.get_cmap("tab20")(i) for i in range(20) if i not in (14, 15)]  # its greys are the rule's
     centre = {g: (np.mean([pts[x][0] for x in ls]), np.mean([pts[x][1] for x in ls])) for g, ls in groups.items()}
     inside = {g for g, (c, s) in centre.items() if c <= ZOOM[0] and s >= ZOOM[1]}
     fig, axes = plt.subplots(1, 2 if inside else 1, figsize=(14, 6) if inside else (7.5, 6), squeeze=False)
@@ -124,7 +181,7 @@ def plot(pts: dict[str, tuple], rule: list[str], out: Path, title: str, overwrit
                                        color="0.5", lw=0.8))
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
-    save_figure(fig, out, "--out", overwrite, dpi=110)  # whole or as it was; a file there kept unless --overwrite
+    save_figure(fig, out, "--out", overwrite, dpi=110, metadata=metadata)  # whole or as it was; a file there kept unless --overwrite
     plt.close(fig)
 
 
@@ -144,21 +201,40 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--relabel", action="append", default=[],
                         help='"agent in results.csv=label" (repeatable): e.g. seeds of one run as "ppo_turn#s1"')
     parser.add_argument("--title", default="Left turn in traffic: safety vs progress")
+    parser.add_argument("--named-only", action="store_true",
+                        help="leave out agents given by path (checkpoints/reference/seeds/...): one point per named "
+                             "agent")
+    parser.add_argument("--mixed-seeds", action="store_true",
+                        help="draw agents evaluated on different seeds side by side (refused otherwise)")
     args = parser.parse_args(argv)
     sweep_csv = args.out.with_suffix(".rule_sweep.csv")
+    points_csv = args.out.with_suffix(".points.csv")
     problem = out_figure_problem(str(args.out), "--out", args.overwrite)  # before any row is read or played
     if not problem and args.rule_sweep:  # the sweep's rows, written beside the figure
         problem = held_outputs_problem("--out", sweep_csv.parent, [sweep_csv.name], args.overwrite, given=args.out,
                                        whose=" (the rule sweep's rows)")
+    if not problem:  # the points drawn, written beside the figure
+        problem = held_outputs_problem("--out", points_csv.parent, [points_csv.name], args.overwrite,
+                                       given=args.out, whose=" (the points of a figure)")
     if problem:
         parser.error(f"argument {problem}")
     rows = read_rows(args.results)
     relabel = dict(r.split("=", 1) for r in args.relabel)
     for r in rows:
         r["agent"] = relabel.get(r["agent"], r["agent"])
+    if args.named_only:  # a checkpoint given by path: another training seed of a named agent
+        rows = [r for r in rows if "/" not in r["agent"]]
     # a sweep's rows read back (<out>.rule_sweep.csv of an earlier run) draw the rule's curve too
     rule = sorted(dict.fromkeys(r["agent"] for r in rows if r["agent"].startswith("gap_acceptance t_gap=")),
                   key=lambda k: float(k.split("=")[1].rstrip("s")))
+    problem = seeds_problem(rows, args.mixed_seeds)
+    given = {int(r["seed"]) for r in rows if r.get("seed") not in (None, "")}
+    if not problem and args.rule_sweep and given and not args.mixed_seeds \
+            and given != set(range(args.seed, args.seed + args.episodes)):  # refused before the sweep plays
+        problem = (f"the rows are on {_span(dict.fromkeys(given, ''))}, the rule sweep would play --episodes "
+                   f"{args.episodes} from --seed {args.seed}: give the rows' seeds, or --mixed-seeds")
+    if problem:
+        parser.error(problem)
     if args.rule_sweep:
         swept = rule_sweep(args.rule_sweep, args.episodes, args.seed,
                            args.n_envs)
@@ -166,7 +242,10 @@ def main(argv: list[str] | None = None) -> None:
         (write_text_atomic if args.overwrite else write_text_new)(sweep_csv, csv_text(swept), "--out")
         rule = list(dict.fromkeys(r["agent"] for r in swept))  # the new sweep replaces any rule rows read back
         rows = [r for r in rows if not r["agent"].startswith("gap_acceptance t_gap=")]
-        rows += [{k: str(v) for k, v in r.items()} for r in swept]
+        rows += [{**{k: str(v) for k, v in r.items()}, "_file": str(sweep_csv)} for r in swept]
+    problem = seeds_problem(rows, args.mixed_seeds)
+    if problem:
+        parser.error(problem)
     pts = points(rows)
     for extra in args.point:
         label, _, values = extra.partition("=")
@@ -174,8 +253,11 @@ def main(argv: list[str] | None = None) -> None:
         pts[label] = (c, s, (c, c), (s, s), 0)
     for label, (c, s, _, _, n) in pts.items():
         print(f"{label:40s} n={n:4d}  collision {c:.3f}  success {s:.3f}")
-    plot(pts, rule, args.out, args.title, args.overwrite)
-    print(f"[tradeoff] {args.out}")
+    table = csv_text(point_rows(pts, rows), POINT_COLUMNS)
+    digest = hashlib.sha256(table.encode()).hexdigest()
+    plot(pts, rule, args.out, args.title, args.overwrite, {"Description": f"points.csv sha256 {digest}"})
+    (write_text_atomic if args.overwrite else write_text_new)(points_csv, table, "--out")
+    print(f"[tradeoff] {args.out} (points: {points_csv})")
 
 
 if __name__ == "__main__":
