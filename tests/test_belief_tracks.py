@@ -16,7 +16,7 @@ from av_gym.batched.perception import tracks_observation
 from av_gym.batched.vec_env import BatchedLeftTurnBatch, meta_actions
 from av_gym.estimation.turn_features import ACC_SCALE
 from av_gym.presets import compose_group
-from av_gym.wrappers import GO, YIELD
+from av_gym.wrappers import GO, MARGIN, YIELD
 from tests.test_belief import rerandomise
 
 B = 12
@@ -284,7 +284,7 @@ def _preset(name: str) -> dict:
                                                    "ghost": 2, "merge": 2.0}, marks=pytest.mark.slow),
                                      {"track_fit": 0.5, "track_heading": "detected",
                                       "stopped_scope": "off_approach", "confirm": 2, "unseen_ahead": 5,
-                                      "stopped_alone": 6.0, "stopped_release": 0.5},
+                                      "stopped_alone": 6.0, "stopped_release": 0.5, "wait_gap": 3.0, "wait_back": 1.5},
                                      pytest.param({"confirm": 2, "confirm_after": 2, "confirm_risk": 0.9,
                                                    "threshold": 0.5}, marks=pytest.mark.slow),
                                      pytest.param({"confirm": 2, "confirm_first": True, "threshold": 0.5},
@@ -314,6 +314,7 @@ def test_the_per_env_agent_on_tracks_decides_as_the_batch(options):
     agents = [BeliefLookahead(e, params) for e in envs]
     rows, compared, held, early = np.arange(len(seeds)), [], np.full(len(seeds), YIELD), False
     tentative = remembered = False  # a tentative track, a remembered car in some step's futures' start
+    behind = np.zeros(len(seeds), bool)  # a row whose YIELD stopped behind a road user (wait_gap)
     for k in range(16):
         batch.read(venv.engine, rows, bobs["intent"])
         tentative |= bool(batch.tracks.tent.any())
@@ -321,6 +322,10 @@ def test_the_per_env_agent_on_tracks_decides_as_the_batch(options):
         choices = [a.act(o) for a, o in zip(agents, obs)]  # reads, and decides every `repeat` steps
         before, held = held, batch.decide(venv.engine, rows, held, np.full(len(seeds), k))
         assert held.tolist() == [a._choice for a in agents], k
+        # the meta-actions too: YIELD's stop (wait_back, wait_gap behind a track ahead) from the same tracks
+        margin = batch.yield_margin(venv.engine, rows)
+        assert choices == meta_actions(held, bobs["turn"], margin).tolist(), k
+        behind |= margin > MARGIN + params.wait_back + 1e-9
         early |= k % 5 != 0 and (held != before).any()
         if k % 5 == 0:
             per_env = [a.planner.go_collision(a.planner.tracks.engine, [0])[0] for a in agents]
@@ -338,6 +343,7 @@ def test_the_per_env_agent_on_tracks_decides_as_the_batch(options):
         assert early == ("confirm_after" in options), "confirm_after's early decisions must move a choice"
     assert tentative == (params.tentative == "road_user")
     assert remembered == (params.recall > 0), "recall must keep a dropped track in some step's futures"
+    assert behind.any() == (params.wait_gap > 0), "wait_gap must stop some row behind a track ahead"
     if "track_fit" in options:
         t = batch.tracks.engine.traffic
         pos = batch.tracks._tracks(rows)[0]
