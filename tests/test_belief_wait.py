@@ -229,3 +229,36 @@ def test_on_tracks_the_margin_reads_the_tracks_not_the_simulators_vehicles():
     assert planner.yield_margin(e, rows)[0] == MARGIN
     truth = BeliefPlanner(params, n_rows=e.B)
     assert truth.yield_margin(e, rows)[0] == pytest.approx(stop, abs=1e-6)
+
+
+@pytest.mark.slow  # 3.5 s at load ~3.5 (three per-env stacks)
+def test_the_batch_evaluation_waits_where_the_per_env_agent_does():
+    """eval.batched's decider (the batch evaluation of belief_lookahead on tracks) gives the per-env agent's
+    meta-actions step by step with ``wait_gap`` 3 and ``wait_back`` 1.5 on, each side driving its own episodes with
+    its own actions; and the margin moves some of them (the same steps with the line's margin alone differ)."""
+    from agents.belief import BeliefLookahead
+    from av_gym.make import make_env
+    from eval.batched import _Decider
+
+    seeds, sensors = [400_100, 400_101, 400_102], compose_group("sensors", "turn_perceived")
+    params = BeliefLookaheadParams(samples=4, wait_gap=3.0, wait_back=1.5)
+    venv = BatchedLeftTurnBatch({"name": "left_turn"}, sensors, None, len(seeds), pool=0)
+    bobs = venv.play(iter(seeds))
+    decider = _Decider(BeliefLookahead(None, params), venv.engine, venv.perception)
+    decider.reset(np.arange(len(seeds)))
+    envs = [make_env({"name": "left_turn"}, sensors, None) for _ in seeds]
+    obs = [e.reset(seed=s)[0] for e, s in zip(envs, seeds)]
+    agents = [BeliefLookahead(e, params) for e in envs]
+    moved = 0
+    for k in range(30):
+        live = ~venv.idle
+        assert live.all(), k
+        out = decider.act(bobs, live)
+        per_env = [a.act(o) for a, o in zip(agents, obs)]
+        assert out.tolist() == per_env, k
+        moved += int((out != meta_actions(decider.choice, bobs["turn"])).sum())
+        bobs, _, _, _ = venv.step(out)
+        obs = [e.step(a)[0] for e, a in zip(envs, per_env)]
+    for e in envs:
+        e.close()
+    assert moved > 0, "wait_gap / wait_back must change some YIELD meta-action"
