@@ -11,7 +11,7 @@ import pytest
 from agents.belief import BeliefLookaheadParams, BeliefPlanner
 from av_gym.batched.vec_env import BatchedLeftTurnBatch, meta_actions
 from av_gym.envs.left_turn import ROUTE
-from av_gym.estimation.turn_features import EGO_FEATURES, TURN
+from av_gym.estimation.turn_features import EGO_FEATURES, OBJECT_FEATURES, TURN
 from av_gym.presets import compose_group
 from av_gym.sim.batched import LENGTH
 from av_gym.wrappers import GO, MARGIN, YIELD
@@ -55,11 +55,11 @@ def _drive_yield(venv, obs, margin, steps: int = 80) -> dict:
     return venv.engine.truth(rows)
 
 
-def _gap_to(venv, slot_kind: str = "plain") -> np.ndarray:
+def _gap_to_the_standing_car(venv) -> np.ndarray:
     """Per row: the ego's front bumper to the rear bumper of the row's plain car (m, along the ego's axis)."""
     t = venv.engine.traffic
     rows = np.arange(venv.engine.B)
-    e, o = venv.engine.ego_slot(rows), np.argmax(getattr(t, slot_kind), axis=1)
+    e, o = venv.engine.ego_slot(rows), np.argmax(t.plain, axis=1)
     h = t.h[rows, e]
     ahead = np.cos(h) * (t.x[rows, o] - t.x[rows, e]) + np.sin(h) * (t.y[rows, o] - t.y[rows, e])
     return ahead - LENGTH
@@ -89,7 +89,7 @@ def test_meta_actions_take_one_margin_or_one_per_row():
     ego = np.zeros((4, len(EGO_FEATURES)))
     ego[:, EGO_FEATURES.index("set_point")] = 9.0
     ego[:, EGO_FEATURES.index("to_stop_line")] = 20.0
-    turn = TURN.encode(ego, np.zeros((4, TURN.max_objects, 12)))
+    turn = TURN.encode(ego, np.zeros((4, TURN.max_objects, len(OBJECT_FEATURES))))
     yield_ = np.full(4, YIELD)
     np.testing.assert_array_equal(meta_actions(yield_, turn, 6.0), meta_actions(yield_, turn, np.full(4, 6.0)))
     np.testing.assert_array_equal(meta_actions(yield_, turn, np.array([0.5, 6.0, 7.0, 19.0])), [1, 1, 0, 0])
@@ -97,17 +97,17 @@ def test_meta_actions_take_one_margin_or_one_per_row():
 
 
 def test_with_wait_gap_the_ego_stands_behind_a_car_held_over_its_line():
-    """A car standing with its rear on the stop line in front of a YIELDing ego (G4's class A, docs: a car held
-    over the line): without ``wait_gap`` the ego's set-point follows the line alone and its front ends within 1 m
+    """A car standing with its rear on the stop line in front of a YIELDing ego (benchmarks/belief_tracks_waiting.py's
+    "in front" hits): without ``wait_gap`` the ego's set-point follows the line alone and its front ends within 1 m
     of the car; with ``wait_gap`` 3 it stands at least 2.5 m behind it; ``wait_back`` 1.5 alone (2 m before the
     line) does not reach 2.5 m."""
     venv, obs = _empty_road(3)
     _stand_over_the_line(venv, 0.0)
-    planners = [BeliefPlanner(BeliefLookaheadParams(samples=4, **kw), n_rows=1)
+    planners = [BeliefPlanner(BeliefLookaheadParams(samples=4, **kw), n_rows=3)
                 for kw in ({}, {"wait_gap": 3.0}, {"wait_back": 1.5})]
     end = _drive_yield(venv, obs, lambda rows: np.array([p.yield_margin(venv.engine, [r])[0]
                                                          for p, r in zip(planners, rows)]))
-    gap = _gap_to(venv)
+    gap = _gap_to_the_standing_car(venv)
     assert (end["speed"] < 0.3).all() and not venv.engine.traffic.crashed.any()
     assert 0.0 < gap[0] < 1.0, gap
     assert gap[1] >= 2.5, gap
@@ -193,7 +193,7 @@ def test_the_stop_is_measured_as_meta_actions_reads_the_line():
     ego = np.zeros((1, len(EGO_FEATURES)))
     ego[0, EGO_FEATURES.index("set_point")] = 4.5
     ego[0, EGO_FEATURES.index("to_stop_line")] = 40.0
-    turn = TURN.encode(ego, np.zeros((1, TURN.max_objects, 12)))
+    turn = TURN.encode(ego, np.zeros((1, TURN.max_objects, len(OBJECT_FEATURES))))
     seen = float(TURN.decode(turn.astype(float), "to_stop_line")[0])
     assert seen == pytest.approx(30.0) and seen - m[0] == pytest.approx(10.0 - 3.0, abs=1e-5)
     assert meta_actions(np.array([YIELD]), turn, m)[0] == 1  # IDLE: 4.5 m/s held
