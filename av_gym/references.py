@@ -81,3 +81,20 @@ def shipped_problem(path: str | os.PathLike, field: str, cleared: bool = False) 
         return None
     return (f"{field}={path}: {where} the shipped reference agents' folder ({root}), read-only to every tool; "
             f"write elsewhere (e.g. checkpoints/<name>)")
+
+
+def checkout_path_hint(path: str | os.PathLike, by_name: bool = True) -> str:
+    """For a ``checkpoints/reference/...`` path the docs give (relative to a checkout's root) that does not exist
+    here, as from a wheel in another folder: where this install holds it, as one clause to end a refusal (a
+    shipped agent's own folder, where the caller takes names (``by_name``): its name, which the harness resolves
+    anywhere; else the installed copy's path); "" for any other path, or one that is nowhere in this install."""
+    parts = Path(path).parts
+    if Path(path).is_absolute() or parts[:2] != ("checkpoints", "reference") or len(parts) < 3 or Path(path).exists():
+        return ""
+    installed = reference_root().joinpath(*parts[2:])
+    if not installed.exists():
+        return ""
+    if by_name and len(parts) == 3 and parts[2] in reference_names():
+        return (f"; {path} is a checkout's folder: the shipped agent is named {parts[2]!r} anywhere (this install's "
+                f"copy: {installed})")
+    return f"; {path} is a checkout's folder: this install's copy is {installed}"

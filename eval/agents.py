@@ -20,7 +20,7 @@ from agents.checkpoint import check_sb3_zip, describe_space, read_config_yaml, s
 from agents.configs import KIND_DEFAULT, available_agents, kind_default, shipped_agent
 from agents.registry import AGENT_KINDS, OPINIONS, agent_params, opinion_problems, trained_kinds
 from av_gym.errors import ConfigError
-from av_gym.references import reference_root
+from av_gym.references import checkout_path_hint, reference_root
 from conf.check import sensor_overrides  # noqa: F401 - moved below eval (train checks overrides too); used here
 from conf.presets import compose_group  # noqa: F401 - used here and imported from here by tests and tools
 
@@ -120,12 +120,24 @@ def find_checkpoint(kind: str, env_name: str, root: str | Path, name: str | None
                           f"pick an agent for env={env_name} or pass a checkpoint path")
     if latest:
         raise ConfigError(f"{what}{LATEST}: you have no {what} run for env {env_name!r} under {root}/; train one with "
-                          f"`python -m train env={env_name} agent={what}`, or say {what} for its shipped reference")
+                          f"`{train_command()} env={env_name} agent={what}`, or say {what} for its shipped reference")
     named = sorted(p.parent.name for p in reference.glob("*/config.yaml") if matches(p) is not None)
     hint = f"name a reference of kind {kind} for it ({', '.join(named)}), " if named else ""
     raise ConfigError(f"no {what} checkpoint of your own for env {env_name!r} under {root}/ ({what} is a kind, "
-                      f"not a named agent): {hint}train one with `python -m train env={env_name} agent={what}`, or "
+                      f"not a named agent): {hint}train one with `{train_command()} env={env_name} agent={what}`, or "
                       f"pass a checkpoint path")
+
+
+def train_command() -> str:
+    """The training command that works where the user is, for a refusal to suggest: ``python -m train`` in the
+    folder holding the harness (a checkout's root, where ``train/`` is found), the console script ``av-gym-train``
+    anywhere else (a wheel's harness, or another folder, where ``python -m train`` finds no such module)."""
+    root = Path(__file__).resolve().parents[1]  # the folder holding conf/, agents/, train/, eval/
+    try:
+        here = Path.cwd().resolve()
+    except OSError:  # the working folder was removed
+        return "av-gym-train"
+    return "python -m train" if here == root and root.name != "av_gym_harness" else "av-gym-train"
 
 
 REFERENCE = reference_root()
@@ -170,8 +182,8 @@ def _checkpoint_file(path: Path, env_name: str) -> tuple[str, Path]:
     """(kind, model file) of a checkpoint folder (its config.yaml says the kind) or a model file (its suffix
     does), checked without loading it: the file exists and was trained on ``env_name``."""
     loadable = trained_kinds()
-    if not path.exists():
-        raise ConfigError(f"checkpoint {str(path)!r}: no such file or folder")
+    if not path.exists():  # a checkout's path from the docs, given where there is none (a wheel): say where it is
+        raise ConfigError(f"checkpoint {str(path)!r}: no such file or folder{checkout_path_hint(path)}")
     if path.is_dir():
         cfg_path = path / "config.yaml"
         kind = read_config_yaml(cfg_path).get("agent", {}).get("kind") if cfg_path.is_file() else "ppo"

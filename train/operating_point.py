@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from av_gym.errors import ConfigError, run_cli
+from av_gym.references import checkout_path_hint
 from conf.cli import Extend, ToolParser, items, number
 
 
@@ -209,7 +210,8 @@ def main(argv: list[str] | None = None) -> None:
     run_dir = Path(args.run_dir)
     for path in (run_dir / args.model, run_dir / "config.yaml"):
         if not path.is_file():
-            raise ConfigError(f"{path} does not exist: run_dir must be a training run's checkpoint folder")
+            raise ConfigError(f"{path} does not exist: run_dir must be a training run's checkpoint folder"
+                              f"{checkout_path_hint(run_dir, by_name=False)}")
     from agents.checkpoint import read_config_yaml
 
     problem = go_yield_problem(run_dir, read_config_yaml(run_dir / "config.yaml"))
