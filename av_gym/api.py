@@ -21,6 +21,12 @@ give the harness's stack in one call, built by the same code ``python -m train``
 
 Every stack with sensors, a shield or a checkpoint records :class:`~av_gym.metrics.recorder.EpisodeMetrics`
 (``info["episode_metrics"]`` at the end of an episode), as the harness does.
+
+Every ``info`` key has one kind of value at reset and in every step, and none is None, so that
+``gymnasium.make_vec(..., vectorization_mode="sync"/"async")`` batches each into a typed array whichever env has
+just reset (an array takes the first env's type): "not yet" is a sentinel of the key's own type (the shield's
+:data:`~av_gym.shields.aeb.NOT_YET`, :data:`~av_gym.shields.aeb.NO_ACTION`); ``info["truth"]`` is a mapping, not a
+dict, batched as an object array of each env's own (tests/test_vector_api.py).
 """
 
 from __future__ import annotations

@@ -55,6 +55,50 @@ AEB_INFO = ("aeb_stage", "aeb_ttc", "aeb_horizon", "aeb_override", "aeb_target_i
             "aeb_brake_time", "aeb_stop_position", "aeb_action", "aeb_withheld")
 
 
+def _kind(value) -> str:
+    """What a vector env batches a value into: numpy and Python numbers of one kind alike."""
+    for kind, types in (("bool", (bool, np.bool_)), ("int", (int, np.integer)), ("float", (float, np.floating))):
+        if isinstance(value, types):
+            return kind
+    return f"array {value.dtype} {value.shape}" if isinstance(value, np.ndarray) else type(value).__name__
+
+
+@pytest.mark.parametrize("env_id,kwargs", [
+    (TURN, {"sensors": "turn_perceived", "shield": "aeb"}),
+    (TURN, {"sensors": "turn_truth", "shield": "aeb_standard", "env": {"action": "continuous"}}),
+    (LANE, {"sensors": "lane_localized"}),
+])
+def test_every_info_key_has_one_kind_at_reset_and_in_every_step(env_id, kwargs) -> None:
+    """What every info producer (the scenario, sensors, localizer, shield, metrics recorder) gives, over two short
+    episodes, reset included: one kind per key (a vector env types its array by the first env's value: None beside
+    an int raised, an int before a float would truncate it), and no None anywhere."""
+    env = gym.make(env_id, **{**kwargs, "env": {**kwargs.get("env", {}), **SHORT[env_id]}})
+    kinds: dict[str, set] = {}
+    for seed in (3, 4):
+        _, info = env.reset(seed=seed)
+        infos, done = [info], False
+        while not done:
+            action = np.ones(env.action_space.shape, np.float32) if env.action_space.shape else 2
+            _, _, terminated, truncated, info = env.step(action)
+            infos.append(info)
+            done = terminated or truncated
+        for info in infos:
+            for path, value in _leaf_values(info):
+                kinds.setdefault(path, set()).add(_kind(value))
+    env.close()
+    assert {path: k for path, k in kinds.items() if len(k) > 1 or "NoneType" in k} == {}
+    assert any(p.startswith("episode_metrics.") for p in kinds) and ("aeb_action" in kinds) == ("shield" in kwargs)
+
+
+def _leaf_values(info: dict, path: str = ""):
+    """(path, value) of every non-dict value of one env's ``info``."""
+    for key, value in info.items():
+        if isinstance(value, dict):
+            yield from _leaf_values(value, f"{path}{key}.")
+        else:
+            yield f"{path}{key}", value
+
+
 @pytest.mark.parametrize("mode", ["sync", "async"])
 def test_info_keeps_one_type_when_the_envs_episodes_end_at_different_steps(mode) -> None:
     """R7 finding 1: with the shield, an env's autoreset step (NEXT_STEP: its reset's info) while the other env
