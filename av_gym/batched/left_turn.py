@@ -570,10 +570,9 @@ class BatchedLeftTurn:
         t.trim()
         reward, terminated, truncated = np.zeros(self.B), np.zeros(self.B, bool), np.zeros(self.B, bool)
         reward[rows], crashed, arrived = self._reward(rows)
-        if self.ccftap:  # the episode runs on until the target has passed, so an ego parked in its path is hit
-            terminated[rows] = crashed | (arrived & self.target_passed(rows))
-        else:
-            terminated[rows] = crashed | arrived
+        # arrival ends the episode in both modes (UnprotectedLeftTurnEnv._is_terminated): paid once, and a CCFtap
+        # ego that has not arrived runs on to the time limit, so one parked in the target's path is hit
+        terminated[rows] = crashed | arrived
         truncated[rows] = self.time[rows] >= self.time_limit
         return reward, terminated, truncated
 
@@ -596,12 +595,6 @@ class BatchedLeftTurn:
             for name, value in frozen.items():
                 getattr(t, name)[idle] = value
             t.road_steps[idle] = steps_frozen
-
-    def target_passed(self, rows) -> np.ndarray:
-        """UnprotectedLeftTurnEnv._target_passed: the CCFtap target's rear beyond y = 12 m."""
-        t = self.traffic
-        j = np.argmax(t.plain[rows], axis=1)
-        return t.y[rows, j] - LENGTH / 2 > 12.0
 
     def _reward(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """UnprotectedLeftTurnEnv._reward for the envs ``rows``, and whether each ego crashed and has arrived."""

@@ -7,7 +7,9 @@ Modes:
 - ``ccftap``: Euro NCAP car-to-car front turn-across-path (digest 003 §3.2–3.3): the ego approaches at
   ``ccftap_ego_speed`` and a single non-reactive target drives straight at ``ccftap_target_speed`` in the oncoming
   lane, timed to reach the conflict point ``ccftap_dt`` seconds after the ego would (0 = they meet there). The
-  episode runs on after the ego stops until the target has passed, so an ego parked in its path is hit.
+  episode runs on after the ego stops (to the time limit, long enough for the target to pass), so an ego parked
+  in its path is hit; it ends, as in traffic mode, when the ego arrives (25 m into the exit lane, beyond the
+  target's reach) or crashes.
 
 Geometry (highway-env 1.12.1, verified in digest 003): south approach ``o0→ir0`` along x = +2 m driving −y, stop
 line at y = 11 m, left-turn arc ``ir0→il1`` (centre (−11, 11), R = 13 m), exit ``il1→o1``. Oncoming lane
@@ -294,8 +296,12 @@ class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
         ego = self.vehicle
         if ego.crashed:
             return True
-        if self.config["mode"] == "ccftap":
-            return bool(self.has_arrived(ego) and self._target_passed())
+        # Arrival ends every episode, in both modes and action types: the arrival reward is one-off, and an ego 25 m
+        # into the exit lane (x <= -36 m) is out of the CCFtap target's reach (its lane is x in [-4, 0]), so the
+        # test has nothing left to score. A CCFtap ego that has not arrived (stopped, or slow) runs on until the
+        # time limit, so one parked in the target's path is hit. Before, a CCFtap ego arriving before the target
+        # had passed (continuous acceleration, or a large dt) was paid the arrival every step and drove off the end
+        # of the exit lane, where the batch's lane following differs (R7 finding 7).
         return bool(self.has_arrived(ego))
 
     def _is_truncated(self) -> bool:

@@ -551,6 +551,8 @@ class Traffic:
         a = self.alive
         steer = np.where(self.crashed, 0.0, self.steer)
         acc = np.where(self.crashed, -1.0 * self.v, self.acc)
+        acc = np.where(self.v > kernels.MAX_SPEED, np.minimum(acc, 1.0 * (kernels.MAX_SPEED - self.v)),
+                       np.where(self.v < kernels.MIN_SPEED, np.maximum(acc, 1.0 * (kernels.MIN_SPEED - self.v)), acc))
         self.steer, self.acc = np.where(a, steer, self.steer), np.where(a, acc, self.acc)
         # the slip angle β = atan(tan(steer) / 2) by its cosine and sine, 1 / sqrt(1 + t²) and t / sqrt(1 + t²) of
         # t = tan β, and cos(h + β), sin(h + β) by the sum formulas (kernels._slip_cos_sin: the same arithmetic)

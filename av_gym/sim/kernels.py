@@ -563,6 +563,9 @@ def _idm_with(b, i, f, s_i, s_f, ci, si, cf, sf, v, target, delta, lane, speed_l
 # P_EGO_MARGIN (m): a planner's futures only (Traffic.ego_margin); 0, the real engine's, skips its test
 (P_VEHICLE_LENGTH, P_LENGTH, P_WIDTH, P_COMFORT_MAX, P_COMFORT_MIN, P_ACC_MAX, P_DISTANCE, P_TIME, P_TAU, P_KP_LAT,
  P_KP_HEAD, P_KP_A, P_MAX_STEER, P_EXIT_DISTANCE, P_EGO_MARGIN) = range(15)
+# m/s, highway-env's Vehicle.MAX_SPEED / MIN_SPEED (clip_actions): reached by a CCFtap target above 144 km/h or a fast
+# continuous ego at full throttle; without them the batch split from the per-env stack there (R7 finding 7)
+MAX_SPEED, MIN_SPEED = 40.0, -40.0
 SLOWER, FASTER = 0, 2
 
 
@@ -740,6 +743,11 @@ def _kinematics_row(lt, b, x, y, h, v, steer, acc, alive, crashed, impact_x, imp
             continue
         if crashed[b, i]:
             steer[b, i], acc[b, i] = 0.0, -1.0 * v[b, i]
+        # clip_actions writes into the vehicle's action: kept in acc, as a plain vehicle keeps its action
+        if v[b, i] > MAX_SPEED:
+            acc[b, i] = min(acc[b, i], 1.0 * (MAX_SPEED - v[b, i]))
+        elif v[b, i] < MIN_SPEED:
+            acc[b, i] = max(acc[b, i], 1.0 * (MIN_SPEED - v[b, i]))
         cb, sb = _slip_cos_sin(steer[b, i])
         xn = x[b, i] + v[b, i] * (ch[i] * cb - sh[i] * sb) * dt  # cos(h + β)
         yn = y[b, i] + v[b, i] * (sh[i] * cb + ch[i] * sb) * dt  # sin(h + β)
