@@ -96,7 +96,7 @@ def given_sensors_problem(plan, given: dict) -> str | None:
 def _check_plans(plans: list, command: EvalCommand, env_cfg: dict, given: dict) -> None:
     """Each agent's checkpoint (if any) and the sensors it runs with (``given``: the command line's preset);
     with ``vec_env=batched``, what the batched engine cannot run, before any folder."""
-    from eval.agents import check_plan, check_preset_space, check_sensor_overrides
+    from eval.agents import check_action_space, check_plan, check_preset_space, check_sensor_overrides
 
     for plan in plans:
         problem = given_sensors_problem(plan, given)
@@ -105,6 +105,7 @@ def _check_plans(plans: list, command: EvalCommand, env_cfg: dict, given: dict) 
         check_plan(plan, env_cfg["name"])
         check_sensor_overrides(plan, env_cfg)  # a trained agent's sensors with the command line's on top
         check_preset_space(plan, env_cfg)  # agent@preset: the preset gives the observations it was trained on
+        check_action_space(plan, env_cfg, command.paths.checkpoints)  # its actions fit env.action
         if command.vec_env == "batched":
             from eval.batched import check_batched_plan
 
@@ -173,7 +174,7 @@ def _evaluate(cfg: DictConfig, command: EvalCommand) -> list[dict]:
     check_folder(command.out_dir, "out_dir", create=True)  # before the first episode: results need somewhere to go
     claim_out_dir(command)  # ours alone until the evaluation ends
     seeds = episode_seeds(command)
-    meta = EvalMeta(command.out_dir, _meta_settings(command, seeds), hydra_overrides())
+    meta = EvalMeta(command.out_dir, _meta_settings(command, seeds), hydra_overrides(), env_cfg)
     try:
         rows = _run_all(plans, command, env_cfg, seeds, meta)
         _figures(plans, command, env_cfg, seeds.start)
@@ -197,6 +198,7 @@ def _run_all(plans: list, command: EvalCommand, env_cfg: dict, seeds: range, met
     """Every agent's episodes, results.csv / results.md (and ``meta``) written after each agent and on Ctrl-C;
     the summary printed. Returns the rows."""
     from eval.agents import _is_path
+    from eval.meta import env_as_ran
     from eval.report import faults_note, faults_total, write_results
 
     env_name, out_dir, split = env_cfg["name"], command.out_dir, command.split
@@ -206,7 +208,7 @@ def _run_all(plans: list, command: EvalCommand, env_cfg: dict, seeds: range, met
     if command.vec_env == "batched" and command.workers > 1:  # what ran, for the summary (the rows are the same)
         workers = min(command.workers, command.episodes)
         title += f", on the batch in {workers} worker processes of {command.n_envs} episodes each"
-    rows = []
+    rows, env = [], env_as_ran(env_cfg)  # results.md names the env preset and what the command changed of it
     ran = {p.label: p.spec for p in plans if _is_path(p.spec)}  # trained agents: the checkpoint they resolved to
     for label, path in ran.items():
         print(f"[eval] {label}: {path}")
@@ -216,15 +218,15 @@ def _run_all(plans: list, command: EvalCommand, env_cfg: dict, seeds: range, met
         except KeyboardInterrupt:
             if rows:
                 write_results(rows, out_dir, env_name, f"{title} (interrupted after {len(rows)} episodes)",
-                              **_ran_with(plans, ran, split, rows))
+                              **_ran_with(plans, ran, split, rows), env=env)
                 meta.episodes_written, meta.sensor_faults = len(rows), faults_total(rows)
                 print(f"[eval] interrupted: the {len(rows)} episodes measured are in {out_dir}/results.csv",
                       file=sys.stderr)
             raise
         # each agent's rows as soon as it is done: an evaluation interrupted or failing later keeps what it measured
-        write_results(rows, out_dir, env_name, title, **_ran_with(plans, ran, split, rows))
+        write_results(rows, out_dir, env_name, title, **_ran_with(plans, ran, split, rows), env=env)
         meta.write(len(rows), faults_total(rows))  # rc null: still running (or killed, if it stays so)
-    table = write_results(rows, out_dir, env_name, title, **_ran_with(plans, ran, split, rows))
+    table = write_results(rows, out_dir, env_name, title, **_ran_with(plans, ran, split, rows), env=env)
     print(f"\n{title}\n\n{table}\n" + (f"\n{faults_note(rows)}" if faults_total(rows) else ""))
     print(f"[eval] per-episode rows: {out_dir}/results.csv   summary: {out_dir}/results.md"
           + ("" if meta.kept else f"   run: {out_dir}/meta.json"))

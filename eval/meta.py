@@ -6,7 +6,9 @@ The keys are the shipped result folders' (docs/results/*/meta.json, read by eval
 ``git archive`` snapshot of it carries; null otherwise, e.g. in an installed wheel), ``started`` / ``finished``
 (UTC, ISO 8601), ``wall_s``, ``load`` (the 1-minute load average at start and end, ``"a-b"``) and ``rc`` (0; 130
 on Ctrl-C; 2 on a ConfigError; 1 on any other failure; null while it runs or after a kill -9), then what a reader
-needs besides: the settings that chose the episodes and how they ran, the episodes written and the non-finite
+needs besides: ``dirty`` (true when the checkout's tracked files differ from ``commit``, the first of them in
+``changed``: its numbers are not that commit's; null where no git can tell, an archive or a wheel), ``env`` (the env
+preset it ran and every field that differs from it, :func:`env_as_ran`), the settings that chose the episodes and how they ran, the episodes written and the non-finite
 sensor entries their sensors replaced (``sensor_faults``, 0 when none), CPU seconds and library versions.
 
 A meta.json this module did not write (no ``written_by``: a person's, with notes) is never replaced: ``python -m
@@ -30,6 +32,7 @@ WRITTEN_BY = "python -m eval"  # the marker of a meta.json this module wrote (an
 META = "meta.json"
 ARCHIVE_COMMIT = "archive_commit.txt"  # in eval/: a git archive's commit (.gitattributes export-subst)
 VERSIONED = ("numpy", "torch", "gymnasium", "highway-env", "stable-baselines3")  # what changes episodes' numbers
+CHANGED_LISTED = 10  # the changed tracked files a record names (then "... and N more"): enough to see what it was
 
 
 def utc_now() -> str:
@@ -59,6 +62,57 @@ def code_commit(root: Path | None = None) -> str | None:
     if len(out) != 2 or Path(out[0]).resolve() != root:
         return archived_commit(root)
     return out[1]
+
+
+def dirty_files(root: Path | None = None) -> list[str] | None:
+    """The tracked files of the checkout at ``root`` that differ from its HEAD (staged or not), as git status
+    names them; [] for a clean tree; None where git cannot tell (no git, or ``root`` is not a checkout's top: an
+    archive, a wheel). Untracked files are left out: a user's notes beside the code do not change what ran."""
+    root = (root or Path(__file__).resolve().parent.parent).resolve()
+    try:
+        top = subprocess.run(["git", "-C", str(root), "rev-parse", "--show-toplevel"], capture_output=True,
+                             text=True, timeout=10, check=True).stdout.strip()
+        if Path(top).resolve() != root:
+            return None
+        out = subprocess.run(["git", "-C", str(root), "status", "--porcelain=v1", "-z", "--untracked-files=no"],
+                             capture_output=True, text=True, timeout=30, check=True).stdout
+    except (OSError, subprocess.SubprocessError):
+        return None
+    entries = out.split("\0")
+    files, skip = [], False
+    for entry in entries:  # "XY path", a rename's "R  new\0old": the old name follows as its own entry
+        if skip or len(entry) < 4:
+            skip = False
+            continue
+        files.append(entry[3:])
+        skip = entry[0] in "RC"
+    return sorted(files)
+
+
+def provenance(root: Path | None = None) -> dict:
+    """Which code made a result: ``commit`` (:func:`code_commit`), ``dirty`` (true when tracked files differ from
+    it, false when none do, null where no git can tell), ``changed`` (the first :data:`CHANGED_LISTED` of those
+    files, then ``... and N more``; only when dirty) and ``versions`` (:func:`versions`). One record for eval's
+    meta.json and a training run's provenance.json alike."""
+    changed = dirty_files(root)
+    record: dict = {"commit": code_commit(root), "dirty": None if changed is None else bool(changed)}
+    if changed:
+        record["changed"] = changed[:CHANGED_LISTED] + (
+            [f"... and {len(changed) - CHANGED_LISTED} more"] if len(changed) > CHANGED_LISTED else [])
+    record["versions"] = versions()
+    return record
+
+
+def env_as_ran(env_cfg: dict | None) -> dict | None:
+    """The env an evaluation ran in, as results record it: ``preset`` (the conf/env file its ``name`` gives) and
+    ``changed``, every field of ``env_cfg`` (the composed ``env`` section) that differs from that preset, dotted
+    (``{"track": "B"}``; {} as shipped). The one place that says so: meta.json, results.md and the results page
+    all read it. None for no env."""
+    if not env_cfg:
+        return None
+    from conf.check import sensor_overrides
+
+    return {"preset": env_cfg.get("name"), "changed": sensor_overrides(env_cfg, "env")}
 
 
 def archived_commit(root: Path) -> str | None:
@@ -104,7 +158,10 @@ def hydra_overrides() -> list[str] | None:
         hydra_cfg = HydraConfig.get()
     except Exception:  # not a Hydra job (HydraConfig unset): a caller from Python
         return None
-    return list(hydra_cfg.overrides.task) if hydra_cfg.mode == RunMode.MULTIRUN else sys.argv[1:]
+    if hydra_cfg.mode != RunMode.MULTIRUN:
+        return sys.argv[1:]
+    task = getattr(getattr(hydra_cfg, "overrides", None), "task", None)  # None: a job config without them
+    return None if task is None else list(task)
 
 
 def cpu_seconds() -> float:
@@ -116,17 +173,22 @@ def cpu_seconds() -> float:
 class EvalMeta:
     """One evaluation's meta.json: begun when the evaluation owns its out_dir, written (atomically) each time its
     results are, and last with the exit status. ``settings``: the command's settings a reader needs (seeds,
-    split, episodes, agents, vec_env, n_envs, workers)."""
+    split, episodes, agents, vec_env, n_envs, workers); ``env_cfg``: the composed ``env`` section it ran
+    (recorded as :func:`env_as_ran`)."""
 
-    def __init__(self, out_dir: str | Path, settings: dict, overrides: list[str] | None) -> None:
+    def __init__(self, out_dir: str | Path, settings: dict, overrides: list[str] | None,
+                 env_cfg: dict | None = None) -> None:
         self.path = Path(out_dir) / META
         self.kept = _not_ours(self.path)  # a person's meta.json: never replaced
         self._t0, self._cpu0, self._load0 = time.monotonic(), cpu_seconds(), load_1min()
         self.episodes_written = 0  # rows in results.csv so far
         self.sensor_faults = 0  # their non-finite sensor entries replaced (results.csv's sensor_faults, summed)
-        self.data = {"command": command_line(overrides), "commit": code_commit(), "started": utc_now(),
-                     "finished": None, "wall_s": None, "load": None, "rc": None, "cpu_s": None,
-                     "episodes_written": 0, "sensor_faults": 0, **settings, "versions": versions(),
+        code = provenance()
+        self.data = {"command": command_line(overrides), "commit": code["commit"], "started": utc_now(),
+                     "finished": None, "wall_s": None, "load": None, "rc": None, "dirty": code["dirty"],
+                     **({"changed": code["changed"]} if "changed" in code else {}), "cpu_s": None,
+                     "episodes_written": 0, "sensor_faults": 0,
+                     **({"env": env_as_ran(env_cfg)} if env_cfg else {}), **settings, "versions": code["versions"],
                      "written_by": WRITTEN_BY}
         if self.kept:
             print(f"[eval] {self.path} was not written by {WRITTEN_BY}: kept as it is (this run writes none)",

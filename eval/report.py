@@ -83,6 +83,18 @@ def shields_section(shields: Mapping[str, dict]) -> str:
                      + [f"- `{label}`: {sensors_summary(cfg, 'shield')}" for label, cfg in shields.items()]) + "\n"
 
 
+def env_section(env: Mapping | None) -> str:
+    """Markdown: the env preset the episodes ran in and every field that differs from it (``env`` as
+    :func:`eval.meta.env_as_ran` records it, the same as meta.json's ``env``): ``env.track=B`` is a layout the
+    table does not show."""
+    if not env:
+        return ""
+    changed = env.get("changed") or {}
+    said = ", ".join(f"{k}={v!r}" for k, v in sorted(changed.items())) if changed else ""
+    return f"## Env the episodes ran in\n\n- `{env.get('preset')}`" + (f" with {said}" if said else " (as shipped)") \
+        + "\n"
+
+
 def checkpoints_section(checkpoints: Mapping[str, str]) -> str:
     """Markdown: the checkpoint each trained agent ran (a name like ``ppo_turn`` resolves to the newest local run
     of that config, so the table alone does not say which policy it measured)."""
@@ -92,11 +104,12 @@ def checkpoints_section(checkpoints: Mapping[str, str]) -> str:
 
 def write_results(rows: list[dict], out_dir: str | Path, scenario: str, title: str,
                   sensors: Mapping[str, dict] | None = None, checkpoints: Mapping[str, str] | None = None,
-                  split: str | None = None, shields: Mapping[str, dict] | None = None) -> str:
-    """Write ``results.csv`` (every episode, every metric) and ``results.md`` (with, given ``sensors`` = agent
-    label → the sensors config it ran with, ``shields`` = label → the shield config of each shielded agent and
-    ``checkpoints`` = label → the checkpoint a trained agent loaded, sections stating them); returns the Markdown
-    table."""
+                  split: str | None = None, shields: Mapping[str, dict] | None = None,
+                  env: Mapping | None = None) -> str:
+    """Write ``results.csv`` (every episode, every metric) and ``results.md`` (with, given ``env`` = the env as it
+    ran (:func:`eval.meta.env_as_ran`), ``sensors`` = agent label → the sensors config it ran with, ``shields`` =
+    label → the shield config of each shielded agent and ``checkpoints`` = label → the checkpoint a trained agent
+    loaded, sections stating them); returns the Markdown table."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if split is not None:  # every row says which seed split it came from (av_gym/seeds.py)
@@ -112,6 +125,7 @@ def write_results(rows: list[dict], out_dir: str | Path, scenario: str, title: s
                f"(av_gym/metrics/kinds.py): Wilson for rates, a seeded bootstrap for counts, durations and other "
                f"non-negative quantities, Student t for signed ones.\n\n{table}\n"
                + (f"\n{note}" if note else "")
+               + (f"\n{env_section(env)}" if env else "")
                + (f"\n{checkpoints_section(checkpoints)}" if checkpoints else "")
                + (f"\n{sensors_section(sensors)}" if sensors else "")
                + (f"\n{shields_section(shields)}" if shields else ""))

@@ -187,9 +187,21 @@ def _table(lines: list[dict], columns: list[str]) -> str:
 
 
 def _where(result: dict) -> str:
-    cmd = result["meta"]["command"]
-    env = next((a.split("=", 1)[1] for a in cmd.split() if a.startswith("env.track=")), None)
-    return result["scenario"].replace("_", " ") + (f", layout {env}" if env else "")
+    """Where a folder's episodes ran: the scenario, ``layout <track>`` for another lane-keeping circuit and every
+    other env field that differs from the preset (``(mode='ccftap')``), read from meta.json's ``env``
+    (:func:`eval.meta.env_as_ran`). A folder written before meta.json held it (the shipped ones) is read from its
+    command's ``env.track=`` as before: its other env fields are not known."""
+    meta = result["meta"]
+    if isinstance(meta.get("env"), dict):
+        changed = dict(meta["env"].get("changed") or {})
+        track = changed.pop("track", None)
+    else:
+        cmd = meta.get("command") or ""
+        track = next((a.split("=", 1)[1] for a in cmd.split() if a.startswith("env.track=")), None)
+        changed = {}
+    rest = ", ".join(f"{k}={v!r}" for k, v in sorted(changed.items()))
+    return result["scenario"].replace("_", " ") + (f", layout {track}" if track else "") + \
+        (f" ({rest})" if rest else "")
 
 
 def headline_block(results: list[dict]) -> str:

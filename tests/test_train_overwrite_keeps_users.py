@@ -178,7 +178,8 @@ def test_a_jobs_folder_of_a_run_is_refused_without_a_flag_and_cleared_with_overw
     (cfg,) = check_command_line("train", [*RULE, "run_name=S", "train.overwrite=true"])
     folders = train_main._claim_folders(cfg, TrainCommand.of(cfg))
     assert folders.ckpt_dir == Path("checkpoints/S-j0") and (folders.ckpt_dir / "config.yaml").is_file()
-    assert sorted(p.name for p in logs.iterdir()) == [".hydra", "__main__.log"]
+    # its .hydra and log (Hydra's of this job) kept; provenance.json is this start's (train/provenance.py)
+    assert sorted(p.name for p in logs.iterdir()) == [".hydra", "__main__.log", "provenance.json"]
 
 
 def test_a_plain_runs_folder_the_command_line_checked_is_resumed_with_the_users_notes(tmp_path, monkeypatch,

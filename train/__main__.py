@@ -105,7 +105,8 @@ def train(cfg: DictConfig) -> dict:
 
 def _claim_folders(cfg: DictConfig, command: TrainCommand) -> Folders:
     """The run's folders, ours alone (a lock), resumable, or refused; cleared first with train.overwrite; the
-    resolved config.yaml beside the checkpoints."""
+    resolved config.yaml beside the checkpoints, the code's commit and versions in the log folder's
+    provenance.json (train/provenance.py)."""
     from train.checkpoint import write_text_atomic
     from train.run_folder import LINE_CHECKED, clear_for_overwrite, job_folder_problem, release_all
 
@@ -128,6 +129,10 @@ def _claim_folders(cfg: DictConfig, command: TrainCommand) -> Folders:
         if removed:
             print(f"[train] train.overwrite=true: removed the previous run's {len(removed)} files and folders")
     write_text_atomic(ckpt_dir / "config.yaml", OmegaConf.to_yaml(config_as_ran(cfg), resolve=True))
+    from eval.meta import hydra_overrides
+    from train.provenance import record_start
+
+    record_start(run_dir, hydra_overrides(), command.train.resume)  # which code trained it (and each resume)
     return Folders(run_dir, ckpt_dir)
 
 
@@ -160,7 +165,10 @@ def _train_agent(cfg: DictConfig, command: TrainCommand, folders: Folders) -> Pa
         return trainer_of(cfg.agent.kind)(cfg, folders.ckpt_dir, folders.run_dir, command=command)
     except ConfigError:
         # refused by the trainer before it wrote anything (an agent.init_from that does not fit): the fresh run's
-        # config.yaml goes too, or the run_name would be refused as taken
+        # config.yaml and provenance.json go too, or the run_name would be refused as taken
+        from train.provenance import undo_start
+
+        undo_start(folders.run_dir, command.train.resume)
         if not command.train.resume:
             discard_if_unstarted(folders.ckpt_dir)
         raise
@@ -169,9 +177,11 @@ def _train_agent(cfg: DictConfig, command: TrainCommand, folders: Folders) -> Pa
 def _brief_evaluation(cfg: DictConfig, command: TrainCommand, folders: Folders, model_path: Path | None) -> None:
     """The trained agent (or the rule-based one) and the baselines on ``train.eval_episodes`` validation seeds,
     into results.csv and results.md in the run folder; Ctrl-C keeps (and writes) every finished episode."""
+    from eval.meta import env_as_ran
     from eval.report import write_results
 
     options, env_name, run_dir = command.train, str(cfg.env.name), folders.run_dir
+    env = env_as_ran(OmegaConf.to_container(cfg.env, resolve=True))  # results.md says the env it ran in
     n = options.eval_episodes
     seeds = validation_seeds(options, n)
     baselines = list(BASELINES[env_name]) if options.baseline == "auto" else [options.baseline]
@@ -185,11 +195,12 @@ def _brief_evaluation(cfg: DictConfig, command: TrainCommand, folders: Folders, 
     except KeyboardInterrupt:
         if rows:
             write_results(rows, run_dir, env_name, f"{title} (interrupted after {len(rows)} episodes)",
-                          sensors=ran_with, split="validation", shields=shields)
+                          sensors=ran_with, split="validation", shields=shields, env=env)
         print(f"[train] interrupted during the brief evaluation: {len(rows)} episodes measured"
               + (f", in {run_dir}/results.csv" if rows else ""), file=sys.stderr)
         raise
-    table = write_results(rows, run_dir, env_name, title, sensors=ran_with, split="validation", shields=shields)
+    table = write_results(rows, run_dir, env_name, title, sensors=ran_with, split="validation", shields=shields,
+                          env=env)
     print(f"\n[train] brief evaluation on {n} validation seeds ({seeds.start}..{seeds.stop - 1}):\n\n{table}\n")
 
 
@@ -207,7 +218,7 @@ def _evaluate_spec(cfg: DictConfig, command: TrainCommand, folders: Folders, spe
     n, progress = options.eval_episodes, options.progress_bar
     sensors, shield, env_cfg = (OmegaConf.to_container(c, resolve=True) for c in (cfg.sensors, cfg.shield, cfg.env))
     plan = plan_agent(spec, env_name, sensors, shield, checkpoints)
-    label = str(cfg.agent.name) if spec == str(folders.ckpt_dir) else plan.label
+    label = trained_label(cfg, plan, sensors) if spec == str(folders.ckpt_dir) else plan.label
     ran_with[label] = plan.sensors
     if shield_kind(plan.shield) != "none":
         shields[label] = plan.shield
@@ -227,6 +238,15 @@ def _evaluate_spec(cfg: DictConfig, command: TrainCommand, folders: Folders, spe
         _, policy = resolve_agent(plan.spec, env, env_name, checkpoints)
         run_episodes(env, policy, seeds, label, progress=progress, out=rows)
         env.close()
+
+
+def trained_label(cfg: DictConfig, plan, sensors: dict) -> str:
+    """The row label of the agent this run trained: its name (``ppo_turn``, not the checkpoint folder) and what
+    it ran with besides (eval/labels.py ``row_label``): ``ppo_turn+aeb`` behind a command-line ``shield=aeb``.
+    Its sensors are the ones it trained on (``sensors``, the run's section): no ``@preset`` or changed field."""
+    from eval.labels import row_label
+
+    return row_label(str(cfg.agent.name), plan.sensors, sensors, plan.shield)
 
 
 def _report(folders: Folders, model_path: Path | None) -> dict:

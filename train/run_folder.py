@@ -68,12 +68,13 @@ RESTART = ("start it again with train.overwrite=true (its config.yaml and logs a
 # (train/__main__.py), the lock, every trainer's checkpoints (latest.zip, best.zip and best.json, model.zip or the
 # kind's own file: _checkpoint_names), DAgger's rounds.csv, an older run's latest.rng. In its log folder: Hydra's
 # record (.hydra, the job log *.log, a sweep's multirun.yaml), TensorBoard (tb), the periodic evaluation's eval.csv
-# and videos, DAgger's rounds.csv, PilotNet's demos.npz, the brief evaluation's results, a sweep job's error.txt.
+# and videos, DAgger's rounds.csv, PilotNet's demos.npz, the brief evaluation's results, a sweep job's error.txt,
+# the code's commit and versions (provenance.json, train/provenance.py).
 # Anything else there is the user's (notes, plots, a sub-folder): overwrite refuses rather than delete it or leave
 # it among a new run's files (overwrite_problem).
 CKPT_NAMES = frozenset({"config.yaml", LATEST, FINAL, "best.zip", "best.json", "rounds.csv", "latest.rng", LOCK})
 LOG_NAMES = frozenset({".hydra", "multirun.yaml", "tb", "videos", "eval.csv", "rounds.csv", "results.csv",
-                       "results.md", "demos.npz", "error.txt"})
+                       "results.md", "demos.npz", "error.txt", "provenance.json"})
 _TEMPORARY = re.compile(r"\.(.+)\.\d+\.tmp")  # av_gym.atomic.temporary_name: a write cut short (kill -9) leaves it
 # The files a run writes inside the sub-folders of LOG_NAMES (name: file pattern, sub-folders allowed): TensorBoard's
 # event files (tb/<agent name>/ of PPO and DAgger, tb/ of PilotNet; add_gif and the custom-scalar layout go into
