@@ -8,8 +8,9 @@ The keys are the shipped result folders' (docs/results/*/meta.json, read by eval
 on Ctrl-C; 2 on a ConfigError; 1 on any other failure; null while it runs or after a kill -9), then what a reader
 needs besides: ``dirty`` (true when the checkout's tracked files differ from ``commit``, the first of them in
 ``changed``: its numbers are not that commit's; null where no git can tell, an archive or a wheel), ``env`` (the env
-preset it ran and every field that differs from it, :func:`env_as_ran`), the settings that chose the episodes and how they ran, the episodes written and the non-finite
-sensor entries their sensors replaced (``sensor_faults``, 0 when none), CPU seconds and library versions.
+preset it ran and every field that differs from it, :func:`env_as_ran`), the settings that chose the episodes and
+how they ran, the episodes written and the non-finite sensor entries their sensors replaced (``sensor_faults``, 0
+when none), CPU seconds and library versions.
 
 A meta.json this module did not write (no ``written_by``: a person's, with notes) is never replaced: ``python -m
 eval`` refuses such an out_dir before any episode runs (:func:`hand_written_problem`), and :class:`EvalMeta` keeps

@@ -204,6 +204,15 @@ def _where(result: dict) -> str:
         (f" ({rest})" if rest else "")
 
 
+def _dirty(meta: dict) -> str:
+    """`` with uncommitted changes to a.py, b.py`` when meta.json says the checkout differed from its commit
+    (eval.meta.provenance): the numbers are not that commit's. "" otherwise (the shipped folders have no mark)."""
+    if meta.get("dirty") is not True:
+        return ""
+    changed = [f"`{f}`" if not f.startswith("...") else f for f in meta.get("changed") or []]
+    return " with uncommitted changes" + (f" to {', '.join(changed)}" if changed else "")
+
+
 def headline_block(results: list[dict]) -> str:
     """The block the README quotes: per scenario one table, every agent of every folder with its split, n and
     training seeds (single policies and lines over seeds told apart, :data:`SEEDS_NOTE`)."""
@@ -239,7 +248,7 @@ def page(results: list[dict]) -> str:
         out += [f"## {r['name']}", "",
                 f"- {_where(r)}, **{r['split']} split**, seeds {r['seeds'][0]}..{r['seeds'][1]}",
                 f"- command: `{m['command']}`",
-                f"- commit `{m['commit'][:10]}`, {m['started']} to {m['finished']} ({m['wall_s']} s, load "
+                f"- commit `{m['commit'][:10]}`{_dirty(m)}, {m['started']} to {m['finished']} ({m['wall_s']} s, load "
                 f"{m['load']})" + (f"; {m['note']}" if m.get("note") else ""), "",
                 _table(agent_lines(r, COLUMNS[r["scenario"]]), ["agent", "seeds", "n", *COLUMNS[r["scenario"]]]), ""]
         note = faults_note(r["rows"])  # only where a run had any: the shipped folders' sections stay as they are

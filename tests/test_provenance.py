@@ -70,6 +70,20 @@ def test_the_results_page_reads_the_env_from_meta_json_not_the_command():
     assert _where({"scenario": "lane_keeping", "meta": {"command": "python -m eval"}}) == "lane keeping"
 
 
+def test_the_results_page_says_a_folder_came_from_uncommitted_code(tmp_path):
+    from eval.results_page import load_folder, page
+
+    row = {"agent": "pid_paper", "seed": 1000000, "lap_completed": 1.0, "cte_mean_abs_m": 0.2}
+    write_results([row], tmp_path, "lane_keeping", "t")
+    meta = {"command": "python -m eval", "commit": "a" * 40, "started": "s", "finished": "f", "wall_s": 1,
+            "load": "1-1", "rc": 0}
+    (tmp_path / "meta.json").write_text(json.dumps({**meta, "dirty": True, "changed": ["agents/rules.py"]}))
+    said = page([load_folder(tmp_path)])
+    assert "- commit `aaaaaaaaaa` with uncommitted changes to `agents/rules.py`, s to f" in said
+    (tmp_path / "meta.json").write_text(json.dumps({**meta, "dirty": False}))
+    assert "- commit `aaaaaaaaaa`, s to f" in page([load_folder(tmp_path)])
+
+
 def test_a_training_run_records_its_code_and_each_resume(tmp_path):
     from train.provenance import PROVENANCE, record_start
     from train.run_folder import LOG_NAMES, not_a_runs
