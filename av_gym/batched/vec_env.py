@@ -437,7 +437,9 @@ class BatchedLeftTurnVectorEnv(gym.vector.VectorEnv):
     ends, ``info`` has its end-of-episode keys as ``gymnasium.make_vec(..., vectorization_mode="sync")`` batches them
     on that step, with a ``_key`` mask of the envs that ended: ``episode_metrics`` (a dict of float arrays, one per
     metric) and, with the shield, ``aeb_brake_time`` / ``aeb_stop_position`` (float; inf where it did not brake /
-    stop, ``av_gym.shields.aeb.NOT_YET``)."""
+    stop, ``av_gym.shields.aeb.NOT_YET``). Unlike sync / async (``AutoresetMode.NEXT_STEP``, every per-env key each
+    step): no per-step keys (no ``truth``, no ``aeb_*`` while driving; ``reset`` gives ``{}``), and from its second
+    episode on an env plays the pool's next ready episode, not its own generator's (docs/performance.md)."""
 
     def __init__(self, env_cfg: dict, sensors_cfg: dict, n_envs: int, shield_cfg: dict | None = None,
                  **kwargs) -> None:
