@@ -24,7 +24,8 @@ from av_gym.references import checkout_path_hint, reference_root
 from conf.check import sensor_overrides  # noqa: F401 - moved below eval (train checks overrides too); used here
 from conf.presets import compose_group  # noqa: F401 - used here and imported from here by tests and tools
 
-__all__ = ["AgentPlan", "available_agents", "check_plan", "check_preset_space", "compose_group", "find_checkpoint",
+__all__ = ["AgentPlan", "available_agents", "check_action_space", "check_plan", "check_preset_space", "compose_group",
+           "find_checkpoint",
            "install_opinion", "load_agent_config", "make_eval_env", "plan_agent", "resolve_agent", "sensor_overrides",
            "sensors_summary"]
 
@@ -356,6 +357,61 @@ def check_preset_space(plan: AgentPlan, env_cfg: Any) -> None:
         raise ConfigError(f"agent {plan.given!r}: @{preset} gives observations {describe_space(given)}, but it was "
                           f"trained on sensors={own.get('name')}, {describe_space(trained)}; drive it from a preset "
                           f"with that observation space ({agent}@{own.get('name')}, or {agent} alone)")
+
+
+_ACTION_PROBLEMS: dict[str, str | None] = {}  # _first_action_problem's answers: agent+aeb is agent's (0.5-1 s a load)
+
+
+def _first_action_problem(plan: AgentPlan, env_cfg: dict, checkpoints: str | Path) -> str | None:
+    """Why agent ``plan`` cannot drive the env ``env_cfg`` (None: it can): its policy built (a checkpoint loaded) on
+    its sensors, reset with seed 0 and asked for its first action, which must be in the env's action space
+    (:func:`av_gym.actions.check_action`, the env's own check). Without the shield, which takes the env's actions."""
+    import json
+
+    from av_gym.actions import check_action
+    from av_gym.make import make_env
+
+    key = json.dumps([plan.spec, plan.sensors, env_cfg, str(checkpoints)], sort_keys=True, default=str)
+    if key in _ACTION_PROBLEMS:
+        return _ACTION_PROBLEMS[key]
+    env, problem = None, None
+    try:
+        env = make_env(env_cfg, plan.sensors, None)
+        obs, _ = env.reset(seed=0)
+        _, policy = resolve_agent(plan.spec, env, env_cfg["name"], checkpoints)
+        policy.reset()
+        check_action(env.action_space, policy.act(obs))
+    except ConfigError as exc:  # InvalidAction is one; so is a checkpoint trained on another action space
+        problem = str(exc)
+    finally:
+        if env is not None:
+            env.close()
+    _ACTION_PROBLEMS[key] = problem
+    return problem
+
+
+def check_action_space(plan: AgentPlan, env_cfg: dict, checkpoints: str | Path) -> None:
+    """Refuse (one line, before any episode) an agent whose actions the env does not take: otherwise the agents
+    listed before it run and write their rows first and its first step fails (``gap_acceptance`` gives
+    meta-actions, ``env.action=continuous`` takes accelerations). The line names the agent, the ``env.action``
+    given and the values it can drive (each tried the same way); if it drives none, the problem is another (an
+    observation space), said as it is."""
+    import typing
+
+    from av_gym.make import scenario_params
+
+    problem = _first_action_problem(plan, env_cfg, checkpoints)
+    if problem is None:
+        return
+    params = scenario_params(env_cfg)
+    values = typing.get_args(typing.get_type_hints(type(params)).get("action")) if hasattr(params, "action") else ()
+    given = getattr(params, "action", None)
+    works = [v for v in values if v != given and _first_action_problem(plan, {**env_cfg, "action": v},
+                                                                         checkpoints) is None]
+    if not works:
+        raise ConfigError(f"agent {plan.given!r}: {problem}")
+    raise ConfigError(f"agent {plan.given!r} cannot drive env.action={given}: {problem}; it drives "
+                      f"env.action={' or '.join(works)}")
 
 
 def check_sensor_overrides(plan: AgentPlan, env_cfg: Any) -> None:
