@@ -217,7 +217,7 @@ def test_batched_ccftap_matches_per_env_stack_for_5_s(case):
 
 
 def test_batched_ccftap_ends_as_the_per_env_env():
-    """Whole CCFtap episodes (the target-passed rule and the case's own time limit): always-proceed into the target
+    """Whole CCFtap episodes (the end rule and the case's own time limit): always-proceed into the target
     (a collision), an ego that stops for good before the line (truncated at the limit) and one that waits, then
     goes (arrives after the target passed): the same rewards and ends at every step."""
     seeds = [1, 2, 3]
