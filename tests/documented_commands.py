@@ -458,6 +458,7 @@ SCRIPT_ARGS = {
     "benchmarks/belief_tracks_diagnose.py": ["--seeds", "1000000", "--set", "samples=2"],
     "benchmarks/belief_tracks_pairs.py": ["--seeds", "1000000", "--set", "samples=2"],
     "benchmarks/belief_tracks_takeback.py": ["--seeds", "1000000", "--set", "samples=2"],
+    "benchmarks/belief_tracks_waiting.py": ["--seeds", "1000000", "--set", "samples=2"],
     "benchmarks/belief_tracks_confirm.py": ["--seeds", "1000000", "--set", "samples=2"],
     "benchmarks/belief_tracks_state.py": ["--seeds", "1000000", "--set", "samples=2"],
     "benchmarks/belief_tracks_motion.py": ["--episodes", "1", "--fit", "0.5", "--set", "samples=2"],
