@@ -65,8 +65,9 @@ def test_batch_ends_full_throttle_ccftap_as_the_per_env_env(case):
 
 
 def test_numpy_path_clips_speed_as_highway_env():
-    """The batch's numpy path (no tick kernel) keeps Vehicle.MAX_SPEED too: a target at 200 km/h (55.6 m/s) is
-    slowed as the per-env stack's."""
+    """The batch's numpy path (no tick kernel) keeps Vehicle.MAX_SPEED too: an ego at 100 km/h on full throttle
+    passes 40 m/s on step ~40 of 52 and is slowed as the per-env stack's (a target may no longer be set above 144
+    km/h = 40 m/s: env.ccftap.target_speed_kmh's bound)."""
     with sim_batched.using_kernels(sim_batched.KERNELS - {"tick"}):
-        split = run_pair([1], horizon=3, env=_ccftap(100.0, 200.0, 0.0, "continuous"), actions=np.ones((3, 1)))
+        split = run_pair([1], horizon=60, env=_ccftap(100.0, 144.0, 0.0, "continuous"), actions=np.ones((60, 1)))
     assert split == [None], split

@@ -71,8 +71,11 @@ class CCFtapParams(Params):
 
     ego_speed_kmh: float = param(15.0, "km/h", ge=1, le=100, doc="VUT speed: Euro NCAP 10 / 15 / 20 (below 1 km/h "
                                                   "the ego takes minutes to arrive; no turn is driven at 100)")
-    target_speed_kmh: float = param(45.0, "km/h", ge=1, le=200, doc="GVT speed: Euro NCAP 30 / 45 / 60 (bounds: "
-                                                  "the episode lasts until it clears the junction)")
+    target_speed_kmh: float = param(45.0, "km/h", ge=1, le=144, doc="GVT speed: Euro NCAP 30 / 45 / 60 (bounds: "
+                                                  "the episode lasts until it clears the junction; highway-env "
+                                                  "caps a vehicle at Vehicle.MAX_SPEED = 40 m/s = 144 km/h, so a "
+                                                  "faster target would never drive its set speed and would reach "
+                                                  "the conflict point late)")
     dt: float = param(0.0, "s", ge=-30, le=30, doc="the target reaches the conflict point this long after the ego (0 = "
                                                  "they meet); the episode lasts until it clears, so |dt| is "
                                                  "bounded (Euro NCAP uses a few s; 1e9 hung)")
