@@ -69,7 +69,7 @@ class _Rollouts(BaseCallback):
 
 
 def _run(tmp_path: Path, total: int, every: int, repeat: int = 1, signal_at_step: tuple[int, ...] = (),
-         rollouts: _Rollouts | None = None):
+         rollouts: BaseCallback | None = None):
     """train.ppo.learn on the tiny model to ``total`` decisions; SIGTERM sent from inside the optimizer's
     ``step`` calls numbered ``signal_at_step`` (1-based; 6 per update: 32 / 16 x 3 epochs), i.e. mid-update;
     ``rollouts`` (after the checkpoint callback) records RNG states and may signal mid-rollout.
@@ -284,3 +284,73 @@ def test_a_resumed_dagger_runs_event_files_hold_each_step_once(tmp_path):
               for v in e.summary.value if v.tag == "dagger/agreement"]
     assert sorted(s for s, _ in points) == [100, 200, 300, 400], points
     assert dict(points)[300] == pytest.approx(0.9) and dict(points)[200] == pytest.approx(0.5)
+
+
+def _play(policy, seeds) -> list[dict]:
+    """PeriodicEval's ``play`` on the tiny CartPole policy: per seed, its deterministic action on a seeded
+    observation (1: a 'success', 0: a 'collision'), so each row depends on the parameters evaluated."""
+    import numpy as np
+
+    rows = []
+    for seed in seeds:
+        obs = np.random.default_rng(seed).normal(size=4).astype(np.float32)
+        action = int(policy.model.predict(obs, deterministic=True)[0])
+        rows.append({"agent": "eval", "success": float(action == 1), "collision": float(action == 0)})
+    return rows
+
+
+def _evaluation(folder: Path):
+    """The periodic evaluation at every rollout (PeriodicEval, 16 seeds, no video) writing into ``folder``."""
+    from train.callbacks import PeriodicEval
+
+    (folder / "ckpt").mkdir(parents=True, exist_ok=True)
+    return PeriodicEval(lambda mode: None, "left_turn", range(16), ROLLOUT, folder / "ckpt", folder, play=_play)
+
+
+def _evaluations(folder: Path) -> tuple[list[tuple], dict]:
+    """eval.csv's rows and best.json, without wall-clock time (the only thing allowed to differ)."""
+    import csv
+    import json
+
+    with open(folder / "eval.csv") as f:
+        rows = [tuple((k, v) for k, v in r.items() if k != "wall_clock_s") for r in csv.DictReader(f)]
+    best = json.loads((folder / "ckpt" / "best.json").read_text())
+    return rows, {k: v for k, v in best.items() if k != "wall_clock_s"}
+
+
+def _resume(folder: Path, total: int) -> None:
+    """train.ppo.learn from ``folder/ckpt/latest.zip`` to ``total`` decisions, as train_ppo resumes."""
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.env_util import make_vec_env
+
+    from train.callbacks import AtomicCheckpointCallback, FiniteGuard
+    from train.ppo import _tensorboard_logger, learn
+
+    venv = make_vec_env("CartPole-v1", n_envs=1, seed=1)
+    model = PPO.load(str(folder / "ckpt" / "latest.zip"), env=venv, device="cpu")
+    model.set_logger(_tensorboard_logger(folder / "tb", model.num_timesteps + 1))
+    checkpoint = AtomicCheckpointCallback(folder / "ckpt", 10**6)
+    params = types.SimpleNamespace(total_timesteps=total, n_steps=ROLLOUT, n_envs=1, action_repeat=1)
+    learn(model, venv, params, [FiniteGuard(3e-4), checkpoint, _evaluation(folder)], FiniteGuard(3e-4), checkpoint,
+          False, "t")
+
+
+@pytest.mark.slow  # three tiny PPO runs: ~2.7 s at load 1.3
+def test_a_run_stopped_in_its_last_update_gets_its_final_evaluation_on_resume(tmp_path):
+    """SIGTERM inside the last PPO update (optimizer step 20 of 24) stops at the final boundary, saved, before the
+    periodic evaluation's end-of-training one; the resume, with no step left to train, makes that evaluation:
+    eval.csv and best.json as the uninterrupted run's. A second resume adds nothing. Fails without learn()'s
+    callbacks at rounded == 0 or without PeriodicEval's schedule from eval.csv's last row (resumed: csv ends at 96)."""
+    total = 4 * ROLLOUT
+    _run(tmp_path / "whole", total, every=10**6, rollouts=_evaluation(tmp_path / "whole"))
+    reference = _evaluations(tmp_path / "whole")
+    assert [dict(r)["steps"] for r in reference[0]] == ["0", "32", "64", "96", "128"]
+
+    cut = tmp_path / "cut"
+    _, checkpoint, interrupted = _run(cut, total, every=10**6, signal_at_step=(20,), rollouts=_evaluation(cut))
+    assert interrupted and checkpoint.saved_at == total
+    assert [dict(r)["steps"] for r in _evaluations(cut)[0]] == ["0", "32", "64", "96"], "stopped before it"
+    _resume(cut, total)
+    assert _evaluations(cut) == reference
+    _resume(cut, total)  # learning and its final evaluation both done: nothing twice
+    assert _evaluations(cut) == reference

@@ -363,6 +363,11 @@ class PeriodicEval(BaseCallback):
             if removed:
                 print(f"[train] resumed at {self.num_timesteps} decisions: removed {len(removed)} videos of the "
                       f"interrupted run's evaluations after it (videos/step_<n>.gif, n > {self.num_timesteps})")
+            # the schedule goes on from the evaluations the run really made, as the uninterrupted run's does: a
+            # run stopped at its last boundary before its final evaluation (a signal during the last update) gets
+            # that evaluation from _on_training_end, and one that made it does not make it twice
+            self._last_eval = self._last_step(self.num_timesteps)
+            self._last_video = max(self._video_steps(), default=self.num_timesteps)
         if self.every > 0 and self.num_timesteps == 0:  # the starting point (e.g. a cloned policy) on the curve
             self.evaluate()
 
@@ -380,6 +385,18 @@ class PeriodicEval(BaseCallback):
         kept = lines[:1] + [ln for ln in lines[1:] if int(float(ln.split(",", 1)[0])) <= last_step]
         if len(kept) != len(lines):
             write_text_atomic(path, "".join(kept))
+
+    def _last_step(self, default: int) -> int:
+        """The step (decisions) of ``eval.csv``'s last row; ``default`` without one."""
+        path = self.run_dir / "eval.csv"
+        lines = path.read_text().splitlines()[1:] if path.is_file() else []
+        return int(float(lines[-1].split(",", 1)[0])) if lines else default
+
+    def _video_steps(self) -> list[int]:
+        """The steps (decisions) of the GIFs in ``videos/`` (whole files, not a killed write's leftovers)."""
+        folder = self.run_dir / "videos"
+        found = (VIDEO_NAME.fullmatch(p.name) for p in (folder.iterdir() if folder.is_dir() else []))
+        return [int(m.group(2)) for m in found if m and not m.group(1)]
 
     def _on_rollout_start(self) -> None:
         if self.every > 0 and self.num_timesteps - self._last_eval >= self.every:
@@ -411,12 +428,6 @@ class PeriodicEval(BaseCallback):
         wall = time.time() - self.t0
         self.logger.record("eval/wall_clock_s", wall)
         dump_prefix(self.logger, "eval/", step)  # now, at this evaluation's step: TensorBoard = eval.csv
-        new_file = not (self.run_dir / "eval.csv").is_file()
-        with open(self.run_dir / "eval.csv", "a", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=["steps", "wall_clock_s", *means])
-            if new_file:
-                writer.writeheader()
-            writer.writerow({"steps": step, "wall_clock_s": round(wall, 1), **means})
         if means["score"] > self.best:
             self.best = means["score"]
             save_model_atomic(self.model, self.ckpt_dir / "best.zip")
@@ -424,6 +435,14 @@ class PeriodicEval(BaseCallback):
         if self.video_every > 0 and (step - self._last_video >= self.video_every or step == 0):
             self._last_video = step
             self.video(step)
+        # last: the row says the evaluation is done (a resume does not redo it: _on_training_start), so what it
+        # decides (best.zip, the video) is on disk first; a signal before the row makes the resume redo it all
+        new_file = not (self.run_dir / "eval.csv").is_file()
+        with open(self.run_dir / "eval.csv", "a", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=["steps", "wall_clock_s", *means])
+            if new_file:
+                writer.writeheader()
+            writer.writerow({"steps": step, "wall_clock_s": round(wall, 1), **means})
         return means
 
     def video(self, step: int) -> Path:

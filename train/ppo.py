@@ -278,9 +278,10 @@ def learn(model, venv, params, callbacks: list, guard, checkpoint, progress_bar:
         if rounded != remaining:
             print(f"[train] agent.total_timesteps={params.total_timesteps}: PPO trains whole rollouts of "
                   f"n_steps x n_envs = {rollout} decisions, so {int(model.num_timesteps) + rounded}")
-        if rounded > 0:
-            model.learn(total_timesteps=rounded, callback=callbacks, reset_num_timesteps=False,
-                        progress_bar=progress_bar)
+        # rounded == 0 (a resume of a run stopped at its last boundary: a signal during the last update) still goes
+        # through learn(): no rollout, but the callbacks' end of training, i.e. the final evaluation it missed
+        model.learn(total_timesteps=max(rounded, 0), callback=callbacks, reset_num_timesteps=False,
+                    progress_bar=progress_bar and rounded > 0)
     except (ValueError, RuntimeError) as exc:
         # a NaN in the middle of an update fails inside torch (a distribution's argument check) before the guard
         # sees it: with non-finite parameters, that is the divergence, said in one line
