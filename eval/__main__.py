@@ -105,11 +105,11 @@ def _check_plans(plans: list, command: EvalCommand, env_cfg: dict, given: dict) 
         check_plan(plan, env_cfg["name"])
         check_sensor_overrides(plan, env_cfg)  # a trained agent's sensors with the command line's on top
         check_preset_space(plan, env_cfg)  # agent@preset: the preset gives the observations it was trained on
-        check_action_space(plan, env_cfg, command.paths.checkpoints)  # its actions fit env.action
-        if command.vec_env == "batched":
+        if command.vec_env == "batched":  # first: what the batch cannot run is the more direct answer
             from eval.batched import check_batched_plan
 
             check_batched_plan(plan, env_cfg)
+        check_action_space(plan, env_cfg, command.paths.checkpoints)  # its actions fit env.action
 
 
 def _plain(section) -> dict:

@@ -408,8 +408,9 @@ def check_action_space(plan: AgentPlan, env_cfg: dict, checkpoints: str | Path) 
     given = getattr(params, "action", None)
     works = [v for v in values if v != given and _first_action_problem(plan, {**env_cfg, "action": v},
                                                                          checkpoints) is None]
-    if not works:
-        raise ConfigError(f"agent {plan.given!r}: {problem}")
+    if not works:  # the problem as it is, the agent named once (building the agent may already name it)
+        named = problem.startswith(f"agent {plan.given!r}")
+        raise ConfigError(problem if named else f"agent {plan.given!r}: {problem}")
     raise ConfigError(f"agent {plan.given!r} cannot drive env.action={given}: {problem}; it drives "
                       f"env.action={' or '.join(works)}")
 
