@@ -626,7 +626,9 @@ class BeliefPlanner:
         # the ego starts up to ~40 m out), so a margin from the unclipped distance stopped it up to 10 m short
         scale = EGO_SCALES["to_stop_line"]
         d_stop = np.clip(-engine.truth(rows)["stop_line_offset"], -scale, scale)
-        return np.maximum(margin, d_stop - (gap - float(p.wait_gap)))
+        # fmax, not maximum: a NaN distance (a non-finite stop_line_offset) falls back to the line's margin; a NaN
+        # margin made meta_actions answer FASTER, so YIELD would have sped up (R8 finding 5)
+        return np.fmax(margin, d_stop - (gap - float(p.wait_gap)))
 
     def live(self, engine, rows: np.ndarray, choice: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(due, final) masks over ``rows`` at env steps ``step`` (their held choices ``choice``): which rows decide

@@ -262,3 +262,20 @@ def test_the_batch_evaluation_waits_where_the_per_env_agent_does():
     for e in envs:
         e.close()
     assert moved > 0, "wait_gap / wait_back must change some YIELD meta-action"
+
+
+def test_a_nan_distance_to_the_line_falls_back_to_the_lines_margin():
+    """A non-finite ``stop_line_offset`` (NaN) leaves the margin at the line's (MARGIN + ``wait_back``), a road user
+    ahead or not, never NaN: meta_actions reads a NaN margin as room to speed up (FASTER), so YIELD would
+    accelerate (R8 finding 5)."""
+    rows = [[(10.0, 0.0, 0.7)], [(30.5, 0.0, 0.7)]]  # one in reach, one beyond it
+    np.testing.assert_array_equal(_margin(rows, [np.nan] * 2, wait_gap=3.0), [MARGIN] * 2)
+    m = _margin(rows, [np.nan] * 2, wait_gap=3.0, wait_back=1.5)
+    np.testing.assert_array_equal(m, [MARGIN + 1.5] * 2)
+    ego = np.zeros((2, len(EGO_FEATURES)))
+    # 5 m before the line at 4.5 m/s: sqrt(2 b (5 - 2)) = 4.2 m/s is under 4.5 (SLOWER); NaN read as the top (FASTER)
+    ego[:, EGO_FEATURES.index("set_point")] = 4.5
+    ego[:, EGO_FEATURES.index("to_stop_line")] = 5.0
+    turn = TURN.encode(ego, np.zeros((2, TURN.max_objects, len(OBJECT_FEATURES))))
+    assert meta_actions(np.full(2, YIELD), turn, np.full(2, np.nan))[0] == 2  # why NaN must not get through
+    np.testing.assert_array_equal(meta_actions(np.full(2, YIELD), turn, m), [0, 0])  # SLOWER
