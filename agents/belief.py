@@ -642,7 +642,8 @@ class BeliefPlanner:
         if self.params.commit == "go":
             due &= choice != GO
         elif self.params.commit == "stop" and due.any():
-            final[due] = self.committed(engine, rows[due], choice[due])
+            # judged at the stop YIELD would ask for (wait_back / wait_gap move it back), not the line's MARGIN
+            final[due] = self.committed(engine, rows[due], choice[due], self.yield_margin(engine, rows[due]))
             due &= ~final
         return due, final
 
@@ -657,18 +658,20 @@ class BeliefPlanner:
         return np.where(safe & (self.safe_run[rows] >= int(self.params.confirm)), GO, YIELD).astype(np.int64)
 
     @staticmethod
-    def committed(engine, rows, choice) -> np.ndarray:
+    def committed(engine, rows, choice, margin: np.ndarray | float | None = None) -> np.ndarray:
         """The choice is GO for good: the ego is over 1 m past the stop line (GapAcceptance's commitment: stopping
         inside the intersection puts the car in the crossing traffic's way), or it holds GO and is too fast to stop
-        before the line at the approach's comfortable deceleration (the YIELD set-point av_gym.wrappers.meta_action
-        would ask for could no longer be met)."""
+        ``margin`` m (one or one per row; default av_gym.wrappers.MARGIN, the line's) before the line at the
+        approach's comfortable deceleration (the YIELD set-point av_gym.wrappers.meta_action would ask for could no
+        longer be met). :meth:`live` passes :meth:`yield_margin`, where YIELD stops."""
         from av_gym.wrappers import DECEL, MARGIN
 
         if len(rows) == 0:
             return np.zeros(0, bool)
         tr = engine.truth(np.asarray(rows))
         offset = tr["stop_line_offset"]
-        v_ok = np.sqrt(2.0 * DECEL * np.maximum(-offset - MARGIN, 0.0))
+        d0 = MARGIN if margin is None else np.asarray(margin, dtype=float)
+        v_ok = np.sqrt(2.0 * DECEL * np.maximum(-offset - d0, 0.0))
         return (offset > 1.0) | ((np.asarray(choice) == GO) & (tr["speed"] > v_ok))
 
     def futures(self, engine, rows: np.ndarray, K: int | None = None, stream: tuple = (),

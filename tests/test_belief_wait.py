@@ -279,3 +279,33 @@ def test_a_nan_distance_to_the_line_falls_back_to_the_lines_margin():
     turn = TURN.encode(ego, np.zeros((2, TURN.max_objects, len(OBJECT_FEATURES))))
     assert meta_actions(np.full(2, YIELD), turn, np.full(2, np.nan))[0] == 2  # why NaN must not get through
     np.testing.assert_array_equal(meta_actions(np.full(2, YIELD), turn, m), [0, 0])  # SLOWER
+
+
+class _Moving(_Road):
+    """:class:`_Road` with the ego at ``speed`` m/s (committed() reads it)."""
+
+    def __init__(self, users, d_stop, speed: float) -> None:
+        super().__init__(users, d_stop)
+        self.speed = np.full(len(users), float(speed))
+
+    def truth(self, rows) -> dict:
+        return {**super().truth(rows), "speed": self.speed[np.asarray(rows)]}
+
+
+def test_commit_stop_judges_the_stop_where_yield_stops():
+    """``commit: stop`` makes a held GO final where the ego can no longer stop where YIELD would stop it: 10 m
+    before the line at 6.5 m/s it can still stop at the line (sqrt(2·3·9.5) = 7.5 m/s), not 5.5 m before it
+    (``wait_back`` 5: 5.2 m/s) nor 3 m behind a car whose rear is 5 m ahead (``wait_gap`` 3: stop 8 m before the
+    line, 3.5 m/s). Without wait_back / wait_gap (every shipped preset; belief_tracks runs commit: never, which
+    never asks committed()) the line's MARGIN, as before."""
+    users = [[(30.5, 0.0, 0.7)], [(30.5, 0.0, 0.7)], [(10.0, 0.0, 0.7)]]
+    road = _Moving(users, [10.0] * 3, 6.5)
+    rows, held, step = np.arange(3), np.full(3, GO), np.zeros(3, int)
+    for options, want in (({}, [False] * 3), ({"wait_back": 5.0}, [True] * 3),
+                          ({"wait_gap": 3.0}, [False, False, True])):
+        planner = BeliefPlanner(BeliefLookaheadParams(samples=4, commit="stop", **options), n_rows=3)
+        due, final = planner.live(road, rows, held, step)
+        np.testing.assert_array_equal(final, want, err_msg=str(options))
+        assert (due == ~final).all()
+    assert BeliefPlanner.committed(road, rows, held).tolist() == [False] * 3  # the default: the line's MARGIN
+    assert BeliefLookaheadParams().commit == "never"
