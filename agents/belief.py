@@ -307,7 +307,11 @@ class BeliefLookaheadParams(AgentParams):
                                                       "of the ego (its centre within 2 m of the ego's axis, 30 m, "
                                                       "any heading), whichever place comes first: the ego's set-point "
                                                       "follows the stop line alone and ran into, or was backed into "
-                                                      "by, a car or a wreck standing over the line; 0: the line alone")
+                                                      "by, a car or a wreck standing over the line. It reads where "
+                                                      "that road user is now, not its speed, and counts moving "
+                                                      "traffic too (a leader driving away, a crossing car passing "
+                                                      "in front): YIELD then stops wait_gap behind where it is at "
+                                                      "each step, a stop that moves on as it does; 0: the line alone")
     # at most 1.5 m: from 2 m on the grown box reaches every car passing in the adjacent opposite lane (4 m lanes,
     # 2 m wide cars) and a follower queued at highway-env's 2 m gap, so every future would "collide"
     track_margin: float = param(0.0, "m", ge=0, le=1.5, doc="a clearance the futures demand: a future counts as a "
