@@ -36,6 +36,9 @@ BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
 RECORD = "multirun.yaml"  # the sweep's record, written by the basic sweeper into hydra.sweep.dir
 LAUNCHER_FILES = frozenset({RECORD, ".submitit"})  # a sweep's own in its folder (submitit's job logs and pickles)
 _HYDRA_FILES = re.compile(r"(config|hydra|overrides)\.yaml")  # what Hydra writes in a job's .hydra/
+# python -m eval.sweep's summary of the sweep, written into its folder by default (eval/sweep.py: sweep.csv, sweep.md
+# and sweep_<metric>_vs_<x>.png): this project's own, of the sweep a resumed / overwrite=true sweep continues
+SUMMARY_FILES = re.compile(r"sweep\.(csv|md)|sweep_.+_vs_.+\.png")
 
 
 class JobFolders(Callback):
@@ -142,18 +145,23 @@ def sweep_dir_problem(sweep_dir: Path, job_dirs: list[Path] | None, continues: b
     record ``multirun.yaml`` would be replaced (Hydra writes this sweep's there), and anything else (a user's notes,
     an earlier sweep's aggregate from python -m eval.sweep) would end up among this sweep's. Only a sweep whose jobs
     all continue or replace theirs (``continues``: train.resume, overwrite) takes over the earlier sweep's record
-    (and its launcher's ``.submitit``). ``job_dirs`` None (a sweeper that picks its jobs as it goes): nothing may be
-    there but that record."""
+    (and its launcher's ``.submitit``) and its summary (``python -m eval.sweep``'s sweep.csv, sweep.md, plot:
+    :data:`SUMMARY_FILES`, rewritten when the sweep is summarised again); any other sweep is told what the summary
+    is. ``job_dirs`` None (a sweeper that picks its jobs as it goes): nothing may be there but that record."""
     try:
         held = sorted(p.name for p in sweep_dir.iterdir())
     except (FileNotFoundError, NotADirectoryError):  # a file there is the folder check's (conf.cli.out_folder_problem)
         return None
     tops = {d.relative_to(sweep_dir).parts[0] for d in job_dirs or [] if sweep_dir in d.parents}
-    odd = [name for name in held if name not in tops and not (continues and name in LAUNCHER_FILES)]
+    odd = [name for name in held if name not in tops
+           and not (continues and (name in LAUNCHER_FILES or SUMMARY_FILES.fullmatch(name)))]
     if not odd:
         return None
+    summary = [name for name in odd if SUMMARY_FILES.fullmatch(name)]
     what = (f"an earlier sweep's record ({_listed(odd)}), which this sweep's would replace" if odd == [RECORD] else
-            f"what is not this sweep's ({_listed(odd)}{': an earlier sweep' if RECORD in odd else ''})")
+            f"what is not this sweep's ({_listed(odd)}{': an earlier sweep' if RECORD in odd else ''}"
+            + (f"; {_listed(summary)}: python -m eval.sweep's summary of it, which only a sweep whose every job "
+               f"resumes or overwrites its own takes over" if summary else "") + ")")
     return f"hydra.sweep.dir={sweep_dir}: holds {what}; pick another hydra.sweep.dir (an empty or new folder)"
 
 

@@ -252,7 +252,8 @@ def test_a_sweep_folder_holding_an_earlier_sweeps_record_is_refused_before_hydra
 def test_a_sweep_whose_every_job_replaces_its_own_takes_an_earlier_sweeps_record_over(command, tmp_path,
                                                                                      hydra_loader, monkeypatch):
     """Every job resumes or overwrites (train.overwrite=true, overwrite=true): the sweep continues or redoes the
-    earlier one in that folder, whose record (and launcher's .submitit) it takes over."""
+    earlier one in that folder, whose record (and launcher's .submitit) and python -m eval.sweep summary (sweep.csv,
+    sweep.md, its plot: written there by default) it takes over."""
     from eval import job_folders as eval_job_folders
 
     hook = (job_folders if command == "train" else eval_job_folders).JobFolders().on_multirun_start
@@ -261,14 +262,16 @@ def test_a_sweep_whose_every_job_replaces_its_own_takes_an_earlier_sweeps_record
     monkeypatch.chdir(tmp_path)
     (tmp_path / "sweep" / ".submitit").mkdir(parents=True)
     (tmp_path / "sweep" / "multirun.yaml").write_text("earlier: sweep\n")
+    for name in ("sweep.csv", "sweep.md", "sweep_success_vs_seed.png"):
+        (tmp_path / "sweep" / name).write_text("python -m eval.sweep's summary\n")
     hook(config=hydra_loader(args, command=command))
 
 
 @pytest.mark.parametrize("command", ["train", "eval"])
 def test_a_sweep_folder_holding_what_is_no_sweeps_is_refused_whatever_the_flags(command, tmp_path, capsys,
                                                                                  hydra_loader, monkeypatch):
-    """A file in hydra.sweep.dir that is neither a sweep's record nor a job's folder (an earlier sweep's python -m
-    eval.sweep table, a user's notes) would end up among this sweep's: refused even when every job replaces its
+    """A file in hydra.sweep.dir that is neither a sweep's record, its python -m eval.sweep summary nor a job's
+    folder (a user's notes, sweep.md.bak) would end up among this sweep's: refused even when every job replaces its
     own, nothing written."""
     from eval import job_folders as eval_job_folders
 
@@ -279,10 +282,34 @@ def test_a_sweep_folder_holding_what_is_no_sweeps_is_refused_whatever_the_flags(
     (tmp_path / "sweep").mkdir()
     (tmp_path / "sweep" / "multirun.yaml").write_text("earlier: sweep\n")
     (tmp_path / "sweep" / "sweep.md").write_text("an earlier sweep's table\n")
+    (tmp_path / "sweep" / "sweep.md.bak").write_text("a user's copy of it\n")
     before = snapshot(tmp_path)
     line = _refused(hook, hydra_loader(args, command=command), capsys)
-    assert line == (f"error: hydra.sweep.dir={tmp_path}/sweep: holds what is not this sweep's (sweep.md); pick "
+    assert line == (f"error: hydra.sweep.dir={tmp_path}/sweep: holds what is not this sweep's (sweep.md.bak); pick "
                     f"another hydra.sweep.dir (an empty or new folder); no job of the sweep was run")
+    assert snapshot(tmp_path) == before
+
+
+@pytest.mark.parametrize("command", ["train", "eval"])
+def test_a_new_sweep_into_a_summarised_sweeps_folder_is_refused_naming_the_summary(command, tmp_path, capsys,
+                                                                                   hydra_loader, monkeypatch):
+    """A sweep whose jobs do not all continue theirs, into a folder python -m eval.sweep summarised: refused in one
+    line that names the earlier sweep's record and its summary files as such, nothing written."""
+    from eval import job_folders as eval_job_folders
+
+    hook = (job_folders if command == "train" else eval_job_folders).JobFolders().on_multirun_start
+    args = [*(RULE if command == "train" else EVAL), "seed=0,1" if command == "train" else "seed=1000000,1000001",
+            "hydra.sweep.dir=sweep"]
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "sweep").mkdir()
+    for name in ("multirun.yaml", "sweep.csv", "sweep.md"):
+        (tmp_path / "sweep" / name).write_text("an earlier sweep's\n")
+    before = snapshot(tmp_path)
+    line = _refused(hook, hydra_loader(args, command=command), capsys)
+    assert line == (f"error: hydra.sweep.dir={tmp_path}/sweep: holds what is not this sweep's (multirun.yaml, "
+                    f"sweep.csv, sweep.md: an earlier sweep; sweep.csv, sweep.md: python -m eval.sweep's summary of "
+                    f"it, which only a sweep whose every job resumes or overwrites its own takes over); pick another "
+                    f"hydra.sweep.dir (an empty or new folder); no job of the sweep was run")
     assert snapshot(tmp_path) == before
 
 
