@@ -39,7 +39,7 @@ from av_gym.estimation.driver_intent import DriverIntent
 from av_gym.params import param
 from av_gym.sensors.turn_signal import TurnSignalsParams
 from av_gym.sim.batched import SpawnPrior
-from av_gym.wrappers import GO, YIELD, meta_action
+from av_gym.wrappers import GO, YIELD
 
 __all__ = ["BeliefLookahead", "BeliefLookaheadAgent", "BeliefLookaheadParams", "BeliefPlanner", "EnvView",
            "PlannerOpinion", "belief_lookahead_teacher"]
@@ -634,6 +634,16 @@ class BeliefPlanner:
         # margin made meta_actions answer FASTER, so YIELD would have sped up (R8 finding 5)
         return np.fmax(margin, d_stop - (gap - float(p.wait_gap)))
 
+    def meta_actions(self, engine, rows, choice: np.ndarray, turn: np.ndarray) -> np.ndarray:
+        """The meta-actions (len(rows),) that move the set-point of ``rows`` towards their ``choice`` (GO or YIELD,
+        (len(rows),)) given their ``turn`` features ((len(rows), n)): :func:`av_gym.wrappers.meta_actions` at
+        :meth:`yield_margin`, so that YIELD stops where ``wait_back`` / ``wait_gap`` ask. The one place every driver
+        of this planner (BeliefLookahead.act, eval.batched, the replay tools in benchmarks/) makes its actions, so a
+        replay drives what the preset drives. On tracks, :meth:`read` the rows at this step first."""
+        from av_gym.wrappers import meta_actions
+
+        return meta_actions(np.asarray(choice), np.asarray(turn), self.yield_margin(engine, rows))
+
     def live(self, engine, rows: np.ndarray, choice: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(due, final) masks over ``rows`` at env steps ``step`` (their held choices ``choice``): which rows decide
         now (every ``repeat`` steps, or at their early confirming step), and which of those are made GO for good
@@ -965,7 +975,7 @@ class BeliefLookahead:
         self.planner.read(engine, [0], obs["intent"][None])
         self._choice = int(self.planner.decide(engine, [0], np.array([self._choice]), np.array([self._t]))[0])
         self._t += 1
-        return meta_action(self._choice, obs["turn"], float(self.planner.yield_margin(engine, [0])[0]))
+        return int(self.planner.meta_actions(engine, [0], np.array([self._choice]), np.asarray(obs["turn"])[None])[0])
 
 
 def _on_tracks(env: gym.Env) -> bool:

@@ -478,7 +478,9 @@ def play(args, parts: frozenset) -> dict:
                     at_go[r], went[r] = at_last[r], True
                     t_at[r] = now_of(engine, r)
         k[rows] += 1
-        obs, _, done, infos = venv.step(meta_actions(choice, obs["turn"]))
+        act = meta_actions(choice, obs["turn"])  # the idle rows' (unused)
+        act[rows] = planner.meta_actions(engine, rows, choice[rows], obs["turn"][rows])
+        obs, _, done, infos = venv.step(act)
         for r in np.flatnonzero(done):
             m = infos[r]["episode_metrics"]
             episodes.append((int(infos[r]["seed"]), bool(m["collision"]), bool(m["success"])))

@@ -346,7 +346,9 @@ def main() -> None:
                 if b == GO and choice[r] != GO:
                     takeback[r].append((round(float(engine.time[r]), 1), _blame(planner, engine, int(r))))
         k[rows] += 1
-        obs, _, done, infos = venv.step(meta_actions(choice, obs["turn"]))
+        act = meta_actions(choice, obs["turn"])  # the idle rows' (unused)
+        act[rows] = planner.meta_actions(engine, rows, choice[rows], obs["turn"][rows])
+        obs, _, done, infos = venv.step(act)
         for r in np.flatnonzero(done):
             m = infos[r]["episode_metrics"]
             t = engine.traffic

@@ -65,7 +65,9 @@ def truth_first_go(seeds: list[int]) -> dict[int, tuple]:
                 s = e.ego_slot(np.array([r]))[0]
                 first[r] = (round(float(e.time[r]), 1), float(e.traffic.x[r, s]), float(e.traffic.y[r, s]))
         k[rows] += 1
-        obs, _, done, infos = venv.step(meta_actions(choice, obs["turn"]))
+        act = meta_actions(choice, obs["turn"])  # the idle rows' (unused)
+        act[rows] = planner.meta_actions(e, rows, choice[rows], obs["turn"][rows])
+        obs, _, done, infos = venv.step(act)
         for r in np.flatnonzero(done):
             out[int(infos[r]["seed"])] = (first[r], bool(infos[r]["episode_metrics"]["success"]))
     return out
@@ -193,7 +195,9 @@ def main() -> None:
                 same = np.hypot(engine.traffic.x[r, s] - go[1], engine.traffic.y[r, s] - go[2]) < SAME_EGO_M
                 first_cause[r] = c if same else "egos apart"
         k[rows] += 1
-        obs, _, done, infos = venv.step(meta_actions(choice, obs["turn"]))
+        act = meta_actions(choice, obs["turn"])  # the idle rows' (unused)
+        act[rows] = planner.meta_actions(engine, rows, choice[rows], obs["turn"][rows])
+        obs, _, done, infos = venv.step(act)
         for r in np.flatnonzero(done):
             m, seed = infos[r]["episode_metrics"], int(infos[r]["seed"])
             lost = truth[seed][1] and not m["success"]

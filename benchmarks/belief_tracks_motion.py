@@ -96,7 +96,9 @@ def main() -> None:
         got.append(pairs(planner, venv.engine, rows, obs["intent"][rows]))
         choice[rows] = planner.decide(venv.engine, rows, choice[rows], k[rows])
         k[rows] += 1
-        obs, _, _, _ = venv.step(meta_actions(choice, obs["turn"]))
+        act = meta_actions(choice, obs["turn"])  # the idle rows' (unused)
+        act[rows] = planner.meta_actions(venv.engine, rows, choice[rows], obs["turn"][rows])
+        obs, _, _, _ = venv.step(act)
     allp = np.concatenate(got)
     print(json.dumps({"point": point, "episodes": len(seeds), "all": summary(allp),
                       "pulling_away": summary(allp[allp[:, 3] > 2.0]), "braking": summary(allp[allp[:, 3] < -2.0]),

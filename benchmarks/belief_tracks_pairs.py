@@ -155,7 +155,9 @@ def main() -> None:
                                "real": [engine.traffic.subset(everyone)], "start": te.subset(np.arange(te.B)),
                                "live": np.ones(f.B, bool)}
         k[rows] += 1
-        obs, _, done, infos = venv.step(meta_actions(choice, obs["turn"]))
+        act = meta_actions(choice, obs["turn"])  # the idle rows' (unused)
+        act[rows] = planner.meta_actions(engine, rows, choice[rows], obs["turn"][rows])
+        obs, _, done, infos = venv.step(act)
         for r in np.flatnonzero(~venv.idle & ~done):
             kp = kept[r]
             if kp is None:

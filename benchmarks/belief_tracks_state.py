@@ -45,7 +45,9 @@ def main() -> None:
         replaced += true_states(planner.tracks.engine, engine, rows, radius)
         choice[rows] = planner.decide(engine, rows, choice[rows], k[rows])
         k[rows] += 1
-        obs, _, done, infos = venv.step(meta_actions(choice, obs["turn"]))
+        act = meta_actions(choice, obs["turn"])  # the idle rows' (unused)
+        act[rows] = planner.meta_actions(engine, rows, choice[rows], obs["turn"][rows])
+        obs, _, done, infos = venv.step(act)
         for r in np.flatnonzero(done):
             m = infos[r]["episode_metrics"]
             rows_out.append((infos[r]["seed"], bool(m["collision"]), bool(m["success"])))

@@ -189,7 +189,9 @@ def main() -> None:
                     f5, held, brake = _played(_futures(planner, engine, int(r)), repeat - int(k[r]) % repeat)
                     kept[r] = (float(engine.time[r]), f5, held, brake, _users(planner, int(r)))
         k[rows] += 1
-        obs, _, done, infos = venv.step(meta_actions(choice, obs["turn"]))
+        act = meta_actions(choice, obs["turn"])  # the idle rows' (unused)
+        act[rows] = planner.meta_actions(engine, rows, choice[rows], obs["turn"][rows])
+        obs, _, done, infos = venv.step(act)
         for r in np.flatnonzero(done):
             m = infos[r]["episode_metrics"]
             print(json.dumps({"seed": infos[r]["seed"], "collision": bool(m["collision"]),

@@ -254,7 +254,9 @@ def replay(args, params, seeds: list[int], shares_from: dict | None = None) -> l
         for r in rows:
             hist[r] = (hist[r] + [snapshot(engine, int(r))])[-HISTORY:]
         k[rows] += 1
-        obs, _, done, infos = venv.step(meta_actions(choice, obs["turn"]))
+        act = meta_actions(choice, obs["turn"])  # the idle rows' (unused)
+        act[rows] = planner.meta_actions(engine, rows, choice[rows], obs["turn"][rows])
+        obs, _, done, infos = venv.step(act)
         for r in np.flatnonzero(done):
             if infos[r]["episode_metrics"]["collision"]:
                 out.append({"seed": infos[r]["seed"], "on_truth": bool(args.on_truth),

@@ -178,7 +178,7 @@ class _Decider:
             self.planner.read(self.engine, rows, obs["intent"][rows])
             self.choice[rows] = self.planner.decide(self.engine, rows, self.choice[rows], self.k[rows])
             self.k[rows] += 1
-            out[rows] = meta_actions(self.choice[rows], obs["turn"][rows], self.planner.yield_margin(self.engine, rows))
+            out[rows] = self.planner.meta_actions(self.engine, rows, self.choice[rows], obs["turn"][rows])
         else:
             p = self.policy
             ask = rows[self.k[rows] % p.repeat == 0]
