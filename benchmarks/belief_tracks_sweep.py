@@ -83,6 +83,19 @@ def traced_batch(description: str, match: bool = False, extra=None):
     return point, params, venv, obs, planner, args
 
 
+def decide_due(planner, engine, obs, rows, choice, k):
+    """One env step of the planner's own decisions on ``rows`` of a traced batch (the tracing tools' shared step):
+    read the detections, decide where due (``choice`` updated in place); returns (the rows that decided, their
+    choices before)."""
+    planner.read(engine, rows, obs["intent"][rows])
+    live, _ = planner.live(engine, rows, choice[rows], k[rows])
+    due = rows[live]
+    before = choice[due].copy()
+    if len(due):
+        choice[rows] = planner.decide(engine, rows, choice[rows], k[rows])
+    return due, before
+
+
 def main() -> None:
     from agents.belief import BeliefLookahead
     from av_gym.presets import compose_group

@@ -35,7 +35,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # the checkout's agents/ and eval/
 from belief_tracks_diagnose import _blame  # noqa: E402  (this folder is sys.path[0] when run as a script)
-from belief_tracks_sweep import traced_batch  # noqa: E402
+from belief_tracks_sweep import decide_due, traced_batch  # noqa: E402
 from belief_tracks_truth import decision_p, nearest_cars  # noqa: E402
 
 KINEMATIC = ("x", "y", "h", "v", "acc", "steer", "lane")
@@ -172,12 +172,8 @@ def main() -> None:
     repeat = int(params.repeat)
     while not venv.idle.all():
         rows = np.flatnonzero(~venv.idle)
-        planner.read(engine, rows, obs["intent"][rows])
-        live, _ = planner.live(engine, rows, choice[rows], k[rows])
-        due = rows[live]
+        due, before = decide_due(planner, engine, obs, rows, choice, k)
         if len(due):
-            before = choice[due].copy()
-            choice[rows] = planner.decide(engine, rows, choice[rows], k[rows])
             for r, b in zip(due, before):
                 if b == GO and choice[r] != GO and kept[r] is not None:
                     rec = takeback(planner, engine, int(r), kept[r])
