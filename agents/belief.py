@@ -631,7 +631,7 @@ class BeliefPlanner:
         scale = EGO_SCALES["to_stop_line"]
         d_stop = np.clip(-engine.truth(rows)["stop_line_offset"], -scale, scale)
         # fmax, not maximum: a NaN distance (a non-finite stop_line_offset) falls back to the line's margin; a NaN
-        # margin made meta_actions answer FASTER, so YIELD would have sped up (R8 finding 5)
+        # margin made meta_actions answer FASTER, so YIELD would have sped up
         return np.fmax(margin, d_stop - (gap - float(p.wait_gap)))
 
     def meta_actions(self, engine, rows, choice: np.ndarray, turn: np.ndarray) -> np.ndarray:

@@ -267,7 +267,7 @@ def test_the_batch_evaluation_waits_where_the_per_env_agent_does():
 def test_a_nan_distance_to_the_line_falls_back_to_the_lines_margin():
     """A non-finite ``stop_line_offset`` (NaN) leaves the margin at the line's (MARGIN + ``wait_back``), a road user
     ahead or not, never NaN: meta_actions reads a NaN margin as room to speed up (FASTER), so YIELD would
-    accelerate (R8 finding 5)."""
+    accelerate."""
     rows = [[(10.0, 0.0, 0.7)], [(30.5, 0.0, 0.7)]]  # one in reach, one beyond it
     np.testing.assert_array_equal(_margin(rows, [np.nan] * 2, wait_gap=3.0), [MARGIN] * 2)
     m = _margin(rows, [np.nan] * 2, wait_gap=3.0, wait_back=1.5)

@@ -1,5 +1,5 @@
 """Arrival ends the left turn's episode in every mode and action type, and pays ``rewards.arrived`` once; the batch
-(av_gym/batched/left_turn.py) ends and pays it as the per-env env does (R7 finding 7).
+(av_gym/batched/left_turn.py) ends and pays it as the per-env env does.
 
 Before: a CCFtap ego arriving before the target had passed (continuous acceleration at full throttle, or a target
 ``dt`` seconds late) was paid the arrival every step, drove off the end of the exit lane at up to 40 m/s and the

@@ -1,5 +1,5 @@
 """`python -m eval.ccftap`: the shield's ``inf`` "not yet" sentinel (``av_gym.shields.aeb.NOT_YET``) reaches the
-rows and the table as NaN / '–', never as ``inf`` (R8 finding 1)."""
+rows and the table as NaN / '–', never as ``inf``."""
 
 from __future__ import annotations
 

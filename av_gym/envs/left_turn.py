@@ -304,7 +304,7 @@ class UnprotectedLeftTurnEnv(ScenarioMixin, IntersectionEnv):
         # test has nothing left to score. A CCFtap ego that has not arrived (stopped, or slow) runs on until the
         # time limit, so one parked in the target's path is hit. Before, a CCFtap ego arriving before the target
         # had passed (continuous acceleration, or a large dt) was paid the arrival every step and drove off the end
-        # of the exit lane, where the batch's lane following differs (R7 finding 7).
+        # of the exit lane, where the batch's lane following differs.
         return bool(self.has_arrived(ego))
 
     def _is_truncated(self) -> bool:

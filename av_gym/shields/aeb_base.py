@@ -275,7 +275,7 @@ class AEBShield(gym.Wrapper):
     def _make_info(self, stage, ttc, horizon, target, active, infeasible, applied) -> dict:
         """The shield's ``info`` keys (:mod:`av_gym.shields.aeb`), each with one type in every step and at reset:
         Gymnasium's vector envs batch a key into an array typed by the first env's value, so None beside a number
-        (one env just reset, the other driving) raised a TypeError in ``_add_info`` (R7 finding 1)."""
+        (one env just reset, the other driving) raised a TypeError in ``_add_info``."""
         return {"aeb_stage": int(stage), "aeb_ttc": float(ttc), "aeb_horizon": float(horizon),
                 "aeb_override": bool(stage == BRAKE), "shield_override": bool(stage == BRAKE),
                 "aeb_target_id": int(target), "aeb_active": bool(active), "aeb_infeasible": bool(infeasible),

@@ -563,8 +563,8 @@ def _idm_with(b, i, f, s_i, s_f, ci, si, cf, sf, v, target, delta, lane, speed_l
 # P_EGO_MARGIN (m): a planner's futures only (Traffic.ego_margin); 0, the real engine's, skips its test
 (P_VEHICLE_LENGTH, P_LENGTH, P_WIDTH, P_COMFORT_MAX, P_COMFORT_MIN, P_ACC_MAX, P_DISTANCE, P_TIME, P_TAU, P_KP_LAT,
  P_KP_HEAD, P_KP_A, P_MAX_STEER, P_EXIT_DISTANCE, P_EGO_MARGIN) = range(15)
-# m/s, highway-env's Vehicle.MAX_SPEED / MIN_SPEED (clip_actions): reached by a CCFtap target above 144 km/h or a fast
-# continuous ego at full throttle; without them the batch split from the per-env stack there (R7 finding 7)
+# m/s, highway-env's Vehicle.MAX_SPEED / MIN_SPEED (clip_actions): reached by a fast continuous ego at full throttle
+# (a CCFtap target is capped at 144 km/h, 40 m/s); without them the batch split from the per-env stack there
 MAX_SPEED, MIN_SPEED = 40.0, -40.0
 SLOWER, FASTER = 0, 2
 
