@@ -394,8 +394,9 @@ def check_action_space(plan: AgentPlan, env_cfg: dict, checkpoints: str | Path) 
     """Refuse (one line, before any episode) an agent whose actions the env does not take: otherwise the agents
     listed before it run and write their rows first and its first step fails (``gap_acceptance`` gives
     meta-actions, ``env.action=continuous`` takes accelerations). The line names the agent, the ``env.action``
-    given and the values it can drive (each tried the same way); if it drives none, the problem is another (an
-    observation space), said as it is."""
+    given and the values it can drive (each tried the same way). An agent that drives no ``env.action`` has
+    another problem (a damaged checkpoint, another scenario's agent): not this check's, so left to the checks and
+    the job that say it where they always have (a sweep's job failing alone, the other cells run)."""
     import typing
 
     from av_gym.make import scenario_params
@@ -408,9 +409,8 @@ def check_action_space(plan: AgentPlan, env_cfg: dict, checkpoints: str | Path) 
     given = getattr(params, "action", None)
     works = [v for v in values if v != given and _first_action_problem(plan, {**env_cfg, "action": v},
                                                                          checkpoints) is None]
-    if not works:  # the problem as it is, the agent named once (building the agent may already name it)
-        named = problem.startswith(f"agent {plan.given!r}")
-        raise ConfigError(problem if named else f"agent {plan.given!r}: {problem}")
+    if not works:
+        return
     raise ConfigError(f"agent {plan.given!r} cannot drive env.action={given}: {problem}; it drives "
                       f"env.action={' or '.join(works)}")
 

@@ -34,3 +34,14 @@ def test_the_cte_figure_title_gives_metres_and_names_the_paper_scale():
     title = cte_title("pid", "layout B", trace)
     assert "mean |CTE| 0.200 m, max 0.30 m; paper units (lane = 100): mean 4.00, std 4.00, max 6.0" in title
     assert _bare_units(title) == []
+
+
+def test_pid_search_main_prints_its_best_line_and_preset(capsys):
+    """The command as documented runs to its end: the best line in m and the preset line for agents/pid.py (its
+    last print once read a name the table's rewrite removed)."""
+    from train import pid_search
+
+    res = pid_search.main(["--grid", "quick", "--refine", "0", "--seeds", "0"])
+    out = capsys.readouterr().out
+    b = res["best"]
+    assert f'"tuned": {{"kp": {b["kp"]:g}, "ki": {b["ki"]:g}, "kd": {b["kd"]:g}}}' in out and " m (" in out

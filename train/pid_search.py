@@ -180,6 +180,7 @@ def main(argv=None) -> dict:
         p.error("layout B is the held-out evaluation layout; tune on A")
     res = search(GRIDS[a.grid], a.seeds, a.track, a.osc_weight, a.refine, a.margin, a.max_osc)
     print("\n".join(report_lines(res)))
+    b = res["best"]
     print(f'agents/pid.py PRESETS:  "tuned": {{"kp": {b["kp"]:g}, "ki": {b["ki"]:g}, "kd": {b["kd"]:g}}},')
     if a.out:
         write_text_atomic(a.out, json.dumps(res, indent=2), "--out")
