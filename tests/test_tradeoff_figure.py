@@ -16,6 +16,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.test_side_tools_keep_files import _tradeoff  # python -m eval.tradeoff in this process: (exit code, stderr)
+
 ROOT = Path(__file__).resolve().parents[1]
 FIGURE = ROOT / "docs" / "tradeoff_test.png"
 POINTS = ROOT / "docs" / "tradeoff_test.points.csv"
@@ -142,16 +144,6 @@ def test_documented_command_redraws_the_shipped_points(tmp_path, monkeypatch, ca
 def _rows(path: Path, agent: str, seeds: range) -> Path:
     path.write_text("agent,seed,collision,success\n" + "".join(f"{agent},{s},0,1\n" for s in seeds))
     return path
-
-
-def _tradeoff(argv: list[str], capsys) -> tuple[int, str]:
-    from eval.tradeoff import main
-
-    try:
-        main(argv)
-    except SystemExit as exc:
-        return int(exc.code or 0), capsys.readouterr().err
-    return 0, capsys.readouterr().err
 
 
 def test_the_same_run_named_twice_is_refused(tmp_path, capsys):
